@@ -1,0 +1,69 @@
+"""`equidiff`: one CLI for the offline tools (train, dataset, bags, bench, check, viz) and the twin.
+
+Each leaf command lives in its own module under ``equidiff_ros.commands`` exposing
+``add_arguments(parser)`` and ``run(args) -> int``; it is imported only when invoked, so
+``equidiff train`` never imports rclpy and ``equidiff --help`` imports nothing heavy.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+# (command path) -> (module, one-line help)
+COMMANDS: dict[tuple[str, ...], tuple[str, str]] = {
+    ("train",): ("train", "train EquiDiff or the baseline from recorded bags"),
+    ("dataset", "stats"): ("dataset_stats", "episodes, durations, steps and action ranges of bags"),
+    ("bags", "repair"): ("bags_repair", "recover the messages of a bag whose recorder was killed"),
+    ("replay",): ("replay", "publish a recorded bag into the live ROS graph"),
+    ("viz",): ("viz", "rerun visualisation of the live graph, or convert bags to .rrd"),
+    ("check", "equivariance"): ("check_equivariance", "measure the noise predictor's C4/C8 equivariance error"),
+    ("bench", "voxelize"): ("bench_voxelize", "time voxelising 3 x 300k points against open3d"),
+    ("bench", "policy"): ("bench_policy", "time the encoder, one denoising step and DDIM-16"),
+    ("bench", "control"): ("bench_control", "tracking, safety and latency of the franka node on franky-sim"),
+    ("bench", "generalization"): ("bench_generalization", "EquiDiff vs baseline on unseen object yaw in the twin"),
+    ("twin", "collect"): ("twin_collect", "record scripted-expert demonstrations in the digital twin"),
+    ("twin", "run"): ("twin_run", "the main job: evaluate a policy end to end in the digital twin"),
+    ("export", "lerobot"): ("export_lerobot", "export bags to a LeRobot dataset"),
+}
+
+
+def _load(module: str):
+    return importlib.import_module(f"equidiff_ros.commands.{module}")
+
+
+def build_parser(argv: list[str]) -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="equidiff", description=__doc__.splitlines()[0])
+    root = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    groups: dict[str, argparse._SubParsersAction] = {}
+    for path, (module, help_text) in COMMANDS.items():
+        if len(path) == 1:
+            leaf = root.add_parser(path[0], help=help_text, description=help_text)
+        else:
+            if path[0] not in groups:
+                group = root.add_parser(path[0], help=f"{path[0]} commands")
+                groups[path[0]] = group.add_subparsers(dest="subcommand", metavar="SUBCOMMAND", required=True)
+            leaf = groups[path[0]].add_parser(path[1], help=help_text, description=help_text)
+        leaf.set_defaults(_module=module)
+        if list(path) == argv[: len(path)]:
+            try:
+                _load(module).add_arguments(leaf)
+            except ModuleNotFoundError as err:
+                if err.name != f"equidiff_ros.commands.{module}":
+                    raise
+                leaf.set_defaults(_missing=True)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    args = build_parser(argv).parse_args(argv)
+    if getattr(args, "_missing", False):
+        print(f"equidiff: '{' '.join(argv[:2])}' is not available in this build", file=sys.stderr)
+        return 2
+    return int(_load(args._module).run(args) or 0)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
