@@ -1,0 +1,127 @@
+"""Pose chunks: a sequence of absolute TCP targets with gripper widths, each at an absolute time.
+
+The wire format is ``trajectory_msgs/MultiDOFJointTrajectory`` (docs/architecture.md, note 3):
+``joint_names = ["fr3_hand_tcp", "gripper"]``, step ``i`` at ``header.stamp +
+points[i].time_from_start``, ``transforms[0]`` the TCP pose in the base frame,
+``transforms[1].translation.x`` the gripper width. The policy, teleop and the scripted
+expert all publish this, and the franka node, recorder, dataset and viz all read it, through
+the two functions here.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from . import geometry
+from .rosmsg import MsgFactory, stamp_to_ns
+
+JOINT_NAMES = ("fr3_hand_tcp", "gripper")
+
+
+class ChunkError(ValueError):
+    """A chunk that must not be executed (empty, NaN, non-orthonormal, out of order)."""
+
+
+@dataclass(frozen=True)
+class PoseChunk:
+    stamp_ns: int  # header stamp: observation time (policy) or command time (teleop)
+    times_ns: np.ndarray  # (K,) absolute time of each step, non-decreasing
+    poses: np.ndarray  # (K, 4, 4) TCP targets in the base frame
+    widths: np.ndarray  # (K,) gripper width targets, metres
+
+    def __post_init__(self):
+        validate_chunk(self)
+
+    def __len__(self) -> int:
+        return len(self.times_ns)
+
+    @property
+    def actions(self) -> np.ndarray:
+        """(K, 10) absolute actions."""
+        return geometry.pose_to_action(self.poses, self.widths)
+
+    def after(self, t_ns: int) -> "PoseChunk | None":
+        """The steps strictly later than ``t_ns`` (None if none are left)."""
+        keep = self.times_ns > t_ns
+        if not keep.any():
+            return None
+        return PoseChunk(self.stamp_ns, self.times_ns[keep], self.poses[keep], self.widths[keep])
+
+
+def validate_chunk(chunk: PoseChunk) -> None:
+    k = len(chunk.times_ns)
+    if k == 0:
+        raise ChunkError("chunk has no steps")
+    if chunk.poses.shape != (k, 4, 4) or chunk.widths.shape != (k,):
+        raise ChunkError(f"chunk arrays disagree: {k} times, poses {chunk.poses.shape}, widths {chunk.widths.shape}")
+    if np.any(np.diff(chunk.times_ns) < 0):
+        raise ChunkError("chunk step times go backwards")
+    if not np.all(np.isfinite(chunk.widths)):
+        raise ChunkError("chunk gripper widths contain NaN or inf")
+    try:
+        geometry.validate_pose(chunk.poses, tol=1e-3)
+    except geometry.GeometryError as err:
+        raise ChunkError(f"chunk pose invalid: {err}") from err
+
+
+def chunk_from_actions(actions: np.ndarray, stamp_ns: int, dt_ns: int, start_step: int = 0) -> PoseChunk:
+    """Actions (K, 10) -> chunk with step i at ``stamp_ns + (start_step + i) * dt_ns``."""
+    actions = np.asarray(actions, dtype=np.float64)
+    try:
+        poses, widths = geometry.action_to_pose(actions)
+    except geometry.GeometryError as err:
+        raise ChunkError(f"actions invalid: {err}") from err
+    times = stamp_ns + (start_step + np.arange(len(actions), dtype=np.int64)) * int(dt_ns)
+    return PoseChunk(int(stamp_ns), times, poses, np.asarray(widths, dtype=np.float64))
+
+
+def chunk_to_msg(chunk: PoseChunk, factory: MsgFactory, frame_id: str):
+    """PoseChunk -> trajectory_msgs/MultiDOFJointTrajectory (rclpy or rosbags flavour)."""
+    positions, quats = geometry.pos_quat_from_pose(chunk.poses)
+    mk = factory.make
+    identity = mk("geometry_msgs/msg/Quaternion", x=0.0, y=0.0, z=0.0, w=1.0)
+    points = []
+    for p, q, w, t in zip(positions, quats, chunk.widths, chunk.times_ns):
+        tcp = mk("geometry_msgs/msg/Transform",
+                 translation=mk("geometry_msgs/msg/Vector3", x=float(p[0]), y=float(p[1]), z=float(p[2])),
+                 rotation=mk("geometry_msgs/msg/Quaternion", x=float(q[0]), y=float(q[1]), z=float(q[2]), w=float(q[3])))
+        gripper = mk("geometry_msgs/msg/Transform",
+                     translation=mk("geometry_msgs/msg/Vector3", x=float(w), y=0.0, z=0.0), rotation=identity)
+        points.append(mk("trajectory_msgs/msg/MultiDOFJointTrajectoryPoint",
+                         transforms=[tcp, gripper], velocities=[], accelerations=[],
+                         time_from_start=factory.duration(int(t) - chunk.stamp_ns)))
+    return mk("trajectory_msgs/msg/MultiDOFJointTrajectory",
+              header=factory.header(chunk.stamp_ns, frame_id),
+              joint_names=list(JOINT_NAMES), points=points)
+
+
+def chunk_from_msg(msg) -> PoseChunk:
+    """MultiDOFJointTrajectory (either flavour) -> validated PoseChunk; raises ChunkError."""
+    names = list(msg.joint_names)
+    if names[:1] != [JOINT_NAMES[0]]:
+        raise ChunkError(f"chunk joint_names must start with {JOINT_NAMES[0]!r}, got {names}")
+    has_gripper = JOINT_NAMES[1] in names
+    if not msg.points:
+        raise ChunkError("chunk has no steps")
+    stamp = stamp_to_ns(msg.header.stamp)
+    times, positions, quats, widths = [], [], [], []
+    for i, point in enumerate(msg.points):
+        if len(point.transforms) != len(names):
+            raise ChunkError(f"step {i} has {len(point.transforms)} transforms for {len(names)} joints")
+        tcp = point.transforms[0]
+        times.append(stamp + stamp_to_ns(point.time_from_start))
+        positions.append([tcp.translation.x, tcp.translation.y, tcp.translation.z])
+        quats.append([tcp.rotation.x, tcp.rotation.y, tcp.rotation.z, tcp.rotation.w])
+        widths.append(point.transforms[names.index(JOINT_NAMES[1])].translation.x if has_gripper else np.nan)
+    quats = np.asarray(quats, dtype=np.float64)
+    if not np.all(np.isfinite(quats)) or not np.all(np.isfinite(positions)):
+        raise ChunkError("chunk poses contain NaN or inf")
+    norms = np.linalg.norm(quats, axis=1)
+    if np.any(np.abs(norms - 1.0) > 1e-3):
+        raise ChunkError(f"chunk quaternions are not unit length (|q| = {norms.round(4).tolist()})")
+    if not has_gripper:
+        raise ChunkError(f"chunk has no {JOINT_NAMES[1]!r} joint")
+    poses = geometry.pose_from_pos_quat(np.asarray(positions), quats)
+    return PoseChunk(stamp, np.asarray(times, dtype=np.int64), poses, np.asarray(widths, dtype=np.float64))
