@@ -9,7 +9,7 @@ from glob import glob
 from setuptools import find_packages, setup
 
 PACKAGE = "equidiff_ros"
-NODES = ["camera_node", "voxel_node", "policy_node", "franka_node", "teleop_node", "recorder_node"]
+NODES = ["camera_node", "voxel_node", "policy_node", "franka_node", "teleop_node", "recorder_node", "twin_node"]
 
 setup(
     name=PACKAGE,

@@ -1,0 +1,53 @@
+"""The camera interface every backend (realsense, twin, replay) implements.
+
+Shape borrowed from LeRobot's ``cameras/``: an abstract context manager with
+``connect`` / ``read`` / ``disconnect``, one small folder per backend with its own config
+dataclass. A backend yields coloured point clouds in its *optical* frame, stamped with the
+capture time; the camera node publishes them, the voxel node transforms them to the base
+frame with the configured extrinsics.
+"""
+
+from __future__ import annotations
+
+import abc
+from dataclasses import dataclass
+
+import numpy as np
+
+
+class CameraError(RuntimeError):
+    """The camera cannot deliver frames (not found, disconnected, timed out)."""
+
+
+@dataclass(frozen=True)
+class CloudFrame:
+    points: np.ndarray  # (N, 3) float32, metres, optical frame (x right, y down, z forward)
+    colors: np.ndarray  # (N, 3) uint8 RGB
+    stamp_ns: int  # capture time on the ROS clock (wall time on hardware, sim time in the twin)
+
+
+class Camera(abc.ABC):
+    """A source of coloured point clouds. Use as ``with make_camera(...) as cam: cam.read()``."""
+
+    @abc.abstractmethod
+    def connect(self) -> None:
+        """Open the device or source; raise CameraError naming what was looked for if it is absent."""
+
+    @abc.abstractmethod
+    def read(self, timeout_s: float = 1.0) -> CloudFrame:
+        """Block until the next frame (at most ``timeout_s``); raise CameraError on timeout."""
+
+    @abc.abstractmethod
+    def disconnect(self) -> None:
+        """Release the device; safe to call twice."""
+
+    @property
+    @abc.abstractmethod
+    def is_connected(self) -> bool: ...
+
+    def __enter__(self) -> "Camera":
+        self.connect()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.disconnect()
