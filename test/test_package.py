@@ -1,0 +1,96 @@
+"""The package installs two ways: colcon (ament index, lib/equidiff_ros executables, share/) and pip -e."""
+
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+NODES = ["camera_node", "voxel_node", "policy_node", "franka_node", "teleop_node", "recorder_node", "twin_node"]
+BIN = Path(sys.executable).parent
+
+
+@pytest.fixture(scope="module")
+def colcon_install(tmp_path_factory) -> Path:
+    colcon = shutil.which("colcon", path=str(BIN)) or shutil.which("colcon")
+    if colcon is None:
+        pytest.fail("colcon is not installed (scripts/setup.sh installs colcon-core + colcon-ros)")
+    base = tmp_path_factory.mktemp("colcon")
+    # Build from a copy so colcon's build artefacts never touch the checkout.
+    src = base / "src" / "equidiff_ros"
+    shutil.copytree(ROOT, src, ignore=shutil.ignore_patterns(".venv", ".git", "*.egg-info", "__pycache__", "bags",
+                                                             "checkpoints", "build", "install", "log"))
+    result = subprocess.run(
+        [colcon, "--log-base", str(base / "log"), "build", "--base-paths", str(base / "src"),
+         "--build-base", str(base / "build"), "--install-base", str(base / "install")],
+        cwd=base, capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0, result.stdout + result.stderr
+    return base / "install"
+
+
+def test_colcon_registers_the_package_and_installs_share_files(colcon_install):
+    prefix = colcon_install / "equidiff_ros"
+    assert (prefix / "share/ament_index/resource_index/packages/equidiff_ros").is_file()
+    assert (prefix / "share/equidiff_ros/package.xml").is_file()
+    assert (prefix / "share/equidiff_ros/config/lab.yaml").is_file()
+    launch_files = sorted(p.name for p in (prefix / "share/equidiff_ros/launch").glob("*.py"))
+    assert launch_files, "launch files are installed to share/equidiff_ros/launch"
+
+
+@pytest.mark.parametrize("node", NODES)
+def test_colcon_node_executables_start(colcon_install, node):
+    exe = colcon_install / "equidiff_ros/lib/equidiff_ros" / node
+    assert exe.is_file() and os.access(exe, os.X_OK)
+    site = next((colcon_install / "equidiff_ros/lib").glob("python3*/site-packages"))
+    env = dict(os.environ, PYTHONPATH=f"{site}{os.pathsep}{os.environ.get('PYTHONPATH', '')}")
+    result = subprocess.run([str(exe), "--help"], capture_output=True, text=True, timeout=120, env=env)
+    assert result.returncode == 0, result.stderr[-2000:]
+    assert "usage" in (result.stdout + result.stderr).lower()
+
+
+def test_installed_config_is_found_by_the_installed_package(colcon_install):
+    site = next((colcon_install / "equidiff_ros/lib").glob("python3*/site-packages"))
+    code = "from equidiff_core.config import default_config_dir; print(default_config_dir())"
+    env = dict(os.environ, PYTHONPATH=str(site))
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, cwd="/", timeout=60)
+    assert out.returncode == 0, out.stderr
+    assert Path(out.stdout.strip()) == colcon_install / "equidiff_ros/share/equidiff_ros/config"
+
+
+def test_pip_editable_install_exposes_nodes_and_cli():
+    for node in NODES + ["equidiff"]:
+        assert (BIN / node).is_file(), f"{node} missing from {BIN}"
+    result = subprocess.run([str(BIN / "equidiff"), "--help"], capture_output=True, text=True, timeout=60)
+    assert result.returncode == 0
+    for command in ["train", "dataset", "bags", "replay", "viz", "check", "bench", "twin"]:
+        assert command in result.stdout
+    bench = subprocess.run([str(BIN / "equidiff"), "bench", "--help"], capture_output=True, text=True, timeout=60)
+    for sub in ["voxelize", "policy", "control", "generalization"]:
+        assert sub in bench.stdout
+
+
+def test_package_xml_declares_runtime_dependencies():
+    import xml.etree.ElementTree as ET
+
+    root = ET.parse(ROOT / "package.xml").getroot()
+    assert root.get("format") == "3"
+    deps = {e.text for e in root.iter("exec_depend")}
+    assert {"rclpy", "sensor_msgs", "geometry_msgs", "trajectory_msgs", "std_msgs", "std_srvs",
+            "diagnostic_msgs", "tf2_msgs"} <= deps
+    assert root.find("export/build_type").text == "ament_python"
+
+
+def test_setup_script_is_idempotent_and_fast_the_second_time():
+    result = subprocess.run(["bash", str(ROOT / "scripts/setup.sh")], capture_output=True, text=True, timeout=120)
+    assert result.returncode == 0, result.stderr
+    assert "[setup] python packages" not in result.stdout  # nothing reinstalled
+
+
+def test_escnn_imports_under_numpy2_and_pip_check_is_clean():
+    code = "import numpy, escnn, lie_learn.representations.SO3.wigner_d; assert numpy.__version__ >= '2'"
+    assert subprocess.run([sys.executable, "-c", code], capture_output=True, timeout=120).returncode == 0
+    check = subprocess.run([sys.executable, "-m", "pip", "check"], capture_output=True, text=True, timeout=120)
+    assert check.returncode == 0, check.stdout
