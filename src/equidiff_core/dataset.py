@@ -1,0 +1,427 @@
+"""Training samples from episode bags (no ROS install needed): the model contract's batch format.
+
+One observation per ``/voxels`` message (5 Hz), at its header stamp ``t``:
+
+* ``voxels``: the exact uint8 (4, R, R, R) grid (``pointcloud.voxel_msg_to_grid``);
+* ``ee``: the ``/franka/ee_pose`` nearest to ``t`` (header stamps) and the gripper width from
+  the ``/franka/joint_states`` nearest to ``t`` (sum of the two finger joints), as a 10-D
+  absolute action; both must lie within ``state_tolerance_s`` or the step is dropped (and
+  counted) rather than paired with a stale state.
+
+Actions: the commanded absolute target *in effect* at ``t + i·dt`` (i = 0 … horizon−1, dt =
+the observation period). "In effect" replays what the franka node does with
+``/franka/command_chunk``: a newer chunk replaces the not-yet-reached steps of older ones,
+and between steps the latest reached step holds (teleop chunks have one step). Before the
+first command the robot holds its measured pose.
+
+Windows and padding follow the official code's ``SequenceSampler`` (pad_before =
+n_obs_steps − 1, pad_after = n_action_steps − 1): window starts run from −pad_before to
+N − horizon + pad_after, indices outside the episode repeat the first/last step.
+
+Decoding happens once per bag: episodes are kept in memory as sparse voxel lists (a grid is
+~1 MiB dense, ~40 KiB sparse), and with ``cache_dir`` also on disk keyed by the bag's size
+and mtime, so neither the second epoch nor the second run decodes bags again.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import random
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Iterable, Sequence
+
+import numpy as np
+
+from . import geometry
+from .bags import BagError, EpisodeMeta, find_bags, read_episode
+from .chunk import ChunkError, chunk_from_msg
+from .pointcloud import CloudError, voxel_msg_to_grid
+from .rosmsg import NS_PER_S
+
+TOPIC_VOXELS = "/voxels"
+TOPIC_EE_POSE = "/franka/ee_pose"
+TOPIC_JOINT_STATES = "/franka/joint_states"
+TOPIC_COMMAND_CHUNK = "/franka/command_chunk"
+FINGER_JOINTS = ("fr3_finger_joint1", "fr3_finger_joint2")
+CACHE_VERSION = 1
+
+
+@dataclass(frozen=True)
+class DatasetConfig:
+    horizon: int = 16
+    n_obs_steps: int = 1
+    n_action_steps: int = 8
+    resolution: int = 64
+    state_tolerance_s: float = 0.05  # ee pose / joint state must be this close to the voxel stamp
+    obs_period_s: float | None = None  # None: the median interval of the bag's /voxels stamps
+    cache_dir: str | None = None
+
+    def __post_init__(self):
+        if self.horizon < 1 or self.n_obs_steps < 1 or not 1 <= self.n_action_steps <= self.horizon:
+            raise ValueError(f"need horizon >= n_action_steps >= 1 and n_obs_steps >= 1, got {self}")
+        if self.state_tolerance_s <= 0:
+            raise ValueError("state_tolerance_s must be positive")
+
+    @classmethod
+    def from_preset(cls, preset: Any, **overrides: Any) -> "DatasetConfig":
+        """Horizon, observation steps and action steps from a model preset (``presets.PolicyPreset``)."""
+        kw = dict(horizon=preset.horizon, n_obs_steps=preset.n_obs_steps, n_action_steps=preset.n_action_steps)
+        kw.update(overrides)
+        return cls(**kw)
+
+
+@dataclass
+class EpisodeArrays:
+    """One decoded episode, ready for sampling."""
+
+    path: Path
+    meta: EpisodeMeta
+    stamps_ns: np.ndarray  # (N,) observation (voxel header) stamps
+    voxel_offsets: np.ndarray  # (N + 1,) into voxel_idx / voxel_rgb
+    voxel_idx: np.ndarray  # (M, 3) uint16 occupied voxel indices
+    voxel_rgb: np.ndarray  # (M, 3) uint8
+    ee: np.ndarray  # (N, 10) float32 measured TCP pose + gripper width
+    schedule_ns: np.ndarray  # (K,) times of the effective command schedule (first = -inf sentinel)
+    schedule: np.ndarray  # (K, 10) float64 absolute targets
+    obs_period_ns: int
+    dropped_steps: int = 0
+    rejected_chunks: int = 0
+
+    def __len__(self) -> int:
+        return len(self.stamps_ns)
+
+    @property
+    def duration_s(self) -> float:
+        return float(self.stamps_ns[-1] - self.stamps_ns[0]) / NS_PER_S if len(self) else 0.0
+
+    def grid(self, i: int, resolution: int) -> np.ndarray:
+        a, b = self.voxel_offsets[i], self.voxel_offsets[i + 1]
+        idx, rgb = self.voxel_idx[a:b].astype(np.intp), self.voxel_rgb[a:b]
+        grid = np.zeros((4, resolution, resolution, resolution), dtype=np.uint8)
+        grid[0, idx[:, 0], idx[:, 1], idx[:, 2]] = 255
+        for c in range(3):
+            grid[1 + c, idx[:, 0], idx[:, 1], idx[:, 2]] = rgb[:, c]
+        return grid
+
+    def targets_at(self, times_ns: np.ndarray) -> np.ndarray:
+        """(T,) times -> (T, 10) the commanded target in effect at each (zero-order hold)."""
+        k = np.searchsorted(self.schedule_ns, np.asarray(times_ns, dtype=np.int64), side="right") - 1
+        return self.schedule[np.maximum(k, 0)]
+
+    @property
+    def actions(self) -> np.ndarray:
+        """(N, 10) the target in effect at each observation."""
+        return self.targets_at(self.stamps_ns)
+
+
+def _nearest(sorted_ns: np.ndarray, t_ns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Index of and |distance| to the nearest element of ``sorted_ns`` for each ``t_ns``."""
+    j = np.clip(np.searchsorted(sorted_ns, t_ns), 1, len(sorted_ns) - 1) if len(sorted_ns) > 1 else \
+        np.zeros(len(t_ns), dtype=np.int64)
+    if len(sorted_ns) == 1:
+        return j, np.abs(sorted_ns[0] - t_ns)
+    left, right = sorted_ns[j - 1], sorted_ns[j]
+    use_left = np.abs(t_ns - left) <= np.abs(right - t_ns)
+    idx = np.where(use_left, j - 1, j)
+    return idx, np.abs(sorted_ns[idx] - t_ns)
+
+
+def command_schedule(chunks: Sequence[Any]) -> tuple[np.ndarray, np.ndarray]:
+    """PoseChunks in arrival order -> the effective (times, targets) as the franka node executes them.
+
+    A newer chunk replaces every step of the previous schedule at or after its first step.
+    """
+    times: list[int] = []
+    targets: list[np.ndarray] = []
+    for chunk in sorted(chunks, key=lambda c: c.stamp_ns):
+        first = int(chunk.times_ns[0])
+        while times and times[-1] >= first:
+            times.pop()
+            targets.pop()
+        times.extend(int(t) for t in chunk.times_ns)
+        targets.extend(chunk.actions)
+    if not times:
+        return np.zeros(0, np.int64), np.zeros((0, geometry.ACTION_DIM))
+    return np.asarray(times, dtype=np.int64), np.asarray(targets, dtype=np.float64)
+
+
+def _ee_actions(episode, stamps_ns: np.ndarray, tol_ns: int) -> tuple[np.ndarray, np.ndarray]:
+    """(N, 10) measured pose + width at each stamp and a (N,) mask of steps within tolerance."""
+    poses_t = episode[TOPIC_EE_POSE]
+    pose_ns = poses_t.header_ns()
+    order = np.argsort(pose_ns, kind="stable")
+    pose_ns = pose_ns[order]
+    pi, pd = _nearest(pose_ns, stamps_ns)
+    js_t = episode[TOPIC_JOINT_STATES]
+    js_ns = js_t.header_ns()
+    js_order = np.argsort(js_ns, kind="stable")
+    widths = []
+    for msg in (js_t.messages[i] for i in js_order):
+        names = list(msg.name)
+        try:
+            widths.append(sum(float(msg.position[names.index(n)]) for n in FINGER_JOINTS))
+        except ValueError:
+            widths.append(np.nan)  # a message without finger joints (e.g. an arm-only publisher)
+    widths = np.asarray(widths)
+    valid_js = np.isfinite(widths)
+    if not valid_js.any():
+        raise BagError(f"{episode.path}: /franka/joint_states has no {' / '.join(FINGER_JOINTS)} positions")
+    js_ns_valid, widths = js_ns[js_order][valid_js], widths[valid_js]
+    wi, wd = _nearest(js_ns_valid, stamps_ns)
+    ok = (pd <= tol_ns) & (wd <= tol_ns)
+    out = np.zeros((len(stamps_ns), geometry.ACTION_DIM), dtype=np.float32)
+    for n in np.nonzero(ok)[0]:
+        p = poses_t.messages[order[pi[n]]].pose
+        T = geometry.pose_from_pos_quat([p.position.x, p.position.y, p.position.z],
+                                        [p.orientation.x, p.orientation.y, p.orientation.z, p.orientation.w])
+        out[n] = geometry.pose_to_action(T, np.float64(widths[wi[n]]))
+    return out, ok
+
+
+def load_episode_arrays(path: str | Path, config: DatasetConfig = DatasetConfig()) -> EpisodeArrays:
+    """Decode one bag into EpisodeArrays; BagError (with the reason) if it cannot make a clean episode."""
+    path = Path(path)
+    cached = _cache_load(path, config)
+    if cached is not None:
+        return cached
+    episode = read_episode(path, topics=(TOPIC_VOXELS, TOPIC_EE_POSE, TOPIC_JOINT_STATES, TOPIC_COMMAND_CHUNK))
+    for topic in (TOPIC_VOXELS, TOPIC_EE_POSE, TOPIC_JOINT_STATES, TOPIC_COMMAND_CHUNK):
+        if topic not in episode:
+            raise BagError(f"{path}: no messages on {topic}")
+    vox = episode[TOPIC_VOXELS]
+    stamps = vox.header_ns()
+    order = np.argsort(stamps, kind="stable")
+    stamps = stamps[order]
+    if np.any(np.diff(stamps) <= 0):
+        raise BagError(f"{path}: /voxels has repeated header stamps")
+    if len(stamps) >= 2:
+        period = int(round(config.obs_period_s * NS_PER_S)) if config.obs_period_s else int(np.median(np.diff(stamps)))
+    else:
+        period = int(round((config.obs_period_s or 0.2) * NS_PER_S))
+    ee, ok = _ee_actions(episode, stamps, int(config.state_tolerance_s * NS_PER_S))
+
+    chunks, rejected = [], 0
+    for msg in episode[TOPIC_COMMAND_CHUNK].messages:
+        try:
+            chunks.append(chunk_from_msg(msg))
+        except ChunkError:
+            rejected += 1  # the franka node rejected it too: it was never executed
+    sched_ns, sched = command_schedule(chunks)
+    if not len(sched_ns):
+        raise BagError(f"{path}: no valid command chunks")
+
+    keep = np.nonzero(ok)[0]
+    if not len(keep):
+        raise BagError(f"{path}: no /voxels stamp has an ee pose and joint state within "
+                       f"{config.state_tolerance_s * 1e3:.0f} ms")
+    offsets, idx_parts, rgb_parts = [0], [], []
+    for n in keep:
+        try:
+            grid = voxel_msg_to_grid(vox.messages[order[n]], config.resolution)
+        except CloudError as err:
+            raise BagError(f"{path}: malformed /voxels message {n}: {err}") from err
+        occ = np.nonzero(grid[0])
+        idx_parts.append(np.stack(occ, axis=1).astype(np.uint16))
+        rgb_parts.append(grid[1:, occ[0], occ[1], occ[2]].T.copy())
+        offsets.append(offsets[-1] + len(occ[0]))
+    # Before the first command the robot holds its measured pose.
+    hold = ee[keep[0]].astype(np.float64)
+    sched_ns = np.concatenate([[np.iinfo(np.int64).min], sched_ns])
+    sched = np.concatenate([hold[None], sched])
+    arrays = EpisodeArrays(
+        path=path, meta=episode.meta, stamps_ns=stamps[keep], voxel_offsets=np.asarray(offsets, dtype=np.int64),
+        voxel_idx=np.concatenate(idx_parts) if idx_parts else np.zeros((0, 3), np.uint16),
+        voxel_rgb=np.concatenate(rgb_parts) if rgb_parts else np.zeros((0, 3), np.uint8),
+        ee=ee[keep], schedule_ns=sched_ns, schedule=sched, obs_period_ns=period,
+        dropped_steps=int(len(stamps) - len(keep)), rejected_chunks=rejected)
+    if not np.all(np.isfinite(arrays.ee)) or not np.all(np.isfinite(arrays.schedule)):
+        raise BagError(f"{path}: NaN/inf in poses or commands")
+    _cache_save(arrays, config)
+    return arrays
+
+
+# --- disk cache -----------------------------------------------------------------------------
+
+def _cache_key(path: Path, config: DatasetConfig) -> str | None:
+    mcaps = sorted(path.glob("*.mcap"))
+    meta = path / "metadata.yaml"
+    if not mcaps or not meta.is_file():
+        return None
+    st = [(m.name, m.stat().st_size, m.stat().st_mtime_ns) for m in mcaps] + [(meta.stat().st_mtime_ns,)]
+    relevant = (config.resolution, config.state_tolerance_s, config.obs_period_s)
+    blob = json.dumps([CACHE_VERSION, str(path.resolve()), st, relevant])
+    return hashlib.sha1(blob.encode()).hexdigest()[:20]
+
+
+_ARRAY_FIELDS = ("stamps_ns", "voxel_offsets", "voxel_idx", "voxel_rgb", "ee", "schedule_ns", "schedule")
+
+
+def _cache_load(path: Path, config: DatasetConfig) -> EpisodeArrays | None:
+    if not config.cache_dir:
+        return None
+    key = _cache_key(path, config)
+    file = Path(config.cache_dir) / f"{key}.npz"
+    if key is None or not file.is_file():
+        return None
+    try:
+        with np.load(file, allow_pickle=False) as z:
+            extra = json.loads(str(z["extra"]))
+            return EpisodeArrays(path=path, meta=EpisodeMeta.from_dict(extra["meta"]),
+                                 obs_period_ns=extra["obs_period_ns"], dropped_steps=extra["dropped_steps"],
+                                 rejected_chunks=extra["rejected_chunks"],
+                                 **{k: z[k] for k in _ARRAY_FIELDS})
+    except Exception:  # a stale or partial cache file is rebuilt, never trusted
+        return None
+
+
+def _cache_save(arrays: EpisodeArrays, config: DatasetConfig) -> None:
+    if not config.cache_dir:
+        return
+    key = _cache_key(arrays.path, config)
+    if key is None:
+        return
+    folder = Path(config.cache_dir)
+    folder.mkdir(parents=True, exist_ok=True)
+    extra = json.dumps({"meta": arrays.meta.to_dict(), "obs_period_ns": arrays.obs_period_ns,
+                        "dropped_steps": arrays.dropped_steps, "rejected_chunks": arrays.rejected_chunks})
+    tmp = folder / f"{key}.tmp.npz"
+    np.savez(tmp, extra=np.array(extra), **{k: getattr(arrays, k) for k in _ARRAY_FIELDS})
+    tmp.replace(folder / f"{key}.npz")
+
+
+# --- sampling ---------------------------------------------------------------------------------
+
+def sample_starts(n: int, horizon: int, n_obs_steps: int, n_action_steps: int) -> np.ndarray:
+    """Window starts of the official SequenceSampler: -pad_before ... n - horizon + pad_after."""
+    pad_before, pad_after = n_obs_steps - 1, n_action_steps - 1
+    lo, hi = -pad_before, n - horizon + pad_after
+    return np.arange(lo, hi + 1, dtype=np.int64) if hi >= lo else np.zeros(0, np.int64)
+
+
+def load_episodes(paths: Iterable[str | Path], config: DatasetConfig = DatasetConfig(),
+                  log=None) -> tuple[list[EpisodeArrays], list[tuple[Path, str]]]:
+    """Decode every bag (folders expand to the bags inside); bad bags are reported and skipped."""
+    episodes, skipped = [], []
+    for path in find_bags(paths):
+        try:
+            ep = load_episode_arrays(path, config)
+        except (BagError, geometry.GeometryError, OSError) as err:
+            skipped.append((Path(path), str(err)))
+            if log:
+                log(f"skipping {path}: {err}")
+            continue
+        episodes.append(ep)
+    return episodes, skipped
+
+
+def split_episodes(episodes: Sequence[Any], val_fraction: float, seed: int) -> tuple[list, list]:
+    """Hold out whole episodes (never steps of a training episode) for validation."""
+    if not 0 <= val_fraction < 1:
+        raise ValueError(f"val_fraction must be in [0, 1), got {val_fraction}")
+    order = list(range(len(episodes)))
+    random.Random(seed).shuffle(order)
+    n_val = int(round(len(episodes) * val_fraction))
+    if val_fraction > 0 and n_val == 0 and len(episodes) > 1:
+        n_val = 1
+    val = sorted(order[:n_val])
+    train = sorted(order[n_val:])
+    return [episodes[i] for i in train], [episodes[i] for i in val]
+
+
+try:
+    from torch.utils.data import Dataset as _TorchDataset
+except ImportError:  # pragma: no cover
+    _TorchDataset = object
+
+
+class DemoDataset(_TorchDataset):
+    """Samples ``{"voxels": uint8 (To, 4, R, R, R), "ee": float32 (To, 10), "action": float32 (H, 10)}``."""
+
+    def __init__(self, episodes: Sequence[EpisodeArrays], config: DatasetConfig = DatasetConfig()):
+        self.config = config
+        self.episodes = list(episodes)
+        index = []
+        for e, ep in enumerate(self.episodes):
+            for s in sample_starts(len(ep), config.horizon, config.n_obs_steps, config.n_action_steps):
+                index.append((e, int(s)))
+        self.index = np.asarray(index, dtype=np.int64).reshape(-1, 2)
+
+    @classmethod
+    def from_bags(cls, paths: Iterable[str | Path], config: DatasetConfig = DatasetConfig(), log=None):
+        episodes, skipped = load_episodes(paths, config, log)
+        ds = cls(episodes, config)
+        ds.skipped = skipped
+        return ds
+
+    def __len__(self) -> int:
+        return len(self.index)
+
+    def window(self, i: int) -> tuple[EpisodeArrays, np.ndarray, np.ndarray]:
+        """(episode, observation step indices (To,), action times (H,)) of sample ``i``."""
+        e, start = self.index[i]
+        ep = self.episodes[e]
+        cfg = self.config
+        n = len(ep)
+        obs_idx = np.clip(start + np.arange(cfg.n_obs_steps), 0, n - 1)
+        # Action step j is the target in effect at observation step start + j; steps outside
+        # the episode repeat the first/last one (SequenceSampler padding). Using the recorded
+        # stamps (= t + j*dt for a regular stream) keeps camera jitter from shifting targets.
+        steps = np.clip(start + np.arange(cfg.horizon), 0, n - 1)
+        times = ep.stamps_ns[steps]
+        return ep, obs_idx, times
+
+    def __getitem__(self, i: int) -> dict:
+        import torch
+
+        ep, obs_idx, times = self.window(i)
+        voxels = np.stack([ep.grid(int(k), self.config.resolution) for k in obs_idx])
+        return {"voxels": torch.from_numpy(voxels),
+                "ee": torch.from_numpy(ep.ee[obs_idx].astype(np.float32)),
+                "action": torch.from_numpy(ep.targets_at(times).astype(np.float32))}
+
+    def all_actions(self) -> np.ndarray:
+        """(N, 10) every observation step's commanded target (for Normalizer.fit)."""
+        parts = [ep.actions for ep in self.episodes]
+        return np.concatenate(parts).astype(np.float32) if parts else np.zeros((0, 10), np.float32)
+
+    def all_ee(self) -> np.ndarray:
+        parts = [ep.ee for ep in self.episodes]
+        return np.concatenate(parts).astype(np.float32) if parts else np.zeros((0, 10), np.float32)
+
+
+# --- stats ------------------------------------------------------------------------------------
+
+def dataset_stats(paths: Iterable[str | Path], config: DatasetConfig = DatasetConfig()) -> dict:
+    """Episodes, durations, steps, samples and action ranges of bags; bad bags listed with reasons."""
+    episodes, skipped = load_episodes(paths, config)
+    rows = []
+    for ep in episodes:
+        acts = ep.actions
+        rows.append({
+            "path": str(ep.path), "task": ep.meta.task, "operator": ep.meta.operator, "success": ep.meta.success,
+            "duration_s": round(ep.duration_s, 3), "steps": len(ep),
+            "obs_hz": round(NS_PER_S / ep.obs_period_ns, 2) if ep.obs_period_ns else None,
+            "samples": int(len(sample_starts(len(ep), config.horizon, config.n_obs_steps, config.n_action_steps))),
+            "dropped_steps": ep.dropped_steps, "rejected_chunks": ep.rejected_chunks,
+            "action_min": acts.min(0).round(4).tolist(), "action_max": acts.max(0).round(4).tolist(),
+        })
+    all_actions = np.concatenate([ep.actions for ep in episodes]) if episodes else np.zeros((0, 10))
+    return {
+        "episodes": rows,
+        "skipped": [{"path": str(p), "reason": r} for p, r in skipped],
+        "total": {
+            "episodes": len(episodes), "skipped": len(skipped),
+            "duration_s": round(sum(r["duration_s"] for r in rows), 3),
+            "steps": int(sum(r["steps"] for r in rows)), "samples": int(sum(r["samples"] for r in rows)),
+            "action_min": all_actions.min(0).round(4).tolist() if len(all_actions) else None,
+            "action_max": all_actions.max(0).round(4).tolist() if len(all_actions) else None,
+        },
+    }
+
+
+def config_from_dict(data: dict) -> DatasetConfig:
+    from .config import from_dict
+
+    return from_dict(DatasetConfig, data, "dataset")

@@ -1,0 +1,168 @@
+"""A synthetic but physically plausible pick episode, written through the recorder's EpisodeWriter.
+
+Used by the data tests and to (re)generate the sample bag under bags/:
+
+    python test/helpers_data.py bags/sample_pick_0000
+
+Scene: a table patch and a 4 cm cube in the workspace; the TCP starts above the cube,
+descends, closes the gripper, and lifts the cube. The voxel grid shows the table, the cube
+(moving with the gripper once grasped) and two finger blobs. /franka/ee_pose and
+/franka/joint_states at ``state_hz``, one-point teleop chunks on /franka/command_chunk at
+``command_hz`` leading the measured pose by ``lag_s`` (the arm lags its targets), /voxels at
+``obs_hz``, /spacenav/joy with the operator's input, /tf_static from the lab config.
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT / "src") not in sys.path:
+    sys.path.insert(0, str(ROOT / "src"))
+
+from equidiff_core import geometry  # noqa: E402
+from equidiff_core.bags import EpisodeMeta  # noqa: E402
+from equidiff_core.chunk import PoseChunk, chunk_to_msg  # noqa: E402
+from equidiff_core.config import Workspace, load_lab_config  # noqa: E402
+from equidiff_core.pointcloud import grid_to_voxel_msg  # noqa: E402
+from equidiff_core.recording import EpisodeWriter, RecordingConfig  # noqa: E402
+from equidiff_core.rosmsg import NS_PER_S, rosbags_factory  # noqa: E402
+
+LAB = load_lab_config(ROOT / "config" / "lab.yaml")
+T0_NS = 1_700_000_000 * NS_PER_S  # a fixed wall-clock start: deterministic bags
+OPEN_W, CLOSED_W = 0.08, 0.038
+DOWN = np.array([[1.0, 0, 0], [0, -1.0, 0], [0, 0, -1.0]])  # TCP z pointing down
+
+
+@dataclass(frozen=True)
+class SyntheticEpisode:
+    duration_s: float = 8.0
+    obs_hz: float = 5.0
+    state_hz: float = 50.0
+    command_hz: float = 10.0
+    lag_s: float = 0.1
+    cube_xy: tuple[float, float] = (0.47, 0.03)
+    yaw: float = 0.3  # cube (and grasp) yaw, rad
+    t0_ns: int = T0_NS
+
+
+def command_at(ep: SyntheticEpisode, t: float) -> tuple[np.ndarray, float]:
+    """Commanded TCP pose and gripper width at time t (s): approach, descend, grasp, lift."""
+    cx, cy = ep.cube_xy
+    T = ep.duration_s
+    above, grasp_z, lift_z = 0.30, 0.02 + 0.02, 0.22
+
+    def smooth(a, b, s):
+        s = min(max(s, 0.0), 1.0)
+        return a + (b - a) * (0.5 - 0.5 * math.cos(math.pi * s))
+
+    start = np.array([cx - 0.08, cy - 0.06, above])
+    hover = np.array([cx, cy, above])
+    if t < 0.3 * T:
+        p = smooth(start, hover, t / (0.3 * T))
+        yaw = smooth(0.0, ep.yaw, t / (0.3 * T))
+    elif t < 0.55 * T:
+        p = smooth(hover, np.array([cx, cy, grasp_z]), (t - 0.3 * T) / (0.25 * T))
+        yaw = ep.yaw
+    elif t < 0.65 * T:
+        p, yaw = np.array([cx, cy, grasp_z]), ep.yaw
+    else:
+        p = smooth(np.array([cx, cy, grasp_z]), np.array([cx, cy, lift_z]), (t - 0.65 * T) / (0.35 * T))
+        yaw = ep.yaw
+    width = OPEN_W if t < 0.58 * T else CLOSED_W
+    R = geometry.rotz(yaw) @ DOWN
+    return geometry.make_pose(R, p), width
+
+
+def measured_at(ep: SyntheticEpisode, t: float) -> tuple[np.ndarray, float]:
+    return command_at(ep, max(0.0, t - ep.lag_s))
+
+
+def voxel_grid(ep: SyntheticEpisode, ws: Workspace, t: float) -> np.ndarray:
+    R = ws.resolution
+    grid = np.zeros((4, R, R, R), dtype=np.uint8)
+    lower, size = ws.lower, ws.voxel_size
+
+    def fill(lo, hi, rgb):
+        a = np.clip(np.floor((np.asarray(lo) - lower) / size).astype(int), 0, R)
+        b = np.clip(np.ceil((np.asarray(hi) - lower) / size).astype(int), 0, R)
+        if np.any(b <= a):
+            return
+        sl = (slice(a[0], b[0]), slice(a[1], b[1]), slice(a[2], b[2]))
+        grid[0][sl] = 255
+        for c in range(3):
+            grid[1 + c][sl] = rgb[c]
+
+    cx, cy = ep.cube_xy
+    # table top (a patch, so the sample bag stays small)
+    fill((cx - 0.12, cy - 0.12, -0.005), (cx + 0.12, cy + 0.12, 0.0), (150, 120, 90))
+    pose, width = measured_at(ep, t)
+    tcp = pose[:3, 3]
+    grasped = t >= 0.6 * ep.duration_s
+    cube_c = np.array([tcp[0], tcp[1], tcp[2]]) if grasped else np.array([cx, cy, 0.02])
+    fill(cube_c - 0.02, cube_c + 0.02, (200, 30, 30))
+    side = pose[:3, 1]  # fingers open along the TCP y axis
+    for s in (-1, 1):
+        f = tcp + s * side * width / 2 + np.array([0, 0, 0.02])
+        fill(f - [0.008, 0.008, 0.02], f + [0.008, 0.008, 0.02], (60, 60, 60))
+    return grid
+
+
+def write_synthetic_episode(path: str | Path, ep: SyntheticEpisode = SyntheticEpisode(),
+                            meta: EpisodeMeta | None = None, ws: Workspace | None = None,
+                            config: RecordingConfig = RecordingConfig(min_free_gib=0.0)) -> Path:
+    ws = ws or LAB.workspace
+    f = rosbags_factory()
+    meta = meta or EpisodeMeta(task="pick_cube", operator="synthetic", success=True,
+                               notes="synthetic episode (test/helpers_data.py)", seed=0)
+    frame = LAB.base_frame
+    events: list[tuple[int, str, object]] = []
+    ns = lambda s: ep.t0_ns + int(round(s * NS_PER_S))  # noqa: E731
+    n_state = int(ep.duration_s * ep.state_hz)
+    for i in range(n_state):
+        t = i / ep.state_hz
+        pose, width = measured_at(ep, t)
+        p, q = geometry.pos_quat_from_pose(pose)
+        msg = f.make("geometry_msgs/msg/PoseStamped", header=f.header(ns(t), frame),
+                     pose=f.make("geometry_msgs/msg/Pose",
+                                 position=f.make("geometry_msgs/msg/Point", x=p[0], y=p[1], z=p[2]),
+                                 orientation=f.make("geometry_msgs/msg/Quaternion", x=q[0], y=q[1], z=q[2], w=q[3])))
+        events.append((ns(t) + 300_000, "/franka/ee_pose", msg))
+        names = [f"fr3_joint{j}" for j in range(1, 8)] + ["fr3_finger_joint1", "fr3_finger_joint2"]
+        js = f.make("sensor_msgs/msg/JointState", header=f.header(ns(t), ""), name=names,
+                    position=f.float64_array([0.0, -0.78, 0.0, -2.36, 0.0, 1.57, 0.78, width / 2, width / 2]),
+                    velocity=f.float64_array([]), effort=f.float64_array([]))
+        events.append((ns(t) + 300_000, "/franka/joint_states", js))
+    n_cmd = int(ep.duration_s * ep.command_hz)
+    for i in range(n_cmd):
+        t = i / ep.command_hz
+        pose, width = command_at(ep, t)
+        chunk = PoseChunk(ns(t), np.array([ns(t)], dtype=np.int64), pose[None], np.array([width]))
+        events.append((ns(t) + 500_000, "/franka/command_chunk", chunk_to_msg(chunk, f, frame)))
+        prev = command_at(ep, max(0.0, t - 1 / ep.command_hz))[0]
+        v = (pose[:3, 3] - prev[:3, 3]) * ep.command_hz / 0.1  # as a SpaceMouse deflection
+        joy = f.make("sensor_msgs/msg/Joy", header=f.header(ns(t), ""),
+                     axes=np.clip(np.array([v[0], v[1], v[2], 0, 0, 0], dtype=np.float32), -1, 1),
+                     buttons=np.array([int(width < OPEN_W), 0], dtype=np.int32))
+        events.append((ns(t) + 200_000, "/spacenav/joy", joy))
+    n_obs = int(ep.duration_s * ep.obs_hz)
+    for i in range(n_obs):
+        t = i / ep.obs_hz
+        msg = grid_to_voxel_msg(voxel_grid(ep, ws, t), ws.lower, ws.voxel_size, ns(t), frame, f)
+        events.append((ns(t) + 40_000_000, "/voxels", msg))  # voxelising takes ~40 ms
+    events.sort(key=lambda e: e[0])
+    with EpisodeWriter(path, meta, config) as writer:
+        writer.write_tf_static(LAB, ep.t0_ns)
+        for stamp, topic, msg in events:
+            writer.write(topic, msg, stamp)
+    return Path(path)
+
+
+if __name__ == "__main__":
+    out = write_synthetic_episode(sys.argv[1] if len(sys.argv) > 1 else ROOT / "bags" / "sample_pick_0000")
+    print(out)
