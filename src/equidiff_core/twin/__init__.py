@@ -1,0 +1,14 @@
+"""The digital twin: franky-sim's FR3 with a tabletop task, simulated cameras, a scripted expert.
+
+* ``config``: ``TwinConfig`` (config/twin.yaml)
+* ``scene``: MJCF additions, seeded randomisation (``sample_scene``), success test
+* ``sim``: ``TwinSim`` (libfranka server, real-time loop, shared state) and ``DirectSim``
+* ``shared_state``: seqlock shared memory carrying the sim state to camera processes
+* ``expert``: grasp-lift-place planner
+* ``orchestrate``: the main job (``equidiff twin run``) and demo collection
+"""
+
+from .config import TwinConfig, load_twin_config
+from .scene import ScenePoses, sample_scene
+
+__all__ = ["TwinConfig", "load_twin_config", "ScenePoses", "sample_scene"]

@@ -1,0 +1,151 @@
+"""Typed configuration of the digital twin (config/twin.yaml): scene, randomisation, rendering, sim, expert.
+
+Every number that decides what an episode looks like lives here, so a seed plus this file
+reproduces an episode exactly (the scene sampler draws from ``numpy.random.default_rng(seed)``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+from ..config import ConfigError, default_config_dir, from_dict, load_yaml
+
+
+@dataclass(frozen=True)
+class SceneConfig:
+    """A table with a block and a bowl on it ("put the block in the bowl")."""
+
+    # The robot stands on the table: the table top is the base frame's z = 0 plane.
+    table_center_xy: tuple[float, float] = (0.35, 0.0)
+    table_half_xy: tuple[float, float] = (0.65, 0.6)
+    table_height: float = 0.75
+    table_rgba: tuple[float, float, float, float] = (0.62, 0.5, 0.36, 1.0)
+    # Block: a box grasped across its short side, so its yaw matters modulo 180 degrees.
+    block_size: tuple[float, float, float] = (0.05, 0.03, 0.03)  # full extents, m
+    block_mass: float = 0.05
+    block_rgba: tuple[float, float, float, float] = (0.85, 0.12, 0.1, 1.0)
+    # Bowl: a flat base and a ring of wall segments; one wall segment is a different colour
+    # (a "handle mark") so its yaw is visible too.
+    bowl_inner_radius: float = 0.06
+    bowl_wall_thickness: float = 0.008
+    bowl_wall_height: float = 0.035
+    bowl_base_thickness: float = 0.006
+    bowl_segments: int = 16
+    bowl_mass: float = 0.5
+    bowl_rgba: tuple[float, float, float, float] = (0.15, 0.35, 0.85, 1.0)
+    bowl_mark_rgba: tuple[float, float, float, float] = (0.95, 0.85, 0.1, 1.0)
+    friction: tuple[float, float, float] = (1.5, 0.01, 0.0002)
+    # Randomisation: object centres uniform in this rectangle (base frame, m), yaw uniform in
+    # the given range (degrees; [0, 360) is the full circle), at least min_separation apart.
+    region_x: tuple[float, float] = (0.36, 0.56)
+    region_y: tuple[float, float] = (-0.14, 0.14)
+    block_yaw_deg: tuple[float, float] = (0.0, 360.0)
+    bowl_yaw_deg: tuple[float, float] = (0.0, 360.0)
+    min_separation: float = 0.15
+
+    def __post_init__(self):
+        for name in ("region_x", "region_y", "block_yaw_deg", "bowl_yaw_deg"):
+            lo, hi = getattr(self, name)
+            if hi < lo:
+                raise ValueError(f"{name}: upper bound {hi} below lower bound {lo}")
+        if self.bowl_segments < 6:
+            raise ValueError("bowl_segments must be >= 6")
+        if min(self.block_size) <= 0 or self.bowl_inner_radius <= 0:
+            raise ValueError("object sizes must be positive")
+
+    @property
+    def bowl_outer_radius(self) -> float:
+        return self.bowl_inner_radius + self.bowl_wall_thickness
+
+
+@dataclass(frozen=True)
+class SuccessConfig:
+    """The block rests inside the bowl: centred within the wall, below the rim, still, released."""
+
+    margin: float = 0.01  # block centre at least this far inside the inner wall (m)
+    max_speed: float = 0.05  # m/s
+    hold_s: float = 0.5  # success must hold this long before an episode ends early
+
+
+@dataclass(frozen=True)
+class RenderConfig:
+    """Simulated D455s: the poses come from lab.yaml; intrinsics, resolution and noise from here."""
+
+    width: int = 424
+    height: int = 240
+    fovy_deg: float = 58.0  # D455 depth VFOV; with fx = fy this gives HFOV ~88 degrees at 16:9
+    # Depth noise, D455-like: sigma(z) = noise_base + noise_quadratic * z^2 (m), plus dropout.
+    depth_noise: bool = True
+    noise_base: float = 0.0005
+    noise_quadratic: float = 0.0015
+    dropout: float = 0.02  # fraction of pixels lost at random
+    edge_dropout: bool = True  # lose pixels at depth discontinuities like a stereo camera
+    seed: int = 0
+
+    def __post_init__(self):
+        if self.width < 8 or self.height < 8:
+            raise ValueError("render resolution must be at least 8x8")
+        if not 0 <= self.dropout < 1:
+            raise ValueError("dropout must be in [0, 1)")
+
+
+@dataclass(frozen=True)
+class SimConfig:
+    host: str = "127.0.0.1"  # loopback address franky-sim serves libfranka on ("auto": pick a free one)
+    state_hz: float = 60.0  # shared-memory state snapshots for the cameras
+    status_hz: float = 10.0  # /twin/state
+    initial_q: tuple[float, float, float, float, float, float, float] = (0.0, 0.0, 0.0, -1.57, 0.0, 1.57, 0.785)
+
+
+@dataclass(frozen=True)
+class ExpertConfig:
+    """Scripted grasp-lift-place planner (speeds like a careful SpaceMouse operator)."""
+
+    ready_position: tuple[float, float, float] = (0.45, 0.0, 0.30)
+    speed: float = 0.15  # m/s TCP speed for transfers
+    slow_speed: float = 0.05  # m/s for the last centimetres of approach and grasp
+    yaw_speed: float = 1.5  # rad/s
+    approach_height: float = 0.10  # above the object before descending
+    grasp_height: float = 0.018  # TCP z when closing on the block
+    lift_height: float = 0.15
+    place_height: float = 0.09  # TCP z when releasing above the bowl
+    open_width: float = 0.08
+    close_width: float = 0.0  # commanded closed width (franky-sim holds with a smaller width)
+    gripper_wait_s: float = 0.8
+    settle_s: float = 0.3
+    command_hz: float = 20.0  # like teleop
+
+
+@dataclass(frozen=True)
+class EpisodeConfig:
+    max_duration_s: float = 40.0
+    home_timeout_s: float = 15.0
+
+
+@dataclass(frozen=True)
+class TwinConfig:
+    scene: SceneConfig = field(default_factory=SceneConfig)
+    success: SuccessConfig = field(default_factory=SuccessConfig)
+    render: RenderConfig = field(default_factory=RenderConfig)
+    sim: SimConfig = field(default_factory=SimConfig)
+    expert: ExpertConfig = field(default_factory=ExpertConfig)
+    episode: EpisodeConfig = field(default_factory=EpisodeConfig)
+
+    def with_yaw_range(self, block_deg: tuple[float, float], bowl_deg: tuple[float, float] | None = None):
+        """A copy whose object yaw is drawn from narrower ranges (generalisation benchmark)."""
+        scene = replace(self.scene, block_yaw_deg=tuple(block_deg),
+                        bowl_yaw_deg=tuple(bowl_deg if bowl_deg is not None else block_deg))
+        return replace(self, scene=scene)
+
+
+def load_twin_config(path: str | Path | None = None) -> TwinConfig:
+    """config/twin.yaml (or ``path``) -> TwinConfig; missing file at the default path -> defaults."""
+    if path is None:
+        path = default_config_dir() / "twin.yaml"
+        if not Path(path).is_file():
+            return TwinConfig()
+    data = load_yaml(path) or {}
+    if not isinstance(data, dict):
+        raise ConfigError(f"{path}: expected a mapping at the top level")
+    return from_dict(TwinConfig, data, where=Path(path).name)
