@@ -1,0 +1,171 @@
+"""Recorded episodes (rosbag2 directories) -> rerun recordings, without a ROS install.
+
+Same entity paths and blueprint as the live ``equidiff viz``. Two layouts:
+
+* all in one (default): one recording in ``out.rrd``; each bag is an ``episode`` (sequence
+  timeline) and ``episode_time`` counts from each episode's first message, so episodes can
+  be overlaid or stepped through;
+* ``per_episode``: one ``<bag name>.rrd`` per bag in the directory ``out``.
+
+Messages are streamed in bag order with rosbags (not collected per episode as
+``equidiff_core.bags.read_episode`` does) so a long episode with raw clouds does not have to
+fit in memory. An unreadable bag is reported and skipped; the others are still converted.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Iterable
+
+import yaml
+
+from ..config import LabConfig
+from ..rosmsg import rosbags_factory
+from .logger import TOPICS_HANDLED, RerunLogger, VizConfig, default_blueprint, open_recording
+from .logger import APPLICATION_ID
+
+
+class BagConversionError(RuntimeError):
+    """A bag that cannot be converted (missing, not a rosbag2 directory, corrupt)."""
+
+
+@dataclass
+class EpisodeResult:
+    bag: Path
+    output: Path | None
+    messages: int = 0  # messages read from the bag on the topics shown
+    logged: dict[str, int] = field(default_factory=dict)
+    dropped: dict[str, int] = field(default_factory=dict)
+    error: str | None = None  # why the bag was skipped (None: converted)
+
+
+@dataclass
+class ConversionReport:
+    episodes: list[EpisodeResult]
+    outputs: list[Path]
+    seconds: float
+
+    @property
+    def ok(self) -> bool:
+        return all(e.error is None for e in self.episodes) and bool(self.episodes)
+
+
+def expand_bag_paths(paths: Iterable[str | Path]) -> list[Path]:
+    """Each argument is a bag directory, or a folder whose sub-directories are bags (sorted by name)."""
+    out: list[Path] = []
+    for p in map(Path, paths):
+        if p.is_dir() and not (p / "metadata.yaml").is_file() and not any(p.glob("*.mcap")):
+            subs = sorted(s for s in p.iterdir() if s.is_dir() and (s / "metadata.yaml").is_file())
+            if subs:
+                out.extend(subs)
+                continue
+        out.append(p)  # missing / malformed paths are reported per bag, not silently dropped
+    return out
+
+
+def episode_info(bag: Path) -> dict[str, str]:
+    """The bag's metadata.yaml ``custom_data`` (task, operator, success, notes, seed ...), plus its name."""
+    info = {"bag": bag.name}
+    try:
+        meta = yaml.safe_load((bag / "metadata.yaml").read_text()) or {}
+        custom = (meta.get("rosbag2_bagfile_information") or {}).get("custom_data") or {}
+        info.update({str(k): str(v) for k, v in custom.items()})
+    except (OSError, yaml.YAMLError, AttributeError):
+        pass  # the reader reports unreadable metadata with a proper message
+    return info
+
+
+def _wanted(topic: str, config: VizConfig) -> bool:
+    if topic in TOPICS_HANDLED:
+        return True
+    return config.clouds and topic.startswith("/cameras/") and topic.endswith("/points")
+
+
+def _log_bag(logger: RerunLogger, bag: Path, index: int, result: EpisodeResult) -> None:
+    from rosbags.rosbag2 import Reader
+
+    if not bag.exists():
+        raise BagConversionError(f"{bag}: no such bag directory")
+    if not bag.is_dir() or not (bag / "metadata.yaml").is_file():
+        raise BagConversionError(f"{bag}: not a rosbag2 directory (expected metadata.yaml + .mcap); "
+                                 f"a killed recording can be recovered with: equidiff bags repair {bag}")
+    typestore = rosbags_factory().typestore
+    try:
+        with Reader(bag) as reader:
+            conns = [c for c in reader.connections if _wanted(c.topic, logger.config)]
+            logger.begin_episode(index, reader.start_time if reader.message_count else 0, episode_info(bag))
+            for conn, receive_ns, raw in reader.messages(connections=conns):
+                result.messages += 1
+                try:
+                    msg = typestore.deserialize_cdr(raw, conn.msgtype)
+                except Exception as err:  # rosbags raises several kinds on bad CDR: drop one message
+                    logger._drop(f"undecodable {conn.topic}", err)
+                    continue
+                logger.log_message(conn.topic, msg, receive_ns)
+    except BagConversionError:
+        raise
+    except Exception as err:  # ReaderError, struct.error, OSError on truncated/corrupt files
+        raise BagConversionError(f"{bag}: unreadable bag ({type(err).__name__}: {err}); if its recorder "
+                                 f"was killed, run: equidiff bags repair {bag}") from err
+
+
+def convert_bags(bags: Iterable[str | Path], out: str | Path, lab: LabConfig, config: VizConfig = VizConfig(),
+                 per_episode: bool = False) -> ConversionReport:
+    """Convert bags to .rrd (``out`` is a file, or a directory with ``per_episode``); never raises per bag."""
+    t0 = time.perf_counter()
+    bags = expand_bag_paths(bags)
+    out = Path(out)
+    results: list[EpisodeResult] = []
+    outputs: list[Path] = []
+    if per_episode:
+        if out.suffix == ".rrd":
+            raise BagConversionError(f"--per-episode writes one file per bag: give a directory, not {out}")
+        out.mkdir(parents=True, exist_ok=True)
+        for index, bag in enumerate(bags):
+            target = out / f"{bag.name}.rrd"
+            result = EpisodeResult(bag, target)
+            rec = open_recording(recording_id=bag.name, save=target, application_id=APPLICATION_ID,
+                                 blueprint=default_blueprint())
+            logger = RerunLogger(rec, lab, config)
+            logger.log_static_scene()
+            try:
+                _log_bag(logger, bag, index, result)
+            except BagConversionError as err:
+                result.error, result.output = str(err), None
+            _finish(rec)
+            if result.error is not None:
+                target.unlink(missing_ok=True)  # no half-empty .rrd that looks like a converted episode
+            else:
+                outputs.append(target)
+            result.logged, result.dropped = dict(logger.logged), dict(logger.errors)
+            results.append(result)
+    else:
+        if out.suffix != ".rrd":
+            raise BagConversionError(f"output must be a .rrd file (or use --per-episode with a directory), got {out}")
+        rec = open_recording(recording_id=out.stem, save=out, application_id=APPLICATION_ID,
+                             blueprint=default_blueprint())
+        logger = RerunLogger(rec, lab, config)
+        logger.log_static_scene()
+        for index, bag in enumerate(bags):
+            result = EpisodeResult(bag, out)
+            before_logged, before_dropped = logger.logged.copy(), logger.errors.copy()
+            try:
+                _log_bag(logger, bag, index, result)
+            except BagConversionError as err:
+                result.error, result.output = str(err), None
+            result.logged = dict(logger.logged - before_logged)
+            result.dropped = dict(logger.errors - before_dropped)
+            results.append(result)
+        _finish(rec)
+        if any(r.error is None for r in results):
+            outputs.append(out)
+        else:
+            out.unlink(missing_ok=True)  # nothing converted: no file that looks like a recording
+    return ConversionReport(results, outputs, time.perf_counter() - t0)
+
+
+def _finish(rec: Any) -> None:
+    rec.flush()
+    rec.disconnect()

@@ -1,0 +1,485 @@
+"""``RerunLogger``: one method per message kind, the entity layout and the default blueprint.
+
+Entity layout (the same live and from bags; the base frame is the world):
+
+| entity | archetype | from |
+|---|---|---|
+| ``world/base`` | axes of the robot base frame | static |
+| ``world/workspace`` | wireframe box of the voxel workspace | lab.yaml |
+| ``world/cameras/<name>`` | ``Transform3D`` T_base_optical + axes | lab.yaml, then ``/tf_static`` if present |
+| ``world/cameras/<name>/points`` | ``Points3D`` in the optical frame (throttled) | ``/cameras/<name>/points`` |
+| ``world/voxels`` | ``Boxes3D``: half-sizes once (static), centres + colours per frame | ``/voxels`` |
+| ``world/ee`` + ``world/ee_trail`` | TCP ``Transform3D`` + axes; ``LineStrips3D`` of the last ``trail_s`` | ``/franka/ee_pose`` |
+| ``world/chunk/{path,steps,gripper}`` | predicted poses as a path; steps labelled with the gripper width; one segment per step as wide as the commanded gripper opening | ``/franka/command_chunk`` |
+| ``world/executed_target`` + ``world/executed_trail`` | what franka_node actually sent | ``/franka/executed_target`` |
+| ``metrics/latency/{inference,obs_to_cmd}`` | ``Scalars`` ms | ``/diagnostics`` (policy) |
+| ``metrics/observation_age/{policy,voxels_on_arrival}`` | ``Scalars`` ms | ``/diagnostics``; voxel stamp vs arrival |
+| ``metrics/gripper_width/{measured,commanded}`` | ``Scalars`` m | joint states; chunk step 0 |
+| ``diagnostics/<status>/<key>`` | ``Scalars`` of every other numeric diagnostic | ``/diagnostics`` |
+| ``episode/info`` | ``TextDocument`` of the bag's episode metadata | bag ``custom_data`` |
+
+Time: every entity is logged on the ``ros_time`` timeline at the message's header stamp
+(falling back to the arrival/recording time when a publisher left the stamp at zero), plus
+``episode`` (sequence) and ``episode_time`` (since the episode's first message) for bags.
+
+Bad messages are dropped and counted in ``errors`` (with the last reason in
+``last_error``); they never stop the visualisation.
+"""
+
+from __future__ import annotations
+
+import collections
+import re
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .. import geometry
+from ..chunk import ChunkError, chunk_from_msg
+from ..config import ConfigError, LabConfig, default_config_dir, from_dict, load_yaml
+from ..pointcloud import CloudError, msg_to_cloud
+from ..rosmsg import stamp_to_ns
+from . import require_rerun
+
+APPLICATION_ID = "equidiff_ros"
+
+WORLD = "world"
+BASE = "world/base"
+WORKSPACE = "world/workspace"
+CAMERAS = "world/cameras"
+VOXELS = "world/voxels"
+EE = "world/ee"
+EE_TRAIL = "world/ee_trail"
+CHUNK = "world/chunk"
+CHUNK_PATH = "world/chunk/path"
+CHUNK_STEPS = "world/chunk/steps"
+CHUNK_GRIPPER = "world/chunk/gripper"
+EXECUTED = "world/executed_target"
+EXECUTED_TRAIL = "world/executed_trail"
+LATENCY = "metrics/latency"
+OBS_AGE = "metrics/observation_age"
+GRIPPER_WIDTH = "metrics/gripper_width"
+DIAGNOSTICS = "diagnostics"
+EPISODE_INFO = "episode/info"
+
+# Diagnostic keys with a place of their own in the blueprint; every other number goes to diagnostics/.
+_DIAGNOSTIC_ENTITIES = {
+    "inference_ms": f"{LATENCY}/inference",
+    "obs_to_cmd_ms": f"{LATENCY}/obs_to_cmd",
+    "observation_age_ms": f"{OBS_AGE}/policy",
+}
+FINGER_JOINTS = ("fr3_finger_joint1", "fr3_finger_joint2")  # each = width / 2 (architecture.md)
+OPTICAL_SUFFIX = "_color_optical_frame"
+
+EE_COLOR = (40, 160, 255)
+CHUNK_COLOR = (255, 140, 0)
+EXECUTED_COLOR = (60, 200, 60)
+
+
+@dataclass(frozen=True)
+class VizConfig:
+    """What to show and how often (config/viz.yaml)."""
+
+    ee_hz: float = 20.0  # TCP pose, executed target and their trails (state arrives at >= 100 Hz)
+    trail_s: float = 5.0  # length of the TCP / executed-target trails
+    clouds: bool = False  # also show the raw camera clouds (costs bandwidth: ~5 MB per cloud)
+    cloud_hz: float = 1.0  # per camera
+    max_cloud_points: int = 50_000  # clouds are strided down to at most this many points
+    solid_voxels: bool = True  # filled boxes (False: wireframe)
+    axis_length: float = 0.05  # m, TCP / camera / base axes
+
+    def __post_init__(self):
+        for name in ("ee_hz", "trail_s", "cloud_hz", "axis_length"):
+            if getattr(self, name) <= 0:
+                raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
+        if self.max_cloud_points < 1:
+            raise ValueError(f"max_cloud_points must be >= 1, got {self.max_cloud_points}")
+
+
+def load_viz_config(path: str | Path | None = None) -> VizConfig:
+    """config/viz.yaml (or ``path``) -> VizConfig; defaults when the default file is absent."""
+    if path is None:
+        path = default_config_dir() / "viz.yaml"
+        if not Path(path).is_file():
+            return VizConfig()
+    data = load_yaml(path) or {}
+    if not isinstance(data, dict):
+        raise ConfigError(f"{path}: expected a mapping at the top level")
+    return from_dict(VizConfig, data, where=Path(path).name)
+
+
+def default_blueprint() -> Any:
+    """3D scene on the left; latency, observation age, gripper width and other diagnostics on the right."""
+    rr = require_rerun()
+    import rerun.blueprint as rrb
+
+    del rr
+    return rrb.Blueprint(
+        rrb.Horizontal(
+            rrb.Spatial3DView(name="scene (base frame)", origin=f"/{WORLD}"),
+            rrb.Vertical(
+                rrb.TimeSeriesView(name="latency (ms)", origin=f"/{LATENCY}"),
+                rrb.TimeSeriesView(name="observation age (ms)", origin=f"/{OBS_AGE}"),
+                rrb.TimeSeriesView(name="gripper width (m)", origin=f"/{GRIPPER_WIDTH}"),
+                rrb.Tabs(
+                    rrb.TimeSeriesView(name="diagnostics", origin=f"/{DIAGNOSTICS}"),
+                    rrb.TextDocumentView(name="episode", origin="/episode"),
+                ),
+            ),
+            column_shares=[3, 2],
+        ),
+        collapse_panels=True,
+    )
+
+
+def open_recording(recording_id: str | None = None, *, spawn: bool = False, connect: str | None = None,
+                   save: str | Path | None = None, application_id: str = APPLICATION_ID,
+                   blueprint: Any = None) -> Any:
+    """A rerun RecordingStream sending to exactly one sink: a spawned viewer, a remote viewer, or an .rrd file."""
+    rr = require_rerun()
+    if sum([bool(spawn), connect is not None, save is not None]) != 1:
+        raise ValueError("choose exactly one rerun sink: spawn a viewer, connect to ADDR, or save to FILE.rrd")
+    blueprint = default_blueprint() if blueprint is None else blueprint
+    rec = rr.RecordingStream(application_id, recording_id=recording_id)
+    if spawn:
+        rec.spawn(default_blueprint=blueprint)
+    elif connect is not None:
+        rec.connect_grpc(grpc_url(connect), default_blueprint=blueprint)
+    else:
+        save = Path(save)
+        save.parent.mkdir(parents=True, exist_ok=True)
+        rec.save(save, default_blueprint=blueprint)
+    return rec
+
+
+def grpc_url(address: str) -> str:
+    """'host:port' (or a full rerun+http:// URL) -> the viewer's gRPC proxy URL."""
+    if "://" in address:
+        return address
+    if ":" not in address:
+        address = f"{address}:9876"
+    return f"rerun+http://{address}/proxy"
+
+
+def _stamp(msg: Any, fallback_ns: int | None) -> int:
+    stamp = stamp_to_ns(msg.header.stamp)
+    if stamp > 0:
+        return stamp
+    return int(fallback_ns) if fallback_ns is not None else time.time_ns()
+
+
+def _pose_of(msg: Any) -> tuple[np.ndarray, np.ndarray]:
+    """PoseStamped -> (position (3,), quaternion xyzw (4,)); raises GeometryError on NaN / non-unit."""
+    p, q = msg.pose.position, msg.pose.orientation
+    pos = np.array([p.x, p.y, p.z], dtype=np.float64)
+    quat = np.array([q.x, q.y, q.z, q.w], dtype=np.float64)
+    if not np.all(np.isfinite(pos)):
+        raise geometry.GeometryError("pose position contains NaN or inf")
+    geometry.pose_from_pos_quat(pos, quat)  # validates the quaternion
+    return pos, quat
+
+
+class _Trail:
+    """Positions of the last ``span_ns`` (by message time)."""
+
+    def __init__(self, span_ns: int):
+        self.span_ns = span_ns
+        self.items: collections.deque[tuple[int, np.ndarray]] = collections.deque()
+
+    def add(self, t_ns: int, pos: np.ndarray) -> np.ndarray:
+        if self.items and t_ns < self.items[-1][0]:
+            self.items.clear()  # time went backwards (new episode, replayed bag): start over
+        self.items.append((t_ns, pos))
+        while self.items and self.items[0][0] < t_ns - self.span_ns:
+            self.items.popleft()
+        return np.array([p for _, p in self.items])
+
+    def clear(self) -> None:
+        self.items.clear()
+
+
+class _Throttle:
+    """Lets one event through per ``period_ns`` of message time, per key."""
+
+    def __init__(self, hz: float):
+        self.period_ns = int(1e9 / hz)
+        self.last: dict[str, int] = {}
+
+    def ready(self, key: str, t_ns: int) -> bool:
+        last = self.last.get(key)
+        if last is not None and last <= t_ns < last + self.period_ns:
+            return False
+        self.last[key] = t_ns
+        return True
+
+    def clear(self) -> None:
+        self.last.clear()
+
+
+class RerunLogger:
+    """Logs the project's messages (rclpy or rosbags) to one rerun recording stream."""
+
+    def __init__(self, recording: Any, lab: LabConfig, config: VizConfig = VizConfig()):
+        self.rr = require_rerun()
+        self.rec = recording
+        self.lab = lab
+        self.config = config
+        self.logged: collections.Counter[str] = collections.Counter()
+        self.errors: collections.Counter[str] = collections.Counter()
+        self.last_error: str | None = None
+        self._episode_start_ns: int | None = None
+        self._ee_trail = _Trail(int(config.trail_s * 1e9))
+        self._executed_trail = _Trail(int(config.trail_s * 1e9))
+        self._pose_throttle = _Throttle(config.ee_hz)
+        self._cloud_throttle = _Throttle(config.cloud_hz)
+        self._camera_names = {cam.frame_id: cam.name for cam in lab.cameras}
+
+    # --- time -----------------------------------------------------------------------------
+
+    def _at(self, stamp_ns: int) -> None:
+        self.rec.set_time("ros_time", timestamp=np.datetime64(int(stamp_ns), "ns"))
+        if self._episode_start_ns is not None:
+            self.rec.set_time("episode_time", duration=np.timedelta64(int(stamp_ns) - self._episode_start_ns, "ns"))
+
+    def begin_episode(self, index: int, start_ns: int, info: dict[str, str] | None = None) -> None:
+        """Start episode ``index`` (bags): an ``episode`` sequence, ``episode_time`` from ``start_ns``, fresh trails."""
+        self.rec.set_time("episode", sequence=int(index))
+        self._episode_start_ns = int(start_ns)
+        for trail in (self._ee_trail, self._executed_trail):
+            trail.clear()
+        self._pose_throttle.clear()
+        self._cloud_throttle.clear()
+        self._at(start_ns)
+        for entity in (CHUNK, EE_TRAIL, EXECUTED_TRAIL):  # the previous episode's intent and trails
+            self.rec.log(entity, self.rr.Clear(recursive=entity == CHUNK))
+        lines = [f"# episode {index}"] + [f"- **{k}**: {v}" for k, v in sorted((info or {}).items())]
+        self.rec.log(EPISODE_INFO, self.rr.TextDocument("\n".join(lines), media_type="text/markdown"))
+
+    def _drop(self, kind: str, err: Exception) -> bool:
+        self.errors[kind] += 1
+        self.last_error = f"{kind}: {err}"
+        return False
+
+    # --- static scene ---------------------------------------------------------------------
+
+    def log_static_scene(self) -> None:
+        """View coordinates, base axes, workspace box, voxel box size and the configured camera frames."""
+        rr = self.rr
+        ws = self.lab.workspace
+        self.rec.log(WORLD, rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
+        self.rec.log(BASE, rr.TransformAxes3D(self.config.axis_length * 2), static=True)
+        self.rec.log(BASE, rr.Points3D([[0, 0, 0]], radii=0.0, labels=[self.lab.base_frame], show_labels=True),
+                     static=True)
+        self.rec.log(WORKSPACE, rr.Boxes3D(centers=[ws.center], half_sizes=[[ws.edge / 2] * 3],
+                                           colors=[(150, 150, 150)], labels=["workspace"], show_labels=False),
+                     static=True)
+        half = ws.voxel_size / 2
+        fill = rr.components.FillMode.Solid if self.config.solid_voxels else rr.components.FillMode.MajorWireframe
+        # Sizes once, static: per frame only centres and colours travel (10k voxels ~ 150 kB).
+        self.rec.log(VOXELS, rr.Boxes3D.from_fields(half_sizes=[[half, half, half]], fill_mode=fill), static=True)
+        for ee_like, length in ((EE, self.config.axis_length), (EXECUTED, self.config.axis_length / 2)):
+            self.rec.log(ee_like, rr.TransformAxes3D(length), static=True)
+        for cam in self.lab.cameras:
+            self._log_camera_transform(cam.name, cam.extrinsics.matrix(), static=True)
+
+    def _log_camera_transform(self, name: str, T: np.ndarray, static: bool = False) -> None:
+        p, q = geometry.pos_quat_from_pose(T)
+        entity = f"{CAMERAS}/{name}"
+        self.rec.log(entity, self.rr.Transform3D(translation=p, quaternion=self.rr.Quaternion(xyzw=q)), static=static)
+        if static:
+            self.rec.log(entity, self.rr.TransformAxes3D(self.config.axis_length), static=True)
+            self.rec.log(f"{entity}/label", self.rr.Points3D([[0, 0, 0]], radii=0.0, labels=[name], show_labels=True),
+                         static=True)
+
+    # --- one method per message kind ------------------------------------------------------
+
+    def log_tf(self, msg: Any, receive_ns: int | None = None) -> bool:
+        """tf2_msgs/TFMessage (``/tf_static``): camera optical frames under world/cameras, others under world/frames."""
+        try:
+            any_logged = False
+            for tf in msg.transforms:
+                t, r = tf.transform.translation, tf.transform.rotation
+                T = geometry.pose_from_pos_quat([t.x, t.y, t.z], [r.x, r.y, r.z, r.w])
+                child = str(tf.child_frame_id)
+                self._at(_stamp(tf, receive_ns))
+                if child in self._camera_names or child.endswith(OPTICAL_SUFFIX):
+                    name = self._camera_names.get(child, child[: -len(OPTICAL_SUFFIX)])
+                    self._log_camera_transform(name, T)
+                else:
+                    p, q = geometry.pos_quat_from_pose(T)
+                    self.rec.log(f"{WORLD}/frames/{child}",
+                                 self.rr.Transform3D(translation=p, quaternion=self.rr.Quaternion(xyzw=q)))
+                any_logged = True
+            self.logged["tf"] += any_logged
+            return any_logged
+        except (geometry.GeometryError, ValueError) as err:
+            return self._drop("tf", err)
+
+    def log_voxels(self, msg: Any, receive_ns: int | None = None) -> bool:
+        """Occupied-voxel PointCloud2 (``/voxels``) -> coloured boxes; the age on arrival as a time series."""
+        try:
+            cloud = msg_to_cloud(msg)
+        except CloudError as err:
+            if int(msg.width) * int(msg.height) == 0:  # an empty scene is valid: show nothing
+                cloud = None
+            else:
+                return self._drop("voxels", err)
+        stamp = _stamp(msg, receive_ns)
+        self._at(stamp)
+        if cloud is None:
+            self.rec.log(VOXELS, self.rr.Boxes3D.from_fields(centers=np.zeros((0, 3), np.float32)))
+        else:
+            self.rec.log(VOXELS, self.rr.Boxes3D.from_fields(centers=cloud.points, colors=cloud.colors))
+        if receive_ns is not None and stamp_to_ns(msg.header.stamp) > 0:
+            self.rec.log(f"{OBS_AGE}/voxels_on_arrival", self.rr.Scalars((receive_ns - stamp) / 1e6))
+        self.logged["voxels"] += 1
+        return True
+
+    def log_camera_cloud(self, camera: str, msg: Any, receive_ns: int | None = None) -> bool:
+        """Raw camera PointCloud2 in its optical frame, throttled to ``cloud_hz`` and strided to ``max_cloud_points``."""
+        stamp = _stamp(msg, receive_ns)
+        if not self._cloud_throttle.ready(camera, stamp):
+            return False
+        try:
+            cloud = msg_to_cloud(msg, drop_invalid=True)  # realsense clouds carry NaN holes
+        except CloudError as err:
+            return self._drop("clouds", err)
+        stride = max(1, -(-len(cloud.points) // self.config.max_cloud_points))
+        self._at(stamp)
+        self.rec.log(f"{CAMERAS}/{camera}/points",
+                     self.rr.Points3D(cloud.points[::stride], colors=cloud.colors[::stride], radii=0.001))
+        self.logged["clouds"] += 1
+        return True
+
+    def log_ee_pose(self, msg: Any, receive_ns: int | None = None) -> bool:
+        """PoseStamped TCP pose -> transform + axes and a trail, at most ``ee_hz``."""
+        stamp = _stamp(msg, receive_ns)
+        if not self._pose_throttle.ready("ee", stamp):
+            return False
+        try:
+            pos, quat = _pose_of(msg)
+        except geometry.GeometryError as err:
+            return self._drop("ee_pose", err)
+        self._at(stamp)
+        self.rec.log(EE, self.rr.Transform3D(translation=pos, quaternion=self.rr.Quaternion(xyzw=quat)))
+        trail = self._ee_trail.add(stamp, pos)
+        self.rec.log(EE_TRAIL, self.rr.LineStrips3D([trail], colors=[EE_COLOR], radii=0.002))
+        self.logged["ee_pose"] += 1
+        return True
+
+    def log_joint_states(self, msg: Any, receive_ns: int | None = None) -> bool:
+        """JointState -> measured gripper width (sum of the two finger joints), at most ``ee_hz``."""
+        names = list(msg.name)
+        if not all(j in names for j in FINGER_JOINTS):
+            return False  # arm-only joint states carry no gripper
+        stamp = _stamp(msg, receive_ns)
+        if not self._pose_throttle.ready("joints", stamp):
+            return False
+        position = np.asarray(msg.position, dtype=np.float64)
+        if len(position) != len(names):
+            return self._drop("joint_states", ValueError(f"{len(names)} names but {len(position)} positions"))
+        width = float(sum(position[names.index(j)] for j in FINGER_JOINTS))
+        if not np.isfinite(width):
+            return self._drop("joint_states", ValueError("gripper finger positions contain NaN or inf"))
+        self._at(stamp)
+        self.rec.log(f"{GRIPPER_WIDTH}/measured", self.rr.Scalars(width))
+        self.logged["joint_states"] += 1
+        return True
+
+    def log_chunk(self, msg: Any, receive_ns: int | None = None) -> bool:
+        """MultiDOFJointTrajectory pose chunk -> path, steps labelled with width, one finger-span segment per step."""
+        try:
+            chunk = chunk_from_msg(msg)
+        except ChunkError as err:
+            return self._drop("chunk", err)
+        stamp = chunk.stamp_ns if chunk.stamp_ns > 0 else (receive_ns or time.time_ns())
+        positions = chunk.poses[:, :3, 3]
+        finger_axis = chunk.poses[:, :3, 1]  # the fingers close along the TCP y axis
+        half = (chunk.widths / 2)[:, None] * finger_axis
+        fade = np.linspace(1.0, 0.35, len(chunk))[:, None]
+        colors = (np.asarray(CHUNK_COLOR)[None, :] * fade).astype(np.uint8)
+        self._at(stamp)
+        rr = self.rr
+        self.rec.log(CHUNK_PATH, rr.LineStrips3D([positions], colors=[CHUNK_COLOR], radii=0.0015))
+        self.rec.log(CHUNK_STEPS, rr.Points3D(positions, colors=colors, radii=0.004,
+                                              labels=[f"t+{(t - chunk.stamp_ns) / 1e9:.1f}s w={w * 1000:.0f}mm"
+                                                      for t, w in zip(chunk.times_ns, chunk.widths)],
+                                              show_labels=False))
+        self.rec.log(CHUNK_GRIPPER, rr.LineStrips3D(np.stack([positions - half, positions + half], axis=1),
+                                                    colors=colors, radii=0.001))
+        self.rec.log(f"{GRIPPER_WIDTH}/commanded", rr.Scalars(float(chunk.widths[0])))
+        self.logged["chunk"] += 1
+        return True
+
+    def log_executed_target(self, msg: Any, receive_ns: int | None = None) -> bool:
+        """PoseStamped target franka_node actually sent -> transform + trail, at most ``ee_hz``."""
+        stamp = _stamp(msg, receive_ns)
+        if not self._pose_throttle.ready("executed", stamp):
+            return False
+        try:
+            pos, quat = _pose_of(msg)
+        except geometry.GeometryError as err:
+            return self._drop("executed_target", err)
+        self._at(stamp)
+        self.rec.log(EXECUTED, self.rr.Transform3D(translation=pos, quaternion=self.rr.Quaternion(xyzw=quat)))
+        trail = self._executed_trail.add(stamp, pos)
+        self.rec.log(EXECUTED_TRAIL, self.rr.LineStrips3D([trail], colors=[EXECUTED_COLOR], radii=0.0015))
+        self.logged["executed_target"] += 1
+        return True
+
+    def log_diagnostics(self, msg: Any, receive_ns: int | None = None) -> bool:
+        """DiagnosticArray -> one time series per numeric key (latency and observation age in their own views)."""
+        stamp = _stamp(msg, receive_ns)
+        self._at(stamp)
+        count = 0
+        for status in msg.status:
+            prefix = f"{DIAGNOSTICS}/{_entity_part(str(status.name) or 'unnamed')}"
+            for kv in status.values:
+                try:
+                    value = float(kv.value)
+                except (TypeError, ValueError):
+                    continue  # text values (e.g. "ok") have no time series
+                if not np.isfinite(value):
+                    continue
+                key = str(kv.key)
+                entity = _DIAGNOSTIC_ENTITIES.get(key, f"{prefix}/{_entity_part(key)}")
+                self.rec.log(entity, self.rr.Scalars(value))
+                count += 1
+        self.logged["diagnostics"] += 1
+        return count > 0
+
+    # --- dispatch by topic (bags and the live node share it) -------------------------------
+
+    def log_message(self, topic: str, msg: Any, receive_ns: int | None = None) -> bool:
+        """Route one message by its topic (architecture.md); unknown topics are ignored (False)."""
+        handler = self._handlers().get(topic)
+        if handler is not None:
+            return handler(msg, receive_ns)
+        if topic.startswith("/cameras/") and topic.endswith("/points"):
+            if not self.config.clouds:
+                return False
+            return self.log_camera_cloud(topic.split("/")[2], msg, receive_ns)
+        return False
+
+    def _handlers(self) -> dict[str, Any]:
+        return {
+            "/voxels": self.log_voxels,
+            "/franka/ee_pose": self.log_ee_pose,
+            "/franka/joint_states": self.log_joint_states,
+            "/franka/command_chunk": self.log_chunk,
+            "/franka/executed_target": self.log_executed_target,
+            "/diagnostics": self.log_diagnostics,
+            "/tf_static": self.log_tf,
+        }
+
+
+def _entity_part(name: str) -> str:
+    """A diagnostic status name ('policy_node: inference') as one entity-path part."""
+    return re.sub(r"[^A-Za-z0-9_-]+", "_", name).strip("_") or "unnamed"
+
+
+TOPICS_HANDLED = ("/voxels", "/franka/ee_pose", "/franka/joint_states", "/franka/command_chunk",
+                  "/franka/executed_target", "/diagnostics", "/tf_static")

@@ -1,0 +1,118 @@
+"""`equidiff viz`: rerun view of the live graph, or recorded bags converted to .rrd.
+
+    equidiff viz                         # live, spawns a local viewer
+    equidiff viz --connect 10.0.0.5:9876 # live, streams to a viewer on another machine
+    equidiff viz -o eval.rrd             # live, headless: writes a file (open it later with `rerun eval.rrd`)
+    equidiff viz bags/ -o all.rrd        # every bag in bags/ as one recording with an `episode` timeline
+    equidiff viz bags/ -o rrd/ --per-episode   # one <bag>.rrd per episode
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+from pathlib import Path
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.epilog = __doc__.split("\n", 1)[1]
+    parser.formatter_class = argparse.RawDescriptionHelpFormatter
+    parser.add_argument("bags", nargs="*", metavar="BAG",
+                        help="bag directories (or folders of bags) to convert; none: visualise the live graph")
+    sink = parser.add_mutually_exclusive_group()
+    sink.add_argument("--spawn", action="store_true", help="live: spawn a local rerun viewer (default with a display)")
+    sink.add_argument("--connect", metavar="ADDR", help="live: stream to a running viewer (host:port or rerun+http URL)")
+    sink.add_argument("-o", "--output", metavar="OUT", type=Path,
+                      help="FILE.rrd to write (live headless, or bag conversion); a directory with --per-episode")
+    parser.add_argument("--per-episode", action="store_true", help="bags: one .rrd per episode in the OUT directory")
+    parser.add_argument("--clouds", action="store_true", help="also show the raw camera clouds (throttled, strided)")
+    parser.add_argument("--lab-config", type=Path, default=None, help="lab.yaml (default: the installed one)")
+    parser.add_argument("--viz-config", type=Path, default=None, help="viz.yaml (default: config/viz.yaml)")
+    parser.add_argument("--duration", type=float, default=None, metavar="S", help="live: stop after S seconds")
+
+
+def _has_display() -> bool:
+    return sys.platform == "darwin" or bool(os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
+
+
+def run(args: argparse.Namespace) -> int:
+    from equidiff_core.config import ConfigError, default_config_dir, load_lab_config
+    from equidiff_core.viz import VizUnavailable, require_rerun
+
+    try:
+        require_rerun()
+    except VizUnavailable as err:
+        print(f"equidiff viz: {err}", file=sys.stderr)
+        return 2
+    from equidiff_core.viz.logger import load_viz_config
+
+    try:
+        lab = load_lab_config(args.lab_config or default_config_dir() / "lab.yaml")
+        config = load_viz_config(args.viz_config)
+    except ConfigError as err:
+        print(f"equidiff viz: {err}", file=sys.stderr)
+        return 2
+    if args.clouds:
+        config = type(config)(**{**config.__dict__, "clouds": True})
+    if args.bags:
+        return _convert(args, lab, config)
+    return _live(args, lab, config)
+
+
+def _convert(args: argparse.Namespace, lab, config) -> int:
+    from equidiff_core.viz.bag_to_rrd import BagConversionError, convert_bags
+
+    if args.output is None:
+        print("equidiff viz: converting bags needs -o OUT.rrd (or -o DIR --per-episode)", file=sys.stderr)
+        return 2
+    try:
+        report = convert_bags(args.bags, args.output, lab, config, per_episode=args.per_episode)
+    except BagConversionError as err:
+        print(f"equidiff viz: {err}", file=sys.stderr)
+        return 2
+    for ep in report.episodes:
+        if ep.error:
+            print(f"SKIPPED {ep.bag}: {ep.error}", file=sys.stderr)
+            continue
+        shown = ", ".join(f"{k} {v}" for k, v in sorted(ep.logged.items()))
+        dropped = f"; dropped {ep.dropped}" if ep.dropped else ""
+        print(f"{ep.bag.name}: {ep.messages} messages -> {ep.output} ({shown}{dropped})")
+    print(f"wrote {', '.join(map(str, report.outputs)) or 'nothing'} in {report.seconds:.1f} s"
+          f"; open with: rerun {report.outputs[0] if report.outputs else ''}")
+    return 0 if report.ok else 1
+
+
+def _live(args: argparse.Namespace, lab, config) -> int:
+    if args.per_episode:
+        print("equidiff viz: --per-episode only applies to bag conversion", file=sys.stderr)
+        return 2
+    spawn = args.spawn or (args.connect is None and args.output is None)
+    if spawn and not _has_display():
+        print("equidiff viz: no display to spawn a viewer on; write a file with -o FILE.rrd "
+              "or stream to a viewer elsewhere with --connect HOST:PORT", file=sys.stderr)
+        return 2
+    if args.output is not None and args.output.suffix != ".rrd":
+        print(f"equidiff viz: -o must name a .rrd file, got {args.output}", file=sys.stderr)
+        return 2
+    try:
+        from equidiff_ros.viz_node import run_live
+    except ImportError as err:
+        print(f"equidiff viz: live mode needs rclpy ({err}); install ROS 2 Jazzy or "
+              "pip install 'equidiff_ros[ros]'", file=sys.stderr)
+        return 2
+    from equidiff_core.viz.logger import RerunLogger, open_recording
+
+    rec = open_recording("live", spawn=spawn, connect=args.connect, save=args.output)
+    logger = RerunLogger(rec, lab, config)
+    logger.log_static_scene()
+    try:
+        received = run_live(logger, lab, clouds=config.clouds, duration_s=args.duration)
+    finally:
+        rec.flush()
+        rec.disconnect()
+    dropped = f"; dropped {dict(logger.errors)} (last: {logger.last_error})" if logger.errors else ""
+    print(f"received {received}; logged {dict(logger.logged)}{dropped}")
+    if args.output is not None:
+        print(f"wrote {args.output}; open with: rerun {args.output}")
+    return 0
