@@ -386,3 +386,69 @@ def test_sample_bag_converts_if_present(tmp_path):
     s = summarize_rrd(out)
     assert s["world/voxels"].rows == report.episodes[0].logged["voxels"] > 0
     assert s["world/ee"].rows > 0
+
+
+# --- training views ------------------------------------------------------------------------
+
+def _fake_sample(rng, horizon: int = 16) -> dict:
+    poses = np.stack([tcp_pose(0.1 * i) for i in range(horizon)])
+    gt = geometry.pose_to_action(poses, np.linspace(0.08, 0.03, horizon))
+    pred = gt + np.concatenate([rng.normal(0, 0.01, (horizon, 3)), np.zeros((horizon, 7))], axis=1)
+    return {"pred": pred.astype(np.float32), "gt": gt.astype(np.float32), "ee": gt[0].astype(np.float32)}
+
+
+def test_training_callback_logs_loss_curves_and_sampled_chunks(tmp_path):
+    from equidiff_core.viz.training import RerunTrainingCallback
+
+    rng = np.random.default_rng(0)
+    cb = RerunTrainingCallback(tmp_path / "train.rrd", max_samples=2)
+    losses = []
+    for step in range(1, 31):
+        losses.append(1.0 / step)
+        cb.on_step(step, {"step": step, "loss": losses[-1], "lr": 1e-4, "note": "text is skipped"})
+        if step % 10 == 0:
+            samples = [_fake_sample(rng) for _ in range(3)]  # one more than max_samples
+            if step == 20:
+                samples[1]["pred"][:] = np.nan  # a diverged sample: reported, not fatal
+            cb.on_eval(step, {"val_loss": 0.5 / step, "val_pos_err_m": 0.01, "step": step}, samples)
+    cb.on_end(None)
+    s = summarize_rrd(tmp_path / "train.rrd", count_instances=("Points3D:positions",))
+    assert s.has_blueprint
+    assert s["train/loss"].rows == 30 and s["train/loss"].time_range_ns("step") == (1, 30)
+    assert "train/note" not in s and "train/step" not in s
+    assert s["eval/val_loss"].rows == 3
+    assert s["samples/0/pred/path"].rows == 3 and s["samples/0/gt/path"].rows == 3
+    assert s["samples/0/pred/steps"].instances["Points3D:positions"] == [16] * 3
+    assert s["samples/1/pred/path"].rows == 2 and s["samples/1/error"].rows == 1
+    assert "samples/2/pred/path" not in s  # max_samples
+    assert s["eval/samples/0/pos_err_mm"].rows == 3
+
+
+@pytest.mark.slow
+def test_training_callback_with_the_real_trainer(tmp_path):
+    """`training.train` drives the callback through its protocol (tiny preset, a handful of steps)."""
+    training = pytest.importorskip("equidiff_core.training")
+    import torch
+
+    from equidiff_core.policies import make_policy
+    from equidiff_core.presets import get_preset
+    from equidiff_core.viz.training import RerunTrainingCallback
+
+    torch.set_num_threads(1)
+    preset = get_preset("tiny")
+    policy = make_policy("baseline", preset, LAB.workspace)
+    rng = np.random.default_rng(0)
+    samples = []
+    for i in range(8):
+        s = _fake_sample(rng, preset.horizon)
+        vox = torch.from_numpy(voxel_grid(200, seed=i))[None].expand(preset.n_obs_steps, -1, -1, -1, -1)
+        samples.append({"voxels": vox.contiguous(), "ee": torch.from_numpy(s["ee"])[None].repeat(preset.n_obs_steps, 1),
+                        "action": torch.from_numpy(s["gt"])})
+    cfg = training.TrainConfig(steps=4, batch_size=4, warmup_steps=1, eval_every=2, eval_samples=2, val_batches=1,
+                               checkpoint_every=0, log_every=1, device="cpu")
+    cb = RerunTrainingCallback(tmp_path / "train.rrd", max_samples=2)
+    training.train(policy, samples, samples[:4], cfg, tmp_path / "run", callbacks=[cb])
+    assert cb.closed  # on_end closed the recording
+    s = summarize_rrd(tmp_path / "train.rrd")
+    assert s["train/loss"].rows == 4 and s["eval/val_loss"].rows == 2
+    assert s["samples/0/pred/path"].rows == 2 and s["samples/1/gt/path"].rows == 2

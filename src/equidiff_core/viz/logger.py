@@ -54,9 +54,6 @@ VOXELS = "world/voxels"
 EE = "world/ee"
 EE_TRAIL = "world/ee_trail"
 CHUNK = "world/chunk"
-CHUNK_PATH = "world/chunk/path"
-CHUNK_STEPS = "world/chunk/steps"
-CHUNK_GRIPPER = "world/chunk/gripper"
 EXECUTED = "world/executed_target"
 EXECUTED_TRAIL = "world/executed_trail"
 LATENCY = "metrics/latency"
@@ -396,21 +393,10 @@ class RerunLogger:
         except ChunkError as err:
             return self._drop("chunk", err)
         stamp = chunk.stamp_ns if chunk.stamp_ns > 0 else (receive_ns or time.time_ns())
-        positions = chunk.poses[:, :3, 3]
-        finger_axis = chunk.poses[:, :3, 1]  # the fingers close along the TCP y axis
-        half = (chunk.widths / 2)[:, None] * finger_axis
-        fade = np.linspace(1.0, 0.35, len(chunk))[:, None]
-        colors = (np.asarray(CHUNK_COLOR)[None, :] * fade).astype(np.uint8)
         self._at(stamp)
-        rr = self.rr
-        self.rec.log(CHUNK_PATH, rr.LineStrips3D([positions], colors=[CHUNK_COLOR], radii=0.0015))
-        self.rec.log(CHUNK_STEPS, rr.Points3D(positions, colors=colors, radii=0.004,
-                                              labels=[f"t+{(t - chunk.stamp_ns) / 1e9:.1f}s w={w * 1000:.0f}mm"
-                                                      for t, w in zip(chunk.times_ns, chunk.widths)],
-                                              show_labels=False))
-        self.rec.log(CHUNK_GRIPPER, rr.LineStrips3D(np.stack([positions - half, positions + half], axis=1),
-                                                    colors=colors, radii=0.001))
-        self.rec.log(f"{GRIPPER_WIDTH}/commanded", rr.Scalars(float(chunk.widths[0])))
+        labels = [f"t+{(t - chunk.stamp_ns) / 1e9:.1f}s w={w * 1000:.0f}mm" for t, w in zip(chunk.times_ns, chunk.widths)]
+        log_pose_path(self.rec, CHUNK, chunk.poses, chunk.widths, CHUNK_COLOR, labels)
+        self.rec.log(f"{GRIPPER_WIDTH}/commanded", self.rr.Scalars(float(chunk.widths[0])))
         self.logged["chunk"] += 1
         return True
 
@@ -474,6 +460,21 @@ class RerunLogger:
             "/diagnostics": self.log_diagnostics,
             "/tf_static": self.log_tf,
         }
+
+
+def log_pose_path(rec: Any, entity: str, poses: np.ndarray, widths: np.ndarray, color: tuple[int, int, int],
+                  labels: list[str] | None = None) -> None:
+    """A pose sequence as ``<entity>/path`` (line), ``/steps`` (points, fading with time, labelled) and
+    ``/gripper`` (one segment per step along the TCP y axis, as long as the gripper opening)."""
+    rr = require_rerun()
+    positions = poses[:, :3, 3]
+    half = (np.asarray(widths, dtype=np.float64) / 2)[:, None] * poses[:, :3, 1]  # fingers close along TCP y
+    fade = np.linspace(1.0, 0.35, len(poses))[:, None]
+    colors = (np.asarray(color, dtype=np.float64)[None, :] * fade).astype(np.uint8)
+    rec.log(f"{entity}/path", rr.LineStrips3D([positions], colors=[color], radii=0.0015))
+    rec.log(f"{entity}/steps", rr.Points3D(positions, colors=colors, radii=0.004, labels=labels, show_labels=False))
+    rec.log(f"{entity}/gripper", rr.LineStrips3D(np.stack([positions - half, positions + half], axis=1),
+                                                 colors=colors, radii=0.001))
 
 
 def _entity_part(name: str) -> str:
