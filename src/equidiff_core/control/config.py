@@ -1,0 +1,100 @@
+"""Typed configuration of the franka node: safety limits, chunk scheduling, franky gains, rates.
+
+Loaded from ``config/control.yaml`` with ``config.from_dict`` (unknown keys are errors with
+their dotted path). The workspace box itself comes from ``lab.yaml``; here only the margin.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from ..config import ConfigError, from_dict, load_yaml
+
+
+@dataclass(frozen=True)
+class SafetyConfig:
+    workspace_margin_m: float = 0.01  # targets are clipped to the workspace box shrunk by this
+    max_linear_speed_m_s: float = 0.25  # diffusion_policy's real-robot limits
+    max_angular_speed_rad_s: float = 0.6
+    max_first_step_jump_m: float = 0.08  # a chunk whose first live step is farther is rejected
+    max_first_step_rotation_rad: float = 0.6
+    watchdog_timeout_s: float = 0.5  # hold the current pose when no valid command for this long
+    orthonormal_tol: float = 1e-3
+    min_gripper_width_m: float = 0.0
+    max_gripper_width_m: float = 0.08
+
+    def __post_init__(self):
+        for name in ("max_linear_speed_m_s", "max_angular_speed_rad_s", "max_first_step_jump_m",
+                     "max_first_step_rotation_rad", "watchdog_timeout_s", "orthonormal_tol"):
+            if getattr(self, name) <= 0:
+                raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
+        if self.workspace_margin_m < 0:
+            raise ValueError(f"workspace_margin_m must be >= 0, got {self.workspace_margin_m}")
+        if not 0 <= self.min_gripper_width_m <= self.max_gripper_width_m:
+            raise ValueError("need 0 <= min_gripper_width_m <= max_gripper_width_m")
+
+
+@dataclass(frozen=True)
+class SchedulerConfig:
+    # "linear" (default: 0.75 mm RMS on franky-sim, docs/parts/control.md) or "cubic" (monotone C1 Hermite)
+    interpolation: str = "linear"
+    drop_margin_s: float = 0.01  # steps earlier than now + this are dropped (diffusion_policy: 10 ms)
+    # A chunk entirely in the past (e.g. a teleop target stamped "now") is still executed, as
+    # "go there in lead_s", if its last step is at most this old; older chunks are rejected.
+    max_step_age_s: float = 0.25
+    lead_s: float = 0.05
+
+    def __post_init__(self):
+        if self.interpolation not in ("cubic", "linear"):
+            raise ValueError(f"interpolation must be 'cubic' or 'linear', got {self.interpolation!r}")
+        if self.lead_s <= 0:
+            raise ValueError("lead_s must be positive")
+
+
+@dataclass(frozen=True)
+class FrankyConfig:
+    """franky 2.0 backend: a CartesianImpedanceTracker streamed at ``ControlConfig.control_hz``."""
+
+    translational_stiffness: float = 3000.0  # N/m; NOTES: 3.5 mm RMS at 3000 vs 8-9 mm at 1000
+    rotational_stiffness: float = 150.0  # Nm/rad
+    # Joint friction feed-forward (Nm, Nms/rad). Defaults are franky-sim's own MuJoCo values
+    # (fr3.xml frictionloss / damping); on a real FR3 identify them or set them to zero.
+    friction_coulomb: tuple[float, ...] = (1.137, 1.137, 1.137, 1.137, 0.763, 0.44, 0.248)
+    friction_viscous: tuple[float, ...] = (0.21, 0.21, 0.21, 0.21, 0.21, 0.21, 0.21)
+    friction_max_torque: float = 2.0
+    relative_dynamics_factor: float = 0.15  # for the blocking move to the home pose only
+    gripper_speed_m_s: float = 0.05
+    gripper_force_n: float = 20.0
+    gripper_epsilon_outer_m: float = 0.03  # wide, so a grasp commanded below the object holds
+    max_recoveries: int = 3  # consecutive automatic error recoveries before giving up
+
+    def __post_init__(self):
+        if len(self.friction_coulomb) != 7 or len(self.friction_viscous) != 7:
+            raise ValueError("friction_coulomb and friction_viscous need 7 values (one per joint)")
+
+
+@dataclass(frozen=True)
+class ControlConfig:
+    control_hz: float = 200.0  # rate of the safety filter + set_target loop
+    gripper_deadband_m: float = 0.005  # only command the gripper when its target moves this much
+    home_on_start: bool = True
+    # Home pose (TCP, base frame): inside the workspace, gripper pointing down.
+    home_position: tuple[float, float, float] = (0.45, 0.0, 0.30)
+    home_quaternion_xyzw: tuple[float, float, float, float] = (1.0, 0.0, 0.0, 0.0)
+    safety: SafetyConfig = field(default_factory=SafetyConfig)
+    scheduler: SchedulerConfig = field(default_factory=SchedulerConfig)
+    franky: FrankyConfig = field(default_factory=FrankyConfig)
+
+    def __post_init__(self):
+        if not 10 <= self.control_hz <= 1000:
+            raise ValueError(f"control_hz must be within 10..1000, got {self.control_hz}")
+
+
+def load_control_config(path: str | Path) -> ControlConfig:
+    data = load_yaml(path)
+    if data is None:
+        data = {}
+    if not isinstance(data, dict):
+        raise ConfigError(f"{path}: expected a mapping at the top level")
+    return from_dict(ControlConfig, data, where=Path(path).name)

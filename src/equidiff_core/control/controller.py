@@ -1,0 +1,251 @@
+"""The control loop of the franka node, ROS-free: chunks in, filtered targets out to a ``Robot``.
+
+One thread ticks at ``control_hz`` to fixed deadlines: read the robot state, sample the
+chunk scheduler at *now*, apply the watchdog and the safety filter, stream the target to the
+robot, move the gripper when its target changes. ``submit`` (called from a ROS callback)
+checks a chunk and swaps the scheduler's trajectory under a lock, so callbacks never wait for
+the robot. Errors reported by the robot trigger ``recover`` with a logged reason, at most
+``max_recoveries`` times in a row; after that the controller stays faulted and holds nothing
+(the robot's own brakes/reflexes take over) until restarted.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+
+from .. import geometry
+from ..chunk import ChunkError, PoseChunk
+from ..config import Workspace
+from ..robots.base import Robot, RobotError, RobotState
+from .config import ControlConfig
+from .safety import FilteredTarget, SafetyFilter, SafetyRejection, check_chunk
+from .scheduler import ChunkScheduler, Setpoint
+
+log = logging.getLogger("equidiff.control")
+
+
+@dataclass
+class ControllerStats:
+    ticks: int = 0
+    overruns: int = 0  # ticks that started more than one period late
+    accepted_chunks: int = 0
+    rejected_chunks: int = 0
+    nan_rejected: int = 0  # NaN / inf / non-orthonormal (subset of rejected_chunks)
+    jump_rejected: int = 0
+    stale_rejected: int = 0
+    watchdog_holds: int = 0
+    recoveries: int = 0
+    clipped_ticks: int = 0
+    speed_limited_ticks: int = 0
+    gripper_commands: int = 0
+    faulted: bool = False
+    last_rejection: str = ""
+    last_recovery_reason: str = ""
+
+    def as_dict(self) -> dict:
+        return dict(self.__dict__)
+
+
+@dataclass(frozen=True)
+class Command:
+    stamp_ns: int
+    target: FilteredTarget
+    holding: bool
+
+
+class Controller:
+    def __init__(self, robot: Robot, workspace: Workspace, config: ControlConfig = ControlConfig(),
+                 clock: Callable[[], int] = time.time_ns, logger: logging.Logger | None = None,
+                 on_command: Callable[[Command], None] | None = None):
+        self.robot = robot
+        self.config = config
+        self.clock = clock
+        self.log = logger or log
+        self.on_command = on_command
+        self.safety = SafetyFilter(workspace, config.safety)
+        self.scheduler = ChunkScheduler(config.scheduler)
+        self.stats = ControllerStats()
+        self._lock = threading.Lock()
+        self._state: RobotState | None = None
+        self._setpoint: FilteredTarget | None = None  # the last command sent
+        self._last_valid_ns: int | None = None
+        self._holding = True
+        self._last_tick_ns: int | None = None
+        self._gripper_sent = float("nan")
+        self._failures_in_row = 0
+        self._last_failure_ns = 0
+        self._thread: threading.Thread | None = None
+        self._stop = threading.Event()
+
+    # --- lifecycle -------------------------------------------------------------------------
+    @property
+    def home_pose(self) -> np.ndarray:
+        return geometry.pose_from_pos_quat(self.config.home_position, self.config.home_quaternion_xyzw)
+
+    def start(self, home: bool | None = None, thread: bool = True) -> None:
+        """Move home (if configured), start streaming seeded at the current pose, start ticking."""
+        if home if home is not None else self.config.home_on_start:
+            home_pose = self.home_pose
+            if not self.safety.inside(home_pose[:3, 3]):
+                raise ValueError(f"home position {self.config.home_position} is outside the workspace box")
+            self.log.info(f"moving to the home pose {self.config.home_position}")
+            self.robot.move_to(home_pose)
+        self.robot.start_streaming()
+        self._reset_to_measured()
+        if thread:
+            self._stop.clear()
+            self._thread = threading.Thread(target=self._run, name="control-loop", daemon=True)
+            self._thread.start()
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=5)
+            self._thread = None
+        try:
+            self.robot.stop_streaming()
+        except RobotError as err:
+            self.log.warning(f"stopping the robot: {err}")
+
+    def _run(self) -> None:
+        period_ns = int(1e9 / self.config.control_hz)
+        deadline = time.monotonic_ns()
+        while not self._stop.is_set():
+            try:
+                self.tick()
+            except Exception as err:  # keep the loop alive; a bug here must not leave the arm streaming stale targets
+                self.log.error(f"control tick failed: {err!r}")
+                self._holding = True
+            deadline += period_ns
+            delay = deadline - time.monotonic_ns()
+            if delay > 0:
+                time.sleep(delay / 1e9)
+            elif delay < -period_ns:
+                self.stats.overruns += 1
+                deadline = time.monotonic_ns()
+
+    # --- inputs ------------------------------------------------------------------------------
+    @property
+    def state(self) -> RobotState | None:
+        return self._state
+
+    @property
+    def holding(self) -> bool:
+        return self._holding
+
+    def submit(self, chunk: PoseChunk) -> bool:
+        """Check ``chunk`` and make it the trajectory to follow; False (and a warning) if rejected."""
+        now = self.clock()
+        try:
+            with self._lock:
+                live = self.scheduler.live_steps(chunk, now)
+                state = self._state
+                check_chunk(live, None if state is None else state.ee_pose, self.config.safety)
+                current = self._current_setpoint()
+                self.scheduler.schedule(live, now, current)
+                self._last_valid_ns = now
+                self._holding = False
+            self.stats.accepted_chunks += 1
+            return True
+        except ChunkError as err:
+            self.record_rejection(err)
+            return False
+
+    def record_rejection(self, err: ChunkError) -> None:
+        """Count a chunk that never became a PoseChunk (decode failed) or failed the checks."""
+        text = str(err)
+        self.stats.rejected_chunks += 1
+        if isinstance(err, SafetyRejection):
+            self.stats.jump_rejected += 1
+        elif "stale" in text:
+            self.stats.stale_rejected += 1
+        elif any(word in text for word in ("NaN", "inf", "orthonormal", "unit length", "determinant")):
+            self.stats.nan_rejected += 1
+        self.stats.last_rejection = text
+        self.log.warning(f"rejected chunk: {text}; holding the current trajectory")
+
+    # --- the tick ------------------------------------------------------------------------
+    def _current_setpoint(self) -> Setpoint:
+        sp = self._setpoint
+        if sp is None:
+            pose = self._state.ee_pose if self._state is not None else self.robot.read_state().ee_pose
+            return Setpoint(pose, np.zeros(3), np.zeros(3), float("nan"), False)
+        return Setpoint(sp.pose, sp.linear_velocity, sp.angular_velocity, float("nan"), not self._holding)
+
+    def _reset_to_measured(self) -> None:
+        state = self.robot.read_state()
+        self._state = state
+        with self._lock:
+            self.scheduler.clear()
+            self._holding = True
+            self._setpoint = FilteredTarget(state.ee_pose, np.zeros(3), np.zeros(3), False, False)
+
+    def tick(self) -> Command | None:
+        now = self.clock()
+        if self.stats.faulted:
+            return None
+        self._state = self.robot.read_state()
+        period = 1.0 / self.config.control_hz
+        dt = period if self._last_tick_ns is None else (now - self._last_tick_ns) / 1e9
+        dt = float(np.clip(dt, 0.5 * period, 3 * period))
+        self._last_tick_ns = now
+        with self._lock:
+            if (not self._holding and self._last_valid_ns is not None
+                    and now - self._last_valid_ns > self.config.safety.watchdog_timeout_s * 1e9):
+                self.scheduler.clear()
+                self._holding = True
+                self.stats.watchdog_holds += 1
+                self.log.warning(f"no valid command for {self.config.safety.watchdog_timeout_s} s: "
+                                 f"holding the current pose")
+            sp = None if self._holding else self.scheduler.sample(now)
+            previous = self._setpoint
+        if sp is None:
+            filtered = self.safety.filter(previous.pose, previous.pose, dt)
+        else:
+            filtered = self.safety.filter(previous.pose, sp.pose, dt, sp.linear_velocity, sp.angular_velocity)
+        try:
+            self.robot.stream_target(filtered.pose, filtered.linear_velocity, filtered.angular_velocity)
+        except RobotError as err:
+            self._handle_failure(now, err)
+            return None
+        if now - self._last_failure_ns > 2e9:
+            self._failures_in_row = 0
+        self._setpoint = filtered
+        self.stats.ticks += 1
+        self.stats.clipped_ticks += int(filtered.clipped)
+        self.stats.speed_limited_ticks += int(filtered.speed_limited)
+        if sp is not None and np.isfinite(sp.width):
+            width = self.safety.clip_width(sp.width)
+            if not abs(width - self._gripper_sent) <= self.config.gripper_deadband_m:  # NaN-safe
+                self.robot.move_gripper(width)
+                self._gripper_sent = width
+                self.stats.gripper_commands += 1
+        command = Command(now, filtered, self._holding)
+        if self.on_command is not None:
+            self.on_command(command)
+        return command
+
+    def _handle_failure(self, now: int, err: Exception) -> None:
+        self._failures_in_row += 1
+        self._last_failure_ns = now
+        limit = self.config.franky.max_recoveries
+        if self._failures_in_row > limit:
+            self.stats.faulted = True
+            self.log.error(f"robot error '{err}' after {limit} recoveries in a row: giving up; "
+                           f"restart the node once the cause is fixed")
+            return
+        try:
+            reason = self.robot.recover()
+        except RobotError as rec_err:
+            self.log.error(f"recovery {self._failures_in_row}/{limit} failed: {rec_err}")
+            return
+        self.stats.recoveries += 1
+        self.stats.last_recovery_reason = reason
+        self.log.warning(f"robot error ({reason}); recovered ({self._failures_in_row}/{limit}), holding")
+        self._reset_to_measured()

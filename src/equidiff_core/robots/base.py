@@ -1,0 +1,88 @@
+"""The robot interface every backend (franky, dryrun) implements.
+
+Shaped like the camera interface (LeRobot style): an abstract context manager with
+``connect`` / ``disconnect``, plus what a streaming Cartesian controller needs: read the
+state, stream a target pose with a feed-forward twist, move the gripper without blocking,
+and recover from errors. Safety is not the backend's job: ``control.Controller`` filters
+every target before it reaches ``stream_target``.
+"""
+
+from __future__ import annotations
+
+import abc
+from dataclasses import dataclass
+
+import numpy as np
+
+ARM_JOINT_NAMES = tuple(f"fr3_joint{i}" for i in range(1, 8))
+FINGER_JOINT_NAMES = ("fr3_finger_joint1", "fr3_finger_joint2")
+
+
+class RobotError(RuntimeError):
+    """The robot refused or aborted a command (reflex, connection loss, motion failure)."""
+
+
+@dataclass(frozen=True)
+class RobotState:
+    stamp_ns: int  # when the state was read (wall clock)
+    ee_pose: np.ndarray  # (4, 4) TCP pose in the base frame
+    joint_positions: np.ndarray  # (7,) rad
+    joint_velocities: np.ndarray  # (7,) rad/s
+    gripper_width: float  # m (NaN if unknown)
+
+
+class Robot(abc.ABC):
+    """A Cartesian-streaming arm. Use as ``with make_robot(...) as robot: ...``."""
+
+    @abc.abstractmethod
+    def connect(self) -> None:
+        """Connect; raise RobotError naming the address if the robot is unreachable."""
+
+    @abc.abstractmethod
+    def disconnect(self) -> None:
+        """Stop any motion and release the robot; safe to call twice."""
+
+    @property
+    @abc.abstractmethod
+    def is_connected(self) -> bool: ...
+
+    @abc.abstractmethod
+    def read_state(self) -> RobotState:
+        """The newest state (non-blocking apart from the transport)."""
+
+    @abc.abstractmethod
+    def move_to(self, pose: np.ndarray) -> None:
+        """Blocking point-to-point move (used once, to go home before streaming starts)."""
+
+    @abc.abstractmethod
+    def start_streaming(self) -> None:
+        """Start the streaming controller, seeded at the current pose (so nothing jumps)."""
+
+    @abc.abstractmethod
+    def stream_target(self, pose: np.ndarray, linear_velocity: np.ndarray, angular_velocity: np.ndarray) -> None:
+        """Set the streaming controller's target (any rate); raise RobotError if it stopped."""
+
+    @abc.abstractmethod
+    def stop_streaming(self) -> None:
+        """Bring the arm to rest and end the streaming controller."""
+
+    @abc.abstractmethod
+    def move_gripper(self, width: float) -> None:
+        """Start moving the gripper to ``width`` (m) and return at once."""
+
+    @abc.abstractmethod
+    def recover(self) -> str:
+        """Clear errors and restart streaming; return the reason the robot stopped.
+
+        Raise RobotError if recovery failed."""
+
+    @property
+    @abc.abstractmethod
+    def has_errors(self) -> bool: ...
+
+    def __enter__(self) -> "Robot":
+        self.connect()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.disconnect()

@@ -1,0 +1,136 @@
+"""A bare franky-sim server (MuJoCo FR3 speaking libfranka's protocol) for tests and benchmarks.
+
+``python -m equidiff_core.robots.franky.sim --host 127.0.0.1`` serves one robot until killed;
+``SimServer`` starts that in a subprocess and always kills it. The digital twin's full scene
+lives in ``equidiff_core.twin``; this is the smallest thing the franka node can talk to.
+
+We step the server ourselves instead of ``SimulationServer.run_async()``: the stock loop
+sleeps "1 ms minus compute" and runs 8-16 % slower than real time (NOTES.md); sleeping to
+fixed 1 ms deadlines holds 1000 steps/s, which the tracking numbers depend on.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+
+
+def serve(host: str, realtime: bool = True) -> None:
+    import franky_sim
+    from franky_sim.mujoco_simulator import MujocoSimulator
+
+    stop = False
+
+    def _stop(*_):
+        nonlocal stop
+        stop = True
+
+    signal.signal(signal.SIGTERM, _stop)
+    signal.signal(signal.SIGINT, _stop)
+    with MujocoSimulator() as sim:
+        sim.add_robot()
+        with franky_sim.SimulationServer(sim, hostname_candidates=[host]) as server:
+            print(f"READY {host}", flush=True)
+            deadline = time.perf_counter()
+            while not stop:
+                for rs in server.robot_servers:
+                    rs.process_commands()
+                sim.step()
+                for rs in server.robot_servers:
+                    rs.send_state()
+                deadline += 0.001
+                delay = deadline - time.perf_counter()
+                if delay > 0:
+                    time.sleep(delay)
+                elif delay < -0.05:  # far behind (machine overloaded): don't try to catch up in a burst
+                    deadline = time.perf_counter()
+
+
+class SimServer:
+    """franky-sim in a subprocess: ``with SimServer() as sim: franky.Robot(sim.host, ...)``."""
+
+    def __init__(self, host: str | None = None, startup_timeout_s: float = 60.0):
+        # A random 127.x.y.z by default: parallel tests / twins each get their own robot.
+        self.host = host or free_loopback_host()
+        self.startup_timeout_s = startup_timeout_s
+        self.process: subprocess.Popen | None = None
+
+    def start(self) -> "SimServer":
+        _check_port_free(self.host)
+        env = dict(os.environ, OMP_NUM_THREADS="1")
+        self.process = subprocess.Popen(
+            [sys.executable, "-u", "-m", "equidiff_core.robots.franky.sim", "--host", self.host],
+            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
+        deadline = time.monotonic() + self.startup_timeout_s
+        lines = []
+        while time.monotonic() < deadline:
+            line = self.process.stdout.readline()
+            if not line:
+                break
+            lines.append(line)
+            if line.startswith("READY"):
+                # Drain the rest of its output so a full pipe never blocks the server.
+                import threading
+
+                threading.Thread(target=self.process.stdout.read, daemon=True).start()
+                return self
+        self.stop()
+        raise RuntimeError("franky-sim did not start:\n" + "".join(lines[-20:]))
+
+    def stop(self) -> None:
+        if self.process is None:
+            return
+        if self.process.poll() is None:
+            self.process.send_signal(signal.SIGTERM)
+            try:
+                self.process.wait(timeout=5)
+            except subprocess.TimeoutExpired:
+                self.process.kill()
+                self.process.wait()
+        self.process = None
+
+    def __enter__(self) -> "SimServer":
+        return self.start()
+
+    def __exit__(self, *exc) -> None:
+        self.stop()
+
+
+def free_loopback_host() -> str:
+    import random
+
+    rng = random.Random()
+    for _ in range(50):
+        host = f"127.{rng.randint(1, 254)}.{rng.randint(0, 255)}.{rng.randint(1, 254)}"
+        try:
+            _check_port_free(host)
+            return host
+        except RuntimeError:
+            continue
+    raise RuntimeError("no free loopback address for franky-sim")
+
+
+def _check_port_free(host: str, port: int = 1337) -> None:
+    # libfranka's command port; a leftover server would silently answer instead of ours.
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            s.bind((host, port))
+        except OSError as err:
+            raise RuntimeError(f"{host}:{port} is taken: another franky-sim (or robot) is already "
+                               f"serving there; pick another 127.x.y.z address") from err
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--host", default="127.0.0.1", help="loopback address to serve on")
+    serve(parser.parse_args(argv).host)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,323 @@
+"""Safety filter, chunk scheduler and control loop (pure: dry-run robot, simulated clock)."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from equidiff_core import geometry
+from equidiff_core.chunk import ChunkError, PoseChunk, chunk_from_msg, chunk_to_msg
+from equidiff_core.config import ConfigError, Workspace, default_config_dir, from_dict
+from equidiff_core.control import (ChunkScheduler, ControlConfig, Controller, SafetyConfig, SafetyFilter,
+                                   SafetyRejection, SchedulerConfig, Setpoint, check_chunk, load_control_config)
+from equidiff_core.robots import RobotError, make_robot
+from equidiff_core.robots.dryrun import DryRunConfig, DryRunRobot
+from equidiff_core.rosmsg import rosbags_factory
+
+WS = Workspace()
+CENTER = np.asarray(WS.center)
+MS = 1_000_000
+HOME = geometry.pose_from_pos_quat((0.45, 0.0, 0.30), (1.0, 0.0, 0.0, 0.0))
+
+
+def pose_at(p, base=HOME):
+    T = base.copy()
+    T[:3, 3] = p
+    return T
+
+
+def circle(t, center=(0.45, 0.0, 0.25), radius=0.05, speed=0.079):
+    """A point on a horizontal circle, starting at angle 0, moving at ``speed`` m/s."""
+    w = speed / radius
+    return np.asarray(center) + radius * np.array([np.cos(w * t), np.sin(w * t), 0.0])
+
+
+def circle_chunk(stamp_ns, t0_ns, steps=8, dt_ns=200 * MS, width=0.08):
+    times = stamp_ns + np.arange(steps, dtype=np.int64) * dt_ns
+    poses = np.stack([pose_at(circle((t - t0_ns) / 1e9)) for t in times])
+    return PoseChunk(int(stamp_ns), times, poses, np.full(steps, width))
+
+
+class FakeClock:
+    def __init__(self, t_ns=1_000_000 * 1_000_000_000):
+        self.t = t_ns
+
+    def __call__(self):
+        return self.t
+
+
+def make_controller(config=ControlConfig(), start=circle(0.0), clock=None, robot=None):
+    clock = clock or FakeClock()
+    robot = robot or DryRunRobot(DryRunConfig(initial_position=tuple(start)))
+    robot.connect()
+    ctl = Controller(robot, WS, config, clock=clock)
+    ctl.start(home=False, thread=False)
+    return ctl, robot, clock
+
+
+# --- config ------------------------------------------------------------------------------
+
+def test_control_yaml_loads_and_matches_the_documented_defaults():
+    assert load_control_config(default_config_dir() / "control.yaml") == ControlConfig()
+
+
+def test_control_config_errors_name_the_key():
+    with pytest.raises(ConfigError, match=r"ControlConfig\.safety: unknown key"):
+        from_dict(ControlConfig, {"safety": {"max_speed": 1.0}})
+    with pytest.raises(ConfigError, match="watchdog_timeout_s must be positive"):
+        from_dict(ControlConfig, {"safety": {"watchdog_timeout_s": 0}})
+    with pytest.raises(ConfigError, match="interpolation"):
+        from_dict(ControlConfig, {"scheduler": {"interpolation": "spline"}})
+
+
+# --- safety ------------------------------------------------------------------------------
+
+def test_filter_clips_targets_to_the_shrunk_workspace_box():
+    safety = SafetyFilter(WS, SafetyConfig(workspace_margin_m=0.02, max_linear_speed_m_s=100.0))
+    target = pose_at(WS.upper + 0.3)
+    out = safety.filter(pose_at(CENTER), target, dt=1.0)
+    assert out.clipped
+    np.testing.assert_allclose(out.pose[:3, 3], WS.upper - 0.02)
+
+
+def test_filter_limits_linear_and_angular_speed():
+    limits = SafetyConfig(max_linear_speed_m_s=0.25, max_angular_speed_rad_s=0.6)
+    safety = SafetyFilter(WS, limits)
+    start = pose_at(CENTER)
+    far = pose_at(CENTER + [0.1, 0.0, 0.0], base=geometry.rotz_pose(1.0) @ HOME)
+    out = safety.filter(start, far, dt=0.005)
+    assert out.speed_limited
+    moved = np.linalg.norm(out.pose[:3, 3] - start[:3, 3])
+    assert moved == pytest.approx(0.25 * 0.005)
+    from equidiff_core.control import rotation_angle
+
+    assert rotation_angle(start[:3, :3], out.pose[:3, :3]) == pytest.approx(0.6 * 0.005, rel=1e-6)
+    assert np.linalg.norm(out.linear_velocity) <= 0.25 + 1e-9
+    # A reachable target is passed through with its own feed-forward.
+    near = pose_at(CENTER + [0.001, 0, 0])
+    out = safety.filter(start, near, dt=0.005, linear_velocity=np.array([0.2, 0, 0]))
+    assert not out.speed_limited and not out.clipped
+    np.testing.assert_allclose(out.pose, near, atol=1e-12)
+    np.testing.assert_allclose(out.linear_velocity, [0.2, 0, 0])
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.lists(st.tuples(*[st.floats(-2.0, 2.0)] * 3), min_size=1, max_size=30))
+def test_filtered_commands_never_leave_the_box(targets):
+    safety = SafetyFilter(WS, SafetyConfig(workspace_margin_m=0.01))
+    pose = pose_at(CENTER)
+    for t in targets:
+        pose = safety.filter(pose, pose_at(np.asarray(t)), dt=0.05).pose
+        assert safety.inside(pose[:3, 3])
+
+
+def test_check_chunk_rejects_jumps_and_bad_rotations():
+    limits = SafetyConfig(max_first_step_jump_m=0.05, max_first_step_rotation_rad=0.5)
+    here = pose_at((0.45, 0.0, 0.25))
+    ok = PoseChunk(0, np.array([1, 2]), np.stack([pose_at((0.47, 0, 0.25)), pose_at((0.5, 0, 0.25))]), np.zeros(2))
+    check_chunk(ok, here, limits)
+    far = PoseChunk(0, np.array([1]), pose_at((0.55, 0, 0.25))[None], np.zeros(1))
+    with pytest.raises(SafetyRejection, match="mm from the current pose"):
+        check_chunk(far, here, limits)
+    turned = PoseChunk(0, np.array([1]), (geometry.rotz_pose(0.8, (0.45, 0, 0.25)) @ here)[None], np.zeros(1))
+    with pytest.raises(SafetyRejection, match="rotated"):
+        check_chunk(turned, here, limits)
+    sheared = ok.poses.copy()
+    sheared[:, 0, 1] += 2e-4  # passes PoseChunk's 1e-3 but not a stricter limit
+    with pytest.raises(ChunkError, match="orthonormal"):
+        check_chunk(dataclasses.replace(ok, poses=sheared), here, SafetyConfig(orthonormal_tol=1e-5))
+
+
+# --- scheduler ------------------------------------------------------------------------------
+
+def rest_at(pose):
+    return Setpoint(pose, np.zeros(3), np.zeros(3), float("nan"), False)
+
+
+@pytest.mark.parametrize("interpolation", ["linear", "cubic"])
+def test_scheduler_drops_past_steps_and_passes_through_the_rest(interpolation):
+    sched = ChunkScheduler(SchedulerConfig(interpolation=interpolation))
+    t0 = 10_000 * MS
+    chunk = circle_chunk(stamp_ns=t0, t0_ns=t0)
+    now = t0 + 300 * MS  # steps 0 and 1 are past
+    live = sched.live_steps(chunk, now)
+    assert len(live) == 6 and live.times_ns[0] == t0 + 400 * MS
+    sched.schedule(live, now, rest_at(pose_at(circle(0.3))))
+    for t, pose in zip(live.times_ns, live.poses):
+        np.testing.assert_allclose(sched.sample(int(t)).pose, pose, atol=1e-9)
+    end = sched.sample(int(live.times_ns[-1]) + 500 * MS)
+    assert not end.active and np.allclose(end.linear_velocity, 0)
+    np.testing.assert_allclose(end.pose, live.poses[-1], atol=1e-9)
+
+
+def test_scheduler_rejects_stale_chunks_and_keeps_a_recent_teleop_target():
+    sched = ChunkScheduler(SchedulerConfig(max_step_age_s=0.25, lead_s=0.05))
+    now = 50_000 * MS
+    teleop = PoseChunk(now - 20 * MS, np.array([now - 20 * MS]), pose_at((0.5, 0, 0.2))[None], np.array([0.04]))
+    live = sched.live_steps(teleop, now)
+    assert live.times_ns.tolist() == [now + 50 * MS]
+    stale = dataclasses.replace(teleop, stamp_ns=now - 400 * MS, times_ns=np.array([now - 400 * MS]))
+    with pytest.raises(ChunkError, match="stale"):
+        sched.live_steps(stale, now)
+
+
+@pytest.mark.parametrize("interpolation", ["linear", "cubic"])
+def test_streamed_chunks_track_a_curve_without_velocity_reversals(interpolation):
+    """5 Hz chunks of 8 steps along a circle, each 100 ms late (inference): the setpoint moves
+    along the circle with continuous position, never backwards, within 1 mm of it."""
+    cfg = dataclasses.replace(ControlConfig(), scheduler=SchedulerConfig(interpolation=interpolation))
+    ctl, robot, clock = make_controller(cfg)
+    t0 = clock.t
+    period = int(1e9 / cfg.control_hz)
+    positions, times = [], []
+    for tick in range(int(4.0 * cfg.control_hz)):
+        if tick % int(0.2 * cfg.control_hz) == 0:
+            obs = max(t0, clock.t - 100 * MS)
+            assert ctl.submit(circle_chunk(obs, t0))
+        cmd = ctl.tick()
+        positions.append(cmd.target.pose[:3, 3])
+        times.append((clock.t - t0) / 1e9)
+        clock.t += period
+    positions, times = np.array(positions), np.array(times)
+    steps = np.linalg.norm(np.diff(positions, axis=0), axis=1)
+    assert steps.max() < 0.25 / cfg.control_hz + 1e-9  # speed limit, no jumps at chunk switches
+    # Progress along the circle (its angle) never decreases.
+    angle = np.unwrap(np.arctan2(positions[:, 1] - 0.0, positions[:, 0] - 0.45))
+    assert np.diff(angle).min() > -1e-9, "the setpoint moved backwards"
+    ref = np.array([circle(t) for t in times])
+    err = np.linalg.norm(positions - ref, axis=1)[times > 0.5]
+    assert err.max() < 1e-3
+
+
+# --- controller -------------------------------------------------------------------------
+
+def test_watchdog_holds_the_pose_when_commands_stop():
+    ctl, robot, clock = make_controller()
+    t0 = clock.t
+    ctl.submit(circle_chunk(t0, t0))
+    period = int(1e9 / ctl.config.control_hz)
+    for _ in range(int(0.3 * ctl.config.control_hz)):
+        ctl.tick()
+        clock.t += period
+    assert not ctl.holding
+    moving = ctl.tick().target.pose[:3, 3]
+    for _ in range(int(0.25 * ctl.config.control_hz)):  # past 0.5 s without a command
+        clock.t += period
+        ctl.tick()
+    assert ctl.holding and ctl.stats.watchdog_holds == 1
+    held = ctl.tick().target.pose.copy()
+    assert np.linalg.norm(held[:3, 3] - moving) < 0.25 * 0.25 + 1e-6
+    for _ in range(int(2.0 * ctl.config.control_hz)):
+        clock.t += period
+        np.testing.assert_allclose(ctl.tick().target.pose, held, atol=1e-12)
+    assert ctl.stats.watchdog_holds == 1
+    resume = PoseChunk(clock.t, np.array([clock.t + 200 * MS]), pose_at(held[:3, 3] + 0.01)[None], np.ones(1))
+    assert ctl.submit(resume) and not ctl.holding  # a fresh chunk resumes
+
+
+def test_chunk_outside_the_workspace_never_moves_the_command_outside():
+    ctl, robot, clock = make_controller(start=(0.45, 0.0, 0.30))
+    period = int(1e9 / ctl.config.control_hz)
+    upper = WS.upper - ctl.config.safety.workspace_margin_m
+    zs = []
+    for tick in range(int(2.0 * ctl.config.control_hz)):
+        if tick % 40 == 0:  # a sender that keeps asking for 2 cm per step upwards, through the lid
+            z = ctl.state.ee_pose[2, 3]
+            poses = np.stack([pose_at((0.45, 0.0, z + 0.02 * i)) for i in range(8)])
+            assert ctl.submit(PoseChunk(clock.t, clock.t + np.arange(8) * 200 * MS, poses, np.full(8, 0.08)))
+        clock.t += period
+        zs.append(ctl.tick().target.pose[2, 3])
+    assert max(zs) <= upper[2] + 1e-9
+    assert max(zs) == pytest.approx(upper[2])  # it went as far as allowed, no farther
+    assert ctl.stats.clipped_ticks > 0
+    assert all(cmd[2][2, 3] <= upper[2] + 1e-9 for cmd in robot.sent if cmd[0] == "target")
+
+
+def test_rejected_chunks_are_counted_and_the_node_keeps_its_trajectory():
+    ctl, robot, clock = make_controller()
+    t0 = clock.t
+    assert ctl.submit(circle_chunk(t0, t0))
+    far = PoseChunk(t0, np.array([t0 + 200 * MS]), pose_at((0.60, 0.1, 0.1))[None], np.zeros(1))
+    assert not ctl.submit(far)
+    assert ctl.stats.jump_rejected == 1
+    # A NaN chunk never becomes a PoseChunk: decoding fails, the node records it.
+    msg = chunk_to_msg(circle_chunk(t0, t0), rosbags_factory(), "fr3_link0")
+    msg.points[3].transforms[0].translation.y = float("nan")
+    with pytest.raises(ChunkError) as err:
+        chunk_from_msg(msg)
+    ctl.record_rejection(err.value)
+    assert ctl.stats.nan_rejected == 1 and ctl.stats.rejected_chunks == 2
+    # The accepted trajectory is still executed.
+    for _ in range(int(0.4 * ctl.config.control_hz)):
+        clock.t += int(1e9 / ctl.config.control_hz)
+        ctl.tick()
+    np.testing.assert_allclose(ctl.tick().target.pose[:3, 3], circle(0.4), atol=1e-3)
+
+
+def test_gripper_is_commanded_only_when_its_target_changes():
+    ctl, robot, clock = make_controller()
+    t0 = clock.t
+    widths = np.array([0.08, 0.08, 0.078, 0.02, 0.02, 0.021, 0.08, 0.08])
+    times = t0 + np.arange(8) * 200 * MS
+    poses = np.stack([pose_at(circle(0.0))] * 8)
+    chunk = PoseChunk(t0, times, poses, widths)
+    for tick in range(int(1.6 * ctl.config.control_hz)):
+        if tick % 40 == 0:  # re-sent every 0.2 s, as a live sender would, so the watchdog stays quiet
+            ctl.submit(chunk)
+        ctl.tick()
+        clock.t += int(1e9 / ctl.config.control_hz)
+    sent = [float(v) for kind, _, v in robot.sent if kind == "gripper"]
+    assert sent == pytest.approx([0.08, 0.02, 0.08])
+
+
+class FlakyRobot(DryRunRobot):
+    """Fails ``failures`` times in a row (like a reflex), then works."""
+
+    def __init__(self, failures):
+        super().__init__(DryRunConfig(initial_position=tuple(circle(0.0))))
+        self.failures = failures
+        self.recovered = 0
+
+    def stream_target(self, pose, v, w):
+        if self.failures > 0:
+            self.failures -= 1
+            raise RobotError("cartesian_reflex")
+        super().stream_target(pose, v, w)
+
+    def recover(self):
+        self.recovered += 1
+        return "cartesian_reflex"
+
+
+def test_errors_are_recovered_a_bounded_number_of_times():
+    ctl, robot, clock = make_controller(robot=FlakyRobot(failures=2))
+    for _ in range(5):
+        ctl.tick()
+        clock.t += 5 * MS
+    assert robot.recovered == 2 and ctl.stats.recoveries == 2 and not ctl.stats.faulted
+    assert ctl.stats.last_recovery_reason == "cartesian_reflex"
+
+    ctl, robot, clock = make_controller(robot=FlakyRobot(failures=100))
+    for _ in range(10):
+        ctl.tick()
+        clock.t += 5 * MS
+    limit = ctl.config.franky.max_recoveries
+    assert robot.recovered == limit and ctl.stats.faulted
+    assert ctl.tick() is None  # faulted: sends nothing more
+
+
+def test_dryrun_logs_what_would_be_sent(caplog):
+    robot = make_robot("dryrun")
+    robot.connect()
+    ctl = Controller(robot, WS, ControlConfig(), clock=FakeClock())
+    with caplog.at_level("INFO", logger="equidiff.robot.dryrun"):
+        ctl.start(home=True, thread=False)
+        ctl.tick()
+    assert any("would send move_to" in r.message for r in caplog.records)
+    assert [k for k, _, _ in robot.sent][:2] == ["move_to", "target"]
+    with pytest.raises(ValueError, match="unknown robot backend"):
+        make_robot("ur5")
