@@ -1,0 +1,296 @@
+"""SpaceMouse teleoperation: a 6-D twist + buttons -> an absolute TCP target and gripper width.
+
+``TeleopIntegrator`` is the whole behaviour, without ROS or a device, so the twin's scripted
+expert and the tests drive exactly what the node runs:
+
+* deadzone on the normalised axes (re-scaled so the output starts at 0 at the deadzone edge),
+  then per-axis scaling to m/s and rad/s at full deflection;
+* translation in the base frame or the tool frame; rotation about the TCP, with its axes in
+  the base or the tool frame; an optional rotation lock (translation only);
+* integration from the robot's **measured** pose (``reset``), the target kept inside the
+  workspace box and at most ``max_lead_m`` / ``max_lead_rad`` ahead of the measured pose
+  (a blocked arm does not wind the target up);
+* two gripper buttons: ``buttons`` (left opens, right closes), ``toggle`` (either toggles) or
+  ``hold`` (closed while the close button is held);
+* stale input (no device sample for ``input_timeout_s``) counts as zero twist.
+
+Input sources (``spacemouse``: the device via pyspacemouse/hidapi, polled by the node at
+``rate_hz``; ``joy``: ``sensor_msgs/Joy`` from the spacenav driver) both produce ``TeleopInput``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Sequence
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from . import geometry
+from .chunk import PoseChunk
+from .config import Workspace
+
+NS_PER_S = 1_000_000_000
+
+
+class TeleopError(RuntimeError):
+    """No input device, or an input that cannot be used."""
+
+
+@dataclass(frozen=True)
+class TeleopConfig:
+    source: str = "joy"  # "joy" (sensor_msgs/Joy on /spacenav/joy) or "spacemouse" (direct HID)
+    device: str = ""  # pyspacemouse device name ("" = the first supported one found)
+    rate_hz: float = 200.0  # device polling and integration rate (diffusion_policy polls at 200 Hz)
+    publish_hz: float = 20.0  # /franka/command_chunk rate
+    command_lead_s: float = 0.05  # each target's time_from_start: reached this long after publishing
+    deadzone: float = 0.08  # of the normalised axis range
+    linear_scale: tuple[float, float, float] = (0.15, 0.15, 0.15)  # m/s at full deflection, x y z
+    angular_scale: tuple[float, float, float] = (0.8, 0.8, 0.8)  # rad/s at full deflection, roll pitch yaw
+    axis_signs: tuple[float, float, float, float, float, float] = (1, 1, 1, 1, 1, 1)  # device mounting
+    translation_frame: str = "base"  # "base" or "tool"
+    rotation_frame: str = "base"  # axes of the rotation about the TCP: "base" or "tool"
+    lock_rotation: bool = False
+    gripper_mode: str = "buttons"  # "buttons" | "toggle" | "hold"
+    open_button: int = 0
+    close_button: int = 1
+    open_width: float = 0.08  # m
+    closed_width: float = 0.0  # m (franky grasps with a force; the width is the goal)
+    workspace_margin: float = 0.0  # m kept from the workspace box faces
+    max_lead_m: float = 0.05  # target may run at most this far ahead of the measured TCP
+    max_lead_rad: float = 0.5
+    input_timeout_s: float = 0.25
+
+    def __post_init__(self):
+        if self.source not in ("joy", "spacemouse"):
+            raise ValueError(f"source must be 'joy' or 'spacemouse', got {self.source!r}")
+        if self.translation_frame not in ("base", "tool") or self.rotation_frame not in ("base", "tool"):
+            raise ValueError("translation_frame and rotation_frame must be 'base' or 'tool'")
+        if self.gripper_mode not in ("buttons", "toggle", "hold"):
+            raise ValueError(f"gripper_mode must be buttons/toggle/hold, got {self.gripper_mode!r}")
+        if not 0 <= self.deadzone < 1:
+            raise ValueError(f"deadzone must be in [0, 1), got {self.deadzone}")
+        if self.rate_hz < 100 and self.source == "spacemouse":
+            raise ValueError(f"a SpaceMouse must be polled at >= 100 Hz, got rate_hz={self.rate_hz}")
+        if self.publish_hz <= 0 or self.rate_hz <= 0:
+            raise ValueError("rate_hz and publish_hz must be positive")
+
+
+@dataclass(frozen=True)
+class TeleopInput:
+    """One device sample: axes [x, y, z, roll, pitch, yaw] normalised to [-1, 1], buttons 0/1."""
+
+    axes: tuple[float, ...]
+    buttons: tuple[int, ...] = ()
+    stamp_ns: int = 0
+
+    @classmethod
+    def from_joy(cls, msg) -> "TeleopInput":
+        """sensor_msgs/Joy in the spacenav layout (either message flavour)."""
+        axes = [float(a) for a in msg.axes]
+        if len(axes) < 6:
+            raise TeleopError(f"Joy message has {len(axes)} axes; the spacenav layout has 6 (x y z roll pitch yaw)")
+        if not np.all(np.isfinite(axes)):
+            raise TeleopError("Joy axes contain NaN or inf")
+        stamp = int(msg.header.stamp.sec) * NS_PER_S + int(msg.header.stamp.nanosec)
+        return cls(tuple(axes[:6]), tuple(int(b) for b in msg.buttons), stamp)
+
+
+def apply_deadzone(axes: np.ndarray, deadzone: float) -> np.ndarray:
+    """Zero inside the deadzone, linear from 0 at its edge to +-1 at full deflection."""
+    a = np.clip(np.asarray(axes, dtype=np.float64), -1.0, 1.0)
+    mag = np.maximum(np.abs(a) - deadzone, 0.0) / (1.0 - deadzone)
+    return np.sign(a) * mag
+
+
+@dataclass
+class TeleopIntegrator:
+    """Integrates twists into an absolute target; ``reset`` with the measured pose before use."""
+
+    config: TeleopConfig
+    workspace: Workspace
+    target: np.ndarray | None = None  # (4, 4)
+    width: float = float("nan")
+    measured: np.ndarray | None = None
+    _prev_buttons: tuple[int, ...] = field(default=(), repr=False)
+    _closed: bool = False
+
+    @property
+    def ready(self) -> bool:
+        return self.target is not None
+
+    def reset(self, measured_pose: np.ndarray, measured_width: float | None = None) -> None:
+        """Start (again) from the robot's measured pose; the gripper state follows its width."""
+        pose = geometry.validate_pose(np.asarray(measured_pose, dtype=np.float64))
+        self.measured = pose.copy()
+        self.target = pose.copy()
+        self.target[:3, 3] = self._clamp_box(pose[:3, 3])
+        if measured_width is not None and np.isfinite(measured_width):
+            self._closed = measured_width < 0.5 * (self.config.open_width + self.config.closed_width)
+        self.width = self.config.closed_width if self._closed else self.config.open_width
+
+    def observe(self, measured_pose: np.ndarray) -> None:
+        """Latest measured TCP pose (bounds how far the target may lead)."""
+        self.measured = geometry.validate_pose(np.asarray(measured_pose, dtype=np.float64)).copy()
+
+    def twist(self, axes: Sequence[float]) -> tuple[np.ndarray, np.ndarray]:
+        """Normalised axes -> (linear m/s, angular rad/s), still in the device's frame convention."""
+        cfg = self.config
+        a = np.asarray(axes, dtype=np.float64)[:6] * np.asarray(cfg.axis_signs, dtype=np.float64)
+        if a.shape != (6,) or not np.all(np.isfinite(a)):
+            raise TeleopError(f"expected 6 finite axes, got {axes!r}")
+        a = apply_deadzone(a, cfg.deadzone)
+        v = a[:3] * np.asarray(cfg.linear_scale)
+        w = np.zeros(3) if cfg.lock_rotation else a[3:] * np.asarray(cfg.angular_scale)
+        return v, w
+
+    def step(self, inp: TeleopInput | None, dt: float) -> tuple[np.ndarray, float]:
+        """Advance by ``dt`` seconds with input ``inp`` (None = no fresh input: hold); returns (target, width)."""
+        if self.target is None:
+            raise TeleopError("teleop has no start pose yet: reset() with the measured TCP pose first")
+        if dt < 0 or not np.isfinite(dt):
+            raise TeleopError(f"bad time step {dt}")
+        if inp is None:
+            return self.target.copy(), self.width
+        v, w = self.twist(inp.axes)
+        R = self.target[:3, :3]
+        p = self.target[:3, 3]
+        dp = (R @ v if self.config.translation_frame == "tool" else v) * dt
+        dR = Rotation.from_rotvec(w * dt).as_matrix()
+        R_new = R @ dR if self.config.rotation_frame == "tool" else dR @ R
+        p_new = self._limit_lead(self._clamp_box(p + dp))
+        R_new = self._limit_rot_lead(_orthonormalise(R_new))
+        self.target = geometry.make_pose(R_new, p_new)
+        self._buttons(tuple(inp.buttons))
+        return self.target.copy(), self.width
+
+    def chunk(self, now_ns: int) -> PoseChunk:
+        """The current target as a one-point chunk (stamp = now, reached ``command_lead_s`` later)."""
+        if self.target is None:
+            raise TeleopError("teleop has no target yet")
+        t = now_ns + int(self.config.command_lead_s * NS_PER_S)
+        return PoseChunk(int(now_ns), np.array([t], dtype=np.int64), self.target[None].copy(),
+                         np.array([self.width], dtype=np.float64))
+
+    # -- helpers ---------------------------------------------------------------------------
+    def _clamp_box(self, p: np.ndarray) -> np.ndarray:
+        m = self.config.workspace_margin
+        return np.clip(p, self.workspace.lower + m, self.workspace.upper - m)
+
+    def _limit_lead(self, p: np.ndarray) -> np.ndarray:
+        if self.measured is None or self.config.max_lead_m <= 0:
+            return p
+        q = self.measured[:3, 3]
+        d = p - q
+        n = float(np.linalg.norm(d))
+        if n > self.config.max_lead_m:
+            p = self._clamp_box(q + d * (self.config.max_lead_m / n))
+        return p
+
+    def _limit_rot_lead(self, R: np.ndarray) -> np.ndarray:
+        if self.measured is None or self.config.max_lead_rad <= 0:
+            return R
+        Rm = self.measured[:3, :3]
+        rel = Rotation.from_matrix(Rm.T @ R).as_rotvec()
+        ang = float(np.linalg.norm(rel))
+        if ang > self.config.max_lead_rad:
+            R = Rm @ Rotation.from_rotvec(rel * (self.config.max_lead_rad / ang)).as_matrix()
+        return R
+
+    def _buttons(self, buttons: tuple[int, ...]) -> None:
+        cfg = self.config
+
+        def pressed(i: int, prev: tuple[int, ...] | None = None) -> bool:
+            src = buttons if prev is None else prev
+            return i < len(src) and bool(src[i])
+
+        def rising(i: int) -> bool:
+            return pressed(i) and not pressed(i, self._prev_buttons)
+
+        if cfg.gripper_mode == "buttons":
+            if rising(cfg.close_button):
+                self._closed = True
+            elif rising(cfg.open_button):
+                self._closed = False
+        elif cfg.gripper_mode == "toggle":
+            if rising(cfg.open_button) or rising(cfg.close_button):
+                self._closed = not self._closed
+        else:  # hold
+            self._closed = pressed(cfg.close_button)
+        self._prev_buttons = buttons
+        self.width = cfg.closed_width if self._closed else cfg.open_width
+
+
+def _orthonormalise(R: np.ndarray) -> np.ndarray:
+    """Re-project onto SO(3): thousands of small integration steps must not drift off it."""
+    u, _, vt = np.linalg.svd(R)
+    Rn = u @ vt
+    if np.linalg.det(Rn) < 0:
+        u[:, -1] *= -1
+        Rn = u @ vt
+    return Rn
+
+
+# --- input sources ----------------------------------------------------------------------------
+
+class SpaceMouseSource:
+    """A 3Dconnexion SpaceMouse read directly over HID with pyspacemouse (ROS axis convention).
+
+    ``read()`` is non-blocking and returns the latest state; the node polls it at ``rate_hz``.
+    """
+
+    def __init__(self, device: str = ""):
+        self.device_name = device
+        self._dev = None
+
+    def connect(self) -> None:
+        try:
+            import pyspacemouse
+        except ImportError as err:
+            raise TeleopError("source 'spacemouse' needs pyspacemouse and hidapi "
+                              "(pip install 'equidiff_ros[spacemouse]'); or use source:=joy with the "
+                              "spacenav driver") from err
+        try:
+            connected = pyspacemouse.get_connected_devices()
+        except Exception as err:  # hidapi missing its shared library, udev permissions, ...
+            raise TeleopError(f"cannot enumerate HID devices for a SpaceMouse: {err}") from err
+        supported = [name for name, *_ in pyspacemouse.get_supported_devices()]
+        if not connected:
+            raise TeleopError("no SpaceMouse found: looked for USB HID devices of the supported 3Dconnexion "
+                              f"models ({', '.join(supported[:6])}, ...); check the cable/receiver and "
+                              "udev permissions (/dev/hidraw*), or use source:=joy with the spacenav driver")
+        name = self.device_name or connected[0]
+        if name not in connected:
+            raise TeleopError(f"SpaceMouse {name!r} not found; connected: {connected}")
+        kwargs = {}
+        convention = getattr(getattr(pyspacemouse, "AxisConvention", None), "ROS", None)
+        if convention is not None:
+            kwargs["axis_convention"] = convention
+        try:
+            self._dev = pyspacemouse.open(device=name, **kwargs)
+        except Exception as err:
+            raise TeleopError(f"cannot open SpaceMouse {name!r}: {err}") from err
+
+    def read(self, now_ns: int) -> TeleopInput:
+        if self._dev is None:
+            raise TeleopError("SpaceMouse is not connected")
+        s = self._dev.read()
+        return TeleopInput((s.x, s.y, s.z, s.roll, s.pitch, s.yaw), tuple(int(b) for b in s.buttons), now_ns)
+
+    def disconnect(self) -> None:
+        if self._dev is not None:
+            try:
+                self._dev.close()
+            finally:
+                self._dev = None
+
+    def __enter__(self) -> "SpaceMouseSource":
+        self.connect()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.disconnect()
+
+
+def is_fresh(inp: TeleopInput | None, now_ns: int, timeout_s: float) -> bool:
+    return inp is not None and (inp.stamp_ns == 0 or now_ns - inp.stamp_ns <= timeout_s * NS_PER_S)

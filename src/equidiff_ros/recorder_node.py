@@ -1,0 +1,246 @@
+"""recorder_node: records demonstration episodes to rosbag2 MCAP directories, one per episode.
+
+Wiring: raw (serialised CDR) subscriptions on every recorded topic are written untouched
+into the bag by ``equidiff_core.recording.EpisodeWriter`` at their receive time; the
+episode starts and stops on
+
+* services (std_srvs/Trigger): /recorder/start, /recorder/stop (keep, success),
+  /recorder/stop_failure (keep, success=false), /recorder/discard;
+* the /recorder/command topic (std_msgs/String): ``start [task]``, ``stop [success|failure] [notes]``,
+  ``discard``;
+* the keyboard when ``keyboard:=true`` and stdin is a terminal: s = start, k = keep
+  (success), f = keep (failure), d = discard, then Enter.
+
+State is published latched on /recorder/status (std_msgs/String: ``idle`` or ``recording
+<path>``). Episodes go to ``output_dir/<task>_NNNN`` and are never overwritten; free disk is
+checked before each start and while recording (stop-and-keep when low). A killed recorder's
+bag is recovered with ``equidiff bags repair``.
+
+Parameters: ``lab_config``, ``output_dir``, ``record_clouds`` (the three camera clouds, off by
+default), ``chunk_size_mib``, ``chunk_max_age_s``, ``min_free_gib``, ``task``, ``operator``,
+``notes``, ``keyboard``, ``autostart``; defaults in config/data.yaml.
+"""
+
+from __future__ import annotations
+
+import sys
+import threading
+
+USAGE = __doc__ + """
+usage: recorder_node [--ros-args -p output_dir:=DIR -p task:=NAME -p operator:=NAME -p record_clouds:=false ...]
+"""
+
+BEST_EFFORT_TOPICS = ("/franka/ee_pose", "/franka/joint_states", "/spacenav/joy")  # match any publisher
+
+
+def parse_command(text: str) -> tuple[str, dict]:
+    """'/recorder/command' text -> (action, metadata updates); ValueError if unknown."""
+    words = text.strip().split()
+    if not words:
+        raise ValueError("empty command")
+    action, rest = words[0].lower(), words[1:]
+    if action == "start":
+        return "start", ({"task": rest[0]} if rest else {})
+    if action == "stop":
+        updates: dict = {"success": True}
+        if rest and rest[0].lower() in ("success", "ok", "true"):
+            rest = rest[1:]
+        elif rest and rest[0].lower() in ("failure", "fail", "false"):
+            updates["success"] = False
+            rest = rest[1:]
+        if rest:
+            updates["notes"] = " ".join(rest)
+        return "stop", updates
+    if action == "discard":
+        return "discard", {}
+    raise ValueError(f"unknown recorder command {words[0]!r} (start, stop [success|failure] [notes], discard)")
+
+
+def build_node():
+    from rclpy.node import Node
+
+    from equidiff_core.bags import EpisodeMeta
+    from equidiff_core.recording import (EpisodeWriter, RecordingConfig, RecordingError, next_episode_path,
+                                         recorded_topics)
+    from equidiff_core.rosmsg import RclpyFactory
+    from equidiff_ros.common import (LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS, TOPIC_RECORDER_COMMAND,
+                                     declare_lab_config, now_ns)
+    from equidiff_ros.teleop_node import declare_config
+
+    class RecorderNode(Node):
+        def __init__(self):
+            super().__init__("recorder_node")
+            self.lab = declare_lab_config(self)
+            self.cfg = declare_config(self, RecordingConfig)
+            self.task = str(self.declare_parameter("task", "episode").value)
+            self.operator = str(self.declare_parameter("operator", "").value)
+            self.notes = str(self.declare_parameter("notes", "").value)
+            keyboard = bool(self.declare_parameter("keyboard", False).value)
+            autostart = bool(self.declare_parameter("autostart", False).value)
+            self.factory = RclpyFactory()
+            self.lock = threading.Lock()
+            self.writer: EpisodeWriter | None = None
+            self.topics = recorded_topics(self.lab, self.cfg.record_clouds)
+            for topic, msgtype in self.topics.items():
+                qos = SENSOR_QOS if topic in BEST_EFFORT_TOPICS or topic.startswith("/cameras/") else RELIABLE_QOS
+                self.create_subscription(self.factory.cls(msgtype), topic, self._writer_cb(topic, msgtype), qos,
+                                         raw=True)
+            String = self.factory.cls("std_msgs/msg/String")
+            Trigger = self.factory.cls("std_srvs/srv/Trigger")
+            self.status_pub = self.create_publisher(String, "/recorder/status", LATCHED_QOS)
+            self.create_subscription(String, TOPIC_RECORDER_COMMAND, self.on_command, RELIABLE_QOS)
+            self.create_service(Trigger, "/recorder/start", self._service(lambda: self.start()))
+            self.create_service(Trigger, "/recorder/stop", self._service(lambda: self.stop(success=True)))
+            self.create_service(Trigger, "/recorder/stop_failure", self._service(lambda: self.stop(success=False)))
+            self.create_service(Trigger, "/recorder/discard", self._service(self.discard))
+            self.create_timer(0.5, self.housekeeping)
+            self.publish_status()
+            self.get_logger().info(f"recording {sorted(self.topics)} to {self.cfg.output_dir}/")
+            if keyboard:
+                self.start_keyboard()
+            if autostart:
+                self.start()
+
+        # -- episode control -------------------------------------------------------------
+        def start(self, **meta_updates) -> str:
+            with self.lock:
+                if self.writer is not None:
+                    raise RecordingError(f"already recording {self.writer.path}")
+                task = meta_updates.get("task", self.task)
+                meta = EpisodeMeta(task=task, operator=self.operator, notes=self.notes)
+                path = next_episode_path(self.cfg.output_dir, task)
+                writer = EpisodeWriter(path, meta, self.cfg).open()
+                for topic, msgtype in self.topics.items():
+                    writer.add_topic(topic, msgtype, reliable=topic not in BEST_EFFORT_TOPICS)
+                writer.write_tf_static(self.lab, now_ns(self))
+                self.writer = writer
+            self.publish_status()
+            self.get_logger().info(f"episode started: {path}")
+            return str(path)
+
+        def stop(self, **meta_updates) -> str:
+            with self.lock:
+                if self.writer is None:
+                    raise RecordingError("not recording")
+                writer, self.writer = self.writer, None
+                path = writer.close(**meta_updates)
+                counts = dict(writer.counts)
+            self.publish_status()
+            self.get_logger().info(f"episode kept: {path} ({sum(counts.values())} messages: {counts})")
+            return str(path)
+
+        def discard(self) -> str:
+            with self.lock:
+                if self.writer is None:
+                    raise RecordingError("not recording")
+                writer, self.writer = self.writer, None
+                writer.discard()
+            self.publish_status()
+            self.get_logger().info(f"episode discarded: {writer.path}")
+            return f"discarded {writer.path}"
+
+        # -- plumbing --------------------------------------------------------------------
+        def _writer_cb(self, topic: str, msgtype: str):
+            def cb(data: bytes):
+                with self.lock:
+                    if self.writer is not None:
+                        self.writer.write_raw(topic, now_ns(self), data, msgtype)
+            return cb
+
+        def _service(self, action):
+            def handler(request, response):
+                try:
+                    response.message = action()
+                    response.success = True
+                except RecordingError as err:
+                    response.success, response.message = False, str(err)
+                    self.get_logger().error(str(err))
+                return response
+            return handler
+
+        def on_command(self, msg):
+            try:
+                action, updates = parse_command(msg.data)
+                if action == "start":
+                    self.start(**updates)
+                elif action == "stop":
+                    self.stop(**updates)
+                else:
+                    self.discard()
+            except (ValueError, RecordingError) as err:
+                self.get_logger().error(f"{TOPIC_RECORDER_COMMAND}: {err}")
+
+        def publish_status(self):
+            String = self.factory.cls("std_msgs/msg/String")
+            writer = self.writer
+            self.status_pub.publish(String(data="idle" if writer is None else f"recording {writer.path}"))
+
+        def housekeeping(self):
+            with self.lock:
+                writer = self.writer
+                if writer is not None:
+                    writer.flush_if_old()  # bounds what a SIGKILL can lose
+            if writer is not None and writer.low_disk:
+                self.get_logger().error("disk nearly full: stopping and keeping the episode")
+                self.stop(success=None, notes="stopped: disk nearly full")
+
+        def start_keyboard(self):
+            if not sys.stdin or not sys.stdin.isatty():
+                self.get_logger().warn("keyboard:=true but stdin is not a terminal; use services or "
+                                       f"{TOPIC_RECORDER_COMMAND}")
+                return
+            print("recorder keys: s=start  k=keep (success)  f=keep (failure)  d=discard  [Enter]", flush=True)
+
+            def loop():
+                actions = {"s": self.start, "k": lambda: self.stop(success=True),
+                           "f": lambda: self.stop(success=False), "d": self.discard}
+                for line in sys.stdin:
+                    key = line.strip()[:1].lower()
+                    if key in actions:
+                        try:
+                            print(actions[key](), flush=True)
+                        except RecordingError as err:
+                            print(f"recorder: {err}", flush=True)
+            threading.Thread(target=loop, daemon=True, name="recorder-keyboard").start()
+
+        def shutdown(self):
+            with self.lock:
+                writer, self.writer = self.writer, None
+            if writer is not None:  # keep what was recorded; the operator judges it later
+                writer.close(success=None, notes=(writer.meta.notes + " [recorder shut down mid-episode]").strip())
+                self.get_logger().info(f"episode kept on shutdown: {writer.path}")
+
+    return RecorderNode()
+
+
+def main(args=None) -> int:
+    argv = sys.argv[1:] if args is None else list(args)
+    if "-h" in argv or "--help" in argv:
+        print(USAGE)
+        return 0
+    import rclpy
+    from rclpy.executors import ExternalShutdownException
+
+    from equidiff_core.recording import RecordingError
+
+    rclpy.init(args=args)
+    node = None
+    try:
+        node = build_node()
+        rclpy.spin(node)
+    except RecordingError as err:
+        print(f"recorder_node: {err}", file=sys.stderr)
+        return 1
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        if node is not None:
+            node.shutdown()
+            node.destroy_node()
+        if rclpy.ok():
+            rclpy.try_shutdown()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

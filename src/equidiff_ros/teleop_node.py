@@ -1,0 +1,197 @@
+"""teleop_node: SpaceMouse (direct HID or the spacenav driver's /spacenav/joy) -> /franka/command_chunk.
+
+Wiring: /franka/ee_pose + /franka/joint_states (measured state) and the input source feed
+``equidiff_core.teleop.TeleopIntegrator`` at ``rate_hz``; while the operator is active it
+publishes one-point chunks at ``publish_hz`` on /franka/command_chunk, exactly like the
+policy, so the franka node's safety and scheduling apply to human commands too. After
+``resync_after_s`` without input the target re-starts from the measured pose (the policy or
+a script may have moved the arm meanwhile), and nothing is published while idle, so teleop
+never fights the policy.
+
+Parameters: ``lab_config`` and every field of ``TeleopConfig`` (``source``, ``deadzone``,
+``linear_scale``, ``angular_scale``, ``translation_frame``, ``rotation_frame``,
+``lock_rotation``, ``gripper_mode``, ...), plus ``resync_after_s``; defaults in
+config/data.yaml (``teleop_node.ros__parameters``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import sys
+import typing
+
+USAGE = __doc__ + """
+usage: teleop_node [--ros-args -p source:=joy|spacemouse -p gripper_mode:=buttons|toggle|hold ...]
+"""
+
+
+def declare_config(node, cls, prefix: str = ""):
+    """Declare one ROS parameter per dataclass field (defaults from the class) and build the config."""
+    from equidiff_core.config import from_dict
+
+    values = {}
+    hints = typing.get_type_hints(cls)
+    for f in dataclasses.fields(cls):
+        default = f.default if f.default is not dataclasses.MISSING else None
+        if isinstance(default, tuple):
+            default = [float(v) for v in default] if "float" in str(hints[f.name]) else list(default)
+        if default is None or isinstance(default, dict):
+            continue  # optional / mapping fields keep their defaults
+        value = node.declare_parameter(prefix + f.name, default).value
+        values[f.name] = list(value) if isinstance(value, (list, tuple)) or hasattr(value, "tolist") else value
+    return from_dict(cls, values, node.get_name())
+
+
+def _pose_from_msg(msg):
+    import numpy as np
+
+    from equidiff_core import geometry
+
+    p, q = msg.pose.position, msg.pose.orientation
+    return geometry.pose_from_pos_quat(np.array([p.x, p.y, p.z]), np.array([q.x, q.y, q.z, q.w]))
+
+
+def build_node():
+    import numpy as np
+    from rclpy.node import Node
+
+    from equidiff_core.chunk import chunk_to_msg
+    from equidiff_core.geometry import GeometryError
+    from equidiff_core.rosmsg import RclpyFactory, stamp_to_ns
+    from equidiff_core.teleop import (SpaceMouseSource, TeleopConfig, TeleopError, TeleopInput,
+                                      TeleopIntegrator, is_fresh)
+    from equidiff_ros.common import (RELIABLE_QOS, SENSOR_QOS, TOPIC_COMMAND_CHUNK, TOPIC_EE_POSE, TOPIC_JOINT_STATES,
+                                     TOPIC_JOY, declare_lab_config, now_ns)
+
+    class TeleopNode(Node):
+        def __init__(self):
+            super().__init__("teleop_node")
+            self.lab = declare_lab_config(self)
+            self.cfg = declare_config(self, TeleopConfig)
+            self.resync_after_s = float(self.declare_parameter("resync_after_s", 1.0).value)
+            self.factory = RclpyFactory()
+            self.teleop = TeleopIntegrator(self.cfg, self.lab.workspace)
+            self.width_measured: float | None = None
+            self.input: TeleopInput | None = None
+            self.last_active_ns = 0
+            self.last_publish_ns = 0
+            self.last_tick_ns: int | None = None
+
+            self.pub = self.create_publisher(self.factory.cls("trajectory_msgs/msg/MultiDOFJointTrajectory"),
+                                             TOPIC_COMMAND_CHUNK, RELIABLE_QOS)
+            self.create_subscription(self.factory.cls("geometry_msgs/msg/PoseStamped"), TOPIC_EE_POSE,
+                                     self.on_pose, SENSOR_QOS)
+            self.create_subscription(self.factory.cls("sensor_msgs/msg/JointState"), TOPIC_JOINT_STATES,
+                                     self.on_joints, SENSOR_QOS)
+            self.device = None
+            if self.cfg.source == "spacemouse":
+                self.device = SpaceMouseSource(self.cfg.device)
+                self.device.connect()  # TeleopError names what was looked for
+            else:
+                self.create_subscription(self.factory.cls("sensor_msgs/msg/Joy"), TOPIC_JOY, self.on_joy, SENSOR_QOS)
+            self.create_timer(1.0 / self.cfg.rate_hz, self.tick)
+            self.get_logger().info(f"teleop from {self.cfg.source} ({TOPIC_JOY if self.device is None else 'HID'}), "
+                                   f"{self.cfg.translation_frame}-frame translation, gripper {self.cfg.gripper_mode}")
+
+        def on_pose(self, msg):
+            try:
+                pose = _pose_from_msg(msg)
+            except GeometryError as err:
+                self.get_logger().warn(f"ignoring bad {TOPIC_EE_POSE}: {err}", throttle_duration_sec=2.0)
+                return
+            self.measured = pose
+            if self.teleop.ready:
+                self.teleop.observe(pose)
+
+        def on_joints(self, msg):
+            names = list(msg.name)
+            if "fr3_finger_joint1" in names and "fr3_finger_joint2" in names:
+                self.width_measured = float(msg.position[names.index("fr3_finger_joint1")]
+                                            + msg.position[names.index("fr3_finger_joint2")])
+
+        def on_joy(self, msg):
+            try:
+                inp = TeleopInput.from_joy(msg)
+            except TeleopError as err:
+                self.get_logger().warn(f"ignoring {TOPIC_JOY}: {err}", throttle_duration_sec=2.0)
+                return
+            self.input = TeleopInput(inp.axes, inp.buttons, now_ns(self))  # freshness by receive time
+
+        def active(self, inp: TeleopInput | None) -> bool:
+            if inp is None:
+                return False
+            moving = bool(np.any(np.abs(np.asarray(inp.axes)) > self.cfg.deadzone))
+            # A pressed button, or one just released (hold mode opens on release), is activity.
+            return moving or any(inp.buttons) or any(self.teleop._prev_buttons)
+
+        def tick(self):
+            now = now_ns(self)
+            dt = 0.0 if self.last_tick_ns is None else (now - self.last_tick_ns) / 1e9
+            self.last_tick_ns = now
+            if self.device is not None:
+                try:
+                    self.input = self.device.read(now)
+                except Exception as err:  # unplugged mid-session: hold still, say why
+                    self.get_logger().error(f"SpaceMouse read failed: {err}", throttle_duration_sec=2.0)
+                    self.input = None
+            inp = self.input if is_fresh(self.input, now, self.cfg.input_timeout_s) else None
+            if not self.active(inp):
+                if self.teleop.ready:  # keep button edges in sync while idle
+                    self.teleop.step(None, dt)
+                return
+            if getattr(self, "measured", None) is None:
+                self.get_logger().warn(f"operator input but no {TOPIC_EE_POSE} yet: not commanding",
+                                       throttle_duration_sec=2.0)
+                return
+            idle_s = (now - self.last_active_ns) / 1e9
+            if not self.teleop.ready or idle_s > self.resync_after_s:
+                self.teleop.reset(self.measured, self.width_measured)
+                dt = 0.0
+            self.last_active_ns = now
+            try:
+                self.teleop.step(inp, min(dt, 2.0 / self.cfg.rate_hz))  # a stalled timer must not jump
+            except TeleopError as err:
+                self.get_logger().warn(str(err), throttle_duration_sec=2.0)
+                return
+            if (now - self.last_publish_ns) >= 1e9 / self.cfg.publish_hz * 0.95:
+                self.last_publish_ns = now
+                self.pub.publish(chunk_to_msg(self.teleop.chunk(now), self.factory, self.lab.base_frame))
+
+        def destroy_node(self):
+            if self.device is not None:
+                self.device.disconnect()
+            return super().destroy_node()
+
+    return TeleopNode()
+
+
+def main(args=None) -> int:
+    argv = sys.argv[1:] if args is None else list(args)
+    if "-h" in argv or "--help" in argv:
+        print(USAGE)
+        return 0
+    import rclpy
+    from rclpy.executors import ExternalShutdownException
+
+    from equidiff_core.teleop import TeleopError
+
+    rclpy.init(args=args)
+    node = None
+    try:
+        node = build_node()
+        rclpy.spin(node)
+    except TeleopError as err:
+        print(f"teleop_node: {err}", file=sys.stderr)
+        return 1
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        if node is not None:
+            node.destroy_node()
+        if rclpy.ok():
+            rclpy.try_shutdown()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
