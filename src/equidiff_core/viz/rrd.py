@@ -19,7 +19,8 @@ class EntitySummary:
     static_rows: int = 0
     components: set[str] = field(default_factory=set)  # "Archetype:field"
     time_ranges: dict[str, tuple[int, int]] = field(default_factory=dict)  # timeline -> (min, max) raw int64
-    instances: dict[str, list[int]] = field(default_factory=dict)  # component -> instance count per temporal row
+    instances: dict[str, list[int]] = field(default_factory=dict)  # component -> instance count per row, in time order
+    _keyed: dict[str, list[tuple[int, int, int]]] = field(default_factory=dict, repr=False)
 
     def time_range_ns(self, timeline: str = "ros_time") -> tuple[int, int]:
         return self.time_ranges[timeline]
@@ -81,10 +82,16 @@ def summarize_rrd(path: str | Path, recording_id: str | None = None, count_insta
                 lo, hi = int(values.min()), int(values.max())
                 old = summary.time_ranges.get(timeline)
                 summary.time_ranges[timeline] = (lo, hi) if old is None else (min(old[0], lo), max(old[1], hi))
+        order = next((t for t in ("ros_time", "step") if t in timelines), sorted(timelines)[0] if timelines else None)
+        times = (batch.column(order).cast("int64").fill_null(0).to_numpy(zero_copy_only=False)
+                 if order else np.zeros(chunk.num_rows, np.int64))
         for component in count_instances:
             if component in batch.schema.names:
                 import pyarrow.compute as pc
 
-                lengths = pc.fill_null(pc.list_value_length(batch.column(component)), 0)
-                summary.instances.setdefault(component, []).extend(int(n) for n in lengths.to_numpy())
+                lengths = pc.fill_null(pc.list_value_length(batch.column(component)), 0).to_numpy(zero_copy_only=False)
+                keyed = summary._keyed.setdefault(component, [])
+                keyed.extend((int(t), len(keyed) + r, int(n)) for r, (t, n) in enumerate(zip(times, lengths)))
+    for summary in entities.values():  # chunks need not come in time order: sort rows by their time
+        summary.instances = {c: [n for _, _, n in sorted(rows)] for c, rows in summary._keyed.items()}
     return RrdSummary(path, [r.recording_id for r in recordings], bool(reader.blueprints()), entities)
