@@ -1,0 +1,52 @@
+"""`equidiff dataset stats BAGS...`: episodes, durations, steps, samples and action ranges.
+
+Bad bags (truncated, killed recordings, missing topics) are listed with the reason and make
+the command exit 1, so a script never trains on a silently shrunken set.
+"""
+
+from __future__ import annotations
+
+import json
+
+
+def add_arguments(parser) -> None:
+    parser.add_argument("bags", nargs="+", help="bag directories, or folders holding bag directories")
+    parser.add_argument("--horizon", type=int, default=16)
+    parser.add_argument("--n-obs-steps", type=int, default=1)
+    parser.add_argument("--n-action-steps", type=int, default=8)
+    parser.add_argument("--tolerance", type=float, default=0.05,
+                        help="max |ee pose / joint state stamp - voxel stamp| in seconds (default 0.05)")
+    parser.add_argument("--resolution", type=int, default=64)
+    parser.add_argument("--json", action="store_true", help="print one JSON object instead of a table")
+
+
+def _fmt_range(lo, hi) -> str:
+    if lo is None:
+        return "-"
+    names = ("x", "y", "z")
+    parts = [f"{n} [{a:+.3f}, {b:+.3f}]" for n, a, b in zip(names, lo[:3], hi[:3])]
+    parts.append(f"width [{lo[9]:.3f}, {hi[9]:.3f}]")
+    return "  ".join(parts)
+
+
+def run(args) -> int:
+    from equidiff_core.dataset import DatasetConfig, dataset_stats
+
+    cfg = DatasetConfig(horizon=args.horizon, n_obs_steps=args.n_obs_steps, n_action_steps=args.n_action_steps,
+                        state_tolerance_s=args.tolerance, resolution=args.resolution)
+    stats = dataset_stats(args.bags, cfg)
+    if args.json:
+        print(json.dumps(stats))
+    else:
+        print(f"{'episode':<32} {'task':<16} {'ok':<5} {'dur s':>7} {'steps':>6} {'samples':>8} {'dropped':>8}")
+        for r in stats["episodes"]:
+            name = r["path"].rstrip("/").split("/")[-1]
+            ok = "-" if r["success"] is None else ("yes" if r["success"] else "no")
+            print(f"{name:<32} {r['task'][:16]:<16} {ok:<5} {r['duration_s']:>7.1f} {r['steps']:>6} "
+                  f"{r['samples']:>8} {r['dropped_steps']:>8}")
+        t = stats["total"]
+        print(f"{'total':<32} {'':<16} {'':<5} {t['duration_s']:>7.1f} {t['steps']:>6} {t['samples']:>8}")
+        print(f"{t['episodes']} episodes; action range: {_fmt_range(t['action_min'], t['action_max'])}")
+        for s in stats["skipped"]:
+            print(f"SKIPPED {s['path']}: {s['reason']}")
+    return 1 if stats["skipped"] else 0
