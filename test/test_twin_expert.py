@@ -1,0 +1,58 @@
+"""The scripted expert: plan geometry, and it solves >= 90 % of 20 seeded episodes in the twin."""
+
+import math
+
+import numpy as np
+import pytest
+
+from equidiff_core import geometry
+from equidiff_core.twin.config import TwinConfig
+from equidiff_core.twin.expert import grasp_yaw, plan_pick_place, tcp_pose, tcp_yaw
+
+CFG = TwinConfig()
+
+
+@pytest.mark.parametrize("block_yaw", np.linspace(-math.pi, math.pi, 13))
+def test_grasp_yaw_closes_across_the_short_side_within_the_wrist_range(block_yaw):
+    yaw = grasp_yaw(block_yaw)
+    assert -math.pi / 2 - 1e-9 <= yaw <= math.pi / 2 + 1e-9
+    finger_axis = tcp_pose((0, 0, 0), yaw)[:3, 1]  # fingers close along the TCP's y axis
+    block_short_axis = geometry.rotz(block_yaw)[:, 1]
+    assert abs(abs(finger_axis @ block_short_axis) - 1) < 1e-9
+
+
+def test_plan_visits_block_then_bowl_with_the_gripper_sequence():
+    start = tcp_pose(CFG.expert.ready_position, 0.0)
+    block = tcp_pose((0.5, 0.1, 0.015), 0.7)
+    bowl = tcp_pose((0.4, -0.1, 0.0), 0.0)
+    plan = plan_pick_place(start, 0.08, block, bowl, 0.03, CFG.expert)
+    phases = [k.phase for k in plan.keyframes]
+    assert phases.index("grasp") < phases.index("lift") < phases.index("transfer") < phases.index("release")
+    grasp = plan.keyframes[phases.index("grasp")]
+    assert grasp.width == CFG.expert.close_width
+    np.testing.assert_allclose(grasp.position[:2], (0.5, 0.1))
+    assert grasp.position[2] < 0.03
+    release = plan.keyframes[phases.index("release")]
+    np.testing.assert_allclose(release.position[:2], (0.4, -0.1))
+    # continuous targets, speeds bounded by the configured operator speed
+    ts = np.arange(0, plan.duration, 0.01)
+    xyz = np.array([plan.target_at(t)[0][:3, 3] for t in ts])
+    speed = np.linalg.norm(np.diff(xyz, axis=0), axis=1) / 0.01
+    assert speed.max() <= CFG.expert.speed * 1.01
+    assert abs(tcp_yaw(plan.target_at(plan.duration)[0]) - grasp_yaw(0.7)) < 1e-9
+
+
+@pytest.mark.slow
+@pytest.mark.sim
+def test_expert_solves_at_least_90_percent_of_20_seeded_episodes():
+    from equidiff_core.twin.expert import run_direct_episode
+    from equidiff_core.twin.sim import DirectSim
+
+    sim = DirectSim(CFG)
+    try:
+        results = [run_direct_episode(sim, seed, CFG) for seed in range(1000, 1020)]
+    finally:
+        sim.close()
+    failures = [(r.seed, r.details) for r in results if not r.success]
+    assert len(failures) <= 2, failures
+    assert all(r.duration_s < CFG.episode.max_duration_s for r in results)
