@@ -452,3 +452,13 @@ def test_training_callback_with_the_real_trainer(tmp_path):
     s = summarize_rrd(tmp_path / "train.rrd")
     assert s["train/loss"].rows == 4 and s["eval/val_loss"].rows == 2
     assert s["samples/0/pred/path"].rows == 2 and s["samples/1/gt/path"].rows == 2
+
+
+def test_throttle_keeps_the_requested_rate_for_uneven_input():
+    from equidiff_core.viz.logger import _Throttle
+
+    th = _Throttle(20.0)
+    passed = [t for t in range(0, 2_000_000_000, 20_000_000) if th.ready("ee", t)]  # 50 Hz in
+    assert len(passed) == 40  # 20 Hz out over 2 s, not every third message (34)
+    gap = [t for t in (5_000_000_000, 5_020_000_000, 5_040_000_000, 5_060_000_000) if th.ready("ee", t)]
+    assert gap == [5_000_000_000, 5_060_000_000]  # after a gap in the data: restart, no burst

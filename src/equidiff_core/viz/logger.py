@@ -199,21 +199,30 @@ class _Trail:
 
 
 class _Throttle:
-    """Lets one event through per ``period_ns`` of message time, per key."""
+    """Lets events through at ``hz`` on average, by message time, per key.
+
+    Due times advance by exactly one period (not from the last accepted event), so 50 Hz
+    input throttled to 20 Hz gives 20 Hz, not every third message (16.7 Hz).
+    """
 
     def __init__(self, hz: float):
         self.period_ns = int(1e9 / hz)
-        self.last: dict[str, int] = {}
+        self.due: dict[str, tuple[int, int]] = {}  # key -> (last accepted, next due)
 
     def ready(self, key: str, t_ns: int) -> bool:
-        last = self.last.get(key)
-        if last is not None and last <= t_ns < last + self.period_ns:
-            return False
-        self.last[key] = t_ns
+        state = self.due.get(key)
+        if state is not None:
+            last, due = state
+            if last <= t_ns < due:
+                return False
+            if t_ns >= last:  # on schedule; if far behind (a gap in the data), restart from now
+                self.due[key] = (t_ns, due + self.period_ns if t_ns < due + self.period_ns else t_ns + self.period_ns)
+                return True
+        self.due[key] = (t_ns, t_ns + self.period_ns)  # first event, or time went backwards (new episode)
         return True
 
     def clear(self) -> None:
-        self.last.clear()
+        self.due.clear()
 
 
 class RerunLogger:
