@@ -1,0 +1,125 @@
+"""Replay backend: a camera's clouds from a recorded rosbag2 directory (``/cameras/<name>/points``).
+
+Frames come out at the recorded pace (scaled by ``rate``), measured from the bag's start
+time so that several replayed cameras stay in step, and are restamped with the current
+clock by default (the downstream staleness checks then see live data); ``restamp=False``
+keeps the recorded capture stamps. Reading uses rosbags (pure Python, no ROS needed).
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+from typing import Callable
+
+from ...config import CameraConfig
+from ...pointcloud import CloudError, msg_to_cloud
+from ..base import Camera, CameraError, CloudFrame
+
+POINTCLOUD2 = "sensor_msgs/msg/PointCloud2"
+
+
+class ReplayFinished(CameraError):
+    """The bag has no more frames and ``loop`` is off."""
+
+
+class ReplayCamera(Camera):
+    """Camera ``camera.name`` played back from ``bag`` (topic default: ``camera.topic``)."""
+
+    def __init__(self, camera: CameraConfig, bag: str | Path | None = None, topic: str | None = None,
+                 loop: bool = True, rate: float = 1.0, restamp: bool = True,
+                 clock: Callable[[], int] = time.time_ns):
+        if bag is None or str(bag) == "":
+            raise CameraError(f"replay camera {camera.name!r}: no bag given (set the 'bag' parameter)")
+        if rate <= 0:
+            raise CameraError(f"replay camera {camera.name!r}: rate must be positive, got {rate}")
+        self.camera = camera
+        self.bag = Path(bag)
+        self.topic = topic or camera.topic
+        self.loop = loop
+        self.rate = float(rate)
+        self.restamp = restamp
+        self._clock = clock
+        self._reader = None
+        self._messages = None
+        self._pending = None
+        self.frames_read = 0
+
+    @property
+    def is_connected(self) -> bool:
+        return self._reader is not None
+
+    def connect(self) -> None:
+        if self._reader is not None:
+            return
+        from rosbags.rosbag2 import Reader
+
+        from ...rosmsg import rosbags_factory
+
+        if not (self.bag / "metadata.yaml").is_file():
+            raise CameraError(f"replay camera {self.camera.name!r}: {self.bag} is not a rosbag2 directory "
+                              f"(no metadata.yaml)")
+        try:
+            reader = Reader(self.bag)
+            reader.open()
+        except Exception as err:  # rosbags raises several types for damaged bags
+            raise CameraError(f"replay camera {self.camera.name!r}: cannot open {self.bag}: {err}") from err
+        self._connections = [c for c in reader.connections if c.topic == self.topic]
+        if not self._connections or reader.message_count == 0:
+            clouds = sorted({c.topic for c in reader.connections if c.msgtype == POINTCLOUD2})
+            reader.close()
+            raise CameraError(f"replay camera {self.camera.name!r}: {self.bag} has no messages on {self.topic}; "
+                              f"its PointCloud2 topics: {clouds or 'none'}")
+        if any(c.msgtype != POINTCLOUD2 for c in self._connections):
+            reader.close()
+            raise CameraError(f"replay camera {self.camera.name!r}: {self.topic} in {self.bag} is not {POINTCLOUD2}")
+        self._typestore = rosbags_factory().typestore
+        self._reader = reader
+        self._bag_start_ns = reader.start_time
+        self._bag_span_ns = max(reader.end_time - reader.start_time, 1)
+        self._origin = time.monotonic_ns()
+        self._messages = reader.messages(connections=self._connections)
+
+    def _next_raw(self):
+        if self._pending is not None:
+            return self._pending
+        try:
+            self._pending = next(self._messages)
+        except StopIteration:
+            if not self.loop:
+                raise ReplayFinished(f"replay camera {self.camera.name!r}: {self.bag} finished "
+                                  f"after {self.frames_read} frames") from None
+            # start over one bag length (plus one nominal frame period) later
+            self._origin += int(self._bag_span_ns / self.rate) + int(1e9 / max(self.camera.publish_hz, 1e-3))
+            self._messages = self._reader.messages(connections=self._connections)
+            self._pending = next(self._messages)
+        return self._pending
+
+    def read(self, timeout_s: float = 1.0) -> CloudFrame:
+        if self._reader is None:
+            raise CameraError(f"replay camera {self.camera.name!r} is not connected")
+        conn, logtime, raw = self._next_raw()
+        due = self._origin + int((logtime - self._bag_start_ns) / self.rate)
+        wait_s = (due - time.monotonic_ns()) / 1e9
+        if wait_s > timeout_s:
+            time.sleep(timeout_s)
+            raise CameraError(f"replay camera {self.camera.name!r}: no frame due within {timeout_s} s")
+        if wait_s > 0:
+            time.sleep(wait_s)
+        self._pending = None
+        try:
+            msg = self._typestore.deserialize_cdr(raw, conn.msgtype)
+            cloud = msg_to_cloud(msg, drop_invalid=True)
+        except (CloudError, Exception) as err:
+            raise CameraError(f"replay camera {self.camera.name!r}: unusable message at "
+                              f"{logtime} ns in {self.bag}: {err}") from err
+        self.frames_read += 1
+        stamp = self._clock() if self.restamp else cloud.stamp_ns
+        return CloudFrame(cloud.points, cloud.colors, stamp)
+
+    def disconnect(self) -> None:
+        if self._reader is not None:
+            self._reader.close()
+            self._reader = None
+            self._messages = None
+            self._pending = None

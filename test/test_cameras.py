@@ -1,0 +1,155 @@
+"""Camera backends without hardware: factory, RealSense options/deprojection/fail-fast, bag replay."""
+
+import time
+
+import numpy as np
+import pytest
+
+from equidiff_core.cameras import BACKENDS, CameraError, CloudFrame, limit_depth, make_camera
+from equidiff_core.cameras.realsense import RealSenseOptions, depth_to_cloud, pixel_rays
+from equidiff_core.cameras.replay import ReplayFinished
+from equidiff_core.config import CameraConfig, Extrinsics, default_config_dir, load_lab_config
+from equidiff_core.pointcloud import cloud_to_msg
+from equidiff_core.rosmsg import rosbags_factory
+
+
+def _camera(name="cam_a", **kw):
+    return CameraConfig(name=name, serial="000000000042", extrinsics=Extrinsics((0, 0, 1), (0, 0, 0, 1)), **kw)
+
+
+def test_factory_rejects_unknown_backend_and_lists_the_known_ones():
+    with pytest.raises(CameraError, match=r"unknown camera backend 'kinect'.*realsense.*replay.*twin"):
+        make_camera("kinect", _camera())
+    assert set(BACKENDS) == {"realsense", "replay", "twin"}
+
+
+def test_realsense_without_device_fails_fast_naming_the_serial():
+    cam = make_camera("realsense", _camera())
+    t0 = time.monotonic()
+    with pytest.raises(CameraError, match=r"'cam_a' with serial 000000000042 not found"):
+        cam.connect()
+    assert time.monotonic() - t0 < 5.0
+    assert not cam.is_connected
+    with pytest.raises(CameraError, match="not connected"):
+        cam.read()
+    cam.disconnect()  # safe without a connection
+
+
+def test_realsense_options_come_from_lab_yaml_and_bad_ones_name_the_camera():
+    lab = load_lab_config(default_config_dir() / "lab.yaml")
+    cam = make_camera("realsense", lab.cameras[0])
+    assert cam.options == RealSenseOptions(decimation=2, spatial=True, temporal=True, hole_filling=False,
+                                           exposure_us=8500, white_balance_k=4600)
+    with pytest.raises(CameraError, match=r"cameras\[cam_a\]\.options: .*decimation must be 1..8"):
+        make_camera("realsense", _camera(options={"decimation": 9}))
+    with pytest.raises(CameraError, match=r"unknown key\(s\) \['exposure'\]"):
+        make_camera("realsense", _camera(options={"exposure": 100}))
+    with pytest.raises(CameraError, match="visual_preset"):
+        make_camera("realsense", _camera(), visual_preset="sharpest")
+
+
+def test_depth_image_deprojects_to_the_expected_points_and_colours():
+    w, h, fx, fy, ppx, ppy = 8, 6, 4.0, 5.0, 3.5, 2.5
+    rays = pixel_rays(w, h, fx, fy, ppx, ppy)
+    # the closed form equals a per-pixel deprojection callback (the distortion path)
+    np.testing.assert_allclose(pixel_rays(w, h, fx, fy, ppx, ppy, lambda u, v: ((u - ppx) / fx, (v - ppy) / fy)),
+                               rays, rtol=0, atol=1e-6)
+    depth = np.zeros((h, w), np.uint16)
+    depth[0, 0] = 1000  # 1 m at scale 1 mm
+    depth[5, 7] = 2500  # 2.5 m: beyond max_depth below
+    depth[2, 3] = 500
+    color = np.zeros((h, w, 3), np.uint8)
+    color[0, 0] = (10, 20, 30)
+    color[2, 3] = (1, 2, 3)
+    pts, cols = depth_to_cloud(depth, 0.001, color, rays, min_depth=0.1, max_depth=2.0)
+    np.testing.assert_allclose(pts, [[(0 - 3.5) / 4 * 1.0, (0 - 2.5) / 5 * 1.0, 1.0],
+                                     [(3 - 3.5) / 4 * 0.5, (2 - 2.5) / 5 * 0.5, 0.5]], atol=1e-6)
+    np.testing.assert_array_equal(cols, [[10, 20, 30], [1, 2, 3]])
+    with pytest.raises(CameraError, match="disagree"):
+        depth_to_cloud(depth[:5], 0.001, color, rays, 0.1, 2.0)
+
+
+def test_limit_depth_drops_points_outside_the_range_and_nan():
+    pts = np.array([[0, 0, 0.05], [0, 0, 0.5], [0, 0, 3.0], [0, 0, np.nan]], np.float32)
+    frame = CloudFrame(pts, np.arange(12, dtype=np.uint8).reshape(4, 3), 7)
+    out = limit_depth(frame, 0.1, 2.0)
+    np.testing.assert_array_equal(out.points, pts[1:2])
+    np.testing.assert_array_equal(out.colors, [[3, 4, 5]])
+    assert out.stamp_ns == 7
+
+
+def write_cloud_bag(path, clouds_by_topic, period_ns=100_000_000, start_ns=1_700_000_000_000_000_000):
+    """A rosbag2 (MCAP) directory with PointCloud2 messages; returns the written stamps per topic."""
+    from rosbags.rosbag2 import StoragePlugin, Writer
+
+    f = rosbags_factory()
+    ts = f.typestore
+    stamps = {}
+    with Writer(path, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
+        for topic, clouds in clouds_by_topic.items():
+            conn = writer.add_connection(topic, "sensor_msgs/msg/PointCloud2", typestore=ts)
+            stamps[topic] = []
+            for i, (pts, cols) in enumerate(clouds):
+                stamp = start_ns + i * period_ns
+                frame = topic.split("/")[2] + "_color_optical_frame"
+                msg = cloud_to_msg(pts, cols, stamp, frame, f)
+                writer.write(conn, stamp, ts.serialize_cdr(msg, "sensor_msgs/msg/PointCloud2"))
+                stamps[topic].append(stamp)
+    return stamps
+
+
+def _clouds(n, seed=0, size=50):
+    rng = np.random.default_rng(seed)
+    return [(rng.normal(size=(size, 3)).astype(np.float32), rng.integers(0, 256, (size, 3), dtype=np.uint8))
+            for _ in range(n)]
+
+
+def test_replay_plays_a_bag_at_the_recorded_pace_restamped_and_loops(tmp_path):
+    clouds = _clouds(3)
+    clouds[1][0][0] = np.nan  # a NaN point in a recorded frame is dropped, not fatal
+    bag = tmp_path / "bag"
+    recorded = write_cloud_bag(bag, {"/cameras/cam_a/points": clouds, "/cameras/cam_b/points": _clouds(3, 1)})
+    clock_ns = [5_000]
+
+    def fake_clock():
+        clock_ns[0] += 1
+        return clock_ns[0]
+
+    cam = make_camera("replay", _camera(), bag=str(bag), clock=fake_clock)
+    with cam:
+        t0 = time.monotonic()
+        frames = [cam.read(timeout_s=1.0) for _ in range(4)]
+        elapsed = time.monotonic() - t0
+    assert 0.18 < elapsed < 2.0  # frames 0..2 are 0.1 s apart, then the loop restarts
+    np.testing.assert_array_equal(frames[0].points, clouds[0][0])
+    np.testing.assert_array_equal(frames[0].colors, clouds[0][1])
+    assert len(frames[1].points) == 49
+    np.testing.assert_array_equal(frames[3].points, clouds[0][0])  # looped
+    assert [f.stamp_ns for f in frames] == [5_001, 5_002, 5_003, 5_004]  # restamped by the clock
+    with make_camera("replay", _camera("cam_b"), bag=str(bag), restamp=False, loop=False, rate=4.0) as cam_b:
+        assert [cam_b.read().stamp_ns for _ in range(3)] == recorded["/cameras/cam_b/points"]
+        with pytest.raises(ReplayFinished, match="finished after 3 frames"):
+            cam_b.read()
+
+
+def test_replay_errors_name_the_bag_and_topic(tmp_path):
+    bag = tmp_path / "bag"
+    write_cloud_bag(bag, {"/cameras/cam_a/points": _clouds(1)})
+    with pytest.raises(CameraError, match=r"no messages on /cameras/cam_z/points; its PointCloud2 topics: "
+                                          r"\['/cameras/cam_a/points'\]"):
+        make_camera("replay", _camera("cam_z"), bag=str(bag)).connect()
+    with pytest.raises(CameraError, match="not a rosbag2 directory"):
+        make_camera("replay", _camera(), bag=str(tmp_path / "nowhere")).connect()
+    with pytest.raises(CameraError, match="no bag given"):
+        make_camera("replay", _camera())
+    broken = tmp_path / "broken"
+    broken.mkdir()
+    (broken / "metadata.yaml").write_text("rosbag2_bagfile_information: {version: 9, garbage")
+    with pytest.raises(CameraError, match="cannot open"):
+        make_camera("replay", _camera(), bag=str(broken)).connect()
+
+
+def test_twin_backend_is_reached_through_the_factory():
+    pytest.importorskip("mujoco")
+    with pytest.raises(CameraError, match="unknown option"):
+        make_camera("twin", _camera(), no_such_option=1)
