@@ -74,6 +74,8 @@ class Controller:
         self._lock = threading.Lock()
         self._state: RobotState | None = None
         self._setpoint: FilteredTarget | None = None  # the last command sent
+        self.last_command: Command | None = None
+        self._hold_pose: np.ndarray | None = None  # watchdog target (None: hold the last command)
         self._last_valid_ns: int | None = None
         self._holding = True
         self._last_tick_ns: int | None = None
@@ -151,6 +153,7 @@ class Controller:
                 self.scheduler.schedule(live, now, current)
                 self._last_valid_ns = now
                 self._holding = False
+                self._hold_pose = None
             self.stats.accepted_chunks += 1
             return True
         except ChunkError as err:
@@ -184,6 +187,7 @@ class Controller:
         with self._lock:
             self.scheduler.clear()
             self._holding = True
+            self._hold_pose = None
             self._setpoint = FilteredTarget(state.ee_pose, np.zeros(3), np.zeros(3), False, False)
 
     def tick(self) -> Command | None:
@@ -198,15 +202,19 @@ class Controller:
         with self._lock:
             if (not self._holding and self._last_valid_ns is not None
                     and now - self._last_valid_ns > self.config.safety.watchdog_timeout_s * 1e9):
+                # Hold where the arm *is* (not where the setpoint had got to, ~0.1 s ahead of a
+                # moving arm): stopping there takes the shortest way.
                 self.scheduler.clear()
                 self._holding = True
+                self._hold_pose = self._state.ee_pose.copy()
                 self.stats.watchdog_holds += 1
                 self.log.warning(f"no valid command for {self.config.safety.watchdog_timeout_s} s: "
                                  f"holding the current pose")
             sp = None if self._holding else self.scheduler.sample(now)
             previous = self._setpoint
+            hold_pose = self._hold_pose
         if sp is None:
-            filtered = self.safety.filter(previous.pose, previous.pose, dt)
+            filtered = self.safety.filter(previous.pose, previous.pose if hold_pose is None else hold_pose, dt)
         else:
             filtered = self.safety.filter(previous.pose, sp.pose, dt, sp.linear_velocity, sp.angular_velocity)
         try:
@@ -227,6 +235,7 @@ class Controller:
                 self._gripper_sent = width
                 self.stats.gripper_commands += 1
         command = Command(now, filtered, self._holding)
+        self.last_command = command
         if self.on_command is not None:
             self.on_command(command)
         return command

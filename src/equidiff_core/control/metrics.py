@@ -1,0 +1,87 @@
+"""Numbers that say whether execution is smooth and safe (``equidiff bench control`` and the sim tests).
+
+All take time stamps in seconds and positions (N, 3) in metres and return plain floats/ints.
+"""
+
+from __future__ import annotations
+
+from typing import Callable
+
+import numpy as np
+
+
+def resample(times: np.ndarray, positions: np.ndarray, hz: float = 100.0) -> tuple[np.ndarray, np.ndarray]:
+    """Linear resampling onto a uniform grid (state messages arrive with jitter)."""
+    times = np.asarray(times, dtype=np.float64)
+    order = np.argsort(times)
+    times, positions = times[order], np.asarray(positions, dtype=np.float64)[order]
+    keep = np.concatenate([[True], np.diff(times) > 0])
+    times, positions = times[keep], positions[keep]
+    if len(times) < 2:
+        raise ValueError("need at least two samples")
+    grid = np.arange(times[0], times[-1], 1.0 / hz)
+    return grid, np.stack([np.interp(grid, times, positions[:, i]) for i in range(positions.shape[1])], 1)
+
+
+def tracking_rms(times: np.ndarray, positions: np.ndarray, reference: Callable[[float], np.ndarray]) -> float:
+    """RMS distance (m) between measured positions and the reference at the same times."""
+    ref = np.stack([reference(float(t)) for t in times])
+    return float(np.sqrt(np.mean(np.sum((np.asarray(positions) - ref) ** 2, axis=1))))
+
+
+def tracking_lag(times: np.ndarray, positions: np.ndarray, reference: Callable[[float], np.ndarray],
+                 max_lag_s: float = 0.3, step_s: float = 0.005) -> tuple[float, float]:
+    """(lag s, RMS m at that lag): the time shift of the reference that fits the positions best.
+
+    Splits a tracking error into "late" (a pure delay: controller lag, stale state stamps) and
+    "off the path" (the RMS left after the shift)."""
+    best = (0.0, tracking_rms(times, positions, reference))
+    for lag in np.arange(step_s, max_lag_s + 1e-9, step_s):
+        rms = tracking_rms(times, positions, lambda t: reference(t - lag))
+        if rms < best[1]:
+            best = (float(lag), rms)
+    return best
+
+
+def velocity_reversals(times: np.ndarray, positions: np.ndarray, tangent: Callable[[float], np.ndarray],
+                       threshold_m_s: float = 0.005, min_duration_s: float = 0.03, hz: float = 100.0) -> int:
+    """How often the motion runs backwards along the path (stop-and-go or overshoot at chunk switches).
+
+    Velocity is projected on the reference's unit tangent; a reversal is a stretch of at least
+    ``min_duration_s`` where that progress speed is below ``-threshold_m_s``.
+    """
+    grid, pos = resample(times, positions, hz)
+    vel = np.gradient(pos, grid, axis=0)
+    # A 50 ms moving average: state messages carry ~0.1 mm quantisation and jitter.
+    k = max(1, int(0.05 * hz))
+    vel = np.stack([np.convolve(vel[:, i], np.ones(k) / k, mode="same") for i in range(3)], 1)
+    tang = np.stack([tangent(float(t)) for t in grid])
+    tang /= np.maximum(np.linalg.norm(tang, axis=1, keepdims=True), 1e-12)
+    backwards = np.sum(vel * tang, axis=1) < -threshold_m_s
+    count, run = 0, 0
+    need = max(1, int(round(min_duration_s * hz)))
+    for b in backwards:
+        run = run + 1 if b else 0
+        if run == need:
+            count += 1
+    return count
+
+
+def max_outside_box(positions: np.ndarray, lower: np.ndarray, upper: np.ndarray) -> float:
+    """Largest distance (m) of any position outside the axis-aligned box (0 if all inside)."""
+    positions = np.asarray(positions, dtype=np.float64)
+    below = np.maximum(np.asarray(lower) - positions, 0.0)
+    above = np.maximum(positions - np.asarray(upper), 0.0)
+    return float(np.max(np.linalg.norm(below + above, axis=1))) if len(positions) else 0.0
+
+
+def max_drift(positions: np.ndarray, anchor: np.ndarray) -> float:
+    """Largest distance (m) of the positions from ``anchor``."""
+    return float(np.max(np.linalg.norm(np.asarray(positions) - np.asarray(anchor), axis=1)))
+
+
+def percentiles_ms(values_s, qs=(50, 95)) -> list[float | None]:
+    values = np.asarray(list(values_s), dtype=np.float64)
+    if values.size == 0:
+        return [None for _ in qs]
+    return [round(float(np.percentile(values, q)) * 1000, 2) for q in qs]

@@ -1,0 +1,479 @@
+"""`equidiff bench control`: tracking, safety and latency of the franka node on franky-sim.
+
+Starts franky-sim and the franka node (real franky client, real rclpy, separate processes),
+then drives the node from this process exactly as the policy would, over /franka/command_chunk:
+
+1. **track**: a 5 cm circle at ``--speed`` m/s, as 16-pose chunks (dt 0.2 s) published every
+   0.2 s and stamped ``--obs-latency`` in the past (like a policy's observation); RMS distance
+   of the measured TCP from the circle after ``--settle`` s (``tracking_rms_mm``) and how often
+   the TCP ran backwards along it (``velocity_reversals``). Baseline in the same run: the
+   commanded targets (``/franka/executed_target``) against the same circle.
+2. **hold**: commands stop; the watchdog holds; largest drift over the next 2 s (``hold_drift_mm``).
+3. **workspace**: chunks that keep asking to go up and out, past the workspace box; largest distance
+   of the measured TCP outside the (unshrunk) box (``max_outside_workspace_mm``).
+4. **nan**: a chunk with a NaN pose; the node's ``nan_rejected`` diagnostics count and whether
+   it kept publishing its state.
+5. **latency** (unless ``--no-policy``): the policy node with ``--policy-checkpoint`` (default: an
+   untrained export of the compact preset, since latency does not depend on the weights) on
+   synthetic 5 Hz voxel grids; observation stamp -> chunk received here (``obs_to_cmd_p50_ms``,
+   ``obs_to_cmd_p95_ms``), with the bare ``InferencePolicy.predict`` time measured in this
+   process as the baseline.
+
+Prints one JSON line.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import signal
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from collections import deque
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+MS = 1_000_000
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--speed", type=float, default=0.06, help="speed along the circle, m/s (default 0.06)")
+    parser.add_argument("--radius", type=float, default=0.05, help="circle radius, m (default 0.05)")
+    parser.add_argument("--duration", type=float, default=5.0, help="seconds of circle streaming (default 5)")
+    parser.add_argument("--settle", type=float, default=1.0, help="seconds ignored at the start of the circle")
+    parser.add_argument("--obs-latency", type=float, default=0.1,
+                        help="chunks are stamped this long before they are sent (default 0.1 s)")
+    parser.add_argument("--interpolation", choices=["linear", "cubic"], default=None,
+                        help="override control.yaml's scheduler interpolation")
+    parser.add_argument("--policy-checkpoint", type=Path, default=None,
+                        help="exported policy for the latency phase (default: untrained compact export)")
+    parser.add_argument("--policy-preset", default="compact", help="preset of the untrained export (default compact)")
+    parser.add_argument("--precision", choices=["fp32", "bf16"], default="fp32")
+    parser.add_argument("--latency-duration", type=float, default=15.0, help="seconds of policy latency measurement")
+    parser.add_argument("--no-policy", action="store_true", help="skip the latency phase")
+    parser.add_argument("--domain-id", type=int, default=None, help="ROS_DOMAIN_ID (default: a random private one)")
+
+
+# --- the reference path ------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class Circle:
+    """Horizontal circle, counter-clockwise from angle 0, TCP pointing down (the home orientation)."""
+
+    center: tuple[float, float, float] = (0.45, 0.0, 0.25)
+    radius: float = 0.05
+    speed: float = 0.06
+    t0: float = 0.0  # time (s) at which the TCP should be at angle 0
+
+    def position(self, t: float) -> np.ndarray:
+        a = self.speed / self.radius * max(t - self.t0, 0.0)
+        return np.asarray(self.center) + self.radius * np.array([np.cos(a), np.sin(a), 0.0])
+
+    def tangent(self, t: float) -> np.ndarray:
+        a = self.speed / self.radius * max(t - self.t0, 0.0)
+        return np.array([-np.sin(a), np.cos(a), 0.0])
+
+
+def down_pose(position) -> np.ndarray:
+    from equidiff_core import geometry
+
+    return geometry.make_pose(np.diag([1.0, -1.0, -1.0]), np.asarray(position, dtype=np.float64))
+
+
+# --- processes -----------------------------------------------------------------------------
+
+def start_node(module: str, params: dict, log_path: Path | None = None) -> subprocess.Popen:
+    args = [sys.executable, "-u", "-m", f"equidiff_ros.{module}", "--ros-args"]
+    for key, value in params.items():
+        args += ["-p", f"{key}:={_ros_value(value)}"]
+    out = open(log_path, "w") if log_path else subprocess.DEVNULL
+    return subprocess.Popen(args, stdout=out, stderr=subprocess.STDOUT, env=dict(os.environ))
+
+
+def _ros_value(value) -> str:
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    return str(value)
+
+
+def stop_process(proc: subprocess.Popen | None, timeout: float = 10.0) -> int | None:
+    if proc is None:
+        return None
+    if proc.poll() is None:
+        proc.send_signal(signal.SIGINT)
+        try:
+            proc.wait(timeout=timeout)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+    return proc.returncode
+
+
+def export_untrained(preset: str, path: Path, workspace) -> Path:
+    """An untrained policy of ``preset`` with the workspace's default normaliser, for timing only."""
+    from equidiff_core.inference import export_policy
+    from equidiff_core.normalizer import Normalizer
+    from equidiff_core.policies import make_policy
+    from equidiff_core.presets import get_preset
+
+    policy = make_policy("equidiff", get_preset(preset), workspace)
+    policy.set_normalizer(Normalizer.from_workspace(workspace))
+    return export_policy(policy, path)
+
+
+# --- the ROS side of the bench ----------------------------------------------------------------
+
+@dataclass
+class Recorded:
+    poses: deque = field(default_factory=lambda: deque(maxlen=20000))  # (t_s, position)
+    targets: deque = field(default_factory=lambda: deque(maxlen=20000))
+    chunks: deque = field(default_factory=lambda: deque(maxlen=2000))  # (receive_s, stamp_s)
+    diagnostics: dict = field(default_factory=dict)  # status name -> latest values
+
+
+class BenchClient:
+    """An rclpy node in a background thread: publishes chunks/voxels, records what comes back."""
+
+    def __init__(self, lab, lab_path: str):
+        import rclpy
+        from rclpy.executors import SingleThreadedExecutor
+
+        from diagnostic_msgs.msg import DiagnosticArray
+        from equidiff_core.rosmsg import RclpyFactory
+        from equidiff_ros.common import (RELIABLE_QOS, TOPIC_COMMAND_CHUNK, TOPIC_DIAGNOSTICS, TOPIC_EE_POSE,
+                                         TOPIC_EXECUTED_TARGET, TOPIC_VOXELS, VOXEL_QOS)
+        from geometry_msgs.msg import PoseStamped
+        from sensor_msgs.msg import PointCloud2
+        from trajectory_msgs.msg import MultiDOFJointTrajectory
+
+        self.lab = lab
+        self.lab_path = lab_path
+        self.factory = RclpyFactory()
+        self.data = Recorded()
+        self.context = rclpy.Context()
+        rclpy.init(context=self.context)
+        self.node = rclpy.create_node("control_bench", context=self.context)
+        self.pub_chunk = self.node.create_publisher(MultiDOFJointTrajectory, TOPIC_COMMAND_CHUNK, RELIABLE_QOS)
+        self.pub_voxels = self.node.create_publisher(PointCloud2, TOPIC_VOXELS, VOXEL_QOS)
+        self.node.create_subscription(PoseStamped, TOPIC_EE_POSE, self._on_pose, RELIABLE_QOS)
+        self.node.create_subscription(PoseStamped, TOPIC_EXECUTED_TARGET, self._on_target, RELIABLE_QOS)
+        self.node.create_subscription(MultiDOFJointTrajectory, TOPIC_COMMAND_CHUNK, self._on_chunk, RELIABLE_QOS)
+        self.node.create_subscription(DiagnosticArray, TOPIC_DIAGNOSTICS, self._on_diag, RELIABLE_QOS)
+        self.executor = SingleThreadedExecutor(context=self.context)
+        self.executor.add_node(self.node)
+        self._thread = threading.Thread(target=self._spin, daemon=True)
+        self._thread.start()
+
+    def _spin(self):
+        while self.context.ok():
+            try:
+                self.executor.spin_once(timeout_sec=0.05)
+            except Exception:  # context shut down under us
+                break
+
+    def _on_pose(self, msg):
+        from equidiff_core.rosmsg import stamp_to_ns
+
+        p = msg.pose.position
+        self.data.poses.append((stamp_to_ns(msg.header.stamp) / 1e9, np.array([p.x, p.y, p.z])))
+
+    def _on_target(self, msg):
+        from equidiff_core.rosmsg import stamp_to_ns
+
+        p = msg.pose.position
+        self.data.targets.append((stamp_to_ns(msg.header.stamp) / 1e9, np.array([p.x, p.y, p.z])))
+
+    def _on_chunk(self, msg):
+        from equidiff_core.rosmsg import stamp_to_ns
+
+        self.data.chunks.append((time.time_ns() / 1e9, stamp_to_ns(msg.header.stamp) / 1e9))
+
+    def _on_diag(self, msg):
+        for status in msg.status:
+            self.data.diagnostics[status.name] = {kv.key: kv.value for kv in status.values}
+
+    def close(self):
+        self.executor.shutdown(timeout_sec=1.0)
+        self.node.destroy_node()
+        self.context.try_shutdown()
+        self._thread.join(timeout=2)
+
+    # --- helpers -------------------------------------------------------------------------
+    def wait_for(self, predicate, timeout: float, what: str, proc: subprocess.Popen | None = None):
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if predicate():
+                return
+            if proc is not None and proc.poll() is not None:
+                raise RuntimeError(f"{what}: the node exited with code {proc.returncode}")
+            time.sleep(0.05)
+        raise TimeoutError(f"timed out after {timeout:.0f} s waiting for {what}")
+
+    def latest_position(self) -> np.ndarray:
+        return self.data.poses[-1][1]
+
+    def publish_chunk(self, chunk) -> None:
+        from equidiff_core.chunk import chunk_to_msg
+
+        self.pub_chunk.publish(chunk_to_msg(chunk, self.factory, self.lab.base_frame))
+
+    def stream(self, path, duration: float, obs_latency: float = 0.1, steps: int = 16, dt: float = 0.2,
+               period: float = 0.2, width: float = 0.08) -> float:
+        """Publish chunks sampled from ``path(t) -> position`` every ``period`` s; returns the last send time."""
+        from equidiff_core.chunk import PoseChunk
+
+        end = time.monotonic() + duration
+        next_send = time.monotonic()
+        last = time.time()
+        while time.monotonic() < end:
+            now = time.time_ns()
+            obs = now - int(obs_latency * 1e9)
+            times = obs + np.arange(steps, dtype=np.int64) * int(dt * 1e9)
+            poses = np.stack([down_pose(path(t / 1e9)) for t in times])
+            self.publish_chunk(PoseChunk(obs, times, poses, np.full(steps, width)))
+            last = time.time()
+            next_send += period
+            time.sleep(max(0.0, next_send - time.monotonic()))
+        return last
+
+    def samples(self, which: str, t_from: float, t_to: float) -> tuple[np.ndarray, np.ndarray]:
+        rows = [(t, p) for t, p in list(getattr(self.data, which)) if t_from <= t <= t_to]
+        if not rows:
+            return np.zeros(0), np.zeros((0, 3))
+        return np.array([t for t, _ in rows]), np.stack([p for _, p in rows])
+
+    def diag_value(self, name: str, key: str, default=None):
+        values = self.data.diagnostics.get(name) or {}
+        return values.get(key, default)
+
+
+# --- scenarios -------------------------------------------------------------------------------
+
+def approach(client: BenchClient, target: np.ndarray, speed: float = 0.05, settle: float = 0.5) -> None:
+    """Stream a straight line from the current TCP position to ``target`` (the node rejects jumps)."""
+    start = client.latest_position()
+    t_start = time.time()
+    length = float(np.linalg.norm(target - start))
+    duration = max(length / speed, 0.2)
+
+    def path(t):
+        s = np.clip((t - t_start) / duration, 0.0, 1.0)
+        return start + s * (target - start)
+
+    client.stream(path, duration + settle, obs_latency=0.0)
+
+
+def run_track_and_hold(client: BenchClient, speed: float, radius: float, duration: float, settle: float,
+                       obs_latency: float, watchdog_s: float) -> dict:
+    from equidiff_core.control import metrics
+
+    circle = Circle(radius=radius, speed=speed)
+    approach(client, circle.position(0.0))
+    circle = Circle(radius=radius, speed=speed, t0=time.time() + 0.3)
+    approach_end = circle.t0
+
+    def path(t):
+        return circle.position(t) if t >= approach_end else circle.position(0.0)
+
+    last_send = client.stream(path, duration + 0.3, obs_latency=obs_latency)
+    t_from, t_to = circle.t0 + settle, last_send
+    times, positions = client.samples("poses", t_from, t_to)
+    t_times, t_positions = client.samples("targets", t_from, t_to)
+    # Hold: the watchdog fires watchdog_s after the last command; measure the 2 s after that.
+    hold_start = last_send + watchdog_s
+    time.sleep(max(0.0, hold_start + 2.2 - time.time()))
+    h_times, h_positions = client.samples("poses", hold_start, hold_start + 2.0)
+    anchor_times, anchor = client.samples("poses", hold_start - 0.02, hold_start + 0.02)
+    lag, lag_rms = metrics.tracking_lag(times, positions, circle.position)
+    return {
+        "tracking_rms_mm": round(metrics.tracking_rms(times, positions, circle.position) * 1000, 2),
+        "tracking_lag_ms": round(lag * 1000, 1),
+        "tracking_rms_after_lag_mm": round(lag_rms * 1000, 2),
+        "velocity_reversals": metrics.velocity_reversals(times, positions, circle.tangent),
+        "command_rms_mm": round(metrics.tracking_rms(t_times, t_positions, circle.position) * 1000, 2),
+        "command_velocity_reversals": metrics.velocity_reversals(t_times, t_positions, circle.tangent),
+        "tracking_samples": int(len(times)),
+        "state_hz": round(len(times) / max(t_to - t_from, 1e-9), 1),
+        "hold_drift_mm": round(metrics.max_drift(h_positions, anchor[0] if len(anchor) else h_positions[0]) * 1000, 2),
+    }
+
+
+def run_workspace(client: BenchClient, workspace, duration: float = 3.0) -> dict:
+    from equidiff_core.control import metrics
+
+    start = client.latest_position()
+    t_start = time.time()
+    direction = np.array([1.0, 0.0, 1.0]) / np.sqrt(2)
+
+    def path(t):  # 0.1 m/s diagonally up and out, for long enough to end 25+ cm past the lid
+        return start + direction * 0.1 * max(t - t_start, 0.0)
+
+    last = client.stream(path, duration, obs_latency=0.0)
+    time.sleep(0.5)
+    _, positions = client.samples("poses", t_start, last + 0.5)
+    return {"max_outside_workspace_mm": round(metrics.max_outside_box(positions, workspace.lower,
+                                                                      workspace.upper) * 1000, 2),
+            "workspace_requested_outside_mm": round(metrics.max_outside_box(
+                path(last)[None], workspace.lower, workspace.upper) * 1000, 1)}
+
+
+def run_nan(client: BenchClient) -> dict:
+    from equidiff_core.chunk import PoseChunk, chunk_to_msg
+
+    before = int(client.diag_value("franka_node", "nan_rejected", 0))
+    now = time.time_ns()
+    here = client.latest_position()
+    chunk = PoseChunk(now, now + np.arange(4, dtype=np.int64) * 200 * MS, np.stack([down_pose(here)] * 4), np.full(4, 0.08))
+    msg = chunk_to_msg(chunk, client.factory, client.lab.base_frame)
+    msg.points[2].transforms[0].translation.x = float("nan")
+    client.pub_chunk.publish(msg)
+    t_sent = time.time()
+    try:
+        client.wait_for(lambda: int(client.diag_value("franka_node", "nan_rejected", 0)) > before, 5.0,
+                        "the franka node's diagnostics to count the NaN chunk")
+    except TimeoutError:
+        pass
+    time.sleep(0.3)
+    alive = any(t > t_sent + 0.1 for t, _ in list(client.data.poses)[-50:])
+    return {"nan_rejected": int(client.diag_value("franka_node", "nan_rejected", 0)) - before,
+            "alive_after_nan": bool(alive)}
+
+
+def run_latency(client: BenchClient, checkpoint: Path, precision: str, duration: float, log_dir: Path,
+                label: str) -> dict:
+    from equidiff_core import geometry
+    from equidiff_core.control import metrics
+    from equidiff_core.inference import load_inference_policy
+    from equidiff_core.pointcloud import grid_to_voxel_msg
+
+    ws = client.lab.workspace
+    rng = np.random.default_rng(0)
+    grid = np.zeros((4, ws.resolution, ws.resolution, ws.resolution), np.uint8)
+    grid[0, :, :, :2] = 255  # a table and a block
+    i, j = rng.integers(16, 44, 2)
+    grid[0, i:i + 5, j:j + 5, 2:7] = 255
+    grid[1:, grid[0] > 0] = 150
+
+    # Baseline: the bare predict() in this process, no ROS (before the node competes for the CPU).
+    policy = load_inference_policy(checkpoint, precision=precision)
+    policy.warmup(1)
+    ee = geometry.pose_to_action(down_pose(client.latest_position()), np.array(0.08)).astype(np.float32)
+    bare = []
+    for k in range(3):
+        t0 = time.perf_counter()
+        policy.predict(grid, ee, seed=k)
+        bare.append(time.perf_counter() - t0)
+    del policy
+
+    proc = start_node("policy_node", {"checkpoint": str(checkpoint), "precision": precision,
+                                      "lab_config": client.lab_path}, log_dir / "policy_node.log")
+    try:
+        n_before = len(client.data.chunks)
+        stamps = set()
+        stop = threading.Event()
+
+        def publish_voxels():
+            period = 1.0 / client.lab.observation_hz
+            while not stop.is_set():
+                stamp = time.time_ns()
+                stamps.add(stamp / 1e9)
+                client.pub_voxels.publish(grid_to_voxel_msg(grid, ws.lower, ws.voxel_size, stamp,
+                                                            client.lab.base_frame, client.factory))
+                stop.wait(period)
+
+        feeder = threading.Thread(target=publish_voxels, daemon=True)
+        feeder.start()
+        try:
+            client.wait_for(lambda: len(client.data.chunks) > n_before, 180.0, "the policy node's first chunk", proc)
+            t_first = time.time()
+            time.sleep(duration)
+        finally:
+            stop.set()
+            feeder.join(timeout=2)
+        rows = [(r, s) for r, s in list(client.data.chunks)[n_before:] if r > t_first and s in stamps]
+        lat = [r - s for r, s in rows]
+        p50, p95 = metrics.percentiles_ms(lat)
+        bare50, _ = metrics.percentiles_ms(bare)
+        return {"obs_to_cmd_p50_ms": p50, "obs_to_cmd_p95_ms": p95, "policy": label, "policy_precision": precision,
+                "policy_chunks_per_s": round(len(rows) / duration, 2),
+                "policy_diagnostics": client.data.diagnostics.get("policy_node", {}),
+                "baseline_bare_predict_p50_ms": bare50}
+    finally:
+        stop_process(proc)
+
+
+# --- entry point ---------------------------------------------------------------------------
+
+def run(args: argparse.Namespace) -> int:
+    import dataclasses
+    import random
+
+    from equidiff_core.config import default_config_dir, load_lab_config
+    from equidiff_core.control import load_control_config
+    from equidiff_core.robots.franky.sim import SimServer
+
+    if args.domain_id is not None:
+        os.environ["ROS_DOMAIN_ID"] = str(args.domain_id)
+    elif "ROS_DOMAIN_ID" not in os.environ:
+        os.environ["ROS_DOMAIN_ID"] = str(random.randint(101, 200))
+    os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+
+    lab_path = default_config_dir() / "lab.yaml"
+    lab = load_lab_config(lab_path)
+    control_path = default_config_dir() / "control.yaml"
+    control = load_control_config(control_path)
+    result: dict = {"machine": f"{os.cpu_count()} CPU cores", "ros_domain_id": int(os.environ["ROS_DOMAIN_ID"])}
+    with tempfile.TemporaryDirectory(prefix="bench_control_") as tmp:
+        tmp = Path(tmp)
+        if args.interpolation:
+            control = dataclasses.replace(control, scheduler=dataclasses.replace(control.scheduler,
+                                                                                 interpolation=args.interpolation))
+            import yaml
+
+            from equidiff_core.config import to_dict
+
+            control_path = tmp / "control.yaml"
+            control_path.write_text(yaml.safe_dump(to_dict(control)))
+        result["interpolation"] = control.scheduler.interpolation
+        franka = client = None
+        with SimServer() as sim:
+            try:
+                franka = start_node("franka_node", {"robot_ip": sim.host, "realtime": False,
+                                                    "control_config": str(control_path),
+                                                    "lab_config": str(lab_path)}, tmp / "franka_node.log")
+                client = BenchClient(lab, str(lab_path))
+                client.wait_for(lambda: len(client.data.poses) > 10, 90.0, "/franka/ee_pose from the franka node",
+                                franka)
+                result.update(run_track_and_hold(client, args.speed, args.radius, args.duration, args.settle,
+                                                 args.obs_latency, control.safety.watchdog_timeout_s))
+                result.update(run_workspace(client, lab.workspace))
+                result.update(run_nan(client))
+                if args.no_policy:
+                    result.update({"obs_to_cmd_p50_ms": None, "obs_to_cmd_p95_ms": None, "policy": None})
+                else:
+                    approach(client, np.asarray(control.home_position))
+                    checkpoint, label = args.policy_checkpoint, "checkpoint"
+                    if checkpoint is None:
+                        checkpoint = export_untrained(args.policy_preset, tmp / "untrained.pt", lab.workspace)
+                        label = f"untrained-{args.policy_preset}"
+                    result.update(run_latency(client, checkpoint, args.precision, args.latency_duration, tmp, label))
+                result["franka_diagnostics"] = client.data.diagnostics.get("franka_node", {})
+            except Exception as err:
+                log = (tmp / "franka_node.log")
+                tail = log.read_text()[-2000:] if log.exists() else ""
+                print(f"bench control failed: {type(err).__name__}: {err}\n--- franka_node log ---\n{tail}",
+                      file=sys.stderr)
+                return 1
+            finally:
+                if client is not None:
+                    client.close()
+                code = stop_process(franka)
+                result["franka_node_exit_code"] = code
+    print(json.dumps(result))
+    return 0

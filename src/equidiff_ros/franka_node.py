@@ -1,0 +1,186 @@
+"""franka_node: the arm. Executes /franka/command_chunk safely with franky; publishes the robot state.
+
+Wiring:
+  /franka/command_chunk (MultiDOFJointTrajectory, decoded only by ``chunk.chunk_from_msg``)
+      -> ``control.Controller.submit`` (drop past steps, safety checks, replace the trajectory)
+  ``Controller`` thread at ``control_hz`` -> ``robots.Robot`` (franky CartesianImpedanceTracker,
+      or the dry run) ; watchdog, workspace clip, speed limits, error recovery live there
+  timer at ``state_hz`` (>= 100 Hz) -> /franka/ee_pose, /franka/joint_states, /franka/executed_target
+  timer at 1 Hz -> /diagnostics (``franka_node``: rejected chunks, recoveries, watchdog holds, ...)
+
+Policy and teleop publish the same chunk topic, so both go through the same checks.
+
+Parameters: ``lab_config`` (lab.yaml: workspace box, robot IP, state rate), ``control_config``
+(control.yaml: limits, scheduling, gains), ``backend`` (franky | dryrun), ``robot_ip`` (overrides
+lab.yaml), ``realtime`` (false for franky-sim or a machine without an RT kernel),
+``home_on_start`` (overrides control.yaml), ``gripper`` (false: arm only).
+"""
+
+from __future__ import annotations
+
+import sys
+
+USAGE = __doc__ + """
+usage: franka_node [--ros-args -p backend:=franky|dryrun -p robot_ip:=172.16.0.2 -p realtime:=true
+                    -p control_config:=config/control.yaml -p lab_config:=config/lab.yaml]
+"""
+
+NODE_NAME = "franka_node"
+
+
+def build_node():
+    import dataclasses
+    import logging
+    from pathlib import Path
+
+    from rclpy.node import Node
+
+    from equidiff_core.chunk import ChunkError, chunk_from_msg
+    from equidiff_core.config import default_config_dir
+    from equidiff_core.control import Controller, load_control_config
+    from equidiff_core.control import messages as cm
+    from equidiff_core.robots import BACKENDS, make_robot
+    from equidiff_core.rosmsg import RclpyFactory
+    from equidiff_ros.common import (RELIABLE_QOS, TOPIC_COMMAND_CHUNK, TOPIC_DIAGNOSTICS, TOPIC_EE_POSE,
+                                     TOPIC_EXECUTED_TARGET, TOPIC_JOINT_STATES, declare_lab_config, now_ns)
+    from trajectory_msgs.msg import MultiDOFJointTrajectory
+
+    class FrankaNode(Node):
+        def __init__(self):
+            super().__init__(NODE_NAME)
+            self.lab = declare_lab_config(self)
+            control_path = self.declare_parameter("control_config", str(default_config_dir() / "control.yaml")).value
+            backend = self.declare_parameter("backend", "franky").value
+            robot_ip = self.declare_parameter("robot_ip", "").value or self.lab.robot.ip
+            realtime = self.declare_parameter("realtime", True).value
+            gripper = self.declare_parameter("gripper", True).value
+            self.config = load_control_config(Path(control_path))
+            home = self.declare_parameter("home_on_start", self.config.home_on_start).value
+            state_hz = self.declare_parameter("state_hz", self.lab.robot.state_hz).value
+            if backend not in BACKENDS:
+                raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
+            self.frame = self.lab.base_frame
+            self.factory = RclpyFactory()
+            self.hardware_id = "dryrun" if backend == "dryrun" else robot_ip
+
+            log = _ros_logger_adapter(self.get_logger())
+            kwargs = {} if backend == "dryrun" else dict(ip=robot_ip, config=self.config.franky,
+                                                         realtime=realtime, gripper=gripper)
+            self.robot = make_robot(backend, logger=log, **kwargs)
+            self.get_logger().info(f"connecting to the robot ({backend}, {self.hardware_id})")
+            self.robot.connect()
+            self.controller = Controller(self.robot, self.lab.workspace,
+                                         dataclasses.replace(self.config, home_on_start=home), logger=log)
+
+            self.pub_pose = self.create_publisher(type(self._msg("geometry_msgs/msg/PoseStamped")), TOPIC_EE_POSE,
+                                                  RELIABLE_QOS)
+            self.pub_joints = self.create_publisher(type(self._msg("sensor_msgs/msg/JointState")),
+                                                    TOPIC_JOINT_STATES, RELIABLE_QOS)
+            self.pub_target = self.create_publisher(type(self._msg("geometry_msgs/msg/PoseStamped")),
+                                                    TOPIC_EXECUTED_TARGET, RELIABLE_QOS)
+            self.pub_diag = self.create_publisher(type(self._msg("diagnostic_msgs/msg/DiagnosticArray")),
+                                                  TOPIC_DIAGNOSTICS, RELIABLE_QOS)
+            self.controller.start()
+            self.create_subscription(MultiDOFJointTrajectory, TOPIC_COMMAND_CHUNK, self.on_chunk, RELIABLE_QOS)
+            self.create_timer(1.0 / state_hz, self.publish_state)
+            self.create_timer(1.0, self.publish_diagnostics)
+            self._last_target_stamp = None
+            self.get_logger().info(f"streaming at {self.config.control_hz:.0f} Hz, state at {state_hz:.0f} Hz; "
+                                   f"workspace box {self.controller.safety.lower.round(3).tolist()} .. "
+                                   f"{self.controller.safety.upper.round(3).tolist()}")
+
+        def _msg(self, type_name):
+            return self.factory.cls(type_name)()
+
+        def on_chunk(self, msg) -> None:
+            try:
+                chunk = chunk_from_msg(msg)
+            except ChunkError as err:
+                self.controller.record_rejection(err)
+                return
+            self.controller.submit(chunk)
+
+        def publish_state(self) -> None:
+            state = self.controller.state
+            if state is None:
+                return
+            self.pub_pose.publish(cm.pose_stamped(self.factory, state.ee_pose, state.stamp_ns, self.frame))
+            self.pub_joints.publish(cm.joint_state(self.factory, state, state.stamp_ns))
+            command = self.controller.last_command
+            if command is not None and command.stamp_ns != self._last_target_stamp:
+                self._last_target_stamp = command.stamp_ns
+                self.pub_target.publish(cm.pose_stamped(self.factory, command.target.pose, command.stamp_ns,
+                                                        self.frame))
+
+        def publish_diagnostics(self) -> None:
+            stats = self.controller.stats
+            if stats.faulted:
+                level, text = cm.ERROR, "faulted: too many robot errors in a row, restart the node"
+            elif self.controller.holding:
+                level, text = cm.OK, "holding"
+            else:
+                level, text = cm.OK, "executing"
+            if stats.last_rejection and level == cm.OK:
+                level, text = cm.WARN, f"{text}; last rejected chunk: {stats.last_rejection}"
+            values = {k: v for k, v in stats.as_dict().items() if k not in ("last_rejection",)}
+            self.pub_diag.publish(cm.diagnostic_array(self.factory, now_ns(self), NODE_NAME, self.hardware_id,
+                                                      level, text, values))
+
+        def shutdown(self) -> None:
+            self.controller.stop()
+            self.robot.disconnect()
+
+    def _ros_logger_adapter(ros_logger):
+        """A logging.Logger whose records go to the node's ROS logger (core modules log with `logging`)."""
+        logger = logging.getLogger(f"equidiff.{NODE_NAME}")
+        logger.propagate = False
+        logger.setLevel(logging.INFO)
+
+        class _Handler(logging.Handler):
+            def emit(self, record):
+                msg = self.format(record)
+                if record.levelno >= logging.ERROR:
+                    ros_logger.error(msg)
+                elif record.levelno >= logging.WARNING:
+                    ros_logger.warning(msg, throttle_duration_sec=1.0)
+                else:
+                    ros_logger.info(msg)
+
+        logger.handlers[:] = [_Handler()]
+        return logger
+
+    return FrankaNode()
+
+
+def main(args=None) -> int:
+    argv = sys.argv[1:] if args is None else list(args)
+    if "-h" in argv or "--help" in argv:
+        print(USAGE)
+        return 0
+    import rclpy
+    from rclpy.executors import ExternalShutdownException
+
+    from equidiff_core.config import ConfigError
+    from equidiff_core.robots import RobotError
+
+    rclpy.init(args=args)
+    node = None
+    try:
+        node = build_node()
+        rclpy.spin(node)
+    except (ConfigError, RobotError, ValueError) as err:
+        print(f"{NODE_NAME}: {err}", file=sys.stderr)
+        return 1
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        if node is not None:
+            node.shutdown()
+            node.destroy_node()
+        if rclpy.ok():
+            rclpy.try_shutdown()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

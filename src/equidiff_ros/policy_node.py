@@ -1,0 +1,267 @@
+"""policy_node: voxels + robot state -> DDIM policy at 5 Hz -> /franka/command_chunk.
+
+Wiring:
+  /voxels (PointCloud2 of occupied voxels)       -> newest observation (kept raw; decoded in the worker)
+  /franka/ee_pose, /franka/joint_states          -> short history; the pose/width nearest the voxel stamp
+  timer at ``rate_hz`` (5 Hz)                    -> if the worker is idle and the inputs are fresh,
+                                                    hand the observation to the worker thread
+  worker: ``InferencePolicy.predict`` -> first ``n_action_steps`` (8) of ``horizon`` (16) steps
+          -> ``chunk.chunk_from_actions`` (step i at observation stamp + i·dt) -> /franka/command_chunk
+  timer at 1 Hz -> /diagnostics (``policy_node``: inference_ms, observation_age_ms, skipped_cycles,
+                   obs_to_cmd_ms and its p50/p95)
+
+A cycle is skipped, with a throttled warning, when the worker is still busy, when there is no
+voxel grid or it is older than ``max_observation_age_s`` (a missing camera stops the voxel
+node's matched sets, so it shows up here as a stale grid; a voxel node status at ERROR level
+in /diagnostics also skips), or when there is no robot state near the observation.
+
+Parameters: ``checkpoint`` (exported policy file, required), ``device`` (cpu | cuda | auto),
+``precision`` (fp32 | bf16), ``jit``, ``rate_hz``, ``max_observation_age_s``,
+``max_state_offset_s``, ``seed`` (-1: random), ``n_action_steps`` (0: the preset's),
+``torch_threads`` (0: torch's default), ``lab_config``.
+"""
+
+from __future__ import annotations
+
+import sys
+
+USAGE = __doc__ + """
+usage: policy_node --ros-args -p checkpoint:=/path/policy.pt [-p device:=cpu -p precision:=fp32|bf16
+                   -p rate_hz:=5.0 -p max_observation_age_s:=0.5]
+"""
+
+NODE_NAME = "policy_node"
+
+
+def build_node():
+    import collections
+    import threading
+    import time
+    from concurrent.futures import ThreadPoolExecutor
+    from pathlib import Path
+
+    import numpy as np
+    from rclpy.node import Node
+
+    from diagnostic_msgs.msg import DiagnosticArray
+    from equidiff_core import geometry
+    from equidiff_core.chunk import chunk_from_actions, chunk_to_msg
+    from equidiff_core.control import messages as cm
+    from equidiff_core.control.metrics import percentiles_ms
+    from equidiff_core.inference import CheckpointError, load_inference_policy
+    from equidiff_core.pointcloud import voxel_msg_to_grid
+    from equidiff_core.rosmsg import RclpyFactory, stamp_to_ns
+    from equidiff_ros.common import (RELIABLE_QOS, TOPIC_COMMAND_CHUNK, TOPIC_DIAGNOSTICS, TOPIC_EE_POSE,
+                                     TOPIC_JOINT_STATES, TOPIC_VOXELS, VOXEL_QOS, declare_lab_config, now_ns)
+    from geometry_msgs.msg import PoseStamped
+    from sensor_msgs.msg import JointState, PointCloud2
+    from trajectory_msgs.msg import MultiDOFJointTrajectory
+
+    class PolicyNode(Node):
+        def __init__(self):
+            super().__init__(NODE_NAME)
+            self.lab = declare_lab_config(self)
+            checkpoint = self.declare_parameter("checkpoint", "").value
+            device = self.declare_parameter("device", "cpu").value
+            precision = self.declare_parameter("precision", "fp32").value
+            jit = self.declare_parameter("jit", False).value
+            rate_hz = self.declare_parameter("rate_hz", self.lab.observation_hz).value
+            self.max_obs_age_ns = int(self.declare_parameter("max_observation_age_s", 0.5).value * 1e9)
+            self.max_state_offset_ns = int(self.declare_parameter("max_state_offset_s", 0.1).value * 1e9)
+            seed = self.declare_parameter("seed", -1).value
+            n_steps = self.declare_parameter("n_action_steps", 0).value
+            threads = self.declare_parameter("torch_threads", 0).value
+            if not checkpoint:
+                raise CheckpointError("the 'checkpoint' parameter is required (an exported policy file, "
+                                      "e.g. -p checkpoint:=runs/pick/policy.pt)")
+            if threads > 0:
+                import torch
+
+                torch.set_num_threads(int(threads))
+            t0 = time.perf_counter()
+            self.policy = load_inference_policy(Path(checkpoint), device=device, precision=precision, jit=jit)
+            if self.policy.workspace != self.lab.workspace:
+                raise CheckpointError(f"{checkpoint}: trained for workspace {self.policy.workspace}, but lab.yaml "
+                                      f"has {self.lab.workspace}: the voxel grids would not match")
+            self.policy.warmup()
+            preset = self.policy.preset
+            self.n_action_steps = int(n_steps) or int(preset.n_action_steps)
+            if not 1 <= self.n_action_steps <= preset.horizon:
+                raise ValueError(f"n_action_steps must be within 1..{preset.horizon}, got {self.n_action_steps}")
+            self.dt_ns = int(round(preset.dt * 1e9))
+            self.rng = np.random.default_rng(None if seed < 0 else int(seed))
+            self.get_logger().info(
+                f"loaded {self.policy.name} policy '{preset.name}' from {checkpoint} on {device} ({precision}) "
+                f"and warmed up in {time.perf_counter() - t0:.1f} s; publishing {self.n_action_steps} of "
+                f"{preset.horizon} steps, dt {preset.dt} s, at {rate_hz} Hz")
+
+            self.factory = RclpyFactory()
+            self._lock = threading.Lock()
+            self._voxels = None  # newest PointCloud2
+            self._poses = collections.deque(maxlen=200)  # (stamp_ns, pose)
+            self._widths = collections.deque(maxlen=200)  # (stamp_ns, width)
+            self._voxel_error = ""  # voxel node status at ERROR level, if any
+            self._busy = False
+            self._last_obs_stamp = None
+            self.skipped = collections.Counter()
+            self.published = 0
+            self.failures = 0
+            self.inference_s = collections.deque(maxlen=50)
+            self.obs_to_cmd_s = collections.deque(maxlen=50)
+            self.obs_age_s = collections.deque(maxlen=50)
+
+            self.pub_chunk = self.create_publisher(MultiDOFJointTrajectory, TOPIC_COMMAND_CHUNK, RELIABLE_QOS)
+            self.pub_diag = self.create_publisher(DiagnosticArray, TOPIC_DIAGNOSTICS, RELIABLE_QOS)
+            self.create_subscription(PointCloud2, TOPIC_VOXELS, self.on_voxels, VOXEL_QOS)
+            self.create_subscription(PoseStamped, TOPIC_EE_POSE, self.on_pose, RELIABLE_QOS)
+            self.create_subscription(JointState, TOPIC_JOINT_STATES, self.on_joints, RELIABLE_QOS)
+            self.create_subscription(DiagnosticArray, TOPIC_DIAGNOSTICS, self.on_diagnostics, RELIABLE_QOS)
+            self.worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="policy")
+            self.create_timer(1.0 / rate_hz, self.on_cycle)
+            self.create_timer(1.0, self.publish_diagnostics)
+
+        # --- inputs (cheap: callbacks never wait for inference) ---------------------------
+        def on_voxels(self, msg) -> None:
+            self._voxels = msg
+
+        def on_pose(self, msg) -> None:
+            try:
+                pose = cm.pose_from_msg(msg)
+            except geometry.GeometryError as err:
+                self.get_logger().warning(f"ignoring invalid ee pose: {err}", throttle_duration_sec=5.0)
+                return
+            with self._lock:
+                self._poses.append((stamp_to_ns(msg.header.stamp), pose))
+
+        def on_joints(self, msg) -> None:
+            width = cm.gripper_width_from_joint_state(msg)
+            if width is not None and np.isfinite(width):
+                with self._lock:
+                    self._widths.append((stamp_to_ns(msg.header.stamp), width))
+
+        def on_diagnostics(self, msg) -> None:
+            for status in msg.status:
+                if status.name.startswith("voxel"):
+                    level = status.level[0] if isinstance(status.level, bytes) else int(status.level)
+                    self._voxel_error = status.message if level >= cm.ERROR else ""
+
+        # --- the 5 Hz cycle ------------------------------------------------------------------
+        def skip(self, reason: str, detail: str) -> None:
+            self.skipped[reason] += 1
+            self.get_logger().warning(f"skipping a cycle: {detail}", throttle_duration_sec=2.0)
+
+        def on_cycle(self) -> None:
+            if self._busy:
+                return self.skip("busy", "the previous inference is still running")
+            msg = self._voxels
+            now = now_ns(self)
+            if msg is None:
+                return self.skip("no_observation", f"no {TOPIC_VOXELS} received yet")
+            stamp = stamp_to_ns(msg.header.stamp)
+            age = now - stamp
+            if age > self.max_obs_age_ns:
+                return self.skip("stale_observation", f"newest voxel grid is {age / 1e6:.0f} ms old "
+                                 f"(limit {self.max_obs_age_ns / 1e6:.0f} ms): a camera or the voxel node is down")
+            if self._voxel_error:
+                return self.skip("voxel_error", f"voxel node reports: {self._voxel_error}")
+            if stamp == self._last_obs_stamp:
+                self.skipped["no_new_observation"] += 1  # timer/camera phase drift, not a fault: no warning
+                return
+            with self._lock:
+                pose = _nearest(self._poses, stamp, self.max_state_offset_ns)
+                width = _nearest(self._widths, stamp, self.max_state_offset_ns)
+            if pose is None:
+                return self.skip("no_robot_state", f"no {TOPIC_EE_POSE} within "
+                                 f"{self.max_state_offset_ns / 1e6:.0f} ms of the observation")
+            if width is None:
+                width = 0.08  # arm without gripper state: the policy still needs a width input
+            self._busy = True
+            self._last_obs_stamp = stamp
+            self.obs_age_s.append(age / 1e9)
+            self.worker.submit(self.infer, msg, stamp, pose, float(width))
+
+        def infer(self, msg, stamp: int, pose, width: float) -> None:
+            try:
+                t0 = time.perf_counter()
+                grid = voxel_msg_to_grid(msg, self.policy.workspace.resolution)
+                ee = geometry.pose_to_action(pose, np.array(width)).astype(np.float32)
+                actions = self.policy.predict(grid, ee, seed=int(self.rng.integers(2**31)))
+                self.inference_s.append(time.perf_counter() - t0)
+                chunk = chunk_from_actions(actions[: self.n_action_steps], stamp, self.dt_ns)
+                self.pub_chunk.publish(chunk_to_msg(chunk, self.factory, self.lab.base_frame))
+                self.obs_to_cmd_s.append((now_ns(self) - stamp) / 1e9)
+                self.published += 1
+            except Exception as err:  # bad input or a bad prediction: skip it, say why, keep serving
+                self.failures += 1
+                self.get_logger().error(f"inference failed: {type(err).__name__}: {err}",
+                                        throttle_duration_sec=2.0)
+            finally:
+                self._busy = False
+
+        def publish_diagnostics(self) -> None:
+            def last_ms(values):
+                return round(values[-1] * 1000, 1) if values else -1.0
+
+            p50, p95 = percentiles_ms(self.obs_to_cmd_s)
+            values = {
+                "inference_ms": last_ms(self.inference_s),
+                "observation_age_ms": last_ms(self.obs_age_s),
+                "obs_to_cmd_ms": last_ms(self.obs_to_cmd_s),
+                "obs_to_cmd_p50_ms": -1.0 if p50 is None else p50,
+                "obs_to_cmd_p95_ms": -1.0 if p95 is None else p95,
+                "skipped_cycles": sum(self.skipped.values()),
+                "published_chunks": self.published,
+                "failures": self.failures,
+                **{f"skipped_{k}": v for k, v in self.skipped.items()},
+            }
+            stale = self.skipped["stale_observation"] + self.skipped["no_observation"]
+            level = cm.WARN if (self.failures or stale) and not self.obs_to_cmd_s else cm.OK
+            self.pub_diag.publish(cm.diagnostic_array(self.factory, now_ns(self), NODE_NAME, self.policy.name,
+                                                      level, f"{self.published} chunks published", values))
+
+        def shutdown(self) -> None:
+            self.worker.shutdown(wait=True, cancel_futures=True)
+
+    def _nearest(history, stamp: int, max_offset_ns: int):
+        best, best_dt = None, None
+        for t, value in history:
+            dt = abs(t - stamp)
+            if best_dt is None or dt < best_dt:
+                best, best_dt = value, dt
+        return best if best_dt is not None and best_dt <= max_offset_ns else None
+
+    return PolicyNode()
+
+
+def main(args=None) -> int:
+    argv = sys.argv[1:] if args is None else list(args)
+    if "-h" in argv or "--help" in argv:
+        print(USAGE)
+        return 0
+    import rclpy
+    from rclpy.executors import ExternalShutdownException
+
+    from equidiff_core.config import ConfigError
+    from equidiff_core.inference import CheckpointError
+
+    rclpy.init(args=args)
+    node = None
+    try:
+        node = build_node()
+        rclpy.spin(node)
+    except (CheckpointError, ConfigError, ValueError) as err:
+        print(f"{NODE_NAME}: {err}", file=sys.stderr)
+        return 1
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        if node is not None:
+            node.shutdown()
+            node.destroy_node()
+        if rclpy.ok():
+            rclpy.try_shutdown()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
