@@ -330,6 +330,9 @@ def test_missing_rerun_names_the_install_extra(monkeypatch):
     monkeypatch.setitem(sys.modules, "rerun", None)
     with pytest.raises(VizUnavailable, match=r"equidiff_ros\[viz\]"):
         require_rerun()
+    monkeypatch.delitem(sys.modules, "equidiff_core.viz.training", raising=False)
+    with pytest.raises(ImportError, match=r"equidiff_ros\[viz\]"):  # what `equidiff train --rerun` catches
+        import equidiff_core.viz.training  # noqa: F401
     from equidiff_ros.commands import viz as viz_command
 
     parser = __import__("argparse").ArgumentParser()
@@ -462,3 +465,22 @@ def test_throttle_keeps_the_requested_rate_for_uneven_input():
     assert len(passed) == 40  # 20 Hz out over 2 s, not every third message (34)
     gap = [t for t in (5_000_000_000, 5_020_000_000, 5_040_000_000, 5_060_000_000) if th.ready("ee", t)]
     assert gap == [5_000_000_000, 5_060_000_000]  # after a gap in the data: restart, no burst
+
+
+@pytest.mark.slow
+def test_equidiff_train_logs_to_rerun(tmp_path):
+    """Issue 8 item 3 end to end: `equidiff train --rerun FILE.rrd` on the sample bag (tiny preset, 4 steps)."""
+    bags = sorted(p for p in (ROOT / "bags").glob("*") if (p / "metadata.yaml").is_file())
+    if not bags:
+        pytest.skip("no sample bag under bags/ in this checkout")
+    out = tmp_path / "train.rrd"
+    cmd = [sys.executable, "-m", "equidiff_ros.cli", "train", str(bags[0]), "--out", str(tmp_path / "run"),
+           "--policy", "baseline", "--preset", "tiny", "--steps", "4", "--batch-size", "4", "--eval-every", "2",
+           "--no-progress", "--rerun", str(out)]
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=300,
+                          env={**__import__("os").environ, "OMP_NUM_THREADS": "1"})
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    s = summarize_rrd(out)
+    assert s["train/loss"].rows == 4 and s["train/loss"].time_range_ns("step") == (1, 4)
+    assert s["eval/val_loss"].rows == 2
+    assert s["samples/0/pred/path"].rows == 2 and s["samples/0/gt/path"].rows == 2

@@ -25,6 +25,10 @@ from .. import geometry
 from . import require_rerun
 from .logger import APPLICATION_ID, log_pose_path, open_recording
 
+# Importing this module is asking for rerun (e.g. `equidiff train --rerun`): fail here, as an
+# ImportError naming the install extra, rather than midway through a training run.
+require_rerun()
+
 PRED_COLOR = (255, 140, 0)
 GT_COLOR = (60, 200, 60)
 
