@@ -1,0 +1,239 @@
+"""Exported policies: plain torch modules + a JSON config in one ``torch.load(weights_only=True)`` file.
+
+``export_policy(policy, path)`` converts the escnn model with escnn's own per-layer ``export()``
+(R3Conv -> Conv3d, equivariant Linear -> Linear, same outputs to float rounding) into
+``models.plain.PlainEquiNoisePredictor``; the baseline is plain already. ``load_inference_policy``
+rebuilds that network from the saved preset without importing escnn, so the robot-side
+process stays light (and starts fast). Missing, corrupt or incompatible files raise
+``CheckpointError`` with the reason.
+
+Speed switches (``load_inference_policy(..., precision="bf16", jit=True)``): bf16 weights and
+activations (the DDIM arithmetic stays fp32), channels_last_3d for the 3D convolutions, and
+``torch.jit.trace`` + freeze of the encoder and of one denoising step.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from .config import Workspace, from_dict
+from .models import action_space
+from .models.sampling import ActionCodec, ddim_sample, make_inference_scheduler
+from .normalizer import Normalizer, NormalizerError
+from .policies import PolicyInputError
+from .presets import PolicyPreset, preset_from_dict
+
+FORMAT = "equidiff_policy"
+VERSION = 1
+PRECISIONS = ("fp32", "bf16")
+
+
+class CheckpointError(RuntimeError):
+    """A policy/checkpoint file that is missing, corrupt, or not loadable by this version."""
+
+
+def export_policy(policy, path: str | Path) -> Path:
+    """Write ``policy`` (a policies.DiffusionPolicy with its normaliser set) as a plain-torch inference file."""
+    if policy.normalizer is None:
+        raise CheckpointError("cannot export a policy without a normaliser")
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    plain = policy.model.export_plain()
+    state = {k: v.detach().to("cpu", torch.float32).contiguous() if v.is_floating_point() else v.detach().cpu()
+             for k, v in plain.state_dict().items()}
+    payload = {"format": FORMAT, "version": VERSION, "config_json": json.dumps(policy.config_dict()),
+               "state_dict": state}
+    tmp = path.with_name(path.name + ".tmp")
+    torch.save(payload, tmp)
+    tmp.replace(path)
+    return path
+
+
+def build_plain_network(policy_name: str, preset: PolicyPreset) -> torch.nn.Module:
+    freqs = action_space.freqs_for(preset.control)
+    if policy_name == "equidiff":
+        from .models.plain import PlainEquiNoisePredictor
+
+        return PlainEquiNoisePredictor(preset, freqs)
+    if policy_name == "baseline":
+        from .models.baseline import BaselineNoisePredictor
+
+        return BaselineNoisePredictor(preset, freqs)
+    raise CheckpointError(f"unknown policy kind {policy_name!r} in checkpoint")
+
+
+def read_policy_file(path: str | Path) -> tuple[dict, dict]:
+    """(config, state_dict) of an exported policy file, validated."""
+    path = Path(path)
+    if not path.is_file():
+        raise CheckpointError(f"{path}: no such policy file")
+    try:
+        payload = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as err:  # noqa: BLE001 - truncated zip, pickle errors, unsupported globals ...
+        raise CheckpointError(f"{path}: not a readable policy file ({type(err).__name__}: {err})") from err
+    if not isinstance(payload, dict) or payload.get("format") != FORMAT:
+        raise CheckpointError(f"{path}: not an exported equidiff policy (format {payload.get('format') if isinstance(payload, dict) else type(payload).__name__!r})")
+    if payload.get("version") != VERSION:
+        raise CheckpointError(f"{path}: policy file version {payload.get('version')} is not supported (expected {VERSION})")
+    try:
+        config = json.loads(payload["config_json"])
+        state = payload["state_dict"]
+    except (KeyError, TypeError, json.JSONDecodeError) as err:
+        raise CheckpointError(f"{path}: malformed policy file: {err}") from err
+    return config, state
+
+
+def load_inference_policy(path: str | Path, device: str = "cpu", precision: str = "fp32",
+                          jit: bool = False, channels_last: bool | None = None) -> "InferencePolicy":
+    if precision not in PRECISIONS:
+        raise ValueError(f"precision must be one of {PRECISIONS}, got {precision!r}")
+    config, state = read_policy_file(path)
+    try:
+        preset = preset_from_dict(config["preset"])
+        workspace = from_dict(Workspace, config["workspace"], where="workspace")
+        normalizer = Normalizer.from_dict(config["normalizer"])
+        name = config["policy"]
+    except (KeyError, ValueError, TypeError, NormalizerError) as err:
+        raise CheckpointError(f"{path}: incompatible policy config: {err}") from err
+    net = build_plain_network(name, preset)
+    try:
+        net.load_state_dict(state, strict=True)
+    except (RuntimeError, TypeError, AttributeError) as err:
+        raise CheckpointError(f"{path}: weights do not fit the {name} network of preset "
+                              f"{preset.name!r}: {str(err).splitlines()[0]}") from err
+    if device == "auto":
+        device = "cuda" if torch.cuda.is_available() else "cpu"
+    return InferencePolicy(net, name, preset, workspace, normalizer, torch.device(device), precision, jit,
+                           channels_last if channels_last is not None else precision == "bf16")
+
+
+class InferencePolicy:
+    """Plain-torch DDIM policy: ``predict(voxels (4, R, R, R) uint8, ee (10,)) -> (horizon, 10)``."""
+
+    def __init__(self, net, name: str, preset: PolicyPreset, workspace: Workspace, normalizer: Normalizer,
+                 device: torch.device, precision: str = "fp32", jit: bool = False, channels_last: bool = False):
+        self.name = name
+        self.preset = preset
+        self.workspace = workspace
+        self.normalizer = normalizer
+        self.device = device
+        self.precision = precision
+        self.dtype = torch.bfloat16 if precision == "bf16" else torch.float32
+        self.codec = ActionCodec(preset.control, normalizer)
+        self.scheduler = make_inference_scheduler(preset)
+        self.net = net.eval().to(device=device, dtype=self.dtype)
+        self.channels_last = channels_last
+        if channels_last:
+            self.net.encoder.to(memory_format=torch.channels_last_3d)
+        self._encode = self.net.encode_obs
+        self._denoise = self.net.denoise
+        self.jit = False
+        if jit:
+            self._trace()
+
+    @property
+    def n_action_steps(self) -> int:
+        return self.preset.n_action_steps
+
+    @property
+    def dt(self) -> float:
+        return self.preset.dt
+
+    def _trace(self):
+        To, C, S = self.preset.n_obs_steps, self.preset.voxel_channels, self.preset.crop
+        vox = torch.zeros(1, To, C, S, S, S, device=self.device, dtype=self.dtype)
+        ee = torch.zeros(1, To, 10, device=self.device, dtype=self.dtype)
+        with torch.no_grad():
+            enc = torch.jit.freeze(torch.jit.trace(_Method(self.net, "encode_obs").eval(), (self._layout(vox), ee)))
+            cond = enc(self._layout(vox), ee)
+            x = torch.zeros(1, self.preset.horizon, self.codec.dim, device=self.device)
+            t = torch.tensor([1], device=self.device)
+            den = torch.jit.freeze(torch.jit.trace(_Method(self.net, "denoise").eval(), (x, t, cond)))
+        self._encode, self._denoise, self.jit = enc, den, True
+
+    def _layout(self, vox: torch.Tensor) -> torch.Tensor:
+        if not self.channels_last:
+            return vox
+        # channels_last_3d on the (B*To, C, ...) view the convolutions see
+        flat = vox.flatten(0, 1).contiguous(memory_format=torch.channels_last_3d)
+        return flat.unflatten(0, vox.shape[:2])
+
+    def check_inputs(self, voxels: np.ndarray, ee: np.ndarray) -> None:
+        p = self.preset
+        voxels = np.asarray(voxels)
+        ee = np.asarray(ee)
+        if voxels.dtype != np.uint8:
+            raise PolicyInputError(f"voxels must be uint8, got {voxels.dtype}")
+        if voxels.ndim != 4 or voxels.shape[0] != p.voxel_channels or len(set(voxels.shape[1:])) != 1:
+            raise PolicyInputError(f"voxels must be ({p.voxel_channels}, R, R, R), got {voxels.shape}")
+        if voxels.shape[1] < p.crop:
+            raise PolicyInputError(f"voxel grid {voxels.shape[1]}^3 is smaller than the crop {p.crop}^3")
+        if ee.shape != (10,):
+            raise PolicyInputError(f"ee must be (10,), got {ee.shape}")
+        if not np.isfinite(ee).all():
+            raise PolicyInputError("ee (gripper state) contains NaN or inf")
+
+    @torch.no_grad()
+    def encode(self, voxels: np.ndarray, ee: np.ndarray) -> torch.Tensor:
+        """Observation -> U-Net condition (exposed for benchmarks)."""
+        self.check_inputs(voxels, ee)
+        from .augment import center_crop
+
+        vox = torch.from_numpy(np.ascontiguousarray(voxels)).to(self.device)
+        vox = center_crop(vox, self.preset.crop).to(self.dtype).div_(255.0)
+        vox = vox[None, None].expand(1, self.preset.n_obs_steps, *vox.shape)  # single-step history repeated
+        ee_t = torch.as_tensor(np.asarray(ee, dtype=np.float32), device=self.device)
+        ee_n = self.normalizer.normalize(ee_t)[None, None].expand(1, self.preset.n_obs_steps, 10).to(self.dtype)
+        with self._autocast():
+            return self._encode(self._layout(vox), ee_n)
+
+    def _autocast(self):
+        return contextlib.nullcontext()
+
+    @torch.no_grad()
+    def denoise(self, x: torch.Tensor, t: torch.Tensor, cond: torch.Tensor) -> torch.Tensor:
+        return self._denoise(x, t, cond)
+
+    @torch.no_grad()
+    def predict(self, voxels: np.ndarray, ee: np.ndarray, seed: int | None = None,
+                noise: np.ndarray | None = None) -> np.ndarray:
+        """Absolute actions (horizon, 10) for one observation; ``seed`` makes the DDIM noise reproducible."""
+        cond = self.encode(voxels, ee)
+        gen = None
+        if seed is not None:
+            gen = torch.Generator(device=self.device).manual_seed(int(seed))
+        noise_t = None if noise is None else torch.as_tensor(np.asarray(noise, dtype=np.float32))[None]
+        x = ddim_sample(self.denoise, cond, (1, self.preset.horizon, self.codec.dim), self.scheduler,
+                        generator=gen, noise=noise_t, device=self.device)
+        ee_t = torch.as_tensor(np.asarray(ee, dtype=np.float32), device=self.device)[None]
+        actions = self.codec.decode(x, ee_t)[0]
+        out = actions.double().cpu().numpy()
+        if not np.isfinite(out).all():
+            raise PolicyInputError("policy produced non-finite actions")
+        return out
+
+    def warmup(self, iterations: int = 2) -> None:
+        R = self.workspace.resolution if self.workspace.resolution >= self.preset.crop else self.preset.crop
+        vox = np.zeros((self.preset.voxel_channels, R, R, R), np.uint8)
+        ee = np.zeros(10, np.float32)
+        ee[:3] = self.workspace.center
+        ee[3] = ee[7] = 1.0
+        for _ in range(iterations):
+            self.predict(vox, ee, seed=0)
+
+
+class _Method(torch.nn.Module):
+    """Wraps one method of a module so torch.jit.trace can trace it."""
+
+    def __init__(self, module: torch.nn.Module, method: str):
+        super().__init__()
+        self.module = module
+        self.method = method
+
+    def forward(self, *args):
+        return getattr(self.module, self.method)(*args)

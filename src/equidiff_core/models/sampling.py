@@ -1,0 +1,94 @@
+"""Shared by training and the exported policy (no escnn): diffusers schedulers, DDIM sampling,
+and the codec between absolute 10-D actions and the model-space vectors the network denoises."""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+from diffusers import DDIMScheduler, DDPMScheduler
+
+from .. import geometry
+from ..normalizer import Normalizer
+from ..presets import PolicyPreset
+from . import action_space
+
+
+def make_train_scheduler(preset: PolicyPreset) -> DDPMScheduler:
+    return DDPMScheduler(num_train_timesteps=preset.num_train_timesteps, beta_schedule=preset.beta_schedule,
+                         prediction_type="epsilon", clip_sample=True)
+
+
+def make_inference_scheduler(preset: PolicyPreset) -> DDIMScheduler:
+    # Same betas as training; eta = 0 (deterministic given the initial noise), as diffusion_policy's DDIM.
+    sched = DDIMScheduler(num_train_timesteps=preset.num_train_timesteps, beta_schedule=preset.beta_schedule,
+                          prediction_type="epsilon", clip_sample=True, set_alpha_to_one=True, steps_offset=0)
+    sched.set_timesteps(preset.num_inference_steps)
+    return sched
+
+
+@torch.no_grad()
+def ddim_sample(denoise, cond, shape: tuple[int, int, int], scheduler: DDIMScheduler, *,
+                generator: torch.Generator | None = None, noise: torch.Tensor | None = None,
+                device="cpu") -> torch.Tensor:
+    """Run the reverse process from ``noise`` (or fresh Gaussian noise) with ``denoise(x, t, cond)``."""
+    x = noise.to(device=device, dtype=torch.float32) if noise is not None else torch.randn(
+        shape, generator=generator, device=device, dtype=torch.float32)
+    B = x.shape[0]
+    for t in scheduler.timesteps:
+        eps = denoise(x, t.to(device).expand(B), cond).float()
+        x = scheduler.step(eps, t, x).prev_sample
+    return x
+
+
+class ActionCodec:
+    """Absolute actions (..., T, 10) + current gripper state (..., 10) <-> model vectors (..., T, D)."""
+
+    REL_ROT_SCALE = 0.5  # P vec_r(dR) entries reach +-2; halve them so clip_sample's [-1, 1] keeps them
+
+    def __init__(self, control: str, normalizer: Normalizer):
+        self.control = control
+        self.normalizer = normalizer
+        self.freqs = action_space.freqs_for(control)
+        self.dim = action_space.dim_of(self.freqs)
+        self._order = list(action_space.ABS_ORDER)
+        self._inverse = list(action_space.ABS_INVERSE)
+
+    def encode(self, actions: torch.Tensor, ee: torch.Tensor) -> torch.Tensor:
+        if self.control == "absolute":
+            return self.normalizer.normalize(actions)[..., self._order]
+        return self._encode_relative(actions, ee)
+
+    def decode(self, x: torch.Tensor, ee: torch.Tensor) -> torch.Tensor:
+        if self.control == "absolute":
+            return self.normalizer.unnormalize(x[..., self._inverse])
+        return self._decode_relative(x, ee)
+
+    def _center(self, ref: torch.Tensor) -> torch.Tensor:
+        n = self.normalizer
+        z = (n.z_max + n.z_min) / 2  # any fixed point on the rotation axis works; keep values small
+        return torch.tensor([n.center_xy[0], n.center_xy[1], z], dtype=ref.dtype, device=ref.device)
+
+    def _encode_relative(self, actions, ee):
+        c = self._center(actions)
+        R_now = geometry.matrix_from_rot6d(ee[..., geometry.ROT6D])[..., None, :, :]  # (..., 1, 3, 3)
+        p_now = (ee[..., geometry.POS] - c)[..., None, :]
+        R = geometry.matrix_from_rot6d(actions[..., geometry.ROT6D])
+        p = actions[..., geometry.POS] - c
+        dR = R @ R_now.transpose(-1, -2)
+        t = p - (dR @ p_now[..., None])[..., 0]
+        P = torch.as_tensor(geometry.P_REL_ROT, dtype=actions.dtype, device=actions.device)
+        rot = (dR.flatten(-2) @ P.T) * self.REL_ROT_SCALE
+        s = self.normalizer.rel_translation_scale
+        return torch.cat([t / s, rot, actions[..., geometry.WIDTH:]], dim=-1)
+
+    def _decode_relative(self, x, ee):
+        c = self._center(x)
+        s = self.normalizer.rel_translation_scale
+        t = x[..., :3] * s
+        P_inv = torch.as_tensor(np.linalg.inv(geometry.P_REL_ROT), dtype=x.dtype, device=x.device)
+        dR = ((x[..., 3:12] / self.REL_ROT_SCALE) @ P_inv.T).unflatten(-1, (3, 3))
+        R_now = geometry.matrix_from_rot6d(ee[..., geometry.ROT6D])[..., None, :, :]
+        p_now = (ee[..., geometry.POS] - c)[..., None, :]
+        R = dR @ R_now
+        p = t + (dR @ p_now[..., None])[..., 0] + c
+        return torch.cat([p, R[..., :2, :].flatten(-2), x[..., 12:]], dim=-1)

@@ -1,0 +1,296 @@
+"""The training loop shared by EquiDiff and the baseline (used by ``equidiff train``).
+
+AdamW (lr 1e-4, weight decay 1e-6), cosine schedule with 500 warm-up steps (diffusers'
+``get_cosine_schedule_with_warmup``), optional EMA, CPU or CUDA picked automatically.
+
+EMA: escnn 1.0.11 modules cannot be deep-copied (GroupElement.__hash__ raises), so instead of
+diffusion_policy's ``deepcopy(model)`` we keep diffusers' ``EMAModel`` over the parameter
+tensors and swap the averaged weights in for evaluation and export.
+
+Files in ``out_dir``: ``last.ckpt`` (resumable: weights, optimiser, schedule, EMA, step,
+history, config; loads with ``torch.load(weights_only=True)``), ``history.json`` and
+``policy.pt`` (the exported inference policy, see ``inference.py``).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import math
+import random
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Iterable
+
+import numpy as np
+import torch
+from torch.utils.data import DataLoader, Dataset
+
+from .config import to_dict
+from .normalizer import Normalizer
+from .policies import DiffusionPolicy
+
+CKPT_FORMAT = "equidiff_train_ckpt"
+CKPT_VERSION = 1
+
+
+class TrainingError(RuntimeError):
+    pass
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    steps: int = 10000
+    batch_size: int = 64
+    lr: float = 1e-4
+    weight_decay: float = 1e-6
+    betas: tuple[float, float] = (0.95, 0.999)  # diffusion_policy's AdamW betas
+    warmup_steps: int = 500
+    ema: bool = False  # the paper's real-robot runs disable EMA
+    ema_decay: float = 0.9999  # upper bound of diffusers' warm-up decay schedule
+    seed: int = 0
+    device: str = "auto"  # "auto" (cuda if available), "cpu", "cuda", "cuda:1"
+    eval_every: int = 500  # 0: never
+    eval_samples: int = 4  # validation samples passed to on_eval callbacks (DDIM sampled)
+    val_batches: int = 4  # batches of the validation set averaged into val_loss
+    checkpoint_every: int = 1000  # 0: only at the end
+    log_every: int = 10
+    num_workers: int = 0
+    grad_clip: float = 0.0  # 0: off
+    noise_repeats: int = 1  # (noise, step) draws per observation per step, see DiffusionPolicy.compute_loss
+
+    def __post_init__(self):
+        if self.steps < 0 or self.batch_size < 1:
+            raise ValueError("steps must be >= 0 and batch_size >= 1")
+        if not 0.0 < self.ema_decay < 1.0:
+            raise ValueError("ema_decay must be in (0, 1)")
+
+
+@dataclass
+class TrainResult:
+    checkpoint: Path
+    exported: Path
+    history: list[dict] = field(default_factory=list)
+
+
+def resolve_device(device: str) -> torch.device:
+    if device == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if device.startswith("cuda") and not torch.cuda.is_available():
+        raise TrainingError(f"device {device!r} requested but CUDA is not available")
+    return torch.device(device)
+
+
+def seed_everything(seed: int) -> None:
+    random.seed(seed)
+    np.random.seed(seed % 2**32)
+    torch.manual_seed(seed)
+
+
+def fit_normalizer(dataset: Dataset, workspace) -> Normalizer:
+    """From ``dataset.normalizer_arrays() -> (actions (N, 10), ee (N, 10))`` if it has one (cheap),
+    else by reading every sample's action and ee."""
+    if hasattr(dataset, "normalizer_arrays"):
+        actions, ee = dataset.normalizer_arrays()
+    else:
+        items = [dataset[i] for i in range(len(dataset))]
+        actions = np.concatenate([np.asarray(s["action"]).reshape(-1, 10) for s in items])
+        ee = np.concatenate([np.asarray(s["ee"]).reshape(-1, 10) for s in items])
+    return Normalizer.fit(actions, ee, workspace)
+
+
+def _infinite(loader: DataLoader) -> Iterable[dict]:
+    while True:
+        yielded = False
+        for batch in loader:
+            yielded = True
+            yield batch
+        if not yielded:
+            raise TrainingError("training set is empty")
+
+
+class _Ema:
+    """diffusers' EMAModel over the parameters (no deepcopy of the escnn model)."""
+
+    def __init__(self, policy: DiffusionPolicy, decay: float):
+        from diffusers.training_utils import EMAModel
+
+        self.params = [p for p in policy.model.parameters()]
+        self.ema = EMAModel(self.params, decay=decay, use_ema_warmup=True, power=0.75)
+        self.model = policy.model
+
+    def step(self):
+        self.ema.step(self.params)
+
+    @contextlib.contextmanager
+    def swapped_in(self):
+        self.ema.store(self.params)
+        self.ema.copy_to(self.params)
+        _refresh(self.model)
+        try:
+            yield
+        finally:
+            self.ema.restore(self.params)
+            _refresh(self.model)
+
+    def state_dict(self):
+        return self.ema.state_dict()
+
+    def load_state_dict(self, state):
+        self.ema.load_state_dict(state)
+
+
+def _refresh(model: torch.nn.Module):
+    # escnn caches expanded filters when switched to eval: re-expand after weights change.
+    mode = model.training
+    model.train(True)
+    model.train(mode)
+
+
+def _to_numpy(x):
+    return x.detach().cpu().numpy() if isinstance(x, torch.Tensor) else np.asarray(x)
+
+
+def train(policy: DiffusionPolicy, train_set: Dataset, val_set: Dataset | None, cfg: TrainConfig,
+          out_dir: str | Path, callbacks: Iterable[Any] = ()) -> TrainResult:
+    from .inference import export_policy  # late: inference imports policies
+
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    callbacks = list(callbacks)
+    device = resolve_device(cfg.device)
+    seed_everything(cfg.seed)
+    if policy.normalizer is None:
+        policy.set_normalizer(fit_normalizer(train_set, policy.workspace))
+    policy.to(device)
+
+    from diffusers.optimization import get_cosine_schedule_with_warmup
+
+    optimizer = torch.optim.AdamW(policy.model.parameters(), lr=cfg.lr, betas=cfg.betas, weight_decay=cfg.weight_decay)
+    scheduler = get_cosine_schedule_with_warmup(optimizer, cfg.warmup_steps, max(cfg.steps, 1))
+    ema = _Ema(policy, cfg.ema_decay) if cfg.ema else None
+    history: list[dict] = []
+    step = 0
+
+    ckpt_path = out_dir / "last.ckpt"
+    if ckpt_path.exists():
+        state = load_training_checkpoint(ckpt_path)
+        if state["config"]["policy"] != policy.name or state["config"]["preset"] != policy.preset.to_dict():
+            raise TrainingError(f"{ckpt_path} was written for a different policy/preset; use a new out_dir")
+        policy.model.load_state_dict(state["model"])
+        optimizer.load_state_dict(state["optimizer"])
+        scheduler.load_state_dict(state["lr_scheduler"])
+        if ema is not None and state.get("ema") is not None:
+            ema.load_state_dict(state["ema"])
+        policy.set_normalizer(Normalizer.from_dict(state["config"]["normalizer"]))
+        step = int(state["step"])
+        history = json.loads(state["history_json"])
+
+    def save_checkpoint():
+        state = {"format": CKPT_FORMAT, "version": CKPT_VERSION, "step": step,
+                 "config": policy.config_dict(), "train_config": to_dict(cfg),
+                 "model": policy.model.state_dict(), "optimizer": optimizer.state_dict(),
+                 "lr_scheduler": scheduler.state_dict(), "ema": ema.state_dict() if ema else None,
+                 "history_json": json.dumps(history)}
+        tmp = ckpt_path.with_suffix(".tmp")
+        torch.save(state, tmp)
+        tmp.replace(ckpt_path)  # atomic: a killed run never leaves a half-written last.ckpt
+        (out_dir / "history.json").write_text(json.dumps(history, indent=1))
+
+    generator = torch.Generator().manual_seed(cfg.seed + step)
+    loader = DataLoader(train_set, batch_size=cfg.batch_size, shuffle=True, drop_last=len(train_set) >= cfg.batch_size,
+                        num_workers=cfg.num_workers, generator=generator, persistent_workers=cfg.num_workers > 0)
+    batches = _infinite(loader)
+    aug_gen = torch.Generator().manual_seed(cfg.seed * 7919 + step)
+
+    t_last = time.perf_counter()
+    while step < cfg.steps:
+        policy.train()
+        batch = next(batches)
+        loss = policy.compute_loss(batch, generator=aug_gen, noise_repeats=cfg.noise_repeats)
+        if not torch.isfinite(loss):
+            raise TrainingError(f"loss became {loss.item()} at step {step}")
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        if cfg.grad_clip > 0:
+            torch.nn.utils.clip_grad_norm_(policy.model.parameters(), cfg.grad_clip)
+        optimizer.step()
+        scheduler.step()
+        if ema is not None:
+            ema.step()
+        step += 1
+        metrics = {"step": step, "loss": float(loss.item()), "lr": scheduler.get_last_lr()[0]}
+        if step % cfg.log_every == 0 or step == 1 or step == cfg.steps:
+            now = time.perf_counter()
+            metrics["sec_per_step"] = (now - t_last) / (cfg.log_every if step > 1 else 1)
+            t_last = now
+            history.append(metrics)
+        for cb in callbacks:
+            if hasattr(cb, "on_step"):
+                cb.on_step(step, metrics)
+        if cfg.eval_every and (step % cfg.eval_every == 0 or step == cfg.steps):
+            with (ema.swapped_in() if ema else contextlib.nullcontext()):
+                ev, samples = evaluate(policy, val_set if val_set is not None else train_set, cfg, device)
+            ev["step"] = step
+            history.append(ev)
+            for cb in callbacks:
+                if hasattr(cb, "on_eval"):
+                    cb.on_eval(step, ev, samples)
+        if cfg.checkpoint_every and step % cfg.checkpoint_every == 0 and step < cfg.steps:
+            save_checkpoint()
+
+    save_checkpoint()
+    exported = out_dir / "policy.pt"
+    with (ema.swapped_in() if ema else contextlib.nullcontext()):
+        export_policy(policy, exported)
+    result = TrainResult(ckpt_path, exported, history)
+    for cb in callbacks:
+        if hasattr(cb, "on_end"):
+            cb.on_end(result)
+    return result
+
+
+@torch.no_grad()
+def evaluate(policy: DiffusionPolicy, dataset: Dataset, cfg: TrainConfig, device) -> tuple[dict, list[dict]]:
+    """Validation diffusion loss (fixed seed) and DDIM-sampled predictions for a few samples."""
+    policy.eval()
+    gen = torch.Generator().manual_seed(12345)
+    loader = DataLoader(dataset, batch_size=cfg.batch_size, shuffle=False, num_workers=0)
+    losses = []
+    first = None
+    for i, batch in enumerate(loader):
+        if i >= cfg.val_batches:
+            break
+        first = first if first is not None else batch
+        losses.append(float(policy.compute_loss(batch, generator=gen)))
+    metrics: dict = {"val_loss": float(np.mean(losses)) if losses else math.nan}
+    samples: list[dict] = []
+    if first is not None and cfg.eval_samples > 0:
+        n = min(cfg.eval_samples, first["voxels"].shape[0])
+        out = policy.predict_action({"voxels": first["voxels"][:n], "ee": first["ee"][:n]},
+                                    generator=torch.Generator(device=device).manual_seed(0))
+        pred = _to_numpy(out["action_pred"])
+        gt = _to_numpy(first["action"][:n])
+        ee = _to_numpy(first["ee"][:n, -1])
+        samples = [{"pred": pred[j], "gt": gt[j], "ee": ee[j]} for j in range(n)]
+        metrics["val_pos_err_m"] = float(np.linalg.norm(pred[..., :3] - gt[..., :3], axis=-1).mean())
+        metrics["val_width_err_m"] = float(np.abs(pred[..., 9] - gt[..., 9]).mean())
+    return metrics, samples
+
+
+def load_training_checkpoint(path: str | Path) -> dict:
+    from .inference import CheckpointError
+
+    path = Path(path)
+    if not path.is_file():
+        raise CheckpointError(f"{path}: no such checkpoint")
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as err:  # noqa: BLE001 - torch raises many kinds for corrupt files
+        raise CheckpointError(f"{path}: not a readable checkpoint ({type(err).__name__}: {err})") from err
+    if not isinstance(state, dict) or state.get("format") != CKPT_FORMAT:
+        raise CheckpointError(f"{path}: not an equidiff training checkpoint")
+    if state.get("version") != CKPT_VERSION:
+        raise CheckpointError(f"{path}: checkpoint version {state.get('version')} != supported {CKPT_VERSION}")
+    return state
