@@ -390,6 +390,10 @@ class DemoDataset(_TorchDataset):
         parts = [ep.ee for ep in self.episodes]
         return np.concatenate(parts).astype(np.float32) if parts else np.zeros((0, 10), np.float32)
 
+    def normalizer_arrays(self) -> tuple[np.ndarray, np.ndarray]:
+        """(actions, ee) for ``Normalizer.fit`` without building every sample (training.fit_normalizer)."""
+        return self.all_actions(), self.all_ee()
+
 
 # --- stats ------------------------------------------------------------------------------------
 

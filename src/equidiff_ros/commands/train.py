@@ -1,0 +1,250 @@
+"""`equidiff train BAGS... --out DIR`: train EquiDiff or the baseline from recorded episodes.
+
+Bags -> ``DemoDataset`` (decoded once, cached under ``--cache-dir``), whole episodes held out
+for validation (``--val-fraction``, split saved in ``DIR/split.json`` and reused on resume),
+then ``equidiff_core.training.train`` (AdamW + cosine, periodic checkpoints, resume from
+``DIR/last.ckpt``). On every evaluation the held-out episodes are sampled with DDIM and
+scored by action MSE (absolute targets, metres/rot6d/metres); ``DIR/training.png`` plots the
+loss and the evaluation curves. Deterministic for a given ``--seed`` on the same device.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+
+def add_arguments(parser) -> None:
+    parser.add_argument("bags", nargs="+", help="bag directories, or folders holding bag directories")
+    parser.add_argument("--out", required=True, help="output directory (checkpoints, policy.pt, plots)")
+    parser.add_argument("--policy", choices=("equidiff", "baseline"), default="equidiff")
+    parser.add_argument("--preset", default="compact", help="model preset: paper, compact or tiny (default compact)")
+    parser.add_argument("--steps", type=int, default=20000)
+    parser.add_argument("--batch-size", type=int, default=64)
+    parser.add_argument("--lr", type=float, default=1e-4)
+    parser.add_argument("--warmup-steps", type=int, default=500)
+    parser.add_argument("--ema", action="store_true", help="keep an EMA of the weights (the paper's real-robot runs do not)")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--device", default="auto", help="auto, cpu, cuda or cuda:N")
+    parser.add_argument("--val-fraction", type=float, default=0.1, help="fraction of episodes held out (default 0.1)")
+    parser.add_argument("--eval-every", type=int, default=1000)
+    parser.add_argument("--eval-max-samples", type=int, default=64,
+                        help="held-out samples scored by action MSE at each evaluation (DDIM sampling)")
+    parser.add_argument("--checkpoint-every", type=int, default=1000)
+    parser.add_argument("--num-workers", type=int, default=0)
+    parser.add_argument("--resume", action="store_true", help="continue from OUT/last.ckpt")
+    parser.add_argument("--lab-config", help="lab.yaml (workspace); default: the installed one")
+    parser.add_argument("--cache-dir", help="decoded-episode cache (default OUT/dataset_cache)")
+    parser.add_argument("--tolerance", type=float, default=0.05, help="state/voxel stamp tolerance, s")
+    parser.add_argument("--rerun", metavar="FILE.rrd|spawn|HOST:PORT", help="also log training to rerun")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar (logs every eval instead)")
+
+
+class ActionMseEvaluator:
+    """on_eval: DDIM-sample the held-out set and add ``val_action_mse`` (+ position/width errors) to the metrics."""
+
+    def __init__(self, policy, val_set, max_samples: int, batch_size: int, seed: int):
+        self.policy, self.val_set = policy, val_set
+        self.max_samples, self.batch_size, self.seed = max_samples, batch_size, seed
+
+    def on_eval(self, step, metrics, samples):
+        import numpy as np
+        import torch
+
+        if self.val_set is None or len(self.val_set) == 0 or self.max_samples <= 0:
+            return
+        n = min(self.max_samples, len(self.val_set))
+        # evenly spread over the held-out episodes, same samples at every evaluation
+        idx = np.unique(np.linspace(0, len(self.val_set) - 1, n).round().astype(int))
+        gen = torch.Generator().manual_seed(self.seed)
+        was_training = self.policy.training
+        self.policy.eval()
+        sq, pos, width = [], [], []
+        with torch.no_grad():
+            for a in range(0, len(idx), self.batch_size):
+                items = [self.val_set[int(i)] for i in idx[a:a + self.batch_size]]
+                batch = {k: torch.stack([it[k] for it in items]) for k in ("voxels", "ee", "action")}
+                noise = torch.randn((len(items), self.policy.preset.horizon, self.policy.codec.dim), generator=gen)
+                out = self.policy.predict_action({"voxels": batch["voxels"], "ee": batch["ee"]},
+                                                 noise=noise.to(next(self.policy.parameters()).device))
+                pred = out["action_pred"].detach().cpu().double()
+                gt = batch["action"].double()
+                sq.append(((pred - gt) ** 2).mean(dim=(1, 2)))
+                pos.append((pred[..., :3] - gt[..., :3]).norm(dim=-1).mean(dim=1))
+                width.append((pred[..., 9] - gt[..., 9]).abs().mean(dim=1))
+        self.policy.train(was_training)
+        metrics["val_action_mse"] = float(torch.cat(sq).mean())
+        metrics["val_action_pos_err_m"] = float(torch.cat(pos).mean())
+        metrics["val_action_width_err_m"] = float(torch.cat(width).mean())
+        metrics["val_action_samples"] = int(len(idx))
+
+
+class ProgressBar:
+    def __init__(self, total: int, initial: int, enabled: bool):
+        self.bar = None
+        if enabled:
+            from tqdm import tqdm
+
+            self.bar = tqdm(total=total, initial=initial, unit="step", dynamic_ncols=True, file=sys.stderr)
+        self.last_eval = ""
+
+    def on_step(self, step, metrics):
+        if self.bar is not None:
+            self.bar.update(1)
+            self.bar.set_postfix_str(f"loss {metrics['loss']:.4f}{self.last_eval}", refresh=False)
+
+    def on_eval(self, step, metrics, samples):
+        mse = metrics.get("val_action_mse")
+        self.last_eval = f" val_mse {mse:.5f}" if mse is not None else f" val_loss {metrics.get('val_loss', 0):.4f}"
+        line = f"step {step}: " + ", ".join(f"{k} {v:.5g}" for k, v in metrics.items()
+                                           if isinstance(v, float))
+        (self.bar.write if self.bar is not None else print)(line)
+
+    def on_end(self, result):
+        if self.bar is not None:
+            self.bar.close()
+
+
+def plot_history(history: list[dict], path: Path) -> Path:
+    """Training loss (and its running mean) and the evaluation curves, one PNG."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    train = [(h["step"], h["loss"]) for h in history if "loss" in h]
+    evals = [h for h in history if "val_loss" in h]
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4))
+    ax = axes[0]
+    if train:
+        s, l = map(np.asarray, zip(*train))
+        ax.plot(s, l, lw=0.8, alpha=0.5, label="train loss")
+        k = max(1, len(l) // 20)
+        if k > 1 and len(l) > k:
+            ax.plot(s[k - 1:], np.convolve(l, np.ones(k) / k, mode="valid"), lw=1.5, label=f"mean of {k}")
+    if evals:
+        ax.plot([h["step"] for h in evals], [h["val_loss"] for h in evals], "o-", label="val loss")
+    ax.set_xlabel("step")
+    ax.set_ylabel("diffusion loss (noise MSE)")
+    ax.set_yscale("log")
+    ax.legend()
+    ax = axes[1]
+    mse = [(h["step"], h["val_action_mse"]) for h in evals if "val_action_mse" in h]
+    if mse:
+        ax.plot(*zip(*mse), "o-", label="held-out action MSE")
+        ax.set_yscale("log")
+    pos = [(h["step"], h["val_action_pos_err_m"]) for h in evals if "val_action_pos_err_m" in h]
+    if pos:
+        ax2 = ax.twinx()
+        ax2.plot(*zip(*pos), "s--", color="tab:red", label="position error (m)")
+        ax2.set_ylabel("mean position error, m")
+        ax2.legend(loc="upper right")
+    ax.set_xlabel("step")
+    ax.set_ylabel("action MSE (absolute targets)")
+    ax.legend(loc="upper left")
+    ax.set_title("evaluation on held-out episodes")
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path
+
+
+class PlotWriter:
+    def __init__(self, path: Path, history_before: list[dict]):
+        self.path, self.history = path, list(history_before)
+
+    def on_step(self, step, metrics):
+        pass
+
+    def on_eval(self, step, metrics, samples):
+        pass
+
+    def on_end(self, result):
+        plot_history(result.history, self.path)
+
+
+def _load_split(out: Path, episodes, val_fraction: float, seed: int, resume: bool):
+    from equidiff_core.dataset import split_episodes
+
+    split_file = out / "split.json"
+    by_path = {str(ep.path.resolve()): ep for ep in episodes}
+    if resume and split_file.is_file():
+        saved = json.loads(split_file.read_text())
+        missing = [p for p in saved["train"] + saved["val"] if p not in by_path]
+        if missing:
+            raise SystemExit(f"equidiff train: resuming needs the same episodes; missing: {missing[:3]}")
+        return [by_path[p] for p in saved["train"]], [by_path[p] for p in saved["val"]]
+    train, val = split_episodes(episodes, val_fraction, seed)
+    out.mkdir(parents=True, exist_ok=True)
+    split_file.write_text(json.dumps({"seed": seed, "val_fraction": val_fraction,
+                                      "train": [str(e.path.resolve()) for e in train],
+                                      "val": [str(e.path.resolve()) for e in val]}, indent=1))
+    return train, val
+
+
+def run(args) -> int:
+    from equidiff_core.config import default_config_dir, load_lab_config
+    from equidiff_core.dataset import DatasetConfig, DemoDataset, load_episodes
+    from equidiff_core.policies import make_policy
+    from equidiff_core.presets import get_preset
+    from equidiff_core.training import TrainConfig, TrainingError, seed_everything, train
+
+    out = Path(args.out)
+    if (out / "last.ckpt").exists() and not args.resume:
+        print(f"equidiff train: {out}/last.ckpt exists; pass --resume to continue it or choose a new --out",
+              file=sys.stderr)
+        return 2
+    lab = load_lab_config(args.lab_config or default_config_dir() / "lab.yaml")
+    preset = get_preset(args.preset)
+    data_cfg = DatasetConfig.from_preset(preset, resolution=lab.workspace.resolution,
+                                         state_tolerance_s=args.tolerance,
+                                         cache_dir=str(args.cache_dir or out / "dataset_cache"))
+    episodes, skipped = load_episodes(args.bags, data_cfg, log=lambda m: print(f"equidiff train: {m}", file=sys.stderr))
+    if not episodes:
+        print("equidiff train: no usable episodes", file=sys.stderr)
+        return 1
+    train_eps, val_eps = _load_split(out, episodes, args.val_fraction, args.seed, args.resume)
+    train_set, val_set = DemoDataset(train_eps, data_cfg), DemoDataset(val_eps, data_cfg) if val_eps else None
+    if len(train_set) == 0:
+        print("equidiff train: the training episodes are too short for one window "
+              f"(need >= {preset.horizon - preset.n_action_steps + 1} observations)", file=sys.stderr)
+        return 1
+    print(f"equidiff train: {len(train_eps)} train episodes ({len(train_set)} samples), "
+          f"{len(val_eps)} held out ({len(val_set) if val_set else 0} samples), {len(skipped)} skipped; "
+          f"{args.policy} / {preset.name}", file=sys.stderr)
+
+    cfg = TrainConfig(steps=args.steps, batch_size=args.batch_size, lr=args.lr, warmup_steps=args.warmup_steps,
+                      ema=args.ema, seed=args.seed, device=args.device, eval_every=args.eval_every,
+                      checkpoint_every=args.checkpoint_every, num_workers=args.num_workers)
+    seed_everything(args.seed)  # the initial weights come from the global RNG: seed before building
+    policy = make_policy(args.policy, preset, lab.workspace)
+    start_step = 0
+    if args.resume and (out / "last.ckpt").exists():
+        from equidiff_core.training import load_training_checkpoint
+
+        start_step = int(load_training_checkpoint(out / "last.ckpt")["step"])
+    callbacks = [ActionMseEvaluator(policy, val_set, args.eval_max_samples, min(args.batch_size, 32), args.seed),
+                 ProgressBar(args.steps, start_step, not args.no_progress), PlotWriter(out / "training.png", [])]
+    if args.rerun:
+        try:
+            from equidiff_core.viz.training import RerunTrainingCallback
+        except ImportError as err:
+            print(f"equidiff train: --rerun needs the viz extra (rerun-sdk): {err}", file=sys.stderr)
+            return 2
+        callbacks.append(RerunTrainingCallback.from_target(args.rerun))
+    try:
+        result = train(policy, train_set, val_set, cfg, out, callbacks=callbacks)
+    except TrainingError as err:
+        print(f"equidiff train: {err}", file=sys.stderr)
+        return 1
+    evals = [h for h in result.history if "val_loss" in h]
+    losses = [h["loss"] for h in result.history if "loss" in h]
+    summary = {"checkpoint": str(result.checkpoint), "policy": str(result.exported), "plot": str(out / "training.png"),
+               "steps": args.steps, "final_loss": losses[-1] if losses else None,
+               "val_action_mse": evals[-1].get("val_action_mse") if evals else None,
+               "train_episodes": len(train_eps), "val_episodes": len(val_eps), "skipped": len(skipped)}
+    print(json.dumps(summary))
+    return 0
