@@ -216,10 +216,11 @@ def test_converted_bag_has_expected_entities_counts_and_time_range(episode_bags,
     clouds = s["world/cameras/cam_front/points"]
     assert clouds.rows == N_OBS
     assert clouds.instances["Points3D:positions"] == [2000 - 40] * N_OBS  # NaN holes dropped
-    for cam in LAB.cameras:  # lab.yaml (static) and the bag's /tf_static (at t0)
+    for cam in LAB.cameras:  # lab.yaml at the episode start, then the bag's /tf_static (same t0)
         entity = s[f"world/cameras/{cam.name}"]
-        assert entity.static_rows >= 1 and entity.rows == 1
-        assert "Transform3D:translation" in entity.components
+        assert entity.rows == 2 and entity.time_range_ns() == (w["t0"], w["t0"])
+        assert "TransformAxes3D:axis_length" in entity.static_components
+        assert "Transform3D:translation" not in entity.static_components  # static would shadow /tf_static
     assert s["episode/info"].rows == 1
 
 
@@ -234,10 +235,10 @@ def test_converted_transforms_and_values_match_the_bag(episode_bags, tmp_path):
     for chunk in RrdReader(out).stream():
         if not chunk.is_static:
             by_entity.setdefault(chunk.entity_path, []).append(chunk.to_record_batch())
-    front = by_entity["/world/cameras/cam_front"][0]
-    translation = np.array(front.column("Transform3D:translation").to_pylist()[0]).reshape(-1)
-    np.testing.assert_allclose(translation, np.array(LAB.camera("cam_front").extrinsics.translation) + [0.01, 0, 0],
-                               atol=1e-6)
+    front = [np.array(t, dtype=float).reshape(-1) for b in by_entity["/world/cameras/cam_front"]
+             for t in b.column("Transform3D:translation").to_pylist()]
+    configured = np.array(LAB.camera("cam_front").extrinsics.translation)
+    np.testing.assert_allclose(sorted(front, key=lambda t: t[0]), [configured, configured + [0.01, 0, 0]], atol=1e-6)
     widths = np.concatenate([np.array(b.column("Scalars:scalars").to_pylist(), dtype=float).reshape(-1)
                              for b in by_entity["/metrics/gripper_width/commanded"]])
     np.testing.assert_allclose(widths, 0.08)  # step 0 of every chunk

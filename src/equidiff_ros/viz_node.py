@@ -23,7 +23,7 @@ from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
 
 from equidiff_core.config import LabConfig
-from equidiff_ros.common import (LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS, TOPIC_COMMAND_CHUNK, TOPIC_DIAGNOSTICS,
+from equidiff_ros.common import (RELIABLE_QOS, SENSOR_QOS, TOPIC_COMMAND_CHUNK, TOPIC_DIAGNOSTICS,
                                  TOPIC_EE_POSE, TOPIC_EXECUTED_TARGET, TOPIC_JOINT_STATES, TOPIC_VOXELS, VOXEL_QOS,
                                  now_ns)
 
@@ -50,12 +50,8 @@ class VizNode(Node):
         ]
         if clouds:
             topics += [(cam.topic, PointCloud2, SENSOR_QOS) for cam in lab.cameras]
-        try:
-            from tf2_msgs.msg import TFMessage  # absent on PyPI-only installs (architecture.md note 1)
-
-            topics.append(("/tf_static", TFMessage, LATCHED_QOS))
-        except ImportError:
-            self.get_logger().info("tf2_msgs unavailable: camera frames come from the lab config only")
+        # Camera frames come from the lab config, the same file camera_node publishes /tf_static from
+        # (tf2_msgs is not even installable from PyPI, architecture.md note 1).
         for topic, msg_type, qos in topics:
             self.create_subscription(msg_type, topic, self._callback(topic), qos)
         self.create_timer(status_period_s, self._report)

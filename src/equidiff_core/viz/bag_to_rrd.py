@@ -129,7 +129,7 @@ def convert_bags(bags: Iterable[str | Path], out: str | Path, lab: LabConfig, co
             rec = open_recording(recording_id=bag.name, save=target, application_id=APPLICATION_ID,
                                  blueprint=default_blueprint())
             logger = RerunLogger(rec, lab, config)
-            logger.log_static_scene()
+            logger.log_static_scene(static_cameras=False)
             try:
                 _log_bag(logger, bag, index, result)
             except BagConversionError as err:
@@ -147,7 +147,7 @@ def convert_bags(bags: Iterable[str | Path], out: str | Path, lab: LabConfig, co
         rec = open_recording(recording_id=out.stem, save=out, application_id=APPLICATION_ID,
                              blueprint=default_blueprint())
         logger = RerunLogger(rec, lab, config)
-        logger.log_static_scene()
+        logger.log_static_scene(static_cameras=False)
         for index, bag in enumerate(bags):
             result = EpisodeResult(bag, out)
             before_logged, before_dropped = logger.logged.copy(), logger.errors.copy()

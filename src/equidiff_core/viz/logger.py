@@ -6,7 +6,7 @@ Entity layout (the same live and from bags; the base frame is the world):
 |---|---|---|
 | ``world/base`` | axes of the robot base frame | static |
 | ``world/workspace`` | wireframe box of the voxel workspace | lab.yaml |
-| ``world/cameras/<name>`` | ``Transform3D`` T_base_optical + axes | lab.yaml, then ``/tf_static`` if present |
+| ``world/cameras/<name>`` | ``Transform3D`` T_base_optical + axes | lab.yaml (live: static); bags: lab.yaml at the episode start, then the bag's ``/tf_static`` |
 | ``world/cameras/<name>/points`` | ``Points3D`` in the optical frame (throttled) | ``/cameras/<name>/points`` |
 | ``world/voxels`` | ``Boxes3D``: half-sizes once (static), centres + colours per frame | ``/voxels`` |
 | ``world/ee`` + ``world/ee_trail`` | TCP ``Transform3D`` + axes; ``LineStrips3D`` of the last ``trail_s`` | ``/franka/ee_pose`` |
@@ -242,6 +242,7 @@ class RerunLogger:
         self._pose_throttle = _Throttle(config.ee_hz)
         self._cloud_throttle = _Throttle(config.cloud_hz)
         self._camera_names = {cam.frame_id: cam.name for cam in lab.cameras}
+        self._static_cameras = True
 
     # --- time -----------------------------------------------------------------------------
 
@@ -261,6 +262,9 @@ class RerunLogger:
         self._at(start_ns)
         for entity in (CHUNK, EE_TRAIL, EXECUTED_TRAIL):  # the previous episode's intent and trails
             self.rec.log(entity, self.rr.Clear(recursive=entity == CHUNK))
+        if not self._static_cameras:  # the configured extrinsics until the bag's /tf_static says otherwise
+            for cam in self.lab.cameras:
+                self._log_camera_transform(cam.name, cam.extrinsics.matrix())
         lines = [f"# episode {index}"] + [f"- **{k}**: {v}" for k, v in sorted((info or {}).items())]
         self.rec.log(EPISODE_INFO, self.rr.TextDocument("\n".join(lines), media_type="text/markdown"))
 
@@ -271,8 +275,13 @@ class RerunLogger:
 
     # --- static scene ---------------------------------------------------------------------
 
-    def log_static_scene(self) -> None:
-        """View coordinates, base axes, workspace box, voxel box size and the configured camera frames."""
+    def log_static_scene(self, static_cameras: bool = True) -> None:
+        """View coordinates, base axes, workspace box, voxel box size and the configured camera frames.
+
+        rerun's static data shadows temporal data of the same component, so where a bag's
+        ``/tf_static`` may follow (``static_cameras=False``) the camera poses are logged per
+        episode by ``begin_episode`` instead; their axes and labels stay static.
+        """
         rr = self.rr
         ws = self.lab.workspace
         self.rec.log(WORLD, rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
@@ -288,17 +297,19 @@ class RerunLogger:
         self.rec.log(VOXELS, rr.Boxes3D.from_fields(half_sizes=[[half, half, half]], fill_mode=fill), static=True)
         for ee_like, length in ((EE, self.config.axis_length), (EXECUTED, self.config.axis_length / 2)):
             self.rec.log(ee_like, rr.TransformAxes3D(length), static=True)
+        self._static_cameras = static_cameras
         for cam in self.lab.cameras:
-            self._log_camera_transform(cam.name, cam.extrinsics.matrix(), static=True)
+            entity = f"{CAMERAS}/{cam.name}"
+            self.rec.log(entity, rr.TransformAxes3D(self.config.axis_length), static=True)
+            self.rec.log(f"{entity}/label", rr.Points3D([[0, 0, 0]], radii=0.0, labels=[cam.name], show_labels=True),
+                         static=True)
+            if static_cameras:
+                self._log_camera_transform(cam.name, cam.extrinsics.matrix(), static=True)
 
     def _log_camera_transform(self, name: str, T: np.ndarray, static: bool = False) -> None:
         p, q = geometry.pos_quat_from_pose(T)
-        entity = f"{CAMERAS}/{name}"
-        self.rec.log(entity, self.rr.Transform3D(translation=p, quaternion=self.rr.Quaternion(xyzw=q)), static=static)
-        if static:
-            self.rec.log(entity, self.rr.TransformAxes3D(self.config.axis_length), static=True)
-            self.rec.log(f"{entity}/label", self.rr.Points3D([[0, 0, 0]], radii=0.0, labels=[name], show_labels=True),
-                         static=True)
+        self.rec.log(f"{CAMERAS}/{name}", self.rr.Transform3D(translation=p, quaternion=self.rr.Quaternion(xyzw=q)),
+                     static=static)
 
     # --- one method per message kind ------------------------------------------------------
 

@@ -17,7 +17,8 @@ from . import require_rerun
 class EntitySummary:
     rows: int = 0  # temporal rows (log calls at some time)
     static_rows: int = 0
-    components: set[str] = field(default_factory=set)  # "Archetype:field"
+    components: set[str] = field(default_factory=set)  # "Archetype:field", temporal or static
+    static_components: set[str] = field(default_factory=set)  # static ones shadow temporal data in rerun
     time_ranges: dict[str, tuple[int, int]] = field(default_factory=dict)  # timeline -> (min, max) raw int64
     instances: dict[str, list[int]] = field(default_factory=dict)  # component -> instance count per row, in time order
     _keyed: dict[str, list[tuple[int, int, int]]] = field(default_factory=dict, repr=False)
@@ -70,9 +71,11 @@ def summarize_rrd(path: str | Path, recording_id: str | None = None, count_insta
         summary = entities.setdefault(chunk.entity_path, EntitySummary())
         batch = chunk.to_record_batch()
         timelines = set(chunk.timeline_names)
-        summary.components.update(n for n in batch.schema.names if n not in _CONTROL_COLUMNS and n not in timelines)
+        names = {n for n in batch.schema.names if n not in _CONTROL_COLUMNS and n not in timelines}
+        summary.components.update(names)
         if chunk.is_static:
             summary.static_rows += chunk.num_rows
+            summary.static_components.update(names)
             continue
         summary.rows += chunk.num_rows
         for timeline in timelines:
