@@ -485,3 +485,17 @@ def test_equidiff_train_logs_to_rerun(tmp_path):
     assert s["train/loss"].rows == 4 and s["train/loss"].time_range_ns("step") == (1, 4)
     assert s["eval/val_loss"].rows == 2
     assert s["samples/0/pred/path"].rows == 2 and s["samples/0/gt/path"].rows == 2
+
+
+def test_bag_conversion_needs_no_ros(episode_bags, tmp_path):
+    """`equidiff viz BAG -o out.rrd` with rclpy and every ROS message package made unimportable."""
+    bags, _ = episode_bags
+    out = tmp_path / "noros.rrd"
+    code = ("import sys\n"
+            "for m in ('rclpy', 'sensor_msgs', 'geometry_msgs', 'std_msgs', 'trajectory_msgs', 'diagnostic_msgs',"
+            " 'tf2_msgs', 'builtin_interfaces'):\n    sys.modules[m] = None\n"
+            "from equidiff_ros.cli import main\n"
+            f"sys.exit(main(['viz', {str(bags[0])!r}, '-o', {str(out)!r}]))\n")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert summarize_rrd(out)["world/voxels"].rows == N_OBS
