@@ -9,16 +9,19 @@ x = (u + 0.5 - cx) z / fx, y = (v + 0.5 - cy) z / fy (NOTES.md).
 
 Rendering settings are the cheap ones (no multisampling, shadows, reflections, skybox): at
 424x240 three cameras cost ~110-135 ms a set on this CPU, 4x less than the defaults.
-The ``Renderer`` (an EGL context) is created in the thread that first reads; set
-``MUJOCO_GL=egl`` for headless machines (osmesa does not work).
+An EGL context belongs to one thread, so each camera renders in a worker thread of its own
+(created on connect, closed on disconnect) whichever threads call ``read``; set
+``MUJOCO_GL=egl`` on headless machines (osmesa does not work). Paced reads fall on the
+multiples of 1/publish_hz of the wall clock, so separate camera processes sample the same
+sim snapshot, like hardware-synchronised cameras, and the voxel node's time matching succeeds.
 """
 
 from __future__ import annotations
 
 import math
 import os
-import threading
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, replace
 from typing import Callable
 
@@ -88,7 +91,7 @@ class TwinCameraOptions:
     dropout: float | None = None
     shm_name: str | None = None  # twin state block (default: from ROS_DOMAIN_ID)
     twin_config: str | None = None  # path of twin.yaml
-    paced: bool = True  # read() waits for the next 1/publish_hz tick, as a real camera waits for frames
+    paced: bool = True  # read() waits for the next 1/publish_hz wall-clock tick, as a camera waits for frames
 
 
 class TwinCamera(Camera):
@@ -116,9 +119,9 @@ class TwinCamera(Camera):
         self._state_source = state_source
         self._reader = None
         self._model = self._data = self._renderer = None
-        self._renderer_thread: int | None = None
-        self._rng = np.random.default_rng([render.seed, abs(hash(camera.name)) % (2 ** 31)])
-        self._next_tick = 0.0
+        self._worker: ThreadPoolExecutor | None = None
+        self._rng = np.random.default_rng([render.seed, sum(map(ord, camera.name))])
+        self._last_tick = -1
         self._connected = False
 
     # -- Camera interface --------------------------------------------------------------------
@@ -143,16 +146,14 @@ class TwinCamera(Camera):
             except SharedStateError as err:
                 raise CameraError(f"twin camera {self.camera.name}: {err}") from err
             self._state_source = self._reader.read
+        self._worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix=f"render-{self.camera.name}")
         self._connected = True
-        self._next_tick = time.monotonic()
 
     def disconnect(self) -> None:
-        if self._renderer is not None:
-            try:
-                self._renderer.close()
-            except Exception:  # the EGL context may already be gone at interpreter exit
-                pass
-            self._renderer = None
+        if self._worker is not None:
+            self._worker.submit(self._close_renderer).result()
+            self._worker.shutdown(wait=True)
+            self._worker = None
         if self._reader is not None:
             self._reader.close()
             self._reader = None
@@ -167,13 +168,7 @@ class TwinCamera(Camera):
         if not self._connected:
             raise CameraError(f"twin camera {self.camera.name} is not connected")
         if self.options.paced:
-            period = 1.0 / max(self.camera.publish_hz, 1e-3)
-            wait = self._next_tick - time.monotonic()
-            if wait > timeout_s:
-                raise CameraError(f"twin camera {self.camera.name}: no frame within {timeout_s} s")
-            if wait > 0:
-                time.sleep(wait)
-            self._next_tick = max(self._next_tick + period, time.monotonic() - period)
+            self._wait_for_tick(timeout_s)
         try:
             qpos, _, stamp_ns = self._state_source()
         except Exception as err:
@@ -187,13 +182,28 @@ class TwinCamera(Camera):
                               f"[{self.camera.min_depth}, {self.camera.max_depth}] m")
         return CloudFrame(points, colors, int(stamp_ns))
 
+    def _wait_for_tick(self, timeout_s: float) -> None:
+        """Sleep to the next multiple of the publish period on the wall clock (shared by all cameras)."""
+        period_ns = int(1e9 / max(self.camera.publish_hz, 1e-3))
+        now = time.time_ns()
+        tick = now // period_ns + 1
+        if tick <= self._last_tick:
+            tick = self._last_tick + 1
+        wait = (tick * period_ns - now) / 1e9
+        if wait > timeout_s:
+            raise CameraError(f"twin camera {self.camera.name}: no frame within {timeout_s} s")
+        time.sleep(wait)
+        self._last_tick = tick
+
     # -- rendering ---------------------------------------------------------------------------
+    def _close_renderer(self) -> None:
+        if self._renderer is not None:
+            self._renderer.close()
+            self._renderer = None
+
     def _ensure_renderer(self):
         import mujoco
 
-        if self._renderer is not None and self._renderer_thread != threading.get_ident():
-            self._renderer.close()  # an EGL context belongs to the thread that made it
-            self._renderer = None
         if self._renderer is None:
             r = self.render_cfg
             self._renderer = mujoco.Renderer(self._model, height=r.height, width=r.width)
@@ -201,11 +211,15 @@ class TwinCamera(Camera):
             for flag in (mujoco.mjtRndFlag.mjRND_SHADOW, mujoco.mjtRndFlag.mjRND_REFLECTION,
                          mujoco.mjtRndFlag.mjRND_SKYBOX):
                 flags[flag] = 0
-            self._renderer_thread = threading.get_ident()
         return self._renderer
 
     def render(self, qpos: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(RGB uint8 (H, W, 3), planar depth float32 (H, W) in metres) of the state ``qpos``."""
+        if self._worker is None:
+            raise CameraError(f"twin camera {self.camera.name} is not connected")
+        return self._worker.submit(self._render, np.array(qpos, dtype=np.float64)).result()
+
+    def _render(self, qpos: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         import mujoco
 
         self._data.qpos[:] = qpos

@@ -1,0 +1,92 @@
+"""What the main job measures and how it reports it (ROS-free, unit-testable)."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+@dataclass
+class EpisodeRecord:
+    seed: int
+    success: bool = False
+    duration_s: float = 0.0  # first policy command -> success (or the time limit)
+    chunks: int = 0  # policy chunks forwarded to the robot
+    dropped_cycles: int = 0  # 1/rate periods in which no new chunk arrived
+    bag: str = ""
+    end_to_end_ms: list[float] = field(default_factory=list)  # capture stamp -> chunk at the robot
+    inference_ms: list[float] = field(default_factory=list)
+    note: str = ""
+
+
+def count_dropped_cycles(arrivals_s: list[float], start_s: float, end_s: float, rate_hz: float) -> int:
+    """Periods of the policy clock (from start to end) in which no chunk arrived."""
+    if end_s <= start_s:
+        return 0
+    period = 1.0 / rate_hz
+    n = int((end_s - start_s) // period)
+    if n == 0:
+        return 0
+    bins = np.floor((np.asarray(arrivals_s, dtype=float) - start_s) / period).astype(int)
+    hit = set(int(b) for b in bins if 0 <= b < n)
+    return n - len(hit)
+
+
+def percentile(values: list[float], q: float) -> float | None:
+    return None if not values else round(float(np.percentile(values, q)), 1)
+
+
+@dataclass
+class RunSummary:
+    episodes: list[EpisodeRecord]
+    sim_rate: float | None = None  # sim steps per wall second / 1000 (1.0 = real time)
+    policy: str = ""
+    rrd: str = ""
+
+    def as_dict(self) -> dict:
+        eps = self.episodes
+        n = len(eps)
+        e2e = [v for e in eps for v in e.end_to_end_ms]
+        inf = [v for e in eps for v in e.inference_ms]
+        ok = [e for e in eps if e.success]
+        return {
+            "episodes": n,
+            "success_rate": round(len(ok) / n, 3) if n else 0.0,
+            "mean_episode_s": round(float(np.mean([e.duration_s for e in eps])), 2) if n else None,
+            "mean_success_episode_s": round(float(np.mean([e.duration_s for e in ok])), 2) if ok else None,
+            "inference_p50_ms": percentile(inf, 50),
+            "inference_p95_ms": percentile(inf, 95),
+            "end_to_end_p50_ms": percentile(e2e, 50),
+            "end_to_end_p95_ms": percentile(e2e, 95),
+            "dropped_cycles": int(sum(e.dropped_cycles for e in eps)),
+            "chunks": int(sum(e.chunks for e in eps)),
+            "sim_realtime_factor": None if self.sim_rate is None else round(self.sim_rate, 2),
+            "policy": self.policy,
+            "rrd": self.rrd,
+        }
+
+    def human(self) -> str:
+        d = self.as_dict()
+        lines = ["", "== twin run summary ==",
+                 f"policy:            {d['policy']}",
+                 f"episodes:          {d['episodes']}",
+                 f"success rate:      {d['success_rate'] * 100:.0f} %",
+                 f"mean episode time: {d['mean_episode_s']} s (successful: {d['mean_success_episode_s']} s)",
+                 f"inference:         p50 {d['inference_p50_ms']} ms, p95 {d['inference_p95_ms']} ms",
+                 f"end to end:        p50 {d['end_to_end_p50_ms']} ms, p95 {d['end_to_end_p95_ms']} ms "
+                 "(camera capture -> chunk at the robot)",
+                 f"dropped cycles:    {d['dropped_cycles']} (of the 5 Hz policy clock; {d['chunks']} chunks)",
+                 f"sim speed:         {d['sim_realtime_factor']} x real time",
+                 f"rerun recording:   {d['rrd'] or '-'}"]
+        for e in self.episodes:
+            lines.append(f"  seed {e.seed:>6}: {'success' if e.success else 'failure'} in {e.duration_s:.1f} s, "
+                         f"{e.chunks} chunks, {e.dropped_cycles} dropped {e.note}  {e.bag}")
+        return "\n".join(lines)
+
+    def json_line(self) -> str:
+        d = self.as_dict()
+        keys = ("episodes", "success_rate", "inference_p95_ms", "end_to_end_p95_ms", "dropped_cycles",
+                "inference_p50_ms", "end_to_end_p50_ms", "mean_episode_s", "sim_realtime_factor")
+        return json.dumps({k: d[k] for k in keys})

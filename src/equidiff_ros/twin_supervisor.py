@@ -1,0 +1,341 @@
+"""The twin jobs' in-process ROS node: episode gate, homing, scripted expert, recorder control, metrics.
+
+Used by ``equidiff twin run`` and ``equidiff twin collect`` (not a standalone executable).
+
+Wiring:
+  /twin/policy_chunk (policy_node's /franka/command_chunk, remapped) -> forwarded to
+      /franka/command_chunk only while an episode is running (the "gate"), so the policy stays
+      loaded and warm between episodes while the arm is homed and the scene reset
+  /franka/command_chunk <- one-point targets at 20 Hz, stamped now, reached 50 ms later: the
+      same messages teleop_node publishes (homing and the scripted expert)
+  /twin/reset <- seed; /twin/scene, /twin/state -> episode set-up and success
+  /recorder/command <- start / stop success|failure / discard
+  /diagnostics (policy_node: inference_ms), /franka/ee_pose, /franka/joint_states -> state, metrics
+"""
+
+from __future__ import annotations
+
+import json
+import threading
+import time
+
+import numpy as np
+
+from equidiff_core import geometry
+from equidiff_core.chunk import PoseChunk, chunk_to_msg
+from equidiff_core.rosmsg import RclpyFactory, stamp_to_ns
+
+TOPIC_POLICY_CHUNK = "/twin/policy_chunk"
+NS = 1_000_000_000
+
+
+class SupervisorError(RuntimeError):
+    """The twin did not respond as expected (no state, no scene, robot not moving)."""
+
+
+class Supervisor:
+    def __init__(self, base_frame: str = "fr3_link0", command_lead_s: float = 0.05, name: str = "twin_supervisor"):
+        import rclpy
+        from rclpy.executors import SingleThreadedExecutor
+        from rclpy.node import Node
+
+        from diagnostic_msgs.msg import DiagnosticArray
+        from equidiff_ros.common import (LATCHED_QOS, RELIABLE_QOS, TOPIC_COMMAND_CHUNK, TOPIC_DIAGNOSTICS,
+                                         TOPIC_EE_POSE, TOPIC_JOINT_STATES, TOPIC_RECORDER_COMMAND)
+        from equidiff_ros.twin_node import TOPIC_RESET, TOPIC_SCENE, TOPIC_STATE
+        from geometry_msgs.msg import PoseStamped
+        from sensor_msgs.msg import JointState
+        from std_msgs.msg import Int64, String
+        from trajectory_msgs.msg import MultiDOFJointTrajectory
+
+        if not rclpy.ok():
+            rclpy.init()
+        self.node = Node(name)
+        self.factory = RclpyFactory()
+        self.frame = base_frame
+        self.lead_ns = int(command_lead_s * NS)
+        self.lock = threading.Lock()
+        self.ee_pose: np.ndarray | None = None
+        self.width: float | None = None
+        self.twin_state: dict | None = None
+        self.scene: dict | None = None
+        self.recorder_status = ""
+        self.gate_open = False
+        self.chunk_arrivals: list[float] = []  # monotonic receive times of forwarded chunks
+        self.end_to_end_ms: list[float] = []
+        self.inference_ms: list[float] = []
+        self._String, self._Int64 = String, Int64
+        n = self.node
+        self.pub_chunk = n.create_publisher(MultiDOFJointTrajectory, TOPIC_COMMAND_CHUNK, RELIABLE_QOS)
+        self.pub_reset = n.create_publisher(Int64, TOPIC_RESET, RELIABLE_QOS)
+        self.pub_recorder = n.create_publisher(String, TOPIC_RECORDER_COMMAND, RELIABLE_QOS)
+        n.create_subscription(MultiDOFJointTrajectory, TOPIC_POLICY_CHUNK, self._on_policy_chunk, RELIABLE_QOS)
+        n.create_subscription(PoseStamped, TOPIC_EE_POSE, self._on_pose, RELIABLE_QOS)
+        n.create_subscription(JointState, TOPIC_JOINT_STATES, self._on_joints, RELIABLE_QOS)
+        n.create_subscription(String, TOPIC_STATE, self._on_state, RELIABLE_QOS)
+        n.create_subscription(String, TOPIC_SCENE, self._on_scene, LATCHED_QOS)
+        n.create_subscription(String, "/recorder/status", self._on_recorder, LATCHED_QOS)
+        n.create_subscription(DiagnosticArray, TOPIC_DIAGNOSTICS, self._on_diag, RELIABLE_QOS)
+        self.executor = SingleThreadedExecutor()
+        self.executor.add_node(n)
+        self._spin = threading.Thread(target=self._spin_loop, daemon=True, name="supervisor-spin")
+        self._running = True
+        self._spin.start()
+
+    def _spin_loop(self):
+        while self._running:
+            try:
+                self.executor.spin_once(timeout_sec=0.05)
+            except Exception:  # context shut down under us at exit
+                if self._running:
+                    raise
+                return
+
+    def close(self):
+        import rclpy
+
+        self._running = False
+        self._spin.join(timeout=2.0)
+        self.executor.shutdown()
+        self.node.destroy_node()
+        if rclpy.ok():
+            rclpy.try_shutdown()
+
+    # -- callbacks ------------------------------------------------------------------------------
+    def _on_policy_chunk(self, msg):
+        now = time.time_ns()
+        with self.lock:
+            if not self.gate_open:
+                return
+            self.chunk_arrivals.append(time.monotonic())
+            self.end_to_end_ms.append((now - stamp_to_ns(msg.header.stamp)) / 1e6)
+        self.pub_chunk.publish(msg)
+
+    def _on_pose(self, msg):
+        p, q = msg.pose.position, msg.pose.orientation
+        pose = geometry.pose_from_pos_quat([p.x, p.y, p.z], [q.x, q.y, q.z, q.w])
+        with self.lock:
+            self.ee_pose = pose
+
+    def _on_joints(self, msg):
+        names = list(msg.name)
+        try:
+            w = sum(msg.position[names.index(j)] for j in ("fr3_finger_joint1", "fr3_finger_joint2"))
+        except ValueError:
+            return
+        with self.lock:
+            self.width = float(w)
+
+    def _on_state(self, msg):
+        with self.lock:
+            self.twin_state = json.loads(msg.data)
+
+    def _on_scene(self, msg):
+        with self.lock:
+            self.scene = json.loads(msg.data)
+
+    def _on_recorder(self, msg):
+        with self.lock:
+            self.recorder_status = msg.data
+
+    def _on_diag(self, msg):
+        for status in msg.status:
+            if status.name != "policy_node":
+                continue
+            for kv in status.values:
+                if kv.key == "inference_ms":
+                    try:
+                        v = float(kv.value)
+                    except ValueError:
+                        continue
+                    if v >= 0:
+                        with self.lock:
+                            if self.gate_open:
+                                self.inference_ms.append(v)
+
+    # -- waiting ---------------------------------------------------------------------------------
+    def wait_for(self, predicate, timeout_s: float, what: str, check=None):
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            with self.lock:
+                value = predicate()
+            if value:
+                return value
+            if check is not None:
+                check()
+            time.sleep(0.02)
+        raise SupervisorError(f"timed out after {timeout_s:.0f} s waiting for {what}")
+
+    def wait_ready(self, timeout_s: float, check=None) -> None:
+        self.wait_for(lambda: self.twin_state is not None, timeout_s, "twin_node's /twin/state", check)
+        self.wait_for(lambda: self.ee_pose is not None and self.width is not None, timeout_s,
+                      "franka_node's /franka/ee_pose and joint states", check)
+
+    # -- commanding --------------------------------------------------------------------------------
+    def send_target(self, pose: np.ndarray, width: float) -> None:
+        now = time.time_ns()
+        chunk = PoseChunk(now, np.array([now + self.lead_ns], dtype=np.int64), np.asarray(pose)[None].copy(),
+                          np.array([float(width)]))
+        self.pub_chunk.publish(chunk_to_msg(chunk, self.factory, self.frame))
+
+    def current(self) -> tuple[np.ndarray, float]:
+        with self.lock:
+            return self.ee_pose.copy(), float(self.width)
+
+    def move_to(self, target: np.ndarray, width: float, speed: float = 0.12, yaw_speed: float = 1.0,
+                timeout_s: float = 20.0, tol_m: float = 0.01, hz: float = 20.0, check=None) -> None:
+        """Stream teleop-like targets along a straight line to ``target`` (never a jump the safety
+        filter would reject), then hold until the TCP is within ``tol_m`` and the gripper settled."""
+        from equidiff_core.twin.expert import tcp_pose, tcp_yaw
+
+        start, _ = self.current()
+        p0, p1 = start[:3, 3], target[:3, 3]
+        y0, y1 = tcp_yaw(start), tcp_yaw(target)
+        dy = (y1 - y0 + np.pi) % (2 * np.pi) - np.pi
+        duration = max(np.linalg.norm(p1 - p0) / speed, abs(dy) / yaw_speed, 0.3)
+        t0 = time.monotonic()
+        deadline = t0 + timeout_s
+        while time.monotonic() < deadline:
+            s = min(1.0, (time.monotonic() - t0) / duration)
+            pose = tcp_pose((1 - s) * p0 + s * p1, y0 + s * dy) if s < 1 else target
+            self.send_target(pose, width)
+            if check is not None:
+                check()
+            if s >= 1:
+                now, w = self.current()
+                if np.linalg.norm(now[:3, 3] - p1) < tol_m and (abs(w - width) < 0.01 or width < 0.01):
+                    return
+            time.sleep(1.0 / hz)
+        raise SupervisorError(f"the arm did not reach {np.round(p1, 3).tolist()} within {timeout_s:.0f} s")
+
+    def reset_scene(self, seed: int, timeout_s: float = 10.0, check=None) -> dict:
+        self.pub_reset.publish(self._Int64(data=int(seed)))
+        return self.wait_for(lambda: self.scene if self.scene and self.scene.get("seed") == seed else None,
+                             timeout_s, f"/twin/scene for seed {seed}", check)
+
+    def twin(self) -> dict:
+        with self.lock:
+            return dict(self.twin_state or {})
+
+    def recorder(self, command: str, expect_prefix: str, timeout_s: float = 10.0, check=None) -> str:
+        self.pub_recorder.publish(self._String(data=command))
+        return self.wait_for(lambda: self.recorder_status if self.recorder_status.startswith(expect_prefix) else None,
+                             timeout_s, f"recorder status '{expect_prefix}…' after '{command}'", check)
+
+    def open_gate(self) -> None:
+        with self.lock:
+            self.chunk_arrivals, self.end_to_end_ms, self.inference_ms = [], [], []
+            self.gate_open = True
+
+    def close_gate(self) -> tuple[list[float], list[float], list[float]]:
+        with self.lock:
+            self.gate_open = False
+            return list(self.chunk_arrivals), list(self.end_to_end_ms), list(self.inference_ms)
+
+
+# --- bringing up the twin stack -------------------------------------------------------------------
+
+class TwinStack:
+    """All nodes of the twin as separate processes on a private ROS domain, plus the supervisor.
+
+    ``with TwinStack(...) as stack:`` starts twin_node, one camera_node (backend twin) per
+    configured camera, voxel_node, franka_node (robot_ip = the twin's loopback address),
+    recorder_node and optionally policy_node (its chunks remapped to the supervisor's gate);
+    leaving the block (normally, on error, Ctrl-C or SIGTERM) stops them all.
+    """
+
+    def __init__(self, out_dir, lab_path, twin_path, policy: str | None = None, domain_id: int | None = None,
+                 task: str = "twin", device: str = "cpu", seed: int = 0, record_clouds: bool = False,
+                 start_timeout_s: float = 120.0, torch_threads: int = 1, lenient: bool = False, log=print):
+        from pathlib import Path
+
+        from equidiff_core.config import load_lab_config
+        from equidiff_core.twin.config import load_twin_config
+
+        self.out_dir = Path(out_dir)
+        self.lab_path, self.twin_path = Path(lab_path), Path(twin_path)
+        self.lab = load_lab_config(self.lab_path)
+        self.cfg = load_twin_config(self.twin_path)
+        self.policy, self.domain_id, self.task, self.device = policy, domain_id, task, device
+        self.seed, self.record_clouds, self.start_timeout_s = seed, record_clouds, start_timeout_s
+        self.torch_threads = torch_threads
+        # lenient: accept older observations (CI machines too loaded to hold 5 Hz); never for reported numbers
+        self.lenient = lenient
+        self.log = log
+        self.group = None
+        self.sup: Supervisor | None = None
+
+    def __enter__(self) -> "TwinStack":
+        import os
+
+        from equidiff_core.twin.processes import ProcessGroup, node_command, private_ros_env
+        from equidiff_core.twin.sim import free_loopback_host
+
+        env = private_ros_env(self.domain_id, OMP_NUM_THREADS="1", LP_NUM_THREADS="1")
+        self.domain_id = int(env["ROS_DOMAIN_ID"])
+        env["EQUIDIFF_TWIN_SHM"] = f"equidiff_twin_{self.domain_id}_{os.getpid()}"
+        # the supervisor (this process) joins the same private domain
+        for key in ("ROS_DOMAIN_ID", "ROS_AUTOMATIC_DISCOVERY_RANGE", "EQUIDIFF_TWIN_SHM", "MUJOCO_GL"):
+            os.environ[key] = env[key]
+        self.host = free_loopback_host()
+        self.group = ProcessGroup(env, self.out_dir / "logs").__enter__()
+        try:
+            self._start_nodes(node_command)
+        except BaseException:
+            self.__exit__(None, None, None)
+            raise
+        return self
+
+    def _start_nodes(self, node_command) -> None:
+        common = {"lab_config": str(self.lab_path)}
+        g = self.group
+        self.log(f"[twin] ROS_DOMAIN_ID={self.domain_id}; franky-sim on {self.host}; logs in {g.log_dir}")
+        g.start("twin_node", node_command("twin_node", {**common, "twin_config": str(self.twin_path),
+                                                        "host": self.host, "seed": self.seed}))
+        self.sup = Supervisor(self.lab.base_frame)
+        self.sup.wait_for(lambda: self.sup.twin_state is not None, self.start_timeout_s,
+                          "twin_node's /twin/state", g.check)
+        for cam in self.lab.cameras:
+            g.start(f"camera_{cam.name}", node_command("camera_node", {**common, "backend": "twin",
+                                                                       "camera": cam.name}))
+        voxel = {"stale_after_s": 3.0, "slop_s": 0.15} if self.lenient else {}
+        g.start("voxel_node", node_command("voxel_node", {**common, **voxel}))
+        g.start("franka_node", node_command("franka_node", {**common, "robot_ip": self.host, "realtime": False}))
+        g.start("recorder_node", node_command("recorder_node", {
+            **common, "output_dir": str(self.out_dir / "bags"), "task": self.task,
+            "record_clouds": self.record_clouds}))
+        if self.policy:
+            g.start("policy_node", node_command(
+                "policy_node", {**common, "checkpoint": str(self.policy), "device": self.device,
+                                "torch_threads": self.torch_threads,
+                                **({"max_observation_age_s": 4.0, "max_state_offset_s": 0.5} if self.lenient else {})},
+                remaps={"/franka/command_chunk": TOPIC_POLICY_CHUNK}))
+        self.sup.wait_ready(self.start_timeout_s, g.check)
+        self.sup.wait_for(lambda: self.sup.recorder_status.startswith("idle"), self.start_timeout_s,
+                          "recorder_node", g.check)
+        self.log("[twin] all nodes up")
+
+    def __exit__(self, *exc) -> None:
+        try:
+            if self.sup is not None and self.sup.recorder_status.startswith("recording"):
+                try:  # keep what was recorded, marked as interrupted
+                    self.sup.recorder("stop failure interrupted", "idle", timeout_s=5.0)
+                except SupervisorError:
+                    pass
+        finally:
+            if self.group is not None:
+                self.group.__exit__(*exc)
+                self.group = None
+            if self.sup is not None:
+                self.sup.close()
+                self.sup = None
+
+    def check(self) -> None:
+        self.group.check()
+
+    def home(self) -> None:
+        from equidiff_core.twin.expert import tcp_pose
+
+        ex = self.cfg.expert
+        self.sup.move_to(tcp_pose(ex.ready_position, 0.0), ex.open_width, speed=ex.speed,
+                         timeout_s=self.cfg.episode.home_timeout_s, check=self.check)
