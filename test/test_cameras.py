@@ -153,3 +153,19 @@ def test_twin_backend_is_reached_through_the_factory():
     pytest.importorskip("mujoco")
     with pytest.raises(CameraError, match="unknown option"):
         make_camera("twin", _camera(), no_such_option=1)
+
+
+def test_extrinsics_tf_message_carries_each_optical_frame():
+    from equidiff_core.cameras import extrinsics_tf_message
+    from equidiff_core import geometry
+
+    lab = load_lab_config(default_config_dir() / "lab.yaml")
+    f = rosbags_factory()
+    msg = extrinsics_tf_message(lab.cameras, lab.base_frame, 123, f)
+    msg = f.typestore.deserialize_cdr(f.typestore.serialize_cdr(msg, "tf2_msgs/msg/TFMessage"), "tf2_msgs/msg/TFMessage")
+    assert [t.child_frame_id for t in msg.transforms] == [c.frame_id for c in lab.cameras]
+    for t, cam in zip(msg.transforms, lab.cameras):
+        assert t.header.frame_id == "fr3_link0" and t.header.stamp.nanosec == 123
+        tr, r = t.transform.translation, t.transform.rotation
+        T = geometry.pose_from_pos_quat([tr.x, tr.y, tr.z], [r.x, r.y, r.z, r.w])
+        np.testing.assert_allclose(T, cam.extrinsics.matrix(), atol=1e-9)

@@ -20,7 +20,7 @@ BACKENDS: dict[str, tuple[str, str]] = {
     "twin": (".twin", "TwinCamera"),
 }
 
-__all__ = ["BACKENDS", "Camera", "CameraError", "CloudFrame", "limit_depth", "make_camera"]
+__all__ = ["BACKENDS", "Camera", "CameraError", "CloudFrame", "extrinsics_tf_message", "limit_depth", "make_camera"]
 
 
 def make_camera(backend: str, camera: CameraConfig, **backend_kwargs) -> Camera:
@@ -42,3 +42,21 @@ def limit_depth(frame: CloudFrame, min_depth: float, max_depth: float) -> CloudF
     if keep.all():
         return frame
     return CloudFrame(frame.points[keep], frame.colors[keep], frame.stamp_ns)
+
+
+def extrinsics_tf_message(cameras, base_frame: str, stamp_ns: int, factory):
+    """``tf2_msgs/TFMessage`` with base_frame -> each camera's optical frame (the configured T_base_optical)."""
+    from .. import geometry
+
+    mk = factory.make
+    transforms = []
+    for cam in cameras:
+        p, q = geometry.pos_quat_from_pose(cam.extrinsics.matrix())
+        transforms.append(mk(
+            "geometry_msgs/msg/TransformStamped", header=factory.header(stamp_ns, base_frame),
+            child_frame_id=cam.frame_id,
+            transform=mk("geometry_msgs/msg/Transform",
+                         translation=mk("geometry_msgs/msg/Vector3", x=float(p[0]), y=float(p[1]), z=float(p[2])),
+                         rotation=mk("geometry_msgs/msg/Quaternion", x=float(q[0]), y=float(q[1]),
+                                     z=float(q[2]), w=float(q[3])))))
+    return mk("tf2_msgs/msg/TFMessage", transforms=transforms)

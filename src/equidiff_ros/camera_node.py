@@ -1,0 +1,195 @@
+"""camera_node: coloured point clouds of one configured camera, or of all of them.
+
+Wiring:
+  backend (``realsense`` | ``replay`` | ``twin``, built by ``cameras.make_camera``)
+      -> one reader thread per camera: ``Camera.read`` -> depth limits (``cameras.limit_depth``)
+      -> ``pointcloud.cloud_to_msg`` -> /cameras/<name>/points (sensor-data QoS) at ``publish_hz``
+  once at start -> /tf_static (``tf2_msgs/TFMessage``, transient local): base -> each optical
+      frame from the configured extrinsics, when tf2_msgs is installed (not on a PyPI-only
+      machine: logged once; bags get /tf_static from the recorder)
+  timer at 1 Hz -> /diagnostics (``camera_node/<name>``: frames published, read errors, age)
+
+The header stamp is the capture time the backend reports (host clock for RealSense with
+global time, the node clock for replay, sim time for the twin); the frame id is
+``<name>_color_optical_frame``.
+
+Parameters: ``lab_config`` (lab.yaml), ``camera`` (a camera name; empty = all configured),
+``backend`` (realsense | replay | twin), ``bag`` / ``loop`` / ``rate`` / ``restamp``
+(replay), ``backend_options`` (a YAML mapping passed to the backend, e.g. "{width: 424}").
+A RealSense that is not connected stops the node at once with the missing serial named.
+"""
+
+from __future__ import annotations
+
+import sys
+
+USAGE = __doc__ + """
+usage: camera_node [--ros-args -p backend:=realsense|replay|twin -p camera:=cam_left
+                    -p lab_config:=config/lab.yaml -p bag:=bags/episode_0001 -p loop:=true]
+"""
+
+NODE_NAME = "camera_node"
+
+
+def build_node():
+    import threading
+    import time
+
+    import yaml
+    from rclpy.node import Node
+
+    from equidiff_core.cameras import CameraError, extrinsics_tf_message, limit_depth, make_camera
+    from equidiff_core.cameras.replay import ReplayFinished
+    from equidiff_core.config import ConfigError
+    from equidiff_core.control import messages as cm
+    from equidiff_core.pointcloud import cloud_to_msg
+    from equidiff_core.rosmsg import RclpyFactory
+    from equidiff_ros.common import LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS, TOPIC_DIAGNOSTICS, declare_lab_config, now_ns
+
+    class CameraNode(Node):
+        def __init__(self):
+            super().__init__(NODE_NAME)
+            self.lab = declare_lab_config(self)
+            name = self.declare_parameter("camera", "").value
+            self.backend = self.declare_parameter("backend", "realsense").value
+            bag = self.declare_parameter("bag", "").value
+            loop = self.declare_parameter("loop", True).value
+            rate = self.declare_parameter("rate", 1.0).value
+            restamp = self.declare_parameter("restamp", True).value
+            options_text = self.declare_parameter("backend_options", "").value
+            self.configs = [self.lab.camera(name)] if name else list(self.lab.cameras)
+            self.factory = RclpyFactory()
+            try:
+                options = yaml.safe_load(options_text) if options_text else {}
+            except yaml.YAMLError as err:
+                raise ConfigError(f"backend_options: malformed YAML: {err}") from err
+            if not isinstance(options, dict):
+                raise ConfigError(f"backend_options must be a YAML mapping, got {options_text!r}")
+            clock = lambda: now_ns(self)  # noqa: E731
+            if self.backend == "replay":
+                options = {"bag": bag, "loop": loop, "rate": rate, "restamp": restamp, "clock": clock, **options}
+            elif self.backend == "realsense":
+                options = {"clock": clock, **options}
+            # build and connect every camera first: a missing device fails the node at once
+            self.cameras = []
+            try:
+                for cfg in self.configs:
+                    camera = make_camera(self.backend, cfg, **options)
+                    camera.connect()
+                    self.cameras.append(camera)
+            except CameraError:
+                self._disconnect_all()
+                raise
+            self.pubs = {c.name: self.create_publisher(self._cloud_type(), c.topic, SENSOR_QOS) for c in self.configs}
+            self.stats = {c.name: {"published": 0, "read_errors": 0, "last_stamp_ns": None} for c in self.configs}
+            self._publish_tf_static()
+            self.diag_pub = self.create_publisher(self.factory.cls("diagnostic_msgs/msg/DiagnosticArray"),
+                                                  TOPIC_DIAGNOSTICS, RELIABLE_QOS)
+            self.create_timer(1.0, self._publish_diagnostics)
+            self._stop = threading.Event()
+            self.threads = [threading.Thread(target=self._run, args=(cfg, cam), name=f"camera-{cfg.name}", daemon=True)
+                            for cfg, cam in zip(self.configs, self.cameras)]
+            for t in self.threads:
+                t.start()
+            self.get_logger().info(f"{self.backend} backend: publishing {[c.topic for c in self.configs]}")
+
+        def _cloud_type(self):
+            return self.factory.cls("sensor_msgs/msg/PointCloud2")
+
+        def _publish_tf_static(self):
+            try:
+                tf_type = self.factory.cls("tf2_msgs/msg/TFMessage")
+            except ImportError:
+                self.get_logger().info("tf2_msgs is not installed: /tf_static is not published "
+                                       "(the recorder writes the camera extrinsics into bags)")
+                return
+            self.tf_pub = self.create_publisher(tf_type, "/tf_static", LATCHED_QOS)
+            self.tf_pub.publish(extrinsics_tf_message(self.configs, self.lab.base_frame, now_ns(self), self.factory))
+
+        def _run(self, cfg, camera):
+            log = self.get_logger()
+            period_s = 1.0 / cfg.publish_hz
+            next_due = time.monotonic()
+            pub, stats = self.pubs[cfg.name], self.stats[cfg.name]
+            while not self._stop.is_set():
+                try:
+                    frame = camera.read(timeout_s=1.0)
+                except ReplayFinished as err:
+                    log.info(str(err))
+                    return
+                except CameraError as err:
+                    stats["read_errors"] += 1
+                    log.warning(f"{cfg.name}: {err}", throttle_duration_sec=2.0)
+                    self._stop.wait(0.05)
+                    continue
+                now = time.monotonic()
+                if now < next_due - 0.25 * period_s:
+                    continue  # the device runs faster than publish_hz: skip this frame
+                next_due = max(next_due + period_s, now - period_s)
+                frame = limit_depth(frame, cfg.min_depth, cfg.max_depth)
+                if len(frame.points) == 0:
+                    log.warning(f"{cfg.name}: no points within [{cfg.min_depth}, {cfg.max_depth}] m",
+                                throttle_duration_sec=2.0)
+                    continue
+                pub.publish(cloud_to_msg(frame.points, frame.colors, frame.stamp_ns, cfg.frame_id, self.factory))
+                stats["published"] += 1
+                stats["last_stamp_ns"] = frame.stamp_ns
+
+        def _publish_diagnostics(self):
+            now = now_ns(self)
+            for cfg in self.configs:
+                s = self.stats[cfg.name]
+                age_ms = None if s["last_stamp_ns"] is None else (now - s["last_stamp_ns"]) / 1e6
+                ok = age_ms is not None and age_ms < 3000.0 / cfg.publish_hz
+                self.diag_pub.publish(cm.diagnostic_array(
+                    self.factory, now, f"{NODE_NAME}/{cfg.name}", cfg.serial, cm.OK if ok else cm.WARN,
+                    "publishing" if ok else "no recent frames",
+                    {"backend": self.backend, "published": s["published"], "read_errors": s["read_errors"],
+                     "age_ms": "none" if age_ms is None else round(age_ms, 1)}))
+
+        def _disconnect_all(self):
+            for camera in getattr(self, "cameras", []):
+                camera.disconnect()
+
+        def shutdown(self):
+            if hasattr(self, "_stop"):
+                self._stop.set()
+                for t in self.threads:
+                    t.join(timeout=2.0)
+            self._disconnect_all()
+
+    return CameraNode()
+
+
+def main(args=None) -> int:
+    argv = sys.argv[1:] if args is None else list(args)
+    if "-h" in argv or "--help" in argv:
+        print(USAGE)
+        return 0
+    import rclpy
+    from rclpy.executors import ExternalShutdownException
+
+    from equidiff_core.cameras import CameraError
+    from equidiff_core.config import ConfigError
+
+    rclpy.init(args=args)
+    node = None
+    try:
+        node = build_node()
+        rclpy.spin(node)
+    except (CameraError, ConfigError) as err:
+        print(f"{NODE_NAME}: {err}", file=sys.stderr)
+        return 1
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        if node is not None:
+            node.shutdown()
+            node.destroy_node()
+        if rclpy.ok():
+            rclpy.try_shutdown()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

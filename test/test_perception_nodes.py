@@ -1,0 +1,267 @@
+"""camera_node and voxel_node as separate processes with real rclpy on a private ROS_DOMAIN_ID."""
+
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+
+from equidiff_core.config import default_config_dir, load_lab_config
+from equidiff_core.voxels import voxelize_reference
+from equidiff_ros.commands.bench_voxelize import synthetic_scene
+
+LAB_YAML = str(default_config_dir() / "lab.yaml")
+
+
+def test_nodes_print_usage_without_ros():
+    for node in ("camera_node", "voxel_node"):
+        out = subprocess.run([sys.executable, "-m", f"equidiff_ros.{node}", "--help"], capture_output=True,
+                             text=True, timeout=60)
+        assert out.returncode == 0, out.stderr
+        assert f"usage: {node}" in out.stdout and "Parameters" in out.stdout
+
+
+# --- helpers -----------------------------------------------------------------------------
+
+def _spawn(node, *params):
+    args = [sys.executable, "-m", f"equidiff_ros.{node}", "--ros-args", "-p", f"lab_config:={LAB_YAML}"]
+    for p in params:
+        args += ["-p", p]
+    return subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                            env={**os.environ, "OMP_NUM_THREADS": "1", "PYTHONUNBUFFERED": "1"})
+
+
+def _stop(proc):
+    if proc.poll() is None:
+        proc.send_signal(signal.SIGINT)
+        try:
+            proc.wait(timeout=10)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+    return proc.stdout.read() if proc.stdout else ""
+
+
+class RosProbe:
+    """An rclpy node in the test process: cloud publishers, /voxels and /diagnostics subscribers."""
+
+    def __init__(self):
+        import rclpy
+        from rclpy.executors import SingleThreadedExecutor
+
+        from equidiff_ros.common import RELIABLE_QOS, SENSOR_QOS, VOXEL_QOS
+        from sensor_msgs.msg import PointCloud2
+        from diagnostic_msgs.msg import DiagnosticArray
+
+        self.rclpy = rclpy
+        self.context = rclpy.Context()
+        rclpy.init(context=self.context)
+        self.node = rclpy.create_node("perception_tester", context=self.context)
+        self.executor = SingleThreadedExecutor(context=self.context)
+        self.executor.add_node(self.node)
+        self.lab = load_lab_config(LAB_YAML)
+        self.pubs = {c.name: self.node.create_publisher(PointCloud2, c.topic, SENSOR_QOS) for c in self.lab.cameras}
+        self.voxels, self.clouds, self.diagnostics = [], [], []
+        self.node.create_subscription(PointCloud2, "/voxels", self.voxels.append, VOXEL_QOS)
+        self.node.create_subscription(PointCloud2, self.lab.cameras[0].topic, self.clouds.append, SENSOR_QOS)
+        self.node.create_subscription(DiagnosticArray, "/diagnostics", self.diagnostics.append, RELIABLE_QOS)
+
+    def publish(self, name, msg):
+        self.pubs[name].publish(msg)
+
+    def spin_for(self, seconds):
+        end = time.monotonic() + seconds
+        while time.monotonic() < end:
+            self.executor.spin_once(timeout_sec=0.02)
+
+    def wait_for(self, predicate, timeout, every=None, period=0.1):
+        """Spin until predicate() holds; call every() each period (publishing); True if it held."""
+        end = time.monotonic() + timeout
+        next_call = 0.0
+        while time.monotonic() < end:
+            if every is not None and time.monotonic() >= next_call:
+                every()
+                next_call = time.monotonic() + period
+            self.executor.spin_once(timeout_sec=0.02)
+            if predicate():
+                return True
+        return False
+
+    def voxel_status(self):
+        for msg in reversed(self.diagnostics):
+            for status in msg.status:
+                if status.name == "voxel_node":
+                    return status.message, {kv.key: kv.value for kv in status.values}
+        return None, {}
+
+    def close(self):
+        self.executor.shutdown()
+        self.node.destroy_node()
+        self.rclpy.shutdown(context=self.context)
+
+
+@pytest.fixture
+def tester(ros_domain):
+    t = RosProbe()
+    yield t
+    t.close()
+
+
+@pytest.fixture(scope="module")
+def scene():
+    lab = load_lab_config(LAB_YAML)
+    clouds = synthetic_scene(lab, 20_000, seed=7)
+    exts = [c.extrinsics.matrix() for c in lab.cameras]
+    expected = voxelize_reference(clouds, exts, lab.workspace)
+    assert expected[0].sum() > 0
+    return lab, clouds, expected
+
+
+def _cloud_msgs(lab, clouds, stamp_ns):
+    from equidiff_core.pointcloud import cloud_to_msg
+    from equidiff_core.rosmsg import RclpyFactory
+
+    f = RclpyFactory()
+    return {c.name: cloud_to_msg(p, col, stamp_ns, c.frame_id, f) for c, (p, col) in zip(lab.cameras, clouds)}
+
+
+def _grid(msg, lab):
+    from equidiff_core.pointcloud import voxel_msg_to_grid
+
+    return voxel_msg_to_grid(msg, lab.workspace.resolution)
+
+
+# --- voxel_node ---------------------------------------------------------------------------
+
+@pytest.mark.ros
+@pytest.mark.slow
+def test_three_clouds_become_the_expected_grid_and_a_missing_camera_stops_output(tester, scene):
+    lab, clouds, expected = scene
+    names = [c.name for c in lab.cameras]
+    proc = _spawn("voxel_node", "stale_after_s:=0.6", "slop_s:=0.05", "observation_hz:=5.0")
+    stamps = []
+
+    def publish(which=names):
+        stamp = time.time_ns()
+        stamps.append(stamp)
+        for name, msg in _cloud_msgs(lab, clouds, stamp).items():
+            if name in which:
+                tester.publish(name, msg)
+
+    try:
+        # 1. all three cameras -> the exact grid, stamped with a capture stamp, in the base frame
+        assert tester.wait_for(lambda: tester.voxels, 25.0, publish), _stop(proc)
+        msg = tester.voxels[-1]
+        np.testing.assert_array_equal(_grid(msg, lab), expected)
+        stamp = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+        assert stamp in stamps and msg.header.frame_id == "fr3_link0"
+        # 2. cam_right goes silent -> output stops within stale_after_s, and diagnostics say why
+        tester.spin_for(0.3)
+        publish(names[:2])
+        tester.wait_for(lambda: False, 1.0, lambda: publish(names[:2]))  # let it go stale
+        count = len(tester.voxels)
+        assert not tester.wait_for(lambda: len(tester.voxels) > count, 2.0, lambda: publish(names[:2]))
+        assert tester.wait_for(lambda: "cam_right" in (tester.voxel_status()[0] or ""), 3.0,
+                               lambda: publish(names[:2]))
+        message, values = tester.voxel_status()
+        assert message.startswith("stale") and "cam_right (last cloud" in message
+        assert float(values["voxelize_ms"]) > 0 and int(values["published"]) >= 1
+        # 3. it comes back -> output resumes
+        assert tester.wait_for(lambda: len(tester.voxels) > count, 5.0, publish)
+        assert proc.poll() is None
+    finally:
+        out = _stop(proc)
+    assert "stale camera(s) cam_right" in out
+
+
+@pytest.mark.ros
+@pytest.mark.slow
+def test_a_camera_never_seen_blocks_output_and_malformed_clouds_do_not_crash_the_node(tester, scene):
+    from equidiff_core.pointcloud import cloud_to_msg
+    from equidiff_core.rosmsg import RclpyFactory
+
+    lab, clouds, expected = scene
+    f = RclpyFactory()
+    front = lab.cameras[0]
+    proc = _spawn("voxel_node", "stale_after_s:=1.0")
+
+    def malformed(stamp):
+        good = lambda: cloud_to_msg(clouds[0][0], clouds[0][1], stamp, front.frame_id, f)  # noqa: E731
+        no_z = good()
+        no_z.fields = [fl for fl in no_z.fields if fl.name != "z"]
+        bad_step = good()
+        bad_step.point_step = 12
+        nan = cloud_to_msg(np.full((10, 3), np.nan, np.float32), np.zeros((10, 3), np.uint8), stamp,
+                           front.frame_id, f)
+        empty = cloud_to_msg(np.zeros((0, 3), np.float32), np.zeros((0, 3), np.uint8), stamp, front.frame_id, f)
+        wrong_frame = cloud_to_msg(clouds[0][0], clouds[0][1], stamp, "somewhere_else", f)
+        return [no_z, bad_step, nan, empty, wrong_frame]
+
+    def publish_malformed_front():
+        stamp = time.time_ns()
+        msgs = _cloud_msgs(lab, clouds, stamp)
+        for bad in malformed(stamp):
+            tester.publish(front.name, bad)
+        for name in ("cam_left", "cam_right"):
+            tester.publish(name, msgs[name])
+
+    try:
+        # only malformed clouds from cam_front: no output, the node keeps running and counts drops
+        assert tester.wait_for(lambda: int(tester.voxel_status()[1].get("cam_front_dropped", 0)) >= 10, 25.0,
+                               publish_malformed_front), _stop(proc)
+        assert not tester.voxels and proc.poll() is None
+        assert "cam_front (never received)" in tester.voxel_status()[0]
+
+        # valid clouds from all three (malformed ones still interleaved) -> the exact grid
+        def publish_all():
+            publish_malformed_front()
+            for name, msg in _cloud_msgs(lab, clouds, time.time_ns()).items():
+                tester.publish(name, msg)
+
+        assert tester.wait_for(lambda: tester.voxels, 10.0, publish_all)
+        np.testing.assert_array_equal(_grid(tester.voxels[-1], lab), expected)
+        assert proc.poll() is None
+    finally:
+        out = _stop(proc)
+    for reason in ("lacks field(s) ['z']", "NaN", "zero points", "is not 'cam_front_color_optical_frame'"):
+        assert reason in out, reason
+
+
+# --- camera_node ---------------------------------------------------------------------------
+
+@pytest.mark.ros
+@pytest.mark.slow
+def test_replayed_bag_through_camera_node_and_voxel_node(tester, scene, tmp_path):
+    from test_cameras import write_cloud_bag
+
+    lab, clouds, expected = scene
+    bag = tmp_path / "episode"
+    write_cloud_bag(bag, {c.topic: [cl] * 6 for c, cl in zip(lab.cameras, clouds)}, period_ns=200_000_000)
+    camera = _spawn("camera_node", "backend:=replay", f"bag:={bag}", "loop:=true")
+    voxel = _spawn("voxel_node", "slop_s:=0.1")
+    try:
+        assert tester.wait_for(lambda: tester.voxels and tester.clouds, 30.0), _stop(camera) + _stop(voxel)
+        cloud = tester.clouds[-1]
+        assert cloud.header.frame_id == "cam_front_color_optical_frame"
+        assert cloud.width == len(clouds[0][0]) and cloud.point_step == 16
+        age_s = (time.time_ns() - (cloud.header.stamp.sec * 10 ** 9 + cloud.header.stamp.nanosec)) / 1e9
+        assert -0.5 < age_s < 2.0  # restamped: live, not the bag's 2023 stamps
+        np.testing.assert_array_equal(_grid(tester.voxels[-1], lab), expected)
+        assert camera.poll() is None and voxel.poll() is None
+    finally:
+        cam_out, vox_out = _stop(camera), _stop(voxel)
+    assert "tf2_msgs is not installed" in cam_out
+
+
+@pytest.mark.ros
+def test_camera_node_without_realsense_fails_fast_naming_the_serial(ros_domain):
+    proc = _spawn("camera_node", "backend:=realsense", "camera:=cam_left")
+    try:
+        proc.wait(timeout=60)
+    finally:
+        out = _stop(proc)
+    assert proc.returncode == 1
+    assert "'cam_left' with serial 215122250002 not found" in out
