@@ -135,6 +135,9 @@ class Recorded:
     targets: deque = field(default_factory=lambda: deque(maxlen=20000))
     chunks: deque = field(default_factory=lambda: deque(maxlen=2000))  # (receive_s, stamp_s)
     diagnostics: dict = field(default_factory=dict)  # status name -> latest values
+    joint_states: int = 0
+    last_joint_state: object = None
+    last_chunk: object = None
 
 
 class BenchClient:
@@ -149,8 +152,10 @@ class BenchClient:
         from equidiff_ros.common import (RELIABLE_QOS, TOPIC_COMMAND_CHUNK, TOPIC_DIAGNOSTICS, TOPIC_EE_POSE,
                                          TOPIC_EXECUTED_TARGET, TOPIC_VOXELS, VOXEL_QOS)
         from geometry_msgs.msg import PoseStamped
-        from sensor_msgs.msg import PointCloud2
+        from sensor_msgs.msg import JointState, PointCloud2
         from trajectory_msgs.msg import MultiDOFJointTrajectory
+
+        from equidiff_ros.common import TOPIC_JOINT_STATES
 
         self.lab = lab
         self.lab_path = lab_path
@@ -165,6 +170,7 @@ class BenchClient:
         self.node.create_subscription(PoseStamped, TOPIC_EXECUTED_TARGET, self._on_target, RELIABLE_QOS)
         self.node.create_subscription(MultiDOFJointTrajectory, TOPIC_COMMAND_CHUNK, self._on_chunk, RELIABLE_QOS)
         self.node.create_subscription(DiagnosticArray, TOPIC_DIAGNOSTICS, self._on_diag, RELIABLE_QOS)
+        self.node.create_subscription(JointState, TOPIC_JOINT_STATES, self._on_joints, RELIABLE_QOS)
         self.executor = SingleThreadedExecutor(context=self.context)
         self.executor.add_node(self.node)
         self._thread = threading.Thread(target=self._spin, daemon=True)
@@ -193,6 +199,11 @@ class BenchClient:
         from equidiff_core.rosmsg import stamp_to_ns
 
         self.data.chunks.append((time.time_ns() / 1e9, stamp_to_ns(msg.header.stamp) / 1e9))
+        self.data.last_chunk = msg
+
+    def _on_joints(self, msg):
+        self.data.joint_states += 1
+        self.data.last_joint_state = msg
 
     def _on_diag(self, msg):
         for status in msg.status:
@@ -450,8 +461,11 @@ def run(args: argparse.Namespace) -> int:
                 client = BenchClient(lab, str(lab_path))
                 client.wait_for(lambda: len(client.data.poses) > 10, 90.0, "/franka/ee_pose from the franka node",
                                 franka)
+                t_track = time.monotonic()
                 result.update(run_track_and_hold(client, args.speed, args.radius, args.duration, args.settle,
                                                  args.obs_latency, control.safety.watchdog_timeout_s))
+                rtf = sim.realtime_factor(since=t_track)
+                result["sim_realtime_factor"] = None if rtf is None else round(rtf, 3)
                 result.update(run_workspace(client, lab.workspace))
                 result.update(run_nan(client))
                 if args.no_policy:

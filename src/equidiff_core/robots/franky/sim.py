@@ -36,7 +36,8 @@ def serve(host: str, realtime: bool = True) -> None:
         sim.add_robot()
         with franky_sim.SimulationServer(sim, hostname_candidates=[host]) as server:
             print(f"READY {host}", flush=True)
-            deadline = time.perf_counter()
+            deadline = start = time.perf_counter()
+            steps, next_report = 0, start + 1.0
             while not stop:
                 for rs in server.robot_servers:
                     rs.process_commands()
@@ -44,7 +45,12 @@ def serve(host: str, realtime: bool = True) -> None:
                 for rs in server.robot_servers:
                     rs.send_state()
                 deadline += 0.001
-                delay = deadline - time.perf_counter()
+                steps += 1
+                now = time.perf_counter()
+                if now >= next_report:  # lets the parent report how close to real time the sim ran
+                    print(f"STATS {steps} {now - start:.3f}", flush=True)
+                    next_report += 1.0
+                delay = deadline - now
                 if delay > 0:
                     time.sleep(delay)
                 elif delay < -0.05:  # far behind (machine overloaded): don't try to catch up in a burst
@@ -59,6 +65,7 @@ class SimServer:
         self.host = host or free_loopback_host()
         self.startup_timeout_s = startup_timeout_s
         self.process: subprocess.Popen | None = None
+        self.stats: list[tuple[float, int, float]] = []  # (monotonic, steps, server wall s), once a second
 
     def start(self) -> "SimServer":
         _check_port_free(self.host)
@@ -74,13 +81,27 @@ class SimServer:
                 break
             lines.append(line)
             if line.startswith("READY"):
-                # Drain the rest of its output so a full pipe never blocks the server.
+                # Keep reading its output (a full pipe would block the server), noting its speed.
                 import threading
 
-                threading.Thread(target=self.process.stdout.read, daemon=True).start()
+                threading.Thread(target=self._read_stats, args=(self.process.stdout,), daemon=True).start()
                 return self
         self.stop()
         raise RuntimeError("franky-sim did not start:\n" + "".join(lines[-20:]))
+
+    def _read_stats(self, stream) -> None:
+        for line in stream:
+            if line.startswith("STATS"):
+                _, steps, wall = line.split()
+                self.stats.append((time.monotonic(), int(steps), float(wall)))
+
+    def realtime_factor(self, since: float | None = None) -> float | None:
+        """Simulated seconds per wall second (1.0 = real time) since monotonic time ``since``."""
+        rows = [r for r in self.stats if since is None or r[0] >= since]
+        if len(rows) < 2:
+            return None
+        (_, s0, w0), (_, s1, w1) = rows[0], rows[-1]
+        return (s1 - s0) / 1000.0 / (w1 - w0)
 
     def stop(self) -> None:
         if self.process is None:
