@@ -499,3 +499,13 @@ def test_bag_conversion_needs_no_ros(episode_bags, tmp_path):
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert summarize_rrd(out)["world/voxels"].rows == N_OBS
+
+
+def test_viewer_address_forms():
+    from equidiff_core.viz.logger import grpc_url
+
+    assert grpc_url("10.0.0.5:9877") == "rerun+http://10.0.0.5:9877/proxy"
+    assert grpc_url("viewer-host") == "rerun+http://viewer-host:9876/proxy"
+    assert grpc_url("rerun+http://h:1/proxy") == "rerun+http://h:1/proxy"
+    with pytest.raises(ValueError, match="exactly one"):
+        open_recording("x", spawn=True, save="x.rrd")

@@ -7,6 +7,9 @@ Same entity paths and blueprint as the live ``equidiff viz``. Two layouts:
   be overlaid or stepped through;
 * ``per_episode``: one ``<bag name>.rrd`` per bag in the directory ``out``.
 
+The all-in-one recording can also go straight to a viewer (``spawn`` / ``connect``) instead
+of a file.
+
 Messages are streamed in bag order with rosbags (not collected per episode as
 ``equidiff_core.bags.read_episode`` does) so a long episode with raw clouds does not have to
 fit in memory. An unreadable bag is reported and skipped; the others are still converted.
@@ -111,16 +114,17 @@ def _log_bag(logger: RerunLogger, bag: Path, index: int, result: EpisodeResult) 
                                  f"was killed, run: equidiff bags repair {bag}") from err
 
 
-def convert_bags(bags: Iterable[str | Path], out: str | Path, lab: LabConfig, config: VizConfig = VizConfig(),
-                 per_episode: bool = False) -> ConversionReport:
-    """Convert bags to .rrd (``out`` is a file, or a directory with ``per_episode``); never raises per bag."""
+def convert_bags(bags: Iterable[str | Path], out: str | Path | None, lab: LabConfig, config: VizConfig = VizConfig(),
+                 per_episode: bool = False, *, spawn: bool = False, connect: str | None = None) -> ConversionReport:
+    """Convert bags to .rrd (``out`` a file, or a directory with ``per_episode``), or stream them to a viewer
+    (``spawn`` / ``connect``, one recording); never raises because of one bad bag."""
     t0 = time.perf_counter()
     bags = expand_bag_paths(bags)
-    out = Path(out)
+    out = Path(out) if out is not None else None
     results: list[EpisodeResult] = []
     outputs: list[Path] = []
     if per_episode:
-        if out.suffix == ".rrd":
+        if out is None or out.suffix == ".rrd":
             raise BagConversionError(f"--per-episode writes one file per bag: give a directory, not {out}")
         out.mkdir(parents=True, exist_ok=True)
         for index, bag in enumerate(bags):
@@ -141,24 +145,27 @@ def convert_bags(bags: Iterable[str | Path], out: str | Path, lab: LabConfig, co
                 outputs.append(target)
             result.logged, result.dropped = dict(logger.logged), dict(logger.errors)
             results.append(result)
-    else:
-        if out.suffix != ".rrd":
-            raise BagConversionError(f"output must be a .rrd file (or use --per-episode with a directory), got {out}")
-        rec = open_recording(recording_id=out.stem, save=out, application_id=APPLICATION_ID,
-                             blueprint=default_blueprint())
-        logger = RerunLogger(rec, lab, config)
-        logger.log_static_scene(static_cameras=False)
-        for index, bag in enumerate(bags):
-            result = EpisodeResult(bag, out)
-            before_logged, before_dropped = logger.logged.copy(), logger.errors.copy()
-            try:
-                _log_bag(logger, bag, index, result)
-            except BagConversionError as err:
-                result.error, result.output = str(err), None
-            result.logged = dict(logger.logged - before_logged)
-            result.dropped = dict(logger.errors - before_dropped)
-            results.append(result)
-        _finish(rec)
+        return ConversionReport(results, outputs, time.perf_counter() - t0)
+
+    if out is not None and out.suffix != ".rrd":
+        raise BagConversionError(f"output must be a .rrd file (or use --per-episode with a directory), got {out}")
+    name = out.stem if out is not None else (bags[0].name if len(bags) == 1 else "episodes")
+    rec = open_recording(recording_id=name, save=out, spawn=spawn, connect=connect, application_id=APPLICATION_ID,
+                         blueprint=default_blueprint())
+    logger = RerunLogger(rec, lab, config)
+    logger.log_static_scene(static_cameras=False)
+    for index, bag in enumerate(bags):
+        result = EpisodeResult(bag, out)
+        before_logged, before_dropped = logger.logged.copy(), logger.errors.copy()
+        try:
+            _log_bag(logger, bag, index, result)
+        except BagConversionError as err:
+            result.error, result.output = str(err), None
+        result.logged = dict(logger.logged - before_logged)
+        result.dropped = dict(logger.errors - before_dropped)
+        results.append(result)
+    _finish(rec)
+    if out is not None:
         if any(r.error is None for r in results):
             outputs.append(out)
         else:

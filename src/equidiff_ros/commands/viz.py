@@ -5,6 +5,7 @@
     equidiff viz -o eval.rrd             # live, headless: writes a file (open it later with `rerun eval.rrd`)
     equidiff viz bags/ -o all.rrd        # every bag in bags/ as one recording with an `episode` timeline
     equidiff viz bags/ -o rrd/ --per-episode   # one <bag>.rrd per episode
+    equidiff viz bags/episode_0003 --spawn     # look at a bag right away
 """
 
 from __future__ import annotations
@@ -21,8 +22,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("bags", nargs="*", metavar="BAG",
                         help="bag directories (or folders of bags) to convert; none: visualise the live graph")
     sink = parser.add_mutually_exclusive_group()
-    sink.add_argument("--spawn", action="store_true", help="live: spawn a local rerun viewer (default with a display)")
-    sink.add_argument("--connect", metavar="ADDR", help="live: stream to a running viewer (host:port or rerun+http URL)")
+    sink.add_argument("--spawn", action="store_true", help="spawn a local rerun viewer (live default with a display)")
+    sink.add_argument("--connect", metavar="ADDR", help="stream to a running viewer (host:port or rerun+http URL)")
     sink.add_argument("-o", "--output", metavar="OUT", type=Path,
                       help="FILE.rrd to write (live headless, or bag conversion); a directory with --per-episode")
     parser.add_argument("--per-episode", action="store_true", help="bags: one .rrd per episode in the OUT directory")
@@ -63,11 +64,20 @@ def run(args: argparse.Namespace) -> int:
 def _convert(args: argparse.Namespace, lab, config) -> int:
     from equidiff_core.viz.bag_to_rrd import BagConversionError, convert_bags
 
-    if args.output is None:
-        print("equidiff viz: converting bags needs -o OUT.rrd (or -o DIR --per-episode)", file=sys.stderr)
+    to_viewer = args.spawn or args.connect is not None
+    if args.output is None and not to_viewer:
+        print("equidiff viz: converting bags needs -o OUT.rrd (or -o DIR --per-episode), "
+              "or --spawn / --connect ADDR to send them to a viewer", file=sys.stderr)
+        return 2
+    if to_viewer and args.per_episode:
+        print("equidiff viz: --per-episode writes files: use -o DIR", file=sys.stderr)
+        return 2
+    if args.spawn and not _has_display():
+        print("equidiff viz: no display to spawn a viewer on; use -o FILE.rrd or --connect HOST:PORT", file=sys.stderr)
         return 2
     try:
-        report = convert_bags(args.bags, args.output, lab, config, per_episode=args.per_episode)
+        report = convert_bags(args.bags, args.output, lab, config, per_episode=args.per_episode,
+                              spawn=args.spawn, connect=args.connect)
     except BagConversionError as err:
         print(f"equidiff viz: {err}", file=sys.stderr)
         return 2
@@ -77,9 +87,12 @@ def _convert(args: argparse.Namespace, lab, config) -> int:
             continue
         shown = ", ".join(f"{k} {v}" for k, v in sorted(ep.logged.items()))
         dropped = f"; dropped {ep.dropped}" if ep.dropped else ""
-        print(f"{ep.bag.name}: {ep.messages} messages -> {ep.output} ({shown}{dropped})")
-    print(f"wrote {', '.join(map(str, report.outputs)) or 'nothing'} in {report.seconds:.1f} s"
-          f"; open with: rerun {report.outputs[0] if report.outputs else ''}")
+        print(f"{ep.bag.name}: {ep.messages} messages -> {ep.output or 'viewer'} ({shown}{dropped})")
+    if report.outputs:
+        print(f"wrote {', '.join(map(str, report.outputs))} in {report.seconds:.1f} s; "
+              f"open with: rerun {report.outputs[0]}")
+    elif not to_viewer:
+        print("nothing converted", file=sys.stderr)
     return 0 if report.ok else 1
 
 
