@@ -202,3 +202,19 @@ def test_copied_bag_dir_is_still_readable(tmp_path):
     src = write_synthetic_episode(tmp_path / "a", SyntheticEpisode(duration_s=1.0), config=CFG)
     shutil.copytree(src, tmp_path / "b")
     assert read_episode(tmp_path / "b").message_counts == read_episode(src).message_counts
+
+
+def test_recorder_command_parsing():
+    from equidiff_ros.recorder_node import parse_command
+
+    assert parse_command("start") == ("start", {})
+    assert parse_command("start pick_cube") == ("start", {"task": "pick_cube"})
+    assert parse_command("stop") == ("stop", {"success": True})
+    assert parse_command("STOP failure seed=7 operator=ana slipped off") == \
+        ("stop", {"success": False, "seed": 7, "operator": "ana", "notes": "slipped off"})
+    assert parse_command("stop success fine") == ("stop", {"success": True, "notes": "fine"})
+    assert parse_command(" discard ") == ("discard", {})
+    with pytest.raises(ValueError, match="unknown recorder command"):
+        parse_command("halt")
+    with pytest.raises(ValueError, match="empty"):
+        parse_command("  ")

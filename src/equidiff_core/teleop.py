@@ -274,7 +274,14 @@ class SpaceMouseSource:
     def read(self, now_ns: int) -> TeleopInput:
         if self._dev is None:
             raise TeleopError("SpaceMouse is not connected")
+        # Drain every queued HID report (each carries only the translation or the rotation
+        # half), so a slow tick never leaves the state lagging behind the device.
         s = self._dev.read()
+        for _ in range(16):
+            t_before = s.t
+            s = self._dev.read()
+            if s.t == t_before:
+                break
         return TeleopInput((s.x, s.y, s.z, s.roll, s.pitch, s.yaw), tuple(int(b) for b in s.buttons), now_ns)
 
     def disconnect(self) -> None:

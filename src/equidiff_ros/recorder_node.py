@@ -6,8 +6,8 @@ episode starts and stops on
 
 * services (std_srvs/Trigger): /recorder/start, /recorder/stop (keep, success),
   /recorder/stop_failure (keep, success=false), /recorder/discard;
-* the /recorder/command topic (std_msgs/String): ``start [task]``, ``stop [success|failure] [notes]``,
-  ``discard``;
+* the /recorder/command topic (std_msgs/String): ``start [task]``,
+  ``stop [success|failure] [seed=N] [operator=NAME] [notes...]``, ``discard``;
 * the keyboard when ``keyboard:=true`` and stdin is a terminal: s = start, k = keep
   (success), f = keep (failure), d = discard, then Enter.
 
@@ -48,8 +48,17 @@ def parse_command(text: str) -> tuple[str, dict]:
         elif rest and rest[0].lower() in ("failure", "fail", "false"):
             updates["success"] = False
             rest = rest[1:]
-        if rest:
-            updates["notes"] = " ".join(rest)
+        notes = []
+        for word in rest:  # key=value words set metadata fields (seed=3 operator=ana); the rest are notes
+            key, sep, value = word.partition("=")
+            if sep and key == "seed" and value.lstrip("-").isdigit():
+                updates["seed"] = int(value)
+            elif sep and key in ("operator", "task"):
+                updates[key] = value
+            else:
+                notes.append(word)
+        if notes:
+            updates["notes"] = " ".join(notes)
         return "stop", updates
     if action == "discard":
         return "discard", {}
