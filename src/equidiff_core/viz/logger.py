@@ -110,10 +110,9 @@ def load_viz_config(path: str | Path | None = None) -> VizConfig:
 
 def default_blueprint() -> Any:
     """3D scene on the left; latency, observation age, gripper width and other diagnostics on the right."""
-    rr = require_rerun()
+    require_rerun()
     import rerun.blueprint as rrb
 
-    del rr
     return rrb.Blueprint(
         rrb.Horizontal(
             rrb.Spatial3DView(name="scene (base frame)", origin=f"/{WORLD}"),
@@ -128,7 +127,8 @@ def default_blueprint() -> Any:
             ),
             column_shares=[3, 2],
         ),
-        collapse_panels=True,
+        rrb.TimePanel(state="expanded", timeline="ros_time"),  # start on header stamps, not log_time
+        rrb.SelectionPanel(state="collapsed"),
     )
 
 

@@ -42,8 +42,9 @@ def training_blueprint(max_samples: int) -> Any:
     views = [rrb.Spatial3DView(name=f"sample {j}: prediction (orange) vs ground truth (green)", origin=f"/samples/{j}")
              for j in range(max_samples)]
     if not views:
-        return rrb.Blueprint(curves, collapse_panels=True)
-    return rrb.Blueprint(rrb.Horizontal(curves, rrb.Grid(*views), column_shares=[2, 3]), collapse_panels=True)
+        return rrb.Blueprint(curves, rrb.TimePanel(timeline="step"), rrb.SelectionPanel(state="collapsed"))
+    return rrb.Blueprint(rrb.Horizontal(curves, rrb.Grid(*views), column_shares=[2, 3]),
+                         rrb.TimePanel(timeline="step"), rrb.SelectionPanel(state="collapsed"))
 
 
 class RerunTrainingCallback:
