@@ -13,8 +13,8 @@ Parameters: ``lab_config``; ``observation_hz`` (default: lab.yaml); ``slop_s`` (
 spread of a matched set, 0.1); ``stale_after_s`` (a camera whose newest cloud is older than
 this stops the output, 0.5); ``queue_size`` (5); ``check_frame_id`` (drop clouds whose frame
 is not the camera's optical frame, true); ``allow_nan_points`` (drop NaN/inf points instead
-of the whole cloud, false); clean-up: ``table_z`` (m, NaN = off), ``outlier_neighbors`` (0 =
-off), ``outlier_std_ratio`` (2.0).
+of the whole cloud, false); clean-up: ``remove_table`` (false) drops points below ``table_z``
+(m, base frame), ``outlier_neighbors`` (0 = off), ``outlier_std_ratio`` (2.0).
 """
 
 from __future__ import annotations
@@ -29,7 +29,6 @@ NODE_NAME = "voxel_node"
 
 
 def build_node():
-    import math
     import re
     import time
 
@@ -54,8 +53,9 @@ def build_node():
             queue_size = param("queue_size", 5)
             self.check_frame_id = param("check_frame_id", True)
             self.allow_nan = param("allow_nan_points", False)
-            table_z = param("table_z", float("nan"))
-            cleanup = VoxelizerConfig(table_z=None if math.isnan(table_z) else table_z,
+            remove_table = param("remove_table", False)
+            table_z = param("table_z", 0.0)
+            cleanup = VoxelizerConfig(table_z=table_z if remove_table else None,
                                       outlier_neighbors=param("outlier_neighbors", 0),
                                       outlier_std_ratio=param("outlier_std_ratio", 2.0))
             self.cameras = list(self.lab.cameras)
