@@ -509,3 +509,24 @@ def test_viewer_address_forms():
     assert grpc_url("rerun+http://h:1/proxy") == "rerun+http://h:1/proxy"
     with pytest.raises(ValueError, match="exactly one"):
         open_recording("x", spawn=True, save="x.rrd")
+
+
+def test_voxel_box_size_follows_the_message_not_a_mismatched_lab_config(tmp_path):
+    f = rosbags_factory()
+    rec = open_recording("size", save=tmp_path / "size.rrd")
+    logger = RerunLogger(rec, LAB, VizConfig())
+    logger.log_static_scene()
+    grid = voxel_grid(300, seed=3)
+    other_size = LAB.workspace.voxel_size * 1.5  # recorded with a 0.6 m workspace at 64^3
+    assert logger.log_voxels(grid_to_voxel_msg(grid, LAB.workspace.lower, other_size, T0_NS, "fr3_link0", f))
+    assert logger.log_voxels(voxel_msg(300, T0_NS + 1, f))  # checked once, not per frame
+    assert len(logger.warnings) == 1 and "9.38 mm" in logger.warnings[0]
+    rec.flush()
+    rec.disconnect()
+    from rerun.chunk import RrdReader
+
+    half_sizes = [np.array(b.column("Boxes3D:half_sizes").to_pylist(), dtype=float).reshape(-1, 3)
+                  for c in RrdReader(tmp_path / "size.rrd").stream() if c.is_static and c.entity_path == "/world/voxels"
+                  for b in [c.to_record_batch()] if "Boxes3D:half_sizes" in b.schema.names]
+    sizes = sorted(float(h[0, 0]) for h in half_sizes)
+    np.testing.assert_allclose(sizes, [LAB.workspace.voxel_size / 2, other_size / 2], rtol=1e-5)

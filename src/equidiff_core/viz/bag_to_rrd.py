@@ -40,6 +40,7 @@ class EpisodeResult:
     output: Path | None
     messages: int = 0  # messages read from the bag on the topics shown
     logged: dict[str, int] = field(default_factory=dict)
+    warnings: list[str] = field(default_factory=list)
     dropped: dict[str, int] = field(default_factory=dict)
     error: str | None = None  # why the bag was skipped (None: converted)
 
@@ -143,7 +144,7 @@ def convert_bags(bags: Iterable[str | Path], out: str | Path | None, lab: LabCon
                 target.unlink(missing_ok=True)  # no half-empty .rrd that looks like a converted episode
             else:
                 outputs.append(target)
-            result.logged, result.dropped = dict(logger.logged), dict(logger.errors)
+            result.logged, result.dropped, result.warnings = dict(logger.logged), dict(logger.errors), logger.warnings
             results.append(result)
         return ConversionReport(results, outputs, time.perf_counter() - t0)
 
@@ -157,12 +158,15 @@ def convert_bags(bags: Iterable[str | Path], out: str | Path | None, lab: LabCon
     for index, bag in enumerate(bags):
         result = EpisodeResult(bag, out)
         before_logged, before_dropped = logger.logged.copy(), logger.errors.copy()
+        logger._voxel_size_checked = False  # each bag may come from another lab set-up
+        before_warnings = len(logger.warnings)
         try:
             _log_bag(logger, bag, index, result)
         except BagConversionError as err:
             result.error, result.output = str(err), None
         result.logged = dict(logger.logged - before_logged)
         result.dropped = dict(logger.errors - before_dropped)
+        result.warnings = logger.warnings[before_warnings:]
         results.append(result)
     _finish(rec)
     if out is not None:

@@ -40,7 +40,7 @@ import numpy as np
 from .. import geometry
 from ..chunk import ChunkError, chunk_from_msg
 from ..config import ConfigError, LabConfig, default_config_dir, from_dict, load_yaml
-from ..pointcloud import CloudError, msg_to_cloud
+from ..pointcloud import CloudError, _structured, msg_to_cloud
 from ..rosmsg import stamp_to_ns
 from . import require_rerun
 
@@ -243,6 +243,8 @@ class RerunLogger:
         self._cloud_throttle = _Throttle(config.cloud_hz)
         self._camera_names = {cam.frame_id: cam.name for cam in lab.cameras}
         self._static_cameras = True
+        self._voxel_size_checked = False
+        self.warnings: list[str] = []  # things worth telling the user once (printed by `equidiff viz`)
 
     # --- time -----------------------------------------------------------------------------
 
@@ -344,6 +346,8 @@ class RerunLogger:
                 cloud = None
             else:
                 return self._drop("voxels", err)
+        if cloud is not None and not self._voxel_size_checked:
+            self._check_voxel_size(msg, cloud.points)
         stamp = _stamp(msg, receive_ns)
         self._at(stamp)
         if cloud is None:
@@ -354,6 +358,24 @@ class RerunLogger:
             self.rec.log(f"{OBS_AGE}/voxels_on_arrival", self.rr.Scalars((receive_ns - stamp) / 1e6))
         self.logged["voxels"] += 1
         return True
+
+    def _check_voxel_size(self, msg: Any, centers: np.ndarray) -> None:
+        """Box size from the message itself (centre x against index i): a bag recorded with another
+        lab.yaml would otherwise show boxes with gaps or overlaps."""
+        try:
+            i = _structured(msg, ("i",))[0]["i"].astype(np.int64)
+        except CloudError:
+            return
+        if len(i) < 2 or i.min() == i.max():
+            return  # undetermined yet: try the next frame
+        self._voxel_size_checked = True
+        lo, hi = int(np.argmin(i)), int(np.argmax(i))
+        size = float(centers[hi, 0] - centers[lo, 0]) / float(i[hi] - i[lo])
+        configured = self.lab.workspace.voxel_size
+        if abs(size - configured) > 0.01 * configured:
+            self.warnings.append(f"/voxels encode {size * 1e3:.2f} mm voxels but the lab config says "
+                                 f"{configured * 1e3:.2f} mm: drawing the message's size")
+            self.rec.log(VOXELS, self.rr.Boxes3D.from_fields(half_sizes=[[size / 2] * 3]), static=True)
 
     def log_camera_cloud(self, camera: str, msg: Any, receive_ns: int | None = None) -> bool:
         """Raw camera PointCloud2 in its optical frame, throttled to ``cloud_hz`` and strided to ``max_cloud_points``."""

@@ -88,6 +88,8 @@ def _convert(args: argparse.Namespace, lab, config) -> int:
         shown = ", ".join(f"{k} {v}" for k, v in sorted(ep.logged.items()))
         dropped = f"; dropped {ep.dropped}" if ep.dropped else ""
         print(f"{ep.bag.name}: {ep.messages} messages -> {ep.output or 'viewer'} ({shown}{dropped})")
+        for warning in ep.warnings:
+            print(f"  warning: {warning}", file=sys.stderr)
     if report.outputs:
         print(f"wrote {', '.join(map(str, report.outputs))} in {report.seconds:.1f} s; "
               f"open with: rerun {report.outputs[0]}")
@@ -124,6 +126,8 @@ def _live(args: argparse.Namespace, lab, config) -> int:
     finally:
         rec.flush()
         rec.disconnect()
+    for warning in logger.warnings:
+        print(f"warning: {warning}", file=sys.stderr)
     dropped = f"; dropped {dict(logger.errors)} (last: {logger.last_error})" if logger.errors else ""
     print(f"received {received}; logged {dict(logger.logged)}{dropped}")
     if args.output is not None:
