@@ -39,7 +39,8 @@ class VizNode(Node):
         self.viz = logger
         self.received: dict[str, int] = {}
         self.failures = 0
-        self._lock = threading.Lock()  # rerun's recording stream keeps one time cursor per thread; be safe
+        # set-time + log must stay one step should this node ever be spun by a multi-threaded executor
+        self._lock = threading.Lock()
         topics = [
             (TOPIC_VOXELS, PointCloud2, VOXEL_QOS),
             (TOPIC_EE_POSE, PoseStamped, SENSOR_QOS),
