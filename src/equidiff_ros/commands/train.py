@@ -42,10 +42,13 @@ def add_arguments(parser) -> None:
 
 
 class ActionMseEvaluator:
-    """on_eval: DDIM-sample the held-out set and add ``val_action_mse`` (+ position/width errors) to the metrics."""
+    """on_eval: DDIM-sample the held-out set and add ``val_action_mse`` (+ position/width errors) to the metrics.
 
-    def __init__(self, policy, val_set, max_samples: int, batch_size: int, seed: int):
-        self.policy, self.val_set = policy, val_set
+    Without held-out episodes (``--val-fraction 0``) it scores training samples and says so
+    (``train_action_mse``)."""
+
+    def __init__(self, policy, val_set, max_samples: int, batch_size: int, seed: int, prefix: str = "val"):
+        self.policy, self.val_set, self.prefix = policy, val_set, prefix
         self.max_samples, self.batch_size, self.seed = max_samples, batch_size, seed
 
     def on_eval(self, step, metrics, samples):
@@ -74,10 +77,11 @@ class ActionMseEvaluator:
                 pos.append((pred[..., :3] - gt[..., :3]).norm(dim=-1).mean(dim=1))
                 width.append((pred[..., 9] - gt[..., 9]).abs().mean(dim=1))
         self.policy.train(was_training)
-        metrics["val_action_mse"] = float(torch.cat(sq).mean())
-        metrics["val_action_pos_err_m"] = float(torch.cat(pos).mean())
-        metrics["val_action_width_err_m"] = float(torch.cat(width).mean())
-        metrics["val_action_samples"] = int(len(idx))
+        p = self.prefix
+        metrics[f"{p}_action_mse"] = float(torch.cat(sq).mean())
+        metrics[f"{p}_action_pos_err_m"] = float(torch.cat(pos).mean())
+        metrics[f"{p}_action_width_err_m"] = float(torch.cat(width).mean())
+        metrics[f"{p}_action_samples"] = int(len(idx))
 
 
 class ProgressBar:
@@ -95,7 +99,7 @@ class ProgressBar:
             self.bar.set_postfix_str(f"loss {metrics['loss']:.4f}{self.last_eval}", refresh=False)
 
     def on_eval(self, step, metrics, samples):
-        mse = metrics.get("val_action_mse")
+        mse = metrics.get("val_action_mse", metrics.get("train_action_mse"))
         self.last_eval = f" val_mse {mse:.5f}" if mse is not None else f" val_loss {metrics.get('val_loss', 0):.4f}"
         line = f"step {step}: " + ", ".join(f"{k} {v:.5g}" for k, v in metrics.items()
                                            if isinstance(v, float))
@@ -131,11 +135,13 @@ def plot_history(history: list[dict], path: Path) -> Path:
     ax.set_yscale("log")
     ax.legend()
     ax = axes[1]
-    mse = [(h["step"], h["val_action_mse"]) for h in evals if "val_action_mse" in h]
+    p = "val" if any("val_action_mse" in h for h in evals) else "train"
+    mse = [(h["step"], h[f"{p}_action_mse"]) for h in evals if f"{p}_action_mse" in h]
     if mse:
-        ax.plot(*zip(*mse), "o-", label="held-out action MSE")
+        ax.plot(*zip(*mse), "o-", label="held-out action MSE" if p == "val" else "training-set action MSE")
         ax.set_yscale("log")
-    pos = [(h["step"], h["val_action_pos_err_m"]) for h in evals if "val_action_pos_err_m" in h]
+        ax.legend(loc="upper left")
+    pos = [(h["step"], h[f"{p}_action_pos_err_m"]) for h in evals if f"{p}_action_pos_err_m" in h]
     if pos:
         ax2 = ax.twinx()
         ax2.plot(*zip(*pos), "s--", color="tab:red", label="position error (m)")
@@ -143,8 +149,7 @@ def plot_history(history: list[dict], path: Path) -> Path:
         ax2.legend(loc="upper right")
     ax.set_xlabel("step")
     ax.set_ylabel("action MSE (absolute targets)")
-    ax.legend(loc="upper left")
-    ax.set_title("evaluation on held-out episodes")
+    ax.set_title("evaluation on held-out episodes" if p == "val" else "evaluation (no held-out episodes)")
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=100)
@@ -226,7 +231,8 @@ def run(args) -> int:
         from equidiff_core.training import load_training_checkpoint
 
         start_step = int(load_training_checkpoint(out / "last.ckpt")["step"])
-    callbacks = [ActionMseEvaluator(policy, val_set, args.eval_max_samples, min(args.batch_size, 32), args.seed),
+    callbacks = [ActionMseEvaluator(policy, val_set if val_set is not None else train_set, args.eval_max_samples,
+                                    min(args.batch_size, 32), args.seed, "val" if val_set is not None else "train"),
                  ProgressBar(args.steps, start_step, not args.no_progress), PlotWriter(out / "training.png", [])]
     if args.rerun:
         try:
@@ -245,6 +251,7 @@ def run(args) -> int:
     summary = {"checkpoint": str(result.checkpoint), "policy": str(result.exported), "plot": str(out / "training.png"),
                "steps": args.steps, "final_loss": losses[-1] if losses else None,
                "val_action_mse": evals[-1].get("val_action_mse") if evals else None,
+               "train_action_mse": evals[-1].get("train_action_mse") if evals else None,
                "train_episodes": len(train_eps), "val_episodes": len(val_eps), "skipped": len(skipped)}
     print(json.dumps(summary))
     return 0
