@@ -11,7 +11,8 @@ from equidiff_core import geometry
 from equidiff_core.config import Workspace
 
 
-def cube_sample(rng: np.random.Generator, ws: Workspace, horizon: int = 16, n_obs_steps: int = 1) -> dict:
+def cube_sample(rng: np.random.Generator, ws: Workspace, horizon: int = 16, n_obs_steps: int = 1,
+                random_yaw: bool = True) -> dict:
     R = ws.resolution
     vox = np.zeros((4, R, R, R), np.uint8)
     i, j = rng.integers(12, R - 16, size=2)
@@ -21,7 +22,7 @@ def cube_sample(rng: np.random.Generator, ws: Workspace, horizon: int = 16, n_ob
     vox[0, :, :, :2] = 255  # table
     vox[1:, :, :, :2] = 120
     cube = ws.lower + (np.array([i, j, k]) + 2) * ws.voxel_size
-    yaw = rng.uniform(-np.pi, np.pi)
+    yaw = rng.uniform(-np.pi, np.pi) if random_yaw else 0.0
     R_ee = geometry.rotz(yaw) @ np.diag([1.0, -1.0, -1.0])  # pointing down
     p0 = np.array([*ws.center[:2], ws.center[2] + 0.1]) + rng.uniform(-0.05, 0.05, 3)
     target = cube + np.array([0, 0, 0.05])
@@ -36,10 +37,11 @@ def cube_sample(rng: np.random.Generator, ws: Workspace, horizon: int = 16, n_ob
 
 
 class CubeDataset(Dataset):
-    def __init__(self, n: int, ws: Workspace | None = None, seed: int = 0, horizon: int = 16, n_obs_steps: int = 1):
+    def __init__(self, n: int, ws: Workspace | None = None, seed: int = 0, horizon: int = 16, n_obs_steps: int = 1,
+                 random_yaw: bool = True):
         self.ws = ws or Workspace()
         rng = np.random.default_rng(seed)
-        self.samples = [cube_sample(rng, self.ws, horizon, n_obs_steps) for _ in range(n)]
+        self.samples = [cube_sample(rng, self.ws, horizon, n_obs_steps, random_yaw) for _ in range(n)]
 
     def __len__(self):
         return len(self.samples)

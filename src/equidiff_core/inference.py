@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -148,7 +149,8 @@ class InferencePolicy:
         To, C, S = self.preset.n_obs_steps, self.preset.voxel_channels, self.preset.crop
         vox = torch.zeros(1, To, C, S, S, S, device=self.device, dtype=self.dtype)
         ee = torch.zeros(1, To, 10, device=self.device, dtype=self.dtype)
-        with torch.no_grad():
+        with torch.no_grad(), warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # tracer notes about constant batch sizes; jit.freeze deprecation
             enc = torch.jit.freeze(torch.jit.trace(_Method(self.net, "encode_obs").eval(), (self._layout(vox), ee)))
             cond = enc(self._layout(vox), ee)
             x = torch.zeros(1, self.preset.horizon, self.codec.dim, device=self.device)

@@ -294,3 +294,37 @@ def load_training_checkpoint(path: str | Path) -> dict:
     if state.get("version") != CKPT_VERSION:
         raise CheckpointError(f"{path}: checkpoint version {state.get('version')} != supported {CKPT_VERSION}")
     return state
+
+
+def load_policy_from_checkpoint(path: str | Path, device: str = "cpu") -> DiffusionPolicy:
+    """Rebuild the training-time policy (escnn for EquiDiff) from ``last.ckpt`` or an exported ``policy.pt``.
+
+    An exported file holds plain-torch weights: for the baseline they load as-is; for EquiDiff
+    use ``inference.load_inference_policy`` instead (the escnn parameters are not recoverable
+    from expanded filters)."""
+    from .config import Workspace, from_dict
+    from .inference import CheckpointError, read_policy_file
+    from .policies import make_policy
+    from .presets import preset_from_dict
+
+    path = Path(path)
+    try:
+        state = load_training_checkpoint(path)
+        config, weights = state["config"], state["model"]
+    except CheckpointError as train_err:
+        try:
+            config, weights = read_policy_file(path)
+        except CheckpointError:
+            raise train_err from None
+        if config.get("policy") != "baseline":
+            raise CheckpointError(f"{path}: an exported EquiDiff policy has no escnn weights; use last.ckpt "
+                                  "or inference.load_inference_policy") from None
+    try:
+        policy = make_policy(config["policy"], preset_from_dict(config["preset"]),
+                             from_dict(Workspace, config["workspace"], where="workspace"))
+        if config.get("normalizer") is not None:
+            policy.set_normalizer(Normalizer.from_dict(config["normalizer"]))
+        policy.model.load_state_dict(weights)
+    except (KeyError, ValueError, RuntimeError) as err:
+        raise CheckpointError(f"{path}: incompatible checkpoint: {str(err).splitlines()[0]}") from err
+    return policy.to(resolve_device(device)).eval()

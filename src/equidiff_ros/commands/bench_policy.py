@@ -1,0 +1,137 @@
+"""`equidiff bench policy`: time the exported policy against eager escnn, same weights, same run.
+
+Prints one JSON line with ``preset``, ``params``, ``encoder_ms``, ``step_ms`` (one denoising
+step), ``ddim16_median_ms`` and ``ddim16_p99_ms`` (full predict(): encoder + DDIM-16 + decode)
+for the exported plain-torch policy with the chosen switches, ``eager_ddim16_median_ms`` for the
+training-time model (escnn for EquiDiff) in fp32 eager mode, and ``device``. Random weights by
+default (timing does not depend on them); ``--checkpoint policy.pt`` times a trained file.
+Targets on a 2-core CPU: compact <= 100 ms p99, paper <= 400 ms median.
+"""
+
+from __future__ import annotations
+
+import json
+import platform
+import time
+
+
+def add_arguments(parser) -> None:
+    parser.add_argument("--preset", default="compact", help="paper | compact | tiny")
+    parser.add_argument("--policy", default="equidiff", choices=["equidiff", "baseline"])
+    parser.add_argument("--checkpoint", default=None, help="time this exported policy.pt instead of random weights")
+    parser.add_argument("--device", default="auto", help="auto | cpu | cuda")
+    parser.add_argument("--precision", default="auto", choices=["auto", "fp32", "bf16"],
+                        help="auto: bf16 on CUDA and on CPUs with native bf16, else fp32")
+    parser.add_argument("--no-jit", action="store_true", help="skip torch.jit.trace of encoder and denoiser")
+    parser.add_argument("--iters", type=int, default=30, help="timed DDIM-16 runs of the exported policy")
+    parser.add_argument("--eager-iters", type=int, default=3, help="timed runs of the eager escnn model")
+    parser.add_argument("--threads", type=int, default=0, help="torch intra-op threads (0: torch default)")
+
+
+def _device_name(device) -> str:
+    import torch
+
+    if device.type == "cuda":
+        return f"cuda: {torch.cuda.get_device_name(device)}"
+    model = platform.processor() or "cpu"
+    try:
+        for line in open("/proc/cpuinfo"):
+            if line.startswith("model name"):
+                model = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    return f"cpu: {model}, {torch.get_num_threads()} threads"
+
+
+def _bf16_native() -> bool:
+    try:
+        flags = open("/proc/cpuinfo").read()
+    except OSError:
+        return False
+    return "avx512_bf16" in flags or "amx_bf16" in flags
+
+
+def _timed(fn, iters, sync):
+    times = []
+    for _ in range(iters):
+        t0 = time.perf_counter()
+        fn()
+        sync()
+        times.append((time.perf_counter() - t0) * 1000)
+    return times
+
+
+def run(args) -> int:
+    import tempfile
+    from pathlib import Path
+
+    import numpy as np
+    import torch
+
+    from equidiff_core.config import Workspace
+    from equidiff_core.inference import export_policy, load_inference_policy, read_policy_file
+    from equidiff_core.models.equivariance import random_observation
+    from equidiff_core.normalizer import Normalizer
+    from equidiff_core.policies import count_parameters, make_policy
+    from equidiff_core.presets import get_preset, preset_from_dict
+
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    device = torch.device("cuda" if args.device == "auto" and torch.cuda.is_available() else
+                          ("cpu" if args.device == "auto" else args.device))
+    precision = args.precision
+    if precision == "auto":
+        precision = "bf16" if device.type == "cuda" or _bf16_native() else "fp32"
+    sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
+
+    ws = Workspace()
+    torch.manual_seed(0)
+    if args.checkpoint:
+        config, _ = read_policy_file(args.checkpoint)
+        preset = preset_from_dict(config["preset"])
+        policy_name = config["policy"]
+        path = Path(args.checkpoint)
+        eager = None
+    else:
+        preset = get_preset(args.preset)
+        policy_name = args.policy
+        eager = make_policy(policy_name, preset, ws)
+        eager.set_normalizer(Normalizer.from_workspace(ws))
+        eager.eval().to(device)
+        path = Path(tempfile.mkdtemp(prefix="bench_policy_")) / "policy.pt"
+        export_policy(eager, path)
+    fast = load_inference_policy(path, device=str(device), precision=precision, jit=not args.no_jit)
+    params = count_parameters(eager.model) if eager is not None else count_parameters(fast.net)
+
+    vox_t, ee_t = random_observation(_Probe(fast.preset, fast.workspace), batch=1, seed=0, fill=0.05)
+    vox, ee = vox_t[0, 0].numpy(), ee_t[0, 0].numpy()
+    fast.warmup(3)
+    enc = _timed(lambda: fast.encode(vox, ee), max(5, args.iters // 3), sync)
+    cond = fast.encode(vox, ee)
+    x = torch.zeros(1, fast.preset.horizon, fast.codec.dim, device=device)
+    t = torch.tensor([50], device=device)
+    step = _timed(lambda: fast.denoise(x, t, cond), max(10, args.iters), sync)
+    ddim = _timed(lambda: fast.predict(vox, ee, seed=0), args.iters, sync)
+
+    result = {"preset": fast.preset.name, "policy": policy_name, "params": params,
+              "encoder_ms": round(float(np.median(enc)), 2), "step_ms": round(float(np.median(step)), 2),
+              "ddim16_median_ms": round(float(np.median(ddim)), 2),
+              "ddim16_p99_ms": round(float(np.percentile(ddim, 99)), 2),
+              "eager_ddim16_median_ms": None, "device": _device_name(device), "precision": precision,
+              "jit": not args.no_jit, "iters": args.iters}
+    if eager is not None and args.eager_iters > 0:
+        obs = {"voxels": vox_t.to(device), "ee": ee_t.to(device)}
+        eager.predict_action(obs)  # warm-up (escnn filter expansion, allocator)
+        times = _timed(lambda: eager.predict_action(obs), args.eager_iters, sync)
+        result["eager_ddim16_median_ms"] = round(float(np.median(times)), 2)
+        result["speedup_vs_eager"] = round(result["eager_ddim16_median_ms"] / result["ddim16_median_ms"], 2)
+    print(json.dumps(result), flush=True)
+    return 0
+
+
+class _Probe:
+    """Just enough of a policy for equivariance.random_observation."""
+
+    def __init__(self, preset, workspace):
+        self.preset, self.workspace = preset, workspace

@@ -1,0 +1,148 @@
+"""Exported inference policies (issue 4, item 8): plain torch, equal outputs, clear checkpoint errors."""
+
+import json
+import subprocess
+import sys
+import textwrap
+
+import numpy as np
+import pytest
+import torch
+
+from equidiff_core.config import Workspace
+from equidiff_core.inference import CheckpointError, export_policy, load_inference_policy, read_policy_file
+from equidiff_core.models.equivariance import random_observation
+from equidiff_core.normalizer import Normalizer
+from equidiff_core.policies import PolicyInputError, make_policy
+from equidiff_core.presets import get_preset
+
+WS = Workspace()
+
+
+def _policy(name, preset="tiny", control="absolute"):
+    torch.manual_seed(0)
+    p = make_policy(name, get_preset(preset, control=control), WS)
+    p.set_normalizer(Normalizer.from_workspace(WS))
+    return p.eval()
+
+
+@pytest.fixture(scope="module")
+def exported(tmp_path_factory):
+    policy = _policy("equidiff")
+    path = export_policy(policy, tmp_path_factory.mktemp("export") / "policy.pt")
+    return policy, path
+
+
+@torch.no_grad()
+def _max_abs_diff_noise_predictor(policy, plain):
+    vox, ee = random_observation(policy, batch=2, seed=3, fill=0.05)
+    v, e = policy._prepare(vox, ee, "center")
+    x = torch.randn(2, 16, policy.codec.dim, generator=torch.Generator().manual_seed(0))
+    t = torch.tensor([3, 70])
+    ref = policy.model(x, t, v, e)
+    return float((plain(x, t, v, e) - ref).abs().max() / ref.abs().max())
+
+
+@pytest.mark.parametrize("preset", ["tiny", "compact"])
+def test_export_matches_escnn_model(preset):
+    policy = _policy("equidiff", preset)
+    assert _max_abs_diff_noise_predictor(policy, policy.model.export_plain()) < 1e-5
+
+
+def test_exported_policy_predicts_like_the_training_policy(exported):
+    policy, path = exported
+    inf = load_inference_policy(path)
+    assert inf.preset == policy.preset and inf.workspace == WS and inf.normalizer == policy.normalizer
+    vox, ee = random_observation(policy, batch=1, seed=5)
+    a = inf.predict(vox[0, 0].numpy(), ee[0, 0].numpy(), seed=7)
+    assert a.shape == (16, 10) and np.isfinite(a).all()
+    noise = torch.randn(1, 16, 10, generator=torch.Generator().manual_seed(7))
+    ref = policy.predict_action({"voxels": vox, "ee": ee}, noise=noise)["action_pred"][0].numpy()
+    np.testing.assert_allclose(a, ref, atol=1e-5)
+    np.testing.assert_array_equal(a, inf.predict(vox[0, 0].numpy(), ee[0, 0].numpy(), seed=7))  # seeded = repeatable
+    # the fast path (bf16, channels_last, jit.trace) stays close to fp32
+    fast = load_inference_policy(path, precision="bf16", jit=True)
+    b = fast.predict(vox[0, 0].numpy(), ee[0, 0].numpy(), seed=7)
+    assert np.abs(b - a)[:, :3].max() < 0.05
+
+
+def test_baseline_and_relative_export(tmp_path):
+    for name, control in (("baseline", "absolute"), ("equidiff", "relative")):
+        policy = _policy(name, control=control)
+        path = export_policy(policy, tmp_path / f"{name}_{control}.pt")
+        vox, ee = random_observation(policy, batch=1, seed=2)
+        noise = torch.randn(1, 16, policy.codec.dim, generator=torch.Generator().manual_seed(1))
+        ref = policy.predict_action({"voxels": vox, "ee": ee}, noise=noise)["action_pred"][0].numpy()
+        got = load_inference_policy(path).predict(vox[0, 0].numpy(), ee[0, 0].numpy(), seed=1)
+        np.testing.assert_allclose(got, ref, atol=1e-5)
+
+
+def test_policy_file_loads_with_weights_only_and_json_config(exported):
+    _, path = exported
+    payload = torch.load(path, weights_only=True)
+    config = json.loads(payload["config_json"])
+    assert config["policy"] == "equidiff" and config["preset"]["name"] == "tiny"
+    assert all(isinstance(v, torch.Tensor) for v in payload["state_dict"].values())
+
+
+def test_inference_does_not_import_escnn(exported):
+    _, path = exported
+    code = textwrap.dedent(f"""
+        import sys, numpy as np
+        from equidiff_core.inference import load_inference_policy
+        p = load_inference_policy({str(path)!r})
+        vox = np.zeros((4, 64, 64, 64), np.uint8); ee = np.array([0.45, 0, 0.2, 1, 0, 0, 0, 1, 0, 0.04], np.float32)
+        a = p.predict(vox, ee, seed=0)
+        assert a.shape == (16, 10)
+        bad = sorted(m for m in sys.modules if m.split('.')[0] in ('escnn', 'lie_learn', 'rclpy'))
+        print('LOADED', bad)
+        """)
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert "LOADED []" in out.stdout
+
+
+def test_missing_corrupt_and_incompatible_files(exported, tmp_path):
+    _, path = exported
+    with pytest.raises(CheckpointError, match="no such"):
+        load_inference_policy(tmp_path / "nope.pt")
+    corrupt = tmp_path / "corrupt.pt"
+    corrupt.write_bytes(path.read_bytes()[:1000])
+    with pytest.raises(CheckpointError, match="not a readable"):
+        load_inference_policy(corrupt)
+    other = tmp_path / "other.pt"
+    torch.save({"weights": torch.zeros(3)}, other)
+    with pytest.raises(CheckpointError, match="not an exported"):
+        load_inference_policy(other)
+    payload = torch.load(path, weights_only=True)
+    wrong = tmp_path / "wrong_preset.pt"
+    cfg = json.loads(payload["config_json"])
+    cfg["preset"] = get_preset("compact").to_dict()
+    torch.save({**payload, "config_json": json.dumps(cfg)}, wrong)
+    with pytest.raises(CheckpointError, match="do not fit"):
+        load_inference_policy(wrong)
+    future = tmp_path / "future.pt"
+    torch.save({**payload, "version": 99}, future)
+    with pytest.raises(CheckpointError, match="version"):
+        read_policy_file(future)
+    bad_cfg = tmp_path / "bad_cfg.pt"
+    cfg = json.loads(payload["config_json"])
+    cfg["preset"]["horizon"] = "sixteen"
+    torch.save({**payload, "config_json": json.dumps(cfg)}, bad_cfg)
+    with pytest.raises(CheckpointError, match="incompatible"):
+        load_inference_policy(bad_cfg)
+
+
+def test_bad_observations_raise(exported):
+    _, path = exported
+    inf = load_inference_policy(path)
+    ee = np.array([0.45, 0, 0.2, 1, 0, 0, 0, 1, 0, 0.04], np.float32)
+    vox = np.zeros((4, 64, 64, 64), np.uint8)
+    with pytest.raises(PolicyInputError, match="uint8"):
+        inf.predict(vox.astype(np.float32), ee)
+    with pytest.raises(PolicyInputError, match="smaller than the crop"):
+        inf.predict(vox[:, :32, :32, :32], ee)
+    with pytest.raises(PolicyInputError, match="NaN"):
+        inf.predict(vox, np.full(10, np.nan, np.float32))
+    with pytest.raises(PolicyInputError, match=r"\(10,\)"):
+        inf.predict(vox, ee[:9])
