@@ -206,17 +206,27 @@ def test_recorder_episode_reads_back_identically(ros, tmp_path):
     assert len(chunks_back) == 12 and chunks_back[3].times_ns[0] == msgs[3 * 4 + 3][1].header.stamp.sec * 10**9 + \
         msgs[3 * 4 + 3][1].header.stamp.nanosec + 100_000_000
 
-    # Never overwrite: the next episode of the same task gets the next index; discard removes it.
+    # Never overwrite: the next episode of the same task gets the next index. This time the
+    # episode is driven by the std_srvs/Trigger services; discard removes it.
     proc = spawn("recorder_node", f"output_dir:={out}", "task:=stack", "min_free_gib:=0.0")
     try:
-        pubs, cmd = publishers(ros)
-        wait_matched(ros, [cmd])
-        wait_status(ros, "idle")
-        cmd.publish(ros.f.make("std_msgs/msg/String", data="start"))
-        second = Path(wait_status(ros, "recording").split(" ", 1)[1])
-        assert second.name == "stack_0001"
-        cmd.publish(ros.f.make("std_msgs/msg/String", data="discard"))
-        wait_status(ros, "idle")
+        Trigger = ros.f.cls("std_srvs/srv/Trigger")
+        clients = {name: ros.node.create_client(Trigger, f"/recorder/{name}") for name in ("start", "discard", "stop")}
+        assert ros.spin_until(lambda: all(c.service_is_ready() for c in clients.values()), 20.0), stop(proc)
+
+        def call(name):
+            future = clients[name].call_async(Trigger.Request())
+            assert ros.spin_until(future.done, 10.0), f"/recorder/{name} did not answer"
+            return future.result()
+
+        res = call("start")
+        assert res.success and res.message.endswith("stack_0001"), res.message
+        second = Path(res.message)
+        assert call("start").success is False  # already recording: refused, explained
+        res = call("discard")
+        assert res.success and "discarded" in res.message
+        res = call("stop")
+        assert res.success is False and "not recording" in res.message
     finally:
         stop(proc)
     assert not second.exists() and path.exists()
