@@ -60,6 +60,11 @@ def gripper_width_from_joint_state(msg: Any) -> float | None:
 def diagnostic_array(factory: MsgFactory, stamp_ns: int, name: str, hardware_id: str, level: int,
                      message: str, values: Mapping[str, Any]) -> Any:
     mk = factory.make
+    # DiagnosticStatus.level is a ROS `byte`: rclpy wants bytes (an int serialises as garbage),
+    # rosbags an int.
+    from ..rosmsg import RclpyFactory
+
+    level = bytes([int(level)]) if isinstance(factory, RclpyFactory) else int(level)
     status = mk("diagnostic_msgs/msg/DiagnosticStatus", level=level,
                 name=name, message=message, hardware_id=hardware_id,
                 values=[mk("diagnostic_msgs/msg/KeyValue", key=str(k), value=_fmt(v)) for k, v in values.items()])
