@@ -1,0 +1,146 @@
+"""policy_node (issue 6, items 1 and 5): start-up errors, the 5 Hz loop with the dry-run arm, skipping.
+
+The checkpoint is an untrained export of the ``baseline`` policy at the ``tiny`` preset: the node
+treats every exported policy alike, and this one loads and predicts in a fraction of a second.
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import threading
+import time
+
+import numpy as np
+import pytest
+
+pytest.importorskip("rclpy")
+
+from equidiff_core.chunk import chunk_from_msg  # noqa: E402
+from equidiff_core.config import Workspace, default_config_dir, load_lab_config  # noqa: E402
+from equidiff_core.rosmsg import stamp_to_ns  # noqa: E402
+
+LAB_PATH = default_config_dir() / "lab.yaml"
+
+
+def run_node(module: str, *ros_args: str, timeout: float = 120) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", f"equidiff_ros.{module}", *ros_args], capture_output=True,
+                          text=True, timeout=timeout, env=dict(os.environ, OMP_NUM_THREADS="1"))
+
+
+@pytest.fixture(scope="module")
+def checkpoint(tmp_path_factory):
+    from equidiff_core.inference import export_policy
+    from equidiff_core.normalizer import Normalizer
+    from equidiff_core.policies import make_policy
+    from equidiff_core.presets import get_preset
+
+    ws = Workspace()
+    policy = make_policy("baseline", get_preset("tiny"), ws)
+    policy.set_normalizer(Normalizer.from_workspace(ws))
+    return export_policy(policy, tmp_path_factory.mktemp("policy") / "policy.pt")
+
+
+@pytest.mark.parametrize("module", ["policy_node", "franka_node"])
+def test_nodes_print_usage(module):
+    out = run_node(module, "--help")
+    assert out.returncode == 0 and "usage:" in out.stdout and "Parameters" in out.stdout
+
+
+@pytest.mark.ros
+@pytest.mark.parametrize("case, expected", [
+    ("none", "'checkpoint' parameter is required"),
+    ("missing", "no such policy file"),
+    ("corrupt", "not a readable policy file"),
+    ("workspace", "trained for workspace"),
+])
+def test_bad_checkpoint_is_a_clear_error_at_start(ros_domain, tmp_path, checkpoint, capsys, case, expected):
+    """In-process ``main`` (the console script is ``sys.exit(main())``): exit status 1 and the reason."""
+    from equidiff_ros import policy_node
+
+    args = ["--ros-args"]
+    if case == "missing":
+        args += ["-p", f"checkpoint:={tmp_path / 'nope.pt'}"]
+    elif case == "corrupt":
+        bad = tmp_path / "policy.pt"
+        bad.write_bytes(b"not a torch file at all")
+        args += ["-p", f"checkpoint:={bad}"]
+    elif case == "workspace":  # a policy trained for another workspace would misread every grid
+        lab = tmp_path / "lab.yaml"
+        lab.write_text(LAB_PATH.read_text().replace("edge: 0.4", "edge: 0.5"))
+        args += ["-p", f"checkpoint:={checkpoint}", "-p", f"lab_config:={lab}"]
+    assert policy_node.main(args) == 1
+    assert expected in capsys.readouterr().err
+
+
+@pytest.mark.ros
+@pytest.mark.slow
+def test_policy_closes_the_loop_and_skips_stale_observations(ros_domain, checkpoint, tmp_path):
+    from equidiff_core.pointcloud import grid_to_voxel_msg
+    from equidiff_ros.commands import bench_control as bench
+
+    lab = load_lab_config(LAB_PATH)
+    ws = lab.workspace
+    grid = np.zeros((4, ws.resolution, ws.resolution, ws.resolution), np.uint8)
+    grid[:, 20:26, 30:36, 2:8] = 200
+    franka = policy = client = None
+    stop_voxels = threading.Event()
+    stamps: list[int] = []
+    try:
+        franka = bench.start_node("franka_node", {"backend": "dryrun", "lab_config": str(LAB_PATH)},
+                                  tmp_path / "franka.log")
+        policy = bench.start_node("policy_node", {"checkpoint": str(checkpoint), "lab_config": str(LAB_PATH),
+                                                  "seed": 0, "max_observation_age_s": 0.5},
+                                  tmp_path / "policy.log")
+        client = bench.BenchClient(lab, str(LAB_PATH))
+        client.wait_for(lambda: len(client.data.poses) > 10, 60.0, "/franka/ee_pose from the dry-run arm", franka)
+
+        def publish_voxels():
+            while not stop_voxels.is_set():
+                stamp = time.time_ns()
+                stamps.append(stamp)
+                client.pub_voxels.publish(grid_to_voxel_msg(grid, ws.lower, ws.voxel_size, stamp, lab.base_frame,
+                                                            client.factory))
+                stop_voxels.wait(0.2)
+
+        feeder = threading.Thread(target=publish_voxels, daemon=True)
+        feeder.start()
+        client.wait_for(lambda: client.data.last_chunk is not None, 90.0, "a chunk from the policy node", policy)
+        time.sleep(3.0)
+        client.wait_for(lambda: "policy_node" in client.data.diagnostics, 5.0, "policy diagnostics", policy)
+
+        msg = client.data.last_chunk
+        chunk = chunk_from_msg(msg)
+        assert len(chunk) == 8  # n_action_steps of the horizon-16 prediction
+        stamp = stamp_to_ns(msg.header.stamp)
+        assert stamp in stamps  # stamped with the observation it answers
+        np.testing.assert_array_equal(chunk.times_ns - stamp, np.arange(8) * 200_000_000)  # obs + i*dt
+        sent = {st / 1e9 for st in stamps}  # the bench records stamps as float seconds
+        received = [(r, s) for r, s in client.data.chunks if s in sent]
+        assert len(received) >= 5
+        diag = client.data.diagnostics["policy_node"]
+        for key in ("inference_ms", "observation_age_ms", "skipped_cycles", "obs_to_cmd_ms",
+                    "obs_to_cmd_p50_ms", "obs_to_cmd_p95_ms"):
+            assert key in diag
+        assert 0 < float(diag["inference_ms"]) <= float(diag["obs_to_cmd_ms"])
+        franka_diag = client.data.diagnostics.get("franka_node", {})
+        assert int(franka_diag.get("accepted_chunks", 0)) + int(franka_diag.get("rejected_chunks", 0)) > 0
+
+        # The camera pipeline stops: the node skips (and says so) instead of acting on old data.
+        stop_voxels.set()
+        feeder.join(timeout=2)
+        n_chunks = len(client.data.chunks)
+        skipped_before = int(diag.get("skipped_stale_observation", 0))
+        time.sleep(3.0)
+        assert len(client.data.chunks) <= n_chunks + 1  # at most the one in flight
+        diag = client.data.diagnostics["policy_node"]
+        assert int(diag.get("skipped_stale_observation", 0)) >= skipped_before + 5
+        assert policy.poll() is None and franka.poll() is None
+    finally:
+        stop_voxels.set()
+        if client is not None:
+            client.close()
+        codes = [bench.stop_process(p) for p in (policy, franka)]
+    assert codes == [0, 0], (tmp_path / "policy.log").read_text()[-3000:]
+
