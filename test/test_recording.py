@@ -218,3 +218,21 @@ def test_recorder_command_parsing():
         parse_command("halt")
     with pytest.raises(ValueError, match="empty"):
         parse_command("  ")
+
+
+def test_bags_repair_cli(tmp_path, capsys):
+    from equidiff_ros.cli import main as cli
+
+    healthy = write_synthetic_episode(tmp_path / "ok", SyntheticEpisode(duration_s=1.0), config=CFG)
+    killed = write_synthetic_episode(tmp_path / "killed", SyntheticEpisode(duration_s=4.0),
+                                     config=RecordingConfig(min_free_gib=0.0, chunk_size_mib=2.0))
+    (killed / "metadata.yaml").unlink()
+    mcap = killed / "killed.mcap"
+    mcap.write_bytes(mcap.read_bytes()[:-1000])
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    assert cli(["bags", "repair", str(healthy), str(killed), str(empty)]) == 1  # one failure -> exit 1
+    out, err = capsys.readouterr()
+    assert f"ok {healthy}" in out and f"repaired {killed}" in out and "original kept at" in out
+    assert f"FAILED {empty}" in err and "expected one .mcap" in err
+    assert read_episode(killed).message_counts["/voxels"] > 0
