@@ -48,7 +48,7 @@ def _voxel(xyz):
 def _read_all(qpos, **options):
     frames = []
     for cam in LAB.cameras:
-        with TwinCamera(cam, state_source=lambda: (qpos, 1.0, 42), paced=False, **options) as c:
+        with TwinCamera(cam, state_source=lambda t: (qpos, 1.0, 42), paced=False, **options) as c:
             frames.append((c.read(), cam))
     return frames
 
@@ -113,7 +113,7 @@ def test_intrinsics_are_d455_like_and_backprojection_inverts_projection():
 def test_noise_and_dropout_degrade_the_cloud_like_a_stereo_camera():
     qpos, _ = _state(5)
     cam = LAB.cameras[0]
-    src = lambda: (qpos, 0.0, 1)  # noqa: E731
+    src = lambda t: (qpos, 0.0, 1)  # noqa: E731
     with TwinCamera(cam, state_source=src, paced=False, depth_noise=False, dropout=0.0) as clean_cam:
         clean = clean_cam.read()
     with TwinCamera(cam, state_source=src, paced=False, depth_noise=True, dropout=0.2) as noisy_cam:
@@ -143,11 +143,11 @@ def test_bad_options_missing_twin_and_nan_state_are_clear_errors():
     qpos, _ = _state(1)
     bad = qpos.copy()
     bad[0] = np.nan
-    with TwinCamera(cam, state_source=lambda: (bad, 0.0, 1), paced=False) as c:
+    with TwinCamera(cam, state_source=lambda t: (bad, 0.0, 1), paced=False) as c:
         with pytest.raises(CameraError, match="NaN"):
             c.read()
     with pytest.raises(CameraError, match="not connected"):
-        TwinCamera(cam, state_source=lambda: (qpos, 0.0, 1)).read()
+        TwinCamera(cam, state_source=lambda t: (qpos, 0.0, 1)).read()
 
 
 @pytest.mark.sim
@@ -160,11 +160,16 @@ def test_reads_the_twin_state_from_shared_memory_and_paces_to_publish_hz():
         cam = LAB.cameras[1]
         with TwinCamera(cam, shm_name=name, width=106, height=60) as c:
             frames = [c.read() for _ in range(3)]
+            # paced reads show the snapshot nearest their wall-clock trigger tick
+            period_ns = int(1e9 / cam.publish_hz)
+            now = time.time_ns()
+            for k in range(-3, 8):  # snapshots around the coming ticks, 10 ms after each
+                writer.write(qpos, 4.0, (now // period_ns + k) * period_ns + 10_000_000)
             t0 = time.monotonic()
-            c.read()
-            c.read()
+            f1, f2 = c.read(), c.read()
             period = (time.monotonic() - t0) / 2
         assert all(f.stamp_ns == 1_700_000_000_123_456_789 for f in frames)
-        assert period == pytest.approx(1 / cam.publish_hz, rel=0.3)
+        assert f1.stamp_ns % period_ns == 10_000_000 and f2.stamp_ns - f1.stamp_ns == period_ns
+        assert period == pytest.approx(1 / cam.publish_hz, rel=0.5)
     finally:
         writer.close()

@@ -26,7 +26,7 @@ def count_dropped_cycles(arrivals_s: list[float], start_s: float, end_s: float, 
     if end_s <= start_s:
         return 0
     period = 1.0 / rate_hz
-    n = int((end_s - start_s) // period)
+    n = int(np.floor((end_s - start_s) * rate_hz + 1e-9))
     if n == 0:
         return 0
     bins = np.floor((np.asarray(arrivals_s, dtype=float) - start_s) / period).astype(int)

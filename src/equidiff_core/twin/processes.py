@@ -99,7 +99,9 @@ class ProcessGroup:
             self.nodes.remove(node)
 
     def stop_all(self) -> None:
-        self._stop(list(reversed(self.nodes)))
+        # one at a time, newest first: a client (franka_node) must leave before its server (twin_node)
+        for node in reversed(self.nodes):
+            self._stop([node])
         self.nodes.clear()
 
     def _stop(self, nodes: list[NodeProcess]) -> None:

@@ -1,9 +1,15 @@
 """The sim state (qpos + times) shared from the sim server process to the camera processes.
 
-A seqlock over ``multiprocessing.shared_memory``: one writer (the sim loop) bumps a sequence
-counter to odd, writes, bumps it to even; readers copy and retry when the counter was odd
-or changed under them. No locks, so a slow camera can never stall the 1 kHz sim loop.
-Layout (little-endian): uint64 seq | uint64 nq | float64 sim_time | int64 stamp_ns | float64 qpos[nq].
+A ring of snapshots in ``multiprocessing.shared_memory``, each slot guarded by a seqlock:
+the single writer (the sim loop) bumps a slot's sequence counter to odd, writes, bumps it to
+even; readers copy and retry when the counter was odd or changed under them. No locks, so a
+slow camera can never stall the 1 kHz sim loop. The ring (32 slots, ~0.5 s at 60 Hz) lets
+every camera render the snapshot nearest to a common trigger time even when the CPU wakes
+it late, so three camera processes still produce one time-matched set, like hardware-synced
+cameras.
+
+Layout (little-endian): header uint64 [writes, nq, slots, 0]; slot = uint64 seq | float64
+sim_time | int64 stamp_ns | float64 qpos[nq].
 """
 
 from __future__ import annotations
@@ -15,6 +21,8 @@ from multiprocessing import shared_memory
 import numpy as np
 
 HEADER = 32
+SLOT_HEADER = 24
+SLOTS = 32
 ENV_VAR = "EQUIDIFF_TWIN_SHM"
 _WRITTEN_HERE: set[str] = set()  # blocks this process created (and so must stay tracked)
 
@@ -28,10 +36,14 @@ def default_name() -> str:
     return os.environ.get(ENV_VAR) or f"equidiff_twin_{os.environ.get('ROS_DOMAIN_ID', '0')}"
 
 
+def _slot_bytes(nq: int) -> int:
+    return SLOT_HEADER + 8 * nq
+
+
 class StateWriter:
-    def __init__(self, nq: int, name: str | None = None):
+    def __init__(self, nq: int, name: str | None = None, slots: int = SLOTS):
         self.name = name or default_name()
-        size = HEADER + 8 * nq
+        size = HEADER + slots * _slot_bytes(nq)
         try:
             self._shm = shared_memory.SharedMemory(self.name, create=True, size=size)
         except FileExistsError:  # left over by a killed twin: take it over
@@ -40,23 +52,28 @@ class StateWriter:
             stale.unlink()
             self._shm = shared_memory.SharedMemory(self.name, create=True, size=size)
         _WRITTEN_HERE.add(self.name)
+        self.nq, self.slots = nq, slots
         self._header = np.ndarray(4, dtype=np.uint64, buffer=self._shm.buf)
-        self._times = np.ndarray(2, dtype=np.float64, buffer=self._shm.buf, offset=16)
-        self._stamp = np.ndarray(1, dtype=np.int64, buffer=self._shm.buf, offset=24)
-        self._qpos = np.ndarray(nq, dtype=np.float64, buffer=self._shm.buf, offset=HEADER)
-        self._header[:2] = (0, nq)
+        self._header[:] = (0, nq, slots, 0)
+        self._slots = [(np.ndarray(1, np.uint64, self._shm.buf, off),
+                        np.ndarray(1, np.float64, self._shm.buf, off + 8),
+                        np.ndarray(1, np.int64, self._shm.buf, off + 16),
+                        np.ndarray(nq, np.float64, self._shm.buf, off + SLOT_HEADER))
+                       for off in (HEADER + i * _slot_bytes(nq) for i in range(slots))]
 
     def write(self, qpos: np.ndarray, sim_time: float, stamp_ns: int) -> None:
-        self._header[0] += 1  # odd: writing
-        self._qpos[:] = qpos
-        self._times[0] = sim_time
-        self._stamp[0] = stamp_ns
-        self._header[0] += 1  # even: consistent
+        seq, t, stamp, q = self._slots[int(self._header[0]) % self.slots]
+        seq[0] += 1  # odd: writing
+        q[:] = qpos
+        t[0] = sim_time
+        stamp[0] = stamp_ns
+        seq[0] += 1  # even: consistent
+        self._header[0] += 1
 
     def close(self) -> None:
         if self._shm is None:
             return
-        del self._header, self._times, self._stamp, self._qpos
+        del self._header, self._slots
         self._shm.close()
         try:
             self._shm.unlink()
@@ -88,24 +105,52 @@ class StateReader:
         if self.name not in _WRITTEN_HERE:
             _untrack(self._shm)
         self._header = np.ndarray(4, dtype=np.uint64, buffer=self._shm.buf)
-        self.nq = int(self._header[1])
+        self.nq, self.slots = int(self._header[1]), int(self._header[2])
         if nq is not None and nq != self.nq:
             raise SharedStateError(f"twin state has {self.nq} positions, the camera's model {nq}: "
                                    "the twin and camera use different scene configs")
 
-    def read(self, retries: int = 1000) -> tuple[np.ndarray, float, int]:
-        """(qpos copy, sim_time, stamp_ns) of one consistent snapshot."""
+    def _read_slot(self, i: int, retries: int = 100):
+        off = HEADER + i * _slot_bytes(self.nq)
         buf = self._shm.buf
+        seq_view = np.ndarray(1, np.uint64, buf, off)
         for _ in range(retries):
-            seq = int(self._header[0])
+            seq = int(seq_view[0])
             if seq % 2 == 0 and seq > 0:
-                qpos = np.frombuffer(buf, dtype=np.float64, count=self.nq, offset=HEADER).copy()
-                sim_time = float(np.frombuffer(buf, dtype=np.float64, count=1, offset=16)[0])
-                stamp = int(np.frombuffer(buf, dtype=np.int64, count=1, offset=24)[0])
-                if int(self._header[0]) == seq:
+                sim_time = float(np.ndarray(1, np.float64, buf, off + 8)[0])
+                stamp = int(np.ndarray(1, np.int64, buf, off + 16)[0])
+                qpos = np.ndarray(self.nq, np.float64, buf, off + SLOT_HEADER).copy()
+                if int(seq_view[0]) == seq:
                     return qpos, sim_time, stamp
-            time.sleep(0.0002)
-        raise SharedStateError(f"no consistent twin state in {self.name!r} after {retries} tries")
+            elif seq == 0:
+                return None  # never written
+            time.sleep(0.0001)
+        return None
+
+    def read(self, wait_s: float = 1.0) -> tuple[np.ndarray, float, int]:
+        """(qpos copy, sim_time, stamp_ns) of the newest consistent snapshot."""
+        deadline = time.monotonic() + wait_s
+        while True:
+            writes = int(self._header[0])
+            if writes > 0:
+                got = self._read_slot((writes - 1) % self.slots)
+                if got is not None:
+                    return got
+            if time.monotonic() > deadline:
+                raise SharedStateError(f"no consistent twin state in {self.name!r}")
+            time.sleep(0.001)
+
+    def read_nearest(self, stamp_ns: int) -> tuple[np.ndarray, float, int]:
+        """The snapshot whose stamp is nearest ``stamp_ns`` (the newest if all are older)."""
+        best, best_dt = None, None
+        for i in range(self.slots):
+            got = self._read_slot(i)
+            if got is None:
+                continue
+            dt = abs(got[2] - stamp_ns)
+            if best_dt is None or dt < best_dt:
+                best, best_dt = got, dt
+        return best if best is not None else self.read()
 
     def close(self) -> None:
         if self._shm is not None:

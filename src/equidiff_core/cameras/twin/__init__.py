@@ -32,7 +32,8 @@ from ..base import Camera, CameraError, CloudFrame
 
 os.environ.setdefault("MUJOCO_GL", "egl")
 
-StateSource = Callable[[], tuple[np.ndarray, float, int]]  # () -> (qpos, sim_time, stamp_ns)
+# (trigger time ns | None) -> (qpos, sim_time, stamp_ns) of the sim state nearest that time
+StateSource = Callable[[int | None], tuple[np.ndarray, float, int]]
 
 
 @dataclass(frozen=True)
@@ -145,7 +146,8 @@ class TwinCamera(Camera):
                 self._reader = StateReader(self.options.shm_name, nq=self._model.nq)
             except SharedStateError as err:
                 raise CameraError(f"twin camera {self.camera.name}: {err}") from err
-            self._state_source = self._reader.read
+            reader = self._reader
+            self._state_source = lambda t: reader.read() if t is None else reader.read_nearest(t)
         self._worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix=f"render-{self.camera.name}")
         self._connected = True
 
@@ -167,10 +169,9 @@ class TwinCamera(Camera):
     def read(self, timeout_s: float = 1.0) -> CloudFrame:
         if not self._connected:
             raise CameraError(f"twin camera {self.camera.name} is not connected")
-        if self.options.paced:
-            self._wait_for_tick(timeout_s)
+        trigger = self._wait_for_tick(timeout_s) if self.options.paced else None
         try:
-            qpos, _, stamp_ns = self._state_source()
+            qpos, _, stamp_ns = self._state_source(trigger)
         except Exception as err:
             raise CameraError(f"twin camera {self.camera.name}: no sim state: {err}") from err
         if not np.all(np.isfinite(qpos)):
@@ -182,8 +183,9 @@ class TwinCamera(Camera):
                               f"[{self.camera.min_depth}, {self.camera.max_depth}] m")
         return CloudFrame(points, colors, int(stamp_ns))
 
-    def _wait_for_tick(self, timeout_s: float) -> None:
-        """Sleep to the next multiple of the publish period on the wall clock (shared by all cameras)."""
+    def _wait_for_tick(self, timeout_s: float) -> int:
+        """Sleep to the next multiple of the publish period on the wall clock (shared by all
+        cameras) and return it: the trigger time whose sim state this frame shows."""
         period_ns = int(1e9 / max(self.camera.publish_hz, 1e-3))
         now = time.time_ns()
         tick = now // period_ns + 1
@@ -192,8 +194,9 @@ class TwinCamera(Camera):
         wait = (tick * period_ns - now) / 1e9
         if wait > timeout_s:
             raise CameraError(f"twin camera {self.camera.name}: no frame within {timeout_s} s")
-        time.sleep(wait)
+        time.sleep(max(0.0, wait))
         self._last_tick = tick
+        return tick * period_ns
 
     # -- rendering ---------------------------------------------------------------------------
     def _close_renderer(self) -> None:

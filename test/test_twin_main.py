@@ -1,0 +1,159 @@
+"""The main job: twin_node, process supervision, metrics, and a smoke run of `equidiff twin run`."""
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from equidiff_core.twin.metrics import EpisodeRecord, RunSummary, count_dropped_cycles
+from equidiff_core.twin.processes import NodeProcessError, ProcessGroup, node_command, private_ros_env
+
+REQUIRED_KEYS = {"episodes", "success_rate", "inference_p95_ms", "end_to_end_p95_ms", "dropped_cycles"}
+
+
+def test_dropped_cycles_counts_empty_policy_periods():
+    assert count_dropped_cycles([0.1, 0.3, 0.5, 0.7, 0.9], 0.0, 1.0, 5.0) == 0
+    assert count_dropped_cycles([0.1, 0.9], 0.0, 1.0, 5.0) == 3
+    assert count_dropped_cycles([], 0.0, 1.0, 5.0) == 5
+    assert count_dropped_cycles([0.05, 0.06, 0.07], 0.0, 0.4, 5.0) == 1  # bursts do not fill other periods
+
+
+def test_summary_json_line_has_the_issue_keys_and_pools_episodes():
+    eps = [EpisodeRecord(1, True, 10.0, 50, 2, end_to_end_ms=[100, 200], inference_ms=[80]),
+           EpisodeRecord(2, False, 40.0, 190, 10, end_to_end_ms=[300], inference_ms=[90, 100])]
+    s = RunSummary(eps, sim_rate=0.97, policy="p")
+    d = json.loads(s.json_line())
+    assert REQUIRED_KEYS <= set(d)
+    assert d["episodes"] == 2 and d["success_rate"] == 0.5 and d["dropped_cycles"] == 12
+    assert d["end_to_end_p95_ms"] == pytest.approx(290.0) and d["inference_p95_ms"] == pytest.approx(99.0)
+    assert "success rate:      50 %" in s.human()
+
+
+def test_node_command_and_private_env():
+    cmd = node_command("no_such_node_xyz", {"a": True, "b": 1.5}, {"/x": "/y"})
+    assert cmd[:3] == [sys.executable, "-m", "equidiff_ros.no_such_node_xyz"]
+    assert cmd[3:] == ["--ros-args", "-p", "a:=true", "-p", "b:=1.5", "-r", "/x:=/y"]
+    env = private_ros_env(None)
+    assert 101 <= int(env["ROS_DOMAIN_ID"]) <= 215 and env["ROS_AUTOMATIC_DISCOVERY_RANGE"] == "LOCALHOST"
+
+
+def test_process_group_detects_deaths_and_stops_whole_process_trees(tmp_path):
+    env = dict(os.environ)
+    with ProcessGroup(env, tmp_path, grace_s=2.0) as group:
+        # a "node" that ignores SIGINT and has a child: both must still be gone afterwards
+        tree = group.start("stubborn", [sys.executable, "-c",
+                                        "import signal, subprocess, sys, time; signal.signal(signal.SIGINT, signal.SIG_IGN);"
+                                        "p = subprocess.Popen([sys.executable, '-c', 'import time; time.sleep(60)']);"
+                                        "print(p.pid, flush=True); time.sleep(60)"])
+        group.start("dies", [sys.executable, "-c", "print('bad config'); raise SystemExit(3)"])
+        time.sleep(1.0)
+        with pytest.raises(NodeProcessError, match="(?s)dies exited with code 3.*bad config"):
+            group.check()
+        group.stop("dies")
+        group.check()
+        child = int((tmp_path / "stubborn.log").read_text().split()[0])
+    assert tree.popen.poll() is not None
+    time.sleep(0.2)
+    try:  # gone, or a zombie waiting for init to reap it
+        assert Path(f"/proc/{child}/stat").read_text().split()[2] == "Z"
+    except FileNotFoundError:
+        pass
+
+
+def test_twin_node_help():
+    out = subprocess.run([sys.executable, "-m", "equidiff_ros.twin_node", "--help"], capture_output=True, text=True,
+                         timeout=60)
+    assert out.returncode == 0 and "/twin/reset" in out.stdout
+
+
+@pytest.mark.ros
+@pytest.mark.sim
+def test_twin_node_resets_from_a_seed_and_reports_state(ros_domain, tmp_path):
+    import rclpy
+    from rclpy.node import Node
+    from std_msgs.msg import Int64, String
+
+    from equidiff_core.twin import TwinConfig, sample_scene
+    from equidiff_ros.common import LATCHED_QOS, RELIABLE_QOS
+
+    shm = f"equidiff_twin_nodetest_{os.getpid()}"
+    proc = subprocess.Popen([sys.executable, "-m", "equidiff_ros.twin_node", "--ros-args", "-p", "host:=auto",
+                             "-p", "seed:=3", "-p", f"shm_name:={shm}"],
+                            stdout=open(tmp_path / "twin.log", "w"), stderr=subprocess.STDOUT)
+    rclpy.init()
+    node = Node("twin_probe")
+    got = {"scene": [], "state": []}
+    node.create_subscription(String, "/twin/scene", lambda m: got["scene"].append(json.loads(m.data)), LATCHED_QOS)
+    node.create_subscription(String, "/twin/state", lambda m: got["state"].append(json.loads(m.data)), RELIABLE_QOS)
+    reset = node.create_publisher(Int64, "/twin/reset", RELIABLE_QOS)
+    try:
+        deadline = time.monotonic() + 90
+        while time.monotonic() < deadline and not (got["state"] and got["scene"]):
+            rclpy.spin_once(node, timeout_sec=0.1)
+        assert got["scene"] and got["scene"][-1]["seed"] == 3, (tmp_path / "twin.log").read_text()
+        assert os.path.exists(f"/dev/shm/{shm}")
+        reset.publish(Int64(data=42))
+        deadline = time.monotonic() + 20
+        while time.monotonic() < deadline and got["scene"][-1]["seed"] != 42:
+            rclpy.spin_once(node, timeout_sec=0.1)
+        scene = got["scene"][-1]
+        expected = sample_scene(TwinConfig().scene, 42)
+        assert scene["seed"] == 42 and scene["block_xy"] == pytest.approx(expected.block_xy)
+        got["state"].clear()
+        while not got["state"]:
+            rclpy.spin_once(node, timeout_sec=0.1)
+        state = got["state"][-1]
+        assert state["seed"] == 42 and state["success"] is False
+        assert state["objects"]["block"]["xyz"][:2] == pytest.approx(expected.block_xy, abs=0.01)
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown()
+        proc.send_signal(signal.SIGINT)
+        code = proc.wait(timeout=20)
+    assert code == 0, (tmp_path / "twin.log").read_text()
+    assert not os.path.exists(f"/dev/shm/{shm}")  # shared memory released on shutdown
+
+
+def _pids_mentioning(text: str) -> list[int]:
+    pids = []
+    for proc in Path("/proc").iterdir():
+        if proc.name.isdigit():
+            try:
+                if text in (proc / "cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace"):
+                    pids.append(int(proc.name))
+            except OSError:
+                pass
+    return pids
+
+
+@pytest.mark.slow
+@pytest.mark.ros
+@pytest.mark.sim
+def test_main_job_smoke_run_end_to_end(ros_domain, tmp_path):
+    out = tmp_path / "run"
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    proc = subprocess.run([sys.executable, "-m", "equidiff_ros.cli", "twin", "run", "--smoke", "--out", str(out),
+                           "--domain", str(ros_domain + 120)],
+                          capture_output=True, text=True, timeout=420, env=env)
+    logs = "\n".join(f"== {p.name}\n{p.read_text()[-1500:]}" for p in sorted((out / "logs").glob("*.log")))
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:] + logs
+    last = json.loads(proc.stdout.strip().splitlines()[-1])
+    assert REQUIRED_KEYS <= set(last) and last["episodes"] == 1
+    assert "untrained stand-in" in proc.stdout  # the smoke run says what it ran
+    # the policy's chunks reached the robot through the gate, and the episode was recorded
+    summary = proc.stdout
+    assert "success rate" in summary and "end to end" in summary
+    bags = list((out / "bags").glob("twin_eval_*"))
+    assert len(bags) == 1 and (bags[0] / "metadata.yaml").is_file()
+    from equidiff_core.bags import read_episode
+
+    episode = read_episode(bags[0])
+    assert episode.meta.success is not None
+    assert (out / "twin_run.rrd").is_file() or "rerun" in proc.stderr
+    # every node process is gone
+    assert _pids_mentioning(str(out)) == []
