@@ -250,6 +250,11 @@ def test_replayed_bag_through_camera_node_and_voxel_node(tester, scene, tmp_path
         age_s = (time.time_ns() - (cloud.header.stamp.sec * 10 ** 9 + cloud.header.stamp.nanosec)) / 1e9
         assert -0.5 < age_s < 2.0  # restamped: live, not the bag's 2023 stamps
         np.testing.assert_array_equal(_grid(tester.voxels[-1], lab), expected)
+        # the bag's 5 Hz comes out as 5 Hz, and the grid follows at the observation rate
+        clouds_before, voxels_before = len(tester.clouds), len(tester.voxels)
+        tester.spin_for(3.0)
+        assert 10 <= len(tester.clouds) - clouds_before <= 20
+        assert 8 <= len(tester.voxels) - voxels_before <= 20
         assert camera.poll() is None and voxel.poll() is None
     finally:
         cam_out, vox_out = _stop(camera), _stop(voxel)

@@ -222,7 +222,9 @@ class Voxelizer:
         OpenBLAS spreading a 3x3 product over busy cores.
         """
         m = len(points)
-        x, y, z = np.copyto(self._columns[:, :m], points.T) or self._columns[:, :m]
+        columns = self._columns[:, :m]
+        np.copyto(columns, points.T)
+        x, y, z = columns
         t = self._tmp[:m]
         for i in range(3):
             out = u[i]

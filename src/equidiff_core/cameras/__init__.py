@@ -8,8 +8,6 @@ from __future__ import annotations
 
 import importlib
 
-import numpy as np
-
 from ..config import CameraConfig
 from .base import Camera, CameraError, CloudFrame
 
