@@ -57,7 +57,7 @@ def build_node():
 
     from equidiff_core.chunk import chunk_to_msg
     from equidiff_core.geometry import GeometryError
-    from equidiff_core.rosmsg import RclpyFactory, stamp_to_ns
+    from equidiff_core.rosmsg import RclpyFactory
     from equidiff_core.teleop import (SpaceMouseSource, TeleopConfig, TeleopError, TeleopInput,
                                       TeleopIntegrator, is_fresh)
     from equidiff_ros.common import (RELIABLE_QOS, SENSOR_QOS, TOPIC_COMMAND_CHUNK, TOPIC_EE_POSE, TOPIC_JOINT_STATES,
@@ -71,6 +71,7 @@ def build_node():
             self.resync_after_s = float(self.declare_parameter("resync_after_s", 1.0).value)
             self.factory = RclpyFactory()
             self.teleop = TeleopIntegrator(self.cfg, self.lab.workspace)
+            self.measured = None  # latest /franka/ee_pose (4x4)
             self.width_measured: float | None = None
             self.input: TeleopInput | None = None
             self.last_active_ns = 0
@@ -139,7 +140,7 @@ def build_node():
                 if self.teleop.ready:  # keep button edges in sync while idle
                     self.teleop.step(None, dt)
                 return
-            if getattr(self, "measured", None) is None:
+            if self.measured is None:
                 self.get_logger().warn(f"operator input but no {TOPIC_EE_POSE} yet: not commanding",
                                        throttle_duration_sec=2.0)
                 return
