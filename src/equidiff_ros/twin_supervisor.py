@@ -339,3 +339,51 @@ class TwinStack:
         ex = self.cfg.expert
         self.sup.move_to(tcp_pose(ex.ready_position, 0.0), ex.open_width, speed=ex.speed,
                          timeout_s=self.cfg.episode.home_timeout_s, check=self.check)
+
+
+def object_poses_from_state(state: dict) -> tuple[np.ndarray, np.ndarray]:
+    """4x4 block and bowl poses from a /twin/state message."""
+    out = []
+    for body in ("block", "bowl"):
+        obj = state["objects"][body]
+        out.append(geometry.make_pose(geometry.rotz(obj["yaw"]), np.asarray(obj["xyz"], dtype=float)))
+    return out[0], out[1]
+
+
+def run_expert(stack: TwinStack, hz: float | None = None, max_lag_m: float = 0.03, extra_s: float = 4.0) -> dict:
+    """Drive the scripted expert through the teleop path: one-point chunks at 20 Hz.
+
+    The plan's clock advances only while the arm keeps up (TCP within ``max_lag_m`` of the
+    target, like teleop's ``max_lead_m``), so a twin slower than real time (a loaded CPU) gets
+    the same motion, just later. Returns the final /twin/state.
+    """
+    from equidiff_core.twin.expert import plan_pick_place
+
+    sup, cfg = stack.sup, stack.cfg
+    ex = cfg.expert
+    hz = hz or ex.command_hz
+    block, bowl = object_poses_from_state(sup.twin())
+    start, width = sup.current()
+    plan = plan_pick_place(start, width, block, bowl, cfg.scene.block_size[2], ex)
+    t_plan, last = 0.0, time.monotonic()
+    success_since = None
+    while True:
+        stack.check()
+        now = time.monotonic()
+        dt, last = now - last, now
+        pose, width = plan.target_at(t_plan)
+        tcp, _ = sup.current()
+        rate = min(1.0, max(0.05, sup.twin().get("steps_per_s", 1000.0) / 1000.0))
+        if np.linalg.norm(tcp[:3, 3] - pose[:3, 3]) < max_lag_m:
+            t_plan += dt * rate
+        sup.send_target(pose, width)
+        if t_plan >= plan.duration:
+            state = sup.twin()
+            if state.get("success"):
+                success_since = success_since or now
+                if now - success_since >= cfg.success.hold_s:
+                    return state
+            if t_plan >= plan.duration + extra_s:
+                return state
+            t_plan += dt * rate if np.linalg.norm(tcp[:3, 3] - pose[:3, 3]) >= max_lag_m else 0.0
+        time.sleep(max(0.0, 1.0 / hz - (time.monotonic() - now)))
