@@ -88,3 +88,22 @@ def test_invalid_construction_and_unknown_stream():
     m = ApproximateTimeMatcher(["a"], 1)
     with pytest.raises(KeyError, match="unknown stream 'z'"):
         m.add("z", 0, None)
+
+
+def test_publish_pacer_picks_frames_near_the_clock_grid_whatever_the_start_phase():
+    from equidiff_core.sync import PublishPacer
+
+    # two 30 fps cameras started at different phases, published at 5 Hz
+    picked = []
+    for offset in (0.0123, 0.0291):
+        pacer = PublishPacer(5.0)
+        times = [100.0 + offset + i / 30 for i in range(90)]  # 3 s
+        picked.append([t for t in times if pacer.due(t)])
+    assert all(14 <= len(p) <= 16 for p in picked)  # 5 Hz over 3 s
+    for a, b in zip(*picked):
+        assert abs(a - b) <= 1 / 30 + 1e-9  # frames of the same tick: within one device frame
+    assert all(0.15 < b - a < 0.25 for a, b in zip(picked[0], picked[0][1:]))
+    # a source that already delivers at 5 Hz gets every frame through, whatever its phase
+    for phase in (0.0, 0.07, 0.16, 0.199):
+        pacer = PublishPacer(5.0)
+        assert all(pacer.due(50.0 + phase + i * 0.2 + (0.01 if i % 3 == 0 else 0.0)) for i in range(20))

@@ -1,4 +1,4 @@
-"""Approximate-time matching of N message streams, and their staleness (no ROS).
+"""Approximate-time matching of N message streams, their staleness, and phase-locked publishing (no ROS).
 
 message_filters' ApproximateTimeSynchronizer is not on PyPI and is callback-driven; the
 voxel node instead needs "the newest complete set, when my 5 Hz timer fires", so this is a
@@ -10,6 +10,7 @@ handed out once: a later call returns a match only if it contains newer data.
 
 from __future__ import annotations
 
+import math
 from collections import deque
 from dataclasses import dataclass
 from typing import Any, Generic, Sequence, TypeVar
@@ -115,3 +116,27 @@ class ApproximateTimeMatcher(Generic[T]):
     def clear(self) -> None:
         for q in self._queues.values():
             q.clear()
+
+
+class PublishPacer:
+    """Picks frames to publish at ``hz``, phase-locked to the wall clock.
+
+    A frame is due at the first arrival after each multiple of the period (minus a quarter
+    period of tolerance), so camera nodes in separate processes, or on separate machines
+    with synchronised clocks, publish frames captured within one device frame of each other:
+    the voxel node's approximate-time matching then finds tight sets. A source that already
+    delivers at ``hz`` (twin, replay) gets every frame through.
+    """
+
+    def __init__(self, hz: float):
+        if not hz > 0:
+            raise ValueError(f"publish rate must be positive, got {hz} Hz")
+        self.period = 1.0 / hz
+        self.tolerance = 0.25 * self.period
+        self.next_due = 0.0
+
+    def due(self, now: float) -> bool:
+        if now < self.next_due - self.tolerance:
+            return False
+        self.next_due = (math.floor((now + self.tolerance) / self.period) + 1) * self.period
+        return True

@@ -44,6 +44,7 @@ def build_node():
     from equidiff_core.control import messages as cm
     from equidiff_core.pointcloud import cloud_to_msg
     from equidiff_core.rosmsg import RclpyFactory
+    from equidiff_core.sync import PublishPacer
     from equidiff_ros.common import LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS, TOPIC_DIAGNOSTICS, declare_lab_config, now_ns
 
     class CameraNode(Node):
@@ -108,8 +109,7 @@ def build_node():
 
         def _run(self, cfg, camera):
             log = self.get_logger()
-            period_s = 1.0 / cfg.publish_hz
-            next_due = time.monotonic()
+            pacer = PublishPacer(cfg.publish_hz)
             pub, stats = self.pubs[cfg.name], self.stats[cfg.name]
             while not self._stop.is_set():
                 try:
@@ -122,10 +122,8 @@ def build_node():
                     log.warning(f"{cfg.name}: {err}", throttle_duration_sec=2.0)
                     self._stop.wait(0.05)
                     continue
-                now = time.monotonic()
-                if now < next_due - 0.25 * period_s:
+                if not pacer.due(time.time()):
                     continue  # the device runs faster than publish_hz: skip this frame
-                next_due = max(next_due + period_s, now - period_s)
                 frame = limit_depth(frame, cfg.min_depth, cfg.max_depth)
                 if len(frame.points) == 0:
                     log.warning(f"{cfg.name}: no points within [{cfg.min_depth}, {cfg.max_depth}] m",
