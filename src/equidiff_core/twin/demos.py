@@ -134,8 +134,10 @@ class DirectRecorder:
 
 
 def collect_direct(cfg: TwinConfig, lab: LabConfig, out: Path, seeds: Iterable[int], task: str = "twin_block_in_bowl",
-                   keep_failures: bool = False, log: Callable[[str], None] = print) -> list[tuple[int, bool, str]]:
-    """Record one bag per seed under ``out``; failed episodes are deleted unless ``keep_failures``."""
+                   keep_failures: bool = False, log: Callable[[str], None] = print,
+                   stop_after: int | None = None) -> list[tuple[int, bool, str]]:
+    """Record one bag per seed under ``out``; failed episodes are deleted unless ``keep_failures``;
+    stop once ``stop_after`` successful demos exist."""
     import shutil
 
     from ..recording import next_episode_path
@@ -152,6 +154,8 @@ def collect_direct(cfg: TwinConfig, lab: LabConfig, out: Path, seeds: Iterable[i
             results.append((seed, ok, str(path) if ok or keep_failures else ""))
             log(f"[collect] seed {seed}: {'success' if ok else 'failure'} in {time.monotonic() - t0:.1f} s"
                 f"{'' if ok or keep_failures else ' (discarded)'} {path.name}")
+            if stop_after is not None and sum(1 for _, s, _ in results if s) >= stop_after:
+                break
     finally:
         rec.close()
     return results
