@@ -246,7 +246,8 @@ class TwinStack:
 
     def __init__(self, out_dir, lab_path, twin_path, policy: str | None = None, domain_id: int | None = None,
                  task: str = "twin", device: str = "cpu", seed: int = 0, record_clouds: bool = False,
-                 start_timeout_s: float = 120.0, torch_threads: int = 1, lenient: bool = False, log=print):
+                 start_timeout_s: float = 120.0, torch_threads: int = 1, lenient: bool = False,
+                 attach: bool = False, log=print):
         from pathlib import Path
 
         from equidiff_core.config import load_lab_config
@@ -261,6 +262,7 @@ class TwinStack:
         self.torch_threads = torch_threads
         # lenient: accept older observations (CI machines too loaded to hold 5 Hz); never for reported numbers
         self.lenient = lenient
+        self.attach = attach  # nodes started by someone else (launch file): only supervise them
         self.log = log
         self.group = None
         self.sup: Supervisor | None = None
@@ -271,6 +273,17 @@ class TwinStack:
         from equidiff_core.twin.processes import ProcessGroup, node_command, private_ros_env
         from equidiff_core.twin.sim import free_loopback_host
 
+        if self.attach:
+            self.log(f"[twin] attaching to the running nodes on ROS_DOMAIN_ID={os.environ.get('ROS_DOMAIN_ID', '0')}")
+            self.sup = Supervisor(self.lab.base_frame)
+            try:
+                self.sup.wait_ready(self.start_timeout_s)
+                self.sup.wait_for(lambda: self.sup.recorder_status.startswith("idle"), self.start_timeout_s,
+                                  "recorder_node")
+            except BaseException:
+                self.__exit__(None, None, None)
+                raise
+            return self
         env = private_ros_env(self.domain_id, OMP_NUM_THREADS="1", LP_NUM_THREADS="1")
         self.domain_id = int(env["ROS_DOMAIN_ID"])
         env["EQUIDIFF_TWIN_SHM"] = f"equidiff_twin_{self.domain_id}_{os.getpid()}"
@@ -331,7 +344,8 @@ class TwinStack:
                 self.sup = None
 
     def check(self) -> None:
-        self.group.check()
+        if self.group is not None:
+            self.group.check()
 
     def home(self) -> None:
         from equidiff_core.twin.expert import tcp_pose

@@ -41,6 +41,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--twin-config", type=Path, default=None)
     parser.add_argument("--record-clouds", action="store_true", help="also record the three camera clouds")
     parser.add_argument("--no-rrd", action="store_true", help="skip the rerun recording")
+    parser.add_argument("--attach", action="store_true",
+                        help="run the episodes against nodes already running (launch/twin.launch.py)")
     parser.add_argument("--lenient", action="store_true",
                         help="accept observations up to 4 s old (overloaded CI machines; default with --smoke)")
 
@@ -48,8 +50,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def resolve_policy(args, out: Path, workspace, cfg) -> tuple[Path, str]:
     from equidiff_core.twin.standin import STANDIN_LABEL, make_standin_policy
 
-    if args.checkpoint is not None:
-        if not args.checkpoint.is_file():
+    if args.checkpoint is not None or args.attach:
+        if args.checkpoint is None or not args.checkpoint.is_file():
             raise FileNotFoundError(f"--checkpoint {args.checkpoint}: no such file")
         return args.checkpoint, str(args.checkpoint)
     if not args.standin and not args.smoke and SHIPPED_CHECKPOINT.is_file():
@@ -130,7 +132,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         with TwinStack(out, lab_path, twin_path, policy=str(policy_path), domain_id=args.domain, task="twin_eval",
                        device=args.device, seed=args.seed, record_clouds=args.record_clouds,
-                       lenient=args.lenient or args.smoke) as stack:
+                       lenient=args.lenient or args.smoke, attach=args.attach) as stack:
             for i in range(episodes):
                 rec = run_episode(stack, args.seed + i, max_duration, lab.observation_hz)
                 sim_rates.append(stack.sup.twin().get("steps_per_s", 0.0) / 1000.0)

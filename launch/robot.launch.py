@@ -1,0 +1,57 @@
+"""The real lab: three RealSense D455s, voxels, the FR3 through franky, the policy or teleop, the recorder.
+
+    ros2 launch equidiff_ros robot.launch.py checkpoint:=/path/policy.pt            # policy at 5 Hz
+    ros2 launch equidiff_ros robot.launch.py mode:=teleop task:=pick operator:=ana   # record demos
+
+mode:=policy runs policy_node; mode:=teleop runs teleop_node (SpaceMouse via the spacenav
+driver's /spacenav/joy, or ``teleop_source:=spacemouse`` for direct HID) and the recorder with its
+keyboard (s / k / f / d). Everything reads config/lab.yaml (cameras, extrinsics, robot IP).
+"""
+
+from pathlib import Path
+
+from launch import LaunchDescription
+from launch.actions import DeclareLaunchArgument
+from launch.conditions import LaunchConfigurationEquals
+from launch.substitutions import LaunchConfiguration
+from launch_ros.actions import Node
+
+try:
+    from ament_index_python.packages import get_package_share_directory
+
+    SHARE = Path(get_package_share_directory("equidiff_ros"))
+except Exception:  # a source checkout
+    SHARE = Path(__file__).resolve().parents[1]
+
+
+def generate_launch_description():
+    lab = LaunchConfiguration("lab_config")
+    common = {"lab_config": lab}
+    return LaunchDescription([
+        DeclareLaunchArgument("mode", default_value="policy", choices=["policy", "teleop"]),
+        DeclareLaunchArgument("checkpoint", default_value=""),
+        DeclareLaunchArgument("device", default_value="auto"),
+        DeclareLaunchArgument("precision", default_value="fp32"),
+        DeclareLaunchArgument("robot_ip", default_value="", description="empty: lab.yaml's robot.ip"),
+        DeclareLaunchArgument("teleop_source", default_value="joy"),
+        DeclareLaunchArgument("task", default_value="episode"),
+        DeclareLaunchArgument("operator", default_value=""),
+        DeclareLaunchArgument("output_dir", default_value="bags"),
+        DeclareLaunchArgument("lab_config", default_value=str(SHARE / "config" / "lab.yaml")),
+        Node(package="equidiff_ros", executable="camera_node", output="screen",
+             parameters=[{**common, "backend": "realsense"}]),
+        Node(package="equidiff_ros", executable="voxel_node", output="screen", parameters=[common]),
+        Node(package="equidiff_ros", executable="franka_node", output="screen",
+             parameters=[{**common, "robot_ip": LaunchConfiguration("robot_ip"), "realtime": True}]),
+        Node(package="equidiff_ros", executable="policy_node", output="screen",
+             condition=LaunchConfigurationEquals("mode", "policy"),
+             parameters=[{**common, "checkpoint": LaunchConfiguration("checkpoint"),
+                          "device": LaunchConfiguration("device"), "precision": LaunchConfiguration("precision")}]),
+        Node(package="equidiff_ros", executable="teleop_node", output="screen",
+             condition=LaunchConfigurationEquals("mode", "teleop"),
+             parameters=[{**common, "source": LaunchConfiguration("teleop_source")}]),
+        Node(package="equidiff_ros", executable="recorder_node", output="screen", emulate_tty=True,
+             parameters=[{**common, "output_dir": LaunchConfiguration("output_dir"), "task": LaunchConfiguration("task"),
+                          "operator": LaunchConfiguration("operator"),
+                          "keyboard": True}]),
+    ])
