@@ -253,8 +253,9 @@ def test_replayed_bag_through_camera_node_and_voxel_node(tester, scene, tmp_path
         # the bag's 5 Hz comes out as 5 Hz, and the grid follows at the observation rate
         clouds_before, voxels_before = len(tester.clouds), len(tester.voxels)
         tester.spin_for(3.0)
-        assert 10 <= len(tester.clouds) - clouds_before <= 20
-        assert 8 <= len(tester.voxels) - voxels_before <= 20
+        n_clouds, n_voxels = len(tester.clouds) - clouds_before, len(tester.voxels) - voxels_before
+        assert 8 <= n_clouds <= 20, n_clouds  # 15 expected; margins for a heavily loaded machine
+        assert 5 <= n_voxels <= 20, n_voxels
         assert camera.poll() is None and voxel.poll() is None
     finally:
         cam_out, vox_out = _stop(camera), _stop(voxel)
