@@ -1,4 +1,5 @@
-"""A synthetic but physically plausible pick episode, written through the recorder's EpisodeWriter.
+"""Data-area test helpers: a synthetic pick episode written through the recorder's EpisodeWriter,
+and a small rclpy harness for the live-node tests.
 
 Used by the data tests and to (re)generate the sample bag under bags/:
 
@@ -16,6 +17,7 @@ from __future__ import annotations
 
 import math
 import sys
+import time
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -161,6 +163,64 @@ def write_synthetic_episode(path: str | Path, ep: SyntheticEpisode = SyntheticEp
         for stamp, topic, msg in events:
             writer.write(topic, msg, stamp)
     return Path(path)
+
+
+# --- live-ROS test helpers (rclpy imported lazily) ------------------------------------------
+
+class RosHarness:
+    """An rclpy node in its own context, spun on demand."""
+
+    def __init__(self):
+        import rclpy
+        from rclpy.executors import SingleThreadedExecutor
+
+        from equidiff_core.rosmsg import RclpyFactory
+
+        self.rclpy = rclpy
+        self.ctx = rclpy.Context()
+        rclpy.init(context=self.ctx)
+        self.node = rclpy.create_node("data_test_harness", context=self.ctx)
+        self.executor = SingleThreadedExecutor(context=self.ctx)
+        self.executor.add_node(self.node)
+        self.f = RclpyFactory()
+
+    def spin_until(self, cond, timeout: float, period: float = 0.02) -> bool:
+        end = time.monotonic() + timeout
+        while time.monotonic() < end:
+            self.executor.spin_once(timeout_sec=period)
+            if cond():
+                return True
+        return False
+
+    def spin_for(self, seconds: float) -> None:
+        self.spin_until(lambda: False, seconds)
+
+    def close(self):
+        self.executor.shutdown()
+        self.node.destroy_node()
+        self.rclpy.shutdown(context=self.ctx)
+
+
+def decoded(raw: bytes, msgtype: str):
+    """Decode CDR with rosbags (an independent reader of what rclpy/DDS produced)."""
+    return rosbags_factory().typestore.deserialize_cdr(raw, msgtype)
+
+
+def assert_same(a, b, where="msg"):
+    """Field-by-field equality of a rosbags message ``a`` and an rclpy (or rosbags) message ``b``."""
+    if hasattr(a, "__dataclass_fields__"):
+        assert type(a).__name__.split("__")[-1] == type(b).__name__, where
+        for name in a.__dataclass_fields__:
+            if name != "__msgtype__":
+                assert_same(getattr(a, name), getattr(b, name), f"{where}.{name}")
+    elif isinstance(a, np.ndarray):
+        np.testing.assert_array_equal(a, np.asarray(b, dtype=a.dtype), err_msg=where)
+    elif isinstance(a, (list, tuple)):
+        assert len(a) == len(b), where
+        for i, (x, y) in enumerate(zip(a, b)):
+            assert_same(x, y, f"{where}[{i}]")
+    else:
+        assert a == b, f"{where}: {a!r} != {b!r}"
 
 
 if __name__ == "__main__":

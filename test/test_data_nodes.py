@@ -19,43 +19,11 @@ from equidiff_core.chunk import PoseChunk, chunk_from_msg, chunk_to_msg
 from equidiff_core.config import default_config_dir, load_lab_config
 from equidiff_core.pointcloud import grid_to_voxel_msg
 
+from helpers_data import RosHarness, assert_same, decoded
+
 pytestmark = [pytest.mark.ros, pytest.mark.slow]
 
 LAB = load_lab_config(default_config_dir() / "lab.yaml")
-
-
-class RosHarness:
-    """An rclpy node in its own context, spun on demand."""
-
-    def __init__(self):
-        import rclpy
-        from rclpy.executors import SingleThreadedExecutor
-
-        from equidiff_core.rosmsg import RclpyFactory
-
-        self.rclpy = rclpy
-        self.ctx = rclpy.Context()
-        rclpy.init(context=self.ctx)
-        self.node = rclpy.create_node("data_test_harness", context=self.ctx)
-        self.executor = SingleThreadedExecutor(context=self.ctx)
-        self.executor.add_node(self.node)
-        self.f = RclpyFactory()
-
-    def spin_until(self, cond, timeout: float, period: float = 0.02) -> bool:
-        end = time.monotonic() + timeout
-        while time.monotonic() < end:
-            self.executor.spin_once(timeout_sec=period)
-            if cond():
-                return True
-        return False
-
-    def spin_for(self, seconds: float) -> None:
-        self.spin_until(lambda: False, seconds)
-
-    def close(self):
-        self.executor.shutdown()
-        self.node.destroy_node()
-        self.rclpy.shutdown(context=self.ctx)
 
 
 @pytest.fixture
@@ -107,29 +75,6 @@ def make_messages(f, n: int, t0_ns: int):
         chunk = PoseChunk(t, np.array([t + 100_000_000]), pose[None], np.array([0.08]))
         out.append(("/franka/command_chunk", chunk_to_msg(chunk, f, LAB.base_frame)))
     return out
-
-
-def decoded(raw: bytes, msgtype: str):
-    from equidiff_core.rosmsg import rosbags_factory
-
-    return rosbags_factory().typestore.deserialize_cdr(raw, msgtype)
-
-
-def assert_same(a, b, where="msg"):
-    """Field-by-field equality of a rosbags message ``a`` and an rclpy (or rosbags) message ``b``."""
-    if hasattr(a, "__dataclass_fields__"):
-        assert type(a).__name__.split("__")[-1] == type(b).__name__, where
-        for name in a.__dataclass_fields__:
-            if name != "__msgtype__":
-                assert_same(getattr(a, name), getattr(b, name), f"{where}.{name}")
-    elif isinstance(a, np.ndarray):
-        np.testing.assert_array_equal(a, np.asarray(b, dtype=a.dtype), err_msg=where)
-    elif isinstance(a, (list, tuple)):
-        assert len(a) == len(b), where
-        for i, (x, y) in enumerate(zip(a, b)):
-            assert_same(x, y, f"{where}[{i}]")
-    else:
-        assert a == b, f"{where}: {a!r} != {b!r}"
 
 
 def wait_status(ros: RosHarness, prefix: str, timeout: float = 20.0) -> str:

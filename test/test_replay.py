@@ -16,7 +16,7 @@ from equidiff_core.bags import read_episode
 from equidiff_core.chunk import chunk_from_msg
 from equidiff_core.rosmsg import stamp_to_ns
 
-from test_data_nodes import RosHarness, assert_same
+from helpers_data import RosHarness, assert_same
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow]
 
@@ -40,15 +40,16 @@ def replay(*args: str) -> subprocess.Popen:
 
 
 def collect(ros: RosHarness, proc: subprocess.Popen, topics, timeout=90.0):
-    from equidiff_ros.common import RELIABLE_QOS
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
 
+    deep = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)  # the test may stall under load
     got = {t: [] for t in topics}
     arrival = {t: [] for t in topics}
     for t in topics:
         def cb(m, t=t):
             got[t].append(m)
             arrival[t].append(time.monotonic())
-        ros.node.create_subscription(ros.f.cls(TOPICS[t]), t, cb, RELIABLE_QOS)
+        ros.node.create_subscription(ros.f.cls(TOPICS[t]), t, cb, deep)
     ros.spin_until(lambda: proc.poll() is not None, timeout)
     ros.spin_for(0.5)
     out, err = proc.communicate(timeout=30)

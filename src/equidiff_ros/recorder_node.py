@@ -72,9 +72,19 @@ def build_node():
     from equidiff_core.recording import (EpisodeWriter, RecordingConfig, RecordingError, next_episode_path,
                                          recorded_topics)
     from equidiff_core.rosmsg import RclpyFactory
-    from equidiff_ros.common import (LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS, TOPIC_RECORDER_COMMAND,
-                                     declare_lab_config, now_ns)
+    from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+
+    from equidiff_ros.common import LATCHED_QOS, RELIABLE_QOS, TOPIC_RECORDER_COMMAND, declare_lab_config, now_ns
     from equidiff_ros.teleop_node import declare_config
+
+    # The contract's profiles, but with deep queues: a recorder must not drop 100 Hz state
+    # while a chunk is being flushed to disk (best effort still matches either publisher kind).
+    RECORD_SENSOR_QOS = QoSProfile(depth=200, reliability=ReliabilityPolicy.BEST_EFFORT,
+                                   durability=DurabilityPolicy.VOLATILE, history=HistoryPolicy.KEEP_LAST)
+    RECORD_RELIABLE_QOS = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE,
+                                     durability=DurabilityPolicy.VOLATILE, history=HistoryPolicy.KEEP_LAST)
+    RECORD_CLOUD_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.BEST_EFFORT,  # ~5 MB each
+                                  durability=DurabilityPolicy.VOLATILE, history=HistoryPolicy.KEEP_LAST)
 
     class RecorderNode(Node):
         def __init__(self):
@@ -91,7 +101,10 @@ def build_node():
             self.writer: EpisodeWriter | None = None
             self.topics = recorded_topics(self.lab, self.cfg.record_clouds)
             for topic, msgtype in self.topics.items():
-                qos = SENSOR_QOS if topic in BEST_EFFORT_TOPICS or topic.startswith("/cameras/") else RELIABLE_QOS
+                if topic.startswith("/cameras/"):
+                    qos = RECORD_CLOUD_QOS
+                else:
+                    qos = RECORD_SENSOR_QOS if topic in BEST_EFFORT_TOPICS else RECORD_RELIABLE_QOS
                 self.create_subscription(self.factory.cls(msgtype), topic, self._writer_cb(topic, msgtype), qos,
                                          raw=True)
             String = self.factory.cls("std_msgs/msg/String")

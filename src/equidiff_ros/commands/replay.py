@@ -115,7 +115,9 @@ def run(args) -> int:
 
     from equidiff_core.bags import BagError
     from equidiff_core.rosmsg import RclpyFactory
-    from equidiff_ros.common import LATCHED_QOS, RELIABLE_QOS
+    from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+
+    from equidiff_ros.common import LATCHED_QOS
 
     if args.rate <= 0:
         print("equidiff replay: --rate must be positive", file=sys.stderr)
@@ -149,7 +151,11 @@ def run(args) -> int:
         msgs = [m for m in msgs if m[1] in classes]
         types = {t: m for t, m in types.items() if t in classes}
         counts = {t: 0 for t in types}
-        pubs = {t: node.create_publisher(classes[t], t, LATCHED_QOS if t == "/tf_static" else RELIABLE_QOS)
+        # Reliable with a deep history: a replay publishes in bursts (4x speed, 100 Hz topics) and
+        # a keep-last-10 writer would overwrite samples a busy subscriber has not acknowledged.
+        replay_qos = QoSProfile(depth=200, reliability=ReliabilityPolicy.RELIABLE,
+                                durability=DurabilityPolicy.VOLATILE, history=HistoryPolicy.KEEP_LAST)
+        pubs = {t: node.create_publisher(classes[t], t, LATCHED_QOS if t == "/tf_static" else replay_qos)
                 for t in types}
         if args.robot:
             pub = pubs[COMMAND_TOPIC]
