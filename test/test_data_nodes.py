@@ -249,9 +249,9 @@ def test_teleop_node_drives_target_from_joy(ros):
             joy_pub.publish(joy([0.05, 0, 0, 0, 0, 0]))
             ros.spin_for(0.02)
         assert chunks == []
-        # push +x (and press "close"), 1 s
+        # push +x (and press "close"), 1.5 s (0.15 m at 0.1 m/s, capped by max_lead_m)
         t0 = time.monotonic()
-        while time.monotonic() - t0 < 1.0:
+        while time.monotonic() - t0 < 1.5:
             pose_pub.publish(pose_msg())
             joy_pub.publish(joy([1.0, 0, 0, 0, 0, 0], (0, 1)))
             ros.spin_for(0.02)

@@ -150,7 +150,7 @@ def build_node():
                 dt = 0.0
             self.last_active_ns = now
             try:
-                self.teleop.step(inp, min(dt, 2.0 / self.cfg.rate_hz))  # a stalled timer must not jump
+                self.teleop.step(inp, min(dt, 0.1))  # a long stall must not turn into a jump
             except TeleopError as err:
                 self.get_logger().warn(str(err), throttle_duration_sec=2.0)
                 return
