@@ -236,3 +236,37 @@ def test_bags_repair_cli(tmp_path, capsys):
     assert f"ok {healthy}" in out and f"repaired {killed}" in out and "original kept at" in out
     assert f"FAILED {empty}" in err and "expected one .mcap" in err
     assert read_episode(killed).message_counts["/voxels"] > 0
+
+
+def test_episode_is_valid_mcap_for_other_readers(tmp_path):
+    """The official mcap reader + mcap-ros2 decoder (what Foxglove builds on) read our episodes."""
+    from mcap.reader import make_reader
+    from mcap_ros2.decoder import DecoderFactory
+
+    path = write_synthetic_episode(tmp_path / "ep", SyntheticEpisode(duration_s=2.0), config=CFG)
+    ours = read_episode(path)
+    with open(path / "ep.mcap", "rb") as fh:
+        reader = make_reader(fh, decoder_factories=[DecoderFactory()])
+        assert reader.get_header().profile == "ros2"
+        summary = reader.get_summary()
+        assert summary.statistics.message_count == sum(ours.message_counts.values())
+        schemas = {s.name: s.encoding for s in summary.schemas.values()}
+        assert schemas["sensor_msgs/msg/PointCloud2"] == "ros2msg"
+        voxels = [m for _s, ch, _m, m in reader.iter_decoded_messages(topics=["/voxels"])]
+    assert len(voxels) == len(ours["/voxels"])
+    assert voxels[3].width == ours["/voxels"].messages[3].width and voxels[3].header.frame_id == LAB.base_frame
+    assert bytes(voxels[3].data) == ours["/voxels"].messages[3].data.tobytes()
+
+
+def test_low_disk_while_recording_is_flagged(tmp_path, monkeypatch):
+    import equidiff_core.recording as recording
+
+    w = EpisodeWriter(tmp_path / "ep", config=RecordingConfig(min_free_gib=1.0, chunk_size_mib=2.0)).open()
+    big = dense_grid(2, 0.4)  # ~2.5 MiB: closes a chunk, which checks the disk
+    w.write("/voxels", voxel_msg(big, 0), 0)
+    assert not w.low_disk
+    monkeypatch.setattr(recording, "free_bytes", lambda path: 100 << 20)  # 100 MiB left
+    w.write("/voxels", voxel_msg(big, 1), 1)
+    assert w.low_disk  # recorder_node stops and keeps the episode on its next tick
+    w.close()
+    assert read_episode(tmp_path / "ep").message_counts["/voxels"] == 2
