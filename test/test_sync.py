@@ -107,3 +107,18 @@ def test_publish_pacer_picks_frames_near_the_clock_grid_whatever_the_start_phase
     for phase in (0.0, 0.07, 0.16, 0.199):
         pacer = PublishPacer(5.0)
         assert all(pacer.due(50.0 + phase + i * 0.2 + (0.01 if i % 3 == 0 else 0.0)) for i in range(20))
+
+
+def test_on_demand_source_read_at_the_pacers_times_lands_on_the_grid():
+    from equidiff_core.sync import PublishPacer
+
+    pacer = PublishPacer(5.0)
+    now, published = 10.037, []
+    for _ in range(10):
+        now += pacer.wait_s(now)
+        render = 0.04  # the frame is captured at `now`, ready 40 ms later
+        if pacer.due(now):
+            published.append(now)
+        now += render
+    assert len(published) == 10
+    assert all(abs(t / 0.2 - round(t / 0.2)) < 1e-6 for t in published[1:])  # on the 0.2 s grid

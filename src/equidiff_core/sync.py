@@ -135,6 +135,11 @@ class PublishPacer:
         self.tolerance = 0.25 * self.period
         self.next_due = 0.0
 
+    def wait_s(self, now: float) -> float:
+        """Seconds until the next grid time: an on-demand source (the twin renders when read)
+        waits this long, then reads, so its frames are captured on the grid too."""
+        return max(0.0, self.next_due - now)
+
     def due(self, now: float) -> bool:
         if now < self.next_due - self.tolerance:
             return False

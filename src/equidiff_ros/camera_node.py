@@ -71,6 +71,11 @@ def build_node():
                 options = {"bag": bag, "loop": loop, "rate": rate, "restamp": restamp, "clock": clock, **options}
             elif self.backend == "realsense":
                 options = {"clock": clock, **options}
+            elif self.backend == "twin":
+                # the twin renders when read: this node decides when (on the shared clock grid),
+                # unless the user asked for the camera's own pacing
+                options = {"paced": False, **options}
+            self.on_demand = self.backend == "twin" and not options.get("paced", False)
             # build and connect every camera first: a missing device fails the node at once
             self.cameras = []
             try:
@@ -112,6 +117,8 @@ def build_node():
             pacer = PublishPacer(cfg.publish_hz)
             pub, stats = self.pubs[cfg.name], self.stats[cfg.name]
             while not self._stop.is_set():
+                if self.on_demand and self._stop.wait(pacer.wait_s(time.time())):
+                    return
                 try:
                     frame = camera.read(timeout_s=1.0)
                 except ReplayFinished as err:
@@ -129,7 +136,16 @@ def build_node():
                     log.warning(f"{cfg.name}: no points within [{cfg.min_depth}, {cfg.max_depth}] m",
                                 throttle_duration_sec=2.0)
                     continue
-                pub.publish(cloud_to_msg(frame.points, frame.colors, frame.stamp_ns, cfg.frame_id, self.factory))
+                msg = cloud_to_msg(frame.points, frame.colors, frame.stamp_ns, cfg.frame_id, self.factory)
+                if self._stop.is_set() or not self.context.ok():
+                    return  # Ctrl-C/SIGTERM shut the context down while this frame was read
+                try:
+                    pub.publish(msg)
+                except Exception as err:  # rclpy raises RCLError once the context is gone
+                    if self.context.ok():
+                        raise
+                    log.debug(f"{cfg.name}: not published, shutting down ({err})")
+                    return
                 stats["published"] += 1
                 stats["last_stamp_ns"] = frame.stamp_ns
 
