@@ -41,7 +41,8 @@ def franka(tmp_path_factory):
     with SimServer() as sim:
         try:
             proc = bench.start_node("franka_node", {"robot_ip": sim.host, "realtime": False,
-                                                    "lab_config": str(LAB_PATH)}, log_dir / "franka_node.log")
+                                                    "lab_config": str(LAB_PATH)}, log_dir / "franka_node.log",
+                                    priority=True)
             client = bench.BenchClient(lab, str(LAB_PATH))
             client.wait_for(lambda: len(client.data.poses) > 10, 90.0, "/franka/ee_pose", proc)
             yield client, proc, lab, sim

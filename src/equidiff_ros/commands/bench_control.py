@@ -88,12 +88,17 @@ def down_pose(position) -> np.ndarray:
 
 # --- processes -----------------------------------------------------------------------------
 
-def start_node(module: str, params: dict, log_path: Path | None = None) -> subprocess.Popen:
+def start_node(module: str, params: dict, log_path: Path | None = None, priority: bool = False) -> subprocess.Popen:
+    """``python -m equidiff_ros.<module> --ros-args -p k:=v ...``; ``priority``: a higher CPU
+    priority when permitted, as the franka node's real-time kernel would give it on the robot PC."""
+    from equidiff_core.robots.franky.sim import raise_priority
+
     args = [sys.executable, "-u", "-m", f"equidiff_ros.{module}", "--ros-args"]
     for key, value in params.items():
         args += ["-p", f"{key}:={_ros_value(value)}"]
     out = open(log_path, "w") if log_path else subprocess.DEVNULL
-    return subprocess.Popen(args, stdout=out, stderr=subprocess.STDOUT, env=dict(os.environ))
+    return subprocess.Popen(args, stdout=out, stderr=subprocess.STDOUT, env=dict(os.environ),
+                            preexec_fn=(lambda: raise_priority(-5)) if priority else None)
 
 
 def _ros_value(value) -> str:
@@ -327,8 +332,11 @@ def run_workspace(client: BenchClient, workspace, duration: float = 3.0) -> dict
 
     last = client.stream(path, duration, obs_latency=0.0)
     time.sleep(0.5)
-    _, positions = client.samples("poses", t_start, last + 0.5)
-    return {"max_outside_workspace_mm": round(metrics.max_outside_box(positions, workspace.lower,
+    times, positions = client.samples("poses", t_start, last + 0.5)
+    outside = np.linalg.norm(np.maximum(workspace.lower - positions, 0) + np.maximum(positions - workspace.upper, 0), axis=1)
+    worst = int(np.argmax(outside))
+    return {"worst_outside_at": [round(float(v), 4) for v in positions[worst]],
+            "worst_outside_t": round(float(times[worst] - t_start), 2),"max_outside_workspace_mm": round(metrics.max_outside_box(positions, workspace.lower,
                                                                       workspace.upper) * 1000, 2),
             "workspace_requested_outside_mm": round(metrics.max_outside_box(
                 path(last)[None], workspace.lower, workspace.upper) * 1000, 1)}
@@ -457,7 +465,8 @@ def run(args: argparse.Namespace) -> int:
             try:
                 franka = start_node("franka_node", {"robot_ip": sim.host, "realtime": False,
                                                     "control_config": str(control_path),
-                                                    "lab_config": str(lab_path)}, tmp / "franka_node.log")
+                                                    "lab_config": str(lab_path)}, tmp / "franka_node.log",
+                                    priority=True)
                 client = BenchClient(lab, str(lab_path))
                 client.wait_for(lambda: len(client.data.poses) > 10, 90.0, "/franka/ee_pose from the franka node",
                                 franka)
