@@ -169,3 +169,96 @@ def test_extrinsics_tf_message_carries_each_optical_frame():
         tr, r = t.transform.translation, t.transform.rotation
         T = geometry.pose_from_pos_quat([tr.x, tr.y, tr.z], [r.x, r.y, r.z, r.w])
         np.testing.assert_allclose(T, cam.extrinsics.matrix(), atol=1e-9)
+
+
+class _FakeRealSense:
+    """Just enough of pyrealsense2's frame objects to drive RealSenseCamera.read without a device."""
+
+    def __init__(self, depth, color, fx=4.0, ppx=3.5, ppy=2.5, global_time=True, fps=30.0):
+        from types import SimpleNamespace as NS
+
+        self.rs = NS(timestamp_domain=NS(global_time="global", system_time="system"), distortion=NS(none="none"))
+        self.depth, self.color, self.fps, self.global_time = depth, color, fps, global_time
+        self.intr = NS(width=depth.shape[1], height=depth.shape[0], fx=fx, fy=fx, ppx=ppx, ppy=ppy,
+                       coeffs=[0.0] * 5, model="none")
+        self.served = 0
+        self.fail = False
+
+    def frame(self, data, intr):
+        from types import SimpleNamespace as NS
+
+        profile = NS(as_video_stream_profile=lambda: NS(get_intrinsics=lambda: intr))
+        return NS(get_data=lambda: data, profile=profile)
+
+    def wait_for_frames(self, timeout_ms):
+        from types import SimpleNamespace as NS
+
+        if self.fail:
+            raise RuntimeError("Frame didn't arrive within 1000")
+        time.sleep(1.0 / self.fps)
+        self.served += 1
+        depth, color = self.frame(self.depth, self.intr), self.frame(self.color, None)
+        return NS(get_depth_frame=lambda: depth, get_color_frame=lambda: color,
+                  get_timestamp=lambda: 1_700_000_000_123.5,
+                  get_frame_timestamp_domain=lambda: "global" if self.global_time else "system")
+
+    def attach(self, cam, filters=()):
+        from types import SimpleNamespace as NS
+
+        cam._rs, cam._pipeline, cam._filters, cam._depth_scale = self.rs, self, list(filters), 0.001
+        cam._align = NS(process=lambda frames: frames)
+
+    def stop(self):
+        pass
+
+
+def test_realsense_read_deprojects_stamps_and_samples_colour_after_decimation():
+    from types import SimpleNamespace as NS
+
+    from equidiff_core.cameras.realsense import RealSenseCamera
+
+    depth = np.zeros((6, 8), np.uint16)
+    depth[2, 3] = 500
+    depth[5, 7] = 2500  # beyond max_depth
+    color = np.zeros((6, 8, 3), np.uint8)
+    color[2, 3] = (1, 2, 3)
+    fake = _FakeRealSense(depth, color)
+    cam = RealSenseCamera(_camera(max_depth=2.0), clock=lambda: 42)
+    fake.attach(cam)
+    frame = cam.read()
+    np.testing.assert_allclose(frame.points, [[(3 - 3.5) / 4 * 0.5, (2 - 2.5) / 4 * 0.5, 0.5]], atol=1e-6)
+    np.testing.assert_array_equal(frame.colors, [[1, 2, 3]])
+    assert frame.stamp_ns == 1_700_000_000_123_500_000  # global time: the capture time on the host clock
+    fake.global_time = False
+    assert cam.read().stamp_ns == 42  # other domains: arrival time on the node's clock
+
+    # a decimation-like filter halves the depth image: colour is sampled at each pixel's centre
+    half = NS(width=4, height=3, fx=2.0, fy=2.0, ppx=1.75, ppy=1.25, coeffs=[0.0] * 5, model="none")
+    small = np.zeros((3, 4), np.uint16)
+    small[1, 1] = 1000
+    color[3, 3] = (9, 8, 7)  # (1, 1) * 2 + 1
+    decimate = NS(process=lambda f: fake.frame(small, half))
+    fake.attach(cam, [decimate])
+    frame = cam.read()
+    np.testing.assert_allclose(frame.points, [[(1 - 1.75) / 2, (1 - 1.25) / 2, 1.0]], atol=1e-6)
+    np.testing.assert_array_equal(frame.colors, [[9, 8, 7]])
+
+    fake.fail = True
+    with pytest.raises(CameraError, match="serial 000000000042|000000000042.*no frame within"):
+        cam.read(timeout_s=0.1)
+
+
+def test_realsense_processes_only_the_frames_it_will_publish():
+    from equidiff_core.cameras.realsense import RealSenseCamera
+
+    depth = np.full((6, 8), 800, np.uint16)
+    fake = _FakeRealSense(depth, np.zeros((6, 8, 3), np.uint8), fps=30.0)
+    cam = RealSenseCamera(_camera(), pace_hz=5.0)
+    fake.attach(cam)
+    cam.read()
+    served, t0 = fake.served, time.monotonic()
+    for _ in range(3):
+        cam.read()
+    elapsed = time.monotonic() - t0
+    assert 0.45 < elapsed < 1.2  # three frames at 5 Hz
+    assert fake.served - served >= 12  # ~6 device frames fetched per published one

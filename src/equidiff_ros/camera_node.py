@@ -70,7 +70,7 @@ def build_node():
             if self.backend == "replay":
                 options = {"bag": bag, "loop": loop, "rate": rate, "restamp": restamp, "clock": clock, **options}
             elif self.backend == "realsense":
-                options = {"clock": clock, **options}
+                options = {"clock": clock, **options}  # pace_hz: set per camera below
             elif self.backend == "twin":
                 # the twin renders when read: this node decides when (on the shared clock grid),
                 # unless the user asked for the camera's own pacing
@@ -80,7 +80,8 @@ def build_node():
             self.cameras = []
             try:
                 for cfg in self.configs:
-                    camera = make_camera(self.backend, cfg, **options)
+                    extra = {"pace_hz": cfg.publish_hz} if self.backend == "realsense" else {}
+                    camera = make_camera(self.backend, cfg, **{**extra, **options})
                     camera.connect()
                     self.cameras.append(camera)
             except CameraError:

@@ -19,6 +19,7 @@ from typing import Callable
 import numpy as np
 
 from ...config import CameraConfig, ConfigError, from_dict
+from ...sync import PublishPacer
 from ..base import Camera, CameraError, CloudFrame
 from .config import RealSenseOptions
 
@@ -67,7 +68,8 @@ def depth_to_cloud(depth: np.ndarray, depth_scale: float, color: np.ndarray, ray
 class RealSenseCamera(Camera):
     """One RealSense device, selected by ``camera.serial``; options from ``camera.options``."""
 
-    def __init__(self, camera: CameraConfig, clock: Callable[[], int] = time.time_ns, **overrides):
+    def __init__(self, camera: CameraConfig, clock: Callable[[], int] = time.time_ns, pace_hz: float | None = None,
+                 **overrides):
         try:
             self.options = from_dict(RealSenseOptions, {**camera.options, **overrides},
                                      where=f"cameras[{camera.name}].options")
@@ -75,6 +77,9 @@ class RealSenseCamera(Camera):
             raise CameraError(str(err)) from err
         self.camera = camera
         self._clock = clock
+        # Process (align, filter, deproject) only the frames that will be published: at 30 fps
+        # in and 5 Hz out, the others are fetched from the device and dropped unprocessed.
+        self._pacer = PublishPacer(pace_hz) if pace_hz else None
         self._pipeline = None
         self._align = None
         self._filters: list = []
@@ -173,11 +178,18 @@ class RealSenseCamera(Camera):
         if self._pipeline is None:
             raise CameraError(f"RealSense camera {self.camera.name!r} is not connected")
         rs = self._rs
-        try:
-            frames = self._pipeline.wait_for_frames(max(1, int(timeout_s * 1000)))
-        except RuntimeError as err:
-            raise CameraError(f"RealSense camera {self.camera.name!r} ({self.camera.serial}): "
-                              f"no frame within {timeout_s} s: {err}") from err
+        deadline = time.monotonic() + timeout_s
+        while True:
+            left_ms = int((deadline - time.monotonic()) * 1000)
+            try:
+                if left_ms < 1:
+                    raise RuntimeError("timeout")
+                frames = self._pipeline.wait_for_frames(left_ms)
+            except RuntimeError as err:
+                raise CameraError(f"RealSense camera {self.camera.name!r} ({self.camera.serial}): "
+                                  f"no frame within {timeout_s} s: {err}") from err
+            if self._pacer is None or self._pacer.due(time.time()):
+                break
         arrival_ns = self._clock()
         aligned = self._align.process(frames)
         depth_frame = aligned.get_depth_frame()
@@ -195,7 +207,7 @@ class RealSenseCamera(Camera):
         points, colors = depth_to_cloud(depth, self._depth_scale, color, self._rays_for(intr),
                                         self.camera.min_depth, self.camera.max_depth)
         if frames.get_frame_timestamp_domain() == rs.timestamp_domain.global_time:
-            stamp_ns = int(frames.get_timestamp() * 1e6)
+            stamp_ns = round(frames.get_timestamp() * 1e3) * 1000  # ms with us resolution -> ns
         else:
             stamp_ns = arrival_ns
         return CloudFrame(points, colors, stamp_ns)
