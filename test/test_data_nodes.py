@@ -279,3 +279,28 @@ def test_teleop_node_without_device_names_what_it_looked_for(ros_domain):
         log = stop(proc)
     assert proc.returncode == 1
     assert "SpaceMouse" in log and ("3Dconnexion" in log or "HID" in log)
+
+
+def test_recorder_keyboard_mode(ros, tmp_path):
+    """keyboard:=true on a terminal: s starts, f keeps the episode as a failure."""
+    import pty
+
+    out = tmp_path / "episodes"
+    master, slave = pty.openpty()
+    args = [sys.executable, "-m", "equidiff_ros.recorder_node", "--ros-args", "-p", f"output_dir:={out}",
+            "-p", "task:=keys", "-p", "min_free_gib:=0.0", "-p", "keyboard:=true"]
+    proc = subprocess.Popen(args, stdin=slave, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                            env=dict(os.environ, OMP_NUM_THREADS="1", PYTHONUNBUFFERED="1"))
+    os.close(slave)
+    try:
+        wait_status(ros, "idle")
+        os.write(master, b"s\n")
+        path = Path(wait_status(ros, "recording").split(" ", 1)[1])
+        os.write(master, b"f\n")
+        wait_status(ros, "idle")
+    finally:
+        stop(proc)
+        os.close(master)
+    assert path.name == "keys_0000"
+    meta = read_episode(path).meta
+    assert meta.task == "keys" and meta.success is False
