@@ -104,32 +104,65 @@ def _clouds(n, seed=0, size=50):
             for _ in range(n)]
 
 
+def _frame_index(frame, clouds):
+    matches = [i for i, (p, _) in enumerate(clouds) if len(p) == len(frame.points) and np.array_equal(p, frame.points)]
+    return matches[0] if matches else None
+
+
 def test_replay_plays_a_bag_at_the_recorded_pace_restamped_and_loops(tmp_path):
     clouds = _clouds(3)
+    clouds[1] = (clouds[1][0].copy(), clouds[1][1])
     clouds[1][0][0] = np.nan  # a NaN point in a recorded frame is dropped, not fatal
     bag = tmp_path / "bag"
     recorded = write_cloud_bag(bag, {"/cameras/cam_a/points": clouds, "/cameras/cam_b/points": _clouds(3, 1)})
-    clock_ns = [5_000]
+    offset = 10 ** 12  # a clock that is not the wall clock: stamps come from it
 
-    def fake_clock():
-        clock_ns[0] += 1
-        return clock_ns[0]
-
-    cam = make_camera("replay", _camera(), bag=str(bag), clock=fake_clock)
+    cam = make_camera("replay", _camera(), bag=str(bag), clock=lambda: time.time_ns() + offset)
     with cam:
         t0 = time.monotonic()
-        frames = [cam.read(timeout_s=1.0) for _ in range(4)]
+        frames = [cam.read(timeout_s=1.0) for _ in range(5)]
         elapsed = time.monotonic() - t0
-    assert 0.18 < elapsed < 2.0  # frames 0..2 are 0.1 s apart, then the loop restarts
-    np.testing.assert_array_equal(frames[0].points, clouds[0][0])
-    np.testing.assert_array_equal(frames[0].colors, clouds[0][1])
-    assert len(frames[1].points) == 49
-    np.testing.assert_array_equal(frames[3].points, clouds[0][0])  # looped
-    assert [f.stamp_ns for f in frames] == [5_001, 5_002, 5_003, 5_004]  # restamped by the clock
+    # 0.1 s between frames, 0.2 s (one 5 Hz period) from the last frame back to the first
+    assert 0.3 < elapsed < 2.0
+    first = _frame_index(frames[0], clouds) if len(frames[0].points) == 50 else 1
+    for i, frame in enumerate(frames):
+        k = (first + i) % 3
+        if k == 1:
+            assert len(frame.points) == 49  # the NaN point is gone
+        else:
+            np.testing.assert_array_equal(frame.points, clouds[k][0])
+            np.testing.assert_array_equal(frame.colors, clouds[k][1])
+        assert abs(frame.stamp_ns - offset - time.time_ns()) < 3e9  # restamped by the given clock
+    assert all(b.stamp_ns > a.stamp_ns for a, b in zip(frames, frames[1:]))
     with make_camera("replay", _camera("cam_b"), bag=str(bag), restamp=False, loop=False, rate=4.0) as cam_b:
         assert [cam_b.read().stamp_ns for _ in range(3)] == recorded["/cameras/cam_b/points"]
         with pytest.raises(ReplayFinished, match="finished after 3 frames"):
             cam_b.read()
+
+
+def test_replays_in_separate_processes_deliver_the_same_instant_together(tmp_path):
+    import threading
+
+    clouds = _clouds(6, seed=3)
+    bag = tmp_path / "bag"
+    write_cloud_bag(bag, {"/cameras/cam_a/points": clouds}, period_ns=200_000_000)
+    delivered = {}
+
+    def play(key, delay):
+        time.sleep(delay)
+        with make_camera("replay", _camera(), bag=str(bag)) as cam:
+            delivered[key] = [(_frame_index(f, clouds), time.monotonic()) for f in (cam.read() for _ in range(4))]
+
+    threads = [threading.Thread(target=play, args=(key, delay)) for key, delay in (("a", 0.0), ("b", 0.33))]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(timeout=10)
+    by_index_a = {i: t for i, t in delivered["a"]}
+    common = [(i, t) for i, t in delivered["b"] if i in by_index_a]
+    assert common, (delivered["a"], delivered["b"])  # b joined while a was still playing
+    for i, t in common:
+        assert abs(t - by_index_a[i]) < 0.08  # the same recorded frame at the same moment
 
 
 def test_replay_errors_name_the_bag_and_topic(tmp_path):

@@ -1,9 +1,13 @@
 """Replay backend: a camera's clouds from a recorded rosbag2 directory (``/cameras/<name>/points``).
 
-Frames come out at the recorded pace (scaled by ``rate``), measured from the bag's start
-time so that several replayed cameras stay in step, and are restamped with the current
+Frames come out at the recorded pace (scaled by ``rate``) and are restamped with the current
 clock by default (the downstream staleness checks then see live data); ``restamp=False``
 keeps the recorded capture stamps. Reading uses rosbags (pure Python, no ROS needed).
+
+The schedule is anchored to the wall clock, not to when the camera connected: a looping
+replay plays bag time ``(now mod loop length)``, a single pass starts at the next multiple of
+the camera's period. Cameras replayed by separate processes (one camera_node per camera)
+therefore deliver the same recorded instant at the same moment.
 """
 
 from __future__ import annotations
@@ -76,9 +80,25 @@ class ReplayCamera(Camera):
         self._typestore = rosbags_factory().typestore
         self._reader = reader
         self._bag_start_ns = reader.start_time
-        self._bag_span_ns = max(reader.end_time - reader.start_time, 1)
-        self._origin = time.monotonic_ns()
-        self._messages = reader.messages(connections=self._connections)
+        self._period_ns = period_ns = int(1e9 / max(self.camera.publish_hz, 1e-3))
+        # one pass of the bag, plus one frame period before it starts over
+        self._loop_ns = int((reader.end_time - reader.start_time) / self.rate) + period_ns
+        now = time.time_ns()
+        if self.loop:
+            self._origin = now - now % self._loop_ns  # this cycle's start on the wall-clock grid
+            self._messages = reader.messages(connections=self._connections)
+            self._skip_past(now)
+        else:
+            self._origin = -(-now // period_ns) * period_ns  # the next period boundary
+            self._messages = reader.messages(connections=self._connections)
+
+    def _due_ns(self, logtime: int) -> int:
+        return self._origin + int((logtime - self._bag_start_ns) / self.rate)
+
+    def _skip_past(self, now: int) -> None:
+        """Drop the frames of this cycle that were due before ``now`` (without decoding them)."""
+        while self._due_ns(self._next_raw()[1]) < now:
+            self._pending = None
 
     def _next_raw(self):
         if self._pending is not None:
@@ -88,9 +108,8 @@ class ReplayCamera(Camera):
         except StopIteration:
             if not self.loop:
                 raise ReplayFinished(f"replay camera {self.camera.name!r}: {self.bag} finished "
-                                  f"after {self.frames_read} frames") from None
-            # start over one bag length (plus one nominal frame period) later
-            self._origin += int(self._bag_span_ns / self.rate) + int(1e9 / max(self.camera.publish_hz, 1e-3))
+                                     f"after {self.frames_read} frames") from None
+            self._origin += self._loop_ns
             self._messages = self._reader.messages(connections=self._connections)
             self._pending = next(self._messages)
         return self._pending
@@ -98,9 +117,9 @@ class ReplayCamera(Camera):
     def read(self, timeout_s: float = 1.0) -> CloudFrame:
         if self._reader is None:
             raise CameraError(f"replay camera {self.camera.name!r} is not connected")
+        self._skip_past(time.time_ns() - self._period_ns)  # fell behind (busy machine): drop, don't burst
         conn, logtime, raw = self._next_raw()
-        due = self._origin + int((logtime - self._bag_start_ns) / self.rate)
-        wait_s = (due - time.monotonic_ns()) / 1e9
+        wait_s = (self._due_ns(logtime) - time.time_ns()) / 1e9
         if wait_s > timeout_s:
             time.sleep(timeout_s)
             raise CameraError(f"replay camera {self.camera.name!r}: no frame due within {timeout_s} s")
