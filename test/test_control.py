@@ -274,6 +274,23 @@ def test_gripper_is_commanded_only_when_its_target_changes():
     assert sent == pytest.approx([0.08, 0.02, 0.08])
 
 
+def test_teleop_one_point_chunks_are_followed_smoothly():
+    """teleop_node's format: one point, stamp = now, reached 50 ms later, at 20 Hz."""
+    ctl, robot, clock = make_controller(start=(0.45, 0.0, 0.25))
+    period = int(1e9 / ctl.config.control_hz)
+    target = np.array([0.45, 0.0, 0.25])
+    xs = []
+    for tick in range(int(1.5 * ctl.config.control_hz)):
+        if tick % 10 == 0:  # 20 Hz, the operator pushes +x at 4 cm/s
+            target = target + [0.002, 0.0, 0.0]
+            assert ctl.submit(PoseChunk(clock.t, np.array([clock.t + 50 * MS]), pose_at(target)[None], np.ones(1) * 0.08))
+        xs.append(ctl.tick().target.pose[0, 3])
+        clock.t += period
+    assert not ctl.holding and ctl.stats.rejected_chunks == 0
+    assert np.diff(xs).min() >= -1e-12  # never backwards
+    assert xs[-1] == pytest.approx(target[0], abs=0.003)  # within one teleop step of the operator
+
+
 class FlakyRobot(DryRunRobot):
     """Fails ``failures`` times in a row (like a reflex), then works."""
 

@@ -39,6 +39,7 @@ class DryRunRobot(Robot):
         self._connected = False
         self._streaming = False
         self._last_log = 0.0
+        self._last_logged: np.ndarray | None = None
         self.sent: collections.deque = collections.deque(maxlen=config.keep_last)  # (kind, t_ns, value)
 
     def connect(self) -> None:
@@ -85,8 +86,12 @@ class DryRunRobot(Robot):
 
     def _record(self, kind: str, value, force_log: bool = False) -> None:
         now = time.time_ns()
-        self.sent.append((kind, now, np.array(value, dtype=np.float64)))
-        if force_log or now / 1e9 - self._last_log >= self.config.log_period_s:
+        value = np.array(value, dtype=np.float64)
+        self.sent.append((kind, now, value))
+        # Holding still is not news: log a target only when it moved since the last logged one.
+        moved = self._last_logged is None or kind != "target" or np.abs(value - self._last_logged).max() > 5e-4
+        if force_log or (moved and now / 1e9 - self._last_log >= self.config.log_period_s):
+            self._last_logged = value if kind == "target" else self._last_logged
             self._last_log = now / 1e9
             if kind == "gripper":
                 self.log.info(f"dry run: would move the gripper to {float(value) * 1000:.1f} mm")
