@@ -48,6 +48,8 @@ def build_node():
             self.lab = declare_lab_config(self)
             param = lambda name, default: self.declare_parameter(name, default).value  # noqa: E731
             hz = param("observation_hz", self.lab.observation_hz)
+            if not hz > 0:
+                raise ValueError(f"observation_hz must be positive, got {hz}")
             self.slop_ns = int(param("slop_s", 0.1) * 1e9)
             self.stale_ns = int(param("stale_after_s", 0.5) * 1e9)
             queue_size = param("queue_size", 5)
