@@ -173,6 +173,7 @@ class Voxelizer:
             self._tmp = np.empty(cap, np.float32)
             self._mask = np.empty(cap, bool)
             self._mask_tmp = np.empty(cap, bool)
+            self._rgb_camera = np.empty(cap, np.uint32)
             self._camera_capacity = cap
 
     def __call__(self, clouds: Sequence[Any]) -> np.ndarray:
@@ -194,7 +195,9 @@ class Voxelizer:
                 idx = np.flatnonzero(self._lands(points, u_cam))
             k = len(idx)
             np.take(u_cam, idx, axis=1, out=self._u[:, off:off + k])
-            _pack_rgb24(colors[idx], self._rgb[off:off + k])
+            rgb_cam = self._rgb_camera[:m]
+            _pack_rgb24(colors, rgb_cam)  # packing all and taking is cheaper than gathering (k, 3) rows
+            np.take(rgb_cam, idx, out=self._rgb[off:off + k])
             off += k
         n = off
         u, iu, rgb = self._u[:, :n], self._iu[:, :n], self._rgb[:n]
