@@ -338,3 +338,29 @@ def test_dryrun_logs_what_would_be_sent(caplog):
     assert [k for k, _, _ in robot.sent][:2] == ["move_to", "target"]
     with pytest.raises(ValueError, match="unknown robot backend"):
         make_robot("ur5")
+
+
+# --- metrics ---------------------------------------------------------------------------------
+
+def test_metrics_measure_what_they_claim():
+    from equidiff_core.control import metrics
+
+    t = np.arange(0.0, 4.0, 0.01)
+    path = np.stack([circle(x) for x in t])
+
+    def tangent(x):
+        return np.array([-np.sin(x * 0.079 / 0.05), np.cos(x * 0.079 / 0.05), 0.0])
+
+    assert metrics.tracking_rms(t, path, circle) == pytest.approx(0.0, abs=1e-12)
+    lag, rms = metrics.tracking_lag(t[20:], path[:-20], circle)  # the same path, 0.2 s late
+    assert lag == pytest.approx(0.2, abs=0.006) and rms < 1e-4
+    assert metrics.velocity_reversals(t, path, tangent) == 0
+    # Stop-and-go with a step back at every chunk switch (every 0.2 s): counted, once each.
+    progress = t + 0.06 * np.sin(2 * np.pi * t / 0.2)  # runs backwards ~60 ms per period
+    jerky = np.stack([circle(x) for x in progress])
+    assert metrics.velocity_reversals(t, jerky, tangent) == pytest.approx(len(t) * 0.01 / 0.2, abs=2)
+    assert metrics.max_outside_box(path, WS.lower, WS.upper) == 0.0
+    assert metrics.max_outside_box(np.array([[0.7, 0.0, 0.4]]), WS.lower, WS.upper) == pytest.approx(np.hypot(0.05, 0.02))
+    settle = np.concatenate([path[:100], np.repeat(path[100:101], 300, axis=0)])
+    assert metrics.settle_time(t, settle) == pytest.approx(t[100])
+    assert metrics.percentiles_ms([0.1, 0.2, 0.3]) == [200.0, 290.0]

@@ -75,6 +75,18 @@ def max_outside_box(positions: np.ndarray, lower: np.ndarray, upper: np.ndarray)
     return float(np.max(np.linalg.norm(below + above, axis=1))) if len(positions) else 0.0
 
 
+def settle_time(times: np.ndarray, positions: np.ndarray, tol_m: float = 2e-4) -> float | None:
+    """The earliest time from which every later position stays within ``tol_m`` of the last one."""
+    positions = np.asarray(positions, dtype=np.float64)
+    if len(positions) < 2:
+        return None
+    away = np.linalg.norm(positions - positions[-1], axis=1) > tol_m
+    if not away.any():
+        return float(times[0])
+    last_away = int(np.flatnonzero(away)[-1])
+    return float(times[last_away + 1]) if last_away + 1 < len(times) else None
+
+
 def max_drift(positions: np.ndarray, anchor: np.ndarray) -> float:
     """Largest distance (m) of the positions from ``anchor``."""
     return float(np.max(np.linalg.norm(np.asarray(positions) - np.asarray(anchor), axis=1)))

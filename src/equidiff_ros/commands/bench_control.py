@@ -301,11 +301,14 @@ def run_track_and_hold(client: BenchClient, speed: float, radius: float, duratio
     t_from, t_to = circle.t0 + settle, last_send
     times, positions = client.samples("poses", t_from, t_to)
     t_times, t_positions = client.samples("targets", t_from, t_to)
-    # Hold: the watchdog fires watchdog_s after the last command; measure the 2 s after that.
-    hold_start = last_send + watchdog_s
-    time.sleep(max(0.0, hold_start + 2.2 - time.time()))
+    # Hold: the watchdog fires ~watchdog_s after the last command arrived. Find when the node's
+    # executed target froze (it holds the TCP pose it measured then), and measure 2 s from there.
+    time.sleep(max(0.0, last_send + watchdog_s + 2.5 - time.time()))
+    e_times, e_positions = client.samples("targets", last_send, last_send + watchdog_s + 2.5)
+    hold_start = metrics.settle_time(e_times, e_positions, tol_m=2e-4)
+    if hold_start is None:
+        hold_start = last_send + watchdog_s
     h_times, h_positions = client.samples("poses", hold_start, hold_start + 2.0)
-    anchor_times, anchor = client.samples("poses", hold_start - 0.02, hold_start + 0.02)
     lag, lag_rms = metrics.tracking_lag(times, positions, circle.position)
     return {
         "tracking_rms_mm": round(metrics.tracking_rms(times, positions, circle.position) * 1000, 2),
@@ -316,7 +319,8 @@ def run_track_and_hold(client: BenchClient, speed: float, radius: float, duratio
         "command_velocity_reversals": metrics.velocity_reversals(t_times, t_positions, circle.tangent),
         "tracking_samples": int(len(times)),
         "state_hz": round(len(times) / max(t_to - t_from, 1e-9), 1),
-        "hold_drift_mm": round(metrics.max_drift(h_positions, anchor[0] if len(anchor) else h_positions[0]) * 1000, 2),
+        "hold_drift_mm": round(metrics.max_drift(h_positions, h_positions[0]) * 1000, 2),
+        "hold_engaged_after_ms": round((hold_start - last_send) * 1000, 1),
     }
 
 
