@@ -229,3 +229,22 @@ def test_bench_voxelize_prints_one_json_line(capsys):
     assert result["reference_equal"] is True
     assert result["points_per_camera"] == 20000 and result["cameras"] == 3
     assert 0 < result["points_in_workspace"] < 60000
+
+
+def test_dense_grid_path_equals_reference():
+    """Over half the voxels occupied switches the aggregation to whole-array arithmetic."""
+    from equidiff_ros.commands.bench_voxelize import synthetic_scene
+
+    lab = _lab()
+    exts = [c.extrinsics.matrix() for c in lab.cameras]
+    clouds = synthetic_scene(lab, 250_000, seed=11, kind="uniform")
+    pts, cols = clouds[0]
+    crowd = _camera_cloud(exts[0], np.tile(np.asarray(lab.workspace.center) + 0.001, (700, 1)),
+                          np.random.default_rng(2).integers(0, 256, (700, 3), dtype=np.uint8))
+    clouds[0] = (np.vstack([pts, crowd[0]]), np.vstack([cols, crowd[1]]))
+    vox = Voxelizer(lab.workspace, exts)
+    grid = vox(clouds)
+    assert vox.last_stats.occupied > lab.workspace.resolution ** 3 // 2  # the dense path ran
+    assert vox.last_stats.max_points_per_voxel >= 700  # with a crowded voxel
+    assert vox.last_stats.occupied == int(np.count_nonzero(grid[0]))
+    np.testing.assert_array_equal(grid, voxelize_reference(clouds, exts, lab.workspace))

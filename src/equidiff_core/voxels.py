@@ -284,18 +284,22 @@ def _aggregate(lin: np.ndarray, rgb: np.ndarray, R: int) -> tuple[np.ndarray, in
         return grid.reshape(4, R, R, R), 0, 0
     rb = np.bitwise_and(rgb, np.uint32(0xFF00FF))  # R + B*2^16
     sum_rb = np.bincount(lin, weights=rb, minlength=nvox)
+    # Sparse grids (real scenes): work on the occupied voxels only. Dense ones (over half the
+    # voxels occupied): whole contiguous arrays beat gathers and scatters.
     if len(lin) < 2 ** _COUNT_BITS:
         g1 = np.bitwise_and(rgb, np.uint32(0xFF00))
         g1 <<= np.uint32(_COUNT_BITS - 8)
         g1 |= np.uint32(1)  # G*2^20 + 1
         sum_g1 = np.bincount(lin, weights=g1, minlength=nvox)
-        idx = np.flatnonzero(sum_g1)
+        dense = np.count_nonzero(sum_g1) > nvox // 2
+        idx = slice(None) if dense else np.flatnonzero(sum_g1)
         packed = sum_g1[idx].astype(np.int64)
         count = packed & ((1 << _COUNT_BITS) - 1)
         sum_g = packed >> _COUNT_BITS
     else:
         count_all = np.bincount(lin, minlength=nvox)
-        idx = np.flatnonzero(count_all)
+        dense = np.count_nonzero(count_all) > nvox // 2
+        idx = slice(None) if dense else np.flatnonzero(count_all)
         count = count_all[idx]
         sum_g = np.bincount(lin, weights=(rgb >> 8) & 0xFF, minlength=nvox)[idx].astype(np.int64)
     packed = sum_rb[idx].astype(np.int64)
@@ -303,19 +307,25 @@ def _aggregate(lin: np.ndarray, rgb: np.ndarray, R: int) -> tuple[np.ndarray, in
     sum_b = packed >> 16
     crowded = count > _RB_MAX_COUNT
     if crowded.any():  # R overflowed into B for these voxels: recount them per channel
-        sum_r = sum_r.copy()
-        sum_b = sum_b.copy()
-        sum_r[crowded] = np.bincount(lin, weights=rgb & 0xFF, minlength=nvox)[idx[crowded]].astype(np.int64)
-        sum_b[crowded] = np.bincount(lin, weights=rgb >> 16, minlength=nvox)[idx[crowded]].astype(np.int64)
+        sum_r[crowded] = np.bincount(lin, weights=rgb & 0xFF, minlength=nvox)[idx][crowded].astype(np.int64)
+        sum_b[crowded] = np.bincount(lin, weights=rgb >> 16, minlength=nvox)[idx][crowded].astype(np.int64)
     # (sum + count // 2) // count via float64 true division: exact here (an integer quotient
     # comes out exactly; a non-integer a/b < 256 is >= 1/b away from the next integer, far
     # more than one rounding), and several times faster than numpy's int64 floor division.
     half = count >> 1
-    count_f = count.astype(np.float64)
-    grid[0, idx] = 255
+    if dense:
+        occupied_mask = count > 0
+        occupied = int(np.count_nonzero(occupied_mask))
+        grid[0] = occupied_mask
+        grid[0] *= 255
+        count_f = np.maximum(count, 1).astype(np.float64)  # empty voxels: 0 / 1 = 0
+    else:
+        occupied = len(idx)
+        grid[0, idx] = 255
+        count_f = count.astype(np.float64)
     for ch, total in ((1, sum_r), (2, sum_g), (3, sum_b)):
         grid[ch, idx] = np.floor((total + half) / count_f)
-    return grid.reshape(4, R, R, R), len(idx), int(count.max())
+    return grid.reshape(4, R, R, R), occupied, int(count.max())
 
 
 def voxelize(clouds: Sequence[Any], extrinsics: Sequence[np.ndarray], workspace: Workspace,
