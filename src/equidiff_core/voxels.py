@@ -23,9 +23,11 @@ camera-frame depth limits, table removal (points whose base-frame height is belo
 ``outlier_neighbors`` nearest neighbours beyond the global mean + ``outlier_std_ratio``
 standard deviations) on the points inside the workspace only.
 
-Speed (``equidiff bench voxelize``): the fast path is numpy only, on purpose single-threaded
-and allocation-free after the first call (scratch buffers are kept by the ``Voxelizer``;
-page faults on fresh 10 MB temporaries cost more than the arithmetic). The colour means come
+Speed (``equidiff bench voxelize``): the fast path is numpy only and single-threaded (threads
+did not pay on a shared 2-core machine). The ``Voxelizer`` keeps its per-point scratch buffers
+between calls: page faults on fresh 10 MB temporaries cost more than the arithmetic. Each
+camera's points are transformed and tested, and only those that land are gathered (most of a
+real frame lies outside the workspace). The colour means come
 from two weighted ``np.bincount`` passes on packed integers that are exact in float64: the
 first sums ``R + B·2^16`` (exact while a voxel holds <= 257 points, otherwise the affected
 sums are recomputed per channel), the second ``G·2^20 + 1``, which yields the G sum and the
