@@ -70,3 +70,16 @@ def test_group_report_keys(equidiff_abs):
     assert set(report) >= {"c4_max_rel_err", "c8_max_rel_err"}
     assert report["c4_max_rel_err"] < 1e-4 <= report["c8_max_rel_err"]
     assert len(report["per_element"]) == 7
+
+
+def test_check_equivariance_command_prints_one_json_line(capsys):
+    import json
+
+    from equidiff_ros.cli import main
+
+    assert main(["check", "equivariance", "--preset", "tiny", "--policy", "equidiff", "--batch", "1"]) == 0
+    equi = json.loads(capsys.readouterr().out.strip())
+    assert equi["c4_max_rel_err"] < 1e-4 and equi["c8_max_rel_err"] < 1.0
+    assert main(["check", "equivariance", "--preset", "tiny", "--policy", "baseline", "--batch", "1"]) == 0
+    base = json.loads(capsys.readouterr().out.strip())
+    assert base["c4_max_rel_err"] > 100 * equi["c4_max_rel_err"]

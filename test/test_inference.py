@@ -146,3 +146,17 @@ def test_bad_observations_raise(exported):
         inf.predict(vox, np.full(10, np.nan, np.float32))
     with pytest.raises(PolicyInputError, match=r"\(10,\)"):
         inf.predict(vox, ee[:9])
+
+
+def test_bench_policy_command_prints_one_json_line(capsys):
+    from equidiff_ros.cli import main
+
+    assert main(["bench", "policy", "--preset", "tiny", "--iters", "3", "--eager-iters", "1"]) == 0
+    lines = capsys.readouterr().out.strip().splitlines()
+    assert len(lines) == 1
+    out = json.loads(lines[0])
+    for key in ("preset", "params", "encoder_ms", "step_ms", "ddim16_median_ms", "ddim16_p99_ms",
+                "eager_ddim16_median_ms", "device"):
+        assert key in out
+    assert out["preset"] == "tiny" and out["params"] > 0
+    assert 0 < out["encoder_ms"] < out["ddim16_median_ms"] <= out["ddim16_p99_ms"]
