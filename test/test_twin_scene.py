@@ -137,7 +137,9 @@ def test_sim_server_runs_in_real_time_and_shares_its_state():
         time.sleep(1.5)
         wall1, (qpos, sim1, stamp) = time.monotonic(), reader.read()
         rate = (sim1 - sim0) / (wall1 - wall0)
-        assert 0.85 < rate < 1.1, f"sim runs at {rate:.2f}x real time"
+        assert rate < 1.1, f"sim runs ahead of real time ({rate:.2f}x)"
+        # a starved CPU cannot hold 1 kHz; then the loop must know it (skip-ahead overruns counted)
+        assert rate > 0.85 or twin.stats.overruns > 0, f"sim at {rate:.2f}x real time without overruns"
         assert abs(stamp - time.time_ns()) < 0.2e9
         # reset from a seed moves the objects to that seed's poses, visible through shared memory
         poses = twin.reset(9)
