@@ -17,7 +17,7 @@ then drives the node from this process exactly as the policy would, over /franka
    untrained export of the compact preset, since latency does not depend on the weights) on
    synthetic 5 Hz voxel grids; observation stamp -> chunk received here (``obs_to_cmd_p50_ms``,
    ``obs_to_cmd_p95_ms``), with the bare ``InferencePolicy.predict`` time measured in this
-   process as the baseline.
+   process before anything else starts as the baseline (``baseline_bare_predict_p50_ms``).
 
 Prints one JSON line.
 """
@@ -368,32 +368,42 @@ def run_nan(client: BenchClient) -> dict:
             "alive_after_nan": bool(alive)}
 
 
+def synthetic_grid(workspace) -> np.ndarray:
+    """A table and a block: a plausible, fixed observation (latency does not depend on it)."""
+    rng = np.random.default_rng(0)
+    r = workspace.resolution
+    grid = np.zeros((4, r, r, r), np.uint8)
+    grid[0, :, :, :2] = 255
+    i, j = rng.integers(r // 4, 3 * r // 4 - 4, 2)
+    grid[0, i:i + 5, j:j + 5, 2:7] = 255
+    grid[1:, grid[0] > 0] = 150
+    return grid
+
+
+def bare_predict_s(checkpoint: Path, precision: str, workspace, repeats: int = 3) -> list[float]:
+    """Baseline: ``InferencePolicy.predict`` alone, in this process, before anything else runs."""
+    from equidiff_core import geometry
+    from equidiff_core.inference import load_inference_policy
+
+    policy = load_inference_policy(checkpoint, precision=precision)
+    policy.warmup(1)
+    grid = synthetic_grid(workspace)
+    ee = geometry.pose_to_action(down_pose(workspace.center), np.array(0.08)).astype(np.float32)
+    times = []
+    for k in range(repeats):
+        t0 = time.perf_counter()
+        policy.predict(grid, ee, seed=k)
+        times.append(time.perf_counter() - t0)
+    return times
+
+
 def run_latency(client: BenchClient, checkpoint: Path, precision: str, duration: float, log_dir: Path,
                 label: str) -> dict:
-    from equidiff_core import geometry
     from equidiff_core.control import metrics
-    from equidiff_core.inference import load_inference_policy
     from equidiff_core.pointcloud import grid_to_voxel_msg
 
     ws = client.lab.workspace
-    rng = np.random.default_rng(0)
-    grid = np.zeros((4, ws.resolution, ws.resolution, ws.resolution), np.uint8)
-    grid[0, :, :, :2] = 255  # a table and a block
-    i, j = rng.integers(16, 44, 2)
-    grid[0, i:i + 5, j:j + 5, 2:7] = 255
-    grid[1:, grid[0] > 0] = 150
-
-    # Baseline: the bare predict() in this process, no ROS (before the node competes for the CPU).
-    policy = load_inference_policy(checkpoint, precision=precision)
-    policy.warmup(1)
-    ee = geometry.pose_to_action(down_pose(client.latest_position()), np.array(0.08)).astype(np.float32)
-    bare = []
-    for k in range(3):
-        t0 = time.perf_counter()
-        policy.predict(grid, ee, seed=k)
-        bare.append(time.perf_counter() - t0)
-    del policy
-
+    grid = synthetic_grid(ws)
     proc = start_node("policy_node", {"checkpoint": str(checkpoint), "precision": precision,
                                       "lab_config": client.lab_path}, log_dir / "policy_node.log")
     try:
@@ -422,11 +432,9 @@ def run_latency(client: BenchClient, checkpoint: Path, precision: str, duration:
         rows = [(r, s) for r, s in list(client.data.chunks)[n_before:] if r > t_first and s in stamps]
         lat = [r - s for r, s in rows]
         p50, p95 = metrics.percentiles_ms(lat)
-        bare50, _ = metrics.percentiles_ms(bare)
         return {"obs_to_cmd_p50_ms": p50, "obs_to_cmd_p95_ms": p95, "policy": label, "policy_precision": precision,
                 "policy_chunks_per_s": round(len(rows) / duration, 2),
-                "policy_diagnostics": client.data.diagnostics.get("policy_node", {}),
-                "baseline_bare_predict_p50_ms": bare50}
+                "policy_diagnostics": client.data.diagnostics.get("policy_node", {})}
     finally:
         stop_process(proc)
 
@@ -464,6 +472,16 @@ def run(args: argparse.Namespace) -> int:
             control_path = tmp / "control.yaml"
             control_path.write_text(yaml.safe_dump(to_dict(control)))
         result["interpolation"] = control.scheduler.interpolation
+        checkpoint = label = None
+        if not args.no_policy:
+            checkpoint, label = args.policy_checkpoint, "checkpoint"
+            if checkpoint is None:
+                checkpoint = export_untrained(args.policy_preset, tmp / "untrained.pt", lab.workspace)
+                label = f"untrained-{args.policy_preset}"
+            from equidiff_core.control import metrics
+
+            result["baseline_bare_predict_p50_ms"] = metrics.percentiles_ms(
+                bare_predict_s(checkpoint, args.precision, lab.workspace))[0]
         franka = client = None
         with SimServer() as sim:
             try:
@@ -485,10 +503,6 @@ def run(args: argparse.Namespace) -> int:
                     result.update({"obs_to_cmd_p50_ms": None, "obs_to_cmd_p95_ms": None, "policy": None})
                 else:
                     approach(client, np.asarray(control.home_position))
-                    checkpoint, label = args.policy_checkpoint, "checkpoint"
-                    if checkpoint is None:
-                        checkpoint = export_untrained(args.policy_preset, tmp / "untrained.pt", lab.workspace)
-                        label = f"untrained-{args.policy_preset}"
                     result.update(run_latency(client, checkpoint, args.precision, args.latency_duration, tmp, label))
                 result["franka_diagnostics"] = client.data.diagnostics.get("franka_node", {})
             except Exception as err:
