@@ -157,3 +157,30 @@ def test_main_job_smoke_run_end_to_end(ros_domain, tmp_path):
     assert (out / "twin_run.rrd").is_file() or "rerun" in proc.stderr
     # every node process is gone
     assert _pids_mentioning(str(out)) == []
+
+
+def test_generalisation_eval_scenes_have_unseen_block_and_bowl_yaw():
+    import math
+
+    from equidiff_core.twin import TwinConfig, sample_scene
+    from equidiff_core.twin.evaluate import unseen_yaw_seeds
+
+    cfg = TwinConfig()
+    seeds = unseen_yaw_seeds(cfg, (-15.0, 15.0), 12)
+    assert len(set(seeds)) == 12
+    for s in seeds:
+        p = sample_scene(cfg.scene, s)
+        for yaw in (p.block_yaw, p.bowl_yaw):
+            assert abs(math.degrees(yaw)) > 30.0  # >= 15 deg margin outside [-15, 15]
+    # and the training-range config never draws such yaws
+    narrow = cfg.with_yaw_range((-15.0, 15.0))
+    assert all(abs(math.degrees(sample_scene(narrow.scene, s).block_yaw)) <= 15.0 for s in seeds)
+
+
+def test_bench_and_collect_commands_parse():
+    from equidiff_ros.cli import build_parser
+
+    for argv in (["bench", "generalization", "--quick"], ["twin", "collect", "--episodes", "2", "--out", "x", "--direct"],
+                 ["twin", "run", "--smoke"]):
+        args = build_parser(argv).parse_args(argv)
+        assert not getattr(args, "_missing", False), argv

@@ -20,7 +20,18 @@ import sys
 import time
 from pathlib import Path
 
-SHIPPED_CHECKPOINT = Path(__file__).resolve().parents[3] / "checkpoints" / "twin_compact" / "policy.pt"
+SHIPPED_NAME = Path("checkpoints") / "twin_compact" / "policy.pt"
+
+
+def shipped_checkpoint() -> Path:
+    """The checkpoint shipped in the repository (source checkout, or share/equidiff_ros when installed)."""
+    from equidiff_core.config import default_config_dir
+
+    candidates = [Path(__file__).resolve().parents[3] / SHIPPED_NAME, default_config_dir().parent / SHIPPED_NAME]
+    return next((c for c in candidates if c.is_file()), candidates[0])
+
+
+SHIPPED_CHECKPOINT = shipped_checkpoint()
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -55,7 +66,7 @@ def resolve_policy(args, out: Path, workspace, cfg) -> tuple[Path, str]:
             raise FileNotFoundError(f"--checkpoint {args.checkpoint}: no such file")
         return args.checkpoint, str(args.checkpoint)
     if not args.standin and not args.smoke and SHIPPED_CHECKPOINT.is_file():
-        return SHIPPED_CHECKPOINT, f"shipped {SHIPPED_CHECKPOINT.relative_to(SHIPPED_CHECKPOINT.parents[2])}"
+        return SHIPPED_CHECKPOINT, f"shipped {SHIPPED_NAME}"
     if not args.standin and not args.smoke:
         raise FileNotFoundError(f"no shipped checkpoint at {SHIPPED_CHECKPOINT}; pass --checkpoint or --standin")
     path = make_standin_policy(out / "standin_policy.pt", workspace, preset="tiny" if args.smoke else "compact",
