@@ -31,6 +31,7 @@ NODE_NAME = "franka_node"
 def build_node():
     import dataclasses
     import logging
+    import time
     from pathlib import Path
 
     from rclpy.node import Node
@@ -72,14 +73,14 @@ def build_node():
             self.controller = Controller(self.robot, self.lab.workspace,
                                          dataclasses.replace(self.config, home_on_start=home), logger=log)
 
-            self.pub_pose = self.create_publisher(type(self._msg("geometry_msgs/msg/PoseStamped")), TOPIC_EE_POSE,
+            cls = self.factory.cls
+            self.pub_pose = self.create_publisher(cls("geometry_msgs/msg/PoseStamped"), TOPIC_EE_POSE, RELIABLE_QOS)
+            self.pub_joints = self.create_publisher(cls("sensor_msgs/msg/JointState"), TOPIC_JOINT_STATES,
+                                                    RELIABLE_QOS)
+            self.pub_target = self.create_publisher(cls("geometry_msgs/msg/PoseStamped"), TOPIC_EXECUTED_TARGET,
+                                                    RELIABLE_QOS)
+            self.pub_diag = self.create_publisher(cls("diagnostic_msgs/msg/DiagnosticArray"), TOPIC_DIAGNOSTICS,
                                                   RELIABLE_QOS)
-            self.pub_joints = self.create_publisher(type(self._msg("sensor_msgs/msg/JointState")),
-                                                    TOPIC_JOINT_STATES, RELIABLE_QOS)
-            self.pub_target = self.create_publisher(type(self._msg("geometry_msgs/msg/PoseStamped")),
-                                                    TOPIC_EXECUTED_TARGET, RELIABLE_QOS)
-            self.pub_diag = self.create_publisher(type(self._msg("diagnostic_msgs/msg/DiagnosticArray")),
-                                                  TOPIC_DIAGNOSTICS, RELIABLE_QOS)
             self.controller.start()
             self.create_subscription(MultiDOFJointTrajectory, TOPIC_COMMAND_CHUNK, self.on_chunk, RELIABLE_QOS)
             self.create_timer(1.0 / state_hz, self.publish_state)
@@ -88,9 +89,6 @@ def build_node():
             self.get_logger().info(f"streaming at {self.config.control_hz:.0f} Hz, state at {state_hz:.0f} Hz; "
                                    f"workspace box {self.controller.safety.lower.round(3).tolist()} .. "
                                    f"{self.controller.safety.upper.round(3).tolist()}")
-
-        def _msg(self, type_name):
-            return self.factory.cls(type_name)()
 
         def on_chunk(self, msg) -> None:
             try:
@@ -137,12 +135,19 @@ def build_node():
         logger.setLevel(logging.INFO)
 
         class _Handler(logging.Handler):
+            last_warned: dict[str, float] = {}
+
             def emit(self, record):
                 msg = self.format(record)
                 if record.levelno >= logging.ERROR:
                     ros_logger.error(msg)
                 elif record.levelno >= logging.WARNING:
-                    ros_logger.warning(msg, throttle_duration_sec=1.0)
+                    # Throttled per kind of warning (text before the first ':'), so a burst of
+                    # rejected chunks does not hide the watchdog, and vice versa.
+                    kind, now = msg.split(":")[0][:40], time.monotonic()
+                    if now - self.last_warned.get(kind, -1e9) >= 1.0:
+                        self.last_warned[kind] = now
+                        ros_logger.warning(msg)
                 else:
                     ros_logger.info(msg)
 
@@ -152,26 +157,47 @@ def build_node():
     return FrankaNode()
 
 
+def spin_until_signal(node) -> None:
+    """Spin until SIGINT/SIGTERM, then return so the caller stops the robot/worker *before* the
+    context goes away (rclpy's own handlers shut the context down first, racing the executor)."""
+    import signal
+    import threading
+
+    from rclpy.executors import SingleThreadedExecutor
+
+    stop = threading.Event()
+    previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
+    executor = SingleThreadedExecutor()
+    executor.add_node(node)
+    try:
+        while not stop.is_set():
+            executor.spin_once(timeout_sec=0.1)
+    finally:
+        executor.remove_node(node)
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+
+
 def main(args=None) -> int:
     argv = sys.argv[1:] if args is None else list(args)
     if "-h" in argv or "--help" in argv:
         print(USAGE)
         return 0
     import rclpy
-    from rclpy.executors import ExternalShutdownException
+    from rclpy.signals import SignalHandlerOptions
 
     from equidiff_core.config import ConfigError
     from equidiff_core.robots import RobotError
 
-    rclpy.init(args=args)
+    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     node = None
     try:
         node = build_node()
-        rclpy.spin(node)
+        spin_until_signal(node)
     except (ConfigError, RobotError, ValueError) as err:
         print(f"{NODE_NAME}: {err}", file=sys.stderr)
         return 1
-    except (KeyboardInterrupt, ExternalShutdownException):
+    except KeyboardInterrupt:  # Ctrl-C during start-up
         pass
     finally:
         if node is not None:

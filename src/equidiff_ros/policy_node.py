@@ -233,26 +233,47 @@ def build_node():
     return PolicyNode()
 
 
+def spin_until_signal(node) -> None:
+    """Spin until SIGINT/SIGTERM, then return so the caller stops the robot/worker *before* the
+    context goes away (rclpy's own handlers shut the context down first, racing the executor)."""
+    import signal
+    import threading
+
+    from rclpy.executors import SingleThreadedExecutor
+
+    stop = threading.Event()
+    previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
+    executor = SingleThreadedExecutor()
+    executor.add_node(node)
+    try:
+        while not stop.is_set():
+            executor.spin_once(timeout_sec=0.1)
+    finally:
+        executor.remove_node(node)
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+
+
 def main(args=None) -> int:
     argv = sys.argv[1:] if args is None else list(args)
     if "-h" in argv or "--help" in argv:
         print(USAGE)
         return 0
     import rclpy
-    from rclpy.executors import ExternalShutdownException
+    from rclpy.signals import SignalHandlerOptions
 
     from equidiff_core.config import ConfigError
     from equidiff_core.inference import CheckpointError
 
-    rclpy.init(args=args)
+    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     node = None
     try:
         node = build_node()
-        rclpy.spin(node)
+        spin_until_signal(node)
     except (CheckpointError, ConfigError, ValueError) as err:
         print(f"{NODE_NAME}: {err}", file=sys.stderr)
         return 1
-    except (KeyboardInterrupt, ExternalShutdownException):
+    except KeyboardInterrupt:  # Ctrl-C during start-up
         pass
     finally:
         if node is not None:

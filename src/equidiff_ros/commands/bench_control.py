@@ -380,13 +380,13 @@ def synthetic_grid(workspace) -> np.ndarray:
     return grid
 
 
-def bare_predict_s(checkpoint: Path, precision: str, workspace, repeats: int = 3) -> list[float]:
+def bare_predict_s(checkpoint: Path, precision: str, workspace, repeats: int = 5) -> list[float]:
     """Baseline: ``InferencePolicy.predict`` alone, in this process, before anything else runs."""
     from equidiff_core import geometry
     from equidiff_core.inference import load_inference_policy
 
     policy = load_inference_policy(checkpoint, precision=precision)
-    policy.warmup(1)
+    policy.warmup()  # as the node does (bf16 kernels are slow for the first calls)
     grid = synthetic_grid(workspace)
     ee = geometry.pose_to_action(down_pose(workspace.center), np.array(0.08)).astype(np.float32)
     times = []
