@@ -107,11 +107,11 @@ def _ros_value(value) -> str:
     return str(value)
 
 
-def stop_process(proc: subprocess.Popen | None, timeout: float = 10.0) -> int | None:
+def stop_process(proc: subprocess.Popen | None, timeout: float = 10.0, sig: int = signal.SIGINT) -> int | None:
     if proc is None:
         return None
     if proc.poll() is None:
-        proc.send_signal(signal.SIGINT)
+        proc.send_signal(sig)
         try:
             proc.wait(timeout=timeout)
         except subprocess.TimeoutExpired:
