@@ -133,10 +133,10 @@ def test_policy_closes_the_loop_and_skips_stale_observations(ros_domain, checkpo
         feeder.join(timeout=2)
         n_chunks = len(client.data.chunks)
         skipped_before = int(diag.get("skipped_stale_observation", 0))
-        time.sleep(3.0)
+        time.sleep(3.5)  # > 0.5 s to go stale, then ~15 cycles, reported at 1 Hz
         assert len(client.data.chunks) <= n_chunks + 1  # at most the one in flight
         diag = client.data.diagnostics["policy_node"]
-        assert int(diag.get("skipped_stale_observation", 0)) >= skipped_before + 5
+        assert int(diag.get("skipped_stale_observation", 0)) >= skipped_before + 3
         assert policy.poll() is None and franka.poll() is None
     finally:
         stop_voxels.set()

@@ -186,11 +186,13 @@ def build_node():
                 grid = voxel_msg_to_grid(msg, self.policy.workspace.resolution)
                 ee = geometry.pose_to_action(pose, np.array(width)).astype(np.float32)
                 actions = self.policy.predict(grid, ee, seed=int(self.rng.integers(2**31)))
-                self.inference_s.append(time.perf_counter() - t0)
+                inference = time.perf_counter() - t0
                 chunk = chunk_from_actions(actions[: self.n_action_steps], stamp, self.dt_ns)
                 self.pub_chunk.publish(chunk_to_msg(chunk, self.factory, self.lab.base_frame))
-                self.obs_to_cmd_s.append((now_ns(self) - stamp) / 1e9)
-                self.published += 1
+                with self._lock:  # the diagnostics read both as a pair
+                    self.inference_s.append(inference)
+                    self.obs_to_cmd_s.append((now_ns(self) - stamp) / 1e9)
+                    self.published += 1
             except Exception as err:  # bad input or a bad prediction: skip it, say why, keep serving
                 self.failures += 1
                 self.get_logger().error(f"inference failed: {type(err).__name__}: {err}",
@@ -202,11 +204,13 @@ def build_node():
             def last_ms(values):
                 return round(values[-1] * 1000, 1) if values else -1.0
 
-            p50, p95 = percentiles_ms(self.obs_to_cmd_s)
+            with self._lock:
+                inference, obs_to_cmd = last_ms(self.inference_s), last_ms(self.obs_to_cmd_s)
+                p50, p95 = percentiles_ms(self.obs_to_cmd_s)
             values = {
-                "inference_ms": last_ms(self.inference_s),
+                "inference_ms": inference,
                 "observation_age_ms": last_ms(self.obs_age_s),
-                "obs_to_cmd_ms": last_ms(self.obs_to_cmd_s),
+                "obs_to_cmd_ms": obs_to_cmd,
                 "obs_to_cmd_p50_ms": -1.0 if p50 is None else p50,
                 "obs_to_cmd_p95_ms": -1.0 if p95 is None else p95,
                 "skipped_cycles": sum(self.skipped.values()),
