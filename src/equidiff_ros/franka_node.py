@@ -57,7 +57,9 @@ def build_node():
             gripper = self.declare_parameter("gripper", True).value
             self.config = load_control_config(Path(control_path))
             home = self.declare_parameter("home_on_start", self.config.home_on_start).value
-            state_hz = self.declare_parameter("state_hz", self.lab.robot.state_hz).value
+            from equidiff_ros.policy_node import declare_number
+
+            state_hz = declare_number(self, "state_hz", self.lab.robot.state_hz)
             if backend not in BACKENDS:
                 raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
             self.frame = self.lab.base_frame

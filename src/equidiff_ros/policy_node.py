@@ -65,9 +65,9 @@ def build_node():
             device = self.declare_parameter("device", "cpu").value
             precision = self.declare_parameter("precision", "fp32").value
             jit = self.declare_parameter("jit", False).value
-            rate_hz = self.declare_parameter("rate_hz", self.lab.observation_hz).value
-            self.max_obs_age_ns = int(self.declare_parameter("max_observation_age_s", 0.5).value * 1e9)
-            self.max_state_offset_ns = int(self.declare_parameter("max_state_offset_s", 0.1).value * 1e9)
+            rate_hz = declare_number(self, "rate_hz", self.lab.observation_hz)
+            self.max_obs_age_ns = int(declare_number(self, "max_observation_age_s", 0.5) * 1e9)
+            self.max_state_offset_ns = int(declare_number(self, "max_state_offset_s", 0.1) * 1e9)
             seed = self.declare_parameter("seed", -1).value
             n_steps = self.declare_parameter("n_action_steps", 0).value
             threads = self.declare_parameter("torch_threads", 0).value
@@ -235,6 +235,16 @@ def build_node():
         return best if best_dt is not None and best_dt <= max_offset_ns else None
 
     return PolicyNode()
+
+
+def declare_number(node, name: str, default: float) -> float:
+    """A float parameter that also accepts integers (``-p rate_hz:=5``, which rclpy would reject)."""
+    from rcl_interfaces.msg import ParameterDescriptor
+
+    value = node.declare_parameter(name, float(default), ParameterDescriptor(dynamic_typing=True)).value
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not value > 0:
+        raise ValueError(f"parameter {name} must be a positive number, got {value!r}")
+    return float(value)
 
 
 def spin_until_signal(node) -> None:
