@@ -113,7 +113,7 @@ PRESETS: dict[str, PolicyPreset] = {
         encoder_channels=(1, 2, 4, 8, 16, 32, 32, 64),
         obs_hidden=32,
         action_hidden=16,
-        down_dims=(48, 96, 192),
+        down_dims=(32, 64, 128),
         kernel_size=5,
         diffusion_step_embed_dim=64,
     ),

@@ -25,7 +25,8 @@ def add_arguments(parser) -> None:
     parser.add_argument("--no-jit", action="store_true", help="skip torch.jit.trace of encoder and denoiser")
     parser.add_argument("--iters", type=int, default=30, help="timed DDIM-16 runs of the exported policy")
     parser.add_argument("--eager-iters", type=int, default=3, help="timed runs of the eager escnn model")
-    parser.add_argument("--threads", type=int, default=0, help="torch intra-op threads (0: torch default)")
+    parser.add_argument("--threads", type=int, default=1,
+                        help="torch intra-op threads (default 1: on a shared 2-core machine more threads oversubscribe; 0: torch default)")
 
 
 def _device_name(device) -> str:
