@@ -327,6 +327,17 @@ def test_errors_are_recovered_a_bounded_number_of_times():
     assert ctl.tick() is None  # faulted: sends nothing more
 
 
+def test_streaming_does_not_start_with_the_tcp_outside_the_box():
+    robot = DryRunRobot(DryRunConfig(initial_position=(0.55, 0.0, 0.52)))  # franky-sim's start pose
+    robot.connect()
+    ctl = Controller(robot, WS, ControlConfig(), clock=FakeClock())
+    with pytest.raises(RobotError, match="outside the workspace box"):
+        ctl.start(home=False, thread=False)
+    assert [k for k, _, _ in robot.sent] == []  # nothing was sent
+    ctl.start(home=True, thread=False)  # the home pose is inside: fine
+    assert robot.sent[0][0] == "move_to"
+
+
 def test_dryrun_logs_what_would_be_sent(caplog):
     robot = make_robot("dryrun")
     robot.connect()

@@ -118,3 +118,30 @@ def test_gripper_moves_without_blocking_the_arm(franka):
     assert width == pytest.approx(0.02, abs=0.006)
     assert rate >= 90  # state kept flowing while the gripper moved
     assert proc.poll() is None
+
+
+def test_controller_recovers_when_the_franky_motion_stops():
+    """In-process Controller + FrankyRobot on their own franky-sim: the streaming motion is
+    stopped under it (what a reflex does on a real FR3; franky-sim never raises one itself);
+    the next tick notices, recovers with a logged reason, and holds the arm where it was."""
+    from equidiff_core.control import Controller
+    from equidiff_core.robots import RobotError, make_robot
+
+    with SimServer() as sim:
+        robot = make_robot("franky", ip=sim.host, config=CONTROL.franky, realtime=False, gripper=False)
+        with robot:
+            ctl = Controller(robot, load_lab_config(LAB_PATH).workspace, CONTROL)
+            with pytest.raises(RobotError, match="outside the workspace box"):
+                ctl.start(home=False)  # franky-sim's initial pose is above the box: no surprise motion
+            ctl.start(home=True)
+            try:
+                time.sleep(0.5)
+                before = ctl.state.ee_pose[:3, 3].copy()
+                robot._robot.stop()
+                time.sleep(1.0)
+                assert ctl.stats.recoveries == 1 and not ctl.stats.faulted
+                assert "without a robot error" in ctl.stats.last_recovery_reason
+                assert robot._robot.is_in_control  # streaming again
+                assert np.linalg.norm(ctl.state.ee_pose[:3, 3] - before) < 0.002
+            finally:
+                ctl.stop()

@@ -83,7 +83,11 @@ def build_node():
                                                     RELIABLE_QOS)
             self.pub_diag = self.create_publisher(cls("diagnostic_msgs/msg/DiagnosticArray"), TOPIC_DIAGNOSTICS,
                                                   RELIABLE_QOS)
-            self.controller.start()
+            try:
+                self.controller.start()
+            except Exception:
+                self.robot.disconnect()
+                raise
             self.create_subscription(MultiDOFJointTrajectory, TOPIC_COMMAND_CHUNK, self.on_chunk, RELIABLE_QOS)
             self.create_timer(1.0 / state_hz, self.publish_state)
             self.create_timer(1.0, self.publish_diagnostics)

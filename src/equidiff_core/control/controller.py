@@ -98,6 +98,13 @@ class Controller:
                 raise ValueError(f"home position {self.config.home_position} is outside the workspace box")
             self.log.info(f"moving to the home pose {self.config.home_position}")
             self.robot.move_to(home_pose)
+        position = self.robot.read_state().ee_pose[:3, 3]
+        if not self.safety.inside(position, tol=1e-3):
+            # Every command is clipped into the box, so streaming from outside would pull the
+            # arm in at full speed: refuse instead of moving unexpectedly.
+            raise RobotError(f"the TCP is at {np.round(position, 3).tolist()}, outside the workspace box "
+                             f"{np.round(self.safety.lower, 3).tolist()} .. {np.round(self.safety.upper, 3).tolist()}; "
+                             f"move it inside (or enable home_on_start) before streaming")
         self.robot.start_streaming()
         self._reset_to_measured()
         if thread:

@@ -145,15 +145,20 @@ class FrankyRobot(Robot):
             tracker.stop()
 
     def _motion_error(self) -> str:
+        """Why the streaming motion ended: its exception, else the robot's error flags."""
         try:
             self._robot.join_motion(timeout=0.0)
-        except Exception as err:
+        except Exception as err:  # franky's ControlException / ReflexException carry libfranka's reason
             return str(err)
         try:
-            errors = self._robot.state.last_motion_errors
-            return str(errors) if errors else "unknown reason"
-        except Exception:
-            return "unknown reason"
+            state = self._robot.state
+            for attr in ("last_motion_errors", "current_errors"):
+                text = str(getattr(state, attr, ""))
+                if text not in ("", "[]", "None"):
+                    return f"{attr}: {text}"
+        except Exception:  # noqa: BLE001 - a reason is nice to have, recovery must go on
+            pass
+        return "the motion ended without a robot error (stopped or preempted by another client)"
 
     def move_gripper(self, width: float) -> None:
         if self._gripper is None:
