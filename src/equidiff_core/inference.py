@@ -128,6 +128,9 @@ class InferencePolicy:
         self.codec = ActionCodec(preset.control, normalizer)
         self.scheduler = make_inference_scheduler(preset)
         self.net = net.eval().to(device=device, dtype=self.dtype)
+        self.pad_channels = 0
+        if precision == "fp32" and device.type == "cpu":
+            self.pad_channels = _pad_first_conv(self.net.encoder, multiple=8)
         self.channels_last = channels_last
         if channels_last:
             self.net.encoder.to(memory_format=torch.channels_last_3d)
@@ -146,7 +149,7 @@ class InferencePolicy:
         return self.preset.dt
 
     def _trace(self):
-        To, C, S = self.preset.n_obs_steps, self.preset.voxel_channels, self.preset.crop
+        To, C, S = self.preset.n_obs_steps, self.preset.voxel_channels + self.pad_channels, self.preset.crop
         vox = torch.zeros(1, To, C, S, S, S, device=self.device, dtype=self.dtype)
         ee = torch.zeros(1, To, 10, device=self.device, dtype=self.dtype)
         with torch.no_grad(), warnings.catch_warnings():
@@ -188,6 +191,8 @@ class InferencePolicy:
 
         vox = torch.from_numpy(np.ascontiguousarray(voxels)).to(self.device)
         vox = center_crop(vox, self.preset.crop).to(self.dtype).div_(255.0)
+        if self.pad_channels:
+            vox = torch.cat([vox, vox.new_zeros((self.pad_channels, *vox.shape[1:]))])
         vox = vox[None, None].expand(1, self.preset.n_obs_steps, *vox.shape)  # single-step history repeated
         ee_t = torch.as_tensor(np.asarray(ee, dtype=np.float32), device=self.device)
         ee_n = self.normalizer.normalize(ee_t)[None, None].expand(1, self.preset.n_obs_steps, 10).to(self.dtype)
@@ -227,6 +232,27 @@ class InferencePolicy:
         ee[3] = ee[7] = 1.0
         for _ in range(iterations):
             self.predict(vox, ee, seed=0)
+
+
+def _pad_first_conv(encoder: torch.nn.Sequential, multiple: int) -> int:
+    """Give the first Conv3d zero weights for extra input channels up to ``multiple``; returns how many.
+
+    oneDNN's fp32 3D convolution on CPU takes a slow path for 4 input channels (measured on the
+    2-core EPYC: 91 ms for 4->8 channels at 58^3, 12 ms for 8->8); the padded channels are zeros,
+    so the output is unchanged."""
+    conv = encoder[0]
+    extra = -conv.in_channels % multiple
+    if not isinstance(conv, torch.nn.Conv3d) or extra == 0:
+        return 0
+    padded = torch.nn.Conv3d(conv.in_channels + extra, conv.out_channels, conv.kernel_size, conv.stride,
+                             conv.padding, bias=conv.bias is not None).to(conv.weight.device, conv.weight.dtype)
+    with torch.no_grad():
+        padded.weight.zero_()
+        padded.weight[:, : conv.in_channels] = conv.weight
+        if conv.bias is not None:
+            padded.bias.copy_(conv.bias)
+    encoder[0] = padded.eval()
+    return extra
 
 
 class _Method(torch.nn.Module):
