@@ -160,3 +160,13 @@ def test_bench_policy_command_prints_one_json_line(capsys):
         assert key in out
     assert out["preset"] == "tiny" and out["params"] > 0
     assert 0 < out["encoder_ms"] < out["ddim16_median_ms"] <= out["ddim16_p99_ms"]
+
+
+def test_precision_choices(exported):
+    from equidiff_core.inference import cpu_has_native_bf16
+
+    _, path = exported
+    auto = load_inference_policy(path, precision="auto")
+    assert auto.precision == ("bf16" if cpu_has_native_bf16() else "fp32")
+    with pytest.raises(ValueError, match="precision"):
+        load_inference_policy(path, precision="fp8")

@@ -45,14 +45,6 @@ def _device_name(device) -> str:
     return f"cpu: {model}, {torch.get_num_threads()} threads"
 
 
-def _bf16_native() -> bool:
-    try:
-        flags = open("/proc/cpuinfo").read()
-    except OSError:
-        return False
-    return "avx512_bf16" in flags or "amx_bf16" in flags
-
-
 def _timed(fn, iters, sync):
     times = []
     for _ in range(iters):
@@ -83,7 +75,9 @@ def run(args) -> int:
                           ("cpu" if args.device == "auto" else args.device))
     precision = args.precision
     if precision == "auto":
-        precision = "bf16" if device.type == "cuda" or _bf16_native() else "fp32"
+        from equidiff_core.inference import cpu_has_native_bf16
+
+        precision = "bf16" if device.type == "cuda" or cpu_has_native_bf16() else "fp32"
     sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
 
     ws = Workspace()
