@@ -74,7 +74,7 @@ def _trained_steps(out: Path) -> int | None:
     try:
         history = json.loads((out / "history.json").read_text())
         steps = [h.get("step") for h in history if isinstance(h, dict) and "step" in h]
-        return int(max(steps)) + 1 if steps else None
+        return int(max(steps)) if steps else None  # history steps count from 1
     except (OSError, ValueError):
         return None
 
