@@ -139,3 +139,20 @@ def test_bad_batches_are_rejected_with_clear_errors():
         make_policy("baseline", get_preset("tiny"), WS).compute_loss(good)
     with pytest.raises(ValueError, match="unknown policy"):
         make_policy("transformer", get_preset("tiny"), WS)
+
+
+def test_two_observation_steps_train_and_stay_equivariant():
+    from equidiff_core.models import equivariance
+
+    policy = make_policy("equidiff", get_preset("tiny", n_obs_steps=2), WS)
+    policy.set_normalizer(Normalizer.from_workspace(WS))
+    vox, ee = equivariance.random_observation(policy, batch=2, seed=0)
+    assert vox.shape[1] == 2
+    action = ee[:, -1:].expand(2, 16, 10).clone()
+    loss = policy.train().compute_loss({"voxels": vox, "ee": ee, "action": action})
+    loss.backward()
+    assert torch.isfinite(loss)
+    policy.eval()
+    out = policy.predict_action({"voxels": vox, "ee": ee})
+    assert out["action"].shape == (2, 8, 10) and out["action_pred"].shape == (2, 16, 10)
+    assert equivariance.noise_predictor_error(policy, math.pi / 2, batch=1) < 1e-4

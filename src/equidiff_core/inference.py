@@ -16,7 +16,6 @@ bf16 on CUDA and on CPUs with native bf16 (AVX512-BF16/AMX), fp32 elsewhere. Mea
 
 from __future__ import annotations
 
-import contextlib
 import json
 import warnings
 from pathlib import Path
@@ -210,11 +209,7 @@ class InferencePolicy:
         vox = vox[None, None].expand(1, self.preset.n_obs_steps, *vox.shape)  # single-step history repeated
         ee_t = torch.as_tensor(np.asarray(ee, dtype=np.float32), device=self.device)
         ee_n = self.normalizer.normalize(ee_t)[None, None].expand(1, self.preset.n_obs_steps, 10).to(self.dtype)
-        with self._autocast():
-            return self._encode(self._layout(vox), ee_n)
-
-    def _autocast(self):
-        return contextlib.nullcontext()
+        return self._encode(self._layout(vox), ee_n)
 
     @torch.no_grad()
     def denoise(self, x: torch.Tensor, t: torch.Tensor, cond: torch.Tensor) -> torch.Tensor:
