@@ -184,3 +184,21 @@ def test_bench_and_collect_commands_parse():
                  ["twin", "run", "--smoke"]):
         args = build_parser(argv).parse_args(argv)
         assert not getattr(args, "_missing", False), argv
+
+
+def test_shipped_checkpoint_loads_and_its_training_is_recorded():
+    """The checkpoint `equidiff twin run` uses by default: loadable, plain torch, documented next to it."""
+    import numpy as np
+
+    from equidiff_core.inference import load_inference_policy
+    from equidiff_ros.commands.twin_run import SHIPPED_CHECKPOINT
+
+    assert SHIPPED_CHECKPOINT.is_file(), SHIPPED_CHECKPOINT
+    assert SHIPPED_CHECKPOINT.stat().st_size < 20 * 2 ** 20  # small enough for the repository
+    readme = (SHIPPED_CHECKPOINT.parent / "README.md").read_text()
+    assert "equidiff train" in readme and "equidiff twin collect" in readme
+    policy = load_inference_policy(SHIPPED_CHECKPOINT)
+    grid = np.zeros((4, 64, 64, 64), np.uint8)
+    ee = np.array([0.45, 0.0, 0.3, 1, 0, 0, 0, -1, 0, 0.08], np.float32)
+    actions = policy.predict(grid, ee, seed=0)
+    assert actions.shape == (policy.preset.horizon, 10) and np.isfinite(actions).all()
