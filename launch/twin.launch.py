@@ -17,7 +17,7 @@ from launch import LaunchDescription
 from launch.actions import DeclareLaunchArgument, EmitEvent, ExecuteProcess, RegisterEventHandler, SetEnvironmentVariable
 from launch.event_handlers import OnProcessExit
 from launch.events import Shutdown
-from launch.substitutions import LaunchConfiguration
+from launch.substitutions import LaunchConfiguration, PathJoinSubstitution
 from launch_ros.actions import Node
 
 try:
@@ -49,7 +49,7 @@ def generate_launch_description():
                           "device": LaunchConfiguration("device")}],
              remappings=[("/franka/command_chunk", "/twin/policy_chunk")]),
         Node(package="equidiff_ros", executable="recorder_node", output="screen",
-             parameters=[{**common, "output_dir": [out, "/bags"], "task": "twin_eval"}]),
+             parameters=[{**common, "output_dir": PathJoinSubstitution([out, "bags"]), "task": "twin_eval"}]),
     ]
     driver = ExecuteProcess(
         cmd=["equidiff", "twin", "run", "--attach", "--episodes", LaunchConfiguration("episodes"),
