@@ -104,30 +104,22 @@ def _sample_errors(inf, ds):
 @pytest.mark.slow
 def test_overfits_tiny_dataset(tmp_path):
     """Two demonstrations (different cubes and start poses): the diffusion loss falls more than 10x
-    and DDIM-16 samples move onto the demonstrated trajectories.
+    and DDIM-16 samples land on each demonstration's own trajectory (not the other's).
 
-    Budget: 500 steps (1-3 min on the shared 2-core CPU). After this budget samples are within a
-    few cm, not exact: with epsilon prediction the observation-dependence of x0 at high noise is
-    learned last (DP trains thousands of epochs); this bounds the loop's correctness."""
+    1200 steps, ~2-3 min on the shared 2-core CPU: with epsilon prediction the observation
+    dependence of x0 at high noise is learned last, so samples need ~1000+ steps to be exact
+    (measured: 500 steps ~7 cm, 1500 steps ~3.5 mm mean position error)."""
     torch.manual_seed(0)
     ds = CubeDataset(2, seed=0, random_yaw=False)
     policy = make_policy("equidiff", get_preset("tiny", rotation_aug="none"), WS)
-    cfg = TrainConfig(steps=500, batch_size=2, lr=2e-3, warmup_steps=20, eval_every=0, checkpoint_every=0,
-                      noise_repeats=16, log_every=10, ema=True)
-    untrained = tmp_path / "untrained.pt"
-    from equidiff_core.inference import export_policy
-    from equidiff_core.training import fit_normalizer
-
-    policy.set_normalizer(fit_normalizer(ds, WS))
-    export_policy(policy, untrained)
-    before = _sample_errors(load_inference_policy(untrained), ds)
-
-    result = train(policy, ds, None, cfg, tmp_path / "run")
+    cfg = TrainConfig(steps=1200, batch_size=2, lr=2e-3, warmup_steps=20, eval_every=0, checkpoint_every=0,
+                      noise_repeats=16, log_every=50, ema=True)
+    result = train(policy, ds, None, cfg, tmp_path)
     losses = [h["loss"] for h in result.history if "loss" in h]
-    assert np.mean(losses[-5:]) < np.mean(losses[:3]) / 10, losses
+    assert np.mean(losses[-3:]) < losses[0] / 10, losses
 
-    after = _sample_errors(load_inference_policy(result.exported), ds)
-    print("before (own m, other m, width m):", before, "after:", after)
-    for (own, _, width_err), (own0, _, width_err0) in zip(after, before):
-        assert own < 0.085 and own < 0.7 * own0, (before, after)  # metres
-        assert width_err < width_err0 / 2, (before, after)
+    errors = _sample_errors(load_inference_policy(result.exported), ds)
+    print("own / other position error (m), width error (m):", errors)
+    for own, other, width_err in errors:
+        assert own < 0.015 and own < other / 3, errors
+        assert width_err < 0.03, errors
