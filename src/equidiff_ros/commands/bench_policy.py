@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import json
 import platform
+import sys
 import time
 
 
@@ -63,7 +64,7 @@ def run(args) -> int:
     import torch
 
     from equidiff_core.config import Workspace
-    from equidiff_core.inference import export_policy, load_inference_policy, read_policy_file
+    from equidiff_core.inference import CheckpointError, export_policy, load_inference_policy, read_policy_file
     from equidiff_core.models.equivariance import random_observation
     from equidiff_core.normalizer import Normalizer
     from equidiff_core.policies import count_parameters, make_policy
@@ -83,8 +84,12 @@ def run(args) -> int:
     ws = Workspace()
     torch.manual_seed(0)
     if args.checkpoint:
-        config, _ = read_policy_file(args.checkpoint)
-        preset = preset_from_dict(config["preset"])
+        try:
+            config, _ = read_policy_file(args.checkpoint)
+            preset = preset_from_dict(config["preset"])
+        except (CheckpointError, ValueError, KeyError) as err:
+            print(f"equidiff bench policy: {err}", file=sys.stderr)
+            return 2
         policy_name = config["policy"]
         path = Path(args.checkpoint)
         eager = None
@@ -94,9 +99,11 @@ def run(args) -> int:
         eager = make_policy(policy_name, preset, ws)
         eager.set_normalizer(Normalizer.from_workspace(ws))
         eager.eval().to(device)
-        path = Path(tempfile.mkdtemp(prefix="bench_policy_")) / "policy.pt"
-        export_policy(eager, path)
-    fast = load_inference_policy(path, device=str(device), precision=precision, jit=not args.no_jit)
+        with tempfile.TemporaryDirectory(prefix="bench_policy_") as tmp:
+            path = export_policy(eager, Path(tmp) / "policy.pt")
+            fast = load_inference_policy(path, device=str(device), precision=precision, jit=not args.no_jit)
+    if args.checkpoint:
+        fast = load_inference_policy(path, device=str(device), precision=precision, jit=not args.no_jit)
     params = count_parameters(eager.model) if eager is not None else count_parameters(fast.net)
 
     vox_t, ee_t = random_observation(_Probe(fast.preset, fast.workspace), batch=1, seed=0, fill=0.05)
@@ -110,6 +117,8 @@ def run(args) -> int:
     ddim = _timed(lambda: fast.predict(vox, ee, seed=0), args.iters, sync)
 
     result = {"preset": fast.preset.name, "policy": policy_name, "params": params,
+              # escnn's trainable count; an exported file only holds the expanded (larger) plain weights
+              "params_kind": "trainable" if eager is not None else "exported",
               "encoder_ms": round(float(np.median(enc)), 2), "step_ms": round(float(np.median(step)), 2),
               "ddim16_median_ms": round(float(np.median(ddim)), 2),
               "ddim16_p99_ms": round(float(np.percentile(ddim, 99)), 2),
