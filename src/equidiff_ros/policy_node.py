@@ -16,9 +16,10 @@ node's matched sets, so it shows up here as a stale grid; a voxel node status at
 in /diagnostics also skips), or when there is no robot state near the observation.
 
 Parameters: ``checkpoint`` (exported policy file, required), ``device`` (cpu | cuda | auto),
-``precision`` (fp32 | bf16), ``jit``, ``rate_hz``, ``max_observation_age_s``,
-``max_state_offset_s``, ``seed`` (-1: random), ``n_action_steps`` (0: the preset's),
-``torch_threads`` (0: torch's default), ``lab_config``.
+``precision`` (auto | fp32 | bf16; auto = bf16 where the CPU has native bf16), ``jit``
+(default true: jit.trace), ``rate_hz``, ``max_observation_age_s``, ``max_state_offset_s``,
+``seed`` (-1: random), ``n_action_steps`` (0: the preset's), ``torch_threads`` (default 1: on
+a shared CPU more threads are slower; 0: torch's default), ``lab_config``.
 """
 
 from __future__ import annotations
@@ -26,7 +27,7 @@ from __future__ import annotations
 import sys
 
 USAGE = __doc__ + """
-usage: policy_node --ros-args -p checkpoint:=/path/policy.pt [-p device:=cpu -p precision:=fp32|bf16
+usage: policy_node --ros-args -p checkpoint:=/path/policy.pt [-p device:=cpu -p precision:=auto|fp32|bf16
                    -p rate_hz:=5.0 -p max_observation_age_s:=0.5]
 """
 
@@ -63,14 +64,14 @@ def build_node():
             self.lab = declare_lab_config(self)
             checkpoint = self.declare_parameter("checkpoint", "").value
             device = self.declare_parameter("device", "cpu").value
-            precision = self.declare_parameter("precision", "fp32").value
-            jit = self.declare_parameter("jit", False).value
+            precision = self.declare_parameter("precision", "auto").value
+            jit = self.declare_parameter("jit", True).value
             rate_hz = declare_number(self, "rate_hz", self.lab.observation_hz)
             self.max_obs_age_ns = int(declare_number(self, "max_observation_age_s", 0.5) * 1e9)
             self.max_state_offset_ns = int(declare_number(self, "max_state_offset_s", 0.1) * 1e9)
             seed = self.declare_parameter("seed", -1).value
             n_steps = self.declare_parameter("n_action_steps", 0).value
-            threads = self.declare_parameter("torch_threads", 0).value
+            threads = self.declare_parameter("torch_threads", 1).value
             if not checkpoint:
                 raise CheckpointError("the 'checkpoint' parameter is required (an exported policy file, "
                                       "e.g. -p checkpoint:=runs/pick/policy.pt)")

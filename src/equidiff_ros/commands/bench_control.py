@@ -54,7 +54,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--policy-checkpoint", type=Path, default=None,
                         help="exported policy for the latency phase (default: untrained compact export)")
     parser.add_argument("--policy-preset", default="compact", help="preset of the untrained export (default compact)")
-    parser.add_argument("--precision", choices=["fp32", "bf16"], default="fp32")
+    parser.add_argument("--precision", choices=["auto", "fp32", "bf16"], default="auto")
     parser.add_argument("--latency-duration", type=float, default=15.0, help="seconds of policy latency measurement")
     parser.add_argument("--no-policy", action="store_true", help="skip the latency phase")
     parser.add_argument("--domain-id", type=int, default=None, help="ROS_DOMAIN_ID (default: a random private one)")
