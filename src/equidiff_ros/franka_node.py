@@ -20,6 +20,8 @@ from __future__ import annotations
 
 import sys
 
+from equidiff_ros.runner import run_node
+
 USAGE = __doc__ + """
 usage: franka_node [--ros-args -p backend:=franky|dryrun -p robot_ip:=172.16.0.2 -p realtime:=true
                     -p control_config:=config/control.yaml -p lab_config:=config/lab.yaml]
@@ -57,7 +59,7 @@ def build_node():
             gripper = self.declare_parameter("gripper", True).value
             self.config = load_control_config(Path(control_path))
             home = self.declare_parameter("home_on_start", self.config.home_on_start).value
-            from equidiff_ros.policy_node import declare_number
+            from equidiff_ros.runner import declare_number
 
             state_hz = declare_number(self, "state_hz", self.lab.robot.state_hz)
             if backend not in BACKENDS:
@@ -163,55 +165,16 @@ def build_node():
     return FrankaNode()
 
 
-def spin_until_signal(node) -> None:
-    """Spin until SIGINT/SIGTERM, then return so the caller stops the robot/worker *before* the
-    context goes away (rclpy's own handlers shut the context down first, racing the executor)."""
-    import signal
-    import threading
-
-    from rclpy.executors import SingleThreadedExecutor
-
-    stop = threading.Event()
-    previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
-    executor = SingleThreadedExecutor()
-    executor.add_node(node)
-    try:
-        while not stop.is_set():
-            executor.spin_once(timeout_sec=0.1)
-    finally:
-        executor.remove_node(node)
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
 
 
 def main(args=None) -> int:
-    argv = sys.argv[1:] if args is None else list(args)
-    if "-h" in argv or "--help" in argv:
-        print(USAGE)
-        return 0
-    import rclpy
-    from rclpy.signals import SignalHandlerOptions
+    def startup_errors():
+        from equidiff_core.config import ConfigError
+        from equidiff_core.robots import RobotError
 
-    from equidiff_core.config import ConfigError
-    from equidiff_core.robots import RobotError
+        return (ConfigError, RobotError, ValueError)
 
-    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
-    node = None
-    try:
-        node = build_node()
-        spin_until_signal(node)
-    except (ConfigError, RobotError, ValueError) as err:
-        print(f"{NODE_NAME}: {err}", file=sys.stderr)
-        return 1
-    except KeyboardInterrupt:  # Ctrl-C during start-up
-        pass
-    finally:
-        if node is not None:
-            node.shutdown()
-            node.destroy_node()
-        if rclpy.ok():
-            rclpy.try_shutdown()
-    return 0
+    return run_node(NODE_NAME, USAGE, build_node, startup_errors, args)
 
 
 if __name__ == "__main__":

@@ -26,6 +26,8 @@ from __future__ import annotations
 
 import sys
 
+from equidiff_ros.runner import run_node
+
 USAGE = __doc__ + """
 usage: policy_node --ros-args -p checkpoint:=/path/policy.pt [-p device:=cpu -p precision:=auto|fp32|bf16
                    -p rate_hz:=5.0 -p max_observation_age_s:=0.5]
@@ -54,6 +56,7 @@ def build_node():
     from equidiff_core.rosmsg import RclpyFactory, stamp_to_ns
     from equidiff_ros.common import (RELIABLE_QOS, TOPIC_COMMAND_CHUNK, TOPIC_DIAGNOSTICS, TOPIC_EE_POSE,
                                      TOPIC_JOINT_STATES, TOPIC_VOXELS, VOXEL_QOS, declare_lab_config, now_ns)
+    from equidiff_ros.runner import declare_number
     from geometry_msgs.msg import PoseStamped
     from sensor_msgs.msg import JointState, PointCloud2
     from trajectory_msgs.msg import MultiDOFJointTrajectory
@@ -238,65 +241,18 @@ def build_node():
     return PolicyNode()
 
 
-def declare_number(node, name: str, default: float) -> float:
-    """A float parameter that also accepts integers (``-p rate_hz:=5``, which rclpy would reject)."""
-    from rcl_interfaces.msg import ParameterDescriptor
-
-    value = node.declare_parameter(name, float(default), ParameterDescriptor(dynamic_typing=True)).value
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not value > 0:
-        raise ValueError(f"parameter {name} must be a positive number, got {value!r}")
-    return float(value)
 
 
-def spin_until_signal(node) -> None:
-    """Spin until SIGINT/SIGTERM, then return so the caller stops the robot/worker *before* the
-    context goes away (rclpy's own handlers shut the context down first, racing the executor)."""
-    import signal
-    import threading
-
-    from rclpy.executors import SingleThreadedExecutor
-
-    stop = threading.Event()
-    previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
-    executor = SingleThreadedExecutor()
-    executor.add_node(node)
-    try:
-        while not stop.is_set():
-            executor.spin_once(timeout_sec=0.1)
-    finally:
-        executor.remove_node(node)
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
 
 
 def main(args=None) -> int:
-    argv = sys.argv[1:] if args is None else list(args)
-    if "-h" in argv or "--help" in argv:
-        print(USAGE)
-        return 0
-    import rclpy
-    from rclpy.signals import SignalHandlerOptions
+    def startup_errors():
+        from equidiff_core.config import ConfigError
+        from equidiff_core.inference import CheckpointError
 
-    from equidiff_core.config import ConfigError
-    from equidiff_core.inference import CheckpointError
+        return (CheckpointError, ConfigError, ValueError)
 
-    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
-    node = None
-    try:
-        node = build_node()
-        spin_until_signal(node)
-    except (CheckpointError, ConfigError, ValueError) as err:
-        print(f"{NODE_NAME}: {err}", file=sys.stderr)
-        return 1
-    except KeyboardInterrupt:  # Ctrl-C during start-up
-        pass
-    finally:
-        if node is not None:
-            node.shutdown()
-            node.destroy_node()
-        if rclpy.ok():
-            rclpy.try_shutdown()
-    return 0
+    return run_node(NODE_NAME, USAGE, build_node, startup_errors, args)
 
 
 if __name__ == "__main__":

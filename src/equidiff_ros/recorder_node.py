@@ -24,6 +24,8 @@ default), ``chunk_size_mib``, ``chunk_max_age_s``, ``min_free_gib``, ``task``, `
 from __future__ import annotations
 
 import sys
+
+from equidiff_ros.runner import run_node
 import threading
 
 USAGE = __doc__ + """
@@ -236,32 +238,12 @@ def build_node():
 
 
 def main(args=None) -> int:
-    argv = sys.argv[1:] if args is None else list(args)
-    if "-h" in argv or "--help" in argv:
-        print(USAGE)
-        return 0
-    import rclpy
-    from rclpy.executors import ExternalShutdownException
+    def startup_errors():
+        from equidiff_core.recording import RecordingError
 
-    from equidiff_core.recording import RecordingError
+        return (RecordingError,)
 
-    rclpy.init(args=args)
-    node = None
-    try:
-        node = build_node()
-        rclpy.spin(node)
-    except RecordingError as err:
-        print(f"recorder_node: {err}", file=sys.stderr)
-        return 1
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        if node is not None:
-            node.shutdown()
-            node.destroy_node()
-        if rclpy.ok():
-            rclpy.try_shutdown()
-    return 0
+    return run_node("recorder_node", USAGE, build_node, startup_errors, args)
 
 
 if __name__ == "__main__":

@@ -18,6 +18,8 @@ from __future__ import annotations
 
 import dataclasses
 import sys
+
+from equidiff_ros.runner import run_node
 import typing
 
 USAGE = __doc__ + """
@@ -167,31 +169,12 @@ def build_node():
 
 
 def main(args=None) -> int:
-    argv = sys.argv[1:] if args is None else list(args)
-    if "-h" in argv or "--help" in argv:
-        print(USAGE)
-        return 0
-    import rclpy
-    from rclpy.executors import ExternalShutdownException
+    def startup_errors():
+        from equidiff_core.teleop import TeleopError
 
-    from equidiff_core.teleop import TeleopError
+        return (TeleopError,)
 
-    rclpy.init(args=args)
-    node = None
-    try:
-        node = build_node()
-        rclpy.spin(node)
-    except TeleopError as err:
-        print(f"teleop_node: {err}", file=sys.stderr)
-        return 1
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        if node is not None:
-            node.destroy_node()
-        if rclpy.ok():
-            rclpy.try_shutdown()
-    return 0
+    return run_node("teleop_node", USAGE, build_node, startup_errors, args)
 
 
 if __name__ == "__main__":

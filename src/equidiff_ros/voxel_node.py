@@ -21,6 +21,8 @@ from __future__ import annotations
 
 import sys
 
+from equidiff_ros.runner import run_node
+
 USAGE = __doc__ + """
 usage: voxel_node [--ros-args -p lab_config:=config/lab.yaml -p slop_s:=0.1 -p stale_after_s:=0.5]
 """
@@ -149,33 +151,13 @@ def build_node():
 
 
 def main(args=None) -> int:
-    argv = sys.argv[1:] if args is None else list(args)
-    if "-h" in argv or "--help" in argv:
-        print(USAGE)
-        return 0
-    import rclpy
-    from rclpy.executors import ExternalShutdownException
+    def startup_errors():
+        from equidiff_core.config import ConfigError
+        from equidiff_core.voxels import VoxelError
 
-    from equidiff_core.config import ConfigError
-    from equidiff_core.voxels import VoxelError
+        return (ConfigError, VoxelError, ValueError)
 
-    rclpy.init(args=args)
-    node = None
-    try:
-        node = build_node()
-        rclpy.spin(node)
-    except (ConfigError, VoxelError, ValueError) as err:
-        print(f"{NODE_NAME}: {err}", file=sys.stderr)
-        return 1
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        if node is not None:
-            node.shutdown()
-            node.destroy_node()
-        if rclpy.ok():
-            rclpy.try_shutdown()
-    return 0
+    return run_node(NODE_NAME, USAGE, build_node, startup_errors, args)
 
 
 if __name__ == "__main__":
