@@ -25,6 +25,7 @@ setup(
         (f"share/{PACKAGE}", ["package.xml"]),
         (f"share/{PACKAGE}/config", glob("config/*.yaml")),
         (f"share/{PACKAGE}/launch", glob("launch/*.py")),
+        (f"share/{PACKAGE}/checkpoints/twin_compact", glob("checkpoints/twin_compact/*")),
     ],
     # Installed by apt on a ROS machine, by scripts/setup.sh (PyPI ros-jazzy-* wheels) elsewhere.
     install_requires=[

@@ -22,7 +22,7 @@ def colcon_install(tmp_path_factory) -> Path:
     # Build from a copy so colcon's build artefacts never touch the checkout.
     src = base / "src" / "equidiff_ros"
     shutil.copytree(ROOT, src, ignore=shutil.ignore_patterns(".venv", ".git", "*.egg-info", "__pycache__", "bags",
-                                                             "checkpoints", "build", "install", "log"))
+                                                             "build", "install", "log", "runs", "out"))
     result = subprocess.run(
         [colcon, "--log-base", str(base / "log"), "build", "--base-paths", str(base / "src"),
          "--build-base", str(base / "build"), "--install-base", str(base / "install")],
@@ -37,7 +37,8 @@ def test_colcon_registers_the_package_and_installs_share_files(colcon_install):
     assert (prefix / "share/equidiff_ros/package.xml").is_file()
     assert (prefix / "share/equidiff_ros/config/lab.yaml").is_file()
     launch_files = sorted(p.name for p in (prefix / "share/equidiff_ros/launch").glob("*.py"))
-    assert launch_files, "launch files are installed to share/equidiff_ros/launch"
+    assert {"twin.launch.py", "robot.launch.py"} <= set(launch_files)
+    assert (prefix / "share/equidiff_ros/checkpoints/twin_compact/policy.pt").is_file()
 
 
 @pytest.mark.parametrize("node", NODES)

@@ -106,7 +106,7 @@ def encoder_output_size(crop: int) -> int:
 
 PRESETS: dict[str, PolicyPreset] = {
     "paper": PolicyPreset(name="paper"),
-    # Measured cost on the 2-core CPU (see docs/parts/model.md): the 58^3 and 27^3 convolutions
+    # Measured cost on the 2-core CPU (see docs/model.md): the 58^3 and 27^3 convolutions
     # dominate, so the first fields are cut hardest; the U-Net runs once per group element (8 rows).
     "compact": PolicyPreset(
         name="compact",

@@ -37,7 +37,7 @@ class SafetyConfig:
 
 @dataclass(frozen=True)
 class SchedulerConfig:
-    # "linear" (default: 0.75 mm RMS on franky-sim, docs/parts/control.md) or "cubic" (monotone C1 Hermite)
+    # "linear" (default: 0.75 mm RMS on franky-sim, docs/control.md) or "cubic" (monotone C1 Hermite)
     interpolation: str = "linear"
     drop_margin_s: float = 0.01  # steps earlier than now + this are dropped (diffusion_policy: 10 ms)
     # A chunk entirely in the past (e.g. a teleop target stamped "now") is still executed, as

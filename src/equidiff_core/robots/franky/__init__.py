@@ -4,7 +4,7 @@ Streaming uses franky 2.0's ``CartesianImpedanceTracker``: one long-lived torque
 motion whose target we set at the control rate with a velocity feed-forward. On franky-sim
 that tracked a 5 Hz chunk stream with 1.2-3.5 mm RMS and no stop-and-go, while preempting
 motions per chunk stops at every chunk and ``CartesianWaypointMotion`` needs per-waypoint
-velocities and ``minimum_time`` not to stop or overshoot (NOTES.md, and ``docs/parts/control.md``
+velocities and ``minimum_time`` not to stop or overshoot (NOTES.md, and ``docs/control.md``
 for our own measurement). Being torque-controlled it also cannot trip the motion generator's
 discontinuity reflexes. The gripper is moved with ``move_async`` and polled in its own thread,
 because a gripper read blocks until the gripper's next state message.
