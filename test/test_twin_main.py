@@ -144,6 +144,7 @@ def test_main_job_smoke_run_end_to_end(ros_domain, tmp_path):
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:] + logs
     last = json.loads(proc.stdout.strip().splitlines()[-1])
     assert REQUIRED_KEYS <= set(last) and last["episodes"] == 1
+    assert last["chunks"] >= 1  # policy chunks went through the gate to franka_node
     assert "untrained stand-in" in proc.stdout  # the smoke run says what it ran
     # the policy's chunks reached the robot through the gate, and the episode was recorded
     summary = proc.stdout

@@ -48,8 +48,12 @@ class Supervisor:
         from std_msgs.msg import Int64, String
         from trajectory_msgs.msg import MultiDOFJointTrajectory
 
+        from rclpy.signals import SignalHandlerOptions
+
         if not rclpy.ok():
-            rclpy.init()
+            # No rclpy signal handlers: Ctrl-C must raise KeyboardInterrupt in the job's main thread
+            # (rclpy's would only shut the context down under it) so every node gets stopped.
+            rclpy.init(signal_handler_options=SignalHandlerOptions.NO)
         self.node = Node(name)
         self.factory = RclpyFactory()
         self.frame = base_frame
@@ -83,9 +87,13 @@ class Supervisor:
         self._spin.start()
 
     def _spin_loop(self):
+        from rclpy.executors import ExternalShutdownException
+
         while self._running:
             try:
                 self.executor.spin_once(timeout_sec=0.05)
+            except ExternalShutdownException:
+                return
             except Exception:  # context shut down under us at exit
                 if self._running:
                     raise

@@ -88,5 +88,5 @@ class RunSummary:
     def json_line(self) -> str:
         d = self.as_dict()
         keys = ("episodes", "success_rate", "inference_p95_ms", "end_to_end_p95_ms", "dropped_cycles",
-                "inference_p50_ms", "end_to_end_p50_ms", "mean_episode_s", "sim_realtime_factor")
+                "inference_p50_ms", "end_to_end_p50_ms", "mean_episode_s", "chunks", "sim_realtime_factor")
         return json.dumps({k: d[k] for k in keys})
