@@ -81,32 +81,15 @@ def build_node():
 
 
 def main(args=None) -> int:
-    argv = sys.argv[1:] if args is None else list(args)
-    if "-h" in argv or "--help" in argv:
-        print(USAGE)
-        return 0
-    import rclpy
-    from rclpy.executors import ExternalShutdownException
+    from equidiff_ros.runner import run_node
 
-    from equidiff_core.config import ConfigError
+    def startup_errors():
+        from equidiff_core.config import ConfigError
+        from equidiff_core.twin.scene import SceneError
 
-    rclpy.init(args=args)
-    node = None
-    try:
-        node = build_node()
-        rclpy.spin(node)
-    except (ConfigError, OSError) as err:
-        print(f"{NODE_NAME}: {err}", file=sys.stderr)
-        return 1
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        if node is not None:
-            node.shutdown()
-            node.destroy_node()
-        if rclpy.ok():
-            rclpy.try_shutdown()
-    return 0
+        return (ConfigError, SceneError, OSError, RuntimeError)  # OSError: the libfranka port is taken
+
+    return run_node(NODE_NAME, USAGE, build_node, startup_errors, args)
 
 
 if __name__ == "__main__":
