@@ -91,7 +91,7 @@ class TwinCameraOptions:
     depth_noise: bool | None = None
     dropout: float | None = None
     shm_name: str | None = None  # twin state block (default: from ROS_DOMAIN_ID)
-    twin_config: str | None = None  # path of twin.yaml
+    twin_config: object = None  # path of twin.yaml, or a TwinConfig (in-process users)
     paced: bool = True  # read() waits for the next 1/publish_hz wall-clock tick, as a camera waits for frames
 
 
