@@ -11,10 +11,10 @@ batch and seed; (3) roll both out in closed loop (in-process, sim clock, same se
 whose block *and* bowl yaw lie at least 15 deg outside the training range. Prints one JSON line:
 equidiff_success, baseline_success, demos, train_steps, eval_episodes, train_yaw_range_deg, ...
 
-Time on this 2-core CPU (uncontended, compact preset): demos ~10 s each, training ~2-5 s per
-step of batch 16, evaluation ~1 s per observation; the defaults take roughly 1-2 hours, and
-``--max-minutes`` stops training early (the steps actually trained are reported). On CUDA the
-training is ~100x faster and the default run takes minutes.
+Time on this 2-core CPU (compact preset, measured at load ~4.5): demos ~12 s each, training
+~1.3 s per step of batch 16, evaluation ~6 s per 15 s episode; the defaults take ~35 min, and
+``--max-minutes`` bounds each policy's training (the steps actually trained are reported).
+On CUDA training dominates less and thousands of steps fit in minutes.
 """
 
 from __future__ import annotations
