@@ -137,8 +137,11 @@ def _pids_mentioning(text: str) -> list[int]:
 def test_main_job_smoke_run_end_to_end(ros_domain, tmp_path):
     out = tmp_path / "run"
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    # a domain from the top of the range (221-232), away from other tests' 1-100 and the twin's default
+    # 101-215: a stray policy or teleop in the same domain would command this robot
+    domain = 221 + ros_domain % 12
     proc = subprocess.run([sys.executable, "-m", "equidiff_ros.cli", "twin", "run", "--smoke", "--out", str(out),
-                           "--domain", str(ros_domain + 120)],
+                           "--domain", str(domain)],
                           capture_output=True, text=True, timeout=420, env=env)
     logs = "\n".join(f"== {p.name}\n{p.read_text()[-1500:]}" for p in sorted((out / "logs").glob("*.log")))
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:] + logs
