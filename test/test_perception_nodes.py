@@ -200,17 +200,21 @@ def test_a_camera_never_seen_blocks_output_and_malformed_clouds_do_not_crash_the
         wrong_frame = cloud_to_msg(clouds[0][0], clouds[0][1], stamp, "somewhere_else", f)
         return [no_z, bad_step, nan, empty, wrong_frame]
 
+    rounds = [0]
+
     def publish_malformed_front():
         stamp = time.time_ns()
         msgs = _cloud_msgs(lab, clouds, stamp)
-        for bad in malformed(stamp):
+        bad_ones = malformed(stamp)
+        rounds[0] += 1  # rotate the order: a best-effort burst may lose its tail, never every kind
+        for bad in bad_ones[rounds[0] % 5:] + bad_ones[:rounds[0] % 5]:
             tester.publish(front.name, bad)
         for name in ("cam_left", "cam_right"):
             tester.publish(name, msgs[name])
 
     try:
         # only malformed clouds from cam_front: no output, the node keeps running and counts drops
-        assert tester.wait_for(lambda: int(tester.voxel_status()[1].get("cam_front_dropped", 0)) >= 10, 25.0,
+        assert tester.wait_for(lambda: int(tester.voxel_status()[1].get("cam_front_dropped", 0)) >= 25, 40.0,
                                publish_malformed_front), _stop(proc)
         assert not tester.voxels and proc.poll() is None
         assert "cam_front (never received)" in tester.voxel_status()[0]
