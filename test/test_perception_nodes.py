@@ -225,7 +225,7 @@ def test_a_camera_never_seen_blocks_output_and_malformed_clouds_do_not_crash_the
             for name, msg in _cloud_msgs(lab, clouds, time.time_ns()).items():
                 tester.publish(name, msg)
 
-        assert tester.wait_for(lambda: tester.voxels, 10.0, publish_all)
+        assert tester.wait_for(lambda: tester.voxels, 20.0, publish_all)
         np.testing.assert_array_equal(_grid(tester.voxels[-1], lab), expected)
         assert proc.poll() is None
     finally:

@@ -106,10 +106,18 @@ class FrankyRobot(Robot):
         robot = self._require()
         if self._tracker is not None:
             raise RobotError("move_to while streaming: stop_streaming first")
-        try:
-            robot.move(franky.CartesianMotion(franky.Affine(np.asarray(pose, dtype=np.float64))))
-        except Exception as err:
-            raise RobotError(f"move to home failed: {err}") from err
+        motion = franky.CartesianMotion(franky.Affine(np.asarray(pose, dtype=np.float64)))
+        # One retry after recover_from_errors: right after connecting, libfranka's planner can
+        # reject the first motion (-101) when the robot's last motion ended in an error.
+        for attempt in (1, 2):
+            try:
+                robot.move(motion)
+                return
+            except Exception as err:
+                if attempt == 2:
+                    raise RobotError(f"move to home failed: {err}") from err
+                self.log.warning(f"move to home failed ({err}); recovering and retrying once")
+                robot.recover_from_errors()
 
     def start_streaming(self) -> None:
         import franky
