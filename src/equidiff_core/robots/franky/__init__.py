@@ -106,12 +106,12 @@ class FrankyRobot(Robot):
         robot = self._require()
         if self._tracker is not None:
             raise RobotError("move_to while streaming: stop_streaming first")
-        motion = franky.CartesianMotion(franky.Affine(np.asarray(pose, dtype=np.float64)))
-        # One retry after recover_from_errors: right after connecting, libfranka's planner can
-        # reject the first motion (-101) when the robot's last motion ended in an error.
+        target = franky.Affine(np.asarray(pose, dtype=np.float64))
+        # One retry after recover_from_errors: right after connecting, the planner can reject
+        # the first motion (-101/-111 seen on franky-sim). franky motions cannot be reused.
         for attempt in (1, 2):
             try:
-                robot.move(motion)
+                robot.move(franky.CartesianMotion(target))
                 return
             except Exception as err:
                 if attempt == 2:
