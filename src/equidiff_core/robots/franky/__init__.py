@@ -107,17 +107,19 @@ class FrankyRobot(Robot):
         if self._tracker is not None:
             raise RobotError("move_to while streaming: stop_streaming first")
         target = franky.Affine(np.asarray(pose, dtype=np.float64))
-        # One retry after recover_from_errors: right after connecting, the planner can reject
-        # the first motion (-101/-111 seen on franky-sim). franky motions cannot be reused.
-        for attempt in (1, 2):
+        # Retries after recover_from_errors: right after connecting, the planner can reject the
+        # first motions (-101/-110/-111 seen on a loaded franky-sim). franky motions cannot be reused.
+        attempts = 3
+        for attempt in range(1, attempts + 1):
             try:
                 robot.move(franky.CartesianMotion(target))
                 return
             except Exception as err:
-                if attempt == 2:
-                    raise RobotError(f"move to home failed: {err}") from err
-                self.log.warning(f"move to home failed ({err}); recovering and retrying once")
+                if attempt == attempts:
+                    raise RobotError(f"move to home failed after {attempts} attempts: {err}") from err
+                self.log.warning(f"move to home failed ({err}); recovering and retrying")
                 robot.recover_from_errors()
+                time.sleep(0.5)
 
     def start_streaming(self) -> None:
         import franky
