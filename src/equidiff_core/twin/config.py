@@ -9,7 +9,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
-from ..config import ConfigError, default_config_dir, from_dict, load_yaml
+from ..config import ConfigError, LabConfig, default_config_dir, from_dict, load_yaml
 
 
 @dataclass(frozen=True)
@@ -149,3 +149,22 @@ def load_twin_config(path: str | Path | None = None) -> TwinConfig:
     if not isinstance(data, dict):
         raise ConfigError(f"{path}: expected a mapping at the top level")
     return from_dict(TwinConfig, data, where=Path(path).name)
+
+
+@dataclass(frozen=True)
+class TwinPaths:
+    """The two config files a twin job reads, resolved, and what they hold."""
+
+    lab_path: Path
+    twin_path: Path
+    lab: LabConfig
+    twin: TwinConfig
+
+
+def load_twin_job_configs(lab_path: str | Path | None, twin_path: str | Path | None) -> TwinPaths:
+    """lab.yaml + twin.yaml for the `equidiff twin …` / bench commands (defaults: the installed ones)."""
+    from ..config import load_lab_config
+
+    lab_path = Path(lab_path) if lab_path else default_config_dir() / "lab.yaml"
+    twin_path = Path(twin_path) if twin_path else default_config_dir() / "twin.yaml"
+    return TwinPaths(lab_path, twin_path, load_lab_config(lab_path), load_twin_config(twin_path))

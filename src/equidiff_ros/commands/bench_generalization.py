@@ -80,9 +80,8 @@ def _trained_steps(out: Path) -> int | None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from equidiff_core.config import default_config_dir, load_lab_config
     from equidiff_core.inference import load_inference_policy
-    from equidiff_core.twin.config import load_twin_config
+    from equidiff_core.twin.config import load_twin_job_configs
     from equidiff_core.twin.demos import DirectRecorder, collect_direct
     from equidiff_core.twin.evaluate import evaluate_policy, unseen_yaw_seeds
 
@@ -94,8 +93,8 @@ def run(args: argparse.Namespace) -> int:
 
         args.device = "cuda" if torch.cuda.is_available() else "cpu"
     t_start = time.monotonic()
-    lab = load_lab_config(args.lab_config or default_config_dir() / "lab.yaml")
-    cfg = load_twin_config(args.twin_config or default_config_dir() / "twin.yaml")
+    configs = load_twin_job_configs(args.lab_config, args.twin_config)
+    lab, cfg = configs.lab, configs.twin
     train_cfg = cfg.with_yaw_range(tuple(args.train_yaw))
     out = args.out or Path("runs") / time.strftime("bench_generalization_%Y%m%d_%H%M%S")
     out.mkdir(parents=True, exist_ok=True)

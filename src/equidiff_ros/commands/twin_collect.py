@@ -92,17 +92,15 @@ def _collect_ros(args, lab_path: Path, twin_path: Path, cfg_override) -> list[tu
 
 
 def run(args: argparse.Namespace) -> int:
-    from equidiff_core.config import ConfigError, default_config_dir, load_lab_config
-    from equidiff_core.twin.config import load_twin_config
+    from equidiff_core.config import ConfigError
+    from equidiff_core.twin.config import load_twin_job_configs
 
-    lab_path = args.lab_config or default_config_dir() / "lab.yaml"
-    twin_path = args.twin_config or default_config_dir() / "twin.yaml"
     try:
-        lab = load_lab_config(lab_path)
-        cfg = load_twin_config(twin_path)
+        configs = load_twin_job_configs(args.lab_config, args.twin_config)
     except ConfigError as err:
         print(f"equidiff twin collect: {err}", file=sys.stderr)
         return 2
+    lab_path, twin_path, lab, cfg = configs.lab_path, configs.twin_path, configs.lab, configs.twin
     override = cfg.with_yaw_range(tuple(args.yaw_range)) if args.yaw_range else None
     args.out.mkdir(parents=True, exist_ok=True)
     t0 = time.monotonic()

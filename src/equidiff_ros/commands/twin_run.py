@@ -114,20 +114,18 @@ def run_episode(stack, seed: int, max_duration_s: float, rate_hz: float):
 
 
 def run(args: argparse.Namespace) -> int:
-    from equidiff_core.config import ConfigError, default_config_dir, load_lab_config
-    from equidiff_core.twin.config import load_twin_config
+    from equidiff_core.config import ConfigError
+    from equidiff_core.twin.config import load_twin_job_configs
     from equidiff_core.twin.metrics import RunSummary
     from equidiff_core.twin.processes import NodeProcessError
     from equidiff_ros.twin_supervisor import SupervisorError, TwinStack
 
-    lab_path = args.lab_config or default_config_dir() / "lab.yaml"
-    twin_path = args.twin_config or default_config_dir() / "twin.yaml"
     try:
-        lab = load_lab_config(lab_path)
-        cfg = load_twin_config(twin_path)
+        configs = load_twin_job_configs(args.lab_config, args.twin_config)
     except ConfigError as err:
         print(f"equidiff twin run: {err}", file=sys.stderr)
         return 2
+    lab_path, twin_path, lab, cfg = configs.lab_path, configs.twin_path, configs.lab, configs.twin
     episodes = 1 if args.smoke else args.episodes
     max_duration = args.max_duration or (8.0 if args.smoke else cfg.episode.max_duration_s)
     out = args.out or Path("runs") / time.strftime("twin_run_%Y%m%d_%H%M%S")
