@@ -20,6 +20,7 @@ from equidiff_core.config import default_config_dir, load_lab_config
 from equidiff_core.pointcloud import grid_to_voxel_msg
 
 from helpers_data import RosHarness, assert_same, decoded
+from helpers_ros import spawn_node, stop_node
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow]
 
@@ -33,23 +34,7 @@ def ros(ros_domain):
     h.close()
 
 
-def spawn(module: str, *params: str) -> subprocess.Popen:
-    args = [sys.executable, "-m", f"equidiff_ros.{module}", "--ros-args"]
-    for p in params:
-        args += ["-p", p]
-    env = dict(os.environ, OMP_NUM_THREADS="1", PYTHONUNBUFFERED="1")
-    return subprocess.Popen(args, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-
-
-def stop(proc: subprocess.Popen, sig=signal.SIGINT) -> str:
-    if proc.poll() is None:
-        proc.send_signal(sig)
-        try:
-            proc.wait(timeout=10)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
-    return proc.stdout.read() if proc.stdout else ""
+spawn, stop = spawn_node, stop_node
 
 
 def make_messages(f, n: int, t0_ns: int):

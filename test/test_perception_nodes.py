@@ -1,13 +1,12 @@
 """camera_node and voxel_node as separate processes with real rclpy on a private ROS_DOMAIN_ID."""
 
-import os
-import signal
 import subprocess
 import sys
 import time
 
 import numpy as np
 import pytest
+from helpers_ros import spawn_node, stop_node
 
 from equidiff_core.config import default_config_dir, load_lab_config
 from equidiff_core.voxels import voxelize_reference
@@ -27,22 +26,10 @@ def test_nodes_print_usage_without_ros():
 # --- helpers -----------------------------------------------------------------------------
 
 def _spawn(node, *params):
-    args = [sys.executable, "-m", f"equidiff_ros.{node}", "--ros-args", "-p", f"lab_config:={LAB_YAML}"]
-    for p in params:
-        args += ["-p", p]
-    return subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-                            env={**os.environ, "OMP_NUM_THREADS": "1", "PYTHONUNBUFFERED": "1"})
+    return spawn_node(node, f"lab_config:={LAB_YAML}", *params)
 
 
-def _stop(proc):
-    if proc.poll() is None:
-        proc.send_signal(signal.SIGINT)
-        try:
-            proc.wait(timeout=10)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
-    return proc.stdout.read() if proc.stdout else ""
+_stop = stop_node
 
 
 class RosProbe:
