@@ -11,7 +11,7 @@ from equidiff_core.config import ConfigError, Workspace, from_dict
 from equidiff_core.inference import load_inference_policy
 from equidiff_core.policies import make_policy
 from equidiff_core.presets import get_preset
-from equidiff_core.training import (TrainConfig, TrainingError, evaluate, load_policy_from_checkpoint,
+from equidiff_core.training import (TrainConfig, TrainingError, load_policy_from_checkpoint,
                                     load_training_checkpoint, resolve_device, train)
 
 WS = Workspace()

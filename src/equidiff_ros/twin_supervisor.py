@@ -279,7 +279,7 @@ class TwinStack:
         import os
 
         from equidiff_core.twin.processes import ProcessGroup, node_command, private_ros_env
-        from equidiff_core.twin.sim import free_loopback_host
+        from equidiff_core.robots.franky.sim import free_loopback_host
 
         if self.attach:
             self.log(f"[twin] attaching to the running nodes on ROS_DOMAIN_ID={os.environ.get('ROS_DOMAIN_ID', '0')}")

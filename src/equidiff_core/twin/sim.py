@@ -3,7 +3,10 @@
 ``TwinSim`` serves libfranka's protocol (franky connects to ``host`` exactly as to a real
 FR3). franky-sim's stock ``run_async`` sleeps "1 ms minus compute" and drifts 8-16 % slow
 (NOTES.md); our loop sleeps to fixed 1 ms deadlines instead and skips ahead (counting the
-overrun) when it falls more than ``max_lag_s`` behind, so sim time tracks wall time.
+overrun) when it falls more than ``max_lag_s`` behind. Each tick waits for the client's
+command like the bare server (``robots.franky.sim.step_server``): a tick that ran on without
+it handed franky's planner multi-millisecond periods under load, and the home move failed
+with ruckig error -101.
 
 ``DirectSim`` is the same scene with no server and no clock: franky-sim's own Cartesian
 controller is driven in-process and stepped as fast as the CPU allows (tests, fast expert
@@ -13,30 +16,16 @@ roll-outs).
 from __future__ import annotations
 
 import math
-import socket
 import threading
 import time
 from dataclasses import dataclass
 
 import numpy as np
 
+from ..robots.franky.sim import free_loopback_host, raise_priority, step_server
 from .config import TwinConfig
 from .scene import ScenePoses, apply_scene, object_state, sample_scene, success_details
 from .shared_state import StateWriter
-
-
-def free_loopback_host(seed: int | None = None) -> str:
-    """A 127.x.y.z address whose libfranka port (1337) is free, so parallel twins do not collide."""
-    rng = np.random.default_rng(seed)
-    for _ in range(50):
-        host = f"127.{rng.integers(1, 255)}.{rng.integers(0, 255)}.{rng.integers(2, 255)}"
-        with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-            try:
-                s.bind((host, 1337))
-            except OSError:
-                continue
-        return host
-    raise RuntimeError("no free loopback address for franky-sim")
 
 
 @dataclass
@@ -116,11 +105,12 @@ class TwinSim:
     def _loop(self) -> None:
         period = 0.001
         state_every = max(1, round(1.0 / (self.cfg.sim.state_hz * period)))
+        raise_priority()  # this thread only (Linux nice is per thread): it stands in for the FR3's controller
         self.stats = LoopStats(started=time.monotonic())
         deadline = time.monotonic()
         while self._running:
             with self.lock:
-                self._server.run_once(realtime=False)
+                step_server(self._server)
                 self.stats.steps += 1
                 if self.stats.steps % state_every == 0:
                     self._publish_state()

@@ -107,8 +107,8 @@ class FrankyRobot(Robot):
         if self._tracker is not None:
             raise RobotError("move_to while streaming: stop_streaming first")
         target = franky.Affine(np.asarray(pose, dtype=np.float64))
-        # Retries after recover_from_errors: right after connecting, the planner can reject the
-        # first motions (-101/-110/-111 seen on a loaded franky-sim). franky motions cannot be reused.
+        # Retries after recover_from_errors: on a loaded franky-sim the first motion after connecting
+        # was rejected now and then (ruckig -101, "incorrect object size"). franky motions cannot be reused.
         attempts = 3
         for attempt in range(1, attempts + 1):
             try:
@@ -151,8 +151,12 @@ class FrankyRobot(Robot):
 
     def stop_streaming(self) -> None:
         tracker, self._tracker = self._tracker, None
-        if tracker is not None:
+        if tracker is None:
+            return
+        try:
             tracker.stop()
+        except Exception as err:  # franky's ControlException / ProtocolException: the motion has ended anyway
+            raise RobotError(f"stopping the impedance tracker: {err}") from err
 
     def _motion_error(self) -> str:
         """Why the streaming motion ended: its exception, else the robot's error flags."""

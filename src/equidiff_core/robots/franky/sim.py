@@ -40,11 +40,7 @@ def serve(host: str, realtime: bool = True) -> None:
             deadline = start = time.perf_counter()
             steps, next_report = 0, start + 1.0
             while not stop:
-                for rs in server.robot_servers:
-                    await_command(rs)
-                sim.step()
-                for rs in server.robot_servers:
-                    rs.send_state()
+                step_server(server)
                 deadline += 0.001
                 steps += 1
                 now = time.perf_counter()
@@ -56,6 +52,19 @@ def serve(host: str, realtime: bool = True) -> None:
                     time.sleep(delay)
                 elif delay < -0.05:  # far behind (machine overloaded): don't try to catch up in a burst
                     deadline = time.perf_counter()
+
+
+def step_server(server) -> None:
+    """One 1 ms tick of a franky-sim ``SimulationServer``: the clients' commands, physics, state.
+
+    Unlike the stock ``run_once``, each robot's tick waits for the command answering the last
+    state (``await_command``), so the client's 1 kHz loop stays a 1 kHz loop on a loaded machine.
+    """
+    for rs in server.robot_servers:
+        await_command(rs)
+    server.sim.step()
+    for rs in server.robot_servers:
+        rs.send_state()
 
 
 def await_command(robot_server, timeout_s: float = 0.02) -> bool:
