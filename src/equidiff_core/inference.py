@@ -147,6 +147,9 @@ class InferencePolicy:
         self.channels_last = channels_last
         if channels_last:
             self.net.encoder.to(memory_format=torch.channels_last_3d)
+        self.matmul_convs = 0
+        if precision == "bf16" and device.type == "cpu":
+            self.matmul_convs = _convs_as_matmuls(self.net.unet)
         self._encode = self.net.encode_obs
         self._denoise = self.net.denoise
         self.jit = False
@@ -262,6 +265,45 @@ def _pad_first_conv(encoder: torch.nn.Sequential, multiple: int) -> int:
             padded.bias.copy_(conv.bias)
     encoder[0] = padded.eval()
     return extra
+
+
+class MatmulConv1d(torch.nn.Module):
+    """A Conv1d computed as one matrix product over unfolded windows (same weights, same output).
+
+    The U-Net's convolutions see 4-16 time steps and 8 group elements per call, where oneDNN's
+    bf16 Conv1d is ~1.7x slower than the equivalent GEMM (measured on the 2-core EPYC, 1024
+    channels, kernel 5: 3.5 ms vs 2.0 ms); in fp32 the GEMM is not faster, so only bf16 uses this."""
+
+    def __init__(self, conv: torch.nn.Conv1d):
+        super().__init__()
+        if conv.groups != 1 or conv.dilation[0] != 1 or conv.padding_mode != "zeros":
+            raise ValueError("MatmulConv1d handles plain convolutions only")
+        self.kernel, self.stride, self.padding = conv.kernel_size[0], conv.stride[0], conv.padding[0]
+        out_ch, in_ch, k = conv.weight.shape
+        # (out, in, k) -> (out, k*in), matching windows flattened as (k, in)
+        self.weight = torch.nn.Parameter(conv.weight.detach().permute(0, 2, 1).reshape(out_ch, k * in_ch).contiguous(),
+                                         requires_grad=False)
+        self.bias = None if conv.bias is None else torch.nn.Parameter(conv.bias.detach().clone(), requires_grad=False)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        if self.padding:
+            x = torch.nn.functional.pad(x, (self.padding, self.padding))
+        windows = x.unfold(2, self.kernel, self.stride)  # (B, C, T', k)
+        B, C, T, k = windows.shape
+        y = torch.nn.functional.linear(windows.permute(0, 2, 3, 1).reshape(B * T, k * C), self.weight, self.bias)
+        return y.reshape(B, T, -1).transpose(1, 2)
+
+
+def _convs_as_matmuls(module: torch.nn.Module) -> int:
+    """Replace every plain Conv1d under ``module`` with a MatmulConv1d; returns how many."""
+    count = 0
+    for name, child in module.named_children():
+        if type(child) is torch.nn.Conv1d:
+            setattr(module, name, MatmulConv1d(child))
+            count += 1
+        else:
+            count += _convs_as_matmuls(child)
+    return count
 
 
 class _Method(torch.nn.Module):
