@@ -62,8 +62,21 @@ def test_exported_policy_predicts_like_the_training_policy(exported):
     np.testing.assert_array_equal(a, inf.predict(vox[0, 0].numpy(), ee[0, 0].numpy(), seed=7))  # seeded = repeatable
     # the fast path (bf16, channels_last, jit.trace) stays close to fp32
     fast = load_inference_policy(path, precision="bf16", jit=True)
+    assert fast.matmul_convs > 0  # the U-Net's Conv1d run as GEMMs in bf16 on CPU
     b = fast.predict(vox[0, 0].numpy(), ee[0, 0].numpy(), seed=7)
     assert np.abs(b - a)[:, :3].max() < 0.05
+
+
+@pytest.mark.parametrize("kernel, stride, padding, bias", [(5, 1, 2, True), (3, 2, 1, True), (1, 1, 0, False)])
+def test_matmul_conv1d_equals_conv1d(kernel, stride, padding, bias):
+    from equidiff_core.inference import MatmulConv1d
+
+    torch.manual_seed(0)
+    conv = torch.nn.Conv1d(12, 20, kernel, stride, padding, bias=bias)
+    x = torch.randn(3, 12, 16)
+    torch.testing.assert_close(MatmulConv1d(conv)(x), conv(x), rtol=1e-5, atol=1e-5)
+    with pytest.raises(ValueError, match="plain convolutions"):
+        MatmulConv1d(torch.nn.Conv1d(12, 20, 3, groups=4))
 
 
 def test_baseline_and_relative_export(tmp_path):

@@ -9,9 +9,10 @@ process stays light (and starts fast). Missing, corrupt or incompatible files ra
 
 Speed switches (``load_inference_policy(..., precision="bf16", jit=True)``): bf16 weights and
 activations (the DDIM arithmetic stays fp32), channels_last_3d for the 3D convolutions, and
-``torch.jit.trace`` + freeze of the encoder and of one denoising step. ``precision="auto"`` picks
-bf16 on CUDA and on CPUs with native bf16 (AVX512-BF16/AMX), fp32 elsewhere. Measured on the
-2-core EPYC (compact, 1 thread): fp32 ~180 ms, bf16 + jit ~80-120 ms per DDIM-16 call.
+``torch.jit.trace`` + freeze of the encoder and of one denoising step; in bf16 on CPU the U-Net's
+Conv1d also run as GEMMs (``MatmulConv1d``). ``precision="auto"`` picks bf16 on CUDA and on CPUs
+with native bf16 (AVX512-BF16/AMX), fp32 elsewhere. Measured on the 2-core EPYC (compact, 1
+thread): fp32 ~180 ms, bf16 + jit 66-101 ms per DDIM-16 call (docs/model.md).
 """
 
 from __future__ import annotations
