@@ -375,3 +375,39 @@ def test_metrics_measure_what_they_claim():
     settle = np.concatenate([path[:100], np.repeat(path[100:101], 300, axis=0)])
     assert metrics.settle_time(t, settle) == pytest.approx(t[100])
     assert metrics.percentiles_ms([0.1, 0.2, 0.3]) == [200.0, 290.0]
+
+
+def test_franky_gripper_commands_never_block_the_caller_and_the_newest_width_wins():
+    """The control loop calls move_gripper at 200 Hz; a franky gripper call that blocks (it did
+    on franky-sim, freezing the arm) must only ever stall the gripper's own thread."""
+    import threading
+    import time
+
+    from equidiff_core.robots.franky import FrankyRobot
+
+    class SlowGripper:
+        def __init__(self):
+            self.sent, self.width = [], 0.08
+
+        def move_async(self, width, speed):
+            self.sent.append(round(width, 3))
+            time.sleep(0.4)
+
+        grasp_async = lambda self, width, speed, force, **kw: self.move_async(width, speed)  # noqa: E731
+
+    robot = FrankyRobot("0.0.0.0")
+    robot._gripper = gripper = SlowGripper()
+    thread = threading.Thread(target=robot._poll_gripper, daemon=True)
+    thread.start()
+    try:
+        robot.move_gripper(0.05)
+        time.sleep(0.1)  # the thread picks 0.05 up and blocks in it
+        t0 = time.monotonic()
+        for width in (0.04, 0.03, 0.02):
+            robot.move_gripper(width)
+        assert time.monotonic() - t0 < 0.05
+        time.sleep(1.0)
+        assert gripper.sent == [0.05, 0.02]  # superseded widths are never sent
+    finally:
+        robot._gripper_stop.set()
+        thread.join(timeout=2)

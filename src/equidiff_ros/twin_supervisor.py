@@ -191,9 +191,14 @@ class Supervisor:
             return self.ee_pose.copy(), float(self.width)
 
     def move_to(self, target: np.ndarray, width: float, speed: float = 0.12, yaw_speed: float = 1.0,
-                timeout_s: float = 20.0, tol_m: float = 0.01, hz: float = 20.0, check=None) -> None:
+                timeout_s: float = 20.0, tol_m: float = 0.01, hz: float = 20.0, max_lag_m: float = 0.03,
+                check=None) -> None:
         """Stream teleop-like targets along a straight line to ``target`` (never a jump the safety
-        filter would reject), then hold until the TCP is within ``tol_m`` and the gripper settled."""
+        filter would reject), then hold until the TCP is within ``tol_m`` and the gripper settled.
+
+        The path advances only while the TCP is within ``max_lag_m`` of the last target (as in
+        ``run_expert``): on a twin slower than real time a wall-clock path ran ahead of the arm
+        until franka_node rejected it as a jump, and the arm never got home."""
         from equidiff_core.twin.expert import tcp_pose, tcp_yaw
 
         start, _ = self.current()
@@ -201,10 +206,11 @@ class Supervisor:
         y0, y1 = tcp_yaw(start), tcp_yaw(target)
         dy = (y1 - y0 + np.pi) % (2 * np.pi) - np.pi
         duration = max(np.linalg.norm(p1 - p0) / speed, abs(dy) / yaw_speed, 0.3)
-        t0 = time.monotonic()
-        deadline = t0 + timeout_s
+        deadline = time.monotonic() + timeout_s
+        s, pose = 0.0, start
         while time.monotonic() < deadline:
-            s = min(1.0, (time.monotonic() - t0) / duration)
+            if np.linalg.norm(self.current()[0][:3, 3] - pose[:3, 3]) < max_lag_m:
+                s = min(1.0, s + 1.0 / (hz * duration))
             pose = tcp_pose((1 - s) * p0 + s * p1, y0 + s * dy) if s < 1 else target
             self.send_target(pose, width)
             if check is not None:
@@ -214,7 +220,10 @@ class Supervisor:
                 if np.linalg.norm(now[:3, 3] - p1) < tol_m and (abs(w - width) < 0.01 or width < 0.01):
                     return
             time.sleep(1.0 / hz)
-        raise SupervisorError(f"the arm did not reach {np.round(p1, 3).tolist()} within {timeout_s:.0f} s")
+        now, w = self.current()
+        raise SupervisorError(f"the arm did not reach {np.round(p1, 3).tolist()} within {timeout_s:.0f} s "
+                              f"(TCP at {np.round(now[:3, 3], 3).tolist()}, {100 * s:.0f} % along the path, "
+                              f"gripper {w * 1000:.0f} mm for {width * 1000:.0f} mm)")
 
     def reset_scene(self, seed: int, timeout_s: float = 10.0, check=None) -> dict:
         self.pub_reset.publish(self._Int64(data=int(seed)))

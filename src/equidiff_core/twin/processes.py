@@ -29,7 +29,9 @@ def private_ros_env(domain_id: int | None = None, **extra: str) -> dict[str, str
     if domain_id is None:
         domain_id = random.SystemRandom().randint(101, 215)  # clear of the usual 0-100 test domains
     env.update({"ROS_DOMAIN_ID": str(domain_id), "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST",
-                "MUJOCO_GL": env.get("MUJOCO_GL", "egl"), "PYTHONUNBUFFERED": "1"})
+                "MUJOCO_GL": env.get("MUJOCO_GL", "egl"), "PYTHONUNBUFFERED": "1",
+                # rcutils block-buffers log lines into a file: a killed node lost its last minute of logs
+                "RCUTILS_LOGGING_BUFFERED_STREAM": "0"})
     env.update({k: str(v) for k, v in extra.items()})
     return env
 

@@ -4,9 +4,9 @@
 FR3). franky-sim's stock ``run_async`` sleeps "1 ms minus compute" and drifts 8-16 % slow
 (NOTES.md); our loop sleeps to fixed 1 ms deadlines instead and skips ahead (counting the
 overrun) when it falls more than ``max_lag_s`` behind. Each tick waits for the client's
-command like the bare server (``robots.franky.sim.step_server``): a tick that ran on without
-it handed franky's planner multi-millisecond periods under load, and the home move failed
-with ruckig error -101.
+command like the bare server (``robots.franky.sim.step_server``), so a starved client sees
+the 1 kHz loop a real FR3 gives it; the stock tick ran on without it, and the twin's home
+move failed now and then in CI (ruckig error -101) while the bare server's never did.
 
 ``DirectSim`` is the same scene with no server and no clock: franky-sim's own Cartesian
 controller is driven in-process and stepped as fast as the CPU allows (tests, fast expert

@@ -38,6 +38,8 @@ class FrankyRobot(Robot):
         self._tracker = None
         self._width = float("nan")
         self._gripper_stop = threading.Event()
+        self._gripper_lock = threading.Lock()
+        self._gripper_request: float | None = None
         self._gripper_thread: threading.Thread | None = None
 
     # --- connection --------------------------------------------------------------------
@@ -92,11 +94,16 @@ class FrankyRobot(Robot):
                           self._width)
 
     def _poll_gripper(self) -> None:
+        """The gripper's own thread: sends the newest requested width, then reads the width back."""
         while not self._gripper_stop.wait(0.05):
+            with self._gripper_lock:
+                width, self._gripper_request = self._gripper_request, None
             try:
+                if width is not None:
+                    self._send_gripper(width)
                 self._width = float(self._gripper.width)
             except Exception as err:
-                self.log.warning(f"gripper read failed: {err}")
+                self.log.warning(f"gripper command or read failed: {err}")
                 time.sleep(0.5)
 
     # --- motion --------------------------------------------------------------------------
@@ -175,8 +182,17 @@ class FrankyRobot(Robot):
         return "the motion ended without a robot error (stopped or preempted by another client)"
 
     def move_gripper(self, width: float) -> None:
+        """Hand the width to the gripper thread and return at once.
+
+        A franky gripper call can block while the previous one runs (seen on franky-sim: the
+        control loop froze after the policy changed the width often, arm and gripper with it);
+        the control loop must never wait for the gripper, and only the newest width matters."""
         if self._gripper is None:
             return
+        with self._gripper_lock:
+            self._gripper_request = float(width)
+
+    def _send_gripper(self, width: float) -> None:
         cfg = self.config
         if np.isfinite(self._width) and width < self._width:
             # Closing is a grasp with a wide outer epsilon: closing on an object then counts as
