@@ -6,8 +6,9 @@ that tracked a 5 Hz chunk stream with 1.2-3.5 mm RMS and no stop-and-go, while p
 motions per chunk stops at every chunk and ``CartesianWaypointMotion`` needs per-waypoint
 velocities and ``minimum_time`` not to stop or overshoot (NOTES.md, and ``docs/control.md``
 for our own measurement). Being torque-controlled it also cannot trip the motion generator's
-discontinuity reflexes. The gripper is moved with ``move_async`` and polled in its own thread,
-because a gripper read blocks until the gripper's next state message.
+discontinuity reflexes. The gripper has its own thread, which sends the newest requested width
+(``move_async`` / ``grasp_async``) and reads the width back: a gripper read blocks until the
+gripper's next state message, and a gripper command could block the 200 Hz loop (it froze the arm).
 """
 
 from __future__ import annotations
