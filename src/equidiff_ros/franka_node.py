@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import sys
 
-from equidiff_ros.runner import run_node
+from equidiff_ros.runner import declare_number, run_node
 
 USAGE = __doc__ + """
 usage: franka_node [--ros-args -p backend:=franky|dryrun -p robot_ip:=172.16.0.2 -p realtime:=true
@@ -59,8 +59,6 @@ def build_node():
             gripper = self.declare_parameter("gripper", True).value
             self.config = load_control_config(Path(control_path))
             home = self.declare_parameter("home_on_start", self.config.home_on_start).value
-            from equidiff_ros.runner import declare_number
-
             state_hz = declare_number(self, "state_hz", self.lab.robot.state_hz)
             if backend not in BACKENDS:
                 raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
@@ -163,8 +161,6 @@ def build_node():
         return logger
 
     return FrankaNode()
-
-
 
 
 def main(args=None) -> int:

@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import sys
 
-from equidiff_ros.runner import run_node
+from equidiff_ros.runner import declare_number, run_node
 
 USAGE = __doc__ + """
 usage: policy_node --ros-args -p checkpoint:=/path/policy.pt [-p device:=cpu -p precision:=auto|fp32|bf16
@@ -56,7 +56,6 @@ def build_node():
     from equidiff_core.rosmsg import RclpyFactory, stamp_to_ns
     from equidiff_ros.common import (RELIABLE_QOS, TOPIC_COMMAND_CHUNK, TOPIC_DIAGNOSTICS, TOPIC_EE_POSE,
                                      TOPIC_JOINT_STATES, TOPIC_VOXELS, VOXEL_QOS, declare_lab_config, now_ns)
-    from equidiff_ros.runner import declare_number
     from geometry_msgs.msg import PoseStamped
     from sensor_msgs.msg import JointState, PointCloud2
     from trajectory_msgs.msg import MultiDOFJointTrajectory
@@ -239,10 +238,6 @@ def build_node():
         return best if best_dt is not None and best_dt <= max_offset_ns else None
 
     return PolicyNode()
-
-
-
-
 
 
 def main(args=None) -> int:

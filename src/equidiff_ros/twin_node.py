@@ -21,6 +21,8 @@ from __future__ import annotations
 
 import sys
 
+from equidiff_ros.runner import run_node
+
 USAGE = __doc__ + """
 usage: twin_node [--ros-args -p host:=127.0.0.1 -p seed:=0 -p twin_config:=config/twin.yaml]
 """
@@ -81,8 +83,6 @@ def build_node():
 
 
 def main(args=None) -> int:
-    from equidiff_ros.runner import run_node
-
     def startup_errors():
         from equidiff_core.config import ConfigError
         from equidiff_core.twin.scene import SceneError
