@@ -411,3 +411,31 @@ def test_franky_gripper_commands_never_block_the_caller_and_the_newest_width_win
     finally:
         robot._gripper_stop.set()
         thread.join(timeout=2)
+
+
+def test_franky_gripper_command_that_fails_is_retried_not_lost():
+    import threading
+    import time
+
+    from equidiff_core.robots.franky import FrankyRobot
+
+    class FlakyGripper:
+        def __init__(self):
+            self.calls, self.width = [], 0.08
+
+        def move_async(self, width, speed):
+            self.calls.append(round(width, 3))
+            if len(self.calls) == 1:
+                raise RuntimeError("gripper busy")
+
+    robot = FrankyRobot("0.0.0.0")
+    robot._gripper = gripper = FlakyGripper()
+    thread = threading.Thread(target=robot._poll_gripper, daemon=True)
+    thread.start()
+    try:
+        robot.move_gripper(0.08)
+        time.sleep(1.0)
+        assert gripper.calls == [0.08, 0.08]  # failed once, sent again after the back-off
+    finally:
+        robot._gripper_stop.set()
+        thread.join(timeout=2)

@@ -105,6 +105,9 @@ class FrankyRobot(Robot):
                 self._width = float(self._gripper.width)
             except Exception as err:
                 self.log.warning(f"gripper command or read failed: {err}")
+                with self._gripper_lock:  # retry a failed width unless a newer one replaced it
+                    if width is not None and self._gripper_request is None:
+                        self._gripper_request = width
                 time.sleep(0.5)
 
     # --- motion --------------------------------------------------------------------------
@@ -185,8 +188,8 @@ class FrankyRobot(Robot):
     def move_gripper(self, width: float) -> None:
         """Hand the width to the gripper thread and return at once.
 
-        A franky gripper call can block while the previous one runs (seen on franky-sim: the
-        control loop froze after the policy changed the width often, arm and gripper with it);
+        A franky gripper call can block while the previous one runs (on franky-sim the control
+        loop froze after the policy changed the width often, arm and gripper with it);
         the control loop must never wait for the gripper, and only the newest width matters."""
         if self._gripper is None:
             return
