@@ -78,7 +78,8 @@ def read_policy_file(path: str | Path) -> tuple[dict, dict]:
     try:
         payload = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as err:  # noqa: BLE001 - truncated zip, pickle errors, unsupported globals ...
-        raise CheckpointError(f"{path}: not a readable policy file ({type(err).__name__}: {err})") from err
+        raise CheckpointError(f"{path}: not a readable policy file "
+                              f"({type(err).__name__}: {(str(err).splitlines() or [''])[0]})") from err
     if not isinstance(payload, dict) or payload.get("format") != FORMAT:
         raise CheckpointError(f"{path}: not an exported equidiff policy (format {payload.get('format') if isinstance(payload, dict) else type(payload).__name__!r})")
     if payload.get("version") != VERSION:

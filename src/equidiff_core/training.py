@@ -288,7 +288,8 @@ def load_training_checkpoint(path: str | Path) -> dict:
     try:
         state = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as err:  # noqa: BLE001 - torch raises many kinds for corrupt files
-        raise CheckpointError(f"{path}: not a readable checkpoint ({type(err).__name__}: {err})") from err
+        raise CheckpointError(f"{path}: not a readable checkpoint "
+                              f"({type(err).__name__}: {(str(err).splitlines() or [''])[0]})") from err
     if not isinstance(state, dict) or state.get("format") != CKPT_FORMAT:
         raise CheckpointError(f"{path}: not an equidiff training checkpoint")
     if state.get("version") != CKPT_VERSION:

@@ -64,11 +64,11 @@ def run(args) -> int:
     import torch
 
     from equidiff_core.config import Workspace
-    from equidiff_core.inference import CheckpointError, export_policy, load_inference_policy, read_policy_file
+    from equidiff_core.inference import CheckpointError, export_policy, load_inference_policy
     from equidiff_core.models.equivariance import random_observation
     from equidiff_core.normalizer import Normalizer
     from equidiff_core.policies import count_parameters, make_policy
-    from equidiff_core.presets import get_preset, preset_from_dict
+    from equidiff_core.presets import get_preset
 
     if args.threads:
         torch.set_num_threads(args.threads)
@@ -83,27 +83,22 @@ def run(args) -> int:
 
     ws = Workspace()
     torch.manual_seed(0)
+    load = lambda path: load_inference_policy(path, device=str(device), precision=precision,  # noqa: E731
+                                              jit=not args.no_jit)
     if args.checkpoint:
-        try:
-            config, _ = read_policy_file(args.checkpoint)
-            preset = preset_from_dict(config["preset"])
-        except (CheckpointError, ValueError, KeyError) as err:
+        try:  # one read: load_inference_policy validates the file and its config (CheckpointError)
+            fast = load(args.checkpoint)
+        except CheckpointError as err:
             print(f"equidiff bench policy: {err}", file=sys.stderr)
             return 2
-        policy_name = config["policy"]
-        path = Path(args.checkpoint)
-        eager = None
+        policy_name, eager = fast.name, None
     else:
-        preset = get_preset(args.preset)
         policy_name = args.policy
-        eager = make_policy(policy_name, preset, ws)
+        eager = make_policy(policy_name, get_preset(args.preset), ws)
         eager.set_normalizer(Normalizer.from_workspace(ws))
         eager.eval().to(device)
         with tempfile.TemporaryDirectory(prefix="bench_policy_") as tmp:
-            path = export_policy(eager, Path(tmp) / "policy.pt")
-            fast = load_inference_policy(path, device=str(device), precision=precision, jit=not args.no_jit)
-    if args.checkpoint:
-        fast = load_inference_policy(path, device=str(device), precision=precision, jit=not args.no_jit)
+            fast = load(export_policy(eager, Path(tmp) / "policy.pt"))
     params = count_parameters(eager.model) if eager is not None else count_parameters(fast.net)
 
     vox_t, ee_t = random_observation(_Probe(fast.preset, fast.workspace), batch=1, seed=0, fill=0.05)
