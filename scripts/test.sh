@@ -6,10 +6,14 @@ ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 bash "$ROOT/scripts/setup.sh"
 cd "$ROOT"
 export MUJOCO_GL="${MUJOCO_GL:-egl}"
+# The whole suite takes ~8 min on 2 cores; a hang must end in a report, not in CI's own timeout.
+# SIGINT makes pytest print where it was and the results so far.
+LIMIT_S="${EQUIDIFF_TEST_LIMIT_S:-3000}"
 set +e
-"$ROOT/.venv/bin/python" -m pytest "$@"
+timeout --signal=INT --kill-after=120 "$LIMIT_S" "$ROOT/.venv/bin/python" -m pytest "$@"
 rc=$?
 set -e
+if [[ $rc -eq 124 ]]; then echo "the test suite ran past ${LIMIT_S} s (EQUIDIFF_TEST_LIMIT_S) and was stopped" >&2; exit 1; fi
 # pytest exits 5 when it collected no test: that is a failure of the suite, say so.
 if [[ $rc -eq 5 ]]; then echo "no tests were collected" >&2; exit 1; fi
 exit $rc

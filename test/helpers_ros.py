@@ -25,3 +25,39 @@ def stop_node(proc: subprocess.Popen, sig=signal.SIGINT) -> str:
             proc.kill()
             proc.wait()
     return proc.stdout.read() if proc.stdout else ""
+
+
+def run_job(args: list[str], timeout_s: float, env: dict, log_dir) -> subprocess.CompletedProcess:
+    """Run an `equidiff ...` job to completion, never hanging the test run.
+
+    Output goes to files, not pipes (a pipe is held open by anything the job left running). On
+    timeout the job prints its threads' stacks (SIGUSR1, cli.main), gets SIGTERM (it stops its
+    nodes) and, 60 s later, its whole session is killed; returncode is then -9/-15 and the
+    stacks are in stderr.
+    """
+    import time
+    from pathlib import Path
+
+    log_dir = Path(log_dir)
+    log_dir.mkdir(parents=True, exist_ok=True)
+    out_path, err_path = log_dir / "job.stdout", log_dir / "job.stderr"
+    with open(out_path, "wb") as out, open(err_path, "wb") as err:
+        proc = subprocess.Popen(args, env=env, stdout=out, stderr=err, stdin=subprocess.DEVNULL,
+                                start_new_session=True)
+    try:
+        proc.wait(timeout=timeout_s)
+    except subprocess.TimeoutExpired:
+        for sig, grace in ((signal.SIGUSR1, 2.0), (signal.SIGTERM, 60.0), (signal.SIGKILL, 10.0)):
+            try:
+                os.killpg(proc.pid, sig)
+            except ProcessLookupError:
+                break
+            try:
+                proc.wait(timeout=grace)
+                if sig != signal.SIGUSR1:
+                    break
+            except subprocess.TimeoutExpired:
+                pass
+        time.sleep(0.5)
+    return subprocess.CompletedProcess(args, proc.returncode, out_path.read_text(errors="replace"),
+                                       err_path.read_text(errors="replace"))

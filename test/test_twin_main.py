@@ -12,6 +12,7 @@ import pytest
 
 from equidiff_core.twin.metrics import EpisodeRecord, RunSummary, count_dropped_cycles
 from equidiff_core.twin.processes import NodeProcessError, ProcessGroup, node_command, private_ros_env
+from helpers_ros import run_job
 
 REQUIRED_KEYS = {"episodes", "success_rate", "inference_p95_ms", "end_to_end_p95_ms", "dropped_cycles"}
 
@@ -63,6 +64,38 @@ def test_process_group_detects_deaths_and_stops_whole_process_trees(tmp_path):
         assert Path(f"/proc/{child}/stat").read_text().split()[2] == "Z"
     except FileNotFoundError:
         pass
+
+
+@pytest.mark.ros
+def test_nodes_shut_down_when_their_job_is_killed(ros_domain, tmp_path):
+    """A job killed with SIGKILL cannot stop its nodes (their own sessions): they notice and exit."""
+    job_script = ("import sys, time; from pathlib import Path;"
+                  "from equidiff_core.twin.processes import ProcessGroup, node_command, private_ros_env;"
+                  "g = ProcessGroup(private_ros_env(), Path(sys.argv[1])).__enter__();"
+                  "print(g.start('voxel_node', node_command('voxel_node')).popen.pid, flush=True); time.sleep(600)")
+    job = subprocess.Popen([sys.executable, "-c", job_script, str(tmp_path)], stdout=subprocess.PIPE, text=True)
+    node_pid = int(job.stdout.readline())
+    log = tmp_path / "voxel_node.log"
+    deadline = time.monotonic() + 60
+    while "fusing" not in log.read_text() and time.monotonic() < deadline:  # the node is up and spinning
+        time.sleep(0.2)
+    job.kill()
+    job.wait()
+    deadline = time.monotonic() + 20
+    while _alive(node_pid) and time.monotonic() < deadline:
+        time.sleep(0.2)
+    alive = _alive(node_pid)
+    if alive:
+        os.kill(node_pid, signal.SIGKILL)
+    assert not alive, log.read_text()
+    assert "the job that started this node is gone" in log.read_text()
+
+
+def _alive(pid: int) -> bool:
+    try:  # a zombie waiting for init to reap it counts as gone
+        return Path(f"/proc/{pid}/stat").read_text().split()[2] != "Z"
+    except FileNotFoundError:
+        return False
 
 
 def test_twin_node_help():
@@ -140,9 +173,8 @@ def test_main_job_smoke_run_end_to_end(ros_domain, tmp_path):
     # a domain from the top of the range (221-232), away from other tests' 1-100 and the twin's default
     # 101-215: a stray policy or teleop in the same domain would command this robot
     domain = 221 + ros_domain % 12
-    proc = subprocess.run([sys.executable, "-m", "equidiff_ros.cli", "twin", "run", "--smoke", "--out", str(out),
-                           "--domain", str(domain)],
-                          capture_output=True, text=True, timeout=420, env=env)
+    proc = run_job([sys.executable, "-m", "equidiff_ros.cli", "twin", "run", "--smoke", "--out", str(out),
+                    "--domain", str(domain)], timeout_s=420, env=env, log_dir=tmp_path)
     logs = "\n".join(f"== {p.name}\n{p.read_text()[-1500:]}" for p in sorted((out / "logs").glob("*.log")))
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:] + logs
     last = json.loads(proc.stdout.strip().splitlines()[-1])

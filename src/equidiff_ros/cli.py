@@ -8,7 +8,9 @@ Each leaf command lives in its own module under ``equidiff_ros.commands`` exposi
 from __future__ import annotations
 
 import argparse
+import faulthandler
 import importlib
+import signal
 import sys
 
 # (command path) -> (module, one-line help)
@@ -58,6 +60,8 @@ def build_parser(argv: list[str]) -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
+    # `kill -USR1 <pid>` prints every thread's stack: where a long job (twin run, train) is stuck
+    faulthandler.register(signal.SIGUSR1, all_threads=True)
     args = build_parser(argv).parse_args(argv)
     if getattr(args, "_missing", False):
         print(f"equidiff: '{' '.join(argv[:2])}' is not available in this build", file=sys.stderr)

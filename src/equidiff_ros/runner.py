@@ -52,8 +52,11 @@ def run_node(name: str, usage: str, build_node: Callable[[], object],
 
 
 def spin_until_signal(node) -> None:
-    """Spin ``node`` until SIGINT/SIGTERM (then return, leaving the context up)."""
+    """Spin ``node`` until SIGINT/SIGTERM or until the job that started it died (then return,
+    leaving the context up)."""
     from rclpy.executors import SingleThreadedExecutor
+
+    from equidiff_core.twin.processes import job_gone
 
     stop = threading.Event()
     previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
@@ -62,6 +65,9 @@ def spin_until_signal(node) -> None:
     try:
         while not stop.is_set():
             executor.spin_once(timeout_sec=0.1)
+            if job_gone():
+                print(f"{node.get_name()}: the job that started this node is gone; shutting down", file=sys.stderr)
+                break
     finally:
         executor.remove_node(node)
         for sig, handler in previous.items():

@@ -19,6 +19,10 @@ from dataclasses import dataclass
 from pathlib import Path
 
 
+# A ProcessGroup's pid, given to each node it starts (see job_gone)
+PARENT_PID_ENV = "EQUIDIFF_PARENT_PID"
+
+
 class NodeProcessError(RuntimeError):
     """A node could not be started or died while it was needed."""
 
@@ -34,6 +38,17 @@ def private_ros_env(domain_id: int | None = None, **extra: str) -> dict[str, str
                 "RCUTILS_LOGGING_BUFFERED_STREAM": "0"})
     env.update({k: str(v) for k, v in extra.items()})
     return env
+
+
+def job_gone() -> bool:
+    """In a node started by a ProcessGroup: whether that job's process has died (we were re-parented).
+
+    The nodes run in sessions of their own, so a job killed with SIGKILL can neither stop them
+    nor pass on a terminal's Ctrl-C: without this check they ran on for ever (a twin_node
+    stepping the sim, cameras rendering) on the user's machine. Always False outside a job.
+    """
+    parent = int(os.environ.get(PARENT_PID_ENV, "0") or 0)
+    return parent > 0 and os.getppid() != parent
 
 
 def node_command(executable: str, params: dict | None = None, remaps: dict | None = None) -> list[str]:
@@ -81,8 +96,10 @@ class ProcessGroup:
 
     def start(self, name: str, cmd: list[str]) -> NodeProcess:
         log = self.log_dir / f"{name}.log"
+        # the node shuts itself down if this process dies without stopping it (equidiff_ros.runner)
+        env = {**self.env, PARENT_PID_ENV: str(os.getpid())}
         with open(log, "wb") as fh:
-            popen = subprocess.Popen(cmd, env=self.env, stdout=fh, stderr=subprocess.STDOUT,
+            popen = subprocess.Popen(cmd, env=env, stdout=fh, stderr=subprocess.STDOUT,
                                      stdin=subprocess.DEVNULL, start_new_session=True)
         node = NodeProcess(name, cmd, popen, log)
         self.nodes.append(node)
