@@ -67,6 +67,35 @@ def test_exported_policy_predicts_like_the_training_policy(exported):
     assert np.abs(b - a)[:, :3].max() < 0.05
 
 
+@pytest.mark.slow
+def test_compiled_denoising_step_predicts_like_the_traced_one(exported):
+    """torch.compile (issue 4, item 8's optional switch): same actions as the traced bf16 policy."""
+    policy, path = exported
+    vox, ee = random_observation(policy, batch=1, seed=5, fill=0.05)
+    vox, ee = vox[0, 0].numpy(), ee[0, 0].numpy()
+    reference = load_inference_policy(path, precision="fp32").predict(vox, ee, seed=3)
+    traced = load_inference_policy(path, precision="bf16", jit=True)
+    compiled = load_inference_policy(path, precision="bf16", jit=True, compile=True)
+    assert compiled.compiled and not traced.compiled
+    a, b = traced.predict(vox, ee, seed=3), compiled.predict(vox, ee, seed=3)
+    # bf16 rounding in another kernel order (random weights amplify it), not another model
+    assert np.abs(b - a)[:, :3].max() < 0.03 and np.abs(b - reference)[:, :3].max() < 0.05
+
+
+def test_a_failed_compile_warns_and_keeps_the_traced_step(exported, monkeypatch):
+    def broken_compile(fn, **_):
+        def run(*args):
+            raise RuntimeError("InductorError: no working C++ compiler found\nmore detail")
+        return run
+
+    monkeypatch.setattr(torch, "compile", broken_compile)
+    _, path = exported
+    with pytest.warns(RuntimeWarning, match="torch.compile of the denoising step failed.*no working C"):
+        policy = load_inference_policy(path, precision="bf16", jit=True, compile=True)
+    assert not policy.compiled and policy.jit
+    assert policy.predict(*policy._blank_observation(), seed=0).shape == (policy.preset.horizon, 10)
+
+
 @pytest.mark.parametrize("kernel, stride, padding, bias", [(5, 1, 2, True), (3, 2, 1, True), (1, 1, 0, False)])
 def test_matmul_conv1d_equals_conv1d(kernel, stride, padding, bias):
     from equidiff_core.inference import MatmulConv1d
@@ -77,6 +106,25 @@ def test_matmul_conv1d_equals_conv1d(kernel, stride, padding, bias):
     torch.testing.assert_close(MatmulConv1d(conv)(x), conv(x), rtol=1e-5, atol=1e-5)
     with pytest.raises(ValueError, match="plain convolutions"):
         MatmulConv1d(torch.nn.Conv1d(12, 20, 3, groups=4))
+
+
+@pytest.mark.parametrize("channels, steps, bias", [(12, 4, True), (7, 5, False), (16, 1, True)])
+def test_matmul_conv_transpose1d_equals_conv_transpose1d(channels, steps, bias):
+    from equidiff_core.inference import MatmulConvTranspose1d
+
+    torch.manual_seed(0)
+    conv = torch.nn.ConvTranspose1d(channels, channels + 3, 4, 2, 1, bias=bias)  # the U-Net's upsampler
+    x = torch.randn(3, channels, steps)
+    torch.testing.assert_close(MatmulConvTranspose1d(conv)(x), conv(x), rtol=1e-5, atol=1e-5)
+    with pytest.raises(ValueError, match="kernel = 2"):
+        MatmulConvTranspose1d(torch.nn.ConvTranspose1d(4, 4, 3, 2, 1))
+
+
+def test_fast_mish_equals_mish():
+    from equidiff_core.inference import FastMish
+
+    x = torch.cat([torch.linspace(-60.0, 60.0, 20001), torch.tensor([-1e4, 1e4, 0.0])])
+    torch.testing.assert_close(FastMish()(x), torch.nn.functional.mish(x), rtol=1e-5, atol=1e-6)
 
 
 def test_baseline_and_relative_export(tmp_path):

@@ -156,3 +156,16 @@ def test_two_observation_steps_train_and_stay_equivariant():
     out = policy.predict_action({"voxels": vox, "ee": ee})
     assert out["action"].shape == (2, 8, 10) and out["action_pred"].shape == (2, 16, 10)
     assert equivariance.noise_predictor_error(policy, math.pi / 2, batch=1) < 1e-4
+
+
+def test_unet_film_split_equals_its_film_linear():
+    """step_films(t) + global_films(cond) is each block's Linear(Mish(cat(step embedding, cond)))."""
+    from equidiff_core.models.unet1d import ConditionalUnet1D
+
+    torch.manual_seed(0)
+    unet = ConditionalUnet1D(input_dim=6, global_cond_dim=10, diffusion_step_embed_dim=16, down_dims=(8, 16))
+    t, cond = torch.tensor([3, 70]), torch.randn(2, 10)
+    step_emb = unet.diffusion_step_encoder(t)
+    full = torch.cat([b.cond_encoder(torch.cat([step_emb, cond], dim=-1)) for b in unet.res_blocks], dim=-1)
+    torch.testing.assert_close(unet.step_films(t) + unet.global_films(cond), full, rtol=1e-5, atol=1e-6)
+    assert full.shape[1] == sum(unet.film_sizes)

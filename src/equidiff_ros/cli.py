@@ -61,7 +61,10 @@ def build_parser(argv: list[str]) -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     # `kill -USR1 <pid>` prints every thread's stack: where a long job (twin run, train) is stuck
-    faulthandler.register(signal.SIGUSR1, all_threads=True)
+    try:
+        faulthandler.register(signal.SIGUSR1, file=sys.__stderr__, all_threads=True)
+    except (AttributeError, ValueError, OSError):  # no real stderr (embedded, closed): no dumps then
+        pass
     args = build_parser(argv).parse_args(argv)
     if getattr(args, "_missing", False):
         print(f"equidiff: '{' '.join(argv[:2])}' is not available in this build", file=sys.stderr)

@@ -68,6 +68,7 @@ def build_node():
             device = self.declare_parameter("device", "cpu").value
             precision = self.declare_parameter("precision", "auto").value
             jit = self.declare_parameter("jit", True).value
+            compile_step = self.declare_parameter("compile", False).value
             rate_hz = declare_number(self, "rate_hz", self.lab.observation_hz)
             self.max_obs_age_ns = int(declare_number(self, "max_observation_age_s", 0.5) * 1e9)
             self.max_state_offset_ns = int(declare_number(self, "max_state_offset_s", 0.1) * 1e9)
@@ -82,7 +83,8 @@ def build_node():
 
                 torch.set_num_threads(int(threads))
             t0 = time.perf_counter()
-            self.policy = load_inference_policy(Path(checkpoint), device=device, precision=precision, jit=jit)
+            self.policy = load_inference_policy(Path(checkpoint), device=device, precision=precision, jit=jit,
+                                                compile=compile_step)
             if self.policy.workspace != self.lab.workspace:
                 raise CheckpointError(f"{checkpoint}: trained for workspace {self.policy.workspace}, but lab.yaml "
                                       f"has {self.lab.workspace}: the voxel grids would not match")

@@ -45,9 +45,12 @@ class BaselineNoisePredictor(nn.Module):
         return torch.cat([feats, ee.reshape(B, -1).to(feats.dtype)], dim=1)
 
     def denoise(self, sample: torch.Tensor, timestep: torch.Tensor, cond: torch.Tensor) -> torch.Tensor:
-        B = sample.shape[0]
-        t = timestep.reshape(-1).expand(B) if timestep.numel() == 1 else timestep
-        return self.unet(sample.transpose(1, 2).to(cond.dtype), t, cond).transpose(1, 2)
+        t = timestep.reshape(-1).expand(sample.shape[0]) if timestep.numel() == 1 else timestep
+        return self.denoise_films(sample, self.unet.step_films(t) + self.unet.global_films(cond))
+
+    def denoise_films(self, sample: torch.Tensor, films: torch.Tensor) -> torch.Tensor:
+        """``denoise`` with the U-Net's FiLM terms given (ConditionalUnet1D.films)."""
+        return self.unet.forward_films(sample.transpose(1, 2).to(films.dtype), films).transpose(1, 2)
 
     def forward(self, sample, timestep, voxels, ee):
         return self.denoise(sample, timestep, self.encode_obs(voxels, ee))

@@ -79,12 +79,17 @@ class EquiNoiseCore(nn.Module):
 
     def denoise(self, sample: torch.Tensor, timestep: torch.Tensor, cond: torch.Tensor) -> torch.Tensor:
         """sample (B, T, D) model-space vectors, timestep (B,), cond from encode_obs -> epsilon (B, T, D)."""
+        t = timestep.reshape(-1).expand(sample.shape[0]) if timestep.numel() == 1 else timestep
+        films = self.unet.step_films(t.repeat_interleave(self.group_order)) + self.unet.global_films(cond)
+        return self.denoise_films(sample, films)
+
+    def denoise_films(self, sample: torch.Tensor, films: torch.Tensor) -> torch.Tensor:
+        """``denoise`` with the U-Net's FiLM terms given (B*N rows, ConditionalUnet1D.films)."""
         B, T, D = sample.shape
         N = self.group_order
-        a = self._action_enc(sample.reshape(B * T, D).to(cond.dtype))  # (B*T, A*N)
+        a = self._action_enc(sample.reshape(B * T, D).to(films.dtype))  # (B*T, A*N)
         a = a.reshape(B, T, -1, N).permute(0, 3, 2, 1).reshape(B * N, -1, T)  # each group element is a batch row
-        t = timestep.reshape(-1).expand(B) if timestep.numel() == 1 else timestep
-        out = self.unet(a, t.repeat_interleave(N), cond)  # (B*N, A, T)
+        out = self.unet.forward_films(a, films)  # (B*N, A, T)
         out = out.reshape(B, N, -1, T).permute(0, 3, 2, 1).reshape(B * T, -1)
         return self._action_dec(out).reshape(B, T, D)
 

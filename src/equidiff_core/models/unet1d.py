@@ -12,6 +12,7 @@ from __future__ import annotations
 import math
 
 import torch
+import torch.nn.functional as F
 from torch import nn
 
 
@@ -40,15 +41,18 @@ class ConditionalResidualBlock1D(nn.Module):
         self.blocks = nn.ModuleList([Conv1dBlock(inp, out, kernel_size, n_groups),
                                      Conv1dBlock(out, out, kernel_size, n_groups)])
         self.out_channels = out
-        # FiLM: per-channel scale and bias predicted from the condition.
+        # FiLM: per-channel scale and bias predicted from the condition (Mish, then Linear; the
+        # U-Net evaluates this Linear in two parts, see ConditionalUnet1D.films).
         self.cond_encoder = nn.Sequential(nn.Mish(), nn.Linear(cond_dim, out * 2))
         self.residual_conv = nn.Conv1d(inp, out, 1) if inp != out else nn.Identity()
 
-    def forward(self, x: torch.Tensor, cond: torch.Tensor) -> torch.Tensor:
+    def forward(self, x: torch.Tensor, film: torch.Tensor) -> torch.Tensor:
+        """x (B, inp, T), film (B, 2 * out): this block's FiLM scale and bias."""
         out = self.blocks[0](x)
-        film = self.cond_encoder(cond).unsqueeze(-1)
+        film = film.unsqueeze(-1)
         scale, bias = film[:, : self.out_channels], film[:, self.out_channels:]
-        out = self.blocks[1](scale * out + bias)
+        # one fused op: bf16 `scale * out + bias` broadcast over time ran 3x slower on CPU (measured)
+        out = self.blocks[1](torch.addcmul(bias, scale, out))
         return out + self.residual_conv(x)
 
 
@@ -81,19 +85,44 @@ class ConditionalUnet1D(nn.Module):
                 nn.ConvTranspose1d(d_in, d_in, 4, 2, 1) if not last else nn.Identity()]))
         start = down_dims[0]
         self.final_conv = nn.Sequential(Conv1dBlock(start, start, kernel_size, n_groups), nn.Conv1d(start, input_dim, 1))
+        self.res_blocks = [m for level in (*self.down_modules, self.mid_modules, *self.up_modules)
+                           for m in level if isinstance(m, ConditionalResidualBlock1D)]
+        self.film_sizes = [2 * b.out_channels for b in self.res_blocks]
+
+    # FiLM of all residual blocks, concatenated: films = step_films(t) + global_films(cond). Each
+    # block's Linear(Mish(cat(step_emb, cond))) splits exactly into a step part and a condition
+    # part (Mish is elementwise), so a sampler computes the condition part once per observation
+    # and the step part once per timestep instead of both at every denoising step.
+    def step_films(self, timestep: torch.Tensor) -> torch.Tensor:
+        """(B,) diffusion steps -> (B, sum(film_sizes)), including the Linear biases."""
+        enc = self.diffusion_step_encoder
+        step_emb = enc[0](timestep).to(enc[1].weight.dtype)  # sinusoid in fp32, then model dtype
+        h = F.mish(enc[1:](step_emb))
+        dsed = h.shape[-1]
+        return torch.cat([F.linear(h, b.cond_encoder[1].weight[:, :dsed], b.cond_encoder[1].bias)
+                          for b in self.res_blocks], dim=-1)
+
+    def global_films(self, global_cond: torch.Tensor) -> torch.Tensor:
+        """(B, global_cond_dim) -> (B, sum(film_sizes)), without biases (step_films has them)."""
+        h = F.mish(global_cond)
+        dsed = self.diffusion_step_encoder[-1].out_features
+        return torch.cat([F.linear(h, b.cond_encoder[1].weight[:, dsed:]) for b in self.res_blocks], dim=-1)
 
     def forward(self, sample: torch.Tensor, timestep: torch.Tensor, global_cond: torch.Tensor) -> torch.Tensor:
-        step_emb = self.diffusion_step_encoder[0](timestep).to(global_cond.dtype)  # sinusoid in fp32, then model dtype
-        cond = torch.cat([self.diffusion_step_encoder[1:](step_emb), global_cond], dim=-1)
+        return self.forward_films(sample, self.step_films(timestep) + self.global_films(global_cond))
+
+    def forward_films(self, sample: torch.Tensor, films: torch.Tensor) -> torch.Tensor:
+        """(B, input_dim, T) noisy sample, (B, sum(film_sizes)) from step_films + global_films."""
+        film = iter(films.split(self.film_sizes, dim=-1))
         x = sample
         skips = []
         for res1, res2, down in self.down_modules:
-            x = res2(res1(x, cond), cond)
+            x = res2(res1(x, next(film)), next(film))
             skips.append(x)
             x = down(x)
         for res in self.mid_modules:
-            x = res(x, cond)
+            x = res(x, next(film))
         for res1, res2, up in self.up_modules:
             x = torch.cat((x, skips.pop()), dim=1)
-            x = up(res2(res1(x, cond), cond))
+            x = up(res2(res1(x, next(film)), next(film)))
         return self.final_conv(x)

@@ -24,6 +24,8 @@ def add_arguments(parser) -> None:
     parser.add_argument("--precision", default="auto", choices=["auto", "fp32", "bf16"],
                         help="auto: bf16 on CUDA and on CPUs with native bf16, else fp32")
     parser.add_argument("--no-jit", action="store_true", help="skip torch.jit.trace of encoder and denoiser")
+    parser.add_argument("--compile", action="store_true",
+                        help="torch.compile the denoising step (~45 s the first time, then cached on disk)")
     parser.add_argument("--iters", type=int, default=30, help="timed DDIM-16 runs of the exported policy")
     parser.add_argument("--eager-iters", type=int, default=3, help="timed runs of the eager escnn model")
     parser.add_argument("--threads", type=int, default=1,
@@ -84,7 +86,7 @@ def run(args) -> int:
     ws = Workspace()
     torch.manual_seed(0)
     load = lambda path: load_inference_policy(path, device=str(device), precision=precision,  # noqa: E731
-                                              jit=not args.no_jit)
+                                              jit=not args.no_jit, compile=args.compile)
     if args.checkpoint:
         try:  # one read: load_inference_policy validates the file and its config (CheckpointError)
             fast = load(args.checkpoint)
@@ -118,7 +120,7 @@ def run(args) -> int:
               "ddim16_median_ms": round(float(np.median(ddim)), 2),
               "ddim16_p99_ms": round(float(np.percentile(ddim, 99)), 2),
               "eager_ddim16_median_ms": None, "device": _device_name(device), "precision": precision,
-              "jit": not args.no_jit, "iters": args.iters}
+              "jit": not args.no_jit, "compiled": fast.compiled, "iters": args.iters}
     if eager is not None and args.eager_iters > 0:
         obs = {"voxels": vox_t.to(device), "ee": ee_t.to(device)}
         eager.predict_action(obs)  # warm-up (escnn filter expansion, allocator)
