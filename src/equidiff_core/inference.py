@@ -7,12 +7,14 @@ rebuilds that network from the saved preset without importing escnn, so the robo
 process stays light (and starts fast). Missing, corrupt or incompatible files raise
 ``CheckpointError`` with the reason.
 
-Speed switches (``load_inference_policy(..., precision="bf16", jit=True)``): bf16 weights and
-activations (the DDIM arithmetic stays fp32), channels_last_3d for the 3D convolutions, and
-``torch.jit.trace`` + freeze of the encoder and of one denoising step; in bf16 on CPU the U-Net's
-Conv1d also run as GEMMs (``MatmulConv1d``). ``precision="auto"`` picks bf16 on CUDA and on CPUs
-with native bf16 (AVX512-BF16/AMX), fp32 elsewhere. Measured on the 2-core EPYC (compact, 1
-thread): fp32 ~180 ms, bf16 + jit 66-101 ms per DDIM-16 call (docs/model.md).
+Speed switches (``load_inference_policy(..., precision="bf16", jit=True, compile=False)``): bf16
+weights and activations (the DDIM arithmetic stays fp32), channels_last_3d for the 3D
+convolutions, ``torch.jit.trace`` + freeze of the encoder and of one denoising step, and
+optionally ``torch.compile`` of the step. Always: the U-Net's FiLM terms split into an
+observation part (once per ``encode``) and a step part (cached per diffusion step), and a faster
+Mish; in bf16 on CPU the U-Net's Conv1d and ConvTranspose1d also run as GEMMs. ``precision="auto"``
+picks bf16 on CUDA and on CPUs with native bf16 (AVX512-BF16/AMX), fp32 elsewhere. Measured on
+the 2-core EPYC: docs/model.md (compact, 1 thread, traced: 63-89 ms per DDIM-16 call).
 """
 
 from __future__ import annotations
