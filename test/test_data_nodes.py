@@ -34,9 +34,6 @@ def ros(ros_domain):
     h.close()
 
 
-spawn, stop = spawn_node, stop_node
-
-
 def make_messages(f, n: int, t0_ns: int):
     """n voxel grids, ee poses, joint states and chunks with distinct content."""
     ws = LAB.workspace
@@ -94,7 +91,7 @@ def test_recorder_episode_reads_back_identically(ros, tmp_path):
     from rosbags.rosbag2 import Reader
 
     out = tmp_path / "episodes"
-    proc = spawn("recorder_node", f"output_dir:={out}", "task:=stack", "operator:=tester", "min_free_gib:=0.0")
+    proc = spawn_node("recorder_node", f"output_dir:={out}", "task:=stack", "operator:=tester", "min_free_gib:=0.0")
     try:
         pubs, cmd = publishers(ros)
         wait_matched(ros, list(pubs.values()) + [cmd])
@@ -111,7 +108,7 @@ def test_recorder_episode_reads_back_identically(ros, tmp_path):
         cmd.publish(ros.f.make("std_msgs/msg/String", data="stop failure slipped at the end"))
         wait_status(ros, "idle")
     finally:
-        log = stop(proc)
+        log = stop_node(proc)
     assert proc.returncode == 0, log
 
     # Independent reader: rosbags' own Reader and CDR decoder against the rclpy messages published.
@@ -138,11 +135,11 @@ def test_recorder_episode_reads_back_identically(ros, tmp_path):
 
     # Never overwrite: the next episode of the same task gets the next index. This time the
     # episode is driven by the std_srvs/Trigger services; discard removes it.
-    proc = spawn("recorder_node", f"output_dir:={out}", "task:=stack", "min_free_gib:=0.0")
+    proc = spawn_node("recorder_node", f"output_dir:={out}", "task:=stack", "min_free_gib:=0.0")
     try:
         Trigger = ros.f.cls("std_srvs/srv/Trigger")
         clients = {name: ros.node.create_client(Trigger, f"/recorder/{name}") for name in ("start", "discard", "stop")}
-        assert ros.spin_until(lambda: all(c.service_is_ready() for c in clients.values()), 20.0), stop(proc)
+        assert ros.spin_until(lambda: all(c.service_is_ready() for c in clients.values()), 20.0), stop_node(proc)
 
         def call(name):
             future = clients[name].call_async(Trigger.Request())
@@ -158,14 +155,14 @@ def test_recorder_episode_reads_back_identically(ros, tmp_path):
         res = call("stop")
         assert res.success is False and "not recording" in res.message
     finally:
-        stop(proc)
+        stop_node(proc)
     assert not second.exists() and path.exists()
 
 
 def test_sigkilled_recorder_bag_is_recovered(ros, tmp_path):
 
     out = tmp_path / "episodes"
-    proc = spawn("recorder_node", f"output_dir:={out}", "task:=kill", "min_free_gib:=0.0",
+    proc = spawn_node("recorder_node", f"output_dir:={out}", "task:=kill", "min_free_gib:=0.0",
                  "chunk_size_mib:=2.0", "chunk_max_age_s:=0.3", "autostart:=true")
     try:
         pubs, _cmd = publishers(ros)
@@ -179,7 +176,7 @@ def test_sigkilled_recorder_bag_is_recovered(ros, tmp_path):
         proc.send_signal(signal.SIGKILL)
         proc.wait(timeout=10)
     finally:
-        stop(proc)
+        stop_node(proc)
     assert not (path / "metadata.yaml").exists()
     with pytest.raises(BagError, match="bags repair"):
         read_episode(path)
@@ -203,7 +200,7 @@ def test_sigkilled_recorder_bag_is_recovered(ros, tmp_path):
 def test_teleop_node_drives_target_from_joy(ros):
     from equidiff_ros.common import RELIABLE_QOS, SENSOR_QOS
 
-    proc = spawn("teleop_node", "source:=joy", "deadzone:=0.1", "linear_scale:=[0.1, 0.1, 0.1]",
+    proc = spawn_node("teleop_node", "source:=joy", "deadzone:=0.1", "linear_scale:=[0.1, 0.1, 0.1]",
                  "gripper_mode:=buttons", "rate_hz:=100.0", "publish_hz:=20.0")
     chunks = []
     try:
@@ -213,7 +210,7 @@ def test_teleop_node_drives_target_from_joy(ros):
         ros.node.create_subscription(f.cls("trajectory_msgs/msg/MultiDOFJointTrajectory"), "/franka/command_chunk",
                                      lambda m: chunks.append(chunk_from_msg(m)), RELIABLE_QOS)
         assert ros.spin_until(lambda: pose_pub.get_subscription_count() > 0 and joy_pub.get_subscription_count() > 0,
-                              20.0), stop(proc)
+                              20.0), stop_node(proc)
         start = geometry.make_pose(np.diag([1.0, -1, -1]), [0.45, 0.0, 0.2])
         p, q = geometry.pos_quat_from_pose(start)
 
@@ -242,7 +239,7 @@ def test_teleop_node_drives_target_from_joy(ros):
             ros.spin_for(0.02)
         ros.spin_for(0.3)
     finally:
-        log = stop(proc)
+        log = stop_node(proc)
     assert len(chunks) >= 5, log
     last = chunks[-1]
     assert len(last) == 1 and last.times_ns[0] > last.stamp_ns  # one point, reached shortly after
@@ -257,11 +254,11 @@ def test_teleop_node_drives_target_from_joy(ros):
 
 
 def test_teleop_node_without_device_names_what_it_looked_for(ros_domain):
-    proc = spawn("teleop_node", "source:=spacemouse")
+    proc = spawn_node("teleop_node", "source:=spacemouse")
     try:
         proc.wait(timeout=30)
     finally:
-        log = stop(proc)
+        log = stop_node(proc)
     assert proc.returncode == 1
     assert "SpaceMouse" in log and ("3Dconnexion" in log or "HID" in log)
 
@@ -284,7 +281,7 @@ def test_recorder_keyboard_mode(ros, tmp_path):
         os.write(master, b"f\n")
         wait_status(ros, "idle")
     finally:
-        stop(proc)
+        stop_node(proc)
         os.close(master)
     assert path.name == "keys_0000"
     meta = read_episode(path).meta

@@ -29,9 +29,6 @@ def _spawn(node, *params):
     return spawn_node(node, f"lab_config:={LAB_YAML}", *params)
 
 
-_stop = stop_node
-
-
 class RosProbe:
     """An rclpy node in the test process: cloud publishers, /voxels and /diagnostics subscribers."""
 
@@ -140,7 +137,7 @@ def test_three_clouds_become_the_expected_grid_and_a_missing_camera_stops_output
 
     try:
         # 1. all three cameras -> the exact grid, stamped with a capture stamp, in the base frame
-        assert tester.wait_for(lambda: tester.voxels, 25.0, publish), _stop(proc)
+        assert tester.wait_for(lambda: tester.voxels, 25.0, publish), stop_node(proc)
         msg = tester.voxels[-1]
         np.testing.assert_array_equal(_grid(msg, lab), expected)
         stamp = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
@@ -160,7 +157,7 @@ def test_three_clouds_become_the_expected_grid_and_a_missing_camera_stops_output
         assert tester.wait_for(lambda: len(tester.voxels) > count, 5.0, publish)
         assert proc.poll() is None
     finally:
-        out = _stop(proc)
+        out = stop_node(proc)
     assert "stale camera(s) cam_right" in out
 
 
@@ -202,7 +199,7 @@ def test_a_camera_never_seen_blocks_output_and_malformed_clouds_do_not_crash_the
     try:
         # only malformed clouds from cam_front: no output, the node keeps running and counts drops
         assert tester.wait_for(lambda: int(tester.voxel_status()[1].get("cam_front_dropped", 0)) >= 25, 40.0,
-                               publish_malformed_front), _stop(proc)
+                               publish_malformed_front), stop_node(proc)
         assert not tester.voxels and proc.poll() is None
         assert "cam_front (never received)" in tester.voxel_status()[0]
 
@@ -213,11 +210,11 @@ def test_a_camera_never_seen_blocks_output_and_malformed_clouds_do_not_crash_the
                 tester.publish(name, msg)
             publish_malformed_front()
 
-        assert tester.wait_for(lambda: tester.voxels, 30.0, publish_all), _stop(proc)
+        assert tester.wait_for(lambda: tester.voxels, 30.0, publish_all), stop_node(proc)
         np.testing.assert_array_equal(_grid(tester.voxels[-1], lab), expected)
         assert proc.poll() is None
     finally:
-        out = _stop(proc)
+        out = stop_node(proc)
     for reason in ("lacks field(s) ['z']", "NaN", "zero points", "is not 'cam_front_color_optical_frame'"):
         assert reason in out, reason
 
@@ -235,7 +232,7 @@ def test_replayed_bag_through_camera_node_and_voxel_node(tester, scene, tmp_path
     camera = _spawn("camera_node", "backend:=replay", f"bag:={bag}", "loop:=true")
     voxel = _spawn("voxel_node", "slop_s:=0.1")
     try:
-        assert tester.wait_for(lambda: tester.voxels and tester.clouds, 30.0), _stop(camera) + _stop(voxel)
+        assert tester.wait_for(lambda: tester.voxels and tester.clouds, 30.0), stop_node(camera) + stop_node(voxel)
         cloud = tester.clouds[-1]
         assert cloud.header.frame_id == "cam_front_color_optical_frame"
         assert cloud.width == len(clouds[0][0]) and cloud.point_step == 16
@@ -250,8 +247,8 @@ def test_replayed_bag_through_camera_node_and_voxel_node(tester, scene, tmp_path
         assert 5 <= n_voxels <= 20, n_voxels
         assert camera.poll() is None and voxel.poll() is None
     finally:
-        cam_out = _stop(camera)
-        _stop(voxel)
+        cam_out = stop_node(camera)
+        stop_node(voxel)
     assert "tf2_msgs is not installed" in cam_out
 
 
@@ -261,6 +258,6 @@ def test_camera_node_without_realsense_fails_fast_naming_the_serial(ros_domain):
     try:
         proc.wait(timeout=60)
     finally:
-        out = _stop(proc)
+        out = stop_node(proc)
     assert proc.returncode == 1
     assert "'cam_left' with serial 215122250002 not found" in out

@@ -381,12 +381,14 @@ def object_poses_from_state(state: dict) -> tuple[np.ndarray, np.ndarray]:
     return out[0], out[1]
 
 
-def run_expert(stack: TwinStack, hz: float | None = None, max_lag_m: float = 0.03, extra_s: float = 4.0) -> dict:
+def run_expert(stack: TwinStack, hz: float | None = None, max_lag_m: float = 0.03, extra_s: float = 4.0,
+               timeout_s: float | None = None) -> dict:
     """Drive the scripted expert through the teleop path: one-point chunks at 20 Hz.
 
     The plan's clock advances only while the arm keeps up (TCP within ``max_lag_m`` of the
     target, like teleop's ``max_lead_m``), so a twin slower than real time (a loaded CPU) gets
-    the same motion, just later. Returns the final /twin/state.
+    the same motion, just later; an arm that never catches up (blocked, in a reflex) raises
+    SupervisorError after ``timeout_s`` (default: 30 s + 10x the plan). Returns the final /twin/state.
     """
     from equidiff_core.twin.expert import plan_pick_place
 
@@ -397,10 +399,15 @@ def run_expert(stack: TwinStack, hz: float | None = None, max_lag_m: float = 0.0
     start, width = sup.current()
     plan = plan_pick_place(start, width, block, bowl, cfg.scene.block_size[2], ex)
     t_plan, last = 0.0, time.monotonic()
+    deadline = last + (timeout_s if timeout_s is not None else 30.0 + 10.0 * plan.duration)
     success_since = None
     while True:
         stack.check()
         now = time.monotonic()
+        if now > deadline:
+            lag_mm = 1000 * np.linalg.norm(sup.current()[0][:3, 3] - plan.target_at(t_plan)[0][:3, 3])
+            raise SupervisorError(f"the scripted expert's {plan.duration:.0f} s plan did not finish in time: "
+                                  f"plan clock at {t_plan:.1f} s, TCP {lag_mm:.0f} mm from its target")
         dt, last = now - last, now
         pose, width = plan.target_at(t_plan)
         tcp, _ = sup.current()
