@@ -190,7 +190,7 @@ class InferencePolicy:
     def _compile(self):
         """torch.compile the denoising step (inductor fuses GroupNorm, Mish, FiLM and the im2col copies).
 
-        Measured on the 2-core EPYC, paper preset bf16: 15-17 ms per step against 20-22 ms traced;
+        Measured on the 2-core EPYC, paper preset bf16: 12.5-14.5 ms per step against 21-23.5 ms traced;
         the first compile takes ~45 s (then ~6 s from inductor's on-disk cache). It needs a C++
         compiler: if compiling fails, the traced/eager step is kept and a warning says why."""
         x = torch.zeros(1, self.preset.horizon, self.codec.dim, device=self.device)

@@ -42,7 +42,7 @@ class ConditionalResidualBlock1D(nn.Module):
                                      Conv1dBlock(out, out, kernel_size, n_groups)])
         self.out_channels = out
         # FiLM: per-channel scale and bias predicted from the condition (Mish, then Linear; the
-        # U-Net evaluates this Linear in two parts, see ConditionalUnet1D.films).
+        # U-Net evaluates this Linear in two parts: ConditionalUnet1D.step_films and global_films).
         self.cond_encoder = nn.Sequential(nn.Mish(), nn.Linear(cond_dim, out * 2))
         self.residual_conv = nn.Conv1d(inp, out, 1) if inp != out else nn.Identity()
 
