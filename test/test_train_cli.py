@@ -77,6 +77,13 @@ def test_train_writes_a_loadable_policy_and_plot(bags, tmp_path, capsys):
     assert steps[0] == 1 and steps[-1] == 5  # history kept, continued to step 5
     assert json.loads((out / "split.json").read_text()) == split  # resume keeps the held-out episodes
 
+    # a time budget ends the run early, and it still exports and says so
+    capsys.readouterr()
+    assert train(bags, tmp_path / "budget", "--max-minutes", "0.0001") == 0
+    summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert summary["steps"] == 1 and "time budget" in summary["stopped"]
+    assert (tmp_path / "budget" / "policy.pt").is_file()
+
 
 def test_train_reports_missing_data(tmp_path, capsys):
     assert cli(["train", str(tmp_path / "nothing"), "--out", str(tmp_path / "run"), "--preset", "tiny",

@@ -79,6 +79,18 @@ def test_ema_weights_are_exported_and_training_weights_kept(tmp_path):
     assert not torch.allclose(exported[name], state["model"][name])  # the averaged ones are exported
 
 
+def test_a_time_budget_stops_training_with_a_checkpoint_and_an_export(tmp_path):
+    ds = CubeDataset(2, seed=4)
+    policy = make_policy("baseline", get_preset("tiny"), WS)
+    result = train(policy, ds, None, _quick_cfg(steps=50, eval_every=0, checkpoint_every=0, max_minutes=1e-4), tmp_path)
+    assert result.steps == 1  # the budget (6 ms) runs out during the first step
+    assert load_training_checkpoint(result.checkpoint)["step"] == 1
+    assert "time budget" in result.history[-1]["stopped"]
+    assert load_inference_policy(result.exported).preset.name == "tiny"
+    with pytest.raises(ValueError, match="max_minutes"):
+        TrainConfig(max_minutes=0)
+
+
 def test_config_and_device_errors():
     with pytest.raises(ConfigError, match="unknown key"):
         from_dict(TrainConfig, {"stepz": 3})

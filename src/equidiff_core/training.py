@@ -59,10 +59,15 @@ class TrainConfig:
     num_workers: int = 0
     grad_clip: float = 0.0  # 0: off
     noise_repeats: int = 1  # (noise, step) draws per observation per step, see DiffusionPolicy.compute_loss
+    # wall-clock budget: stop after the step that crosses it, then checkpoint and export as usual
+    # (the cosine schedule stays the one for ``steps``); None: no limit
+    max_minutes: float | None = None
 
     def __post_init__(self):
         if self.steps < 0 or self.batch_size < 1:
             raise ValueError("steps must be >= 0 and batch_size >= 1")
+        if self.max_minutes is not None and not self.max_minutes > 0:
+            raise ValueError(f"max_minutes must be positive, got {self.max_minutes}")
         if not 0.0 < self.ema_decay < 1.0:
             raise ValueError("ema_decay must be in (0, 1)")
 
@@ -72,6 +77,7 @@ class TrainResult:
     checkpoint: Path
     exported: Path
     history: list[dict] = field(default_factory=list)
+    steps: int = 0  # steps trained in all (fewer than asked when max_minutes stopped the run)
 
 
 def resolve_device(device: str) -> torch.device:
@@ -205,7 +211,11 @@ def train(policy: DiffusionPolicy, train_set: Dataset, val_set: Dataset | None, 
     aug_gen = torch.Generator().manual_seed(cfg.seed * 7919 + step)
 
     t_last = time.perf_counter()
+    deadline = None if cfg.max_minutes is None else time.monotonic() + 60.0 * cfg.max_minutes
     while step < cfg.steps:
+        if deadline is not None and time.monotonic() > deadline:
+            history.append({"step": step, "stopped": f"time budget of {cfg.max_minutes:g} min reached"})
+            break
         policy.train()
         batch = next(batches)
         loss = policy.compute_loss(batch, generator=aug_gen, noise_repeats=cfg.noise_repeats)
@@ -244,7 +254,7 @@ def train(policy: DiffusionPolicy, train_set: Dataset, val_set: Dataset | None, 
     exported = out_dir / "policy.pt"
     with (ema.swapped_in() if ema else contextlib.nullcontext()):
         export_policy(policy, exported)
-    result = TrainResult(ckpt_path, exported, history)
+    result = TrainResult(ckpt_path, exported, history, step)
     for cb in callbacks:
         if hasattr(cb, "on_end"):
             cb.on_end(result)

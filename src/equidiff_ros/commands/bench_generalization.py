@@ -41,7 +41,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", type=Path, default=None, help="work directory (default runs/bench_generalization_<time>)")
     parser.add_argument("--demos-dir", type=Path, default=None, help="reuse demos recorded earlier (narrow yaw)")
     parser.add_argument("--max-duration", type=float, default=30.0, help="sim seconds per evaluation episode")
-    parser.add_argument("--max-minutes", type=float, default=None, help="training time limit per policy")
+    parser.add_argument("--max-minutes", type=float, default=None,
+                        help="training time budget per policy (equidiff train --max-minutes: stops and exports)")
     parser.add_argument("--quick", action="store_true", help="4 demos, 30 steps, 2 episodes, tiny preset")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--lab-config", type=Path, default=None)
@@ -56,17 +57,20 @@ def _train(policy: str, bags: Path, out: Path, args, steps: int) -> Path:
            "--no-progress"]
     if args.lab_config:
         cmd += ["--lab-config", str(args.lab_config)]
-    timeout = None if args.max_minutes is None else args.max_minutes * 60
+    timeout = None
+    if args.max_minutes is not None:  # train stops itself and exports; the kill is only a backstop
+        cmd += ["--max-minutes", str(args.max_minutes)]
+        timeout = args.max_minutes * 60 + 600
     print(f"[bench] training {policy}: {' '.join(cmd[3:])}", flush=True)
     try:
         proc = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout)
-    except subprocess.TimeoutExpired:  # time budget: export what the last checkpoint holds
-        proc = None
+    except subprocess.TimeoutExpired as err:
+        raise RuntimeError(f"equidiff train {policy} did not stop within {timeout / 60:.0f} min") from err
     policy_file = out / "policy.pt"
-    if proc is not None and proc.returncode != 0:
+    if proc.returncode != 0:
         raise RuntimeError(f"equidiff train {policy} failed:\n{proc.stdout[-2000:]}\n{proc.stderr[-2000:]}")
     if not policy_file.is_file():
-        raise RuntimeError(f"equidiff train {policy} wrote no {policy_file} (time limit too short?)")
+        raise RuntimeError(f"equidiff train {policy} wrote no {policy_file}")
     return policy_file
 
 

@@ -32,6 +32,8 @@ def add_arguments(parser) -> None:
     parser.add_argument("--eval-max-samples", type=int, default=64,
                         help="held-out samples scored by action MSE at each evaluation (DDIM sampling)")
     parser.add_argument("--checkpoint-every", type=int, default=1000)
+    parser.add_argument("--max-minutes", type=float, default=None,
+                        help="stop after this much training time, then checkpoint and export as at the end")
     parser.add_argument("--num-workers", type=int, default=0)
     parser.add_argument("--resume", action="store_true", help="continue from OUT/last.ckpt")
     parser.add_argument("--lab-config", help="lab.yaml (workspace); default: the installed one")
@@ -223,7 +225,8 @@ def run(args) -> int:
 
     cfg = TrainConfig(steps=args.steps, batch_size=args.batch_size, lr=args.lr, warmup_steps=args.warmup_steps,
                       ema=args.ema, seed=args.seed, device=args.device, eval_every=args.eval_every,
-                      checkpoint_every=args.checkpoint_every, num_workers=args.num_workers)
+                      checkpoint_every=args.checkpoint_every, num_workers=args.num_workers,
+                      max_minutes=args.max_minutes)
     seed_everything(args.seed)  # the initial weights come from the global RNG: seed before building
     policy = make_policy(args.policy, preset, lab.workspace)
     start_step = 0
@@ -249,9 +252,12 @@ def run(args) -> int:
     evals = [h for h in result.history if "val_loss" in h]
     losses = [h["loss"] for h in result.history if "loss" in h]
     summary = {"checkpoint": str(result.checkpoint), "policy": str(result.exported), "plot": str(out / "training.png"),
-               "steps": args.steps, "final_loss": losses[-1] if losses else None,
+               "steps": result.steps, "final_loss": losses[-1] if losses else None,
                "val_action_mse": evals[-1].get("val_action_mse") if evals else None,
                "train_action_mse": evals[-1].get("train_action_mse") if evals else None,
                "train_episodes": len(train_eps), "val_episodes": len(val_eps), "skipped": len(skipped)}
+    stopped = [h["stopped"] for h in result.history if "stopped" in h]
+    if stopped:
+        summary["stopped"] = stopped[-1]
     print(json.dumps(summary))
     return 0
