@@ -138,6 +138,7 @@ def run(args: argparse.Namespace) -> int:
         "baseline_success": round(success["baseline"], 3),
         "demos": n_demos,
         "train_steps": min(steps_done.values()),
+        "train_steps_by_policy": steps_done,  # differ when --max-minutes stopped the slower one first
         "eval_episodes": args.eval_episodes,
         "train_yaw_range_deg": list(args.train_yaw),
         "eval_yaw": f"block and bowl yaw >= 15 deg outside the training range (seeds {seeds[0]}..)",
