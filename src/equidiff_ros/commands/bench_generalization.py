@@ -11,9 +11,11 @@ batch and seed; (3) roll both out in closed loop (in-process, sim clock, same se
 whose block *and* bowl yaw lie at least 15 deg outside the training range. Prints one JSON line:
 equidiff_success, baseline_success, demos, train_steps, eval_episodes, train_yaw_range_deg, ...
 
-Time on this 2-core CPU (compact preset, measured at load ~4.5): demos ~12 s each, training
-~1.3 s per step of batch 16, evaluation ~6 s per 15 s episode; the defaults take ~35 min, and
-``--max-minutes`` bounds each policy's training (the steps actually trained are reported).
+Time on this 2-core CPU (compact preset, quiet machine): demos ~12 s each, training ~0.86 s
+(EquiDiff) and ~0.53 s (baseline) per step of batch 16, evaluation ~8 s per 30 s episode; the
+defaults take ~20 min. ``--max-minutes`` gives each policy a training budget: ``equidiff train``
+stops, checkpoints and exports when it runs out, and the steps each trained are reported.
+Neither policy acts after ~2000 steps; the comparison needs thousands more (docs/twin.md).
 On CUDA training dominates less and thousands of steps fit in minutes.
 """
 
