@@ -222,6 +222,19 @@ def test_bench_and_collect_commands_parse():
         assert not getattr(args, "_missing", False), argv
 
 
+@pytest.mark.slow
+def test_bench_generalization_reports_a_failed_training_run_and_keeps_the_demos(tmp_path, capsys):
+    from equidiff_ros.cli import main
+
+    demos = tmp_path / "demos"
+    demos.mkdir()  # no bags: equidiff train refuses them
+    assert main(["bench", "generalization", "--demos-dir", str(demos), "--out", str(tmp_path / "run"),
+                 "--preset", "tiny", "--train-steps", "2", "--device", "cpu"]) == 1
+    err = capsys.readouterr().err
+    assert "equidiff train equidiff failed" in err and f"--demos-dir {demos}" in err
+    assert "Traceback" not in err
+
+
 def test_shipped_checkpoint_loads_and_its_training_is_recorded():
     """The checkpoint `equidiff twin run` uses by default: loadable, plain torch, documented next to it."""
     import numpy as np

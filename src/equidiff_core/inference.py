@@ -11,8 +11,8 @@ Speed switches (``load_inference_policy(..., precision="bf16", jit=True, compile
 weights and activations (the DDIM arithmetic stays fp32), channels_last_3d for the 3D
 convolutions, ``torch.jit.trace`` + freeze of the encoder and of one denoising step, and
 optionally ``torch.compile`` of the step. Always: the U-Net's FiLM terms split into an
-observation part (once per ``encode``) and a step part (cached per diffusion step), and a faster
-Mish; in bf16 on CPU the U-Net's Conv1d and ConvTranspose1d also run as GEMMs. ``precision="auto"``
+observation part (once per ``encode``) and a step part (cached per diffusion step); on CPU a
+faster Mish, and in bf16 on CPU the U-Net's Conv1d and ConvTranspose1d run as GEMMs. ``precision="auto"``
 picks bf16 on CUDA and on CPUs with native bf16 (AVX512-BF16/AMX), fp32 elsewhere. Measured on
 the 2-core EPYC: docs/model.md (compact, 1 thread, traced: 63-89 ms per DDIM-16 call).
 """
@@ -156,7 +156,8 @@ class InferencePolicy:
         self.matmul_convs = 0
         if precision == "bf16" and device.type == "cpu":
             self.matmul_convs = _convs_as_matmuls(self.net.unet)
-        _swap_modules(self.net.unet, torch.nn.Mish, lambda _: FastMish())
+        if device.type == "cpu":  # a CPU-kernel workaround: on CUDA torch's Mish is one fused kernel
+            _swap_modules(self.net.unet, torch.nn.Mish, lambda _: FastMish())
         self._encode = self.net.encode_obs
         self._denoise_films = self.net.denoise_films
         self._step_films: dict[int, torch.Tensor] = {}  # diffusion step -> its part of the FiLM terms

@@ -78,6 +78,7 @@ class TrainResult:
     exported: Path
     history: list[dict] = field(default_factory=list)
     steps: int = 0  # steps trained in all (fewer than asked when max_minutes stopped the run)
+    stopped: str | None = None  # why this run ended before cfg.steps (also kept in history)
 
 
 def resolve_device(device: str) -> torch.device:
@@ -212,9 +213,11 @@ def train(policy: DiffusionPolicy, train_set: Dataset, val_set: Dataset | None, 
 
     t_last = time.perf_counter()
     deadline = None if cfg.max_minutes is None else time.monotonic() + 60.0 * cfg.max_minutes
+    stopped = None
     while step < cfg.steps:
         if deadline is not None and time.monotonic() > deadline:
-            history.append({"step": step, "stopped": f"time budget of {cfg.max_minutes:g} min reached"})
+            stopped = f"time budget of {cfg.max_minutes:g} min reached"
+            history.append({"step": step, "stopped": stopped})
             break
         policy.train()
         batch = next(batches)
@@ -254,7 +257,7 @@ def train(policy: DiffusionPolicy, train_set: Dataset, val_set: Dataset | None, 
     exported = out_dir / "policy.pt"
     with (ema.swapped_in() if ema else contextlib.nullcontext()):
         export_policy(policy, exported)
-    result = TrainResult(ckpt_path, exported, history, step)
+    result = TrainResult(ckpt_path, exported, history, step, stopped)
     for cb in callbacks:
         if hasattr(cb, "on_end"):
             cb.on_end(result)

@@ -45,8 +45,7 @@ class BaselineNoisePredictor(nn.Module):
         return torch.cat([feats, ee.reshape(B, -1).to(feats.dtype)], dim=1)
 
     def denoise(self, sample: torch.Tensor, timestep: torch.Tensor, cond: torch.Tensor) -> torch.Tensor:
-        t = timestep.reshape(-1).expand(sample.shape[0]) if timestep.numel() == 1 else timestep
-        return self.denoise_films(sample, self.unet.step_films(t) + self.unet.global_films(cond))
+        return self.denoise_films(sample, self.unet.films(timestep, cond))
 
     def denoise_films(self, sample: torch.Tensor, films: torch.Tensor) -> torch.Tensor:
         """``denoise`` with the U-Net's FiLM terms given (ConditionalUnet1D.films)."""

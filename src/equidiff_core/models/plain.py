@@ -79,9 +79,7 @@ class EquiNoiseCore(nn.Module):
 
     def denoise(self, sample: torch.Tensor, timestep: torch.Tensor, cond: torch.Tensor) -> torch.Tensor:
         """sample (B, T, D) model-space vectors, timestep (B,), cond from encode_obs -> epsilon (B, T, D)."""
-        t = timestep.reshape(-1).expand(sample.shape[0]) if timestep.numel() == 1 else timestep
-        films = self.unet.step_films(t.repeat_interleave(self.group_order)) + self.unet.global_films(cond)
-        return self.denoise_films(sample, films)
+        return self.denoise_films(sample, self.unet.films(timestep, cond))  # cond has B*N rows
 
     def denoise_films(self, sample: torch.Tensor, films: torch.Tensor) -> torch.Tensor:
         """``denoise`` with the U-Net's FiLM terms given (B*N rows, ConditionalUnet1D.films)."""

@@ -108,8 +108,18 @@ class ConditionalUnet1D(nn.Module):
         dsed = self.diffusion_step_encoder[-1].out_features
         return torch.cat([F.linear(h, b.cond_encoder[1].weight[:, dsed:]) for b in self.res_blocks], dim=-1)
 
+    def films(self, timestep: torch.Tensor, global_cond: torch.Tensor) -> torch.Tensor:
+        """All FiLM terms for (B,) or scalar diffusion steps and (B*k, global_cond_dim) conditions:
+        each step's row is repeated for the k consecutive condition rows it belongs to (EquiDiff's
+        group elements)."""
+        steps = self.step_films(timestep.reshape(-1))
+        rows = global_cond.shape[0]
+        if steps.shape[0] != rows:
+            steps = steps.repeat_interleave(rows // steps.shape[0], dim=0)
+        return steps + self.global_films(global_cond)
+
     def forward(self, sample: torch.Tensor, timestep: torch.Tensor, global_cond: torch.Tensor) -> torch.Tensor:
-        return self.forward_films(sample, self.step_films(timestep) + self.global_films(global_cond))
+        return self.forward_films(sample, self.films(timestep, global_cond))
 
     def forward_films(self, sample: torch.Tensor, films: torch.Tensor) -> torch.Tensor:
         """(B, input_dim, T) noisy sample, (B, sum(film_sizes)) from step_films + global_films."""

@@ -51,6 +51,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--twin-config", type=Path, default=None)
 
 
+class TrainRunError(RuntimeError):
+    """`equidiff train` failed, did not stop or wrote no policy."""
+
+
 def _train(policy: str, bags: Path, out: Path, args, steps: int) -> Path:
     cmd = [sys.executable, "-m", "equidiff_ros.cli", "train", str(bags), "--out", str(out), "--policy", policy,
            "--preset", args.preset, "--steps", str(steps), "--batch-size", str(args.batch_size),
@@ -67,12 +71,12 @@ def _train(policy: str, bags: Path, out: Path, args, steps: int) -> Path:
     try:
         proc = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout)
     except subprocess.TimeoutExpired as err:
-        raise RuntimeError(f"equidiff train {policy} did not stop within {timeout / 60:.0f} min") from err
+        raise TrainRunError(f"equidiff train {policy} did not stop within {timeout / 60:.0f} min") from err
     policy_file = out / "policy.pt"
     if proc.returncode != 0:
-        raise RuntimeError(f"equidiff train {policy} failed:\n{proc.stdout[-2000:]}\n{proc.stderr[-2000:]}")
+        raise TrainRunError(f"equidiff train {policy} failed:\n{proc.stdout[-2000:]}\n{proc.stderr[-2000:]}")
     if not policy_file.is_file():
-        raise RuntimeError(f"equidiff train {policy} wrote no {policy_file}")
+        raise TrainRunError(f"equidiff train {policy} wrote no {policy_file}")
     return policy_file
 
 
@@ -119,7 +123,12 @@ def run(args: argparse.Namespace) -> int:
     policies, steps_done = {}, {}
     for name in ("equidiff", "baseline"):
         run_dir = out / name
-        policies[name] = _train(name, demos_dir, run_dir, args, args.train_steps)
+        try:
+            policies[name] = _train(name, demos_dir, run_dir, args, args.train_steps)
+        except TrainRunError as err:  # the demos stay: a rerun need not record them again
+            print(f"equidiff bench generalization: {err}\nthe demos are kept: rerun with --demos-dir {demos_dir}",
+                  file=sys.stderr)
+            return 1
         steps_done[name] = _trained_steps(run_dir) or args.train_steps
     t_train = time.monotonic()
 

@@ -256,8 +256,7 @@ def run(args) -> int:
                "val_action_mse": evals[-1].get("val_action_mse") if evals else None,
                "train_action_mse": evals[-1].get("train_action_mse") if evals else None,
                "train_episodes": len(train_eps), "val_episodes": len(val_eps), "skipped": len(skipped)}
-    stopped = [h["stopped"] for h in result.history if "stopped" in h]
-    if stopped:
-        summary["stopped"] = stopped[-1]
+    if result.stopped:
+        summary["stopped"] = result.stopped
     print(json.dumps(summary))
     return 0
