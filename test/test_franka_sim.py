@@ -146,3 +146,23 @@ def test_controller_recovers_when_the_franky_motion_stops():
                 assert np.linalg.norm(ctl.state.ee_pose[:3, 3] - before) < 0.002
             finally:
                 ctl.stop()
+
+
+def test_franky_gripper_follows_widths_changed_while_it_moves():
+    """A width sent while the last gripper command still ran made franky-sim drop that command's
+    reply and franky block the new call forever: the fingers never moved again and the twin's
+    homing failed ("gripper 50 mm for 80 mm"). Changing the width mid-motion must still end at
+    the newest width."""
+    from equidiff_core.robots import make_robot
+
+    with SimServer() as sim:
+        robot = make_robot("franky", ip=sim.host, config=CONTROL.franky, realtime=False, gripper=True)
+        with robot:
+            for width in (0.03, 0.07, 0.01):  # each one well before the last has finished
+                robot.move_gripper(width)
+                time.sleep(0.15)
+            robot.move_gripper(0.08)
+            deadline = time.monotonic() + 15.0
+            while time.monotonic() < deadline and abs(robot.read_state().gripper_width - 0.08) > 0.003:
+                time.sleep(0.1)
+            assert robot.read_state().gripper_width == pytest.approx(0.08, abs=0.003)

@@ -67,6 +67,7 @@ class FrankyConfig:
     gripper_speed_m_s: float = 0.05
     gripper_force_n: float = 20.0
     gripper_epsilon_outer_m: float = 0.03  # wide, so a grasp commanded below the object holds
+    gripper_command_timeout_s: float = 5.0  # warn when one gripper command runs longer (0.08 m takes 1.6 s)
     max_recoveries: int = 3  # consecutive automatic error recoveries before giving up
 
     def __post_init__(self):

@@ -9,6 +9,10 @@ for our own measurement). Being torque-controlled it also cannot trip the motion
 discontinuity reflexes. The gripper has its own thread, which sends the newest requested width
 (``move_async`` / ``grasp_async``) and reads the width back: a gripper read blocks until the
 gripper's next state message, and a gripper command could block the 200 Hz loop (it froze the arm).
+That thread sends one command at a time, as libfranka's blocking gripper API assumes: a command
+sent while another runs made franky-sim drop the first one's reply, and franky then blocked the
+second call forever, so the gripper never moved again (the twin's homing failed "gripper 50 mm
+for 80 mm").
 """
 
 from __future__ import annotations
@@ -95,13 +99,23 @@ class FrankyRobot(Robot):
                           self._width)
 
     def _poll_gripper(self) -> None:
-        """The gripper's own thread: sends the newest requested width, then reads the width back."""
+        """The gripper's own thread: once the last command has finished, sends the newest requested
+        width; then reads the width back. Widths requested meanwhile are superseded, never queued."""
+        running, sent_at, warned = None, 0.0, False
         while not self._gripper_stop.wait(0.05):
-            with self._gripper_lock:
-                width, self._gripper_request = self._gripper_request, None
+            if running is not None and not _finished(running):
+                if not warned and time.monotonic() - sent_at > self.config.gripper_command_timeout_s:
+                    self.log.warning(f"the gripper command sent {self.config.gripper_command_timeout_s:.0f} s "
+                                     f"ago has not finished; newer widths wait for it")
+                    warned = True
+                width = None
+            else:
+                running, warned = None, False
+                with self._gripper_lock:
+                    width, self._gripper_request = self._gripper_request, None
             try:
                 if width is not None:
-                    self._send_gripper(width)
+                    running, sent_at = self._send_gripper(width), time.monotonic()
                 self._width = float(self._gripper.width)
             except Exception as err:
                 self.log.warning(f"gripper command or read failed: {err}")
@@ -196,15 +210,14 @@ class FrankyRobot(Robot):
         with self._gripper_lock:
             self._gripper_request = float(width)
 
-    def _send_gripper(self, width: float) -> None:
+    def _send_gripper(self, width: float):
         cfg = self.config
         if np.isfinite(self._width) and width < self._width:
             # Closing is a grasp with a wide outer epsilon: closing on an object then counts as
             # success and keeps squeezing it (a plain move does not hold it; NOTES.md).
-            self._gripper.grasp_async(float(width), cfg.gripper_speed_m_s, cfg.gripper_force_n,
-                                      epsilon_inner=0.08, epsilon_outer=cfg.gripper_epsilon_outer_m)
-        else:
-            self._gripper.move_async(float(width), cfg.gripper_speed_m_s)
+            return self._gripper.grasp_async(float(width), cfg.gripper_speed_m_s, cfg.gripper_force_n,
+                                             epsilon_inner=0.08, epsilon_outer=cfg.gripper_epsilon_outer_m)
+        return self._gripper.move_async(float(width), cfg.gripper_speed_m_s)
 
     def recover(self) -> str:
         robot = self._require()
@@ -220,3 +233,9 @@ class FrankyRobot(Robot):
     @property
     def has_errors(self) -> bool:
         return self._robot is not None and bool(self._robot.has_errors)
+
+
+def _finished(future) -> bool:
+    """Whether a franky gripper future (``BoolFuture``) is done; its result (grasped or not) is not
+    an error here: a grasp that closes on nothing just ends at the commanded width."""
+    return not hasattr(future, "wait") or bool(future.wait(0.0))
