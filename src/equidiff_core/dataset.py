@@ -21,6 +21,10 @@ N − horizon + pad_after, indices outside the episode repeat the first/last ste
 Decoding happens once per bag: episodes are kept in memory as sparse voxel lists (a grid is
 ~1 MiB dense, ~40 KiB sparse), and with ``cache_dir`` also on disk keyed by the bag's size
 and mtime, so neither the second epoch nor the second run decodes bags again.
+
+Packed episodes (``equidiff dataset pack``): the same arrays, compressed, in one
+``<episode>.episode.npz`` per bag, 1-5 % of the bag's size. Training accepts them wherever it
+accepts bags, so a dataset can be copied to a GPU machine without its MCAP files.
 """
 
 from __future__ import annotations
@@ -35,7 +39,7 @@ from typing import Any, Iterable, Sequence
 import numpy as np
 
 from . import geometry
-from .bags import BagError, EpisodeMeta, find_bags, read_episode
+from .bags import BagError, EpisodeMeta, find_bags, is_bag_dir, read_episode
 from .chunk import ChunkError, chunk_from_msg
 from .pointcloud import CloudError, voxel_msg_to_grid
 from .rosmsg import NS_PER_S
@@ -45,7 +49,8 @@ TOPIC_EE_POSE = "/franka/ee_pose"
 TOPIC_JOINT_STATES = "/franka/joint_states"
 TOPIC_COMMAND_CHUNK = "/franka/command_chunk"
 FINGER_JOINTS = ("fr3_finger_joint1", "fr3_finger_joint2")
-CACHE_VERSION = 1
+CACHE_VERSION = 2  # 2: compressed, with the decoding settings inside (shared with packed episodes)
+PACKED_SUFFIX = ".episode.npz"
 
 
 @dataclass(frozen=True)
@@ -181,8 +186,11 @@ def _ee_actions(episode, stamps_ns: np.ndarray, tol_ns: int) -> tuple[np.ndarray
 
 
 def load_episode_arrays(path: str | Path, config: DatasetConfig = DatasetConfig()) -> EpisodeArrays:
-    """Decode one bag into EpisodeArrays; BagError (with the reason) if it cannot make a clean episode."""
+    """Decode one bag (or read one packed episode) into EpisodeArrays; BagError (with the reason)
+    if it cannot make a clean episode."""
     path = Path(path)
+    if path.name.endswith(PACKED_SUFFIX):
+        return read_packed(path, config)
     cached = _cache_load(path, config)
     if cached is not None:
         return cached
@@ -242,53 +250,107 @@ def load_episode_arrays(path: str | Path, config: DatasetConfig = DatasetConfig(
     return arrays
 
 
-# --- disk cache -----------------------------------------------------------------------------
+# --- disk cache and packed episodes --------------------------------------------------------
 
+_ARRAY_FIELDS = ("stamps_ns", "voxel_offsets", "voxel_idx", "voxel_rgb", "ee", "schedule_ns", "schedule")
+
+
+def _decoding(config: DatasetConfig) -> dict:
+    """The settings that change what a bag decodes to (the rest only change the sampling)."""
+    return {"resolution": config.resolution, "state_tolerance_s": config.state_tolerance_s,
+            "obs_period_s": config.obs_period_s}
+
+
+def write_packed(arrays: EpisodeArrays, file: Path, config: DatasetConfig) -> Path:
+    """Write ``arrays`` compressed to ``file`` (atomically: a killed writer leaves no partial file)."""
+    file.parent.mkdir(parents=True, exist_ok=True)
+    extra = json.dumps({"version": CACHE_VERSION, "source": str(arrays.path), "decoding": _decoding(config),
+                        "meta": arrays.meta.to_dict(), "obs_period_ns": arrays.obs_period_ns,
+                        "dropped_steps": arrays.dropped_steps, "rejected_chunks": arrays.rejected_chunks})
+    fields = {k: getattr(arrays, k) for k in _ARRAY_FIELDS if k != "voxel_idx"}
+    # Occupied voxels come in C order, so their flat indices rise within a frame: stored as
+    # differences they compress 4x better than the (M, 3) indices.
+    res = config.resolution
+    flat = np.ravel_multi_index(arrays.voxel_idx.T.astype(np.intp), (res, res, res)) if len(arrays.voxel_idx) else \
+        np.zeros(0, np.intp)
+    fields["voxel_flat_delta"] = np.diff(flat, prepend=0).astype(np.int32)
+    tmp = file.with_name(file.name + ".tmp.npz")
+    np.savez_compressed(tmp, extra=np.array(extra), **fields)
+    tmp.replace(file)
+    return file
+
+
+def read_packed(file: Path, config: DatasetConfig, path: Path | None = None) -> EpisodeArrays:
+    """EpisodeArrays from a packed file; BagError if it is unreadable or was decoded with other settings."""
+    try:
+        with np.load(file, allow_pickle=False) as z:
+            extra = json.loads(str(z["extra"]))
+            arrays = {k: z[k] for k in _ARRAY_FIELDS if k != "voxel_idx"}
+            flat = np.cumsum(z["voxel_flat_delta"].astype(np.int64))
+    except Exception as err:  # zipfile, ValueError, KeyError, JSON: all mean "not a usable packed episode"
+        raise BagError(f"{file}: not a readable packed episode ({type(err).__name__}: {err})") from err
+    if extra.get("version") != CACHE_VERSION or extra.get("decoding") != _decoding(config):
+        raise BagError(f"{file}: packed with {extra.get('decoding')} (format {extra.get('version')}), but "
+                       f"training asks for {_decoding(config)} (format {CACHE_VERSION}): pack the bags again")
+    res = config.resolution
+    arrays["voxel_idx"] = np.stack(np.unravel_index(flat, (res, res, res)), axis=1).astype(np.uint16)
+    return EpisodeArrays(path=path or file, meta=EpisodeMeta.from_dict(extra["meta"]),
+                         obs_period_ns=extra["obs_period_ns"], dropped_steps=extra["dropped_steps"],
+                         rejected_chunks=extra["rejected_chunks"], **arrays)
+
+
+def find_episodes(paths: Iterable[str | Path]) -> list[Path]:
+    """Bags (``bags.find_bags``) and packed episodes: a folder expands to both kinds inside it."""
+    out: list[Path] = []
+    for p in map(Path, paths):
+        if p.is_dir() and not is_bag_dir(p):
+            out.extend(sorted(p.glob(f"*{PACKED_SUFFIX}")))
+        out.extend(find_bags([p]))  # a file (a packed episode) or a missing path passes through
+    return out
+
+
+def pack_episodes(paths: Iterable[str | Path], out_dir: str | Path, config: DatasetConfig = DatasetConfig(),
+                  log=None) -> tuple[list[Path], list[tuple[Path, str]]]:
+    """Decode every bag under ``paths`` and write one packed episode per bag into ``out_dir``."""
+    written, skipped = [], []
+    for path in find_bags(paths):
+        try:
+            arrays = load_episode_arrays(path, config)
+        except (BagError, geometry.GeometryError, OSError) as err:
+            skipped.append((Path(path), str(err)))
+            if log:
+                log(f"skipping {path}: {err}")
+            continue
+        written.append(write_packed(arrays, Path(out_dir) / f"{Path(path).name}{PACKED_SUFFIX}", config))
+    return written, skipped
+
+
+# The disk cache is a packed episode keyed by the bag's absolute path, size and mtime.
 def _cache_key(path: Path, config: DatasetConfig) -> str | None:
     mcaps = sorted(path.glob("*.mcap"))
     meta = path / "metadata.yaml"
     if not mcaps or not meta.is_file():
         return None
     st = [(m.name, m.stat().st_size, m.stat().st_mtime_ns) for m in mcaps] + [(meta.stat().st_mtime_ns,)]
-    relevant = (config.resolution, config.state_tolerance_s, config.obs_period_s)
-    blob = json.dumps([CACHE_VERSION, str(path.resolve()), st, relevant])
+    blob = json.dumps([CACHE_VERSION, str(path.resolve()), st, _decoding(config)])
     return hashlib.sha1(blob.encode()).hexdigest()[:20]
 
 
-_ARRAY_FIELDS = ("stamps_ns", "voxel_offsets", "voxel_idx", "voxel_rgb", "ee", "schedule_ns", "schedule")
-
-
 def _cache_load(path: Path, config: DatasetConfig) -> EpisodeArrays | None:
-    if not config.cache_dir:
-        return None
-    key = _cache_key(path, config)
-    file = Path(config.cache_dir) / f"{key}.npz"
-    if key is None or not file.is_file():
+    key = _cache_key(path, config) if config.cache_dir else None
+    file = Path(config.cache_dir) / f"{key}.npz" if key else None
+    if file is None or not file.is_file():
         return None
     try:
-        with np.load(file, allow_pickle=False) as z:
-            extra = json.loads(str(z["extra"]))
-            return EpisodeArrays(path=path, meta=EpisodeMeta.from_dict(extra["meta"]),
-                                 obs_period_ns=extra["obs_period_ns"], dropped_steps=extra["dropped_steps"],
-                                 rejected_chunks=extra["rejected_chunks"],
-                                 **{k: z[k] for k in _ARRAY_FIELDS})
-    except Exception:  # a stale or partial cache file is rebuilt, never trusted
+        return read_packed(file, config, path)
+    except BagError:  # a stale or partial cache file is rebuilt, never trusted
         return None
 
 
 def _cache_save(arrays: EpisodeArrays, config: DatasetConfig) -> None:
-    if not config.cache_dir:
-        return
-    key = _cache_key(arrays.path, config)
-    if key is None:
-        return
-    folder = Path(config.cache_dir)
-    folder.mkdir(parents=True, exist_ok=True)
-    extra = json.dumps({"meta": arrays.meta.to_dict(), "obs_period_ns": arrays.obs_period_ns,
-                        "dropped_steps": arrays.dropped_steps, "rejected_chunks": arrays.rejected_chunks})
-    tmp = folder / f"{key}.tmp.npz"
-    np.savez(tmp, extra=np.array(extra), **{k: getattr(arrays, k) for k in _ARRAY_FIELDS})
-    tmp.replace(folder / f"{key}.npz")
+    key = _cache_key(arrays.path, config) if config.cache_dir else None
+    if key:
+        write_packed(arrays, Path(config.cache_dir) / f"{key}.npz", config)
 
 
 # --- sampling ---------------------------------------------------------------------------------
@@ -304,7 +366,7 @@ def load_episodes(paths: Iterable[str | Path], config: DatasetConfig = DatasetCo
                   log=None) -> tuple[list[EpisodeArrays], list[tuple[Path, str]]]:
     """Decode every bag (folders expand to the bags inside); bad bags are reported and skipped."""
     episodes, skipped = [], []
-    for path in find_bags(paths):
+    for path in find_episodes(paths):
         try:
             ep = load_episode_arrays(path, config)
         except (BagError, geometry.GeometryError, OSError) as err:
