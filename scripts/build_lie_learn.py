@@ -8,7 +8,8 @@ patch the APIs that numpy 2 / SciPy 1.17 removed, recompile with Cython 3 and
 install it as ``lie_learn==0.0.2+np2`` (which still satisfies escnn's pin).
 Nothing is downloaded outside the package registry.
 
-Usage: python scripts/build_lie_learn.py CACHE_DIR   (prints the built wheel's path)
+Usage: python scripts/build_lie_learn.py CACHE_DIR   (prints the built wheel's path; a
+lie_learn-0.0.2 wheel already in CACHE_DIR is used instead of downloading one)
 """
 
 from __future__ import annotations
@@ -90,9 +91,12 @@ def build(cache: Path) -> Path:
         return built[-1]
     with tempfile.TemporaryDirectory() as tmp_name:
         tmp = Path(tmp_name)
-        subprocess.run([sys.executable, "-m", "pip", "download", "--no-deps", "--only-binary=:all:",
-                        "lie_learn==0.0.2", "-d", str(tmp / "dl"), "-q"], check=True)
-        wheel = next((tmp / "dl").glob("lie_learn-0.0.2-*.whl"))
+        # The registry's wheel, or one already placed in CACHE_DIR (machines without a registry).
+        wheel = next(iter(sorted(cache.glob("lie_learn-0.0.2-*.whl"))), None)
+        if wheel is None:
+            subprocess.run([sys.executable, "-m", "pip", "download", "--no-deps", "--only-binary=:all:",
+                            "lie_learn==0.0.2", "-d", str(tmp / "dl"), "-q"], check=True)
+            wheel = next((tmp / "dl").glob("lie_learn-0.0.2-*.whl"))
         src = tmp / "src"
         with zipfile.ZipFile(wheel) as zf:
             zf.extractall(src)

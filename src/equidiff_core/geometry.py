@@ -341,7 +341,7 @@ def _resample_rotated(grid: Array, theta: float, mode: str) -> Array:
     # Output point q comes from input R^-1 q. In (x=H, y=W) order R^-1 = [[c, s], [-s, c]];
     # in (W, H) order it becomes [[c, -s], [s, c]].
     c, s = math.cos(theta), math.sin(theta)
-    affine = torch.tensor([[c, -s, 0.0], [s, c, 0.0]], dtype=torch.float32).expand(img.shape[0], 2, 3)
+    affine = torch.tensor([[c, -s, 0.0], [s, c, 0.0]], dtype=torch.float32, device=img.device).expand(img.shape[0], 2, 3)
     coords = F.affine_grid(affine, list(img.shape), align_corners=False)
     out = F.grid_sample(img, coords, mode="nearest" if mode == "nearest" else "bilinear",
                         padding_mode="zeros", align_corners=False)

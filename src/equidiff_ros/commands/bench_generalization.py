@@ -42,6 +42,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--device", default="auto", help="auto | cpu | cuda")
     parser.add_argument("--out", type=Path, default=None, help="work directory (default runs/bench_generalization_<time>)")
     parser.add_argument("--demos-dir", type=Path, default=None, help="reuse demos recorded earlier (narrow yaw)")
+    parser.add_argument("--trained", type=Path, default=None, metavar="DIR",
+                        help="evaluate DIR/equidiff and DIR/baseline (policy.pt + history.json, e.g. trained on a "
+                             "GPU machine from `equidiff dataset pack`ed demos) instead of recording and training")
     parser.add_argument("--max-duration", type=float, default=30.0, help="sim seconds per evaluation episode")
     parser.add_argument("--max-minutes", type=float, default=None,
                         help="training time budget per policy (equidiff train --max-minutes: stops and exports)")
@@ -90,10 +93,8 @@ def _trained_steps(out: Path) -> int | None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from equidiff_core.inference import load_inference_policy
     from equidiff_core.twin.config import load_twin_job_configs
-    from equidiff_core.twin.demos import DirectRecorder, collect_direct
-    from equidiff_core.twin.evaluate import evaluate_policy, unseen_yaw_seeds
+    from equidiff_core.twin.demos import collect_direct
 
     if args.quick:
         args.demos, args.train_steps, args.eval_episodes, args.preset = 4, 30, 2, "tiny"
@@ -109,15 +110,21 @@ def run(args: argparse.Namespace) -> int:
     out = args.out or Path("runs") / time.strftime("bench_generalization_%Y%m%d_%H%M%S")
     out.mkdir(parents=True, exist_ok=True)
 
+    if args.trained is not None:
+        try:
+            policies, steps_done = _trained_policies(args.trained)
+        except FileNotFoundError as err:
+            print(f"equidiff bench generalization: {err}", file=sys.stderr)
+            return 2
+        n_demos = _count_demos(args.demos_dir) if args.demos_dir else _trained_demos(args.trained / "equidiff")
+        return _evaluate(args, cfg, lab, out, t_start, policies, steps_done, n_demos, {})
     demos_dir = args.demos_dir or out / "demos"
     if args.demos_dir is None:
         results = collect_direct(train_cfg, lab, demos_dir, range(args.seed, args.seed + 10 * args.demos),
                                  log=lambda s: print(s, flush=True), stop_after=args.demos)
         n_demos = sum(1 for _, ok, _ in results if ok)
     else:
-        from equidiff_core.bags import find_bags
-
-        n_demos = len(find_bags([demos_dir]))
+        n_demos = _count_demos(demos_dir)
     t_demos = time.monotonic()
 
     policies, steps_done = {}, {}
@@ -131,7 +138,41 @@ def run(args: argparse.Namespace) -> int:
             return 1
         steps_done[name] = _trained_steps(run_dir) or args.train_steps
     t_train = time.monotonic()
+    return _evaluate(args, cfg, lab, out, t_start, policies, steps_done, n_demos,
+                     {"demos": round((t_demos - t_start) / 60, 1), "train": round((t_train - t_demos) / 60, 1)})
 
+
+def _trained_policies(folder: Path) -> tuple[dict, dict]:
+    """Policies and steps trained of a finished run laid out like this bench's own (DIR/<policy>/policy.pt)."""
+    policies = {name: folder / name / "policy.pt" for name in ("equidiff", "baseline")}
+    for path in policies.values():
+        if not path.is_file():
+            raise FileNotFoundError(f"no {path}: --trained needs DIR/equidiff/policy.pt and DIR/baseline/policy.pt")
+    return policies, {name: _trained_steps(folder / name) for name in policies}
+
+
+def _count_demos(folder: Path) -> int:
+    from equidiff_core.dataset import find_episodes
+
+    return len(find_episodes([folder]))
+
+
+def _trained_demos(run_dir: Path) -> int | None:
+    """Episodes the run trained on, from ``equidiff train``'s saved split (None if not recorded)."""
+    try:
+        split = json.loads((run_dir / "split.json").read_text())
+        return len(split["train"]) + len(split.get("val", []))
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+
+
+def _evaluate(args, cfg, lab, out: Path, t_start: float, policies: dict, steps_done: dict, n_demos,
+              minutes: dict) -> int:
+    from equidiff_core.inference import load_inference_policy
+    from equidiff_core.twin.demos import DirectRecorder
+    from equidiff_core.twin.evaluate import evaluate_policy, unseen_yaw_seeds
+
+    t_eval = time.monotonic()
     seeds = unseen_yaw_seeds(cfg, tuple(args.train_yaw), args.eval_episodes)
     success = {}
     rec = DirectRecorder(cfg, lab)
@@ -148,15 +189,14 @@ def run(args: argparse.Namespace) -> int:
         "equidiff_success": round(success["equidiff"], 3),
         "baseline_success": round(success["baseline"], 3),
         "demos": n_demos,
-        "train_steps": min(steps_done.values()),
+        "train_steps": min((v for v in steps_done.values() if v is not None), default=None),
         "train_steps_by_policy": steps_done,  # differ when --max-minutes stopped the slower one first
         "eval_episodes": args.eval_episodes,
         "train_yaw_range_deg": list(args.train_yaw),
         "eval_yaw": f"block and bowl yaw >= 15 deg outside the training range (seeds {seeds[0]}..)",
         "preset": args.preset,
         "device": args.device,
-        "minutes": {"demos": round((t_demos - t_start) / 60, 1), "train": round((t_train - t_demos) / 60, 1),
-                    "eval": round((t_end - t_train) / 60, 1)},
+        "minutes": {**minutes, "eval": round((t_end - t_eval) / 60, 1)},
     }
     (out / "result.json").write_text(json.dumps(result) + "\n")
     print(json.dumps(result))
