@@ -235,6 +235,31 @@ def test_bench_generalization_reports_a_failed_training_run_and_keeps_the_demos(
     assert "Traceback" not in err
 
 
+@pytest.mark.slow
+def test_bench_generalization_evaluates_policies_trained_elsewhere(tmp_path, capsys):
+    """--trained DIR: policies trained on another machine (a GPU box) are rolled out here, no
+    demos recorded and nothing trained; the steps they trained come from their history."""
+    import json
+    import shutil
+
+    from equidiff_ros.cli import main
+    from equidiff_ros.commands.twin_run import SHIPPED_CHECKPOINT
+
+    trained = tmp_path / "trained"
+    assert main(["bench", "generalization", "--trained", str(trained), "--out", str(tmp_path / "a")]) == 2
+    assert "--trained needs DIR/equidiff/policy.pt" in capsys.readouterr().err
+    for name, steps in (("equidiff", 120), ("baseline", 150)):  # the shipped policy stands in for both
+        (trained / name).mkdir(parents=True)
+        shutil.copy(SHIPPED_CHECKPOINT, trained / name / "policy.pt")
+        (trained / name / "history.json").write_text(json.dumps([{"step": steps, "loss": 0.1}]))
+    assert main(["bench", "generalization", "--trained", str(trained), "--out", str(tmp_path / "b"),
+                 "--eval-episodes", "1", "--max-duration", "1", "--device", "cpu"]) == 0
+    result = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert result["train_steps_by_policy"] == {"equidiff": 120, "baseline": 150} and result["train_steps"] == 120
+    assert result["eval_episodes"] == 1 and 0.0 <= result["equidiff_success"] <= 1.0
+    assert result["minutes"].keys() == {"eval"}  # nothing recorded or trained here
+
+
 def test_shipped_checkpoint_loads_and_its_training_is_recorded():
     """The checkpoint `equidiff twin run` uses by default: loadable, plain torch, documented next to it."""
     import numpy as np
