@@ -219,6 +219,54 @@ def test_watchdog_holds_the_pose_when_commands_stop():
     assert ctl.submit(resume) and not ctl.holding  # a fresh chunk resumes
 
 
+def test_arm_running_away_from_its_command_is_stopped_and_held_where_it_is():
+    """The FR3 stops itself with a reflex; franky-sim never does (the twin's arm once flailed out of
+    the workspace at 25 rad/s). The controller stops the motion, restarts it where the arm is
+    and holds; repeated run-aways fault the node instead of fighting the arm forever."""
+
+    class RunawayRobot(DryRunRobot):
+        offset, joint_speed, restarts = np.zeros(3), 0.0, 0
+
+        def read_state(self):
+            state = super().read_state()
+            state.ee_pose[:3, 3] += self.offset
+            state.joint_velocities[:] = self.joint_speed
+            return state
+
+        def start_streaming(self):
+            self.restarts += 1
+            super().start_streaming()
+
+    robot = RunawayRobot(DryRunConfig(initial_position=tuple(circle(0.0))))
+    ctl, _, clock = make_controller(robot=robot)
+    period = int(1e9 / ctl.config.control_hz)
+    t0 = clock.t
+    ctl.submit(circle_chunk(t0, t0))
+    for _ in range(20):
+        assert ctl.tick() is not None
+        clock.t += period
+    restarts = robot.restarts
+    robot.offset = np.array([0.12, 0.0, 0.0])  # the arm runs 12 cm away from its command
+    runaway = robot.read_state().ee_pose[:3, 3]
+    assert ctl.tick() is None
+    assert ctl.stats.divergence_stops == 1 and "mm from the command" in ctl.stats.last_divergence
+    assert robot.restarts == restarts + 1 and ctl.holding
+    clock.t += period
+    held = ctl.tick().target.pose[:3, 3]
+    np.testing.assert_allclose(held, runaway, atol=1e-9)  # holds where the arm is, not where it was sent
+    robot.offset = np.zeros(3)
+    for _ in range(int(0.5 * ctl.config.control_hz)):  # braking grace: no second stop
+        clock.t += period
+        ctl.tick()
+    assert ctl.stats.divergence_stops == 1 and not ctl.stats.faulted
+    robot.joint_speed = 3.0  # keeps whipping: stopped again after each grace, then faulted
+    for _ in range(int(5 * ctl.config.control_hz)):
+        clock.t += period
+        ctl.tick()
+    assert "rad/s" in ctl.stats.last_divergence
+    assert ctl.stats.faulted and ctl.stats.divergence_stops == ctl.config.franky.max_recoveries + 1
+
+
 def test_chunk_outside_the_workspace_never_moves_the_command_outside():
     ctl, robot, clock = make_controller(start=(0.45, 0.0, 0.30))
     period = int(1e9 / ctl.config.control_hz)

@@ -166,3 +166,43 @@ def test_franky_gripper_follows_widths_changed_while_it_moves():
             while time.monotonic() < deadline and abs(robot.read_state().gripper_width - 0.08) > 0.003:
                 time.sleep(0.1)
             assert robot.read_state().gripper_width == pytest.approx(0.08, abs=0.003)
+
+
+def test_arm_keeps_its_posture_while_the_tcp_wanders_and_yaws():
+    """Cartesian impedance leaves the FR3's redundant elbow free: 40 s of wandering, yawing
+    targets drifted the joints 1.7 rad on franky-sim (in the twin's main job, until joints hit
+    their limits and the arm flailed out of the workspace). The tracker's null-space posture
+    task must bring the arm back to its home configuration when the TCP returns home."""
+    from equidiff_core.control import Controller
+    from equidiff_core.robots import make_robot
+    from equidiff_core.twin.expert import tcp_pose
+
+    rng = np.random.default_rng(0)
+    lab = load_lab_config(LAB_PATH)
+    with SimServer() as sim:
+        robot = make_robot("franky", ip=sim.host, config=CONTROL.franky, realtime=False, gripper=False)
+        with robot:
+            ctl = Controller(robot, lab.workspace, CONTROL)
+            ctl.start(home=True)
+            try:
+                q_home, home = ctl.state.joint_positions.copy(), ctl.state.ee_pose[:3, 3].copy()
+
+                def glide(p0, y0, p1, y1, steps):  # teleop-like one-point targets at 20 Hz
+                    for k in range(1, steps + 1):
+                        a, now = k / steps, time.time_ns()
+                        pose = tcp_pose((1 - a) * p0 + a * p1, (1 - a) * y0 + a * y1)
+                        ctl.submit(PoseChunk(now, np.array([now + 50_000_000]), pose[None], np.array([0.08])))
+                        time.sleep(0.05)
+
+                pos, yaw = home, 0.0
+                for _ in range(8):
+                    goal, goal_yaw = rng.uniform([0.32, -0.12, 0.05], [0.58, 0.12, 0.3]), rng.uniform(-1.2, 1.2)
+                    glide(pos, yaw, goal, goal_yaw, 60)
+                    pos, yaw = goal, goal_yaw
+                glide(pos, yaw, home, 0.0, 40)
+                time.sleep(1.0)
+                assert ctl.stats.rejected_chunks == 0
+                assert np.linalg.norm(ctl.state.ee_pose[:3, 3] - home) < 0.005
+                assert np.abs(ctl.state.joint_positions - q_home).max() < 0.2
+            finally:
+                ctl.stop()

@@ -330,7 +330,8 @@ class TwinStack:
                                                                        "camera": cam.name}))
         voxel = {"stale_after_s": 3.0, "slop_s": 0.15} if self.lenient else {}
         g.start("voxel_node", node_command("voxel_node", {**common, **voxel}))
-        g.start("franka_node", node_command("franka_node", {**common, "robot_ip": self.host, "realtime": False}))
+        g.start("franka_node", node_command("franka_node", {**common, "robot_ip": self.host, "realtime": False}),
+                priority=True)
         g.start("recorder_node", node_command("recorder_node", {
             **common, "output_dir": str(self.out_dir / "bags"), "task": self.task,
             "record_clouds": self.record_clouds}))

@@ -20,13 +20,18 @@ class SafetyConfig:
     max_first_step_jump_m: float = 0.08  # a chunk whose first live step is farther is rejected
     max_first_step_rotation_rad: float = 0.6
     watchdog_timeout_s: float = 0.5  # hold the current pose when no valid command for this long
+    # The arm diverging from its command (the FR3's own reflexes stop this; franky-sim has none):
+    # stop the motion, restart it where the arm is and hold.
+    max_tracking_error_m: float = 0.1  # measured TCP this far from the last command
+    max_joint_speed_rad_s: float = 2.5  # any joint this fast (FR3 limits: 2.62 rad/s for joints 1-4)
     orthonormal_tol: float = 1e-3
     min_gripper_width_m: float = 0.0
     max_gripper_width_m: float = 0.08
 
     def __post_init__(self):
         for name in ("max_linear_speed_m_s", "max_angular_speed_rad_s", "max_first_step_jump_m",
-                     "max_first_step_rotation_rad", "watchdog_timeout_s", "orthonormal_tol"):
+                     "max_first_step_rotation_rad", "watchdog_timeout_s", "orthonormal_tol",
+                     "max_tracking_error_m", "max_joint_speed_rad_s"):
             if getattr(self, name) <= 0:
                 raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
         if self.workspace_margin_m < 0:
@@ -63,6 +68,12 @@ class FrankyConfig:
     friction_coulomb: tuple[float, ...] = (1.137, 1.137, 1.137, 1.137, 0.763, 0.44, 0.248)
     friction_viscous: tuple[float, ...] = (0.21, 0.21, 0.21, 0.21, 0.21, 0.21, 0.21)
     friction_max_torque: float = 2.0
+    # Null-space posture task towards the joint configuration where streaming first started (the
+    # home pose): without it the redundant elbow drifts under Cartesian impedance until joints
+    # hit their limits and the arm leaves the workspace (2.8 rad in 30 s of yawing targets on
+    # franky-sim). 0 disables it.
+    posture_stiffness: float = 10.0  # Nm/rad
+    posture_max_torque: float = 5.0  # Nm per joint
     relative_dynamics_factor: float = 0.15  # for the blocking move to the home pose only
     gripper_speed_m_s: float = 0.05
     gripper_force_n: float = 20.0

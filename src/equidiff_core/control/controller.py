@@ -41,12 +41,14 @@ class ControllerStats:
     stale_rejected: int = 0
     watchdog_holds: int = 0
     recoveries: int = 0
+    divergence_stops: int = 0  # the arm ran away from its command: motion restarted where it was
     clipped_ticks: int = 0
     speed_limited_ticks: int = 0
     gripper_commands: int = 0
     faulted: bool = False
     last_rejection: str = ""
     last_recovery_reason: str = ""
+    last_divergence: str = ""
 
     def as_dict(self) -> dict:
         return dict(self.__dict__)
@@ -82,6 +84,7 @@ class Controller:
         self._gripper_sent = float("nan")
         self._failures_in_row = 0
         self._last_failure_ns = 0
+        self._divergence_grace_until_ns = 0
         self._thread: threading.Thread | None = None
         self._stop = threading.Event()
 
@@ -202,6 +205,10 @@ class Controller:
         if self.stats.faulted:
             return None
         self._state = self.robot.read_state()
+        diverged = self._divergence(now)
+        if diverged:
+            self._stop_diverged(now, diverged)
+            return None
         period = 1.0 / self.config.control_hz
         dt = period if self._last_tick_ns is None else (now - self._last_tick_ns) / 1e9
         dt = float(np.clip(dt, 0.5 * period, 3 * period))
@@ -246,6 +253,41 @@ class Controller:
         if self.on_command is not None:
             self.on_command(command)
         return command
+
+    def _divergence(self, now: int) -> str:
+        """Why the arm is running away from its command ('' when it is not, or while it brakes after a stop)."""
+        if self._setpoint is None or now < self._divergence_grace_until_ns:
+            return ""
+        limits = self.config.safety
+        error = float(np.linalg.norm(self._state.ee_pose[:3, 3] - self._setpoint.pose[:3, 3]))
+        speed = float(np.max(np.abs(self._state.joint_velocities), initial=0.0))
+        if error > limits.max_tracking_error_m:
+            return f"TCP {error * 1000:.0f} mm from the command (limit {limits.max_tracking_error_m * 1000:.0f} mm)"
+        if speed > limits.max_joint_speed_rad_s:
+            return f"a joint at {speed:.1f} rad/s (limit {limits.max_joint_speed_rad_s:.1f} rad/s)"
+        return ""
+
+    def _stop_diverged(self, now: int, reason: str) -> None:
+        """Stop the motion, restart it seeded where the arm is and hold there (the arm brakes meanwhile)."""
+        self.stats.divergence_stops += 1
+        self.stats.last_divergence = reason
+        self._failures_in_row += 1
+        self._last_failure_ns = now
+        self._divergence_grace_until_ns = now + int(1e9)
+        limit = self.config.franky.max_recoveries
+        if self._failures_in_row > limit:
+            self.stats.faulted = True
+            self.log.error(f"the arm diverged from its command again ({reason}) after {limit} stops in a row: "
+                           f"giving up; restart the node once the cause is fixed")
+            return
+        self.log.error(f"the arm diverged from its command ({reason}): stopping the motion and holding where it is")
+        try:
+            self.robot.stop_streaming()
+            self.robot.start_streaming()
+        except RobotError as err:
+            self._handle_failure(now, err)
+            return
+        self._reset_to_measured()
 
     def _handle_failure(self, now: int, err: Exception) -> None:
         self._failures_in_row += 1

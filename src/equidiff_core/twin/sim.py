@@ -32,6 +32,7 @@ from .shared_state import StateWriter
 class LoopStats:
     steps: int = 0
     overruns: int = 0  # times the loop fell behind and skipped ahead
+    missed_commands: int = 0  # ticks that reused the client's last command (it was starved past the wait)
     started: float = 0.0
 
     def steps_per_s(self) -> float:
@@ -110,7 +111,7 @@ class TwinSim:
         deadline = time.monotonic()
         while self._running:
             with self.lock:
-                step_server(self._server)
+                self.stats.missed_commands += step_server(self._server)
                 self.stats.steps += 1
                 if self.stats.steps % state_every == 0:
                     self._publish_state()
@@ -143,7 +144,7 @@ class TwinSim:
         return {"seed": self.poses.seed if self.poses else None, "sim_time": round(sim_time, 4),
                 "success": details["success"], "details": details, "objects": objects,
                 "steps_per_s": round(self.stats.steps_per_s(), 1), "overruns": self.stats.overruns,
-                "host": self.host}
+                "missed_commands": self.stats.missed_commands, "host": self.host}
 
 
 class DirectSim:

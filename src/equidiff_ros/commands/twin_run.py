@@ -143,11 +143,14 @@ def run(args: argparse.Namespace) -> int:
                        device=args.device, seed=args.seed, record_clouds=args.record_clouds,
                        lenient=args.lenient or args.smoke, attach=args.attach) as stack:
             for i in range(episodes):
+                missed = stack.sup.twin().get("missed_commands", 0)
                 rec = run_episode(stack, args.seed + i, max_duration, lab.observation_hz)
-                sim_rates.append(stack.sup.twin().get("steps_per_s", 0.0) / 1000.0)
+                state = stack.sup.twin()
+                sim_rates.append(state.get("steps_per_s", 0.0) / 1000.0)
                 records.append(rec)
                 print(f"[twin] episode {i + 1}/{episodes} seed {rec.seed}: "
-                      f"{'success' if rec.success else 'failure'} in {rec.duration_s:.1f} s, {rec.chunks} chunks")
+                      f"{'success' if rec.success else 'failure'} in {rec.duration_s:.1f} s, {rec.chunks} chunks, "
+                      f"{state.get('missed_commands', 0) - missed} ms of stale robot commands")
     except KeyboardInterrupt:
         print("[twin] interrupted: all nodes stopped", file=sys.stderr)
         if not records:

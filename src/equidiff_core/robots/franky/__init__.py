@@ -41,6 +41,7 @@ class FrankyRobot(Robot):
         self._robot = None
         self._gripper = None
         self._tracker = None
+        self._posture_q: np.ndarray | None = None  # null-space posture target (joint positions)
         self._width = float("nan")
         self._gripper_stop = threading.Event()
         self._gripper_lock = threading.Lock()
@@ -154,10 +155,14 @@ class FrankyRobot(Robot):
         friction = franky.FrictionCompensationParams(
             coulomb=list(cfg.friction_coulomb), viscous=list(cfg.friction_viscous),
             max_torque=[cfg.friction_max_torque] * 7)
+        if self._posture_q is None:  # where streaming first starts: the home pose; kept across recoveries
+            self._posture_q = np.array(robot.state.q, dtype=np.float64)
+        posture = (franky.PostureTask(self._posture_q, cfg.posture_stiffness, max_torque=cfg.posture_max_torque)
+                   if cfg.posture_stiffness > 0 else None)
         try:
             self._tracker = franky.CartesianImpedanceTracker(
                 robot, translational_stiffness=cfg.translational_stiffness,
-                rotational_stiffness=cfg.rotational_stiffness, friction=friction)
+                rotational_stiffness=cfg.rotational_stiffness, friction=friction, posture_task=posture)
         except Exception as err:
             self._tracker = None
             raise RobotError(f"cannot start the impedance tracker: {err}") from err

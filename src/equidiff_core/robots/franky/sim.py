@@ -54,17 +54,18 @@ def serve(host: str, realtime: bool = True) -> None:
                     deadline = time.perf_counter()
 
 
-def step_server(server) -> None:
+def step_server(server) -> int:
     """One 1 ms tick of a franky-sim ``SimulationServer``: the clients' commands, physics, state.
 
     Unlike the stock ``run_once``, each robot's tick waits for the command answering the last
     state (``await_command``), so the client's 1 kHz loop stays a 1 kHz loop on a loaded machine.
+    Returns how many robots' commands did not arrive in time (their last command was reused).
     """
-    for rs in server.robot_servers:
-        await_command(rs)
+    missed = sum(not await_command(rs) for rs in server.robot_servers)
     server.sim.step()
     for rs in server.robot_servers:
         rs.send_state()
+    return missed
 
 
 def await_command(robot_server, timeout_s: float = 0.02) -> bool:
@@ -76,19 +77,31 @@ def await_command(robot_server, timeout_s: float = 0.02) -> bool:
     1 kHz impedance loop becomes a delayed, sampled one and can swing the arm centimetres off
     (we saw 4-6 cm). Waiting for the command instead slows simulated time a little under load
     (visible as ``SimServer.realtime_factor``) but keeps the closed loop what it is on the robot.
-    Returns whether a new command arrived (True also when no motion is running).
+    "Answering" is by libfranka's message id, not merely "a new command": a client that fell
+    behind answers its backlog of old states one per tick, and a torque loop running 10-20 ms
+    late on the state whipped the twin's arm out of the workspace at 3.5 rad/s.
+    Returns whether that command arrived (True also when no motion is running).
     """
     mode = getattr(robot_server, "_FrankaRobotServer__control_mode", None)
     robot_server.process_commands()
     if mode is None or getattr(mode, "name", "IDLE") == "IDLE":
         return True
     deadline = time.perf_counter() + timeout_s
-    while not getattr(robot_server, "_FrankaRobotServer__has_new_command", True):
+    while not _answers_last_state(robot_server):
         if time.perf_counter() > deadline:
             return False
         time.sleep(0.0001)
         robot_server.process_commands()
     return True
+
+
+def _answers_last_state(robot_server) -> bool:
+    """Whether the command in effect answers the newest state sent (franky-sim's private fields)."""
+    command = getattr(robot_server, "_FrankaRobotServer__current_control_command", None)
+    next_id = getattr(robot_server, "_FrankaServer__message_id", None)
+    if command is None or next_id is None:  # another franky-sim layout: fall back to "any new command"
+        return getattr(robot_server, "_FrankaRobotServer__has_new_command", True)
+    return next_id == 0 or command.message_id >= next_id - 1
 
 
 def raise_priority(niceness: int = -10) -> bool:
