@@ -312,16 +312,9 @@ def find_episodes(paths: Iterable[str | Path]) -> list[Path]:
 def pack_episodes(paths: Iterable[str | Path], out_dir: str | Path, config: DatasetConfig = DatasetConfig(),
                   log=None) -> tuple[list[Path], list[tuple[Path, str]]]:
     """Decode every bag under ``paths`` and write one packed episode per bag into ``out_dir``."""
-    written, skipped = [], []
-    for path in find_bags(paths):
-        try:
-            arrays = load_episode_arrays(path, config)
-        except (BagError, geometry.GeometryError, OSError) as err:
-            skipped.append((Path(path), str(err)))
-            if log:
-                log(f"skipping {path}: {err}")
-            continue
-        written.append(write_packed(arrays, Path(out_dir) / f"{Path(path).name}{PACKED_SUFFIX}", config))
+    skipped: list[tuple[Path, str]] = []
+    written = [write_packed(ep, Path(out_dir) / f"{ep.path.name}{PACKED_SUFFIX}", config)
+               for ep in iter_episodes(paths, config, skipped, log, find=find_bags)]
     return written, skipped
 
 
@@ -362,20 +355,23 @@ def sample_starts(n: int, horizon: int, n_obs_steps: int, n_action_steps: int) -
     return np.arange(lo, hi + 1, dtype=np.int64) if hi >= lo else np.zeros(0, np.int64)
 
 
-def load_episodes(paths: Iterable[str | Path], config: DatasetConfig = DatasetConfig(),
-                  log=None) -> tuple[list[EpisodeArrays], list[tuple[Path, str]]]:
-    """Decode every bag (folders expand to the bags inside); bad bags are reported and skipped."""
-    episodes, skipped = [], []
-    for path in find_episodes(paths):
+def iter_episodes(paths: Iterable[str | Path], config: DatasetConfig, skipped: list, log=None,
+                  find=find_episodes) -> Iterable[EpisodeArrays]:
+    """Decode each episode in turn; bad ones go to ``skipped`` as ``(path, reason)`` (and ``log``)."""
+    for path in find(paths):
         try:
-            ep = load_episode_arrays(path, config)
+            yield load_episode_arrays(path, config)
         except (BagError, geometry.GeometryError, OSError) as err:
             skipped.append((Path(path), str(err)))
             if log:
                 log(f"skipping {path}: {err}")
-            continue
-        episodes.append(ep)
-    return episodes, skipped
+
+
+def load_episodes(paths: Iterable[str | Path], config: DatasetConfig = DatasetConfig(),
+                  log=None) -> tuple[list[EpisodeArrays], list[tuple[Path, str]]]:
+    """Decode every bag or packed episode (folders expand to those inside); bad ones are reported and skipped."""
+    skipped: list[tuple[Path, str]] = []
+    return list(iter_episodes(paths, config, skipped, log)), skipped
 
 
 def split_episodes(episodes: Sequence[Any], val_fraction: float, seed: int) -> tuple[list, list]:

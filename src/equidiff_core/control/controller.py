@@ -271,14 +271,8 @@ class Controller:
         """Stop the motion, restart it seeded where the arm is and hold there (the arm brakes meanwhile)."""
         self.stats.divergence_stops += 1
         self.stats.last_divergence = reason
-        self._failures_in_row += 1
-        self._last_failure_ns = now
         self._divergence_grace_until_ns = now + int(1e9)
-        limit = self.config.franky.max_recoveries
-        if self._failures_in_row > limit:
-            self.stats.faulted = True
-            self.log.error(f"the arm diverged from its command again ({reason}) after {limit} stops in a row: "
-                           f"giving up; restart the node once the cause is fixed")
+        if not self._count_failure(now, f"the arm diverged from its command again ({reason})"):
             return
         self.log.error(f"the arm diverged from its command ({reason}): stopping the motion and holding where it is")
         try:
@@ -289,15 +283,22 @@ class Controller:
             return
         self._reset_to_measured()
 
-    def _handle_failure(self, now: int, err: Exception) -> None:
+    def _count_failure(self, now: int, what: str) -> bool:
+        """Count a failure; past ``max_recoveries`` in a row the node faults (False): nothing more is sent."""
         self._failures_in_row += 1
         self._last_failure_ns = now
         limit = self.config.franky.max_recoveries
         if self._failures_in_row > limit:
             self.stats.faulted = True
-            self.log.error(f"robot error '{err}' after {limit} recoveries in a row: giving up; "
+            self.log.error(f"{what} after {limit} recoveries in a row: giving up; "
                            f"restart the node once the cause is fixed")
+            return False
+        return True
+
+    def _handle_failure(self, now: int, err: Exception) -> None:
+        if not self._count_failure(now, f"robot error '{err}'"):
             return
+        limit = self.config.franky.max_recoveries
         try:
             reason = self.robot.recover()
         except RobotError as rec_err:
