@@ -7,7 +7,7 @@ Wiring:
       (camera_node with backend ``twin``, same ROS_DOMAIN_ID -> same shared-memory name)
   /twin/reset (std_msgs/Int64: seed)      -> new object poses drawn from that seed
   /twin/scene (std_msgs/String, latched)  <- JSON {seed, block_xy, block_yaw, bowl_xy, bowl_yaw, host, shm}
-  /twin/state (std_msgs/String, 10 Hz)    <- JSON {seed, sim_time, success, details, objects, steps_per_s, overruns}
+  /twin/state (std_msgs/String, 10 Hz)    <- JSON {seed, sim_time, success, details, objects, steps_per_s, overruns, missed_commands}
 
 The robot is never teleported: a reset moves the objects only; whoever resets commands the arm
 home first (``equidiff twin run`` does), so the franky client's controller is never surprised.
