@@ -78,8 +78,8 @@ def await_command(robot_server, timeout_s: float = 0.02) -> bool:
     (we saw 4-6 cm). Waiting for the command instead slows simulated time a little under load
     (visible as ``SimServer.realtime_factor``) but keeps the closed loop what it is on the robot.
     "Answering" is by libfranka's message id, not merely "a new command": a client that fell
-    behind answers its backlog of old states one per tick, and a torque loop running 10-20 ms
-    late on the state whipped the twin's arm out of the workspace at 3.5 rad/s.
+    behind would answer its backlog of old states one per tick, closing the torque loop on a
+    state that many ms old.
     Returns whether that command arrived (True also when no motion is running).
     """
     mode = getattr(robot_server, "_FrankaRobotServer__control_mode", None)
