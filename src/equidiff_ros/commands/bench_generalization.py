@@ -3,6 +3,7 @@
     equidiff bench generalization                       # 20 demos, yaw in [-15, 15] deg, compact preset
     equidiff bench generalization --demos 40 --train-steps 3000 --device cuda
     equidiff bench generalization --quick               # minutes-scale plumbing check (tiny preset)
+    equidiff bench generalization --trained gpu_run/ --demos-dir packed/   # policies trained elsewhere
 
 The paper's central claim on our twin: (1) record ``--demos`` scripted-expert demos whose block
 and bowl yaw are drawn from the narrow ``--train-yaw`` range (twin collect --direct); (2) train
@@ -117,7 +118,7 @@ def run(args: argparse.Namespace) -> int:
             print(f"equidiff bench generalization: {err}", file=sys.stderr)
             return 2
         n_demos = _count_demos(args.demos_dir) if args.demos_dir else _trained_demos(args.trained / "equidiff")
-        return _evaluate(args, cfg, lab, out, t_start, policies, steps_done, n_demos, {})
+        return _evaluate(args, cfg, lab, out, policies, steps_done, n_demos, {})
     demos_dir = args.demos_dir or out / "demos"
     if args.demos_dir is None:
         results = collect_direct(train_cfg, lab, demos_dir, range(args.seed, args.seed + 10 * args.demos),
@@ -138,7 +139,7 @@ def run(args: argparse.Namespace) -> int:
             return 1
         steps_done[name] = _trained_steps(run_dir) or args.train_steps
     t_train = time.monotonic()
-    return _evaluate(args, cfg, lab, out, t_start, policies, steps_done, n_demos,
+    return _evaluate(args, cfg, lab, out, policies, steps_done, n_demos,
                      {"demos": round((t_demos - t_start) / 60, 1), "train": round((t_train - t_demos) / 60, 1)})
 
 
@@ -166,19 +167,19 @@ def _trained_demos(run_dir: Path) -> int | None:
         return None
 
 
-def _evaluate(args, cfg, lab, out: Path, t_start: float, policies: dict, steps_done: dict, n_demos,
-              minutes: dict) -> int:
+def _evaluate(args, cfg, lab, out: Path, policies: dict, steps_done: dict, n_demos, minutes: dict) -> int:
     from equidiff_core.inference import load_inference_policy
     from equidiff_core.twin.demos import DirectRecorder
     from equidiff_core.twin.evaluate import evaluate_policy, unseen_yaw_seeds
 
     t_eval = time.monotonic()
     seeds = unseen_yaw_seeds(cfg, tuple(args.train_yaw), args.eval_episodes)
-    success = {}
+    success, presets = {}, set()
     rec = DirectRecorder(cfg, lab)
     try:
         for name, path in policies.items():
             policy = load_inference_policy(path, device=args.device)
+            presets.add(policy.preset.name)
             episodes = evaluate_policy(policy, cfg, lab, seeds, args.max_duration,
                                        log=lambda s, n=name: print(f"[{n}] {s}", flush=True), recorder=rec)
             success[name] = sum(e.success for e in episodes) / len(episodes)
@@ -194,7 +195,7 @@ def _evaluate(args, cfg, lab, out: Path, t_start: float, policies: dict, steps_d
         "eval_episodes": args.eval_episodes,
         "train_yaw_range_deg": list(args.train_yaw),
         "eval_yaw": f"block and bowl yaw >= 15 deg outside the training range (seeds {seeds[0]}..)",
-        "preset": args.preset,
+        "preset": "/".join(sorted(presets)),  # of the policies evaluated (--trained: as they were trained)
         "device": args.device,
         "minutes": {**minutes, "eval": round((t_end - t_eval) / 60, 1)},
     }
