@@ -155,9 +155,13 @@ def test_franky_gripper_follows_widths_changed_while_it_moves():
     the newest width."""
     from equidiff_core.robots import make_robot
 
+    policy = os.sched_getscheduler(0)
     with SimServer() as sim:
         robot = make_robot("franky", ip=sim.host, config=CONTROL.franky, realtime=False, gripper=True)
         with robot:
+            # libfranka made this (the test runner's) thread SCHED_FIFO 99 in Robot(); every node
+            # a later test started inherited it, and CI's main-job smoke test hung
+            assert os.sched_getscheduler(0) == policy
             for width in (0.03, 0.07, 0.01):  # each one well before the last has finished
                 robot.move_gripper(width)
                 time.sleep(0.15)

@@ -222,6 +222,32 @@ def test_bench_and_collect_commands_parse():
         assert not getattr(args, "_missing", False), argv
 
 
+def test_nodes_never_inherit_a_real_time_scheduling_policy():
+    """A job whose thread had become SCHED_FIFO 99 (libfranka's doing) started every node real-time:
+    busy camera and voxel nodes then starved the machine. Nodes always start time-shared."""
+    import os
+    import subprocess
+    import sys
+
+    from equidiff_core.twin.processes import node_preexec
+
+    if not hasattr(os, "sched_setscheduler"):
+        pytest.skip("no POSIX scheduling API here")
+    before = os.sched_getscheduler(0), os.sched_getparam(0)
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(1))
+    except PermissionError:
+        pytest.skip("setting a real-time policy needs root or CAP_SYS_NICE")
+    probe = [sys.executable, "-c", "import os; print(os.sched_getscheduler(0))"]
+    try:
+        node = subprocess.run(probe, preexec_fn=node_preexec(priority=True), capture_output=True, text=True, timeout=30)
+        plain = subprocess.run(probe, capture_output=True, text=True, timeout=30)
+    finally:
+        os.sched_setscheduler(0, *before)
+    assert int(plain.stdout) == os.SCHED_FIFO  # what a plain child inherits
+    assert int(node.stdout) == os.SCHED_OTHER
+
+
 @pytest.mark.slow
 def test_bench_generalization_reports_a_failed_training_run_and_keeps_the_demos(tmp_path, capsys):
     from equidiff_ros.cli import main

@@ -103,7 +103,7 @@ class ProcessGroup:
         with open(log, "wb") as fh:
             popen = subprocess.Popen(cmd, env=env, stdout=fh, stderr=subprocess.STDOUT,
                                      stdin=subprocess.DEVNULL, start_new_session=True,
-                                     preexec_fn=_raise_priority if priority else None)
+                                     preexec_fn=node_preexec(priority))
         node = NodeProcess(name, cmd, popen, log)
         self.nodes.append(node)
         return node
@@ -158,7 +158,19 @@ class ProcessGroup:
             signal.signal(signal.SIGTERM, self._old_sigterm)
 
 
-def _raise_priority() -> None:
-    from ..robots.franky.sim import raise_priority
 
-    raise_priority(-5)
+def node_preexec(priority: bool = False):
+    """``preexec_fn`` for a node process: always an ordinary time-sharing process, never a
+    real-time policy inherited from whoever started it (libfranka had left a test runner's main
+    thread at SCHED_FIFO 99, and nodes busy rendering then starved the machine); ``priority``
+    adds a raised nice level where permitted."""
+    def setup() -> None:
+        from ..robots.franky.sim import raise_priority
+
+        try:
+            os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+        except (AttributeError, OSError):  # not Linux
+            pass
+        if priority:
+            raise_priority(-5)
+    return setup

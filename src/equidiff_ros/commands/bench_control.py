@@ -91,14 +91,14 @@ def down_pose(position) -> np.ndarray:
 def start_node(module: str, params: dict, log_path: Path | None = None, priority: bool = False) -> subprocess.Popen:
     """``python -m equidiff_ros.<module> --ros-args -p k:=v ...``; ``priority``: a higher CPU
     priority when permitted, as the franka node's real-time kernel would give it on the robot PC."""
-    from equidiff_core.robots.franky.sim import raise_priority
+    from equidiff_core.twin.processes import node_preexec
 
     args = [sys.executable, "-u", "-m", f"equidiff_ros.{module}", "--ros-args"]
     for key, value in params.items():
         args += ["-p", f"{key}:={_ros_value(value)}"]
     out = open(log_path, "w") if log_path else subprocess.DEVNULL
     return subprocess.Popen(args, stdout=out, stderr=subprocess.STDOUT, env=dict(os.environ),
-                            preexec_fn=(lambda: raise_priority(-5)) if priority else None)
+                            preexec_fn=node_preexec(priority))
 
 
 def _ros_value(value) -> str:

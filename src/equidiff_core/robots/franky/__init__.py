@@ -17,7 +17,9 @@ for 80 mm").
 
 from __future__ import annotations
 
+import contextlib
 import logging
+import os
 import threading
 import time
 
@@ -54,7 +56,8 @@ class FrankyRobot(Robot):
 
         rt = franky.RealtimeConfig.Enforce if self.realtime else franky.RealtimeConfig.Ignore
         try:
-            self._robot = franky.Robot(self.ip, realtime_config=rt)
+            with keep_thread_scheduler():
+                self._robot = franky.Robot(self.ip, realtime_config=rt)
         except Exception as err:  # franky raises its own NetworkException etc.
             raise RobotError(f"cannot connect to the robot at {self.ip}: {err}") from err
         self._robot.relative_dynamics_factor = self.config.relative_dynamics_factor
@@ -97,7 +100,7 @@ class FrankyRobot(Robot):
         state = self._require().state
         return RobotState(time.time_ns(), np.array(state.O_T_EE.matrix, dtype=np.float64),
                           np.array(state.q, dtype=np.float64), np.array(state.dq, dtype=np.float64),
-                          self._width)
+                          self._width, state.time.to_sec())
 
     def _poll_gripper(self) -> None:
         """The gripper's own thread: once the last command has finished, sends the newest requested
@@ -138,7 +141,8 @@ class FrankyRobot(Robot):
         attempts = 3
         for attempt in range(1, attempts + 1):
             try:
-                robot.move(franky.CartesianMotion(target))
+                with keep_thread_scheduler():  # a blocking move runs libfranka's loop in this thread
+                    robot.move(franky.CartesianMotion(target))
                 return
             except Exception as err:
                 if attempt == attempts:
@@ -238,6 +242,32 @@ class FrankyRobot(Robot):
     @property
     def has_errors(self) -> bool:
         return self._robot is not None and bool(self._robot.has_errors)
+
+
+@contextlib.contextmanager
+def keep_thread_scheduler():
+    """Give the calling thread its scheduling policy back after a franky call.
+
+    libfranka moves the thread it runs in to SCHED_FIFO 99 whenever it may (root, or an RT
+    kernel), also with ``RealtimeConfig.Ignore`` and already in ``Robot()``. The calling thread
+    is a node's (or a test runner's) main thread: it stayed real-time, and every process started
+    from it afterwards inherited SCHED_FIFO 99. Twin nodes that render or voxelise flat out then
+    starved the rest of the machine, and CI's main-job smoke test hung with franka_node stuck in
+    its home move. franky's own control thread still runs real-time.
+    """
+    try:
+        policy, param = os.sched_getscheduler(0), os.sched_getparam(0)
+    except (AttributeError, OSError):  # not Linux
+        yield
+        return
+    try:
+        yield
+    finally:
+        if os.sched_getscheduler(0) != policy:
+            try:
+                os.sched_setscheduler(0, policy, param)
+            except OSError as err:
+                log.warning(f"could not restore this thread's scheduling policy after franky: {err}")
 
 
 def _finished(future) -> bool:
