@@ -219,6 +219,34 @@ def test_watchdog_holds_the_pose_when_commands_stop():
     assert ctl.submit(resume) and not ctl.holding  # a fresh chunk resumes
 
 
+@pytest.mark.parametrize("robot_clock_rate", [None, 0.5])
+def test_speed_limits_hold_in_the_robots_own_time(robot_clock_rate):
+    """A twin on a loaded machine runs at ~0.5x real time; commanded at wall-clock speed, its arm
+    lagged 8 cm behind and was then whipped at 3 rad/s. With a robot clock (libfranka's state
+    time) the command moves at most v_max per second of *robot* time; without one, of ours."""
+    clock = FakeClock()
+    start_ns = clock.t
+
+    class ClockedRobot(DryRunRobot):
+        def read_state(self):
+            state = super().read_state()
+            if robot_clock_rate is None:
+                return state
+            return dataclasses.replace(state, robot_time_s=(clock.t - start_ns) / 1e9 * robot_clock_rate)
+
+    ctl, robot, _ = make_controller(clock=clock, robot=ClockedRobot(DryRunConfig(initial_position=(0.45, 0.0, 0.25))))
+    period = int(1e9 / ctl.config.control_hz)
+    goal = pose_at(np.array([0.45, 0.07, 0.25]))  # 7 cm away, due in 50 ms: speed-limited all the way
+    ctl.submit(PoseChunk(clock.t, np.array([clock.t + 50 * MS]), goal[None], np.ones(1)))
+    first = ctl.tick().target.pose[:3, 3].copy()
+    for _ in range(int(0.2 * ctl.config.control_hz)):  # 0.2 s of wall time
+        clock.t += period
+        last = ctl.tick().target.pose[:3, 3]
+    moved = float(np.linalg.norm(last - first))
+    v_max = ctl.config.safety.max_linear_speed_m_s
+    assert moved == pytest.approx(v_max * 0.2 * (robot_clock_rate or 1.0), rel=0.05)
+
+
 def test_arm_running_away_from_its_command_is_stopped_and_held_where_it_is():
     """The FR3 stops itself with a reflex; franky-sim never does (the twin's arm once flailed out of
     the workspace at 25 rad/s). The controller stops the motion, restarts it where the arm is

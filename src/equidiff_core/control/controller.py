@@ -81,6 +81,7 @@ class Controller:
         self._last_valid_ns: int | None = None
         self._holding = True
         self._last_tick_ns: int | None = None
+        self._last_robot_time_s: float | None = None
         self._gripper_sent = float("nan")
         self._failures_in_row = 0
         self._last_failure_ns = 0
@@ -209,10 +210,7 @@ class Controller:
         if diverged:
             self._stop_diverged(now, diverged)
             return None
-        period = 1.0 / self.config.control_hz
-        dt = period if self._last_tick_ns is None else (now - self._last_tick_ns) / 1e9
-        dt = float(np.clip(dt, 0.5 * period, 3 * period))
-        self._last_tick_ns = now
+        dt = self._tick_dt(now)
         with self._lock:
             if (not self._holding and self._last_valid_ns is not None
                     and now - self._last_valid_ns > self.config.safety.watchdog_timeout_s * 1e9):
@@ -253,6 +251,22 @@ class Controller:
         if self.on_command is not None:
             self.on_command(command)
         return command
+
+    def _tick_dt(self, now: int) -> float:
+        """Seconds since the last tick on the robot's own clock when it has one, else on ours.
+
+        The speed limits apply in the robot's time: a twin running slower than real time (every
+        process on two cores: 0.4-0.5x) was otherwise commanded 2x too fast for its arm, lagged
+        up to 8 cm behind the command, and the 3000 N/m spring then whipped it at 3 rad/s. On a
+        real FR3 both clocks run together and nothing changes."""
+        period = 1.0 / self.config.control_hz
+        robot_now = self._state.robot_time_s
+        if np.isfinite(robot_now) and self._last_robot_time_s is not None:
+            dt, low = robot_now - self._last_robot_time_s, 1e-4  # robot time stands still while the robot stalls
+        else:
+            dt, low = (period if self._last_tick_ns is None else (now - self._last_tick_ns) / 1e9), 0.5 * period
+        self._last_tick_ns, self._last_robot_time_s = now, robot_now if np.isfinite(robot_now) else None
+        return float(np.clip(dt, low, 3 * period))
 
     def _divergence(self, now: int) -> str:
         """Why the arm is running away from its command ('' when it is not, or while it brakes after a stop)."""

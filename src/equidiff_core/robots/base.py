@@ -29,6 +29,7 @@ class RobotState:
     joint_positions: np.ndarray  # (7,) rad
     joint_velocities: np.ndarray  # (7,) rad/s
     gripper_width: float  # m (NaN if unknown)
+    robot_time_s: float = float("nan")  # the robot's own clock (libfranka's state time); NaN if it has none
 
 
 class Robot(abc.ABC):
