@@ -206,7 +206,10 @@ class Supervisor:
         y0, y1 = tcp_yaw(start), tcp_yaw(target)
         dy = (y1 - y0 + np.pi) % (2 * np.pi) - np.pi
         duration = max(np.linalg.norm(p1 - p0) / speed, abs(dy) / yaw_speed, 0.3)
-        deadline = time.monotonic() + timeout_s
+        # timeout_s is sim time: a twin at 0.45x real time moves the arm (speed-limited in its own
+        # clock) at 0.45x wall-clock speed, as run_expert's plan clock assumes too
+        rate = min(1.0, max(0.05, self.twin().get("steps_per_s", 1000.0) / 1000.0))
+        deadline = time.monotonic() + timeout_s / rate
         s, pose = 0.0, start
         while time.monotonic() < deadline:
             if np.linalg.norm(self.current()[0][:3, 3] - pose[:3, 3]) < max_lag_m:
@@ -221,8 +224,9 @@ class Supervisor:
                     return
             time.sleep(1.0 / hz)
         now, w = self.current()
-        raise SupervisorError(f"the arm did not reach {np.round(p1, 3).tolist()} within {timeout_s:.0f} s "
-                              f"(TCP at {np.round(now[:3, 3], 3).tolist()}, {100 * s:.0f} % along the path, "
+        raise SupervisorError(f"the arm did not reach {np.round(p1, 3).tolist()} within {timeout_s:.0f} s of sim time "
+                              f"({timeout_s / rate:.0f} s at {rate:.2f}x real time; TCP at "
+                              f"{np.round(now[:3, 3], 3).tolist()}, {100 * s:.0f} % along the path, "
                               f"gripper {w * 1000:.0f} mm for {width * 1000:.0f} mm)")
 
     def reset_scene(self, seed: int, timeout_s: float = 10.0, check=None) -> dict:

@@ -100,7 +100,7 @@ class FrankyRobot(Robot):
         state = self._require().state
         return RobotState(time.time_ns(), np.array(state.O_T_EE.matrix, dtype=np.float64),
                           np.array(state.q, dtype=np.float64), np.array(state.dq, dtype=np.float64),
-                          self._width)
+                          self._width, state.time.to_sec())
 
     def _poll_gripper(self) -> None:
         """The gripper's own thread: once the last command has finished, sends the newest requested
