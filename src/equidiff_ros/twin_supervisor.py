@@ -208,7 +208,7 @@ class Supervisor:
         duration = max(np.linalg.norm(p1 - p0) / speed, abs(dy) / yaw_speed, 0.3)
         # timeout_s is sim time: a twin at 0.45x real time moves the arm (speed-limited in its own
         # clock) at 0.45x wall-clock speed, as run_expert's plan clock assumes too
-        rate = min(1.0, max(0.05, self.twin().get("steps_per_s", 1000.0) / 1000.0))
+        rate = self.sim_rate()
         deadline = time.monotonic() + timeout_s / rate
         s, pose = 0.0, start
         while time.monotonic() < deadline:
@@ -233,6 +233,10 @@ class Supervisor:
         self.pub_reset.publish(self._Int64(data=int(seed)))
         return self.wait_for(lambda: self.scene if self.scene and self.scene.get("seed") == seed else None,
                              timeout_s, f"/twin/scene for seed {seed}", check)
+
+    def sim_rate(self) -> float:
+        """How fast the twin runs against the wall clock (0.05-1): timeouts and plan clocks scale by it."""
+        return min(1.0, max(0.05, self.twin().get("steps_per_s", 1000.0) / 1000.0))
 
     def twin(self) -> dict:
         with self.lock:
@@ -416,7 +420,7 @@ def run_expert(stack: TwinStack, hz: float | None = None, max_lag_m: float = 0.0
         dt, last = now - last, now
         pose, width = plan.target_at(t_plan)
         tcp, _ = sup.current()
-        rate = min(1.0, max(0.05, sup.twin().get("steps_per_s", 1000.0) / 1000.0))
+        rate = sup.sim_rate()
         if np.linalg.norm(tcp[:3, 3] - pose[:3, 3]) < max_lag_m:
             t_plan += dt * rate
         sup.send_target(pose, width)
