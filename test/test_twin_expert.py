@@ -4,10 +4,11 @@ import math
 
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
 from equidiff_core import geometry
 from equidiff_core.twin.config import TwinConfig
-from equidiff_core.twin.expert import grasp_yaw, plan_pick_place, tcp_pose, tcp_yaw
+from equidiff_core.twin.expert import LinePath, grasp_yaw, plan_pick_place, tcp_pose, tcp_yaw
 
 CFG = TwinConfig()
 
@@ -40,6 +41,50 @@ def test_plan_visits_block_then_bowl_with_the_gripper_sequence():
     speed = np.linalg.norm(np.diff(xyz, axis=0), axis=1) / 0.01
     assert speed.max() <= CFG.expert.speed * 1.01
     assert abs(tcp_yaw(plan.target_at(plan.duration)[0]) - grasp_yaw(0.7)) < 1e-9
+
+
+def _follow(path, arm, steps, gain=0.5, knock=None):
+    """A first-order arm following the path's targets unless franka_node would reject them as a
+    jump (80 mm, 0.6 rad: it holds then); ``knock(i, arm)`` may push it away."""
+    from equidiff_core.control.safety import rotation_angle
+
+    jumps = []
+    for i in range(steps):
+        if knock is not None:
+            arm = knock(i, arm)
+        target = path.next(arm)
+        jumps.append((np.linalg.norm(target[:3, 3] - arm[:3, 3]), rotation_angle(target[:3, :3], arm[:3, :3])))
+        if jumps[-1][0] > 0.08 or jumps[-1][1] > 0.6:
+            continue
+        arm = arm.copy()
+        arm[:3, 3] += gain * (target[:3, 3] - arm[:3, 3])
+        arm[:3, :3] = target[:3, :3]
+    return arm, np.array(jumps)
+
+
+def test_line_path_waits_for_the_arm_and_restarts_where_a_knocked_arm_is():
+    home = tcp_pose(CFG.expert.ready_position, 0.0)
+    start = tcp_pose((0.40, 0.10, 0.12), 0.8)
+    path = LinePath(start, home, speed=0.12, hz=20.0)
+    arm, jumps = _follow(path, start, 20 * 10)
+    assert path.done and path.restarts == 0
+    np.testing.assert_allclose(arm[:3, 3], home[:3, 3], atol=1e-3)
+    assert jumps[:, 0].max() < 0.03 + 0.12 / 20 + 1e-9  # never ahead of the arm by more than the lag
+
+    # knocked 0.3 m off the line halfway (as after a divergence stop): the old line's targets
+    # would all be rejected as jumps; the path restarts from the arm and still gets home
+    def knock(i, arm):
+        if i != 40:
+            return arm
+        pushed = tcp_pose((0.26, 0.19, 0.14), -0.5)
+        pushed[:3, :3] = Rotation.from_euler("x", 0.3).as_matrix() @ pushed[:3, :3]  # tilted as well
+        return pushed
+
+    path = LinePath(start, home, speed=0.12, hz=20.0)
+    arm, jumps = _follow(path, start, 20 * 15, knock=knock)
+    assert path.done and path.restarts == 1
+    np.testing.assert_allclose(arm[:3, 3], home[:3, 3], atol=1e-3)
+    assert jumps[:, 0].max() < 0.08 and jumps[:, 1].max() < 0.6  # no target was rejected
 
 
 @pytest.mark.slow

@@ -194,31 +194,21 @@ class Supervisor:
                 timeout_s: float = 20.0, tol_m: float = 0.01, hz: float = 20.0, max_lag_m: float = 0.03,
                 check=None) -> None:
         """Stream teleop-like targets along a straight line to ``target`` (never a jump the safety
-        filter would reject), then hold until the TCP is within ``tol_m`` and the gripper settled.
+        filter would reject; ``expert.LinePath`` waits for the arm and restarts from it), then hold
+        until the TCP is within ``tol_m`` and the gripper settled."""
+        from equidiff_core.twin.expert import LinePath
 
-        The path advances only while the TCP is within ``max_lag_m`` of the last target (as in
-        ``run_expert``): on a twin slower than real time a wall-clock path ran ahead of the arm
-        until franka_node rejected it as a jump, and the arm never got home."""
-        from equidiff_core.twin.expert import tcp_pose, tcp_yaw
-
-        start, _ = self.current()
-        p0, p1 = start[:3, 3], target[:3, 3]
-        y0, y1 = tcp_yaw(start), tcp_yaw(target)
-        dy = (y1 - y0 + np.pi) % (2 * np.pi) - np.pi
-        duration = max(np.linalg.norm(p1 - p0) / speed, abs(dy) / yaw_speed, 0.3)
+        path = LinePath(self.current()[0], target, speed=speed, angular_speed=yaw_speed, hz=hz, max_lag_m=max_lag_m)
+        p1 = path.target[:3, 3]
         # timeout_s is sim time: a twin at 0.45x real time moves the arm (speed-limited in its own
         # clock) at 0.45x wall-clock speed, as run_expert's plan clock assumes too
         rate = self.sim_rate()
         deadline = time.monotonic() + timeout_s / rate
-        s, pose = 0.0, start
         while time.monotonic() < deadline:
-            if np.linalg.norm(self.current()[0][:3, 3] - pose[:3, 3]) < max_lag_m:
-                s = min(1.0, s + 1.0 / (hz * duration))
-            pose = tcp_pose((1 - s) * p0 + s * p1, y0 + s * dy) if s < 1 else target
-            self.send_target(pose, width)
+            self.send_target(path.next(self.current()[0]), width)
             if check is not None:
                 check()
-            if s >= 1:
+            if path.done:
                 now, w = self.current()
                 if np.linalg.norm(now[:3, 3] - p1) < tol_m and (abs(w - width) < 0.01 or width < 0.01):
                     return
@@ -226,7 +216,8 @@ class Supervisor:
         now, w = self.current()
         raise SupervisorError(f"the arm did not reach {np.round(p1, 3).tolist()} within {timeout_s:.0f} s of sim time "
                               f"({timeout_s / rate:.0f} s at {rate:.2f}x real time; TCP at "
-                              f"{np.round(now[:3, 3], 3).tolist()}, {100 * s:.0f} % along the path, "
+                              f"{np.round(now[:3, 3], 3).tolist()}, {100 * path.s:.0f} % along the path "
+                              f"after {path.restarts} restart(s) from the arm, "
                               f"gripper {w * 1000:.0f} mm for {width * 1000:.0f} mm)")
 
     def reset_scene(self, seed: int, timeout_s: float = 10.0, check=None) -> dict:

@@ -13,8 +13,10 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.spatial.transform import Rotation, Slerp
 
 from .. import geometry
+from ..control.safety import rotation_angle
 from .config import ExpertConfig, TwinConfig
 
 # TCP pointing down, fingers closing along the TCP's y axis (FR3 hand at q7 = pi/4 has yaw 0).
@@ -42,6 +44,54 @@ def grasp_yaw(block_yaw: float, reference_yaw: float = 0.0) -> float:
 
 def _wrap(a: float) -> float:
     return (a + math.pi) % (2 * math.pi) - math.pi
+
+
+class LinePath:
+    """A straight TCP path to ``target`` streamed as teleop targets, one per ``next(tcp)`` call at
+    ``hz``, that waits for the arm and restarts from the arm when the arm is not on it.
+
+    The path advances only while the TCP is within ``max_lag_m`` of the last target: on a twin
+    slower than real time a wall-clock path ran ahead of the arm until franka_node rejected it as
+    a jump. When the TCP is farther than ``restart_m`` (or ``restart_rad``) from the last target,
+    the arm is elsewhere (still braking after a divergence stop, or pushed), every target on the
+    old line would be rejected as a jump (80 mm / 0.6 rad), and the line restarts where the arm
+    is: a fresh-clone main job once failed its homing that way with the arm 319 mm off the path.
+    Rotation is slerped from the start orientation, so a tilted start is no jump either."""
+
+    def __init__(self, start: np.ndarray, target: np.ndarray, speed: float = 0.12, angular_speed: float = 1.0,
+                 hz: float = 20.0, max_lag_m: float = 0.03, restart_m: float = 0.05, restart_rad: float = 0.4):
+        self.target = np.asarray(target, dtype=float)
+        self.speed, self.angular_speed, self.hz = speed, angular_speed, hz
+        self.max_lag_m, self.restart_m, self.restart_rad = max_lag_m, restart_m, restart_rad
+        self.restarts = 0
+        self._restart(np.asarray(start, dtype=float))
+
+    def _restart(self, start: np.ndarray) -> None:
+        self.p0 = start[:3, 3].copy()
+        self._slerp = Slerp([0.0, 1.0], Rotation.from_matrix(np.stack([start[:3, :3], self.target[:3, :3]])))
+        self.duration = max(float(np.linalg.norm(self.target[:3, 3] - self.p0)) / self.speed,
+                            rotation_angle(start[:3, :3], self.target[:3, :3]) / self.angular_speed, 0.3)
+        self.s = 0.0
+        self.pose = start.copy()
+
+    @property
+    def done(self) -> bool:
+        return self.s >= 1.0
+
+    def next(self, tcp: np.ndarray) -> np.ndarray:
+        """The next target, given the measured TCP pose."""
+        lag = float(np.linalg.norm(tcp[:3, 3] - self.pose[:3, 3]))
+        if lag > self.restart_m or rotation_angle(tcp[:3, :3], self.pose[:3, :3]) > self.restart_rad:
+            self.restarts += 1
+            self._restart(np.asarray(tcp, dtype=float))
+        elif lag < self.max_lag_m:
+            self.s = min(1.0, self.s + 1.0 / (self.hz * self.duration))
+        if self.done:
+            self.pose = self.target.copy()
+        else:
+            self.pose = geometry.make_pose(self._slerp(self.s).as_matrix(),
+                                           (1 - self.s) * self.p0 + self.s * self.target[:3, 3])
+        return self.pose
 
 
 @dataclass(frozen=True)
