@@ -54,6 +54,7 @@ def test_train_writes_a_loadable_policy_and_plot(bags, tmp_path, capsys):
     assert evals and evals[-1]["step"] == 3 and np.isfinite(evals[-1]["val_action_mse"])
     assert summary["val_action_mse"] == evals[-1]["val_action_mse"]
     policy = load_inference_policy(out / "policy.pt")
+    assert policy.preset.rotation_aug == "continuous"  # the preset's own
     from equidiff_core.dataset import DatasetConfig, DemoDataset
 
     ds = DemoDataset.from_bags([bags[0]], DatasetConfig())
@@ -79,10 +80,11 @@ def test_train_writes_a_loadable_policy_and_plot(bags, tmp_path, capsys):
 
     # a time budget ends the run early, and it still exports and says so
     capsys.readouterr()
-    assert train(bags, tmp_path / "budget", "--max-minutes", "0.0001") == 0
+    assert train(bags, tmp_path / "budget", "--max-minutes", "0.0001", "--rotation-aug", "none") == 0
     summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert summary["steps"] == 1 and "time budget" in summary["stopped"]
-    assert (tmp_path / "budget" / "policy.pt").is_file()
+    # --rotation-aug replaces the preset's and is saved with the policy
+    assert load_inference_policy(tmp_path / "budget" / "policy.pt").preset.rotation_aug == "none"
 
 
 def test_train_reports_missing_data(tmp_path, capsys):

@@ -195,8 +195,10 @@ def test_main_job_smoke_run_end_to_end(ros_domain, tmp_path):
     assert _pids_mentioning(str(out)) == []
 
 
-def test_generalisation_eval_scenes_have_unseen_block_and_bowl_yaw():
+def test_generalisation_eval_scenes_have_unseen_block_yaw_modulo_its_half_turn_symmetry():
     import math
+
+    import pytest
 
     from equidiff_core.twin import TwinConfig, sample_scene
     from equidiff_core.twin.evaluate import unseen_yaw_seeds
@@ -205,12 +207,19 @@ def test_generalisation_eval_scenes_have_unseen_block_and_bowl_yaw():
     seeds = unseen_yaw_seeds(cfg, (-15.0, 15.0), 12)
     assert len(set(seeds)) == 12
     for s in seeds:
-        p = sample_scene(cfg.scene, s)
-        for yaw in (p.block_yaw, p.bowl_yaw):
-            assert abs(math.degrees(yaw)) > 30.0  # >= 15 deg margin outside [-15, 15]
+        yaw = math.degrees(sample_scene(cfg.scene, s).block_yaw)
+        # >= 15 deg outside [-15, 15] both ways round and after a half turn (the box looks the same)
+        assert min(abs(yaw - k * 180.0) for k in (-1, 0, 1)) > 30.0
+    # a scene whose block is a half turn from the training range is not among them
+    seeds = unseen_yaw_seeds(cfg, (-15.0, 15.0), 60)
+    near_half_turn = [s for s in range(10_000_000, seeds[-1])
+                      if abs(abs(math.degrees(sample_scene(cfg.scene, s).block_yaw)) - 180.0) < 15.0]
+    assert near_half_turn and not set(near_half_turn) & set(seeds)
     # and the training-range config never draws such yaws
     narrow = cfg.with_yaw_range((-15.0, 15.0))
     assert all(abs(math.degrees(sample_scene(narrow.scene, s).block_yaw)) <= 15.0 for s in seeds)
+    with pytest.raises(ValueError, match="no unseen"):
+        unseen_yaw_seeds(cfg, (-80.0, 80.0), 1)
 
 
 def test_bench_and_collect_commands_parse():
@@ -284,6 +293,7 @@ def test_bench_generalization_evaluates_policies_trained_elsewhere(tmp_path, cap
     assert result["train_steps_by_policy"] == {"equidiff": 120, "baseline": 150} and result["train_steps"] == 120
     assert result["eval_episodes"] == 1 and 0.0 <= result["equidiff_success"] <= 1.0
     assert result["minutes"].keys() == {"eval"}  # nothing recorded or trained here
+    assert result["rotation_aug"] == "continuous"  # as the shipped policy was trained
 
 
 def test_shipped_checkpoint_loads_and_its_training_is_recorded():

@@ -82,20 +82,31 @@ def evaluate_policy(policy, cfg: TwinConfig, lab: LabConfig, seeds: Iterable[int
 
 def unseen_yaw_seeds(cfg: TwinConfig, train_yaw_deg: tuple[float, float], n: int, start: int = 10_000_000,
                      margin_deg: float = 15.0) -> list[int]:
-    """Seeds whose block *and* bowl yaw (full-circle draw) lie at least ``margin_deg`` outside the training range."""
+    """Seeds whose block yaw lies at least ``margin_deg`` outside the training range, modulo 180 deg.
+
+    The block is a box grasped across its short side: at yaw and yaw + 180 deg it looks and is
+    grasped the same, so a yaw 180 deg from the training range is not unseen. The bowl is a
+    ring of ``bowl_segments`` walls, the same every 360/segments deg (22.5 for 16), so no bowl
+    yaw is unseen by a 15 deg margin and it is left free."""
     from .scene import sample_scene
 
     lo, hi = train_yaw_deg
     centre, half = (lo + hi) / 2, (hi - lo) / 2 + margin_deg
+    if half >= 90.0:
+        raise ValueError(f"training yaw range {train_yaw_deg} plus a {margin_deg} deg margin leaves no unseen block yaw")
 
     def unseen(yaw_rad: float) -> bool:
-        d = (np.degrees(yaw_rad) - centre + 180) % 360 - 180
-        return abs(d) > half
+        return abs(block_yaw_offset_deg(yaw_rad, centre)) > half
 
     seeds, seed = [], start
     while len(seeds) < n:
         p = sample_scene(cfg.scene, seed)
-        if unseen(p.block_yaw) and unseen(p.bowl_yaw):
+        if unseen(p.block_yaw):
             seeds.append(seed)
         seed += 1
     return seeds
+
+
+def block_yaw_offset_deg(yaw_rad: float, centre_deg: float = 0.0) -> float:
+    """Block yaw minus ``centre_deg``, wrapped to [-90, 90): the box's half-turn symmetry."""
+    return float((np.degrees(yaw_rad) - centre_deg + 90.0) % 180.0 - 90.0)

@@ -20,6 +20,8 @@ def add_arguments(parser) -> None:
     parser.add_argument("--out", required=True, help="output directory (checkpoints, policy.pt, plots)")
     parser.add_argument("--policy", choices=("equidiff", "baseline"), default="equidiff")
     parser.add_argument("--preset", default="compact", help="model preset: paper, compact or tiny (default compact)")
+    parser.add_argument("--rotation-aug", choices=("none", "c4", "c8", "continuous"), default=None,
+                        help="random yaw rotation of voxels, state and actions while training (default: the preset's)")
     parser.add_argument("--steps", type=int, default=20000)
     parser.add_argument("--batch-size", type=int, default=64)
     parser.add_argument("--lr", type=float, default=1e-4)
@@ -205,7 +207,7 @@ def run(args) -> int:
               file=sys.stderr)
         return 2
     lab = load_lab_config(args.lab_config or default_config_dir() / "lab.yaml")
-    preset = get_preset(args.preset)
+    preset = get_preset(args.preset, **({"rotation_aug": args.rotation_aug} if args.rotation_aug else {}))
     data_cfg = DatasetConfig.from_preset(preset, resolution=lab.workspace.resolution,
                                          state_tolerance_s=args.tolerance,
                                          cache_dir=str(args.cache_dir or out / "dataset_cache"))
