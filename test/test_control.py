@@ -253,7 +253,7 @@ def test_arm_running_away_from_its_command_is_stopped_and_held_where_it_is():
     and holds; repeated run-aways fault the node instead of fighting the arm forever."""
 
     class RunawayRobot(DryRunRobot):
-        offset, joint_speed, restarts = np.zeros(3), 0.0, 0
+        offset, joint_speed, restarts = np.zeros(3), np.zeros(7), 0
 
         def read_state(self):
             state = super().read_state()
@@ -287,12 +287,17 @@ def test_arm_running_away_from_its_command_is_stopped_and_held_where_it_is():
         clock.t += period
         ctl.tick()
     assert ctl.stats.divergence_stops == 1 and not ctl.stats.faulted
-    robot.joint_speed = 3.0  # keeps whipping: stopped again after each grace, then faulted
+    robot.joint_speed = np.array([2.4, 0, 0, 0, 0, 3.9, 4.9])  # fast but within each joint's limit
+    for _ in range(int(2 * ctl.config.control_hz)):
+        clock.t += period
+        ctl.tick()
+    assert ctl.stats.divergence_stops == 1  # and the calm seconds ended the run of stops
+    robot.joint_speed = np.full(7, 3.0)  # keeps whipping: stopped again after each grace, then faulted
     for _ in range(int(5 * ctl.config.control_hz)):
         clock.t += period
         ctl.tick()
-    assert "rad/s" in ctl.stats.last_divergence
-    assert ctl.stats.faulted and ctl.stats.divergence_stops == ctl.config.franky.max_recoveries + 1
+    assert "joint 1 at 3.0 rad/s (limit 2.5 rad/s)" in ctl.stats.last_divergence
+    assert ctl.stats.faulted and ctl.stats.divergence_stops == 1 + ctl.config.franky.max_recoveries + 1
 
 
 def test_chunk_outside_the_workspace_never_moves_the_command_outside():

@@ -23,7 +23,9 @@ class SafetyConfig:
     # The arm diverging from its command (the FR3's own reflexes stop this; franky-sim has none):
     # stop the motion, restart it where the arm is and hold.
     max_tracking_error_m: float = 0.1  # measured TCP this far from the last command
-    max_joint_speed_rad_s: float = 2.5  # any joint this fast (FR3 limits: 2.62 rad/s for joints 1-4)
+    # a joint this fast, per joint: 95 % of the FR3's limits (2.62 rad/s for joints 1-4, 5.26 / 4.18 /
+    # 5.26 for the wrist; franky-sim's fr3.urdf). One 2.5 for all had stopped fast but legal wrist turns.
+    max_joint_speeds_rad_s: tuple[float, ...] = (2.5, 2.5, 2.5, 2.5, 5.0, 4.0, 5.0)
     orthonormal_tol: float = 1e-3
     min_gripper_width_m: float = 0.0
     max_gripper_width_m: float = 0.08
@@ -31,9 +33,11 @@ class SafetyConfig:
     def __post_init__(self):
         for name in ("max_linear_speed_m_s", "max_angular_speed_rad_s", "max_first_step_jump_m",
                      "max_first_step_rotation_rad", "watchdog_timeout_s", "orthonormal_tol",
-                     "max_tracking_error_m", "max_joint_speed_rad_s"):
+                     "max_tracking_error_m"):
             if getattr(self, name) <= 0:
                 raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
+        if len(self.max_joint_speeds_rad_s) != 7 or min(self.max_joint_speeds_rad_s) <= 0:
+            raise ValueError(f"max_joint_speeds_rad_s must be 7 positive speeds, got {self.max_joint_speeds_rad_s}")
         if self.workspace_margin_m < 0:
             raise ValueError(f"workspace_margin_m must be >= 0, got {self.workspace_margin_m}")
         if not 0 <= self.min_gripper_width_m <= self.max_gripper_width_m:

@@ -274,11 +274,13 @@ class Controller:
             return ""
         limits = self.config.safety
         error = float(np.linalg.norm(self._state.ee_pose[:3, 3] - self._setpoint.pose[:3, 3]))
-        speed = float(np.max(np.abs(self._state.joint_velocities), initial=0.0))
         if error > limits.max_tracking_error_m:
             return f"TCP {error * 1000:.0f} mm from the command (limit {limits.max_tracking_error_m * 1000:.0f} mm)"
-        if speed > limits.max_joint_speed_rad_s:
-            return f"a joint at {speed:.1f} rad/s (limit {limits.max_joint_speed_rad_s:.1f} rad/s)"
+        speeds = np.abs(np.asarray(self._state.joint_velocities, dtype=float))
+        over = speeds - np.asarray(limits.max_joint_speeds_rad_s)[:len(speeds)]
+        if over.size and over.max() > 0:
+            j = int(np.argmax(over))
+            return f"joint {j + 1} at {speeds[j]:.1f} rad/s (limit {limits.max_joint_speeds_rad_s[j]:.1f} rad/s)"
         return ""
 
     def _stop_diverged(self, now: int, reason: str) -> None:
