@@ -458,6 +458,13 @@ def test_metrics_measure_what_they_claim():
     assert metrics.percentiles_ms([0.1, 0.2, 0.3]) == [200.0, 290.0]
 
 
+class DoneFuture:
+    """A franky ``BoolFuture`` that has finished."""
+
+    def wait(self, timeout: float) -> bool:
+        return True
+
+
 def test_franky_gripper_commands_never_block_the_caller_and_the_newest_width_wins():
     """The control loop calls move_gripper at 200 Hz; a franky gripper call that blocks (it did
     on franky-sim, freezing the arm) must only ever stall the gripper's own thread."""
@@ -473,6 +480,7 @@ def test_franky_gripper_commands_never_block_the_caller_and_the_newest_width_win
         def move_async(self, width, speed):
             self.sent.append(round(width, 3))
             time.sleep(0.4)
+            return DoneFuture()
 
         grasp_async = lambda self, width, speed, force, **kw: self.move_async(width, speed)  # noqa: E731
 
@@ -508,6 +516,7 @@ def test_franky_gripper_command_that_fails_is_retried_not_lost():
             self.calls.append(round(width, 3))
             if len(self.calls) == 1:
                 raise RuntimeError("gripper busy")
+            return DoneFuture()
 
     robot = FrankyRobot("0.0.0.0")
     robot._gripper = gripper = FlakyGripper()

@@ -273,4 +273,4 @@ def keep_thread_scheduler():
 def _finished(future) -> bool:
     """Whether a franky gripper future (``BoolFuture``) is done; its result (grasped or not) is not
     an error here: a grasp that closes on nothing just ends at the commanded width."""
-    return not hasattr(future, "wait") or bool(future.wait(0.0))
+    return bool(future.wait(0.0))
