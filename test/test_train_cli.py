@@ -83,7 +83,9 @@ def test_train_writes_a_loadable_policy_and_plot(bags, tmp_path, capsys):
     assert train(bags, tmp_path / "budget", "--max-minutes", "0.0001", "--rotation-aug", "none") == 0
     summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert summary["steps"] == 1 and "time budget" in summary["stopped"]
-    # --rotation-aug replaces the preset's and is saved with the policy
+    # --rotation-aug replaces the preset's and is saved with the policy; run.json keeps the recipe
+    recipe = json.loads((tmp_path / "budget" / "run.json").read_text())["recipe"]
+    assert recipe["device"] == "cpu" and recipe["batch_size"] == 4 and recipe["rotation_aug"] == "none"
     assert load_inference_policy(tmp_path / "budget" / "policy.pt").preset.rotation_aug == "none"
 
 

@@ -294,6 +294,7 @@ def test_bench_generalization_evaluates_policies_trained_elsewhere(tmp_path, cap
     assert result["eval_episodes"] == 1 and 0.0 <= result["equidiff_success"] <= 1.0
     assert result["minutes"].keys() == {"eval"}  # nothing recorded or trained here
     assert result["rotation_aug"] == "continuous"  # as the shipped policy was trained
+    assert result["training_recipes"] == {"equidiff": None, "baseline": None}  # no run.json next to them
 
 
 def test_shipped_checkpoint_loads_and_its_training_is_recorded():

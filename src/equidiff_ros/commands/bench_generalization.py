@@ -162,6 +162,14 @@ def _trained_policies(folder: Path) -> tuple[dict, dict]:
     return policies, {name: _trained_steps(folder / name) for name in policies}
 
 
+def _training_recipe(run_dir: Path) -> dict | None:
+    """How ``equidiff train`` trained the policy in ``run_dir`` (device, batch, lr, ...; None if not recorded)."""
+    try:
+        return json.loads((run_dir / "run.json").read_text())["recipe"]
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+
+
 def _count_demos(folder: Path) -> int:
     from equidiff_core.dataset import find_episodes
 
@@ -208,7 +216,8 @@ def _evaluate(args, cfg, lab, out: Path, policies: dict, steps_done: dict, n_dem
         "eval_yaw": f"block yaw >= 15 deg outside the training range, modulo 180 deg (seeds {seeds[0]}..)",
         "preset": "/".join(sorted(presets)),  # of the policies evaluated (--trained: as they were trained)
         "rotation_aug": "/".join(sorted(augs)),
-        "device": args.device,
+        "device": args.device,  # of the evaluation; the training's is in training_recipes
+        "training_recipes": {name: _training_recipe(path.parent) for name, path in policies.items()},
         "minutes": {**minutes, "eval": round((t_end - t_eval) / 60, 1)},
     }
     (out / "result.json").write_text(json.dumps(result) + "\n")

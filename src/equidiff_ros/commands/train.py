@@ -3,7 +3,8 @@
 Bags -> ``DemoDataset`` (decoded once, cached under ``--cache-dir``), whole episodes held out
 for validation (``--val-fraction``, split saved in ``DIR/split.json`` and reused on resume),
 then ``equidiff_core.training.train`` (AdamW + cosine, periodic checkpoints, resume from
-``DIR/last.ckpt``). On every evaluation the held-out episodes are sampled with DDIM and
+``DIR/last.ckpt``); ``DIR/run.json`` keeps the summary and the recipe (device, batch, lr, ...).
+On every evaluation the held-out episodes are sampled with DDIM and
 scored by action MSE (absolute targets, metres/rot6d/metres); ``DIR/training.png`` plots the
 loss and the evaluation curves. Deterministic for a given ``--seed`` on the same device.
 """
@@ -260,5 +261,10 @@ def run(args) -> int:
                "train_episodes": len(train_eps), "val_episodes": len(val_eps), "skipped": len(skipped)}
     if result.stopped:
         summary["stopped"] = result.stopped
+    # what trained this policy, for whoever evaluates it elsewhere (bench generalization --trained)
+    recipe = {"device": str(next(policy.parameters()).device), "preset": preset.name,
+              "rotation_aug": preset.rotation_aug, "batch_size": args.batch_size, "lr": args.lr,
+              "warmup_steps": args.warmup_steps, "seed": args.seed, "max_minutes": args.max_minutes}
+    (out / "run.json").write_text(json.dumps({**summary, "recipe": recipe}, indent=1) + "\n")
     print(json.dumps(summary))
     return 0
