@@ -201,11 +201,16 @@ def test_generalisation_eval_scenes_have_unseen_block_yaw_modulo_its_half_turn_s
     import pytest
 
     from equidiff_core.twin import TwinConfig, sample_scene
-    from equidiff_core.twin.evaluate import unseen_yaw_seeds
+    from equidiff_core.twin.evaluate import in_range_yaw_seeds, unseen_yaw_seeds
 
     cfg = TwinConfig()
     seeds = unseen_yaw_seeds(cfg, (-15.0, 15.0), 12)
     assert len(set(seeds)) == 12
+    in_range = in_range_yaw_seeds(cfg, (-15.0, 15.0), 12)  # the bench's control scenes
+    assert len(set(in_range)) == 12 and not set(in_range) & set(seeds)
+    for s in in_range:
+        yaw = math.degrees(sample_scene(cfg.scene, s).block_yaw)
+        assert min(abs(yaw - k * 180.0) for k in (-1, 0, 1)) <= 15.0
     for s in seeds:
         yaw = math.degrees(sample_scene(cfg.scene, s).block_yaw)
         # >= 15 deg outside [-15, 15] both ways round and after a half turn (the box looks the same)
@@ -288,8 +293,11 @@ def test_bench_generalization_evaluates_policies_trained_elsewhere(tmp_path, cap
         shutil.copy(SHIPPED_CHECKPOINT, trained / name / "policy.pt")
         (trained / name / "history.json").write_text(json.dumps([{"step": steps, "loss": 0.1}]))
     assert main(["bench", "generalization", "--trained", str(trained), "--out", str(tmp_path / "b"),
-                 "--eval-episodes", "1", "--max-duration", "1", "--device", "cpu"]) == 0
-    result = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+                 "--eval-episodes", "1", "--in-range-episodes", "1", "--max-duration", "1", "--device", "cpu"]) == 0
+    out = capsys.readouterr().out
+    result = json.loads(out.strip().splitlines()[-1])
+    assert out.count("[equidiff, unseen] [eval]") == 1 and out.count("[baseline, in range] [eval]") == 1
+    assert result["in_range_episodes"] == 1 and 0.0 <= result["baseline_in_range_success"] <= 1.0
     assert result["train_steps_by_policy"] == {"equidiff": 120, "baseline": 150} and result["train_steps"] == 120
     assert result["eval_episodes"] == 1 and 0.0 <= result["equidiff_success"] <= 1.0
     assert result["minutes"].keys() == {"eval"}  # nothing recorded or trained here

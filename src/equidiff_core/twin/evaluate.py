@@ -88,20 +88,29 @@ def unseen_yaw_seeds(cfg: TwinConfig, train_yaw_deg: tuple[float, float], n: int
     grasped the same, so a yaw 180 deg from the training range is not unseen. The bowl is a
     ring of ``bowl_segments`` walls, the same every 360/segments deg (22.5 for 16), so no bowl
     yaw is unseen by a 15 deg margin and it is left free."""
-    from .scene import sample_scene
-
     lo, hi = train_yaw_deg
     centre, half = (lo + hi) / 2, (hi - lo) / 2 + margin_deg
     if half >= 90.0:
         raise ValueError(f"training yaw range {train_yaw_deg} plus a {margin_deg} deg margin leaves no unseen block yaw")
+    return _seeds_where(cfg, n, start, lambda yaw: abs(block_yaw_offset_deg(yaw, centre)) > half)
 
-    def unseen(yaw_rad: float) -> bool:
-        return abs(block_yaw_offset_deg(yaw_rad, centre)) > half
+
+def in_range_yaw_seeds(cfg: TwinConfig, train_yaw_deg: tuple[float, float], n: int,
+                       start: int = 20_000_000) -> list[int]:
+    """Seeds whose block yaw lies inside the training range (modulo 180 deg, as above): the
+    control for ``unseen_yaw_seeds`` (a policy that fails here has not learned the task)."""
+    lo, hi = train_yaw_deg
+    centre, half = (lo + hi) / 2, (hi - lo) / 2
+    return _seeds_where(cfg, n, start, lambda yaw: abs(block_yaw_offset_deg(yaw, centre)) <= half)
+
+
+def _seeds_where(cfg: TwinConfig, n: int, start: int, keep: Callable[[float], bool]) -> list[int]:
+    """The first ``n`` seeds from ``start`` whose scene's block yaw passes ``keep``."""
+    from .scene import sample_scene
 
     seeds, seed = [], start
     while len(seeds) < n:
-        p = sample_scene(cfg.scene, seed)
-        if unseen(p.block_yaw):
+        if keep(sample_scene(cfg.scene, seed).block_yaw):
             seeds.append(seed)
         seed += 1
     return seeds

@@ -12,8 +12,10 @@ batch, seed and ``--rotation-aug`` (default none: with rotation augmentation the
 see every yaw too, and the bench would compare equivariance with augmentation instead); (3) roll
 both out in closed loop (in-process, sim clock, same seeds) on scenes whose block yaw lies at
 least 15 deg outside the training range, modulo the box's half-turn symmetry (the round bowl's
-yaw does not matter). Prints one JSON line:
-equidiff_success, baseline_success, demos, train_steps, eval_episodes, train_yaw_range_deg, ...
+yaw does not matter), and as a control on ``--in-range-episodes`` scenes inside it (a policy
+that fails those has not learned the task, and its unseen-yaw score says nothing). Prints one
+JSON line: equidiff_success, baseline_success, demos, train_steps, eval_episodes,
+train_yaw_range_deg, equidiff_in_range_success, baseline_in_range_success, ...
 
 Time on this 2-core CPU (compact preset, quiet machine): demos ~12 s each, training ~0.86 s
 (EquiDiff) and ~0.53 s (baseline) per step of batch 16, evaluation ~8 s per 30 s episode; the
@@ -43,6 +45,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="peak learning rate (default 5e-4: the shipped twin checkpoint's recipe for a few "
                              "thousand steps of batch 16; equidiff train's 1e-4 suits long runs)")
     parser.add_argument("--eval-episodes", type=int, default=10)
+    parser.add_argument("--in-range-episodes", type=int, default=5,
+                        help="control episodes with block yaw inside the training range (0: none)")
     parser.add_argument("--train-yaw", type=float, nargs=2, default=(-15.0, 15.0), metavar=("LO", "HI"),
                         help="object yaw range of the demos, degrees")
     parser.add_argument("--preset", default="compact")
@@ -109,7 +113,11 @@ def run(args: argparse.Namespace) -> int:
 
     if args.quick:
         args.demos, args.train_steps, args.eval_episodes, args.preset = 4, 30, 2, "tiny"
+        args.in_range_episodes = min(args.in_range_episodes, 1)
         args.max_duration = min(args.max_duration, 10.0)
+    if args.eval_episodes < 1 or args.in_range_episodes < 0:
+        print("equidiff bench generalization: need --eval-episodes >= 1 and --in-range-episodes >= 0", file=sys.stderr)
+        return 2
     if args.device == "auto":
         import torch
 
@@ -188,26 +196,32 @@ def _trained_demos(run_dir: Path) -> int | None:
 def _evaluate(args, cfg, lab, out: Path, policies: dict, steps_done: dict, n_demos, minutes: dict) -> int:
     from equidiff_core.inference import load_inference_policy
     from equidiff_core.twin.demos import DirectRecorder
-    from equidiff_core.twin.evaluate import evaluate_policy, unseen_yaw_seeds
+    from equidiff_core.twin.evaluate import evaluate_policy, in_range_yaw_seeds, unseen_yaw_seeds
 
     t_eval = time.monotonic()
     seeds = unseen_yaw_seeds(cfg, tuple(args.train_yaw), args.eval_episodes)
-    success, presets, augs = {}, set(), set()
+    in_range = in_range_yaw_seeds(cfg, tuple(args.train_yaw), args.in_range_episodes)
+    success, in_range_success, presets, augs = {}, {}, set(), set()
     rec = DirectRecorder(cfg, lab)
     try:
         for name, path in policies.items():
             policy = load_inference_policy(path, device=args.device)
             presets.add(policy.preset.name)
             augs.add(policy.preset.rotation_aug)
-            episodes = evaluate_policy(policy, cfg, lab, seeds, args.max_duration,
-                                       log=lambda s, n=name: print(f"[{n}] {s}", flush=True), recorder=rec)
-            success[name] = sum(e.success for e in episodes) / len(episodes)
+            for label, scene_seeds, rates in (("unseen", seeds, success), ("in range", in_range, in_range_success)):
+                episodes = evaluate_policy(policy, cfg, lab, scene_seeds, args.max_duration, recorder=rec,
+                                           log=lambda s, n=name, w=label: print(f"[{n}, {w}] {s}", flush=True))
+                rates[name] = round(sum(e.success for e in episodes) / len(episodes), 3) if episodes else None
     finally:
         rec.close()
     t_end = time.monotonic()
     result = {
-        "equidiff_success": round(success["equidiff"], 3),
-        "baseline_success": round(success["baseline"], 3),
+        "equidiff_success": success["equidiff"],
+        "baseline_success": success["baseline"],
+        # the control: scenes inside the training yaw range (a policy that fails these has not learned the task)
+        "equidiff_in_range_success": in_range_success["equidiff"],
+        "baseline_in_range_success": in_range_success["baseline"],
+        "in_range_episodes": args.in_range_episodes,
         "demos": n_demos,
         "train_steps": min((v for v in steps_done.values() if v is not None), default=None),
         "train_steps_by_policy": steps_done,  # differ when --max-minutes stopped the slower one first
