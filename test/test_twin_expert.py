@@ -126,3 +126,51 @@ def test_direct_collection_writes_a_trainable_demo_bag(tmp_path):
     assert targets[:, 2].min() < 0.03 and targets[:, 9].min() < 0.01 and targets[-1, 9] > 0.07
     final_xy = targets[-1, :2]
     assert abs(final_xy[0] - cfg.scene.region_x[0]) < 0.3  # sanity: inside the reachable region
+
+
+@pytest.mark.slow
+@pytest.mark.sim
+def test_closed_loop_evaluation_scores_the_expert_and_the_stages_a_frozen_policy_misses():
+    """`evaluate_policy` (bench generalization's rollouts) with the scripted expert in the
+    policy's place solves the scene and reports every stage; a policy that never moves reaches none."""
+    from types import SimpleNamespace
+
+    from equidiff_core.config import default_config_dir, load_lab_config
+    from equidiff_core.twin.demos import DirectRecorder
+    from equidiff_core.twin.evaluate import evaluate_policy
+    from equidiff_core.twin.scene import BLOCK, BOWL, body_pose
+
+    lab = load_lab_config(default_config_dir() / "lab.yaml")
+    preset = SimpleNamespace(dt=0.2, n_action_steps=8)
+
+    class ExpertAsPolicy:
+        """Plans once per episode from the sim, then answers each observation with the next 16 targets."""
+
+        def __init__(self, sim):
+            self.sim, self.preset, self.plan, self.t0 = sim, preset, None, 0.0
+
+        def predict(self, grid, ee, seed=0):
+            assert grid.shape == (4, 64, 64, 64) and ee.shape == (10,)
+            if self.plan is None:
+                self.plan, self.t0 = plan_pick_place(self.sim.tcp_pose(), self.sim.gripper_width(),
+                                                     body_pose(self.sim.model, self.sim.data, BLOCK),
+                                                     body_pose(self.sim.model, self.sim.data, BOWL),
+                                                     CFG.scene.block_size[2], CFG.expert), self.sim.time
+            t = self.sim.time - self.t0
+            steps = [self.plan.target_at(t + preset.dt * (k + 1)) for k in range(16)]
+            return np.stack([geometry.pose_to_action(pose, np.asarray(width)) for pose, width in steps])
+
+    class FrozenPolicy(ExpertAsPolicy):
+        def predict(self, grid, ee, seed=0):
+            return np.repeat(ee[None], 16, axis=0)
+
+    rec = DirectRecorder(CFG, lab)
+    try:
+        solved, = evaluate_policy(ExpertAsPolicy(rec.sim), CFG, lab, [3], 30.0, log=lambda s: None, recorder=rec)
+        frozen, = evaluate_policy(FrozenPolicy(rec.sim), CFG, lab, [3], 4.0, log=lambda s: None, recorder=rec)
+    finally:
+        rec.close()
+    assert solved.success and solved.reached and solved.lifted
+    assert solved.closest_to_bowl_m < CFG.scene.bowl_inner_radius
+    assert not (frozen.success or frozen.reached or frozen.lifted)
+    assert frozen.closest_to_bowl_m > 0.05 and frozen.observations == 3  # 4 s of 1.6 s chunks

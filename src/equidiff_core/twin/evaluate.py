@@ -27,6 +27,32 @@ class EvalEpisode:
     duration_s: float
     observations: int
     block_yaw_deg: float
+    # how far a failure got: the stages of the task the episode reached at some point
+    reached: bool = False  # the TCP within REACH_M of the block (horizontally) and below LOW_M above it
+    lifted: bool = False  # the block LIFT_M above where it started
+    closest_to_bowl_m: float = float("nan")  # nearest the block's centre came to the bowl's axis
+
+
+REACH_M, LOW_M, LIFT_M = 0.02, 0.03, 0.03
+
+
+class _Progress:
+    """Tracks the stages an episode reaches, from the sim's block, bowl and TCP poses."""
+
+    def __init__(self, sim):
+        from .scene import BLOCK, BOWL, body_pose
+
+        self.sim, self._pose = sim, lambda body: body_pose(sim.model, sim.data, body)
+        self._block, self._bowl = BLOCK, BOWL
+        self.block_z0 = self._pose(BLOCK)[2, 3]
+        self.reached = self.lifted = False
+        self.closest_to_bowl_m = float("inf")
+
+    def update(self) -> None:
+        block, bowl, tcp = self._pose(self._block)[:3, 3], self._pose(self._bowl)[:3, 3], self.sim.tcp_pose()[:3, 3]
+        self.reached |= bool(np.hypot(*(tcp[:2] - block[:2])) < REACH_M and tcp[2] - block[2] < LOW_M)
+        self.lifted |= bool(block[2] - self.block_z0 > LIFT_M)
+        self.closest_to_bowl_m = min(self.closest_to_bowl_m, float(np.hypot(*(block[:2] - bowl[:2]))))
 
 
 def evaluate_policy(policy, cfg: TwinConfig, lab: LabConfig, seeds: Iterable[int], max_duration_s: float = 30.0,
@@ -47,6 +73,7 @@ def evaluate_policy(policy, cfg: TwinConfig, lab: LabConfig, seeds: Iterable[int
             sim.command(tcp_pose(ex.ready_position, 0.0), ex.open_width)
             sim.step(1500)
             t0, n_obs, success_since, ok = sim.time, 0, None, False
+            progress = _Progress(sim)
             while sim.time - t0 < max_duration_s and not ok:
                 grid = rec.voxel_grid(int((sim.time - t0) * 1e9))
                 ee = geometry.pose_to_action(sim.tcp_pose(), np.asarray(sim.gripper_width()))
@@ -63,6 +90,7 @@ def evaluate_policy(policy, cfg: TwinConfig, lab: LabConfig, seeds: Iterable[int
                         sim.command(target, float(np.clip(width, 0.0, 0.08)))
                         sim.step(int(round(1000 * dt / sub)))
                     prev = pose
+                    progress.update()
                     if sim.success()["success"]:
                         success_since = sim.time if success_since is None else success_since
                         if sim.time - success_since >= cfg.success.hold_s:
@@ -71,9 +99,13 @@ def evaluate_policy(policy, cfg: TwinConfig, lab: LabConfig, seeds: Iterable[int
                     else:
                         success_since = None
             results.append(EvalEpisode(seed, ok, round(sim.time - t0, 2), n_obs,
-                                       round(float(np.degrees(poses.block_yaw)), 1)))
+                                       round(float(np.degrees(poses.block_yaw)), 1), progress.reached,
+                                       progress.lifted, round(progress.closest_to_bowl_m, 3)))
             log(f"[eval] seed {seed} (block yaw {np.degrees(poses.block_yaw):+.0f} deg): "
-                f"{'success' if ok else 'failure'} after {sim.time - t0:.1f} s sim, {n_obs} observations")
+                f"{'success' if ok else 'failure'} after {sim.time - t0:.1f} s sim, {n_obs} observations; "
+                f"reached the block: {'yes' if progress.reached else 'no'}, lifted it: "
+                f"{'yes' if progress.lifted else 'no'}, block came within {progress.closest_to_bowl_m * 1000:.0f} mm "
+                f"of the bowl's centre")
     finally:
         if recorder is None:
             rec.close()

@@ -237,7 +237,6 @@ def _touching_fingers(model, data, body: str) -> bool:
 
 def success_details(model, data, scene: SceneConfig, success: SuccessConfig) -> dict:
     """Each condition of "the block rests inside the bowl", and their conjunction under 'success'."""
-    import mujoco
 
     block = body_pose(model, data, BLOCK)
     bowl = body_pose(model, data, BOWL)
@@ -246,8 +245,6 @@ def success_details(model, data, scene: SceneConfig, success: SuccessConfig) -> 
     rim = scene.bowl_base_thickness + scene.bowl_wall_height
     _, dadr = _free_qpos_addr(model, BLOCK)
     speed = float(np.linalg.norm(data.qvel[dadr:dadr + 3]))
-    bid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, BLOCK)
-    del bid
     details = {
         "inside": horizontal < scene.bowl_inner_radius - success.margin,
         "below_rim": bool(0.0 < offset[2] < rim),

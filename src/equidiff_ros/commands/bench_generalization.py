@@ -170,6 +170,10 @@ def _trained_policies(folder: Path) -> tuple[dict, dict]:
     return policies, {name: _trained_steps(folder / name) for name in policies}
 
 
+def _fraction(episodes: list, field: str) -> float | None:
+    return round(sum(bool(getattr(e, field)) for e in episodes) / len(episodes), 3) if episodes else None
+
+
 def _training_recipe(run_dir: Path) -> dict | None:
     """How ``equidiff train`` trained the policy in ``run_dir`` (device, batch, lr, ...; None if not recorded)."""
     try:
@@ -201,7 +205,7 @@ def _evaluate(args, cfg, lab, out: Path, policies: dict, steps_done: dict, n_dem
     t_eval = time.monotonic()
     seeds = unseen_yaw_seeds(cfg, tuple(args.train_yaw), args.eval_episodes)
     in_range = in_range_yaw_seeds(cfg, tuple(args.train_yaw), args.in_range_episodes)
-    success, in_range_success, presets, augs = {}, {}, set(), set()
+    success, in_range_success, stages, presets, augs = {}, {}, {}, set(), set()
     rec = DirectRecorder(cfg, lab)
     try:
         for name, path in policies.items():
@@ -211,7 +215,8 @@ def _evaluate(args, cfg, lab, out: Path, policies: dict, steps_done: dict, n_dem
             for label, scene_seeds, rates in (("unseen", seeds, success), ("in range", in_range, in_range_success)):
                 episodes = evaluate_policy(policy, cfg, lab, scene_seeds, args.max_duration, recorder=rec,
                                            log=lambda s, n=name, w=label: print(f"[{n}, {w}] {s}", flush=True))
-                rates[name] = round(sum(e.success for e in episodes) / len(episodes), 3) if episodes else None
+                rates[name] = _fraction(episodes, "success")
+                stages.setdefault(name, {})[label] = {k: _fraction(episodes, k) for k in ("reached", "lifted")}
     finally:
         rec.close()
     t_end = time.monotonic()
@@ -222,6 +227,7 @@ def _evaluate(args, cfg, lab, out: Path, policies: dict, steps_done: dict, n_dem
         "equidiff_in_range_success": in_range_success["equidiff"],
         "baseline_in_range_success": in_range_success["baseline"],
         "in_range_episodes": args.in_range_episodes,
+        "stages": stages,  # how far failures got: fractions that reached the block / lifted it
         "demos": n_demos,
         "train_steps": min((v for v in steps_done.values() if v is not None), default=None),
         "train_steps_by_policy": steps_done,  # differ when --max-minutes stopped the slower one first
