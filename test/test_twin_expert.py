@@ -171,6 +171,6 @@ def test_closed_loop_evaluation_scores_the_expert_and_the_stages_a_frozen_policy
     finally:
         rec.close()
     assert solved.success and solved.reached and solved.lifted
-    assert solved.closest_to_bowl_m < CFG.scene.bowl_inner_radius
+    assert solved.closest_to_bowl_m < CFG.scene.bowl_inner_radius and solved.closest_to_block_m < 0.02
     assert not (frozen.success or frozen.reached or frozen.lifted)
-    assert frozen.closest_to_bowl_m > 0.05 and frozen.observations == 3  # 4 s of 1.6 s chunks
+    assert frozen.closest_to_bowl_m > 0.05 and frozen.closest_to_block_m > 0.1 and frozen.observations == 3  # 4 s of 1.6 s chunks

@@ -298,7 +298,7 @@ def test_bench_generalization_evaluates_policies_trained_elsewhere(tmp_path, cap
     result = json.loads(out.strip().splitlines()[-1])
     assert out.count("[equidiff, unseen] [eval]") == 1 and out.count("[baseline, in range] [eval]") == 1
     assert result["in_range_episodes"] == 1 and 0.0 <= result["baseline_in_range_success"] <= 1.0
-    assert result["stages"]["equidiff"]["unseen"].keys() == {"reached", "lifted"}
+    assert result["stages"]["equidiff"]["unseen"].keys() == {"reached", "lifted", "median_closest_to_block_m"}
     assert result["train_steps_by_policy"] == {"equidiff": 120, "baseline": 150} and result["train_steps"] == 120
     assert result["eval_episodes"] == 1 and 0.0 <= result["equidiff_success"] <= 1.0
     assert result["minutes"].keys() == {"eval"}  # nothing recorded or trained here

@@ -31,6 +31,7 @@ class EvalEpisode:
     reached: bool = False  # the TCP within REACH_M of the block (horizontally) and below LOW_M above it
     lifted: bool = False  # the block LIFT_M above where it started
     closest_to_bowl_m: float = float("nan")  # nearest the block's centre came to the bowl's axis
+    closest_to_block_m: float = float("nan")  # nearest the TCP came to the block's centre
 
 
 REACH_M, LOW_M, LIFT_M = 0.02, 0.03, 0.03
@@ -46,13 +47,14 @@ class _Progress:
         self._block, self._bowl = BLOCK, BOWL
         self.block_z0 = self._pose(BLOCK)[2, 3]
         self.reached = self.lifted = False
-        self.closest_to_bowl_m = float("inf")
+        self.closest_to_bowl_m = self.closest_to_block_m = float("inf")
 
     def update(self) -> None:
         block, bowl, tcp = self._pose(self._block)[:3, 3], self._pose(self._bowl)[:3, 3], self.sim.tcp_pose()[:3, 3]
         self.reached |= bool(np.hypot(*(tcp[:2] - block[:2])) < REACH_M and tcp[2] - block[2] < LOW_M)
         self.lifted |= bool(block[2] - self.block_z0 > LIFT_M)
         self.closest_to_bowl_m = min(self.closest_to_bowl_m, float(np.hypot(*(block[:2] - bowl[:2]))))
+        self.closest_to_block_m = min(self.closest_to_block_m, float(np.linalg.norm(tcp - block)))
 
 
 def evaluate_policy(policy, cfg: TwinConfig, lab: LabConfig, seeds: Iterable[int], max_duration_s: float = 30.0,
@@ -100,10 +102,12 @@ def evaluate_policy(policy, cfg: TwinConfig, lab: LabConfig, seeds: Iterable[int
                         success_since = None
             results.append(EvalEpisode(seed, ok, round(sim.time - t0, 2), n_obs,
                                        round(float(np.degrees(poses.block_yaw)), 1), progress.reached,
-                                       progress.lifted, round(progress.closest_to_bowl_m, 3)))
+                                       progress.lifted, round(progress.closest_to_bowl_m, 3),
+                                       round(progress.closest_to_block_m, 3)))
             log(f"[eval] seed {seed} (block yaw {np.degrees(poses.block_yaw):+.0f} deg): "
                 f"{'success' if ok else 'failure'} after {sim.time - t0:.1f} s sim, {n_obs} observations; "
-                f"reached the block: {'yes' if progress.reached else 'no'}, lifted it: "
+                f"TCP within {progress.closest_to_block_m * 1000:.0f} mm of the block, "
+                f"reached it: {'yes' if progress.reached else 'no'}, lifted it: "
                 f"{'yes' if progress.lifted else 'no'}, block came within {progress.closest_to_bowl_m * 1000:.0f} mm "
                 f"of the bowl's centre")
     finally:

@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import statistics
 import subprocess
 import sys
 import time
@@ -216,7 +217,10 @@ def _evaluate(args, cfg, lab, out: Path, policies: dict, steps_done: dict, n_dem
                 episodes = evaluate_policy(policy, cfg, lab, scene_seeds, args.max_duration, recorder=rec,
                                            log=lambda s, n=name, w=label: print(f"[{n}, {w}] {s}", flush=True))
                 rates[name] = _fraction(episodes, "success")
-                stages.setdefault(name, {})[label] = {k: _fraction(episodes, k) for k in ("reached", "lifted")}
+                stages.setdefault(name, {})[label] = {
+                    **{k: _fraction(episodes, k) for k in ("reached", "lifted")},
+                    "median_closest_to_block_m": round(statistics.median(e.closest_to_block_m for e in episodes), 3)
+                    if episodes else None}
     finally:
         rec.close()
     t_end = time.monotonic()
@@ -227,7 +231,7 @@ def _evaluate(args, cfg, lab, out: Path, policies: dict, steps_done: dict, n_dem
         "equidiff_in_range_success": in_range_success["equidiff"],
         "baseline_in_range_success": in_range_success["baseline"],
         "in_range_episodes": args.in_range_episodes,
-        "stages": stages,  # how far failures got: fractions that reached the block / lifted it
+        "stages": stages,  # how far failures got: fractions that reached the block / lifted it, closest TCP
         "demos": n_demos,
         "train_steps": min((v for v in steps_done.values() if v is not None), default=None),
         "train_steps_by_policy": steps_done,  # differ when --max-minutes stopped the slower one first
