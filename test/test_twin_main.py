@@ -296,8 +296,9 @@ def test_bench_generalization_evaluates_policies_trained_elsewhere(tmp_path, cap
                  "--eval-episodes", "1", "--in-range-episodes", "1", "--max-duration", "1", "--device", "cpu"]) == 0
     out = capsys.readouterr().out
     result = json.loads(out.strip().splitlines()[-1])
-    assert out.count("[equidiff, unseen] [eval]") == 1 and out.count("[baseline, in range] [eval]") == 1
+    assert out.count("[equidiff, unseen] [eval]") == 1 and out.count("[baseline, in_range] [eval]") == 1
     assert result["in_range_episodes"] == 1 and 0.0 <= result["baseline_in_range_success"] <= 1.0
+    assert result["stages"]["equidiff"].keys() == {"unseen", "in_range"}
     assert result["stages"]["equidiff"]["unseen"].keys() == {"reached", "lifted", "median_closest_to_block_m"}
     assert result["train_steps_by_policy"] == {"equidiff": 120, "baseline": 150} and result["train_steps"] == 120
     assert result["eval_episodes"] == 1 and 0.0 <= result["equidiff_success"] <= 1.0

@@ -213,7 +213,7 @@ def _evaluate(args, cfg, lab, out: Path, policies: dict, steps_done: dict, n_dem
             policy = load_inference_policy(path, device=args.device)
             presets.add(policy.preset.name)
             augs.add(policy.preset.rotation_aug)
-            for label, scene_seeds, rates in (("unseen", seeds, success), ("in range", in_range, in_range_success)):
+            for label, scene_seeds, rates in (("unseen", seeds, success), ("in_range", in_range, in_range_success)):
                 episodes = evaluate_policy(policy, cfg, lab, scene_seeds, args.max_duration, recorder=rec,
                                            log=lambda s, n=name, w=label: print(f"[{n}, {w}] {s}", flush=True))
                 rates[name] = _fraction(episodes, "success")
