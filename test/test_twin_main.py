@@ -323,3 +323,28 @@ def test_shipped_checkpoint_loads_and_its_training_is_recorded():
     ee = np.array([0.45, 0.0, 0.3, 1, 0, 0, 0, -1, 0, 0.08], np.float32)
     actions = policy.predict(grid, ee, seed=0)
     assert actions.shape == (policy.preset.horizon, 10) and np.isfinite(actions).all()
+
+
+def test_bench_generalization_trains_both_policies_side_by_side_on_half_the_cores(tmp_path, monkeypatch):
+    import argparse
+    import os
+    import threading
+    import time
+
+    from equidiff_ros.commands import bench_generalization as bench
+
+    runs, lock = {}, threading.Lock()
+
+    def fake_train(policy, bags, out, args, steps, threads):
+        start = time.monotonic()
+        time.sleep(0.3)
+        with lock:
+            runs[policy] = (start, time.monotonic(), threads, steps)
+        return out / "policy.pt"
+
+    monkeypatch.setattr(bench, "_train", fake_train)
+    policies = bench._train_both(tmp_path / "demos", tmp_path, argparse.Namespace(train_steps=7))
+    assert policies == {"equidiff": tmp_path / "equidiff" / "policy.pt", "baseline": tmp_path / "baseline" / "policy.pt"}
+    (a0, a1, threads_a, steps_a), (b0, b1, threads_b, _) = runs["equidiff"], runs["baseline"]
+    assert a0 < b1 and b0 < a1  # the two runs overlapped
+    assert threads_a == threads_b == max(1, (os.cpu_count() or 2) // 2) and steps_a == 7

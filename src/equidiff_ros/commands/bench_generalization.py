@@ -1,7 +1,7 @@
 """`equidiff bench generalization`: EquiDiff vs the non-equivariant baseline on unseen object yaw.
 
-    equidiff bench generalization                       # 20 demos, yaw in [-15, 15] deg, compact preset
-    equidiff bench generalization --demos 40 --train-steps 3000 --device cuda
+    equidiff bench generalization                       # 40 demos, yaw in [-15, 15] deg, compact, 4000 steps
+    equidiff bench generalization --train-steps 20000 --batch-size 64 --lr 1e-4 --device cuda
     equidiff bench generalization --quick               # minutes-scale plumbing check (tiny preset)
     equidiff bench generalization --trained gpu_run/ --demos-dir packed/   # policies trained elsewhere
 
@@ -17,18 +17,20 @@ that fails those has not learned the task, and its unseen-yaw score says nothing
 JSON line: equidiff_success, baseline_success, demos, train_steps, eval_episodes,
 train_yaw_range_deg, equidiff_in_range_success, baseline_in_range_success, ...
 
-Time on this 2-core CPU (compact preset, quiet machine): demos ~12 s each, training ~0.86 s
-(EquiDiff) and ~0.53 s (baseline) per step of batch 16, evaluation ~8 s per 30 s episode; the
-defaults take ~20 min. ``--max-minutes`` gives each policy a training budget: ``equidiff train``
-stops, checkpoints and exports when it runs out, and the steps each trained are reported.
-Neither policy acts after ~2000 steps; the comparison needs thousands more (docs/twin.md).
-On CUDA training dominates less and thousands of steps fit in minutes.
+Time on this 2-core CPU (compact preset, quiet machine): demos ~14 s each (40: 9 min), the two
+trainings side by side ~1.0 s (EquiDiff) and ~0.6 s (baseline) per step of batch 16 without
+rotation augmentation (4000 steps: ~70 min), evaluation ~6 s per 30 s episode (30 episodes: 3
+min): the defaults take about 1.5 h. ``--max-minutes`` gives each policy a training budget
+(``equidiff train`` stops, checkpoints and exports; the steps each trained are reported).
+Measured with this recipe (docs/twin.md): EquiDiff 3/10 unseen and 3/5 in range, the baseline
+0/10 and 0/5 (it never reached the block). On CUDA thousands of steps fit in minutes.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import statistics
 import subprocess
 import sys
@@ -39,8 +41,8 @@ from pathlib import Path
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.epilog = __doc__.split("\n", 1)[1]
     parser.formatter_class = argparse.RawDescriptionHelpFormatter
-    parser.add_argument("--demos", type=int, default=20)
-    parser.add_argument("--train-steps", type=int, default=600)
+    parser.add_argument("--demos", type=int, default=40)
+    parser.add_argument("--train-steps", type=int, default=4000)
     parser.add_argument("--batch-size", type=int, default=16)
     parser.add_argument("--lr", type=float, default=5e-4,
                         help="peak learning rate (default 5e-4: the shipped twin checkpoint's recipe for a few "
@@ -73,7 +75,7 @@ class TrainRunError(RuntimeError):
     """`equidiff train` failed, did not stop or wrote no policy."""
 
 
-def _train(policy: str, bags: Path, out: Path, args, steps: int) -> Path:
+def _train(policy: str, bags: Path, out: Path, args, steps: int, threads: int) -> Path:
     cmd = [sys.executable, "-m", "equidiff_ros.cli", "train", str(bags), "--out", str(out), "--policy", policy,
            "--preset", args.preset, "--rotation-aug", args.rotation_aug, "--steps", str(steps),
            "--batch-size", str(args.batch_size), "--lr", str(args.lr),
@@ -88,7 +90,8 @@ def _train(policy: str, bags: Path, out: Path, args, steps: int) -> Path:
         timeout = args.max_minutes * 60 + 600
     print(f"[bench] training {policy}: {' '.join(cmd[3:])}", flush=True)
     try:
-        proc = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout)
+        proc = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout,
+                              env={**os.environ, "OMP_NUM_THREADS": str(threads), "MKL_NUM_THREADS": str(threads)})
     except subprocess.TimeoutExpired as err:
         raise TrainRunError(f"equidiff train {policy} did not stop within {timeout / 60:.0f} min") from err
     policy_file = out / "policy.pt"
@@ -97,6 +100,19 @@ def _train(policy: str, bags: Path, out: Path, args, steps: int) -> Path:
     if not policy_file.is_file():
         raise TrainRunError(f"equidiff train {policy} wrote no {policy_file}")
     return policy_file
+
+
+def _train_both(demos_dir: Path, out: Path, args) -> dict[str, Path]:
+    """Both policies at the same time, each with half the CPU cores: torch's intra-op threads
+    scale poorly on few cores, and on the 2-core CPU two one-thread runs took 75 min against
+    ~92 min one after the other (4000 steps each). On CUDA the two share the GPU."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    threads = max(1, (os.cpu_count() or 2) // 2)
+    with ThreadPoolExecutor(2) as pool:
+        runs = {name: pool.submit(_train, name, demos_dir, out / name, args, args.train_steps, threads)
+                for name in ("equidiff", "baseline")}
+        return {name: run.result() for name, run in runs.items()}  # the first failure raises
 
 
 def _trained_steps(out: Path) -> int | None:
@@ -147,16 +163,13 @@ def run(args: argparse.Namespace) -> int:
         n_demos = _count_demos(demos_dir)
     t_demos = time.monotonic()
 
-    policies, steps_done = {}, {}
-    for name in ("equidiff", "baseline"):
-        run_dir = out / name
-        try:
-            policies[name] = _train(name, demos_dir, run_dir, args, args.train_steps)
-        except TrainRunError as err:  # the demos stay: a rerun need not record them again
-            print(f"equidiff bench generalization: {err}\nthe demos are kept: rerun with --demos-dir {demos_dir}",
-                  file=sys.stderr)
-            return 1
-        steps_done[name] = _trained_steps(run_dir) or args.train_steps
+    try:
+        policies = _train_both(demos_dir, out, args)
+    except TrainRunError as err:  # the demos stay: a rerun need not record them again
+        print(f"equidiff bench generalization: {err}\nthe demos are kept: rerun with --demos-dir {demos_dir}",
+              file=sys.stderr)
+        return 1
+    steps_done = {name: _trained_steps(out / name) or args.train_steps for name in policies}
     t_train = time.monotonic()
     return _evaluate(args, cfg, lab, out, policies, steps_done, n_demos,
                      {"demos": round((t_demos - t_start) / 60, 1), "train": round((t_train - t_demos) / 60, 1)})
