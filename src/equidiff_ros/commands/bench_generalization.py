@@ -103,9 +103,9 @@ def _train(policy: str, bags: Path, out: Path, args, steps: int, threads: int) -
 
 
 def _train_both(demos_dir: Path, out: Path, args) -> dict[str, Path]:
-    """Both policies at the same time, each with half the CPU cores: torch's intra-op threads
-    scale poorly on few cores, and on the 2-core CPU two one-thread runs took 75 min against
-    ~92 min one after the other (4000 steps each). On CUDA the two share the GPU."""
+    """Both policies at the same time, each with half the CPU cores (torch's intra-op threads
+    scale poorly on few cores): 4000 steps each took 75 min side by side on the 2-core CPU, the
+    baseline done after 48 (one after the other was not measured). On CUDA they share the GPU."""
     from concurrent.futures import ThreadPoolExecutor
 
     threads = max(1, (os.cpu_count() or 2) // 2)
