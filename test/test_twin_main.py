@@ -225,6 +225,8 @@ def test_generalisation_eval_scenes_have_unseen_block_yaw_modulo_its_half_turn_s
     assert all(abs(math.degrees(sample_scene(narrow.scene, s).block_yaw)) <= 15.0 for s in seeds)
     with pytest.raises(ValueError, match="no unseen"):
         unseen_yaw_seeds(cfg, (-80.0, 80.0), 1)
+    with pytest.raises(ValueError, match="yaw range empty"):  # not an endless search
+        in_range_yaw_seeds(cfg, (5.0, 5.0), 1)
 
 
 def test_bench_and_collect_commands_parse():

@@ -146,6 +146,9 @@ def _seeds_where(cfg: TwinConfig, n: int, start: int, keep: Callable[[float], bo
 
     seeds, seed = [], start
     while len(seeds) < n:
+        if seed - start > 10_000 + 1_000 * n:
+            raise ValueError(f"only {len(seeds)} of {n} scenes from seed {start} have such a block yaw "
+                             f"(is the yaw range empty?)")
         if keep(sample_scene(cfg.scene, seed).block_yaw):
             seeds.append(seed)
         seed += 1

@@ -39,6 +39,8 @@ from pathlib import Path
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from equidiff_core.presets import ROTATION_AUGS
+
     parser.epilog = __doc__.split("\n", 1)[1]
     parser.formatter_class = argparse.RawDescriptionHelpFormatter
     parser.add_argument("--demos", type=int, default=40)
@@ -53,7 +55,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--train-yaw", type=float, nargs=2, default=(-15.0, 15.0), metavar=("LO", "HI"),
                         help="object yaw range of the demos, degrees")
     parser.add_argument("--preset", default="compact")
-    parser.add_argument("--rotation-aug", choices=("none", "c4", "c8", "continuous"), default="none",
+    parser.add_argument("--rotation-aug", choices=ROTATION_AUGS, default="none",
                         help="training rotation augmentation for both policies (default none: the claim is "
                              "equivariance by construction; with continuous the baseline sees every yaw too)")
     parser.add_argument("--device", default="auto", help="auto | cpu | cuda")

@@ -17,11 +17,13 @@ from pathlib import Path
 
 
 def add_arguments(parser) -> None:
+    from equidiff_core.presets import ROTATION_AUGS
+
     parser.add_argument("bags", nargs="+", help="bag directories, or folders holding bag directories")
     parser.add_argument("--out", required=True, help="output directory (checkpoints, policy.pt, plots)")
     parser.add_argument("--policy", choices=("equidiff", "baseline"), default="equidiff")
     parser.add_argument("--preset", default="compact", help="model preset: paper, compact or tiny (default compact)")
-    parser.add_argument("--rotation-aug", choices=("none", "c4", "c8", "continuous"), default=None,
+    parser.add_argument("--rotation-aug", choices=ROTATION_AUGS, default=None,
                         help="random yaw rotation of voxels, state and actions while training (default: the preset's)")
     parser.add_argument("--steps", type=int, default=20000)
     parser.add_argument("--batch-size", type=int, default=64)
