@@ -43,7 +43,7 @@ def test_plan_visits_block_then_bowl_with_the_gripper_sequence():
     assert abs(tcp_yaw(plan.target_at(plan.duration)[0]) - grasp_yaw(0.7)) < 1e-9
 
 
-def _follow(path, arm, steps, gain=0.5, knock=None):
+def _follow(path, arm, steps, gain=0.5, knock=None, max_rot=np.inf):
     """A first-order arm following the path's targets unless franka_node would reject them as a
     jump (80 mm, 0.6 rad: it holds then); ``knock(i, arm)`` may push it away."""
     from equidiff_core.control.safety import rotation_angle
@@ -58,7 +58,9 @@ def _follow(path, arm, steps, gain=0.5, knock=None):
             continue
         arm = arm.copy()
         arm[:3, 3] += gain * (target[:3, 3] - arm[:3, 3])
-        arm[:3, :3] = target[:3, :3]
+        turn = Rotation.from_matrix(target[:3, :3] @ arm[:3, :3].T).as_rotvec()  # turns at most max_rot a tick
+        turn *= min(1.0, max_rot / max(np.linalg.norm(turn), 1e-12))
+        arm[:3, :3] = Rotation.from_rotvec(turn).as_matrix() @ arm[:3, :3]
     return arm, np.array(jumps)
 
 
@@ -85,6 +87,13 @@ def test_line_path_waits_for_the_arm_and_restarts_where_a_knocked_arm_is():
     assert path.done and path.restarts == 1
     np.testing.assert_allclose(arm[:3, 3], home[:3, 3], atol=1e-3)
     assert jumps[:, 0].max() < 0.08 and jumps[:, 1].max() < 0.6  # no target was rejected
+
+    # a hand that turns slower than the path (franka_node: 0.6 rad/s) is waited for, not restarted
+    start = tcp_pose(CFG.expert.ready_position, 1.5)
+    path = LinePath(start, home, hz=20.0, angular_speed=1.0)
+    arm, jumps = _follow(path, start, 20 * 6, max_rot=0.6 / 20)
+    assert path.done and path.restarts == 0 and abs(tcp_yaw(arm)) < 1e-6
+    assert jumps[:, 1].max() < 0.2 + 1.0 / 20 + 1e-9
 
 
 @pytest.mark.slow

@@ -50,19 +50,21 @@ class LinePath:
     """A straight TCP path to ``target`` streamed as teleop targets, one per ``next(tcp)`` call at
     ``hz``, that waits for the arm and restarts from the arm when the arm is not on it.
 
-    The path advances only while the TCP is within ``max_lag_m`` of the last target: on a twin
-    slower than real time a wall-clock path ran ahead of the arm until franka_node rejected it as
-    a jump. When the TCP is farther than ``restart_m`` (or ``restart_rad``) from the last target,
+    The path advances only while the TCP is within ``max_lag_m`` / ``max_lag_rad`` of the last
+    target: on a twin slower than real time a wall-clock path ran ahead of the arm until
+    franka_node rejected it as a jump (and franka_node turns the hand at most 0.6 rad/s). When the TCP is farther than ``restart_m`` (or ``restart_rad``) from the last target,
     the arm is elsewhere (still braking after a divergence stop, or pushed), every target on the
     old line would be rejected as a jump (80 mm / 0.6 rad), and the line restarts where the arm
     is: a fresh-clone main job once failed its homing that way with the arm 319 mm off the path.
     Rotation is slerped from the start orientation, so a tilted start is no jump either."""
 
     def __init__(self, start: np.ndarray, target: np.ndarray, speed: float = 0.12, angular_speed: float = 1.0,
-                 hz: float = 20.0, max_lag_m: float = 0.03, restart_m: float = 0.05, restart_rad: float = 0.4):
+                 hz: float = 20.0, max_lag_m: float = 0.03, max_lag_rad: float = 0.2, restart_m: float = 0.05,
+                 restart_rad: float = 0.4):
         self.target = np.asarray(target, dtype=float)
         self.speed, self.angular_speed, self.hz = speed, angular_speed, hz
-        self.max_lag_m, self.restart_m, self.restart_rad = max_lag_m, restart_m, restart_rad
+        self.max_lag_m, self.max_lag_rad = max_lag_m, max_lag_rad
+        self.restart_m, self.restart_rad = restart_m, restart_rad
         self.restarts = 0
         self._restart(np.asarray(start, dtype=float))
 
@@ -81,10 +83,11 @@ class LinePath:
     def next(self, tcp: np.ndarray) -> np.ndarray:
         """The next target, given the measured TCP pose."""
         lag = float(np.linalg.norm(tcp[:3, 3] - self.pose[:3, 3]))
-        if lag > self.restart_m or rotation_angle(tcp[:3, :3], self.pose[:3, :3]) > self.restart_rad:
+        lag_rad = rotation_angle(tcp[:3, :3], self.pose[:3, :3])
+        if lag > self.restart_m or lag_rad > self.restart_rad:
             self.restarts += 1
             self._restart(np.asarray(tcp, dtype=float))
-        elif lag < self.max_lag_m:
+        elif lag < self.max_lag_m and lag_rad < self.max_lag_rad:
             self.s = min(1.0, self.s + 1.0 / (self.hz * self.duration))
         if self.done:
             self.pose = self.target.copy()
