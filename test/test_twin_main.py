@@ -350,3 +350,29 @@ def test_bench_generalization_trains_both_policies_side_by_side_on_half_the_core
     (a0, a1, threads_a, steps_a), (b0, b1, threads_b, _) = runs["equidiff"], runs["baseline"]
     assert a0 < b1 and b0 < a1  # the two runs overlapped
     assert threads_a == threads_b == max(1, (os.cpu_count() or 2) // 2) and steps_a == 7
+
+
+@pytest.mark.slow
+@pytest.mark.sim
+def test_bench_generalization_quick_runs_end_to_end_on_the_cpu(tmp_path, capsys):
+    """Issue 7's promise that the benchmark runs on this CPU: one narrow-yaw demo recorded, both
+    policies trained side by side from it (tiny preset), both rolled out; one JSON line."""
+    import json
+
+    from equidiff_core.config import default_config_dir, load_lab_config
+    from equidiff_core.twin import TwinConfig
+    from equidiff_core.twin.demos import collect_direct
+    from equidiff_ros.cli import main
+
+    demos = tmp_path / "demos"
+    lab = load_lab_config(default_config_dir() / "lab.yaml")
+    assert collect_direct(TwinConfig().with_yaw_range((-15.0, 15.0)), lab, demos, [0], log=lambda s: None)[0][1]
+    assert main(["bench", "generalization", "--quick", "--demos-dir", str(demos), "--device", "cpu",
+                 "--out", str(tmp_path / "run")]) == 0
+    result = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    for key in ("equidiff_success", "baseline_success", "demos", "train_steps", "eval_episodes", "train_yaw_range_deg"):
+        assert key in result, key
+    assert result["demos"] == 1 and result["train_steps_by_policy"] == {"equidiff": 30, "baseline": 30}
+    assert result["rotation_aug"] == "none" and result["preset"] == "tiny"
+    assert {r["device"] for r in result["training_recipes"].values()} == {"cpu"}
+    assert json.loads((tmp_path / "run" / "result.json").read_text()) == result
