@@ -327,29 +327,48 @@ def test_shipped_checkpoint_loads_and_its_training_is_recorded():
     assert actions.shape == (policy.preset.horizon, 10) and np.isfinite(actions).all()
 
 
+@pytest.mark.slow
 def test_bench_generalization_trains_both_policies_side_by_side_on_half_the_cores(tmp_path, monkeypatch):
     import argparse
     import os
-    import threading
+    import subprocess
+    import sys
     import time
+
+    import pytest
 
     from equidiff_ros.commands import bench_generalization as bench
 
-    runs, lock = {}, threading.Lock()
+    runs = {}
+    script = ("import pathlib, sys, time; time.sleep(float(sys.argv[2])); "
+              "pathlib.Path(sys.argv[1]).write_text(str(time.time())); sys.exit(int(sys.argv[3]))")
+    behaviour = {"equidiff": (0.3, 0), "baseline": (0.3, 0)}  # seconds, exit code
 
-    def fake_train(policy, bags, out, args, steps, threads):
-        start = time.monotonic()
-        time.sleep(0.3)
-        with lock:
-            runs[policy] = (start, time.monotonic(), threads, steps)
-        return out / "policy.pt"
+    def fake_start(policy, bags, out, args, steps, threads):
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "train.log").write_text(f"{policy} log line\n")
+        runs[policy] = (time.time(), threads, steps)
+        seconds, code = behaviour[policy]
+        return subprocess.Popen([sys.executable, "-c", script, str(out / "policy.pt"), str(seconds), str(code)])
 
-    monkeypatch.setattr(bench, "_train", fake_train)
-    policies = bench._train_both(tmp_path / "demos", tmp_path, argparse.Namespace(train_steps=7))
+    monkeypatch.setattr(bench, "_start_training", fake_start)
+    args = argparse.Namespace(train_steps=7, max_minutes=None)
+    policies = bench._train_both(tmp_path / "demos", tmp_path, args)
     assert policies == {"equidiff": tmp_path / "equidiff" / "policy.pt", "baseline": tmp_path / "baseline" / "policy.pt"}
-    (a0, a1, threads_a, steps_a), (b0, b1, threads_b, _) = runs["equidiff"], runs["baseline"]
+    (a0, threads_a, steps_a), (b0, threads_b, _) = runs["equidiff"], runs["baseline"]
+    a1, b1 = (float(policies[n].read_text()) for n in ("equidiff", "baseline"))
     assert a0 < b1 and b0 < a1  # the two runs overlapped
     assert threads_a == threads_b == max(1, (os.cpu_count() or 2) // 2) and steps_a == 7
+
+    # one run failing stops the other at once and is reported with its log; nothing waits 60 s
+    behaviour.update(equidiff=(0.0, 3), baseline=(60.0, 0))
+    t0 = time.monotonic()
+    with pytest.raises(bench.TrainRunError) as err:
+        bench._train_both(tmp_path / "demos", tmp_path / "second", args)
+    assert time.monotonic() - t0 < 20
+    message = str(err.value)
+    assert "equidiff train equidiff failed (exit 3" in message and "equidiff log line" in message
+    assert "equidiff train baseline" not in message  # stopped by the bench, not a failure of its own
 
 
 @pytest.mark.slow

@@ -77,7 +77,8 @@ class TrainRunError(RuntimeError):
     """`equidiff train` failed, did not stop or wrote no policy."""
 
 
-def _train(policy: str, bags: Path, out: Path, args, steps: int, threads: int) -> Path:
+def _start_training(policy: str, bags: Path, out: Path, args, steps: int, threads: int) -> subprocess.Popen:
+    """``equidiff train`` for one policy in the background, its output in ``out/train.log``."""
     cmd = [sys.executable, "-m", "equidiff_ros.cli", "train", str(bags), "--out", str(out), "--policy", policy,
            "--preset", args.preset, "--rotation-aug", args.rotation_aug, "--steps", str(steps),
            "--batch-size", str(args.batch_size), "--lr", str(args.lr),
@@ -86,35 +87,67 @@ def _train(policy: str, bags: Path, out: Path, args, steps: int, threads: int) -
            "--no-progress"]
     if args.lab_config:
         cmd += ["--lab-config", str(args.lab_config)]
-    timeout = None
-    if args.max_minutes is not None:  # train stops itself and exports; the kill is only a backstop
+    if args.max_minutes is not None:
         cmd += ["--max-minutes", str(args.max_minutes)]
-        timeout = args.max_minutes * 60 + 600
     print(f"[bench] training {policy}: {' '.join(cmd[3:])}", flush=True)
-    try:
-        proc = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout,
-                              env={**os.environ, "OMP_NUM_THREADS": str(threads), "MKL_NUM_THREADS": str(threads)})
-    except subprocess.TimeoutExpired as err:
-        raise TrainRunError(f"equidiff train {policy} did not stop within {timeout / 60:.0f} min") from err
-    policy_file = out / "policy.pt"
-    if proc.returncode != 0:
-        raise TrainRunError(f"equidiff train {policy} failed:\n{proc.stdout[-2000:]}\n{proc.stderr[-2000:]}")
-    if not policy_file.is_file():
-        raise TrainRunError(f"equidiff train {policy} wrote no {policy_file}")
-    return policy_file
+    out.mkdir(parents=True, exist_ok=True)
+    with open(out / "train.log", "wb") as log:
+        return subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+                                env={**os.environ, "OMP_NUM_THREADS": str(threads), "MKL_NUM_THREADS": str(threads)})
 
 
 def _train_both(demos_dir: Path, out: Path, args) -> dict[str, Path]:
     """Both policies at the same time, each with half the CPU cores (torch's intra-op threads
     scale poorly on few cores): 4000 steps each took 75 min side by side on the 2-core CPU, the
-    baseline done after 48 (one after the other was not measured). On CUDA they share the GPU."""
-    from concurrent.futures import ThreadPoolExecutor
+    baseline done after 48 (one after the other was not measured). On CUDA they share the GPU.
 
+    A failing run stops the other within 10 s (its checkpoints and ``train.log`` stay), so an
+    error is not held back until the longer run ends; every run that failed is reported."""
     threads = max(1, (os.cpu_count() or 2) // 2)
-    with ThreadPoolExecutor(2) as pool:
-        runs = {name: pool.submit(_train, name, demos_dir, out / name, args, args.train_steps, threads)
-                for name in ("equidiff", "baseline")}
-        return {name: run.result() for name, run in runs.items()}  # the first failure raises
+    # train stops itself at --max-minutes and exports; this deadline is only a backstop
+    deadline = None if args.max_minutes is None else time.monotonic() + args.max_minutes * 60 + 600
+    runs = {name: _start_training(name, demos_dir, out / name, args, args.train_steps, threads)
+            for name in ("equidiff", "baseline")}
+    stopped = set()  # runs this function terminated: not failures of their own
+
+    def failures() -> TrainRunError | None:
+        """Every run that failed by itself (bad demos usually fail both within seconds)."""
+        lines = []
+        for name, run in runs.items():
+            if run.returncode not in (None, 0) and name not in stopped:
+                log = out / name / "train.log"
+                tail = log.read_text(errors="replace")[-2000:] if log.is_file() else ""
+                lines.append(f"equidiff train {name} failed (exit {run.returncode}; log {log}):\n{tail}")
+        return TrainRunError("\n".join(lines)) if lines else None
+
+    try:
+        while any(run.poll() is None for run in runs.values()):
+            if any(run.returncode not in (None, 0) for run in runs.values()):
+                _wait_all(runs.values(), grace_s=10.0)  # the other may be failing too: report both
+                raise failures()
+            if deadline is not None and time.monotonic() > deadline:
+                raise TrainRunError(f"equidiff train did not stop within {args.max_minutes + 10:.0f} min")
+            time.sleep(0.5)
+    finally:
+        for name, run in runs.items():
+            if run.poll() is None:
+                stopped.add(name)
+                run.terminate()
+                run.wait()
+    error = failures()
+    if error is not None:
+        raise error
+    policies = {name: out / name / "policy.pt" for name in runs}
+    for name, path in policies.items():
+        if not path.is_file():
+            raise TrainRunError(f"equidiff train {name} wrote no {path}")
+    return policies
+
+
+def _wait_all(runs, grace_s: float) -> None:
+    end = time.monotonic() + grace_s
+    while any(run.poll() is None for run in runs) and time.monotonic() < end:
+        time.sleep(0.2)
 
 
 def _trained_steps(out: Path) -> int | None:
