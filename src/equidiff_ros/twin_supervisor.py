@@ -190,7 +190,7 @@ class Supervisor:
         with self.lock:
             return self.ee_pose.copy(), float(self.width)
 
-    def move_to(self, target: np.ndarray, width: float, speed: float = 0.12, yaw_speed: float = 1.0,
+    def move_to(self, target: np.ndarray, width: float, speed: float = 0.12, angular_speed: float = 1.0,
                 timeout_s: float = 20.0, tol_m: float = 0.01, hz: float = 20.0, max_lag_m: float = 0.03,
                 check=None) -> None:
         """Stream teleop-like targets along a straight line to ``target`` (never a jump the safety
@@ -198,7 +198,7 @@ class Supervisor:
         until the TCP is within ``tol_m`` and the gripper settled."""
         from equidiff_core.twin.expert import LinePath
 
-        path = LinePath(self.current()[0], target, speed=speed, angular_speed=yaw_speed, hz=hz, max_lag_m=max_lag_m)
+        path = LinePath(self.current()[0], target, speed=speed, angular_speed=angular_speed, hz=hz, max_lag_m=max_lag_m)
         p1 = path.target[:3, 3]
         # timeout_s is sim time: a twin at 0.45x real time moves the arm (speed-limited in its own
         # clock) at 0.45x wall-clock speed, as run_expert's plan clock assumes too

@@ -158,7 +158,6 @@ class ProcessGroup:
             signal.signal(signal.SIGTERM, self._old_sigterm)
 
 
-
 def node_preexec(priority: bool = False):
     """``preexec_fn`` for a node process: always an ordinary time-sharing process, never a
     real-time policy inherited from whoever started it (libfranka had left a test runner's main
