@@ -18,6 +18,7 @@ import numpy as np
 from .. import geometry
 from ..config import LabConfig
 from .config import TwinConfig
+from .scene import BLOCK, BOWL, body_pose, sample_scene
 
 
 @dataclass(frozen=True)
@@ -41,16 +42,16 @@ class _Progress:
     """Tracks the stages an episode reaches, from the sim's block, bowl and TCP poses."""
 
     def __init__(self, sim):
-        from .scene import BLOCK, BOWL, body_pose
-
-        self.sim, self._pose = sim, lambda body: body_pose(sim.model, sim.data, body)
-        self._block, self._bowl = BLOCK, BOWL
-        self.block_z0 = self._pose(BLOCK)[2, 3]
+        self.sim = sim
+        self.block_z0 = self._position(BLOCK)[2]
         self.reached = self.lifted = False
         self.closest_to_bowl_m = self.closest_to_block_m = float("inf")
 
+    def _position(self, body: str) -> np.ndarray:
+        return body_pose(self.sim.model, self.sim.data, body)[:3, 3]
+
     def update(self) -> None:
-        block, bowl, tcp = self._pose(self._block)[:3, 3], self._pose(self._bowl)[:3, 3], self.sim.tcp_pose()[:3, 3]
+        block, bowl, tcp = self._position(BLOCK), self._position(BOWL), self.sim.tcp_pose()[:3, 3]
         self.reached |= bool(np.hypot(*(tcp[:2] - block[:2])) < REACH_M and tcp[2] - block[2] < LOW_M)
         self.lifted |= bool(block[2] - self.block_z0 > LIFT_M)
         self.closest_to_bowl_m = min(self.closest_to_bowl_m, float(np.hypot(*(block[:2] - bowl[:2]))))
@@ -142,8 +143,6 @@ def in_range_yaw_seeds(cfg: TwinConfig, train_yaw_deg: tuple[float, float], n: i
 
 def _seeds_where(cfg: TwinConfig, n: int, start: int, keep: Callable[[float], bool]) -> list[int]:
     """The first ``n`` seeds from ``start`` whose scene's block yaw passes ``keep``."""
-    from .scene import sample_scene
-
     seeds, seed = [], start
     while len(seeds) < n:
         if seed - start > 10_000 + 1_000 * n:
