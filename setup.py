@@ -50,7 +50,7 @@ setup(
         "spacemouse": ["pyspacemouse", "hidapi"],
         "open3d": ["open3d-cpu==0.20.0"],
         "dev": ["pytest", "pytest-timeout", "hypothesis", "colcon-core==0.21.3", "colcon-ros==0.5.0",
-                "colcon-python-setup-py", "mcap-ros2-support"],
+                "colcon-python-setup-py", "mcap-ros2-support", "ruff"],
     },
     entry_points={
         "console_scripts": [f"{node} = equidiff_ros.{node}:main" for node in NODES]

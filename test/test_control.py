@@ -46,8 +46,12 @@ class FakeClock:
     def __init__(self, t_ns=1_000_000 * 1_000_000_000):
         self.t = t_ns
 
-    def __call__(self):
+    def now_ns(self):
         return self.t
+
+    def sleep_until(self, t_ns, stop):
+        self.t = max(self.t, t_ns)
+        return not stop.is_set()
 
 
 def make_controller(config=ControlConfig(), start=circle(0.0), clock=None, robot=None):

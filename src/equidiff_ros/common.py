@@ -40,3 +40,40 @@ def declare_lab_config(node: Node) -> LabConfig:
 
 def now_ns(node: Node) -> int:
     return node.get_clock().now().nanoseconds
+
+
+def uses_sim_time(node: Node) -> bool:
+    return bool(node.get_parameter("use_sim_time").value)
+
+
+def wait_for_clock(node: Node, log_every_s: float = 5.0) -> None:
+    """With ``use_sim_time``, wait until ``/clock`` has given the node a time (saying so meanwhile).
+
+    Every node calls this first: on simulated time a node's clock reads 0 until the first
+    ``/clock`` message, and stamps, ages and timers would be nonsense until then. In the lab
+    (wall time) it returns at once.
+    """
+    import os
+    import time
+
+    import rclpy
+
+    if not uses_sim_time(node):
+        return
+    start = time.monotonic()
+    last = start - log_every_s + 1.0  # say so after 1 s (a running twin answers within ms), then every log_every_s
+    while node.context.ok() and node.get_clock().now().nanoseconds == 0:
+        if time.monotonic() - last >= log_every_s:
+            last = time.monotonic()
+            node.get_logger().warning(
+                f"use_sim_time is true but no /clock has arrived after {last - start:.0f} s: waiting. Is twin_node "
+                f"running on ROS_DOMAIN_ID={os.environ.get('ROS_DOMAIN_ID', '0')}? (In the lab, leave "
+                f"use_sim_time false.)")
+        rclpy.spin_once(node, timeout_sec=0.1)
+
+
+def node_clock(node: Node):
+    """The node's time as an ``equidiff_core.clock.Clock`` for loops that tick at a rate."""
+    from equidiff_core.clock import PolledClock, WallClock
+
+    return PolledClock(lambda: now_ns(node)) if uses_sim_time(node) else WallClock()

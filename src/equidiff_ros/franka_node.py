@@ -44,13 +44,14 @@ def build_node():
     from equidiff_core.control import messages as cm
     from equidiff_core.robots import BACKENDS, make_robot
     from equidiff_core.rosmsg import RclpyFactory
-    from equidiff_ros.common import (RELIABLE_QOS, TOPIC_COMMAND_CHUNK, TOPIC_DIAGNOSTICS, TOPIC_EE_POSE,
-                                     TOPIC_EXECUTED_TARGET, TOPIC_JOINT_STATES, declare_lab_config, now_ns)
+    from equidiff_ros.common import (wait_for_clock, RELIABLE_QOS, TOPIC_COMMAND_CHUNK, TOPIC_DIAGNOSTICS, TOPIC_EE_POSE,
+                                     TOPIC_EXECUTED_TARGET, TOPIC_JOINT_STATES, declare_lab_config, node_clock, now_ns)
     from trajectory_msgs.msg import MultiDOFJointTrajectory
 
     class FrankaNode(Node):
         def __init__(self):
             super().__init__(NODE_NAME)
+            wait_for_clock(self)  # simulated time (the twin): nothing is timed before /clock
             self.lab = declare_lab_config(self)
             control_path = self.declare_parameter("control_config", str(default_config_dir() / "control.yaml")).value
             backend = self.declare_parameter("backend", "franky").value
@@ -72,8 +73,10 @@ def build_node():
             self.robot = make_robot(backend, logger=log, **kwargs)
             self.get_logger().info(f"connecting to the robot ({backend}, {self.hardware_id})")
             self.robot.connect()
+            # ticks, stamps, staleness and the watchdog on the node's clock: simulated time in the twin
             self.controller = Controller(self.robot, self.lab.workspace,
-                                         dataclasses.replace(self.config, home_on_start=home), logger=log)
+                                         dataclasses.replace(self.config, home_on_start=home),
+                                         clock=node_clock(self), logger=log)
 
             cls = self.factory.cls
             self.pub_pose = self.create_publisher(cls("geometry_msgs/msg/PoseStamped"), TOPIC_EE_POSE, RELIABLE_QOS)

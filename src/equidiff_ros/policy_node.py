@@ -1,23 +1,30 @@
 """policy_node: voxels + robot state -> DDIM policy at 5 Hz -> /franka/command_chunk.
 
 Wiring:
-  /voxels (PointCloud2 of occupied voxels)       -> newest observation (kept raw; decoded in the worker)
+  /voxels (PointCloud2 of occupied voxels)       -> newest observation (kept raw; decoded in the worker);
+                                                    a new one starts a cycle at once if the worker is idle
+                                                    and the inputs are fresh, else waits for the worker
+                                                    (newer observations replace it meanwhile)
   /franka/ee_pose, /franka/joint_states          -> short history; the pose/width nearest the voxel stamp
-  timer at ``rate_hz`` (5 Hz)                    -> if the worker is idle and the inputs are fresh,
-                                                    hand the observation to the worker thread
   worker: ``InferencePolicy.predict`` -> first ``n_action_steps`` (8) of ``horizon`` (16) steps
           -> ``chunk.chunk_from_actions`` (step i at observation stamp + i·dt) -> /franka/command_chunk
+  timer at ``rate_hz`` (5 Hz) -> warns when no fresh observation has come (a camera or the voxel node is down)
   timer at 1 Hz -> /diagnostics (``policy_node``: inference_ms, observation_age_ms, skipped_cycles,
                    obs_to_cmd_ms and its p50/p95)
 
-A cycle is skipped, with a throttled warning, when the worker is still busy, when there is no
-voxel grid or it is older than ``max_observation_age_s`` (a missing camera stops the voxel
-node's matched sets, so it shows up here as a stale grid; a voxel node status at ERROR level
-in /diagnostics also skips), or when there is no robot state near the observation.
+The policy runs once per observation, so the cameras set its rate (5 Hz), with no timer
+phase between a grid and its inference; on the twin's simulated time, which pauses until
+this observation's chunk has arrived, a cycle waiting for a timer tick would never come.
+An observation is skipped (``skipped_<reason>``, with a throttled warning) when a newer one
+replaced it while the worker was busy (``busy``), when it is older than
+``max_observation_age_s`` (``stale_observation``; a missing camera stops the voxel node's
+matched sets, so it shows up as a stale grid), when the voxel node reports ERROR in
+/diagnostics (``voxel_error``), or when there is no robot state near its stamp (``no_robot_state``).
 
 Parameters: ``checkpoint`` (exported policy file, required), ``device`` (cpu | cuda | auto),
 ``precision`` (auto | fp32 | bf16; auto = bf16 where the CPU has native bf16), ``jit``
-(default true: jit.trace), ``rate_hz``, ``max_observation_age_s``, ``max_state_offset_s``,
+(default true: jit.trace), ``rate_hz`` (the rate at which a missing observation is reported),
+``max_observation_age_s``, ``max_state_offset_s``,
 ``seed`` (-1: random), ``n_action_steps`` (0: the preset's), ``torch_threads`` (default 1: on
 a shared CPU more threads are slower; 0: torch's default), ``lab_config``.
 """
@@ -54,7 +61,7 @@ def build_node():
     from equidiff_core.inference import CheckpointError, load_inference_policy
     from equidiff_core.pointcloud import voxel_msg_to_grid
     from equidiff_core.rosmsg import RclpyFactory, stamp_to_ns
-    from equidiff_ros.common import (RELIABLE_QOS, TOPIC_COMMAND_CHUNK, TOPIC_DIAGNOSTICS, TOPIC_EE_POSE,
+    from equidiff_ros.common import (wait_for_clock, RELIABLE_QOS, TOPIC_COMMAND_CHUNK, TOPIC_DIAGNOSTICS, TOPIC_EE_POSE,
                                      TOPIC_JOINT_STATES, TOPIC_VOXELS, VOXEL_QOS, declare_lab_config, now_ns)
     from geometry_msgs.msg import PoseStamped
     from sensor_msgs.msg import JointState, PointCloud2
@@ -63,6 +70,7 @@ def build_node():
     class PolicyNode(Node):
         def __init__(self):
             super().__init__(NODE_NAME)
+            wait_for_clock(self)  # simulated time (the twin): nothing is timed before /clock
             self.lab = declare_lab_config(self)
             checkpoint = self.declare_parameter("checkpoint", "").value
             device = self.declare_parameter("device", "cpu").value
@@ -107,6 +115,7 @@ def build_node():
             self._widths = collections.deque(maxlen=200)  # (stamp_ns, width)
             self._voxel_error = ""  # voxel node status at ERROR level, if any
             self._busy = False
+            self._cycle_lock = threading.Lock()  # the executor thread and the worker both start cycles
             self._last_obs_stamp = None
             self.skipped = collections.Counter()
             self.published = 0
@@ -122,12 +131,17 @@ def build_node():
             self.create_subscription(JointState, TOPIC_JOINT_STATES, self.on_joints, RELIABLE_QOS)
             self.create_subscription(DiagnosticArray, TOPIC_DIAGNOSTICS, self.on_diagnostics, RELIABLE_QOS)
             self.worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="policy")
-            self.create_timer(1.0 / rate_hz, self.on_cycle)
+            self.create_timer(1.0 / rate_hz, self.watch_observations)
             self.create_timer(1.0, self.publish_diagnostics)
 
         # --- inputs (cheap: callbacks never wait for inference) ---------------------------
         def on_voxels(self, msg) -> None:
-            self._voxels = msg
+            with self._cycle_lock:
+                previous = self._voxels
+                if self._busy and previous is not None and stamp_to_ns(previous.header.stamp) != self._last_obs_stamp:
+                    self.skip("busy", "an observation was replaced by a newer one while the previous inference ran")
+                self._voxels = msg
+            self.start_cycle()
 
         def on_pose(self, msg) -> None:
             try:
@@ -155,35 +169,41 @@ def build_node():
             self.skipped[reason] += 1
             self.get_logger().warning(f"skipping a cycle: {detail}", throttle_duration_sec=2.0)
 
-        def on_cycle(self) -> None:
-            if self._busy:
-                return self.skip("busy", "the previous inference is still running")
+        def watch_observations(self) -> None:
             msg = self._voxels
-            now = now_ns(self)
             if msg is None:
                 return self.skip("no_observation", f"no {TOPIC_VOXELS} received yet")
-            stamp = stamp_to_ns(msg.header.stamp)
-            age = now - stamp
+            age = now_ns(self) - stamp_to_ns(msg.header.stamp)
             if age > self.max_obs_age_ns:
-                return self.skip("stale_observation", f"newest voxel grid is {age / 1e6:.0f} ms old "
-                                 f"(limit {self.max_obs_age_ns / 1e6:.0f} ms): a camera or the voxel node is down")
-            if self._voxel_error:
-                return self.skip("voxel_error", f"voxel node reports: {self._voxel_error}")
-            if stamp == self._last_obs_stamp:
-                self.skipped["no_new_observation"] += 1  # timer/camera phase drift, not a fault: no warning
-                return
-            with self._lock:
-                pose = _nearest(self._poses, stamp, self.max_state_offset_ns)
-                width = _nearest(self._widths, stamp, self.max_state_offset_ns)
-            if pose is None:
-                return self.skip("no_robot_state", f"no {TOPIC_EE_POSE} within "
-                                 f"{self.max_state_offset_ns / 1e6:.0f} ms of the observation")
-            if width is None:
-                width = 0.08  # arm without gripper state: the policy still needs a width input
-            self._busy = True
-            self._last_obs_stamp = stamp
-            self.obs_age_s.append(age / 1e9)
-            self.worker.submit(self.infer, msg, stamp, pose, float(width))
+                self.skip("stale_observation", f"newest voxel grid is {age / 1e6:.0f} ms old "
+                          f"(limit {self.max_obs_age_ns / 1e6:.0f} ms): a camera or the voxel node is down")
+
+        def start_cycle(self) -> None:
+            """Hand the newest unused observation to the worker if it is idle and the inputs are fresh."""
+            with self._cycle_lock:
+                msg = self._voxels
+                if self._busy or msg is None:
+                    return
+                stamp = stamp_to_ns(msg.header.stamp)
+                if stamp == self._last_obs_stamp:
+                    return  # answered already
+                self._last_obs_stamp = stamp  # whatever happens next, this observation is used up
+                age = now_ns(self) - stamp
+                if age > self.max_obs_age_ns:
+                    return  # watch_observations reports it
+                if self._voxel_error:
+                    return self.skip("voxel_error", f"voxel node reports: {self._voxel_error}")
+                with self._lock:
+                    pose = _nearest(self._poses, stamp, self.max_state_offset_ns)
+                    width = _nearest(self._widths, stamp, self.max_state_offset_ns)
+                if pose is None:
+                    return self.skip("no_robot_state", f"no {TOPIC_EE_POSE} within "
+                                     f"{self.max_state_offset_ns / 1e6:.0f} ms of the observation")
+                if width is None:
+                    width = 0.08  # arm without gripper state: the policy still needs a width input
+                self._busy = True
+                self.obs_age_s.append(age / 1e9)
+                self.worker.submit(self.infer, msg, stamp, pose, float(width))
 
         def infer(self, msg, stamp: int, pose, width: float) -> None:
             try:
@@ -203,7 +223,9 @@ def build_node():
                 self.get_logger().error(f"inference failed: {type(err).__name__}: {err}",
                                         throttle_duration_sec=2.0)
             finally:
-                self._busy = False
+                with self._cycle_lock:
+                    self._busy = False
+            self.start_cycle()  # an observation that came in meanwhile
 
         def publish_diagnostics(self) -> None:
             def last_ms(values):

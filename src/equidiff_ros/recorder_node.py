@@ -76,7 +76,7 @@ def build_node():
     from equidiff_core.rosmsg import RclpyFactory
     from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
-    from equidiff_ros.common import LATCHED_QOS, RELIABLE_QOS, TOPIC_RECORDER_COMMAND, declare_lab_config, now_ns
+    from equidiff_ros.common import wait_for_clock, LATCHED_QOS, RELIABLE_QOS, TOPIC_RECORDER_COMMAND, declare_lab_config, now_ns
     from equidiff_ros.teleop_node import declare_config
 
     # The contract's profiles, but with deep queues: a recorder must not drop 100 Hz state
@@ -91,6 +91,7 @@ def build_node():
     class RecorderNode(Node):
         def __init__(self):
             super().__init__("recorder_node")
+            wait_for_clock(self)  # simulated time (the twin): nothing is timed before /clock
             self.lab = declare_lab_config(self)
             self.cfg = declare_config(self, RecordingConfig)
             self.task = str(self.declare_parameter("task", "episode").value)

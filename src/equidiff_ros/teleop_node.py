@@ -62,12 +62,13 @@ def build_node():
     from equidiff_core.rosmsg import RclpyFactory
     from equidiff_core.teleop import (SpaceMouseSource, TeleopConfig, TeleopError, TeleopInput,
                                       TeleopIntegrator, is_fresh)
-    from equidiff_ros.common import (RELIABLE_QOS, SENSOR_QOS, TOPIC_COMMAND_CHUNK, TOPIC_EE_POSE, TOPIC_JOINT_STATES,
+    from equidiff_ros.common import (wait_for_clock, RELIABLE_QOS, SENSOR_QOS, TOPIC_COMMAND_CHUNK, TOPIC_EE_POSE, TOPIC_JOINT_STATES,
                                      TOPIC_JOY, declare_lab_config, now_ns)
 
     class TeleopNode(Node):
         def __init__(self):
             super().__init__("teleop_node")
+            wait_for_clock(self)  # simulated time (the twin): nothing is timed before /clock
             self.lab = declare_lab_config(self)
             self.cfg = declare_config(self, TeleopConfig)
             self.resync_after_s = float(self.declare_parameter("resync_after_s", 1.0).value)

@@ -23,7 +23,7 @@ from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
 
 from equidiff_core.config import LabConfig
-from equidiff_ros.common import (RELIABLE_QOS, SENSOR_QOS, TOPIC_COMMAND_CHUNK, TOPIC_DIAGNOSTICS,
+from equidiff_ros.common import (wait_for_clock, RELIABLE_QOS, SENSOR_QOS, TOPIC_COMMAND_CHUNK, TOPIC_DIAGNOSTICS,
                                  TOPIC_EE_POSE, TOPIC_EXECUTED_TARGET, TOPIC_JOINT_STATES, TOPIC_VOXELS, VOXEL_QOS,
                                  now_ns)
 
@@ -31,6 +31,7 @@ from equidiff_ros.common import (RELIABLE_QOS, SENSOR_QOS, TOPIC_COMMAND_CHUNK, 
 class VizNode(Node):
     def __init__(self, logger: Any, lab: LabConfig, clouds: bool = False, status_period_s: float = 10.0):
         super().__init__("equidiff_viz")
+        wait_for_clock(self)  # simulated time (the twin): nothing is timed before /clock
         from diagnostic_msgs.msg import DiagnosticArray
         from geometry_msgs.msg import PoseStamped
         from sensor_msgs.msg import JointState, PointCloud2

@@ -4,10 +4,15 @@ Wiring:
   /cameras/<name>/points (PointCloud2, sensor-data QoS), one subscription per camera
       -> ``pointcloud.msg_to_cloud`` (malformed: dropped with a throttled warning)
       -> ``sync.ApproximateTimeMatcher`` (one queue per camera)
-  timer at ``observation_hz`` -> stale camera? say which, publish nothing
-      -> newest matched set within ``slop_s`` -> ``voxels.Voxelizer`` (extrinsics from lab.yaml)
-      -> ``pointcloud.grid_to_voxel_msg`` -> /voxels (stamp = newest capture stamp of the set)
+  each cloud: a new complete set within ``slop_s`` (at most ``observation_hz``)?
+      -> ``voxels.Voxelizer`` (extrinsics from lab.yaml) -> ``pointcloud.grid_to_voxel_msg``
+      -> /voxels (stamp = newest capture stamp of the set)
+  timer at ``observation_hz`` -> stale camera? say which (the stale camera has no set to add)
   timer at 1 Hz -> /diagnostics (``voxel_node``: voxelize_ms, per-camera age_ms, drops)
+
+A set is fused the moment its last cloud arrives, not on a timer of our own: a timer's phase
+added up to a period of latency, and on the twin's simulated time (which pauses until the
+policy has answered this very observation) a grid waiting for a timer tick never came.
 
 Parameters: ``lab_config``; ``observation_hz`` (default: lab.yaml); ``slop_s`` (max stamp
 spread of a matched set, 0.1); ``stale_after_s`` (a camera whose newest cloud is older than
@@ -41,12 +46,13 @@ def build_node():
     from equidiff_core.rosmsg import RclpyFactory
     from equidiff_core.sync import ApproximateTimeMatcher
     from equidiff_core.voxels import Voxelizer, VoxelizerConfig
-    from equidiff_ros.common import (RELIABLE_QOS, SENSOR_QOS, TOPIC_DIAGNOSTICS, TOPIC_VOXELS, VOXEL_QOS,
+    from equidiff_ros.common import (wait_for_clock, RELIABLE_QOS, SENSOR_QOS, TOPIC_DIAGNOSTICS, TOPIC_VOXELS, VOXEL_QOS,
                                      declare_lab_config, now_ns)
 
     class VoxelNode(Node):
         def __init__(self):
             super().__init__(NODE_NAME)
+            wait_for_clock(self)  # simulated time (the twin): nothing is timed before /clock
             self.lab = declare_lab_config(self)
             param = lambda name, default: self.declare_parameter(name, default).value  # noqa: E731
             hz = param("observation_hz", self.lab.observation_hz)
@@ -80,6 +86,8 @@ def build_node():
             self.skipped_stale = 0
             self.voxelize_ms = float("nan")
             self.state = "waiting for clouds"
+            self.period_ns = int(1e9 / hz)
+            self._last_stamp: int | None = None
             self.create_timer(1.0 / hz, self._on_tick)
             self.create_timer(1.0, self._publish_diagnostics)
             self.get_logger().info(f"fusing {[c.topic for c in self.cameras]} into {TOPIC_VOXELS} at {hz} Hz")
@@ -100,8 +108,10 @@ def build_node():
                     self.get_logger().warning(f"dropped a cloud on {cam.topic}: {err}")
                 return
             self.matcher.add(cam.name, cloud.stamp_ns, cloud)
+            self._publish_new_set()
 
-        def _on_tick(self):
+        def _stale_cameras(self) -> bool:
+            """Say which cameras are stale (and count it); True when any is."""
             now = now_ns(self)
             stale = self.matcher.stale(now, self.stale_ns)
             if stale:
@@ -112,15 +122,22 @@ def build_node():
                 self.state = f"stale: {why}"
                 self.get_logger().warning(f"not publishing {TOPIC_VOXELS}: stale camera(s) {why}",
                                           throttle_duration_sec=2.0)
-                return
+            return bool(stale)
+
+        def _on_tick(self):
+            if not self._stale_cameras() and self.matcher.peek() is None:
+                self.state = f"no cloud set within slop {self.slop_ns / 1e9:.3f} s"
+                self.get_logger().warning(f"not publishing {TOPIC_VOXELS}: the cameras' newest clouds are not "
+                                          f"within slop_s {self.slop_ns / 1e9:.3f} s of each other",
+                                          throttle_duration_sec=2.0)
+
+        def _publish_new_set(self):
             match = self.matcher.newest()
-            if match is None:
-                if self.matcher.peek() is None:
-                    self.state = f"no cloud set within slop {self.slop_ns / 1e9:.3f} s"
-                    self.get_logger().warning(f"not publishing {TOPIC_VOXELS}: the cameras' newest clouds are not "
-                                              f"within slop_s {self.slop_ns / 1e9:.3f} s of each other",
-                                              throttle_duration_sec=2.0)
-                return  # else: nothing new since the last grid
+            if match is None or self._stale_cameras():
+                return  # no new complete set yet, or a camera is stale
+            if self._last_stamp is not None and match.newest_ns - self._last_stamp < 0.75 * self.period_ns:
+                return  # cameras faster than observation_hz: this set is not due yet
+            self._last_stamp = match.newest_ns
             t0 = time.perf_counter()
             grid = self.voxelizer([match.items[n] for n in self.names])
             self.voxelize_ms = (time.perf_counter() - t0) * 1e3

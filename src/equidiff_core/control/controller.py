@@ -1,6 +1,7 @@
 """The control loop of the franka node, ROS-free: chunks in, filtered targets out to a ``Robot``.
 
-One thread ticks at ``control_hz`` to fixed deadlines: read the robot state, sample the
+One thread ticks at ``control_hz`` to fixed deadlines of its ``Clock`` (the wall clock in the
+lab, simulated time in the twin): read the robot state, sample the
 chunk scheduler at *now*, apply the watchdog and the safety filter, stream the target to the
 robot, move the gripper when its target changes. ``submit`` (called from a ROS callback)
 checks a chunk and swaps the scheduler's trajectory under a lock, so callbacks never wait for
@@ -11,9 +12,9 @@ the robot. Errors reported by the robot trigger ``recover`` with a logged reason
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import threading
-import time
 from dataclasses import dataclass
 from typing import Callable
 
@@ -22,6 +23,7 @@ import numpy as np
 from .. import geometry
 from ..chunk import ChunkError, PoseChunk
 from ..config import Workspace
+from ..clock import Clock, WallClock
 from ..robots.base import Robot, RobotError, RobotState
 from .config import ControlConfig
 from .safety import FilteredTarget, SafetyFilter, SafetyRejection, check_chunk
@@ -63,11 +65,11 @@ class Command:
 
 class Controller:
     def __init__(self, robot: Robot, workspace: Workspace, config: ControlConfig = ControlConfig(),
-                 clock: Callable[[], int] = time.time_ns, logger: logging.Logger | None = None,
+                 clock: Clock | None = None, logger: logging.Logger | None = None,
                  on_command: Callable[[Command], None] | None = None):
         self.robot = robot
         self.config = config
-        self.clock = clock
+        self.clock = clock or WallClock()
         self.log = logger or log
         self.on_command = on_command
         self.safety = SafetyFilter(workspace, config.safety)
@@ -128,7 +130,7 @@ class Controller:
 
     def _run(self) -> None:
         period_ns = int(1e9 / self.config.control_hz)
-        deadline = time.monotonic_ns()
+        deadline = self.clock.now_ns()
         while not self._stop.is_set():
             try:
                 self.tick()
@@ -136,12 +138,11 @@ class Controller:
                 self.log.error(f"control tick failed: {err!r}")
                 self._holding = True
             deadline += period_ns
-            delay = deadline - time.monotonic_ns()
-            if delay > 0:
-                time.sleep(delay / 1e9)
-            elif delay < -period_ns:
+            if self.clock.now_ns() - deadline > period_ns:
                 self.stats.overruns += 1
-                deadline = time.monotonic_ns()
+                deadline = self.clock.now_ns()
+            elif not self.clock.sleep_until(deadline, self._stop):
+                return
 
     # --- inputs ------------------------------------------------------------------------------
     @property
@@ -154,7 +155,7 @@ class Controller:
 
     def submit(self, chunk: PoseChunk) -> bool:
         """Check ``chunk`` and make it the trajectory to follow; False (and a warning) if rejected."""
-        now = self.clock()
+        now = self.clock.now_ns()
         try:
             with self._lock:
                 live = self.scheduler.live_steps(chunk, now)
@@ -193,7 +194,7 @@ class Controller:
         return Setpoint(sp.pose, sp.linear_velocity, sp.angular_velocity, float("nan"), not self._holding)
 
     def _reset_to_measured(self) -> None:
-        state = self.robot.read_state()
+        state = self._read_state()
         self._state = state
         with self._lock:
             self.scheduler.clear()
@@ -201,11 +202,15 @@ class Controller:
             self._hold_pose = None
             self._setpoint = FilteredTarget(state.ee_pose, np.zeros(3), np.zeros(3), False, False)
 
+    def _read_state(self) -> RobotState:
+        """The robot's state stamped on the controller's clock (simulated time in the twin)."""
+        return dataclasses.replace(self.robot.read_state(), stamp_ns=self.clock.now_ns())
+
     def tick(self) -> Command | None:
-        now = self.clock()
+        now = self.clock.now_ns()
         if self.stats.faulted:
             return None
-        self._state = self.robot.read_state()
+        self._state = self._read_state()
         diverged = self._divergence(now)
         if diverged:
             self._stop_diverged(now, diverged)

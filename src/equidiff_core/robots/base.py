@@ -24,7 +24,7 @@ class RobotError(RuntimeError):
 
 @dataclass(frozen=True)
 class RobotState:
-    stamp_ns: int  # when the state was read (wall clock)
+    stamp_ns: int  # when the state was read (the backend's wall clock; control.Controller re-stamps on its own)
     ee_pose: np.ndarray  # (4, 4) TCP pose in the base frame
     joint_positions: np.ndarray  # (7,) rad
     joint_velocities: np.ndarray  # (7,) rad/s

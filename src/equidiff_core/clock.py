@@ -1,0 +1,56 @@
+"""Time for code that runs in the lab (the wall clock) and in the twin (simulated time).
+
+In the twin, time is ROS 2 simulated time: twin_node publishes ``/clock`` and every node runs
+with ``use_sim_time``, so a node's clock stands still while the sim waits for the pipeline.
+Loops that tick at a rate (franka_node's control loop) must then tick in that time, not on
+the wall clock: ticking by the wall clock while the sim waits spends the CPU that the
+pipeline it waits for needs. ``Clock`` is what such a loop is given; the ROS side wraps a
+node's clock in a ``PolledClock`` (``equidiff_ros.common.node_clock``).
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from typing import Callable, Protocol
+
+
+class Clock(Protocol):
+    def now_ns(self) -> int:
+        """Nanoseconds of this clock (the wall clock's epoch, or simulated time)."""
+
+    def sleep_until(self, t_ns: int, stop: threading.Event) -> bool:
+        """Block until ``now_ns() >= t_ns``; False when ``stop`` was set first."""
+
+
+class WallClock:
+    """The system clock (a real robot's time)."""
+
+    def now_ns(self) -> int:
+        return time.time_ns()
+
+    def sleep_until(self, t_ns: int, stop: threading.Event) -> bool:
+        delay = (t_ns - time.time_ns()) / 1e9
+        return not stop.wait(delay) if delay > 0 else not stop.is_set()
+
+
+class PolledClock:
+    """A clock that advances by messages (ROS simulated time): sleeping polls it.
+
+    rclpy's ``Clock.sleep_until`` cannot be interrupted and never returns if ``/clock``
+    stops, so a node could not shut down while the sim is gone; a short wall-clock poll
+    (1 ms by default, ~1 % of a core) stays responsive to ``stop`` whatever the clock does.
+    """
+
+    def __init__(self, now_ns: Callable[[], int], poll_s: float = 0.001):
+        self._now_ns = now_ns
+        self.poll_s = poll_s
+
+    def now_ns(self) -> int:
+        return self._now_ns()
+
+    def sleep_until(self, t_ns: int, stop: threading.Event) -> bool:
+        while self._now_ns() < t_ns:
+            if stop.wait(self.poll_s):
+                return False
+        return not stop.is_set()
