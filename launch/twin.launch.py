@@ -2,6 +2,7 @@
 
     ros2 launch equidiff_ros twin.launch.py episodes:=10
     ros2 launch equidiff_ros twin.launch.py checkpoint:=/path/policy.pt host:=127.0.0.2 out:=runs/twin
+    ros2 launch equidiff_ros twin.launch.py clock:=realtime     # wall clock (machines that hold real time)
 
 Starts twin_node (franky-sim + scene on ``host``), one camera_node per camera with backend
 twin, voxel_node, policy_node (its chunks remapped to /twin/policy_chunk: the driver's gate),
@@ -9,6 +10,10 @@ franka_node (robot_ip = host, no real-time kernel) and recorder_node, then
 ``equidiff twin run --attach``, which runs the episodes against these nodes, prints the summary
 and the JSON line; when it exits, the whole launch shuts down. Use a private ROS_DOMAIN_ID
 (export ROS_DOMAIN_ID=...) as ``equidiff twin run`` does by itself.
+
+``clock:=sim`` (default): twin_node publishes /clock and steps in lockstep with the pipeline;
+every other node gets use_sim_time and the cameras take the frames the sim requests
+(docs/twin.md). ``latency_ms`` is the latency budget L.
 """
 
 from pathlib import Path
@@ -17,7 +22,7 @@ from launch import LaunchDescription
 from launch.actions import DeclareLaunchArgument, EmitEvent, ExecuteProcess, RegisterEventHandler, SetEnvironmentVariable
 from launch.event_handlers import OnProcessExit
 from launch.events import Shutdown
-from launch.substitutions import LaunchConfiguration, PathJoinSubstitution
+from launch.substitutions import LaunchConfiguration, PathJoinSubstitution, PythonExpression
 from launch_ros.actions import Node
 
 try:
@@ -35,12 +40,17 @@ def generate_launch_description():
     twin = LaunchConfiguration("twin_config")
     host = LaunchConfiguration("host")
     out = LaunchConfiguration("out")
-    common = {"lab_config": lab}
+    clock = LaunchConfiguration("clock")
+    sim = PythonExpression(["'", clock, "' == 'sim'"])
+    common = {"lab_config": lab, "use_sim_time": sim}
     nodes = [
         Node(package="equidiff_ros", executable="twin_node", output="screen",
-             parameters=[{**common, "twin_config": twin, "host": host, "seed": LaunchConfiguration("seed")}]),
+             parameters=[{"lab_config": lab, "twin_config": twin, "host": host, "seed": LaunchConfiguration("seed"),
+                          "clock": clock, "latency_s": PythonExpression([LaunchConfiguration("latency_ms"), " / 1000.0"])}]),
         *[Node(package="equidiff_ros", executable="camera_node", name=f"camera_{cam}", output="screen",
-               parameters=[{**common, "backend": "twin", "camera": cam}]) for cam in CAMERAS],
+               parameters=[{**common, "backend": "twin", "camera": cam,
+                            "backend_options": PythonExpression(["'lockstep: true' if ", sim, " else ''"])}])
+          for cam in CAMERAS],
         Node(package="equidiff_ros", executable="voxel_node", output="screen", parameters=[common]),
         Node(package="equidiff_ros", executable="franka_node", output="screen",
              parameters=[{**common, "robot_ip": host, "realtime": False}]),
@@ -54,7 +64,8 @@ def generate_launch_description():
     driver = ExecuteProcess(
         cmd=["equidiff", "twin", "run", "--attach", "--episodes", LaunchConfiguration("episodes"),
              "--seed", LaunchConfiguration("seed"), "--out", out, "--checkpoint", LaunchConfiguration("checkpoint"),
-             "--lab-config", lab, "--twin-config", twin],
+             "--lab-config", lab, "--twin-config", twin, "--clock", clock,
+             "--latency-ms", LaunchConfiguration("latency_ms")],
         output="screen")
     return LaunchDescription([
         DeclareLaunchArgument("episodes", default_value="5"),
@@ -62,6 +73,8 @@ def generate_launch_description():
         DeclareLaunchArgument("host", default_value="127.0.0.1", description="loopback address franky-sim serves on"),
         DeclareLaunchArgument("checkpoint", default_value=str(SHARE / "checkpoints" / "twin_compact" / "policy.pt")),
         DeclareLaunchArgument("device", default_value="cpu"),
+        DeclareLaunchArgument("clock", default_value="sim", description="sim (lockstep, /clock) or realtime"),
+        DeclareLaunchArgument("latency_ms", default_value="100", description="latency budget L (clock:=sim)"),
         DeclareLaunchArgument("out", default_value="runs/twin_launch"),
         DeclareLaunchArgument("lab_config", default_value=str(SHARE / "config" / "lab.yaml")),
         DeclareLaunchArgument("twin_config", default_value=str(SHARE / "config" / "twin.yaml")),

@@ -33,6 +33,18 @@ def test_summary_json_line_has_the_issue_keys_and_pools_episodes():
     assert d["episodes"] == 2 and d["success_rate"] == 0.5 and d["dropped_cycles"] == 12
     assert d["end_to_end_p95_ms"] == pytest.approx(290.0) and d["inference_p95_ms"] == pytest.approx(99.0)
     assert "success rate:      50 %" in s.human()
+    assert d["clock"] == "sim" and d["representative"] is True
+
+
+def test_a_real_time_run_whose_sim_fell_behind_is_flagged_as_not_representative():
+    eps = [EpisodeRecord(1, True, 10.0, 50, 2)]
+    slow = RunSummary(eps, sim_rate=0.52, clock="realtime", wall_s=80.0)
+    assert json.loads(slow.json_line())["representative"] is False
+    assert "NOT REPRESENTATIVE" in slow.human()
+    assert json.loads(RunSummary(eps, sim_rate=0.95, clock="realtime").json_line())["representative"] is True
+    stalled = RunSummary([EpisodeRecord(2, stalled="policy_node: no chunk")], clock="sim", latency_budget_ms=100.0)
+    d = json.loads(stalled.json_line())
+    assert d["stalled_episodes"] == 1 and d["latency_budget_ms"] == 100.0 and "stalled" in stalled.human()
 
 
 def test_node_command_and_private_env():
@@ -179,7 +191,13 @@ def test_main_job_smoke_run_end_to_end(ros_domain, tmp_path):
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:] + logs
     last = json.loads(proc.stdout.strip().splitlines()[-1])
     assert REQUIRED_KEYS <= set(last) and last["episodes"] == 1
-    assert last["chunks"] >= 1  # policy chunks went through the gate to franka_node
+    # simulated time: the policy answers every observation, each chunk takes effect at its
+    # observation + L, however slow this (shared, busy) machine is
+    assert last["clock"] == "sim" and last["latency_budget_ms"] == 100.0 and last["wall_s"] > 0
+    assert last["stalled_episodes"] == 0 and last["representative"] is True
+    assert last["dropped_cycles"] == 0, proc.stdout[-2000:]
+    assert last["chunks"] >= 35  # 8 s of episode at 5 Hz: 40 observations
+    assert last["end_to_end_p95_ms"] <= 100.0 + 200.0
     assert "untrained stand-in" in proc.stdout  # the smoke run says what it ran
     # the policy's chunks reached the robot through the gate, and the episode was recorded
     summary = proc.stdout
@@ -190,6 +208,8 @@ def test_main_job_smoke_run_end_to_end(ros_domain, tmp_path):
 
     episode = read_episode(bags[0])
     assert episode.meta.success is not None
+    franka_log = (out / "logs" / "franka_node.log").read_text()
+    assert "stale" not in franka_log, franka_log[-2000:]  # no chunk rejected as stale
     assert (out / "twin_run.rrd").is_file() or "rerun" in proc.stderr
     # every node process is gone
     assert _pids_mentioning(str(out)) == []

@@ -40,18 +40,19 @@ def build_node():
     import yaml
     from rclpy.node import Node
 
-    from equidiff_core.cameras import CameraError, extrinsics_tf_message, limit_depth, make_camera
+    from equidiff_core.cameras import CameraError, NoFrameYet, extrinsics_tf_message, limit_depth, make_camera
     from equidiff_core.cameras.replay import ReplayFinished
     from equidiff_core.config import ConfigError
     from equidiff_core.control import messages as cm
     from equidiff_core.pointcloud import cloud_to_msg
     from equidiff_core.rosmsg import RclpyFactory
     from equidiff_core.sync import PublishPacer
-    from equidiff_ros.common import LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS, TOPIC_DIAGNOSTICS, declare_lab_config, now_ns
+    from equidiff_ros.common import wait_for_clock, LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS, TOPIC_DIAGNOSTICS, declare_lab_config, now_ns
 
     class CameraNode(Node):
         def __init__(self):
             super().__init__(NODE_NAME)
+            wait_for_clock(self)  # simulated time (the twin): nothing is timed before /clock
             self.lab = declare_lab_config(self)
             name = self.declare_parameter("camera", "").value
             self.backend = self.declare_parameter("backend", "realsense").value
@@ -77,12 +78,16 @@ def build_node():
                 # the twin renders when read: this node decides when (on the shared clock grid),
                 # unless the user asked for the camera's own pacing
                 options = {"paced": False, **options}
-            self.on_demand = self.backend == "twin" and not options.get("paced", False)
+            # a lockstep twin camera is clocked by the sim itself (simulated time): no wall-clock pacing
+            self.clocked_by_source = self.backend == "twin" and bool(options.get("lockstep", False))
+            self.on_demand = self.backend == "twin" and not options.get("paced", False) and not self.clocked_by_source
             # build and connect every camera first: a missing device fails the node at once
             self.cameras = []
             try:
                 for cfg in self.configs:
                     extra = {"pace_hz": cfg.publish_hz} if self.backend == "realsense" else {}
+                    if self.clocked_by_source:
+                        extra = {"slot": [c.name for c in self.lab.cameras].index(cfg.name)}
                     camera = make_camera(self.backend, cfg, **{**extra, **options})
                     camera.connect()
                     self.cameras.append(camera)
@@ -127,12 +132,14 @@ def build_node():
                 except ReplayFinished as err:
                     log.info(str(err))
                     return
+                except NoFrameYet:
+                    continue  # the twin's clock is paused (it waits for the policy): nothing is wrong
                 except CameraError as err:
                     stats["read_errors"] += 1
                     log.warning(f"{cfg.name}: {err}", throttle_duration_sec=2.0)
                     self._stop.wait(0.05)
                     continue
-                if not pacer.due(time.time()):
+                if not self.clocked_by_source and not pacer.due(time.time()):
                     continue  # the device runs faster than publish_hz: skip this frame
                 frame = limit_depth(frame, cfg.min_depth, cfg.max_depth)
                 if len(frame.points) == 0:

@@ -1,20 +1,31 @@
-"""twin_node: the digital twin's robot. franky-sim (MuJoCo FR3) + the block-in-bowl scene, in real time.
+"""twin_node: the digital twin's robot and its clock. franky-sim (MuJoCo FR3) + the block-in-bowl scene.
 
 Wiring:
   ``twin.sim.TwinSim``: franky-sim's libfranka server on ``host`` (franka_node connects to it
-      with ``robot_ip:=<host>``, exactly as to a real FR3), stepped at 1 kHz to fixed deadlines;
-      the MuJoCo state goes to shared memory at ``sim.state_hz`` for the twin cameras
-      (camera_node with backend ``twin``, same ROS_DOMAIN_ID -> same shared-memory name)
+      with ``robot_ip:=<host>``, exactly as to a real FR3), stepped in 1 ms ticks; the MuJoCo
+      state goes to shared memory for the twin cameras (camera_node with backend ``twin``, same
+      ROS_DOMAIN_ID -> same shared-memory name)
+  clock ``sim`` (default): the sim owns time and steps in lockstep with the pipeline
+      (``twin.lockstep``: camera frames taken at their instants, a policy chunk in place by its
+      observation's time + ``latency_s`` while an episode awaits the policy);
+      /clock (rosgraph_msgs/Clock) <- sim time every 5 ms of it; every other twin node runs
+      with use_sim_time
+  clock ``realtime``: 1 kHz to fixed wall-clock deadlines; no /clock
   /twin/reset (std_msgs/Int64: seed)      -> new object poses drawn from that seed
+  /twin/await_policy (std_msgs/Bool, latched) -> whether frames are owed a policy chunk (sim clock)
+  /franka/command_chunk, /voxels          -> stamps only: what arrived (the lockstep, stall reports)
   /twin/scene (std_msgs/String, latched)  <- JSON {seed, block_xy, block_yaw, bowl_xy, bowl_yaw, host, shm}
-  /twin/state (std_msgs/String, 10 Hz)    <- JSON {seed, sim_time, success, details, objects, steps_per_s, overruns, missed_commands}
+  /twin/state (std_msgs/String, 10 Hz wall) <- JSON {seed, sim_time, success, details, objects, steps_per_s,
+                                             overruns, missed_commands, clock, stalls, last_stall, wait_s}
 
 The robot is never teleported: a reset moves the objects only; whoever resets commands the arm
 home first (``equidiff twin run`` does), so the franky client's controller is never surprised.
 
 Parameters: ``twin_config`` (twin.yaml), ``lab_config``, ``host`` (loopback address to serve on;
 "auto" picks a free one, "" = twin.yaml's), ``seed`` (first episode), ``shm_name`` ("" = from
-ROS_DOMAIN_ID).
+ROS_DOMAIN_ID), ``clock`` (sim | realtime), ``latency_s`` (the latency budget L, 0.1),
+``stall_timeout_s`` (wall seconds a lockstep wait may last, 30), ``max_speed`` (sim seconds per
+wall second at most, 1.0; 0 = unbounded).
 """
 
 from __future__ import annotations
@@ -31,19 +42,30 @@ NODE_NAME = "twin_node"
 TOPIC_RESET = "/twin/reset"
 TOPIC_SCENE = "/twin/scene"
 TOPIC_STATE = "/twin/state"
+TOPIC_AWAIT_POLICY = "/twin/await_policy"
+CLOCKS = ("sim", "realtime")
 
 
 def build_node():
     import json
     from pathlib import Path
 
+    from equidiff_core.rosmsg import stamp_to_ns
+
     from rclpy.node import Node
 
     from equidiff_core.config import default_config_dir
     from equidiff_core.twin.config import load_twin_config
+    from equidiff_core.twin.lockstep import LockstepConfig
     from equidiff_core.twin.sim import TwinSim
-    from equidiff_ros.common import LATCHED_QOS, RELIABLE_QOS, declare_lab_config
-    from std_msgs.msg import Int64, String
+    from equidiff_ros.common import (LATCHED_QOS, RELIABLE_QOS, TOPIC_COMMAND_CHUNK, TOPIC_VOXELS, VOXEL_QOS,
+                                     declare_lab_config)
+    from equidiff_ros.runner import declare_number
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    from rosgraph_msgs.msg import Clock
+    from sensor_msgs.msg import PointCloud2
+    from std_msgs.msg import Bool, Int64, String
+    from trajectory_msgs.msg import MultiDOFJointTrajectory
 
     class TwinNode(Node):
         def __init__(self):
@@ -53,16 +75,50 @@ def build_node():
             host = self.declare_parameter("host", "").value
             seed = int(self.declare_parameter("seed", 0).value)
             shm = self.declare_parameter("shm_name", "").value or None
+            clock = self.declare_parameter("clock", "sim").value
+            if clock not in CLOCKS:
+                raise ValueError(f"clock must be one of {CLOCKS}, got {clock!r}")
             self.cfg = load_twin_config(Path(cfg_path))
-            self.twin = TwinSim(self.cfg, host=host or None, shm_name=shm)
-            self.twin.start(seed)
+            lockstep = None
+            if clock == "sim":
+                periods = {round(1000 / c.publish_hz) for c in self.lab.cameras}
+                if len(periods) != 1:
+                    raise ValueError(f"on simulated time every camera must publish at the same rate; lab.yaml has "
+                                     f"{sorted(c.publish_hz for c in self.lab.cameras)} Hz")
+                lockstep = LockstepConfig(
+                    frame_period_ticks=periods.pop(),
+                    latency_ticks=round(1000 * self.declare_parameter("latency_s", 0.1).value),
+                    stall_timeout_s=declare_number(self, "stall_timeout_s", 30.0),
+                    max_speed=float(self.declare_parameter("max_speed", 1.0).value))
+                # best effort like rclpy's own /clock subscription; a lost message is repeated while the sim waits
+                self.pub_clock = self.create_publisher(Clock, "/clock", QoSProfile(
+                    depth=1, reliability=ReliabilityPolicy.BEST_EFFORT))
+            self.twin = TwinSim(self.cfg, host=host or None, shm_name=shm, lockstep=lockstep,
+                                on_clock=self.publish_clock, camera_names=tuple(c.name for c in self.lab.cameras))
             self.pub_scene = self.create_publisher(String, TOPIC_SCENE, LATCHED_QOS)
             self.pub_state = self.create_publisher(String, TOPIC_STATE, RELIABLE_QOS)
             self.create_subscription(Int64, TOPIC_RESET, self.on_reset, RELIABLE_QOS)
+            if lockstep is not None:
+                ls = self.twin.lockstep
+                self.create_subscription(Bool, TOPIC_AWAIT_POLICY, lambda m: ls.set_awaiting(m.data), LATCHED_QOS)
+                self.create_subscription(MultiDOFJointTrajectory, TOPIC_COMMAND_CHUNK,
+                                         lambda m: ls.on_chunk(stamp_to_ns(m.header.stamp)), RELIABLE_QOS)
+                self.create_subscription(PointCloud2, TOPIC_VOXELS,
+                                         lambda m: ls.on_voxels(stamp_to_ns(m.header.stamp)), VOXEL_QOS)
+            self.twin.start(seed)
             self.create_timer(1.0 / self.cfg.sim.status_hz, self.publish_state)
             self.publish_scene()
-            self.get_logger().info(f"franky-sim serving on {self.twin.host} (robot_ip:={self.twin.host}); "
-                                   f"state in shared memory {self.twin.shm_name!r}; seed {seed}")
+            self.get_logger().info(
+                f"franky-sim serving on {self.twin.host} (robot_ip:={self.twin.host}); state in shared memory "
+                f"{self.twin.shm_name!r}; seed {seed}; " + (
+                    "real time" if lockstep is None else
+                    f"simulated time on /clock, latency budget {lockstep.latency_ticks} ms, "
+                    f"at most {lockstep.max_speed or 'unbounded'}x real time"))
+
+        def publish_clock(self, t_ns: int) -> None:
+            msg = Clock()
+            msg.clock.sec, msg.clock.nanosec = divmod(int(t_ns), 1_000_000_000)
+            self.pub_clock.publish(msg)
 
         def on_reset(self, msg) -> None:
             poses = self.twin.reset(int(msg.data))
@@ -87,7 +143,7 @@ def main(args=None) -> int:
         from equidiff_core.config import ConfigError
         from equidiff_core.twin.scene import SceneError
 
-        return (ConfigError, SceneError, OSError, RuntimeError)  # OSError: the libfranka port is taken
+        return (ConfigError, SceneError, OSError, RuntimeError, ValueError)  # OSError: the libfranka port is taken
 
     return run_node(NODE_NAME, USAGE, build_node, startup_errors, args)
 

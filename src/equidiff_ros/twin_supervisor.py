@@ -5,7 +5,11 @@ Used by ``equidiff twin run`` and ``equidiff twin collect`` (not a standalone ex
 Wiring:
   /twin/policy_chunk (policy_node's /franka/command_chunk, remapped) -> forwarded to
       /franka/command_chunk only while an episode is running (the "gate"), so the policy stays
-      loaded and warm between episodes while the arm is homed and the scene reset
+      loaded and warm between episodes while the arm is homed and the scene reset; on simulated
+      time each chunk is held until its observation's stamp + L (the latency budget), so it
+      takes effect when it would on a lab machine with that latency
+  /clock -> (simulated time) releases held chunks; the node's own clock follows it
+  /twin/await_policy <- true while the gate is open: twin_node then waits for each frame's chunk
   /franka/command_chunk <- one-point targets at 20 Hz, stamped now, reached 50 ms later: the
       same messages teleop_node publishes (homing and the scripted expert)
   /twin/reset <- seed; /twin/scene, /twin/state -> episode set-up and success
@@ -34,15 +38,22 @@ class SupervisorError(RuntimeError):
 
 
 class Supervisor:
-    def __init__(self, base_frame: str = "fr3_link0", command_lead_s: float = 0.05, name: str = "twin_supervisor"):
+    """The job's node. ``sim_time``: its clock is the twin's /clock and chunks are held for ``latency_s``."""
+
+    def __init__(self, base_frame: str = "fr3_link0", command_lead_s: float = 0.05, name: str = "twin_supervisor",
+                 sim_time: bool = False, latency_s: float = 0.0, stall_timeout_s: float = 30.0):
         import rclpy
         from rclpy.executors import SingleThreadedExecutor
         from rclpy.node import Node
+        from rclpy.parameter import Parameter
+        from rclpy.qos import QoSProfile, ReliabilityPolicy
+        from rosgraph_msgs.msg import Clock
+        from std_msgs.msg import Bool
 
         from diagnostic_msgs.msg import DiagnosticArray
         from equidiff_ros.common import (LATCHED_QOS, RELIABLE_QOS, TOPIC_COMMAND_CHUNK, TOPIC_DIAGNOSTICS,
                                          TOPIC_EE_POSE, TOPIC_JOINT_STATES, TOPIC_RECORDER_COMMAND)
-        from equidiff_ros.twin_node import TOPIC_RESET, TOPIC_SCENE, TOPIC_STATE
+        from equidiff_ros.twin_node import TOPIC_AWAIT_POLICY, TOPIC_RESET, TOPIC_SCENE, TOPIC_STATE
         from geometry_msgs.msg import PoseStamped
         from sensor_msgs.msg import JointState
         from std_msgs.msg import Int64, String
@@ -54,18 +65,26 @@ class Supervisor:
             # No rclpy signal handlers: Ctrl-C must raise KeyboardInterrupt in the job's main thread
             # (rclpy's would only shut the context down under it) so every node gets stopped.
             rclpy.init(signal_handler_options=SignalHandlerOptions.NO)
-        self.node = Node(name)
+        self.node = Node(name, parameter_overrides=[Parameter("use_sim_time", value=bool(sim_time))])
         self.factory = RclpyFactory()
         self.frame = base_frame
         self.lead_ns = int(command_lead_s * NS)
+        self.sim_time = bool(sim_time)
+        self.latency_ns = int(round(latency_s * NS)) if sim_time else 0
+        self.stall_timeout_s = stall_timeout_s
         self.lock = threading.Lock()
+        self._held: list = []  # policy chunks waiting for stamp + latency (simulated time)
+        self._gate_open_ns = 0
+        self._clock_seen = (0, time.monotonic())  # (sim ns, wall s when it last advanced)
         self.ee_pose: np.ndarray | None = None
         self.width: float | None = None
         self.twin_state: dict | None = None
         self.scene: dict | None = None
         self.recorder_status = ""
         self.gate_open = False
-        self.chunk_arrivals: list[float] = []  # monotonic receive times of forwarded chunks
+        self.policy_chunks_seen = 0  # gate or not: the policy is loaded and answering
+        self.chunk_arrivals: list[float] = []  # node-clock seconds at which chunks were forwarded
+        self.chunk_stamps: list[int] = []  # their observation stamps (ns)
         self.end_to_end_ms: list[float] = []
         self.inference_ms: list[float] = []
         self._String, self._Int64 = String, Int64
@@ -73,6 +92,11 @@ class Supervisor:
         self.pub_chunk = n.create_publisher(MultiDOFJointTrajectory, TOPIC_COMMAND_CHUNK, RELIABLE_QOS)
         self.pub_reset = n.create_publisher(Int64, TOPIC_RESET, RELIABLE_QOS)
         self.pub_recorder = n.create_publisher(String, TOPIC_RECORDER_COMMAND, RELIABLE_QOS)
+        self.pub_await = n.create_publisher(Bool, TOPIC_AWAIT_POLICY, LATCHED_QOS)
+        self._Bool = Bool
+        if self.sim_time:  # best effort: the publisher's QoS (a reliable subscription would not match it)
+            n.create_subscription(Clock, "/clock", self._on_clock,
+                                  QoSProfile(depth=10, reliability=ReliabilityPolicy.BEST_EFFORT))
         n.create_subscription(MultiDOFJointTrajectory, TOPIC_POLICY_CHUNK, self._on_policy_chunk, RELIABLE_QOS)
         n.create_subscription(PoseStamped, TOPIC_EE_POSE, self._on_pose, RELIABLE_QOS)
         n.create_subscription(JointState, TOPIC_JOINT_STATES, self._on_joints, RELIABLE_QOS)
@@ -109,14 +133,55 @@ class Supervisor:
         if rclpy.ok():
             rclpy.try_shutdown()
 
+    # -- time ----------------------------------------------------------------------------------------
+    def now_ns(self) -> int:
+        """The node's clock: simulated time on the sim clock, else the wall clock."""
+        return self.node.get_clock().now().nanoseconds
+
+    def time_scale(self) -> float:
+        """Arm-speed seconds per clock second: 1 on simulated time; on real time, how fast the sim runs."""
+        return 1.0 if self.sim_time else self.sim_rate()
+
+    def check_clock(self) -> None:
+        """Raise if simulated time has stood still for longer than any lockstep wait may last."""
+        if not self.sim_time:
+            return
+        now, (seen, since) = self.now_ns(), self._clock_seen
+        if now != seen:
+            self._clock_seen = (now, time.monotonic())
+        elif time.monotonic() - since > self.stall_timeout_s + 10.0:
+            raise SupervisorError(f"the sim clock has stood at t={now / NS:.3f} s for {time.monotonic() - since:.0f} s "
+                                  f"of wall time: twin_node is hung ({self.twin().get('last_stall') or 'no stall reported'})")
+
     # -- callbacks ------------------------------------------------------------------------------
     def _on_policy_chunk(self, msg):
-        now = time.time_ns()
+        stamp = stamp_to_ns(msg.header.stamp)
+        with self.lock:
+            self.policy_chunks_seen += 1
+            if not self.gate_open or stamp < self._gate_open_ns:
+                return  # between episodes, or answering an observation from before this episode
+            now = self.now_ns()
+            if stamp + self.latency_ns > now:
+                self._held.append(msg)  # released by /clock at stamp + latency
+                return
+        self._forward(msg, now)
+
+    def _on_clock(self, msg):
+        t = msg.clock.sec * NS + msg.clock.nanosec
+        with self.lock:
+            due = [m for m in self._held if stamp_to_ns(m.header.stamp) + self.latency_ns <= t]
+            self._held = [m for m in self._held if m not in due]
+        for m in due:
+            self._forward(m, t)
+
+    def _forward(self, msg, now_ns: int) -> None:
+        stamp = stamp_to_ns(msg.header.stamp)
         with self.lock:
             if not self.gate_open:
                 return
-            self.chunk_arrivals.append(time.monotonic())
-            self.end_to_end_ms.append((now - stamp_to_ns(msg.header.stamp)) / 1e6)
+            self.chunk_arrivals.append(now_ns / NS)
+            self.chunk_stamps.append(stamp)
+            self.end_to_end_ms.append((now_ns - stamp) / 1e6)
         self.pub_chunk.publish(msg)
 
     def _on_pose(self, msg):
@@ -176,12 +241,23 @@ class Supervisor:
 
     def wait_ready(self, timeout_s: float, check=None) -> None:
         self.wait_for(lambda: self.twin_state is not None, timeout_s, "twin_node's /twin/state", check)
+        if self.sim_time:
+            self.wait_for(lambda: self.now_ns() > 0, timeout_s, "twin_node's /clock (simulated time)", check)
         self.wait_for(lambda: self.ee_pose is not None and self.width is not None, timeout_s,
                       "franka_node's /franka/ee_pose and joint states", check)
 
     # -- commanding --------------------------------------------------------------------------------
+    def sim_sleep(self, seconds: float, check=None) -> None:
+        """Let ``seconds`` of the node's clock pass (simulated time when the twin runs on it)."""
+        end = self.now_ns() + int(seconds * NS)
+        while self.now_ns() < end:
+            if check is not None:
+                check()
+            self.check_clock()
+            time.sleep(0.01)
+
     def send_target(self, pose: np.ndarray, width: float) -> None:
-        now = time.time_ns()
+        now = self.now_ns()
         chunk = PoseChunk(now, np.array([now + self.lead_ns], dtype=np.int64), np.asarray(pose)[None].copy(),
                           np.array([float(width)]))
         self.pub_chunk.publish(chunk_to_msg(chunk, self.factory, self.frame))
@@ -200,14 +276,15 @@ class Supervisor:
 
         path = LinePath(self.current()[0], target, speed=speed, angular_speed=angular_speed, hz=hz, max_lag_m=max_lag_m)
         p1 = path.target[:3, 3]
-        # timeout_s is sim time: a twin at 0.45x real time moves the arm (speed-limited in its own
-        # clock) at 0.45x wall-clock speed, as run_expert's plan clock assumes too
-        rate = self.sim_rate()
-        deadline = time.monotonic() + timeout_s / rate
-        while time.monotonic() < deadline:
+        # timeout_s is the arm's time: on real time a twin at 0.45x moves the arm (speed-limited in
+        # its own clock) at 0.45x wall-clock speed, as run_expert's plan clock assumes too
+        rate = self.time_scale()
+        deadline = self.now_ns() + int(timeout_s / rate * NS)
+        while self.now_ns() < deadline:
             self.send_target(path.next(self.current()[0]), width)
             if check is not None:
                 check()
+            self.check_clock()
             if path.done:
                 now, w = self.current()
                 if np.linalg.norm(now[:3, 3] - p1) < tol_m and (abs(w - width) < 0.01 or width < 0.01):
@@ -215,7 +292,7 @@ class Supervisor:
             time.sleep(1.0 / hz)
         now, w = self.current()
         raise SupervisorError(f"the arm did not reach {np.round(p1, 3).tolist()} within {timeout_s:.0f} s of sim time "
-                              f"({timeout_s / rate:.0f} s at {rate:.2f}x real time; TCP at "
+                              f"({timeout_s / rate:.0f} s of the node's clock at {rate:.2f}x; TCP at "
                               f"{np.round(now[:3, 3], 3).tolist()}, {100 * path.s:.0f} % along the path "
                               f"after {path.restarts} restart(s) from the arm, "
                               f"gripper {w * 1000:.0f} mm for {width * 1000:.0f} mm)")
@@ -239,14 +316,25 @@ class Supervisor:
                              timeout_s, f"recorder status '{expect_prefix}…' after '{command}'", check)
 
     def open_gate(self) -> None:
+        """Start forwarding policy chunks answering observations from now on (and, on simulated
+        time, have twin_node wait for each frame's chunk)."""
         with self.lock:
-            self.chunk_arrivals, self.end_to_end_ms, self.inference_ms = [], [], []
+            self.chunk_arrivals, self.chunk_stamps, self.end_to_end_ms, self.inference_ms = [], [], [], []
+            self._held = []
+            self._gate_open_ns = self.now_ns()
             self.gate_open = True
+        if self.sim_time:
+            self.pub_await.publish(self._Bool(data=True))
 
-    def close_gate(self) -> tuple[list[float], list[float], list[float]]:
+    def close_gate(self) -> tuple[list[float], list[int], list[float], list[float]]:
+        """Stop forwarding; (forward times s, observation stamps ns, end-to-end ms, inference ms) of the episode."""
+        if self.sim_time:
+            self.pub_await.publish(self._Bool(data=False))
         with self.lock:
             self.gate_open = False
-            return list(self.chunk_arrivals), list(self.end_to_end_ms), list(self.inference_ms)
+            self._held = []
+            return (list(self.chunk_arrivals), list(self.chunk_stamps), list(self.end_to_end_ms),
+                    list(self.inference_ms))
 
 
 # --- bringing up the twin stack -------------------------------------------------------------------
@@ -258,12 +346,18 @@ class TwinStack:
     configured camera, voxel_node, franka_node (robot_ip = the twin's loopback address),
     recorder_node and optionally policy_node (its chunks remapped to the supervisor's gate);
     leaving the block (normally, on error, Ctrl-C or SIGTERM) stops them all.
+
+    ``realtime=False`` (the default): twin_node owns the clock (/clock), every other node runs
+    with use_sim_time, the cameras take the frames the sim requests and policy chunks take
+    effect at their observation's time + ``latency_s``. ``realtime=True``: everything on the
+    wall clock, as on a lab machine; only meaningful where the machine holds real time.
     """
 
     def __init__(self, out_dir, lab_path, twin_path, policy: str | None = None, domain_id: int | None = None,
                  task: str = "twin", device: str = "cpu", seed: int = 0, record_clouds: bool = False,
                  start_timeout_s: float = 120.0, torch_threads: int = 1, lenient: bool = False,
-                 attach: bool = False, log=print):
+                 attach: bool = False, realtime: bool = False, latency_s: float = 0.1,
+                 stall_timeout_s: float = 30.0, max_speed: float = 1.0, log=print):
         from pathlib import Path
 
         from equidiff_core.config import load_lab_config
@@ -279,6 +373,8 @@ class TwinStack:
         # lenient: accept older observations (CI machines too loaded to hold 5 Hz); never for reported numbers
         self.lenient = lenient
         self.attach = attach  # nodes started by someone else (launch file): only supervise them
+        self.realtime, self.latency_s, self.stall_timeout_s = realtime, latency_s, stall_timeout_s
+        self.max_speed = max_speed  # simulated time: at most this many sim seconds per wall second
         self.log = log
         self.group = None
         self.sup: Supervisor | None = None
@@ -291,7 +387,7 @@ class TwinStack:
 
         if self.attach:
             self.log(f"[twin] attaching to the running nodes on ROS_DOMAIN_ID={os.environ.get('ROS_DOMAIN_ID', '0')}")
-            self.sup = Supervisor(self.lab.base_frame)
+            self.sup = self._supervisor()
             try:
                 self.sup.wait_ready(self.start_timeout_s)
                 self.sup.wait_for(lambda: self.sup.recorder_status.startswith("idle"), self.start_timeout_s,
@@ -315,19 +411,27 @@ class TwinStack:
             raise
         return self
 
+    def _supervisor(self) -> Supervisor:
+        return Supervisor(self.lab.base_frame, sim_time=not self.realtime, latency_s=self.latency_s,
+                          stall_timeout_s=self.stall_timeout_s)
+
     def _start_nodes(self, node_command) -> None:
-        common = {"lab_config": str(self.lab_path)}
         g = self.group
-        self.log(f"[twin] ROS_DOMAIN_ID={self.domain_id}; franky-sim on {self.host}; logs in {g.log_dir}")
-        g.start("twin_node", node_command("twin_node", {**common, "twin_config": str(self.twin_path),
-                                                        "host": self.host, "seed": self.seed}))
-        self.sup = Supervisor(self.lab.base_frame)
+        sim = not self.realtime
+        clock = (f"simulated time (latency budget {self.latency_s * 1000:.0f} ms)" if sim else "real time")
+        self.log(f"[twin] ROS_DOMAIN_ID={self.domain_id}; franky-sim on {self.host}; {clock}; logs in {g.log_dir}")
+        g.start("twin_node", node_command("twin_node", {
+            "lab_config": str(self.lab_path), "twin_config": str(self.twin_path), "host": self.host,
+            "seed": self.seed, "clock": "sim" if sim else "realtime", "latency_s": float(self.latency_s),
+            "stall_timeout_s": float(self.stall_timeout_s), "max_speed": float(self.max_speed)}))
+        common = {"lab_config": str(self.lab_path), "use_sim_time": sim}  # twin_node owns the clock
+        self.sup = self._supervisor()
         self.sup.wait_for(lambda: self.sup.twin_state is not None, self.start_timeout_s,
                           "twin_node's /twin/state", g.check)
         for cam in self.lab.cameras:
-            g.start(f"camera_{cam.name}", node_command("camera_node", {**common, "backend": "twin",
-                                                                       "camera": cam.name}))
-        voxel = {"stale_after_s": 3.0, "slop_s": 0.15} if self.lenient else {}
+            g.start(f"camera_{cam.name}", node_command("camera_node", {
+                **common, "backend": "twin", "camera": cam.name, **({"backend_options": "'{lockstep: true}'"} if sim else {})}))
+        voxel = {"stale_after_s": 3.0, "slop_s": 0.15} if self.lenient and not sim else {}
         g.start("voxel_node", node_command("voxel_node", {**common, **voxel}))
         g.start("franka_node", node_command("franka_node", {**common, "robot_ip": self.host, "realtime": False}),
                 priority=True)
@@ -335,14 +439,20 @@ class TwinStack:
             **common, "output_dir": str(self.out_dir / "bags"), "task": self.task,
             "record_clouds": self.record_clouds}))
         if self.policy:
+            if sim:  # an observation is at most L old in sim time when its chunk is due
+                ages = {"max_observation_age_s": max(0.5, self.latency_s + 0.2)}
+            else:
+                ages = {"max_observation_age_s": 4.0, "max_state_offset_s": 0.5} if self.lenient else {}
             g.start("policy_node", node_command(
                 "policy_node", {**common, "checkpoint": str(self.policy), "device": self.device,
-                                "torch_threads": self.torch_threads,
-                                **({"max_observation_age_s": 4.0, "max_state_offset_s": 0.5} if self.lenient else {})},
+                                "torch_threads": self.torch_threads, **ages},
                 remaps={"/franka/command_chunk": TOPIC_POLICY_CHUNK}))
         self.sup.wait_ready(self.start_timeout_s, g.check)
         self.sup.wait_for(lambda: self.sup.recorder_status.startswith("idle"), self.start_timeout_s,
                           "recorder_node", g.check)
+        if self.policy:  # an episode must not owe chunks to a policy still loading its checkpoint
+            self.sup.wait_for(lambda: self.sup.policy_chunks_seen > 0, self.start_timeout_s,
+                              "policy_node's first chunk (loading and warming up the policy)", g.check)
         self.log("[twin] all nodes up")
 
     def __exit__(self, *exc) -> None:
@@ -398,12 +508,14 @@ def run_expert(stack: TwinStack, hz: float | None = None, max_lag_m: float = 0.0
     block, bowl = object_poses_from_state(sup.twin())
     start, width = sup.current()
     plan = plan_pick_place(start, width, block, bowl, cfg.scene.block_size[2], ex)
-    t_plan, last = 0.0, time.monotonic()
-    deadline = last + (timeout_s if timeout_s is not None else 30.0 + 10.0 * plan.duration)
+    t_plan, last = 0.0, sup.now_ns() / NS
+    limit = timeout_s if timeout_s is not None else 30.0 + 10.0 * plan.duration  # of the node's clock
+    deadline = last + limit / sup.time_scale()
     success_since = None
     while True:
         stack.check()
-        now = time.monotonic()
+        sup.check_clock()
+        now = sup.now_ns() / NS
         if now > deadline:
             lag_mm = 1000 * np.linalg.norm(sup.current()[0][:3, 3] - plan.target_at(t_plan)[0][:3, 3])
             raise SupervisorError(f"the scripted expert's {plan.duration:.0f} s plan did not finish in time: "
@@ -411,7 +523,7 @@ def run_expert(stack: TwinStack, hz: float | None = None, max_lag_m: float = 0.0
         dt, last = now - last, now
         pose, width = plan.target_at(t_plan)
         tcp, _ = sup.current()
-        rate = sup.sim_rate()
+        rate = sup.time_scale()
         if np.linalg.norm(tcp[:3, 3] - pose[:3, 3]) < max_lag_m:
             t_plan += dt * rate
         sup.send_target(pose, width)
@@ -424,4 +536,59 @@ def run_expert(stack: TwinStack, hz: float | None = None, max_lag_m: float = 0.0
             if t_plan >= plan.duration + extra_s:
                 return state
             t_plan += dt * rate if np.linalg.norm(tcp[:3, 3] - pose[:3, 3]) >= max_lag_m else 0.0
-        time.sleep(max(0.0, 1.0 / hz - (time.monotonic() - now)))
+        time.sleep(1.0 / hz)  # wall pacing of the stream; the plan runs on the node's clock
+
+
+def run_episode(stack, seed: int, max_duration_s: float, rate_hz: float):
+    """Home, reset, record, let the policy act; durations on the node clock (simulated time by default).
+
+    An episode in which twin_node reports a stall (a camera or the policy did not deliver within
+    its stall timeout) ends at once as ``stalled``, naming the stage; its bag is kept."""
+    from equidiff_core.twin.metrics import EpisodeRecord, count_dropped_cycles
+
+    sup, cfg = stack.sup, stack.cfg
+    rec = EpisodeRecord(seed=seed)
+    stack.home()
+    sup.reset_scene(seed, check=stack.check)
+    sup.sim_sleep(0.6, stack.check)  # let cameras and voxels show the new scene before the policy sees it
+    status = sup.recorder(f"start {stack.task}", "recording", check=stack.check)
+    rec.bag = status.split(" ", 1)[1] if " " in status else ""
+    stalls = sup.twin().get("stalls", 0)
+    sup.open_gate()
+    gate_t = sup.now_ns() / 1e9
+    try:
+        # (wait_for holds sup.lock while it asks: read the state directly, not through sup.twin())
+        sup.wait_for(lambda: sup.chunk_arrivals or (sup.twin_state or {}).get("stalls", 0) > stalls,
+                     60.0 + stack.stall_timeout_s, "the first policy chunk", stack.check)
+        start = sup.chunk_arrivals[0] if sup.chunk_arrivals else gate_t
+        success_since = None
+        while sup.now_ns() / 1e9 - start < max_duration_s:
+            stack.check()
+            sup.check_clock()
+            state = sup.twin()
+            if state.get("stalls", 0) > stalls:
+                rec.stalled = state.get("last_stall", "a stage of the pipeline")
+                break
+            if state.get("success"):
+                success_since = success_since or sup.now_ns() / 1e9
+                if sup.now_ns() / 1e9 - success_since >= cfg.success.hold_s:
+                    rec.success = True
+                    break
+            else:
+                success_since = None
+            time.sleep(0.05)
+        end = sup.now_ns() / 1e9
+    finally:
+        arrivals, stamps, e2e, inf = sup.close_gate()
+    rec.duration_s = round((success_since or end) - start, 2)
+    rec.chunks = len(arrivals)
+    if stamps:  # observation periods no chunk answered, on the cameras' grid (bins centred on its instants)
+        first = stamps[0] / 1e9 - 0.5 / rate_hz
+        rec.dropped_cycles = count_dropped_cycles([t / 1e9 for t in stamps], first, first + (end - start), rate_hz)
+    rec.end_to_end_ms, rec.inference_ms = e2e, inf
+    pose, width = sup.current()
+    sup.send_target(pose, width)  # hold where it is while the recorder closes
+    outcome = "success" if rec.success else "failure"
+    note = f" stalled: {rec.stalled}" if rec.stalled else ""
+    sup.recorder(f"stop {outcome} seed={seed}{note}", "idle", check=stack.check)
+    return rec

@@ -19,6 +19,10 @@ class CameraError(RuntimeError):
     """The camera cannot deliver frames (not found, disconnected, timed out)."""
 
 
+class NoFrameYet(CameraError):
+    """No frame is due yet: the source's clock is paused (the twin on simulated time). Not a fault."""
+
+
 @dataclass(frozen=True)
 class CloudFrame:
     points: np.ndarray  # (N, 3) float32, metres, optical frame (x right, y down, z forward)

@@ -19,6 +19,7 @@ class EpisodeRecord:
     end_to_end_ms: list[float] = field(default_factory=list)  # capture stamp -> chunk at the robot
     inference_ms: list[float] = field(default_factory=list)
     note: str = ""
+    stalled: str = ""  # the stage that did not deliver (simulated time); '' if none
 
 
 def count_dropped_cycles(arrivals_s: list[float], start_s: float, end_s: float, rate_hz: float) -> int:
@@ -44,6 +45,16 @@ class RunSummary:
     sim_rate: float | None = None  # sim steps per wall second / 1000 (1.0 = real time)
     policy: str = ""
     rrd: str = ""
+    clock: str = "sim"  # "sim" (simulated time, lockstep) or "realtime"
+    latency_budget_ms: float | None = None  # simulated time: a chunk takes effect at its observation + this
+    wall_s: float | None = None  # wall seconds of the whole job (start-up included)
+
+    MIN_REALTIME_FACTOR = 0.9
+
+    @property
+    def representative(self) -> bool:
+        """A real-time run measures the policy only if the sim kept (nearly) real time."""
+        return self.clock == "sim" or (self.sim_rate is not None and self.sim_rate >= self.MIN_REALTIME_FACTOR)
 
     def as_dict(self) -> dict:
         eps = self.episodes
@@ -63,6 +74,11 @@ class RunSummary:
             "dropped_cycles": int(sum(e.dropped_cycles for e in eps)),
             "chunks": int(sum(e.chunks for e in eps)),
             "sim_realtime_factor": None if self.sim_rate is None else round(self.sim_rate, 2),
+            "stalled_episodes": sum(bool(e.stalled) for e in eps),
+            "clock": self.clock,
+            "latency_budget_ms": self.latency_budget_ms,
+            "wall_s": None if self.wall_s is None else round(self.wall_s, 1),
+            "representative": self.representative,
             "policy": self.policy,
             "rrd": self.rrd,
         }
@@ -78,15 +94,24 @@ class RunSummary:
                  f"end to end:        p50 {d['end_to_end_p50_ms']} ms, p95 {d['end_to_end_p95_ms']} ms "
                  "(camera capture -> chunk at the robot)",
                  f"dropped cycles:    {d['dropped_cycles']} (of the 5 Hz policy clock; {d['chunks']} chunks)",
-                 f"sim speed:         {d['sim_realtime_factor']} x real time",
+                 "clock:             " + (f"simulated time, latency budget {d['latency_budget_ms']} ms"
+                                              if d["clock"] == "sim" else "real time"),
+                 f"sim speed:         {d['sim_realtime_factor']} x real time; whole job {d['wall_s']} s of wall time",
+                 f"stalled episodes:  {d['stalled_episodes']}",
                  f"rerun recording:   {d['rrd'] or '-'}"]
+        if not d["representative"]:
+            lines.append(f"NOT REPRESENTATIVE: on real time the sim ran at {d['sim_realtime_factor']}x (< "
+                         f"{self.MIN_REALTIME_FACTOR}x): this machine, not the policy, set the timing; "
+                         f"run without --realtime")
         for e in self.episodes:
-            lines.append(f"  seed {e.seed:>6}: {'success' if e.success else 'failure'} in {e.duration_s:.1f} s, "
-                         f"{e.chunks} chunks, {e.dropped_cycles} dropped {e.note}  {e.bag}")
+            outcome = "stalled" if e.stalled else "success" if e.success else "failure"
+            lines.append(f"  seed {e.seed:>6}: {outcome} in {e.duration_s:.1f} s, "
+                         f"{e.chunks} chunks, {e.dropped_cycles} dropped {e.note}{e.stalled}  {e.bag}")
         return "\n".join(lines)
 
     def json_line(self) -> str:
         d = self.as_dict()
         keys = ("episodes", "success_rate", "inference_p95_ms", "end_to_end_p95_ms", "dropped_cycles",
-                "inference_p50_ms", "end_to_end_p50_ms", "mean_episode_s", "chunks", "sim_realtime_factor")
+                "inference_p50_ms", "end_to_end_p50_ms", "mean_episode_s", "chunks", "sim_realtime_factor",
+                "stalled_episodes", "clock", "latency_budget_ms", "wall_s", "representative")
         return json.dumps({k: d[k] for k in keys})

@@ -158,6 +158,12 @@ class ProcessGroup:
             signal.signal(signal.SIGTERM, self._old_sigterm)
 
 
+def cpu_seconds(pid: int) -> float:
+    """CPU time (user + system) a live process has used so far, from /proc (Linux)."""
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")  # utime, stime
+
+
 def node_preexec(priority: bool = False):
     """``preexec_fn`` for a node process: always an ordinary time-sharing process, never a
     real-time policy inherited from whoever started it (libfranka had left a test runner's main

@@ -1,12 +1,22 @@
-"""Running the twin: franky-sim's server with the task scene in a real-time loop, or a direct sim.
+"""Running the twin: franky-sim's server with the task scene on simulated or real time, or a direct sim.
 
 ``TwinSim`` serves libfranka's protocol (franky connects to ``host`` exactly as to a real
-FR3). franky-sim's stock ``run_async`` sleeps "1 ms minus compute" and drifts 8-16 % slow
-(NOTES.md); our loop sleeps to fixed 1 ms deadlines instead and skips ahead (counting the
-overrun) when it falls more than ``max_lag_s`` behind. Each tick waits for the client's
-command like the bare server (``robots.franky.sim.step_server``), so a starved client sees
-the 1 kHz loop a real FR3 gives it; the stock tick ran on without it, and the twin's home
-move failed now and then in CI (ruckig error -101) while the bare server's never did.
+FR3). Each tick waits for the client's command like the bare server
+(``robots.franky.sim.step_server``), so a starved client sees the 1 kHz loop a real FR3
+gives it; the stock tick ran on without it, and the twin's home move failed now and then in
+CI (ruckig error -101) while the bare server's never did.
+
+Two clocks:
+
+* **Simulated time** (``lockstep`` given, the twin's default): the sim owns time, counted in
+  1 ms ticks, and reports it through ``on_clock`` (twin_node publishes it on ``/clock``). It
+  steps in lockstep with the pipeline (``twin.lockstep``): camera frames are taken at their
+  instants and a policy chunk is in place by its observation's time + L before the sim
+  passes it; while it waits it keeps libfranka's connection alive
+  (``robots.franky.sim.keep_alive``). It never runs faster than ``max_speed`` x real time.
+* **Real time**: fixed 1 ms wall-clock deadlines (franky-sim's stock ``run_async`` sleeps
+  "1 ms minus compute" and drifts 8-16 % slow); when the loop falls more than ``max_lag_s``
+  behind it skips ahead (counting the overrun) instead of sprinting.
 
 ``DirectSim`` is the same scene with no server and no clock: franky-sim's own Cartesian
 controller is driven in-process and stepped as fast as the CPU allows (tests, fast expert
@@ -18,12 +28,14 @@ from __future__ import annotations
 import math
 import threading
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from typing import Callable
 
 import numpy as np
 
-from ..robots.franky.sim import free_loopback_host, raise_priority, step_server
+from ..robots.franky.sim import free_loopback_host, keep_alive, raise_priority, step_server
 from .config import TwinConfig
+from .lockstep import NS_PER_TICK, Lockstep, LockstepConfig
 from .scene import ScenePoses, apply_scene, object_state, sample_scene, success_details
 from .shared_state import StateWriter
 
@@ -34,6 +46,7 @@ class LoopStats:
     overruns: int = 0  # times the loop fell behind and skipped ahead
     missed_commands: int = 0  # ticks that reused the client's last command (it was starved past the wait)
     started: float = 0.0
+    wait_s: dict = field(default_factory=lambda: {"cameras": 0.0, "policy": 0.0})  # lockstep waits, wall s
 
     def steps_per_s(self) -> float:
         dt = time.monotonic() - self.started
@@ -44,19 +57,25 @@ class TwinSim:
     """franky-sim + task scene + real-time loop + shared-memory state for the cameras."""
 
     def __init__(self, cfg: TwinConfig, host: str | None = None, shm_name: str | None = None,
-                 max_lag_s: float = 0.05):
+                 max_lag_s: float = 0.05, lockstep: LockstepConfig | None = None,
+                 on_clock: Callable[[int], None] | None = None, camera_names: tuple[str, ...] = ()):
         self.cfg = cfg
         self.host = host or cfg.sim.host
         if self.host == "auto":
             self.host = free_loopback_host()
         self.shm_name = shm_name
         self.max_lag_s = max_lag_s
+        self.lockstep = Lockstep(lockstep) if lockstep is not None else None
+        self.on_clock = on_clock  # called with the sim time in ns (simulated time only)
+        self.camera_names = tuple(camera_names)  # lab.yaml order = the cameras' shared-memory slots
+        self.tick = 0  # 1 ms steps since start: simulated time
         self.lock = threading.Lock()  # held while stepping; take it to read or edit sim state
         self.stats = LoopStats()
         self.poses: ScenePoses | None = None
         self._sim = self._robot = self._server = self._writer = None
         self._thread: threading.Thread | None = None
         self._running = False
+        self._frame_tick = 0
 
     # -- lifecycle ---------------------------------------------------------------------------
     def start(self, seed: int = 0) -> "TwinSim":
@@ -102,19 +121,32 @@ class TwinSim:
     def data(self):
         return self._sim.data
 
-    # -- the loop ----------------------------------------------------------------------------
+    # -- the loops ---------------------------------------------------------------------------
     def _loop(self) -> None:
-        period = 0.001
-        state_every = max(1, round(1.0 / (self.cfg.sim.state_hz * period)))
         raise_priority()  # this thread only (Linux nice is per thread): it stands in for the FR3's controller
         self.stats = LoopStats(started=time.monotonic())
+        if self.lockstep is None:
+            self._loop_realtime()
+        else:
+            self._loop_lockstep()
+
+    def _step(self, command_timeout_s: float) -> None:
+        with self.lock:
+            self.stats.missed_commands += step_server(self._server, command_timeout_s)
+            self.stats.steps += 1
+            self.tick += 1
+            if self.stats.steps % self._state_every == 0:
+                self._publish_state()
+
+    @property
+    def _state_every(self) -> int:
+        return max(1, round(1.0 / (self.cfg.sim.state_hz * 0.001)))
+
+    def _loop_realtime(self) -> None:
+        period = 0.001
         deadline = time.monotonic()
         while self._running:
-            with self.lock:
-                self.stats.missed_commands += step_server(self._server)
-                self.stats.steps += 1
-                if self.stats.steps % state_every == 0:
-                    self._publish_state()
+            self._step(0.02)
             deadline += period
             lag = time.monotonic() - deadline
             if lag < 0:
@@ -123,8 +155,81 @@ class TwinSim:
                 self.stats.overruns += 1
                 deadline = time.monotonic()
 
+    def _loop_lockstep(self) -> None:
+        ls, cfg = self.lockstep, self.lockstep.config
+        period = 0.001 / cfg.max_speed if cfg.max_speed > 0 else 0.0
+        frame, published = 0, -1
+        deadline = time.monotonic()
+        while self._running:
+            if self.tick != published and (self.tick % cfg.clock_period_ticks == 0 or self._blocker(frame)[0]):
+                self._publish_clock()  # before any wait: whoever must act at this instant sees it
+                published = self.tick
+            if self._wait_while_blocked(frame):
+                deadline = time.monotonic()
+                continue
+            # On simulated time a late client command is waited for (0.5 s, not 20 ms): the
+            # closed loop must not depend on how busy the machine is.
+            self._step(0.5)
+            if ls.is_frame_tick(self.tick):
+                with self.lock:
+                    frame = self._writer.request_frame(self.data.qpos, self.tick / 1000, self.tick * NS_PER_TICK)
+                self._frame_tick = self.tick
+                ls.frame_taken(self.tick)  # owed a chunk from now on (cameras take it before we step on)
+            if period:
+                deadline += period
+                lag = time.monotonic() - deadline
+                if lag < 0:
+                    time.sleep(-lag)
+                elif lag > self.max_lag_s:
+                    deadline = time.monotonic()
+
+    def _blocker(self, frame: int) -> tuple[str, str]:
+        """(kind, why) of what the sim waits for before its next step; ('', '') when nothing."""
+        behind = self._writer.cameras_behind(frame) if frame else []
+        if behind:
+            names = [self.camera_names[i] if i < len(self.camera_names) else f"slot {i}" for i in behind]
+            return "cameras", (f"camera_node ({', '.join(names)}): did not take the frame at "
+                               f"t={self._frame_tick / 1000:.3f} s")
+        why = self.lockstep.chunk_blocker(self.tick)
+        return ("policy", why) if why else ("", "")
+
+    def _wait_while_blocked(self, frame: int) -> bool:
+        """Wait (keeping libfranka alive) until nothing blocks the next step or the wait stalls; True if it waited."""
+        kind, why = self._blocker(frame)
+        if not kind:
+            return False
+        cfg = self.lockstep.config
+        start = last_keepalive = time.monotonic()
+        while self._running and kind:
+            now = time.monotonic()
+            if now - start > cfg.stall_timeout_s:
+                stall = f"t={self.tick / 1000:.3f} s: {why} within {cfg.stall_timeout_s:.0f} s"
+                if kind == "cameras":
+                    for slot in self._writer.cameras_behind(frame):
+                        self._writer.drop_camera(slot)
+                    self.lockstep.record_stall(stall)
+                else:
+                    self.lockstep.give_up_oldest(stall)
+                break
+            if now - last_keepalive > cfg.keepalive_s:
+                with self.lock:
+                    keep_alive(self._server)
+                self._publish_clock()  # again: /clock is best effort, and a lost one could hold up the waited-for
+                last_keepalive = now
+            time.sleep(0.0005)
+            kind_now, why = self._blocker(frame)
+            self.stats.wait_s[kind] += time.monotonic() - now
+            kind = kind_now
+        return True
+
+    def _publish_clock(self) -> None:
+        if self.on_clock is not None:
+            self.on_clock(self.tick * NS_PER_TICK)
+
     def _publish_state(self) -> None:
-        self._writer.write(self.data.qpos, float(self.data.time), time.time_ns())
+        # stamps on the clock the nodes use: simulated time, or the wall clock the cameras pace by
+        stamp = self.tick * NS_PER_TICK if self.lockstep is not None else time.time_ns()
+        self._writer.write(self.data.qpos, self.tick / 1000, stamp)
 
     # -- episode control ---------------------------------------------------------------------
     def reset(self, seed: int) -> ScenePoses:
@@ -140,11 +245,15 @@ class TwinSim:
         with self.lock:
             details = success_details(self.model, self.data, self.cfg.scene, self.cfg.success)
             objects = object_state(self.model, self.data)
-            sim_time = float(self.data.time)
-        return {"seed": self.poses.seed if self.poses else None, "sim_time": round(sim_time, 4),
+        ls = self.lockstep
+        return {"seed": self.poses.seed if self.poses else None, "sim_time": round(self.tick / 1000, 4),
                 "success": details["success"], "details": details, "objects": objects,
                 "steps_per_s": round(self.stats.steps_per_s(), 1), "overruns": self.stats.overruns,
-                "missed_commands": self.stats.missed_commands, "host": self.host}
+                "missed_commands": self.stats.missed_commands, "host": self.host,
+                "clock": "realtime" if ls is None else "sim",
+                **({} if ls is None else {"awaiting_policy": ls.awaiting, "stalls": len(ls.stalls),
+                                          "last_stall": ls.stalls[-1] if ls.stalls else "",
+                                          "wait_s": {k: round(v, 2) for k, v in self.stats.wait_s.items()}})}
 
 
 class DirectSim:

@@ -9,8 +9,14 @@ scene), three camera_nodes (backend twin), voxel_node, policy_node, franka_node 
 the twin like to a real FR3) and recorder_node. Each episode: home the arm, reset the scene to a
 new seed, record, let the policy act at 5 Hz until the block rests in the bowl or time runs out.
 Writes one bag per episode and one rerun recording; prints a summary and, last, one JSON line
-(episodes, success_rate, inference_p95_ms, end_to_end_p95_ms, dropped_cycles, ...).
-Ctrl-C or any node failure stops every process.
+(episodes, success_rate, inference_p95_ms, end_to_end_p95_ms, dropped_cycles, clock,
+latency_budget_ms, wall_s, ...). Ctrl-C or any node failure stops every process.
+
+By default the twin runs on simulated time: twin_node publishes /clock, every node runs with
+use_sim_time, and the sim waits for camera frames and for each observation's chunk, which
+takes effect at the observation's time + --latency-ms (the budget of a lab machine; 100 ms).
+The run then measures the policy, not this machine. --realtime runs on the wall clock instead
+(only where the machine holds real time: a run whose sim fell below 0.9x is flagged).
 """
 
 from __future__ import annotations
@@ -55,7 +61,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--attach", action="store_true",
                         help="run the episodes against nodes already running (launch/twin.launch.py)")
     parser.add_argument("--lenient", action="store_true",
-                        help="accept observations up to 4 s old (overloaded CI machines; default with --smoke)")
+                        help="with --realtime: accept observations up to 4 s old (overloaded machines)")
+    parser.add_argument("--clock", choices=("sim", "realtime"), default="sim",
+                        help="sim: simulated time, in lockstep with the pipeline (default); realtime: the wall clock")
+    parser.add_argument("--realtime", dest="clock", action="store_const", const="realtime",
+                        help="the same as --clock realtime (machines that hold real time)")
+    parser.add_argument("--latency-ms", type=float, default=100.0,
+                        help="simulated time: the latency budget L; a chunk takes effect at its observation + L")
+    parser.add_argument("--stall-timeout", type=float, default=30.0,
+                        help="simulated time: wall seconds the sim waits for a camera or the policy before the "
+                             "episode ends as stalled")
 
 
 def resolve_policy(args, out: Path, workspace, cfg) -> tuple[Path, str]:
@@ -74,51 +89,12 @@ def resolve_policy(args, out: Path, workspace, cfg) -> tuple[Path, str]:
     return path, STANDIN_LABEL
 
 
-def run_episode(stack, seed: int, max_duration_s: float, rate_hz: float):
-    from equidiff_core.twin.metrics import EpisodeRecord, count_dropped_cycles
-
-    sup, cfg = stack.sup, stack.cfg
-    rec = EpisodeRecord(seed=seed)
-    stack.home()
-    sup.reset_scene(seed, check=stack.check)
-    time.sleep(0.6)  # let cameras and voxels show the new scene before the policy sees it
-    status = sup.recorder(f"start {stack.task}", "recording", check=stack.check)
-    rec.bag = status.split(" ", 1)[1] if " " in status else ""
-    sup.open_gate()
-    gate_t = time.monotonic()
-    try:
-        sup.wait_for(lambda: sup.chunk_arrivals, 60.0, "the first policy chunk", stack.check)
-        start = sup.chunk_arrivals[0]
-        success_since = None
-        while time.monotonic() - start < max_duration_s:
-            stack.check()
-            if sup.twin().get("success"):
-                success_since = success_since or time.monotonic()
-                if time.monotonic() - success_since >= cfg.success.hold_s:
-                    rec.success = True
-                    break
-            else:
-                success_since = None
-            time.sleep(0.05)
-        end = time.monotonic()
-    finally:
-        arrivals, e2e, inf = sup.close_gate()
-    rec.duration_s = round((success_since or end) - start, 2) if arrivals else round(time.monotonic() - gate_t, 2)
-    rec.chunks = len(arrivals)
-    rec.dropped_cycles = count_dropped_cycles(arrivals, start, end, rate_hz)
-    rec.end_to_end_ms, rec.inference_ms = e2e, inf
-    pose, width = sup.current()
-    sup.send_target(pose, width)  # hold where it is while the recorder closes
-    sup.recorder(f"stop {'success' if rec.success else 'failure'} seed={seed}", "idle", check=stack.check)
-    return rec
-
-
 def run(args: argparse.Namespace) -> int:
     from equidiff_core.config import ConfigError
     from equidiff_core.twin.config import load_twin_job_configs
     from equidiff_core.twin.metrics import RunSummary
     from equidiff_core.twin.processes import NodeProcessError
-    from equidiff_ros.twin_supervisor import SupervisorError, TwinStack
+    from equidiff_ros.twin_supervisor import SupervisorError, TwinStack, run_episode
 
     try:
         configs = load_twin_job_configs(args.lab_config, args.twin_config)
@@ -135,22 +111,30 @@ def run(args: argparse.Namespace) -> int:
     except FileNotFoundError as err:
         print(f"equidiff twin run: {err}", file=sys.stderr)
         return 2
-    print(f"[twin] policy: {policy_label}; {episodes} episode(s) of at most {max_duration:.0f} s; output {out}")
+    clock = args.clock
+    args.realtime = clock == "realtime"
+    print(f"[twin] policy: {policy_label}; {episodes} episode(s) of at most {max_duration:.0f} s; output {out}; "
+          + ("real time" if args.realtime else f"simulated time, latency budget {args.latency_ms:.0f} ms"))
     records = []
     sim_rates = []
+    wall_start = time.monotonic()
     try:
         with TwinStack(out, lab_path, twin_path, policy=str(policy_path), domain_id=args.domain, task="twin_eval",
                        device=args.device, seed=args.seed, record_clouds=args.record_clouds,
-                       lenient=args.lenient or args.smoke, attach=args.attach) as stack:
+                       lenient=args.lenient or (args.smoke and args.realtime), attach=args.attach,
+                       realtime=args.realtime, latency_s=args.latency_ms / 1000.0,
+                       stall_timeout_s=args.stall_timeout) as stack:
             for i in range(episodes):
                 missed = stack.sup.twin().get("missed_commands", 0)
                 rec = run_episode(stack, args.seed + i, max_duration, lab.observation_hz)
                 state = stack.sup.twin()
                 sim_rates.append(state.get("steps_per_s", 0.0) / 1000.0)
                 records.append(rec)
+                outcome = "stalled" if rec.stalled else "success" if rec.success else "failure"
                 print(f"[twin] episode {i + 1}/{episodes} seed {rec.seed}: "
-                      f"{'success' if rec.success else 'failure'} in {rec.duration_s:.1f} s, {rec.chunks} chunks, "
-                      f"{state.get('missed_commands', 0) - missed} ms of stale robot commands")
+                      f"{outcome} in {rec.duration_s:.1f} s, {rec.chunks} chunks, "
+                      f"{state.get('missed_commands', 0) - missed} ms of stale robot commands"
+                      + (f" ({rec.stalled})" if rec.stalled else ""))
     except KeyboardInterrupt:
         print("[twin] interrupted: all nodes stopped", file=sys.stderr)
         if not records:
@@ -159,7 +143,9 @@ def run(args: argparse.Namespace) -> int:
         print(f"equidiff twin run: {err}", file=sys.stderr)
         return 1
     summary = RunSummary(records, sim_rate=sum(sim_rates) / len(sim_rates) if sim_rates else None,
-                         policy=policy_label)
+                         policy=policy_label, clock=clock,
+                         latency_budget_ms=None if args.realtime else args.latency_ms,
+                         wall_s=time.monotonic() - wall_start)
     if not args.no_rrd and records:
         summary.rrd = write_rrd([r.bag for r in records if r.bag], out / "twin_run.rrd", lab)
     print(summary.human())

@@ -11,8 +11,12 @@ Rendering settings are the cheap ones (no multisampling, shadows, reflections, s
 424x240 three cameras cost ~110-135 ms a set on this CPU, 4x less than the defaults.
 An EGL context belongs to one thread, so each camera renders in a worker thread of its own
 (created on connect, closed on disconnect) whichever threads call ``read``; set
-``MUJOCO_GL=egl`` on headless machines (osmesa does not work). Paced reads fall on the
-multiples of 1/publish_hz of the wall clock, so separate camera processes sample the same
+``MUJOCO_GL=egl`` on headless machines (osmesa does not work).
+
+When a frame is taken: on the twin's simulated time (``lockstep``) the sim requests each frame
+at its instant and waits until every camera has taken it (``twin.shared_state``), so all
+cameras show exactly that instant and are stamped with it. On real time, paced reads fall on
+the multiples of 1/publish_hz of the wall clock, so separate camera processes sample the same
 sim snapshot, like hardware-synchronised cameras, and the voxel node's time matching succeeds.
 """
 
@@ -28,7 +32,7 @@ from typing import Callable
 import numpy as np
 
 from ...config import CameraConfig
-from ..base import Camera, CameraError, CloudFrame
+from ..base import Camera, CameraError, CloudFrame, NoFrameYet
 
 os.environ.setdefault("MUJOCO_GL", "egl")
 
@@ -93,6 +97,8 @@ class TwinCameraOptions:
     shm_name: str | None = None  # twin state block (default: from ROS_DOMAIN_ID)
     twin_config: object = None  # path of twin.yaml, or a TwinConfig (in-process users)
     paced: bool = True  # read() waits for the next 1/publish_hz wall-clock tick, as a camera waits for frames
+    lockstep: bool = False  # simulated time: read() takes the frames the sim requests (overrides paced)
+    slot: int = 0  # lockstep: this camera's registration slot in the shared state (its index in lab.yaml)
 
 
 class TwinCamera(Camera):
@@ -123,6 +129,7 @@ class TwinCamera(Camera):
         self._worker: ThreadPoolExecutor | None = None
         self._rng = np.random.default_rng([render.seed, sum(map(ord, camera.name))])
         self._last_tick = -1
+        self._last_frame = 0
         self._connected = False
 
     # -- Camera interface --------------------------------------------------------------------
@@ -148,6 +155,12 @@ class TwinCamera(Camera):
                 raise CameraError(f"twin camera {self.camera.name}: {err}") from err
             reader = self._reader
             self._state_source = lambda t: reader.read() if t is None else reader.read_nearest(t)
+            if self.options.lockstep:
+                try:
+                    reader.register(self.options.slot)
+                except SharedStateError as err:
+                    raise CameraError(f"twin camera {self.camera.name}: {err}") from err
+                self._last_frame = 0
         self._worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix=f"render-{self.camera.name}")
         self._connected = True
 
@@ -169,11 +182,14 @@ class TwinCamera(Camera):
     def read(self, timeout_s: float = 1.0) -> CloudFrame:
         if not self._connected:
             raise CameraError(f"twin camera {self.camera.name} is not connected")
-        trigger = self._wait_for_tick(timeout_s) if self.options.paced else None
-        try:
-            qpos, _, stamp_ns = self._state_source(trigger)
-        except Exception as err:
-            raise CameraError(f"twin camera {self.camera.name}: no sim state: {err}") from err
+        if self.options.lockstep:
+            qpos, stamp_ns = self._take_frame(timeout_s)
+        else:
+            trigger = self._wait_for_tick(timeout_s) if self.options.paced else None
+            try:
+                qpos, _, stamp_ns = self._state_source(trigger)
+            except Exception as err:
+                raise CameraError(f"twin camera {self.camera.name}: no sim state: {err}") from err
         if not np.all(np.isfinite(qpos)):
             raise CameraError(f"twin camera {self.camera.name}: sim state contains NaN")
         rgb, depth = self.render(qpos)
@@ -182,6 +198,18 @@ class TwinCamera(Camera):
             raise CameraError(f"twin camera {self.camera.name}: no valid depth in range "
                               f"[{self.camera.min_depth}, {self.camera.max_depth}] m")
         return CloudFrame(points, colors, int(stamp_ns))
+
+    def _take_frame(self, timeout_s: float) -> tuple[np.ndarray, int]:
+        """The next frame the sim requests (simulated time): its state and its instant."""
+        from ...twin.shared_state import SharedStateError
+
+        if self._reader is None:
+            raise CameraError(f"twin camera {self.camera.name}: lockstep needs the twin's shared state")
+        try:
+            self._last_frame, qpos, _, stamp_ns = self._reader.take_frame(self._last_frame, timeout_s)
+        except SharedStateError as err:
+            raise NoFrameYet(f"twin camera {self.camera.name}: {err}") from err
+        return qpos, stamp_ns
 
     def _wait_for_tick(self, timeout_s: float) -> int:
         """Sleep to the next multiple of the publish period on the wall clock (shared by all

@@ -54,14 +54,14 @@ def serve(host: str, realtime: bool = True) -> None:
                     deadline = time.perf_counter()
 
 
-def step_server(server) -> int:
+def step_server(server, command_timeout_s: float = 0.02) -> int:
     """One 1 ms tick of a franky-sim ``SimulationServer``: the clients' commands, physics, state.
 
     Unlike the stock ``run_once``, each robot's tick waits for the command answering the last
     state (``await_command``), so the client's 1 kHz loop stays a 1 kHz loop on a loaded machine.
     Returns how many robots' commands did not arrive in time (their last command was reused).
     """
-    missed = sum(not await_command(rs) for rs in server.robot_servers)
+    missed = sum(not await_command(rs, command_timeout_s) for rs in server.robot_servers)
     server.sim.step()
     for rs in server.robot_servers:
         rs.send_state()
@@ -93,6 +93,29 @@ def await_command(robot_server, timeout_s: float = 0.02) -> bool:
         time.sleep(0.0001)
         robot_server.process_commands()
     return True
+
+
+def keep_alive(server) -> None:
+    """Keep libfranka's connections alive while the sim pauses (no physics step, no new state).
+
+    libfranka gives up 1 s after its last robot state (UDP receive timeout) and the connection
+    is then dead for good: only a new ``franky.Robot`` recovers. Sending a *new* state without
+    stepping physics is worse: libfranka's time (message id x 1 ms) would run ahead of the
+    physics and a tracker timed by it swung the arm 394 mm in a probe. So we re-send the
+    current state under the message id already sent: libfranka drops it as not newer, but its
+    receive timeout restarts. The gripper's state goes out again too (gripper reads do not
+    check ids and time out as well). Call it every 0.1-0.9 s of a pause. franky-sim keeps the
+    id in a private, name-mangled field; without it (another layout) nothing is sent.
+    """
+    from franky_sim.franka_server import FrankaServer
+
+    for rs in server.robot_servers:
+        for channel in (rs, getattr(rs, "_FrankaRobotServer__gripper_server", None)):
+            sent = getattr(channel, "_FrankaServer__message_id", 0)
+            if channel is None or sent < 1 or not channel.udp_connected:
+                continue  # nothing sent yet, no client, or an unknown layout: nothing to repeat
+            channel._FrankaServer__message_id = sent - 1  # noqa: SLF001 - send_state adds it back
+            FrankaServer.send_state(channel)  # this channel only (the robot's send_state adds the gripper's)
 
 
 def _answers_last_state(robot_server) -> bool:
