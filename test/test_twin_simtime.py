@@ -8,6 +8,7 @@ import subprocess
 import sys
 import threading
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -171,3 +172,35 @@ def test_polled_clock_sleeps_until_its_time_and_stops_on_request():
     assert clock.sleep_until(10, stop) is True and clock.now_ns() == 10
     threading.Timer(0.05, stop.set).start()
     assert clock.sleep_until(20, stop) is False  # a clock that stopped never traps the caller
+
+
+@pytest.mark.slow
+@pytest.mark.ros
+@pytest.mark.sim
+def test_a_hung_policy_ends_its_episode_as_stalled_naming_it_and_the_job_goes_on(ros_domain, tmp_path):
+    """A policy_node that stops answering (SIGSTOP: alive, silent) must not hang the sim: after
+    the stall timeout the episode ends as stalled, naming policy_node, its bag is kept, and the
+    next episode runs once the policy answers again."""
+    from equidiff_core.bags import read_episode
+    from equidiff_core.config import default_config_dir, load_lab_config
+    from equidiff_core.twin.config import TwinConfig
+    from equidiff_core.twin.standin import make_standin_policy
+    from equidiff_ros.twin_supervisor import TwinStack, run_episode
+
+    cfg_dir = default_config_dir()
+    lab = load_lab_config(cfg_dir / "lab.yaml")
+    policy = make_standin_policy(tmp_path / "standin.pt", lab.workspace, preset="tiny", cfg=TwinConfig())
+    with TwinStack(tmp_path / "run", cfg_dir / "lab.yaml", cfg_dir / "twin.yaml", policy=str(policy),
+                   domain_id=221 + (ros_domain + 5) % 12, stall_timeout_s=5.0, log=lambda s: None) as stack:
+        pid = next(n.popen.pid for n in stack.group.nodes if n.name == "policy_node")
+        os.kill(pid, signal.SIGSTOP)
+        try:
+            stalled = run_episode(stack, 1, 10.0, lab.observation_hz)
+        finally:
+            os.kill(pid, signal.SIGCONT)
+        assert stalled.stalled.startswith("t=") and "policy_node: no chunk for the observation" in stalled.stalled
+        assert not stalled.success
+        episode = read_episode(Path(stalled.bag))
+        assert episode.meta.success is False and "stalled" in (episode.meta.notes or "")
+        after = run_episode(stack, 2, 3.0, lab.observation_hz)
+        assert not after.stalled and after.chunks >= 10 and after.dropped_cycles == 0
