@@ -47,7 +47,8 @@ def build_node():
     from equidiff_core.pointcloud import cloud_to_msg
     from equidiff_core.rosmsg import RclpyFactory
     from equidiff_core.sync import PublishPacer
-    from equidiff_ros.common import wait_for_clock, LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS, TOPIC_DIAGNOSTICS, declare_lab_config, now_ns
+    from equidiff_ros.common import (LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS, TOPIC_DIAGNOSTICS, declare_lab_config,
+                                     now_ns, wait_for_clock)
 
     class CameraNode(Node):
         def __init__(self):

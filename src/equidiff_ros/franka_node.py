@@ -44,8 +44,9 @@ def build_node():
     from equidiff_core.control import messages as cm
     from equidiff_core.robots import BACKENDS, make_robot
     from equidiff_core.rosmsg import RclpyFactory
-    from equidiff_ros.common import (wait_for_clock, RELIABLE_QOS, TOPIC_COMMAND_CHUNK, TOPIC_DIAGNOSTICS, TOPIC_EE_POSE,
-                                     TOPIC_EXECUTED_TARGET, TOPIC_JOINT_STATES, declare_lab_config, node_clock, now_ns)
+    from equidiff_ros.common import (RELIABLE_QOS, TOPIC_COMMAND_CHUNK, TOPIC_DIAGNOSTICS, TOPIC_EE_POSE,
+                                     TOPIC_EXECUTED_TARGET, TOPIC_JOINT_STATES, declare_lab_config, node_clock, now_ns,
+                                     wait_for_clock)
     from trajectory_msgs.msg import MultiDOFJointTrajectory
 
     class FrankaNode(Node):

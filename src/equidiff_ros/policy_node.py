@@ -61,8 +61,9 @@ def build_node():
     from equidiff_core.inference import CheckpointError, load_inference_policy
     from equidiff_core.pointcloud import voxel_msg_to_grid
     from equidiff_core.rosmsg import RclpyFactory, stamp_to_ns
-    from equidiff_ros.common import (wait_for_clock, RELIABLE_QOS, TOPIC_COMMAND_CHUNK, TOPIC_DIAGNOSTICS, TOPIC_EE_POSE,
-                                     TOPIC_JOINT_STATES, TOPIC_VOXELS, VOXEL_QOS, declare_lab_config, now_ns)
+    from equidiff_ros.common import (RELIABLE_QOS, TOPIC_COMMAND_CHUNK, TOPIC_DIAGNOSTICS, TOPIC_EE_POSE,
+                                     TOPIC_JOINT_STATES, TOPIC_VOXELS, VOXEL_QOS, declare_lab_config, now_ns,
+                                     wait_for_clock)
     from geometry_msgs.msg import PoseStamped
     from sensor_msgs.msg import JointState, PointCloud2
     from trajectory_msgs.msg import MultiDOFJointTrajectory

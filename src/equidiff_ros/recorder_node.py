@@ -76,7 +76,8 @@ def build_node():
     from equidiff_core.rosmsg import RclpyFactory
     from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
-    from equidiff_ros.common import wait_for_clock, LATCHED_QOS, RELIABLE_QOS, TOPIC_RECORDER_COMMAND, declare_lab_config, now_ns
+    from equidiff_ros.common import (LATCHED_QOS, RELIABLE_QOS, TOPIC_RECORDER_COMMAND, declare_lab_config, now_ns,
+                                     wait_for_clock)
     from equidiff_ros.teleop_node import declare_config
 
     # The contract's profiles, but with deep queues: a recorder must not drop 100 Hz state

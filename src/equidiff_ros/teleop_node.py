@@ -62,8 +62,8 @@ def build_node():
     from equidiff_core.rosmsg import RclpyFactory
     from equidiff_core.teleop import (SpaceMouseSource, TeleopConfig, TeleopError, TeleopInput,
                                       TeleopIntegrator, is_fresh)
-    from equidiff_ros.common import (wait_for_clock, RELIABLE_QOS, SENSOR_QOS, TOPIC_COMMAND_CHUNK, TOPIC_EE_POSE, TOPIC_JOINT_STATES,
-                                     TOPIC_JOY, declare_lab_config, now_ns)
+    from equidiff_ros.common import (RELIABLE_QOS, SENSOR_QOS, TOPIC_COMMAND_CHUNK, TOPIC_EE_POSE, TOPIC_JOINT_STATES,
+                                     TOPIC_JOY, declare_lab_config, now_ns, wait_for_clock)
 
     class TeleopNode(Node):
         def __init__(self):

@@ -46,8 +46,8 @@ def build_node():
     from equidiff_core.rosmsg import RclpyFactory
     from equidiff_core.sync import ApproximateTimeMatcher
     from equidiff_core.voxels import Voxelizer, VoxelizerConfig
-    from equidiff_ros.common import (wait_for_clock, RELIABLE_QOS, SENSOR_QOS, TOPIC_DIAGNOSTICS, TOPIC_VOXELS, VOXEL_QOS,
-                                     declare_lab_config, now_ns)
+    from equidiff_ros.common import (RELIABLE_QOS, SENSOR_QOS, TOPIC_DIAGNOSTICS, TOPIC_VOXELS, VOXEL_QOS,
+                                     declare_lab_config, now_ns, wait_for_clock)
 
     class VoxelNode(Node):
         def __init__(self):
