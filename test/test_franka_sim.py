@@ -44,6 +44,7 @@ def franka(tmp_path_factory):
                                                     "lab_config": str(LAB_PATH)}, log_dir / "franka_node.log",
                                     priority=True)
             client = bench.BenchClient(lab, str(LAB_PATH))
+            client.record_pose_stamps()  # every state's stamp, none dropped while the test runner is starved
             client.wait_for(lambda: len(client.data.poses) > 10, 90.0, "/franka/ee_pose", proc)
             yield client, proc, lab, sim
         finally:
@@ -55,13 +56,33 @@ def franka(tmp_path_factory):
             assert code == 0, f"franka_node did not shut down cleanly (exit {code}):\n{log[-3000:]}"
 
 
+def state_stamps(client, t_from: float, t_to: float) -> tuple[np.ndarray, np.ndarray]:
+    """(stamps, gaps): the sorted stamps of the /franka/ee_pose messages in [t_from, t_to] (the
+    wall clock, franka_node's clock here) and the gaps between them, the window's edges included.
+    A state republished unchanged (the control loop stalled) keeps its stamp: a stalled control
+    loop shows as a gap just like stalled publishing."""
+    deadline = time.monotonic() + 10.0  # the deep queue may still hold a backlog: wait until it is past t_to
+    while time.monotonic() < deadline and not (client.pose_stamps and client.pose_stamps[-1] > t_to):
+        time.sleep(0.05)
+    stamps = np.sort([t for t in list(client.pose_stamps) if t_from <= t <= t_to])
+    return stamps, np.diff(np.concatenate([[t_from], stamps, [t_to]]))
+
+
 def test_state_is_published_at_100_hz_from_the_home_pose(franka):
     client, proc, lab, sim = franka
-    n0, j0, t0 = len(client.data.poses), client.data.joint_states, time.monotonic()
+    j0, t0 = client.data.joint_states, time.time()
     time.sleep(2.0)
-    elapsed = time.monotonic() - t0
-    assert (len(client.data.poses) - n0) / elapsed >= 90  # 100 Hz nominal, measured on a loaded 2-core box
-    assert (client.data.joint_states - j0) / elapsed >= 90
+    stamps, gaps = state_stamps(client, t0, time.time())
+    # 100 Hz is the node's period, not a count per wall second: a busy 2-core box starves the
+    # whole stack at times (72 Hz on average once in CI, 45-65 Hz here with two busy loops beside
+    # it), which lengthens some intervals but not those where the node had the CPU. So: a quarter
+    # of the intervals between successive new states are one 10 ms period (a 60 Hz node's are
+    # >= 15 ms: stamps fall on the 200 Hz control ticks), and no state was long overdue.
+    fresh = np.diff(np.unique(stamps))
+    percentiles_ms = np.round(np.percentile(fresh, [10, 25, 50, 75, 90]) * 1000, 1)
+    assert np.percentile(fresh, 25) <= 0.0125, f"interval percentiles 10/25/50/75/90: {percentiles_ms} ms"
+    assert gaps.max() < 0.5, f"no new state for {gaps.max():.2f} s"
+    assert client.data.joint_states - j0 >= 0.5 * len(stamps)  # a joint state goes out with every pose
     msg = client.data.last_joint_state
     assert list(msg.name)[-2:] == ["fr3_finger_joint1", "fr3_finger_joint2"] and len(msg.name) == 9
     assert msg.position[7] == pytest.approx(msg.position[8]) and 0.0 < msg.position[7] <= 0.041
@@ -71,11 +92,18 @@ def test_state_is_published_at_100_hz_from_the_home_pose(franka):
 
 def test_curve_is_tracked_smoothly_and_held_when_commands_stop(franka):
     client, proc, lab, sim = franka
-    t0 = time.monotonic()
+    t0, t_start = time.monotonic(), time.time()
     r = bench.run_track_and_hold(client, speed=0.06, radius=0.05, duration=4.0, settle=1.0, obs_latency=0.1,
                                  watchdog_s=CONTROL.safety.watchdog_timeout_s)
     r["sim_realtime_factor"] = sim.realtime_factor(since=t0)  # < 1: the sim itself was starved of CPU
-    assert r["tracking_samples"] > 250
+    _, gaps = state_stamps(client, t_start, time.time())
+    r["largest_state_gap_s"] = round(float(gaps.max()), 3)
+    # The metrics need the TCP observed throughout the ~3 s tracking window, not a count per wall
+    # second (236 of the nominal 300 once on CI's busy box, where this runner is starved too and
+    # drops states): the state kept coming (as in test_state_is_published...) and the metrics
+    # had at least 50 samples, one per ~4 mm of the circle.
+    assert r["largest_state_gap_s"] < 0.5, r
+    assert r["tracking_samples"] >= 50, r
     assert r["tracking_rms_mm"] <= 5.0, r
     assert r["velocity_reversals"] == 0, r
     assert r["command_velocity_reversals"] == 0, r
@@ -100,23 +128,30 @@ def test_nan_chunk_is_rejected_and_the_node_keeps_running(franka):
 
 
 def test_gripper_moves_without_blocking_the_arm(franka):
+    """A gripper command must not hold up franka_node's control loop or its state publishing
+    (on franky-sim it once froze both): a blocking move stops them for the whole move, about a
+    second for these 4-6 cm at 0.05 m/s, so no new state may be missing for 0.5 s meanwhile."""
     client, proc, lab, sim = franka
     here = client.latest_position()
-    n0 = len(client.data.poses)
-    t0 = time.monotonic()
 
-    def closed_chunk():
-        now = time.time_ns()
-        times = now + np.arange(4, dtype=np.int64) * 200_000_000
-        return PoseChunk(now, times, np.stack([bench.down_pose(here)] * 4), np.full(4, 0.02))
+    def width():
+        return 2 * client.data.last_joint_state.position[7]
 
-    while time.monotonic() - t0 < 2.0:  # keep the watchdog quiet while the fingers travel
-        client.publish_chunk(closed_chunk())
-        time.sleep(0.2)
-    rate = (len(client.data.poses) - n0) / (time.monotonic() - t0)
-    width = 2 * client.data.last_joint_state.position[7]
-    assert width == pytest.approx(0.02, abs=0.006)
-    assert rate >= 90  # state kept flowing while the gripper moved
+    def move_fingers(target):  # as the policy does: chunks holding the arm, the width in them
+        deadline = time.monotonic() + 15.0  # however slowly a busy sim moves the fingers
+        while time.monotonic() < deadline and abs(width() - target) > 0.003:
+            now = time.time_ns()
+            times = now + np.arange(4, dtype=np.int64) * 200_000_000
+            client.publish_chunk(PoseChunk(now, times, np.stack([bench.down_pose(here)] * 4), np.full(4, target)))
+            time.sleep(0.2)  # keeps the watchdog quiet while the fingers travel
+        assert width() == pytest.approx(target, abs=0.006)
+
+    t0 = time.time()
+    move_fingers(0.08)  # from wherever the fingers are (40 mm at start-up)
+    move_fingers(0.02)
+    _, gaps = state_stamps(client, t0, time.time())
+    assert gaps.max() < 0.5, f"no new state for {gaps.max():.2f} s while the gripper moved"
+    assert np.linalg.norm(client.latest_position() - here) < 0.005  # the arm held still meanwhile
     assert proc.poll() is None
 
 
@@ -178,6 +213,7 @@ def test_arm_keeps_its_posture_while_the_tcp_wanders_and_yaws():
     their limits and the arm flailed out of the workspace). The tracker's null-space posture
     task must bring the arm back to its home configuration when the TCP returns home."""
     from equidiff_core.control import Controller
+    from equidiff_core.control.safety import rotation_angle
     from equidiff_core.robots import make_robot
     from equidiff_core.twin.expert import tcp_pose
 
@@ -191,22 +227,48 @@ def test_arm_keeps_its_posture_while_the_tcp_wanders_and_yaws():
             try:
                 q_home, home = ctl.state.joint_positions.copy(), ctl.state.ee_pose[:3, 3].copy()
 
-                def glide(p0, y0, p1, y1, steps):  # teleop-like one-point targets at 20 Hz
-                    for k in range(1, steps + 1):
-                        a, now = k / steps, time.time_ns()
-                        pose = tcp_pose((1 - a) * p0 + a * p1, (1 - a) * y0 + a * y1)
-                        ctl.submit(PoseChunk(now, np.array([now + 50_000_000]), pose[None], np.array([0.08])))
+                assert np.isfinite(ctl.state.robot_time_s)  # libfranka's time: the glide is timed by it
+                state = {"pose": ctl.state.ee_pose.copy()}
+
+                def send(pose):  # a teleop-like one-point target, 50 ms ahead
+                    now = time.time_ns()
+                    ctl.submit(PoseChunk(now, np.array([now + 50_000_000]), pose[None], np.array([0.08])))
+                    state["pose"] = pose
+
+                def behind() -> bool:  # the TCP trails its last target by more than 3 cm or 14 deg
+                    tcp, target = ctl.state.ee_pose, state["pose"]
+                    return (np.linalg.norm(tcp[:3, 3] - target[:3, 3]) > 0.03
+                            or rotation_angle(tcp[:3, :3], target[:3, :3]) > 0.25)
+
+                def glide(p0, y0, p1, y1, seconds):
+                    """Targets at 20 Hz moving from (p0, y0) to (p1, y1) in ``seconds`` of the robot's own
+                    time; like teleop's lead limit, the glide waits while the TCP trails its target, so a
+                    starved machine (CI's busy 2 cores: the sim, libfranka and this loop all late) slows it
+                    down instead of running a target past the first-step jump check."""
+                    progress, last = 0.0, ctl.state.robot_time_s
+                    deadline = time.monotonic() + 10 * seconds + 10
+                    while progress < seconds:
+                        assert time.monotonic() < deadline, f"the TCP stopped following its targets: {ctl.stats}"
+                        now = ctl.state.robot_time_s
+                        if not behind():  # at most 0.1 s of glide per target: a late loop takes no big step
+                            progress = min(progress + min(now - last, 0.1), seconds)
+                        last = now
+                        a = progress / seconds
+                        send(tcp_pose((1 - a) * p0 + a * p1, (1 - a) * y0 + a * y1))
                         time.sleep(0.05)
 
                 pos, yaw = home, 0.0
                 for _ in range(8):
                     goal, goal_yaw = rng.uniform([0.32, -0.12, 0.05], [0.58, 0.12, 0.3]), rng.uniform(-1.2, 1.2)
-                    glide(pos, yaw, goal, goal_yaw, 60)
+                    glide(pos, yaw, goal, goal_yaw, 3.0)
                     pos, yaw = goal, goal_yaw
-                glide(pos, yaw, home, 0.0, 40)
-                time.sleep(1.0)
-                assert ctl.stats.rejected_chunks == 0
-                assert np.linalg.norm(ctl.state.ee_pose[:3, 3] - home) < 0.005
-                assert np.abs(ctl.state.joint_positions - q_home).max() < 0.2
+                glide(pos, yaw, home, 0.0, 2.0)
+                settle_until, deadline = ctl.state.robot_time_s + 1.0, time.monotonic() + 20.0
+                while ctl.state.robot_time_s < settle_until and time.monotonic() < deadline:
+                    send(state["pose"])  # hold home for 1 s of the robot's time
+                    time.sleep(0.05)
+                assert ctl.stats.rejected_chunks == 0, ctl.stats
+                assert np.linalg.norm(ctl.state.ee_pose[:3, 3] - home) < 0.005, ctl.stats
+                assert np.abs(ctl.state.joint_positions - q_home).max() < 0.2, ctl.state.joint_positions - q_home
             finally:
                 ctl.stop()

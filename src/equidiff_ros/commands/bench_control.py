@@ -268,6 +268,23 @@ class BenchClient:
         values = self.data.diagnostics.get(name) or {}
         return values.get(key, default)
 
+    def record_pose_stamps(self, topic: str | None = None, depth: int = 5000) -> deque:
+        """From now on also record the stamp (s) of every PoseStamped on ``topic`` (default
+        /franka/ee_pose) in ``self.pose_stamps``, through a subscription of its own with a deep
+        queue: the 10-deep queues above drop messages while this process is starved of CPU, this
+        one keeps them, so a gap in these stamps is the publisher's own. Returns that deque."""
+        from geometry_msgs.msg import PoseStamped
+        from rclpy.qos import QoSProfile, ReliabilityPolicy
+
+        from equidiff_core.rosmsg import stamp_to_ns
+        from equidiff_ros.common import TOPIC_EE_POSE
+
+        self.pose_stamps: deque = deque(maxlen=200000)
+        self.node.create_subscription(PoseStamped, topic or TOPIC_EE_POSE,
+                                      lambda msg: self.pose_stamps.append(stamp_to_ns(msg.header.stamp) / 1e9),
+                                      QoSProfile(depth=depth, reliability=ReliabilityPolicy.RELIABLE))
+        return self.pose_stamps
+
 
 # --- scenarios -------------------------------------------------------------------------------
 
