@@ -33,6 +33,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--latency-ms", type=float, default=100.0)
     parser.add_argument("--max-speed", type=float, default=1.0,
                         help="at most this many sim seconds per wall second (0: unbounded)")
+    parser.add_argument("--torch-threads", type=int, default=None,
+                        help="policy_node's torch threads (default: all cores on simulated time)")
     parser.add_argument("--out", type=Path, default=None, help="output directory (default: a temporary one)")
 
 
@@ -62,7 +64,8 @@ def run(args: argparse.Namespace) -> int:
     policy_path, label = resolve_policy(args, out, configs.lab.workspace, configs.twin)
     try:
         with TwinStack(out, configs.lab_path, configs.twin_path, policy=str(policy_path), task="bench_twin",
-                       seed=args.seed, latency_s=args.latency_ms / 1000, max_speed=args.max_speed) as stack:
+                       seed=args.seed, latency_s=args.latency_ms / 1000, max_speed=args.max_speed,
+                       torch_threads=args.torch_threads) as stack:
             procs = {n.name: n.popen.pid for n in stack.group.nodes}
             cpu0 = {name: cpu_seconds(pid) for name, pid in procs.items()}
             me0, wall0, sim0 = time.process_time(), time.monotonic(), stack.sup.now_ns() / 1e9
@@ -87,7 +90,8 @@ def run(args: argparse.Namespace) -> int:
         "inference_p50_ms": inference[len(inference) // 2] if inference else None,
         "episodes": len(records), "chunks": sum(r.chunks for r in records),
         "dropped_cycles": sum(r.dropped_cycles for r in records),
-        "latency_budget_ms": args.latency_ms, "max_speed": args.max_speed, "policy": label,
+        "latency_budget_ms": args.latency_ms, "max_speed": args.max_speed, "torch_threads": stack.torch_threads,
+        "policy": label,
         **cpu_description(),
     }
     print(json.dumps(result))
