@@ -137,49 +137,130 @@ def test_direct_collection_writes_a_trainable_demo_bag(tmp_path):
     assert abs(final_xy[0] - cfg.scene.region_x[0]) < 0.3  # sanity: inside the reachable region
 
 
+class _ExpertAsPolicy:
+    """Plans once per episode from the sim, then answers each observation with the next 16 targets.
+
+    Step k is the plan's target at the observation's time + (k + ``lead``) * dt: ``lead=0`` is
+    the training data's convention (action 0 = the target in effect at the observation), which
+    the replan scheme executes on time (step k at t + k * dt); the chunk scheme reaches action k
+    only at t + (k + 1) * dt, so it gets ``lead=1``."""
+
+    def __init__(self, sim, lead: int = 1):
+        from types import SimpleNamespace
+
+        self.sim, self.lead, self.plan, self.t0 = sim, lead, None, 0.0
+        self.preset = SimpleNamespace(dt=0.2, n_action_steps=8)
+
+    def predict(self, grid, ee, seed=0):
+        from equidiff_core.twin.scene import BLOCK, BOWL, body_pose
+
+        assert grid.shape == (4, 64, 64, 64) and ee.shape == (10,)
+        if self.plan is None:
+            self.plan, self.t0 = plan_pick_place(self.sim.tcp_pose(), self.sim.gripper_width(),
+                                                 body_pose(self.sim.model, self.sim.data, BLOCK),
+                                                 body_pose(self.sim.model, self.sim.data, BOWL),
+                                                 CFG.scene.block_size[2], CFG.expert), self.sim.time
+        t, dt = self.sim.time - self.t0, self.preset.dt
+        steps = [self.plan.target_at(t + dt * (k + self.lead)) for k in range(16)]
+        return np.stack([geometry.pose_to_action(pose, np.asarray(width)) for pose, width in steps])
+
+
+class _FrozenPolicy(_ExpertAsPolicy):
+    def predict(self, grid, ee, seed=0):
+        return np.repeat(ee[None], 16, axis=0)
+
+
 @pytest.mark.slow
 @pytest.mark.sim
-def test_closed_loop_evaluation_scores_the_expert_and_the_stages_a_frozen_policy_misses():
+@pytest.mark.parametrize("execution, observations", [("chunk", 3), ("replan", 20)])
+def test_closed_loop_evaluation_scores_the_expert_and_the_stages_a_frozen_policy_misses(execution, observations):
     """`evaluate_policy` (bench generalization's rollouts) with the scripted expert in the
-    policy's place solves the scene and reports every stage; a policy that never moves reaches none."""
-    from types import SimpleNamespace
-
+    policy's place solves the scene in both execution schemes and reports every stage; a policy
+    that never moves reaches none."""
     from equidiff_core.config import default_config_dir, load_lab_config
     from equidiff_core.twin.demos import DirectRecorder
     from equidiff_core.twin.evaluate import evaluate_policy
-    from equidiff_core.twin.scene import BLOCK, BOWL, body_pose
 
     lab = load_lab_config(default_config_dir() / "lab.yaml")
-    preset = SimpleNamespace(dt=0.2, n_action_steps=8)
-
-    class ExpertAsPolicy:
-        """Plans once per episode from the sim, then answers each observation with the next 16 targets."""
-
-        def __init__(self, sim):
-            self.sim, self.preset, self.plan, self.t0 = sim, preset, None, 0.0
-
-        def predict(self, grid, ee, seed=0):
-            assert grid.shape == (4, 64, 64, 64) and ee.shape == (10,)
-            if self.plan is None:
-                self.plan, self.t0 = plan_pick_place(self.sim.tcp_pose(), self.sim.gripper_width(),
-                                                     body_pose(self.sim.model, self.sim.data, BLOCK),
-                                                     body_pose(self.sim.model, self.sim.data, BOWL),
-                                                     CFG.scene.block_size[2], CFG.expert), self.sim.time
-            t = self.sim.time - self.t0
-            steps = [self.plan.target_at(t + preset.dt * (k + 1)) for k in range(16)]
-            return np.stack([geometry.pose_to_action(pose, np.asarray(width)) for pose, width in steps])
-
-    class FrozenPolicy(ExpertAsPolicy):
-        def predict(self, grid, ee, seed=0):
-            return np.repeat(ee[None], 16, axis=0)
-
     rec = DirectRecorder(CFG, lab)
     try:
-        solved, = evaluate_policy(ExpertAsPolicy(rec.sim), CFG, lab, [3], 30.0, log=lambda s: None, recorder=rec)
-        frozen, = evaluate_policy(FrozenPolicy(rec.sim), CFG, lab, [3], 4.0, log=lambda s: None, recorder=rec)
+        solved, = evaluate_policy(_ExpertAsPolicy(rec.sim, lead=int(execution == "chunk")), CFG, lab, [3], 30.0,
+                                  log=lambda s: None, recorder=rec, execution=execution)
+        frozen, = evaluate_policy(_FrozenPolicy(rec.sim), CFG, lab, [3], 4.0, log=lambda s: None, recorder=rec,
+                                  execution=execution)
     finally:
         rec.close()
     assert solved.success and solved.reached and solved.lifted
     assert solved.closest_to_bowl_m < CFG.scene.bowl_inner_radius and solved.closest_to_block_m < 0.02
     assert not (frozen.success or frozen.reached or frozen.lifted)
-    assert frozen.closest_to_bowl_m > 0.05 and frozen.closest_to_block_m > 0.1 and frozen.observations == 3  # 4 s of 1.6 s chunks
+    # 4 s of observations: every 0.2 s (replan), or every 0.1 s latency + 1.6 s chunk (chunk)
+    assert frozen.closest_to_bowl_m > 0.05 and frozen.closest_to_block_m > 0.1 and frozen.observations == observations
+
+
+class _SpySim:
+    """DirectSim that logs every command (sim time, target position) and the TCP after every step."""
+
+    def __init__(self, sim):
+        self._sim, self.commands, self.tcp = sim, [], []
+
+    def __getattr__(self, name):
+        return getattr(self._sim, name)
+
+    def command(self, pose, width):
+        self.commands.append((self._sim.time, np.array(pose[:3, 3])))
+        self._sim.command(pose, width)
+
+    def step(self, n=1):
+        self._sim.step(n)
+        self.tcp.append((self._sim.time, self._sim.tcp_pose()[:3, 3].copy()))
+
+
+@pytest.mark.sim
+@pytest.mark.parametrize("execution, latency_s", [("replan", 0.1), ("replan", 0.3), ("chunk", 0.1)])
+def test_a_chunk_takes_effect_only_after_the_latency_budget(execution, latency_s):
+    """The second observation's chunk jumps the target 5 cm sideways: neither the command nor the
+    TCP moves toward it before that observation's time + L (replan: the previous chunk, a hold,
+    keeps running meanwhile; chunk: the arm holds still), and both have moved within 0.3 s after."""
+    from types import SimpleNamespace
+
+    from equidiff_core.config import default_config_dir, load_lab_config
+    from equidiff_core.twin.demos import DirectRecorder
+    from equidiff_core.twin.evaluate import evaluate_policy
+
+    jump = np.array([0.0, 0.05, 0.0])
+
+    class JumpPolicy(_ExpertAsPolicy):
+        def predict(self, grid, ee, seed=0):
+            self.times.append(self.sim.time)
+            actions = np.repeat(ee[None].astype(np.float64), 16, axis=0)
+            if len(self.times) >= 2:
+                actions[:, :3] = self.times_ee[0][:3] + jump
+            self.times_ee.append(ee)
+            return actions
+
+    lab = load_lab_config(default_config_dir() / "lab.yaml")
+    rec = DirectRecorder(CFG, lab)
+    spy = _SpySim(rec.sim)
+    policy = JumpPolicy(spy)
+    policy.times, policy.times_ee = [], []
+    try:
+        episode, = evaluate_policy(policy, CFG, lab, [3], 1.2 if execution == "replan" else 2.4, log=lambda s: None,
+                                   recorder=SimpleNamespace(sim=spy, voxel_grid=rec.voxel_grid),
+                                   latency_s=latency_s, execution=execution)
+    finally:
+        rec.close()
+    t_obs = policy.times[1]  # the observation whose chunk jumps
+    assert np.isclose(t_obs - policy.times[0], 0.2 if execution == "replan" else 0.1 + 1.6)
+    effect = t_obs + latency_s
+    start = policy.times_ee[0][:3]
+
+    def toward(p):  # progress toward the jumped target along the jump, metres
+        return float((p - start) @ jump / np.linalg.norm(jump))
+
+    before = [toward(p) for t, p in spy.commands if t < effect - 1e-6]
+    after = [toward(p) for t, p in spy.commands if effect - 1e-6 <= t <= effect + 0.3]
+    assert max(before) < 1e-3 and after and max(after) > 0.03, (before[-3:], after)
+    tcp_before = [toward(p) for t, p in spy.tcp if t <= effect + 1e-6]
+    tcp_after = [toward(p) for t, p in spy.tcp if t <= effect + 0.3]
+    assert max(tcp_before) < 2e-3 and max(tcp_after) > 0.01, (tcp_before[-3:], tcp_after[-3:])
+    assert not episode.success
