@@ -92,7 +92,7 @@ def test_policy_closes_the_loop_and_skips_stale_observations(ros_domain, checkpo
         franka = bench.start_node("franka_node", {"backend": "dryrun", "lab_config": str(LAB_PATH)},
                                   tmp_path / "franka.log")
         policy = bench.start_node("policy_node", {"checkpoint": str(checkpoint), "lab_config": str(LAB_PATH),
-                                                  "seed": 0, "max_observation_age_s": 0.5},
+                                                  "seed": 0, "max_observation_age_s": 0.5, "execute_steps": 1},
                                   tmp_path / "policy.log")
         client = bench.BenchClient(lab, str(LAB_PATH))
         client.wait_for(lambda: len(client.data.poses) > 10, 60.0, "/franka/ee_pose from the dry-run arm", franka)

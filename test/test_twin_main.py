@@ -195,8 +195,8 @@ def test_main_job_smoke_run_end_to_end(ros_domain, tmp_path):
     # observation + L, however slow this (shared, busy) machine is
     assert last["clock"] == "sim" and last["latency_budget_ms"] == 100.0 and last["wall_s"] > 0
     assert last["stalled_episodes"] == 0 and last["representative"] is True
-    assert last["dropped_cycles"] == 0, proc.stdout[-2000:]
-    assert last["chunks"] >= 35  # 8 s of episode at 5 Hz: 40 observations
+    assert last["dropped_cycles"] == 0, proc.stdout[-2000:]  # no observation due an answer went without
+    assert last["chunks"] >= 4  # 8 s of episode, a chunk of 8 steps (1.6 s) executed per answer
     assert last["end_to_end_p95_ms"] <= 100.0 + 200.0
     assert "untrained stand-in" in proc.stdout  # the smoke run says what it ran
     # the policy's chunks reached the robot through the gate, and the episode was recorded

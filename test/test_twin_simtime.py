@@ -33,6 +33,11 @@ def test_a_frame_owes_its_chunk_by_its_instant_plus_the_latency_budget():
     ls.on_chunk(400 * MS)
     assert ls.chunk_blocker(500) == ""
     ls.frame_taken(600)
+    ls.on_voxels(600 * MS)
+    assert ls.chunk_blocker(700)
+    ls.on_skipped(600 * MS)  # the policy will not answer it (no robot state): nothing is owed
+    assert ls.chunk_blocker(700) == ""
+    ls.frame_taken(800)
     ls.set_awaiting(False)  # the episode ended: its debts are void
     assert ls.chunk_blocker(10_000) == ""
     # with L longer than a frame period several chunks are owed; a newer chunk pays older debts too
@@ -195,12 +200,12 @@ def test_a_hung_policy_ends_its_episode_as_stalled_naming_it_and_the_job_goes_on
         pid = next(n.popen.pid for n in stack.group.nodes if n.name == "policy_node")
         os.kill(pid, signal.SIGSTOP)
         try:
-            stalled = run_episode(stack, 1, 10.0, lab.observation_hz)
+            stalled = run_episode(stack, 1, 10.0)
         finally:
             os.kill(pid, signal.SIGCONT)
         assert stalled.stalled.startswith("t=") and "policy_node: no chunk for the observation" in stalled.stalled
         assert not stalled.success
         episode = read_episode(Path(stalled.bag))
         assert episode.meta.success is False and "stalled" in (episode.meta.notes or "")
-        after = run_episode(stack, 2, 3.0, lab.observation_hz)
-        assert not after.stalled and after.chunks >= 10 and after.dropped_cycles == 0
+        after = run_episode(stack, 2, 4.0)
+        assert not after.stalled and after.chunks >= 2 and after.dropped_cycles == 0

@@ -29,6 +29,7 @@ TOPIC_EXECUTED_TARGET = "/franka/executed_target"
 TOPIC_DIAGNOSTICS = "/diagnostics"
 TOPIC_JOY = "/spacenav/joy"
 TOPIC_RECORDER_COMMAND = "/recorder/command"
+TOPIC_POLICY_SKIPPED = "/policy/skipped"
 
 
 def declare_lab_config(node: Node) -> LabConfig:

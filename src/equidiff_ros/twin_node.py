@@ -13,7 +13,8 @@ Wiring:
   clock ``realtime``: 1 kHz to fixed wall-clock deadlines; no /clock
   /twin/reset (std_msgs/Int64: seed)      -> new object poses drawn from that seed
   /twin/await_policy (std_msgs/Bool, latched) -> whether frames are owed a policy chunk (sim clock)
-  /franka/command_chunk, /voxels          -> stamps only: what arrived (the lockstep, stall reports)
+  /franka/command_chunk, /voxels, /policy/skipped -> stamps only: what arrived or will not (the
+                                             lockstep, stall reports)
   /twin/scene (std_msgs/String, latched)  <- JSON {seed, block_xy, block_yaw, bowl_xy, bowl_yaw, host, shm}
   /twin/state (std_msgs/String, 10 Hz wall) <- JSON {seed, sim_time, success, details, objects, steps_per_s,
                                              overruns, missed_commands, clock, stalls, last_stall, wait_s}
@@ -58,7 +59,8 @@ def build_node():
     from equidiff_core.twin.config import load_twin_config
     from equidiff_core.twin.lockstep import LockstepConfig
     from equidiff_core.twin.sim import TwinSim
-    from equidiff_ros.common import (LATCHED_QOS, RELIABLE_QOS, TOPIC_COMMAND_CHUNK, TOPIC_VOXELS, VOXEL_QOS,
+    from equidiff_ros.common import (LATCHED_QOS, RELIABLE_QOS, TOPIC_COMMAND_CHUNK, TOPIC_POLICY_SKIPPED,
+                                     TOPIC_VOXELS, VOXEL_QOS,
                                      declare_lab_config)
     from equidiff_ros.runner import declare_number
     from rclpy.qos import QoSProfile, ReliabilityPolicy
@@ -105,6 +107,8 @@ def build_node():
                                          lambda m: ls.on_chunk(stamp_to_ns(m.header.stamp)), RELIABLE_QOS)
                 self.create_subscription(PointCloud2, TOPIC_VOXELS,
                                          lambda m: ls.on_voxels(stamp_to_ns(m.header.stamp)), VOXEL_QOS)
+                self.create_subscription(String, TOPIC_POLICY_SKIPPED,
+                                         lambda m: ls.on_skipped(json.loads(m.data)["stamp_ns"]), RELIABLE_QOS)
             self.twin.start(seed)
             self.create_timer(1.0 / self.cfg.sim.status_hz, self.publish_state)
             self.publish_scene()

@@ -53,7 +53,8 @@ class Supervisor:
 
         from diagnostic_msgs.msg import DiagnosticArray
         from equidiff_ros.common import (LATCHED_QOS, RELIABLE_QOS, TOPIC_COMMAND_CHUNK, TOPIC_DIAGNOSTICS,
-                                         TOPIC_EE_POSE, TOPIC_JOINT_STATES, TOPIC_RECORDER_COMMAND)
+                                         TOPIC_EE_POSE, TOPIC_JOINT_STATES, TOPIC_POLICY_SKIPPED,
+                                         TOPIC_RECORDER_COMMAND)
         from equidiff_ros.twin_node import TOPIC_AWAIT_POLICY, TOPIC_RESET, TOPIC_SCENE, TOPIC_STATE
         from geometry_msgs.msg import PoseStamped
         from sensor_msgs.msg import JointState
@@ -87,6 +88,7 @@ class Supervisor:
         self.chunk_arrivals: list[float] = []  # node-clock seconds at which chunks were forwarded
         self.chunk_stamps: list[int] = []  # their observation stamps (ns)
         self.end_to_end_ms: list[float] = []
+        self.dropped: list[str] = []  # reasons of observations the policy skipped (not its execution schedule)
         self.inference_ms: list[float] = []
         self._String, self._Int64 = String, Int64
         n = self.node
@@ -105,6 +107,7 @@ class Supervisor:
         n.create_subscription(String, TOPIC_SCENE, self._on_scene, LATCHED_QOS)
         n.create_subscription(String, "/recorder/status", self._on_recorder, LATCHED_QOS)
         n.create_subscription(DiagnosticArray, TOPIC_DIAGNOSTICS, self._on_diag, RELIABLE_QOS)
+        n.create_subscription(String, TOPIC_POLICY_SKIPPED, self._on_skipped, RELIABLE_QOS)
         self.executor = SingleThreadedExecutor()
         self.executor.add_node(n)
         self._spin = threading.Thread(target=self._spin_loop, daemon=True, name="supervisor-spin")
@@ -184,6 +187,12 @@ class Supervisor:
             self.chunk_stamps.append(stamp)
             self.end_to_end_ms.append((now_ns - stamp) / 1e6)
         self.pub_chunk.publish(msg)
+
+    def _on_skipped(self, msg):
+        skipped = json.loads(msg.data)
+        with self.lock:
+            if self.gate_open and skipped["stamp_ns"] >= self._gate_open_ns and skipped["reason"] != "executing":
+                self.dropped.append(skipped["reason"])
 
     def _on_pose(self, msg):
         p, q = msg.pose.position, msg.pose.orientation
@@ -321,20 +330,21 @@ class Supervisor:
         time, have twin_node wait for each frame's chunk)."""
         with self.lock:
             self.chunk_arrivals, self.chunk_stamps, self.end_to_end_ms, self.inference_ms = [], [], [], []
+            self.dropped = []
             self._held = []
             self._gate_open_ns = self.now_ns()
             self.gate_open = True
         if self.sim_time:
             self.pub_await.publish(self._Bool(data=True))
 
-    def close_gate(self) -> tuple[list[float], list[int], list[float], list[float]]:
-        """Stop forwarding; (forward times s, observation stamps ns, end-to-end ms, inference ms) of the episode."""
+    def close_gate(self) -> tuple[list[float], list[str], list[float], list[float]]:
+        """Stop forwarding; (forward times s, reasons of dropped observations, end-to-end ms, inference ms)."""
         if self.sim_time:
             self.pub_await.publish(self._Bool(data=False))
         with self.lock:
             self.gate_open = False
             self._held = []
-            return (list(self.chunk_arrivals), list(self.chunk_stamps), list(self.end_to_end_ms),
+            return (list(self.chunk_arrivals), list(self.dropped), list(self.end_to_end_ms),
                     list(self.inference_ms))
 
 
@@ -542,12 +552,12 @@ def run_expert(stack: TwinStack, hz: float | None = None, max_lag_m: float = 0.0
         time.sleep(1.0 / hz)  # wall pacing of the stream; the plan runs on the node's clock
 
 
-def run_episode(stack, seed: int, max_duration_s: float, rate_hz: float):
+def run_episode(stack, seed: int, max_duration_s: float):
     """Home, reset, record, let the policy act; durations on the node clock (simulated time by default).
 
     An episode in which twin_node reports a stall (a camera or the policy did not deliver within
     its stall timeout) ends at once as ``stalled``, naming the stage; its bag is kept."""
-    from equidiff_core.twin.metrics import EpisodeRecord, count_dropped_cycles
+    from equidiff_core.twin.metrics import EpisodeRecord
 
     sup, cfg = stack.sup, stack.cfg
     rec = EpisodeRecord(seed=seed)
@@ -582,12 +592,10 @@ def run_episode(stack, seed: int, max_duration_s: float, rate_hz: float):
             time.sleep(0.05)
         end = sup.now_ns() / 1e9
     finally:
-        arrivals, stamps, e2e, inf = sup.close_gate()
+        arrivals, dropped, e2e, inf = sup.close_gate()
     rec.duration_s = round((success_since or end) - start, 2)
     rec.chunks = len(arrivals)
-    if stamps:  # observation periods no chunk answered, on the cameras' grid (bins centred on its instants)
-        first = stamps[0] / 1e9 - 0.5 / rate_hz
-        rec.dropped_cycles = count_dropped_cycles([t / 1e9 for t in stamps], first, first + (end - start), rate_hz)
+    rec.dropped_cycles = len(dropped)  # observations due an answer that got none (policy_node says why)
     rec.end_to_end_ms, rec.inference_ms = e2e, inf
     pose, width = sup.current()
     sup.send_target(pose, width)  # hold where it is while the recorder closes

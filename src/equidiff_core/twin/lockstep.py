@@ -10,7 +10,12 @@ machine's timing however slow this one is:
   the frame taken at t must reach the robot by t + L, L being the declared latency budget:
   the sim does not pass t + L until a chunk stamped t or later has arrived on
   ``/franka/command_chunk``. The twin's supervisor holds each chunk until t + L, so it takes
-  effect then, exactly as on a machine whose inference plus transport takes L.
+  effect then, exactly as on a machine whose inference plus transport takes L. An observation
+  the policy announces it will not answer (``/policy/skipped``: no robot state near it, a
+  failed inference) owes nothing: on a lab machine the robot would go on without that chunk
+  too. Without this a divergence stop deadlocked: franka_node's franky call to restart the
+  motion waits for the sim to step, and the sim waited for a chunk the policy could not make
+  without franka_node's state.
 * **Stalls.** A wait longer than ``stall_timeout_s`` of wall time is a stall: it is recorded
   naming the stage that did not deliver (camera, voxel node, policy) and the wait is given
   up, so a dead or hung node never hangs the sim.
@@ -51,6 +56,7 @@ class Lockstep:
         self._pending: collections.deque[int] = collections.deque()  # frame ticks whose chunk is owed
         self._chunk_stamp_ns = -1  # newest chunk stamp seen on /franka/command_chunk
         self._voxel_stamp_ns = -1  # newest /voxels stamp (only to name a stalled stage)
+        self._skipped: set[int] = set()  # observation stamps the policy will not answer
         self.stalls: list[str] = []
 
     # -- inputs (ROS callbacks, any thread) --------------------------------------------------
@@ -59,6 +65,7 @@ class Lockstep:
             self._awaiting = bool(on)
             if not on:
                 self._pending.clear()
+                self._skipped.clear()
 
     @property
     def awaiting(self) -> bool:
@@ -67,6 +74,11 @@ class Lockstep:
     def on_chunk(self, stamp_ns: int) -> None:
         with self._lock:
             self._chunk_stamp_ns = max(self._chunk_stamp_ns, int(stamp_ns))
+
+    def on_skipped(self, stamp_ns: int) -> None:
+        with self._lock:
+            if self._awaiting:
+                self._skipped.add(int(stamp_ns))
 
     def on_voxels(self, stamp_ns: int) -> None:
         with self._lock:
@@ -85,8 +97,9 @@ class Lockstep:
     def chunk_blocker(self, tick: int) -> str:
         """Why the sim may not step past ``tick`` ('' when it may): a chunk due by now is missing."""
         with self._lock:
-            while self._pending and self._pending[0] * NS_PER_TICK <= self._chunk_stamp_ns:
-                self._pending.popleft()
+            while self._pending and (self._pending[0] * NS_PER_TICK <= self._chunk_stamp_ns
+                                     or self._pending[0] * NS_PER_TICK in self._skipped):
+                self._skipped.discard(self._pending.popleft() * NS_PER_TICK)
             if not self._pending or tick < self._pending[0] + self.config.latency_ticks:
                 return ""
             frame = self._pending[0]

@@ -70,7 +70,7 @@ def run(args: argparse.Namespace) -> int:
             cpu0 = {name: cpu_seconds(pid) for name, pid in procs.items()}
             me0, wall0, sim0 = time.process_time(), time.monotonic(), stack.sup.now_ns() / 1e9
             waits0 = dict(stack.sup.twin().get("wait_s", {}))
-            records = [run_episode(stack, args.seed + i, args.max_duration, configs.lab.observation_hz)
+            records = [run_episode(stack, args.seed + i, args.max_duration)
                        for i in range(args.episodes)]
             wall, sim = time.monotonic() - wall0, stack.sup.now_ns() / 1e9 - sim0
             shares = {name: round((cpu_seconds(pid) - cpu0[name]) / wall, 3) for name, pid in procs.items()}

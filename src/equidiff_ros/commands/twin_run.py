@@ -126,7 +126,7 @@ def run(args: argparse.Namespace) -> int:
                        stall_timeout_s=args.stall_timeout) as stack:
             for i in range(episodes):
                 missed = stack.sup.twin().get("missed_commands", 0)
-                rec = run_episode(stack, args.seed + i, max_duration, lab.observation_hz)
+                rec = run_episode(stack, args.seed + i, max_duration)
                 state = stack.sup.twin()
                 sim_rates.append(state.get("steps_per_s", 0.0) / 1000.0)
                 records.append(rec)
