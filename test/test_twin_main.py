@@ -10,18 +10,11 @@ from pathlib import Path
 
 import pytest
 
-from equidiff_core.twin.metrics import EpisodeRecord, RunSummary, count_dropped_cycles
+from equidiff_core.twin.metrics import EpisodeRecord, RunSummary
 from equidiff_core.twin.processes import NodeProcessError, ProcessGroup, node_command, private_ros_env
 from helpers_ros import run_job
 
 REQUIRED_KEYS = {"episodes", "success_rate", "inference_p95_ms", "end_to_end_p95_ms", "dropped_cycles"}
-
-
-def test_dropped_cycles_counts_empty_policy_periods():
-    assert count_dropped_cycles([0.1, 0.3, 0.5, 0.7, 0.9], 0.0, 1.0, 5.0) == 0
-    assert count_dropped_cycles([0.1, 0.9], 0.0, 1.0, 5.0) == 3
-    assert count_dropped_cycles([], 0.0, 1.0, 5.0) == 5
-    assert count_dropped_cycles([0.05, 0.06, 0.07], 0.0, 0.4, 5.0) == 1  # bursts do not fill other periods
 
 
 def test_summary_json_line_has_the_issue_keys_and_pools_episodes():

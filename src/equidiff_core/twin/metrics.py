@@ -14,25 +14,12 @@ class EpisodeRecord:
     success: bool = False
     duration_s: float = 0.0  # first policy command -> success (or the time limit)
     chunks: int = 0  # policy chunks forwarded to the robot
-    dropped_cycles: int = 0  # 1/rate periods in which no new chunk arrived
+    dropped_cycles: int = 0  # observations due an answer that got none (policy_node's /policy/skipped)
     bag: str = ""
     end_to_end_ms: list[float] = field(default_factory=list)  # capture stamp -> chunk at the robot
     inference_ms: list[float] = field(default_factory=list)
     note: str = ""
     stalled: str = ""  # the stage that did not deliver (simulated time); '' if none
-
-
-def count_dropped_cycles(arrivals_s: list[float], start_s: float, end_s: float, rate_hz: float) -> int:
-    """Periods of the policy clock (from start to end) in which no chunk arrived."""
-    if end_s <= start_s:
-        return 0
-    period = 1.0 / rate_hz
-    n = int(np.floor((end_s - start_s) * rate_hz + 1e-9))
-    if n == 0:
-        return 0
-    bins = np.floor((np.asarray(arrivals_s, dtype=float) - start_s) / period).astype(int)
-    hit = set(int(b) for b in bins if 0 <= b < n)
-    return n - len(hit)
 
 
 def percentile(values: list[float], q: float) -> float | None:
@@ -93,7 +80,7 @@ class RunSummary:
                  f"inference:         p50 {d['inference_p50_ms']} ms, p95 {d['inference_p95_ms']} ms",
                  f"end to end:        p50 {d['end_to_end_p50_ms']} ms, p95 {d['end_to_end_p95_ms']} ms "
                  "(camera capture -> chunk at the robot)",
-                 f"dropped cycles:    {d['dropped_cycles']} (of the 5 Hz policy clock; {d['chunks']} chunks)",
+                 f"dropped cycles:    {d['dropped_cycles']} (observations due an answer that got none; {d['chunks']} chunks)",
                  "clock:             " + (f"simulated time, latency budget {d['latency_budget_ms']} ms"
                                               if d["clock"] == "sim" else "real time"),
                  f"sim speed:         {d['sim_realtime_factor']} x real time; whole job {d['wall_s']} s of wall time",
