@@ -27,13 +27,13 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT / "src") not in sys.path:
     sys.path.insert(0, str(ROOT / "src"))
 
-from equidiff_core import geometry  # noqa: E402
-from equidiff_core.bags import EpisodeMeta  # noqa: E402
-from equidiff_core.chunk import PoseChunk, chunk_to_msg  # noqa: E402
-from equidiff_core.config import Workspace, load_lab_config  # noqa: E402
-from equidiff_core.pointcloud import grid_to_voxel_msg  # noqa: E402
-from equidiff_core.recording import EpisodeWriter, RecordingConfig  # noqa: E402
-from equidiff_core.rosmsg import NS_PER_S, rosbags_factory  # noqa: E402
+from equidiff_core import geometry
+from equidiff_core.bags import EpisodeMeta
+from equidiff_core.chunk import PoseChunk, chunk_to_msg
+from equidiff_core.config import Workspace, load_lab_config
+from equidiff_core.pointcloud import grid_to_voxel_msg
+from equidiff_core.recording import EpisodeWriter, RecordingConfig
+from equidiff_core.rosmsg import NS_PER_S, rosbags_factory
 
 LAB = load_lab_config(ROOT / "config" / "lab.yaml")
 T0_NS = 1_700_000_000 * NS_PER_S  # a fixed wall-clock start: deterministic bags
@@ -124,7 +124,7 @@ def write_synthetic_episode(path: str | Path, ep: SyntheticEpisode = SyntheticEp
                                notes="synthetic episode (test/helpers_data.py)", seed=0)
     frame = LAB.base_frame
     events: list[tuple[int, str, object]] = []
-    ns = lambda s: ep.t0_ns + int(round(s * NS_PER_S))  # noqa: E731
+    ns = lambda s: ep.t0_ns + int(round(s * NS_PER_S))
     n_state = int(ep.duration_s * ep.state_hz)
     for i in range(n_state):
         t = i / ep.state_hz

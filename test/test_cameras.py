@@ -5,10 +5,21 @@ import time
 import numpy as np
 import pytest
 
-from equidiff_core.cameras import BACKENDS, CameraError, CloudFrame, limit_depth, make_camera
+from equidiff_core.cameras import (
+    BACKENDS,
+    CameraError,
+    CloudFrame,
+    limit_depth,
+    make_camera,
+)
 from equidiff_core.cameras.realsense import RealSenseOptions, depth_to_cloud, pixel_rays
 from equidiff_core.cameras.replay import ReplayFinished
-from equidiff_core.config import CameraConfig, Extrinsics, default_config_dir, load_lab_config
+from equidiff_core.config import (
+    CameraConfig,
+    Extrinsics,
+    default_config_dir,
+    load_lab_config,
+)
 from equidiff_core.pointcloud import cloud_to_msg
 from equidiff_core.rosmsg import rosbags_factory
 
@@ -189,8 +200,8 @@ def test_twin_backend_is_reached_through_the_factory():
 
 
 def test_extrinsics_tf_message_carries_each_optical_frame():
-    from equidiff_core.cameras import extrinsics_tf_message
     from equidiff_core import geometry
+    from equidiff_core.cameras import extrinsics_tf_message
 
     lab = load_lab_config(default_config_dir() / "lab.yaml")
     f = rosbags_factory()

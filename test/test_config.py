@@ -4,7 +4,13 @@ import numpy as np
 import pytest
 import yaml
 
-from equidiff_core.config import ConfigError, LabConfig, from_dict, load_lab_config, to_dict
+from equidiff_core.config import (
+    ConfigError,
+    LabConfig,
+    from_dict,
+    load_lab_config,
+    to_dict,
+)
 
 ROOT = Path(__file__).resolve().parents[1]
 LAB = ROOT / "config" / "lab.yaml"

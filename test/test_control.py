@@ -12,8 +12,18 @@ from hypothesis import strategies as st
 from equidiff_core import geometry
 from equidiff_core.chunk import ChunkError, PoseChunk, chunk_from_msg, chunk_to_msg
 from equidiff_core.config import ConfigError, Workspace, default_config_dir, from_dict
-from equidiff_core.control import (ChunkScheduler, ControlConfig, Controller, SafetyConfig, SafetyFilter,
-                                   SafetyRejection, SchedulerConfig, Setpoint, check_chunk, load_control_config)
+from equidiff_core.control import (
+    ChunkScheduler,
+    ControlConfig,
+    Controller,
+    SafetyConfig,
+    SafetyFilter,
+    SafetyRejection,
+    SchedulerConfig,
+    Setpoint,
+    check_chunk,
+    load_control_config,
+)
 from equidiff_core.robots import RobotError, make_robot
 from equidiff_core.robots.dryrun import DryRunConfig, DryRunRobot
 from equidiff_core.rosmsg import rosbags_factory
@@ -486,7 +496,7 @@ def test_franky_gripper_commands_never_block_the_caller_and_the_newest_width_win
             time.sleep(0.4)
             return DoneFuture()
 
-        grasp_async = lambda self, width, speed, force, **kw: self.move_async(width, speed)  # noqa: E731
+        grasp_async = lambda self, width, speed, force, **kw: self.move_async(width, speed)
 
     robot = FrankyRobot("0.0.0.0")
     robot._gripper = gripper = SlowGripper()

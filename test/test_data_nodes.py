@@ -12,15 +12,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
+from helpers_data import RosHarness, assert_same, decoded
+from helpers_ros import spawn_node, stop_node
 
 from equidiff_core import geometry
 from equidiff_core.bags import BagError, read_episode, repair_bag
 from equidiff_core.chunk import PoseChunk, chunk_from_msg, chunk_to_msg
 from equidiff_core.config import default_config_dir, load_lab_config
 from equidiff_core.pointcloud import grid_to_voxel_msg
-
-from helpers_data import RosHarness, assert_same, decoded
-from helpers_ros import spawn_node, stop_node
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow]
 

@@ -9,16 +9,29 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers_data import (
+    LAB,
+    SyntheticEpisode,
+    command_at,
+    measured_at,
+    voxel_grid,
+    write_synthetic_episode,
+)
 
 import equidiff_core.dataset as dataset_mod
 from equidiff_core import geometry
 from equidiff_core.chunk import PoseChunk
-from equidiff_core.dataset import (DatasetConfig, DemoDataset, command_schedule, dataset_stats, load_episode_arrays,
-                                   sample_starts, split_episodes)
+from equidiff_core.dataset import (
+    DatasetConfig,
+    DemoDataset,
+    command_schedule,
+    dataset_stats,
+    load_episode_arrays,
+    sample_starts,
+    split_episodes,
+)
 from equidiff_core.recording import RecordingConfig
 from equidiff_core.rosmsg import NS_PER_S
-
-from helpers_data import LAB, SyntheticEpisode, command_at, measured_at, voxel_grid, write_synthetic_episode
 
 CFG = RecordingConfig(min_free_gib=0.0)
 EP = SyntheticEpisode(duration_s=6.0)  # 30 observations at 5 Hz

@@ -17,11 +17,11 @@ pytest.importorskip("franky")
 pytest.importorskip("franky_sim")
 pytest.importorskip("rclpy")
 
-from equidiff_core.chunk import PoseChunk  # noqa: E402
-from equidiff_core.config import default_config_dir, load_lab_config  # noqa: E402
-from equidiff_core.control import load_control_config  # noqa: E402
-from equidiff_core.robots.franky.sim import SimServer  # noqa: E402
-from equidiff_ros.commands import bench_control as bench  # noqa: E402
+from equidiff_core.chunk import PoseChunk
+from equidiff_core.config import default_config_dir, load_lab_config
+from equidiff_core.control import load_control_config
+from equidiff_core.robots.franky.sim import SimServer
+from equidiff_ros.commands import bench_control as bench
 
 pytestmark = [pytest.mark.sim, pytest.mark.ros, pytest.mark.slow]
 

@@ -10,7 +10,12 @@ import pytest
 import torch
 
 from equidiff_core.config import Workspace
-from equidiff_core.inference import CheckpointError, export_policy, load_inference_policy, read_policy_file
+from equidiff_core.inference import (
+    CheckpointError,
+    export_policy,
+    load_inference_policy,
+    read_policy_file,
+)
 from equidiff_core.models.equivariance import random_observation
 from equidiff_core.normalizer import Normalizer
 from equidiff_core.policies import PolicyInputError, make_policy

@@ -11,7 +11,11 @@ from equidiff_core.config import ConfigError, Workspace
 from equidiff_core.models import action_space
 from equidiff_core.models.baseline import matched_channels
 from equidiff_core.models.plain import build_plain_encoder
-from equidiff_core.models.sampling import ActionCodec, make_inference_scheduler, make_train_scheduler
+from equidiff_core.models.sampling import (
+    ActionCodec,
+    make_inference_scheduler,
+    make_train_scheduler,
+)
 from equidiff_core.normalizer import Normalizer, NormalizerError
 from equidiff_core.policies import PolicyInputError, count_parameters, make_policy
 from equidiff_core.presets import PRESETS, get_preset, preset_from_dict

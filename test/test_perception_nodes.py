@@ -34,11 +34,11 @@ class RosProbe:
 
     def __init__(self):
         import rclpy
+        from diagnostic_msgs.msg import DiagnosticArray
         from rclpy.executors import SingleThreadedExecutor
+        from sensor_msgs.msg import PointCloud2
 
         from equidiff_ros.common import RELIABLE_QOS, SENSOR_QOS, VOXEL_QOS
-        from sensor_msgs.msg import PointCloud2
-        from diagnostic_msgs.msg import DiagnosticArray
 
         self.rclpy = rclpy
         self.context = rclpy.Context()
@@ -173,7 +173,7 @@ def test_a_camera_never_seen_blocks_output_and_malformed_clouds_do_not_crash_the
     proc = _spawn("voxel_node", "stale_after_s:=1.0")
 
     def malformed(stamp):
-        good = lambda: cloud_to_msg(clouds[0][0], clouds[0][1], stamp, front.frame_id, f)  # noqa: E731
+        good = lambda: cloud_to_msg(clouds[0][0], clouds[0][1], stamp, front.frame_id, f)
         no_z = good()
         no_z.fields = [fl for fl in no_z.fields if fl.name != "z"]
         bad_step = good()

@@ -18,9 +18,9 @@ import pytest
 
 pytest.importorskip("rclpy")
 
-from equidiff_core.chunk import chunk_from_msg  # noqa: E402
-from equidiff_core.config import Workspace, default_config_dir, load_lab_config  # noqa: E402
-from equidiff_core.rosmsg import stamp_to_ns  # noqa: E402
+from equidiff_core.chunk import chunk_from_msg
+from equidiff_core.config import Workspace, default_config_dir, load_lab_config
+from equidiff_core.rosmsg import stamp_to_ns
 
 LAB_PATH = default_config_dir() / "lab.yaml"
 

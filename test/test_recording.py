@@ -8,14 +8,25 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
+from helpers_data import SyntheticEpisode, write_synthetic_episode
 
-from equidiff_core.bags import BagError, EpisodeMeta, find_bags, read_episode, repair_bag, scan_mcap
+from equidiff_core.bags import (
+    BagError,
+    EpisodeMeta,
+    find_bags,
+    read_episode,
+    repair_bag,
+    scan_mcap,
+)
 from equidiff_core.config import default_config_dir, load_lab_config
 from equidiff_core.pointcloud import grid_to_voxel_msg, voxel_msg_to_grid
-from equidiff_core.recording import EpisodeWriter, RecordingConfig, RecordingError, next_episode_path
+from equidiff_core.recording import (
+    EpisodeWriter,
+    RecordingConfig,
+    RecordingError,
+    next_episode_path,
+)
 from equidiff_core.rosmsg import rosbags_factory
-
-from helpers_data import SyntheticEpisode, write_synthetic_episode
 
 ROOT = Path(__file__).resolve().parents[1]
 LAB = load_lab_config(default_config_dir() / "lab.yaml")
@@ -259,7 +270,7 @@ def test_episode_is_valid_mcap_for_other_readers(tmp_path):
 
 
 def test_low_disk_while_recording_is_flagged(tmp_path, monkeypatch):
-    import equidiff_core.recording as recording
+    from equidiff_core import recording
 
     w = EpisodeWriter(tmp_path / "ep", config=RecordingConfig(min_free_gib=1.0, chunk_size_mib=2.0)).open()
     big = dense_grid(2, 0.4)  # ~2.5 MiB: closes a chunk, which checks the disk

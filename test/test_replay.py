@@ -11,12 +11,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers_data import RosHarness, assert_same
 
 from equidiff_core.bags import read_episode
 from equidiff_core.chunk import chunk_from_msg
 from equidiff_core.rosmsg import stamp_to_ns
-
-from helpers_data import RosHarness, assert_same
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow]
 

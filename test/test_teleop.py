@@ -12,8 +12,15 @@ from equidiff_core import geometry
 from equidiff_core.chunk import chunk_from_msg, chunk_to_msg
 from equidiff_core.config import Workspace
 from equidiff_core.rosmsg import rosbags_factory
-from equidiff_core.teleop import (SpaceMouseSource, TeleopConfig, TeleopError, TeleopInput, TeleopIntegrator,
-                                  apply_deadzone, is_fresh)
+from equidiff_core.teleop import (
+    SpaceMouseSource,
+    TeleopConfig,
+    TeleopError,
+    TeleopInput,
+    TeleopIntegrator,
+    apply_deadzone,
+    is_fresh,
+)
 
 WS = Workspace(center=(0.45, 0.0, 0.18), edge=0.4, resolution=64)
 DOWN = np.diag([1.0, -1.0, -1.0])

@@ -7,10 +7,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers_data import SyntheticEpisode, write_synthetic_episode
 
 from equidiff_ros.cli import main as cli
-
-from helpers_data import SyntheticEpisode, write_synthetic_episode
 
 pytestmark = pytest.mark.slow
 
@@ -65,7 +64,7 @@ def test_train_writes_a_loadable_policy_and_plot(bags, tmp_path, capsys):
     # same seed, same data -> the same run
     again = tmp_path / "again"
     assert train(bags, again) == 0
-    losses = lambda p: [h["loss"] for h in json.loads((p / "history.json").read_text()) if "loss" in h]  # noqa: E731
+    losses = lambda p: [h["loss"] for h in json.loads((p / "history.json").read_text()) if "loss" in h]
     assert losses(out) == losses(again)
 
     # an existing run is never silently restarted; --resume continues it from its checkpoint and split

@@ -11,8 +11,14 @@ from equidiff_core.config import ConfigError, Workspace, from_dict
 from equidiff_core.inference import load_inference_policy
 from equidiff_core.policies import make_policy
 from equidiff_core.presets import get_preset
-from equidiff_core.training import (TrainConfig, TrainingError, load_policy_from_checkpoint,
-                                    load_training_checkpoint, resolve_device, train)
+from equidiff_core.training import (
+    TrainConfig,
+    TrainingError,
+    load_policy_from_checkpoint,
+    load_training_checkpoint,
+    resolve_device,
+    train,
+)
 
 WS = Workspace()
 

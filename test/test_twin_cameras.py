@@ -113,7 +113,7 @@ def test_intrinsics_are_d455_like_and_backprojection_inverts_projection():
 def test_noise_and_dropout_degrade_the_cloud_like_a_stereo_camera():
     qpos, _ = _state(5)
     cam = LAB.cameras[0]
-    src = lambda t: (qpos, 0.0, 1)  # noqa: E731
+    src = lambda t: (qpos, 0.0, 1)
     with TwinCamera(cam, state_source=src, paced=False, depth_noise=False, dropout=0.0) as clean_cam:
         clean = clean_cam.read()
     with TwinCamera(cam, state_source=src, paced=False, depth_noise=True, dropout=0.2) as noisy_cam:

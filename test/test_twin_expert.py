@@ -8,7 +8,13 @@ from scipy.spatial.transform import Rotation
 
 from equidiff_core import geometry
 from equidiff_core.twin.config import TwinConfig
-from equidiff_core.twin.expert import LinePath, grasp_yaw, plan_pick_place, tcp_pose, tcp_yaw
+from equidiff_core.twin.expert import (
+    LinePath,
+    grasp_yaw,
+    plan_pick_place,
+    tcp_pose,
+    tcp_yaw,
+)
 
 CFG = TwinConfig()
 

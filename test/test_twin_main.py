@@ -9,10 +9,15 @@ import time
 from pathlib import Path
 
 import pytest
+from helpers_ros import run_job
 
 from equidiff_core.twin.metrics import EpisodeRecord, RunSummary
-from equidiff_core.twin.processes import NodeProcessError, ProcessGroup, node_command, private_ros_env
-from helpers_ros import run_job
+from equidiff_core.twin.processes import (
+    NodeProcessError,
+    ProcessGroup,
+    node_command,
+    private_ros_env,
+)
 
 REQUIRED_KEYS = {"episodes", "success_rate", "inference_p95_ms", "end_to_end_p95_ms", "dropped_cycles"}
 

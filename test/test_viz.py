@@ -22,10 +22,10 @@ from equidiff_core.rosmsg import NS_PER_S, MsgFactory, RosbagsFactory, rosbags_f
 
 rr = pytest.importorskip("rerun")
 
-from equidiff_core.viz import VizUnavailable, require_rerun  # noqa: E402
-from equidiff_core.viz.bag_to_rrd import convert_bags  # noqa: E402
-from equidiff_core.viz.logger import RerunLogger, VizConfig, open_recording  # noqa: E402
-from equidiff_core.viz.rrd import summarize_rrd  # noqa: E402
+from equidiff_core.viz import VizUnavailable, require_rerun
+from equidiff_core.viz.bag_to_rrd import convert_bags
+from equidiff_core.viz.logger import RerunLogger, VizConfig, open_recording
+from equidiff_core.viz.rrd import summarize_rrd
 
 ROOT = Path(__file__).resolve().parents[1]
 LAB = load_lab_config(default_config_dir() / "lab.yaml")

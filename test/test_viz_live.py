@@ -14,11 +14,19 @@ import pytest
 pytest.importorskip("rerun")
 rclpy = pytest.importorskip("rclpy")
 
-from test_viz import (LAB, T0_NS, chunk_msg, diagnostics_msg, joint_state_msg, pose_msg,  # noqa: E402
-                      tcp_pose, voxel_msg)
+from test_viz import (
+    LAB,
+    T0_NS,
+    chunk_msg,
+    diagnostics_msg,
+    joint_state_msg,
+    pose_msg,
+    tcp_pose,
+    voxel_msg,
+)
 
-from equidiff_core.rosmsg import RclpyFactory  # noqa: E402
-from equidiff_core.viz.rrd import summarize_rrd  # noqa: E402
+from equidiff_core.rosmsg import RclpyFactory
+from equidiff_core.viz.rrd import summarize_rrd
 
 N_FRAMES = 8
 
@@ -38,13 +46,22 @@ def _wait_for(predicate, timeout_s: float, what: str, proc: subprocess.Popen | N
 @pytest.mark.ros
 @pytest.mark.slow
 def test_live_viz_logs_real_topics_to_a_readable_rrd(ros_domain, tmp_path):
-    from equidiff_ros.common import (RELIABLE_QOS, SENSOR_QOS, TOPIC_COMMAND_CHUNK, TOPIC_DIAGNOSTICS,
-                                     TOPIC_EE_POSE, TOPIC_EXECUTED_TARGET, TOPIC_JOINT_STATES, TOPIC_VOXELS,
-                                     VOXEL_QOS)
     from diagnostic_msgs.msg import DiagnosticArray
     from geometry_msgs.msg import PoseStamped
     from sensor_msgs.msg import JointState, PointCloud2
     from trajectory_msgs.msg import MultiDOFJointTrajectory
+
+    from equidiff_ros.common import (
+        RELIABLE_QOS,
+        SENSOR_QOS,
+        TOPIC_COMMAND_CHUNK,
+        TOPIC_DIAGNOSTICS,
+        TOPIC_EE_POSE,
+        TOPIC_EXECUTED_TARGET,
+        TOPIC_JOINT_STATES,
+        TOPIC_VOXELS,
+        VOXEL_QOS,
+    )
 
     out = tmp_path / "live.rrd"
     env = dict(os.environ, OMP_NUM_THREADS="1", PYTHONUNBUFFERED="1")

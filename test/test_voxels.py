@@ -7,9 +7,14 @@ import numpy as np
 import pytest
 
 from equidiff_core import geometry
-from equidiff_core.config import Workspace, load_lab_config, default_config_dir
-from equidiff_core.voxels import (VoxelError, Voxelizer, VoxelizerConfig, voxelize,
-                                  voxelize_reference)
+from equidiff_core.config import Workspace, default_config_dir, load_lab_config
+from equidiff_core.voxels import (
+    VoxelError,
+    Voxelizer,
+    VoxelizerConfig,
+    voxelize,
+    voxelize_reference,
+)
 
 # Power-of-two voxel size and exactly representable corners: boundary tests are exact.
 WS = Workspace(center=(0.5, 0.0, 0.25), edge=0.5, resolution=64)  # size 2^-7, lower (0.25, -0.25, 0)
@@ -214,8 +219,9 @@ def test_bad_inputs_raise_clear_errors():
 
 
 def test_bench_voxelize_prints_one_json_line(capsys):
-    from equidiff_ros.commands import bench_voxelize
     import argparse
+
+    from equidiff_ros.commands import bench_voxelize
 
     parser = argparse.ArgumentParser()
     bench_voxelize.add_arguments(parser)

@@ -19,9 +19,10 @@ from __future__ import annotations
 import dataclasses
 import shutil
 import struct
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterable
+from typing import Any
 
 import numpy as np
 import yaml
@@ -50,7 +51,7 @@ class EpisodeMeta:
     seed: int | None = None
     extra: dict[str, str] = field(default_factory=dict)
 
-    def replace(self, **changes: Any) -> "EpisodeMeta":
+    def replace(self, **changes: Any) -> EpisodeMeta:
         return dataclasses.replace(self, **changes)
 
     def to_dict(self) -> dict[str, Any]:
@@ -64,7 +65,7 @@ class EpisodeMeta:
         return data
 
     @classmethod
-    def from_custom_data(cls, data: dict[str, str] | None) -> "EpisodeMeta":
+    def from_custom_data(cls, data: dict[str, str] | None) -> EpisodeMeta:
         data = dict(data or {})
         success = data.get("success", "")
         seed = data.get("seed", "")
@@ -74,7 +75,7 @@ class EpisodeMeta:
                    extra={k[6:]: v for k, v in data.items() if k.startswith("extra.")})
 
     @classmethod
-    def from_dict(cls, data: dict[str, Any] | None) -> "EpisodeMeta":
+    def from_dict(cls, data: dict[str, Any] | None) -> EpisodeMeta:
         data = dict(data or {})
         known = {f.name for f in dataclasses.fields(cls)}
         return cls(**{k: v for k, v in data.items() if k in known})
@@ -318,10 +319,10 @@ def repair_bag(path: str | Path, output: str | Path | None = None, force: bool =
     ``output`` defaults to ``path`` itself: the damaged directory is renamed to
     ``<path>.unrepaired`` and the repaired bag takes its place.
     """
-    from .recording import MiB, _chunked_mcap_writer_cls
-
     from rosbags.rosbag2 import StoragePlugin, Writer
     from rosbags.rosbag2.storage_mcap import get_qos
+
+    from .recording import MiB, _chunked_mcap_writer_cls
 
     path = Path(path)
     if not path.is_dir():

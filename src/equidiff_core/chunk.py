@@ -42,7 +42,7 @@ class PoseChunk:
         """(K, 10) absolute actions."""
         return geometry.pose_to_action(self.poses, self.widths)
 
-    def after(self, t_ns: int) -> "PoseChunk | None":
+    def after(self, t_ns: int) -> PoseChunk | None:
         """The steps strictly later than ``t_ns`` (None if none are left)."""
         keep = self.times_ns > t_ns
         if not keep.any():

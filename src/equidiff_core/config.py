@@ -169,7 +169,7 @@ class Extrinsics:
         return geometry.pose_from_pos_quat(self.translation, self.quaternion_xyzw)
 
     @classmethod
-    def from_matrix(cls, T: np.ndarray) -> "Extrinsics":
+    def from_matrix(cls, T: np.ndarray) -> Extrinsics:
         p, q = geometry.pos_quat_from_pose(T)
         return cls(tuple(float(v) for v in p), tuple(float(v) for v in q))
 

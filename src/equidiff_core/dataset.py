@@ -32,9 +32,10 @@ from __future__ import annotations
 import hashlib
 import json
 import random
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Iterable, Sequence
+from typing import Any
 
 import numpy as np
 
@@ -70,7 +71,7 @@ class DatasetConfig:
             raise ValueError("state_tolerance_s must be positive")
 
     @classmethod
-    def from_preset(cls, preset: Any, **overrides: Any) -> "DatasetConfig":
+    def from_preset(cls, preset: Any, **overrides: Any) -> DatasetConfig:
         """Horizon, observation steps and action steps from a model preset (``presets.PolicyPreset``)."""
         kw = dict(horizon=preset.horizon, n_obs_steps=preset.n_obs_steps, n_action_steps=preset.n_action_steps)
         kw.update(overrides)
@@ -465,7 +466,7 @@ def dataset_stats(paths: Iterable[str | Path], config: DatasetConfig = DatasetCo
             "path": str(ep.path), "task": ep.meta.task, "operator": ep.meta.operator, "success": ep.meta.success,
             "duration_s": round(ep.duration_s, 3), "steps": len(ep),
             "obs_hz": round(NS_PER_S / ep.obs_period_ns, 2) if ep.obs_period_ns else None,
-            "samples": int(len(sample_starts(len(ep), config.horizon, config.n_obs_steps, config.n_action_steps))),
+            "samples": len(sample_starts(len(ep), config.horizon, config.n_obs_steps, config.n_action_steps)),
             "dropped_steps": ep.dropped_steps, "rejected_chunks": ep.rejected_chunks,
             "action_min": acts.min(0).round(4).tolist(), "action_max": acts.max(0).round(4).tolist(),
         })

@@ -79,7 +79,7 @@ def read_policy_file(path: str | Path) -> tuple[dict, dict]:
         raise CheckpointError(f"{path}: no such policy file")
     try:
         payload = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as err:  # noqa: BLE001 - truncated zip, pickle errors, unsupported globals ...
+    except Exception as err:
         raise CheckpointError(f"{path}: not a readable policy file "
                               f"({type(err).__name__}: {(str(err).splitlines() or [''])[0]})") from err
     if not isinstance(payload, dict) or payload.get("format") != FORMAT:
@@ -106,7 +106,7 @@ def cpu_has_native_bf16() -> bool:
 
 def load_inference_policy(path: str | Path, device: str = "cpu", precision: str = "fp32",
                           jit: bool = False, channels_last: bool | None = None,
-                          compile: bool = False) -> "InferencePolicy":
+                          compile: bool = False) -> InferencePolicy:
     if precision not in PRECISIONS:
         raise ValueError(f"precision must be one of {PRECISIONS}, got {precision!r}")
     config, state = read_policy_file(path)
@@ -208,7 +208,7 @@ class InferencePolicy:
 
     def _blank_observation(self) -> tuple[np.ndarray, np.ndarray]:
         """An empty grid and the gripper at the workspace centre: valid input for warm-up and compiling."""
-        R = self.workspace.resolution if self.workspace.resolution >= self.preset.crop else self.preset.crop
+        R = max(self.workspace.resolution, self.preset.crop)
         vox = np.zeros((self.preset.voxel_channels, R, R, R), np.uint8)
         ee = np.zeros(10, np.float32)
         ee[:3] = self.workspace.center

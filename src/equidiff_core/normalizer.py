@@ -38,7 +38,7 @@ class Normalizer:
     rel_translation_scale: float
 
     @classmethod
-    def fit(cls, actions: np.ndarray, ee: np.ndarray, workspace: Workspace) -> "Normalizer":
+    def fit(cls, actions: np.ndarray, ee: np.ndarray, workspace: Workspace) -> Normalizer:
         actions = np.asarray(actions, dtype=np.float64).reshape(-1, 10)
         ee = np.asarray(ee, dtype=np.float64).reshape(-1, 10)
         data = np.concatenate([actions, ee], 0)
@@ -55,7 +55,7 @@ class Normalizer:
         return cls((float(c[0]), float(c[1])), max(radius, MIN_RANGE), z_lo, z_hi, float(workspace.edge))
 
     @classmethod
-    def from_workspace(cls, workspace: Workspace) -> "Normalizer":
+    def from_workspace(cls, workspace: Workspace) -> Normalizer:
         """Data-free default: the workspace cube's own extent."""
         half = workspace.edge / 2
         c = workspace.center
@@ -66,7 +66,7 @@ class Normalizer:
                 "z_max": self.z_max, "rel_translation_scale": self.rel_translation_scale}
 
     @classmethod
-    def from_dict(cls, d: dict) -> "Normalizer":
+    def from_dict(cls, d: dict) -> Normalizer:
         try:
             return cls(tuple(float(v) for v in d["center_xy"]), float(d["xy_scale"]), float(d["z_min"]),
                        float(d["z_max"]), float(d["rel_translation_scale"]))

@@ -19,7 +19,12 @@ from torch import nn
 from . import augment
 from .config import Workspace, to_dict
 from .models import action_space
-from .models.sampling import ActionCodec, ddim_sample, make_inference_scheduler, make_train_scheduler
+from .models.sampling import (
+    ActionCodec,
+    ddim_sample,
+    make_inference_scheduler,
+    make_train_scheduler,
+)
 from .normalizer import Normalizer
 from .presets import PolicyPreset
 
@@ -132,7 +137,9 @@ class DiffusionPolicy(nn.Module):
 def make_policy(name: str, preset: PolicyPreset, workspace: Workspace) -> DiffusionPolicy:
     freqs = action_space.freqs_for(preset.control)
     if name == "equidiff":
-        from .models.equivariant import EquiNoisePredictor  # escnn is imported only here
+        from .models.equivariant import (
+            EquiNoisePredictor,  # escnn is imported only here
+        )
 
         model = EquiNoisePredictor(preset, freqs)
     elif name == "baseline":

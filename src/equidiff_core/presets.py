@@ -75,7 +75,7 @@ class PolicyPreset:
     def to_dict(self) -> dict:
         return to_dict(self)
 
-    def replace(self, **changes) -> "PolicyPreset":
+    def replace(self, **changes) -> PolicyPreset:
         return dataclasses.replace(self, **changes)
 
 

@@ -100,8 +100,15 @@ def _chunked_mcap_writer_cls():
     write buffer; we override ``write`` (same record layout, our threshold) and flush each
     completed chunk so it is on disk even if the process is SIGKILLed right after.
     """
-    from rosbags.rosbag2.storage_mcap import McapWriter, write_record, write_uint16, write_uint32, write_uint64
     from io import BytesIO
+
+    from rosbags.rosbag2.storage_mcap import (
+        McapWriter,
+        write_record,
+        write_uint16,
+        write_uint32,
+        write_uint64,
+    )
 
     class ChunkedMcapWriter(McapWriter):
         chunk_size = 8 * MiB
@@ -149,7 +156,14 @@ def _chunked_mcap_writer_cls():
 
 
 def _qos(reliable: bool = True, transient_local: bool = False, depth: int = 10):
-    from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime
+    from rosbags.interfaces import (
+        Qos,
+        QosDurability,
+        QosHistory,
+        QosLiveliness,
+        QosReliability,
+        QosTime,
+    )
 
     zero = QosTime(0, 0)
     return Qos(QosHistory.KEEP_LAST, depth,
@@ -173,7 +187,7 @@ class EpisodeWriter:
         self.low_disk = False
 
     # -- lifecycle --------------------------------------------------------------------------
-    def open(self) -> "EpisodeWriter":
+    def open(self) -> EpisodeWriter:
         from rosbags.rosbag2 import StoragePlugin, Writer
 
         if self.path.exists():
@@ -234,7 +248,7 @@ class EpisodeWriter:
             self._writer = None
         shutil.rmtree(self.path, ignore_errors=True)
 
-    def __enter__(self) -> "EpisodeWriter":
+    def __enter__(self) -> EpisodeWriter:
         return self.open() if not self.is_open else self
 
     def __exit__(self, exc_type, exc, tb) -> None:

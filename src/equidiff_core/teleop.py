@@ -20,8 +20,8 @@ Input sources (``spacemouse``: the device via pyspacemouse/hidapi, polled by the
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Sequence
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -85,7 +85,7 @@ class TeleopInput:
     stamp_ns: int = 0
 
     @classmethod
-    def from_joy(cls, msg) -> "TeleopInput":
+    def from_joy(cls, msg) -> TeleopInput:
         """sensor_msgs/Joy in the spacenav layout (either message flavour)."""
         axes = [float(a) for a in msg.axes]
         if len(axes) < 6:
@@ -291,7 +291,7 @@ class SpaceMouseSource:
             finally:
                 self._dev = None
 
-    def __enter__(self) -> "SpaceMouseSource":
+    def __enter__(self) -> SpaceMouseSource:
         self.connect()
         return self
 

@@ -19,9 +19,10 @@ import json
 import math
 import random
 import time
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterable
+from typing import Any
 
 import numpy as np
 import torch
@@ -300,7 +301,7 @@ def load_training_checkpoint(path: str | Path) -> dict:
         raise CheckpointError(f"{path}: no such checkpoint")
     try:
         state = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as err:  # noqa: BLE001 - torch raises many kinds for corrupt files
+    except Exception as err:
         raise CheckpointError(f"{path}: not a readable checkpoint "
                               f"({type(err).__name__}: {(str(err).splitlines() or [''])[0]})") from err
     if not isinstance(state, dict) or state.get("format") != CKPT_FORMAT:

@@ -36,8 +36,9 @@ point count at once (exact while the cloud holds < 2^20 points, else counted sep
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any, Sequence
+from typing import Any
 
 import numpy as np
 

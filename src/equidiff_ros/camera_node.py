@@ -40,15 +40,28 @@ def build_node():
     import yaml
     from rclpy.node import Node
 
-    from equidiff_core.cameras import CameraError, NoFrameYet, extrinsics_tf_message, limit_depth, make_camera
+    from equidiff_core.cameras import (
+        CameraError,
+        NoFrameYet,
+        extrinsics_tf_message,
+        limit_depth,
+        make_camera,
+    )
     from equidiff_core.cameras.replay import ReplayFinished
     from equidiff_core.config import ConfigError
     from equidiff_core.control import messages as cm
     from equidiff_core.pointcloud import cloud_to_msg
     from equidiff_core.rosmsg import RclpyFactory
     from equidiff_core.sync import PublishPacer
-    from equidiff_ros.common import (LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS, TOPIC_DIAGNOSTICS, declare_lab_config,
-                                     now_ns, wait_for_clock)
+    from equidiff_ros.common import (
+        LATCHED_QOS,
+        RELIABLE_QOS,
+        SENSOR_QOS,
+        TOPIC_DIAGNOSTICS,
+        declare_lab_config,
+        now_ns,
+        wait_for_clock,
+    )
 
     class CameraNode(Node):
         def __init__(self):
@@ -70,7 +83,7 @@ def build_node():
                 raise ConfigError(f"backend_options: malformed YAML: {err}") from err
             if not isinstance(options, dict):
                 raise ConfigError(f"backend_options must be a YAML mapping, got {options_text!r}")
-            clock = lambda: now_ns(self)  # noqa: E731
+            clock = lambda: now_ns(self)
             if self.backend == "replay":
                 options = {"bag": bag, "loop": loop, "rate": rate, "restamp": restamp, "clock": clock, **options}
             elif self.backend == "realsense":

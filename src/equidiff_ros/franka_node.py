@@ -37,6 +37,7 @@ def build_node():
     from pathlib import Path
 
     from rclpy.node import Node
+    from trajectory_msgs.msg import MultiDOFJointTrajectory
 
     from equidiff_core.chunk import ChunkError, chunk_from_msg
     from equidiff_core.config import default_config_dir
@@ -44,10 +45,18 @@ def build_node():
     from equidiff_core.control import messages as cm
     from equidiff_core.robots import BACKENDS, make_robot
     from equidiff_core.rosmsg import RclpyFactory
-    from equidiff_ros.common import (RELIABLE_QOS, TOPIC_COMMAND_CHUNK, TOPIC_DIAGNOSTICS, TOPIC_EE_POSE,
-                                     TOPIC_EXECUTED_TARGET, TOPIC_JOINT_STATES, declare_lab_config, node_clock, now_ns,
-                                     wait_for_clock)
-    from trajectory_msgs.msg import MultiDOFJointTrajectory
+    from equidiff_ros.common import (
+        RELIABLE_QOS,
+        TOPIC_COMMAND_CHUNK,
+        TOPIC_DIAGNOSTICS,
+        TOPIC_EE_POSE,
+        TOPIC_EXECUTED_TARGET,
+        TOPIC_JOINT_STATES,
+        declare_lab_config,
+        node_clock,
+        now_ns,
+        wait_for_clock,
+    )
 
     class FrankaNode(Node):
         def __init__(self):

@@ -59,9 +59,13 @@ def build_node():
     from pathlib import Path
 
     import numpy as np
-    from rclpy.node import Node
-
     from diagnostic_msgs.msg import DiagnosticArray
+    from geometry_msgs.msg import PoseStamped
+    from rclpy.node import Node
+    from sensor_msgs.msg import JointState, PointCloud2
+    from std_msgs.msg import String
+    from trajectory_msgs.msg import MultiDOFJointTrajectory
+
     from equidiff_core import geometry
     from equidiff_core.chunk import chunk_from_actions, chunk_to_msg
     from equidiff_core.control import messages as cm
@@ -69,13 +73,19 @@ def build_node():
     from equidiff_core.inference import CheckpointError, load_inference_policy
     from equidiff_core.pointcloud import voxel_msg_to_grid
     from equidiff_core.rosmsg import RclpyFactory, stamp_to_ns
-    from equidiff_ros.common import (RELIABLE_QOS, TOPIC_COMMAND_CHUNK, TOPIC_DIAGNOSTICS, TOPIC_EE_POSE,
-                                     TOPIC_JOINT_STATES, TOPIC_POLICY_SKIPPED, TOPIC_VOXELS, VOXEL_QOS, declare_lab_config,
-                                     now_ns, wait_for_clock)
-    from geometry_msgs.msg import PoseStamped
-    from sensor_msgs.msg import JointState, PointCloud2
-    from std_msgs.msg import String
-    from trajectory_msgs.msg import MultiDOFJointTrajectory
+    from equidiff_ros.common import (
+        RELIABLE_QOS,
+        TOPIC_COMMAND_CHUNK,
+        TOPIC_DIAGNOSTICS,
+        TOPIC_EE_POSE,
+        TOPIC_JOINT_STATES,
+        TOPIC_POLICY_SKIPPED,
+        TOPIC_VOXELS,
+        VOXEL_QOS,
+        declare_lab_config,
+        now_ns,
+        wait_for_clock,
+    )
 
     class PolicyNode(Node):
         def __init__(self):

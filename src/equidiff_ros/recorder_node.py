@@ -24,9 +24,9 @@ default), ``chunk_size_mib``, ``chunk_max_age_s``, ``min_free_gib``, ``task``, `
 from __future__ import annotations
 
 import sys
+import threading
 
 from equidiff_ros.runner import run_node
-import threading
 
 USAGE = __doc__ + """
 usage: recorder_node [--ros-args -p output_dir:=DIR -p task:=NAME -p operator:=NAME -p record_clouds:=false ...]
@@ -69,15 +69,25 @@ def parse_command(text: str) -> tuple[str, dict]:
 
 def build_node():
     from rclpy.node import Node
-
-    from equidiff_core.bags import EpisodeMeta
-    from equidiff_core.recording import (EpisodeWriter, RecordingConfig, RecordingError, next_episode_path,
-                                         recorded_topics)
-    from equidiff_core.rosmsg import RclpyFactory
     from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
-    from equidiff_ros.common import (LATCHED_QOS, RELIABLE_QOS, TOPIC_RECORDER_COMMAND, declare_lab_config, now_ns,
-                                     wait_for_clock)
+    from equidiff_core.bags import EpisodeMeta
+    from equidiff_core.recording import (
+        EpisodeWriter,
+        RecordingConfig,
+        RecordingError,
+        next_episode_path,
+        recorded_topics,
+    )
+    from equidiff_core.rosmsg import RclpyFactory
+    from equidiff_ros.common import (
+        LATCHED_QOS,
+        RELIABLE_QOS,
+        TOPIC_RECORDER_COMMAND,
+        declare_lab_config,
+        now_ns,
+        wait_for_clock,
+    )
     from equidiff_ros.teleop_node import declare_config
 
     # The contract's profiles, but with deep queues: a recorder must not drop 100 Hz state

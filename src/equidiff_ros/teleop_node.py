@@ -18,9 +18,9 @@ from __future__ import annotations
 
 import dataclasses
 import sys
+import typing
 
 from equidiff_ros.runner import run_node
-import typing
 
 USAGE = __doc__ + """
 usage: teleop_node [--ros-args -p source:=joy|spacemouse -p gripper_mode:=buttons|toggle|hold ...]
@@ -60,10 +60,25 @@ def build_node():
     from equidiff_core.chunk import chunk_to_msg
     from equidiff_core.geometry import GeometryError
     from equidiff_core.rosmsg import RclpyFactory
-    from equidiff_core.teleop import (SpaceMouseSource, TeleopConfig, TeleopError, TeleopInput,
-                                      TeleopIntegrator, is_fresh)
-    from equidiff_ros.common import (RELIABLE_QOS, SENSOR_QOS, TOPIC_COMMAND_CHUNK, TOPIC_EE_POSE, TOPIC_JOINT_STATES,
-                                     TOPIC_JOY, declare_lab_config, now_ns, wait_for_clock)
+    from equidiff_core.teleop import (
+        SpaceMouseSource,
+        TeleopConfig,
+        TeleopError,
+        TeleopInput,
+        TeleopIntegrator,
+        is_fresh,
+    )
+    from equidiff_ros.common import (
+        RELIABLE_QOS,
+        SENSOR_QOS,
+        TOPIC_COMMAND_CHUNK,
+        TOPIC_EE_POSE,
+        TOPIC_JOINT_STATES,
+        TOPIC_JOY,
+        declare_lab_config,
+        now_ns,
+        wait_for_clock,
+    )
 
     class TeleopNode(Node):
         def __init__(self):

@@ -51,23 +51,28 @@ def build_node():
     import json
     from pathlib import Path
 
-    from equidiff_core.rosmsg import stamp_to_ns
-
     from rclpy.node import Node
-
-    from equidiff_core.config import default_config_dir
-    from equidiff_core.twin.config import load_twin_config
-    from equidiff_core.twin.lockstep import LockstepConfig
-    from equidiff_core.twin.sim import TwinSim
-    from equidiff_ros.common import (LATCHED_QOS, RELIABLE_QOS, TOPIC_COMMAND_CHUNK, TOPIC_POLICY_SKIPPED,
-                                     TOPIC_VOXELS, VOXEL_QOS,
-                                     declare_lab_config)
-    from equidiff_ros.runner import declare_number
     from rclpy.qos import QoSProfile, ReliabilityPolicy
     from rosgraph_msgs.msg import Clock
     from sensor_msgs.msg import PointCloud2
     from std_msgs.msg import Bool, Int64, String
     from trajectory_msgs.msg import MultiDOFJointTrajectory
+
+    from equidiff_core.config import default_config_dir
+    from equidiff_core.rosmsg import stamp_to_ns
+    from equidiff_core.twin.config import load_twin_config
+    from equidiff_core.twin.lockstep import LockstepConfig
+    from equidiff_core.twin.sim import TwinSim
+    from equidiff_ros.common import (
+        LATCHED_QOS,
+        RELIABLE_QOS,
+        TOPIC_COMMAND_CHUNK,
+        TOPIC_POLICY_SKIPPED,
+        TOPIC_VOXELS,
+        VOXEL_QOS,
+        declare_lab_config,
+    )
+    from equidiff_ros.runner import declare_number
 
     class TwinNode(Node):
         def __init__(self):

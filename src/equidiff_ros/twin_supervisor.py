@@ -44,24 +44,34 @@ class Supervisor:
     def __init__(self, base_frame: str = "fr3_link0", command_lead_s: float = 0.05, name: str = "twin_supervisor",
                  sim_time: bool = False, latency_s: float = 0.0, stall_timeout_s: float = 30.0):
         import rclpy
+        from diagnostic_msgs.msg import DiagnosticArray
+        from geometry_msgs.msg import PoseStamped
         from rclpy.executors import SingleThreadedExecutor
         from rclpy.node import Node
         from rclpy.parameter import Parameter
         from rclpy.qos import QoSProfile, ReliabilityPolicy
+        from rclpy.signals import SignalHandlerOptions
         from rosgraph_msgs.msg import Clock
-        from std_msgs.msg import Bool
-
-        from diagnostic_msgs.msg import DiagnosticArray
-        from equidiff_ros.common import (LATCHED_QOS, RELIABLE_QOS, TOPIC_COMMAND_CHUNK, TOPIC_DIAGNOSTICS,
-                                         TOPIC_EE_POSE, TOPIC_JOINT_STATES, TOPIC_POLICY_SKIPPED,
-                                         TOPIC_RECORDER_COMMAND)
-        from equidiff_ros.twin_node import TOPIC_AWAIT_POLICY, TOPIC_RESET, TOPIC_SCENE, TOPIC_STATE
-        from geometry_msgs.msg import PoseStamped
         from sensor_msgs.msg import JointState
-        from std_msgs.msg import Int64, String
+        from std_msgs.msg import Bool, Int64, String
         from trajectory_msgs.msg import MultiDOFJointTrajectory
 
-        from rclpy.signals import SignalHandlerOptions
+        from equidiff_ros.common import (
+            LATCHED_QOS,
+            RELIABLE_QOS,
+            TOPIC_COMMAND_CHUNK,
+            TOPIC_DIAGNOSTICS,
+            TOPIC_EE_POSE,
+            TOPIC_JOINT_STATES,
+            TOPIC_POLICY_SKIPPED,
+            TOPIC_RECORDER_COMMAND,
+        )
+        from equidiff_ros.twin_node import (
+            TOPIC_AWAIT_POLICY,
+            TOPIC_RESET,
+            TOPIC_SCENE,
+            TOPIC_STATE,
+        )
 
         if not rclpy.ok():
             # No rclpy signal handlers: Ctrl-C must raise KeyboardInterrupt in the job's main thread
@@ -392,11 +402,15 @@ class TwinStack:
         self.group = None
         self.sup: Supervisor | None = None
 
-    def __enter__(self) -> "TwinStack":
+    def __enter__(self) -> TwinStack:
         import os
 
-        from equidiff_core.twin.processes import ProcessGroup, node_command, private_ros_env
         from equidiff_core.robots.franky.sim import free_loopback_host
+        from equidiff_core.twin.processes import (
+            ProcessGroup,
+            node_command,
+            private_ros_env,
+        )
 
         if self.attach:
             self.log(f"[twin] attaching to the running nodes on ROS_DOMAIN_ID={os.environ.get('ROS_DOMAIN_ID', '0')}")

@@ -23,9 +23,19 @@ from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
 
 from equidiff_core.config import LabConfig
-from equidiff_ros.common import (RELIABLE_QOS, SENSOR_QOS, TOPIC_COMMAND_CHUNK, TOPIC_DIAGNOSTICS,
-                                 TOPIC_EE_POSE, TOPIC_EXECUTED_TARGET, TOPIC_JOINT_STATES, TOPIC_VOXELS, VOXEL_QOS,
-                                 now_ns, wait_for_clock)
+from equidiff_ros.common import (
+    RELIABLE_QOS,
+    SENSOR_QOS,
+    TOPIC_COMMAND_CHUNK,
+    TOPIC_DIAGNOSTICS,
+    TOPIC_EE_POSE,
+    TOPIC_EXECUTED_TARGET,
+    TOPIC_JOINT_STATES,
+    TOPIC_VOXELS,
+    VOXEL_QOS,
+    now_ns,
+    wait_for_clock,
+)
 
 
 class VizNode(Node):

@@ -46,15 +46,23 @@ def build_node():
     from equidiff_core.rosmsg import RclpyFactory
     from equidiff_core.sync import ApproximateTimeMatcher
     from equidiff_core.voxels import Voxelizer, VoxelizerConfig
-    from equidiff_ros.common import (RELIABLE_QOS, SENSOR_QOS, TOPIC_DIAGNOSTICS, TOPIC_VOXELS, VOXEL_QOS,
-                                     declare_lab_config, now_ns, wait_for_clock)
+    from equidiff_ros.common import (
+        RELIABLE_QOS,
+        SENSOR_QOS,
+        TOPIC_DIAGNOSTICS,
+        TOPIC_VOXELS,
+        VOXEL_QOS,
+        declare_lab_config,
+        now_ns,
+        wait_for_clock,
+    )
 
     class VoxelNode(Node):
         def __init__(self):
             super().__init__(NODE_NAME)
             wait_for_clock(self)  # simulated time (the twin): nothing is timed before /clock
             self.lab = declare_lab_config(self)
-            param = lambda name, default: self.declare_parameter(name, default).value  # noqa: E731
+            param = lambda name, default: self.declare_parameter(name, default).value
             hz = param("observation_hz", self.lab.observation_hz)
             if not hz > 0:
                 raise ValueError(f"observation_hz must be positive, got {hz}")

@@ -18,7 +18,7 @@ BACKENDS: dict[str, tuple[str, str]] = {
     "twin": (".twin", "TwinCamera"),
 }
 
-__all__ = ["BACKENDS", "Camera", "CameraError", "CloudFrame", "extrinsics_tf_message", "limit_depth", "make_camera", "NoFrameYet"]
+__all__ = ["BACKENDS", "Camera", "CameraError", "CloudFrame", "NoFrameYet", "extrinsics_tf_message", "limit_depth", "make_camera"]
 
 
 def make_camera(backend: str, camera: CameraConfig, **backend_kwargs) -> Camera:

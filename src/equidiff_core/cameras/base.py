@@ -49,7 +49,7 @@ class Camera(abc.ABC):
     @abc.abstractmethod
     def is_connected(self) -> bool: ...
 
-    def __enter__(self) -> "Camera":
+    def __enter__(self) -> Camera:
         self.connect()
         return self
 

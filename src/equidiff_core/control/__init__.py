@@ -3,9 +3,21 @@
 Pure and ROS-free; the franka node only wires ROS topics to ``Controller``.
 """
 
-from .config import ControlConfig, FrankyConfig, SafetyConfig, SchedulerConfig, load_control_config
+from .config import (
+           ControlConfig,
+           FrankyConfig,
+           SafetyConfig,
+           SchedulerConfig,
+           load_control_config,
+)
 from .controller import Command, Controller, ControllerStats
-from .safety import FilteredTarget, SafetyFilter, SafetyRejection, check_chunk, rotation_angle
+from .safety import (
+           FilteredTarget,
+           SafetyFilter,
+           SafetyRejection,
+           check_chunk,
+           rotation_angle,
+)
 from .scheduler import ChunkScheduler, Setpoint
 
 __all__ = ["ChunkScheduler", "Command", "ControlConfig", "Controller", "ControllerStats", "FilteredTarget",

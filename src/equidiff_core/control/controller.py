@@ -15,15 +15,15 @@ from __future__ import annotations
 import dataclasses
 import logging
 import threading
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable
 
 import numpy as np
 
 from .. import geometry
 from ..chunk import ChunkError, PoseChunk
-from ..config import Workspace
 from ..clock import Clock, WallClock
+from ..config import Workspace
 from ..robots.base import Robot, RobotError, RobotState
 from .config import ControlConfig
 from .safety import FilteredTarget, SafetyFilter, SafetyRejection, check_chunk

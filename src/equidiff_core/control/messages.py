@@ -8,7 +8,8 @@ finger joints each at width/2), ``/franka/executed_target`` (PoseStamped) and th
 
 from __future__ import annotations
 
-from typing import Any, Mapping
+from collections.abc import Mapping
+from typing import Any
 
 import numpy as np
 

@@ -5,7 +5,7 @@ All take time stamps in seconds and positions (N, 3) in metres and return plain 
 
 from __future__ import annotations
 
-from typing import Callable
+from collections.abc import Callable
 
 import numpy as np
 

@@ -54,5 +54,5 @@ class BaselineNoisePredictor(nn.Module):
     def forward(self, sample, timestep, voxels, ee):
         return self.denoise(sample, timestep, self.encode_obs(voxels, ee))
 
-    def export_plain(self) -> "BaselineNoisePredictor":
+    def export_plain(self) -> BaselineNoisePredictor:
         return self

@@ -69,7 +69,7 @@ class ConditionalUnet1D(nn.Module):
         dims = [input_dim, *down_dims]
         in_out = list(zip(dims[:-1], dims[1:]))
         mid = down_dims[-1]
-        block = lambda i, o: ConditionalResidualBlock1D(i, o, cond_dim, kernel_size, n_groups)  # noqa: E731
+        block = lambda i, o: ConditionalResidualBlock1D(i, o, cond_dim, kernel_size, n_groups)
         self.mid_modules = nn.ModuleList([block(mid, mid), block(mid, mid)])
         self.down_modules = nn.ModuleList()
         for i, (d_in, d_out) in enumerate(in_out):

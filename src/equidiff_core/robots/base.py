@@ -81,7 +81,7 @@ class Robot(abc.ABC):
     @abc.abstractmethod
     def has_errors(self) -> bool: ...
 
-    def __enter__(self) -> "Robot":
+    def __enter__(self) -> Robot:
         self.connect()
         return self
 

@@ -11,4 +11,4 @@
 from .config import TwinConfig, load_twin_config
 from .scene import ScenePoses, sample_scene
 
-__all__ = ["TwinConfig", "load_twin_config", "ScenePoses", "sample_scene"]
+__all__ = ["ScenePoses", "TwinConfig", "load_twin_config", "sample_scene"]

@@ -12,8 +12,8 @@ So ``equidiff train`` reads these bags exactly like recorded ones. Stamps are
 from __future__ import annotations
 
 import time
+from collections.abc import Callable, Iterable
 from pathlib import Path
-from typing import Callable, Iterable
 
 import numpy as np
 
@@ -105,7 +105,7 @@ class DirectRecorder:
                     tcp = sim.tcp_pose()
                     w = sim.gripper_width()
                     writer.write("/franka/ee_pose", cm.pose_stamped(f, tcp, t_ns, frame), t_ns)
-                    q = sim.data.qpos[sim._qadr]  # noqa: SLF001
+                    q = sim.data.qpos[sim._qadr]
                     js = f.make("sensor_msgs/msg/JointState", header=f.header(t_ns, ""),
                                 name=[*ARM_JOINT_NAMES, *FINGER_JOINT_NAMES],
                                 position=f.float64_array([*map(float, q), w / 2, w / 2]),

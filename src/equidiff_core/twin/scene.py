@@ -10,8 +10,8 @@ from __future__ import annotations
 
 import math
 import xml.etree.ElementTree as ET
+from collections.abc import Iterable
 from dataclasses import asdict, dataclass
-from typing import Iterable
 
 import numpy as np
 
@@ -146,7 +146,7 @@ class ScenePoses:
         return asdict(self)
 
     @classmethod
-    def from_dict(cls, d: dict) -> "ScenePoses":
+    def from_dict(cls, d: dict) -> ScenePoses:
         return cls(int(d["seed"]), tuple(map(float, d["block_xy"])), float(d["block_yaw"]),
                    tuple(map(float, d["bowl_xy"])), float(d["bowl_yaw"]))
 

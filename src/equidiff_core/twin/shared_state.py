@@ -151,7 +151,7 @@ def _untrack(shm: shared_memory.SharedMemory) -> None:
     try:
         from multiprocessing import resource_tracker
 
-        resource_tracker.unregister(shm._name, "shared_memory")  # noqa: SLF001
+        resource_tracker.unregister(shm._name, "shared_memory")
     except Exception:  # pragma: no cover - tracker absent or already unregistered
         pass
 

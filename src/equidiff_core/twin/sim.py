@@ -28,12 +28,17 @@ from __future__ import annotations
 import math
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Callable
 
 import numpy as np
 
-from ..robots.franky.sim import free_loopback_host, keep_alive, raise_priority, step_server
+from ..robots.franky.sim import (
+    free_loopback_host,
+    keep_alive,
+    raise_priority,
+    step_server,
+)
 from .config import TwinConfig
 from .lockstep import NS_PER_TICK, Lockstep, LockstepConfig
 from .scene import ScenePoses, apply_scene, object_state, sample_scene, success_details
@@ -78,7 +83,7 @@ class TwinSim:
         self._frame_tick = 0
 
     # -- lifecycle ---------------------------------------------------------------------------
-    def start(self, seed: int = 0) -> "TwinSim":
+    def start(self, seed: int = 0) -> TwinSim:
         from franky_sim import SimulationServer
 
         from .scene import build_simulator
@@ -271,7 +276,6 @@ class DirectSim:
 
     def __init__(self, cfg: TwinConfig):
         import mujoco
-
         from franky_sim.mujoco_simulator import MUJOCO_DEFAULT_KP, MUJOCO_DEFAULT_KV
 
         from .scene import build_simulator
@@ -283,8 +287,8 @@ class DirectSim:
         self.model, self.data = self._sim.model, self._sim.data
         self._ik_data = mujoco.MjData(self.model)
         self._hand = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_BODY, "robot0_hand")
-        self._qadr = np.array(self.robot._qpos_addrs)  # noqa: SLF001
-        self._dadr = np.array(self.robot._dof_addrs)  # noqa: SLF001
+        self._qadr = np.array(self.robot._qpos_addrs)
+        self._dadr = np.array(self.robot._dof_addrs)
         self._kp, self._kv = np.array(MUJOCO_DEFAULT_KP), np.array(MUJOCO_DEFAULT_KV)
         self._tau_limit = np.array([87, 87, 87, 87, 12, 12, 12], dtype=float)
         self._q_target = np.array(cfg.sim.initial_q, dtype=float)
@@ -296,7 +300,7 @@ class DirectSim:
         import mujoco
 
         self.data.qpos[self._qadr] = self.cfg.sim.initial_q
-        for addr in self.robot._finger_qpos_addrs:  # noqa: SLF001
+        for addr in self.robot._finger_qpos_addrs:
             self.data.qpos[addr] = 0.04
         self.data.qvel[:] = 0.0
         self.data.qfrc_applied[:] = 0.0
@@ -358,7 +362,7 @@ class DirectSim:
             q, dq = d.qpos[self._qadr], d.qvel[self._dadr]
             tau = self._kp * (self._q_target - q) - self._kv * dq
             d.qfrc_applied[self._dadr] = np.clip(tau, -self._tau_limit, self._tau_limit) + d.qfrc_bias[self._dadr]
-            self.robot._pre_step()  # noqa: SLF001  franky-sim's gripper PD
+            self.robot._pre_step()
             mujoco.mj_step(self.model, d)
 
     @property

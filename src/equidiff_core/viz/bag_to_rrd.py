@@ -18,16 +18,23 @@ fit in memory. An unreadable bag is reported and skipped; the others are still c
 from __future__ import annotations
 
 import time
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterable
+from typing import Any
 
 import yaml
 
 from ..config import LabConfig
 from ..rosmsg import rosbags_factory
-from .logger import TOPICS_HANDLED, RerunLogger, VizConfig, default_blueprint, open_recording
-from .logger import APPLICATION_ID
+from .logger import (
+    APPLICATION_ID,
+    TOPICS_HANDLED,
+    RerunLogger,
+    VizConfig,
+    default_blueprint,
+    open_recording,
+)
 
 
 class BagConversionError(RuntimeError):

@@ -67,7 +67,7 @@ class RerunTrainingCallback:
         self.closed = False
 
     @classmethod
-    def from_target(cls, target: str, **kwargs: Any) -> "RerunTrainingCallback":
+    def from_target(cls, target: str, **kwargs: Any) -> RerunTrainingCallback:
         """``--rerun`` value of a CLI: 'spawn', a FILE.rrd, or a viewer address host:port."""
         if target == "spawn":
             return cls(spawn=True, **kwargs)

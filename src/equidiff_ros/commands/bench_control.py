@@ -150,17 +150,23 @@ class BenchClient:
 
     def __init__(self, lab, lab_path: str):
         import rclpy
-        from rclpy.executors import SingleThreadedExecutor
-
         from diagnostic_msgs.msg import DiagnosticArray
-        from equidiff_core.rosmsg import RclpyFactory
-        from equidiff_ros.common import (RELIABLE_QOS, TOPIC_COMMAND_CHUNK, TOPIC_DIAGNOSTICS, TOPIC_EE_POSE,
-                                         TOPIC_EXECUTED_TARGET, TOPIC_VOXELS, VOXEL_QOS)
         from geometry_msgs.msg import PoseStamped
+        from rclpy.executors import SingleThreadedExecutor
         from sensor_msgs.msg import JointState, PointCloud2
         from trajectory_msgs.msg import MultiDOFJointTrajectory
 
-        from equidiff_ros.common import TOPIC_JOINT_STATES
+        from equidiff_core.rosmsg import RclpyFactory
+        from equidiff_ros.common import (
+            RELIABLE_QOS,
+            TOPIC_COMMAND_CHUNK,
+            TOPIC_DIAGNOSTICS,
+            TOPIC_EE_POSE,
+            TOPIC_EXECUTED_TARGET,
+            TOPIC_JOINT_STATES,
+            TOPIC_VOXELS,
+            VOXEL_QOS,
+        )
 
         self.lab = lab
         self.lab_path = lab_path
@@ -334,7 +340,7 @@ def run_track_and_hold(client: BenchClient, speed: float, radius: float, duratio
         "velocity_reversals": metrics.velocity_reversals(times, positions, circle.tangent),
         "command_rms_mm": round(metrics.tracking_rms(t_times, t_positions, circle.position) * 1000, 2),
         "command_velocity_reversals": metrics.velocity_reversals(t_times, t_positions, circle.tangent),
-        "tracking_samples": int(len(times)),
+        "tracking_samples": len(times),
         "state_hz": round(len(times) / max(t_to - t_from, 1e-9), 1),
         "hold_drift_mm": round(metrics.max_drift(h_positions, h_positions[0]) * 1000, 2),
         "hold_engaged_after_ms": round((hold_start - last_send) * 1000, 1),

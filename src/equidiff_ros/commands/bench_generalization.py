@@ -249,7 +249,11 @@ def _trained_demos(run_dir: Path) -> int | None:
 def _evaluate(args, cfg, lab, out: Path, policies: dict, steps_done: dict, n_demos, minutes: dict) -> int:
     from equidiff_core.inference import load_inference_policy
     from equidiff_core.twin.demos import DirectRecorder
-    from equidiff_core.twin.evaluate import evaluate_policy, in_range_yaw_seeds, unseen_yaw_seeds
+    from equidiff_core.twin.evaluate import (
+        evaluate_policy,
+        in_range_yaw_seeds,
+        unseen_yaw_seeds,
+    )
 
     t_eval = time.monotonic()
     seeds = unseen_yaw_seeds(cfg, tuple(args.train_yaw), args.eval_episodes)

@@ -66,7 +66,11 @@ def run(args) -> int:
     import torch
 
     from equidiff_core.config import Workspace
-    from equidiff_core.inference import CheckpointError, export_policy, load_inference_policy
+    from equidiff_core.inference import (
+        CheckpointError,
+        export_policy,
+        load_inference_policy,
+    )
     from equidiff_core.models.equivariance import random_observation
     from equidiff_core.normalizer import Normalizer
     from equidiff_core.policies import count_parameters, make_policy
@@ -85,7 +89,7 @@ def run(args) -> int:
 
     ws = Workspace()
     torch.manual_seed(0)
-    load = lambda path: load_inference_policy(path, device=str(device), precision=precision,  # noqa: E731
+    load = lambda path: load_inference_policy(path, device=str(device), precision=precision,
                                               jit=not args.no_jit, compile=args.compile)
     if args.checkpoint:
         try:  # one read: load_inference_policy validates the file and its config (CheckpointError)

@@ -44,7 +44,7 @@ def _stats(x) -> dict:
 
     x = np.asarray(x, dtype=np.float64)
     return {"min": x.min(0).tolist(), "max": x.max(0).tolist(), "mean": x.mean(0).tolist(),
-            "std": x.std(0).tolist(), "count": [int(len(x))]}
+            "std": x.std(0).tolist(), "count": [len(x)]}
 
 
 def _voxel_stats(grids) -> dict:
@@ -57,7 +57,7 @@ def _voxel_stats(grids) -> dict:
     def shaped(v):
         return np.asarray(v).reshape(4, 1, 1, 1).tolist()
     return {"min": shaped(g.min(axes)), "max": shaped(g.max(axes)), "mean": shaped(g.mean(axes)),
-            "std": shaped(g.std(axes)), "count": [int(len(g))]}
+            "std": shaped(g.std(axes)), "count": [len(g)]}
 
 
 def _merge_stats(all_stats: list[dict]) -> dict:

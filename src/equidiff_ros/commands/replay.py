@@ -47,7 +47,7 @@ def shift_stamps(msg, offset_ns: int) -> None:
         header = getattr(m, "header", None)
         if header is not None and hasattr(header, "stamp"):
             header.stamp.sec, header.stamp.nanosec = split_ns(stamp_to_ns(header.stamp) + offset_ns)
-        for name in getattr(m, "get_fields_and_field_types", lambda: {})():
+        for name in getattr(m, "get_fields_and_field_types", dict)():
             if name == "header":
                 continue
             value = getattr(m, name)
@@ -111,12 +111,11 @@ def _check_robot_start(node, executor, first_chunk_raw, max_dist: float, wait_s:
 def run(args) -> int:
     import rclpy
     from rclpy.executors import SingleThreadedExecutor
+    from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
     from rclpy.serialization import deserialize_message
 
     from equidiff_core.bags import BagError
     from equidiff_core.rosmsg import RclpyFactory
-    from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
-
     from equidiff_ros.common import LATCHED_QOS
 
     if args.rate <= 0:

@@ -88,7 +88,7 @@ class ActionMseEvaluator:
         metrics[f"{p}_action_mse"] = float(torch.cat(sq).mean())
         metrics[f"{p}_action_pos_err_m"] = float(torch.cat(pos).mean())
         metrics[f"{p}_action_width_err_m"] = float(torch.cat(width).mean())
-        metrics[f"{p}_action_samples"] = int(len(idx))
+        metrics[f"{p}_action_samples"] = len(idx)
 
 
 class ProgressBar:
@@ -202,7 +202,12 @@ def run(args) -> int:
     from equidiff_core.dataset import DatasetConfig, DemoDataset, load_episodes
     from equidiff_core.policies import make_policy
     from equidiff_core.presets import get_preset
-    from equidiff_core.training import TrainConfig, TrainingError, seed_everything, train
+    from equidiff_core.training import (
+        TrainConfig,
+        TrainingError,
+        seed_everything,
+        train,
+    )
 
     out = Path(args.out)
     if (out / "last.ckpt").exists() and not args.resume:

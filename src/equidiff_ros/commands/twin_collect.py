@@ -116,7 +116,7 @@ def run(args: argparse.Namespace) -> int:
     except KeyboardInterrupt:
         print("[collect] interrupted", file=sys.stderr)
         return 130
-    except Exception as err:  # noqa: BLE001 - node failures, timeouts: say what and stop cleanly
+    except Exception as err:
         from equidiff_core.twin.processes import NodeProcessError
         from equidiff_ros.twin_supervisor import SupervisorError
 

@@ -14,7 +14,7 @@ clock (what the ROS clock is on hardware); otherwise the arrival time is used.
 from __future__ import annotations
 
 import time
-from typing import Callable
+from collections.abc import Callable
 
 import numpy as np
 

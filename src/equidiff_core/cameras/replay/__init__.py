@@ -13,8 +13,8 @@ therefore deliver the same recorded instant at the same moment.
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from pathlib import Path
-from typing import Callable
 
 from ...config import CameraConfig
 from ...pointcloud import CloudError, msg_to_cloud

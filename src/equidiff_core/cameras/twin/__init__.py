@@ -25,9 +25,9 @@ from __future__ import annotations
 import math
 import os
 import time
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, replace
-from typing import Callable
 
 import numpy as np
 
@@ -50,7 +50,7 @@ class Intrinsics:
     cy: float
 
     @classmethod
-    def from_fovy(cls, width: int, height: int, fovy_deg: float) -> "Intrinsics":
+    def from_fovy(cls, width: int, height: int, fovy_deg: float) -> Intrinsics:
         f = (height / 2) / math.tan(math.radians(fovy_deg) / 2)  # MuJoCo cameras have square pixels
         return cls(width, height, f, f, width / 2, height / 2)
 

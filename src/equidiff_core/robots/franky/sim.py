@@ -114,7 +114,7 @@ def keep_alive(server) -> None:
             sent = getattr(channel, "_FrankaServer__message_id", 0)
             if channel is None or sent < 1 or not channel.udp_connected:
                 continue  # nothing sent yet, no client, or an unknown layout: nothing to repeat
-            channel._FrankaServer__message_id = sent - 1  # noqa: SLF001 - send_state adds it back
+            channel._FrankaServer__message_id = sent - 1
             FrankaServer.send_state(channel)  # this channel only (the robot's send_state adds the gripper's)
 
 
@@ -151,7 +151,7 @@ class SimServer:
         self.process: subprocess.Popen | None = None
         self.stats: list[tuple[float, int, float]] = []  # (monotonic, steps, server wall s), once a second
 
-    def start(self) -> "SimServer":
+    def start(self) -> SimServer:
         _check_port_free(self.host)
         env = dict(os.environ, OMP_NUM_THREADS="1")
         self.process = subprocess.Popen(
@@ -199,7 +199,7 @@ class SimServer:
                 self.process.wait()
         self.process = None
 
-    def __enter__(self) -> "SimServer":
+    def __enter__(self) -> SimServer:
         return self.start()
 
     def __exit__(self, *exc) -> None:
