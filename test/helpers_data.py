@@ -124,7 +124,7 @@ def write_synthetic_episode(path: str | Path, ep: SyntheticEpisode = SyntheticEp
                                notes="synthetic episode (test/helpers_data.py)", seed=0)
     frame = LAB.base_frame
     events: list[tuple[int, str, object]] = []
-    ns = lambda s: ep.t0_ns + int(round(s * NS_PER_S))
+    ns = lambda s: ep.t0_ns + round(s * NS_PER_S)
     n_state = int(ep.duration_s * ep.state_hz)
     for i in range(n_state):
         t = i / ep.state_hz

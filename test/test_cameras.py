@@ -1,5 +1,6 @@
 """Camera backends without hardware: factory, RealSense options/deprojection/fail-fast, bag replay."""
 
+import itertools
 import time
 
 import numpy as np
@@ -144,7 +145,7 @@ def test_replay_plays_a_bag_at_the_recorded_pace_restamped_and_loops(tmp_path):
             np.testing.assert_array_equal(frame.points, clouds[k][0])
             np.testing.assert_array_equal(frame.colors, clouds[k][1])
         assert abs(frame.stamp_ns - offset - time.time_ns()) < 3e9  # restamped by the given clock
-    assert all(b.stamp_ns > a.stamp_ns for a, b in zip(frames, frames[1:]))
+    assert all(b.stamp_ns > a.stamp_ns for a, b in itertools.pairwise(frames))
     with make_camera("replay", _camera("cam_b"), bag=str(bag), restamp=False, loop=False, rate=4.0) as cam_b:
         assert [cam_b.read().stamp_ns for _ in range(3)] == recorded["/cameras/cam_b/points"]
         with pytest.raises(ReplayFinished, match="finished after 3 frames"):

@@ -184,7 +184,7 @@ def test_streamed_chunks_track_a_curve_without_velocity_reversals(interpolation)
     """5 Hz chunks of 8 steps along a circle, each 100 ms late (inference): the setpoint moves
     along the circle with continuous position, never backwards, within 1 mm of it."""
     cfg = dataclasses.replace(ControlConfig(), scheduler=SchedulerConfig(interpolation=interpolation))
-    ctl, robot, clock = make_controller(cfg)
+    ctl, _robot, clock = make_controller(cfg)
     t0 = clock.t
     period = int(1e9 / cfg.control_hz)
     positions, times = [], []
@@ -210,7 +210,7 @@ def test_streamed_chunks_track_a_curve_without_velocity_reversals(interpolation)
 # --- controller -------------------------------------------------------------------------
 
 def test_watchdog_holds_the_pose_when_commands_stop():
-    ctl, robot, clock = make_controller()
+    ctl, _robot, clock = make_controller()
     t0 = clock.t
     ctl.submit(circle_chunk(t0, t0))
     period = int(1e9 / ctl.config.control_hz)
@@ -248,7 +248,7 @@ def test_speed_limits_hold_in_the_robots_own_time(robot_clock_rate):
                 return state
             return dataclasses.replace(state, robot_time_s=(clock.t - start_ns) / 1e9 * robot_clock_rate)
 
-    ctl, robot, _ = make_controller(clock=clock, robot=ClockedRobot(DryRunConfig(initial_position=(0.45, 0.0, 0.25))))
+    ctl, _robot, _ = make_controller(clock=clock, robot=ClockedRobot(DryRunConfig(initial_position=(0.45, 0.0, 0.25))))
     period = int(1e9 / ctl.config.control_hz)
     goal = pose_at(np.array([0.45, 0.07, 0.25]))  # 7 cm away, due in 50 ms: speed-limited all the way
     ctl.submit(PoseChunk(clock.t, np.array([clock.t + 50 * MS]), goal[None], np.ones(1)))
@@ -333,7 +333,7 @@ def test_chunk_outside_the_workspace_never_moves_the_command_outside():
 
 
 def test_rejected_chunks_are_counted_and_the_node_keeps_its_trajectory():
-    ctl, robot, clock = make_controller()
+    ctl, _robot, clock = make_controller()
     t0 = clock.t
     assert ctl.submit(circle_chunk(t0, t0))
     far = PoseChunk(t0, np.array([t0 + 200 * MS]), pose_at((0.60, 0.1, 0.1))[None], np.zeros(1))
@@ -371,7 +371,7 @@ def test_gripper_is_commanded_only_when_its_target_changes():
 
 def test_teleop_one_point_chunks_are_followed_smoothly():
     """teleop_node's format: one point, stamp = now, reached 50 ms later, at 20 Hz."""
-    ctl, robot, clock = make_controller(start=(0.45, 0.0, 0.25))
+    ctl, _robot, clock = make_controller(start=(0.45, 0.0, 0.25))
     period = int(1e9 / ctl.config.control_hz)
     target = np.array([0.45, 0.0, 0.25])
     xs = []

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import os
 import signal
 import subprocess
@@ -249,7 +250,7 @@ def test_teleop_node_drives_target_from_joy(ros):
     np.testing.assert_allclose(last.poses[0, :3, :3], start[:3, :3], atol=1e-6)
     assert last.widths[0] == 0.0  # close button
     xs = [c.poses[0, 0, 3] for c in chunks]
-    assert all(b >= a - 1e-9 for a, b in zip(xs, xs[1:]))
+    assert all(b >= a - 1e-9 for a, b in itertools.pairwise(xs))
 
 
 def test_teleop_node_without_device_names_what_it_looked_for(ros_domain):

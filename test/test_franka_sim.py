@@ -69,7 +69,7 @@ def state_stamps(client, t_from: float, t_to: float) -> tuple[np.ndarray, np.nda
 
 
 def test_state_is_published_at_100_hz_from_the_home_pose(franka):
-    client, proc, lab, sim = franka
+    client, _proc, _lab, _sim = franka
     j0, t0 = client.data.joint_states, time.time()
     time.sleep(2.0)
     stamps, gaps = state_stamps(client, t0, time.time())
@@ -91,7 +91,7 @@ def test_state_is_published_at_100_hz_from_the_home_pose(franka):
 
 
 def test_curve_is_tracked_smoothly_and_held_when_commands_stop(franka):
-    client, proc, lab, sim = franka
+    client, proc, _lab, sim = franka
     t0, t_start = time.monotonic(), time.time()
     r = bench.run_track_and_hold(client, speed=0.06, radius=0.05, duration=4.0, settle=1.0, obs_latency=0.1,
                                  watchdog_s=CONTROL.safety.watchdog_timeout_s)
@@ -112,7 +112,7 @@ def test_curve_is_tracked_smoothly_and_held_when_commands_stop(franka):
 
 
 def test_commands_outside_the_workspace_never_take_the_tcp_outside(franka):
-    client, proc, lab, sim = franka
+    client, proc, lab, _sim = franka
     bench.approach(client, np.asarray(CONTROL.home_position))
     r = bench.run_workspace(client, lab.workspace, duration=3.0)
     assert r["workspace_requested_outside_mm"] > 50  # the sender really asked for it
@@ -121,7 +121,7 @@ def test_commands_outside_the_workspace_never_take_the_tcp_outside(franka):
 
 
 def test_nan_chunk_is_rejected_and_the_node_keeps_running(franka):
-    client, proc, lab, sim = franka
+    client, proc, _lab, _sim = franka
     r = bench.run_nan(client)
     assert r["nan_rejected"] == 1 and r["alive_after_nan"], r
     assert proc.poll() is None
@@ -131,7 +131,7 @@ def test_gripper_moves_without_blocking_the_arm(franka):
     """A gripper command must not hold up franka_node's control loop or its state publishing
     (on franky-sim it once froze both): a blocking move stops them for the whole move, about a
     second for these 4-6 cm at 0.05 m/s, so no new state may be missing for 0.5 s meanwhile."""
-    client, proc, lab, sim = franka
+    client, proc, _lab, _sim = franka
     here = client.latest_position()
 
     def width():

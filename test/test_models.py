@@ -24,7 +24,7 @@ WS = Workspace()
 
 
 def test_presets_round_trip_and_validate():
-    for name, preset in PRESETS.items():
+    for preset in PRESETS.values():
         assert preset_from_dict(preset.to_dict()) == preset
         assert preset.horizon == 16 and preset.n_obs_steps == 1 and preset.n_action_steps == 8
     paper = get_preset("paper")

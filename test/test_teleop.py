@@ -35,7 +35,7 @@ def make(**kw) -> TeleopIntegrator:
 
 
 def run(t: TeleopIntegrator, axes, seconds=1.0, dt=0.01, buttons=()):
-    for _ in range(int(round(seconds / dt))):
+    for _ in range(round(seconds / dt)):
         t.step(TeleopInput(tuple(axes), tuple(buttons)), dt)
     return t.target
 

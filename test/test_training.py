@@ -38,8 +38,8 @@ class Recorder:
 
 
 def _quick_cfg(**kw):
-    base = dict(steps=2, batch_size=2, warmup_steps=1, eval_every=2, eval_samples=1, val_batches=1,
-                checkpoint_every=1, log_every=1)
+    base = {"steps": 2, "batch_size": 2, "warmup_steps": 1, "eval_every": 2, "eval_samples": 1, "val_batches": 1,
+                "checkpoint_every": 1, "log_every": 1}
     return TrainConfig(**{**base, **kw})
 
 

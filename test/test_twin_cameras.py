@@ -152,7 +152,7 @@ def test_bad_options_missing_twin_and_nan_state_are_clear_errors():
 
 @pytest.mark.sim
 def test_reads_the_twin_state_from_shared_memory_and_paces_to_publish_hz():
-    qpos, poses = _state(8)
+    qpos, _poses = _state(8)
     name = f"equidiff_twin_camtest_{time.time_ns()}"
     writer = StateWriter(len(qpos), name)
     try:

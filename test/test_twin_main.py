@@ -58,9 +58,9 @@ def test_process_group_detects_deaths_and_stops_whole_process_trees(tmp_path):
     with ProcessGroup(env, tmp_path, grace_s=2.0) as group:
         # a "node" that ignores SIGINT and has a child: both must still be gone afterwards
         tree = group.start("stubborn", [sys.executable, "-c",
-                                        "import signal, subprocess, sys, time; signal.signal(signal.SIGINT, signal.SIG_IGN);"
+                                        ("import signal, subprocess, sys, time; signal.signal(signal.SIGINT, signal.SIG_IGN);"
                                         "p = subprocess.Popen([sys.executable, '-c', 'import time; time.sleep(60)']);"
-                                        "print(p.pid, flush=True); time.sleep(60)"])
+                                        "print(p.pid, flush=True); time.sleep(60)")])
         group.start("dies", [sys.executable, "-c", "print('bad config'); raise SystemExit(3)"])
         time.sleep(1.0)
         with pytest.raises(NodeProcessError, match="(?s)dies exited with code 3.*bad config"):

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import os
 import signal
 import subprocess
@@ -115,7 +116,7 @@ def test_sim_waits_for_cameras_and_the_policy_and_keeps_franky_alive_through_a_l
         with keep_thread_scheduler():
             robot.move(franky.JointMotion(list(robot.state.q)))
         assert np.all(np.isfinite(robot.state.q))
-        assert all(b >= a for a, b in zip(clock, clock[1:]))  # /clock never goes back (it repeats while waiting)
+        assert all(b >= a for a, b in itertools.pairwise(clock))  # /clock never goes back (it repeats while waiting)
     finally:
         sim.stop()
 

@@ -73,7 +73,7 @@ class DatasetConfig:
     @classmethod
     def from_preset(cls, preset: Any, **overrides: Any) -> DatasetConfig:
         """Horizon, observation steps and action steps from a model preset (``presets.PolicyPreset``)."""
-        kw = dict(horizon=preset.horizon, n_obs_steps=preset.n_obs_steps, n_action_steps=preset.n_action_steps)
+        kw = {"horizon": preset.horizon, "n_obs_steps": preset.n_obs_steps, "n_action_steps": preset.n_action_steps}
         kw.update(overrides)
         return cls(**kw)
 
@@ -206,9 +206,9 @@ def load_episode_arrays(path: str | Path, config: DatasetConfig = DatasetConfig(
     if np.any(np.diff(stamps) <= 0):
         raise BagError(f"{path}: /voxels has repeated header stamps")
     if len(stamps) >= 2:
-        period = int(round(config.obs_period_s * NS_PER_S)) if config.obs_period_s else int(np.median(np.diff(stamps)))
+        period = round(config.obs_period_s * NS_PER_S) if config.obs_period_s else int(np.median(np.diff(stamps)))
     else:
-        period = int(round((config.obs_period_s or 0.2) * NS_PER_S))
+        period = round((config.obs_period_s or 0.2) * NS_PER_S)
     ee, ok = _ee_actions(episode, stamps, int(config.state_tolerance_s * NS_PER_S))
 
     chunks, rejected = [], 0
@@ -381,7 +381,7 @@ def split_episodes(episodes: Sequence[Any], val_fraction: float, seed: int) -> t
         raise ValueError(f"val_fraction must be in [0, 1), got {val_fraction}")
     order = list(range(len(episodes)))
     random.Random(seed).shuffle(order)
-    n_val = int(round(len(episodes) * val_fraction))
+    n_val = round(len(episodes) * val_fraction)
     if val_fraction > 0 and n_val == 0 and len(episodes) > 1:
         n_val = 1
     val = sorted(order[:n_val])

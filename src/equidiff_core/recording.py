@@ -29,7 +29,7 @@ import shutil
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Self
 
 import yaml
 
@@ -248,7 +248,7 @@ class EpisodeWriter:
             self._writer = None
         shutil.rmtree(self.path, ignore_errors=True)
 
-    def __enter__(self) -> EpisodeWriter:
+    def __enter__(self) -> Self:
         return self.open() if not self.is_open else self
 
     def __exit__(self, exc_type, exc, tb) -> None:

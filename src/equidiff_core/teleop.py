@@ -22,6 +22,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import Self
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -291,7 +292,7 @@ class SpaceMouseSource:
             finally:
                 self._dev = None
 
-    def __enter__(self) -> SpaceMouseSource:
+    def __enter__(self) -> Self:
         self.connect()
         return self
 

@@ -78,8 +78,8 @@ def build_node():
             self.hardware_id = "dryrun" if backend == "dryrun" else robot_ip
 
             log = _ros_logger_adapter(self.get_logger())
-            kwargs = {} if backend == "dryrun" else dict(ip=robot_ip, config=self.config.franky,
-                                                         realtime=realtime, gripper=gripper)
+            kwargs = {} if backend == "dryrun" else {"ip": robot_ip, "config": self.config.franky,
+                                                         "realtime": realtime, "gripper": gripper}
             self.robot = make_robot(backend, logger=log, **kwargs)
             self.get_logger().info(f"connecting to the robot ({backend}, {self.hardware_id})")
             self.robot.connect()

@@ -122,7 +122,7 @@ def build_node():
             self.n_action_steps = int(n_steps) or int(preset.n_action_steps)
             if not 1 <= self.n_action_steps <= preset.horizon:
                 raise ValueError(f"n_action_steps must be within 1..{preset.horizon}, got {self.n_action_steps}")
-            self.dt_ns = int(round(preset.dt * 1e9))
+            self.dt_ns = round(preset.dt * 1e9)
             self.execute_steps = int(execute_steps) or self.n_action_steps
             if not 1 <= self.execute_steps <= self.n_action_steps:
                 raise ValueError(f"execute_steps must be within 1..{self.n_action_steps}, got {self.execute_steps}")

@@ -23,6 +23,7 @@ import json
 import os
 import threading
 import time
+from typing import Self
 
 import numpy as np
 
@@ -82,7 +83,7 @@ class Supervisor:
         self.frame = base_frame
         self.lead_ns = int(command_lead_s * NS)
         self.sim_time = bool(sim_time)
-        self.latency_ns = int(round(latency_s * NS)) if sim_time else 0
+        self.latency_ns = round(latency_s * NS) if sim_time else 0
         self.stall_timeout_s = stall_timeout_s
         self.lock = threading.Lock()
         self._held: list = []  # policy chunks waiting for stamp + latency (simulated time)
@@ -402,7 +403,7 @@ class TwinStack:
         self.group = None
         self.sup: Supervisor | None = None
 
-    def __enter__(self) -> TwinStack:
+    def __enter__(self) -> Self:
         import os
 
         from equidiff_core.robots.franky.sim import free_loopback_host

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import abc
 from dataclasses import dataclass
+from typing import Self
 
 import numpy as np
 
@@ -49,7 +50,7 @@ class Camera(abc.ABC):
     @abc.abstractmethod
     def is_connected(self) -> bool: ...
 
-    def __enter__(self) -> Camera:
+    def __enter__(self) -> Self:
         self.connect()
         return self
 

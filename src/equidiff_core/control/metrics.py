@@ -59,7 +59,7 @@ def velocity_reversals(times: np.ndarray, positions: np.ndarray, tangent: Callab
     tang /= np.maximum(np.linalg.norm(tang, axis=1, keepdims=True), 1e-12)
     backwards = np.sum(vel * tang, axis=1) < -threshold_m_s
     count, run = 0, 0
-    need = max(1, int(round(min_duration_s * hz)))
+    need = max(1, round(min_duration_s * hz))
     for b in backwards:
         run = run + 1 if b else 0
         if run == need:

@@ -70,7 +70,7 @@ class EquiNoiseCore(nn.Module):
 
     def encode_obs(self, voxels: torch.Tensor, ee: torch.Tensor) -> torch.Tensor:
         """voxels (B, To, C, S, S, S) float in [0, 1], ee (B, To, 10) normalised -> cond (B*N, obs_hidden)."""
-        B, To = voxels.shape[:2]
+        B, _To = voxels.shape[:2]
         feats = self._encode_voxels(to_escnn_layout(voxels.flatten(0, 1))).reshape(B, -1)
         ee_field = ee.index_select(-1, self.ee_order).reshape(B, -1).to(feats.dtype)
         h = self._obs_linear(torch.cat([feats, ee_field], dim=1))  # (B, H*N), field-major

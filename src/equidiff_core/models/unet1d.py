@@ -9,6 +9,7 @@ inference export uses this module unchanged.
 
 from __future__ import annotations
 
+import itertools
 import math
 
 import torch
@@ -67,7 +68,7 @@ class ConditionalUnet1D(nn.Module):
             SinusoidalPosEmb(dsed), nn.Linear(dsed, dsed * 4), nn.Mish(), nn.Linear(dsed * 4, dsed))
         cond_dim = dsed + global_cond_dim
         dims = [input_dim, *down_dims]
-        in_out = list(zip(dims[:-1], dims[1:]))
+        in_out = list(itertools.pairwise(dims))
         mid = down_dims[-1]
         block = lambda i, o: ConditionalResidualBlock1D(i, o, cond_dim, kernel_size, n_groups)
         self.mid_modules = nn.ModuleList([block(mid, mid), block(mid, mid)])

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import abc
 from dataclasses import dataclass
+from typing import Self
 
 import numpy as np
 
@@ -81,7 +82,7 @@ class Robot(abc.ABC):
     @abc.abstractmethod
     def has_errors(self) -> bool: ...
 
-    def __enter__(self) -> Robot:
+    def __enter__(self) -> Self:
         self.connect()
         return self
 

@@ -87,9 +87,9 @@ class DirectRecorder:
         t0 = sim.time
         writer.write_tf_static(self.lab, epoch_ns)
         frame = self.lab.base_frame
-        obs_every = int(round(1000 / self.lab.observation_hz))
-        cmd_every = int(round(1000 / ex.command_hz))
-        state_every = int(round(1000 / self.lab.robot.state_hz))
+        obs_every = round(1000 / self.lab.observation_hz)
+        cmd_every = round(1000 / ex.command_hz)
+        state_every = round(1000 / self.lab.robot.state_hz)
         lead_ns = 50_000_000  # teleop's command lead
         step, success_since, details = 0, None, {}
         end_ms = int((plan.duration + 3.0) * 1000)
@@ -148,7 +148,7 @@ def collect_direct(cfg: TwinConfig, lab: LabConfig, out: Path, seeds: Iterable[i
         for seed in seeds:
             t0 = time.monotonic()
             path = next_episode_path(out, task)
-            ok, details = rec.record(path, seed, task, epoch_ns=time.time_ns())
+            ok, _details = rec.record(path, seed, task, epoch_ns=time.time_ns())
             if not ok and not keep_failures:
                 shutil.rmtree(path, ignore_errors=True)
             results.append((seed, ok, str(path) if ok or keep_failures else ""))

@@ -9,6 +9,7 @@ exactly what teleop_node publishes), so demonstrations go through the recorder l
 
 from __future__ import annotations
 
+import itertools
 import math
 from dataclasses import dataclass, field
 
@@ -125,7 +126,7 @@ class ExpertPlan:
         ks = self.keyframes
         if t <= ks[0].t:
             return tcp_pose(ks[0].position, ks[0].yaw), ks[0].width
-        for a, b in zip(ks, ks[1:]):
+        for a, b in itertools.pairwise(ks):
             if t < b.t:
                 s = (t - a.t) / max(b.t - a.t, 1e-9)
                 s = 0.5 - 0.5 * math.cos(math.pi * s)  # smooth start and stop of every segment
@@ -194,7 +195,7 @@ def run_direct_episode(sim, seed: int, cfg: TwinConfig, max_extra_s: float = 3.0
                            body_pose(sim.model, sim.data, BOWL), cfg.scene.block_size[2], ex)
     t0 = sim.time
     control_dt = 1.0 / ex.command_hz
-    steps = int(round(control_dt * 1000))
+    steps = round(control_dt * 1000)
     while sim.time - t0 < plan.duration + max_extra_s:
         pose, width = plan.target_at(sim.time - t0)
         sim.command(pose, width)

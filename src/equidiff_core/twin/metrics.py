@@ -78,8 +78,8 @@ class RunSummary:
                  f"success rate:      {d['success_rate'] * 100:.0f} %",
                  f"mean episode time: {d['mean_episode_s']} s (successful: {d['mean_success_episode_s']} s)",
                  f"inference:         p50 {d['inference_p50_ms']} ms, p95 {d['inference_p95_ms']} ms",
-                 f"end to end:        p50 {d['end_to_end_p50_ms']} ms, p95 {d['end_to_end_p95_ms']} ms "
-                 "(camera capture -> chunk at the robot)",
+                 (f"end to end:        p50 {d['end_to_end_p50_ms']} ms, p95 {d['end_to_end_p95_ms']} ms "
+                 "(camera capture -> chunk at the robot)"),
                  f"dropped cycles:    {d['dropped_cycles']} (observations due an answer that got none; {d['chunks']} chunks)",
                  "clock:             " + (f"simulated time, latency budget {d['latency_budget_ms']} ms"
                                               if d["clock"] == "sim" else "real time"),

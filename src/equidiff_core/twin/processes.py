@@ -17,6 +17,7 @@ import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Self
 
 # A ProcessGroup's pid, given to each node it starts (see job_gone)
 PARENT_PID_ENV = "EQUIDIFF_PARENT_PID"
@@ -142,7 +143,7 @@ class ProcessGroup:
                 except subprocess.TimeoutExpired:
                     pass
 
-    def __enter__(self) -> ProcessGroup:
+    def __enter__(self) -> Self:
         def on_term(signum, frame):
             raise KeyboardInterrupt  # unwinds the job through its finally blocks
         try:

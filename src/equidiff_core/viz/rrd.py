@@ -85,7 +85,7 @@ def summarize_rrd(path: str | Path, recording_id: str | None = None, count_insta
                 lo, hi = int(values.min()), int(values.max())
                 old = summary.time_ranges.get(timeline)
                 summary.time_ranges[timeline] = (lo, hi) if old is None else (min(old[0], lo), max(old[1], hi))
-        order = next((t for t in ("ros_time", "step") if t in timelines), sorted(timelines)[0] if timelines else None)
+        order = next((t for t in ("ros_time", "step") if t in timelines), min(timelines) if timelines else None)
         times = (batch.column(order).cast("int64").fill_null(0).to_numpy(zero_copy_only=False)
                  if order else np.zeros(chunk.num_rows, np.int64))
         for component in count_instances:

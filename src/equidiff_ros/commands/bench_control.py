@@ -331,7 +331,7 @@ def run_track_and_hold(client: BenchClient, speed: float, radius: float, duratio
     hold_start = metrics.settle_time(e_times, e_positions, tol_m=2e-4)
     if hold_start is None:
         hold_start = last_send + watchdog_s
-    h_times, h_positions = client.samples("poses", hold_start, hold_start + 2.0)
+    _h_times, h_positions = client.samples("poses", hold_start, hold_start + 2.0)
     lag, lag_rms = metrics.tracking_lag(times, positions, circle.position)
     return {
         "tracking_rms_mm": round(metrics.tracking_rms(times, positions, circle.position) * 1000, 2),

@@ -64,7 +64,7 @@ def _raycast(T, n_points: int, ws, rng):
     rays_cam = np.stack([(u - width / 2) / fx, (v - height / 2) / fx, np.ones_like(u)], -1).reshape(-1, 3)
     origin = T[:3, 3]
     rays = rays_cam @ T[:3, :3].T  # base-frame directions, optical z = 1
-    cx, cy, cz = ws.center
+    cx, cy, _cz = ws.center
     table_z = ws.lower[2] + 0.02
     boxes = [  # (lower, upper, colour)
         (np.array([cx - 0.06, cy - 0.10, table_z]), np.array([cx + 0.02, cy - 0.02, table_z + 0.08]), (200, 40, 40)),

@@ -18,6 +18,7 @@ import socket
 import subprocess
 import sys
 import time
+from typing import Self
 
 
 def serve(host: str, realtime: bool = True) -> None:
@@ -199,7 +200,7 @@ class SimServer:
                 self.process.wait()
         self.process = None
 
-    def __enter__(self) -> SimServer:
+    def __enter__(self) -> Self:
         return self.start()
 
     def __exit__(self, *exc) -> None:
