@@ -229,7 +229,7 @@ def test_bench_policy_command_prints_one_json_line(capsys):
 
 
 def test_precision_choices(exported):
-    from equidiff_core.inference import cpu_has_native_bf16
+    from equidiff_core.machine import cpu_has_native_bf16
 
     _, path = exported
     auto = load_inference_policy(path, precision="auto")

@@ -11,7 +11,6 @@ Targets on a 2-core CPU: compact <= 100 ms p99, paper <= 400 ms median.
 from __future__ import annotations
 
 import json
-import platform
 import sys
 import time
 
@@ -37,15 +36,9 @@ def _device_name(device) -> str:
 
     if device.type == "cuda":
         return f"cuda: {torch.cuda.get_device_name(device)}"
-    model = platform.processor() or "cpu"
-    try:
-        for line in open("/proc/cpuinfo"):
-            if line.startswith("model name"):
-                model = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    return f"cpu: {model}, {torch.get_num_threads()} threads"
+    from equidiff_core.machine import cpu_model
+
+    return f"cpu: {cpu_model()}, {torch.get_num_threads()} threads"
 
 
 def _timed(fn, iters, sync):
@@ -82,7 +75,7 @@ def run(args) -> int:
                           ("cpu" if args.device == "auto" else args.device))
     precision = args.precision
     if precision == "auto":
-        from equidiff_core.inference import cpu_has_native_bf16
+        from equidiff_core.machine import cpu_has_native_bf16
 
         precision = "bf16" if device.type == "cuda" or cpu_has_native_bf16() else "fp32"
     sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)

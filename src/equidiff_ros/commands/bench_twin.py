@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import sys
 import time
 from pathlib import Path
@@ -38,20 +37,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", type=Path, default=None, help="output directory (default: a temporary one)")
 
 
-def cpu_description() -> dict:
-    """The CPU's name and the instruction sets absolute timings depend on."""
-    try:
-        info = Path("/proc/cpuinfo").read_text()
-    except OSError:
-        return {"cpu": "unknown"}
-    name = next((line.split(":", 1)[1].strip() for line in info.splitlines() if line.startswith("model name")), "?")
-    flags = set(next((line.split(":", 1)[1].split() for line in info.splitlines() if line.startswith("flags")), []))
-    return {"cpu": name, "cores": os.cpu_count(), "avx512": "avx512f" in flags, "bf16": "avx512_bf16" in flags}
-
-
 def run(args: argparse.Namespace) -> int:
     import tempfile
 
+    from equidiff_core.machine import cpu_description
     from equidiff_core.twin.config import load_twin_job_configs
     from equidiff_core.twin.processes import NodeProcessError, cpu_seconds
     from equidiff_ros.commands.twin_run import resolve_policy
