@@ -64,7 +64,8 @@ class FakeClock:
         return not stop.is_set()
 
 
-def make_controller(config=ControlConfig(), start=circle(0.0), clock=None, robot=None):
+def make_controller(config=ControlConfig(), start=None, clock=None, robot=None):
+    start = circle(0.0) if start is None else start
     clock = clock or FakeClock()
     robot = robot or DryRunRobot(DryRunConfig(initial_position=tuple(start)))
     robot.connect()

@@ -143,9 +143,8 @@ def test_bad_options_missing_twin_and_nan_state_are_clear_errors():
     qpos, _ = _state(1)
     bad = qpos.copy()
     bad[0] = np.nan
-    with TwinCamera(cam, state_source=lambda t: (bad, 0.0, 1), paced=False) as c:
-        with pytest.raises(CameraError, match="NaN"):
-            c.read()
+    with TwinCamera(cam, state_source=lambda t: (bad, 0.0, 1), paced=False) as c, pytest.raises(CameraError, match="NaN"):
+        c.read()
     with pytest.raises(CameraError, match="not connected"):
         TwinCamera(cam, state_source=lambda t: (qpos, 0.0, 1)).read()
 

@@ -125,9 +125,9 @@ def test_twin_node_resets_from_a_seed_and_reports_state(ros_domain, tmp_path):
     from equidiff_ros.common import LATCHED_QOS, RELIABLE_QOS
 
     shm = f"equidiff_twin_nodetest_{os.getpid()}"
-    proc = subprocess.Popen([sys.executable, "-m", "equidiff_ros.twin_node", "--ros-args", "-p", "host:=auto",
-                             "-p", "seed:=3", "-p", f"shm_name:={shm}"],
-                            stdout=open(tmp_path / "twin.log", "w"), stderr=subprocess.STDOUT)
+    with open(tmp_path / "twin.log", "w") as log:  # the child keeps its own copy of the descriptor
+        proc = subprocess.Popen([sys.executable, "-m", "equidiff_ros.twin_node", "--ros-args", "-p", "host:=auto",
+                                 "-p", "seed:=3", "-p", f"shm_name:={shm}"], stdout=log, stderr=subprocess.STDOUT)
     rclpy.init()
     node = Node("twin_probe")
     got = {"scene": [], "state": []}

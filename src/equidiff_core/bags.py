@@ -22,7 +22,7 @@ import struct
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 import yaml
@@ -308,7 +308,7 @@ def _needs_repair(path: Path) -> str | None:
         with Reader(path) as reader:
             for _ in reader.messages():
                 pass
-    except Exception as err:
+    except Exception as err:  # noqa: BLE001 - any failure to read means the bag needs repair; say why
         return str(err)
     return None
 
@@ -347,7 +347,7 @@ def repair_bag(path: str | Path, output: str | Path | None = None, force: bool =
     typestore = rosbags_factory().typestore
 
     class _Out(Writer):
-        STORAGE_PLUGINS = {**Writer.STORAGE_PLUGINS, StoragePlugin.MCAP: _chunked_mcap_writer_cls()}
+        STORAGE_PLUGINS: ClassVar = {**Writer.STORAGE_PLUGINS, StoragePlugin.MCAP: _chunked_mcap_writer_cls()}
 
     writer = _Out(target, version=9, storage_plugin=StoragePlugin.MCAP)
     writer.open()

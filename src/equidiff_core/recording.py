@@ -29,7 +29,7 @@ import shutil
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Self
+from typing import Any, ClassVar, Self
 
 import yaml
 
@@ -200,7 +200,7 @@ class EpisodeWriter:
         self.path.parent.mkdir(parents=True, exist_ok=True)
 
         class _EpisodeBagWriter(Writer):
-            STORAGE_PLUGINS = {**Writer.STORAGE_PLUGINS, StoragePlugin.MCAP: _chunked_mcap_writer_cls()}
+            STORAGE_PLUGINS: ClassVar = {**Writer.STORAGE_PLUGINS, StoragePlugin.MCAP: _chunked_mcap_writer_cls()}
 
         writer = _EpisodeBagWriter(self.path, version=9, storage_plugin=StoragePlugin.MCAP)
         writer.open()

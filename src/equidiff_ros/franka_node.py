@@ -35,6 +35,7 @@ def build_node():
     import logging
     import time
     from pathlib import Path
+    from typing import ClassVar
 
     from rclpy.node import Node
     from trajectory_msgs.msg import MultiDOFJointTrajectory
@@ -154,7 +155,7 @@ def build_node():
         logger.setLevel(logging.INFO)
 
         class _Handler(logging.Handler):
-            last_warned: dict[str, float] = {}
+            last_warned: ClassVar[dict[str, float]] = {}
 
             def emit(self, record):
                 msg = self.format(record)

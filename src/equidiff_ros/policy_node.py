@@ -256,7 +256,7 @@ def build_node():
                     self.inference_s.append(inference)
                     self.obs_to_cmd_s.append((now_ns(self) - stamp) / 1e9)
                     self.published += 1
-            except Exception as err:  # bad input or a bad prediction: skip it, say why, keep serving
+            except Exception as err:  # noqa: BLE001 - bad input or a bad prediction: skip it, say why, keep serving
                 self.failures += 1
                 self.get_logger().error(f"inference failed: {type(err).__name__}: {err}",
                                         throttle_duration_sec=2.0)

@@ -150,7 +150,7 @@ def build_node():
             if self.device is not None:
                 try:
                     self.input = self.device.read(now)
-                except Exception as err:  # unplugged mid-session: hold still, say why
+                except Exception as err:  # noqa: BLE001 - unplugged mid-session: hold still, say why
                     self.get_logger().error(f"SpaceMouse read failed: {err}", throttle_duration_sec=2.0)
                     self.input = None
             inp = self.input if is_fresh(self.input, now, self.cfg.input_timeout_s) else None

@@ -76,7 +76,7 @@ class VizNode(Node):
             try:
                 with self._lock:
                     self.viz.log_message(topic, msg, receive_ns)
-            except Exception as err:  # a viewer must never take the graph down; say why, keep going
+            except Exception as err:  # noqa: BLE001 - a viewer must never take the graph down; say why, keep going
                 self.failures += 1
                 self.get_logger().error(f"could not log {topic}: {type(err).__name__}: {err}",
                                         throttle_duration_sec=5.0)

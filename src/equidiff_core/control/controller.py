@@ -134,7 +134,7 @@ class Controller:
         while not self._stop.is_set():
             try:
                 self.tick()
-            except Exception as err:  # keep the loop alive; a bug here must not leave the arm streaming stale targets
+            except Exception as err:  # noqa: BLE001 - keep the loop alive; a bug here must not leave the arm streaming stale targets
                 self.log.error(f"control tick failed: {err!r}")
                 self._holding = True
             deadline += period_ns

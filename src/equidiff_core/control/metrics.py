@@ -37,7 +37,7 @@ def tracking_lag(times: np.ndarray, positions: np.ndarray, reference: Callable[[
     "off the path" (the RMS left after the shift)."""
     best = (0.0, tracking_rms(times, positions, reference))
     for lag in np.arange(step_s, max_lag_s + 1e-9, step_s):
-        rms = tracking_rms(times, positions, lambda t: reference(t - lag))
+        rms = tracking_rms(times, positions, lambda t, lag=lag: reference(t - lag))
         if rms < best[1]:
             best = (float(lag), rms)
     return best

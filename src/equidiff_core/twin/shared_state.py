@@ -22,6 +22,7 @@ sim_time | int64 stamp_ns | float64 qpos[nq].
 
 from __future__ import annotations
 
+import contextlib
 import os
 import time
 from multiprocessing import shared_memory
@@ -148,12 +149,10 @@ class StateWriter:
 def _untrack(shm: shared_memory.SharedMemory) -> None:
     # Python < 3.13 registers every attached block with the resource tracker, which unlinks it
     # when the *reader* exits; a reader must never destroy the writer's block.
-    try:
-        from multiprocessing import resource_tracker
+    from multiprocessing import resource_tracker
 
+    with contextlib.suppress(Exception):  # the tracker absent or the block already unregistered
         resource_tracker.unregister(shm._name, "shared_memory")
-    except Exception:  # pragma: no cover - tracker absent or already unregistered
-        pass
 
 
 class StateReader:

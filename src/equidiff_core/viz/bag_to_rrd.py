@@ -111,7 +111,7 @@ def _log_bag(logger: RerunLogger, bag: Path, index: int, result: EpisodeResult) 
                 result.messages += 1
                 try:
                     msg = typestore.deserialize_cdr(raw, conn.msgtype)
-                except Exception as err:  # rosbags raises several kinds on bad CDR: drop one message
+                except Exception as err:  # noqa: BLE001 - rosbags raises several kinds on bad CDR: drop one message
                     logger._drop(f"undecodable {conn.topic}", err)
                     continue
                 logger.log_message(conn.topic, msg, receive_ns)

@@ -96,9 +96,9 @@ def start_node(module: str, params: dict, log_path: Path | None = None, priority
     args = [sys.executable, "-u", "-m", f"equidiff_ros.{module}", "--ros-args"]
     for key, value in params.items():
         args += ["-p", f"{key}:={_ros_value(value)}"]
-    out = open(log_path, "w") if log_path else subprocess.DEVNULL
-    return subprocess.Popen(args, stdout=out, stderr=subprocess.STDOUT, env=dict(os.environ),
-                            preexec_fn=node_preexec(priority))
+    with open(log_path or os.devnull, "w") as out:  # the child keeps its own copy of the descriptor
+        return subprocess.Popen(args, stdout=out, stderr=subprocess.STDOUT, env=dict(os.environ),
+                                preexec_fn=node_preexec(priority))
 
 
 def _ros_value(value) -> str:
@@ -191,7 +191,7 @@ class BenchClient:
         while self.context.ok():
             try:
                 self.executor.spin_once(timeout_sec=0.05)
-            except Exception:  # context shut down under us
+            except Exception:  # noqa: BLE001 - context shut down under us
                 break
 
     def _on_pose(self, msg):
@@ -528,7 +528,7 @@ def run(args: argparse.Namespace) -> int:
                     approach(client, np.asarray(control.home_position))
                     result.update(run_latency(client, checkpoint, args.precision, args.latency_duration, tmp, label))
                 result["franka_diagnostics"] = client.data.diagnostics.get("franka_node", {})
-            except Exception as err:
+            except Exception as err:  # noqa: BLE001 - report any failure with the node's log
                 log = (tmp / "franka_node.log")
                 tail = log.read_text()[-2000:] if log.exists() else ""
                 print(f"bench control failed: {type(err).__name__}: {err}\n--- franka_node log ---\n{tail}",

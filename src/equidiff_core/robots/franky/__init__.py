@@ -77,7 +77,7 @@ class FrankyRobot(Robot):
             return
         try:
             self.stop_streaming()
-        except Exception as err:  # never let shutdown hide the original problem
+        except Exception as err:  # noqa: BLE001 - never let shutdown hide the original problem
             self.log.warning(f"stopping the tracker on disconnect: {err}")
         self._gripper_stop.set()
         if self._gripper_thread is not None:
@@ -121,7 +121,7 @@ class FrankyRobot(Robot):
                 if width is not None:
                     running, sent_at = self._send_gripper(width), time.monotonic()
                 self._width = float(self._gripper.width)
-            except Exception as err:
+            except Exception as err:  # noqa: BLE001 - franky raises many kinds; the gripper thread must live on
                 self.log.warning(f"gripper command or read failed: {err}")
                 with self._gripper_lock:  # retry a failed width unless a newer one replaced it
                     if width is not None and self._gripper_request is None:
@@ -196,7 +196,7 @@ class FrankyRobot(Robot):
         """Why the streaming motion ended: its exception, else the robot's error flags."""
         try:
             self._robot.join_motion(timeout=0.0)
-        except Exception as err:  # franky's ControlException / ReflexException carry libfranka's reason
+        except Exception as err:  # noqa: BLE001 - franky's ControlException / ReflexException carry libfranka's reason
             return str(err)
         try:
             state = self._robot.state
@@ -204,8 +204,8 @@ class FrankyRobot(Robot):
                 text = str(getattr(state, attr, ""))
                 if text not in ("", "[]", "None"):
                     return f"{attr}: {text}"
-        except Exception:  # noqa: BLE001 - a reason is nice to have, recovery must go on
-            pass
+        except Exception as err:  # noqa: BLE001 - a reason is nice to have, recovery must go on
+            self.log.debug(f"reading the robot's error flags failed: {err}")
         return "the motion ended without a robot error (stopped or preempted by another client)"
 
     def move_gripper(self, width: float) -> None:
