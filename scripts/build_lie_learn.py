@@ -1,6 +1,6 @@
 """Rebuild lie_learn 0.0.2 (an escnn dependency) against numpy 2.
 
-Why this exists (see shared/NOTES.md): every lie_learn wheel on PyPI is compiled
+Why this exists: every lie_learn wheel on PyPI is compiled
 against numpy<2 and fails to import under numpy 2, yet the rest of our stack
 (franky-sim via pin/cmeel-boost, rerun-sdk, pyarrow) requires numpy 2. The 0.0.2
 wheel ships its Cython sources, so we take that wheel from the package registry,

@@ -8,8 +8,7 @@ demonstration recorder needs on top of it:
 * **free-disk check** before starting and at every chunk, so a full disk stops the episode
   cleanly instead of leaving a half-written file;
 * **large chunks** (8 MiB default; rosbags hard-codes 1 MiB): rosbag2's Jazzy C++ reader
-  mishandles messages larger than the chunk and one voxel grid can approach 1 MiB
-  (NOTES.md). Chunks are also closed after ``chunk_max_age_s`` and flushed to the OS, so a
+  mishandles messages larger than the chunk and one voxel grid can approach 1 MiB. Chunks are also closed after ``chunk_max_age_s`` and flushed to the OS, so a
   recorder killed with SIGKILL loses at most the last few seconds: ``bags.repair_bag``
   recovers everything in completed chunks;
 * **episode metadata** (task, operator, success, notes, seed) in metadata.yaml's

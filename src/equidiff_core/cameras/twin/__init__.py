@@ -5,7 +5,8 @@ server (twin_node). It compiles the very same scene MJCF (``equidiff_core.twin.s
 reads the sim state (qpos + capture stamp) from the twin's shared memory, runs the
 kinematics and renders from a fixed camera placed at the configured ``T_base_optical``.
 MuJoCo depth is planar z, so the optical-frame point of pixel (u, v) is
-x = (u + 0.5 - cx) z / fx, y = (v + 0.5 - cy) z / fy (NOTES.md).
+x = (u + 0.5 - cx) z / fx, y = (v + 0.5 - cy) z / fy (checked against rendered boxes: points land on
+them within 0.2 um; dropping the half pixel costs ~2 mm, reading depth as ray length 1-12 mm).
 
 Rendering settings are the cheap ones (no multisampling, shadows, reflections, skybox): at
 424x240 three cameras cost ~110-135 ms a set on this CPU, 4x less than the defaults.

@@ -4,7 +4,7 @@ Streaming uses franky 2.0's ``CartesianImpedanceTracker``: one long-lived torque
 motion whose target we set at the control rate with a velocity feed-forward. On franky-sim
 that tracked a 5 Hz chunk stream with 1.2-3.5 mm RMS and no stop-and-go, while preempting
 motions per chunk stops at every chunk and ``CartesianWaypointMotion`` needs per-waypoint
-velocities and ``minimum_time`` not to stop or overshoot (NOTES.md, and ``docs/control.md``
+velocities and ``minimum_time`` not to stop or overshoot (``docs/control.md``
 for our own measurement). Being torque-controlled it also cannot trip the motion generator's
 discontinuity reflexes. The gripper has its own thread, which sends the newest requested width
 (``move_async`` / ``grasp_async``) and reads the width back: a gripper read blocks until the
@@ -223,7 +223,7 @@ class FrankyRobot(Robot):
         cfg = self.config
         if np.isfinite(self._width) and width < self._width:
             # Closing is a grasp with a wide outer epsilon: closing on an object then counts as
-            # success and keeps squeezing it (a plain move does not hold it; NOTES.md).
+            # success and keeps squeezing it (on franky-sim a plain move to the object's width does not hold it).
             return self._gripper.grasp_async(float(width), cfg.gripper_speed_m_s, cfg.gripper_force_n,
                                              epsilon_inner=0.08, epsilon_outer=cfg.gripper_epsilon_outer_m)
         return self._gripper.move_async(float(width), cfg.gripper_speed_m_s)
