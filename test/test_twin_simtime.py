@@ -210,3 +210,17 @@ def test_a_hung_policy_ends_its_episode_as_stalled_naming_it_and_the_job_goes_on
         assert episode.meta.success is False and "stalled" in (episode.meta.notes or "")
         after = run_episode(stack, 2, 4.0)
         assert not after.stalled and after.chunks >= 2 and after.dropped_cycles == 0
+
+
+@pytest.mark.ros
+def test_the_stamp_of_a_serialised_message_is_read_without_decoding_it():
+    from rclpy.serialization import serialize_message
+    from sensor_msgs.msg import PointCloud2
+    from trajectory_msgs.msg import MultiDOFJointTrajectory
+
+    from equidiff_core.rosmsg import header_stamp_ns_from_cdr
+
+    for cls in (PointCloud2, MultiDOFJointTrajectory):
+        msg = cls()
+        msg.header.stamp.sec, msg.header.stamp.nanosec, msg.header.frame_id = 12, 345_000_001, "fr3_link0"
+        assert header_stamp_ns_from_cdr(serialize_message(msg)) == 12_345_000_001

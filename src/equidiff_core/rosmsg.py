@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import array
 import importlib
+import struct
 from typing import Any
 
 import numpy as np
@@ -25,6 +26,15 @@ NS_PER_S = 1_000_000_000
 def stamp_to_ns(stamp: Any) -> int:
     """builtin_interfaces/Time (either flavour) -> integer nanoseconds."""
     return int(stamp.sec) * NS_PER_S + int(stamp.nanosec)
+
+
+def header_stamp_ns_from_cdr(data: bytes) -> int:
+    """The ``header.stamp`` of a serialised (CDR) message that starts with a std_msgs/Header
+    (PointCloud2, MultiDOFJointTrajectory, ...), without deserialising the rest: a listener
+    that needs only the stamp of a 1 MiB voxel grid reads 8 bytes."""
+    little = len(data) > 1 and data[1] & 1  # encapsulation id: 0x0001 = CDR little endian
+    sec, nanosec = struct.unpack_from("<iI" if little else ">iI", data, 4)
+    return sec * 1_000_000_000 + nanosec
 
 
 def split_ns(ns: int) -> tuple[int, int]:

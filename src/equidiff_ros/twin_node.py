@@ -59,7 +59,7 @@ def build_node():
     from trajectory_msgs.msg import MultiDOFJointTrajectory
 
     from equidiff_core.config import default_config_dir
-    from equidiff_core.rosmsg import stamp_to_ns
+    from equidiff_core.rosmsg import header_stamp_ns_from_cdr
     from equidiff_core.twin.config import load_twin_config
     from equidiff_core.twin.lockstep import LockstepConfig
     from equidiff_core.twin.sim import TwinSim
@@ -108,10 +108,11 @@ def build_node():
             if lockstep is not None:
                 ls = self.twin.lockstep
                 self.create_subscription(Bool, TOPIC_AWAIT_POLICY, lambda m: ls.set_awaiting(m.data), LATCHED_QOS)
+                # stamps only: read from the serialised messages (a voxel grid is up to 1 MiB)
                 self.create_subscription(MultiDOFJointTrajectory, TOPIC_COMMAND_CHUNK,
-                                         lambda m: ls.on_chunk(stamp_to_ns(m.header.stamp)), RELIABLE_QOS)
+                                         lambda m: ls.on_chunk(header_stamp_ns_from_cdr(m)), RELIABLE_QOS, raw=True)
                 self.create_subscription(PointCloud2, TOPIC_VOXELS,
-                                         lambda m: ls.on_voxels(stamp_to_ns(m.header.stamp)), VOXEL_QOS)
+                                         lambda m: ls.on_voxels(header_stamp_ns_from_cdr(m)), VOXEL_QOS, raw=True)
                 self.create_subscription(String, TOPIC_POLICY_SKIPPED,
                                          lambda m: ls.on_skipped(json.loads(m.data)["stamp_ns"]), RELIABLE_QOS)
             self.twin.start(seed)

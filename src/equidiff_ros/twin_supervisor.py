@@ -85,7 +85,7 @@ class Supervisor:
         self.sim_time = bool(sim_time)
         self.latency_ns = round(latency_s * NS) if sim_time else 0
         self.stall_timeout_s = stall_timeout_s
-        self.lock = threading.Lock()
+        self.lock = threading.RLock()  # wait_for's predicates may call the locked accessors
         self._held: list = []  # policy chunks waiting for stamp + latency (simulated time)
         self._gate_open_ns = 0
         self._clock_seen = (0, time.monotonic())  # (sim ns, wall s when it last advanced)
@@ -97,7 +97,6 @@ class Supervisor:
         self.gate_open = False
         self.policy_chunks_seen = 0  # gate or not: the policy is loaded and answering
         self.chunk_arrivals: list[float] = []  # node-clock seconds at which chunks were forwarded
-        self.chunk_stamps: list[int] = []  # their observation stamps (ns)
         self.end_to_end_ms: list[float] = []
         self.dropped: list[str] = []  # reasons of observations the policy skipped (not its execution schedule)
         self.inference_ms: list[float] = []
@@ -195,7 +194,6 @@ class Supervisor:
             if not self.gate_open:
                 return
             self.chunk_arrivals.append(now_ns / NS)
-            self.chunk_stamps.append(stamp)
             self.end_to_end_ms.append((now_ns - stamp) / 1e6)
         self.pub_chunk.publish(msg)
 
@@ -340,7 +338,7 @@ class Supervisor:
         """Start forwarding policy chunks answering observations from now on (and, on simulated
         time, have twin_node wait for each frame's chunk)."""
         with self.lock:
-            self.chunk_arrivals, self.chunk_stamps, self.end_to_end_ms, self.inference_ms = [], [], [], []
+            self.chunk_arrivals, self.end_to_end_ms, self.inference_ms = [], [], []
             self.dropped = []
             self._held = []
             self._gate_open_ns = self.now_ns()
@@ -585,8 +583,7 @@ def run_episode(stack, seed: int, max_duration_s: float):
     sup.open_gate()
     gate_t = sup.now_ns() / 1e9
     try:
-        # (wait_for holds sup.lock while it asks: read the state directly, not through sup.twin())
-        sup.wait_for(lambda: sup.chunk_arrivals or (sup.twin_state or {}).get("stalls", 0) > stalls,
+        sup.wait_for(lambda: sup.chunk_arrivals or sup.twin().get("stalls", 0) > stalls,
                      60.0 + stack.stall_timeout_s, "the first policy chunk", stack.check)
         start = sup.chunk_arrivals[0] if sup.chunk_arrivals else gate_t
         success_since = None

@@ -74,6 +74,7 @@ class TwinSim:
         self.on_clock = on_clock  # called with the sim time in ns (simulated time only)
         self.camera_names = tuple(camera_names)  # lab.yaml order = the cameras' shared-memory slots
         self.tick = 0  # 1 ms steps since start: simulated time
+        self.state_every = max(1, round(1000 / cfg.sim.state_hz))  # ticks between snapshots for the cameras
         self.lock = threading.Lock()  # held while stepping; take it to read or edit sim state
         self.stats = LoopStats()
         self.poses: ScenePoses | None = None
@@ -140,12 +141,8 @@ class TwinSim:
             self.stats.missed_commands += step_server(self._server, command_timeout_s)
             self.stats.steps += 1
             self.tick += 1
-            if self.stats.steps % self._state_every == 0:
+            if self.stats.steps % self.state_every == 0:
                 self._publish_state()
-
-    @property
-    def _state_every(self) -> int:
-        return max(1, round(1.0 / (self.cfg.sim.state_hz * 0.001)))
 
     def _loop_realtime(self) -> None:
         period = 0.001
@@ -166,10 +163,12 @@ class TwinSim:
         frame, published = 0, -1
         deadline = time.monotonic()
         while self._running:
-            if self.tick != published and (self.tick % cfg.clock_period_ticks == 0 or self._blocker(frame)[0]):
+            kind, why = self._blocker(frame)
+            if self.tick != published and (kind or self.tick % cfg.clock_period_ticks == 0):
                 self._publish_clock()  # before any wait: whoever must act at this instant sees it
                 published = self.tick
-            if self._wait_while_blocked(frame):
+            if kind:
+                self._wait_while_blocked(frame, kind, why)
                 deadline = time.monotonic()
                 continue
             # On simulated time a late client command is waited for (0.5 s, not 20 ms): the
@@ -198,11 +197,8 @@ class TwinSim:
         why = self.lockstep.chunk_blocker(self.tick)
         return ("policy", why) if why else ("", "")
 
-    def _wait_while_blocked(self, frame: int) -> bool:
-        """Wait (keeping libfranka alive) until nothing blocks the next step or the wait stalls; True if it waited."""
-        kind, why = self._blocker(frame)
-        if not kind:
-            return False
+    def _wait_while_blocked(self, frame: int, kind: str, why: str) -> None:
+        """Wait (keeping libfranka alive) until nothing blocks the next step, or the wait stalls."""
         cfg = self.lockstep.config
         start = last_keepalive = time.monotonic()
         while self._running and kind:
@@ -225,7 +221,6 @@ class TwinSim:
             kind_now, why = self._blocker(frame)
             self.stats.wait_s[kind] += time.monotonic() - now
             kind = kind_now
-        return True
 
     def _publish_clock(self) -> None:
         if self.on_clock is not None:
