@@ -482,9 +482,3 @@ def dataset_stats(paths: Iterable[str | Path], config: DatasetConfig = DatasetCo
             "action_max": all_actions.max(0).round(4).tolist() if len(all_actions) else None,
         },
     }
-
-
-def config_from_dict(data: dict) -> DatasetConfig:
-    from .config import from_dict
-
-    return from_dict(DatasetConfig, data, "dataset")

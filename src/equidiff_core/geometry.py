@@ -350,8 +350,3 @@ def _resample_rotated(grid: Array, theta: float, mode: str) -> Array:
         out = out.round().clamp(torch.iinfo(orig_dtype).min, torch.iinfo(orig_dtype).max)
     out = out.to(orig_dtype)
     return out if is_t else out.numpy()
-
-
-def voxel_center_to_index(points: Array, origin: Array, voxel_size: float) -> np.ndarray:
-    """Integer voxel index (floor) of base-frame points; ``origin`` is the grid's minimum corner."""
-    return np.floor((np.asarray(points) - np.asarray(origin)) / voxel_size).astype(np.int64)

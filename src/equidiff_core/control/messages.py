@@ -72,16 +72,7 @@ def diagnostic_array(factory: MsgFactory, stamp_ns: int, name: str, hardware_id:
     return mk("diagnostic_msgs/msg/DiagnosticArray", header=factory.header(stamp_ns, ""), status=[status])
 
 
-def diagnostic_values(msg: Any, name: str) -> dict[str, str] | None:
-    """The key/values of the status called ``name`` in a DiagnosticArray, or None."""
-    for status in msg.status:
-        if status.name == name:
-            return {kv.key: kv.value for kv in status.values}
-    return None
-
-
 def _fmt(v: Any) -> str:
     if isinstance(v, float):
         return f"{v:.3f}"
     return str(v)
-

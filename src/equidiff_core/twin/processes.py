@@ -27,11 +27,17 @@ class NodeProcessError(RuntimeError):
     """A node could not be started or died while it was needed."""
 
 
+def random_domain_id() -> int:
+    """A ROS_DOMAIN_ID for a job of its own: 101-215, clear of the usual 0-100 (and of the
+    tests' own, chosen the same way) and within the 0-232 Fast DDS allows."""
+    return random.SystemRandom().randint(101, 215)
+
+
 def private_ros_env(domain_id: int | None = None, **extra: str) -> dict[str, str]:
     """The environment for the job's processes: a ROS domain of its own on loopback only."""
     env = dict(os.environ)
     if domain_id is None:
-        domain_id = random.SystemRandom().randint(101, 215)  # clear of the usual 0-100 test domains
+        domain_id = random_domain_id()
     env.update({"ROS_DOMAIN_ID": str(domain_id), "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST",
                 "MUJOCO_GL": env.get("MUJOCO_GL", "egl"), "PYTHONUNBUFFERED": "1",
                 # rcutils block-buffers log lines into a file: a killed node lost its last minute of logs

@@ -25,7 +25,6 @@ roll-outs).
 
 from __future__ import annotations
 
-import math
 import threading
 import time
 from collections.abc import Callable
@@ -369,7 +368,3 @@ class DirectSim:
 
     def close(self) -> None:
         self._sim.cleanup()
-
-
-def wrap_to_pi(a: float) -> float:
-    return (a + math.pi) % (2 * math.pi) - math.pi

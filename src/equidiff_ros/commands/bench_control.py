@@ -466,16 +466,16 @@ def run_latency(client: BenchClient, checkpoint: Path, precision: str, duration:
 
 def run(args: argparse.Namespace) -> int:
     import dataclasses
-    import random
 
     from equidiff_core.config import default_config_dir, load_lab_config
     from equidiff_core.control import load_control_config
     from equidiff_core.robots.franky.sim import SimServer
+    from equidiff_core.twin.processes import random_domain_id
 
     if args.domain_id is not None:
         os.environ["ROS_DOMAIN_ID"] = str(args.domain_id)
     elif "ROS_DOMAIN_ID" not in os.environ:
-        os.environ["ROS_DOMAIN_ID"] = str(random.randint(101, 200))
+        os.environ["ROS_DOMAIN_ID"] = str(random_domain_id())
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
 
     lab_path = default_config_dir() / "lab.yaml"
