@@ -146,15 +146,14 @@ def test_direct_collection_writes_a_trainable_demo_bag(tmp_path):
 class _ExpertAsPolicy:
     """Plans once per episode from the sim, then answers each observation with the next 16 targets.
 
-    Step k is the plan's target at the observation's time + (k + ``lead``) * dt: ``lead=0`` is
-    the training data's convention (action 0 = the target in effect at the observation), which
-    the replan scheme executes on time (step k at t + k * dt); the chunk scheme reaches action k
-    only at t + (k + 1) * dt, so it gets ``lead=1``."""
+    Step k is the plan's target at the observation's time + k * dt: the training data's
+    convention (action 0 = the target in effect at the observation), which the evaluation
+    executes on time (step k at t + k * dt), as franka_node's scheduler does."""
 
-    def __init__(self, sim, lead: int = 1):
+    def __init__(self, sim):
         from types import SimpleNamespace
 
-        self.sim, self.lead, self.plan, self.t0 = sim, lead, None, 0.0
+        self.sim, self.plan, self.t0 = sim, None, 0.0
         self.preset = SimpleNamespace(dt=0.2, n_action_steps=8)
 
     def predict(self, grid, ee, seed=0):
@@ -167,7 +166,7 @@ class _ExpertAsPolicy:
                                                  body_pose(self.sim.model, self.sim.data, BOWL),
                                                  CFG.scene.block_size[2], CFG.expert), self.sim.time
         t, dt = self.sim.time - self.t0, self.preset.dt
-        steps = [self.plan.target_at(t + dt * (k + self.lead)) for k in range(16)]
+        steps = [self.plan.target_at(t + dt * k) for k in range(16)]
         return np.stack([geometry.pose_to_action(pose, np.asarray(width)) for pose, width in steps])
 
 
@@ -178,11 +177,11 @@ class _FrozenPolicy(_ExpertAsPolicy):
 
 @pytest.mark.slow
 @pytest.mark.sim
-@pytest.mark.parametrize("execution, observations", [("chunk", 3), ("replan", 20)])
-def test_closed_loop_evaluation_scores_the_expert_and_the_stages_a_frozen_policy_misses(execution, observations):
+@pytest.mark.parametrize("execute_steps, observations", [(0, 3), (1, 20)])
+def test_closed_loop_evaluation_scores_the_expert_and_the_stages_a_frozen_policy_misses(execute_steps, observations):
     """`evaluate_policy` (bench generalization's rollouts) with the scripted expert in the
-    policy's place solves the scene in both execution schemes and reports every stage; a policy
-    that never moves reaches none."""
+    policy's place solves the scene whether it answers every observation or one per chunk, and
+    reports every stage; a policy that never moves reaches none."""
     from equidiff_core.config import default_config_dir, load_lab_config
     from equidiff_core.twin.demos import DirectRecorder
     from equidiff_core.twin.evaluate import evaluate_policy
@@ -190,16 +189,16 @@ def test_closed_loop_evaluation_scores_the_expert_and_the_stages_a_frozen_policy
     lab = load_lab_config(default_config_dir() / "lab.yaml")
     rec = DirectRecorder(CFG, lab)
     try:
-        solved, = evaluate_policy(_ExpertAsPolicy(rec.sim, lead=int(execution == "chunk")), CFG, lab, [3], 30.0,
-                                  log=lambda s: None, recorder=rec, execution=execution)
+        solved, = evaluate_policy(_ExpertAsPolicy(rec.sim), CFG, lab, [3], 30.0,
+                                  log=lambda s: None, recorder=rec, execute_steps=execute_steps)
         frozen, = evaluate_policy(_FrozenPolicy(rec.sim), CFG, lab, [3], 4.0, log=lambda s: None, recorder=rec,
-                                  execution=execution)
+                                  execute_steps=execute_steps)
     finally:
         rec.close()
     assert solved.success and solved.reached and solved.lifted
     assert solved.closest_to_bowl_m < CFG.scene.bowl_inner_radius and solved.closest_to_block_m < 0.02
     assert not (frozen.success or frozen.reached or frozen.lifted)
-    # 4 s of observations: every 0.2 s (replan), or every 0.1 s latency + 1.6 s chunk (chunk)
+    # 4 s of observations, one answered every 0.2 s, or every 1.6 s (a whole chunk: 0, 1.6, 3.2)
     assert frozen.closest_to_bowl_m > 0.05 and frozen.closest_to_block_m > 0.1 and frozen.observations == observations
 
 
@@ -222,11 +221,11 @@ class _SpySim:
 
 
 @pytest.mark.sim
-@pytest.mark.parametrize("execution, latency_s", [("replan", 0.1), ("replan", 0.3), ("chunk", 0.1)])
-def test_a_chunk_takes_effect_only_after_the_latency_budget(execution, latency_s):
-    """The second observation's chunk jumps the target 5 cm sideways: neither the command nor the
-    TCP moves toward it before that observation's time + L (replan: the previous chunk, a hold,
-    keeps running meanwhile; chunk: the arm holds still), and both have moved within 0.3 s after."""
+@pytest.mark.parametrize("execute_steps, latency_s", [(1, 0.1), (1, 0.3), (8, 0.1)])
+def test_a_chunk_takes_effect_only_after_the_latency_budget(execute_steps, latency_s):
+    """The second answered observation's chunk jumps the target 5 cm sideways: neither the
+    command nor the TCP moves toward it before that observation's time + L (the previous chunk,
+    a hold, keeps running meanwhile), and both have moved within 0.3 s after."""
     from types import SimpleNamespace
 
     from equidiff_core.config import default_config_dir, load_lab_config
@@ -250,13 +249,13 @@ def test_a_chunk_takes_effect_only_after_the_latency_budget(execution, latency_s
     policy = JumpPolicy(spy)
     policy.times, policy.times_ee = [], []
     try:
-        episode, = evaluate_policy(policy, CFG, lab, [3], 1.2 if execution == "replan" else 2.4, log=lambda s: None,
+        episode, = evaluate_policy(policy, CFG, lab, [3], 1.2 if execute_steps == 1 else 2.4, log=lambda s: None,
                                    recorder=SimpleNamespace(sim=spy, voxel_grid=rec.voxel_grid),
-                                   latency_s=latency_s, execution=execution)
+                                   latency_s=latency_s, execute_steps=execute_steps)
     finally:
         rec.close()
     t_obs = policy.times[1]  # the observation whose chunk jumps
-    assert np.isclose(t_obs - policy.times[0], 0.2 if execution == "replan" else 0.1 + 1.6)
+    assert np.isclose(t_obs - policy.times[0], 0.2 * execute_steps)  # answered every execute_steps frames
     effect = t_obs + latency_s
     start = policy.times_ee[0][:3]
 

@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 from helpers_ros import run_job
 
-from equidiff_core.twin.metrics import EpisodeRecord, RunSummary
+from equidiff_core.twin.metrics import EpisodeRecord, RunSummary, SuccessHold
 from equidiff_core.twin.processes import (
     NodeProcessError,
     ProcessGroup,
@@ -32,6 +32,13 @@ def test_summary_json_line_has_the_issue_keys_and_pools_episodes():
     assert d["end_to_end_p95_ms"] == pytest.approx(290.0) and d["inference_p95_ms"] == pytest.approx(99.0)
     assert "success rate:      50 %" in s.human()
     assert d["clock"] == "sim" and d["representative"] is True
+
+
+def test_success_counts_only_once_it_has_held_without_a_break():
+    hold = SuccessHold(0.5)
+    assert [hold.update(ok, t) for ok, t in [(True, 0.0), (True, 0.3), (False, 0.4), (True, 0.6), (True, 1.0)]] \
+        == [False, False, False, False, False]  # the lapse at 0.4 s restarted the hold
+    assert hold.update(True, 1.1) and hold.since == 0.6
 
 
 def test_a_real_time_run_whose_sim_fell_behind_is_flagged_as_not_representative():

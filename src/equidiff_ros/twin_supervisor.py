@@ -30,6 +30,7 @@ import numpy as np
 from equidiff_core import geometry
 from equidiff_core.chunk import PoseChunk, chunk_to_msg
 from equidiff_core.rosmsg import RclpyFactory, stamp_to_ns
+from equidiff_core.twin.metrics import EpisodeRecord, SuccessHold
 
 TOPIC_POLICY_CHUNK = "/twin/policy_chunk"
 NS = 1_000_000_000
@@ -537,7 +538,7 @@ def run_expert(stack: TwinStack, hz: float | None = None, max_lag_m: float = 0.0
     t_plan, last = 0.0, sup.now_ns() / NS
     limit = timeout_s if timeout_s is not None else 30.0 + 10.0 * plan.duration  # of the node's clock
     deadline = last + limit / sup.time_scale()
-    success_since = None
+    hold = SuccessHold(cfg.success.hold_s)
     while True:
         stack.check()
         sup.check_clock()
@@ -555,10 +556,8 @@ def run_expert(stack: TwinStack, hz: float | None = None, max_lag_m: float = 0.0
         sup.send_target(pose, width)
         if t_plan >= plan.duration:
             state = sup.twin()
-            if state.get("success"):
-                success_since = success_since or now
-                if now - success_since >= cfg.success.hold_s:
-                    return state
+            if hold.update(bool(state.get("success")), now):
+                return state
             if t_plan >= plan.duration + extra_s:
                 return state
             t_plan += dt * rate if np.linalg.norm(tcp[:3, 3] - pose[:3, 3]) >= max_lag_m else 0.0
@@ -570,7 +569,6 @@ def run_episode(stack, seed: int, max_duration_s: float):
 
     An episode in which twin_node reports a stall (a camera or the policy did not deliver within
     its stall timeout) ends at once as ``stalled``, naming the stage; its bag is kept."""
-    from equidiff_core.twin.metrics import EpisodeRecord
 
     sup, cfg = stack.sup, stack.cfg
     rec = EpisodeRecord(seed=seed)
@@ -586,7 +584,7 @@ def run_episode(stack, seed: int, max_duration_s: float):
         sup.wait_for(lambda: sup.chunk_arrivals or sup.twin().get("stalls", 0) > stalls,
                      60.0 + stack.stall_timeout_s, "the first policy chunk", stack.check)
         start = sup.chunk_arrivals[0] if sup.chunk_arrivals else gate_t
-        success_since = None
+        hold = SuccessHold(cfg.success.hold_s)
         while sup.now_ns() / 1e9 - start < max_duration_s:
             stack.check()
             sup.check_clock()
@@ -594,18 +592,14 @@ def run_episode(stack, seed: int, max_duration_s: float):
             if state.get("stalls", 0) > stalls:
                 rec.stalled = state.get("last_stall", "a stage of the pipeline")
                 break
-            if state.get("success"):
-                success_since = success_since or sup.now_ns() / 1e9
-                if sup.now_ns() / 1e9 - success_since >= cfg.success.hold_s:
-                    rec.success = True
-                    break
-            else:
-                success_since = None
+            if hold.update(bool(state.get("success")), sup.now_ns() / 1e9):
+                rec.success = True
+                break
             time.sleep(0.05)
         end = sup.now_ns() / 1e9
     finally:
         arrivals, dropped, e2e, inf = sup.close_gate()
-    rec.duration_s = round((success_since or end) - start, 2)
+    rec.duration_s = round((hold.since if rec.success else end) - start, 2)
     rec.chunks = len(arrivals)
     rec.dropped_cycles = len(dropped)  # observations due an answer that got none (policy_node says why)
     rec.end_to_end_ms, rec.inference_ms = e2e, inf

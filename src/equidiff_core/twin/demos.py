@@ -19,6 +19,7 @@ import numpy as np
 
 from ..config import LabConfig
 from .config import TwinConfig
+from .metrics import SuccessHold
 
 NS = 1_000_000_000
 TOPIC_TYPES = {
@@ -91,7 +92,7 @@ class DirectRecorder:
         cmd_every = round(1000 / ex.command_hz)
         state_every = round(1000 / self.lab.robot.state_hz)
         lead_ns = 50_000_000  # teleop's command lead
-        step, success_since, details = 0, None, {}
+        step, hold = 0, SuccessHold(self.cfg.success.hold_s)
         end_ms = int((plan.duration + 3.0) * 1000)
         try:
             while step <= end_ms:
@@ -115,14 +116,8 @@ class DirectRecorder:
                     grid = self.voxel_grid(t_ns)
                     ws = self.lab.workspace
                     writer.write("/voxels", grid_to_voxel_msg(grid, ws.lower, ws.voxel_size, t_ns, frame, f), t_ns)
-                    if sim.time - t0 > plan.duration:
-                        details = sim.success()
-                        if details["success"]:
-                            success_since = success_since if success_since is not None else sim.time
-                            if sim.time - success_since >= self.cfg.success.hold_s:
-                                break
-                        else:
-                            success_since = None
+                    if sim.time - t0 > plan.duration and hold.update(sim.success()["success"], sim.time):
+                        break
                 sim.step(1)
                 step += 1
             details = sim.success()

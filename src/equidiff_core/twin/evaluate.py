@@ -2,26 +2,20 @@
 
 Used by ``equidiff bench generalization``: the same scene, cameras (rendered from the sim
 state), voxeliser and inference code as the live stack, but stepped synchronously, so the
-result does not depend on how fast this machine is. Two ways to execute the policy's chunks
-(``execution``; docs/evaluation_scheme.md compares them on the shipped checkpoint):
+result does not depend on how fast this machine is.
 
-* ``"replan"``: as the live stack (policy_node + franka_node) on simulated time.
-  Every ``dt`` (the preset's, 0.2 s) an observation is taken at sim time t_k; its chunk (the
-  first ``n_action_steps`` actions, step i stamped t_k + i*dt, ``chunk.chunk_from_actions`` as
-  policy_node) takes effect at t_k + ``latency_s`` (the twin's latency budget L); until then
-  the previous chunk keeps running. franka_node's own ``control.ChunkScheduler`` (configured
-  by ``config/control.yaml``) then drops the steps already due (``live_steps``) and replaces
-  the rest of the trajectory, starting from the setpoint commanded at that instant
-  (``schedule``); the trajectory is sampled at ``REPLAN_COMMAND_HZ`` and the gripper follows
-  the sampled width (with franka_node's deadband). Not modelled: franka_node's safety layer
-  (the jump check on arrival, the workspace clip and speed limits at every tick).
-* ``"chunk"`` (the default: it solved 4 of 10 scenes where ``"replan"`` solved 1, at L = 0.1 s,
-  docs/evaluation_scheme.md; the twin's policy_node executes whole chunks too, its
-  ``execute_steps``): as diffusion_policy's and EquiDiff's simulation evaluations: each observation's
-  first ``n_action_steps`` actions are all executed, action i reached at t_k + L + (i+1)*dt
-  (position linearly interpolated at the expert's 20 Hz, rotation switched at each segment's
-  midpoint), and only then is the next observation taken. ``latency_s`` is spent holding
-  still (the last target kept) between the observation and the chunk's start.
+Chunks execute exactly as the live stack executes them on simulated time (policy_node +
+franka_node, docs/evaluation_scheme.md): an observation is due every ``dt`` (the preset's,
+0.2 s: the cameras' frame rate); the policy answers one every ``execute_steps`` of them (0:
+``n_action_steps``, policy_node's default). The answer to the observation at t_k (its first
+``n_action_steps`` actions, step i stamped t_k + i*dt by ``chunk.chunk_from_actions`` as
+policy_node does) takes effect at t_k + ``latency_s`` (the twin's latency budget L); until then
+the previous chunk keeps running. franka_node's own ``control.ChunkScheduler`` (configured by
+``config/control.yaml``) then drops the steps already due (``live_steps``) and replaces the
+rest of the trajectory, starting from the setpoint commanded at that instant (``schedule``);
+the trajectory is sampled at ``COMMAND_HZ`` and the gripper follows the sampled width (with
+franka_node's deadband). Not modelled: franka_node's safety layer (the jump check on arrival,
+the workspace clip and speed limits at every tick).
 """
 
 from __future__ import annotations
@@ -36,15 +30,15 @@ import numpy as np
 from .. import geometry
 from ..config import LabConfig
 from .config import TwinConfig
+from .metrics import SuccessHold
 from .scene import BLOCK, BOWL, body_pose, sample_scene
 
-EXECUTIONS = ("replan", "chunk")
-# Rate at which the replan scheme samples the scheduler's trajectory into DirectSim.command.
+# Rate at which the scheduler's trajectory is sampled into DirectSim.command.
 # franka_node streams at control_hz (200 Hz), but every DirectSim.command solves IK (2.2 ms on
 # the 2-core EPYC, as much as 5 ms of sim stepping), so 200 Hz would double the sim's cost;
 # at 50 Hz it adds ~25 %. Between commands the joint PD holds the last IK target (1 kHz); the
 # trajectory moves at most a few mm in 20 ms, within the arm's tracking lag at these speeds.
-REPLAN_COMMAND_HZ = 50.0
+COMMAND_HZ = 50.0
 
 
 @dataclass(frozen=True)
@@ -88,11 +82,12 @@ class _Episode:
     """One roll-out's bookkeeping: observations, stage progress, and success held for ``hold_s``."""
 
     def __init__(self, policy, rec, seed: int, hold_s: float):
-        self.policy, self.rec, self.sim, self.seed, self.hold_s = policy, rec, rec.sim, seed, hold_s
+        self.policy, self.rec, self.sim, self.seed = policy, rec, rec.sim, seed
         self.t0 = self.sim.time
         self.progress = _Progress(self.sim)
-        self.observations, self.success_since, self.ok = 0, None, False
-        self.rejected: list[str] = []  # chunks the scheduler refused (stale), replan only
+        self.observations, self.ok = 0, False
+        self.hold = SuccessHold(hold_s)
+        self.rejected: list[str] = []  # chunks the scheduler refused (stale)
 
     def observe(self, stamp_ns: int) -> np.ndarray:
         """The policy's actions for an observation at ``stamp_ns`` (the current sim state)."""
@@ -106,31 +101,29 @@ class _Episode:
     def check(self) -> bool:
         """Update the stages and the success hold; True once the task has been solved for hold_s."""
         self.progress.update()
-        if self.sim.success()["success"]:
-            self.success_since = self.sim.time if self.success_since is None else self.success_since
-            self.ok = self.sim.time - self.success_since >= self.hold_s
-        else:
-            self.success_since = None
+        self.ok = self.hold.update(self.sim.success()["success"], self.sim.time)
         return self.ok
 
 
 def evaluate_policy(policy, cfg: TwinConfig, lab: LabConfig, seeds: Iterable[int], max_duration_s: float = 30.0,
-                    log: Callable[[str], None] = print, recorder=None, latency_s: float = 0.0,
-                    execution: str = "chunk") -> list[EvalEpisode]:
+                    log: Callable[[str], None] = print, recorder=None, latency_s: float = 0.1,
+                    execute_steps: int = 0) -> list[EvalEpisode]:
     """Roll ``policy`` (an ``inference.InferencePolicy``) out from each seed's scene; returns per-episode results.
 
-    ``execution``: ``"replan"`` (the live stack's scheme: a new chunk every dt, in effect from
-    its observation's time + ``latency_s``) or ``"chunk"`` (all ``n_action_steps`` executed,
-    after holding still for ``latency_s``, before the next observation); see the module doc.
-    The policy's sampling seed is ``seed * 1000 + observation index`` in both."""
+    Each answered observation's chunk takes effect ``latency_s`` after it (default 0.1 s, the
+    twin's default budget); the policy answers every ``execute_steps``-th observation (0: every
+    ``n_action_steps``-th, policy_node's default); see the module doc. The policy's sampling
+    seed is ``seed * 1000 + observation index``."""
     from .demos import DirectRecorder
     from .expert import tcp_pose
 
-    if execution not in EXECUTIONS:
-        raise ValueError(f"execution must be one of {EXECUTIONS}, got {execution!r}")
+    n_actions = int(policy.preset.n_action_steps)
+    execute_steps = int(execute_steps) or n_actions
+    if not 1 <= execute_steps <= n_actions:
+        raise ValueError(f"execute_steps must be within 1..{n_actions} (0: all), got {execute_steps}")
     if not (math.isfinite(latency_s) and latency_s >= 0):
         raise ValueError(f"latency_s must be finite and >= 0, got {latency_s}")
-    control = _control_config() if execution == "replan" else None
+    control = _control_config()
     rec = recorder or DirectRecorder(cfg, lab)
     sim, ex = rec.sim, cfg.expert
     results = []
@@ -140,10 +133,7 @@ def evaluate_policy(policy, cfg: TwinConfig, lab: LabConfig, seeds: Iterable[int
             sim.command(tcp_pose(ex.ready_position, 0.0), ex.open_width)
             sim.step(1500)
             episode = _Episode(policy, rec, seed, cfg.success.hold_s)
-            if execution == "replan":
-                _run_replan(episode, policy, control, max_duration_s, latency_s, ex.open_width)
-            else:
-                _run_chunks(episode, policy, max_duration_s, latency_s, ex.command_hz)
+            _run(episode, policy, control, max_duration_s, latency_s, execute_steps, ex.open_width)
             progress, t = episode.progress, sim.time - episode.t0
             results.append(EvalEpisode(seed, episode.ok, round(t, 2), episode.observations,
                                        round(float(np.degrees(poses.block_yaw)), 1), progress.reached,
@@ -170,39 +160,15 @@ def _control_config():
     return load_control_config(default_config_dir() / "control.yaml")
 
 
-def _run_chunks(episode: _Episode, policy, max_duration_s: float, latency_s: float, command_hz: float) -> None:
-    """The ``"chunk"`` scheme: observe, hold ``latency_s``, execute all n_action_steps, repeat."""
-    sim = episode.sim
-    dt = float(policy.preset.dt)
-    n_exec = int(policy.preset.n_action_steps)
-    sub = max(1, round(dt * command_hz))  # 20 Hz targets between policy steps
-    latency_ms = round(latency_s * 1000)
-    while sim.time - episode.t0 < max_duration_s and not episode.ok:
-        actions = episode.observe(int((sim.time - episode.t0) * 1e9))[:n_exec]
-        if latency_ms:
-            sim.step(latency_ms)  # the last target stays commanded: the arm holds still
-        poses_a, widths = geometry.action_to_pose(actions)
-        prev = sim.tcp_pose()
-        for pose, width in zip(poses_a, widths):
-            for k in range(1, sub + 1):
-                s = k / sub
-                target = prev.copy()
-                target[:3, 3] = (1 - s) * prev[:3, 3] + s * pose[:3, 3]
-                target[:3, :3] = pose[:3, :3] if s >= 0.5 else prev[:3, :3]
-                sim.command(target, float(np.clip(width, 0.0, 0.08)))
-                sim.step(round(1000 * dt / sub))
-            prev = pose
-            if episode.check():
-                break
-
-
-def _run_replan(episode: _Episode, policy, control, max_duration_s: float, latency_s: float,
-                open_width: float) -> None:
-    """The ``"replan"`` scheme, as policy_node + franka_node on simulated time (1 ms sim ticks).
+def _run(episode: _Episode, policy, control, max_duration_s: float, latency_s: float, execute_steps: int,
+         open_width: float) -> None:
+    """One episode as policy_node + franka_node run it on simulated time (1 ms sim ticks).
 
     Three event streams on one integer-millisecond clock from the episode's start: observations
-    every dt; each observation's chunk taking effect latency_s later (several can be in flight
-    when latency_s > dt); setpoints sampled from the scheduler at REPLAN_COMMAND_HZ."""
+    every dt (success is judged at each, as the supervisor does; every ``execute_steps``-th is
+    answered); each answered observation's chunk taking effect latency_s later (several can be
+    in flight when latency_s > the answering period); setpoints sampled from the scheduler at
+    COMMAND_HZ."""
     from ..chunk import ChunkError, chunk_from_actions
     from ..control import ChunkScheduler, Setpoint
 
@@ -210,21 +176,23 @@ def _run_replan(episode: _Episode, policy, control, max_duration_s: float, laten
     dt_ms = round(float(policy.preset.dt) * 1000)
     n_exec = int(policy.preset.n_action_steps)
     latency_ms = round(latency_s * 1000)
-    cmd_ms = max(1, round(1000 / REPLAN_COMMAND_HZ))
+    cmd_ms = max(1, round(1000 / COMMAND_HZ))
     max_ms = round(max_duration_s * 1000)
     scheduler = ChunkScheduler(control.scheduler)
     # Before the first chunk: hold the measured pose, as Controller._reset_to_measured does.
     hold = Setpoint(sim.tcp_pose(), np.zeros(3), np.zeros(3), float("nan"), False)
     width_sent = float(open_width)  # the homing command's width
     pending: deque = deque()  # (ms at which it takes effect, PoseChunk), in order
-    now = next_obs = next_cmd = 0
+    now = next_obs = next_cmd = frames = 0
     while True:
-        if now >= next_obs:  # an observation instant: score the state, then observe it
+        if now >= next_obs:  # an observation instant: score the state, then answer it if it is due
             if (now > 0 and episode.check()) or now >= max_ms:
                 return
-            chunk = chunk_from_actions(episode.observe(now * 1_000_000)[:n_exec], now * 1_000_000,
-                                       dt_ms * 1_000_000)
-            pending.append((now + latency_ms, chunk))
+            if frames % execute_steps == 0:
+                chunk = chunk_from_actions(episode.observe(now * 1_000_000)[:n_exec], now * 1_000_000,
+                                           dt_ms * 1_000_000)
+                pending.append((now + latency_ms, chunk))
+            frames += 1
             next_obs += dt_ms
         while pending and pending[0][0] <= now:  # a chunk takes effect: franka_node's Controller.submit
             chunk = pending.popleft()[1]

@@ -22,8 +22,8 @@ trainings side by side ~1.0 s (EquiDiff) and ~0.6 s (baseline) per step of batch
 rotation augmentation (4000 steps: ~70 min), evaluation ~6 s per 30 s episode (30 episodes: 3
 min): the defaults take about 1.5 h. ``--max-minutes`` gives each policy a training budget
 (``equidiff train`` stops, checkpoints and exports; the steps each trained are reported).
-Measured with this recipe (docs/twin.md): EquiDiff 3/10 unseen and 3/5 in range, the baseline
-0/10 and 0/5 (it never reached the block). On CUDA thousands of steps fit in minutes.
+The measured results, with the commands that produced them, are in docs/twin.md (numbers
+live there only, so this text cannot go stale). On CUDA thousands of steps fit in minutes.
 """
 
 from __future__ import annotations
@@ -65,6 +65,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="evaluate DIR/equidiff and DIR/baseline (policy.pt + history.json, e.g. trained on a "
                              "GPU machine from `equidiff dataset pack`ed demos) instead of recording and training")
     parser.add_argument("--max-duration", type=float, default=30.0, help="sim seconds per evaluation episode")
+    parser.add_argument("--latency-ms", type=float, default=100.0,
+                        help="latency budget: each chunk takes effect this long after its observation, as in "
+                             "`equidiff twin run --latency-ms`")
     parser.add_argument("--max-minutes", type=float, default=None,
                         help="training time budget per policy (equidiff train --max-minutes: stops and exports)")
     parser.add_argument("--quick", action="store_true", help="4 demos, 30 steps, 2 episodes, tiny preset")
@@ -267,6 +270,7 @@ def _evaluate(args, cfg, lab, out: Path, policies: dict, steps_done: dict, n_dem
             augs.add(policy.preset.rotation_aug)
             for label, scene_seeds, rates in (("unseen", seeds, success), ("in_range", in_range, in_range_success)):
                 episodes = evaluate_policy(policy, cfg, lab, scene_seeds, args.max_duration, recorder=rec,
+                                           latency_s=args.latency_ms / 1000,
                                            log=lambda s, n=name, w=label: print(f"[{n}, {w}] {s}", flush=True))
                 rates[name] = _fraction(episodes, "success")
                 stages.setdefault(name, {})[label] = {
@@ -283,6 +287,7 @@ def _evaluate(args, cfg, lab, out: Path, policies: dict, steps_done: dict, n_dem
         "equidiff_in_range_success": in_range_success["equidiff"],
         "baseline_in_range_success": in_range_success["baseline"],
         "in_range_episodes": args.in_range_episodes,
+        "latency_budget_ms": args.latency_ms,
         "stages": stages,  # how far failures got: fractions that reached the block / lifted it, closest TCP
         "demos": n_demos,
         "train_steps": min((v for v in steps_done.values() if v is not None), default=None),
