@@ -89,6 +89,8 @@ def test_replay_restamped_to_now_keeps_relative_timing(ros):
 
 
 def test_replay_robot_mode_publishes_only_commands_after_checking_the_start(ros):
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+
     from equidiff_core import geometry
     from equidiff_ros.common import RELIABLE_QOS
 
@@ -108,8 +110,11 @@ def test_replay_robot_mode_publishes_only_commands_after_checking_the_start(ros)
 
     # a (fake) franka node far from the start pose: refused, nothing published
     chunks = []
+    # Deep enough for every chunk of the episode: a keep-last-10 reader on a busy machine (the
+    # test spins only every 50 ms) lost chunks that replay had delivered.
+    every_chunk = QoSProfile(depth=len(ep["/franka/command_chunk"]) + 10, reliability=ReliabilityPolicy.RELIABLE)
     ros.node.create_subscription(f.cls(TOPICS["/franka/command_chunk"]), "/franka/command_chunk",
-                                 lambda m: chunks.append(chunk_from_msg(m)), RELIABLE_QOS)
+                                 lambda m: chunks.append(chunk_from_msg(m)), every_chunk)
     proc = replay("--robot", "--rate", "8")
     ros.spin_until(lambda: proc.poll() is not None or (publish_pose(np.array([0.2, 0, 0])) and False), 60.0, 0.05)
     _out, err = proc.communicate(timeout=30)

@@ -22,7 +22,7 @@ import struct
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, ClassVar
+from typing import Any
 
 import numpy as np
 import yaml
@@ -319,10 +319,9 @@ def repair_bag(path: str | Path, output: str | Path | None = None, force: bool =
     ``output`` defaults to ``path`` itself: the damaged directory is renamed to
     ``<path>.unrepaired`` and the repaired bag takes its place.
     """
-    from rosbags.rosbag2 import StoragePlugin, Writer
     from rosbags.rosbag2.storage_mcap import get_qos
 
-    from .recording import MiB, _chunked_mcap_writer_cls
+    from .mcap_writer import open_bag_writer
 
     path = Path(path)
     if not path.is_dir():
@@ -346,13 +345,7 @@ def repair_bag(path: str | Path, output: str | Path | None = None, force: bool =
     target.parent.mkdir(parents=True, exist_ok=True)
     typestore = rosbags_factory().typestore
 
-    class _Out(Writer):
-        STORAGE_PLUGINS: ClassVar = {**Writer.STORAGE_PLUGINS, StoragePlugin.MCAP: _chunked_mcap_writer_cls()}
-
-    writer = _Out(target, version=9, storage_plugin=StoragePlugin.MCAP)
-    writer.open()
-    writer.storage.chunk_size = 8 * MiB
-    writer.storage.chunk_max_age_s = float("inf")
+    writer = open_bag_writer(target, chunk_max_age_s=float("inf"))
     conns, counts = {}, {}
     try:
         for cid, (sid, topic, enc, meta) in sorted(scan.channels.items()):

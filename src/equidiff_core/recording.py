@@ -25,18 +25,16 @@ from __future__ import annotations
 
 import re
 import shutil
-import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, ClassVar, Self
+from typing import Any, Self
 
 import yaml
 
 from .bags import META_SIDECAR, EpisodeMeta
 from .config import LabConfig
+from .mcap_writer import MiB, open_bag_writer
 from .rosmsg import RosbagsFactory, rosbags_factory
-
-MiB = 1 << 20
 
 # Recorded topics and their types (architecture.md). Camera clouds are optional.
 RECORDED_TOPICS: dict[str, str] = {
@@ -92,68 +90,6 @@ def next_episode_path(output_dir: str | Path, task: str = "episode") -> Path:
     return output_dir / f"{slug}_{(max(taken) + 1 if taken else 0):04d}"
 
 
-def _chunked_mcap_writer_cls():
-    """rosbags' McapWriter with a configurable chunk size and time-based flushing.
-
-    rosbags closes a chunk once it exceeds a hard-coded 1 MiB and leaves it in Python's
-    write buffer; we override ``write`` (same record layout, our threshold) and flush each
-    completed chunk so it is on disk even if the process is SIGKILLed right after.
-    """
-    from io import BytesIO
-
-    from rosbags.rosbag2.storage_mcap import (
-        McapWriter,
-        write_record,
-        write_uint16,
-        write_uint32,
-        write_uint64,
-    )
-
-    class ChunkedMcapWriter(McapWriter):
-        chunk_size = 8 * MiB
-        chunk_max_age_s = 2.0
-        on_chunk = None  # callback after each completed chunk (free-disk check)
-
-        def __init__(self, path, compression):
-            super().__init__(path, compression)
-            self.chunk_opened = time.monotonic()
-
-        def close_chunk(self) -> None:
-            super().close_chunk()
-            self.bio.flush()
-            self.chunk_opened = time.monotonic()
-            if self.on_chunk is not None:
-                self.on_chunk()
-
-        def write(self, connection, timestamp: int, data) -> None:
-            if not self.chunk.msgs:
-                self.chunk_opened = time.monotonic()
-            self.message_start_time = min(timestamp, self.message_start_time)
-            self.message_end_time = max(timestamp, self.message_end_time)
-            self.channel_stats[connection.id] += 1
-            self.chunk.message_start_time = min(timestamp, self.chunk.message_start_time)
-            self.chunk.message_end_time = max(timestamp, self.chunk.message_end_time)
-            self.chunk.msgs[connection.id].append((timestamp, self.chunk.bio.tell()))
-            rec = BytesIO()
-            write_uint16(rec, connection.id)
-            write_uint32(rec, 0)
-            write_uint64(rec, timestamp)
-            write_uint64(rec, timestamp)
-            rec.write(data)
-            write_record(self.chunk.bio, 0x05, rec)
-            if self.chunk.bio.tell() > self.chunk_size or self.chunk_age_s() > self.chunk_max_age_s:
-                self.close_chunk()
-
-        def chunk_age_s(self) -> float:
-            return time.monotonic() - self.chunk_opened if self.chunk.msgs else 0.0
-
-        def flush_if_old(self) -> None:
-            if self.chunk.msgs and self.chunk_age_s() > self.chunk_max_age_s:
-                self.close_chunk()
-
-    return ChunkedMcapWriter
-
-
 def _qos(reliable: bool = True, transient_local: bool = False, depth: int = 10):
     from rosbags.interfaces import (
         Qos,
@@ -187,8 +123,6 @@ class EpisodeWriter:
 
     # -- lifecycle --------------------------------------------------------------------------
     def open(self) -> EpisodeWriter:
-        from rosbags.rosbag2 import StoragePlugin, Writer
-
         if self.path.exists():
             raise RecordingError(f"{self.path} already exists: episodes are never overwritten")
         need = int(self.config.min_free_gib * (1 << 30))
@@ -198,16 +132,8 @@ class EpisodeWriter:
                                  f"(need {self.config.min_free_gib} GiB, recorder.min_free_gib)")
         self.path.parent.mkdir(parents=True, exist_ok=True)
 
-        class _EpisodeBagWriter(Writer):
-            STORAGE_PLUGINS: ClassVar = {**Writer.STORAGE_PLUGINS, StoragePlugin.MCAP: _chunked_mcap_writer_cls()}
-
-        writer = _EpisodeBagWriter(self.path, version=9, storage_plugin=StoragePlugin.MCAP)
-        writer.open()
-        storage = writer.storage
-        storage.chunk_size = int(self.config.chunk_size_mib * MiB)
-        storage.chunk_max_age_s = self.config.chunk_max_age_s
-        storage.on_chunk = self._check_disk
-        self._writer = writer
+        self._writer = open_bag_writer(self.path, int(self.config.chunk_size_mib * MiB),
+                                       self.config.chunk_max_age_s, on_chunk=self._check_disk)
         self._write_sidecar()
         return self
 
