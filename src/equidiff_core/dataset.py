@@ -42,14 +42,16 @@ import numpy as np
 from . import geometry
 from .bags import BagError, EpisodeMeta, find_bags, is_bag_dir, read_episode
 from .chunk import ChunkError, chunk_from_msg
+from .control.messages import gripper_width_from_joint_state, pose_from_msg
+from .observation import STATE_TOLERANCE_S, ee_input, nearest
 from .pointcloud import CloudError, voxel_msg_to_grid
+from .robots.base import FINGER_JOINT_NAMES
 from .rosmsg import NS_PER_S
 
 TOPIC_VOXELS = "/voxels"
 TOPIC_EE_POSE = "/franka/ee_pose"
 TOPIC_JOINT_STATES = "/franka/joint_states"
 TOPIC_COMMAND_CHUNK = "/franka/command_chunk"
-FINGER_JOINTS = ("fr3_finger_joint1", "fr3_finger_joint2")
 CACHE_VERSION = 2  # 2: compressed, with the decoding settings inside (shared with packed episodes)
 PACKED_SUFFIX = ".episode.npz"
 
@@ -60,7 +62,7 @@ class DatasetConfig:
     n_obs_steps: int = 1
     n_action_steps: int = 8
     resolution: int = 64
-    state_tolerance_s: float = 0.05  # ee pose / joint state must be this close to the voxel stamp
+    state_tolerance_s: float = STATE_TOLERANCE_S  # ee pose / joint state must be this close to the voxel stamp
     obs_period_s: float | None = None  # None: the median interval of the bag's /voxels stamps
     cache_dir: str | None = None
 
@@ -122,18 +124,6 @@ class EpisodeArrays:
         return self.targets_at(self.stamps_ns)
 
 
-def _nearest(sorted_ns: np.ndarray, t_ns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Index of and |distance| to the nearest element of ``sorted_ns`` for each ``t_ns``."""
-    j = np.clip(np.searchsorted(sorted_ns, t_ns), 1, len(sorted_ns) - 1) if len(sorted_ns) > 1 else \
-        np.zeros(len(t_ns), dtype=np.int64)
-    if len(sorted_ns) == 1:
-        return j, np.abs(sorted_ns[0] - t_ns)
-    left, right = sorted_ns[j - 1], sorted_ns[j]
-    use_left = np.abs(t_ns - left) <= np.abs(right - t_ns)
-    idx = np.where(use_left, j - 1, j)
-    return idx, np.abs(sorted_ns[idx] - t_ns)
-
-
 def command_schedule(chunks: Sequence[Any]) -> tuple[np.ndarray, np.ndarray]:
     """PoseChunks in arrival order -> the effective (times, targets) as the franka node executes them.
 
@@ -159,30 +149,22 @@ def _ee_actions(episode, stamps_ns: np.ndarray, tol_ns: int) -> tuple[np.ndarray
     pose_ns = poses_t.header_ns()
     order = np.argsort(pose_ns, kind="stable")
     pose_ns = pose_ns[order]
-    pi, pd = _nearest(pose_ns, stamps_ns)
+    pi, pd = nearest(pose_ns, stamps_ns)
     js_t = episode[TOPIC_JOINT_STATES]
     js_ns = js_t.header_ns()
     js_order = np.argsort(js_ns, kind="stable")
-    widths = []
-    for msg in (js_t.messages[i] for i in js_order):
-        names = list(msg.name)
-        try:
-            widths.append(sum(float(msg.position[names.index(n)]) for n in FINGER_JOINTS))
-        except ValueError:
-            widths.append(np.nan)  # a message without finger joints (e.g. an arm-only publisher)
-    widths = np.asarray(widths)
+    # a message without finger joints (e.g. an arm-only publisher) is no gripper state
+    widths = np.array([np.nan if (w := gripper_width_from_joint_state(js_t.messages[i])) is None else w
+                       for i in js_order], dtype=np.float64)
     valid_js = np.isfinite(widths)
     if not valid_js.any():
-        raise BagError(f"{episode.path}: /franka/joint_states has no {' / '.join(FINGER_JOINTS)} positions")
+        raise BagError(f"{episode.path}: /franka/joint_states has no {' / '.join(FINGER_JOINT_NAMES)} positions")
     js_ns_valid, widths = js_ns[js_order][valid_js], widths[valid_js]
-    wi, wd = _nearest(js_ns_valid, stamps_ns)
+    wi, wd = nearest(js_ns_valid, stamps_ns)
     ok = (pd <= tol_ns) & (wd <= tol_ns)
     out = np.zeros((len(stamps_ns), geometry.ACTION_DIM), dtype=np.float32)
     for n in np.nonzero(ok)[0]:
-        p = poses_t.messages[order[pi[n]]].pose
-        T = geometry.pose_from_pos_quat([p.position.x, p.position.y, p.position.z],
-                                        [p.orientation.x, p.orientation.y, p.orientation.z, p.orientation.w])
-        out[n] = geometry.pose_to_action(T, np.float64(widths[wi[n]]))
+        out[n] = ee_input(pose_from_msg(poses_t.messages[order[pi[n]]]), widths[wi[n]])
     return out, ok
 
 

@@ -71,6 +71,7 @@ def build_node():
     from equidiff_core.control import messages as cm
     from equidiff_core.control.metrics import percentiles_ms
     from equidiff_core.inference import CheckpointError, load_inference_policy
+    from equidiff_core.observation import STATE_TOLERANCE_S, StateHistory, ee_input
     from equidiff_core.pointcloud import voxel_msg_to_grid
     from equidiff_core.rosmsg import RclpyFactory, stamp_to_ns
     from equidiff_ros.common import (
@@ -99,7 +100,7 @@ def build_node():
             compile_step = self.declare_parameter("compile", False).value
             rate_hz = declare_number(self, "rate_hz", self.lab.observation_hz)
             self.max_obs_age_ns = int(declare_number(self, "max_observation_age_s", 0.5) * 1e9)
-            self.max_state_offset_ns = int(declare_number(self, "max_state_offset_s", 0.1) * 1e9)
+            self.max_state_offset_ns = int(declare_number(self, "max_state_offset_s", STATE_TOLERANCE_S) * 1e9)
             seed = self.declare_parameter("seed", -1).value
             n_steps = self.declare_parameter("n_action_steps", 0).value
             execute_steps = self.declare_parameter("execute_steps", 0).value
@@ -136,8 +137,8 @@ def build_node():
             self.factory = RclpyFactory()
             self._lock = threading.Lock()
             self._voxels = None  # newest PointCloud2
-            self._poses = collections.deque(maxlen=200)  # (stamp_ns, pose)
-            self._widths = collections.deque(maxlen=200)  # (stamp_ns, width)
+            self._poses = StateHistory()  # TCP poses, matched to observations as training matches them
+            self._widths = StateHistory()  # gripper widths
             self._voxel_error = ""  # voxel node status at ERROR level, if any
             self._busy = False
             self._cycle_lock = threading.Lock()  # the executor thread and the worker both start cycles
@@ -177,13 +178,13 @@ def build_node():
                 self.get_logger().warning(f"ignoring invalid ee pose: {err}", throttle_duration_sec=5.0)
                 return
             with self._lock:
-                self._poses.append((stamp_to_ns(msg.header.stamp), pose))
+                self._poses.add(stamp_to_ns(msg.header.stamp), pose)
 
         def on_joints(self, msg) -> None:
             width = cm.gripper_width_from_joint_state(msg)
             if width is not None and np.isfinite(width):
                 with self._lock:
-                    self._widths.append((stamp_to_ns(msg.header.stamp), width))
+                    self._widths.add(stamp_to_ns(msg.header.stamp), width)
 
         def on_diagnostics(self, msg) -> None:
             for status in msg.status:
@@ -231,13 +232,12 @@ def build_node():
                 if self._voxel_error:
                     return self.skip("voxel_error", f"voxel node reports: {self._voxel_error}", stamp)
                 with self._lock:
-                    pose = _nearest(self._poses, stamp, self.max_state_offset_ns)
-                    width = _nearest(self._widths, stamp, self.max_state_offset_ns)
-                if pose is None:
-                    return self.skip("no_robot_state", f"no {TOPIC_EE_POSE} within "
+                    pose = self._poses.nearest(stamp, self.max_state_offset_ns)
+                    width = self._widths.nearest(stamp, self.max_state_offset_ns)
+                if pose is None or width is None:  # no guessed state: training would have dropped this step too
+                    missing = TOPIC_EE_POSE if pose is None else f"gripper width on {TOPIC_JOINT_STATES}"
+                    return self.skip("no_robot_state", f"no {missing} within "
                                      f"{self.max_state_offset_ns / 1e6:.0f} ms of the observation", stamp)
-                if width is None:
-                    width = 0.08  # arm without gripper state: the policy still needs a width input
                 self._busy = True
                 self._answered_ns = stamp
                 self.obs_age_s.append(age / 1e9)
@@ -247,7 +247,7 @@ def build_node():
             try:
                 t0 = time.perf_counter()
                 grid = voxel_msg_to_grid(msg, self.policy.workspace.resolution)
-                ee = geometry.pose_to_action(pose, np.array(width)).astype(np.float32)
+                ee = ee_input(pose, width)
                 actions = self.policy.predict(grid, ee, seed=int(self.rng.integers(2**31)))
                 inference = time.perf_counter() - t0
                 chunk = chunk_from_actions(actions[: self.n_action_steps], stamp, self.dt_ns)
@@ -291,14 +291,6 @@ def build_node():
 
         def shutdown(self) -> None:
             self.worker.shutdown(wait=True, cancel_futures=True)
-
-    def _nearest(history, stamp: int, max_offset_ns: int):
-        best, best_dt = None, None
-        for t, value in history:
-            dt = abs(t - stamp)
-            if best_dt is None or dt < best_dt:
-                best, best_dt = value, dt
-        return best if best_dt is not None and best_dt <= max_offset_ns else None
 
     return PolicyNode()
 

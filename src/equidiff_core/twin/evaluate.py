@@ -27,8 +27,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .. import geometry
 from ..config import LabConfig
+from ..observation import ee_input
 from .config import TwinConfig
 from .metrics import SuccessHold
 from .scene import BLOCK, BOWL, body_pose, sample_scene
@@ -93,8 +93,8 @@ class _Episode:
         """The policy's actions for an observation at ``stamp_ns`` (the current sim state)."""
         sim = self.sim
         grid = self.rec.voxel_grid(stamp_ns)
-        ee = geometry.pose_to_action(sim.tcp_pose(), np.asarray(sim.gripper_width()))
-        actions = self.policy.predict(grid, ee.astype(np.float32), seed=self.seed * 1000 + self.observations)
+        ee = ee_input(sim.tcp_pose(), sim.gripper_width())  # the state at the stamp itself: no matching needed
+        actions = self.policy.predict(grid, ee, seed=self.seed * 1000 + self.observations)
         self.observations += 1
         return actions
 
