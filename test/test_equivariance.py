@@ -130,6 +130,7 @@ def test_shipped_checkpoint_is_exactly_c4_and_beats_a_baseline_at_45_degrees():
     assert report["denoiser"]["rot45_max_rel_err"] < base[45]
 
 
+@pytest.mark.slow  # ~15 s: every path (bf16 emulated on AVX2 CPUs), 7 rotations, DDIM
 def test_check_equivariance_command_prints_one_json_line(capsys):
     from equidiff_ros.cli import main
 
@@ -159,6 +160,7 @@ def test_check_equivariance_of_the_baseline_has_no_second_baseline(capsys):
         assert base[path]["denoiser"]["c4_max_rel_err"] > 0.1
 
 
+@pytest.mark.slow  # ~15 s: every path (bf16 emulated on AVX2 CPUs), 7 rotations, DDIM
 def test_check_equivariance_of_a_training_checkpoint(tmp_path, capsys):
     from helpers_model import CubeDataset
 
