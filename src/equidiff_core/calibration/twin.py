@@ -26,8 +26,9 @@ from scipy.spatial.transform import Rotation
 
 from ..config import Extrinsics, LabConfig
 from ..geometry import make_pose
-from .board import BoardDetector, BoardSpec, CalibrationError
-from .solve import CameraModel, Sample
+from .board import BoardSpec, CalibrationError
+from .plan import PlanConfig, plan_poses
+from .solve import Calibration, CameraModel
 
 
 def nominal_mount(spec: BoardSpec, offset_x: float = 0.06, height: float = 0.0434) -> np.ndarray:
@@ -117,74 +118,57 @@ class DirectSimArm:
 
 
 class FrankyTwinArm:
-    """franky against franky-sim, as on the lab's FR3: blocking moves, libfranka's TCP pose."""
+    """franky against franky-sim (the twin's libfranka server, real-time loop), as on the lab's FR3."""
 
-    def __init__(self, twin_cfg, settle_s: float = 0.5):
-        from ..robots.franky import FrankyRobot
+    def __init__(self, twin_cfg):
         from ..twin.shared_state import StateReader
         from ..twin.sim import TwinSim
+        from .capture import FrankyArm
 
-        self.settle_s = settle_s
         self.twin = TwinSim(twin_cfg, host="auto", shm_name=f"equidiff_calib_{time.time_ns()}").start(seed=0)
+        self.reader = None
         try:
             self.reader = StateReader(self.twin.shm_name, nq=self.twin.model.nq)
-            self.robot = FrankyRobot(self.twin.host, realtime=False, gripper=False)
-            self.robot.connect()
+            self.arm = FrankyArm(self.twin.host, realtime=False)
         except Exception:
+            if self.reader is not None:
+                self.reader.close()
             self.twin.stop()
             raise
 
     def tcp_pose(self) -> np.ndarray:
-        return self.robot.read_state().ee_pose
+        return self.arm.tcp_pose()
 
     def move_to(self, T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        self.robot.move_to(T)
-        deadline = time.monotonic() + 5.0
-        while True:  # captures only at rest: the camera and the robot must see the same instant
-            time.sleep(self.settle_s)
-            state = self.robot.read_state()
-            if np.abs(state.joint_velocities).max() < 1e-3 or time.monotonic() > deadline:
-                break
-        qpos, _, _ = self.reader.read()
-        return state.ee_pose, qpos
+        measured, _ = self.arm.move_to(T)
+        qpos, _, _ = self.reader.read()  # the state the sim shares with its cameras, taken at rest
+        return measured, qpos
 
     def close(self) -> None:
         try:
-            self.robot.disconnect()
+            self.arm.close()
         finally:
             self.reader.close()
             self.twin.stop()
 
 
-def capture_twin(arm, poses: list[np.ndarray], lab_truth: LabConfig, twin_cfg, spec: BoardSpec,
-                 log=print, images: dict | None = None) -> list[Sample]:
-    """Move through ``poses``; at each, every twin camera (at its true pose) renders and detects."""
-    from ..cameras.twin import TwinCamera
+class TwinCameras:
+    """The twin's cameras at their true poses, rendering a given sim state (colour only is used)."""
 
-    detector = BoardDetector(spec)
-    cams = [TwinCamera(cam, state_source=lambda t: (None, 0.0, 0), paced=False, twin_config=twin_cfg)
-            for cam in lab_truth.cameras]
-    samples = []
-    try:
-        for cam in cams:
+    def __init__(self, lab_truth: LabConfig, twin_cfg):
+        from ..cameras.twin import TwinCamera
+
+        self.cams = [TwinCamera(cam, state_source=lambda t: (None, 0.0, 0), paced=False, twin_config=twin_cfg)
+                     for cam in lab_truth.cameras]
+        for cam in self.cams:
             cam.connect()
-        for k, T in enumerate(poses):
-            measured, qpos = arm.move_to(T)
-            dets = {}
-            for cam in cams:
-                rgb, _ = cam.render(qpos)
-                det = detector.detect(rgb)
-                if det is not None:
-                    dets[cam.camera.name] = det
-                if images is not None:
-                    images.setdefault(cam.camera.name, []).append(rgb)
-            log(f"pose {k + 1}/{len(poses)}: corners " + ", ".join(
-                f"{c.camera.name} {len(dets[c.camera.name]) if c.camera.name in dets else 0}" for c in cams))
-            samples.append(Sample(measured, dets))
-    finally:
-        for cam in cams:
+
+    def grab(self, qpos: np.ndarray) -> dict[str, np.ndarray]:
+        return {cam.camera.name: cam.render(qpos)[0] for cam in self.cams}
+
+    def close(self) -> None:
+        for cam in self.cams:
             cam.disconnect()
-    return samples
 
 
 def errors_against_truth(result, lab_truth: LabConfig) -> dict[str, dict]:
@@ -197,3 +181,44 @@ def errors_against_truth(result, lab_truth: LabConfig) -> dict[str, dict]:
     return out
 
 
+
+
+def calibrate_twin(lab_truth: LabConfig, twin_cfg, spec: BoardSpec, plan: PlanConfig, arm: str = "franky",
+                   perturb_m: float = 0.03, perturb_deg: float = 3.0, texture_dir: str | Path | None = None,
+                   log=print) -> tuple[dict, Calibration, LabConfig]:
+    """The whole calibration in the twin from perturbed guesses; (report, calibration, the guessed lab).
+
+    ``arm``: "franky" (franky against franky-sim, the lab's path) or "direct" (in-process sim).
+    """
+    import tempfile
+
+    from .capture import capture_samples
+    from .solve import calibrate
+
+    guess = perturb_lab(lab_truth, perturb_m, perturb_deg, plan.seed)
+    mount = nominal_mount(spec)
+    with tempfile.TemporaryDirectory(prefix="equidiff_board_") as tmp:
+        cfg = twin_config_with_board(twin_cfg, spec, mount, texture_dir or tmp)
+        models = [twin_camera_model(cam, cfg.render) for cam in lab_truth.cameras]
+        start = time.monotonic()
+        cams = TwinCameras(lab_truth, cfg)
+        try:
+            mover = FrankyTwinArm(cfg) if arm == "franky" else DirectSimArm(cfg)
+            try:
+                poses = plan_poses(guess, models, spec, mount, plan, start=mover.tcp_pose())
+                samples = capture_samples(mover, poses, cams.grab, spec, log=log)
+            finally:
+                mover.close()
+        finally:
+            cams.close()
+    result = calibrate(spec, models, samples)
+    errors = errors_against_truth(result, lab_truth)
+    report = {
+        "max_translation_error_mm": max(e["translation_error_mm"] for e in errors.values()),
+        "max_rotation_error_deg": max(e["rotation_error_deg"] for e in errors.values()),
+        "cameras": {name: {**errors[name], **result.cameras[name].summary()} for name in errors},
+        "initial_guess_error": {"translation_mm": round(perturb_m * 1000, 3), "rotation_deg": perturb_deg},
+        "poses": len(samples), "arm": "franky+franky-sim" if arm == "franky" else "in-process MuJoCo",
+        "image": f"{cfg.render.width}x{cfg.render.height}", "wall_s": round(time.monotonic() - start, 1),
+    }
+    return report, result, guess
