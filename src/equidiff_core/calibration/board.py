@@ -36,12 +36,12 @@ def _cv2():
 
 @dataclass(frozen=True)
 class BoardSpec:
-    """A ChArUco board. Defaults: 5 x 4 squares of 50 mm (250 x 200 mm), fits A4 landscape."""
+    """A ChArUco board. Defaults: 5 x 4 squares of 45 mm (225 x 180 mm): with its margin it fits A4 landscape."""
 
     squares_x: int = 5  # columns
     squares_y: int = 4  # rows
-    square_length: float = 0.05  # m, as printed
-    marker_length: float = 0.037  # m, the ArUco marker inside each white square
+    square_length: float = 0.045  # m, as printed
+    marker_length: float = 0.034  # m, the ArUco marker inside each white square
     dictionary: str = "DICT_4X4_50"
 
     def __post_init__(self):
@@ -90,7 +90,7 @@ class PrintedBoard:
                 f"{self.square_mm:.2f} mm, pass the measured size with --square-mm.")
 
 
-def write_printable(spec: BoardSpec, path: str | Path, dpi: int = 300, margin_mm: float = 10.0) -> PrintedBoard:
+def write_printable(spec: BoardSpec, path: str | Path, dpi: int = 508, margin_mm: float = 10.0) -> PrintedBoard:
     """Write the board as a PDF (page = board + white margin, exact size at 100 %) or a PNG with its dpi."""
     from PIL import Image
 

@@ -25,27 +25,34 @@ class FrankyArm:
     ``relative_dynamics_factor``, 0.15 by default), so the arm stays inside its speed limits.
     """
 
-    def __init__(self, ip: str, realtime: bool = True, settle_s: float = 0.5, max_joint_speed: float = 1e-3):
+    def __init__(self, ip: str, realtime: bool = True, settle_s: float = 0.5, max_joint_step: float = 2e-4,
+                 gripper: bool = False):
         from ..robots.franky import FrankyRobot
 
         self.settle_s = settle_s
-        self.max_joint_speed = max_joint_speed
-        self.robot = FrankyRobot(ip, realtime=realtime, gripper=False)
+        self.max_joint_step = max_joint_step
+        self.robot = FrankyRobot(ip, realtime=realtime, gripper=gripper)
         self.robot.connect()
 
     def tcp_pose(self) -> np.ndarray:
         return self.robot.read_state().ee_pose
 
-    def wait_at_rest(self, timeout_s: float = 5.0) -> np.ndarray:
-        """The TCP pose once the joints are still (images and pose must show the same instant)."""
+    def wait_at_rest(self, timeout_s: float = 10.0) -> np.ndarray:
+        """The TCP pose once no joint moved more than ``max_joint_step`` rad in ``settle_s``.
+
+        Images and pose must show the same instant. Judged from joint positions, not the reported
+        velocities: franky-sim reports a spurious joint-7 velocity (~0.08 rad/s) at rest.
+        """
         deadline = time.monotonic() + timeout_s
+        previous = self.robot.read_state().joint_positions
         while True:
             time.sleep(self.settle_s)
             state = self.robot.read_state()
-            if np.abs(state.joint_velocities).max() < self.max_joint_speed:
+            if np.abs(state.joint_positions - previous).max() < self.max_joint_step:
                 return state.ee_pose
             if time.monotonic() > deadline:
                 raise CalibrationError(f"the arm did not come to rest within {timeout_s:.0f} s")
+            previous = state.joint_positions
 
     def move_to(self, T: np.ndarray) -> tuple[np.ndarray, None]:
         self.robot.move_to(T)

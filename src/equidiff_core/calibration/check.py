@@ -109,7 +109,7 @@ def finger_surface_tcp(width: float, samples_per_m2: float = 2e7, seed: int = 0)
 
 
 def check_alignment(lab: LabConfig, clouds: dict[str, np.ndarray], T_base_tcp: np.ndarray | None = None,
-                    gripper_width: float | None = None, fingertip_radius: float = 0.04,
+                    gripper_width: float | None = None, fingertip_length: float = 0.04,
                     overlap_gap: float = 0.01) -> dict[str, CameraCheck]:
     """Each camera's misalignment against the others' clouds and the fingertips.
 
@@ -126,7 +126,8 @@ def check_alignment(lab: LabConfig, clouds: dict[str, np.ndarray], T_base_tcp: n
     fingers = None
     if T_base_tcp is not None and gripper_width is not None and np.isfinite(gripper_width):
         model = finger_surface_tcp(gripper_width)
-        model = model[np.linalg.norm(model, axis=1) < fingertip_radius]  # the tips, near the TCP
+        model = model[model[:, 2] > -fingertip_length]  # the tips: the TCP's z runs along the fingers
+        lo, hi = model.min(axis=0) - 0.01, model.max(axis=0) + 0.01
         fingers = to_base(model, T_base_tcp)
     results = {}
     for name, pts in in_base.items():
@@ -136,7 +137,8 @@ def check_alignment(lab: LabConfig, clouds: dict[str, np.ndarray], T_base_tcp: n
             c2c = point_to_surface(pts, np.concatenate(others), max_gap=overlap_gap)
         tips, n_tips = None, 0
         if fingers is not None:
-            near = pts[np.linalg.norm(pts - T_base_tcp[:3, 3], axis=1) < fingertip_radius]
+            in_tcp = (pts - T_base_tcp[:3, 3]) @ T_base_tcp[:3, :3]
+            near = pts[np.all((in_tcp >= lo) & (in_tcp <= hi), axis=1)]  # around the tips, not the block below
             d = point_to_surface(near, fingers, max_gap=0.01)
             n_tips = int(np.isfinite(d).sum())
             tips = _median_mm(d)

@@ -90,9 +90,10 @@ def perturb_lab(lab: LabConfig, translation_m: float, rotation_deg: float, seed:
 class DirectSimArm:
     """The twin scene in-process: the arm is driven to each pose by DirectSim's controller."""
 
-    def __init__(self, twin_cfg, settle_ms: int = 1500, tolerance_m: float = 0.005):
+    def __init__(self, twin_cfg, settle_ms: int = 1500, tolerance_m: float = 0.005, gripper_width: float = 0.08):
         from ..twin.sim import DirectSim
 
+        self.gripper_width = gripper_width
         self.sim = DirectSim(twin_cfg)
         self.sim.reset(0)
         self.settle_ms = settle_ms
@@ -105,7 +106,7 @@ class DirectSimArm:
         """Go to ``T`` and come to rest; (measured TCP pose, qpos) there."""
         steps = 100
         for _ in range(self.settle_ms // steps):
-            self.sim.command(T, 0.08)  # IK again from where the arm got to (DirectSim's IK iterates 8 times)
+            self.sim.command(T, self.gripper_width)  # IK again from where the arm got to (DirectSim's IK iterates 8 times)
             self.sim.step(steps)
         measured = self.sim.tcp_pose()
         if np.linalg.norm(measured[:3, 3] - T[:3, 3]) > self.tolerance_m:
