@@ -5,7 +5,9 @@ extrinsics under test:
 
 * **the other cameras' clouds**: distance from each point to the surface the other cameras
   see there (point-to-plane against a local plane fitted to their nearest points), over the
-  points where the views overlap. A camera off by a few mm shows it as a shift against the others.
+  points where the views overlap. A camera off by a few mm shows it as a shift against the others,
+  except a shift *along* a plane that dominates the overlap (the table): a point's distance
+  to the plane does not change. The fingertips catch that one.
 * **the fingertips at the measured TCP**: distance from the camera's points on the fingers to
   the FR3 fingers' surface (franky-sim's visual meshes, opened to the measured width) placed at
   the TCP pose the robot reports. This ties each camera to the robot, not only to its peers.
