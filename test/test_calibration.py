@@ -285,3 +285,66 @@ def test_cli_refuses_to_overwrite_before_moving_anything(tmp_path):
                           capture_output=True, text=True, timeout=120)
     assert proc.returncode == 1 and "exists" in proc.stderr
     assert existing.read_text() == "keep me"
+
+
+class ScriptedSpaceMouse:
+    """Stands in for ``teleop.SpaceMouseSource`` (no device here): plays (reports, axes, buttons)
+    steps, one device report per read, so the motion does not depend on how busy the machine is."""
+
+    def __init__(self, script):
+        self.reports = [(axes, buttons) for n, axes, buttons in script for _ in range(n)]
+        self.index = 0
+
+    def connect(self):
+        self.index = 0
+
+    def disconnect(self):
+        pass
+
+    def read(self, now_ns):
+        from equidiff_core.teleop import TeleopInput
+
+        axes, buttons = self.reports[min(self.index, len(self.reports) - 1)]
+        self.index += 1
+        return TeleopInput(axes, buttons, now_ns)
+
+
+@pytest.mark.sim
+@pytest.mark.slow
+def test_operator_mode_streams_spacemouse_motion_to_franky_and_captures_at_rest(tmp_path):
+    from equidiff_core.calibration.operator import capture_operator
+    from equidiff_core.calibration.twin import (
+        FrankyTwinArm,
+        TwinCameras,
+        twin_config_with_board,
+    )
+
+    cfg = twin_config_with_board(TwinConfig(), SPEC, nominal_mount(SPEC), tmp_path)
+    arm = FrankyTwinArm(cfg)
+    cams = TwinCameras(LAB, cfg)
+    try:
+        arm.move_to(make_pose(np.diag([1.0, -1.0, -1.0]), [0.45, 0.0, 0.28]))
+        still, press, finish = (0.0,) * 6, (1, 0), (0, 1)
+        script = [(5, still, (0, 0)), (3, still, press), (5, still, (0, 0)),
+                  (100, (0.5, 0, 0, 0, 0, 0), (0, 0)), (5, still, (0, 0)), (3, still, press), (5, still, (0, 0)),
+                  (3, still, finish), (5, still, (0, 0)),  # too early: two samples, three required
+                  (100, (0, 0.5, 0, 0, 0, 0.5), (0, 0)), (5, still, (0, 0)), (3, still, press), (5, still, (0, 0)),
+                  (3, still, finish), (1, still, (0, 0))]
+
+        def grab(_state):
+            qpos, _, _ = arm.reader.read()
+            return cams.grab(qpos)
+
+        samples = capture_operator(arm.arm, grab, SPEC, LAB.workspace, source=ScriptedSpaceMouse(script),
+                                   min_samples=3, log=lambda m: None)
+    finally:
+        cams.close()
+        arm.close()
+    assert len(samples) == 3
+    p = [s.T_base_tcp[:3, 3] for s in samples]
+    # 1 s at half deflection: (0.5 - deadzone 0.08) / 0.92 x 0.15 m/s = 68.5 mm along the pushed axis
+    np.testing.assert_allclose(p[1] - p[0], [0.0685, 0, 0], atol=0.004)
+    np.testing.assert_allclose(p[2] - p[1], [0, 0.0685, 0], atol=0.004)
+    yaw = pose_error(samples[2].T_base_tcp, samples[1].T_base_tcp)[1]
+    assert yaw == pytest.approx(math.degrees((0.5 - 0.08) / 0.92 * 0.8), abs=2.0)  # 0.8 rad/s for 1 s
+    assert all("cam_front" in s.detections for s in samples)
