@@ -12,7 +12,6 @@ OpenCV 5's aruco API: ``cv2.aruco.CharucoBoard((cols, rows), square, marker, dic
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -174,9 +173,3 @@ def board_pose(spec: BoardSpec, det: Detection, K: np.ndarray, dist: np.ndarray 
     T[:3, 3] = tvec.ravel()
     return T, rms
 
-
-def viewing_angle_deg(T_cam_board: np.ndarray) -> float:
-    """Angle between the board's normal and the line of sight to its centre (0 = seen head-on)."""
-    normal = T_cam_board[:3, 2]
-    sight = T_cam_board[:3, 3] / np.linalg.norm(T_cam_board[:3, 3])
-    return math.degrees(math.acos(min(1.0, abs(float(normal @ sight)))))
