@@ -49,6 +49,7 @@ setup(
         "realsense": ["pyrealsense2"],
         "spacemouse": ["pyspacemouse", "hidapi"],
         "open3d": ["open3d-cpu==0.20.0"],
+        "calib": ["opencv-contrib-python-headless==5.0.0.93"],  # ChArUco detection for camera calibration
         "dev": ["pytest", "pytest-timeout", "hypothesis", "colcon-core==0.21.3", "colcon-ros==0.5.0",
                 "colcon-python-setup-py", "mcap-ros2-support", "ruff"],
     },

@@ -30,6 +30,8 @@ COMMANDS: dict[tuple[str, ...], tuple[str, str]] = {
     ("twin", "collect"): ("twin_collect", "record scripted-expert demonstrations in the digital twin"),
     ("twin", "run"): ("twin_run", "the main job: evaluate a policy end to end in the digital twin"),
     ("export", "lerobot"): ("export_lerobot", "export bags to a LeRobot dataset"),
+    ("calibrate", "cameras"): ("calibrate", "camera extrinsics from a ChArUco board on the hand (hand-eye + joint refinement)"),
+    ("calibrate", "check"): ("calibrate_check", "each camera's alignment in mm against the other clouds and the fingertips"),
 }
 
 

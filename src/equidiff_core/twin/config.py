@@ -13,6 +13,25 @@ from ..config import ConfigError, LabConfig, default_config_dir, from_dict, load
 
 
 @dataclass(frozen=True)
+class BoardMountConfig:
+    """A printed calibration board rigidly fixed to the hand (``equidiff calibrate cameras --twin``).
+
+    The board frame is OpenCV's ChArUco frame: origin at the image's top-left corner, x along
+    the image's columns, y down its rows, z into the board (the printed side faces -z).
+    """
+
+    texture: str  # PNG of the board alone (no margin): what is printed
+    size: tuple[float, float]  # m, extent along the board's x and y (the image's width and height)
+    pos: tuple[float, float, float]  # board origin in the hand body's frame, m
+    quat_wxyz: tuple[float, float, float, float] = (1.0, 0.0, 0.0, 0.0)  # board frame in the hand frame
+    thickness: float = 0.003  # m, behind the printed side
+
+    def __post_init__(self):
+        if min(self.size) <= 0 or self.thickness <= 0:
+            raise ValueError("board size and thickness must be positive")
+
+
+@dataclass(frozen=True)
 class SceneConfig:
     """A table with a block and a bowl on it ("put the block in the bowl")."""
 
@@ -43,6 +62,8 @@ class SceneConfig:
     block_yaw_deg: tuple[float, float] = (0.0, 360.0)
     bowl_yaw_deg: tuple[float, float] = (0.0, 360.0)
     min_separation: float = 0.15
+    # Off (None) unless calibrating: policies' observations never show a board.
+    calibration_board: BoardMountConfig | None = None
 
     def __post_init__(self):
         for name in ("region_x", "region_y", "block_yaw_deg", "bowl_yaw_deg"):

@@ -16,12 +16,20 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 from ..config import CameraConfig
-from .config import RenderConfig, SceneConfig, SuccessConfig, TwinConfig
+from .config import (
+    BoardMountConfig,
+    RenderConfig,
+    SceneConfig,
+    SuccessConfig,
+    TwinConfig,
+)
 
 BLOCK = "block"
 BOWL = "bowl"
 TABLE = "table"
 FINGER_BODIES = ("robot0_left_finger", "robot0_right_finger")
+HAND_BODY = "robot0_hand"
+CALIBRATION_BOARD = "calibration_board"
 
 
 class SceneError(RuntimeError):
@@ -76,6 +84,38 @@ def add_task_objects(scene: ET.Element, cfg: SceneConfig) -> None:
                       rgba=_fmt(cfg.bowl_mark_rgba if i == 0 else cfg.bowl_rgba), friction=_fmt(cfg.friction))
 
 
+def add_calibration_board(scene: ET.Element, board: BoardMountConfig) -> None:
+    """A textured plate fixed to the hand: the printed ChArUco board, purely visual.
+
+    A box mesh whose printed face carries the image exactly once (explicit texture coordinates;
+    MuJoCo's box texture mapping would tile it). It has no collisions and no mass worth the
+    name, so the arm moves as without it.
+    """
+    hand = scene.find(f".//body[@name='{HAND_BODY}']")
+    if hand is None:
+        raise SceneError(f"scene has no hand body {HAND_BODY!r} to fix the calibration board to")
+    asset = scene.find("asset")
+    if asset is None:
+        asset = ET.SubElement(scene, "asset")
+    w, h = board.size
+    t = board.thickness
+    corners = [(0, 0), (w, 0), (w, h), (0, h)]
+    vertices = [(x, y, 0.0) for x, y in corners] + [(x, y, t) for x, y in corners]
+    # image column x/w, row y/h; MuJoCo's texture v runs from the image's top row downwards
+    texcoords = [(x / w, y / h) for x, y in corners] * 2
+    faces = [(0, 2, 1), (0, 3, 2),  # printed side (normal -z, towards the viewer)
+             (4, 5, 6), (4, 6, 7), (0, 1, 5), (0, 5, 4), (1, 2, 6), (1, 6, 5),
+             (2, 3, 7), (2, 7, 6), (3, 0, 4), (3, 4, 7)]
+    ET.SubElement(asset, "texture", name=CALIBRATION_BOARD, type="2d", file=str(board.texture))
+    ET.SubElement(asset, "material", name=CALIBRATION_BOARD, texture=CALIBRATION_BOARD,
+                  specular="0", shininess="0", reflectance="0")
+    ET.SubElement(asset, "mesh", name=CALIBRATION_BOARD, vertex=_fmt(np.ravel(vertices)),
+                  face=" ".join(str(i) for f in faces for i in f), texcoord=_fmt(np.ravel(texcoords)))
+    ET.SubElement(hand, "geom", name=CALIBRATION_BOARD, type="mesh", mesh=CALIBRATION_BOARD,
+                  material=CALIBRATION_BOARD, pos=_fmt(board.pos), quat=_fmt(board.quat_wxyz),
+                  contype="0", conaffinity="0", mass="1e-6")
+
+
 def optical_to_mujoco_camera(T_base_optical: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Optical frame (x right, y down, z forward) -> MuJoCo camera frame (x right, y up, looks along -z)."""
     R_cam = T_base_optical[:3, :3] @ np.diag([1.0, -1.0, -1.0])
@@ -111,6 +151,8 @@ def build_simulator(cfg: TwinConfig, enable_visualization: bool = False):
     sim = MujocoSimulator(enable_visualization=enable_visualization)
     robot = sim.add_robot(initial_q=cfg.sim.initial_q)
     add_task_objects(sim.scene, cfg.scene)
+    if cfg.scene.calibration_board is not None:
+        add_calibration_board(sim.scene, cfg.scene.calibration_board)
     return sim, robot
 
 
