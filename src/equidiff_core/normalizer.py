@@ -62,8 +62,11 @@ class Normalizer:
         return cls((c[0], c[1]), half * np.sqrt(2), c[2] - half, c[2] + half, float(workspace.edge))
 
     def to_dict(self) -> dict:
-        return {"center_xy": list(self.center_xy), "xy_scale": self.xy_scale, "z_min": self.z_min,
-                "z_max": self.z_max, "rel_translation_scale": self.rel_translation_scale}
+        # plain floats: numpy scalars here made a checkpoint unloadable with torch.load(weights_only=True)
+        return {"center_xy": [float(v) for v in self.center_xy], "xy_scale": float(self.xy_scale),
+                "z_min": float(self.z_min), "z_max": float(self.z_max),
+                "rel_translation_scale": float(self.rel_translation_scale)}
+
 
     @classmethod
     def from_dict(cls, d: dict) -> Normalizer:
