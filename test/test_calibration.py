@@ -28,14 +28,13 @@ from equidiff_core.calibration.plan import (
 from equidiff_core.calibration.solve import (
     Sample,
     calibrate,
-    inverse_pose,
     pose_error,
     project_points,
     solve_hand_eye,
 )
 from equidiff_core.calibration.twin import nominal_mount, perturb_lab, twin_camera_model
 from equidiff_core.config import default_config_dir, load_lab_config
-from equidiff_core.geometry import make_pose
+from equidiff_core.geometry import invert_pose, make_pose
 from equidiff_core.twin.config import TwinConfig
 
 LAB_PATH = default_config_dir() / "lab.yaml"
@@ -88,7 +87,7 @@ def test_hand_eye_recovers_exact_transforms_and_refuses_degenerate_motion():
     rng = np.random.default_rng(0)
     X, Y = _random_pose(rng, 180, 1.0), _random_pose(rng, 180, 0.1)  # T_base_cam, T_tcp_board
     H = [_random_pose(rng, 40) for _ in range(8)]
-    C = [inverse_pose(X) @ h @ Y for h in H]
+    C = [invert_pose(X) @ h @ Y for h in H]
     X_est, Y_est = solve_hand_eye(H, C)
     assert pose_error(X_est, X) == pytest.approx((0, 0), abs=1e-6)
     assert pose_error(Y_est, Y) == pytest.approx((0, 0), abs=1e-6)
@@ -96,7 +95,7 @@ def test_hand_eye_recovers_exact_transforms_and_refuses_degenerate_motion():
     H_z = [make_pose(Rotation.from_euler("z", a, degrees=True).as_matrix(), rng.normal(size=3) * 0.1)
            for a in (0, 20, 40, 60, 80)]
     with pytest.raises(CalibrationError, match="same axis"):
-        solve_hand_eye(H_z, [inverse_pose(X) @ h @ Y for h in H_z])
+        solve_hand_eye(H_z, [invert_pose(X) @ h @ Y for h in H_z])
     with pytest.raises(CalibrationError, match="at least 3"):
         solve_hand_eye(H[:2], C[:2])
 
@@ -109,7 +108,7 @@ def _synthetic_samples(rng, models, truth, T_tcp_board, n, noise_px):
     for T in poses:
         dets = {}
         for m in models:
-            Tc = inverse_pose(truth[m.name]) @ T @ T_tcp_board
+            Tc = invert_pose(truth[m.name]) @ T @ T_tcp_board
             uv = project_points(m.K, m.dist, corners @ Tc[:3, :3].T + Tc[:3, 3])
             dets[m.name] = Detection(np.arange(len(corners)), uv + rng.normal(scale=noise_px, size=uv.shape))
         samples.append(Sample(T, dets))

@@ -108,7 +108,7 @@ def test_filter_limits_linear_and_angular_speed():
     assert out.speed_limited
     moved = np.linalg.norm(out.pose[:3, 3] - start[:3, 3])
     assert moved == pytest.approx(0.25 * 0.005)
-    from equidiff_core.control import rotation_angle
+    from equidiff_core.geometry import rotation_angle
 
     assert rotation_angle(start[:3, :3], out.pose[:3, :3]) == pytest.approx(0.6 * 0.005, rel=1e-6)
     assert np.linalg.norm(out.linear_velocity) <= 0.25 + 1e-9

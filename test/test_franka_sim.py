@@ -213,7 +213,7 @@ def test_arm_keeps_its_posture_while_the_tcp_wanders_and_yaws():
     their limits and the arm flailed out of the workspace). The tracker's null-space posture
     task must bring the arm back to its home configuration when the TCP returns home."""
     from equidiff_core.control import Controller
-    from equidiff_core.control.safety import rotation_angle
+    from equidiff_core.geometry import rotation_angle
     from equidiff_core.robots import make_robot
     from equidiff_core.twin.expert import tcp_pose
 

@@ -52,7 +52,7 @@ def test_plan_visits_block_then_bowl_with_the_gripper_sequence():
 def _follow(path, arm, steps, gain=0.5, knock=None, max_rot=np.inf):
     """A first-order arm following the path's targets unless franka_node would reject them as a
     jump (80 mm, 0.6 rad: it holds then); ``knock(i, arm)`` may push it away."""
-    from equidiff_core.control.safety import rotation_angle
+    from equidiff_core.geometry import rotation_angle
 
     jumps = []
     for i in range(steps):

@@ -149,6 +149,22 @@ def make_pose(R: Array, p: Array) -> Array:
     return T
 
 
+def invert_pose(T: np.ndarray) -> np.ndarray:
+    """The inverse of a rigid transform (4, 4), exactly (transpose, not a general matrix inverse)."""
+    R, p = T[:3, :3], T[:3, 3]
+    return make_pose(R.T, -R.T @ p)
+
+
+def rotation_angle(Ra: np.ndarray, Rb: np.ndarray) -> float:
+    """Angle (rad) of the rotation taking Ra to Rb.
+
+    atan2 of sine and cosine, not arccos of the cosine alone: arccos loses half the digits
+    near 0 (1e-8 rad of noise at a true 0), where calibration errors and jump checks live."""
+    R = np.asarray(Ra).T @ np.asarray(Rb)
+    sin = np.linalg.norm([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]]) / 2.0
+    return float(np.arctan2(sin, (np.trace(R) - 1.0) / 2.0))
+
+
 def pose_to_action(T: Array, width: Array) -> Array:
     """Poses (..., 4, 4) and gripper widths (...) -> absolute actions (..., 10)."""
     T = validate_pose(T)

@@ -19,8 +19,9 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from ..config import LabConfig
+from ..geometry import invert_pose
 from .board import BoardSpec, CalibrationError
-from .solve import CameraModel, inverse_pose, project_points
+from .solve import CameraModel, project_points
 
 # TCP pointing straight down, its x along the base's x (the FR3's usual grasping orientation).
 R_DOWN = np.diag([1.0, -1.0, -1.0])
@@ -71,7 +72,7 @@ def board_visible(spec: BoardSpec, T_base_board: np.ndarray, T_base_cam: np.ndar
                   occluders: list[tuple[np.ndarray, np.ndarray, float]] = ()) -> bool:
     """Whether ``cam`` would see every inner corner: in its image with a margin, not edge-on,
     and (given ``occluders``, capsules in the base frame) with a free line of sight."""
-    T = inverse_pose(T_base_cam) @ T_base_board
+    T = invert_pose(T_base_cam) @ T_base_board
     pts = spec.corners() @ T[:3, :3].T + T[:3, 3]
     if np.any(pts[:, 2] < 0.1):
         return False

@@ -24,7 +24,7 @@ import numpy as np
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
-from ..geometry import make_pose
+from ..geometry import invert_pose, make_pose, rotation_angle
 from .board import BoardSpec, CalibrationError, Detection, board_pose
 
 
@@ -47,18 +47,10 @@ class Sample:
     detections: dict[str, Detection]
 
 
-def inverse_pose(T: np.ndarray) -> np.ndarray:
-    return make_pose(T[:3, :3].T, -T[:3, :3].T @ T[:3, 3])
-
-
-def rotation_angle_deg(R: np.ndarray) -> float:
-    return math.degrees(float(np.linalg.norm(Rotation.from_matrix(R).as_rotvec())))
-
-
 def pose_error(T_est: np.ndarray, T_true: np.ndarray) -> tuple[float, float]:
     """(translation error mm, rotation error deg) between two poses."""
     return (float(np.linalg.norm(T_est[:3, 3] - T_true[:3, 3]) * 1000),
-            rotation_angle_deg(T_est[:3, :3].T @ T_true[:3, :3]))
+            math.degrees(rotation_angle(T_est[:3, :3], T_true[:3, :3])))
 
 
 def mean_pose(poses: list[np.ndarray]) -> np.ndarray:
@@ -75,8 +67,8 @@ def solve_hand_eye(T_base_tcp: list[np.ndarray], T_cam_board: list[np.ndarray],
     alphas, betas, pairs = [], [], []
     for i in range(n):
         for j in range(i + 1, n):
-            A = T_base_tcp[j] @ inverse_pose(T_base_tcp[i])
-            B = T_cam_board[j] @ inverse_pose(T_cam_board[i])
+            A = T_base_tcp[j] @ invert_pose(T_base_tcp[i])
+            B = T_cam_board[j] @ invert_pose(T_cam_board[i])
             a = Rotation.from_matrix(A[:3, :3]).as_rotvec()
             b = Rotation.from_matrix(B[:3, :3]).as_rotvec()
             if np.linalg.norm(a) < math.radians(min_angle_deg):
@@ -100,7 +92,7 @@ def solve_hand_eye(T_base_tcp: list[np.ndarray], T_cam_board: list[np.ndarray],
     rhs = np.concatenate([R_X @ B[:3, 3] - A[:3, 3] for A, B in pairs])
     t_X = np.linalg.lstsq(lhs, rhs, rcond=None)[0]
     X = make_pose(R_X, t_X)
-    Y = mean_pose([inverse_pose(H) @ X @ C for H, C in zip(T_base_tcp, T_cam_board)])
+    Y = mean_pose([invert_pose(H) @ X @ C for H, C in zip(T_base_tcp, T_cam_board)])
     return X, Y
 
 
@@ -173,7 +165,7 @@ def calibrate(spec: BoardSpec, cameras: list[CameraModel], samples: list[Sample]
 
     def residuals(x: np.ndarray) -> np.ndarray:
         Y, Xs = unpack(x)
-        inv_X = [inverse_pose(X) for X in Xs]
+        inv_X = [invert_pose(X) for X in Xs]
         out = []
         for c, i, det in obs:
             T = inv_X[c] @ samples[i].T_base_tcp @ Y
@@ -187,7 +179,7 @@ def calibrate(spec: BoardSpec, cameras: list[CameraModel], samples: list[Sample]
     Y, Xs = unpack(sol.x)
     results = {}
     for c, cam in enumerate(cameras):
-        inv_X = inverse_pose(Xs[c])
+        inv_X = invert_pose(Xs[c])
         px, mm = [], []
         for cc, i, det in obs:
             if cc != c:

@@ -182,8 +182,6 @@ def errors_against_truth(result, lab_truth: LabConfig) -> dict[str, dict]:
     return out
 
 
-
-
 def calibrate_twin(lab_truth: LabConfig, twin_cfg, spec: BoardSpec, plan: PlanConfig, arm: str = "franky",
                    perturb_m: float = 0.03, perturb_deg: float = 3.0, texture_dir: str | Path | None = None,
                    log=print) -> tuple[dict, Calibration, LabConfig]:

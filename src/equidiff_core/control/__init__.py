@@ -16,10 +16,9 @@ from .safety import (
            SafetyFilter,
            SafetyRejection,
            check_chunk,
-           rotation_angle,
 )
 from .scheduler import ChunkScheduler, Setpoint
 
 __all__ = ["ChunkScheduler", "Command", "ControlConfig", "Controller", "ControllerStats", "FilteredTarget",
            "FrankyConfig", "SafetyConfig", "SafetyFilter", "SafetyRejection", "SchedulerConfig", "Setpoint",
-           "check_chunk", "load_control_config", "rotation_angle"]
+           "check_chunk", "load_control_config"]

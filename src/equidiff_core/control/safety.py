@@ -27,12 +27,6 @@ class SafetyRejection(ChunkError):
     """A chunk that is well-formed but violates a safety limit (too far from the robot)."""
 
 
-def rotation_angle(Ra: np.ndarray, Rb: np.ndarray) -> float:
-    """Angle (rad) of the rotation taking Ra to Rb."""
-    cos = (np.trace(Ra.T @ Rb) - 1.0) / 2.0
-    return float(np.arccos(np.clip(cos, -1.0, 1.0)))
-
-
 def check_chunk(chunk: PoseChunk, current_pose: np.ndarray | None, limits: SafetyConfig) -> None:
     """Raise SafetyRejection/ChunkError if ``chunk`` must not be executed from ``current_pose``.
 
@@ -52,7 +46,7 @@ def check_chunk(chunk: PoseChunk, current_pose: np.ndarray | None, limits: Safet
     if jump > limits.max_first_step_jump_m:
         raise SafetyRejection(f"first step is {jump * 1000:.0f} mm from the current pose "
                               f"(limit {limits.max_first_step_jump_m * 1000:.0f} mm)")
-    angle = rotation_angle(current_pose[:3, :3], first[:3, :3])
+    angle = geometry.rotation_angle(current_pose[:3, :3], first[:3, :3])
     if angle > limits.max_first_step_rotation_rad:
         raise SafetyRejection(f"first step is rotated {np.degrees(angle):.0f} deg from the current pose "
                               f"(limit {np.degrees(limits.max_first_step_rotation_rad):.0f} deg)")

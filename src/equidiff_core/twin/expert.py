@@ -17,7 +17,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
 from .. import geometry
-from ..control.safety import rotation_angle
+from ..geometry import rotation_angle
 from .config import ExpertConfig, TwinConfig
 
 # TCP pointing down, fingers closing along the TCP's y axis (FR3 hand at q7 = pi/4 has yaw 0).
