@@ -50,11 +50,13 @@ def joint_state(factory: MsgFactory, state: RobotState, stamp_ns: int) -> Any:
 
 
 def gripper_width_from_joint_state(msg: Any) -> float | None:
-    """Gripper width = sum of the two finger joints (None if they are absent)."""
+    """Gripper width = sum of the two finger joints; None if the message carries no gripper state
+    (no finger joints, e.g. an arm-only publisher, or fewer positions than names: malformed).
+    The value may be NaN/inf if the publisher sent that: callers check ``isfinite``."""
     names = list(msg.name)
     try:
         return float(sum(msg.position[names.index(n)] for n in FINGER_JOINT_NAMES))
-    except ValueError:
+    except (ValueError, IndexError):
         return None
 
 

@@ -40,7 +40,9 @@ import numpy as np
 from .. import geometry
 from ..chunk import ChunkError, chunk_from_msg
 from ..config import ConfigError, LabConfig, default_config_dir, from_dict, load_yaml
+from ..control.messages import gripper_width_from_joint_state
 from ..pointcloud import CloudError, _structured, msg_to_cloud
+from ..robots.base import FINGER_JOINT_NAMES
 from ..rosmsg import stamp_to_ns
 from . import require_rerun
 
@@ -68,7 +70,6 @@ _DIAGNOSTIC_ENTITIES = {
     "obs_to_cmd_ms": f"{LATENCY}/obs_to_cmd",
     "observation_age_ms": f"{OBS_AGE}/policy",
 }
-FINGER_JOINTS = ("fr3_finger_joint1", "fr3_finger_joint2")  # each = width / 2 (architecture.md)
 OPTICAL_SUFFIX = "_color_optical_frame"
 
 EE_COLOR = (40, 160, 255)
@@ -412,15 +413,14 @@ class RerunLogger:
     def log_joint_states(self, msg: Any, receive_ns: int | None = None) -> bool:
         """JointState -> measured gripper width (sum of the two finger joints), at most ``ee_hz``."""
         names = list(msg.name)
-        if not all(j in names for j in FINGER_JOINTS):
+        if not all(j in names for j in FINGER_JOINT_NAMES):
             return False  # arm-only joint states carry no gripper
         stamp = _stamp(msg, receive_ns)
         if not self._pose_throttle.ready("joints", stamp):
             return False
-        position = np.asarray(msg.position, dtype=np.float64)
-        if len(position) != len(names):
-            return self._drop("joint_states", ValueError(f"{len(names)} names but {len(position)} positions"))
-        width = float(sum(position[names.index(j)] for j in FINGER_JOINTS))
+        width = gripper_width_from_joint_state(msg)
+        if width is None:
+            return self._drop("joint_states", ValueError(f"{len(names)} names but {len(msg.position)} positions"))
         if not np.isfinite(width):
             return self._drop("joint_states", ValueError("gripper finger positions contain NaN or inf"))
         self._at(stamp)
