@@ -544,3 +544,25 @@ def test_franky_gripper_command_that_fails_is_retried_not_lost():
     finally:
         robot._gripper_stop.set()
         thread.join(timeout=2)
+
+
+def test_answer_schedule_answers_one_observation_per_executed_chunk_despite_stamp_jitter():
+    from equidiff_core.chunk import AnswerSchedule
+
+    dt = 200_000_000
+    answers = AnswerSchedule(0, 8, dt)  # 0: the whole chunk
+    assert answers.steps == 8
+    answered = []
+    for k in range(20):
+        stamp = k * dt + (3_000_000 if k % 2 else -3_000_000)  # +-3 ms camera jitter
+        if answers.due(stamp):
+            answers.answer(stamp)
+            answered.append(k)
+    assert answered == [0, 8, 16]
+    every = AnswerSchedule(1, 8, dt)
+    for k in range(3):
+        assert every.due(k * dt)
+        every.answer(k * dt)
+        assert not every.due(k * dt + dt // 4)  # the same frame, a little later: already answered
+    with pytest.raises(ValueError, match="execute_steps must be within 1..8"):
+        AnswerSchedule(9, 8, dt)

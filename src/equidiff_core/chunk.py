@@ -50,6 +50,28 @@ class PoseChunk:
         return PoseChunk(self.stamp_ns, self.times_ns[keep], self.poses[keep], self.widths[keep])
 
 
+class AnswerSchedule:
+    """Which observations the policy answers: one every ``execute_steps`` frames (0: every
+    ``n_action_steps``-th, i.e. one per chunk), so each chunk's steps run before the next.
+
+    policy_node and the twin's in-process evaluation both ask it, so the two cannot drift.
+    An observation is due once ``execute_steps - 0.5`` frame periods have passed since the last
+    answered one: half a period of slack for camera stamps that jitter."""
+
+    def __init__(self, execute_steps: int, n_action_steps: int, dt_ns: int):
+        self.steps = int(execute_steps) or int(n_action_steps)
+        if not 1 <= self.steps <= n_action_steps:
+            raise ValueError(f"execute_steps must be within 1..{n_action_steps} (0: all), got {execute_steps}")
+        self.dt_ns = int(dt_ns)
+        self.answered_ns: int | None = None  # the last observation answered
+
+    def due(self, stamp_ns: int) -> bool:
+        return self.answered_ns is None or stamp_ns - self.answered_ns >= (self.steps - 0.5) * self.dt_ns
+
+    def answer(self, stamp_ns: int) -> None:
+        self.answered_ns = int(stamp_ns)
+
+
 def validate_chunk(chunk: PoseChunk) -> None:
     k = len(chunk.times_ns)
     if k == 0:

@@ -67,7 +67,7 @@ def build_node():
     from trajectory_msgs.msg import MultiDOFJointTrajectory
 
     from equidiff_core import geometry
-    from equidiff_core.chunk import chunk_from_actions, chunk_to_msg
+    from equidiff_core.chunk import AnswerSchedule, chunk_from_actions, chunk_to_msg
     from equidiff_core.control import messages as cm
     from equidiff_core.control.metrics import percentiles_ms
     from equidiff_core.inference import CheckpointError, load_inference_policy
@@ -124,15 +124,12 @@ def build_node():
             if not 1 <= self.n_action_steps <= preset.horizon:
                 raise ValueError(f"n_action_steps must be within 1..{preset.horizon}, got {self.n_action_steps}")
             self.dt_ns = round(preset.dt * 1e9)
-            self.execute_steps = int(execute_steps) or self.n_action_steps
-            if not 1 <= self.execute_steps <= self.n_action_steps:
-                raise ValueError(f"execute_steps must be within 1..{self.n_action_steps}, got {self.execute_steps}")
-            self._answered_ns: int | None = None  # the last observation a chunk was made for
+            self.answers = AnswerSchedule(execute_steps, self.n_action_steps, self.dt_ns)
             self.rng = np.random.default_rng(None if seed < 0 else int(seed))
             self.get_logger().info(
                 f"loaded {self.policy.name} policy '{preset.name}' from {checkpoint} on {device} ({precision}) "
                 f"and warmed up in {time.perf_counter() - t0:.1f} s; publishing {self.n_action_steps} of "
-                f"{preset.horizon} steps, dt {preset.dt} s, executing {self.execute_steps} before the next")
+                f"{preset.horizon} steps, dt {preset.dt} s, executing {self.answers.steps} before the next")
 
             self.factory = RclpyFactory()
             self._lock = threading.Lock()
@@ -219,8 +216,7 @@ def build_node():
                 if stamp == self._last_obs_stamp:
                     return  # answered already
                 self._last_obs_stamp = stamp  # whatever happens next, this observation is used up
-                if (self._answered_ns is not None
-                        and stamp - self._answered_ns < (self.execute_steps - 0.5) * self.dt_ns):
+                if not self.answers.due(stamp):
                     # the last chunk is still being executed: no warning, this is the schedule
                     self.skipped["executing"] += 1
                     self.pub_skipped.publish(String(data=json.dumps({"stamp_ns": int(stamp), "reason": "executing"})))
@@ -239,7 +235,7 @@ def build_node():
                     return self.skip("no_robot_state", f"no {missing} within "
                                      f"{self.max_state_offset_ns / 1e6:.0f} ms of the observation", stamp)
                 self._busy = True
-                self._answered_ns = stamp
+                self.answers.answer(stamp)
                 self.obs_age_s.append(age / 1e9)
                 self.worker.submit(self.infer, msg, stamp, pose, float(width))
 

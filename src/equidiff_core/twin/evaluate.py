@@ -27,6 +27,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..chunk import AnswerSchedule
 from ..config import LabConfig
 from ..observation import ee_input
 from .config import TwinConfig
@@ -117,10 +118,7 @@ def evaluate_policy(policy, cfg: TwinConfig, lab: LabConfig, seeds: Iterable[int
     from .demos import DirectRecorder
     from .expert import tcp_pose
 
-    n_actions = int(policy.preset.n_action_steps)
-    execute_steps = int(execute_steps) or n_actions
-    if not 1 <= execute_steps <= n_actions:
-        raise ValueError(f"execute_steps must be within 1..{n_actions} (0: all), got {execute_steps}")
+    execute_steps = AnswerSchedule(execute_steps, int(policy.preset.n_action_steps), 1).steps  # checked up front
     if not (math.isfinite(latency_s) and latency_s >= 0):
         raise ValueError(f"latency_s must be finite and >= 0, got {latency_s}")
     control = _control_config()
@@ -183,16 +181,17 @@ def _run(episode: _Episode, policy, control, max_duration_s: float, latency_s: f
     hold = Setpoint(sim.tcp_pose(), np.zeros(3), np.zeros(3), float("nan"), False)
     width_sent = float(open_width)  # the homing command's width
     pending: deque = deque()  # (ms at which it takes effect, PoseChunk), in order
-    now = next_obs = next_cmd = frames = 0
+    answers = AnswerSchedule(execute_steps, n_exec, dt_ms * 1_000_000)  # policy_node's rule
+    now = next_obs = next_cmd = 0
     while True:
         if now >= next_obs:  # an observation instant: score the state, then answer it if it is due
             if (now > 0 and episode.check()) or now >= max_ms:
                 return
-            if frames % execute_steps == 0:
+            if answers.due(now * 1_000_000):
+                answers.answer(now * 1_000_000)
                 chunk = chunk_from_actions(episode.observe(now * 1_000_000)[:n_exec], now * 1_000_000,
                                            dt_ms * 1_000_000)
                 pending.append((now + latency_ms, chunk))
-            frames += 1
             next_obs += dt_ms
         while pending and pending[0][0] <= now:  # a chunk takes effect: franka_node's Controller.submit
             chunk = pending.popleft()[1]
