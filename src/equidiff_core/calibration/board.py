@@ -152,10 +152,6 @@ class BoardDetector:
         return Detection(ids.reshape(-1).astype(int), corners.reshape(-1, 2).astype(np.float64))
 
 
-def camera_matrix(fx: float, fy: float, cx: float, cy: float) -> np.ndarray:
-    return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
-
-
 def board_pose(spec: BoardSpec, det: Detection, K: np.ndarray, dist: np.ndarray | None = None
                ) -> tuple[np.ndarray, float]:
     """(T_cam_board 4x4, RMS reprojection px) from one detection by PnP (IPPE for a plane, then LM)."""
