@@ -211,21 +211,28 @@ def test_streamed_chunks_track_a_curve_without_velocity_reversals(interpolation)
 # --- controller -------------------------------------------------------------------------
 
 def test_watchdog_holds_the_pose_when_commands_stop():
+    """A chunk is a plan for its whole span: its steps run to the last one (policy_node answers
+    every 1.6 s with 1.4 s of steps), and the watchdog holds the measured pose only once no new
+    chunk came for watchdog_timeout_s after that last step."""
     ctl, _robot, clock = make_controller()
     t0 = clock.t
-    ctl.submit(circle_chunk(t0, t0))
+    chunk = circle_chunk(t0, t0)  # 8 steps, 1.4 s
+    ctl.submit(chunk)
     period = int(1e9 / ctl.config.control_hz)
-    for _ in range(int(0.3 * ctl.config.control_hz)):
+    last_step_s = (int(chunk.times_ns[-1]) - t0) / 1e9
+    timeout_s = ctl.config.safety.watchdog_timeout_s
+    for _ in range(int((last_step_s + timeout_s - 0.05) * ctl.config.control_hz)):
         ctl.tick()
         clock.t += period
-    assert not ctl.holding
-    moving = ctl.tick().target.pose[:3, 3]
-    for _ in range(int(0.25 * ctl.config.control_hz)):  # past 0.5 s without a command
+    assert not ctl.holding and ctl.stats.watchdog_holds == 0  # the whole chunk ran, then 0.45 s of its last pose
+    reached = ctl.tick().target.pose[:3, 3]
+    np.testing.assert_allclose(reached, chunk.poses[-1][:3, 3], atol=1e-3)  # it got to the chunk's end
+    for _ in range(int(0.1 * ctl.config.control_hz)):  # past the timeout after the last step
         clock.t += period
         ctl.tick()
     assert ctl.holding and ctl.stats.watchdog_holds == 1
     held = ctl.tick().target.pose.copy()
-    assert np.linalg.norm(held[:3, 3] - moving) < 0.25 * 0.25 + 1e-6
+    assert np.linalg.norm(held[:3, 3] - reached) < 0.25 * 0.25 + 1e-6
     for _ in range(int(2.0 * ctl.config.control_hz)):
         clock.t += period
         np.testing.assert_allclose(ctl.tick().target.pose, held, atol=1e-12)

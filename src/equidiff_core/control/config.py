@@ -19,7 +19,7 @@ class SafetyConfig:
     max_angular_speed_rad_s: float = 0.6
     max_first_step_jump_m: float = 0.08  # a chunk whose first live step is farther is rejected
     max_first_step_rotation_rad: float = 0.6
-    watchdog_timeout_s: float = 0.5  # hold the current pose when no valid command for this long
+    watchdog_timeout_s: float = 0.5  # hold the measured pose this long after the last chunk's final step
     # The arm diverging from its command (the FR3's own reflexes stop this; franky-sim has none):
     # stop the motion, restart it where the arm is and hold.
     max_tracking_error_m: float = 0.1  # measured TCP this far from the last command

@@ -80,7 +80,11 @@ class Controller:
         self._setpoint: FilteredTarget | None = None  # the last command sent
         self.last_command: Command | None = None
         self._hold_pose: np.ndarray | None = None  # watchdog target (None: hold the last command)
-        self._last_valid_ns: int | None = None
+        # The last instant the current command is valid: its trajectory's last step, or its arrival
+        # for a one-step chunk already due. The watchdog counts from here, not from the arrival:
+        # a chunk is a plan for its whole span (policy_node answers once per 1.6 s with 1.4 s of
+        # steps), so counting from the arrival cut every chunk short.
+        self._valid_until_ns: int | None = None
         self._holding = True
         self._last_tick_ns: int | None = None
         self._last_robot_time_s: float | None = None
@@ -163,7 +167,7 @@ class Controller:
                 check_chunk(live, None if state is None else state.ee_pose, self.config.safety)
                 current = self._current_setpoint()
                 self.scheduler.schedule(live, now, current)
-                self._last_valid_ns = now
+                self._valid_until_ns = max(now, self.scheduler.end_ns() or now)
                 self._holding = False
                 self._hold_pose = None
             self.stats.accepted_chunks += 1
@@ -217,16 +221,16 @@ class Controller:
             return None
         dt = self._tick_dt(now)
         with self._lock:
-            if (not self._holding and self._last_valid_ns is not None
-                    and now - self._last_valid_ns > self.config.safety.watchdog_timeout_s * 1e9):
+            if (not self._holding and self._valid_until_ns is not None
+                    and now - self._valid_until_ns > self.config.safety.watchdog_timeout_s * 1e9):
                 # Hold where the arm *is* (not where the setpoint had got to, ~0.1 s ahead of a
                 # moving arm): stopping there takes the shortest way.
                 self.scheduler.clear()
                 self._holding = True
                 self._hold_pose = self._state.ee_pose.copy()
                 self.stats.watchdog_holds += 1
-                self.log.warning(f"no valid command for {self.config.safety.watchdog_timeout_s} s: "
-                                 f"holding the current pose")
+                self.log.warning(f"no new command for {self.config.safety.watchdog_timeout_s} s after the last "
+                                 f"one's final step: holding the current pose")
             sp = None if self._holding else self.scheduler.sample(now)
             previous = self._setpoint
             hold_pose = self._hold_pose

@@ -246,23 +246,24 @@ class BenchClient:
         self.pub_chunk.publish(chunk_to_msg(chunk, self.factory, self.lab.base_frame))
 
     def stream(self, path, duration: float, obs_latency: float = 0.1, steps: int = 16, dt: float = 0.2,
-               period: float = 0.2, width: float = 0.08) -> float:
-        """Publish chunks sampled from ``path(t) -> position`` every ``period`` s; returns the last send time."""
+               period: float = 0.2, width: float = 0.08) -> tuple[float, float]:
+        """Publish chunks sampled from ``path(t) -> position`` every ``period`` s; returns the last
+        send time and the time the last chunk's final step is due (wall clock, s)."""
         from equidiff_core.chunk import PoseChunk
 
         end = time.monotonic() + duration
         next_send = time.monotonic()
-        last = time.time()
+        last = last_step = time.time()
         while time.monotonic() < end:
             now = time.time_ns()
             obs = now - int(obs_latency * 1e9)
             times = obs + np.arange(steps, dtype=np.int64) * int(dt * 1e9)
             poses = np.stack([down_pose(path(t / 1e9)) for t in times])
             self.publish_chunk(PoseChunk(obs, times, poses, np.full(steps, width)))
-            last = time.time()
+            last, last_step = time.time(), float(times[-1]) / 1e9
             next_send += period
             time.sleep(max(0.0, next_send - time.monotonic()))
-        return last
+        return last, last_step
 
     def samples(self, which: str, t_from: float, t_to: float) -> tuple[np.ndarray, np.ndarray]:
         rows = [(t, p) for t, p in list(getattr(self.data, which)) if t_from <= t <= t_to]
@@ -320,17 +321,18 @@ def run_track_and_hold(client: BenchClient, speed: float, radius: float, duratio
     def path(t):
         return circle.position(t) if t >= approach_end else circle.position(0.0)
 
-    last_send = client.stream(path, duration + 0.3, obs_latency=obs_latency)
+    last_send, last_step = client.stream(path, duration + 0.3, obs_latency=obs_latency)
     t_from, t_to = circle.t0 + settle, last_send
     times, positions = client.samples("poses", t_from, t_to)
     t_times, t_positions = client.samples("targets", t_from, t_to)
-    # Hold: the watchdog fires ~watchdog_s after the last command arrived. Find when the node's
-    # executed target froze (it holds the TCP pose it measured then), and measure 2 s from there.
-    time.sleep(max(0.0, last_send + watchdog_s + 2.5 - time.time()))
-    e_times, e_positions = client.samples("targets", last_send, last_send + watchdog_s + 2.5)
+    # Hold: the last chunk runs to its final step; the watchdog fires ~watchdog_s after that.
+    # Find when the node's executed target froze (it holds the TCP pose it measured then), and
+    # measure 2 s from there.
+    time.sleep(max(0.0, last_step + watchdog_s + 2.5 - time.time()))
+    e_times, e_positions = client.samples("targets", last_step, last_step + watchdog_s + 2.5)
     hold_start = metrics.settle_time(e_times, e_positions, tol_m=2e-4)
     if hold_start is None:
-        hold_start = last_send + watchdog_s
+        hold_start = last_step + watchdog_s
     _h_times, h_positions = client.samples("poses", hold_start, hold_start + 2.0)
     lag, lag_rms = metrics.tracking_lag(times, positions, circle.position)
     return {
@@ -343,7 +345,7 @@ def run_track_and_hold(client: BenchClient, speed: float, radius: float, duratio
         "tracking_samples": len(times),
         "state_hz": round(len(times) / max(t_to - t_from, 1e-9), 1),
         "hold_drift_mm": round(metrics.max_drift(h_positions, h_positions[0]) * 1000, 2),
-        "hold_engaged_after_ms": round((hold_start - last_send) * 1000, 1),
+        "hold_engaged_after_ms": round((hold_start - last_step) * 1000, 1),
     }
 
 
@@ -357,7 +359,7 @@ def run_workspace(client: BenchClient, workspace, duration: float = 3.0) -> dict
     def path(t):  # 0.1 m/s diagonally up and out, for long enough to end 25+ cm past the lid
         return start + direction * 0.1 * max(t - t_start, 0.0)
 
-    last = client.stream(path, duration, obs_latency=0.0)
+    last, _ = client.stream(path, duration, obs_latency=0.0)
     time.sleep(0.5)
     times, positions = client.samples("poses", t_start, last + 0.5)
     outside = np.linalg.norm(np.maximum(workspace.lower - positions, 0) + np.maximum(positions - workspace.upper, 0), axis=1)
