@@ -9,17 +9,19 @@ franka_node, docs/evaluation_scheme.md): an observation is due every ``dt`` (the
 0.2 s: the cameras' frame rate); the policy answers one every ``execute_steps`` of them (0:
 ``n_action_steps``, policy_node's default). The answer to the observation at t_k (its first
 ``n_action_steps`` actions, step i stamped t_k + i*dt by ``chunk.chunk_from_actions`` as
-policy_node does) takes effect at t_k + ``latency_s`` (the twin's latency budget L); until then
-the previous chunk keeps running. franka_node's own ``control.ChunkScheduler`` (configured by
-``config/control.yaml``) then drops the steps already due (``live_steps``) and replaces the
-rest of the trajectory, starting from the setpoint commanded at that instant (``schedule``);
-the trajectory is sampled at ``COMMAND_HZ`` and the gripper follows the sampled width (with
-franka_node's deadband). Not modelled: franka_node's safety layer (the jump check on arrival,
-the workspace clip and speed limits at every tick).
+policy_node does) reaches franka_node at t_k + ``latency_s`` (the twin's latency budget L);
+until then the previous chunk keeps running. franka_node's own ``control.Controller``
+(configured by ``config/control.yaml``, ticked at its ``control_hz`` on the sim clock) then
+does what it does in the lab: the jump and staleness checks, dropping the steps already due
+and replacing the rest of the trajectory from the current setpoint, the watchdog, the
+workspace clip and speed limits, the gripper deadband. Its streamed target reaches the sim's
+arm at ``COMMAND_HZ``. What still differs from the live twin is the arm itself: DirectSim's IK
+and joint PD instead of franky's Cartesian impedance tracker in franky-sim.
 """
 
 from __future__ import annotations
 
+import logging
 import math
 from collections import deque
 from collections.abc import Callable, Iterable
@@ -30,11 +32,12 @@ import numpy as np
 from ..chunk import AnswerSchedule
 from ..config import LabConfig
 from ..observation import ee_input
+from ..robots.base import Robot, RobotError, RobotState
 from .config import TwinConfig
 from .metrics import SuccessHold
 from .scene import BLOCK, BOWL, body_pose, sample_scene
 
-# Rate at which the scheduler's trajectory is sampled into DirectSim.command.
+# Rate at which the controller's newest target is sent to DirectSim.command.
 # franka_node streams at control_hz (200 Hz), but every DirectSim.command solves IK (2.2 ms on
 # the 2-core EPYC, as much as 5 ms of sim stepping), so 200 Hz would double the sim's cost;
 # at 50 Hz it adds ~25 %. Between commands the joint PD holds the last IK target (1 kHz); the
@@ -57,6 +60,12 @@ class EvalEpisode:
 
 
 REACH_M, LOW_M, LIFT_M = 0.02, 0.03, 0.03
+
+# The controller's warnings (a rejected chunk, a watchdog hold) are counted in its stats and
+# reported once per episode, not logged at every occurrence.
+_QUIET = logging.getLogger(__name__ + ".controller")
+_QUIET.addHandler(logging.NullHandler())
+_QUIET.propagate = False
 
 
 class _Progress:
@@ -88,7 +97,7 @@ class _Episode:
         self.progress = _Progress(self.sim)
         self.observations, self.ok = 0, False
         self.hold = SuccessHold(hold_s)
-        self.rejected: list[str] = []  # chunks the scheduler refused (stale)
+        self.stats = None  # franka_node's Controller's stats once the episode has run
 
     def observe(self, stamp_ns: int) -> np.ndarray:
         """The policy's actions for an observation at ``stamp_ns`` (the current sim state)."""
@@ -131,19 +140,23 @@ def evaluate_policy(policy, cfg: TwinConfig, lab: LabConfig, seeds: Iterable[int
             sim.command(tcp_pose(ex.ready_position, 0.0), ex.open_width)
             sim.step(1500)
             episode = _Episode(policy, rec, seed, cfg.success.hold_s)
-            _run(episode, policy, control, max_duration_s, latency_s, execute_steps, ex.open_width)
+            _run(episode, policy, lab, control, max_duration_s, latency_s, execute_steps, ex.open_width)
             progress, t = episode.progress, sim.time - episode.t0
             results.append(EvalEpisode(seed, episode.ok, round(t, 2), episode.observations,
                                        round(float(np.degrees(poses.block_yaw)), 1), progress.reached,
                                        progress.lifted, round(progress.closest_to_bowl_m, 3),
                                        round(progress.closest_to_block_m, 3)))
-            rejected = f"; {len(episode.rejected)} chunks rejected ({episode.rejected[-1]})" if episode.rejected else ""
+            stats = episode.stats
+            control_note = "".join([
+                f"; {stats.rejected_chunks} chunks rejected ({stats.last_rejection})" if stats.rejected_chunks else "",
+                f"; {stats.watchdog_holds} watchdog holds" if stats.watchdog_holds else "",
+                f"; {stats.divergence_stops} divergence stops" if stats.divergence_stops else ""])
             log(f"[eval] seed {seed} (block yaw {np.degrees(poses.block_yaw):+.0f} deg): "
                 f"{'success' if episode.ok else 'failure'} after {t:.1f} s sim, {episode.observations} observations; "
                 f"TCP within {progress.closest_to_block_m * 1000:.0f} mm of the block, "
                 f"reached it: {'yes' if progress.reached else 'no'}, lifted it: "
                 f"{'yes' if progress.lifted else 'no'}, block came within {progress.closest_to_bowl_m * 1000:.0f} mm "
-                f"of the bowl's centre{rejected}")
+                f"of the bowl's centre{control_note}")
     finally:
         if recorder is None:
             rec.close()
@@ -158,63 +171,120 @@ def _control_config():
     return load_control_config(default_config_dir() / "control.yaml")
 
 
-def _run(episode: _Episode, policy, control, max_duration_s: float, latency_s: float, execute_steps: int,
-         open_width: float) -> None:
+class _SimClock:
+    """The evaluation's clock for franka_node's ``Controller``: the episode's integer-ms sim time."""
+
+    def __init__(self):
+        self.ms = 0
+
+    def now_ns(self) -> int:
+        return self.ms * 1_000_000
+
+    def sleep_until(self, t_ns: int, stop) -> bool:  # the Controller runs without its thread here
+        raise RuntimeError("the evaluation ticks the controller itself")
+
+
+class _DirectArm(Robot):
+    """DirectSim behind the ``Robot`` interface, so franka_node's own ``Controller`` (watchdog,
+    safety filter, jump check, gripper deadband) drives it. The streamed target reaches the
+    sim at ``COMMAND_HZ`` (see there), when the evaluation calls ``send``."""
+
+    def __init__(self, sim, width: float):
+        self.sim = sim
+        self.target: np.ndarray | None = None
+        self.width = float(width)
+
+    def connect(self) -> None:
+        pass
+
+    def disconnect(self) -> None:
+        pass
+
+    @property
+    def is_connected(self) -> bool:
+        return True
+
+    def read_state(self) -> RobotState:
+        data, sim = self.sim.data, self.sim
+        return RobotState(round(sim.time * 1e9), sim.tcp_pose(), data.qpos[sim._qadr].copy(),
+                          data.qvel[sim._dadr].copy(), sim.gripper_width(), robot_time_s=sim.time)
+
+    def move_to(self, pose: np.ndarray) -> None:
+        raise RobotError("the evaluation homes the arm itself")
+
+    def start_streaming(self) -> None:
+        pass
+
+    def stream_target(self, pose: np.ndarray, linear_velocity: np.ndarray, angular_velocity: np.ndarray) -> None:
+        self.target = pose
+
+    def stop_streaming(self) -> None:
+        pass
+
+    def move_gripper(self, width: float) -> None:
+        self.width = float(width)
+
+    def recover(self) -> str:
+        return ""
+
+    @property
+    def has_errors(self) -> bool:
+        return False
+
+    def send(self) -> None:
+        """The newest streamed target and gripper width to the sim (solves the IK)."""
+        if self.target is not None:
+            self.sim.command(self.target, self.width)
+
+
+def _run(episode: _Episode, policy, lab: LabConfig, control, max_duration_s: float, latency_s: float,
+         execute_steps: int, open_width: float) -> None:
     """One episode as policy_node + franka_node run it on simulated time (1 ms sim ticks).
 
-    Three event streams on one integer-millisecond clock from the episode's start: observations
+    Four event streams on one integer-millisecond clock from the episode's start: observations
     every dt (success is judged at each, as the supervisor does; every ``execute_steps``-th is
-    answered); each answered observation's chunk taking effect latency_s later (several can be
-    in flight when latency_s > the answering period); setpoints sampled from the scheduler at
-    COMMAND_HZ."""
-    from ..chunk import ChunkError, chunk_from_actions
-    from ..control import ChunkScheduler, Setpoint
+    answered); each answered observation's chunk reaching franka_node's ``Controller`` latency_s
+    later (several can be in flight when latency_s > the answering period); the controller's
+    ticks at control_hz; and its newest target sent to the sim at COMMAND_HZ."""
+    from ..chunk import chunk_from_actions
+    from ..control import Controller
 
     sim = episode.sim
     dt_ms = round(float(policy.preset.dt) * 1000)
     n_exec = int(policy.preset.n_action_steps)
     latency_ms = round(latency_s * 1000)
-    cmd_ms = max(1, round(1000 / COMMAND_HZ))
+    tick_ms = max(1, round(1000 / control.control_hz))
+    cmd_ms = max(tick_ms, round(1000 / COMMAND_HZ))
     max_ms = round(max_duration_s * 1000)
-    scheduler = ChunkScheduler(control.scheduler)
-    # Before the first chunk: hold the measured pose, as Controller._reset_to_measured does.
-    hold = Setpoint(sim.tcp_pose(), np.zeros(3), np.zeros(3), float("nan"), False)
-    width_sent = float(open_width)  # the homing command's width
-    pending: deque = deque()  # (ms at which it takes effect, PoseChunk), in order
+    clock, arm = _SimClock(), _DirectArm(sim, open_width)
+    controller = Controller(arm, lab.workspace, control, clock=clock, logger=_QUIET)
+    controller.start(home=False, thread=False)  # the arm is at the ready pose: hold it, as franka_node does
+    pending: deque = deque()  # (ms at which it arrives, PoseChunk), in order
     answers = AnswerSchedule(execute_steps, n_exec, dt_ms * 1_000_000)  # policy_node's rule
-    now = next_obs = next_cmd = 0
+    now = next_obs = next_tick = next_cmd = 0
     while True:
+        clock.ms = now
         if now >= next_obs:  # an observation instant: score the state, then answer it if it is due
             if (now > 0 and episode.check()) or now >= max_ms:
-                return
+                break
             if answers.due(now * 1_000_000):
                 answers.answer(now * 1_000_000)
                 chunk = chunk_from_actions(episode.observe(now * 1_000_000)[:n_exec], now * 1_000_000,
                                            dt_ms * 1_000_000)
                 pending.append((now + latency_ms, chunk))
             next_obs += dt_ms
-        while pending and pending[0][0] <= now:  # a chunk takes effect: franka_node's Controller.submit
-            chunk = pending.popleft()[1]
-            now_ns = now * 1_000_000
-            sp = scheduler.sample(now_ns) or hold  # the setpoint being commanded now
-            try:
-                live = scheduler.live_steps(chunk, now_ns)
-            except ChunkError as err:  # stale (latency_s far beyond the chunk): keep the current trajectory
-                episode.rejected.append(str(err))
-                continue
-            scheduler.schedule(live, now_ns, Setpoint(sp.pose, sp.linear_velocity, sp.angular_velocity,
-                                                      float("nan"), sp.active))
-        if now >= next_cmd:  # a control tick: sample the trajectory, stream it, move the gripper
-            sp = scheduler.sample(now * 1_000_000) or hold
-            if math.isfinite(sp.width):
-                width = float(np.clip(sp.width, 0.0, 0.08))
-                if abs(width - width_sent) > control.gripper_deadband_m:
-                    width_sent = width
-            sim.command(sp.pose, width_sent)
+        while pending and pending[0][0] <= now:  # a chunk arrives: franka_node's subscription callback
+            controller.submit(pending.popleft()[1])
+        if now >= next_tick:
+            controller.tick()
+            next_tick += tick_ms
+        if now >= next_cmd:
+            arm.send()
             next_cmd += cmd_ms
-        upcoming = min(next_obs, next_cmd, pending[0][0] if pending else next_obs)
+        upcoming = min(next_obs, next_tick, next_cmd, pending[0][0] if pending else next_obs)
         sim.step(upcoming - now)
         now = upcoming
+    episode.stats = controller.stats
 
 
 def unseen_yaw_seeds(cfg: TwinConfig, train_yaw_deg: tuple[float, float], n: int, start: int = 10_000_000,
