@@ -106,7 +106,7 @@ class DirectRecorder:
                     tcp = sim.tcp_pose()
                     w = sim.gripper_width()
                     writer.write("/franka/ee_pose", cm.pose_stamped(f, tcp, t_ns, frame), t_ns)
-                    q = sim.data.qpos[sim._qadr]
+                    q = sim.joint_positions()
                     js = f.make("sensor_msgs/msg/JointState", header=f.header(t_ns, ""),
                                 name=[*ARM_JOINT_NAMES, *FINGER_JOINT_NAMES],
                                 position=f.float64_array([*map(float, q), w / 2, w / 2]),

@@ -205,9 +205,9 @@ class _DirectArm(Robot):
         return True
 
     def read_state(self) -> RobotState:
-        data, sim = self.sim.data, self.sim
-        return RobotState(round(sim.time * 1e9), sim.tcp_pose(), data.qpos[sim._qadr].copy(),
-                          data.qvel[sim._dadr].copy(), sim.gripper_width(), robot_time_s=sim.time)
+        sim = self.sim
+        return RobotState(round(sim.time * 1e9), sim.tcp_pose(), sim.joint_positions(), sim.joint_velocities(),
+                          sim.gripper_width(), robot_time_s=sim.time)
 
     def move_to(self, pose: np.ndarray) -> None:
         raise RobotError("the evaluation homes the arm itself")

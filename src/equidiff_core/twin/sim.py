@@ -320,6 +320,12 @@ class DirectSim:
     def gripper_width(self) -> float:
         return float(self.robot.hand_width)
 
+    def joint_positions(self) -> np.ndarray:
+        return self.data.qpos[self._qadr].copy()
+
+    def joint_velocities(self) -> np.ndarray:
+        return self.data.qvel[self._dadr].copy()
+
     def _solve_ik(self, target: np.ndarray, iterations: int = 8, damping: float = 1e-4) -> np.ndarray:
         import mujoco
         from scipy.spatial.transform import Rotation
