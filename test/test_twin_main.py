@@ -420,3 +420,22 @@ def test_bench_generalization_quick_runs_end_to_end_on_the_cpu(tmp_path, capsys)
     assert result["rotation_aug"] == "none" and result["preset"] == "tiny"
     assert {r["device"] for r in result["training_recipes"].values()} == {"cpu"}
     assert json.loads((tmp_path / "run" / "result.json").read_text()) == result
+
+
+@pytest.mark.slow
+@pytest.mark.sim
+def test_twin_evaluate_rolls_out_the_main_jobs_seeds_in_process(tmp_path, capsys):
+    """`equidiff twin evaluate`: twin run's seeds (100000, 100001, ...) in-process, one line per
+    episode and a JSON summary; a missing checkpoint is a clear error, not a traceback."""
+    import json
+
+    from equidiff_ros.cli import main
+
+    with pytest.raises(SystemExit, match="no checkpoint at"):
+        main(["twin", "evaluate", "--checkpoint", str(tmp_path / "none.pt")])
+    assert main(["twin", "evaluate", "--episodes", "2", "--max-duration", "0.6"]) == 0
+    out = capsys.readouterr().out.strip().splitlines()
+    result = json.loads(out[-1])
+    assert [line.split()[2] for line in out if line.startswith("[eval]")] == ["100000", "100001"]
+    assert result["episodes"] == 2 and result["success"] == 0 and result["successful_seeds"] == []
+    assert result["latency_budget_ms"] == 100.0 and result["max_duration_s"] == 0.6
