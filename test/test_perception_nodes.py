@@ -15,7 +15,7 @@ from equidiff_ros.commands.bench_voxelize import synthetic_scene
 LAB_YAML = str(default_config_dir() / "lab.yaml")
 
 
-def test_nodes_print_usage_without_ros():
+def test_nodes_print_usage_without_starting_ros():
     for node in ("camera_node", "voxel_node"):
         out = subprocess.run([sys.executable, "-m", f"equidiff_ros.{node}", "--help"], capture_output=True,
                              text=True, timeout=60)
@@ -239,12 +239,16 @@ def test_replayed_bag_through_camera_node_and_voxel_node(tester, scene, tmp_path
         age_s = (time.time_ns() - (cloud.header.stamp.sec * 10 ** 9 + cloud.header.stamp.nanosec)) / 1e9
         assert -0.5 < age_s < 2.0  # restamped: live, not the bag's 2023 stamps
         np.testing.assert_array_equal(_grid(tester.voxels[-1], lab), expected)
-        # the bag's 5 Hz comes out as 5 Hz, and the grid follows at the observation rate
+        # The replay keeps flowing (looped) and never faster than the bag's 5 Hz; the grids follow,
+        # never closer than the observation period allows. Only upper bounds on counts: a loaded
+        # machine slows the flow (4 grids in 3 s once on CI), it cannot speed it up.
         clouds_before, voxels_before = len(tester.clouds), len(tester.voxels)
         tester.spin_for(3.0)
         n_clouds, n_voxels = len(tester.clouds) - clouds_before, len(tester.voxels) - voxels_before
-        assert 8 <= n_clouds <= 20, n_clouds  # 15 expected; margins for a heavily loaded machine
-        assert 5 <= n_voxels <= 20, n_voxels
+        assert 2 <= n_clouds <= 20, n_clouds  # 15 expected (3 cameras at 5 Hz)
+        assert 2 <= n_voxels <= 20, n_voxels
+        stamps = [v.header.stamp.sec * 10 ** 9 + v.header.stamp.nanosec for v in tester.voxels[voxels_before - 1:]]
+        assert min(np.diff(stamps)) >= 0.75 * 0.2e9, np.diff(stamps)  # voxel_node's rate cap at 5 Hz
         assert camera.poll() is None and voxel.poll() is None
     finally:
         cam_out = stop_node(camera)

@@ -22,7 +22,34 @@ A RealSense that is not connected stops the node at once with the missing serial
 from __future__ import annotations
 
 import sys
+import threading
+import time
 
+import yaml
+from rclpy.node import Node
+
+from equidiff_core.cameras import (
+    CameraError,
+    NoFrameYet,
+    extrinsics_tf_message,
+    limit_depth,
+    make_camera,
+)
+from equidiff_core.cameras.replay import ReplayFinished
+from equidiff_core.config import ConfigError
+from equidiff_core.control import messages as cm
+from equidiff_core.pointcloud import cloud_to_msg
+from equidiff_core.rosmsg import RclpyFactory
+from equidiff_core.sync import PublishPacer
+from equidiff_ros.common import (
+    LATCHED_QOS,
+    RELIABLE_QOS,
+    SENSOR_QOS,
+    TOPIC_DIAGNOSTICS,
+    declare_lab_config,
+    now_ns,
+    wait_for_clock,
+)
 from equidiff_ros.runner import run_node
 
 USAGE = __doc__ + """
@@ -33,170 +60,138 @@ usage: camera_node [--ros-args -p backend:=realsense|replay|twin -p camera:=cam_
 NODE_NAME = "camera_node"
 
 
-def build_node():
-    import threading
-    import time
-
-    import yaml
-    from rclpy.node import Node
-
-    from equidiff_core.cameras import (
-        CameraError,
-        NoFrameYet,
-        extrinsics_tf_message,
-        limit_depth,
-        make_camera,
-    )
-    from equidiff_core.cameras.replay import ReplayFinished
-    from equidiff_core.config import ConfigError
-    from equidiff_core.control import messages as cm
-    from equidiff_core.pointcloud import cloud_to_msg
-    from equidiff_core.rosmsg import RclpyFactory
-    from equidiff_core.sync import PublishPacer
-    from equidiff_ros.common import (
-        LATCHED_QOS,
-        RELIABLE_QOS,
-        SENSOR_QOS,
-        TOPIC_DIAGNOSTICS,
-        declare_lab_config,
-        now_ns,
-        wait_for_clock,
-    )
-
-    class CameraNode(Node):
-        def __init__(self):
-            super().__init__(NODE_NAME)
-            wait_for_clock(self)  # simulated time (the twin): nothing is timed before /clock
-            self.lab = declare_lab_config(self)
-            name = self.declare_parameter("camera", "").value
-            self.backend = self.declare_parameter("backend", "realsense").value
-            bag = self.declare_parameter("bag", "").value
-            loop = self.declare_parameter("loop", True).value
-            rate = self.declare_parameter("rate", 1.0).value
-            restamp = self.declare_parameter("restamp", True).value
-            options_text = self.declare_parameter("backend_options", "").value
-            self.configs = [self.lab.camera(name)] if name else list(self.lab.cameras)
-            self.factory = RclpyFactory()
-            try:
-                options = yaml.safe_load(options_text) if options_text else {}
-            except yaml.YAMLError as err:
-                raise ConfigError(f"backend_options: malformed YAML: {err}") from err
-            if not isinstance(options, dict):
-                raise ConfigError(f"backend_options must be a YAML mapping, got {options_text!r}")
-            clock = lambda: now_ns(self)
-            if self.backend == "replay":
-                options = {"bag": bag, "loop": loop, "rate": rate, "restamp": restamp, "clock": clock, **options}
-            elif self.backend == "realsense":
-                options = {"clock": clock, **options}  # pace_hz: set per camera below
-            elif self.backend == "twin":
-                # the twin renders when read: this node decides when (on the shared clock grid),
-                # unless the user asked for the camera's own pacing
-                options = {"paced": False, **options}
-            # a lockstep twin camera is clocked by the sim itself (simulated time): no wall-clock pacing
-            self.clocked_by_source = self.backend == "twin" and bool(options.get("lockstep", False))
-            self.on_demand = self.backend == "twin" and not options.get("paced", False) and not self.clocked_by_source
-            # build and connect every camera first: a missing device fails the node at once
-            self.cameras = []
-            try:
-                for cfg in self.configs:
-                    extra = {"pace_hz": cfg.publish_hz} if self.backend == "realsense" else {}
-                    if self.clocked_by_source:
-                        extra = {"slot": [c.name for c in self.lab.cameras].index(cfg.name)}
-                    camera = make_camera(self.backend, cfg, **{**extra, **options})
-                    camera.connect()
-                    self.cameras.append(camera)
-            except CameraError:
-                self._disconnect_all()
-                raise
-            self.pubs = {c.name: self.create_publisher(self._cloud_type(), c.topic, SENSOR_QOS) for c in self.configs}
-            self.stats = {c.name: {"published": 0, "read_errors": 0, "last_stamp_ns": None} for c in self.configs}
-            self._publish_tf_static()
-            self.diag_pub = self.create_publisher(self.factory.cls("diagnostic_msgs/msg/DiagnosticArray"),
-                                                  TOPIC_DIAGNOSTICS, RELIABLE_QOS)
-            self.create_timer(1.0, self._publish_diagnostics)
-            self._stop = threading.Event()
-            self.threads = [threading.Thread(target=self._run, args=(cfg, cam), name=f"camera-{cfg.name}", daemon=True)
-                            for cfg, cam in zip(self.configs, self.cameras)]
-            for t in self.threads:
-                t.start()
-            self.get_logger().info(f"{self.backend} backend: publishing {[c.topic for c in self.configs]}")
-
-        def _cloud_type(self):
-            return self.factory.cls("sensor_msgs/msg/PointCloud2")
-
-        def _publish_tf_static(self):
-            try:
-                tf_type = self.factory.cls("tf2_msgs/msg/TFMessage")
-            except ImportError:
-                self.get_logger().info("tf2_msgs is not installed: /tf_static is not published "
-                                       "(the recorder writes the camera extrinsics into bags)")
-                return
-            self.tf_pub = self.create_publisher(tf_type, "/tf_static", LATCHED_QOS)
-            self.tf_pub.publish(extrinsics_tf_message(self.configs, self.lab.base_frame, now_ns(self), self.factory))
-
-        def _run(self, cfg, camera):
-            log = self.get_logger()
-            pacer = PublishPacer(cfg.publish_hz)
-            pub, stats = self.pubs[cfg.name], self.stats[cfg.name]
-            while not self._stop.is_set():
-                if self.on_demand and self._stop.wait(pacer.wait_s(time.time())):
-                    return
-                try:
-                    frame = camera.read(timeout_s=1.0)
-                except ReplayFinished as err:
-                    log.info(str(err))
-                    return
-                except NoFrameYet:
-                    continue  # the twin's clock is paused (it waits for the policy): nothing is wrong
-                except CameraError as err:
-                    stats["read_errors"] += 1
-                    log.warning(f"{cfg.name}: {err}", throttle_duration_sec=2.0)
-                    self._stop.wait(0.05)
-                    continue
-                if not self.clocked_by_source and not pacer.due(time.time()):
-                    continue  # the device runs faster than publish_hz: skip this frame
-                frame = limit_depth(frame, cfg.min_depth, cfg.max_depth)
-                if len(frame.points) == 0:
-                    log.warning(f"{cfg.name}: no points within [{cfg.min_depth}, {cfg.max_depth}] m",
-                                throttle_duration_sec=2.0)
-                    continue
-                msg = cloud_to_msg(frame.points, frame.colors, frame.stamp_ns, cfg.frame_id, self.factory)
-                if self._stop.is_set() or not self.context.ok():
-                    return  # Ctrl-C/SIGTERM shut the context down while this frame was read
-                try:
-                    pub.publish(msg)
-                except Exception as err:  # rclpy raises RCLError once the context is gone
-                    if self.context.ok():
-                        raise
-                    log.debug(f"{cfg.name}: not published, shutting down ({err})")
-                    return
-                stats["published"] += 1
-                stats["last_stamp_ns"] = frame.stamp_ns
-
-        def _publish_diagnostics(self):
-            now = now_ns(self)
+class CameraNode(Node):
+    def __init__(self):
+        super().__init__(NODE_NAME)
+        wait_for_clock(self)  # simulated time (the twin): nothing is timed before /clock
+        self.lab = declare_lab_config(self)
+        name = self.declare_parameter("camera", "").value
+        self.backend = self.declare_parameter("backend", "realsense").value
+        bag = self.declare_parameter("bag", "").value
+        loop = self.declare_parameter("loop", True).value
+        rate = self.declare_parameter("rate", 1.0).value
+        restamp = self.declare_parameter("restamp", True).value
+        options_text = self.declare_parameter("backend_options", "").value
+        self.configs = [self.lab.camera(name)] if name else list(self.lab.cameras)
+        self.factory = RclpyFactory()
+        try:
+            options = yaml.safe_load(options_text) if options_text else {}
+        except yaml.YAMLError as err:
+            raise ConfigError(f"backend_options: malformed YAML: {err}") from err
+        if not isinstance(options, dict):
+            raise ConfigError(f"backend_options must be a YAML mapping, got {options_text!r}")
+        clock = lambda: now_ns(self)
+        if self.backend == "replay":
+            options = {"bag": bag, "loop": loop, "rate": rate, "restamp": restamp, "clock": clock, **options}
+        elif self.backend == "realsense":
+            options = {"clock": clock, **options}  # pace_hz: set per camera below
+        elif self.backend == "twin":
+            # the twin renders when read: this node decides when (on the shared clock grid),
+            # unless the user asked for the camera's own pacing
+            options = {"paced": False, **options}
+        # a lockstep twin camera is clocked by the sim itself (simulated time): no wall-clock pacing
+        self.clocked_by_source = self.backend == "twin" and bool(options.get("lockstep", False))
+        self.on_demand = self.backend == "twin" and not options.get("paced", False) and not self.clocked_by_source
+        # build and connect every camera first: a missing device fails the node at once
+        self.cameras = []
+        try:
             for cfg in self.configs:
-                s = self.stats[cfg.name]
-                age_ms = None if s["last_stamp_ns"] is None else (now - s["last_stamp_ns"]) / 1e6
-                ok = age_ms is not None and age_ms < 3000.0 / cfg.publish_hz
-                self.diag_pub.publish(cm.diagnostic_array(
-                    self.factory, now, f"{NODE_NAME}/{cfg.name}", cfg.serial, cm.OK if ok else cm.WARN,
-                    "publishing" if ok else "no recent frames",
-                    {"backend": self.backend, "published": s["published"], "read_errors": s["read_errors"],
-                     "age_ms": "none" if age_ms is None else round(age_ms, 1)}))
-
-        def _disconnect_all(self):
-            for camera in getattr(self, "cameras", []):
-                camera.disconnect()
-
-        def shutdown(self):
-            if hasattr(self, "_stop"):
-                self._stop.set()
-                for t in self.threads:
-                    t.join(timeout=2.0)
+                extra = {"pace_hz": cfg.publish_hz} if self.backend == "realsense" else {}
+                if self.clocked_by_source:
+                    extra = {"slot": [c.name for c in self.lab.cameras].index(cfg.name)}
+                camera = make_camera(self.backend, cfg, **{**extra, **options})
+                camera.connect()
+                self.cameras.append(camera)
+        except CameraError:
             self._disconnect_all()
+            raise
+        self.pubs = {c.name: self.create_publisher(self._cloud_type(), c.topic, SENSOR_QOS) for c in self.configs}
+        self.stats = {c.name: {"published": 0, "read_errors": 0, "last_stamp_ns": None} for c in self.configs}
+        self._publish_tf_static()
+        self.diag_pub = self.create_publisher(self.factory.cls("diagnostic_msgs/msg/DiagnosticArray"),
+                                              TOPIC_DIAGNOSTICS, RELIABLE_QOS)
+        self.create_timer(1.0, self._publish_diagnostics)
+        self._stop = threading.Event()
+        self.threads = [threading.Thread(target=self._run, args=(cfg, cam), name=f"camera-{cfg.name}", daemon=True)
+                        for cfg, cam in zip(self.configs, self.cameras)]
+        for t in self.threads:
+            t.start()
+        self.get_logger().info(f"{self.backend} backend: publishing {[c.topic for c in self.configs]}")
 
-    return CameraNode()
+    def _cloud_type(self):
+        return self.factory.cls("sensor_msgs/msg/PointCloud2")
+
+    def _publish_tf_static(self):
+        try:
+            tf_type = self.factory.cls("tf2_msgs/msg/TFMessage")
+        except ImportError:
+            self.get_logger().info("tf2_msgs is not installed: /tf_static is not published "
+                                   "(the recorder writes the camera extrinsics into bags)")
+            return
+        self.tf_pub = self.create_publisher(tf_type, "/tf_static", LATCHED_QOS)
+        self.tf_pub.publish(extrinsics_tf_message(self.configs, self.lab.base_frame, now_ns(self), self.factory))
+
+    def _run(self, cfg, camera):
+        log = self.get_logger()
+        pacer = PublishPacer(cfg.publish_hz)
+        pub, stats = self.pubs[cfg.name], self.stats[cfg.name]
+        while not self._stop.is_set():
+            if self.on_demand and self._stop.wait(pacer.wait_s(time.time())):
+                return
+            try:
+                frame = camera.read(timeout_s=1.0)
+            except ReplayFinished as err:
+                log.info(str(err))
+                return
+            except NoFrameYet:
+                continue  # the twin's clock is paused (it waits for the policy): nothing is wrong
+            except CameraError as err:
+                stats["read_errors"] += 1
+                log.warning(f"{cfg.name}: {err}", throttle_duration_sec=2.0)
+                self._stop.wait(0.05)
+                continue
+            if not self.clocked_by_source and not pacer.due(time.time()):
+                continue  # the device runs faster than publish_hz: skip this frame
+            frame = limit_depth(frame, cfg.min_depth, cfg.max_depth)
+            if len(frame.points) == 0:
+                log.warning(f"{cfg.name}: no points within [{cfg.min_depth}, {cfg.max_depth}] m",
+                            throttle_duration_sec=2.0)
+                continue
+            msg = cloud_to_msg(frame.points, frame.colors, frame.stamp_ns, cfg.frame_id, self.factory)
+            if self._stop.is_set() or not self.context.ok():
+                return  # Ctrl-C/SIGTERM shut the context down while this frame was read
+            try:
+                pub.publish(msg)
+            except Exception as err:  # rclpy raises RCLError once the context is gone
+                if self.context.ok():
+                    raise
+                log.debug(f"{cfg.name}: not published, shutting down ({err})")
+                return
+            stats["published"] += 1
+            stats["last_stamp_ns"] = frame.stamp_ns
+
+    def _publish_diagnostics(self):
+        now = now_ns(self)
+        for cfg in self.configs:
+            s = self.stats[cfg.name]
+            age_ms = None if s["last_stamp_ns"] is None else (now - s["last_stamp_ns"]) / 1e6
+            ok = age_ms is not None and age_ms < 3000.0 / cfg.publish_hz
+            self.diag_pub.publish(cm.diagnostic_array(
+                self.factory, now, f"{NODE_NAME}/{cfg.name}", cfg.serial, cm.OK if ok else cm.WARN,
+                "publishing" if ok else "no recent frames",
+                {"backend": self.backend, "published": s["published"], "read_errors": s["read_errors"],
+                 "age_ms": "none" if age_ms is None else round(age_ms, 1)}))
+
+    def _disconnect_all(self):
+        for camera in getattr(self, "cameras", []):
+            camera.disconnect()
+
+    def shutdown(self):
+        if hasattr(self, "_stop"):
+            self._stop.set()
+            for t in self.threads:
+                t.join(timeout=2.0)
+        self._disconnect_all()
 
 
 def main(args=None) -> int:
@@ -206,7 +201,7 @@ def main(args=None) -> int:
 
         return (CameraError, ConfigError)
 
-    return run_node(NODE_NAME, USAGE, build_node, startup_errors, args)
+    return run_node(NODE_NAME, USAGE, CameraNode, startup_errors, args)
 
 
 if __name__ == "__main__":

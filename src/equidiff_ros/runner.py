@@ -1,4 +1,4 @@
-"""The one `main()` every node shares: --help without importing ROS, clean start-up errors, and
+"""The one `main()` every node shares: --help without starting ROS, clean start-up errors, and
 a shutdown that stops hardware before the ROS context goes.
 
 rclpy's default signal handlers shut the context down first, racing whatever the node is
@@ -17,10 +17,8 @@ from collections.abc import Callable, Sequence
 
 def run_node(name: str, usage: str, build_node: Callable[[], object],
              startup_errors: Callable[[], tuple[type[BaseException], ...]], args: Sequence[str] | None = None) -> int:
-    """Build and spin a node; exit 1 with a one-line message on an expected start-up error.
-
-    ``startup_errors`` is called after rclpy is imported so node modules stay cheap to import.
-    """
+    """Build (``build_node()``: usually the node class) and spin a node; exit 1 with a one-line
+    message on an expected start-up error (``startup_errors()``: the exception types)."""
     argv = sys.argv[1:] if args is None else list(args)
     if "-h" in argv or "--help" in argv:
         print(usage)

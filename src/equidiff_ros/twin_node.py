@@ -31,9 +31,32 @@ wall second at most, 1.0; 0 = unbounded).
 
 from __future__ import annotations
 
+import json
 import sys
+from pathlib import Path
 
-from equidiff_ros.runner import run_node
+from rclpy.node import Node
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+from rosgraph_msgs.msg import Clock
+from sensor_msgs.msg import PointCloud2
+from std_msgs.msg import Bool, Int64, String
+from trajectory_msgs.msg import MultiDOFJointTrajectory
+
+from equidiff_core.config import default_config_dir
+from equidiff_core.rosmsg import header_stamp_ns_from_cdr
+from equidiff_core.twin.config import load_twin_config
+from equidiff_core.twin.lockstep import LockstepConfig
+from equidiff_core.twin.sim import TwinSim
+from equidiff_ros.common import (
+    LATCHED_QOS,
+    RELIABLE_QOS,
+    TOPIC_COMMAND_CHUNK,
+    TOPIC_POLICY_SKIPPED,
+    TOPIC_VOXELS,
+    VOXEL_QOS,
+    declare_lab_config,
+)
+from equidiff_ros.runner import declare_number, run_node
 
 USAGE = __doc__ + """
 usage: twin_node [--ros-args -p host:=127.0.0.1 -p seed:=0 -p twin_config:=config/twin.yaml]
@@ -47,105 +70,76 @@ TOPIC_AWAIT_POLICY = "/twin/await_policy"
 CLOCKS = ("sim", "realtime")
 
 
-def build_node():
-    import json
-    from pathlib import Path
+class TwinNode(Node):
+    def __init__(self):
+        super().__init__(NODE_NAME)
+        self.lab = declare_lab_config(self)
+        cfg_path = self.declare_parameter("twin_config", str(default_config_dir() / "twin.yaml")).value
+        host = self.declare_parameter("host", "").value
+        seed = int(self.declare_parameter("seed", 0).value)
+        shm = self.declare_parameter("shm_name", "").value or None
+        clock = self.declare_parameter("clock", "sim").value
+        if clock not in CLOCKS:
+            raise ValueError(f"clock must be one of {CLOCKS}, got {clock!r}")
+        self.cfg = load_twin_config(Path(cfg_path))
+        lockstep = None
+        if clock == "sim":
+            periods = {round(1000 / c.publish_hz) for c in self.lab.cameras}
+            if len(periods) != 1:
+                raise ValueError(f"on simulated time every camera must publish at the same rate; lab.yaml has "
+                                 f"{sorted(c.publish_hz for c in self.lab.cameras)} Hz")
+            lockstep = LockstepConfig(
+                frame_period_ticks=periods.pop(),
+                latency_ticks=round(1000 * self.declare_parameter("latency_s", 0.1).value),
+                stall_timeout_s=declare_number(self, "stall_timeout_s", 30.0),
+                max_speed=float(self.declare_parameter("max_speed", 1.0).value))
+            # best effort like rclpy's own /clock subscription; a lost message is repeated while the sim waits
+            self.pub_clock = self.create_publisher(Clock, "/clock", QoSProfile(
+                depth=1, reliability=ReliabilityPolicy.BEST_EFFORT))
+        self.twin = TwinSim(self.cfg, host=host or None, shm_name=shm, lockstep=lockstep,
+                            on_clock=self.publish_clock, camera_names=tuple(c.name for c in self.lab.cameras))
+        self.pub_scene = self.create_publisher(String, TOPIC_SCENE, LATCHED_QOS)
+        self.pub_state = self.create_publisher(String, TOPIC_STATE, RELIABLE_QOS)
+        self.create_subscription(Int64, TOPIC_RESET, self.on_reset, RELIABLE_QOS)
+        if lockstep is not None:
+            ls = self.twin.lockstep
+            self.create_subscription(Bool, TOPIC_AWAIT_POLICY, lambda m: ls.set_awaiting(m.data), LATCHED_QOS)
+            # stamps only: read from the serialised messages (a voxel grid is up to 1 MiB)
+            self.create_subscription(MultiDOFJointTrajectory, TOPIC_COMMAND_CHUNK,
+                                     lambda m: ls.on_chunk(header_stamp_ns_from_cdr(m)), RELIABLE_QOS, raw=True)
+            self.create_subscription(PointCloud2, TOPIC_VOXELS,
+                                     lambda m: ls.on_voxels(header_stamp_ns_from_cdr(m)), VOXEL_QOS, raw=True)
+            self.create_subscription(String, TOPIC_POLICY_SKIPPED,
+                                     lambda m: ls.on_skipped(json.loads(m.data)["stamp_ns"]), RELIABLE_QOS)
+        self.twin.start(seed)
+        self.create_timer(1.0 / self.cfg.sim.status_hz, self.publish_state)
+        self.publish_scene()
+        self.get_logger().info(
+            f"franky-sim serving on {self.twin.host} (robot_ip:={self.twin.host}); state in shared memory "
+            f"{self.twin.shm_name!r}; seed {seed}; " + (
+                "real time" if lockstep is None else
+                f"simulated time on /clock, latency budget {lockstep.latency_ticks} ms, "
+                f"at most {lockstep.max_speed or 'unbounded'}x real time"))
 
-    from rclpy.node import Node
-    from rclpy.qos import QoSProfile, ReliabilityPolicy
-    from rosgraph_msgs.msg import Clock
-    from sensor_msgs.msg import PointCloud2
-    from std_msgs.msg import Bool, Int64, String
-    from trajectory_msgs.msg import MultiDOFJointTrajectory
+    def publish_clock(self, t_ns: int) -> None:
+        msg = Clock()
+        msg.clock.sec, msg.clock.nanosec = divmod(int(t_ns), 1_000_000_000)
+        self.pub_clock.publish(msg)
 
-    from equidiff_core.config import default_config_dir
-    from equidiff_core.rosmsg import header_stamp_ns_from_cdr
-    from equidiff_core.twin.config import load_twin_config
-    from equidiff_core.twin.lockstep import LockstepConfig
-    from equidiff_core.twin.sim import TwinSim
-    from equidiff_ros.common import (
-        LATCHED_QOS,
-        RELIABLE_QOS,
-        TOPIC_COMMAND_CHUNK,
-        TOPIC_POLICY_SKIPPED,
-        TOPIC_VOXELS,
-        VOXEL_QOS,
-        declare_lab_config,
-    )
-    from equidiff_ros.runner import declare_number
+    def on_reset(self, msg) -> None:
+        poses = self.twin.reset(int(msg.data))
+        self.get_logger().info(f"reset to seed {poses.seed}: block {poses.block_xy}, bowl {poses.bowl_xy}")
+        self.publish_scene()
 
-    class TwinNode(Node):
-        def __init__(self):
-            super().__init__(NODE_NAME)
-            self.lab = declare_lab_config(self)
-            cfg_path = self.declare_parameter("twin_config", str(default_config_dir() / "twin.yaml")).value
-            host = self.declare_parameter("host", "").value
-            seed = int(self.declare_parameter("seed", 0).value)
-            shm = self.declare_parameter("shm_name", "").value or None
-            clock = self.declare_parameter("clock", "sim").value
-            if clock not in CLOCKS:
-                raise ValueError(f"clock must be one of {CLOCKS}, got {clock!r}")
-            self.cfg = load_twin_config(Path(cfg_path))
-            lockstep = None
-            if clock == "sim":
-                periods = {round(1000 / c.publish_hz) for c in self.lab.cameras}
-                if len(periods) != 1:
-                    raise ValueError(f"on simulated time every camera must publish at the same rate; lab.yaml has "
-                                     f"{sorted(c.publish_hz for c in self.lab.cameras)} Hz")
-                lockstep = LockstepConfig(
-                    frame_period_ticks=periods.pop(),
-                    latency_ticks=round(1000 * self.declare_parameter("latency_s", 0.1).value),
-                    stall_timeout_s=declare_number(self, "stall_timeout_s", 30.0),
-                    max_speed=float(self.declare_parameter("max_speed", 1.0).value))
-                # best effort like rclpy's own /clock subscription; a lost message is repeated while the sim waits
-                self.pub_clock = self.create_publisher(Clock, "/clock", QoSProfile(
-                    depth=1, reliability=ReliabilityPolicy.BEST_EFFORT))
-            self.twin = TwinSim(self.cfg, host=host or None, shm_name=shm, lockstep=lockstep,
-                                on_clock=self.publish_clock, camera_names=tuple(c.name for c in self.lab.cameras))
-            self.pub_scene = self.create_publisher(String, TOPIC_SCENE, LATCHED_QOS)
-            self.pub_state = self.create_publisher(String, TOPIC_STATE, RELIABLE_QOS)
-            self.create_subscription(Int64, TOPIC_RESET, self.on_reset, RELIABLE_QOS)
-            if lockstep is not None:
-                ls = self.twin.lockstep
-                self.create_subscription(Bool, TOPIC_AWAIT_POLICY, lambda m: ls.set_awaiting(m.data), LATCHED_QOS)
-                # stamps only: read from the serialised messages (a voxel grid is up to 1 MiB)
-                self.create_subscription(MultiDOFJointTrajectory, TOPIC_COMMAND_CHUNK,
-                                         lambda m: ls.on_chunk(header_stamp_ns_from_cdr(m)), RELIABLE_QOS, raw=True)
-                self.create_subscription(PointCloud2, TOPIC_VOXELS,
-                                         lambda m: ls.on_voxels(header_stamp_ns_from_cdr(m)), VOXEL_QOS, raw=True)
-                self.create_subscription(String, TOPIC_POLICY_SKIPPED,
-                                         lambda m: ls.on_skipped(json.loads(m.data)["stamp_ns"]), RELIABLE_QOS)
-            self.twin.start(seed)
-            self.create_timer(1.0 / self.cfg.sim.status_hz, self.publish_state)
-            self.publish_scene()
-            self.get_logger().info(
-                f"franky-sim serving on {self.twin.host} (robot_ip:={self.twin.host}); state in shared memory "
-                f"{self.twin.shm_name!r}; seed {seed}; " + (
-                    "real time" if lockstep is None else
-                    f"simulated time on /clock, latency budget {lockstep.latency_ticks} ms, "
-                    f"at most {lockstep.max_speed or 'unbounded'}x real time"))
+    def publish_scene(self) -> None:
+        data = {**self.twin.poses.to_dict(), "host": self.twin.host, "shm": self.twin.shm_name}
+        self.pub_scene.publish(String(data=json.dumps(data)))
 
-        def publish_clock(self, t_ns: int) -> None:
-            msg = Clock()
-            msg.clock.sec, msg.clock.nanosec = divmod(int(t_ns), 1_000_000_000)
-            self.pub_clock.publish(msg)
+    def publish_state(self) -> None:
+        self.pub_state.publish(String(data=json.dumps(self.twin.status())))
 
-        def on_reset(self, msg) -> None:
-            poses = self.twin.reset(int(msg.data))
-            self.get_logger().info(f"reset to seed {poses.seed}: block {poses.block_xy}, bowl {poses.bowl_xy}")
-            self.publish_scene()
-
-        def publish_scene(self) -> None:
-            data = {**self.twin.poses.to_dict(), "host": self.twin.host, "shm": self.twin.shm_name}
-            self.pub_scene.publish(String(data=json.dumps(data)))
-
-        def publish_state(self) -> None:
-            self.pub_state.publish(String(data=json.dumps(self.twin.status())))
-
-        def shutdown(self) -> None:
-            self.twin.stop()
-
-    return TwinNode()
+    def shutdown(self) -> None:
+        self.twin.stop()
 
 
 def main(args=None) -> int:
@@ -155,7 +149,7 @@ def main(args=None) -> int:
 
         return (ConfigError, SceneError, OSError, RuntimeError, ValueError)  # OSError: the libfranka port is taken
 
-    return run_node(NODE_NAME, USAGE, build_node, startup_errors, args)
+    return run_node(NODE_NAME, USAGE, TwinNode, startup_errors, args)
 
 
 if __name__ == "__main__":

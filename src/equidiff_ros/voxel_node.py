@@ -24,8 +24,27 @@ of the whole cloud, false); clean-up: ``remove_table`` (false) drops points belo
 
 from __future__ import annotations
 
+import re
 import sys
+import time
 
+from rclpy.node import Node
+
+from equidiff_core.control import messages as cm
+from equidiff_core.pointcloud import CloudError, grid_to_voxel_msg, msg_to_cloud
+from equidiff_core.rosmsg import RclpyFactory
+from equidiff_core.sync import ApproximateTimeMatcher
+from equidiff_core.voxels import Voxelizer, VoxelizerConfig
+from equidiff_ros.common import (
+    RELIABLE_QOS,
+    SENSOR_QOS,
+    TOPIC_DIAGNOSTICS,
+    TOPIC_VOXELS,
+    VOXEL_QOS,
+    declare_lab_config,
+    now_ns,
+    wait_for_clock,
+)
 from equidiff_ros.runner import run_node
 
 USAGE = __doc__ + """
@@ -35,144 +54,120 @@ usage: voxel_node [--ros-args -p lab_config:=config/lab.yaml -p slop_s:=0.1 -p s
 NODE_NAME = "voxel_node"
 
 
-def build_node():
-    import re
-    import time
+class VoxelNode(Node):
+    def __init__(self):
+        super().__init__(NODE_NAME)
+        wait_for_clock(self)  # simulated time (the twin): nothing is timed before /clock
+        self.lab = declare_lab_config(self)
+        param = lambda name, default: self.declare_parameter(name, default).value
+        hz = param("observation_hz", self.lab.observation_hz)
+        if not hz > 0:
+            raise ValueError(f"observation_hz must be positive, got {hz}")
+        self.slop_ns = int(param("slop_s", 0.1) * 1e9)
+        self.stale_ns = int(param("stale_after_s", 0.5) * 1e9)
+        queue_size = param("queue_size", 5)
+        self.check_frame_id = param("check_frame_id", True)
+        self.allow_nan = param("allow_nan_points", False)
+        remove_table = param("remove_table", False)
+        table_z = param("table_z", 0.0)
+        cleanup = VoxelizerConfig(table_z=table_z if remove_table else None,
+                                  outlier_neighbors=param("outlier_neighbors", 0),
+                                  outlier_std_ratio=param("outlier_std_ratio", 2.0))
+        self.cameras = list(self.lab.cameras)
+        self.names = [c.name for c in self.cameras]
+        self.voxelizer = Voxelizer(self.lab.workspace, [c.extrinsics.matrix() for c in self.cameras], cleanup)
+        self.matcher = ApproximateTimeMatcher(self.names, self.slop_ns, queue_size)
+        self.factory = RclpyFactory()
+        cloud_type = self.factory.cls("sensor_msgs/msg/PointCloud2")
+        for cam in self.cameras:
+            self.create_subscription(cloud_type, cam.topic, lambda msg, cam=cam: self._on_cloud(cam, msg),
+                                     SENSOR_QOS)
+        self.pub = self.create_publisher(cloud_type, TOPIC_VOXELS, VOXEL_QOS)
+        self.diag_pub = self.create_publisher(self.factory.cls("diagnostic_msgs/msg/DiagnosticArray"),
+                                              TOPIC_DIAGNOSTICS, RELIABLE_QOS)
+        self.dropped = {n: 0 for n in self.names}
+        self._last_warned: dict[tuple[str, str], float] = {}
+        self.published = 0
+        self.skipped_stale = 0
+        self.voxelize_ms = float("nan")
+        self.state = "waiting for clouds"
+        self.period_ns = int(1e9 / hz)
+        self._last_stamp: int | None = None
+        self.create_timer(1.0 / hz, self._on_tick)
+        self.create_timer(1.0, self._publish_diagnostics)
+        self.get_logger().info(f"fusing {[c.topic for c in self.cameras]} into {TOPIC_VOXELS} at {hz} Hz")
 
-    from rclpy.node import Node
+    def _on_cloud(self, cam, msg):
+        try:
+            cloud = msg_to_cloud(msg, drop_invalid=self.allow_nan)
+            if self.check_frame_id and cloud.frame_id != cam.frame_id:
+                raise CloudError(f"frame_id {cloud.frame_id!r} is not {cam.frame_id!r}, "
+                                 f"whose extrinsics lab.yaml holds")
+        except CloudError as err:
+            self.dropped[cam.name] += 1
+            # throttled per camera and kind of problem (numbers removed), so each is seen
+            kind = (cam.name, re.sub(r"\d+", "#", str(err)))
+            t = time.monotonic()
+            if t - self._last_warned.get(kind, -1e9) >= 2.0:
+                self._last_warned[kind] = t
+                self.get_logger().warning(f"dropped a cloud on {cam.topic}: {err}")
+            return
+        self.matcher.add(cam.name, cloud.stamp_ns, cloud)
+        self._publish_new_set()
 
-    from equidiff_core.control import messages as cm
-    from equidiff_core.pointcloud import CloudError, grid_to_voxel_msg, msg_to_cloud
-    from equidiff_core.rosmsg import RclpyFactory
-    from equidiff_core.sync import ApproximateTimeMatcher
-    from equidiff_core.voxels import Voxelizer, VoxelizerConfig
-    from equidiff_ros.common import (
-        RELIABLE_QOS,
-        SENSOR_QOS,
-        TOPIC_DIAGNOSTICS,
-        TOPIC_VOXELS,
-        VOXEL_QOS,
-        declare_lab_config,
-        now_ns,
-        wait_for_clock,
-    )
-
-    class VoxelNode(Node):
-        def __init__(self):
-            super().__init__(NODE_NAME)
-            wait_for_clock(self)  # simulated time (the twin): nothing is timed before /clock
-            self.lab = declare_lab_config(self)
-            param = lambda name, default: self.declare_parameter(name, default).value
-            hz = param("observation_hz", self.lab.observation_hz)
-            if not hz > 0:
-                raise ValueError(f"observation_hz must be positive, got {hz}")
-            self.slop_ns = int(param("slop_s", 0.1) * 1e9)
-            self.stale_ns = int(param("stale_after_s", 0.5) * 1e9)
-            queue_size = param("queue_size", 5)
-            self.check_frame_id = param("check_frame_id", True)
-            self.allow_nan = param("allow_nan_points", False)
-            remove_table = param("remove_table", False)
-            table_z = param("table_z", 0.0)
-            cleanup = VoxelizerConfig(table_z=table_z if remove_table else None,
-                                      outlier_neighbors=param("outlier_neighbors", 0),
-                                      outlier_std_ratio=param("outlier_std_ratio", 2.0))
-            self.cameras = list(self.lab.cameras)
-            self.names = [c.name for c in self.cameras]
-            self.voxelizer = Voxelizer(self.lab.workspace, [c.extrinsics.matrix() for c in self.cameras], cleanup)
-            self.matcher = ApproximateTimeMatcher(self.names, self.slop_ns, queue_size)
-            self.factory = RclpyFactory()
-            cloud_type = self.factory.cls("sensor_msgs/msg/PointCloud2")
-            for cam in self.cameras:
-                self.create_subscription(cloud_type, cam.topic, lambda msg, cam=cam: self._on_cloud(cam, msg),
-                                         SENSOR_QOS)
-            self.pub = self.create_publisher(cloud_type, TOPIC_VOXELS, VOXEL_QOS)
-            self.diag_pub = self.create_publisher(self.factory.cls("diagnostic_msgs/msg/DiagnosticArray"),
-                                                  TOPIC_DIAGNOSTICS, RELIABLE_QOS)
-            self.dropped = {n: 0 for n in self.names}
-            self._last_warned: dict[tuple[str, str], float] = {}
-            self.published = 0
-            self.skipped_stale = 0
-            self.voxelize_ms = float("nan")
-            self.state = "waiting for clouds"
-            self.period_ns = int(1e9 / hz)
-            self._last_stamp: int | None = None
-            self.create_timer(1.0 / hz, self._on_tick)
-            self.create_timer(1.0, self._publish_diagnostics)
-            self.get_logger().info(f"fusing {[c.topic for c in self.cameras]} into {TOPIC_VOXELS} at {hz} Hz")
-
-        def _on_cloud(self, cam, msg):
-            try:
-                cloud = msg_to_cloud(msg, drop_invalid=self.allow_nan)
-                if self.check_frame_id and cloud.frame_id != cam.frame_id:
-                    raise CloudError(f"frame_id {cloud.frame_id!r} is not {cam.frame_id!r}, "
-                                     f"whose extrinsics lab.yaml holds")
-            except CloudError as err:
-                self.dropped[cam.name] += 1
-                # throttled per camera and kind of problem (numbers removed), so each is seen
-                kind = (cam.name, re.sub(r"\d+", "#", str(err)))
-                t = time.monotonic()
-                if t - self._last_warned.get(kind, -1e9) >= 2.0:
-                    self._last_warned[kind] = t
-                    self.get_logger().warning(f"dropped a cloud on {cam.topic}: {err}")
-                return
-            self.matcher.add(cam.name, cloud.stamp_ns, cloud)
-            self._publish_new_set()
-
-        def _stale_cameras(self) -> bool:
-            """Say which cameras are stale (and count it); True when any is."""
-            now = now_ns(self)
-            stale = self.matcher.stale(now, self.stale_ns)
-            if stale:
-                self.skipped_stale += 1
-                ages = self.matcher.ages_ns(now)
-                why = ", ".join(f"{n} (never received)" if ages[n] is None else f"{n} (last cloud {ages[n] / 1e9:.2f} s ago)"
-                                for n in stale)
-                self.state = f"stale: {why}"
-                self.get_logger().warning(f"not publishing {TOPIC_VOXELS}: stale camera(s) {why}",
-                                          throttle_duration_sec=2.0)
-            return bool(stale)
-
-        def _on_tick(self):
-            if not self._stale_cameras() and self.matcher.peek() is None:
-                self.state = f"no cloud set within slop {self.slop_ns / 1e9:.3f} s"
-                self.get_logger().warning(f"not publishing {TOPIC_VOXELS}: the cameras' newest clouds are not "
-                                          f"within slop_s {self.slop_ns / 1e9:.3f} s of each other",
-                                          throttle_duration_sec=2.0)
-
-        def _publish_new_set(self):
-            match = self.matcher.newest()
-            if match is None or self._stale_cameras():
-                return  # no new complete set yet, or a camera is stale
-            if self._last_stamp is not None and match.newest_ns - self._last_stamp < 0.75 * self.period_ns:
-                return  # cameras faster than observation_hz: this set is not due yet
-            self._last_stamp = match.newest_ns
-            t0 = time.perf_counter()
-            grid = self.voxelizer([match.items[n] for n in self.names])
-            self.voxelize_ms = (time.perf_counter() - t0) * 1e3
-            ws = self.lab.workspace
-            self.pub.publish(grid_to_voxel_msg(grid, ws.lower, ws.voxel_size, match.newest_ns,
-                                               self.lab.base_frame, self.factory))
-            self.published += 1
-            self.state = "publishing"
-
-        def _publish_diagnostics(self):
-            now = now_ns(self)
+    def _stale_cameras(self) -> bool:
+        """Say which cameras are stale (and count it); True when any is."""
+        now = now_ns(self)
+        stale = self.matcher.stale(now, self.stale_ns)
+        if stale:
+            self.skipped_stale += 1
             ages = self.matcher.ages_ns(now)
-            stats = self.voxelizer.last_stats
-            values = {"voxelize_ms": self.voxelize_ms, "published": self.published,
-                      "skipped_stale": self.skipped_stale,
-                      "points_used": stats.points_used if stats else 0,
-                      "occupied_voxels": stats.occupied if stats else 0}
-            for n in self.names:
-                values[f"{n}_age_ms"] = "none" if ages[n] is None else round(ages[n] / 1e6, 1)
-                values[f"{n}_dropped"] = self.dropped[n]
-            level = cm.OK if self.state == "publishing" else cm.WARN
-            self.diag_pub.publish(cm.diagnostic_array(self.factory, now, NODE_NAME, "", level, self.state, values))
+            why = ", ".join(f"{n} (never received)" if ages[n] is None else f"{n} (last cloud {ages[n] / 1e9:.2f} s ago)"
+                            for n in stale)
+            self.state = f"stale: {why}"
+            self.get_logger().warning(f"not publishing {TOPIC_VOXELS}: stale camera(s) {why}",
+                                      throttle_duration_sec=2.0)
+        return bool(stale)
 
-        def shutdown(self):
-            pass
+    def _on_tick(self):
+        if not self._stale_cameras() and self.matcher.peek() is None:
+            self.state = f"no cloud set within slop {self.slop_ns / 1e9:.3f} s"
+            self.get_logger().warning(f"not publishing {TOPIC_VOXELS}: the cameras' newest clouds are not "
+                                      f"within slop_s {self.slop_ns / 1e9:.3f} s of each other",
+                                      throttle_duration_sec=2.0)
 
-    return VoxelNode()
+    def _publish_new_set(self):
+        match = self.matcher.newest()
+        if match is None or self._stale_cameras():
+            return  # no new complete set yet, or a camera is stale
+        if self._last_stamp is not None and match.newest_ns - self._last_stamp < 0.75 * self.period_ns:
+            return  # cameras faster than observation_hz: this set is not due yet
+        self._last_stamp = match.newest_ns
+        t0 = time.perf_counter()
+        grid = self.voxelizer([match.items[n] for n in self.names])
+        self.voxelize_ms = (time.perf_counter() - t0) * 1e3
+        ws = self.lab.workspace
+        self.pub.publish(grid_to_voxel_msg(grid, ws.lower, ws.voxel_size, match.newest_ns,
+                                           self.lab.base_frame, self.factory))
+        self.published += 1
+        self.state = "publishing"
+
+    def _publish_diagnostics(self):
+        now = now_ns(self)
+        ages = self.matcher.ages_ns(now)
+        stats = self.voxelizer.last_stats
+        values = {"voxelize_ms": self.voxelize_ms, "published": self.published,
+                  "skipped_stale": self.skipped_stale,
+                  "points_used": stats.points_used if stats else 0,
+                  "occupied_voxels": stats.occupied if stats else 0}
+        for n in self.names:
+            values[f"{n}_age_ms"] = "none" if ages[n] is None else round(ages[n] / 1e6, 1)
+            values[f"{n}_dropped"] = self.dropped[n]
+        level = cm.OK if self.state == "publishing" else cm.WARN
+        self.diag_pub.publish(cm.diagnostic_array(self.factory, now, NODE_NAME, "", level, self.state, values))
+
+    def shutdown(self):
+        pass
 
 
 def main(args=None) -> int:
@@ -182,7 +177,7 @@ def main(args=None) -> int:
 
         return (ConfigError, VoxelError, ValueError)
 
-    return run_node(NODE_NAME, USAGE, build_node, startup_errors, args)
+    return run_node(NODE_NAME, USAGE, VoxelNode, startup_errors, args)
 
 
 if __name__ == "__main__":
