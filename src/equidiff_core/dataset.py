@@ -47,11 +47,8 @@ from .observation import STATE_TOLERANCE_S, ee_input, nearest
 from .pointcloud import CloudError, voxel_msg_to_grid
 from .robots.base import FINGER_JOINT_NAMES
 from .rosmsg import NS_PER_S
+from .topics import TOPIC_COMMAND_CHUNK, TOPIC_EE_POSE, TOPIC_JOINT_STATES, TOPIC_VOXELS
 
-TOPIC_VOXELS = "/voxels"
-TOPIC_EE_POSE = "/franka/ee_pose"
-TOPIC_JOINT_STATES = "/franka/joint_states"
-TOPIC_COMMAND_CHUNK = "/franka/command_chunk"
 CACHE_VERSION = 2  # 2: compressed, with the decoding settings inside (shared with packed episodes)
 PACKED_SUFFIX = ".episode.npz"
 

@@ -35,20 +35,7 @@ from .bags import META_SIDECAR, EpisodeMeta
 from .config import LabConfig
 from .mcap_writer import MiB, open_bag_writer
 from .rosmsg import RosbagsFactory, rosbags_factory
-
-# Recorded topics and their types (architecture.md). Camera clouds are optional.
-RECORDED_TOPICS: dict[str, str] = {
-    "/voxels": "sensor_msgs/msg/PointCloud2",
-    "/franka/ee_pose": "geometry_msgs/msg/PoseStamped",
-    "/franka/joint_states": "sensor_msgs/msg/JointState",
-    "/franka/command_chunk": "trajectory_msgs/msg/MultiDOFJointTrajectory",
-    "/franka/executed_target": "geometry_msgs/msg/PoseStamped",
-    "/spacenav/joy": "sensor_msgs/msg/Joy",
-    "/diagnostics": "diagnostic_msgs/msg/DiagnosticArray",
-}
-TF_STATIC_TOPIC = "/tf_static"
-TF_STATIC_TYPE = "tf2_msgs/msg/TFMessage"
-CLOUD_TYPE = "sensor_msgs/msg/PointCloud2"
+from .topics import CLOUD_TYPE, RECORDED_TOPICS, TF_TYPE, TOPIC_TF_STATIC
 
 
 class RecordingError(RuntimeError):
@@ -223,7 +210,7 @@ class EpisodeWriter:
 
     def write_tf_static(self, lab: LabConfig, stamp_ns: int) -> None:
         """The configured camera extrinsics as one /tf_static TFMessage (base -> optical frames)."""
-        self.add_topic(TF_STATIC_TOPIC, TF_STATIC_TYPE, transient_local=True)
+        self.add_topic(TOPIC_TF_STATIC, TF_TYPE, transient_local=True)
         mk = self.factory.make
         transforms = []
         for cam in lab.cameras:
@@ -237,7 +224,7 @@ class EpisodeWriter:
                              rotation=mk("geometry_msgs/msg/Quaternion", x=e.quaternion_xyzw[0],
                                          y=e.quaternion_xyzw[1], z=e.quaternion_xyzw[2],
                                          w=e.quaternion_xyzw[3]))))
-        self.write(TF_STATIC_TOPIC, mk(TF_STATIC_TYPE, transforms=transforms), stamp_ns, TF_STATIC_TYPE)
+        self.write(TOPIC_TF_STATIC, mk(TF_TYPE, transforms=transforms), stamp_ns, TF_TYPE)
 
 
 def recorded_topics(lab: LabConfig, record_clouds: bool) -> dict[str, str]:

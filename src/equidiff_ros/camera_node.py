@@ -46,6 +46,7 @@ from equidiff_ros.common import (
     RELIABLE_QOS,
     SENSOR_QOS,
     TOPIC_DIAGNOSTICS,
+    TOPIC_TF_STATIC,
     declare_lab_config,
     now_ns,
     wait_for_clock,
@@ -128,7 +129,7 @@ class CameraNode(Node):
             self.get_logger().info("tf2_msgs is not installed: /tf_static is not published "
                                    "(the recorder writes the camera extrinsics into bags)")
             return
-        self.tf_pub = self.create_publisher(tf_type, "/tf_static", LATCHED_QOS)
+        self.tf_pub = self.create_publisher(tf_type, TOPIC_TF_STATIC, LATCHED_QOS)
         self.tf_pub.publish(extrinsics_tf_message(self.configs, self.lab.base_frame, now_ns(self), self.factory))
 
     def _run(self, cfg, camera):

@@ -18,6 +18,26 @@ from rclpy.qos import (
 
 from equidiff_core.config import LabConfig, default_config_dir, load_lab_config
 
+# The topic names, re-exported for the nodes: they are written once, in equidiff_core.topics.
+from equidiff_core.topics import (  # noqa: F401
+    TOPIC_CLOCK,
+    TOPIC_COMMAND_CHUNK,
+    TOPIC_DIAGNOSTICS,
+    TOPIC_EE_POSE,
+    TOPIC_EXECUTED_TARGET,
+    TOPIC_JOINT_STATES,
+    TOPIC_JOY,
+    TOPIC_POLICY_SKIPPED,
+    TOPIC_RECORDER_COMMAND,
+    TOPIC_TF_STATIC,
+    TOPIC_TWIN_AWAIT_POLICY,
+    TOPIC_TWIN_POLICY_CHUNK,
+    TOPIC_TWIN_RESET,
+    TOPIC_TWIN_SCENE,
+    TOPIC_TWIN_STATE,
+    TOPIC_VOXELS,
+)
+
 SENSOR_QOS = qos_profile_sensor_data  # best effort, volatile, keep last 5
 RELIABLE_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE,
                           durability=DurabilityPolicy.VOLATILE, history=HistoryPolicy.KEEP_LAST)
@@ -26,15 +46,6 @@ VOXEL_QOS = QoSProfile(depth=5, reliability=ReliabilityPolicy.RELIABLE,
 LATCHED_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                          durability=DurabilityPolicy.TRANSIENT_LOCAL, history=HistoryPolicy.KEEP_LAST)
 
-TOPIC_VOXELS = "/voxels"
-TOPIC_EE_POSE = "/franka/ee_pose"
-TOPIC_JOINT_STATES = "/franka/joint_states"
-TOPIC_COMMAND_CHUNK = "/franka/command_chunk"
-TOPIC_EXECUTED_TARGET = "/franka/executed_target"
-TOPIC_DIAGNOSTICS = "/diagnostics"
-TOPIC_JOY = "/spacenav/joy"
-TOPIC_RECORDER_COMMAND = "/recorder/command"
-TOPIC_POLICY_SKIPPED = "/policy/skipped"
 
 
 def declare_lab_config(node: Node) -> LabConfig:

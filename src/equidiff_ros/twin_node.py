@@ -50,8 +50,13 @@ from equidiff_core.twin.sim import TwinSim
 from equidiff_ros.common import (
     LATCHED_QOS,
     RELIABLE_QOS,
+    TOPIC_CLOCK,
     TOPIC_COMMAND_CHUNK,
     TOPIC_POLICY_SKIPPED,
+    TOPIC_TWIN_AWAIT_POLICY,
+    TOPIC_TWIN_RESET,
+    TOPIC_TWIN_SCENE,
+    TOPIC_TWIN_STATE,
     TOPIC_VOXELS,
     VOXEL_QOS,
     declare_lab_config,
@@ -63,10 +68,6 @@ usage: twin_node [--ros-args -p host:=127.0.0.1 -p seed:=0 -p twin_config:=confi
 """
 
 NODE_NAME = "twin_node"
-TOPIC_RESET = "/twin/reset"
-TOPIC_SCENE = "/twin/scene"
-TOPIC_STATE = "/twin/state"
-TOPIC_AWAIT_POLICY = "/twin/await_policy"
 CLOCKS = ("sim", "realtime")
 
 
@@ -94,16 +95,16 @@ class TwinNode(Node):
                 stall_timeout_s=declare_number(self, "stall_timeout_s", 30.0),
                 max_speed=float(self.declare_parameter("max_speed", 1.0).value))
             # best effort like rclpy's own /clock subscription; a lost message is repeated while the sim waits
-            self.pub_clock = self.create_publisher(Clock, "/clock", QoSProfile(
+            self.pub_clock = self.create_publisher(Clock, TOPIC_CLOCK, QoSProfile(
                 depth=1, reliability=ReliabilityPolicy.BEST_EFFORT))
         self.twin = TwinSim(self.cfg, host=host or None, shm_name=shm, lockstep=lockstep,
                             on_clock=self.publish_clock, camera_names=tuple(c.name for c in self.lab.cameras))
-        self.pub_scene = self.create_publisher(String, TOPIC_SCENE, LATCHED_QOS)
-        self.pub_state = self.create_publisher(String, TOPIC_STATE, RELIABLE_QOS)
-        self.create_subscription(Int64, TOPIC_RESET, self.on_reset, RELIABLE_QOS)
+        self.pub_scene = self.create_publisher(String, TOPIC_TWIN_SCENE, LATCHED_QOS)
+        self.pub_state = self.create_publisher(String, TOPIC_TWIN_STATE, RELIABLE_QOS)
+        self.create_subscription(Int64, TOPIC_TWIN_RESET, self.on_reset, RELIABLE_QOS)
         if lockstep is not None:
             ls = self.twin.lockstep
-            self.create_subscription(Bool, TOPIC_AWAIT_POLICY, lambda m: ls.set_awaiting(m.data), LATCHED_QOS)
+            self.create_subscription(Bool, TOPIC_TWIN_AWAIT_POLICY, lambda m: ls.set_awaiting(m.data), LATCHED_QOS)
             # stamps only: read from the serialised messages (a voxel grid is up to 1 MiB)
             self.create_subscription(MultiDOFJointTrajectory, TOPIC_COMMAND_CHUNK,
                                      lambda m: ls.on_chunk(header_stamp_ns_from_cdr(m)), RELIABLE_QOS, raw=True)

@@ -30,9 +30,17 @@ import numpy as np
 from equidiff_core import geometry
 from equidiff_core.chunk import PoseChunk, chunk_to_msg
 from equidiff_core.rosmsg import RclpyFactory, stamp_to_ns
+from equidiff_core.topics import (
+    TOPIC_CLOCK,
+    TOPIC_COMMAND_CHUNK,
+    TOPIC_TWIN_AWAIT_POLICY,
+    TOPIC_TWIN_POLICY_CHUNK,
+    TOPIC_TWIN_RESET,
+    TOPIC_TWIN_SCENE,
+    TOPIC_TWIN_STATE,
+)
 from equidiff_core.twin.metrics import EpisodeRecord, SuccessHold
 
-TOPIC_POLICY_CHUNK = "/twin/policy_chunk"
 NS = 1_000_000_000
 
 
@@ -61,18 +69,11 @@ class Supervisor:
         from equidiff_ros.common import (
             LATCHED_QOS,
             RELIABLE_QOS,
-            TOPIC_COMMAND_CHUNK,
             TOPIC_DIAGNOSTICS,
             TOPIC_EE_POSE,
             TOPIC_JOINT_STATES,
             TOPIC_POLICY_SKIPPED,
             TOPIC_RECORDER_COMMAND,
-        )
-        from equidiff_ros.twin_node import (
-            TOPIC_AWAIT_POLICY,
-            TOPIC_RESET,
-            TOPIC_SCENE,
-            TOPIC_STATE,
         )
 
         if not rclpy.ok():
@@ -104,18 +105,18 @@ class Supervisor:
         self._String, self._Int64 = String, Int64
         n = self.node
         self.pub_chunk = n.create_publisher(MultiDOFJointTrajectory, TOPIC_COMMAND_CHUNK, RELIABLE_QOS)
-        self.pub_reset = n.create_publisher(Int64, TOPIC_RESET, RELIABLE_QOS)
+        self.pub_reset = n.create_publisher(Int64, TOPIC_TWIN_RESET, RELIABLE_QOS)
         self.pub_recorder = n.create_publisher(String, TOPIC_RECORDER_COMMAND, RELIABLE_QOS)
-        self.pub_await = n.create_publisher(Bool, TOPIC_AWAIT_POLICY, LATCHED_QOS)
+        self.pub_await = n.create_publisher(Bool, TOPIC_TWIN_AWAIT_POLICY, LATCHED_QOS)
         self._Bool = Bool
         if self.sim_time:  # best effort: the publisher's QoS (a reliable subscription would not match it)
-            n.create_subscription(Clock, "/clock", self._on_clock,
+            n.create_subscription(Clock, TOPIC_CLOCK, self._on_clock,
                                   QoSProfile(depth=10, reliability=ReliabilityPolicy.BEST_EFFORT))
-        n.create_subscription(MultiDOFJointTrajectory, TOPIC_POLICY_CHUNK, self._on_policy_chunk, RELIABLE_QOS)
+        n.create_subscription(MultiDOFJointTrajectory, TOPIC_TWIN_POLICY_CHUNK, self._on_policy_chunk, RELIABLE_QOS)
         n.create_subscription(PoseStamped, TOPIC_EE_POSE, self._on_pose, RELIABLE_QOS)
         n.create_subscription(JointState, TOPIC_JOINT_STATES, self._on_joints, RELIABLE_QOS)
-        n.create_subscription(String, TOPIC_STATE, self._on_state, RELIABLE_QOS)
-        n.create_subscription(String, TOPIC_SCENE, self._on_scene, LATCHED_QOS)
+        n.create_subscription(String, TOPIC_TWIN_STATE, self._on_state, RELIABLE_QOS)
+        n.create_subscription(String, TOPIC_TWIN_SCENE, self._on_scene, LATCHED_QOS)
         n.create_subscription(String, "/recorder/status", self._on_recorder, LATCHED_QOS)
         n.create_subscription(DiagnosticArray, TOPIC_DIAGNOSTICS, self._on_diag, RELIABLE_QOS)
         n.create_subscription(String, TOPIC_POLICY_SKIPPED, self._on_skipped, RELIABLE_QOS)
@@ -320,7 +321,7 @@ class Supervisor:
     def reset_scene(self, seed: int, timeout_s: float = 10.0, check=None) -> dict:
         self.pub_reset.publish(self._Int64(data=int(seed)))
         return self.wait_for(lambda: self.scene if self.scene and self.scene.get("seed") == seed else None,
-                             timeout_s, f"/twin/scene for seed {seed}", check)
+                             timeout_s, f"{TOPIC_TWIN_SCENE} for seed {seed}", check)
 
     def sim_rate(self) -> float:
         """How fast the twin runs against the wall clock (0.05-1): timeouts and plan clocks scale by it."""
@@ -473,7 +474,7 @@ class TwinStack:
             g.start("policy_node", node_command(
                 "policy_node", {**common, "checkpoint": str(self.policy), "device": self.device,
                                 "torch_threads": self.torch_threads, **ages},
-                remaps={"/franka/command_chunk": TOPIC_POLICY_CHUNK}))
+                remaps={TOPIC_COMMAND_CHUNK: TOPIC_TWIN_POLICY_CHUNK}))
         self.sup.wait_ready(self.start_timeout_s, g.check)
         self.sup.wait_for(lambda: self.sup.recorder_status.startswith("idle"), self.start_timeout_s,
                           "recorder_node", g.check)

@@ -18,16 +18,17 @@ from pathlib import Path
 import numpy as np
 
 from ..config import LabConfig
+from ..topics import (
+    TOPIC_COMMAND_CHUNK,
+    TOPIC_EE_POSE,
+    TOPIC_JOINT_STATES,
+    TOPIC_VOXELS,
+    TRAINING_TOPICS,
+)
 from .config import TwinConfig
 from .metrics import SuccessHold
 
 NS = 1_000_000_000
-TOPIC_TYPES = {
-    "/voxels": "sensor_msgs/msg/PointCloud2",
-    "/franka/ee_pose": "geometry_msgs/msg/PoseStamped",
-    "/franka/joint_states": "sensor_msgs/msg/JointState",
-    "/franka/command_chunk": "trajectory_msgs/msg/MultiDOFJointTrajectory",
-}
 
 
 class DirectRecorder:
@@ -83,7 +84,7 @@ class DirectRecorder:
         plan = plan_pick_place(sim.tcp_pose(), sim.gripper_width(), body_pose(sim.model, sim.data, BLOCK),
                                body_pose(sim.model, sim.data, BOWL), self.cfg.scene.block_size[2], ex)
         writer = EpisodeWriter(path, EpisodeMeta(task=task, operator="scripted expert (direct)", seed=seed)).open()
-        for topic, msgtype in TOPIC_TYPES.items():
+        for topic, msgtype in TRAINING_TOPICS.items():
             writer.add_topic(topic, msgtype)
         t0 = sim.time
         writer.write_tf_static(self.lab, epoch_ns)
@@ -101,21 +102,21 @@ class DirectRecorder:
                     pose, width = plan.target_at(sim.time - t0)
                     sim.command(pose, width)
                     chunk = PoseChunk(t_ns, np.array([t_ns + lead_ns], np.int64), pose[None], np.array([width]))
-                    writer.write("/franka/command_chunk", chunk_to_msg(chunk, f, frame), t_ns)
+                    writer.write(TOPIC_COMMAND_CHUNK, chunk_to_msg(chunk, f, frame), t_ns)
                 if step % state_every == 0:
                     tcp = sim.tcp_pose()
                     w = sim.gripper_width()
-                    writer.write("/franka/ee_pose", cm.pose_stamped(f, tcp, t_ns, frame), t_ns)
+                    writer.write(TOPIC_EE_POSE, cm.pose_stamped(f, tcp, t_ns, frame), t_ns)
                     q = sim.joint_positions()
                     js = f.make("sensor_msgs/msg/JointState", header=f.header(t_ns, ""),
                                 name=[*ARM_JOINT_NAMES, *FINGER_JOINT_NAMES],
                                 position=f.float64_array([*map(float, q), w / 2, w / 2]),
                                 velocity=f.float64_array([0.0] * 9), effort=f.float64_array([]))
-                    writer.write("/franka/joint_states", js, t_ns)
+                    writer.write(TOPIC_JOINT_STATES, js, t_ns)
                 if step % obs_every == 0:
                     grid = self.voxel_grid(t_ns)
                     ws = self.lab.workspace
-                    writer.write("/voxels", grid_to_voxel_msg(grid, ws.lower, ws.voxel_size, t_ns, frame, f), t_ns)
+                    writer.write(TOPIC_VOXELS, grid_to_voxel_msg(grid, ws.lower, ws.voxel_size, t_ns, frame, f), t_ns)
                     if sim.time - t0 > plan.duration and hold.update(sim.success()["success"], sim.time):
                         break
                 sim.step(1)

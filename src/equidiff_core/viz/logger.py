@@ -37,7 +37,7 @@ from typing import Any
 
 import numpy as np
 
-from .. import geometry
+from .. import geometry, topics
 from ..chunk import ChunkError, chunk_from_msg
 from ..config import ConfigError, LabConfig, default_config_dir, from_dict, load_yaml
 from ..control.messages import gripper_width_from_joint_state
@@ -486,7 +486,7 @@ class RerunLogger:
         handler = self._handlers().get(topic)
         if handler is not None:
             return handler(msg, receive_ns)
-        if topic.startswith("/cameras/") and topic.endswith("/points"):
+        if topic.startswith(topics.CAMERA_TOPIC_PREFIX) and topic.endswith("/points"):
             if not self.config.clouds:
                 return False
             return self.log_camera_cloud(topic.split("/")[2], msg, receive_ns)
@@ -494,13 +494,13 @@ class RerunLogger:
 
     def _handlers(self) -> dict[str, Any]:
         return {
-            "/voxels": self.log_voxels,
-            "/franka/ee_pose": self.log_ee_pose,
-            "/franka/joint_states": self.log_joint_states,
-            "/franka/command_chunk": self.log_chunk,
-            "/franka/executed_target": self.log_executed_target,
-            "/diagnostics": self.log_diagnostics,
-            "/tf_static": self.log_tf,
+            topics.TOPIC_VOXELS: self.log_voxels,
+            topics.TOPIC_EE_POSE: self.log_ee_pose,
+            topics.TOPIC_JOINT_STATES: self.log_joint_states,
+            topics.TOPIC_COMMAND_CHUNK: self.log_chunk,
+            topics.TOPIC_EXECUTED_TARGET: self.log_executed_target,
+            topics.TOPIC_DIAGNOSTICS: self.log_diagnostics,
+            topics.TOPIC_TF_STATIC: self.log_tf,
         }
 
 

@@ -18,7 +18,8 @@ import json
 import sys
 import time
 
-COMMAND_TOPIC = "/franka/command_chunk"
+from equidiff_core.topics import TOPIC_COMMAND_CHUNK as COMMAND_TOPIC
+from equidiff_core.topics import TOPIC_TF_STATIC
 
 
 def add_arguments(parser) -> None:
@@ -74,9 +75,9 @@ def _load(bag, topics, exclude, start_s):
         raise BagError(f"{bag}: unreadable bag ({type(err).__name__}: {err})") from err
     cut = start + int(start_s * 1e9)
     # /tf_static is always sent, first: it describes the whole episode
-    msgs = [(max(ts, cut), t, raw) if t == "/tf_static" else (ts, t, raw) for ts, t, raw in msgs if ts >= cut
-            or t == "/tf_static"]
-    msgs.sort(key=lambda m: (m[0], m[1] != "/tf_static"))
+    msgs = [(max(ts, cut), t, raw) if t == TOPIC_TF_STATIC else (ts, t, raw) for ts, t, raw in msgs if ts >= cut
+            or t == TOPIC_TF_STATIC]
+    msgs.sort(key=lambda m: (m[0], m[1] != TOPIC_TF_STATIC))
     return types, msgs
 
 
@@ -154,7 +155,7 @@ def run(args) -> int:
         # a keep-last-10 writer would overwrite samples a busy subscriber has not acknowledged.
         replay_qos = QoSProfile(depth=200, reliability=ReliabilityPolicy.RELIABLE,
                                 durability=DurabilityPolicy.VOLATILE, history=HistoryPolicy.KEEP_LAST)
-        pubs = {t: node.create_publisher(classes[t], t, LATCHED_QOS if t == "/tf_static" else replay_qos)
+        pubs = {t: node.create_publisher(classes[t], t, LATCHED_QOS if t == TOPIC_TF_STATIC else replay_qos)
                 for t in types}
         if args.robot:
             pub = pubs[COMMAND_TOPIC]

@@ -1,0 +1,46 @@
+"""Every topic name of the stack, and the type of each recorded one: the one place they are written.
+
+The nodes (through ``equidiff_ros.common``), the recorder, the dataset reader and the twin's
+in-process demos all take names from here, so a renamed topic cannot leave a reader behind.
+docs/architecture.md lists each with its rate, frame and QoS. Camera clouds are per camera:
+``config.CameraConfig.topic`` (``/cameras/<name>/points``).
+"""
+
+from __future__ import annotations
+
+TOPIC_VOXELS = "/voxels"
+TOPIC_EE_POSE = "/franka/ee_pose"
+TOPIC_JOINT_STATES = "/franka/joint_states"
+TOPIC_COMMAND_CHUNK = "/franka/command_chunk"
+TOPIC_EXECUTED_TARGET = "/franka/executed_target"
+TOPIC_DIAGNOSTICS = "/diagnostics"
+TOPIC_JOY = "/spacenav/joy"
+TOPIC_RECORDER_COMMAND = "/recorder/command"
+TOPIC_POLICY_SKIPPED = "/policy/skipped"
+TOPIC_CLOCK = "/clock"
+TOPIC_TF_STATIC = "/tf_static"
+CAMERA_TOPIC_PREFIX = "/cameras/"
+# The twin's own (twin_node and its supervisor)
+TOPIC_TWIN_RESET = "/twin/reset"
+TOPIC_TWIN_SCENE = "/twin/scene"
+TOPIC_TWIN_STATE = "/twin/state"
+TOPIC_TWIN_AWAIT_POLICY = "/twin/await_policy"
+TOPIC_TWIN_POLICY_CHUNK = "/twin/policy_chunk"  # policy_node's chunks, remapped, when the supervisor gates them
+
+CLOUD_TYPE = "sensor_msgs/msg/PointCloud2"
+POSE_TYPE = "geometry_msgs/msg/PoseStamped"
+TF_TYPE = "tf2_msgs/msg/TFMessage"
+
+# What an episode bag holds (the recorder's default topics; camera clouds are optional extras).
+RECORDED_TOPICS: dict[str, str] = {
+    TOPIC_VOXELS: CLOUD_TYPE,
+    TOPIC_EE_POSE: POSE_TYPE,
+    TOPIC_JOINT_STATES: "sensor_msgs/msg/JointState",
+    TOPIC_COMMAND_CHUNK: "trajectory_msgs/msg/MultiDOFJointTrajectory",
+    TOPIC_EXECUTED_TARGET: POSE_TYPE,
+    TOPIC_JOY: "sensor_msgs/msg/Joy",
+    TOPIC_DIAGNOSTICS: "diagnostic_msgs/msg/DiagnosticArray",
+}
+# What training needs of a bag: the in-process demos write just these.
+TRAINING_TOPICS: dict[str, str] = {t: RECORDED_TOPICS[t] for t in (TOPIC_VOXELS, TOPIC_EE_POSE, TOPIC_JOINT_STATES,
+                                                                    TOPIC_COMMAND_CHUNK)}
