@@ -5,7 +5,9 @@
 
 mode:=policy runs policy_node; mode:=teleop runs teleop_node (SpaceMouse via the spacenav
 driver's /spacenav/joy, or ``teleop_source:=spacemouse`` for direct HID) and the recorder with its
-keyboard (s / k / f / d). Everything reads config/lab.yaml (cameras, extrinsics, robot IP).
+keyboard (s / k / f / d). With ``teleop_source:=joy`` (the default) the spacenav driver
+(``spacenav`` package, ``spacenav_node``; it needs spacenavd running) is started too. Everything
+reads config/lab.yaml (cameras, extrinsics, robot IP).
 """
 
 from pathlib import Path
@@ -33,7 +35,7 @@ def generate_launch_description():
         DeclareLaunchArgument("device", default_value="auto"),
         DeclareLaunchArgument("precision", default_value="fp32"),
         DeclareLaunchArgument("robot_ip", default_value="", description="empty: lab.yaml's robot.ip"),
-        DeclareLaunchArgument("teleop_source", default_value="joy"),
+        DeclareLaunchArgument("teleop_source", default_value="joy", choices=["joy", "spacemouse"]),
         DeclareLaunchArgument("task", default_value="episode"),
         DeclareLaunchArgument("operator", default_value=""),
         DeclareLaunchArgument("output_dir", default_value="bags"),
@@ -47,6 +49,10 @@ def generate_launch_description():
              condition=LaunchConfigurationEquals("mode", "policy"),
              parameters=[{**common, "checkpoint": LaunchConfiguration("checkpoint"),
                           "device": LaunchConfiguration("device"), "precision": LaunchConfiguration("precision")}]),
+        # The SpaceMouse through spacenavd: sensor_msgs/Joy on /spacenav/joy, stamped per device
+        # event and zeroed once the device goes quiet (its zero_when_static default).
+        Node(package="spacenav", executable="spacenav_node", output="screen",
+             condition=LaunchConfigurationEquals("teleop_source", "joy")),
         Node(package="equidiff_ros", executable="teleop_node", output="screen",
              condition=LaunchConfigurationEquals("mode", "teleop"),
              parameters=[{**common, "source": LaunchConfiguration("teleop_source")}]),

@@ -8,6 +8,10 @@ policy, so the franka node's safety and scheduling apply to human commands too. 
 a script may have moved the arm meanwhile), and nothing is published while idle, so teleop
 never fights the policy.
 
+Freshness: a Joy message counts from its header stamp (the driver stamps each device event;
+the receive time if that is earlier, or if the message is unstamped), a direct SpaceMouse from
+its last HID report; input older than ``input_timeout_s`` is no input, so the target holds.
+
 Parameters: ``lab_config`` and every field of ``TeleopConfig`` (``source``, ``deadzone``,
 ``linear_scale``, ``angular_scale``, ``translation_frame``, ``rotation_frame``,
 ``lock_rotation``, ``gripper_mode``, ...), plus ``resync_after_s``; defaults in
@@ -54,13 +58,13 @@ def _pose_from_msg(msg):
 
 
 def build_node():
-    import numpy as np
     from rclpy.node import Node
 
     from equidiff_core.chunk import chunk_to_msg
     from equidiff_core.geometry import GeometryError
     from equidiff_core.rosmsg import RclpyFactory
     from equidiff_core.teleop import (
+        NS_PER_S,
         SpaceMouseSource,
         TeleopConfig,
         TeleopError,
@@ -91,7 +95,8 @@ def build_node():
             self.teleop = TeleopIntegrator(self.cfg, self.lab.workspace)
             self.measured = None  # latest /franka/ee_pose (4x4)
             self.width_measured: float | None = None
-            self.input: TeleopInput | None = None
+            self.input = None  # the newest TeleopInput, stamped when the device reported it
+            self.warned_unstamped = False
             self.last_active_ns = 0
             self.last_publish_ns = 0
             self.last_tick_ns: int | None = None
@@ -134,14 +139,23 @@ def build_node():
             except TeleopError as err:
                 self.get_logger().warn(f"ignoring {TOPIC_JOY}: {err}", throttle_duration_sec=2.0)
                 return
-            self.input = TeleopInput(inp.axes, inp.buttons, now_ns(self))  # freshness by receive time
-
-        def active(self, inp: TeleopInput | None) -> bool:
-            if inp is None:
-                return False
-            moving = bool(np.any(np.abs(np.asarray(inp.axes)) > self.cfg.deadzone))
-            # A pressed button, or one just released (hold mode opens on release), is activity.
-            return moving or any(inp.buttons) or any(self.teleop._prev_buttons)
+            received = now_ns(self)
+            if inp.stamp_ns <= 0:
+                if not self.warned_unstamped:
+                    self.warned_unstamped = True
+                    self.get_logger().warn(f"{TOPIC_JOY} messages carry no header stamp: their age is "
+                                           "counted from receipt, so a stalled driver is noticed late")
+                stamp = received
+            else:
+                # Messages delayed in transport are as old as their stamp; a stamp from the future
+                # (another machine's clock) cannot make them younger than their receipt.
+                stamp = min(inp.stamp_ns, received)
+                if received - inp.stamp_ns > 10 * NS_PER_S:
+                    self.get_logger().warn(
+                        f"{TOPIC_JOY} stamps are {(received - inp.stamp_ns) / 1e9:.1f} s behind this node's "
+                        "clock (use_sim_time on one side only?): input treated as stale, teleop holds",
+                        throttle_duration_sec=5.0)
+            self.input = dataclasses.replace(inp, stamp_ns=stamp)
 
         def tick(self):
             now = now_ns(self)
@@ -154,7 +168,7 @@ def build_node():
                     self.get_logger().error(f"SpaceMouse read failed: {err}", throttle_duration_sec=2.0)
                     self.input = None
             inp = self.input if is_fresh(self.input, now, self.cfg.input_timeout_s) else None
-            if not self.active(inp):
+            if not self.teleop.engaged(inp):
                 if self.teleop.ready:  # keep button edges in sync while idle
                     self.teleop.step(None, dt)
                 return
