@@ -35,6 +35,8 @@ TOPIC_DIAGNOSTICS = "/diagnostics"
 TOPIC_JOY = "/spacenav/joy"
 TOPIC_RECORDER_COMMAND = "/recorder/command"
 TOPIC_POLICY_SKIPPED = "/policy/skipped"
+TOPIC_POLICY_STATE = "/policy/state"
+TOPIC_TELEOP_ACTIVE = "/teleop/active"
 
 
 def declare_lab_config(node: Node) -> LabConfig:
