@@ -75,7 +75,17 @@ def test_robot_launch_starts_the_spacenav_driver_for_joy_only(mode):
     assert SPACENAV not in started_nodes("robot.launch.py", mode=mode, teleop_source="spacemouse")
 
 
-def test_robot_launch_starts_teleop_in_teleop_mode():
-    assert ("equidiff_ros", "teleop_node") in started_nodes("robot.launch.py", mode="teleop")
+@pytest.mark.parametrize("mode", ["teleop", "policy"])
+def test_robot_launch_starts_teleop_in_both_modes_for_the_takeover(mode):
+    assert ("equidiff_ros", "teleop_node") in started_nodes("robot.launch.py", mode=mode)
+    assert ("equidiff_ros", "recorder_node") in started_nodes("robot.launch.py", mode=mode)
+
+
+def test_robot_launch_policy_mode_starts_paused():
+    source = (LAUNCH / "robot.launch.py").read_text()
+    assert '"start_paused": True' in source
+
+
+def test_robot_launch_policy_only_in_policy_mode():
     assert ("equidiff_ros", "policy_node") not in started_nodes("robot.launch.py", mode="teleop")
     assert ("equidiff_ros", "policy_node") in started_nodes("robot.launch.py", mode="policy")

@@ -3,7 +3,10 @@
 Wiring: /franka/ee_pose + /franka/joint_states (measured state) and the input source feed
 ``equidiff_core.teleop.TeleopIntegrator`` at ``rate_hz``; while the operator is active it
 publishes one-point chunks at ``publish_hz`` on /franka/command_chunk, exactly like the
-policy, so the franka node's safety and scheduling apply to human commands too. After
+policy, so the franka node's safety and scheduling apply to human commands too. It says on
+/teleop/active (std_msgs/Bool, latched) when the operator takes over (the first input beyond
+the deadzone) and when they let go again (``resync_after_s`` without input): a running policy
+pauses on the first, and the recorder marks both in the episode. After
 ``resync_after_s`` without input the target re-starts from the measured pose (the policy or
 a script may have moved the arm meanwhile), and nothing is published while idle, so teleop
 never fights the policy.
@@ -73,12 +76,14 @@ def build_node():
         is_fresh,
     )
     from equidiff_ros.common import (
+        LATCHED_QOS,
         RELIABLE_QOS,
         SENSOR_QOS,
         TOPIC_COMMAND_CHUNK,
         TOPIC_EE_POSE,
         TOPIC_JOINT_STATES,
         TOPIC_JOY,
+        TOPIC_TELEOP_ACTIVE,
         declare_lab_config,
         now_ns,
         wait_for_clock,
@@ -103,6 +108,10 @@ def build_node():
 
             self.pub = self.create_publisher(self.factory.cls("trajectory_msgs/msg/MultiDOFJointTrajectory"),
                                              TOPIC_COMMAND_CHUNK, RELIABLE_QOS)
+            self.Bool = self.factory.cls("std_msgs/msg/Bool")
+            self.pub_active = self.create_publisher(self.Bool, TOPIC_TELEOP_ACTIVE, LATCHED_QOS)
+            self.taken_over = False
+            self.pub_active.publish(self.Bool(data=False))
             self.create_subscription(self.factory.cls("geometry_msgs/msg/PoseStamped"), TOPIC_EE_POSE,
                                      self.on_pose, SENSOR_QOS)
             self.create_subscription(self.factory.cls("sensor_msgs/msg/JointState"), TOPIC_JOINT_STATES,
@@ -171,11 +180,15 @@ def build_node():
             if not self.teleop.engaged(inp):
                 if self.teleop.ready:  # keep button edges in sync while idle
                     self.teleop.step(None, dt)
+                if self.taken_over and (now - self.last_active_ns) / 1e9 > self.resync_after_s:
+                    self.set_taken_over(False)
                 return
             if self.measured is None:
                 self.get_logger().warn(f"operator input but no {TOPIC_EE_POSE} yet: not commanding",
                                        throttle_duration_sec=2.0)
                 return
+            if not self.taken_over:
+                self.set_taken_over(True)
             idle_s = (now - self.last_active_ns) / 1e9
             if not self.teleop.ready or idle_s > self.resync_after_s:
                 self.teleop.reset(self.measured, self.width_measured)
@@ -189,6 +202,11 @@ def build_node():
             if (now - self.last_publish_ns) >= 1e9 / self.cfg.publish_hz * 0.95:
                 self.last_publish_ns = now
                 self.pub.publish(chunk_to_msg(self.teleop.chunk(now), self.factory, self.lab.base_frame))
+
+        def set_taken_over(self, active: bool):
+            self.taken_over = active
+            self.pub_active.publish(self.Bool(data=active))
+            self.get_logger().info("operator took over (SpaceMouse)" if active else "operator let go")
 
         def destroy_node(self):
             if self.device is not None:
