@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from helpers_data import RosHarness, decoded
+from helpers_model import export_tiny_baseline
 from helpers_ros import spawn_node, stop_node
 
 from equidiff_core import geometry
@@ -106,3 +107,74 @@ def test_lab_cli_records_an_episode_with_a_teleop_takeover(ros_domain, tmp_path)
     with Reader(episode) as reader:
         marks = [decoded(raw, conn.msgtype).data for conn, _t, raw in reader.messages() if conn.topic == "/teleop/active"]
     assert marks[-2:] == [True, False]
+
+
+@pytest.fixture(scope="module")
+def checkpoint(tmp_path_factory):
+    return export_tiny_baseline(tmp_path_factory.mktemp("policy") / "policy.pt")
+
+
+@pytest.mark.ros
+@pytest.mark.slow
+def test_policy_publishes_nothing_until_enabled_and_a_takeover_pauses_it(ros_domain, checkpoint, tmp_path):
+    import json
+    import signal
+    import threading
+
+    from std_msgs.msg import Bool, String
+
+    from equidiff_core.pointcloud import grid_to_voxel_msg
+    from equidiff_ros.commands import bench_control as bench
+    from equidiff_ros.common import LATCHED_QOS, RELIABLE_QOS
+
+    lab_path = str(default_config_dir() / "lab.yaml")
+    ws = LAB.workspace
+    grid = np.zeros((4, ws.resolution, ws.resolution, ws.resolution), np.uint8)
+    grid[:, 20:26, 30:36, 2:8] = 200
+    stop = threading.Event()
+    franka = policy = client = None
+    skipped: list[str] = []
+    state: list[str] = []
+    try:
+        franka = bench.start_node("franka_node", {"backend": "dryrun", "lab_config": lab_path}, tmp_path / "franka.log")
+        policy = bench.start_node("policy_node", {"checkpoint": str(checkpoint), "lab_config": lab_path, "seed": 0,
+                                                  "execute_steps": 1, "start_paused": True}, tmp_path / "policy.log")
+        client = bench.BenchClient(LAB, lab_path)
+        client.node.create_subscription(String, "/policy/skipped",
+                                        lambda m: skipped.append(json.loads(m.data)["reason"]), RELIABLE_QOS)
+        client.node.create_subscription(String, "/policy/state", lambda m: state.append(m.data), LATCHED_QOS)
+        takeover = client.node.create_publisher(Bool, "/teleop/active", LATCHED_QOS)
+        client.wait_for(lambda: len(client.data.poses) > 10, 60.0, "/franka/ee_pose from the dry-run arm", franka)
+
+        def feed():
+            while not stop.is_set():
+                client.pub_voxels.publish(grid_to_voxel_msg(grid, ws.lower, ws.voxel_size, time.time_ns(),
+                                                            LAB.base_frame, client.factory))
+                stop.wait(0.2)
+
+        threading.Thread(target=feed, daemon=True).start()
+        client.wait_for(lambda: skipped.count("paused") >= 5, 90.0, "'paused' skips while start_paused", policy)
+        assert state and state[-1].startswith("paused") and client.data.last_chunk is None
+        client.wait_for(lambda: "policy_node" in client.data.diagnostics, 5.0, "policy diagnostics", policy)
+        assert client.data.diagnostics["policy_node"]["state"].startswith("paused")
+
+        enabled = lab_cli("policy", "enable")
+        assert enabled.returncode == 0 and "running" in enabled.stdout, enabled.stderr
+        client.wait_for(lambda: len(client.data.chunks) >= 3, 60.0, "chunks once enabled", policy)
+        assert state[-1] == "running"
+
+        takeover.publish(Bool(data=True))  # the operator moves the SpaceMouse
+        client.wait_for(lambda: state[-1] == "paused teleop takeover", 10.0, "the takeover pause", policy)
+        n = len(client.data.chunks)
+        paused_before = skipped.count("paused")
+        client.wait_for(lambda: skipped.count("paused") >= paused_before + 5, 30.0, "'paused' skips", policy)
+        assert len(client.data.chunks) <= n + 1  # at most one already on the wire
+        takeover.publish(Bool(data=False))  # letting go does not resume it
+        time.sleep(1.0)
+        assert state[-1] == "paused teleop takeover"
+    finally:
+        stop.set()
+        if client is not None:
+            client.close()
+        codes = [bench.stop_process(policy, sig=signal.SIGINT), bench.stop_process(franka, sig=signal.SIGTERM)]
+    assert codes == [0, 0], (tmp_path / "policy.log").read_text()[-3000:]
