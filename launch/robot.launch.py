@@ -3,9 +3,14 @@
     ros2 launch equidiff_ros robot.launch.py checkpoint:=/path/policy.pt            # policy at 5 Hz
     ros2 launch equidiff_ros robot.launch.py mode:=teleop task:=pick operator:=ana   # record demos
 
-mode:=policy runs policy_node; mode:=teleop runs teleop_node (SpaceMouse via the spacenav
-driver's /spacenav/joy, or ``teleop_source:=spacemouse`` for direct HID) and the recorder with its
-keyboard (s / k / f / d). Everything reads config/lab.yaml (cameras, extrinsics, robot IP).
+mode:=policy runs policy_node, started paused: ``equidiff lab policy enable`` starts it, and
+the SpaceMouse takes over (pausing it) whenever the operator moves it. Both modes run
+teleop_node (SpaceMouse via the spacenav driver's /spacenav/joy, or
+``teleop_source:=spacemouse`` for direct HID) and the recorder, driven by ``equidiff lab record
+start|success|failure|discard`` from any terminal (its keyboard needs a terminal, which nodes
+under ros2 launch do not have). With ``teleop_source:=joy`` (the default) the spacenav driver
+(``spacenav`` package, ``spacenav_node``; it needs spacenavd running) is started too. Everything
+reads config/lab.yaml (cameras, extrinsics, robot IP).
 """
 
 from pathlib import Path
@@ -33,7 +38,7 @@ def generate_launch_description():
         DeclareLaunchArgument("device", default_value="auto"),
         DeclareLaunchArgument("precision", default_value="fp32"),
         DeclareLaunchArgument("robot_ip", default_value="", description="empty: lab.yaml's robot.ip"),
-        DeclareLaunchArgument("teleop_source", default_value="joy"),
+        DeclareLaunchArgument("teleop_source", default_value="joy", choices=["joy", "spacemouse"]),
         DeclareLaunchArgument("task", default_value="episode"),
         DeclareLaunchArgument("operator", default_value=""),
         DeclareLaunchArgument("output_dir", default_value="bags"),
@@ -46,9 +51,14 @@ def generate_launch_description():
         Node(package="equidiff_ros", executable="policy_node", output="screen",
              condition=LaunchConfigurationEquals("mode", "policy"),
              parameters=[{**common, "checkpoint": LaunchConfiguration("checkpoint"),
-                          "device": LaunchConfiguration("device"), "precision": LaunchConfiguration("precision")}]),
+                          "device": LaunchConfiguration("device"), "precision": LaunchConfiguration("precision"),
+                          "start_paused": True}]),
+        # The SpaceMouse through spacenavd: sensor_msgs/Joy on /spacenav/joy, stamped per device
+        # event and zeroed once the device goes quiet (its zero_when_static default).
+        Node(package="spacenav", executable="spacenav_node", output="screen",
+             condition=LaunchConfigurationEquals("teleop_source", "joy")),
+        # In both modes: in mode:=policy it is the operator's takeover (it publishes nothing while idle).
         Node(package="equidiff_ros", executable="teleop_node", output="screen",
-             condition=LaunchConfigurationEquals("mode", "teleop"),
              parameters=[{**common, "source": LaunchConfiguration("teleop_source")}]),
         Node(package="equidiff_ros", executable="recorder_node", output="screen", emulate_tty=True,
              parameters=[{**common, "output_dir": LaunchConfiguration("output_dir"), "task": LaunchConfiguration("task"),

@@ -52,3 +52,17 @@ class CubeDataset(Dataset):
     def normalizer_arrays(self):
         return (np.concatenate([s["action"].numpy() for s in self.samples]),
                 np.concatenate([s["ee"].numpy() for s in self.samples]))
+
+
+def export_tiny_baseline(path):
+    """An untrained export of the baseline at the tiny preset: loads and predicts in a fraction of
+    a second, and a node treats every exported policy alike."""
+    from equidiff_core.inference import export_policy
+    from equidiff_core.normalizer import Normalizer
+    from equidiff_core.policies import make_policy
+    from equidiff_core.presets import get_preset
+
+    ws = Workspace()
+    policy = make_policy("baseline", get_preset("tiny"), ws)
+    policy.set_normalizer(Normalizer.from_workspace(ws))
+    return export_policy(policy, path)

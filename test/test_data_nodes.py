@@ -221,14 +221,20 @@ def test_teleop_node_drives_target_from_joy(ros):
                                       orientation=f.make("geometry_msgs/msg/Quaternion", x=q[0], y=q[1], z=q[2],
                                                          w=q[3])))
 
-        def joy(axes, buttons=(0, 0)):
-            return f.make("sensor_msgs/msg/Joy", header=f.header(0, ""), axes=[float(a) for a in axes],
+        def joy(axes, buttons=(0, 0), age_s=0.0):
+            stamp = ros.node.get_clock().now().nanoseconds - int(age_s * 1e9)  # as the spacenav driver stamps
+            return f.make("sensor_msgs/msg/Joy", header=f.header(stamp, ""), axes=[float(a) for a in axes],
                           buttons=list(buttons))
 
         # idle input: no commands
         for _ in range(20):
             pose_pub.publish(pose_msg())
             joy_pub.publish(joy([0.05, 0, 0, 0, 0, 0]))
+            ros.spin_for(0.02)
+        # full deflection, but reported 0.3 s ago (> input_timeout_s 0.2): stale, the arm holds
+        for _ in range(20):
+            pose_pub.publish(pose_msg())
+            joy_pub.publish(joy([1.0, 0, 0, 0, 0, 0], age_s=0.3))
             ros.spin_for(0.02)
         assert chunks == []
         # push +x (and press "close"), 1.5 s (0.15 m at 0.1 m/s, capped by max_lead_m)

@@ -22,6 +22,7 @@ from equidiff_core.teleop import (
     is_fresh,
 )
 
+NS = 1_000_000_000
 WS = Workspace(center=(0.45, 0.0, 0.18), edge=0.4, resolution=64)
 DOWN = np.diag([1.0, -1.0, -1.0])
 
@@ -188,3 +189,148 @@ def test_yaw_integrates_at_the_commanded_rate():
     T = run(t, [0, 0, 0, 0, 0, 1], seconds=1.0, dt=0.002)
     yaw = math.atan2(T[1, 0], T[0, 0])
     assert yaw == pytest.approx(math.pi / 4, abs=1e-6)
+
+
+# --- the device stops reporting: the motion stops input_timeout_s later ----------------------
+
+class FakeClock:
+    """pyspacemouse's report clock (``device.high_acc_clock``), advanced by the test, not the wall."""
+
+    def __init__(self):
+        self.t = 100.0
+
+    def __call__(self) -> float:
+        return self.t
+
+
+class ScriptedHid:
+    """Stands in for the USB HID device (easyhid's ``Device``) under pyspacemouse's real
+    ``SpaceMouseDevice``: non-blocking ``read`` returns the reports that are due, then nothing."""
+
+    product_string = "SpaceMouse Compact (scripted)"
+    manufacturer_string = "3Dconnexion"
+    release_number = 1
+    serial_number = ""
+
+    def __init__(self, clock: FakeClock):
+        self.clock = clock
+        self.reports: list[tuple[float, bytes]] = []  # (due time s, raw report)
+
+    def open(self):
+        pass
+
+    def close(self):
+        pass
+
+    def set_nonblocking(self, _on):
+        pass
+
+    def read(self, _size):
+        if self.reports and self.reports[0][0] <= self.clock.t:
+            return self.reports.pop(0)[1]
+        return b""
+
+
+def scripted_spacemouse(monkeypatch):
+    """A SpaceMouse Compact in the ROS axis convention: pyspacemouse's parsing and report timing,
+    our SpaceMouseSource, only the USB device scripted."""
+    import pyspacemouse
+    from pyspacemouse import device as spacemouse_device
+    from pyspacemouse.config_helpers import apply_axis_convention
+
+    clock = FakeClock()
+    monkeypatch.setattr(spacemouse_device, "high_acc_clock", clock)
+    spec = apply_axis_convention(pyspacemouse.get_device_specs()["SpaceMouseCompact"], pyspacemouse.AxisConvention.ROS)
+    hid = ScriptedHid(clock)
+    dev = spacemouse_device.SpaceMouseDevice(spec, hid)
+    dev.open()
+    return SpaceMouseSource(opened=dev), hid, clock
+
+
+def translation_report(raw: int) -> bytes:
+    """HID channel 1 (translation) with the first axis at ``raw`` (350 = full scale), others 0."""
+    lo, hi = raw & 0xFF, (raw >> 8) & 0xFF
+    return bytes([1, lo, hi, 0, 0, 0, 0])
+
+
+def test_a_spacemouse_that_stops_reporting_stops_the_motion_within_the_timeout(monkeypatch):
+    src, hid, clock = scripted_spacemouse(monkeypatch)
+    src.connect()  # already open: only checked
+    t = make(deadzone=0.0, linear_scale=(0.1, 0.1, 0.1))
+    cfg = t.config
+    assert cfg.input_timeout_s == 0.2
+    last_report_s = clock.t + 1.0
+    # full deflection, one report every 10 ms for 1 s; then the device goes silent with the
+    # cap still deflected (a pulled cable, a hung receiver): its last state says "full speed"
+    hid.reports = [(clock.t + 0.01 * k, translation_report(350)) for k in range(101)]
+    tick_s, ticks = 0.005, 400
+    start = t.target.copy()
+    moved_at: list[float] = []
+    for _ in range(ticks):
+        clock.t += tick_s
+        now = int(clock.t * NS)
+        inp = src.read(now)
+        before = t.target.copy()
+        fresh = inp if is_fresh(inp, now, cfg.input_timeout_s) else None
+        t.step(fresh if t.engaged(fresh) else None, tick_s)
+        if not np.array_equal(before, t.target):
+            moved_at.append(clock.t)
+    axes = np.asarray(src.read(int(clock.t * NS)).axes)
+    assert np.count_nonzero(axes) == 1 and abs(axes).max() == pytest.approx(1.0)  # still reads "deflected"
+    assert np.linalg.norm(t.target[:3, 3] - start[:3, 3]) > 0.09  # it did drive while the device reported
+    assert moved_at[-1] <= last_report_s + cfg.input_timeout_s + tick_s + 1e-9
+    assert moved_at[-1] >= last_report_s  # not earlier: a steadily reporting device keeps driving
+
+
+def test_a_spacemouse_that_never_reported_is_not_fresh(monkeypatch):
+    src, _hid, clock = scripted_spacemouse(monkeypatch)
+    inp = src.read(int(clock.t * NS))
+    assert inp.stamp_ns == 0 and not is_fresh(inp, int(clock.t * NS), 0.2)
+
+
+def test_spacemouse_report_stamp_is_its_age_on_the_callers_clock(monkeypatch):
+    src, hid, clock = scripted_spacemouse(monkeypatch)
+    hid.reports = [(clock.t, translation_report(175))]
+    src.read(0)
+    clock.t += 0.15  # the report is now 150 ms old
+    inp = src.read(5 * NS)
+    assert inp.stamp_ns == pytest.approx(5 * NS - 150_000_000, abs=1000)
+    assert is_fresh(inp, 5 * NS, 0.2) and not is_fresh(inp, 5 * NS + 60_000_000, 0.2)
+
+
+# --- clutch and rotation-enable buttons -------------------------------------------------------
+
+def test_clutch_button_gates_all_motion_but_not_the_gripper():
+    t = make(deadzone=0.0, clutch_button=2, gripper_mode="buttons")
+    start = t.target.copy()
+    released = TeleopInput((1, 0, 0, 0, 0, 1), (0, 0, 0))
+    assert not t.engaged(released)
+    run(t, released.axes, seconds=0.5, buttons=released.buttons)
+    np.testing.assert_array_equal(t.target, start)
+    T = run(t, released.axes, seconds=0.5, buttons=(0, 0, 1))
+    assert t.engaged(TeleopInput(released.axes, (0, 0, 1)))
+    assert T[0, 3] == pytest.approx(0.45 + 0.075)  # 0.15 m/s for 0.5 s
+    assert Rotation.from_matrix(T[:3, :3] @ DOWN.T).magnitude() == pytest.approx(0.4)
+    # the gripper buttons work with the clutch released (and count as the operator's input)
+    assert t.engaged(TeleopInput((0,) * 6, (0, 1, 0)))
+    assert t.step(TeleopInput((0,) * 6, (0, 1, 0)), 0.01)[1] == 0.0
+
+
+def test_rotation_button_enables_rotation_translation_always_on():
+    t = make(deadzone=0.0, rotation_button=2)
+    T = run(t, [1, 0, 0, 0, 0, 1], seconds=0.2, buttons=(0, 0, 0))
+    assert T[0, 3] == pytest.approx(0.48)
+    np.testing.assert_allclose(T[:3, :3], DOWN, atol=1e-12)
+    assert not t.engaged(TeleopInput((0, 0, 0, 0, 0, 1), (0, 0, 0)))  # rotation alone, not enabled
+    T = run(t, [0, 0, 0, 0, 0, 1], seconds=0.5, buttons=(0, 0, 1))
+    assert Rotation.from_matrix(T[:3, :3] @ DOWN.T).magnitude() == pytest.approx(0.4)
+
+
+def test_clutch_configuration_is_checked():
+    with pytest.raises(ValueError, match="gripper button"):
+        TeleopConfig(clutch_button=1)
+    with pytest.raises(ValueError, match="both 3"):
+        TeleopConfig(clutch_button=3, rotation_button=3)
+    with pytest.raises(ValueError, match="input_timeout_s"):
+        TeleopConfig(input_timeout_s=0.0)
+    assert TeleopConfig().clutch_button == -1 and TeleopConfig().rotation_button == -1  # off by default

@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import re
 import shutil
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Self
 
@@ -40,6 +40,34 @@ from .topics import CLOUD_TYPE, RECORDED_TOPICS, TF_TYPE, TOPIC_TF_STATIC
 
 class RecordingError(RuntimeError):
     """The episode cannot be started or continued (path exists, disk full, writer closed)."""
+
+
+@dataclass
+class InterventionLog:
+    """The operator's takeovers during one episode (``/teleop/active`` edges), for its metadata.
+
+    A lab correcting a policy needs to find them without replaying the bag: ``metadata()``
+    gives ``interventions`` (``start-end`` seconds from the episode start, space-separated)
+    and ``intervention_count``; the edges themselves are in the bag on /teleop/active.
+    """
+
+    start_ns: int
+    spans: list[tuple[int, int | None]] = field(default_factory=list)
+
+    def update(self, active: bool, stamp_ns: int) -> None:
+        ongoing = bool(self.spans) and self.spans[-1][1] is None
+        if active and not ongoing:
+            self.spans.append((max(stamp_ns, self.start_ns), None))
+        elif not active and ongoing:
+            self.spans[-1] = (self.spans[-1][0], stamp_ns)
+
+    def metadata(self, end_ns: int) -> dict[str, str]:
+        def s(t: int) -> str:
+            return f"{(t - self.start_ns) / 1e9:.2f}"
+
+        spans = [(a, end_ns if b is None else b) for a, b in self.spans]
+        return {"interventions": " ".join(f"{s(a)}-{s(b)}" for a, b in spans),
+                "intervention_count": str(len(spans))}
 
 
 @dataclass(frozen=True)

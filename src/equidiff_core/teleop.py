@@ -12,7 +12,11 @@ expert and the tests drive exactly what the node runs:
   (a blocked arm does not wind the target up);
 * two gripper buttons: ``buttons`` (left opens, right closes), ``toggle`` (either toggles) or
   ``hold`` (closed while the close button is held);
-* stale input (no device sample for ``input_timeout_s``) counts as zero twist.
+* an optional clutch button (no motion unless it is held) and an optional rotation-enable
+  button (translation only unless it is held);
+* stale input counts as no input (hold): every ``TeleopInput`` carries the time the device
+  last *reported* (the Joy header stamp; the last HID report for the direct backend), so a
+  device, driver or cable that stops reporting stops the motion ``input_timeout_s`` later.
 
 Input sources (``spacemouse``: the device via pyspacemouse/hidapi, polled by the node at
 ``rate_hz``; ``joy``: ``sensor_msgs/Joy`` from the spacenav driver) both produce ``TeleopInput``.
@@ -60,7 +64,9 @@ class TeleopConfig:
     workspace_margin: float = 0.0  # m kept from the workspace box faces
     max_lead_m: float = 0.05  # target may run at most this far ahead of the measured TCP
     max_lead_rad: float = 0.5
-    input_timeout_s: float = 0.25
+    input_timeout_s: float = 0.2  # newest device report older than this: hold (the device stopped reporting)
+    clutch_button: int = -1  # >= 0: no motion unless this button is held (-1 = no clutch)
+    rotation_button: int = -1  # >= 0: rotation only while this button is held (-1 = always rotate)
 
     def __post_init__(self):
         if self.source not in ("joy", "spacemouse"):
@@ -75,11 +81,26 @@ class TeleopConfig:
             raise ValueError(f"a SpaceMouse must be polled at >= 100 Hz, got rate_hz={self.rate_hz}")
         if self.publish_hz <= 0 or self.rate_hz <= 0:
             raise ValueError("rate_hz and publish_hz must be positive")
+        if not 0 < self.input_timeout_s <= 1.0:
+            raise ValueError(f"input_timeout_s must be in (0, 1] s, got {self.input_timeout_s}")
+        gripper = {self.open_button, self.close_button}
+        for name in ("clutch_button", "rotation_button"):
+            button = getattr(self, name)
+            if button < -1:
+                raise ValueError(f"{name} must be a button index or -1 (off), got {button}")
+            if button in gripper:
+                raise ValueError(f"{name} {button} is also a gripper button (open_button {self.open_button}, "
+                                 f"close_button {self.close_button}); pick another button")
+        if self.clutch_button >= 0 and self.clutch_button == self.rotation_button:
+            raise ValueError(f"clutch_button and rotation_button are both {self.clutch_button}")
 
 
 @dataclass(frozen=True)
 class TeleopInput:
-    """One device sample: axes [x, y, z, roll, pitch, yaw] normalised to [-1, 1], buttons 0/1."""
+    """One device sample: axes [x, y, z, roll, pitch, yaw] normalised to [-1, 1], buttons 0/1.
+
+    ``stamp_ns``: when the device reported this state, on the consumer's clock (0 = never).
+    """
 
     axes: tuple[float, ...]
     buttons: tuple[int, ...] = ()
@@ -134,16 +155,31 @@ class TeleopIntegrator:
         """Latest measured TCP pose (bounds how far the target may lead)."""
         self.measured = geometry.validate_pose(np.asarray(measured_pose, dtype=np.float64)).copy()
 
-    def twist(self, axes: Sequence[float]) -> tuple[np.ndarray, np.ndarray]:
-        """Normalised axes -> (linear m/s, angular rad/s), still in the device's frame convention."""
+    def twist(self, axes: Sequence[float], buttons: Sequence[int] = ()) -> tuple[np.ndarray, np.ndarray]:
+        """Normalised axes (+ the clutch / rotation-enable buttons) -> (linear m/s, angular rad/s),
+        still in the device's frame convention."""
         cfg = self.config
         a = np.asarray(axes, dtype=np.float64)[:6] * np.asarray(cfg.axis_signs, dtype=np.float64)
         if a.shape != (6,) or not np.all(np.isfinite(a)):
             raise TeleopError(f"expected 6 finite axes, got {axes!r}")
         a = apply_deadzone(a, cfg.deadzone)
+        if cfg.clutch_button >= 0 and not _pressed(buttons, cfg.clutch_button):
+            return np.zeros(3), np.zeros(3)
         v = a[:3] * np.asarray(cfg.linear_scale)
-        w = np.zeros(3) if cfg.lock_rotation else a[3:] * np.asarray(cfg.angular_scale)
+        rotate = not cfg.lock_rotation and (cfg.rotation_button < 0 or _pressed(buttons, cfg.rotation_button))
+        w = a[3:] * np.asarray(cfg.angular_scale) if rotate else np.zeros(3)
         return v, w
+
+    def engaged(self, inp: TeleopInput | None) -> bool:
+        """The operator is driving: a twist beyond the deadzone (clutch held, if any), or a
+        gripper button held or just released (``hold`` mode opens on release)."""
+        if inp is None:
+            return False
+        v, w = self.twist(inp.axes, inp.buttons)
+        if np.any(v) or np.any(w):
+            return True
+        grip = (self.config.open_button, self.config.close_button)
+        return any(_pressed(inp.buttons, b) or _pressed(self._prev_buttons, b) for b in grip)
 
     def step(self, inp: TeleopInput | None, dt: float) -> tuple[np.ndarray, float]:
         """Advance by ``dt`` seconds with input ``inp`` (None = no fresh input: hold); returns (target, width)."""
@@ -153,7 +189,7 @@ class TeleopIntegrator:
             raise TeleopError(f"bad time step {dt}")
         if inp is None:
             return self.target.copy(), self.width
-        v, w = self.twist(inp.axes)
+        v, w = self.twist(inp.axes, inp.buttons)
         R = self.target[:3, :3]
         p = self.target[:3, 3]
         dp = (R @ v if self.config.translation_frame == "tool" else v) * dt
@@ -201,12 +237,8 @@ class TeleopIntegrator:
     def _buttons(self, buttons: tuple[int, ...]) -> None:
         cfg = self.config
 
-        def pressed(i: int, prev: tuple[int, ...] | None = None) -> bool:
-            src = buttons if prev is None else prev
-            return i < len(src) and bool(src[i])
-
         def rising(i: int) -> bool:
-            return pressed(i) and not pressed(i, self._prev_buttons)
+            return _pressed(buttons, i) and not _pressed(self._prev_buttons, i)
 
         if cfg.gripper_mode == "buttons":
             if rising(cfg.close_button):
@@ -217,9 +249,13 @@ class TeleopIntegrator:
             if rising(cfg.open_button) or rising(cfg.close_button):
                 self._closed = not self._closed
         else:  # hold
-            self._closed = pressed(cfg.close_button)
+            self._closed = _pressed(buttons, cfg.close_button)
         self._prev_buttons = buttons
         self.width = cfg.closed_width if self._closed else cfg.open_width
+
+
+def _pressed(buttons: Sequence[int], index: int) -> bool:
+    return 0 <= index < len(buttons) and bool(buttons[index])
 
 
 def _orthonormalise(R: np.ndarray) -> np.ndarray:
@@ -237,14 +273,20 @@ def _orthonormalise(R: np.ndarray) -> np.ndarray:
 class SpaceMouseSource:
     """A 3Dconnexion SpaceMouse read directly over HID with pyspacemouse (ROS axis convention).
 
-    ``read()`` is non-blocking and returns the latest state; the node polls it at ``rate_hz``.
+    ``read(now_ns)`` is non-blocking and returns the latest state, stamped with when the device
+    last reported (pyspacemouse times each HID report it processes), so a device that stops
+    reporting goes stale instead of repeating its last deflection; the node polls it at
+    ``rate_hz``. ``opened``: an already open ``pyspacemouse`` device (tests pass one built over
+    a scripted HID device); ``connect`` then only checks it.
     """
 
-    def __init__(self, device: str = ""):
+    def __init__(self, device: str = "", opened=None):
         self.device_name = device
-        self._dev = None
+        self._dev = opened
 
     def connect(self) -> None:
+        if self._dev is not None:
+            return
         try:
             import pyspacemouse
         except ImportError as err:
@@ -273,6 +315,7 @@ class SpaceMouseSource:
             raise TeleopError(f"cannot open SpaceMouse {name!r}: {err}") from err
 
     def read(self, now_ns: int) -> TeleopInput:
+        """The device's latest state; ``stamp_ns`` = ``now_ns`` minus the age of its newest report."""
         if self._dev is None:
             raise TeleopError("SpaceMouse is not connected")
         # Drain every queued HID report (each carries only the translation or the rotation
@@ -283,7 +326,11 @@ class SpaceMouseSource:
             s = self._dev.read()
             if s.t == t_before:
                 break
-        return TeleopInput((s.x, s.y, s.z, s.roll, s.pitch, s.yaw), tuple(int(b) for b in s.buttons), now_ns)
+        stamp = 0  # pyspacemouse's t < 0: no report since the device was opened
+        if s.t >= 0:
+            age_s = max(0.0, _hid_clock() - s.t)
+            stamp = now_ns - int(age_s * NS_PER_S)
+        return TeleopInput((s.x, s.y, s.z, s.roll, s.pitch, s.yaw), tuple(int(b) for b in s.buttons), stamp)
 
     def disconnect(self) -> None:
         if self._dev is not None:
@@ -300,5 +347,13 @@ class SpaceMouseSource:
         self.disconnect()
 
 
+def _hid_clock() -> float:
+    """The clock pyspacemouse stamps each processed HID report with (``SpaceMouseState.t``, s)."""
+    from pyspacemouse import device
+
+    return device.high_acc_clock()
+
+
 def is_fresh(inp: TeleopInput | None, now_ns: int, timeout_s: float) -> bool:
-    return inp is not None and (inp.stamp_ns == 0 or now_ns - inp.stamp_ns <= timeout_s * NS_PER_S)
+    """The device reported ``inp`` at most ``timeout_s`` ago (a never-stamped input is not fresh)."""
+    return inp is not None and inp.stamp_ns > 0 and now_ns - inp.stamp_ns <= timeout_s * NS_PER_S

@@ -17,6 +17,9 @@ TOPIC_DIAGNOSTICS = "/diagnostics"
 TOPIC_JOY = "/spacenav/joy"
 TOPIC_RECORDER_COMMAND = "/recorder/command"
 TOPIC_POLICY_SKIPPED = "/policy/skipped"
+TOPIC_POLICY_STATE = "/policy/state"  # running / paused <reason>, latched
+TOPIC_TELEOP_ACTIVE = "/teleop/active"  # an operator's takeover (intervention), latched
+TOPIC_RECORDER_STATUS = "/recorder/status"  # idle / recording <path> / ..., latched
 TOPIC_CLOCK = "/clock"
 TOPIC_TF_STATIC = "/tf_static"
 CAMERA_TOPIC_PREFIX = "/cameras/"
@@ -26,6 +29,13 @@ TOPIC_TWIN_SCENE = "/twin/scene"
 TOPIC_TWIN_STATE = "/twin/state"
 TOPIC_TWIN_AWAIT_POLICY = "/twin/await_policy"
 TOPIC_TWIN_POLICY_CHUNK = "/twin/policy_chunk"  # policy_node's chunks, remapped, when the supervisor gates them
+
+# Services (std_srvs): the operator flow (`equidiff lab`) and the twin's supervisor call them.
+SERVICE_RECORDER_START = "/recorder/start"  # Trigger
+SERVICE_RECORDER_STOP = "/recorder/stop"  # Trigger: keep the episode, marked successful
+SERVICE_RECORDER_STOP_FAILURE = "/recorder/stop_failure"  # Trigger: keep it, marked failed
+SERVICE_RECORDER_DISCARD = "/recorder/discard"  # Trigger
+SERVICE_POLICY_ENABLE = "/policy/enable"  # SetBool: true runs the policy, false pauses it
 
 CLOUD_TYPE = "sensor_msgs/msg/PointCloud2"
 POSE_TYPE = "geometry_msgs/msg/PoseStamped"
@@ -40,6 +50,8 @@ RECORDED_TOPICS: dict[str, str] = {
     TOPIC_EXECUTED_TARGET: POSE_TYPE,
     TOPIC_JOY: "sensor_msgs/msg/Joy",
     TOPIC_DIAGNOSTICS: "diagnostic_msgs/msg/DiagnosticArray",
+    TOPIC_TELEOP_ACTIVE: "std_msgs/msg/Bool",
+    TOPIC_POLICY_STATE: "std_msgs/msg/String",
 }
 # What training needs of a bag: the in-process demos write just these.
 TRAINING_TOPICS: dict[str, str] = {t: RECORDED_TOPICS[t] for t in (TOPIC_VOXELS, TOPIC_EE_POSE, TOPIC_JOINT_STATES,

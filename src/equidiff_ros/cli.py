@@ -1,4 +1,4 @@
-"""`equidiff`: one CLI for the offline tools (train, dataset, bags, bench, check, viz) and the twin.
+"""`equidiff`: one CLI for the offline tools (train, dataset, bags, bench, check, viz), the twin and the lab.
 
 Each leaf command lives in its own module under ``equidiff_ros.commands`` exposing
 ``add_arguments(parser)`` and ``run(args) -> int``; it is imported only when invoked, so
@@ -32,6 +32,9 @@ COMMANDS: dict[tuple[str, ...], tuple[str, str]] = {
     ("twin", "evaluate"): ("twin_evaluate", "the main job's episodes in-process on the sim clock (no ROS)"),
     ("export", "lerobot"): ("export_lerobot", "export bags to a LeRobot dataset"),
     ("calibrate", "cameras"): ("calibrate", "camera extrinsics from a ChArUco board on the hand (hand-eye + joint refinement)"),
+    ("lab", "record"): ("lab_record", "start / keep as success or failure / discard the recorder's episode"),
+    ("lab", "policy"): ("lab_policy", "enable, pause or resume the policy"),
+    ("lab", "status"): ("lab_status", "episode, policy state and teleop takeover, from the live graph"),
     ("calibrate", "check"): ("calibrate_check", "each camera's alignment in mm against the other clouds and the fingertips"),
 }
 

@@ -13,6 +13,14 @@ Wiring:
                    obs_to_cmd_ms and its p50/p95)
   /policy/skipped (std_msgs/String JSON {stamp_ns, reason}) <- each observation that will get no chunk
                    (the twin's sim then stops waiting for it; a recorder or operator sees why)
+  /policy/enable (std_srvs/SetBool service)      -> true runs, false pauses the policy (``equidiff lab policy``)
+  /teleop/active (std_msgs/Bool, latched)        -> true (the operator took over with the SpaceMouse) pauses it;
+                   it stays paused until the operator enables it again
+  /policy/state (std_msgs/String, latched)       <- ``running`` or ``paused <reason>``
+
+While paused no chunk is published: each observation is announced on /policy/skipped as
+``paused`` (an inference already running is finished and dropped), and /diagnostics says
+``paused``. ``start_paused`` (default false; robot.launch.py sets true) waits for an enable.
 
 The policy runs once per observation, so the cameras set its rate (5 Hz), with no timer
 phase between a grid and its inference; on the twin's simulated time, which pauses until
@@ -33,7 +41,7 @@ default, chosen by measurement: in the twin's closed-loop evaluation whole chunk
 10 scenes where a new chunk every observation solved 1, docs/evaluation_scheme.md; 1: answer
 every observation; the others are announced on /policy/skipped as ``executing``),
 ``torch_threads`` (default 1: on a shared CPU more threads are slower; 0: torch's default),
-``lab_config``.
+``start_paused``, ``lab_config``.
 """
 
 from __future__ import annotations
@@ -63,7 +71,8 @@ def build_node():
     from geometry_msgs.msg import PoseStamped
     from rclpy.node import Node
     from sensor_msgs.msg import JointState, PointCloud2
-    from std_msgs.msg import String
+    from std_msgs.msg import Bool, String
+    from std_srvs.srv import SetBool
     from trajectory_msgs.msg import MultiDOFJointTrajectory
 
     from equidiff_core import geometry
@@ -74,13 +83,17 @@ def build_node():
     from equidiff_core.observation import STATE_TOLERANCE_S, StateHistory, ee_input
     from equidiff_core.pointcloud import voxel_msg_to_grid
     from equidiff_core.rosmsg import RclpyFactory, stamp_to_ns
+    from equidiff_core.topics import SERVICE_POLICY_ENABLE
     from equidiff_ros.common import (
+        LATCHED_QOS,
         RELIABLE_QOS,
         TOPIC_COMMAND_CHUNK,
         TOPIC_DIAGNOSTICS,
         TOPIC_EE_POSE,
         TOPIC_JOINT_STATES,
         TOPIC_POLICY_SKIPPED,
+        TOPIC_POLICY_STATE,
+        TOPIC_TELEOP_ACTIVE,
         TOPIC_VOXELS,
         VOXEL_QOS,
         declare_lab_config,
@@ -105,6 +118,8 @@ def build_node():
             n_steps = self.declare_parameter("n_action_steps", 0).value
             execute_steps = self.declare_parameter("execute_steps", 0).value
             threads = self.declare_parameter("torch_threads", 1).value
+            self._paused = "waiting for an enable (start_paused)" if self.declare_parameter(
+                "start_paused", False).value else ""  # why no chunks are published; "" = running
             if not checkpoint:
                 raise CheckpointError("the 'checkpoint' parameter is required (an exported policy file, "
                                       "e.g. -p checkpoint:=runs/pick/policy.pt)")
@@ -154,6 +169,10 @@ def build_node():
             self.create_subscription(PoseStamped, TOPIC_EE_POSE, self.on_pose, RELIABLE_QOS)
             self.create_subscription(JointState, TOPIC_JOINT_STATES, self.on_joints, RELIABLE_QOS)
             self.create_subscription(DiagnosticArray, TOPIC_DIAGNOSTICS, self.on_diagnostics, RELIABLE_QOS)
+            self.pub_state = self.create_publisher(String, TOPIC_POLICY_STATE, LATCHED_QOS)
+            self.create_subscription(Bool, TOPIC_TELEOP_ACTIVE, self.on_teleop_active, LATCHED_QOS)
+            self.create_service(SetBool, SERVICE_POLICY_ENABLE, self.on_enable)
+            self.publish_state()
             self.worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="policy")
             self.create_timer(1.0 / rate_hz, self.watch_observations)
             self.create_timer(1.0, self.publish_diagnostics)
@@ -189,6 +208,25 @@ def build_node():
                     level = status.level[0] if isinstance(status.level, bytes) else int(status.level)
                     self._voxel_error = status.message if level >= cm.ERROR else ""
 
+        # --- the operator's gate -------------------------------------------------------------
+        def set_paused(self, reason: str) -> None:
+            if reason != self._paused:
+                self._paused = reason
+                self.get_logger().info(f"policy paused: {reason}" if reason else "policy running")
+                self.publish_state()
+
+        def publish_state(self) -> None:
+            self.pub_state.publish(String(data=f"paused {self._paused}" if self._paused else "running"))
+
+        def on_enable(self, request, response):
+            self.set_paused("" if request.data else "by the operator")
+            response.success, response.message = True, "running" if not self._paused else "paused"
+            return response
+
+        def on_teleop_active(self, msg) -> None:
+            if msg.data and not self._paused:  # never resumes on its own: the operator enables again
+                self.set_paused("teleop takeover")
+
         # --- the 5 Hz cycle ------------------------------------------------------------------
         def skip(self, reason: str, detail: str, stamp: int | None = None) -> None:
             """Count and report a skip; with the observation's ``stamp``, announce that it gets no chunk."""
@@ -216,6 +254,10 @@ def build_node():
                 if stamp == self._last_obs_stamp:
                     return  # answered already
                 self._last_obs_stamp = stamp  # whatever happens next, this observation is used up
+                if self._paused:
+                    self.skipped["paused"] += 1
+                    self.pub_skipped.publish(String(data=json.dumps({"stamp_ns": int(stamp), "reason": "paused"})))
+                    return
                 if not self.answers.due(stamp):
                     # the last chunk is still being executed: no warning, this is the schedule
                     self.skipped["executing"] += 1
@@ -247,6 +289,10 @@ def build_node():
                 actions = self.policy.predict(grid, ee, seed=int(self.rng.integers(2**31)))
                 inference = time.perf_counter() - t0
                 chunk = chunk_from_actions(actions[: self.n_action_steps], stamp, self.dt_ns)
+                if self._paused:  # paused while it ran: the operator has the arm now
+                    self.skipped["paused"] += 1
+                    self.pub_skipped.publish(String(data=json.dumps({"stamp_ns": int(stamp), "reason": "paused"})))
+                    return
                 self.pub_chunk.publish(chunk_to_msg(chunk, self.factory, self.lab.base_frame))
                 with self._lock:  # the diagnostics read both as a pair
                     self.inference_s.append(inference)
@@ -278,12 +324,16 @@ def build_node():
                 "skipped_cycles": sum(self.skipped.values()),
                 "published_chunks": self.published,
                 "failures": self.failures,
+                "state": f"paused {self._paused}" if self._paused else "running",
                 **{f"skipped_{k}": v for k, v in self.skipped.items()},
             }
             stale = self.skipped["stale_observation"] + self.skipped["no_observation"]
             level = cm.WARN if (self.failures or stale) and not self.obs_to_cmd_s else cm.OK
+            message = f"{self.published} chunks published"
+            if self._paused:
+                message = f"paused ({self._paused}), no chunks; {message}"
             self.pub_diag.publish(cm.diagnostic_array(self.factory, now_ns(self), NODE_NAME, self.policy.name,
-                                                      level, f"{self.published} chunks published", values))
+                                                      level, message, values))
 
         def shutdown(self) -> None:
             self.worker.shutdown(wait=True, cancel_futures=True)

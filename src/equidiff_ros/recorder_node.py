@@ -11,6 +11,10 @@ episode starts and stops on
 * the keyboard when ``keyboard:=true`` and stdin is a terminal: s = start, k = keep
   (success), f = keep (failure), d = discard, then Enter.
 
+Teleop takeovers (/teleop/active true..false) during an episode are in the bag and listed in
+its metadata (``extra.interventions``: start-end seconds from the episode start,
+``extra.intervention_count``).
+
 State is published latched on /recorder/status (std_msgs/String: ``idle`` or ``recording
 <path>``). Episodes go to ``output_dir/<task>_NNNN`` and are never overwritten; free disk is
 checked before each start and while recording (stop-and-keep when low). A killed recorder's
@@ -26,13 +30,14 @@ from __future__ import annotations
 import sys
 import threading
 
+from equidiff_core import topics
 from equidiff_ros.runner import run_node
 
 USAGE = __doc__ + """
 usage: recorder_node [--ros-args -p output_dir:=DIR -p task:=NAME -p operator:=NAME -p record_clouds:=false ...]
 """
 
-BEST_EFFORT_TOPICS = ("/franka/ee_pose", "/franka/joint_states", "/spacenav/joy")  # match any publisher
+BEST_EFFORT_TOPICS = (topics.TOPIC_EE_POSE, topics.TOPIC_JOINT_STATES, topics.TOPIC_JOY)  # match any publisher
 
 
 def parse_command(text: str) -> tuple[str, dict]:
@@ -74,6 +79,7 @@ def build_node():
     from equidiff_core.bags import EpisodeMeta
     from equidiff_core.recording import (
         EpisodeWriter,
+        InterventionLog,
         RecordingConfig,
         RecordingError,
         next_episode_path,
@@ -84,6 +90,7 @@ def build_node():
         LATCHED_QOS,
         RELIABLE_QOS,
         TOPIC_RECORDER_COMMAND,
+        TOPIC_TELEOP_ACTIVE,
         declare_lab_config,
         now_ns,
         wait_for_clock,
@@ -113,6 +120,8 @@ def build_node():
             self.factory = RclpyFactory()
             self.lock = threading.Lock()
             self.writer: EpisodeWriter | None = None
+            self.interventions: InterventionLog | None = None  # of the episode being recorded
+            self.teleop_active = False
             self.topics = recorded_topics(self.lab, self.cfg.record_clouds)
             for topic, msgtype in self.topics.items():
                 if topic.startswith("/cameras/"):
@@ -123,12 +132,14 @@ def build_node():
                                          raw=True)
             String = self.factory.cls("std_msgs/msg/String")
             Trigger = self.factory.cls("std_srvs/srv/Trigger")
-            self.status_pub = self.create_publisher(String, "/recorder/status", LATCHED_QOS)
+            self.status_pub = self.create_publisher(String, topics.TOPIC_RECORDER_STATUS, LATCHED_QOS)
+            self.create_subscription(self.factory.cls("std_msgs/msg/Bool"), TOPIC_TELEOP_ACTIVE,
+                                     self.on_teleop_active, LATCHED_QOS)
             self.create_subscription(String, TOPIC_RECORDER_COMMAND, self.on_command, RELIABLE_QOS)
-            self.create_service(Trigger, "/recorder/start", self._service(lambda: self.start()))
-            self.create_service(Trigger, "/recorder/stop", self._service(lambda: self.stop(success=True)))
-            self.create_service(Trigger, "/recorder/stop_failure", self._service(lambda: self.stop(success=False)))
-            self.create_service(Trigger, "/recorder/discard", self._service(self.discard))
+            self.create_service(Trigger, topics.SERVICE_RECORDER_START, self._service(lambda: self.start()))
+            self.create_service(Trigger, topics.SERVICE_RECORDER_STOP, self._service(lambda: self.stop(success=True)))
+            self.create_service(Trigger, topics.SERVICE_RECORDER_STOP_FAILURE, self._service(lambda: self.stop(success=False)))
+            self.create_service(Trigger, topics.SERVICE_RECORDER_DISCARD, self._service(self.discard))
             self.create_timer(0.5, self.housekeeping)
             self.publish_status()
             self.get_logger().info(f"recording {sorted(self.topics)} to {self.cfg.output_dir}/")
@@ -148,8 +159,11 @@ def build_node():
                 writer = EpisodeWriter(path, meta, self.cfg).open()
                 for topic, msgtype in self.topics.items():
                     writer.add_topic(topic, msgtype, reliable=topic not in BEST_EFFORT_TOPICS)
-                writer.write_tf_static(self.lab, now_ns(self))
+                start_ns = now_ns(self)
+                writer.write_tf_static(self.lab, start_ns)
                 self.writer = writer
+                self.interventions = InterventionLog(start_ns)
+                self.interventions.update(self.teleop_active, start_ns)  # already driving at the start
             self.publish_status()
             self.get_logger().info(f"episode started: {path}")
             return str(path)
@@ -159,7 +173,7 @@ def build_node():
                 if self.writer is None:
                     raise RecordingError("not recording")
                 writer, self.writer = self.writer, None
-                path = writer.close(**meta_updates)
+                path = writer.close(**self._with_interventions(writer, meta_updates))
                 counts = dict(writer.counts)
             self.publish_status()
             self.get_logger().info(f"episode kept: {path} ({sum(counts.values())} messages: {counts})")
@@ -174,6 +188,19 @@ def build_node():
             self.publish_status()
             self.get_logger().info(f"episode discarded: {writer.path}")
             return f"discarded {writer.path}"
+
+        def _with_interventions(self, writer, meta_updates: dict) -> dict:
+            log, self.interventions = self.interventions, None
+            if log is None:
+                return meta_updates
+            extra = {**writer.meta.extra, **meta_updates.get("extra", {}), **log.metadata(now_ns(self))}
+            return {**meta_updates, "extra": extra}
+
+        def on_teleop_active(self, msg):
+            with self.lock:
+                self.teleop_active = bool(msg.data)
+                if self.interventions is not None:
+                    self.interventions.update(self.teleop_active, now_ns(self))
 
         # -- plumbing --------------------------------------------------------------------
         def _writer_cb(self, topic: str, msgtype: str):
@@ -243,7 +270,8 @@ def build_node():
             with self.lock:
                 writer, self.writer = self.writer, None
             if writer is not None:  # keep what was recorded; the operator judges it later
-                writer.close(success=None, notes=(writer.meta.notes + " [recorder shut down mid-episode]").strip())
+                notes = (writer.meta.notes + " [recorder shut down mid-episode]").strip()
+                writer.close(**self._with_interventions(writer, {"success": None, "notes": notes}))
                 self.get_logger().info(f"episode kept on shutdown: {writer.path}")
 
     return RecorderNode()

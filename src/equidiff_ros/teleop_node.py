@@ -3,10 +3,17 @@
 Wiring: /franka/ee_pose + /franka/joint_states (measured state) and the input source feed
 ``equidiff_core.teleop.TeleopIntegrator`` at ``rate_hz``; while the operator is active it
 publishes one-point chunks at ``publish_hz`` on /franka/command_chunk, exactly like the
-policy, so the franka node's safety and scheduling apply to human commands too. After
+policy, so the franka node's safety and scheduling apply to human commands too. It says on
+/teleop/active (std_msgs/Bool, latched) when the operator takes over (the first input beyond
+the deadzone) and when they let go again (``resync_after_s`` without input): a running policy
+pauses on the first, and the recorder marks both in the episode. After
 ``resync_after_s`` without input the target re-starts from the measured pose (the policy or
 a script may have moved the arm meanwhile), and nothing is published while idle, so teleop
 never fights the policy.
+
+Freshness: a Joy message counts from its header stamp (the driver stamps each device event;
+the receive time if that is earlier, or if the message is unstamped), a direct SpaceMouse from
+its last HID report; input older than ``input_timeout_s`` is no input, so the target holds.
 
 Parameters: ``lab_config`` and every field of ``TeleopConfig`` (``source``, ``deadzone``,
 ``linear_scale``, ``angular_scale``, ``translation_frame``, ``rotation_frame``,
@@ -54,13 +61,13 @@ def _pose_from_msg(msg):
 
 
 def build_node():
-    import numpy as np
     from rclpy.node import Node
 
     from equidiff_core.chunk import chunk_to_msg
     from equidiff_core.geometry import GeometryError
     from equidiff_core.rosmsg import RclpyFactory
     from equidiff_core.teleop import (
+        NS_PER_S,
         SpaceMouseSource,
         TeleopConfig,
         TeleopError,
@@ -69,12 +76,14 @@ def build_node():
         is_fresh,
     )
     from equidiff_ros.common import (
+        LATCHED_QOS,
         RELIABLE_QOS,
         SENSOR_QOS,
         TOPIC_COMMAND_CHUNK,
         TOPIC_EE_POSE,
         TOPIC_JOINT_STATES,
         TOPIC_JOY,
+        TOPIC_TELEOP_ACTIVE,
         declare_lab_config,
         now_ns,
         wait_for_clock,
@@ -91,13 +100,18 @@ def build_node():
             self.teleop = TeleopIntegrator(self.cfg, self.lab.workspace)
             self.measured = None  # latest /franka/ee_pose (4x4)
             self.width_measured: float | None = None
-            self.input: TeleopInput | None = None
+            self.input = None  # the newest TeleopInput, stamped when the device reported it
+            self.warned_unstamped = False
             self.last_active_ns = 0
             self.last_publish_ns = 0
             self.last_tick_ns: int | None = None
 
             self.pub = self.create_publisher(self.factory.cls("trajectory_msgs/msg/MultiDOFJointTrajectory"),
                                              TOPIC_COMMAND_CHUNK, RELIABLE_QOS)
+            self.Bool = self.factory.cls("std_msgs/msg/Bool")
+            self.pub_active = self.create_publisher(self.Bool, TOPIC_TELEOP_ACTIVE, LATCHED_QOS)
+            self.taken_over = False
+            self.pub_active.publish(self.Bool(data=False))
             self.create_subscription(self.factory.cls("geometry_msgs/msg/PoseStamped"), TOPIC_EE_POSE,
                                      self.on_pose, SENSOR_QOS)
             self.create_subscription(self.factory.cls("sensor_msgs/msg/JointState"), TOPIC_JOINT_STATES,
@@ -134,14 +148,23 @@ def build_node():
             except TeleopError as err:
                 self.get_logger().warn(f"ignoring {TOPIC_JOY}: {err}", throttle_duration_sec=2.0)
                 return
-            self.input = TeleopInput(inp.axes, inp.buttons, now_ns(self))  # freshness by receive time
-
-        def active(self, inp: TeleopInput | None) -> bool:
-            if inp is None:
-                return False
-            moving = bool(np.any(np.abs(np.asarray(inp.axes)) > self.cfg.deadzone))
-            # A pressed button, or one just released (hold mode opens on release), is activity.
-            return moving or any(inp.buttons) or any(self.teleop._prev_buttons)
+            received = now_ns(self)
+            if inp.stamp_ns <= 0:
+                if not self.warned_unstamped:
+                    self.warned_unstamped = True
+                    self.get_logger().warn(f"{TOPIC_JOY} messages carry no header stamp: their age is "
+                                           "counted from receipt, so a stalled driver is noticed late")
+                stamp = received
+            else:
+                # Messages delayed in transport are as old as their stamp; a stamp from the future
+                # (another machine's clock) cannot make them younger than their receipt.
+                stamp = min(inp.stamp_ns, received)
+                if received - inp.stamp_ns > 10 * NS_PER_S:
+                    self.get_logger().warn(
+                        f"{TOPIC_JOY} stamps are {(received - inp.stamp_ns) / 1e9:.1f} s behind this node's "
+                        "clock (use_sim_time on one side only?): input treated as stale, teleop holds",
+                        throttle_duration_sec=5.0)
+            self.input = dataclasses.replace(inp, stamp_ns=stamp)
 
         def tick(self):
             now = now_ns(self)
@@ -154,14 +177,18 @@ def build_node():
                     self.get_logger().error(f"SpaceMouse read failed: {err}", throttle_duration_sec=2.0)
                     self.input = None
             inp = self.input if is_fresh(self.input, now, self.cfg.input_timeout_s) else None
-            if not self.active(inp):
+            if not self.teleop.engaged(inp):
                 if self.teleop.ready:  # keep button edges in sync while idle
                     self.teleop.step(None, dt)
+                if self.taken_over and (now - self.last_active_ns) / 1e9 > self.resync_after_s:
+                    self.set_taken_over(False)
                 return
             if self.measured is None:
                 self.get_logger().warn(f"operator input but no {TOPIC_EE_POSE} yet: not commanding",
                                        throttle_duration_sec=2.0)
                 return
+            if not self.taken_over:
+                self.set_taken_over(True)
             idle_s = (now - self.last_active_ns) / 1e9
             if not self.teleop.ready or idle_s > self.resync_after_s:
                 self.teleop.reset(self.measured, self.width_measured)
@@ -175,6 +202,11 @@ def build_node():
             if (now - self.last_publish_ns) >= 1e9 / self.cfg.publish_hz * 0.95:
                 self.last_publish_ns = now
                 self.pub.publish(chunk_to_msg(self.teleop.chunk(now), self.factory, self.lab.base_frame))
+
+        def set_taken_over(self, active: bool):
+            self.taken_over = active
+            self.pub_active.publish(self.Bool(data=active))
+            self.get_logger().info("operator took over (SpaceMouse)" if active else "operator let go")
 
         def destroy_node(self):
             if self.device is not None:

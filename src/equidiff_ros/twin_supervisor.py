@@ -33,6 +33,7 @@ from equidiff_core.rosmsg import RclpyFactory, stamp_to_ns
 from equidiff_core.topics import (
     TOPIC_CLOCK,
     TOPIC_COMMAND_CHUNK,
+    TOPIC_RECORDER_STATUS,
     TOPIC_TWIN_AWAIT_POLICY,
     TOPIC_TWIN_POLICY_CHUNK,
     TOPIC_TWIN_RESET,
@@ -117,7 +118,7 @@ class Supervisor:
         n.create_subscription(JointState, TOPIC_JOINT_STATES, self._on_joints, RELIABLE_QOS)
         n.create_subscription(String, TOPIC_TWIN_STATE, self._on_state, RELIABLE_QOS)
         n.create_subscription(String, TOPIC_TWIN_SCENE, self._on_scene, LATCHED_QOS)
-        n.create_subscription(String, "/recorder/status", self._on_recorder, LATCHED_QOS)
+        n.create_subscription(String, TOPIC_RECORDER_STATUS, self._on_recorder, LATCHED_QOS)
         n.create_subscription(DiagnosticArray, TOPIC_DIAGNOSTICS, self._on_diag, RELIABLE_QOS)
         n.create_subscription(String, TOPIC_POLICY_SKIPPED, self._on_skipped, RELIABLE_QOS)
         self.executor = SingleThreadedExecutor()

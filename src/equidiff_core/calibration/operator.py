@@ -13,7 +13,13 @@ import time
 import numpy as np
 
 from ..config import Workspace
-from ..teleop import SpaceMouseSource, TeleopConfig, TeleopInput, TeleopIntegrator
+from ..teleop import (
+    SpaceMouseSource,
+    TeleopConfig,
+    TeleopInput,
+    TeleopIntegrator,
+    is_fresh,
+)
 from .board import BoardDetector, BoardSpec, CalibrationError
 from .capture import Grab
 from .solve import Sample
@@ -60,7 +66,8 @@ def capture_operator(arm, grab: Grab, spec: BoardSpec, workspace: Workspace, log
                 continue
             state = robot.read_state()
             integrator.observe(state.ee_pose)
-            target, _ = integrator.step(inp, dt)
+            fresh = is_fresh(inp, now, integrator.config.input_timeout_s)  # a silent device: hold
+            target, _ = integrator.step(inp if fresh else None, dt)
             robot.stream_target(target, np.zeros(3), np.zeros(3))
             time.sleep(max(0.0, dt - (time.monotonic_ns() - now) / 1e9))
     except KeyboardInterrupt as err:

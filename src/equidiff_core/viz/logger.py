@@ -524,5 +524,5 @@ def _entity_part(name: str) -> str:
     return re.sub(r"[^A-Za-z0-9_-]+", "_", name).strip("_") or "unnamed"
 
 
-TOPICS_HANDLED = ("/voxels", "/franka/ee_pose", "/franka/joint_states", "/franka/command_chunk",
-                  "/franka/executed_target", "/diagnostics", "/tf_static")
+TOPICS_HANDLED = (topics.TOPIC_VOXELS, topics.TOPIC_EE_POSE, topics.TOPIC_JOINT_STATES, topics.TOPIC_COMMAND_CHUNK,
+                  topics.TOPIC_EXECUTED_TARGET, topics.TOPIC_DIAGNOSTICS, topics.TOPIC_TF_STATIC)

@@ -1,0 +1,27 @@
+"""`equidiff lab policy ACTION`: enable, pause or resume the policy (policy_node's /policy/enable).
+
+While paused the policy publishes no chunks (the arm holds its last target; the SpaceMouse
+still drives it). A teleop takeover pauses it as well; it never resumes on its own.
+"""
+
+from __future__ import annotations
+
+import sys
+
+ENABLE = {"enable": True, "resume": True, "pause": False}
+
+
+def add_arguments(parser) -> None:
+    parser.add_argument("action", choices=list(ENABLE), help="enable | resume (the same) | pause")
+
+
+def run(args) -> int:
+    from equidiff_ros.commands.lab_client import LabClient, LabError
+
+    with LabClient() as lab:
+        try:
+            print(f"policy {lab.call('std_srvs/srv/SetBool', '/policy/enable', data=ENABLE[args.action])}")
+        except LabError as err:
+            print(f"equidiff lab policy {args.action}: {err}", file=sys.stderr)
+            return 1
+    return 0
