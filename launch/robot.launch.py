@@ -2,6 +2,7 @@
 
     ros2 launch equidiff_ros robot.launch.py checkpoint:=/path/policy.pt            # policy at 5 Hz
     ros2 launch equidiff_ros robot.launch.py mode:=teleop task:=pick operator:=ana   # record demos
+    ros2 launch equidiff_ros robot.launch.py robot_backend:=dryrun checkpoint:=...    # no arm motion
 
 mode:=policy runs policy_node, started paused: ``equidiff lab policy enable`` starts it, and
 the SpaceMouse takes over (pausing it) whenever the operator moves it. Both modes run
@@ -38,6 +39,8 @@ def generate_launch_description():
         DeclareLaunchArgument("device", default_value="auto"),
         DeclareLaunchArgument("precision", default_value="fp32"),
         DeclareLaunchArgument("robot_ip", default_value="", description="empty: lab.yaml's robot.ip"),
+        DeclareLaunchArgument("robot_backend", default_value="franky", choices=["franky", "dryrun"],
+                              description="dryrun: the whole stack with an arm that only pretends to move"),
         DeclareLaunchArgument("teleop_source", default_value="joy", choices=["joy", "spacemouse"]),
         DeclareLaunchArgument("task", default_value="episode"),
         DeclareLaunchArgument("operator", default_value=""),
@@ -47,7 +50,8 @@ def generate_launch_description():
              parameters=[{**common, "backend": "realsense"}]),
         Node(package="equidiff_ros", executable="voxel_node", output="screen", parameters=[common]),
         Node(package="equidiff_ros", executable="franka_node", output="screen",
-             parameters=[{**common, "robot_ip": LaunchConfiguration("robot_ip"), "realtime": True}]),
+             parameters=[{**common, "robot_ip": LaunchConfiguration("robot_ip"), "realtime": True,
+                          "backend": LaunchConfiguration("robot_backend")}]),
         Node(package="equidiff_ros", executable="policy_node", output="screen",
              condition=LaunchConfigurationEquals("mode", "policy"),
              parameters=[{**common, "checkpoint": LaunchConfiguration("checkpoint"),
