@@ -5,6 +5,8 @@ The QoS profiles here are the ones docs/architecture.md lists; nodes never build
 
 from __future__ import annotations
 
+import dataclasses
+import typing
 from pathlib import Path
 
 from rclpy.node import Node
@@ -16,7 +18,12 @@ from rclpy.qos import (
     qos_profile_sensor_data,
 )
 
-from equidiff_core.config import LabConfig, default_config_dir, load_lab_config
+from equidiff_core.config import (
+    LabConfig,
+    default_config_dir,
+    from_dict,
+    load_lab_config,
+)
 
 # The topic names, re-exported for the nodes: they are written once, in equidiff_core.topics.
 from equidiff_core.topics import (  # noqa: F401
@@ -48,6 +55,21 @@ VOXEL_QOS = QoSProfile(depth=5, reliability=ReliabilityPolicy.RELIABLE,
 LATCHED_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                          durability=DurabilityPolicy.TRANSIENT_LOCAL, history=HistoryPolicy.KEEP_LAST)
 
+
+def declare_config(node, cls, prefix: str = ""):
+    """Declare one ROS parameter per dataclass field (defaults from the class) and build the config:
+    each default is written once, in the config dataclass."""
+    values = {}
+    hints = typing.get_type_hints(cls)
+    for f in dataclasses.fields(cls):
+        default = f.default if f.default is not dataclasses.MISSING else None
+        if isinstance(default, tuple):
+            default = [float(v) for v in default] if "float" in str(hints[f.name]) else list(default)
+        if default is None or isinstance(default, dict):
+            continue  # optional / mapping fields keep their defaults
+        value = node.declare_parameter(prefix + f.name, default).value
+        values[f.name] = list(value) if isinstance(value, (list, tuple)) or hasattr(value, "tolist") else value
+    return from_dict(cls, values, node.get_name())
 
 
 def declare_lab_config(node: Node) -> LabConfig:

@@ -30,8 +30,40 @@ from __future__ import annotations
 import sys
 import threading
 
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+
 from equidiff_core import topics
+from equidiff_core.bags import EpisodeMeta
+from equidiff_core.recording import (
+    EpisodeWriter,
+    InterventionLog,
+    RecordingConfig,
+    RecordingError,
+    next_episode_path,
+    recorded_topics,
+)
+from equidiff_core.rosmsg import RclpyFactory
+from equidiff_ros.common import (
+    LATCHED_QOS,
+    RELIABLE_QOS,
+    TOPIC_RECORDER_COMMAND,
+    TOPIC_TELEOP_ACTIVE,
+    declare_config,
+    declare_lab_config,
+    now_ns,
+    wait_for_clock,
+)
 from equidiff_ros.runner import run_node
+
+# The contract's profiles, but with deep queues: a recorder must not drop 100 Hz state
+# while a chunk is being flushed to disk (best effort still matches either publisher kind).
+RECORD_SENSOR_QOS = QoSProfile(depth=200, reliability=ReliabilityPolicy.BEST_EFFORT,
+                               durability=DurabilityPolicy.VOLATILE, history=HistoryPolicy.KEEP_LAST)
+RECORD_RELIABLE_QOS = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE,
+                                 durability=DurabilityPolicy.VOLATILE, history=HistoryPolicy.KEEP_LAST)
+RECORD_CLOUD_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.BEST_EFFORT,  # ~5 MB each
+                              durability=DurabilityPolicy.VOLATILE, history=HistoryPolicy.KEEP_LAST)
 
 USAGE = __doc__ + """
 usage: recorder_node [--ros-args -p output_dir:=DIR -p task:=NAME -p operator:=NAME -p record_clouds:=false ...]
@@ -72,209 +104,173 @@ def parse_command(text: str) -> tuple[str, dict]:
     raise ValueError(f"unknown recorder command {words[0]!r} (start, stop [success|failure] [notes], discard)")
 
 
-def build_node():
-    from rclpy.node import Node
-    from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+class RecorderNode(Node):
+    def __init__(self):
+        super().__init__("recorder_node")
+        wait_for_clock(self)  # simulated time (the twin): nothing is timed before /clock
+        self.lab = declare_lab_config(self)
+        self.cfg = declare_config(self, RecordingConfig)
+        self.task = str(self.declare_parameter("task", "episode").value)
+        self.operator = str(self.declare_parameter("operator", "").value)
+        self.notes = str(self.declare_parameter("notes", "").value)
+        keyboard = bool(self.declare_parameter("keyboard", False).value)
+        autostart = bool(self.declare_parameter("autostart", False).value)
+        self.factory = RclpyFactory()
+        self.lock = threading.Lock()
+        self.writer: EpisodeWriter | None = None
+        self.interventions: InterventionLog | None = None  # of the episode being recorded
+        self.teleop_active = False
+        self.topics = recorded_topics(self.lab, self.cfg.record_clouds)
+        for topic, msgtype in self.topics.items():
+            if topic.startswith("/cameras/"):
+                qos = RECORD_CLOUD_QOS
+            else:
+                qos = RECORD_SENSOR_QOS if topic in BEST_EFFORT_TOPICS else RECORD_RELIABLE_QOS
+            self.create_subscription(self.factory.cls(msgtype), topic, self._writer_cb(topic, msgtype), qos,
+                                     raw=True)
+        String = self.factory.cls("std_msgs/msg/String")
+        Trigger = self.factory.cls("std_srvs/srv/Trigger")
+        self.status_pub = self.create_publisher(String, topics.TOPIC_RECORDER_STATUS, LATCHED_QOS)
+        self.create_subscription(self.factory.cls("std_msgs/msg/Bool"), TOPIC_TELEOP_ACTIVE,
+                                 self.on_teleop_active, LATCHED_QOS)
+        self.create_subscription(String, TOPIC_RECORDER_COMMAND, self.on_command, RELIABLE_QOS)
+        self.create_service(Trigger, topics.SERVICE_RECORDER_START, self._service(lambda: self.start()))
+        self.create_service(Trigger, topics.SERVICE_RECORDER_STOP, self._service(lambda: self.stop(success=True)))
+        self.create_service(Trigger, topics.SERVICE_RECORDER_STOP_FAILURE, self._service(lambda: self.stop(success=False)))
+        self.create_service(Trigger, topics.SERVICE_RECORDER_DISCARD, self._service(self.discard))
+        self.create_timer(0.5, self.housekeeping)
+        self.publish_status()
+        self.get_logger().info(f"recording {sorted(self.topics)} to {self.cfg.output_dir}/")
+        if keyboard:
+            self.start_keyboard()
+        if autostart:
+            self.start()
 
-    from equidiff_core.bags import EpisodeMeta
-    from equidiff_core.recording import (
-        EpisodeWriter,
-        InterventionLog,
-        RecordingConfig,
-        RecordingError,
-        next_episode_path,
-        recorded_topics,
-    )
-    from equidiff_core.rosmsg import RclpyFactory
-    from equidiff_ros.common import (
-        LATCHED_QOS,
-        RELIABLE_QOS,
-        TOPIC_RECORDER_COMMAND,
-        TOPIC_TELEOP_ACTIVE,
-        declare_lab_config,
-        now_ns,
-        wait_for_clock,
-    )
-    from equidiff_ros.teleop_node import declare_config
-
-    # The contract's profiles, but with deep queues: a recorder must not drop 100 Hz state
-    # while a chunk is being flushed to disk (best effort still matches either publisher kind).
-    RECORD_SENSOR_QOS = QoSProfile(depth=200, reliability=ReliabilityPolicy.BEST_EFFORT,
-                                   durability=DurabilityPolicy.VOLATILE, history=HistoryPolicy.KEEP_LAST)
-    RECORD_RELIABLE_QOS = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE,
-                                     durability=DurabilityPolicy.VOLATILE, history=HistoryPolicy.KEEP_LAST)
-    RECORD_CLOUD_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.BEST_EFFORT,  # ~5 MB each
-                                  durability=DurabilityPolicy.VOLATILE, history=HistoryPolicy.KEEP_LAST)
-
-    class RecorderNode(Node):
-        def __init__(self):
-            super().__init__("recorder_node")
-            wait_for_clock(self)  # simulated time (the twin): nothing is timed before /clock
-            self.lab = declare_lab_config(self)
-            self.cfg = declare_config(self, RecordingConfig)
-            self.task = str(self.declare_parameter("task", "episode").value)
-            self.operator = str(self.declare_parameter("operator", "").value)
-            self.notes = str(self.declare_parameter("notes", "").value)
-            keyboard = bool(self.declare_parameter("keyboard", False).value)
-            autostart = bool(self.declare_parameter("autostart", False).value)
-            self.factory = RclpyFactory()
-            self.lock = threading.Lock()
-            self.writer: EpisodeWriter | None = None
-            self.interventions: InterventionLog | None = None  # of the episode being recorded
-            self.teleop_active = False
-            self.topics = recorded_topics(self.lab, self.cfg.record_clouds)
+    # -- episode control -------------------------------------------------------------
+    def start(self, **meta_updates) -> str:
+        with self.lock:
+            if self.writer is not None:
+                raise RecordingError(f"already recording {self.writer.path}")
+            task = meta_updates.get("task", self.task)
+            meta = EpisodeMeta(task=task, operator=self.operator, notes=self.notes)
+            path = next_episode_path(self.cfg.output_dir, task)
+            writer = EpisodeWriter(path, meta, self.cfg).open()
             for topic, msgtype in self.topics.items():
-                if topic.startswith("/cameras/"):
-                    qos = RECORD_CLOUD_QOS
-                else:
-                    qos = RECORD_SENSOR_QOS if topic in BEST_EFFORT_TOPICS else RECORD_RELIABLE_QOS
-                self.create_subscription(self.factory.cls(msgtype), topic, self._writer_cb(topic, msgtype), qos,
-                                         raw=True)
-            String = self.factory.cls("std_msgs/msg/String")
-            Trigger = self.factory.cls("std_srvs/srv/Trigger")
-            self.status_pub = self.create_publisher(String, topics.TOPIC_RECORDER_STATUS, LATCHED_QOS)
-            self.create_subscription(self.factory.cls("std_msgs/msg/Bool"), TOPIC_TELEOP_ACTIVE,
-                                     self.on_teleop_active, LATCHED_QOS)
-            self.create_subscription(String, TOPIC_RECORDER_COMMAND, self.on_command, RELIABLE_QOS)
-            self.create_service(Trigger, topics.SERVICE_RECORDER_START, self._service(lambda: self.start()))
-            self.create_service(Trigger, topics.SERVICE_RECORDER_STOP, self._service(lambda: self.stop(success=True)))
-            self.create_service(Trigger, topics.SERVICE_RECORDER_STOP_FAILURE, self._service(lambda: self.stop(success=False)))
-            self.create_service(Trigger, topics.SERVICE_RECORDER_DISCARD, self._service(self.discard))
-            self.create_timer(0.5, self.housekeeping)
-            self.publish_status()
-            self.get_logger().info(f"recording {sorted(self.topics)} to {self.cfg.output_dir}/")
-            if keyboard:
-                self.start_keyboard()
-            if autostart:
-                self.start()
+                writer.add_topic(topic, msgtype, reliable=topic not in BEST_EFFORT_TOPICS)
+            start_ns = now_ns(self)
+            writer.write_tf_static(self.lab, start_ns)
+            self.writer = writer
+            self.interventions = InterventionLog(start_ns)
+            self.interventions.update(self.teleop_active, start_ns)  # already driving at the start
+        self.publish_status()
+        self.get_logger().info(f"episode started: {path}")
+        return str(path)
 
-        # -- episode control -------------------------------------------------------------
-        def start(self, **meta_updates) -> str:
+    def stop(self, **meta_updates) -> str:
+        with self.lock:
+            if self.writer is None:
+                raise RecordingError("not recording")
+            writer, self.writer = self.writer, None
+            path = writer.close(**self._with_interventions(writer, meta_updates))
+            counts = dict(writer.counts)
+        self.publish_status()
+        self.get_logger().info(f"episode kept: {path} ({sum(counts.values())} messages: {counts})")
+        return str(path)
+
+    def discard(self) -> str:
+        with self.lock:
+            if self.writer is None:
+                raise RecordingError("not recording")
+            writer, self.writer = self.writer, None
+            writer.discard()
+        self.publish_status()
+        self.get_logger().info(f"episode discarded: {writer.path}")
+        return f"discarded {writer.path}"
+
+    def _with_interventions(self, writer, meta_updates: dict) -> dict:
+        log, self.interventions = self.interventions, None
+        if log is None:
+            return meta_updates
+        extra = {**writer.meta.extra, **meta_updates.get("extra", {}), **log.metadata(now_ns(self))}
+        return {**meta_updates, "extra": extra}
+
+    def on_teleop_active(self, msg):
+        with self.lock:
+            self.teleop_active = bool(msg.data)
+            if self.interventions is not None:
+                self.interventions.update(self.teleop_active, now_ns(self))
+
+    # -- plumbing --------------------------------------------------------------------
+    def _writer_cb(self, topic: str, msgtype: str):
+        def cb(data: bytes):
             with self.lock:
                 if self.writer is not None:
-                    raise RecordingError(f"already recording {self.writer.path}")
-                task = meta_updates.get("task", self.task)
-                meta = EpisodeMeta(task=task, operator=self.operator, notes=self.notes)
-                path = next_episode_path(self.cfg.output_dir, task)
-                writer = EpisodeWriter(path, meta, self.cfg).open()
-                for topic, msgtype in self.topics.items():
-                    writer.add_topic(topic, msgtype, reliable=topic not in BEST_EFFORT_TOPICS)
-                start_ns = now_ns(self)
-                writer.write_tf_static(self.lab, start_ns)
-                self.writer = writer
-                self.interventions = InterventionLog(start_ns)
-                self.interventions.update(self.teleop_active, start_ns)  # already driving at the start
-            self.publish_status()
-            self.get_logger().info(f"episode started: {path}")
-            return str(path)
+                    self.writer.write_raw(topic, now_ns(self), data, msgtype)
+        return cb
 
-        def stop(self, **meta_updates) -> str:
-            with self.lock:
-                if self.writer is None:
-                    raise RecordingError("not recording")
-                writer, self.writer = self.writer, None
-                path = writer.close(**self._with_interventions(writer, meta_updates))
-                counts = dict(writer.counts)
-            self.publish_status()
-            self.get_logger().info(f"episode kept: {path} ({sum(counts.values())} messages: {counts})")
-            return str(path)
-
-        def discard(self) -> str:
-            with self.lock:
-                if self.writer is None:
-                    raise RecordingError("not recording")
-                writer, self.writer = self.writer, None
-                writer.discard()
-            self.publish_status()
-            self.get_logger().info(f"episode discarded: {writer.path}")
-            return f"discarded {writer.path}"
-
-        def _with_interventions(self, writer, meta_updates: dict) -> dict:
-            log, self.interventions = self.interventions, None
-            if log is None:
-                return meta_updates
-            extra = {**writer.meta.extra, **meta_updates.get("extra", {}), **log.metadata(now_ns(self))}
-            return {**meta_updates, "extra": extra}
-
-        def on_teleop_active(self, msg):
-            with self.lock:
-                self.teleop_active = bool(msg.data)
-                if self.interventions is not None:
-                    self.interventions.update(self.teleop_active, now_ns(self))
-
-        # -- plumbing --------------------------------------------------------------------
-        def _writer_cb(self, topic: str, msgtype: str):
-            def cb(data: bytes):
-                with self.lock:
-                    if self.writer is not None:
-                        self.writer.write_raw(topic, now_ns(self), data, msgtype)
-            return cb
-
-        def _service(self, action):
-            def handler(request, response):
-                try:
-                    response.message = action()
-                    response.success = True
-                except RecordingError as err:
-                    response.success, response.message = False, str(err)
-                    self.get_logger().error(str(err))
-                return response
-            return handler
-
-        def on_command(self, msg):
+    def _service(self, action):
+        def handler(request, response):
             try:
-                action, updates = parse_command(msg.data)
-                if action == "start":
-                    self.start(**updates)
-                elif action == "stop":
-                    self.stop(**updates)
-                else:
-                    self.discard()
-            except (ValueError, RecordingError) as err:
-                self.get_logger().error(f"{TOPIC_RECORDER_COMMAND}: {err}")
+                response.message = action()
+                response.success = True
+            except RecordingError as err:
+                response.success, response.message = False, str(err)
+                self.get_logger().error(str(err))
+            return response
+        return handler
 
-        def publish_status(self):
-            String = self.factory.cls("std_msgs/msg/String")
+    def on_command(self, msg):
+        try:
+            action, updates = parse_command(msg.data)
+            if action == "start":
+                self.start(**updates)
+            elif action == "stop":
+                self.stop(**updates)
+            else:
+                self.discard()
+        except (ValueError, RecordingError) as err:
+            self.get_logger().error(f"{TOPIC_RECORDER_COMMAND}: {err}")
+
+    def publish_status(self):
+        String = self.factory.cls("std_msgs/msg/String")
+        writer = self.writer
+        self.status_pub.publish(String(data="idle" if writer is None else f"recording {writer.path}"))
+
+    def housekeeping(self):
+        with self.lock:
             writer = self.writer
-            self.status_pub.publish(String(data="idle" if writer is None else f"recording {writer.path}"))
+            if writer is not None:
+                writer.flush_if_old()  # bounds what a SIGKILL can lose
+        if writer is not None and writer.low_disk:
+            self.get_logger().error("disk nearly full: stopping and keeping the episode")
+            self.stop(success=None, notes="stopped: disk nearly full")
 
-        def housekeeping(self):
-            with self.lock:
-                writer = self.writer
-                if writer is not None:
-                    writer.flush_if_old()  # bounds what a SIGKILL can lose
-            if writer is not None and writer.low_disk:
-                self.get_logger().error("disk nearly full: stopping and keeping the episode")
-                self.stop(success=None, notes="stopped: disk nearly full")
+    def start_keyboard(self):
+        if not sys.stdin or not sys.stdin.isatty():
+            self.get_logger().warn("keyboard:=true but stdin is not a terminal; use services or "
+                                   f"{TOPIC_RECORDER_COMMAND}")
+            return
+        print("recorder keys: s=start  k=keep (success)  f=keep (failure)  d=discard  [Enter]", flush=True)
 
-        def start_keyboard(self):
-            if not sys.stdin or not sys.stdin.isatty():
-                self.get_logger().warn("keyboard:=true but stdin is not a terminal; use services or "
-                                       f"{TOPIC_RECORDER_COMMAND}")
-                return
-            print("recorder keys: s=start  k=keep (success)  f=keep (failure)  d=discard  [Enter]", flush=True)
+        def loop():
+            actions = {"s": self.start, "k": lambda: self.stop(success=True),
+                       "f": lambda: self.stop(success=False), "d": self.discard}
+            for line in sys.stdin:
+                key = line.strip()[:1].lower()
+                if key in actions:
+                    try:
+                        print(actions[key](), flush=True)
+                    except RecordingError as err:
+                        print(f"recorder: {err}", flush=True)
+        threading.Thread(target=loop, daemon=True, name="recorder-keyboard").start()
 
-            def loop():
-                actions = {"s": self.start, "k": lambda: self.stop(success=True),
-                           "f": lambda: self.stop(success=False), "d": self.discard}
-                for line in sys.stdin:
-                    key = line.strip()[:1].lower()
-                    if key in actions:
-                        try:
-                            print(actions[key](), flush=True)
-                        except RecordingError as err:
-                            print(f"recorder: {err}", flush=True)
-            threading.Thread(target=loop, daemon=True, name="recorder-keyboard").start()
-
-        def shutdown(self):
-            with self.lock:
-                writer, self.writer = self.writer, None
-            if writer is not None:  # keep what was recorded; the operator judges it later
-                notes = (writer.meta.notes + " [recorder shut down mid-episode]").strip()
-                writer.close(**self._with_interventions(writer, {"success": None, "notes": notes}))
-                self.get_logger().info(f"episode kept on shutdown: {writer.path}")
-
-    return RecorderNode()
+    def shutdown(self):
+        with self.lock:
+            writer, self.writer = self.writer, None
+        if writer is not None:  # keep what was recorded; the operator judges it later
+            notes = (writer.meta.notes + " [recorder shut down mid-episode]").strip()
+            writer.close(**self._with_interventions(writer, {"success": None, "notes": notes}))
+            self.get_logger().info(f"episode kept on shutdown: {writer.path}")
 
 
 def main(args=None) -> int:
@@ -283,7 +279,7 @@ def main(args=None) -> int:
 
         return (RecordingError,)
 
-    return run_node("recorder_node", USAGE, build_node, startup_errors, args)
+    return run_node("recorder_node", USAGE, RecorderNode, startup_errors, args)
 
 
 if __name__ == "__main__":

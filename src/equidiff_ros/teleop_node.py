@@ -25,8 +25,36 @@ from __future__ import annotations
 
 import dataclasses
 import sys
-import typing
 
+from rclpy.node import Node
+
+from equidiff_core.chunk import chunk_to_msg
+from equidiff_core.control.messages import pose_from_msg
+from equidiff_core.geometry import GeometryError
+from equidiff_core.rosmsg import RclpyFactory
+from equidiff_core.teleop import (
+    NS_PER_S,
+    SpaceMouseSource,
+    TeleopConfig,
+    TeleopError,
+    TeleopInput,
+    TeleopIntegrator,
+    is_fresh,
+)
+from equidiff_ros.common import (
+    LATCHED_QOS,
+    RELIABLE_QOS,
+    SENSOR_QOS,
+    TOPIC_COMMAND_CHUNK,
+    TOPIC_EE_POSE,
+    TOPIC_JOINT_STATES,
+    TOPIC_JOY,
+    TOPIC_TELEOP_ACTIVE,
+    declare_config,
+    declare_lab_config,
+    now_ns,
+    wait_for_clock,
+)
 from equidiff_ros.runner import run_node
 
 USAGE = __doc__ + """
@@ -34,186 +62,129 @@ usage: teleop_node [--ros-args -p source:=joy|spacemouse -p gripper_mode:=button
 """
 
 
-def declare_config(node, cls, prefix: str = ""):
-    """Declare one ROS parameter per dataclass field (defaults from the class) and build the config."""
-    from equidiff_core.config import from_dict
+class TeleopNode(Node):
+    def __init__(self):
+        super().__init__("teleop_node")
+        wait_for_clock(self)  # simulated time (the twin): nothing is timed before /clock
+        self.lab = declare_lab_config(self)
+        self.cfg = declare_config(self, TeleopConfig)
+        self.resync_after_s = float(self.declare_parameter("resync_after_s", 1.0).value)
+        self.factory = RclpyFactory()
+        self.teleop = TeleopIntegrator(self.cfg, self.lab.workspace)
+        self.measured = None  # latest /franka/ee_pose (4x4)
+        self.width_measured: float | None = None
+        self.input = None  # the newest TeleopInput, stamped when the device reported it
+        self.warned_unstamped = False
+        self.last_active_ns = 0
+        self.last_publish_ns = 0
+        self.last_tick_ns: int | None = None
 
-    values = {}
-    hints = typing.get_type_hints(cls)
-    for f in dataclasses.fields(cls):
-        default = f.default if f.default is not dataclasses.MISSING else None
-        if isinstance(default, tuple):
-            default = [float(v) for v in default] if "float" in str(hints[f.name]) else list(default)
-        if default is None or isinstance(default, dict):
-            continue  # optional / mapping fields keep their defaults
-        value = node.declare_parameter(prefix + f.name, default).value
-        values[f.name] = list(value) if isinstance(value, (list, tuple)) or hasattr(value, "tolist") else value
-    return from_dict(cls, values, node.get_name())
+        self.pub = self.create_publisher(self.factory.cls("trajectory_msgs/msg/MultiDOFJointTrajectory"),
+                                         TOPIC_COMMAND_CHUNK, RELIABLE_QOS)
+        self.Bool = self.factory.cls("std_msgs/msg/Bool")
+        self.pub_active = self.create_publisher(self.Bool, TOPIC_TELEOP_ACTIVE, LATCHED_QOS)
+        self.taken_over = False
+        self.pub_active.publish(self.Bool(data=False))
+        self.create_subscription(self.factory.cls("geometry_msgs/msg/PoseStamped"), TOPIC_EE_POSE,
+                                 self.on_pose, SENSOR_QOS)
+        self.create_subscription(self.factory.cls("sensor_msgs/msg/JointState"), TOPIC_JOINT_STATES,
+                                 self.on_joints, SENSOR_QOS)
+        self.device = None
+        if self.cfg.source == "spacemouse":
+            self.device = SpaceMouseSource(self.cfg.device)
+            self.device.connect()  # TeleopError names what was looked for
+        else:
+            self.create_subscription(self.factory.cls("sensor_msgs/msg/Joy"), TOPIC_JOY, self.on_joy, SENSOR_QOS)
+        self.create_timer(1.0 / self.cfg.rate_hz, self.tick)
+        self.get_logger().info(f"teleop from {self.cfg.source} ({TOPIC_JOY if self.device is None else 'HID'}), "
+                               f"{self.cfg.translation_frame}-frame translation, gripper {self.cfg.gripper_mode}")
 
+    def on_pose(self, msg):
+        try:
+            pose = pose_from_msg(msg)
+        except GeometryError as err:
+            self.get_logger().warn(f"ignoring bad {TOPIC_EE_POSE}: {err}", throttle_duration_sec=2.0)
+            return
+        self.measured = pose
+        if self.teleop.ready:
+            self.teleop.observe(pose)
 
-def _pose_from_msg(msg):
-    import numpy as np
+    def on_joints(self, msg):
+        names = list(msg.name)
+        if "fr3_finger_joint1" in names and "fr3_finger_joint2" in names:
+            self.width_measured = float(msg.position[names.index("fr3_finger_joint1")]
+                                        + msg.position[names.index("fr3_finger_joint2")])
 
-    from equidiff_core import geometry
+    def on_joy(self, msg):
+        try:
+            inp = TeleopInput.from_joy(msg)
+        except TeleopError as err:
+            self.get_logger().warn(f"ignoring {TOPIC_JOY}: {err}", throttle_duration_sec=2.0)
+            return
+        received = now_ns(self)
+        if inp.stamp_ns <= 0:
+            if not self.warned_unstamped:
+                self.warned_unstamped = True
+                self.get_logger().warn(f"{TOPIC_JOY} messages carry no header stamp: their age is "
+                                       "counted from receipt, so a stalled driver is noticed late")
+            stamp = received
+        else:
+            # Messages delayed in transport are as old as their stamp; a stamp from the future
+            # (another machine's clock) cannot make them younger than their receipt.
+            stamp = min(inp.stamp_ns, received)
+            if received - inp.stamp_ns > 10 * NS_PER_S:
+                self.get_logger().warn(
+                    f"{TOPIC_JOY} stamps are {(received - inp.stamp_ns) / 1e9:.1f} s behind this node's "
+                    "clock (use_sim_time on one side only?): input treated as stale, teleop holds",
+                    throttle_duration_sec=5.0)
+        self.input = dataclasses.replace(inp, stamp_ns=stamp)
 
-    p, q = msg.pose.position, msg.pose.orientation
-    return geometry.pose_from_pos_quat(np.array([p.x, p.y, p.z]), np.array([q.x, q.y, q.z, q.w]))
-
-
-def build_node():
-    from rclpy.node import Node
-
-    from equidiff_core.chunk import chunk_to_msg
-    from equidiff_core.geometry import GeometryError
-    from equidiff_core.rosmsg import RclpyFactory
-    from equidiff_core.teleop import (
-        NS_PER_S,
-        SpaceMouseSource,
-        TeleopConfig,
-        TeleopError,
-        TeleopInput,
-        TeleopIntegrator,
-        is_fresh,
-    )
-    from equidiff_ros.common import (
-        LATCHED_QOS,
-        RELIABLE_QOS,
-        SENSOR_QOS,
-        TOPIC_COMMAND_CHUNK,
-        TOPIC_EE_POSE,
-        TOPIC_JOINT_STATES,
-        TOPIC_JOY,
-        TOPIC_TELEOP_ACTIVE,
-        declare_lab_config,
-        now_ns,
-        wait_for_clock,
-    )
-
-    class TeleopNode(Node):
-        def __init__(self):
-            super().__init__("teleop_node")
-            wait_for_clock(self)  # simulated time (the twin): nothing is timed before /clock
-            self.lab = declare_lab_config(self)
-            self.cfg = declare_config(self, TeleopConfig)
-            self.resync_after_s = float(self.declare_parameter("resync_after_s", 1.0).value)
-            self.factory = RclpyFactory()
-            self.teleop = TeleopIntegrator(self.cfg, self.lab.workspace)
-            self.measured = None  # latest /franka/ee_pose (4x4)
-            self.width_measured: float | None = None
-            self.input = None  # the newest TeleopInput, stamped when the device reported it
-            self.warned_unstamped = False
-            self.last_active_ns = 0
-            self.last_publish_ns = 0
-            self.last_tick_ns: int | None = None
-
-            self.pub = self.create_publisher(self.factory.cls("trajectory_msgs/msg/MultiDOFJointTrajectory"),
-                                             TOPIC_COMMAND_CHUNK, RELIABLE_QOS)
-            self.Bool = self.factory.cls("std_msgs/msg/Bool")
-            self.pub_active = self.create_publisher(self.Bool, TOPIC_TELEOP_ACTIVE, LATCHED_QOS)
-            self.taken_over = False
-            self.pub_active.publish(self.Bool(data=False))
-            self.create_subscription(self.factory.cls("geometry_msgs/msg/PoseStamped"), TOPIC_EE_POSE,
-                                     self.on_pose, SENSOR_QOS)
-            self.create_subscription(self.factory.cls("sensor_msgs/msg/JointState"), TOPIC_JOINT_STATES,
-                                     self.on_joints, SENSOR_QOS)
-            self.device = None
-            if self.cfg.source == "spacemouse":
-                self.device = SpaceMouseSource(self.cfg.device)
-                self.device.connect()  # TeleopError names what was looked for
-            else:
-                self.create_subscription(self.factory.cls("sensor_msgs/msg/Joy"), TOPIC_JOY, self.on_joy, SENSOR_QOS)
-            self.create_timer(1.0 / self.cfg.rate_hz, self.tick)
-            self.get_logger().info(f"teleop from {self.cfg.source} ({TOPIC_JOY if self.device is None else 'HID'}), "
-                                   f"{self.cfg.translation_frame}-frame translation, gripper {self.cfg.gripper_mode}")
-
-        def on_pose(self, msg):
+    def tick(self):
+        now = now_ns(self)
+        dt = 0.0 if self.last_tick_ns is None else (now - self.last_tick_ns) / 1e9
+        self.last_tick_ns = now
+        if self.device is not None:
             try:
-                pose = _pose_from_msg(msg)
-            except GeometryError as err:
-                self.get_logger().warn(f"ignoring bad {TOPIC_EE_POSE}: {err}", throttle_duration_sec=2.0)
-                return
-            self.measured = pose
-            if self.teleop.ready:
-                self.teleop.observe(pose)
+                self.input = self.device.read(now)
+            except Exception as err:  # noqa: BLE001 - unplugged mid-session: hold still, say why
+                self.get_logger().error(f"SpaceMouse read failed: {err}", throttle_duration_sec=2.0)
+                self.input = None
+        inp = self.input if is_fresh(self.input, now, self.cfg.input_timeout_s) else None
+        if not self.teleop.engaged(inp):
+            if self.teleop.ready:  # keep button edges in sync while idle
+                self.teleop.step(None, dt)
+            if self.taken_over and (now - self.last_active_ns) / 1e9 > self.resync_after_s:
+                self.set_taken_over(False)
+            return
+        if self.measured is None:
+            self.get_logger().warn(f"operator input but no {TOPIC_EE_POSE} yet: not commanding",
+                                   throttle_duration_sec=2.0)
+            return
+        if not self.taken_over:
+            self.set_taken_over(True)
+        idle_s = (now - self.last_active_ns) / 1e9
+        if not self.teleop.ready or idle_s > self.resync_after_s:
+            self.teleop.reset(self.measured, self.width_measured)
+            dt = 0.0
+        self.last_active_ns = now
+        try:
+            self.teleop.step(inp, min(dt, 0.1))  # a long stall must not turn into a jump
+        except TeleopError as err:
+            self.get_logger().warn(str(err), throttle_duration_sec=2.0)
+            return
+        if (now - self.last_publish_ns) >= 1e9 / self.cfg.publish_hz * 0.95:
+            self.last_publish_ns = now
+            self.pub.publish(chunk_to_msg(self.teleop.chunk(now), self.factory, self.lab.base_frame))
 
-        def on_joints(self, msg):
-            names = list(msg.name)
-            if "fr3_finger_joint1" in names and "fr3_finger_joint2" in names:
-                self.width_measured = float(msg.position[names.index("fr3_finger_joint1")]
-                                            + msg.position[names.index("fr3_finger_joint2")])
+    def set_taken_over(self, active: bool):
+        self.taken_over = active
+        self.pub_active.publish(self.Bool(data=active))
+        self.get_logger().info("operator took over (SpaceMouse)" if active else "operator let go")
 
-        def on_joy(self, msg):
-            try:
-                inp = TeleopInput.from_joy(msg)
-            except TeleopError as err:
-                self.get_logger().warn(f"ignoring {TOPIC_JOY}: {err}", throttle_duration_sec=2.0)
-                return
-            received = now_ns(self)
-            if inp.stamp_ns <= 0:
-                if not self.warned_unstamped:
-                    self.warned_unstamped = True
-                    self.get_logger().warn(f"{TOPIC_JOY} messages carry no header stamp: their age is "
-                                           "counted from receipt, so a stalled driver is noticed late")
-                stamp = received
-            else:
-                # Messages delayed in transport are as old as their stamp; a stamp from the future
-                # (another machine's clock) cannot make them younger than their receipt.
-                stamp = min(inp.stamp_ns, received)
-                if received - inp.stamp_ns > 10 * NS_PER_S:
-                    self.get_logger().warn(
-                        f"{TOPIC_JOY} stamps are {(received - inp.stamp_ns) / 1e9:.1f} s behind this node's "
-                        "clock (use_sim_time on one side only?): input treated as stale, teleop holds",
-                        throttle_duration_sec=5.0)
-            self.input = dataclasses.replace(inp, stamp_ns=stamp)
-
-        def tick(self):
-            now = now_ns(self)
-            dt = 0.0 if self.last_tick_ns is None else (now - self.last_tick_ns) / 1e9
-            self.last_tick_ns = now
-            if self.device is not None:
-                try:
-                    self.input = self.device.read(now)
-                except Exception as err:  # noqa: BLE001 - unplugged mid-session: hold still, say why
-                    self.get_logger().error(f"SpaceMouse read failed: {err}", throttle_duration_sec=2.0)
-                    self.input = None
-            inp = self.input if is_fresh(self.input, now, self.cfg.input_timeout_s) else None
-            if not self.teleop.engaged(inp):
-                if self.teleop.ready:  # keep button edges in sync while idle
-                    self.teleop.step(None, dt)
-                if self.taken_over and (now - self.last_active_ns) / 1e9 > self.resync_after_s:
-                    self.set_taken_over(False)
-                return
-            if self.measured is None:
-                self.get_logger().warn(f"operator input but no {TOPIC_EE_POSE} yet: not commanding",
-                                       throttle_duration_sec=2.0)
-                return
-            if not self.taken_over:
-                self.set_taken_over(True)
-            idle_s = (now - self.last_active_ns) / 1e9
-            if not self.teleop.ready or idle_s > self.resync_after_s:
-                self.teleop.reset(self.measured, self.width_measured)
-                dt = 0.0
-            self.last_active_ns = now
-            try:
-                self.teleop.step(inp, min(dt, 0.1))  # a long stall must not turn into a jump
-            except TeleopError as err:
-                self.get_logger().warn(str(err), throttle_duration_sec=2.0)
-                return
-            if (now - self.last_publish_ns) >= 1e9 / self.cfg.publish_hz * 0.95:
-                self.last_publish_ns = now
-                self.pub.publish(chunk_to_msg(self.teleop.chunk(now), self.factory, self.lab.base_frame))
-
-        def set_taken_over(self, active: bool):
-            self.taken_over = active
-            self.pub_active.publish(self.Bool(data=active))
-            self.get_logger().info("operator took over (SpaceMouse)" if active else "operator let go")
-
-        def destroy_node(self):
-            if self.device is not None:
-                self.device.disconnect()
-            return super().destroy_node()
-
-    return TeleopNode()
+    def destroy_node(self):
+        if self.device is not None:
+            self.device.disconnect()
+        return super().destroy_node()
 
 
 def main(args=None) -> int:
@@ -222,7 +193,7 @@ def main(args=None) -> int:
 
         return (TeleopError,)
 
-    return run_node("teleop_node", USAGE, build_node, startup_errors, args)
+    return run_node("teleop_node", USAGE, TeleopNode, startup_errors, args)
 
 
 if __name__ == "__main__":
