@@ -17,6 +17,7 @@ import sys
 COMMANDS: dict[tuple[str, ...], tuple[str, str]] = {
     ("train",): ("train", "train EquiDiff or the baseline from recorded bags"),
     ("dataset", "stats"): ("dataset_stats", "episodes, durations, steps and action ranges of bags"),
+    ("dataset", "revoxelize"): ("dataset_revoxelize", "rebuild the bags' voxels from their clouds with new extrinsics"),
     ("dataset", "pack"): ("dataset_pack", "one compressed .episode.npz per bag: train without the bags"),
     ("bags", "repair"): ("bags_repair", "recover the messages of a bag whose recorder was killed"),
     ("replay",): ("replay", "publish a recorded bag into the live ROS graph"),

@@ -3,8 +3,9 @@
 Wiring:
   /cameras/<name>/points (PointCloud2, sensor-data QoS), one subscription per camera
       -> ``pointcloud.msg_to_cloud`` (malformed: dropped with a throttled warning)
-      -> ``sync.ApproximateTimeMatcher`` (one queue per camera)
-  each cloud: a new complete set within ``slop_s`` (at most ``observation_hz``)?
+      -> ``fusion.CloudFusion`` (one queue per camera; the same rule ``equidiff dataset
+         revoxelize`` applies to recorded clouds)
+  each cloud, no camera stale: a new complete set within ``slop_s`` (at most ``observation_hz``)?
       -> ``voxels.Voxelizer`` (extrinsics from lab.yaml) -> ``pointcloud.grid_to_voxel_msg``
       -> /voxels (stamp = newest capture stamp of the set)
   timer at ``observation_hz`` -> stale camera? say which (the stale camera has no set to add)
@@ -24,6 +25,7 @@ of the whole cloud, false); clean-up: ``remove_table`` (false) drops points belo
 
 from __future__ import annotations
 
+import dataclasses
 import re
 import sys
 import time
@@ -31,10 +33,10 @@ import time
 from rclpy.node import Node
 
 from equidiff_core.control import messages as cm
+from equidiff_core.fusion import CloudFusion
 from equidiff_core.pointcloud import CloudError, grid_to_voxel_msg, msg_to_cloud
 from equidiff_core.rosmsg import RclpyFactory
-from equidiff_core.sync import ApproximateTimeMatcher
-from equidiff_core.voxels import Voxelizer, VoxelizerConfig
+from equidiff_core.voxels import VoxelizerConfig
 from equidiff_ros.common import (
     RELIABLE_QOS,
     SENSOR_QOS,
@@ -75,8 +77,8 @@ class VoxelNode(Node):
                                   outlier_std_ratio=param("outlier_std_ratio", 2.0))
         self.cameras = list(self.lab.cameras)
         self.names = [c.name for c in self.cameras]
-        self.voxelizer = Voxelizer(self.lab.workspace, [c.extrinsics.matrix() for c in self.cameras], cleanup)
-        self.matcher = ApproximateTimeMatcher(self.names, self.slop_ns, queue_size)
+        self.fusion = CloudFusion(dataclasses.replace(self.lab, observation_hz=hz), self.slop_ns, queue_size, cleanup)
+        self.matcher = self.fusion.matcher  # the camera queues: their ages say which camera is stale
         self.factory = RclpyFactory()
         cloud_type = self.factory.cls("sensor_msgs/msg/PointCloud2")
         for cam in self.cameras:
@@ -91,8 +93,6 @@ class VoxelNode(Node):
         self.skipped_stale = 0
         self.voxelize_ms = float("nan")
         self.state = "waiting for clouds"
-        self.period_ns = int(1e9 / hz)
-        self._last_stamp: int | None = None
         self.create_timer(1.0 / hz, self._on_tick)
         self.create_timer(1.0, self._publish_diagnostics)
         self.get_logger().info(f"fusing {[c.topic for c in self.cameras]} into {TOPIC_VOXELS} at {hz} Hz")
@@ -112,7 +112,7 @@ class VoxelNode(Node):
                 self._last_warned[kind] = t
                 self.get_logger().warning(f"dropped a cloud on {cam.topic}: {err}")
             return
-        self.matcher.add(cam.name, cloud.stamp_ns, cloud)
+        self.fusion.add(cam.name, cloud.stamp_ns, cloud)
         self._publish_new_set()
 
     def _stale_cameras(self) -> bool:
@@ -137,25 +137,23 @@ class VoxelNode(Node):
                                       throttle_duration_sec=2.0)
 
     def _publish_new_set(self):
-        match = self.matcher.newest()
-        if match is None or self._stale_cameras():
-            return  # no new complete set yet, or a camera is stale
-        if self._last_stamp is not None and match.newest_ns - self._last_stamp < 0.75 * self.period_ns:
-            return  # cameras faster than observation_hz: this set is not due yet
-        self._last_stamp = match.newest_ns
+        if self._stale_cameras():
+            return  # a camera is stale: no grid until it is back
         t0 = time.perf_counter()
-        grid = self.voxelizer([match.items[n] for n in self.names])
+        out = self.fusion.next_grid()
+        if out is None:
+            return  # no new complete set yet, or not due (cameras faster than observation_hz)
         self.voxelize_ms = (time.perf_counter() - t0) * 1e3
+        stamp_ns, grid = out
         ws = self.lab.workspace
-        self.pub.publish(grid_to_voxel_msg(grid, ws.lower, ws.voxel_size, match.newest_ns,
-                                           self.lab.base_frame, self.factory))
+        self.pub.publish(grid_to_voxel_msg(grid, ws.lower, ws.voxel_size, stamp_ns, self.lab.base_frame, self.factory))
         self.published += 1
         self.state = "publishing"
 
     def _publish_diagnostics(self):
         now = now_ns(self)
         ages = self.matcher.ages_ns(now)
-        stats = self.voxelizer.last_stats
+        stats = self.fusion.voxelizer.last_stats
         values = {"voxelize_ms": self.voxelize_ms, "published": self.published,
                   "skipped_stale": self.skipped_stale,
                   "points_used": stats.points_used if stats else 0,
