@@ -313,6 +313,18 @@ def _needs_repair(path: Path) -> str | None:
     return None
 
 
+def close_derived_bag(writer, source: Path, target: Path, note: str) -> EpisodeMeta:
+    """Close ``writer`` (the new bag at ``target``, made from the bag at ``source``) with the
+    source's episode metadata plus ``note`` (what was done to it), in metadata.yaml and the sidecar."""
+    meta = read_meta(source)
+    meta = meta.replace(notes=(meta.notes + " | " + note) if meta.notes else note)
+    for key, value in meta.to_custom_data().items():
+        writer.set_custom_data(key, value)
+    writer.close()
+    (target / META_SIDECAR).write_text(yaml.safe_dump(meta.to_dict(), sort_keys=False))
+    return meta
+
+
 def repair_bag(path: str | Path, output: str | Path | None = None, force: bool = False) -> RepairReport | None:
     """Rebuild a readable bag from a killed recording; returns None if ``path`` is healthy (unless ``force``).
 
@@ -366,18 +378,13 @@ def repair_bag(path: str | Path, output: str | Path | None = None, force: bool =
             if cid in conns:
                 writer.write(conns[cid], log_time, data)
                 counts[conns[cid].topic] += 1
-        meta = read_meta(path)
         lost = size - scan.good_until
-        note = f"recovered by equidiff bags repair: {sum(counts.values())} messages, {lost} trailing bytes lost"
-        meta = meta.replace(notes=(meta.notes + " | " + note) if meta.notes else note)
-        for key, value in meta.to_custom_data().items():
-            writer.set_custom_data(key, value)
-        writer.close()
+        close_derived_bag(writer, path, target,
+                          f"recovered by equidiff bags repair: {sum(counts.values())} messages, {lost} trailing bytes lost")
     except BaseException:
         writer.abort()
         shutil.rmtree(staging if in_place else target, ignore_errors=True)
         raise
-    (target / META_SIDECAR).write_text(yaml.safe_dump(meta.to_dict(), sort_keys=False))
     original = None
     if in_place:
         original = path.with_name(path.name + UNREPAIRED_SUFFIX)

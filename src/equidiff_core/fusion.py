@@ -65,10 +65,9 @@ def revoxelize_bag(source: str | Path, output: str | Path, lab: LabConfig, slop_
     (recorded without ``record_clouds``) or an ``output`` that exists."""
     import shutil
 
-    import yaml
     from rosbags.rosbag2 import Reader
 
-    from .bags import META_SIDECAR, BagError, read_meta
+    from .bags import BagError, close_derived_bag
     from .mcap_writer import open_bag_writer
     from .pointcloud import CloudError, grid_to_voxel_msg, msg_to_cloud
     from .rosmsg import rosbags_factory
@@ -118,15 +117,10 @@ def revoxelize_bag(source: str | Path, output: str | Path, lab: LabConfig, slop_
                     msg = grid_to_voxel_msg(grid, ws.lower, ws.voxel_size, stamp_ns, lab.base_frame, factory)
                     writer.write(voxels_conn, log_ns, factory.typestore.serialize_cdr(msg, CLOUD_TYPE))
                     grids += 1
-            meta = read_meta(source)
-            note = f"re-voxelised by equidiff dataset revoxelize from {source.name} ({grids} grids)"
-            meta = meta.replace(notes=(meta.notes + " | " + note) if meta.notes else note)
-            for key, value in meta.to_custom_data().items():
-                writer.set_custom_data(key, value)
-            writer.close()
+            close_derived_bag(writer, source, output,
+                              f"re-voxelised by equidiff dataset revoxelize from {source.name} ({grids} grids)")
         except BaseException:
             writer.abort()
             shutil.rmtree(output, ignore_errors=True)
             raise
-    (output / META_SIDECAR).write_text(yaml.safe_dump(meta.to_dict(), sort_keys=False))
     return RevoxelizeReport(output, grids, replaced, clouds)
