@@ -75,7 +75,7 @@ class RecordingConfig:
     """How episodes are written (config/data.yaml ``recorder`` section)."""
 
     output_dir: str = "episodes"
-    record_clouds: bool = False  # the three camera clouds: ~15 MB/s at 5 Hz, off by default
+    record_clouds: bool = False  # the three camera clouds (docs/data.md: 5x the bag in the twin, ~100x with D455s)
     chunk_size_mib: float = 8.0  # > the largest message (a dense voxel grid is ~1 MiB)
     chunk_max_age_s: float = 2.0  # a SIGKILL loses at most this much
     min_free_gib: float = 2.0  # refuse to start (or stop) below this much free disk
