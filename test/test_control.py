@@ -309,11 +309,18 @@ def test_arm_running_away_from_its_command_is_stopped_and_held_where_it_is():
         clock.t += period
         ctl.tick()
     assert ctl.stats.divergence_stops == 1 and not ctl.stats.faulted
+    # It never resumes on its own: chunks are refused, the arm holds, until an operator acknowledges.
+    assert "divergence stop" in ctl.stats.awaiting_ack
+    assert not ctl.submit(circle_chunk(clock.t, t0)) and ctl.stats.ack_rejected == 1 and ctl.holding
+    assert "awaiting an operator's acknowledgement" in ctl.stats.last_rejection
     robot.joint_speed = np.array([2.4, 0, 0, 0, 0, 3.9, 4.9])  # fast but within each joint's limit
     for _ in range(int(2 * ctl.config.control_hz)):
         clock.t += period
-        ctl.tick()
-    assert ctl.stats.divergence_stops == 1  # and the calm seconds ended the run of stops
+        np.testing.assert_allclose(ctl.tick().target.pose[:3, 3], runaway, atol=1e-9)  # still held
+    assert ctl.stats.divergence_stops == 1 and ctl.holding
+    assert "divergence stop" in ctl.acknowledge() and not ctl.stats.awaiting_ack and ctl.acknowledge() == ""
+    go_on = PoseChunk(clock.t, np.array([clock.t + 200 * MS]), pose_at(runaway + 0.01)[None], np.ones(1))
+    assert ctl.submit(go_on) and not ctl.holding  # after the operator's go-ahead
     robot.joint_speed = np.full(7, 3.0)  # keeps whipping: stopped again after each grace, then faulted
     for _ in range(int(5 * ctl.config.control_hz)):
         clock.t += period
@@ -420,6 +427,11 @@ def test_errors_are_recovered_a_bounded_number_of_times():
         clock.t += 5 * MS
     assert robot.recovered == 2 and ctl.stats.recoveries == 2 and not ctl.stats.faulted
     assert ctl.stats.last_recovery_reason == "cartesian_reflex"
+    # recovered, but holding until acknowledged: a reflex never resumes the policy by itself
+    assert ctl.stats.awaiting_ack == "robot error: cartesian_reflex" and ctl.holding
+    assert not ctl.submit(circle_chunk(clock.t, clock.t)) and ctl.holding
+    assert ctl.acknowledge() == "robot error: cartesian_reflex"
+    assert ctl.submit(circle_chunk(clock.t, clock.t)) and not ctl.holding
 
     ctl, robot, clock = make_controller(robot=FlakyRobot(failures=100))
     for _ in range(10):

@@ -179,6 +179,19 @@ def test_controller_recovers_when_the_franky_motion_stops():
                 assert "without a robot error" in ctl.stats.last_recovery_reason
                 assert robot._robot.is_in_control  # streaming again
                 assert np.linalg.norm(ctl.state.ee_pose[:3, 3] - before) < 0.002
+                # ... and it stays held: the policy's chunks are refused until an operator acknowledges
+                assert "without a robot error" in ctl.stats.awaiting_ack and ctl.holding
+                here = ctl.state.ee_pose.copy()
+                now = ctl.clock.now_ns()
+                nudge = here.copy()
+                nudge[0, 3] += 0.01
+                chunk = PoseChunk(now, np.array([now + 300_000_000]), nudge[None], np.array([0.08]))
+                assert not ctl.submit(chunk) and ctl.stats.ack_rejected == 1
+                time.sleep(0.5)
+                assert np.linalg.norm(ctl.state.ee_pose[:3, 3] - here[:3, 3]) < 0.002  # did not move
+                assert "without a robot error" in ctl.acknowledge()
+                now = ctl.clock.now_ns()
+                assert ctl.submit(PoseChunk(now, np.array([now + 300_000_000]), nudge[None], np.array([0.08])))
             finally:
                 ctl.stop()
 

@@ -172,6 +172,8 @@ def test_policy_publishes_nothing_until_enabled_and_a_takeover_pauses_it(ros_dom
         takeover.publish(Bool(data=False))  # letting go does not resume it
         time.sleep(1.0)
         assert state[-1] == "paused teleop takeover"
+        ack = lab_cli("ack")  # franka_node's acknowledgement service answers (nothing was stopped here)
+        assert ack.returncode == 0 and "nothing to acknowledge" in ack.stdout, ack.stderr
     finally:
         stop.set()
         if client is not None:

@@ -34,6 +34,7 @@ COMMANDS: dict[tuple[str, ...], tuple[str, str]] = {
     ("export", "lerobot"): ("export_lerobot", "export bags to a LeRobot dataset"),
     ("calibrate", "cameras"): ("calibrate", "camera extrinsics from a ChArUco board on the hand (hand-eye + joint refinement)"),
     ("lab", "record"): ("lab_record", "start / keep as success or failure / discard the recorder's episode"),
+    ("lab", "ack"): ("lab_ack", "let the arm go on after a robot error or divergence stop (it never resumes by itself)"),
     ("lab", "policy"): ("lab_policy", "enable, pause or resume the policy"),
     ("lab", "status"): ("lab_status", "episode, policy state and teleop takeover, from the live graph"),
     ("calibrate", "check"): ("calibrate_check", "each camera's alignment in mm against the other clouds and the fingertips"),

@@ -7,6 +7,8 @@ Wiring:
       or the dry run) ; watchdog, workspace clip, speed limits, error recovery live there
   timer at ``state_hz`` (>= 100 Hz) -> /franka/ee_pose, /franka/joint_states, /franka/executed_target
   timer at 1 Hz -> /diagnostics (``franka_node``: rejected chunks, recoveries, watchdog holds, ...)
+  service /franka/acknowledge (Trigger) -> ``Controller.acknowledge``: after a robot error or a
+      divergence stop the arm holds and chunks are refused until an operator calls it
 
 Policy and teleop publish the same chunk topic, so both go through the same checks.
 
@@ -18,8 +20,36 @@ lab.yaml), ``realtime`` (false for franky-sim or a machine without an RT kernel)
 
 from __future__ import annotations
 
+import dataclasses
+import logging
 import sys
+import time
+from pathlib import Path
+from typing import ClassVar
 
+from rclpy.node import Node
+from std_srvs.srv import Trigger
+from trajectory_msgs.msg import MultiDOFJointTrajectory
+
+from equidiff_core.chunk import ChunkError, chunk_from_msg
+from equidiff_core.config import default_config_dir
+from equidiff_core.control import Controller, load_control_config
+from equidiff_core.control import messages as cm
+from equidiff_core.robots import BACKENDS, make_robot
+from equidiff_core.rosmsg import RclpyFactory
+from equidiff_core.topics import SERVICE_FRANKA_ACKNOWLEDGE
+from equidiff_ros.common import (
+    RELIABLE_QOS,
+    TOPIC_COMMAND_CHUNK,
+    TOPIC_DIAGNOSTICS,
+    TOPIC_EE_POSE,
+    TOPIC_EXECUTED_TARGET,
+    TOPIC_JOINT_STATES,
+    declare_lab_config,
+    node_clock,
+    now_ns,
+    wait_for_clock,
+)
 from equidiff_ros.runner import declare_number, run_node
 
 USAGE = __doc__ + """
@@ -30,151 +60,133 @@ usage: franka_node [--ros-args -p backend:=franky|dryrun -p robot_ip:=172.16.0.2
 NODE_NAME = "franka_node"
 
 
-def build_node():
-    import dataclasses
-    import logging
-    import time
-    from pathlib import Path
-    from typing import ClassVar
+class FrankaNode(Node):
+    def __init__(self):
+        super().__init__(NODE_NAME)
+        wait_for_clock(self)  # simulated time (the twin): nothing is timed before /clock
+        self.lab = declare_lab_config(self)
+        control_path = self.declare_parameter("control_config", str(default_config_dir() / "control.yaml")).value
+        backend = self.declare_parameter("backend", "franky").value
+        robot_ip = self.declare_parameter("robot_ip", "").value or self.lab.robot.ip
+        realtime = self.declare_parameter("realtime", True).value
+        gripper = self.declare_parameter("gripper", True).value
+        self.config = load_control_config(Path(control_path))
+        home = self.declare_parameter("home_on_start", self.config.home_on_start).value
+        state_hz = declare_number(self, "state_hz", self.lab.robot.state_hz)
+        if backend not in BACKENDS:
+            raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
+        self.frame = self.lab.base_frame
+        self.factory = RclpyFactory()
+        self.hardware_id = "dryrun" if backend == "dryrun" else robot_ip
 
-    from rclpy.node import Node
-    from trajectory_msgs.msg import MultiDOFJointTrajectory
+        log = _ros_logger_adapter(self.get_logger())
+        kwargs = {} if backend == "dryrun" else {"ip": robot_ip, "config": self.config.franky,
+                                                     "realtime": realtime, "gripper": gripper}
+        self.robot = make_robot(backend, logger=log, **kwargs)
+        self.get_logger().info(f"connecting to the robot ({backend}, {self.hardware_id})")
+        self.robot.connect()
+        # ticks, stamps, staleness and the watchdog on the node's clock: simulated time in the twin
+        self.controller = Controller(self.robot, self.lab.workspace,
+                                     dataclasses.replace(self.config, home_on_start=home),
+                                     clock=node_clock(self), logger=log)
 
-    from equidiff_core.chunk import ChunkError, chunk_from_msg
-    from equidiff_core.config import default_config_dir
-    from equidiff_core.control import Controller, load_control_config
-    from equidiff_core.control import messages as cm
-    from equidiff_core.robots import BACKENDS, make_robot
-    from equidiff_core.rosmsg import RclpyFactory
-    from equidiff_ros.common import (
-        RELIABLE_QOS,
-        TOPIC_COMMAND_CHUNK,
-        TOPIC_DIAGNOSTICS,
-        TOPIC_EE_POSE,
-        TOPIC_EXECUTED_TARGET,
-        TOPIC_JOINT_STATES,
-        declare_lab_config,
-        node_clock,
-        now_ns,
-        wait_for_clock,
-    )
-
-    class FrankaNode(Node):
-        def __init__(self):
-            super().__init__(NODE_NAME)
-            wait_for_clock(self)  # simulated time (the twin): nothing is timed before /clock
-            self.lab = declare_lab_config(self)
-            control_path = self.declare_parameter("control_config", str(default_config_dir() / "control.yaml")).value
-            backend = self.declare_parameter("backend", "franky").value
-            robot_ip = self.declare_parameter("robot_ip", "").value or self.lab.robot.ip
-            realtime = self.declare_parameter("realtime", True).value
-            gripper = self.declare_parameter("gripper", True).value
-            self.config = load_control_config(Path(control_path))
-            home = self.declare_parameter("home_on_start", self.config.home_on_start).value
-            state_hz = declare_number(self, "state_hz", self.lab.robot.state_hz)
-            if backend not in BACKENDS:
-                raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
-            self.frame = self.lab.base_frame
-            self.factory = RclpyFactory()
-            self.hardware_id = "dryrun" if backend == "dryrun" else robot_ip
-
-            log = _ros_logger_adapter(self.get_logger())
-            kwargs = {} if backend == "dryrun" else {"ip": robot_ip, "config": self.config.franky,
-                                                         "realtime": realtime, "gripper": gripper}
-            self.robot = make_robot(backend, logger=log, **kwargs)
-            self.get_logger().info(f"connecting to the robot ({backend}, {self.hardware_id})")
-            self.robot.connect()
-            # ticks, stamps, staleness and the watchdog on the node's clock: simulated time in the twin
-            self.controller = Controller(self.robot, self.lab.workspace,
-                                         dataclasses.replace(self.config, home_on_start=home),
-                                         clock=node_clock(self), logger=log)
-
-            cls = self.factory.cls
-            self.pub_pose = self.create_publisher(cls("geometry_msgs/msg/PoseStamped"), TOPIC_EE_POSE, RELIABLE_QOS)
-            self.pub_joints = self.create_publisher(cls("sensor_msgs/msg/JointState"), TOPIC_JOINT_STATES,
-                                                    RELIABLE_QOS)
-            self.pub_target = self.create_publisher(cls("geometry_msgs/msg/PoseStamped"), TOPIC_EXECUTED_TARGET,
-                                                    RELIABLE_QOS)
-            self.pub_diag = self.create_publisher(cls("diagnostic_msgs/msg/DiagnosticArray"), TOPIC_DIAGNOSTICS,
-                                                  RELIABLE_QOS)
-            try:
-                self.controller.start()
-            except Exception:
-                self.robot.disconnect()
-                raise
-            self.create_subscription(MultiDOFJointTrajectory, TOPIC_COMMAND_CHUNK, self.on_chunk, RELIABLE_QOS)
-            self.create_timer(1.0 / state_hz, self.publish_state)
-            self.create_timer(1.0, self.publish_diagnostics)
-            self._last_target_stamp = None
-            self.get_logger().info(f"streaming at {self.config.control_hz:.0f} Hz, state at {state_hz:.0f} Hz; "
-                                   f"workspace box {self.controller.safety.lower.round(3).tolist()} .. "
-                                   f"{self.controller.safety.upper.round(3).tolist()}")
-
-        def on_chunk(self, msg) -> None:
-            try:
-                chunk = chunk_from_msg(msg)
-            except ChunkError as err:
-                self.controller.record_rejection(err)
-                return
-            self.controller.submit(chunk)
-
-        def publish_state(self) -> None:
-            state = self.controller.state
-            if state is None:
-                return
-            self.pub_pose.publish(cm.pose_stamped(self.factory, state.ee_pose, state.stamp_ns, self.frame))
-            self.pub_joints.publish(cm.joint_state(self.factory, state, state.stamp_ns))
-            command = self.controller.last_command
-            if command is not None and command.stamp_ns != self._last_target_stamp:
-                self._last_target_stamp = command.stamp_ns
-                self.pub_target.publish(cm.pose_stamped(self.factory, command.target.pose, command.stamp_ns,
-                                                        self.frame))
-
-        def publish_diagnostics(self) -> None:
-            stats = self.controller.stats
-            if stats.faulted:
-                level, text = cm.ERROR, "faulted: too many robot errors in a row, restart the node"
-            elif self.controller.holding:
-                level, text = cm.OK, "holding"
-            else:
-                level, text = cm.OK, "executing"
-            if stats.last_rejection and level == cm.OK:
-                level, text = cm.WARN, f"{text}; last rejected chunk: {stats.last_rejection}"
-            values = {k: v for k, v in stats.as_dict().items() if k not in ("last_rejection",)}
-            self.pub_diag.publish(cm.diagnostic_array(self.factory, now_ns(self), NODE_NAME, self.hardware_id,
-                                                      level, text, values))
-
-        def shutdown(self) -> None:
-            self.controller.stop()
+        cls = self.factory.cls
+        self.pub_pose = self.create_publisher(cls("geometry_msgs/msg/PoseStamped"), TOPIC_EE_POSE, RELIABLE_QOS)
+        self.pub_joints = self.create_publisher(cls("sensor_msgs/msg/JointState"), TOPIC_JOINT_STATES,
+                                                RELIABLE_QOS)
+        self.pub_target = self.create_publisher(cls("geometry_msgs/msg/PoseStamped"), TOPIC_EXECUTED_TARGET,
+                                                RELIABLE_QOS)
+        self.pub_diag = self.create_publisher(cls("diagnostic_msgs/msg/DiagnosticArray"), TOPIC_DIAGNOSTICS,
+                                              RELIABLE_QOS)
+        try:
+            self.controller.start()
+        except Exception:
             self.robot.disconnect()
+            raise
+        self.create_subscription(MultiDOFJointTrajectory, TOPIC_COMMAND_CHUNK, self.on_chunk, RELIABLE_QOS)
+        # after a robot error or a divergence stop the arm holds until an operator says go on
+        self.create_service(Trigger, SERVICE_FRANKA_ACKNOWLEDGE, self.on_acknowledge)
+        self.create_timer(1.0 / state_hz, self.publish_state)
+        self.create_timer(1.0, self.publish_diagnostics)
+        self._last_target_stamp = None
+        self.get_logger().info(f"streaming at {self.config.control_hz:.0f} Hz, state at {state_hz:.0f} Hz; "
+                               f"workspace box {self.controller.safety.lower.round(3).tolist()} .. "
+                               f"{self.controller.safety.upper.round(3).tolist()}")
 
-    def _ros_logger_adapter(ros_logger):
-        """A logging.Logger whose records go to the node's ROS logger (core modules log with `logging`)."""
-        logger = logging.getLogger(f"equidiff.{NODE_NAME}")
-        logger.propagate = False
-        logger.setLevel(logging.INFO)
+    def on_chunk(self, msg) -> None:
+        try:
+            chunk = chunk_from_msg(msg)
+        except ChunkError as err:
+            self.controller.record_rejection(err)
+            return
+        self.controller.submit(chunk)
 
-        class _Handler(logging.Handler):
-            last_warned: ClassVar[dict[str, float]] = {}
+    def on_acknowledge(self, _request, response):
+        reason = self.controller.acknowledge()
+        if self.controller.stats.faulted:
+            response.success, response.message = False, "faulted: restart franka_node once the cause is fixed"
+        else:
+            response.success = True
+            response.message = f"acknowledged: {reason}" if reason else "nothing to acknowledge"
+        return response
 
-            def emit(self, record):
-                msg = self.format(record)
-                if record.levelno >= logging.ERROR:
-                    ros_logger.error(msg)
-                elif record.levelno >= logging.WARNING:
-                    # Throttled per kind of warning (text before the first ':'), so a burst of
-                    # rejected chunks does not hide the watchdog, and vice versa.
-                    kind, now = msg.split(":")[0][:40], time.monotonic()
-                    if now - self.last_warned.get(kind, -1e9) >= 1.0:
-                        self.last_warned[kind] = now
-                        ros_logger.warning(msg)
-                else:
-                    ros_logger.info(msg)
+    def publish_state(self) -> None:
+        state = self.controller.state
+        if state is None:
+            return
+        self.pub_pose.publish(cm.pose_stamped(self.factory, state.ee_pose, state.stamp_ns, self.frame))
+        self.pub_joints.publish(cm.joint_state(self.factory, state, state.stamp_ns))
+        command = self.controller.last_command
+        if command is not None and command.stamp_ns != self._last_target_stamp:
+            self._last_target_stamp = command.stamp_ns
+            self.pub_target.publish(cm.pose_stamped(self.factory, command.target.pose, command.stamp_ns,
+                                                    self.frame))
 
-        logger.handlers[:] = [_Handler()]
-        return logger
+    def publish_diagnostics(self) -> None:
+        stats = self.controller.stats
+        if stats.faulted:
+            level, text = cm.ERROR, "faulted: too many robot errors in a row, restart the node"
+        elif stats.awaiting_ack:
+            level, text = cm.ERROR, f"holding until acknowledged (/franka/acknowledge): {stats.awaiting_ack}"
+        elif self.controller.holding:
+            level, text = cm.OK, "holding"
+        else:
+            level, text = cm.OK, "executing"
+        if stats.last_rejection and level == cm.OK:
+            level, text = cm.WARN, f"{text}; last rejected chunk: {stats.last_rejection}"
+        values = {k: v for k, v in stats.as_dict().items() if k not in ("last_rejection",)}
+        self.pub_diag.publish(cm.diagnostic_array(self.factory, now_ns(self), NODE_NAME, self.hardware_id,
+                                                  level, text, values))
 
-    return FrankaNode()
+    def shutdown(self) -> None:
+        self.controller.stop()
+        self.robot.disconnect()
+
+def _ros_logger_adapter(ros_logger):
+    """A logging.Logger whose records go to the node's ROS logger (core modules log with `logging`)."""
+    logger = logging.getLogger(f"equidiff.{NODE_NAME}")
+    logger.propagate = False
+    logger.setLevel(logging.INFO)
+
+    class _Handler(logging.Handler):
+        last_warned: ClassVar[dict[str, float]] = {}
+
+        def emit(self, record):
+            msg = self.format(record)
+            if record.levelno >= logging.ERROR:
+                ros_logger.error(msg)
+            elif record.levelno >= logging.WARNING:
+                # Throttled per kind of warning (text before the first ':'), so a burst of
+                # rejected chunks does not hide the watchdog, and vice versa.
+                kind, now = msg.split(":")[0][:40], time.monotonic()
+                if now - self.last_warned.get(kind, -1e9) >= 1.0:
+                    self.last_warned[kind] = now
+                    ros_logger.warning(msg)
+            else:
+                ros_logger.info(msg)
+
+    logger.handlers[:] = [_Handler()]
+    return logger
 
 
 def main(args=None) -> int:
@@ -184,7 +196,7 @@ def main(args=None) -> int:
 
         return (ConfigError, RobotError, ValueError)
 
-    return run_node(NODE_NAME, USAGE, build_node, startup_errors, args)
+    return run_node(NODE_NAME, USAGE, FrankaNode, startup_errors, args)
 
 
 if __name__ == "__main__":

@@ -31,6 +31,7 @@ from equidiff_core import geometry
 from equidiff_core.chunk import PoseChunk, chunk_to_msg
 from equidiff_core.rosmsg import RclpyFactory, stamp_to_ns
 from equidiff_core.topics import (
+    SERVICE_FRANKA_ACKNOWLEDGE,
     TOPIC_CLOCK,
     TOPIC_COMMAND_CHUNK,
     TOPIC_RECORDER_STATUS,
@@ -65,6 +66,7 @@ class Supervisor:
         from rosgraph_msgs.msg import Clock
         from sensor_msgs.msg import JointState
         from std_msgs.msg import Bool, Int64, String
+        from std_srvs.srv import Trigger
         from trajectory_msgs.msg import MultiDOFJointTrajectory
 
         from equidiff_ros.common import (
@@ -121,6 +123,8 @@ class Supervisor:
         n.create_subscription(String, TOPIC_RECORDER_STATUS, self._on_recorder, LATCHED_QOS)
         n.create_subscription(DiagnosticArray, TOPIC_DIAGNOSTICS, self._on_diag, RELIABLE_QOS)
         n.create_subscription(String, TOPIC_POLICY_SKIPPED, self._on_skipped, RELIABLE_QOS)
+        self._Trigger = Trigger
+        self.ack_client = n.create_client(Trigger, SERVICE_FRANKA_ACKNOWLEDGE)
         self.executor = SingleThreadedExecutor()
         self.executor.add_node(n)
         self._spin = threading.Thread(target=self._spin_loop, daemon=True, name="supervisor-spin")
@@ -332,6 +336,19 @@ class Supervisor:
         with self.lock:
             return dict(self.twin_state or {})
 
+    def acknowledge_stop(self, timeout_s: float = 10.0, check=None) -> str:
+        """Act as the operator between episodes: acknowledge a stop franka_node holds for (a robot
+        error or a divergence stop in the last episode) so the next episode can home; returns what
+        was acknowledged ("" when nothing). The caller says so: it is never silent."""
+        if not self.ack_client.wait_for_service(timeout_sec=timeout_s):
+            raise SupervisorError(f"no {SERVICE_FRANKA_ACKNOWLEDGE} service: is franka_node running?")
+        future = self.ack_client.call_async(self._Trigger.Request())
+        response = self.wait_for(lambda: future.result() if future.done() else None, timeout_s,
+                                 f"{SERVICE_FRANKA_ACKNOWLEDGE}'s answer", check)
+        if not response.success:
+            raise SupervisorError(f"franka_node refused the acknowledgement: {response.message}")
+        return response.message.removeprefix("acknowledged: ") if response.message.startswith("acknowledged") else ""
+
     def recorder(self, command: str, expect_prefix: str, timeout_s: float = 10.0, check=None) -> str:
         self.pub_recorder.publish(self._String(data=command))
         return self.wait_for(lambda: self.recorder_status if self.recorder_status.startswith(expect_prefix) else None,
@@ -504,8 +521,13 @@ class TwinStack:
             self.group.check()
 
     def home(self) -> None:
+        """Move to the ready pose; first acknowledge a stop franka_node holds for, saying so."""
         from equidiff_core.twin.expert import tcp_pose
 
+        stopped = self.sup.acknowledge_stop(check=self.check)
+        if stopped:
+            print(f"[twin] franka_node held after '{stopped}'; acknowledged (as the operator) before homing",
+                  flush=True)
         ex = self.cfg.expert
         self.sup.move_to(tcp_pose(ex.ready_position, 0.0), ex.open_width, speed=ex.speed,
                          timeout_s=self.cfg.episode.home_timeout_s, check=self.check)

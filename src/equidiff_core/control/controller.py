@@ -8,6 +8,10 @@ checks a chunk and swaps the scheduler's trajectory under a lock, so callbacks n
 the robot. Errors reported by the robot trigger ``recover`` with a logged reason, at most
 ``max_recoveries`` times in a row; after that the controller stays faulted and holds nothing
 (the robot's own brakes/reflexes take over) until restarted.
+
+It never resumes on its own: after a recovered robot error or a divergence stop the arm holds
+where it is and every chunk is refused ("awaiting acknowledgement") until an operator calls
+``acknowledge`` (franka_node's ``/franka/acknowledge`` service, ``equidiff lab ack``).
 """
 
 from __future__ import annotations
@@ -48,6 +52,9 @@ class ControllerStats:
     speed_limited_ticks: int = 0
     gripper_commands: int = 0
     faulted: bool = False
+    awaiting_ack: str = ""  # why the arm holds until an operator acknowledges ("" when it does not)
+    ack_rejected: int = 0  # chunks refused while awaiting acknowledgement (subset of rejected_chunks)
+    acknowledged: int = 0
     last_rejection: str = ""
     last_recovery_reason: str = ""
     last_divergence: str = ""
@@ -89,8 +96,7 @@ class Controller:
         self._last_tick_ns: int | None = None
         self._last_robot_time_s: float | None = None
         self._gripper_sent = float("nan")
-        self._failures_in_row = 0
-        self._last_failure_ns = 0
+        self._failures_in_row = 0  # failures since the last acknowledgement
         self._divergence_grace_until_ns = 0
         self._thread: threading.Thread | None = None
         self._stop = threading.Event()
@@ -162,6 +168,10 @@ class Controller:
         now = self.clock.now_ns()
         try:
             with self._lock:
+                if self.stats.awaiting_ack:
+                    self.stats.ack_rejected += 1
+                    raise ChunkError(f"awaiting an operator's acknowledgement after: {self.stats.awaiting_ack} "
+                                     f"(franka_node's /franka/acknowledge, `equidiff lab ack`)")
                 live = self.scheduler.live_steps(chunk, now)
                 state = self._state
                 check_chunk(live, None if state is None else state.ee_pose, self.config.safety)
@@ -243,8 +253,6 @@ class Controller:
         except RobotError as err:
             self._handle_failure(now, err)
             return None
-        if now - self._last_failure_ns > 2e9:
-            self._failures_in_row = 0
         self._setpoint = filtered
         self.stats.ticks += 1
         self.stats.clipped_ticks += int(filtered.clipped)
@@ -297,9 +305,10 @@ class Controller:
         self.stats.divergence_stops += 1
         self.stats.last_divergence = reason
         self._divergence_grace_until_ns = now + int(1e9)
-        if not self._count_failure(now, f"the arm diverged from its command again ({reason})"):
+        if not self._count_failure(f"the arm diverged from its command again ({reason})"):
             return
-        self.log.error(f"the arm diverged from its command ({reason}): stopping the motion and holding where it is")
+        self.log.error(f"the arm diverged from its command ({reason}): stopping the motion and holding where it "
+                       f"is until an operator acknowledges")
         try:
             self.robot.stop_streaming()
             self.robot.start_streaming()
@@ -307,11 +316,12 @@ class Controller:
             self._handle_failure(now, err)
             return
         self._reset_to_measured()
+        self.stats.awaiting_ack = f"divergence stop: {reason}"
 
-    def _count_failure(self, now: int, what: str) -> bool:
-        """Count a failure; past ``max_recoveries`` in a row the node faults (False): nothing more is sent."""
+    def _count_failure(self, what: str) -> bool:
+        """Count a failure; past ``max_recoveries`` since the last acknowledgement the node faults
+        (False): nothing more is sent."""
         self._failures_in_row += 1
-        self._last_failure_ns = now
         limit = self.config.franky.max_recoveries
         if self._failures_in_row > limit:
             self.stats.faulted = True
@@ -321,7 +331,7 @@ class Controller:
         return True
 
     def _handle_failure(self, now: int, err: Exception) -> None:
-        if not self._count_failure(now, f"robot error '{err}'"):
+        if not self._count_failure(f"robot error '{err}'"):
             return
         limit = self.config.franky.max_recoveries
         try:
@@ -331,5 +341,21 @@ class Controller:
             return
         self.stats.recoveries += 1
         self.stats.last_recovery_reason = reason
-        self.log.warning(f"robot error ({reason}); recovered ({self._failures_in_row}/{limit}), holding")
+        self.log.warning(f"robot error ({reason}); recovered ({self._failures_in_row}/{limit}), holding until "
+                         f"an operator acknowledges")
         self._reset_to_measured()
+        self.stats.awaiting_ack = f"robot error: {reason}"
+
+    def acknowledge(self) -> str:
+        """An operator's go-ahead after a stop: chunks are accepted again (the arm keeps holding
+        until the next one) and the count of failures in a row starts over. Returns what was
+        acknowledged ("" when nothing was awaiting acknowledgement); a faulted controller stays
+        faulted (restart the node)."""
+        with self._lock:
+            reason, self.stats.awaiting_ack = self.stats.awaiting_ack, ""
+            if reason:
+                self._failures_in_row = 0
+                self.stats.acknowledged += 1
+        if reason:
+            self.log.warning(f"acknowledged: {reason}; accepting chunks again")
+        return reason

@@ -50,8 +50,9 @@ class LabClient:
         finally:
             self.node.destroy_client(client)
 
-    def latched(self, topic: str, msg_type: str, wait_s: float = 2.0):
-        """The latched value on ``topic`` (None if nobody publishes it)."""
+    def latched(self, topic: str, msg_type: str, wait_s: float = 5.0):
+        """The latched value on ``topic`` (None if nobody publishes it; ``wait_s`` covers discovery on a
+        loaded machine, where 2 s once missed a running recorder)."""
         from equidiff_core.rosmsg import RclpyFactory
         from equidiff_ros.common import LATCHED_QOS
 

@@ -16,11 +16,12 @@ def add_arguments(parser) -> None:
 
 
 def run(args) -> int:
+    from equidiff_core.topics import SERVICE_POLICY_ENABLE
     from equidiff_ros.commands.lab_client import LabClient, LabError
 
     with LabClient() as lab:
         try:
-            print(f"policy {lab.call('std_srvs/srv/SetBool', '/policy/enable', data=ENABLE[args.action])}")
+            print(f"policy {lab.call('std_srvs/srv/SetBool', SERVICE_POLICY_ENABLE, data=ENABLE[args.action])}")
         except LabError as err:
             print(f"equidiff lab policy {args.action}: {err}", file=sys.stderr)
             return 1
