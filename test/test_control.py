@@ -585,3 +585,22 @@ def test_answer_schedule_answers_one_observation_per_executed_chunk_despite_stam
         assert not every.due(k * dt + dt // 4)  # the same frame, a little later: already answered
     with pytest.raises(ValueError, match="execute_steps must be within 1..8"):
         AnswerSchedule(9, 8, dt)
+
+
+def test_tf_message_carries_the_tcp_pose_in_the_base_frame():
+    """franka_node's /tf (base -> TCP, for RViz and ROS hand-eye tools) where tf2_msgs exists:
+    built here with the rosbags factory, which has the type."""
+    from scipy.spatial.transform import Rotation
+
+    from equidiff_core.control import messages as cm
+    from equidiff_core.rosmsg import rosbags_factory
+
+    pose = pose_at(np.array([0.4, -0.1, 0.25]))
+    pose[:3, :3] = Rotation.from_euler("xyz", [170, 5, 30], degrees=True).as_matrix()
+    msg = cm.tf_message(rosbags_factory(), [("fr3_link0", cm.TCP_FRAME, pose)], 1_500_000_123)
+    (tf,) = msg.transforms
+    assert tf.header.frame_id == "fr3_link0" and tf.child_frame_id == "fr3_hand_tcp"
+    assert tf.header.stamp.sec == 1 and tf.header.stamp.nanosec == 500_000_123
+    t, r = tf.transform.translation, tf.transform.rotation
+    np.testing.assert_allclose([t.x, t.y, t.z], [0.4, -0.1, 0.25])
+    np.testing.assert_allclose(Rotation.from_quat([r.x, r.y, r.z, r.w]).as_matrix(), pose[:3, :3], atol=1e-12)

@@ -21,6 +21,7 @@ TOPIC_POLICY_STATE = "/policy/state"  # running / paused <reason>, latched
 TOPIC_TELEOP_ACTIVE = "/teleop/active"  # an operator's takeover (intervention), latched
 TOPIC_RECORDER_STATUS = "/recorder/status"  # idle / recording <path> / ..., latched
 TOPIC_CLOCK = "/clock"
+TOPIC_TF = "/tf"  # franka_node: base -> TCP, where tf2_msgs is installed
 TOPIC_TF_STATIC = "/tf_static"
 CAMERA_TOPIC_PREFIX = "/cameras/"
 # The twin's own (twin_node and its supervisor)

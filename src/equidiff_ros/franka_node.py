@@ -5,7 +5,8 @@ Wiring:
       -> ``control.Controller.submit`` (drop past steps, safety checks, replace the trajectory)
   ``Controller`` thread at ``control_hz`` -> ``robots.Robot`` (franky CartesianImpedanceTracker,
       or the dry run) ; watchdog, workspace clip, speed limits, error recovery live there
-  timer at ``state_hz`` (>= 100 Hz) -> /franka/ee_pose, /franka/joint_states, /franka/executed_target
+  timer at ``state_hz`` (>= 100 Hz) -> /franka/ee_pose, /franka/joint_states, /franka/executed_target,
+      /tf (base -> fr3_hand_tcp, where tf2_msgs is installed: RViz, easy_handeye2)
   timer at 1 Hz -> /diagnostics (``franka_node``: rejected chunks, recoveries, watchdog holds, ...)
   service /franka/acknowledge (Trigger) -> ``Controller.acknowledge``: after a robot error or a
       divergence stop the arm holds and chunks are refused until an operator calls it
@@ -45,6 +46,7 @@ from equidiff_ros.common import (
     TOPIC_EE_POSE,
     TOPIC_EXECUTED_TARGET,
     TOPIC_JOINT_STATES,
+    TOPIC_TF,
     declare_lab_config,
     node_clock,
     now_ns,
@@ -98,6 +100,12 @@ class FrankaNode(Node):
                                                 RELIABLE_QOS)
         self.pub_diag = self.create_publisher(cls("diagnostic_msgs/msg/DiagnosticArray"), TOPIC_DIAGNOSTICS,
                                               RELIABLE_QOS)
+        self.pub_tf = None  # base -> TCP on /tf for RViz and ROS hand-eye tools, where tf2_msgs exists
+        try:
+            self.pub_tf = self.create_publisher(cls("tf2_msgs/msg/TFMessage"), TOPIC_TF, RELIABLE_QOS)
+        except ImportError:
+            self.get_logger().info("tf2_msgs is not installed: base -> TCP is not published on /tf "
+                                   "(/franka/ee_pose carries the same pose)")
         try:
             self.controller.start()
         except Exception:
@@ -136,6 +144,8 @@ class FrankaNode(Node):
             return
         self.pub_pose.publish(cm.pose_stamped(self.factory, state.ee_pose, state.stamp_ns, self.frame))
         self.pub_joints.publish(cm.joint_state(self.factory, state, state.stamp_ns))
+        if self.pub_tf is not None:
+            self.pub_tf.publish(cm.tf_message(self.factory, [(self.frame, cm.TCP_FRAME, state.ee_pose)], state.stamp_ns))
         command = self.controller.last_command
         if command is not None and command.stamp_ns != self._last_target_stamp:
             self._last_target_stamp = command.stamp_ns

@@ -44,17 +44,6 @@ def limit_depth(frame: CloudFrame, min_depth: float, max_depth: float) -> CloudF
 
 def extrinsics_tf_message(cameras, base_frame: str, stamp_ns: int, factory):
     """``tf2_msgs/TFMessage`` with base_frame -> each camera's optical frame (the configured T_base_optical)."""
-    from .. import geometry
+    from ..control.messages import tf_message
 
-    mk = factory.make
-    transforms = []
-    for cam in cameras:
-        p, q = geometry.pos_quat_from_pose(cam.extrinsics.matrix())
-        transforms.append(mk(
-            "geometry_msgs/msg/TransformStamped", header=factory.header(stamp_ns, base_frame),
-            child_frame_id=cam.frame_id,
-            transform=mk("geometry_msgs/msg/Transform",
-                         translation=mk("geometry_msgs/msg/Vector3", x=float(p[0]), y=float(p[1]), z=float(p[2])),
-                         rotation=mk("geometry_msgs/msg/Quaternion", x=float(q[0]), y=float(q[1]),
-                                     z=float(q[2]), w=float(q[3])))))
-    return mk("tf2_msgs/msg/TFMessage", transforms=transforms)
+    return tf_message(factory, [(base_frame, cam.frame_id, cam.extrinsics.matrix()) for cam in cameras], stamp_ns)

@@ -17,6 +17,8 @@ from .. import geometry
 from ..robots.base import ARM_JOINT_NAMES, FINGER_JOINT_NAMES, RobotState
 from ..rosmsg import MsgFactory
 
+TCP_FRAME = "fr3_hand_tcp"  # franka_ros2's name for the TCP frame (also the chunk's joint name)
+
 # diagnostic_msgs/DiagnosticStatus levels
 OK, WARN, ERROR, STALE = 0, 1, 2, 3
 
@@ -36,6 +38,22 @@ def pose_from_msg(msg: Any) -> np.ndarray:
     pose = getattr(msg, "pose", msg)
     p, o = pose.position, pose.orientation
     return geometry.pose_from_pos_quat([p.x, p.y, p.z], [o.x, o.y, o.z, o.w])
+
+
+def tf_message(factory: MsgFactory, transforms: list[tuple[str, str, np.ndarray]], stamp_ns: int) -> Any:
+    """``tf2_msgs/TFMessage`` of (parent frame, child frame, 4x4 pose of the child in the parent)."""
+    mk = factory.make
+    out = []
+    for parent, child, pose in transforms:
+        p, q = geometry.pos_quat_from_pose(pose)
+        out.append(mk("geometry_msgs/msg/TransformStamped", header=factory.header(stamp_ns, parent),
+                      child_frame_id=child,
+                      transform=mk("geometry_msgs/msg/Transform",
+                                   translation=mk("geometry_msgs/msg/Vector3", x=float(p[0]), y=float(p[1]),
+                                                  z=float(p[2])),
+                                   rotation=mk("geometry_msgs/msg/Quaternion", x=float(q[0]), y=float(q[1]),
+                                               z=float(q[2]), w=float(q[3])))))
+    return mk("tf2_msgs/msg/TFMessage", transforms=out)
 
 
 def joint_state(factory: MsgFactory, state: RobotState, stamp_ns: int) -> Any:
