@@ -21,7 +21,9 @@ from equidiff_core.chunk import PoseChunk
 from equidiff_core.config import default_config_dir, load_lab_config
 from equidiff_core.control import load_control_config
 from equidiff_core.robots.franky.sim import SimServer
+from equidiff_core.twin.processes import start_node, stop_process
 from equidiff_ros.commands import bench_control as bench
+from equidiff_ros.control_client import ControlClient, down_pose
 
 pytestmark = [pytest.mark.sim, pytest.mark.ros, pytest.mark.slow]
 
@@ -40,17 +42,17 @@ def franka(tmp_path_factory):
     proc = client = None
     with SimServer() as sim:
         try:
-            proc = bench.start_node("franka_node", {"robot_ip": sim.host, "realtime": False,
+            proc = start_node("franka_node", {"robot_ip": sim.host, "realtime": False,
                                                     "lab_config": str(LAB_PATH)}, log_dir / "franka_node.log",
                                     priority=True)
-            client = bench.BenchClient(lab, str(LAB_PATH))
+            client = ControlClient(lab, str(LAB_PATH))
             client.record_pose_stamps()  # every state's stamp, none dropped while the test runner is starved
             client.wait_for(lambda: len(client.data.poses) > 10, 90.0, "/franka/ee_pose", proc)
             yield client, proc, lab, sim
         finally:
             if client is not None:
                 client.close()
-            code = bench.stop_process(proc)
+            code = stop_process(proc)
             mp.undo()
             log = (log_dir / "franka_node.log").read_text() if (log_dir / "franka_node.log").exists() else ""
             assert code == 0, f"franka_node did not shut down cleanly (exit {code}):\n{log[-3000:]}"
@@ -142,7 +144,7 @@ def test_gripper_moves_without_blocking_the_arm(franka):
         while time.monotonic() < deadline and abs(width() - target) > 0.003:
             now = time.time_ns()
             times = now + np.arange(4, dtype=np.int64) * 200_000_000
-            client.publish_chunk(PoseChunk(now, times, np.stack([bench.down_pose(here)] * 4), np.full(4, target)))
+            client.publish_chunk(PoseChunk(now, times, np.stack([down_pose(here)] * 4), np.full(4, target)))
             time.sleep(0.2)  # keeps the watchdog quiet while the fingers travel
         assert width() == pytest.approx(target, abs=0.006)
 

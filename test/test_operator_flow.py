@@ -124,8 +124,9 @@ def test_policy_publishes_nothing_until_enabled_and_a_takeover_pauses_it(ros_dom
     from std_msgs.msg import Bool, String
 
     from equidiff_core.pointcloud import grid_to_voxel_msg
-    from equidiff_ros.commands import bench_control as bench
+    from equidiff_core.twin.processes import start_node, stop_process
     from equidiff_ros.common import LATCHED_QOS, RELIABLE_QOS
+    from equidiff_ros.control_client import ControlClient
 
     lab_path = str(default_config_dir() / "lab.yaml")
     ws = LAB.workspace
@@ -136,10 +137,10 @@ def test_policy_publishes_nothing_until_enabled_and_a_takeover_pauses_it(ros_dom
     skipped: list[str] = []
     state: list[str] = []
     try:
-        franka = bench.start_node("franka_node", {"backend": "dryrun", "lab_config": lab_path}, tmp_path / "franka.log")
-        policy = bench.start_node("policy_node", {"checkpoint": str(checkpoint), "lab_config": lab_path, "seed": 0,
+        franka = start_node("franka_node", {"backend": "dryrun", "lab_config": lab_path}, tmp_path / "franka.log")
+        policy = start_node("policy_node", {"checkpoint": str(checkpoint), "lab_config": lab_path, "seed": 0,
                                                   "execute_steps": 1, "start_paused": True}, tmp_path / "policy.log")
-        client = bench.BenchClient(LAB, lab_path)
+        client = ControlClient(LAB, lab_path)
         client.node.create_subscription(String, "/policy/skipped",
                                         lambda m: skipped.append(json.loads(m.data)["reason"]), RELIABLE_QOS)
         client.node.create_subscription(String, "/policy/state", lambda m: state.append(m.data), LATCHED_QOS)
@@ -179,6 +180,6 @@ def test_policy_publishes_nothing_until_enabled_and_a_takeover_pauses_it(ros_dom
         if client is not None:
             client.close()
         # 30 s: a hang guard only; an inference in flight on a loaded machine finishes first
-        codes = [bench.stop_process(policy, timeout=30.0, sig=signal.SIGINT),
-                 bench.stop_process(franka, timeout=30.0, sig=signal.SIGTERM)]
+        codes = [stop_process(policy, timeout=30.0, sig=signal.SIGINT),
+                 stop_process(franka, timeout=30.0, sig=signal.SIGTERM)]
     assert codes == [0, 0], (tmp_path / "policy.log").read_text()[-3000:]

@@ -79,7 +79,8 @@ def test_bad_checkpoint_is_a_clear_error_at_start(ros_domain, tmp_path, checkpoi
 @pytest.mark.slow
 def test_policy_closes_the_loop_and_skips_stale_observations(ros_domain, checkpoint, tmp_path):
     from equidiff_core.pointcloud import grid_to_voxel_msg
-    from equidiff_ros.commands import bench_control as bench
+    from equidiff_core.twin.processes import start_node, stop_process
+    from equidiff_ros.control_client import ControlClient
 
     lab = load_lab_config(LAB_PATH)
     ws = lab.workspace
@@ -89,12 +90,12 @@ def test_policy_closes_the_loop_and_skips_stale_observations(ros_domain, checkpo
     stop_voxels = threading.Event()
     stamps: list[int] = []
     try:
-        franka = bench.start_node("franka_node", {"backend": "dryrun", "lab_config": str(LAB_PATH)},
+        franka = start_node("franka_node", {"backend": "dryrun", "lab_config": str(LAB_PATH)},
                                   tmp_path / "franka.log")
-        policy = bench.start_node("policy_node", {"checkpoint": str(checkpoint), "lab_config": str(LAB_PATH),
+        policy = start_node("policy_node", {"checkpoint": str(checkpoint), "lab_config": str(LAB_PATH),
                                                   "seed": 0, "max_observation_age_s": 0.5, "execute_steps": 1},
                                   tmp_path / "policy.log")
-        client = bench.BenchClient(lab, str(LAB_PATH))
+        client = ControlClient(lab, str(LAB_PATH))
         client.wait_for(lambda: len(client.data.poses) > 10, 60.0, "/franka/ee_pose from the dry-run arm", franka)
 
         def publish_voxels():
@@ -149,6 +150,6 @@ def test_policy_closes_the_loop_and_skips_stale_observations(ros_domain, checkpo
         if client is not None:
             client.close()
         # Ctrl-C for one, SIGTERM (what launch/systemd send) for the other: both exit cleanly.
-        codes = [bench.stop_process(policy, sig=signal.SIGINT), bench.stop_process(franka, sig=signal.SIGTERM)]
+        codes = [stop_process(policy, sig=signal.SIGINT), stop_process(franka, sig=signal.SIGTERM)]
     assert codes == [0, 0], (tmp_path / "policy.log").read_text()[-3000:] + (tmp_path / "franka.log").read_text()[-3000:]
 

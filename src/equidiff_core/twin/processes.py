@@ -72,6 +72,35 @@ def node_command(executable: str, params: dict | None = None, remaps: dict | Non
     return cmd
 
 
+def start_node(executable: str, params: dict | None = None, log_path: Path | None = None, priority: bool = False,
+               remaps: dict | None = None, env: dict[str, str] | None = None, capture: bool = False) -> subprocess.Popen:
+    """One node process, the way every node is started (``ProcessGroup.start``, the benches, the
+    tests): ``node_command`` with ``node_preexec``; output to ``log_path`` (default: discarded) or,
+    with ``capture``, to a text pipe the caller reads."""
+    cmd = node_command(executable, params, remaps)
+    env = {**(os.environ if env is None else env), "PYTHONUNBUFFERED": "1"}
+    if capture:
+        return subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                                stdin=subprocess.DEVNULL, preexec_fn=node_preexec(priority))
+    with open(log_path or os.devnull, "wb") as out:  # the child keeps its own copy of the descriptor
+        return subprocess.Popen(cmd, env=env, stdout=out, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+                                preexec_fn=node_preexec(priority))
+
+
+def stop_process(proc: subprocess.Popen | None, timeout: float = 10.0, sig: int = signal.SIGINT) -> int | None:
+    """Signal ``proc``, wait up to ``timeout`` s, kill it if it is still there; its exit code."""
+    if proc is None:
+        return None
+    if proc.poll() is None:
+        proc.send_signal(sig)
+        try:
+            proc.wait(timeout=timeout)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+    return proc.returncode
+
+
 @dataclass
 class NodeProcess:
     name: str

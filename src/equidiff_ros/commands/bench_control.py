@@ -27,19 +27,17 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import signal
-import subprocess
 import sys
 import tempfile
 import threading
 import time
-from collections import deque
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-MS = 1_000_000
+from equidiff_core.twin.processes import start_node, stop_process
+from equidiff_ros.control_client import MS, ControlClient, down_pose
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -80,46 +78,6 @@ class Circle:
         return np.array([-np.sin(a), np.cos(a), 0.0])
 
 
-def down_pose(position) -> np.ndarray:
-    from equidiff_core import geometry
-
-    return geometry.make_pose(np.diag([1.0, -1.0, -1.0]), np.asarray(position, dtype=np.float64))
-
-
-# --- processes -----------------------------------------------------------------------------
-
-def start_node(module: str, params: dict, log_path: Path | None = None, priority: bool = False) -> subprocess.Popen:
-    """``python -m equidiff_ros.<module> --ros-args -p k:=v ...``; ``priority``: a higher CPU
-    priority when permitted, as the franka node's real-time kernel would give it on the robot PC."""
-    from equidiff_core.twin.processes import node_preexec
-
-    args = [sys.executable, "-u", "-m", f"equidiff_ros.{module}", "--ros-args"]
-    for key, value in params.items():
-        args += ["-p", f"{key}:={_ros_value(value)}"]
-    with open(log_path or os.devnull, "w") as out:  # the child keeps its own copy of the descriptor
-        return subprocess.Popen(args, stdout=out, stderr=subprocess.STDOUT, env=dict(os.environ),
-                                preexec_fn=node_preexec(priority))
-
-
-def _ros_value(value) -> str:
-    if isinstance(value, bool):
-        return "true" if value else "false"
-    return str(value)
-
-
-def stop_process(proc: subprocess.Popen | None, timeout: float = 10.0, sig: int = signal.SIGINT) -> int | None:
-    if proc is None:
-        return None
-    if proc.poll() is None:
-        proc.send_signal(sig)
-        try:
-            proc.wait(timeout=timeout)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
-    return proc.returncode
-
-
 def export_untrained(preset: str, path: Path, workspace) -> Path:
     """An untrained policy of ``preset`` with the workspace's default normaliser, for timing only."""
     from equidiff_core.inference import export_policy
@@ -132,170 +90,7 @@ def export_untrained(preset: str, path: Path, workspace) -> Path:
     return export_policy(policy, path)
 
 
-# --- the ROS side of the bench ----------------------------------------------------------------
-
-@dataclass
-class Recorded:
-    poses: deque = field(default_factory=lambda: deque(maxlen=20000))  # (t_s, position)
-    targets: deque = field(default_factory=lambda: deque(maxlen=20000))
-    chunks: deque = field(default_factory=lambda: deque(maxlen=2000))  # (receive_s, stamp_s)
-    diagnostics: dict = field(default_factory=dict)  # status name -> latest values
-    joint_states: int = 0
-    last_joint_state: object = None
-    last_chunk: object = None
-
-
-class BenchClient:
-    """An rclpy node in a background thread: publishes chunks/voxels, records what comes back."""
-
-    def __init__(self, lab, lab_path: str):
-        import rclpy
-        from diagnostic_msgs.msg import DiagnosticArray
-        from geometry_msgs.msg import PoseStamped
-        from rclpy.executors import SingleThreadedExecutor
-        from sensor_msgs.msg import JointState, PointCloud2
-        from trajectory_msgs.msg import MultiDOFJointTrajectory
-
-        from equidiff_core.rosmsg import RclpyFactory
-        from equidiff_ros.common import (
-            RELIABLE_QOS,
-            TOPIC_COMMAND_CHUNK,
-            TOPIC_DIAGNOSTICS,
-            TOPIC_EE_POSE,
-            TOPIC_EXECUTED_TARGET,
-            TOPIC_JOINT_STATES,
-            TOPIC_VOXELS,
-            VOXEL_QOS,
-        )
-
-        self.lab = lab
-        self.lab_path = lab_path
-        self.factory = RclpyFactory()
-        self.data = Recorded()
-        self.context = rclpy.Context()
-        rclpy.init(context=self.context)
-        self.node = rclpy.create_node("control_bench", context=self.context)
-        self.pub_chunk = self.node.create_publisher(MultiDOFJointTrajectory, TOPIC_COMMAND_CHUNK, RELIABLE_QOS)
-        self.pub_voxels = self.node.create_publisher(PointCloud2, TOPIC_VOXELS, VOXEL_QOS)
-        self.node.create_subscription(PoseStamped, TOPIC_EE_POSE, self._on_pose, RELIABLE_QOS)
-        self.node.create_subscription(PoseStamped, TOPIC_EXECUTED_TARGET, self._on_target, RELIABLE_QOS)
-        self.node.create_subscription(MultiDOFJointTrajectory, TOPIC_COMMAND_CHUNK, self._on_chunk, RELIABLE_QOS)
-        self.node.create_subscription(DiagnosticArray, TOPIC_DIAGNOSTICS, self._on_diag, RELIABLE_QOS)
-        self.node.create_subscription(JointState, TOPIC_JOINT_STATES, self._on_joints, RELIABLE_QOS)
-        self.executor = SingleThreadedExecutor(context=self.context)
-        self.executor.add_node(self.node)
-        self._thread = threading.Thread(target=self._spin, daemon=True)
-        self._thread.start()
-
-    def _spin(self):
-        while self.context.ok():
-            try:
-                self.executor.spin_once(timeout_sec=0.05)
-            except Exception:  # noqa: BLE001 - context shut down under us
-                break
-
-    def _on_pose(self, msg):
-        from equidiff_core.rosmsg import stamp_to_ns
-
-        p = msg.pose.position
-        self.data.poses.append((stamp_to_ns(msg.header.stamp) / 1e9, np.array([p.x, p.y, p.z])))
-
-    def _on_target(self, msg):
-        from equidiff_core.rosmsg import stamp_to_ns
-
-        p = msg.pose.position
-        self.data.targets.append((stamp_to_ns(msg.header.stamp) / 1e9, np.array([p.x, p.y, p.z])))
-
-    def _on_chunk(self, msg):
-        from equidiff_core.rosmsg import stamp_to_ns
-
-        self.data.chunks.append((time.time_ns() / 1e9, stamp_to_ns(msg.header.stamp) / 1e9))
-        self.data.last_chunk = msg
-
-    def _on_joints(self, msg):
-        self.data.joint_states += 1
-        self.data.last_joint_state = msg
-
-    def _on_diag(self, msg):
-        for status in msg.status:
-            self.data.diagnostics[status.name] = {kv.key: kv.value for kv in status.values}
-
-    def close(self):
-        self.executor.shutdown(timeout_sec=1.0)
-        self.node.destroy_node()
-        self.context.try_shutdown()
-        self._thread.join(timeout=2)
-
-    # --- helpers -------------------------------------------------------------------------
-    def wait_for(self, predicate, timeout: float, what: str, proc: subprocess.Popen | None = None):
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
-            if predicate():
-                return
-            if proc is not None and proc.poll() is not None:
-                raise RuntimeError(f"{what}: the node exited with code {proc.returncode}")
-            time.sleep(0.05)
-        raise TimeoutError(f"timed out after {timeout:.0f} s waiting for {what}")
-
-    def latest_position(self) -> np.ndarray:
-        return self.data.poses[-1][1]
-
-    def publish_chunk(self, chunk) -> None:
-        from equidiff_core.chunk import chunk_to_msg
-
-        self.pub_chunk.publish(chunk_to_msg(chunk, self.factory, self.lab.base_frame))
-
-    def stream(self, path, duration: float, obs_latency: float = 0.1, steps: int = 16, dt: float = 0.2,
-               period: float = 0.2, width: float = 0.08) -> tuple[float, float]:
-        """Publish chunks sampled from ``path(t) -> position`` every ``period`` s; returns the last
-        send time and the time the last chunk's final step is due (wall clock, s)."""
-        from equidiff_core.chunk import PoseChunk
-
-        end = time.monotonic() + duration
-        next_send = time.monotonic()
-        last = last_step = time.time()
-        while time.monotonic() < end:
-            now = time.time_ns()
-            obs = now - int(obs_latency * 1e9)
-            times = obs + np.arange(steps, dtype=np.int64) * int(dt * 1e9)
-            poses = np.stack([down_pose(path(t / 1e9)) for t in times])
-            self.publish_chunk(PoseChunk(obs, times, poses, np.full(steps, width)))
-            last, last_step = time.time(), float(times[-1]) / 1e9
-            next_send += period
-            time.sleep(max(0.0, next_send - time.monotonic()))
-        return last, last_step
-
-    def samples(self, which: str, t_from: float, t_to: float) -> tuple[np.ndarray, np.ndarray]:
-        rows = [(t, p) for t, p in list(getattr(self.data, which)) if t_from <= t <= t_to]
-        if not rows:
-            return np.zeros(0), np.zeros((0, 3))
-        return np.array([t for t, _ in rows]), np.stack([p for _, p in rows])
-
-    def diag_value(self, name: str, key: str, default=None):
-        values = self.data.diagnostics.get(name) or {}
-        return values.get(key, default)
-
-    def record_pose_stamps(self, topic: str | None = None, depth: int = 5000) -> deque:
-        """From now on also record the stamp (s) of every PoseStamped on ``topic`` (default
-        /franka/ee_pose) in ``self.pose_stamps``, through a subscription of its own with a deep
-        queue: the 10-deep queues above drop messages while this process is starved of CPU, this
-        one keeps them, so a gap in these stamps is the publisher's own. Returns that deque."""
-        from geometry_msgs.msg import PoseStamped
-        from rclpy.qos import QoSProfile, ReliabilityPolicy
-
-        from equidiff_core.rosmsg import stamp_to_ns
-        from equidiff_ros.common import TOPIC_EE_POSE
-
-        self.pose_stamps: deque = deque(maxlen=200000)
-        self.node.create_subscription(PoseStamped, topic or TOPIC_EE_POSE,
-                                      lambda msg: self.pose_stamps.append(stamp_to_ns(msg.header.stamp) / 1e9),
-                                      QoSProfile(depth=depth, reliability=ReliabilityPolicy.RELIABLE))
-        return self.pose_stamps
-
-
-# --- scenarios -------------------------------------------------------------------------------
-
-def approach(client: BenchClient, target: np.ndarray, speed: float = 0.05, settle: float = 0.5) -> None:
+def approach(client: ControlClient, target: np.ndarray, speed: float = 0.05, settle: float = 0.5) -> None:
     """Stream a straight line from the current TCP position to ``target`` (the node rejects jumps)."""
     start = client.latest_position()
     t_start = time.time()
@@ -309,7 +104,7 @@ def approach(client: BenchClient, target: np.ndarray, speed: float = 0.05, settl
     client.stream(path, duration + settle, obs_latency=0.0)
 
 
-def run_track_and_hold(client: BenchClient, speed: float, radius: float, duration: float, settle: float,
+def run_track_and_hold(client: ControlClient, speed: float, radius: float, duration: float, settle: float,
                        obs_latency: float, watchdog_s: float) -> dict:
     from equidiff_core.control import metrics
 
@@ -349,7 +144,7 @@ def run_track_and_hold(client: BenchClient, speed: float, radius: float, duratio
     }
 
 
-def run_workspace(client: BenchClient, workspace, duration: float = 3.0) -> dict:
+def run_workspace(client: ControlClient, workspace, duration: float = 3.0) -> dict:
     from equidiff_core.control import metrics
 
     start = client.latest_position()
@@ -371,7 +166,7 @@ def run_workspace(client: BenchClient, workspace, duration: float = 3.0) -> dict
                 path(last)[None], workspace.lower, workspace.upper) * 1000, 1)}
 
 
-def run_nan(client: BenchClient) -> dict:
+def run_nan(client: ControlClient) -> dict:
     from equidiff_core.chunk import PoseChunk, chunk_to_msg
 
     before = int(client.diag_value("franka_node", "nan_rejected", 0))
@@ -422,7 +217,7 @@ def bare_predict_s(checkpoint: Path, precision: str, workspace, repeats: int = 5
     return times
 
 
-def run_latency(client: BenchClient, checkpoint: Path, precision: str, duration: float, log_dir: Path,
+def run_latency(client: ControlClient, checkpoint: Path, precision: str, duration: float, log_dir: Path,
                 label: str) -> dict:
     from equidiff_core.control import metrics
     from equidiff_core.pointcloud import grid_to_voxel_msg
@@ -514,7 +309,7 @@ def run(args: argparse.Namespace) -> int:
                                                     "control_config": str(control_path),
                                                     "lab_config": str(lab_path)}, tmp / "franka_node.log",
                                     priority=True)
-                client = BenchClient(lab, str(lab_path))
+                client = ControlClient(lab, str(lab_path))
                 client.wait_for(lambda: len(client.data.poses) > 10, 90.0, "/franka/ee_pose from the franka node",
                                 franka)
                 t_track = time.monotonic()
