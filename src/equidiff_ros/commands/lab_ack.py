@@ -7,8 +7,6 @@ service). Look at the arm and at franka_node's /diagnostics (`equidiff lab statu
 
 from __future__ import annotations
 
-import sys
-
 
 def add_arguments(parser) -> None:
     parser.epilog = __doc__.split("\n", 1)[1]
@@ -16,12 +14,6 @@ def add_arguments(parser) -> None:
 
 def run(args) -> int:
     from equidiff_core.topics import SERVICE_FRANKA_ACKNOWLEDGE
-    from equidiff_ros.commands.lab_client import LabClient, LabError
+    from equidiff_ros.commands.lab_client import call_service
 
-    with LabClient() as lab:
-        try:
-            print(f"franka_node {lab.call('std_srvs/srv/Trigger', SERVICE_FRANKA_ACKNOWLEDGE)}")
-        except LabError as err:
-            print(f"equidiff lab ack: {err}", file=sys.stderr)
-            return 1
-    return 0
+    return call_service("ack", "std_srvs/srv/Trigger", SERVICE_FRANKA_ACKNOWLEDGE, prefix="franka_node ")

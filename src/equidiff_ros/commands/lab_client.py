@@ -17,6 +17,20 @@ class LabError(RuntimeError):
     """A service is missing or refused the request."""
 
 
+def call_service(command: str, srv_type: str, name: str, prefix: str = "", **request) -> int:
+    """One ``equidiff lab`` action: call the service, print its answer (``prefix`` first), or
+    print why it failed to stderr under ``command``'s name; the exit code."""
+    import sys
+
+    with LabClient() as lab:
+        try:
+            print(f"{prefix}{lab.call(srv_type, name, **request)}")
+        except LabError as err:
+            print(f"equidiff lab {command}: {err}", file=sys.stderr)
+            return 1
+    return 0
+
+
 class LabClient:
     def __init__(self):
         import rclpy

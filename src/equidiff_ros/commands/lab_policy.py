@@ -6,8 +6,6 @@ still drives it). A teleop takeover pauses it as well; it never resumes on its o
 
 from __future__ import annotations
 
-import sys
-
 ENABLE = {"enable": True, "resume": True, "pause": False}
 
 
@@ -17,12 +15,7 @@ def add_arguments(parser) -> None:
 
 def run(args) -> int:
     from equidiff_core.topics import SERVICE_POLICY_ENABLE
-    from equidiff_ros.commands.lab_client import LabClient, LabError
+    from equidiff_ros.commands.lab_client import call_service
 
-    with LabClient() as lab:
-        try:
-            print(f"policy {lab.call('std_srvs/srv/SetBool', SERVICE_POLICY_ENABLE, data=ENABLE[args.action])}")
-        except LabError as err:
-            print(f"equidiff lab policy {args.action}: {err}", file=sys.stderr)
-            return 1
-    return 0
+    return call_service(f"policy {args.action}", "std_srvs/srv/SetBool", SERVICE_POLICY_ENABLE, prefix="policy ",
+                        data=ENABLE[args.action])

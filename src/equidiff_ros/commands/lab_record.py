@@ -10,8 +10,6 @@ Calls recorder_node's services (std_srvs/Trigger), so it works under ``ros2 laun
 
 from __future__ import annotations
 
-import sys
-
 from equidiff_core import topics
 
 SERVICES = {"start": topics.SERVICE_RECORDER_START, "stop": topics.SERVICE_RECORDER_STOP,
@@ -24,12 +22,6 @@ def add_arguments(parser) -> None:
 
 
 def run(args) -> int:
-    from equidiff_ros.commands.lab_client import LabClient, LabError
+    from equidiff_ros.commands.lab_client import call_service
 
-    with LabClient() as lab:
-        try:
-            print(lab.call("std_srvs/srv/Trigger", SERVICES[args.action]))
-        except LabError as err:
-            print(f"equidiff lab record {args.action}: {err}", file=sys.stderr)
-            return 1
-    return 0
+    return call_service(f"record {args.action}", "std_srvs/srv/Trigger", SERVICES[args.action])
