@@ -35,6 +35,7 @@ COMMANDS: dict[tuple[str, ...], tuple[str, str]] = {
     ("lab", "record"): ("lab_record", "start / keep as success or failure / discard the recorder's episode"),
     ("lab", "policy"): ("lab_policy", "enable, pause or resume the policy"),
     ("lab", "status"): ("lab_status", "episode, policy state and teleop takeover, from the live graph"),
+    ("cameras", "list"): ("cameras_list", "connected RealSense serials, firmware and USB links vs lab.yaml"),
     ("calibrate", "check"): ("calibrate_check", "each camera's alignment in mm against the other clouds and the fingertips"),
 }
 
