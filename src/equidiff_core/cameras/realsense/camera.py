@@ -360,7 +360,7 @@ class RealSenseCamera(Camera):
                 if now >= deadline:
                     raise CameraError(
                         f"{self._where()} has not come back: no frame after {self._recoveries_without_frame - 1} "
-                        f"reset attempt(s) (it stalled: {self._last_reason}); next attempt in "
+                        f"recovery attempt(s) (it stalled: {self._last_reason}); next attempt in "
                         f"{rec.retry_at - now:.1f} s; connected RealSense serials: {self._connected_serials() or 'none'}"
                         + (f"; last error: {rec.last_error}" if rec.last_error else ""))
                 self._sleep(min(rec.retry_at, deadline) - now)
@@ -383,7 +383,8 @@ class RealSenseCamera(Camera):
             if now >= deadline:
                 raise CameraError(f"{self._where()}: recovering after {self._last_reason}: {rec.note}, "
                                   f"waiting for the serial to re-enumerate ({now - rec.reset_at:.1f} s of "
-                                  f"{opt.reenumerate_timeout_s} s)")
+                                  f"{opt.reenumerate_timeout_s} s)"
+                                  + (f"; last error: {rec.last_error}" if rec.last_error else ""))
             self._sleep(min(_POLL_S, deadline - now))
 
     def _close_pipeline(self) -> None:
