@@ -13,7 +13,9 @@ fails for a device that is not on the bus, and for 848x480 depth over a USB 2 li
 
 from __future__ import annotations
 
+import time
 import types
+from pathlib import Path
 from types import SimpleNamespace as NS
 
 import numpy as np
@@ -31,6 +33,40 @@ class FakeClock:
 
     def sleep(self, seconds: float) -> None:
         self.now += max(seconds, 0.0)
+
+
+class WallClock:
+    """The real clock, for a fake device driven by a node in another process (hang guards only)."""
+
+    @property
+    def now(self) -> float:
+        return time.monotonic()
+
+    def monotonic(self) -> float:
+        return time.monotonic()
+
+    def sleep(self, seconds: float) -> None:
+        time.sleep(max(seconds, 0.0))
+
+
+def install_in_subprocess(directory, serials, stall_after_frames=None, reset_s=1.0) -> str:
+    """Write a ``pyrealsense2`` package into ``directory`` that is this fake on the wall clock; return
+    the directory to put first on PYTHONPATH. Each device in ``serials`` stalls after
+    ``stall_after_frames`` frames (None: never) until it is hardware-reset."""
+    package = Path(directory) / "pyrealsense2"
+    package.mkdir(parents=True, exist_ok=True)
+    (package / "__init__.py").write_text(f"""\
+import sys
+sys.path.insert(0, {str(Path(__file__).parent)!r})
+import numpy as np
+from helpers_realsense import FakeRealSense, WallClock
+
+bus = FakeRealSense(WallClock(), np.full((6, 8), 800, np.uint16), np.full((6, 8, 3), 7, np.uint8), reset_s={reset_s!r})
+for serial in {list(serials)!r}:
+    bus.plug(serial).stall_after_frames = {stall_after_frames!r}
+sys.modules[__name__] = bus.module
+""")
+    return str(directory)
 
 
 class FakeSensor:
@@ -61,6 +97,8 @@ class FakeDevice:
         self.fixed_by_reset = True  # a hardware reset clears a stall
         self.back_at = 0.0  # after a reset: off the bus until this time
         self.resets = 0
+        self.stall_after_frames: int | None = None  # stall by itself after this many frames (once)
+        self.frames = 0
 
     @property
     def serial(self) -> str:
@@ -178,6 +216,9 @@ class FakeRealSense:
                     bus.clock.sleep(timeout_ms / 1000)
                     raise RuntimeError(f"Frame didn't arrive within {timeout_ms}")
                 bus.clock.sleep(1.0 / bus.fps)
+                device.frames += 1
+                if device.frames == device.stall_after_frames:
+                    device.stalled = True
                 return bus._frameset()
 
             def stop(self):
