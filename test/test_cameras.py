@@ -251,6 +251,7 @@ class _FakeRealSense:
         from types import SimpleNamespace as NS
 
         cam._rs, cam._pipeline, cam._filters, cam._depth_scale = self.rs, self, list(filters), 0.001
+        cam._opened = True
         cam._align = NS(process=self.process)
         self.processed = 0
 

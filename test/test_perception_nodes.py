@@ -265,3 +265,38 @@ def test_camera_node_without_realsense_fails_fast_naming_the_serial(ros_domain):
         out = stop_node(proc)
     assert proc.returncode == 1
     assert "'cam_left' with serial 215122250002 not found" in out
+
+
+@pytest.mark.ros
+@pytest.mark.slow
+def test_camera_node_resets_a_stalled_realsense_and_publishes_again(tester, tmp_path, monkeypatch):
+    """camera_node (real rclpy, its own process) on a fake pyrealsense2 whose device stalls after 20 frames."""
+    import os
+
+    from helpers_realsense import install_in_subprocess
+
+    front = tester.lab.cameras[0]
+    fake = install_in_subprocess(tmp_path, [front.serial], stall_after_frames=20, reset_s=1.0)
+    monkeypatch.setenv("PYTHONPATH", os.pathsep.join([fake, os.environ.get("PYTHONPATH", "")]))
+    proc = _spawn("camera_node", "backend:=realsense", f"camera:={front.name}")
+
+    def camera_status():
+        for msg in reversed(tester.diagnostics):
+            for status in msg.status:
+                if status.name == f"camera_node/{front.name}":
+                    return status.message, {kv.key: kv.value for kv in status.values}
+        return None, {}
+
+    try:
+        assert tester.wait_for(lambda: tester.clouds, 60.0), stop_node(proc)
+        # 20 frames at 30 fps, then 3 read timeouts of 1 s, a reset, the device back 1 s later
+        assert tester.wait_for(lambda: camera_status()[1].get("reconnects") == "1", 60.0), stop_node(proc)
+        values = camera_status()[1]
+        assert values["resets"] == "1" and values["last_recovery_reason"] == "3 frame timeouts in a row"
+        count = len(tester.clouds)
+        assert tester.wait_for(lambda: len(tester.clouds) > count + 2, 30.0)  # clouds flow again
+        assert len(tester.clouds[-1].data) == 48 * 16  # every pixel of the fake depth image
+        assert proc.poll() is None
+    finally:
+        out = stop_node(proc)
+    assert "3 in a row: stream stopped, hardware reset, waiting up to 10.0 s for it to come back" in out

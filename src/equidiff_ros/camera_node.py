@@ -7,7 +7,13 @@ Wiring:
   once at start -> /tf_static (``tf2_msgs/TFMessage``, transient local): base -> each optical
       frame from the configured extrinsics, when tf2_msgs is installed (not on a PyPI-only
       machine: logged once; bags get /tf_static from the recorder)
-  timer at 1 Hz -> /diagnostics (``camera_node/<name>``: frames published, read errors, age)
+  timer at 1 Hz -> /diagnostics (``camera_node/<name>``: frames published, read errors, age,
+      the backend's hardware resets / reconnects and why the last recovery began)
+
+A RealSense that stalls (``reset_after_timeouts`` read timeouts in a row) is hardware-reset
+and reopened with its options by the backend itself (``RealSenseCamera.read``); meanwhile
+each read fails with a line saying what the camera is doing, logged throttled per camera,
+and the thread keeps reading, so the node never stops for a camera that went away.
 
 The header stamp is the capture time the backend reports (host clock for RealSense with
 global time, the node clock for replay, sim time for the twin); the frame id is
@@ -133,7 +139,7 @@ class CameraNode(Node):
         self.tf_pub.publish(extrinsics_tf_message(self.configs, self.lab.base_frame, now_ns(self), self.factory))
 
     def _run(self, cfg, camera):
-        log = self.get_logger()
+        log = self.get_logger().get_child(cfg.name)  # a logger per camera: its own warning throttle
         pacer = PublishPacer(cfg.publish_hz)
         pub, stats = self.pubs[cfg.name], self.stats[cfg.name]
         while not self._stop.is_set():
@@ -173,15 +179,20 @@ class CameraNode(Node):
 
     def _publish_diagnostics(self):
         now = now_ns(self)
-        for cfg in self.configs:
-            s = self.stats[cfg.name]
+        for cfg, camera in zip(self.configs, self.cameras):
+            s, health = self.stats[cfg.name], camera.health()
             age_ms = None if s["last_stamp_ns"] is None else (now - s["last_stamp_ns"]) / 1e6
             ok = age_ms is not None and age_ms < 3000.0 / cfg.publish_hz
+            if health.recovering:
+                message = f"recovering: {health.last_recovery_reason}"
+            else:
+                message = "publishing" if ok else "no recent frames"
             self.diag_pub.publish(cm.diagnostic_array(
-                self.factory, now, f"{NODE_NAME}/{cfg.name}", cfg.serial, cm.OK if ok else cm.WARN,
-                "publishing" if ok else "no recent frames",
+                self.factory, now, f"{NODE_NAME}/{cfg.name}", cfg.serial,
+                cm.OK if ok and not health.recovering else cm.WARN, message,
                 {"backend": self.backend, "published": s["published"], "read_errors": s["read_errors"],
-                 "age_ms": "none" if age_ms is None else round(age_ms, 1)}))
+                 "age_ms": "none" if age_ms is None else round(age_ms, 1), "resets": health.resets,
+                 "reconnects": health.reconnects, "last_recovery_reason": health.last_recovery_reason or "none"}))
 
     def _disconnect_all(self):
         for camera in getattr(self, "cameras", []):

@@ -37,6 +37,7 @@ COMMANDS: dict[tuple[str, ...], tuple[str, str]] = {
     ("lab", "ack"): ("lab_ack", "let the arm go on after a robot error or divergence stop (it never resumes by itself)"),
     ("lab", "policy"): ("lab_policy", "enable, pause or resume the policy"),
     ("lab", "status"): ("lab_status", "episode, policy state and teleop takeover, from the live graph"),
+    ("cameras", "list"): ("cameras_list", "connected RealSense serials, firmware and USB links vs lab.yaml"),
     ("calibrate", "check"): ("calibrate_check", "each camera's alignment in mm against the other clouds and the fingertips"),
 }
 

@@ -9,7 +9,7 @@ from __future__ import annotations
 import importlib
 
 from ..config import CameraConfig
-from .base import Camera, CameraError, CloudFrame, NoFrameYet
+from .base import Camera, CameraError, CameraHealth, CloudFrame, NoFrameYet
 
 # backend name -> (module relative to this package, class name)
 BACKENDS: dict[str, tuple[str, str]] = {
@@ -18,7 +18,7 @@ BACKENDS: dict[str, tuple[str, str]] = {
     "twin": (".twin", "TwinCamera"),
 }
 
-__all__ = ["BACKENDS", "Camera", "CameraError", "CloudFrame", "NoFrameYet", "extrinsics_tf_message", "limit_depth", "make_camera"]
+__all__ = ["BACKENDS", "Camera", "CameraError", "CameraHealth", "CloudFrame", "NoFrameYet", "extrinsics_tf_message", "limit_depth", "make_camera"]
 
 
 def make_camera(backend: str, camera: CameraConfig, **backend_kwargs) -> Camera:

@@ -31,6 +31,16 @@ class CloudFrame:
     stamp_ns: int  # capture time on the ROS clock (wall time on hardware, sim time in the twin)
 
 
+@dataclass(frozen=True)
+class CameraHealth:
+    """How a camera has recovered from faults; camera_node puts it in /diagnostics."""
+
+    resets: int = 0  # hardware resets issued after a stall
+    reconnects: int = 0  # times the stream came back after a reset
+    recovering: bool = False  # now between a stall and the stream's return
+    last_recovery_reason: str = ""  # why the latest recovery began ("" = never)
+
+
 class Camera(abc.ABC):
     """A source of coloured point clouds. Use as ``with make_camera(...) as cam: cam.read()``."""
 
@@ -49,6 +59,10 @@ class Camera(abc.ABC):
     @property
     @abc.abstractmethod
     def is_connected(self) -> bool: ...
+
+    def health(self) -> CameraHealth:
+        """Recovery counters; backends that do not recover by themselves report none."""
+        return CameraHealth()
 
     def __enter__(self) -> Self:
         self.connect()
