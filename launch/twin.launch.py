@@ -43,15 +43,16 @@ def generate_launch_description():
     clock = LaunchConfiguration("clock")
     sim = PythonExpression(["'", clock, "' == 'sim'"])
     common = {"lab_config": lab, "use_sim_time": sim}
+    clouds = {"reliable_clouds": sim}  # lockstep: no frame owed a chunk may be lost in transport
     nodes = [
         Node(package="equidiff_ros", executable="twin_node", output="screen",
              parameters=[{"lab_config": lab, "twin_config": twin, "host": host, "seed": LaunchConfiguration("seed"),
                           "clock": clock, "latency_s": PythonExpression([LaunchConfiguration("latency_ms"), " / 1000.0"])}]),
         *[Node(package="equidiff_ros", executable="camera_node", name=f"camera_{cam}", output="screen",
-               parameters=[{**common, "backend": "twin", "camera": cam,
+               parameters=[{**common, **clouds, "backend": "twin", "camera": cam,
                             "backend_options": PythonExpression(["'lockstep: true' if ", sim, " else ''"])}])
           for cam in CAMERAS],
-        Node(package="equidiff_ros", executable="voxel_node", output="screen", parameters=[common]),
+        Node(package="equidiff_ros", executable="voxel_node", output="screen", parameters=[{**common, **clouds}]),
         Node(package="equidiff_ros", executable="franka_node", output="screen",
              parameters=[{**common, "robot_ip": host, "realtime": False}]),
         Node(package="equidiff_ros", executable="policy_node", output="screen",

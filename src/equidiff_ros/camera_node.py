@@ -21,7 +21,9 @@ global time, the node clock for replay, sim time for the twin); the frame id is
 
 Parameters: ``lab_config`` (lab.yaml), ``camera`` (a camera name; empty = all configured),
 ``backend`` (realsense | replay | twin), ``bag`` / ``loop`` / ``rate`` / ``restamp``
-(replay), ``backend_options`` (a YAML mapping passed to the backend, e.g. "{width: 424}").
+(replay), ``backend_options`` (a YAML mapping passed to the backend, e.g. "{width: 424}"),
+``reliable_clouds`` (publish reliably instead of sensor-data QoS, false; the lockstep twin sets
+it, with voxel_node's, so no frame it owes a chunk is lost in transport).
 A RealSense that is not connected stops the node at once with the missing serial named.
 """
 
@@ -50,9 +52,9 @@ from equidiff_core.sync import PublishPacer
 from equidiff_ros.common import (
     LATCHED_QOS,
     RELIABLE_QOS,
-    SENSOR_QOS,
     TOPIC_DIAGNOSTICS,
     TOPIC_TF_STATIC,
+    cloud_qos,
     declare_lab_config,
     now_ns,
     wait_for_clock,
@@ -79,6 +81,7 @@ class CameraNode(Node):
         rate = self.declare_parameter("rate", 1.0).value
         restamp = self.declare_parameter("restamp", True).value
         options_text = self.declare_parameter("backend_options", "").value
+        reliable = self.declare_parameter("reliable_clouds", False).value
         self.configs = [self.lab.camera(name)] if name else list(self.lab.cameras)
         self.factory = RclpyFactory()
         try:
@@ -112,7 +115,8 @@ class CameraNode(Node):
         except CameraError:
             self._disconnect_all()
             raise
-        self.pubs = {c.name: self.create_publisher(self._cloud_type(), c.topic, SENSOR_QOS) for c in self.configs}
+        self.pubs = {c.name: self.create_publisher(self._cloud_type(), c.topic, cloud_qos(reliable))
+                     for c in self.configs}
         self.stats = {c.name: {"published": 0, "read_errors": 0, "last_stamp_ns": None} for c in self.configs}
         self._publish_tf_static()
         self.diag_pub = self.create_publisher(self.factory.cls("diagnostic_msgs/msg/DiagnosticArray"),

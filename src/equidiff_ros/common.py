@@ -53,8 +53,19 @@ RELIABLE_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE,
                           durability=DurabilityPolicy.VOLATILE, history=HistoryPolicy.KEEP_LAST)
 VOXEL_QOS = QoSProfile(depth=5, reliability=ReliabilityPolicy.RELIABLE,
                        durability=DurabilityPolicy.VOLATILE, history=HistoryPolicy.KEEP_LAST)
+# The twin on simulated time owes every camera frame a chunk: a frame whose cloud is lost in
+# transport (best effort drops a large sample when a queue overflows) would hold the sim until
+# its stall timeout. So there both ends of the cloud topics are reliable (``reliable_clouds``);
+# a best-effort subscriber (the recorder, viz) still matches a reliable publisher.
+RELIABLE_CLOUD_QOS = QoSProfile(depth=5, reliability=ReliabilityPolicy.RELIABLE,
+                                durability=DurabilityPolicy.VOLATILE, history=HistoryPolicy.KEEP_LAST)
 LATCHED_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                          durability=DurabilityPolicy.TRANSIENT_LOCAL, history=HistoryPolicy.KEEP_LAST)
+
+
+def cloud_qos(reliable: bool) -> QoSProfile:
+    """QoS of the camera cloud topics: sensor data in the lab, reliable in the lockstep twin."""
+    return RELIABLE_CLOUD_QOS if reliable else SENSOR_QOS
 
 
 def declare_config(node, cls, prefix: str = ""):

@@ -471,14 +471,16 @@ class TwinStack:
             "seed": self.seed, "clock": "sim" if sim else "realtime", "latency_s": float(self.latency_s),
             "stall_timeout_s": float(self.stall_timeout_s), "max_speed": float(self.max_speed)}))
         common = {"lab_config": str(self.lab_path), "use_sim_time": sim}  # twin_node owns the clock
+        clouds = {"reliable_clouds": True} if sim else {}  # the lockstep owes every frame a chunk
         self.sup = self._supervisor()
         self.sup.wait_for(lambda: self.sup.twin_state is not None, self.start_timeout_s,
                           "twin_node's /twin/state", g.check)
         for cam in self.lab.cameras:
             g.start(f"camera_{cam.name}", node_command("camera_node", {
-                **common, "backend": "twin", "camera": cam.name, **({"backend_options": "'{lockstep: true}'"} if sim else {})}))
+                **common, **clouds, "backend": "twin", "camera": cam.name,
+                **({"backend_options": "'{lockstep: true}'"} if sim else {})}))
         voxel = {"stale_after_s": 3.0, "slop_s": 0.15} if self.lenient and not sim else {}
-        g.start("voxel_node", node_command("voxel_node", {**common, **voxel}))
+        g.start("voxel_node", node_command("voxel_node", {**common, **clouds, **voxel}))
         g.start("franka_node", node_command("franka_node", {**common, "robot_ip": self.host, "realtime": False}),
                 priority=True)
         g.start("recorder_node", node_command("recorder_node", {

@@ -19,7 +19,8 @@ Parameters: ``lab_config``; ``observation_hz`` (default: lab.yaml); ``slop_s`` (
 spread of a matched set, 0.1); ``stale_after_s`` (a camera whose newest cloud is older than
 this stops the output, 0.5); ``queue_size`` (5); ``check_frame_id`` (drop clouds whose frame
 is not the camera's optical frame, true); ``allow_nan_points`` (drop NaN/inf points instead
-of the whole cloud, false); clean-up: ``remove_table`` (false) drops points below ``table_z``
+of the whole cloud, false); ``reliable_clouds`` (subscribe reliably, false: true only with
+camera_nodes that publish reliably, as the lockstep twin's do); clean-up: ``remove_table`` (false) drops points below ``table_z``
 (m, base frame), ``outlier_neighbors`` (0 = off), ``outlier_std_ratio`` (2.0).
 """
 
@@ -39,10 +40,10 @@ from equidiff_core.rosmsg import RclpyFactory
 from equidiff_core.voxels import VoxelizerConfig
 from equidiff_ros.common import (
     RELIABLE_QOS,
-    SENSOR_QOS,
     TOPIC_DIAGNOSTICS,
     TOPIC_VOXELS,
     VOXEL_QOS,
+    cloud_qos,
     declare_lab_config,
     now_ns,
     wait_for_clock,
@@ -70,6 +71,7 @@ class VoxelNode(Node):
         queue_size = param("queue_size", 5)
         self.check_frame_id = param("check_frame_id", True)
         self.allow_nan = param("allow_nan_points", False)
+        reliable = param("reliable_clouds", False)
         remove_table = param("remove_table", False)
         table_z = param("table_z", 0.0)
         cleanup = VoxelizerConfig(table_z=table_z if remove_table else None,
@@ -83,7 +85,7 @@ class VoxelNode(Node):
         cloud_type = self.factory.cls("sensor_msgs/msg/PointCloud2")
         for cam in self.cameras:
             self.create_subscription(cloud_type, cam.topic, lambda msg, cam=cam: self._on_cloud(cam, msg),
-                                     SENSOR_QOS)
+                                     cloud_qos(reliable))
         self.pub = self.create_publisher(cloud_type, TOPIC_VOXELS, VOXEL_QOS)
         self.diag_pub = self.create_publisher(self.factory.cls("diagnostic_msgs/msg/DiagnosticArray"),
                                               TOPIC_DIAGNOSTICS, RELIABLE_QOS)
