@@ -26,7 +26,7 @@ try:
     from ament_index_python.packages import get_package_share_directory
 
     SHARE = Path(get_package_share_directory("equidiff_ros"))
-except Exception:  # a source checkout
+except (ImportError, LookupError):  # a source checkout (PackageNotFoundError is a KeyError)
     SHARE = Path(__file__).resolve().parents[1]
 
 

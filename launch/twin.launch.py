@@ -19,17 +19,27 @@ every other node gets use_sim_time and the cameras take the frames the sim reque
 from pathlib import Path
 
 from launch import LaunchDescription
-from launch.actions import DeclareLaunchArgument, EmitEvent, ExecuteProcess, RegisterEventHandler, SetEnvironmentVariable
+from launch.actions import (
+    DeclareLaunchArgument,
+    EmitEvent,
+    ExecuteProcess,
+    RegisterEventHandler,
+    SetEnvironmentVariable,
+)
 from launch.event_handlers import OnProcessExit
 from launch.events import Shutdown
-from launch.substitutions import LaunchConfiguration, PathJoinSubstitution, PythonExpression
+from launch.substitutions import (
+    LaunchConfiguration,
+    PathJoinSubstitution,
+    PythonExpression,
+)
 from launch_ros.actions import Node
 
 try:
     from ament_index_python.packages import get_package_share_directory
 
     SHARE = Path(get_package_share_directory("equidiff_ros"))
-except Exception:  # a source checkout
+except (ImportError, LookupError):  # a source checkout (PackageNotFoundError is a KeyError)
     SHARE = Path(__file__).resolve().parents[1]
 
 CAMERAS = ("cam_front", "cam_left", "cam_right")  # the names in lab.yaml

@@ -95,3 +95,12 @@ def test_escnn_imports_under_numpy2_and_pip_check_is_clean():
     assert subprocess.run([sys.executable, "-c", code], capture_output=True, timeout=120).returncode == 0
     check = subprocess.run([sys.executable, "-m", "pip", "check"], capture_output=True, text=True, timeout=120)
     assert check.returncode == 0, check.stdout
+
+
+def test_ruff_finds_nothing_in_the_sources_and_tests():
+    """The README's test command is also the lint gate (ruff.toml holds the rules)."""
+    ruff = shutil.which("ruff", path=str(BIN))
+    assert ruff is not None, "ruff is not installed (scripts/setup.sh installs the dev extras)"
+    result = subprocess.run([ruff, "check", "src", "test", "launch"], cwd=ROOT, capture_output=True, text=True,
+                            timeout=120)
+    assert result.returncode == 0, result.stdout + result.stderr
