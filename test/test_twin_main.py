@@ -220,6 +220,27 @@ def test_main_job_smoke_run_end_to_end(ros_domain, tmp_path):
     assert _pids_mentioning(str(out)) == []
 
 
+@pytest.mark.slow
+@pytest.mark.ros
+@pytest.mark.sim
+def test_twin_collect_over_ros_records_the_experts_demo_with_its_seed(ros_domain, tmp_path):
+    """`equidiff twin collect` through the live graph (teleop-style chunks, recorder_node): the
+    same episode sequence as the main job, and a kept demo the dataset reads."""
+    from equidiff_core.bags import read_meta
+
+    out = tmp_path / "demos"
+    proc = run_job([sys.executable, "-m", "equidiff_ros.cli", "twin", "collect", "--episodes", "1", "--seed", "4",
+                    "--yaw-range", "-10", "10", "--out", str(out), "--domain", str(221 + (ros_domain + 3) % 12)],
+                   timeout_s=420, env={**os.environ, "OMP_NUM_THREADS": "1"}, log_dir=tmp_path)
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    last = json.loads(proc.stdout.strip().splitlines()[-1])
+    assert last["episodes"] == 1 and last["successes"] == 1 and last["kept"] == 1 and last["mode"] == "ros"
+    bags = list((out / "bags").glob("twin_block_in_bowl_*"))
+    assert len(bags) == 1
+    meta = read_meta(bags[0])
+    assert meta.success is True and meta.seed == 4 and "scripted expert" in (meta.notes or "")
+
+
 def test_generalisation_eval_scenes_have_unseen_block_yaw_modulo_its_half_turn_symmetry():
     import math
 

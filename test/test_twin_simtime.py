@@ -191,7 +191,7 @@ def test_a_hung_policy_ends_its_episode_as_stalled_naming_it_and_the_job_goes_on
     from equidiff_core.config import default_config_dir, load_lab_config
     from equidiff_core.twin.config import TwinConfig
     from equidiff_core.twin.standin import make_standin_policy
-    from equidiff_ros.twin_supervisor import TwinStack, run_episode
+    from equidiff_ros.twin_supervisor import TwinStack, run_policy_episode
 
     cfg_dir = default_config_dir()
     lab = load_lab_config(cfg_dir / "lab.yaml")
@@ -201,14 +201,14 @@ def test_a_hung_policy_ends_its_episode_as_stalled_naming_it_and_the_job_goes_on
         pid = next(n.popen.pid for n in stack.group.nodes if n.name == "policy_node")
         os.kill(pid, signal.SIGSTOP)
         try:
-            stalled = run_episode(stack, 1, 10.0)
+            stalled = run_policy_episode(stack, 1, 10.0)
         finally:
             os.kill(pid, signal.SIGCONT)
         assert stalled.stalled.startswith("t=") and "policy_node: no chunk for the observation" in stalled.stalled
         assert not stalled.success
         episode = read_episode(Path(stalled.bag))
         assert episode.meta.success is False and "stalled" in (episode.meta.notes or "")
-        after = run_episode(stack, 2, 4.0)
+        after = run_policy_episode(stack, 2, 4.0)
         assert not after.stalled and after.chunks >= 2 and after.dropped_cycles == 0
 
 

@@ -41,7 +41,7 @@ from equidiff_core.topics import (
     TOPIC_TWIN_SCENE,
     TOPIC_TWIN_STATE,
 )
-from equidiff_core.twin.metrics import EpisodeRecord, SuccessHold
+from equidiff_core.twin.metrics import EpisodeRecord
 
 NS = 1_000_000_000
 
@@ -303,7 +303,7 @@ class Supervisor:
         path = LinePath(self.current()[0], target, speed=speed, angular_speed=angular_speed, hz=hz, max_lag_m=max_lag_m)
         p1 = path.target[:3, 3]
         # timeout_s is the arm's time: on real time a twin at 0.45x moves the arm (speed-limited in
-        # its own clock) at 0.45x wall-clock speed, as run_expert's plan clock assumes too
+        # its own clock) at 0.45x wall-clock speed, as LiveExpert's plan clock assumes too
         rate = self.time_scale()
         deadline = self.now_ns() + int(timeout_s / rate * NS)
         while self.now_ns() < deadline:
@@ -544,94 +544,152 @@ def object_poses_from_state(state: dict) -> tuple[np.ndarray, np.ndarray]:
     return out[0], out[1]
 
 
-def run_expert(stack: TwinStack, hz: float | None = None, max_lag_m: float = 0.03, extra_s: float = 4.0,
-               timeout_s: float | None = None) -> dict:
-    """Drive the scripted expert through the teleop path: one-point chunks at 20 Hz.
+class LiveTwin:
+    """The live twin stack as an ``episode.EpisodeWorld``: the supervisor homes the arm, resets
+    the scene, reads success from /twin/state and drives recorder_node."""
+
+    def __init__(self, stack: TwinStack):
+        self.stack, self.sup = stack, stack.sup
+
+    def home(self) -> None:
+        self.stack.home()
+
+    def reset_scene(self, seed: int) -> None:
+        self.sup.reset_scene(seed, check=self.stack.check)
+
+    def settle(self, seconds: float) -> None:
+        self.sup.sim_sleep(seconds, self.stack.check)
+
+    def now_s(self) -> float:
+        return self.sup.now_ns() / NS
+
+    def success(self) -> bool:
+        return bool(self.sup.twin().get("success"))
+
+    def start_recording(self) -> str:
+        status = self.sup.recorder(f"start {self.stack.task}", "recording", check=self.stack.check)
+        return status.split(" ", 1)[1] if " " in status else ""
+
+    def stop_recording(self, keep: bool, success: bool, note: str) -> None:
+        command = f"stop {'success' if success else 'failure'} {note}" if keep else "discard"
+        self.sup.recorder(command, "idle", check=self.stack.check)
+
+
+class GatedPolicy:
+    """policy_node as an ``episode.Actor``: its chunks reach the robot while the gate is open.
+
+    The episode's duration counts from the first chunk; a stall twin_node reports (a stage that
+    did not deliver within its stall timeout, simulated time) ends the episode at once."""
+
+    def __init__(self, stack: TwinStack, poll_s: float = 0.05):
+        self.stack, self.sup, self.poll_s = stack, stack.sup, poll_s
+        self.stalls0 = 0
+        self.arrivals: list[float] = []
+        self.dropped: list[str] = []
+        self.end_to_end_ms: list[float] = []
+        self.inference_ms: list[float] = []
+
+    def begin(self) -> float:
+        sup = self.sup
+        self.stalls0 = sup.twin().get("stalls", 0)
+        sup.open_gate()
+        gate_t = sup.now_ns() / NS
+        sup.wait_for(lambda: sup.chunk_arrivals or sup.twin().get("stalls", 0) > self.stalls0,
+                     60.0 + self.stack.stall_timeout_s, "the first policy chunk", self.stack.check)
+        return sup.chunk_arrivals[0] if sup.chunk_arrivals else gate_t
+
+    def advance(self) -> None:
+        time.sleep(self.poll_s)
+
+    def judging(self) -> bool:
+        return True
+
+    def done(self) -> bool:
+        return False
+
+    def stalled(self) -> str:
+        self.stack.check()
+        self.sup.check_clock()
+        state = self.sup.twin()
+        return state.get("last_stall", "a stage of the pipeline") if state.get("stalls", 0) > self.stalls0 else ""
+
+    def end(self) -> None:
+        self.arrivals, self.dropped, self.end_to_end_ms, self.inference_ms = self.sup.close_gate()
+        self.sup.send_target(*self.sup.current())  # hold where it is while the recorder closes
+
+
+class LiveExpert:
+    """The scripted expert as an ``episode.Actor`` through the teleop path: one-point chunks at
+    ``hz`` (20 Hz), as teleop_node sends them.
 
     The plan's clock advances only while the arm keeps up (TCP within ``max_lag_m`` of the
     target, like teleop's ``max_lead_m``), so a twin slower than real time (a loaded CPU) gets
-    the same motion, just later; an arm that never catches up (blocked, in a reflex) raises
-    SupervisorError after ``timeout_s`` (default: 30 s + 10x the plan). Returns the final /twin/state.
-    """
-    from equidiff_core.twin.expert import plan_pick_place
+    the same motion, just later. Success counts once the plan is done; ``extra_s`` after it the
+    expert gives up. An arm that never catches up (blocked, in a reflex) raises
+    SupervisorError after ``timeout_s`` (default: 30 s + 10x the plan)."""
 
-    sup, cfg = stack.sup, stack.cfg
-    ex = cfg.expert
-    hz = hz or ex.command_hz
-    block, bowl = object_poses_from_state(sup.twin())
-    start, width = sup.current()
-    plan = plan_pick_place(start, width, block, bowl, cfg.scene.block_size[2], ex)
-    t_plan, last = 0.0, sup.now_ns() / NS
-    limit = timeout_s if timeout_s is not None else 30.0 + 10.0 * plan.duration  # of the node's clock
-    deadline = last + limit / sup.time_scale()
-    hold = SuccessHold(cfg.success.hold_s)
-    while True:
-        stack.check()
-        sup.check_clock()
+    def __init__(self, stack: TwinStack, hz: float | None = None, max_lag_m: float = 0.03, extra_s: float = 4.0,
+                 timeout_s: float | None = None):
+        self.stack, self.sup, self.cfg = stack, stack.sup, stack.cfg
+        self.hz = hz or self.cfg.expert.command_hz
+        self.max_lag_m, self.extra_s, self.timeout_s = max_lag_m, extra_s, timeout_s
+        self.plan = None
+        self.t_plan = 0.0
+
+    def begin(self) -> float:
+        from equidiff_core.twin.expert import plan_pick_place
+
+        sup, cfg = self.sup, self.cfg
+        block, bowl = object_poses_from_state(sup.twin())
+        start, width = sup.current()
+        self.plan = plan_pick_place(start, width, block, bowl, cfg.scene.block_size[2], cfg.expert)
+        self.t_plan, self.last = 0.0, sup.now_ns() / NS
+        limit = self.timeout_s if self.timeout_s is not None else 30.0 + 10.0 * self.plan.duration  # node clock
+        self.deadline = self.last + limit / sup.time_scale()
+        return self.last
+
+    def advance(self) -> None:
+        sup, plan = self.sup, self.plan
         now = sup.now_ns() / NS
-        if now > deadline:
-            lag_mm = 1000 * np.linalg.norm(sup.current()[0][:3, 3] - plan.target_at(t_plan)[0][:3, 3])
+        if now > self.deadline:
+            lag_mm = 1000 * np.linalg.norm(sup.current()[0][:3, 3] - plan.target_at(self.t_plan)[0][:3, 3])
             raise SupervisorError(f"the scripted expert's {plan.duration:.0f} s plan did not finish in time: "
-                                  f"plan clock at {t_plan:.1f} s, TCP {lag_mm:.0f} mm from its target")
-        dt, last = now - last, now
-        pose, width = plan.target_at(t_plan)
-        tcp, _ = sup.current()
-        rate = sup.time_scale()
-        if np.linalg.norm(tcp[:3, 3] - pose[:3, 3]) < max_lag_m:
-            t_plan += dt * rate
+                                  f"plan clock at {self.t_plan:.1f} s, TCP {lag_mm:.0f} mm from its target")
+        dt, self.last = now - self.last, now
+        pose, width = plan.target_at(self.t_plan)
+        keeping_up = np.linalg.norm(sup.current()[0][:3, 3] - pose[:3, 3]) < self.max_lag_m
+        # the plan's clock waits for a lagging arm, except after the plan (its final target holds)
+        if keeping_up or self.t_plan >= plan.duration:
+            self.t_plan += dt * sup.time_scale()
         sup.send_target(pose, width)
-        if t_plan >= plan.duration:
-            state = sup.twin()
-            if hold.update(bool(state.get("success")), now):
-                return state
-            if t_plan >= plan.duration + extra_s:
-                return state
-            t_plan += dt * rate if np.linalg.norm(tcp[:3, 3] - pose[:3, 3]) >= max_lag_m else 0.0
-        time.sleep(1.0 / hz)  # wall pacing of the stream; the plan runs on the node's clock
+        time.sleep(1.0 / self.hz)  # wall pacing of the stream; the plan runs on the node's clock
+
+    def judging(self) -> bool:
+        return self.t_plan >= self.plan.duration
+
+    def done(self) -> bool:
+        return self.t_plan >= self.plan.duration + self.extra_s
+
+    def stalled(self) -> str:
+        self.stack.check()
+        self.sup.check_clock()
+        return ""
+
+    def end(self) -> None:
+        pass  # the plan's last target holds the arm
 
 
-def run_episode(stack, seed: int, max_duration_s: float):
-    """Home, reset, record, let the policy act; durations on the node clock (simulated time by default).
+def run_policy_episode(stack: TwinStack, seed: int, max_duration_s: float) -> EpisodeRecord:
+    """One episode of the main job (``episode.run_episode`` with policy_node acting through the
+    gate); durations on the node clock (simulated time by default).
 
     An episode in which twin_node reports a stall (a camera or the policy did not deliver within
     its stall timeout) ends at once as ``stalled``, naming the stage; its bag is kept."""
+    from equidiff_core.episode import run_episode
 
-    sup, cfg = stack.sup, stack.cfg
-    rec = EpisodeRecord(seed=seed)
-    stack.home()
-    sup.reset_scene(seed, check=stack.check)
-    sup.sim_sleep(0.6, stack.check)  # let cameras and voxels show the new scene before the policy sees it
-    status = sup.recorder(f"start {stack.task}", "recording", check=stack.check)
-    rec.bag = status.split(" ", 1)[1] if " " in status else ""
-    stalls = sup.twin().get("stalls", 0)
-    sup.open_gate()
-    gate_t = sup.now_ns() / 1e9
-    try:
-        sup.wait_for(lambda: sup.chunk_arrivals or sup.twin().get("stalls", 0) > stalls,
-                     60.0 + stack.stall_timeout_s, "the first policy chunk", stack.check)
-        start = sup.chunk_arrivals[0] if sup.chunk_arrivals else gate_t
-        hold = SuccessHold(cfg.success.hold_s)
-        while sup.now_ns() / 1e9 - start < max_duration_s:
-            stack.check()
-            sup.check_clock()
-            state = sup.twin()
-            if state.get("stalls", 0) > stalls:
-                rec.stalled = state.get("last_stall", "a stage of the pipeline")
-                break
-            if hold.update(bool(state.get("success")), sup.now_ns() / 1e9):
-                rec.success = True
-                break
-            time.sleep(0.05)
-        end = sup.now_ns() / 1e9
-    finally:
-        arrivals, dropped, e2e, inf = sup.close_gate()
-    rec.duration_s = round((hold.since if rec.success else end) - start, 2)
-    rec.chunks = len(arrivals)
-    rec.dropped_cycles = len(dropped)  # observations due an answer that got none (policy_node says why)
-    rec.end_to_end_ms, rec.inference_ms = e2e, inf
-    pose, width = sup.current()
-    sup.send_target(pose, width)  # hold where it is while the recorder closes
-    outcome = "success" if rec.success else "failure"
-    note = f" stalled: {rec.stalled}" if rec.stalled else ""
-    sup.recorder(f"stop {outcome} seed={seed}{note}", "idle", check=stack.check)
-    return rec
+    policy = GatedPolicy(stack)
+    result = run_episode(LiveTwin(stack), policy, seed, max_duration_s, stack.cfg.success.hold_s)
+    return EpisodeRecord(seed=seed, success=result.success, duration_s=result.duration_s, chunks=len(policy.arrivals),
+                         dropped_cycles=len(policy.dropped),  # observations due an answer that got none
+                         bag=result.bag, end_to_end_ms=policy.end_to_end_ms, inference_ms=policy.inference_ms,
+                         stalled=result.stalled)

@@ -26,7 +26,6 @@ from ..topics import (
     TRAINING_TOPICS,
 )
 from .config import TwinConfig
-from .metrics import SuccessHold
 
 NS = 1_000_000_000
 
@@ -66,90 +65,164 @@ class DirectRecorder:
             frames.append(limit_depth(cam.read(), cfg.min_depth, cfg.max_depth))
         return self.voxelizer(frames)
 
-    def record(self, path: Path, seed: int, task: str, epoch_ns: int) -> tuple[bool, dict]:
-        """Run one expert episode for ``seed`` and write it to ``path``; returns (success, details)."""
+
+class DirectWorld:
+    """The in-process twin as an ``episode.EpisodeWorld``: DirectSim, its cameras and an
+    ``EpisodeWriter`` on the sim clock, writing what recorder_node would record.
+
+    While recording, ``step`` writes /franka/ee_pose and /franka/joint_states at the robot's
+    state rate and /voxels at the observation rate; ``command`` sends a teleop-style target and
+    writes it as /franka/command_chunk. Stamps are ``epoch_ns`` + sim time since the start."""
+
+    def __init__(self, rec: DirectRecorder, out: Path, task: str, epoch_ns: int, operator: str):
+        self.rec, self.sim, self.lab = rec, rec.sim, rec.lab
+        self.out, self.task, self.epoch_ns, self.operator = out, task, epoch_ns, operator
+        self.seed: int | None = None
+        self.writer = None
+        self.path: Path | None = None
+        self.ms = 0  # sim ms since the recording started
+        self.t0 = 0.0
+        self.state_every = round(1000 / self.lab.robot.state_hz)
+        self.obs_every = round(1000 / self.lab.observation_hz)
+
+    def home(self) -> None:
+        """Nothing to do here: ``DirectSim.reset`` re-poses the arm, so ``reset_scene`` homes after it."""
+
+    def reset_scene(self, seed: int) -> None:
+        from .expert import tcp_pose
+
+        ex = self.rec.cfg.expert
+        self.seed = seed
+        self.sim.reset(seed)  # puts the arm back at its initial posture ...
+        self.sim.command(tcp_pose(ex.ready_position, 0.0), ex.open_width)
+        self.sim.step(1500)  # ... from which it reaches the ready pose, where the live twin's homing leaves it
+
+    def settle(self, seconds: float) -> None:
+        self.sim.step(round(seconds * 1000))
+
+    def now_s(self) -> float:
+        return self.sim.time
+
+    def success(self) -> bool:
+        return bool(self.sim.success()["success"])
+
+    def start_recording(self) -> str:
         from ..bags import EpisodeMeta
+        from ..recording import EpisodeWriter, next_episode_path
+
+        self.path = next_episode_path(self.out, self.task)
+        self.writer = EpisodeWriter(self.path, EpisodeMeta(task=self.task, operator=self.operator,
+                                                           seed=self.seed)).open()
+        for topic, msgtype in TRAINING_TOPICS.items():
+            self.writer.add_topic(topic, msgtype)
+        self.writer.write_tf_static(self.lab, self.epoch_ns)
+        self.ms, self.t0 = 0, self.sim.time
+        return str(self.path)
+
+    def stop_recording(self, keep: bool, success: bool, note: str) -> None:
+        writer, self.writer = self.writer, None
+        if keep:
+            writer.close(success=success, notes=note)
+        else:
+            writer.discard()
+
+    def stamp_ns(self) -> int:
+        return self.epoch_ns + int((self.sim.time - self.t0) * NS)
+
+    def command(self, pose: np.ndarray, width: float, lead_ns: int = 50_000_000) -> None:
+        """Send a target reached ``lead_ns`` later (teleop's lead) and record it as a one-point chunk."""
         from ..chunk import PoseChunk, chunk_to_msg
+
+        t_ns = self.stamp_ns()
+        self.sim.command(pose, width)
+        chunk = PoseChunk(t_ns, np.array([t_ns + lead_ns], np.int64), pose[None], np.array([width]))
+        self.writer.write(TOPIC_COMMAND_CHUNK, chunk_to_msg(chunk, self.rec.factory, self.lab.base_frame), t_ns)
+
+    def step(self) -> None:
+        """Write the messages due at this instant, then advance 1 ms."""
         from ..control import messages as cm
         from ..pointcloud import grid_to_voxel_msg
-        from ..recording import EpisodeWriter
         from ..robots.base import ARM_JOINT_NAMES, FINGER_JOINT_NAMES
-        from .expert import plan_pick_place, tcp_pose
+
+        sim, f, frame, t_ns = self.sim, self.rec.factory, self.lab.base_frame, self.stamp_ns()
+        if self.ms % self.state_every == 0:
+            w = sim.gripper_width()
+            self.writer.write(TOPIC_EE_POSE, cm.pose_stamped(f, sim.tcp_pose(), t_ns, frame), t_ns)
+            js = f.make("sensor_msgs/msg/JointState", header=f.header(t_ns, ""),
+                        name=[*ARM_JOINT_NAMES, *FINGER_JOINT_NAMES],
+                        position=f.float64_array([*map(float, sim.joint_positions()), w / 2, w / 2]),
+                        velocity=f.float64_array([0.0] * 9), effort=f.float64_array([]))
+            self.writer.write(TOPIC_JOINT_STATES, js, t_ns)
+        if self.ms % self.obs_every == 0:
+            ws = self.lab.workspace
+            grid = self.rec.voxel_grid(t_ns)
+            self.writer.write(TOPIC_VOXELS, grid_to_voxel_msg(grid, ws.lower, ws.voxel_size, t_ns, frame, f), t_ns)
+        sim.step(1)
+        self.ms += 1
+
+
+class DirectExpert:
+    """The scripted expert as an ``episode.Actor`` in a ``DirectWorld``: its plan's target every
+    1/``command_hz``, success judged at each observation instant once the plan is done, and
+    ``extra_s`` after it at most."""
+
+    def __init__(self, world: DirectWorld, extra_s: float = 3.0):
+        self.world, self.extra_s = world, extra_s
+        self.cmd_every = round(1000 / world.rec.cfg.expert.command_hz)
+        self.plan = None
+
+    def begin(self) -> float:
+        from .expert import plan_pick_place
         from .scene import BLOCK, BOWL, body_pose
 
-        sim, ex, f = self.sim, self.cfg.expert, self.factory
-        sim.reset(seed)
-        sim.command(tcp_pose(ex.ready_position, 0.0), ex.open_width)
-        sim.step(1500)  # the arm is homed before the recording starts, as in the ROS path
-        plan = plan_pick_place(sim.tcp_pose(), sim.gripper_width(), body_pose(sim.model, sim.data, BLOCK),
-                               body_pose(sim.model, sim.data, BOWL), self.cfg.scene.block_size[2], ex)
-        writer = EpisodeWriter(path, EpisodeMeta(task=task, operator="scripted expert (direct)", seed=seed)).open()
-        for topic, msgtype in TRAINING_TOPICS.items():
-            writer.add_topic(topic, msgtype)
-        t0 = sim.time
-        writer.write_tf_static(self.lab, epoch_ns)
-        frame = self.lab.base_frame
-        obs_every = round(1000 / self.lab.observation_hz)
-        cmd_every = round(1000 / ex.command_hz)
-        state_every = round(1000 / self.lab.robot.state_hz)
-        lead_ns = 50_000_000  # teleop's command lead
-        step, hold = 0, SuccessHold(self.cfg.success.hold_s)
-        end_ms = int((plan.duration + 3.0) * 1000)
-        try:
-            while step <= end_ms:
-                t_ns = epoch_ns + int((sim.time - t0) * NS)
-                if step % cmd_every == 0:
-                    pose, width = plan.target_at(sim.time - t0)
-                    sim.command(pose, width)
-                    chunk = PoseChunk(t_ns, np.array([t_ns + lead_ns], np.int64), pose[None], np.array([width]))
-                    writer.write(TOPIC_COMMAND_CHUNK, chunk_to_msg(chunk, f, frame), t_ns)
-                if step % state_every == 0:
-                    tcp = sim.tcp_pose()
-                    w = sim.gripper_width()
-                    writer.write(TOPIC_EE_POSE, cm.pose_stamped(f, tcp, t_ns, frame), t_ns)
-                    q = sim.joint_positions()
-                    js = f.make("sensor_msgs/msg/JointState", header=f.header(t_ns, ""),
-                                name=[*ARM_JOINT_NAMES, *FINGER_JOINT_NAMES],
-                                position=f.float64_array([*map(float, q), w / 2, w / 2]),
-                                velocity=f.float64_array([0.0] * 9), effort=f.float64_array([]))
-                    writer.write(TOPIC_JOINT_STATES, js, t_ns)
-                if step % obs_every == 0:
-                    grid = self.voxel_grid(t_ns)
-                    ws = self.lab.workspace
-                    writer.write(TOPIC_VOXELS, grid_to_voxel_msg(grid, ws.lower, ws.voxel_size, t_ns, frame, f), t_ns)
-                    if sim.time - t0 > plan.duration and hold.update(sim.success()["success"], sim.time):
-                        break
-                sim.step(1)
-                step += 1
-            details = sim.success()
-            writer.close(success=bool(details["success"]), notes=f"scripted expert (direct), seed={seed}")
-        except BaseException:
-            writer.discard()
-            raise
-        return bool(details["success"]), details
+        sim, cfg = self.world.sim, self.world.rec.cfg
+        self.plan = plan_pick_place(sim.tcp_pose(), sim.gripper_width(), body_pose(sim.model, sim.data, BLOCK),
+                                    body_pose(sim.model, sim.data, BOWL), cfg.scene.block_size[2], cfg.expert)
+        self.t0 = sim.time
+        return self.t0
+
+    def advance(self) -> None:
+        world = self.world
+        while True:
+            if world.ms % self.cmd_every == 0:
+                world.command(*self.plan.target_at(world.sim.time - self.t0))
+            world.step()
+            if world.ms % world.obs_every == 0:
+                return
+
+    def judging(self) -> bool:
+        return self.world.sim.time - self.t0 > self.plan.duration
+
+    def done(self) -> bool:
+        return self.world.sim.time - self.t0 > self.plan.duration + self.extra_s
+
+    def stalled(self) -> str:
+        return ""  # one process, one clock: nothing can fail to deliver
+
+    def end(self) -> None:
+        pass  # the next reset re-poses the arm
 
 
 def collect_direct(cfg: TwinConfig, lab: LabConfig, out: Path, seeds: Iterable[int], task: str = "twin_block_in_bowl",
                    keep_failures: bool = False, log: Callable[[str], None] = print,
                    stop_after: int | None = None) -> list[tuple[int, bool, str]]:
-    """Record one bag per seed under ``out``; failed episodes are deleted unless ``keep_failures``;
-    stop once ``stop_after`` successful demos exist."""
-    import shutil
-
-    from ..recording import next_episode_path
+    """Record one bag per seed under ``out`` (``episode.run_episode`` with the scripted expert);
+    failed episodes are deleted unless ``keep_failures``; stop once ``stop_after`` successful
+    demos exist."""
+    from ..episode import run_episode
 
     rec = DirectRecorder(cfg, lab)
+    world = DirectWorld(rec, out, task, epoch_ns=time.time_ns(), operator="scripted expert (direct)")
     results = []
     try:
         for seed in seeds:
             t0 = time.monotonic()
-            path = next_episode_path(out, task)
-            ok, _details = rec.record(path, seed, task, epoch_ns=time.time_ns())
-            if not ok and not keep_failures:
-                shutil.rmtree(path, ignore_errors=True)
-            results.append((seed, ok, str(path) if ok or keep_failures else ""))
-            log(f"[collect] seed {seed}: {'success' if ok else 'failure'} in {time.monotonic() - t0:.1f} s"
-                f"{'' if ok or keep_failures else ' (discarded)'} {path.name}")
+            world.epoch_ns = time.time_ns()
+            result = run_episode(world, DirectExpert(world), seed, float("inf"), cfg.success.hold_s,
+                                 keep=lambda ok: ok or keep_failures, note="scripted expert (direct)")
+            results.append((seed, result.success, result.bag))
+            log(f"[collect] seed {seed}: {'success' if result.success else 'failure'} in "
+                f"{time.monotonic() - t0:.1f} s{'' if result.bag else ' (discarded)'} {world.path.name}")
             if stop_after is not None and sum(1 for _, s, _ in results if s) >= stop_after:
                 break
     finally:

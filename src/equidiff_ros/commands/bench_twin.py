@@ -44,7 +44,11 @@ def run(args: argparse.Namespace) -> int:
     from equidiff_core.twin.config import load_twin_job_configs
     from equidiff_core.twin.processes import NodeProcessError, cpu_seconds
     from equidiff_ros.commands.twin_run import resolve_policy
-    from equidiff_ros.twin_supervisor import SupervisorError, TwinStack, run_episode
+    from equidiff_ros.twin_supervisor import (
+        SupervisorError,
+        TwinStack,
+        run_policy_episode,
+    )
 
     configs = load_twin_job_configs(None, None)
     out = args.out or Path(tempfile.mkdtemp(prefix="bench_twin_"))
@@ -59,7 +63,7 @@ def run(args: argparse.Namespace) -> int:
             cpu0 = {name: cpu_seconds(pid) for name, pid in procs.items()}
             me0, wall0, sim0 = time.process_time(), time.monotonic(), stack.sup.now_ns() / 1e9
             waits0 = dict(stack.sup.twin().get("wait_s", {}))
-            records = [run_episode(stack, args.seed + i, args.max_duration)
+            records = [run_policy_episode(stack, args.seed + i, args.max_duration)
                        for i in range(args.episodes)]
             wall, sim = time.monotonic() - wall0, stack.sup.now_ns() / 1e9 - sim0
             shares = {name: round((cpu_seconds(pid) - cpu0[name]) / wall, 3) for name, pid in procs.items()}

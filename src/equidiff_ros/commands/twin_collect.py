@@ -38,25 +38,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--twin-config", type=Path, default=None)
 
 
-def set_bag_seed(bag: Path, seed: int) -> None:
-    """Put the scene seed into an episode's metadata (recorder_node has no field for it)."""
-    import yaml
-
-    from equidiff_core.bags import META_SIDECAR
-
-    meta_file = bag / "metadata.yaml"
-    info = yaml.safe_load(meta_file.read_text())
-    info["rosbag2_bagfile_information"].setdefault("custom_data", {})["seed"] = str(seed)
-    meta_file.write_text(yaml.safe_dump(info, sort_keys=False))
-    sidecar = bag / META_SIDECAR
-    if sidecar.is_file():
-        data = yaml.safe_load(sidecar.read_text()) or {}
-        data["seed"] = seed
-        sidecar.write_text(yaml.safe_dump(data, sort_keys=False))
-
-
 def _collect_ros(args, lab_path: Path, twin_path: Path, cfg_override) -> list[tuple[int, bool, str]]:
-    from equidiff_ros.twin_supervisor import TwinStack, run_expert
+    from equidiff_core.episode import run_episode
+    from equidiff_ros.twin_supervisor import LiveExpert, LiveTwin, TwinStack
 
     results = []
     twin_cfg_path = twin_path
@@ -69,25 +53,14 @@ def _collect_ros(args, lab_path: Path, twin_path: Path, cfg_override) -> list[tu
         twin_cfg_path.write_text(yaml.safe_dump(to_dict(cfg_override), sort_keys=False))
     with TwinStack(args.out, lab_path, twin_cfg_path, policy=None, domain_id=args.domain, task=args.task,
                    seed=args.seed) as stack:
-        sup = stack.sup
+        world = LiveTwin(stack)
         for i in range(args.episodes):
             seed = args.seed + i
-            stack.home()
-            sup.reset_scene(seed, check=stack.check)
-            time.sleep(0.6)
-            status = sup.recorder(f"start {args.task}", "recording", check=stack.check)
-            bag = Path(status.split(" ", 1)[1])
-            state = run_expert(stack)
-            ok = bool(state.get("success"))
-            if ok or args.keep_failures:
-                sup.recorder(f"stop {'success' if ok else 'failure'} scripted expert seed={seed}", "idle",
-                             check=stack.check)
-                set_bag_seed(bag, seed)
-            else:
-                sup.recorder("discard", "idle", check=stack.check)
-            results.append((seed, ok, str(bag) if (ok or args.keep_failures) else ""))
-            print(f"[collect] {i + 1}/{args.episodes} seed {seed}: {'success' if ok else 'failure'} "
-                  f"{bag if ok or args.keep_failures else '(discarded)'}", flush=True)
+            result = run_episode(world, LiveExpert(stack), seed, float("inf"), stack.cfg.success.hold_s,
+                                 keep=lambda ok: ok or args.keep_failures, note="scripted expert")
+            results.append((seed, result.success, result.bag))
+            print(f"[collect] {i + 1}/{args.episodes} seed {seed}: {'success' if result.success else 'failure'} "
+                  f"{result.bag or '(discarded)'}", flush=True)
     return results
 
 

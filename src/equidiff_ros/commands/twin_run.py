@@ -94,7 +94,11 @@ def run(args: argparse.Namespace) -> int:
     from equidiff_core.twin.config import load_twin_job_configs
     from equidiff_core.twin.metrics import RunSummary
     from equidiff_core.twin.processes import NodeProcessError
-    from equidiff_ros.twin_supervisor import SupervisorError, TwinStack, run_episode
+    from equidiff_ros.twin_supervisor import (
+        SupervisorError,
+        TwinStack,
+        run_policy_episode,
+    )
 
     try:
         configs = load_twin_job_configs(args.lab_config, args.twin_config)
@@ -126,7 +130,7 @@ def run(args: argparse.Namespace) -> int:
                        stall_timeout_s=args.stall_timeout) as stack:
             for i in range(episodes):
                 missed = stack.sup.twin().get("missed_commands", 0)
-                rec = run_episode(stack, args.seed + i, max_duration)
+                rec = run_policy_episode(stack, args.seed + i, max_duration)
                 state = stack.sup.twin()
                 sim_rates.append(state.get("steps_per_s", 0.0) / 1000.0)
                 records.append(rec)
