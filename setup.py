@@ -55,6 +55,6 @@ setup(
     },
     entry_points={
         "console_scripts": [f"{node} = equidiff_ros.{node}:main" for node in NODES]
-        + ["equidiff = equidiff_ros.cli:main"],
+        + ["equidiff = equidiff_ros.cli:main", "equidiff_composed = equidiff_ros.composed:main"],
     },
 )

@@ -30,7 +30,7 @@ class ScriptedWorld:
         return self.t
 
     def success(self):
-        i = int(round((self.t - 0.6) / 0.2))
+        i = round((self.t - 0.6) / 0.2)
         return self.success_at[i] if i < len(self.success_at) else False
 
     def start_recording(self):

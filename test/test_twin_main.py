@@ -60,6 +60,34 @@ def test_node_command_and_private_env():
     assert 101 <= int(env["ROS_DOMAIN_ID"]) <= 215 and env["ROS_AUTOMATIC_DISCOVERY_RANGE"] == "LOCALHOST"
 
 
+def test_node_command_quotes_strings_ros_would_read_as_another_type():
+    cmd = node_command("x", {"backend_options": "{lockstep: true}", "camera": "", "serial": "123", "name": "cam"})
+    assert cmd[-8:] == ["-p", "backend_options:='{lockstep: true}'", "-p", "camera:=''", "-p", "serial:='123'",
+                        "-p", "name:=cam"]
+
+
+def test_composed_command_writes_each_nodes_parameters_under_its_name(tmp_path):
+    import yaml
+
+    from equidiff_core.twin.processes import composed_command
+    from equidiff_ros.composed import parse_nodes
+
+    cmd = composed_command({"voxel_node": {"slop_s": 0.15, "use_sim_time": True}, "policy_node": {"seed": 3}},
+                           tmp_path / "p.yaml", {"policy_node": {"/franka/command_chunk": "/twin/policy_chunk"}})
+    i = cmd.index("--nodes")
+    assert cmd[i + 1] == "voxel_node,policy_node"
+    assert cmd[i + 2:] == ["--ros-args", "--params-file", str(tmp_path / "p.yaml"),
+                           "-r", "policy_node:/franka/command_chunk:=/twin/policy_chunk"]
+    assert yaml.safe_load((tmp_path / "p.yaml").read_text()) == {
+        "voxel_node": {"ros__parameters": {"slop_s": 0.15, "use_sim_time": True}},
+        "policy_node": {"ros__parameters": {"seed": 3}}}
+    names, rest = parse_nodes(cmd[i:])
+    assert names == ["voxel_node", "policy_node"] and rest[0] == "--ros-args"
+    for bad in (["--nodes", "voxel_node,twin_node"], ["--nodes", "voxel_node,voxel_node"], ["--ros-args"]):
+        with pytest.raises(ValueError):
+            parse_nodes(bad)
+
+
 def test_process_group_detects_deaths_and_stops_whole_process_trees(tmp_path):
     env = dict(os.environ)
     with ProcessGroup(env, tmp_path, grace_s=2.0) as group:

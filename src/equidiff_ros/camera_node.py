@@ -210,13 +210,15 @@ class CameraNode(Node):
         self._disconnect_all()
 
 
+def startup_errors() -> tuple[type[BaseException], ...]:
+    """The errors that end a start-up with a one-line message (exit 1), not a traceback."""
+    from equidiff_core.cameras import CameraError
+    from equidiff_core.config import ConfigError
+
+    return (CameraError, ConfigError)
+
+
 def main(args=None) -> int:
-    def startup_errors():
-        from equidiff_core.cameras import CameraError
-        from equidiff_core.config import ConfigError
-
-        return (CameraError, ConfigError)
-
     return run_node(NODE_NAME, USAGE, CameraNode, startup_errors, args)
 
 

@@ -199,13 +199,15 @@ def _ros_logger_adapter(ros_logger):
     return logger
 
 
+def startup_errors() -> tuple[type[BaseException], ...]:
+    """The errors that end a start-up with a one-line message (exit 1), not a traceback."""
+    from equidiff_core.config import ConfigError
+    from equidiff_core.robots import RobotError
+
+    return (ConfigError, RobotError, ValueError)
+
+
 def main(args=None) -> int:
-    def startup_errors():
-        from equidiff_core.config import ConfigError
-        from equidiff_core.robots import RobotError
-
-        return (ConfigError, RobotError, ValueError)
-
     return run_node(NODE_NAME, USAGE, FrankaNode, startup_errors, args)
 
 

@@ -273,12 +273,14 @@ class RecorderNode(Node):
             self.get_logger().info(f"episode kept on shutdown: {writer.path}")
 
 
+def startup_errors() -> tuple[type[BaseException], ...]:
+    """The errors that end a start-up with a one-line message (exit 1), not a traceback."""
+    from equidiff_core.recording import RecordingError
+
+    return (RecordingError,)
+
+
 def main(args=None) -> int:
-    def startup_errors():
-        from equidiff_core.recording import RecordingError
-
-        return (RecordingError,)
-
     return run_node("recorder_node", USAGE, RecorderNode, startup_errors, args)
 
 

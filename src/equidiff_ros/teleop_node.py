@@ -187,12 +187,14 @@ class TeleopNode(Node):
         return super().destroy_node()
 
 
+def startup_errors() -> tuple[type[BaseException], ...]:
+    """The errors that end a start-up with a one-line message (exit 1), not a traceback."""
+    from equidiff_core.teleop import TeleopError
+
+    return (TeleopError,)
+
+
 def main(args=None) -> int:
-    def startup_errors():
-        from equidiff_core.teleop import TeleopError
-
-        return (TeleopError,)
-
     return run_node("teleop_node", USAGE, TeleopNode, startup_errors, args)
 
 

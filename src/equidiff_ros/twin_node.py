@@ -143,13 +143,15 @@ class TwinNode(Node):
         self.twin.stop()
 
 
+def startup_errors() -> tuple[type[BaseException], ...]:
+    """The errors that end a start-up with a one-line message (exit 1), not a traceback."""
+    from equidiff_core.config import ConfigError
+    from equidiff_core.twin.scene import SceneError
+
+    return (ConfigError, SceneError, OSError, RuntimeError, ValueError)  # OSError: the libfranka port is taken
+
+
 def main(args=None) -> int:
-    def startup_errors():
-        from equidiff_core.config import ConfigError
-        from equidiff_core.twin.scene import SceneError
-
-        return (ConfigError, SceneError, OSError, RuntimeError, ValueError)  # OSError: the libfranka port is taken
-
     return run_node(NODE_NAME, USAGE, TwinNode, startup_errors, args)
 
 

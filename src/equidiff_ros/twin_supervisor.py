@@ -397,7 +397,7 @@ class TwinStack:
                  task: str = "twin", device: str = "cpu", seed: int = 0, record_clouds: bool = False,
                  start_timeout_s: float = 120.0, torch_threads: int | None = None, lenient: bool = False,
                  attach: bool = False, realtime: bool = False, latency_s: float = 0.1,
-                 stall_timeout_s: float = 30.0, max_speed: float = 1.0, log=print):
+                 stall_timeout_s: float = 30.0, max_speed: float = 1.0, composed: bool = False, log=print):
         from pathlib import Path
 
         from equidiff_core.config import load_lab_config
@@ -417,6 +417,7 @@ class TwinStack:
         self.attach = attach  # nodes started by someone else (launch file): only supervise them
         self.realtime, self.latency_s, self.stall_timeout_s = realtime, latency_s, stall_timeout_s
         self.max_speed = max_speed  # simulated time: at most this many sim seconds per wall second
+        self.composed = composed  # every node but twin_node in one process (equidiff_ros.composed)
         self.log = log
         self.group = None
         self.sup: Supervisor | None = None
@@ -462,39 +463,33 @@ class TwinStack:
                           stall_timeout_s=self.stall_timeout_s)
 
     def _start_nodes(self, node_command) -> None:
+        from equidiff_core.twin.processes import composed_command
+
         g = self.group
         sim = not self.realtime
         clock = (f"simulated time (latency budget {self.latency_s * 1000:.0f} ms)" if sim else "real time")
-        self.log(f"[twin] ROS_DOMAIN_ID={self.domain_id}; franky-sim on {self.host}; {clock}; logs in {g.log_dir}")
+        self.log(f"[twin] ROS_DOMAIN_ID={self.domain_id}; franky-sim on {self.host}; {clock}; logs in {g.log_dir}"
+                 + ("; the pipeline's nodes in one process" if self.composed else ""))
         g.start("twin_node", node_command("twin_node", {
             "lab_config": str(self.lab_path), "twin_config": str(self.twin_path), "host": self.host,
             "seed": self.seed, "clock": "sim" if sim else "realtime", "latency_s": float(self.latency_s),
             "stall_timeout_s": float(self.stall_timeout_s), "max_speed": float(self.max_speed)}))
-        common = {"lab_config": str(self.lab_path), "use_sim_time": sim}  # twin_node owns the clock
-        clouds = {"reliable_clouds": True} if sim else {}  # the lockstep owes every frame a chunk
         self.sup = self._supervisor()
         self.sup.wait_for(lambda: self.sup.twin_state is not None, self.start_timeout_s,
                           "twin_node's /twin/state", g.check)
-        for cam in self.lab.cameras:
-            g.start(f"camera_{cam.name}", node_command("camera_node", {
-                **common, **clouds, "backend": "twin", "camera": cam.name,
-                **({"backend_options": "'{lockstep: true}'"} if sim else {})}))
-        voxel = {"stale_after_s": 3.0, "slop_s": 0.15} if self.lenient and not sim else {}
-        g.start("voxel_node", node_command("voxel_node", {**common, **clouds, **voxel}))
-        g.start("franka_node", node_command("franka_node", {**common, "robot_ip": self.host, "realtime": False}),
-                priority=True)
-        g.start("recorder_node", node_command("recorder_node", {
-            **common, "output_dir": str(self.out_dir / "bags"), "task": self.task,
-            "record_clouds": self.record_clouds}))
-        if self.policy:
-            if sim:  # an observation is at most L old in sim time when its chunk is due
-                ages = {"max_observation_age_s": max(0.5, self.latency_s + 0.2)}
-            else:
-                ages = {"max_observation_age_s": 4.0, "max_state_offset_s": 0.5} if self.lenient else {}
-            g.start("policy_node", node_command(
-                "policy_node", {**common, "checkpoint": str(self.policy), "device": self.device,
-                                "torch_threads": self.torch_threads, **ages},
-                remaps={TOPIC_COMMAND_CHUNK: TOPIC_TWIN_POLICY_CHUNK}))
+        specs = self._pipeline_specs()
+        if self.composed:  # one node per camera would need one name each: one camera_node serves them all
+            nodes = {"camera_node": {**specs.pop(f"camera_{self.lab.cameras[0].name}")[0], "camera": ""}}
+            for name in [n for n in specs if n.startswith("camera_")]:
+                del specs[name]
+            nodes.update({name: params for name, (params, _remaps) in specs.items()})
+            remaps = {name: r for name, (_params, r) in specs.items() if r}
+            g.start("pipeline", composed_command(nodes, self.out_dir / "logs" / "pipeline_params.yaml", remaps),
+                    priority=True)  # franka_node is in it
+        else:
+            for name, (params, remaps) in specs.items():
+                executable = "camera_node" if name.startswith("camera_") else name
+                g.start(name, node_command(executable, params, remaps), priority=name == "franka_node")
         self.sup.wait_ready(self.start_timeout_s, g.check)
         self.sup.wait_for(lambda: self.sup.recorder_status.startswith("idle"), self.start_timeout_s,
                           "recorder_node", g.check)
@@ -502,6 +497,30 @@ class TwinStack:
             self.sup.wait_for(lambda: self.sup.policy_chunks_seen > 0, self.start_timeout_s,
                               "policy_node's first chunk (loading and warming up the policy)", g.check)
         self.log("[twin] all nodes up")
+
+    def _pipeline_specs(self) -> dict[str, tuple[dict, dict]]:
+        """Every node but twin_node: name -> (parameters, remaps), in start order."""
+        sim = not self.realtime
+        common = {"lab_config": str(self.lab_path), "use_sim_time": sim}  # twin_node owns the clock
+        clouds = {"reliable_clouds": True} if sim else {}  # the lockstep owes every frame a chunk
+        specs = {}
+        for cam in self.lab.cameras:
+            specs[f"camera_{cam.name}"] = ({**common, **clouds, "backend": "twin", "camera": cam.name,
+                                            **({"backend_options": "{lockstep: true}"} if sim else {})}, {})
+        voxel = {"stale_after_s": 3.0, "slop_s": 0.15} if self.lenient and not sim else {}
+        specs["voxel_node"] = ({**common, **clouds, **voxel}, {})
+        specs["franka_node"] = ({**common, "robot_ip": self.host, "realtime": False}, {})
+        specs["recorder_node"] = ({**common, "output_dir": str(self.out_dir / "bags"), "task": self.task,
+                                   "record_clouds": self.record_clouds}, {})
+        if self.policy:
+            if sim:  # an observation is at most L old in sim time when its chunk is due
+                ages = {"max_observation_age_s": max(0.5, self.latency_s + 0.2)}
+            else:
+                ages = {"max_observation_age_s": 4.0, "max_state_offset_s": 0.5} if self.lenient else {}
+            specs["policy_node"] = ({**common, "checkpoint": str(self.policy), "device": self.device,
+                                     "torch_threads": self.torch_threads, **ages},
+                                    {TOPIC_COMMAND_CHUNK: TOPIC_TWIN_POLICY_CHUNK})
+        return specs
 
     def __exit__(self, *exc) -> None:
         try:

@@ -170,13 +170,15 @@ class VoxelNode(Node):
         pass
 
 
+def startup_errors() -> tuple[type[BaseException], ...]:
+    """The errors that end a start-up with a one-line message (exit 1), not a traceback."""
+    from equidiff_core.config import ConfigError
+    from equidiff_core.voxels import VoxelError
+
+    return (ConfigError, VoxelError, ValueError)
+
+
 def main(args=None) -> int:
-    def startup_errors():
-        from equidiff_core.config import ConfigError
-        from equidiff_core.voxels import VoxelError
-
-        return (ConfigError, VoxelError, ValueError)
-
     return run_node(NODE_NAME, USAGE, VoxelNode, startup_errors, args)
 
 

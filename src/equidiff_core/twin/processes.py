@@ -64,11 +64,40 @@ def node_command(executable: str, params: dict | None = None, remaps: dict | Non
     if params or remaps:
         cmd.append("--ros-args")
         for k, v in (params or {}).items():
-            if isinstance(v, bool):
-                v = "true" if v else "false"
-            cmd += ["-p", f"{k}:={v}"]
+            cmd += ["-p", f"{k}:={_param_text(v)}"]
         for a, b in (remaps or {}).items():
             cmd += ["-r", f"{a}:={b}"]
+    return cmd
+
+
+def _param_text(value) -> str:
+    """A ``-p`` value ROS reads back as the same type: ROS parses it as YAML, so a string YAML
+    would read as something else ('{a: 1}', '5', '') is quoted."""
+    import yaml
+
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, str) and not isinstance(yaml.safe_load(value) if value else None, str):
+        return "'" + value.replace("'", "''") + "'"
+    return str(value)
+
+
+def composed_command(nodes: dict[str, dict], params_file: Path, remaps: dict[str, dict] | None = None) -> list[str]:
+    """One process running several nodes (``equidiff_ros.composed``): each node's parameters
+    written under its name to ``params_file`` (ROS 2's parameter-file format), each remap
+    prefixed with the node it is meant for."""
+    import yaml
+
+    params_file = Path(params_file)
+    params_file.parent.mkdir(parents=True, exist_ok=True)
+    params_file.write_text(yaml.safe_dump({name: {"ros__parameters": p} for name, p in nodes.items()},
+                                          sort_keys=False))
+    exe = shutil.which("equidiff_composed")
+    cmd = [exe] if exe else [sys.executable, "-m", "equidiff_ros.composed"]
+    cmd += ["--nodes", ",".join(nodes), "--ros-args", "--params-file", str(params_file)]
+    for node, node_remaps in (remaps or {}).items():
+        for a, b in node_remaps.items():
+            cmd += ["-r", f"{node}:{a}:={b}"]
     return cmd
 
 

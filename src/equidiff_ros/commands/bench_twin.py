@@ -3,7 +3,8 @@
     equidiff bench twin                         # 1 episode of 20 s sim, shipped checkpoint
     equidiff bench twin --standin --max-duration 10
 
-Runs the main job (simulated time, all nodes as separate processes) for ``--episodes`` and
+Runs the main job (simulated time, all nodes as separate processes, or with ``--composed``
+every node but twin_node in one process) for ``--episodes`` and
 prints one JSON line: each process's CPU share during the episodes (CPU seconds per wall
 second, 1.0 = one core: sim = twin_node, each camera, voxel, policy, franka, recorder, and
 the supervisor = this process), the sim factor (sim seconds per wall second) and its
@@ -35,6 +36,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--torch-threads", type=int, default=None,
                         help="policy_node's torch threads (default: all cores on simulated time)")
     parser.add_argument("--out", type=Path, default=None, help="output directory (default: a temporary one)")
+    parser.add_argument("--composed", action="store_true",
+                        help="every node but twin_node in one process (equidiff_ros.composed): its CPU share is "
+                             "reported as 'pipeline'")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -58,7 +62,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         with TwinStack(out, configs.lab_path, configs.twin_path, policy=str(policy_path), task="bench_twin",
                        seed=args.seed, latency_s=args.latency_ms / 1000, max_speed=args.max_speed,
-                       torch_threads=args.torch_threads) as stack:
+                       torch_threads=args.torch_threads, composed=args.composed) as stack:
             procs = {n.name: n.popen.pid for n in stack.group.nodes}
             cpu0 = {name: cpu_seconds(pid) for name, pid in procs.items()}
             me0, wall0, sim0 = time.process_time(), time.monotonic(), stack.sup.now_ns() / 1e9
@@ -84,7 +88,7 @@ def run(args: argparse.Namespace) -> int:
         "episodes": len(records), "chunks": sum(r.chunks for r in records),
         "dropped_cycles": sum(r.dropped_cycles for r in records),
         "latency_budget_ms": args.latency_ms, "max_speed": args.max_speed, "torch_threads": stack.torch_threads,
-        "policy": label,
+        "policy": label, "composed": args.composed,
         **cpu_description(),
     }
     print(json.dumps(result))

@@ -71,6 +71,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--stall-timeout", type=float, default=30.0,
                         help="simulated time: wall seconds the sim waits for a camera or the policy before the "
                              "episode ends as stalled")
+    parser.add_argument("--composed", action="store_true",
+                        help="run every node but twin_node in one process (one MultiThreadedExecutor)")
 
 
 def resolve_policy(args, out: Path, workspace, cfg) -> tuple[Path, str]:
@@ -127,7 +129,7 @@ def run(args: argparse.Namespace) -> int:
                        device=args.device, seed=args.seed, record_clouds=args.record_clouds,
                        lenient=args.lenient or (args.smoke and args.realtime), attach=args.attach,
                        realtime=args.realtime, latency_s=args.latency_ms / 1000.0,
-                       stall_timeout_s=args.stall_timeout) as stack:
+                       stall_timeout_s=args.stall_timeout, composed=args.composed) as stack:
             for i in range(episodes):
                 missed = stack.sup.twin().get("missed_commands", 0)
                 rec = run_policy_episode(stack, args.seed + i, max_duration)
