@@ -8,13 +8,20 @@ re-voxelised demo is what the live node would have published with those extrinsi
 
 from __future__ import annotations
 
+import shutil
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from rosbags.rosbag2 import Reader
 
+from .bags import BagError, close_derived_bag
 from .config import LabConfig
+from .mcap_writer import open_bag_writer
+from .pointcloud import CloudError, grid_to_voxel_msg, msg_to_cloud
+from .rosmsg import rosbags_factory
 from .sync import ApproximateTimeMatcher, Match
+from .topics import CLOUD_TYPE, TOPIC_VOXELS
 from .voxels import Voxelizer, VoxelizerConfig
 
 # A set newer than the last grid by less than this share of the period is not due yet
@@ -63,15 +70,8 @@ def revoxelize_bag(source: str | Path, output: str | Path, lab: LabConfig, slop_
     A grid is written at the log time of the cloud that completed its set (as voxel_node
     publishes it). Raises ``BagError`` for a bag without the clouds of every camera in ``lab``
     (recorded without ``record_clouds``) or an ``output`` that exists."""
-    import shutil
 
-    from rosbags.rosbag2 import Reader
 
-    from .bags import BagError, close_derived_bag
-    from .mcap_writer import open_bag_writer
-    from .pointcloud import CloudError, grid_to_voxel_msg, msg_to_cloud
-    from .rosmsg import rosbags_factory
-    from .topics import CLOUD_TYPE, TOPIC_VOXELS
 
     source, output = Path(source), Path(output)
     if output.exists():

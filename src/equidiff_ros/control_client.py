@@ -13,12 +13,32 @@ from collections import deque
 from dataclasses import dataclass, field
 
 import numpy as np
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import PoseStamped
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import JointState, PointCloud2
+from trajectory_msgs.msg import MultiDOFJointTrajectory
+
+from equidiff_core import geometry
+from equidiff_core.chunk import PoseChunk, chunk_to_msg
+from equidiff_core.rosmsg import RclpyFactory, stamp_to_ns
+from equidiff_ros.common import (
+    RELIABLE_QOS,
+    TOPIC_COMMAND_CHUNK,
+    TOPIC_DIAGNOSTICS,
+    TOPIC_EE_POSE,
+    TOPIC_EXECUTED_TARGET,
+    TOPIC_JOINT_STATES,
+    TOPIC_VOXELS,
+    VOXEL_QOS,
+)
 
 MS = 1_000_000
 
 
 def down_pose(position) -> np.ndarray:
-    from equidiff_core import geometry
 
     return geometry.make_pose(np.diag([1.0, -1.0, -1.0]), np.asarray(position, dtype=np.float64))
 
@@ -38,25 +58,6 @@ class ControlClient:
     """An rclpy node in a background thread: publishes chunks/voxels, records what comes back."""
 
     def __init__(self, lab, lab_path: str):
-        import rclpy
-        from diagnostic_msgs.msg import DiagnosticArray
-        from geometry_msgs.msg import PoseStamped
-        from rclpy.executors import SingleThreadedExecutor
-        from sensor_msgs.msg import JointState, PointCloud2
-        from trajectory_msgs.msg import MultiDOFJointTrajectory
-
-        from equidiff_core.rosmsg import RclpyFactory
-        from equidiff_ros.common import (
-            RELIABLE_QOS,
-            TOPIC_COMMAND_CHUNK,
-            TOPIC_DIAGNOSTICS,
-            TOPIC_EE_POSE,
-            TOPIC_EXECUTED_TARGET,
-            TOPIC_JOINT_STATES,
-            TOPIC_VOXELS,
-            VOXEL_QOS,
-        )
-
         self.lab = lab
         self.lab_path = lab_path
         self.factory = RclpyFactory()
@@ -84,20 +85,14 @@ class ControlClient:
                 break
 
     def _on_pose(self, msg):
-        from equidiff_core.rosmsg import stamp_to_ns
-
         p = msg.pose.position
         self.data.poses.append((stamp_to_ns(msg.header.stamp) / 1e9, np.array([p.x, p.y, p.z])))
 
     def _on_target(self, msg):
-        from equidiff_core.rosmsg import stamp_to_ns
-
         p = msg.pose.position
         self.data.targets.append((stamp_to_ns(msg.header.stamp) / 1e9, np.array([p.x, p.y, p.z])))
 
     def _on_chunk(self, msg):
-        from equidiff_core.rosmsg import stamp_to_ns
-
         self.data.chunks.append((time.time_ns() / 1e9, stamp_to_ns(msg.header.stamp) / 1e9))
         self.data.last_chunk = msg
 
@@ -130,15 +125,12 @@ class ControlClient:
         return self.data.poses[-1][1]
 
     def publish_chunk(self, chunk) -> None:
-        from equidiff_core.chunk import chunk_to_msg
-
         self.pub_chunk.publish(chunk_to_msg(chunk, self.factory, self.lab.base_frame))
 
     def stream(self, path, duration: float, obs_latency: float = 0.1, steps: int = 16, dt: float = 0.2,
                period: float = 0.2, width: float = 0.08) -> tuple[float, float]:
         """Publish chunks sampled from ``path(t) -> position`` every ``period`` s; returns the last
         send time and the time the last chunk's final step is due (wall clock, s)."""
-        from equidiff_core.chunk import PoseChunk
 
         end = time.monotonic() + duration
         next_send = time.monotonic()
@@ -169,11 +161,6 @@ class ControlClient:
         /franka/ee_pose) in ``self.pose_stamps``, through a subscription of its own with a deep
         queue: the 10-deep queues above drop messages while this process is starved of CPU, this
         one keeps them, so a gap in these stamps is the publisher's own. Returns that deque."""
-        from geometry_msgs.msg import PoseStamped
-        from rclpy.qos import QoSProfile, ReliabilityPolicy
-
-        from equidiff_core.rosmsg import stamp_to_ns
-        from equidiff_ros.common import TOPIC_EE_POSE
 
         self.pose_stamps: deque = deque(maxlen=200000)
         self.node.create_subscription(PoseStamped, topic or TOPIC_EE_POSE,

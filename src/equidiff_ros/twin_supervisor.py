@@ -23,12 +23,29 @@ import json
 import os
 import threading
 import time
+from pathlib import Path
 from typing import Self
 
 import numpy as np
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import PoseStamped
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+from rclpy.signals import SignalHandlerOptions
+from rosgraph_msgs.msg import Clock
+from sensor_msgs.msg import JointState
+from std_msgs.msg import Bool, Int64, String
+from std_srvs.srv import Trigger
+from trajectory_msgs.msg import MultiDOFJointTrajectory
 
 from equidiff_core import geometry
 from equidiff_core.chunk import PoseChunk, chunk_to_msg
+from equidiff_core.config import load_lab_config
+from equidiff_core.episode import run_episode
+from equidiff_core.robots.franky.sim import free_loopback_host
 from equidiff_core.rosmsg import RclpyFactory, stamp_to_ns
 from equidiff_core.topics import (
     SERVICE_FRANKA_ACKNOWLEDGE,
@@ -41,7 +58,24 @@ from equidiff_core.topics import (
     TOPIC_TWIN_SCENE,
     TOPIC_TWIN_STATE,
 )
+from equidiff_core.twin.config import load_twin_config
+from equidiff_core.twin.expert import LinePath, plan_pick_place, tcp_pose
 from equidiff_core.twin.metrics import EpisodeRecord
+from equidiff_core.twin.processes import (
+    ProcessGroup,
+    composed_command,
+    node_command,
+    private_ros_env,
+)
+from equidiff_ros.common import (
+    LATCHED_QOS,
+    RELIABLE_QOS,
+    TOPIC_DIAGNOSTICS,
+    TOPIC_EE_POSE,
+    TOPIC_JOINT_STATES,
+    TOPIC_POLICY_SKIPPED,
+    TOPIC_RECORDER_COMMAND,
+)
 
 NS = 1_000_000_000
 
@@ -55,30 +89,6 @@ class Supervisor:
 
     def __init__(self, base_frame: str = "fr3_link0", command_lead_s: float = 0.05, name: str = "twin_supervisor",
                  sim_time: bool = False, latency_s: float = 0.0, stall_timeout_s: float = 30.0):
-        import rclpy
-        from diagnostic_msgs.msg import DiagnosticArray
-        from geometry_msgs.msg import PoseStamped
-        from rclpy.executors import SingleThreadedExecutor
-        from rclpy.node import Node
-        from rclpy.parameter import Parameter
-        from rclpy.qos import QoSProfile, ReliabilityPolicy
-        from rclpy.signals import SignalHandlerOptions
-        from rosgraph_msgs.msg import Clock
-        from sensor_msgs.msg import JointState
-        from std_msgs.msg import Bool, Int64, String
-        from std_srvs.srv import Trigger
-        from trajectory_msgs.msg import MultiDOFJointTrajectory
-
-        from equidiff_ros.common import (
-            LATCHED_QOS,
-            RELIABLE_QOS,
-            TOPIC_DIAGNOSTICS,
-            TOPIC_EE_POSE,
-            TOPIC_JOINT_STATES,
-            TOPIC_POLICY_SKIPPED,
-            TOPIC_RECORDER_COMMAND,
-        )
-
         if not rclpy.ok():
             # No rclpy signal handlers: Ctrl-C must raise KeyboardInterrupt in the job's main thread
             # (rclpy's would only shut the context down under it) so every node gets stopped.
@@ -132,8 +142,6 @@ class Supervisor:
         self._spin.start()
 
     def _spin_loop(self):
-        from rclpy.executors import ExternalShutdownException
-
         while self._running:
             try:
                 self.executor.spin_once(timeout_sec=0.05)
@@ -145,8 +153,6 @@ class Supervisor:
                 return
 
     def close(self):
-        import rclpy
-
         self._running = False
         self._spin.join(timeout=2.0)
         self.executor.shutdown()
@@ -298,7 +304,6 @@ class Supervisor:
         """Stream teleop-like targets along a straight line to ``target`` (never a jump the safety
         filter would reject; ``expert.LinePath`` waits for the arm and restarts from it), then hold
         until the TCP is within ``tol_m`` and the gripper settled."""
-        from equidiff_core.twin.expert import LinePath
 
         path = LinePath(self.current()[0], target, speed=speed, angular_speed=angular_speed, hz=hz, max_lag_m=max_lag_m)
         p1 = path.target[:3, 3]
@@ -398,11 +403,6 @@ class TwinStack:
                  start_timeout_s: float = 120.0, torch_threads: int | None = None, lenient: bool = False,
                  attach: bool = False, realtime: bool = False, latency_s: float = 0.1,
                  stall_timeout_s: float = 30.0, max_speed: float = 1.0, composed: bool = False, log=print):
-        from pathlib import Path
-
-        from equidiff_core.config import load_lab_config
-        from equidiff_core.twin.config import load_twin_config
-
         self.out_dir = Path(out_dir)
         self.lab_path, self.twin_path = Path(lab_path), Path(twin_path)
         self.lab = load_lab_config(self.lab_path)
@@ -423,15 +423,6 @@ class TwinStack:
         self.sup: Supervisor | None = None
 
     def __enter__(self) -> Self:
-        import os
-
-        from equidiff_core.robots.franky.sim import free_loopback_host
-        from equidiff_core.twin.processes import (
-            ProcessGroup,
-            node_command,
-            private_ros_env,
-        )
-
         if self.attach:
             self.log(f"[twin] attaching to the running nodes on ROS_DOMAIN_ID={os.environ.get('ROS_DOMAIN_ID', '0')}")
             self.sup = self._supervisor()
@@ -463,8 +454,6 @@ class TwinStack:
                           stall_timeout_s=self.stall_timeout_s)
 
     def _start_nodes(self, node_command) -> None:
-        from equidiff_core.twin.processes import composed_command
-
         g = self.group
         sim = not self.realtime
         clock = (f"simulated time (latency budget {self.latency_s * 1000:.0f} ms)" if sim else "real time")
@@ -543,7 +532,6 @@ class TwinStack:
 
     def home(self) -> None:
         """Move to the ready pose; first acknowledge a stop franka_node holds for, saying so."""
-        from equidiff_core.twin.expert import tcp_pose
 
         stopped = self.sup.acknowledge_stop(check=self.check)
         if stopped:
@@ -656,8 +644,6 @@ class LiveExpert:
         self.t_plan = 0.0
 
     def begin(self) -> float:
-        from equidiff_core.twin.expert import plan_pick_place
-
         sup, cfg = self.sup, self.cfg
         block, bowl = object_poses_from_state(sup.twin())
         start, width = sup.current()
@@ -704,7 +690,6 @@ def run_policy_episode(stack: TwinStack, seed: int, max_duration_s: float) -> Ep
 
     An episode in which twin_node reports a stall (a camera or the policy did not deliver within
     its stall timeout) ends at once as ``stalled``, naming the stage; its bag is kept."""
-    from equidiff_core.episode import run_episode
 
     policy = GatedPolicy(stack)
     result = run_episode(LiveTwin(stack), policy, seed, max_duration_s, stack.cfg.success.hold_s)

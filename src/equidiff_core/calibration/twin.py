@@ -17,18 +17,25 @@ Two ways to move the arm, one solver:
 from __future__ import annotations
 
 import math
+import tempfile
 import time
 from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
+from PIL import Image
 from scipy.spatial.transform import Rotation
 
+from ..cameras.twin import Intrinsics, TwinCamera
 from ..config import Extrinsics, LabConfig
 from ..geometry import make_pose
+from ..twin.config import BoardMountConfig
+from ..twin.shared_state import StateReader
+from ..twin.sim import DirectSim, TwinSim
 from .board import BoardSpec, CalibrationError
+from .capture import FrankyArm, capture_samples
 from .plan import PlanConfig, plan_poses
-from .solve import Calibration, CameraModel
+from .solve import Calibration, CameraModel, calibrate, pose_error
 
 
 def nominal_mount(spec: BoardSpec, offset_x: float = 0.06, height: float = 0.0434) -> np.ndarray:
@@ -44,7 +51,6 @@ def nominal_mount(spec: BoardSpec, offset_x: float = 0.06, height: float = 0.043
 
 def twin_camera_model(cam, render) -> CameraModel:
     """A twin camera's intrinsics in OpenCV's convention (MuJoCo's pixel centres are at +0.5)."""
-    from ..cameras.twin import Intrinsics
 
     intr = Intrinsics.from_fovy(render.width, render.height, render.fovy_deg)
     K = np.array([[intr.fx, 0, intr.cx - 0.5], [0, intr.fy, intr.cy - 0.5], [0, 0, 1.0]])
@@ -57,12 +63,9 @@ def twin_config_with_board(twin_cfg, spec: BoardSpec, T_tcp_board: np.ndarray, t
 
     The hand body sits ``TCP_OFFSET`` behind the TCP (same rotation), so the mount moves by it.
     """
-    from ..twin.config import BoardMountConfig
-    from ..twin.sim import DirectSim
 
     texture = Path(texture_dir) / f"charuco_{spec.squares_x}x{spec.squares_y}_{spec.dictionary}.png"
     texture.parent.mkdir(parents=True, exist_ok=True)
-    from PIL import Image
 
     Image.fromarray(spec.image(200)).save(texture)
     T_hand_board = make_pose(np.eye(3), DirectSim.TCP_OFFSET) @ T_tcp_board
@@ -91,8 +94,6 @@ class DirectSimArm:
     """The twin scene in-process: the arm is driven to each pose by DirectSim's controller."""
 
     def __init__(self, twin_cfg, settle_ms: int = 1500, tolerance_m: float = 0.005, gripper_width: float = 0.08):
-        from ..twin.sim import DirectSim
-
         self.gripper_width = gripper_width
         self.sim = DirectSim(twin_cfg)
         self.sim.reset(0)
@@ -122,10 +123,6 @@ class FrankyTwinArm:
     """franky against franky-sim (the twin's libfranka server, real-time loop), as on the lab's FR3."""
 
     def __init__(self, twin_cfg):
-        from ..twin.shared_state import StateReader
-        from ..twin.sim import TwinSim
-        from .capture import FrankyArm
-
         self.twin = TwinSim(twin_cfg, host="auto", shm_name=f"equidiff_calib_{time.time_ns()}").start(seed=0)
         self.reader = None
         try:
@@ -157,8 +154,6 @@ class TwinCameras:
     """The twin's cameras at their true poses, rendering a given sim state (colour only is used)."""
 
     def __init__(self, lab_truth: LabConfig, twin_cfg):
-        from ..cameras.twin import TwinCamera
-
         self.cams = [TwinCamera(cam, state_source=lambda t: (None, 0.0, 0), paced=False, twin_config=twin_cfg)
                      for cam in lab_truth.cameras]
         for cam in self.cams:
@@ -173,7 +168,6 @@ class TwinCameras:
 
 
 def errors_against_truth(result, lab_truth: LabConfig) -> dict[str, dict]:
-    from .solve import pose_error
 
     out = {}
     for cam in lab_truth.cameras:
@@ -189,10 +183,6 @@ def calibrate_twin(lab_truth: LabConfig, twin_cfg, spec: BoardSpec, plan: PlanCo
 
     ``arm``: "franky" (franky against franky-sim, the lab's path) or "direct" (in-process sim).
     """
-    import tempfile
-
-    from .capture import capture_samples
-    from .solve import calibrate
 
     guess = perturb_lab(lab_truth, perturb_m, perturb_deg, plan.seed)
     mount = nominal_mount(spec)

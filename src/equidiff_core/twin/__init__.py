@@ -5,7 +5,9 @@
 * ``sim``: ``TwinSim`` (libfranka server, real-time loop, shared state) and ``DirectSim``
 * ``shared_state``: seqlock shared memory carrying the sim state to camera processes
 * ``expert``: grasp-lift-place planner
-* ``orchestrate``: the main job (``equidiff twin run``) and demo collection
+* ``lockstep``: when the sim may step on simulated time (camera frames, policy chunks, stalls)
+* ``demos`` / ``evaluate``: in-process demonstrations and closed-loop evaluation on the sim clock
+* ``metrics``: what the main job reports; ``processes``: starting and stopping node processes
 """
 
 from .config import TwinConfig, load_twin_config

@@ -17,7 +17,17 @@ from pathlib import Path
 
 import numpy as np
 
+from ..bags import EpisodeMeta
+from ..cameras import limit_depth
+from ..cameras.twin import TwinCamera
+from ..chunk import PoseChunk, chunk_to_msg
 from ..config import LabConfig
+from ..control import messages as cm
+from ..episode import run_episode
+from ..pointcloud import grid_to_voxel_msg
+from ..recording import EpisodeWriter, next_episode_path
+from ..robots.base import ARM_JOINT_NAMES, FINGER_JOINT_NAMES
+from ..rosmsg import rosbags_factory
 from ..topics import (
     TOPIC_COMMAND_CHUNK,
     TOPIC_EE_POSE,
@@ -25,7 +35,11 @@ from ..topics import (
     TOPIC_VOXELS,
     TRAINING_TOPICS,
 )
+from ..voxels import Voxelizer
 from .config import TwinConfig
+from .expert import plan_pick_place, tcp_pose
+from .scene import BLOCK, BOWL, body_pose
+from .sim import DirectSim
 
 NS = 1_000_000_000
 
@@ -34,11 +48,6 @@ class DirectRecorder:
     """Everything needed to turn DirectSim states into an episode bag."""
 
     def __init__(self, cfg: TwinConfig, lab: LabConfig):
-        from ..cameras.twin import TwinCamera
-        from ..rosmsg import rosbags_factory
-        from ..voxels import Voxelizer
-        from .sim import DirectSim
-
         self.cfg, self.lab = cfg, lab
         self.sim = DirectSim(cfg)
         self._qpos = None
@@ -57,7 +66,6 @@ class DirectRecorder:
 
     def voxel_grid(self, stamp_ns: int) -> np.ndarray:
         """The fused grid the voxel node would publish for the current sim state."""
-        from ..cameras import limit_depth
 
         self._qpos, self._stamp = self.sim.data.qpos.copy(), stamp_ns
         frames = []
@@ -89,8 +97,6 @@ class DirectWorld:
         """Nothing to do here: ``DirectSim.reset`` re-poses the arm, so ``reset_scene`` homes after it."""
 
     def reset_scene(self, seed: int) -> None:
-        from .expert import tcp_pose
-
         ex = self.rec.cfg.expert
         self.seed = seed
         self.sim.reset(seed)  # puts the arm back at its initial posture ...
@@ -107,9 +113,6 @@ class DirectWorld:
         return bool(self.sim.success()["success"])
 
     def start_recording(self) -> str:
-        from ..bags import EpisodeMeta
-        from ..recording import EpisodeWriter, next_episode_path
-
         self.path = next_episode_path(self.out, self.task)
         self.writer = EpisodeWriter(self.path, EpisodeMeta(task=self.task, operator=self.operator,
                                                            seed=self.seed)).open()
@@ -131,7 +134,6 @@ class DirectWorld:
 
     def command(self, pose: np.ndarray, width: float, lead_ns: int = 50_000_000) -> None:
         """Send a target reached ``lead_ns`` later (teleop's lead) and record it as a one-point chunk."""
-        from ..chunk import PoseChunk, chunk_to_msg
 
         t_ns = self.stamp_ns()
         self.sim.command(pose, width)
@@ -140,9 +142,6 @@ class DirectWorld:
 
     def step(self) -> None:
         """Write the messages due at this instant, then advance 1 ms."""
-        from ..control import messages as cm
-        from ..pointcloud import grid_to_voxel_msg
-        from ..robots.base import ARM_JOINT_NAMES, FINGER_JOINT_NAMES
 
         sim, f, frame, t_ns = self.sim, self.rec.factory, self.lab.base_frame, self.stamp_ns()
         if self.ms % self.state_every == 0:
@@ -172,9 +171,6 @@ class DirectExpert:
         self.plan = None
 
     def begin(self) -> float:
-        from .expert import plan_pick_place
-        from .scene import BLOCK, BOWL, body_pose
-
         sim, cfg = self.world.sim, self.world.rec.cfg
         self.plan = plan_pick_place(sim.tcp_pose(), sim.gripper_width(), body_pose(sim.model, sim.data, BLOCK),
                                     body_pose(sim.model, sim.data, BOWL), cfg.scene.block_size[2], cfg.expert)
@@ -209,7 +205,6 @@ def collect_direct(cfg: TwinConfig, lab: LabConfig, out: Path, seeds: Iterable[i
     """Record one bag per seed under ``out`` (``episode.run_episode`` with the scripted expert);
     failed episodes are deleted unless ``keep_failures``; stop once ``stop_after`` successful
     demos exist."""
-    from ..episode import run_episode
 
     rec = DirectRecorder(cfg, lab)
     world = DirectWorld(rec, out, task, epoch_ns=time.time_ns(), operator="scripted expert (direct)")

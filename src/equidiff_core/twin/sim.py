@@ -30,7 +30,11 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
+import mujoco
 import numpy as np
+from franky_sim import SimulationServer
+from franky_sim.mujoco_simulator import MUJOCO_DEFAULT_KP, MUJOCO_DEFAULT_KV
+from scipy.spatial.transform import Rotation
 
 from ..robots.franky.sim import (
     free_loopback_host,
@@ -40,7 +44,14 @@ from ..robots.franky.sim import (
 )
 from .config import TwinConfig
 from .lockstep import NS_PER_TICK, Lockstep, LockstepConfig
-from .scene import ScenePoses, apply_scene, object_state, sample_scene, success_details
+from .scene import (
+    ScenePoses,
+    apply_scene,
+    build_simulator,
+    object_state,
+    sample_scene,
+    success_details,
+)
 from .shared_state import StateWriter
 
 
@@ -84,10 +95,6 @@ class TwinSim:
 
     # -- lifecycle ---------------------------------------------------------------------------
     def start(self, seed: int = 0) -> TwinSim:
-        from franky_sim import SimulationServer
-
-        from .scene import build_simulator
-
         self._sim, self._robot = build_simulator(self.cfg)
         self._sim.init()
         self._server = SimulationServer(self._sim, hostname_candidates=[self.host])
@@ -269,11 +276,6 @@ class DirectSim:
     TCP_OFFSET = np.array([0.0, 0.0, 0.1034])  # hand body -> TCP (franky's NE_T_EE)
 
     def __init__(self, cfg: TwinConfig):
-        import mujoco
-        from franky_sim.mujoco_simulator import MUJOCO_DEFAULT_KP, MUJOCO_DEFAULT_KV
-
-        from .scene import build_simulator
-
         self.cfg = cfg
         self._sim, self.robot = build_simulator(cfg)
         self._sim.init()
@@ -291,8 +293,6 @@ class DirectSim:
         self.poses: ScenePoses | None = None
 
     def reset(self, seed: int) -> ScenePoses:
-        import mujoco
-
         self.data.qpos[self._qadr] = self.cfg.sim.initial_q
         for addr in self.robot._finger_qpos_addrs:
             self.data.qpos[addr] = 0.04
@@ -327,9 +327,6 @@ class DirectSim:
         return self.data.qvel[self._dadr].copy()
 
     def _solve_ik(self, target: np.ndarray, iterations: int = 8, damping: float = 1e-4) -> np.ndarray:
-        import mujoco
-        from scipy.spatial.transform import Rotation
-
         d = self._ik_data
         d.qpos[:] = self.data.qpos
         q = self._q_target.copy()
@@ -354,8 +351,6 @@ class DirectSim:
         self._q_target = self._solve_ik(self._target)
 
     def step(self, n: int = 1) -> None:
-        import mujoco
-
         self.robot.set_hand_goal(self._width, 0.05, 70.0)
         d = self.data
         for _ in range(n):
