@@ -273,11 +273,15 @@ def train(policy: DiffusionPolicy, train_set: Dataset, val_set: Dataset | None, 
 
     loss_fn: torch.nn.Module = _PolicyLoss(policy)
     if dist_info.distributed:
-        from torch.nn.parallel import DistributedDataParallel
+        import inspect
 
-        # broadcasts rank 0's weights once; the models' buffers are constants (no batch norm statistics)
-        loss_fn = DistributedDataParallel(loss_fn, device_ids=[device] if device.type == "cuda" else None,
-                                          broadcast_buffers=False)
+        from torch.nn.parallel import DistributedDataParallel as DDP
+
+        # rank 0's weights and buffers are broadcast once; no buffer sync per step: the models' buffers
+        # are constants (no batch norm statistics). Newer torch renamed broadcast_buffers.
+        no_buffer_sync = "forward_sync_buffers" if "forward_sync_buffers" in inspect.signature(DDP).parameters \
+            else "broadcast_buffers"
+        loss_fn = DDP(loss_fn, device_ids=[device] if device.type == "cuda" else None, **{no_buffer_sync: False})
     # every rank: the same epoch permutations (sampler seed), its own augmentation and noise draws
     sampler = make_sampler(train_set, cfg.seed + step, dist_info.rank, dist_info.world_size)
     if data == "device":
