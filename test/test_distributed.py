@@ -145,3 +145,22 @@ def test_two_gloo_ranks_train_in_sync_and_leave_a_normal_checkpoint(tmp_path):
     steps = [h["step"] for h in json.loads((out / "history.json").read_text()) if "loss" in h]
     assert steps[0] == 1 and steps[-1] == 4
 
+
+
+def test_bench_train_prints_one_json_line_naming_preset_batch_and_devices(capsys):
+    from equidiff_ros.cli import main
+
+    assert main(["bench", "train", "--preset", "tiny", "--policy", "baseline", "--batch-size", "2", "--steps", "1",
+                 "--warmup", "1", "--samples", "2"]) == 0
+    lines = capsys.readouterr().out.strip().splitlines()
+    assert len(lines) == 1
+    out = json.loads(lines[0])
+    assert out["preset"] == "tiny" and out["params"] > 0
+    cpu = out["cpu"]
+    assert cpu["device"].startswith("cpu: ") and cpu["batch_size"] == 2 and cpu["precision"] == "fp32"
+    assert cpu["samples_per_s"] > 0 and cpu["samples_per_s"] == pytest.approx(2 / cpu["sec_per_step"], rel=0.01)
+    assert {"avx512", "native_bf16", "cores"} <= cpu.keys()
+    if torch.cuda.is_available():
+        assert out["cuda"]["precision"] == "bf16" and out["cuda"]["data"] == "device"
+    else:
+        assert out["cuda"] is None and "not available" in out["cuda_note"]
