@@ -102,8 +102,10 @@ def is_main() -> bool:
 
 
 def barrier() -> None:
-    if info().distributed:
-        dist.barrier()
+    i = info()
+    if i.distributed:
+        # NCCL: name this rank's GPU, or the barrier guesses one (and warns)
+        dist.barrier(device_ids=[torch.cuda.current_device()] if i.backend == "nccl" else None)
 
 
 def all_reduce_sum(values: list[float], device: torch.device | str = "cpu") -> list[float]:
