@@ -120,8 +120,8 @@ def resolve_device(device: str) -> torch.device:
 
 
 def resolve_precision(precision: str, device: torch.device) -> str:
-    """"auto": bf16 autocast on CUDA; fp32 on the CPU (bf16 there only when asked: it needs AVX512-BF16/AMX
-    to be fast, and this is where the fp32 results were measured)."""
+    """"auto": bf16 autocast on CUDA; fp32 on the CPU (bf16 autocast trained no faster there even on a CPU
+    with AVX512-BF16: ``equidiff bench train --cpu-precision bf16``, docs/model.md)."""
     if precision != "auto":
         return precision
     return "bf16" if device.type == "cuda" else "fp32"
