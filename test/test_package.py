@@ -69,7 +69,7 @@ def test_pip_editable_install_exposes_nodes_and_cli():
     for command in ["train", "dataset", "bags", "replay", "viz", "check", "bench", "twin"]:
         assert command in result.stdout
     bench = subprocess.run([str(BIN / "equidiff"), "bench", "--help"], capture_output=True, text=True, timeout=60)
-    for sub in ["voxelize", "policy", "control", "generalization"]:
+    for sub in ["voxelize", "policy", "train", "control", "generalization"]:
         assert sub in bench.stdout
 
 

@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
 import random
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
@@ -254,7 +255,8 @@ def write_packed(arrays: EpisodeArrays, file: Path, config: DatasetConfig) -> Pa
     flat = np.ravel_multi_index(arrays.voxel_idx.T.astype(np.intp), (res, res, res)) if len(arrays.voxel_idx) else \
         np.zeros(0, np.intp)
     fields["voxel_flat_delta"] = np.diff(flat, prepend=0).astype(np.int32)
-    tmp = file.with_name(file.name + ".tmp.npz")
+    # per-process temporary name: data-parallel ranks decoding the same bag may cache it at once
+    tmp = file.with_name(f"{file.name}.{os.getpid()}.tmp.npz")
     np.savez_compressed(tmp, extra=np.array(extra), **fields)
     tmp.replace(file)
     return file

@@ -3,6 +3,15 @@
 AdamW (lr 1e-4, weight decay 1e-6), cosine schedule with 500 warm-up steps (diffusers'
 ``get_cosine_schedule_with_warmup``), optional EMA, CPU or CUDA picked automatically.
 
+On CUDA the forward pass runs under bf16 autocast (weights, gradients and optimiser stay fp32)
+and the whole training set sits on the GPU (``batches.DeviceBatchSource``); on the CPU training
+stays fp32 and draws batches through a DataLoader (``precision`` / ``data`` override both).
+
+Launched by torchrun (``distributed.py``), each process trains one data-parallel replica:
+DistributedDataParallel averages the gradients, every rank draws a disjoint shard of each epoch,
+rank 0 alone evaluates and writes checkpoints, history and the export. The logged loss is the
+mean over ranks.
+
 EMA: escnn 1.0.11 modules cannot be deep-copied (GroupElement.__hash__ raises), so instead of
 diffusion_policy's ``deepcopy(model)`` we keep diffusers' ``EMAModel`` over the parameter
 tensors and swap the averaged weights in for evaluation and export.
@@ -28,12 +37,18 @@ import numpy as np
 import torch
 from torch.utils.data import DataLoader, Dataset
 
+from . import distributed
+from .batches import DeviceBatchSource, estimate_nbytes, loader_batches, make_sampler
 from .config import to_dict
 from .normalizer import Normalizer
 from .policies import DiffusionPolicy
 
 CKPT_FORMAT = "equidiff_train_ckpt"
 CKPT_VERSION = 1
+PRECISIONS = ("auto", "fp32", "bf16")
+DATA_SOURCES = ("auto", "device", "loader")
+# data "auto" keeps the training set on the GPU when it takes at most this share of the free memory
+DEVICE_DATA_SHARE = 0.5
 
 
 class TrainingError(RuntimeError):
@@ -63,6 +78,10 @@ class TrainConfig:
     # wall-clock budget: stop after the step that crosses it, then checkpoint and export as usual
     # (the cosine schedule stays the one for ``steps``); None: no limit
     max_minutes: float | None = None
+    precision: str = "auto"  # "auto": bf16 autocast on CUDA, fp32 on the CPU; "fp32"; "bf16" (autocast)
+    # "auto": the whole set on the device on CUDA (if it fits, see DEVICE_DATA_SHARE), a DataLoader on
+    # the CPU; "device"; "loader"
+    data: str = "auto"
 
     def __post_init__(self):
         if self.steps < 0 or self.batch_size < 1:
@@ -71,6 +90,10 @@ class TrainConfig:
             raise ValueError(f"max_minutes must be positive, got {self.max_minutes}")
         if not 0.0 < self.ema_decay < 1.0:
             raise ValueError("ema_decay must be in (0, 1)")
+        if self.precision not in PRECISIONS:
+            raise ValueError(f"precision must be one of {PRECISIONS}, got {self.precision!r}")
+        if self.data not in DATA_SOURCES:
+            raise ValueError(f"data must be one of {DATA_SOURCES}, got {self.data!r}")
 
 
 @dataclass
@@ -80,14 +103,37 @@ class TrainResult:
     history: list[dict] = field(default_factory=list)
     steps: int = 0  # steps trained in all (fewer than asked when max_minutes stopped the run)
     stopped: str | None = None  # why this run ended before cfg.steps (also kept in history)
+    world_size: int = 1  # data-parallel processes that trained it
+    precision: str = "fp32"  # what "auto" resolved to
+    data: str = "loader"
 
 
 def resolve_device(device: str) -> torch.device:
+    """"auto": CUDA if available; under torchrun on CUDA "auto" and "cuda" mean this rank's ``cuda:LOCAL_RANK``."""
     if device == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+        device = "cuda" if torch.cuda.is_available() else "cpu"
     if device.startswith("cuda") and not torch.cuda.is_available():
         raise TrainingError(f"device {device!r} requested but CUDA is not available")
+    if device == "cuda" and distributed.env_world_size() > 1:
+        return torch.device("cuda", distributed.env_local_rank())
     return torch.device(device)
+
+
+def resolve_precision(precision: str, device: torch.device) -> str:
+    """"auto": bf16 autocast on CUDA; fp32 on the CPU (bf16 autocast trained no faster there even on a CPU
+    with AVX512-BF16: ``equidiff bench train --cpu-precision bf16``, docs/model.md)."""
+    if precision != "auto":
+        return precision
+    return "bf16" if device.type == "cuda" else "fp32"
+
+
+def _resolve_data(cfg: TrainConfig, train_set: Dataset, device: torch.device) -> str:
+    if cfg.data != "auto":
+        return cfg.data
+    if device.type != "cuda":
+        return "loader"
+    free, _ = torch.cuda.mem_get_info(device)
+    return "device" if estimate_nbytes(train_set) <= DEVICE_DATA_SHARE * free else "loader"
 
 
 def seed_everything(seed: int) -> None:
@@ -106,16 +152,6 @@ def fit_normalizer(dataset: Dataset, workspace) -> Normalizer:
         actions = np.concatenate([np.asarray(s["action"]).reshape(-1, 10) for s in items])
         ee = np.concatenate([np.asarray(s["ee"]).reshape(-1, 10) for s in items])
     return Normalizer.fit(actions, ee, workspace)
-
-
-def _infinite(loader: DataLoader) -> Iterable[dict]:
-    while True:
-        yielded = False
-        for batch in loader:
-            yielded = True
-            yield batch
-        if not yielded:
-            raise TrainingError("training set is empty")
 
 
 class _Ema:
@@ -160,15 +196,40 @@ def _to_numpy(x):
     return x.detach().cpu().numpy() if isinstance(x, torch.Tensor) else np.asarray(x)
 
 
+class _PolicyLoss(torch.nn.Module):
+    """``policy.compute_loss`` as a module's forward: DistributedDataParallel averages gradients only
+    for what runs through its forward."""
+
+    def __init__(self, policy: DiffusionPolicy):
+        super().__init__()
+        self.policy = policy
+
+    def forward(self, batch: dict, generator: torch.Generator, noise_repeats: int) -> torch.Tensor:
+        return self.policy.compute_loss(batch, generator=generator, noise_repeats=noise_repeats)
+
+
 def train(policy: DiffusionPolicy, train_set: Dataset, val_set: Dataset | None, cfg: TrainConfig,
           out_dir: str | Path, callbacks: Iterable[Any] = ()) -> TrainResult:
+    """Train ``policy`` for ``cfg.steps`` in all (resuming ``out_dir/last.ckpt`` when it exists).
+
+    Under torchrun every rank calls this with the same arguments; callbacks run on rank 0 only."""
     from .inference import export_policy  # late: inference imports policies
 
     out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    callbacks = list(callbacks)
     device = resolve_device(cfg.device)
+    try:
+        dist_info = distributed.init_from_env(device.type)
+    except distributed.DistributedError as err:
+        raise TrainingError(str(err)) from err
+    main = dist_info.is_main
+    if main:
+        out_dir.mkdir(parents=True, exist_ok=True)
+    callbacks = list(callbacks) if main else []
+    precision = resolve_precision(cfg.precision, device)
+    data = _resolve_data(cfg, train_set, device)
     seed_everything(cfg.seed)
+    if len(train_set) == 0:
+        raise TrainingError("training set is empty")
     if policy.normalizer is None:
         policy.set_normalizer(fit_normalizer(train_set, policy.workspace))
     policy.to(device)
@@ -182,8 +243,9 @@ def train(policy: DiffusionPolicy, train_set: Dataset, val_set: Dataset | None, 
     step = 0
 
     ckpt_path = out_dir / "last.ckpt"
-    if ckpt_path.exists():
-        state = load_training_checkpoint(ckpt_path)
+    # rank 0 reads the checkpoint and hands it to the others: all ranks resume from the same state
+    state = distributed.broadcast_object(load_training_checkpoint(ckpt_path) if main and ckpt_path.exists() else None)
+    if state is not None:
         if state["config"]["policy"] != policy.name or state["config"]["preset"] != policy.preset.to_dict():
             raise TrainingError(f"{ckpt_path} was written for a different policy/preset; use a new out_dir")
         policy.model.load_state_dict(state["model"])
@@ -194,8 +256,11 @@ def train(policy: DiffusionPolicy, train_set: Dataset, val_set: Dataset | None, 
         policy.set_normalizer(Normalizer.from_dict(state["config"]["normalizer"]))
         step = int(state["step"])
         history = json.loads(state["history_json"])
+    del state
 
     def save_checkpoint():
+        if not main:
+            return
         state = {"format": CKPT_FORMAT, "version": CKPT_VERSION, "step": step,
                  "config": policy.config_dict(), "train_config": to_dict(cfg),
                  "model": policy.model.state_dict(), "optimizer": optimizer.state_dict(),
@@ -206,25 +271,49 @@ def train(policy: DiffusionPolicy, train_set: Dataset, val_set: Dataset | None, 
         tmp.replace(ckpt_path)  # atomic: a killed run never leaves a half-written last.ckpt
         (out_dir / "history.json").write_text(json.dumps(history, indent=1))
 
-    generator = torch.Generator().manual_seed(cfg.seed + step)
-    loader = DataLoader(train_set, batch_size=cfg.batch_size, shuffle=True, drop_last=len(train_set) >= cfg.batch_size,
-                        num_workers=cfg.num_workers, generator=generator, persistent_workers=cfg.num_workers > 0)
-    batches = _infinite(loader)
-    aug_gen = torch.Generator().manual_seed(cfg.seed * 7919 + step)
+    loss_fn: torch.nn.Module = _PolicyLoss(policy)
+    if dist_info.distributed:
+        import inspect
+
+        from torch.nn.parallel import DistributedDataParallel as DDP
+
+        # rank 0's weights and buffers are broadcast once; no buffer sync per step: the models' buffers
+        # are constants (no batch norm statistics). Newer torch renamed broadcast_buffers.
+        no_buffer_sync = "forward_sync_buffers" if "forward_sync_buffers" in inspect.signature(DDP).parameters \
+            else "broadcast_buffers"
+        loss_fn = DDP(loss_fn, device_ids=[device] if device.type == "cuda" else None, **{no_buffer_sync: False})
+    # every rank: the same epoch permutations (sampler seed), its own augmentation and noise draws
+    sampler = make_sampler(train_set, cfg.seed + step, dist_info.rank, dist_info.world_size)
+    if data == "device":
+        batches = DeviceBatchSource.from_dataset(train_set, device).batches(sampler, cfg.batch_size)
+    else:
+        batches = loader_batches(train_set, sampler, cfg.batch_size, cfg.num_workers)
+    aug_gen = torch.Generator().manual_seed(cfg.seed * 7919 + step + 1_000_003 * dist_info.rank)
+    autocast = (lambda: torch.autocast(device.type, dtype=torch.bfloat16)) if precision == "bf16" else \
+        contextlib.nullcontext
 
     t_last = time.perf_counter()
     deadline = None if cfg.max_minutes is None else time.monotonic() + 60.0 * cfg.max_minutes
     stopped = None
+    past_deadline = False
     while step < cfg.steps:
-        if deadline is not None and time.monotonic() > deadline:
+        if past_deadline:
             stopped = f"time budget of {cfg.max_minutes:g} min reached"
             history.append({"step": step, "stopped": stopped})
             break
         policy.train()
         batch = next(batches)
-        loss = policy.compute_loss(batch, generator=aug_gen, noise_repeats=cfg.noise_repeats)
-        if not torch.isfinite(loss):
-            raise TrainingError(f"loss became {loss.item()} at step {step}")
+        with autocast():
+            loss = loss_fn(batch, aug_gen, cfg.noise_repeats)
+        # one collective a step: the mean loss (a NaN anywhere stops every rank together) and whether
+        # any rank is past the time budget (all stop after the same step)
+        loss_sum, late = distributed.all_reduce_sum(
+            [float(loss.item()), float(deadline is not None and time.monotonic() > deadline)],
+            device if dist_info.backend == "nccl" else "cpu")
+        mean_loss = loss_sum / dist_info.world_size
+        past_deadline = late > 0
+        if not math.isfinite(mean_loss):
+            raise TrainingError(f"loss became {mean_loss} at step {step}")
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
         if cfg.grad_clip > 0:
@@ -234,7 +323,7 @@ def train(policy: DiffusionPolicy, train_set: Dataset, val_set: Dataset | None, 
         if ema is not None:
             ema.step()
         step += 1
-        metrics = {"step": step, "loss": float(loss.item()), "lr": scheduler.get_last_lr()[0]}
+        metrics = {"step": step, "loss": mean_loss, "lr": scheduler.get_last_lr()[0]}
         if step % cfg.log_every == 0 or step == 1 or step == cfg.steps:
             now = time.perf_counter()
             metrics["sec_per_step"] = (now - t_last) / (cfg.log_every if step > 1 else 1)
@@ -243,7 +332,8 @@ def train(policy: DiffusionPolicy, train_set: Dataset, val_set: Dataset | None, 
         for cb in callbacks:
             if hasattr(cb, "on_step"):
                 cb.on_step(step, metrics)
-        if cfg.eval_every and (step % cfg.eval_every == 0 or step == cfg.steps):
+        if main and cfg.eval_every and (step % cfg.eval_every == 0 or step == cfg.steps):
+            # the other ranks wait in the next step's collectives meanwhile
             with (ema.swapped_in() if ema else contextlib.nullcontext()):
                 ev, samples = evaluate(policy, val_set if val_set is not None else train_set, cfg, device)
             ev["step"] = step
@@ -254,11 +344,19 @@ def train(policy: DiffusionPolicy, train_set: Dataset, val_set: Dataset | None, 
         if cfg.checkpoint_every and step % cfg.checkpoint_every == 0 and step < cfg.steps:
             save_checkpoint()
 
+    if dist_info.distributed:
+        # DDP keeps replicas equal by construction; check it, since a diverged rank 0 would be saved silently
+        digests = distributed.all_gather_object(distributed.parameter_digest(policy.model))
+        if len(set(digests)) > 1:
+            raise TrainingError(f"data-parallel ranks diverged: parameter digests {digests}")
+        history.append({"step": step, "world_size": dist_info.world_size, "param_digests": digests})
     save_checkpoint()
     exported = out_dir / "policy.pt"
-    with (ema.swapped_in() if ema else contextlib.nullcontext()):
-        export_policy(policy, exported)
-    result = TrainResult(ckpt_path, exported, history, step, stopped)
+    if main:
+        with (ema.swapped_in() if ema else contextlib.nullcontext()):
+            export_policy(policy, exported)
+    distributed.barrier()  # every rank returns once the files are written
+    result = TrainResult(ckpt_path, exported, history, step, stopped, dist_info.world_size, precision, data)
     for cb in callbacks:
         if hasattr(cb, "on_end"):
             cb.on_end(result)

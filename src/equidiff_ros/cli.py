@@ -25,6 +25,7 @@ COMMANDS: dict[tuple[str, ...], tuple[str, str]] = {
     ("check", "equivariance"): ("check_equivariance", "measure the noise predictor's C4/C8 equivariance error"),
     ("bench", "voxelize"): ("bench_voxelize", "time voxelising 3 x 300k points against open3d"),
     ("bench", "policy"): ("bench_policy", "time the encoder, one denoising step and DDIM-16"),
+    ("bench", "train"): ("bench_train", "training samples/s on the CPU and on CUDA, same run"),
     ("bench", "control"): ("bench_control", "tracking, safety and latency of the franka node on franky-sim"),
     ("bench", "generalization"): ("bench_generalization", "EquiDiff vs baseline on unseen object yaw in the twin"),
     ("bench", "twin"): ("bench_twin", "where the twin's CPU goes: each process's share and wall s per sim s"),

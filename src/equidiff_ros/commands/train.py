@@ -7,6 +7,11 @@ then ``equidiff_core.training.train`` (AdamW + cosine, periodic checkpoints, res
 On every evaluation the held-out episodes are sampled with DDIM and
 scored by action MSE (absolute targets, metres/rot6d/metres); ``DIR/training.png`` plots the
 loss and the evaluation curves. Deterministic for a given ``--seed`` on the same device.
+
+Data-parallel on several GPUs (or CPU processes) with torchrun, e.g.
+``torchrun --nproc-per-node 4 -m equidiff_ros.cli train bags/ --out runs/ddp --device cuda``:
+every rank decodes the same episodes and split, rank 0 alone writes files and prints
+(``equidiff_core.distributed``). ``--batch-size`` is per rank.
 """
 
 from __future__ import annotations
@@ -40,6 +45,11 @@ def add_arguments(parser) -> None:
     parser.add_argument("--max-minutes", type=float, default=None,
                         help="stop after this much training time, then checkpoint and export as at the end")
     parser.add_argument("--num-workers", type=int, default=0)
+    parser.add_argument("--precision", choices=("auto", "fp32", "bf16"), default="auto",
+                        help="auto: bf16 autocast on CUDA, fp32 on the CPU")
+    parser.add_argument("--data", choices=("auto", "device", "loader"), default="auto",
+                        help="auto: the whole training set on the GPU when it fits in half its free memory, "
+                             "a DataLoader on the CPU")
     parser.add_argument("--resume", action="store_true", help="continue from OUT/last.ckpt")
     parser.add_argument("--lab-config", help="lab.yaml (workspace); default: the installed one")
     parser.add_argument("--cache-dir", help="decoded-episode cache (default OUT/dataset_cache)")
@@ -178,7 +188,7 @@ class PlotWriter:
         plot_history(result.history, self.path)
 
 
-def _load_split(out: Path, episodes, val_fraction: float, seed: int, resume: bool):
+def _load_split(out: Path, episodes, val_fraction: float, seed: int, resume: bool, write: bool = True):
     from equidiff_core.dataset import split_episodes
 
     split_file = out / "split.json"
@@ -190,6 +200,8 @@ def _load_split(out: Path, episodes, val_fraction: float, seed: int, resume: boo
             raise SystemExit(f"equidiff train: resuming needs the same episodes; missing: {missing[:3]}")
         return [by_path[p] for p in saved["train"]], [by_path[p] for p in saved["val"]]
     train, val = split_episodes(episodes, val_fraction, seed)
+    if not write:  # another rank writes the same split
+        return train, val
     out.mkdir(parents=True, exist_ok=True)
     split_file.write_text(json.dumps({"seed": seed, "val_fraction": val_fraction,
                                       "train": [str(e.path.resolve()) for e in train],
@@ -198,6 +210,21 @@ def _load_split(out: Path, episodes, val_fraction: float, seed: int, resume: boo
 
 
 def run(args) -> int:
+    from equidiff_core import distributed
+    from equidiff_core.training import TrainingError, resolve_device
+
+    try:
+        dist_info = distributed.init_from_env(resolve_device(args.device).type)
+    except (distributed.DistributedError, TrainingError) as err:
+        print(f"equidiff train: {err}", file=sys.stderr)
+        return 2
+    try:
+        return _run(args, dist_info)
+    finally:
+        distributed.shutdown()
+
+
+def _run(args, dist_info) -> int:
     from equidiff_core.config import default_config_dir, load_lab_config
     from equidiff_core.dataset import DatasetConfig, DemoDataset, load_episodes
     from equidiff_core.policies import make_policy
@@ -210,7 +237,10 @@ def run(args) -> int:
     )
 
     out = Path(args.out)
+    main = dist_info.is_main
+    say = (lambda m: print(f"equidiff train: {m}", file=sys.stderr)) if main else (lambda m: None)
     if (out / "last.ckpt").exists() and not args.resume:
+        # every rank sees the same: rank 0 writes the first checkpoint only after all ranks joined DDP
         print(f"equidiff train: {out}/last.ckpt exists; pass --resume to continue it or choose a new --out",
               file=sys.stderr)
         return 2
@@ -219,35 +249,36 @@ def run(args) -> int:
     data_cfg = DatasetConfig.from_preset(preset, resolution=lab.workspace.resolution,
                                          state_tolerance_s=args.tolerance,
                                          cache_dir=str(args.cache_dir or out / "dataset_cache"))
-    episodes, skipped = load_episodes(args.bags, data_cfg, log=lambda m: print(f"equidiff train: {m}", file=sys.stderr))
+    episodes, skipped = load_episodes(args.bags, data_cfg, log=say)
     if not episodes:
         print("equidiff train: no usable episodes", file=sys.stderr)
         return 1
-    train_eps, val_eps = _load_split(out, episodes, args.val_fraction, args.seed, args.resume)
+    train_eps, val_eps = _load_split(out, episodes, args.val_fraction, args.seed, args.resume, write=main)
     train_set, val_set = DemoDataset(train_eps, data_cfg), DemoDataset(val_eps, data_cfg) if val_eps else None
     if len(train_set) == 0:
         print("equidiff train: the training episodes are too short for one window "
               f"(need >= {preset.horizon - preset.n_action_steps + 1} observations)", file=sys.stderr)
         return 1
-    print(f"equidiff train: {len(train_eps)} train episodes ({len(train_set)} samples), "
-          f"{len(val_eps)} held out ({len(val_set) if val_set else 0} samples), {len(skipped)} skipped; "
-          f"{args.policy} / {preset.name}", file=sys.stderr)
+    say(f"{len(train_eps)} train episodes ({len(train_set)} samples), "
+        f"{len(val_eps)} held out ({len(val_set) if val_set else 0} samples), {len(skipped)} skipped; "
+        f"{args.policy} / {preset.name}" + (f"; {dist_info.world_size} data-parallel ranks ({dist_info.backend})"
+                                            if dist_info.distributed else ""))
 
     cfg = TrainConfig(steps=args.steps, batch_size=args.batch_size, lr=args.lr, warmup_steps=args.warmup_steps,
                       ema=args.ema, seed=args.seed, device=args.device, eval_every=args.eval_every,
                       checkpoint_every=args.checkpoint_every, num_workers=args.num_workers,
-                      max_minutes=args.max_minutes)
+                      max_minutes=args.max_minutes, precision=args.precision, data=args.data)
     seed_everything(args.seed)  # the initial weights come from the global RNG: seed before building
     policy = make_policy(args.policy, preset, lab.workspace)
     start_step = 0
-    if args.resume and (out / "last.ckpt").exists():
+    if main and args.resume and (out / "last.ckpt").exists():  # for the progress bar
         from equidiff_core.training import load_training_checkpoint
 
         start_step = int(load_training_checkpoint(out / "last.ckpt")["step"])
     callbacks = [ActionMseEvaluator(policy, val_set if val_set is not None else train_set, args.eval_max_samples,
                                     min(args.batch_size, 32), args.seed, "val" if val_set is not None else "train"),
-                 ProgressBar(args.steps, start_step, not args.no_progress), PlotWriter(out / "training.png", [])]
-    if args.rerun:
+                 ProgressBar(args.steps, start_step, main and not args.no_progress), PlotWriter(out / "training.png", [])]
+    if args.rerun and main:
         try:
             from equidiff_core.viz.training import RerunTrainingCallback
         except ImportError as err:
@@ -259,6 +290,8 @@ def run(args) -> int:
     except TrainingError as err:
         print(f"equidiff train: {err}", file=sys.stderr)
         return 1
+    if not main:
+        return 0
     evals = [h for h in result.history if "val_loss" in h]
     losses = [h["loss"] for h in result.history if "loss" in h]
     summary = {"checkpoint": str(result.checkpoint), "policy": str(result.exported), "plot": str(out / "training.png"),
@@ -271,7 +304,8 @@ def run(args) -> int:
     # what trained this policy, for whoever evaluates it elsewhere (bench generalization --trained)
     recipe = {"device": str(next(policy.parameters()).device), "preset": preset.name,
               "rotation_aug": preset.rotation_aug, "batch_size": args.batch_size, "lr": args.lr,
-              "warmup_steps": args.warmup_steps, "seed": args.seed, "max_minutes": args.max_minutes}
+              "warmup_steps": args.warmup_steps, "seed": args.seed, "max_minutes": args.max_minutes,
+              "world_size": result.world_size, "precision": result.precision, "data": result.data}
     (out / "run.json").write_text(json.dumps({**summary, "recipe": recipe}, indent=1) + "\n")
     print(json.dumps(summary))
     return 0
