@@ -167,8 +167,8 @@ def test_controller_recovers_when_the_franky_motion_stops():
     with SimServer() as sim:
         robot = make_robot("franky", ip=sim.host, config=CONTROL.franky, realtime=False, gripper=False)
         with robot:
-            ctl = Controller(robot, load_lab_config(LAB_PATH).workspace, CONTROL)
-            with pytest.raises(RobotError, match="outside the workspace box"):
+            ctl = Controller(robot, load_lab_config(LAB_PATH).safety_box, CONTROL)
+            with pytest.raises(RobotError, match="outside the safety box"):
                 ctl.start(home=False)  # franky-sim's initial pose is above the box: no surprise motion
             ctl.start(home=True)
             try:
@@ -237,7 +237,7 @@ def test_arm_keeps_its_posture_while_the_tcp_wanders_and_yaws():
     with SimServer() as sim:
         robot = make_robot("franky", ip=sim.host, config=CONTROL.franky, realtime=False, gripper=False)
         with robot:
-            ctl = Controller(robot, lab.workspace, CONTROL)
+            ctl = Controller(robot, lab.safety_box, CONTROL)
             ctl.start(home=True)
             try:
                 q_home, home = ctl.state.joint_positions.copy(), ctl.state.ee_pose[:3, 3].copy()

@@ -27,7 +27,7 @@ import numpy as np
 from .. import geometry
 from ..chunk import ChunkError, PoseChunk
 from ..clock import Clock, WallClock
-from ..config import Workspace
+from ..config import SafetyBox
 from ..robots.base import Robot, RobotError, RobotState
 from .config import ControlConfig
 from .safety import FilteredTarget, SafetyFilter, SafetyRejection, check_chunk
@@ -44,6 +44,7 @@ class ControllerStats:
     rejected_chunks: int = 0
     nan_rejected: int = 0  # NaN / inf / non-orthonormal (subset of rejected_chunks)
     jump_rejected: int = 0
+    cone_rejected: int = 0  # a step tilted past the orientation cone
     stale_rejected: int = 0
     watchdog_holds: int = 0
     recoveries: int = 0
@@ -71,7 +72,7 @@ class Command:
 
 
 class Controller:
-    def __init__(self, robot: Robot, workspace: Workspace, config: ControlConfig = ControlConfig(),
+    def __init__(self, robot: Robot, box: SafetyBox, config: ControlConfig = ControlConfig(),
                  clock: Clock | None = None, logger: logging.Logger | None = None,
                  on_command: Callable[[Command], None] | None = None):
         self.robot = robot
@@ -79,7 +80,7 @@ class Controller:
         self.clock = clock or WallClock()
         self.log = logger or log
         self.on_command = on_command
-        self.safety = SafetyFilter(workspace, config.safety)
+        self.safety = SafetyFilter(box, config.safety)
         self.scheduler = ChunkScheduler(config.scheduler)
         self.stats = ControllerStats()
         self._lock = threading.Lock()
@@ -111,16 +112,24 @@ class Controller:
         if home if home is not None else self.config.home_on_start:
             home_pose = self.home_pose
             if not self.safety.inside(home_pose[:3, 3]):
-                raise ValueError(f"home position {self.config.home_position} is outside the workspace box")
+                raise ValueError(f"home position {self.config.home_position} is outside the safety box")
+            if geometry.tilt_angle(home_pose[:3, :3]) > self.config.safety.max_tilt_rad:
+                raise ValueError(f"home orientation {self.config.home_quaternion_xyzw} is outside the orientation cone")
             self.log.info(f"moving to the home pose {self.config.home_position}")
             self.robot.move_to(home_pose)
-        position = self.robot.read_state().ee_pose[:3, 3]
+        pose = self.robot.read_state().ee_pose
+        position = pose[:3, 3]
         if not self.safety.inside(position, tol=1e-3):
             # Every command is clipped into the box, so streaming from outside would pull the
             # arm in at full speed: refuse instead of moving unexpectedly.
-            raise RobotError(f"the TCP is at {np.round(position, 3).tolist()}, outside the workspace box "
+            raise RobotError(f"the TCP is at {np.round(position, 3).tolist()}, outside the safety box "
                              f"{np.round(self.safety.lower, 3).tolist()} .. {np.round(self.safety.upper, 3).tolist()}; "
                              f"move it inside (or enable home_on_start) before streaming")
+        tilt = geometry.tilt_angle(pose[:3, :3])
+        if tilt > self.config.safety.max_tilt_rad + 1e-3:  # the same: every command is swung into the cone
+            raise RobotError(f"the tool is tilted {np.degrees(tilt):.0f} deg from straight down, outside the "
+                             f"{np.degrees(self.config.safety.max_tilt_rad):.0f} deg cone; point it down "
+                             f"(or enable home_on_start) before streaming")
         self.robot.start_streaming()
         self._reset_to_measured()
         if thread:
@@ -191,7 +200,10 @@ class Controller:
         text = str(err)
         self.stats.rejected_chunks += 1
         if isinstance(err, SafetyRejection):
-            self.stats.jump_rejected += 1
+            if err.kind == "cone":
+                self.stats.cone_rejected += 1
+            else:
+                self.stats.jump_rejected += 1
         elif "stale" in text:
             self.stats.stale_rejected += 1
         elif any(word in text for word in ("NaN", "inf", "orthonormal", "unit length", "determinant")):
@@ -293,11 +305,24 @@ class Controller:
         error = float(np.linalg.norm(self._state.ee_pose[:3, 3] - self._setpoint.pose[:3, 3]))
         if error > limits.max_tracking_error_m:
             return f"TCP {error * 1000:.0f} mm from the command (limit {limits.max_tracking_error_m * 1000:.0f} mm)"
-        speeds = np.abs(np.asarray(self._state.joint_velocities, dtype=float))
+        velocities = np.asarray(self._state.joint_velocities, dtype=float)
+        speeds = np.abs(velocities)
         over = speeds - np.asarray(limits.max_joint_speeds_rad_s)[:len(speeds)]
         if over.size and over.max() > 0:
             j = int(np.argmax(over))
             return f"joint {j + 1} at {speeds[j]:.1f} rad/s (limit {limits.max_joint_speeds_rad_s[j]:.1f} rad/s)"
+        return self._joint_limit_reached(np.asarray(self._state.joint_positions, dtype=float), velocities)
+
+    def _joint_limit_reached(self, q: np.ndarray, dq: np.ndarray) -> str:
+        """A joint within ``joint_limit_margin_rad`` of a position limit and still moving towards it
+        ('' otherwise). Moving away is allowed, so the arm can be brought back after the stop."""
+        limits, moving = self.config.safety, 0.05  # rad/s: slower is holding still (sensor noise, drift)
+        lo = np.asarray(limits.joint_position_min_rad)[:len(q)] + limits.joint_limit_margin_rad
+        hi = np.asarray(limits.joint_position_max_rad)[:len(q)] - limits.joint_limit_margin_rad
+        for j in range(len(q)):
+            if (q[j] < lo[j] and dq[j] < -moving) or (q[j] > hi[j] and dq[j] > moving):
+                return (f"joint {j + 1} at {q[j]:.2f} rad moving towards its limit "
+                        f"[{limits.joint_position_min_rad[j]:.2f}, {limits.joint_position_max_rad[j]:.2f}] rad")
         return ""
 
     def _stop_diverged(self, now: int, reason: str) -> None:
@@ -345,6 +370,15 @@ class Controller:
                          f"an operator acknowledges")
         self._reset_to_measured()
         self.stats.awaiting_ack = f"robot error: {reason}"
+
+    def require_acknowledgement(self, reason: str) -> None:
+        """Hold and refuse every chunk until an operator acknowledges ``reason`` (franka_node calls
+        it when it starts after an unclean exit: the policy may still be publishing)."""
+        with self._lock:
+            self.stats.awaiting_ack = reason
+            self.scheduler.clear()
+            self._holding = True
+        self.log.warning(f"holding until an operator acknowledges: {reason}")
 
     def acknowledge(self) -> str:
         """An operator's go-ahead after a stop: chunks are accepted again (the arm keeps holding
