@@ -1,7 +1,10 @@
 """A bare franky-sim server (MuJoCo FR3 speaking libfranka's protocol) for tests and benchmarks.
 
 ``python -m equidiff_core.robots.franky.sim --host 127.0.0.1`` serves one robot until killed;
-``SimServer`` starts that in a subprocess and always kills it. The digital twin's full scene
+``SimServer`` starts that in a subprocess and always kills it. For fault campaigns
+(``equidiff bench safety``) the server takes one injected fault: SIGUSR1 jams the gripper (its
+fingers ignore every new goal and stay where they are; franky still gets its replies, as from
+a hand blocked by an object), SIGUSR2 frees it (``SimServer.jam_gripper``). The digital twin's full scene
 lives in ``equidiff_core.twin``; this is the smallest thing the franka node can talk to.
 
 We step the server ourselves instead of ``SimulationServer.run_async()``: the stock loop
@@ -35,7 +38,7 @@ def serve(host: str, realtime: bool = True) -> None:
     signal.signal(signal.SIGINT, _stop)
     raise_priority()
     with MujocoSimulator() as sim:
-        sim.add_robot()
+        jam_gripper_on_signal(sim.add_robot())
         with franky_sim.SimulationServer(sim, hostname_candidates=[host]) as server:
             print(f"READY {host}", flush=True)
             deadline = start = time.perf_counter()
@@ -53,6 +56,25 @@ def serve(host: str, realtime: bool = True) -> None:
                     time.sleep(delay)
                 elif delay < -0.05:  # far behind (machine overloaded): don't try to catch up in a burst
                     deadline = time.perf_counter()
+
+
+def jam_gripper_on_signal(robot) -> None:
+    """SIGUSR1: the hand's fingers hold their width whatever goal arrives; SIGUSR2: they follow again."""
+    jammed = {"on": False}
+    set_goal = robot.set_hand_goal
+
+    def guarded(width, max_velocity, max_force):
+        set_goal(robot.hand_width if jammed["on"] else width, max_velocity, max_force)
+
+    def toggle(on: bool):
+        jammed["on"] = on
+        if on:
+            set_goal(robot.hand_width, 0.05, 70.0)
+        print(f"GRIPPER {'jammed' if on else 'free'}", flush=True)
+
+    robot.set_hand_goal = guarded
+    signal.signal(signal.SIGUSR1, lambda *_: toggle(True))
+    signal.signal(signal.SIGUSR2, lambda *_: toggle(False))
 
 
 def step_server(server, command_timeout_s: float = 0.02) -> int:
@@ -179,6 +201,12 @@ class SimServer:
             if line.startswith("STATS"):
                 _, steps, wall = line.split()
                 self.stats.append((time.monotonic(), int(steps), float(wall)))
+
+    def jam_gripper(self, jammed: bool = True) -> None:
+        """Inject (or clear) a jammed gripper in the running server (see the module docstring)."""
+        if self.process is None or self.process.poll() is not None:
+            raise RuntimeError("franky-sim is not running")
+        self.process.send_signal(signal.SIGUSR1 if jammed else signal.SIGUSR2)
 
     def realtime_factor(self, since: float | None = None) -> float | None:
         """Simulated seconds per wall second (1.0 = real time) since monotonic time ``since``."""
