@@ -243,13 +243,15 @@ class PolicyFeed:
     stalled: threading.Event = field(default_factory=threading.Event)
     stop: threading.Event = field(default_factory=threading.Event)
     proc: object = None
+    thread: threading.Thread | None = None
 
     def start(self, checkpoint: Path, log: Path) -> None:
         from equidiff_core.twin.processes import start_node
 
         self.proc = start_node("policy_node", {"checkpoint": str(checkpoint), "precision": "fp32",
                                                "lab_config": self.client.lab_path, "start_paused": False}, log)
-        threading.Thread(target=self._feed, daemon=True).start()
+        self.thread = threading.Thread(target=self._feed, daemon=True)
+        self.thread.start()
         n0 = len(self.client.data.chunks)
         self.client.wait_for(lambda: len(self.client.data.chunks) > n0, 180.0, "policy_node's first chunk", self.proc)
 
@@ -517,6 +519,8 @@ def run_campaign(faults: list[str], tmp: Path, still_mm: float = 3.0, box_tol_mm
         finally:
             if feed is not None:
                 feed.stop.set()
+                if feed.thread is not None:
+                    feed.thread.join(timeout=5)
                 stop_process(feed.proc)
             if client is not None:
                 client.close()
