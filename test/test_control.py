@@ -607,6 +607,27 @@ def test_streaming_does_not_start_with_the_tool_outside_the_cone():
     assert list(robot.sent) == []  # nothing was sent
 
 
+def test_go_home_glides_slowly_to_the_home_pose_and_is_refused_awaiting_acknowledgement():
+    ctl, robot, clock = make_controller(start=(0.55, 0.1, 0.2))
+    period = int(1e9 / ctl.config.control_hz)
+    duration = ctl.go_home()
+    distance = np.linalg.norm(np.subtract(ctl.config.home_position, (0.55, 0.1, 0.2)))
+    assert duration == pytest.approx(distance / ctl.config.home_speed_m_s, rel=0.01)
+    assert not ctl.submit(circle_chunk(clock.t, clock.t)) and "homing" in ctl.stats.last_rejection
+    positions = []
+    for _ in range(int((duration + 0.5) * ctl.config.control_hz)):
+        clock.t += period
+        positions.append(ctl.tick().target.pose[:3, 3])
+    steps = np.linalg.norm(np.diff(positions, axis=0), axis=1)
+    assert steps.max() <= ctl.config.home_speed_m_s * 1.3 / ctl.config.control_hz  # slowly, at home speed
+    np.testing.assert_allclose(positions[-1], ctl.config.home_position, atol=1e-6)
+    assert [k for k, _, _ in robot.sent if k == "gripper"] == []  # the gripper left alone
+    assert ctl.submit(PoseChunk(clock.t, np.array([clock.t + 200 * MS]), ctl.home_pose[None], np.ones(1) * 0.08))
+    ctl.require_acknowledgement("a test stop")
+    with pytest.raises(ChunkError, match="awaiting an operator's acknowledgement"):
+        ctl.go_home()
+
+
 # --- metrics ---------------------------------------------------------------------------------
 
 def test_metrics_measure_what_they_claim():

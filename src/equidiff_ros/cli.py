@@ -36,6 +36,7 @@ COMMANDS: dict[tuple[str, ...], tuple[str, str]] = {
     ("calibrate", "cameras"): ("calibrate", "camera extrinsics from a ChArUco board on the hand (hand-eye + joint refinement)"),
     ("lab", "record"): ("lab_record", "start / keep as success or failure / discard the recorder's episode"),
     ("lab", "ack"): ("lab_ack", "let the arm go on after a robot error or divergence stop (it never resumes by itself)"),
+    ("lab", "home"): ("lab_home", "glide the arm slowly to the home pose (refused while a stop awaits ack)"),
     ("lab", "policy"): ("lab_policy", "enable, pause or resume the policy"),
     ("lab", "status"): ("lab_status", "episode, policy state and teleop takeover, from the live graph"),
     ("cameras", "list"): ("cameras_list", "connected RealSense serials, firmware and USB links vs lab.yaml"),

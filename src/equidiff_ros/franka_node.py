@@ -11,11 +11,13 @@ Wiring:
   service /franka/acknowledge (Trigger) -> ``Controller.acknowledge``: after a robot error, a
       divergence stop (joint speed, joint limit, tracking error) or an unclean exit of a previous
       franka_node the arm holds and chunks are refused until an operator calls it
+  service /franka/home (Trigger) -> ``Controller.go_home``: glide slowly to the configured home pose
+      (chunks refused until it arrives); refused while a stop awaits acknowledgement
 
-An unclean exit (killed, crashed) leaves its marker file ``<run_dir>/franka_node_<robot>.pid``
+An unclean exit (killed, crashed) leaves its marker file ``<run_dir>/franka_node_<robot_ip>.pid``
 behind; the next franka_node for the same robot then skips the home move and starts holding,
 awaiting acknowledgement: the policy may still be publishing, and the arm must not resume on
-its own.
+its own. (Not for the dry run, which moves nothing.)
 
 Policy and teleop publish the same chunk topic, so both go through the same checks.
 
@@ -47,7 +49,7 @@ from equidiff_core.control import Controller, load_control_config
 from equidiff_core.control import messages as cm
 from equidiff_core.robots import BACKENDS, make_robot
 from equidiff_core.rosmsg import RclpyFactory
-from equidiff_core.topics import SERVICE_FRANKA_ACKNOWLEDGE
+from equidiff_core.topics import SERVICE_FRANKA_ACKNOWLEDGE, SERVICE_FRANKA_HOME
 from equidiff_ros.common import (
     RELIABLE_QOS,
     TOPIC_COMMAND_CHUNK,
@@ -95,8 +97,9 @@ class FrankaNode(Node):
         kwargs = {} if backend == "dryrun" else {"ip": robot_ip, "config": self.config.franky,
                                                      "realtime": realtime, "gripper": gripper,
                                                      "safety": self.config.safety}
-        self.marker = Path(run_dir) / f"franka_node_{self.hardware_id}.pid"
-        unclean = previous_exit_was_unclean(self.marker)
+        # a dry run moves nothing: no marker (and parallel dry runs on one machine never hold each other)
+        self.marker = None if backend == "dryrun" else Path(run_dir) / f"franka_node_{self.hardware_id}.pid"
+        unclean = "" if self.marker is None else previous_exit_was_unclean(self.marker)
         if unclean:
             home = False  # no motion of its own: hold where the arm is until acknowledged
         self.robot = make_robot(backend, logger=log, **kwargs)
@@ -128,10 +131,12 @@ class FrankaNode(Node):
             raise
         if unclean:
             self.controller.require_acknowledgement(unclean)
-        self.marker.write_text(str(os.getpid()))
+        if self.marker is not None:
+            self.marker.write_text(str(os.getpid()))
         self.create_subscription(MultiDOFJointTrajectory, TOPIC_COMMAND_CHUNK, self.on_chunk, RELIABLE_QOS)
         # after a robot error or a divergence stop the arm holds until an operator says go on
         self.create_service(Trigger, SERVICE_FRANKA_ACKNOWLEDGE, self.on_acknowledge)
+        self.create_service(Trigger, SERVICE_FRANKA_HOME, self.on_home)
         self.create_timer(1.0 / state_hz, self.publish_state)
         self.create_timer(1.0, self.publish_diagnostics)
         self._last_target_stamp = None
@@ -154,6 +159,15 @@ class FrankaNode(Node):
         else:
             response.success = True
             response.message = f"acknowledged: {reason}" if reason else "nothing to acknowledge"
+        return response
+
+    def on_home(self, _request, response):
+        try:
+            seconds = self.controller.go_home()
+            response.success = True
+            response.message = f"homing to {list(self.config.home_position)} in {seconds:.1f} s"
+        except ChunkError as err:
+            response.success, response.message = False, f"refused: {err}"
         return response
 
     def publish_state(self) -> None:
@@ -189,7 +203,8 @@ class FrankaNode(Node):
     def shutdown(self) -> None:
         self.controller.stop()
         self.robot.disconnect()
-        self.marker.unlink(missing_ok=True)  # a clean exit: the next franka_node may move home
+        if self.marker is not None:
+            self.marker.unlink(missing_ok=True)  # a clean exit: the next franka_node may move home
 
 
 def previous_exit_was_unclean(marker: Path) -> str:

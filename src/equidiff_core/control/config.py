@@ -128,11 +128,16 @@ class ControlConfig:
     # Home pose (TCP, base frame): inside the workspace, gripper pointing down.
     home_position: tuple[float, float, float] = (0.45, 0.0, 0.30)
     home_quaternion_xyzw: tuple[float, float, float, float] = (1.0, 0.0, 0.0, 0.0)
+    # /franka/home (`equidiff lab home`): glide there this slowly, through the usual safety filter
+    home_speed_m_s: float = 0.05
+    home_angular_speed_rad_s: float = 0.3
     safety: SafetyConfig = field(default_factory=SafetyConfig)
     scheduler: SchedulerConfig = field(default_factory=SchedulerConfig)
     franky: FrankyConfig = field(default_factory=FrankyConfig)
 
     def __post_init__(self):
+        if self.home_speed_m_s <= 0 or self.home_angular_speed_rad_s <= 0:
+            raise ValueError("home_speed_m_s and home_angular_speed_rad_s must be positive")
         if not 10 <= self.control_hz <= 1000:
             raise ValueError(f"control_hz must be within 10..1000, got {self.control_hz}")
 

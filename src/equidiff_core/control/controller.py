@@ -99,6 +99,8 @@ class Controller:
         self._gripper_sent = float("nan")
         self._failures_in_row = 0  # failures since the last acknowledgement
         self._divergence_grace_until_ns = 0
+        self._homing_until_ns = 0  # go_home's trajectory runs until then: chunks are refused
+        self._homing = False  # the trajectory is go_home's (until the next chunk): the gripper is left alone
         self._thread: threading.Thread | None = None
         self._stop = threading.Event()
 
@@ -181,6 +183,8 @@ class Controller:
                     self.stats.ack_rejected += 1
                     raise ChunkError(f"awaiting an operator's acknowledgement after: {self.stats.awaiting_ack} "
                                      f"(franka_node's /franka/acknowledge, `equidiff lab ack`)")
+                if now < self._homing_until_ns:
+                    raise ChunkError(f"homing: chunks are refused for {(self._homing_until_ns - now) / 1e9:.1f} s more")
                 live = self.scheduler.live_steps(chunk, now)
                 state = self._state
                 check_chunk(live, None if state is None else state.ee_pose, self.config.safety)
@@ -189,6 +193,7 @@ class Controller:
                 self._valid_until_ns = max(now, self.scheduler.end_ns() or now)
                 self._holding = False
                 self._hold_pose = None
+                self._homing = False
             self.stats.accepted_chunks += 1
             return True
         except ChunkError as err:
@@ -269,7 +274,7 @@ class Controller:
         self.stats.ticks += 1
         self.stats.clipped_ticks += int(filtered.clipped)
         self.stats.speed_limited_ticks += int(filtered.speed_limited)
-        if sp is not None and np.isfinite(sp.width):
+        if sp is not None and np.isfinite(sp.width) and not self._homing:
             width = self.safety.clip_width(sp.width)
             if not abs(width - self._gripper_sent) <= self.config.gripper_deadband_m:  # NaN-safe
                 self.robot.move_gripper(width)
@@ -370,6 +375,41 @@ class Controller:
                          f"an operator acknowledges")
         self._reset_to_measured()
         self.stats.awaiting_ack = f"robot error: {reason}"
+
+    def go_home(self) -> float:
+        """Glide to the configured home pose at ``home_speed_m_s`` / ``home_angular_speed_rad_s``
+        through the ordinary safety filter (box, cone, speed limits, watchdog), the gripper left as
+        it is; chunks are refused until it arrives. Returns the glide's duration (s). Raises
+        ChunkError while a stop awaits acknowledgement or the controller is faulted: an operator
+        looks at the arm first."""
+        from scipy.spatial.transform import Rotation, Slerp
+
+        if self.stats.faulted:
+            raise ChunkError("faulted: restart franka_node once the cause is fixed")
+        now = self.clock.now_ns()
+        with self._lock:
+            if self.stats.awaiting_ack:
+                raise ChunkError(f"awaiting an operator's acknowledgement after: {self.stats.awaiting_ack}")
+            start = (self._state or self._read_state()).ee_pose
+            goal, cfg = self.home_pose, self.config
+            distance = float(np.linalg.norm(goal[:3, 3] - start[:3, 3]))
+            angle = geometry.rotation_angle(start[:3, :3], goal[:3, :3])
+            duration = max(distance / cfg.home_speed_m_s, angle / cfg.home_angular_speed_rad_s, 0.5)
+            s = np.linspace(0.0, 1.0, int(np.ceil(duration / 0.1)) + 1)
+            rotations = Slerp([0.0, 1.0], Rotation.from_matrix([start[:3, :3], goal[:3, :3]]))(s).as_matrix()
+            poses = np.stack([geometry.make_pose(R, (1 - a) * start[:3, 3] + a * goal[:3, 3])
+                              for a, R in zip(s, rotations)])
+            times = now + (s * duration * 1e9).astype(np.int64)
+            chunk = PoseChunk(now, times, poses, np.zeros(len(s)))  # widths unused: no gripper command while homing
+            self.scheduler.schedule(chunk, now, self._current_setpoint())
+            self._valid_until_ns = int(times[-1])
+            self._homing_until_ns = int(times[-1])
+            self._homing = True
+            self._holding = False
+            self._hold_pose = None
+        self.log.info(f"homing: {distance * 1000:.0f} mm and {np.degrees(angle):.0f} deg to {cfg.home_position} "
+                      f"in {duration:.1f} s")
+        return duration
 
     def require_acknowledgement(self, reason: str) -> None:
         """Hold and refuse every chunk until an operator acknowledges ``reason`` (franka_node calls
