@@ -9,9 +9,12 @@ the robot. Errors reported by the robot trigger ``recover`` with a logged reason
 ``max_recoveries`` times in a row; after that the controller stays faulted and holds nothing
 (the robot's own brakes/reflexes take over) until restarted.
 
-It never resumes on its own: after a recovered robot error or a divergence stop the arm holds
-where it is and every chunk is refused ("awaiting acknowledgement") until an operator calls
-``acknowledge`` (franka_node's ``/franka/acknowledge`` service, ``equidiff lab ack``).
+It never resumes on its own: after a recovered robot error, a divergence stop (tracking error,
+joint speed, a joint moving into its position limit) or ``require_acknowledgement`` (franka_node
+after an unclean exit of its predecessor) the arm holds where it is and every chunk is refused
+("awaiting acknowledgement") until an operator calls ``acknowledge`` (franka_node's
+``/franka/acknowledge`` service, ``equidiff lab ack``). ``go_home`` glides to the home pose
+through the same filter (``/franka/home``).
 """
 
 from __future__ import annotations
