@@ -12,8 +12,10 @@ injects one fault at a time, each checked for what "survived" means for it:
   rejected in franka_node's /diagnostics, the node alive, the arm still (< ``--still-mm``).
 * ``out_of_box``: 4 s of chunks heading down through the table and out past the safety box.
   Survived: the TCP never left the box (lab.yaml ``safety_box``) by more than ``--box-tol-mm``.
-* ``camera_stall``: a policy_node (an untrained tiny stand-in: only its chunks' flow matters)
-  on synthetic 5 Hz voxel grids; the grids stop for 3.5 s, as they do when a camera stalls.
+* ``camera_stall``: a policy_node (``--policy``: ``shipped``, the twin's trained checkpoint,
+  the default; or ``standin``, an untrained tiny one that starts in seconds) on synthetic 5 Hz
+  voxel grids (a table and a block); the grids stop for 3.5 s, as voxel_node's do when a
+  camera stalls. ``policy_chunks_accepted`` says how many of its chunks franka_node executed.
   Survived: no chunk during the stall, the arm held, chunks again once the grids come back.
 * ``policy_node_killed``: that policy_node is SIGKILLed. Survived: the arm held (watchdog).
 * ``recorder_sigkill``: recorder_node is SIGKILLed mid-episode. Survived: the episode is
@@ -68,6 +70,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="the arm 'held still' when it moved less than this (default 3 mm)")
     parser.add_argument("--box-tol-mm", type=float, default=5.0,
                         help="out_of_box survives within this distance outside the safety box (default 5 mm)")
+    parser.add_argument("--policy", choices=["shipped", "standin"], default="shipped",
+                        help="policy_node's checkpoint for the policy faults (default: the shipped one if present)")
     parser.add_argument("--domain-id", type=int, default=None, help="ROS_DOMAIN_ID (default: a random private one)")
     parser.add_argument("--keep", type=Path, default=None, help="keep logs and episodes here (default: a temp dir)")
 
@@ -244,6 +248,7 @@ class PolicyFeed:
     stop: threading.Event = field(default_factory=threading.Event)
     proc: object = None
     thread: threading.Thread | None = None
+    accepted_before: int = 0  # franka_node's accepted_chunks when the policy started
 
     def start(self, checkpoint: Path, log: Path) -> None:
         from equidiff_core.twin.processes import start_node
@@ -272,6 +277,8 @@ class PolicyFeed:
 
 
 def fault_camera_stall(c: Campaign, feed: PolicyFeed) -> dict:
+    time.sleep(3.0)  # the policy acting for a while first
+    accepted = c.diag("accepted_chunks") - feed.accepted_before
     t_stall = time.time()
     feed.stalled.set()
     time.sleep(3.5)
@@ -285,7 +292,8 @@ def fault_camera_stall(c: Campaign, feed: PolicyFeed) -> dict:
     except (TimeoutError, RuntimeError):
         again = False
     c.note_excursion(t_stall)
-    return {"survived": during == 0 and held < c.still_m and again and c.alive(), "chunks_during_stall": during,
+    return {"survived": during == 0 and held < c.still_m and again and c.alive(),
+            "policy_chunks_accepted": accepted, "chunks_during_stall": during,
             "moved_while_stalled_mm": round(held * 1000, 2), "chunks_after_stall": again}
 
 
@@ -301,7 +309,7 @@ def fault_policy_node_killed(c: Campaign, feed: PolicyFeed) -> dict:
     watchdog = c.wait_diag("watchdog_holds", holds, timeout=3.0)
     c.note_excursion(t_kill)
     return {"survived": after == 0 and held < c.still_m and c.alive(), "chunks_after_kill": after,
-            "watchdog_held": watchdog, "moved_after_kill_mm": round(held * 1000, 2)}
+            "watchdog_fired_after_kill": watchdog, "moved_after_kill_mm": round(held * 1000, 2)}
 
 
 def fault_recorder_sigkill(c: Campaign) -> dict:
@@ -460,7 +468,7 @@ def episodes_lost(paths: list[Path]) -> int:
 
 
 def run_campaign(faults: list[str], tmp: Path, still_mm: float = 3.0, box_tol_mm: float = 5.0,
-                 log: Callable[[str], None] = lambda _m: None) -> dict:
+                 log: Callable[[str], None] = lambda _m: None, policy: str = "shipped") -> dict:
     """Run ``faults`` (in FAULTS' order) and return the result dict (the JSON line's content)."""
     from equidiff_core.config import default_config_dir, load_lab_config
     from equidiff_core.machine import cpu_description
@@ -497,9 +505,10 @@ def run_campaign(faults: list[str], tmp: Path, still_mm: float = 3.0, box_tol_mm
             start_episode(c)
             for name in faults:
                 if name in POLICY_FAULTS and feed is None:
-                    feed = PolicyFeed(client)
-                    log("starting policy_node (untrained tiny stand-in)")
-                    feed.start(make_checkpoint(tmp, lab.workspace), tmp / "policy_node.log")
+                    feed = PolicyFeed(client, accepted_before=c.diag("accepted_chunks"))
+                    checkpoint, result["policy"] = policy_checkpoint(policy, tmp, lab.workspace)
+                    log(f"starting policy_node ({result['policy']})")
+                    feed.start(checkpoint, tmp / "policy_node.log")
                 if name == "recorder_sigkill" and c.episodes and c.recorder is not None:
                     stop_episode(c)  # keep the first episode; the kill takes the next one
                 log(f"fault: {name}")
@@ -536,11 +545,17 @@ def run_campaign(faults: list[str], tmp: Path, still_mm: float = 3.0, box_tol_mm
     return result
 
 
-def make_checkpoint(tmp: Path, workspace) -> Path:
-    from equidiff_core.twin.standin import make_standin_policy
+def policy_checkpoint(which: str, tmp: Path, workspace) -> tuple[Path, str]:
+    """(checkpoint, label): the shipped twin policy if asked for and present, else an untrained tiny stand-in."""
+    from equidiff_core.twin.standin import STANDIN_LABEL, make_standin_policy
+    from equidiff_ros.commands.twin_run import SHIPPED_CHECKPOINT, SHIPPED_NAME
 
+    if which == "shipped" and SHIPPED_CHECKPOINT.is_file():
+        return SHIPPED_CHECKPOINT, f"shipped {SHIPPED_NAME}"
     path = tmp / "standin.pt"
-    return path if path.exists() else make_standin_policy(path, workspace, preset="tiny", policy="baseline")
+    if not path.exists():
+        make_standin_policy(path, workspace, preset="tiny", policy="baseline")
+    return path, STANDIN_LABEL
 
 
 def run(args: argparse.Namespace) -> int:
@@ -557,7 +572,7 @@ def run(args: argparse.Namespace) -> int:
         out.mkdir(parents=True, exist_ok=True)
         try:
             result = run_campaign(faults, out, args.still_mm, args.box_tol_mm,
-                                  log=lambda m: print(m, file=sys.stderr, flush=True))
+                                  log=lambda m: print(m, file=sys.stderr, flush=True), policy=args.policy)
         except ValueError as err:
             print(f"equidiff bench safety: {err}", file=sys.stderr)
             return 2
