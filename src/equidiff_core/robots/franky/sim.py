@@ -3,8 +3,9 @@
 ``python -m equidiff_core.robots.franky.sim --host 127.0.0.1`` serves one robot until killed;
 ``SimServer`` starts that in a subprocess and always kills it. For fault campaigns
 (``equidiff bench safety``) the server takes one injected fault: SIGUSR1 jams the gripper (its
-fingers ignore every new goal and stay where they are; franky still gets its replies, as from
-a hand blocked by an object), SIGUSR2 frees it (``SimServer.jam_gripper``). The digital twin's full scene
+fingers ignore every new goal and stay where they are, and the command running never finishes:
+franky's gripper future stays pending), SIGUSR2 frees it (``SimServer.jam_gripper``): the
+fingers settle and the pending command is answered. The digital twin's full scene
 lives in ``equidiff_core.twin``; this is the smallest thing the franka node can talk to.
 
 We step the server ourselves instead of ``SimulationServer.run_async()``: the stock loop
@@ -38,8 +39,9 @@ def serve(host: str, realtime: bool = True) -> None:
     signal.signal(signal.SIGINT, _stop)
     raise_priority()
     with MujocoSimulator() as sim:
-        jam_gripper_on_signal(sim.add_robot())
+        robot = sim.add_robot()
         with franky_sim.SimulationServer(sim, hostname_candidates=[host]) as server:
+            jam_gripper_on_signal(robot, getattr(server.robot_servers[0], "_FrankaRobotServer__gripper_server", None))
             print(f"READY {host}", flush=True)
             deadline = start = time.perf_counter()
             steps, next_report = 0, start + 1.0
@@ -58,13 +60,24 @@ def serve(host: str, realtime: bool = True) -> None:
                     deadline = time.perf_counter()
 
 
-def jam_gripper_on_signal(robot) -> None:
-    """SIGUSR1: the hand's fingers hold their width whatever goal arrives; SIGUSR2: they follow again."""
+def jam_gripper_on_signal(robot, gripper_server=None) -> None:
+    """SIGUSR1: the hand's fingers hold their width whatever goal arrives and the running command
+    is not answered; SIGUSR2: they follow again (franky-sim's gripper server, private layout:
+    without it only the goals are ignored)."""
     jammed = {"on": False}
     set_goal = robot.set_hand_goal
 
     def guarded(width, max_velocity, max_force):
         set_goal(robot.hand_width if jammed["on"] else width, max_velocity, max_force)
+
+    if gripper_server is not None and hasattr(gripper_server, "_check_motion_state"):
+        check_motion = gripper_server._check_motion_state
+
+        def unanswered():
+            if not jammed["on"]:
+                check_motion()
+
+        gripper_server._check_motion_state = unanswered
 
     def toggle(on: bool):
         jammed["on"] = on
