@@ -11,7 +11,9 @@ injects one fault at a time, each checked for what "survived" means for it:
   15 cm from the arm / stamped 2 s ago / tilted 60 deg from tool-down. Survived: counted as
   rejected in franka_node's /diagnostics, the node alive, the arm still (< ``--still-mm``).
 * ``out_of_box``: 4 s of chunks heading down through the table and out past the safety box.
-  Survived: the TCP never left the box (lab.yaml ``safety_box``) by more than ``--box-tol-mm``.
+  Survived: the TCP never left the box (lab.yaml ``safety_box``) by more than ``--box-tol-mm``
+  (default: the box's floor margin, 10 mm, which is there to absorb the arm's overshoot: the
+  hand never touched the table).
 * ``camera_stall``: a policy_node (``--policy``: ``shipped``, the twin's trained checkpoint,
   the default; or ``standin``, an untrained tiny one that starts in seconds) on synthetic 5 Hz
   voxel grids (a table and a block); the grids stop for 3.5 s, as voxel_node's do when a
@@ -23,8 +25,9 @@ injects one fault at a time, each checked for what "survived" means for it:
 * ``gripper_stuck``: franky-sim's hand is jammed (``SimServer.jam_gripper``: the fingers stay
   and the gripper command never finishes) while a new width is sent and the arm moves 3 cm.
   Survived: the fingers did not move (the fault took), the arm reached its target (< 5 mm) and
-  its state kept coming (no gap > 1 s: a control loop waiting on the gripper would stall until
-  the jam clears), and after the jam clears a new width is reached.
+  its state kept coming (no gap longer than half the 6 s jam: a control loop waiting on the
+  gripper would stall until the jam clears; a loaded 2-core machine starves it for ~1.4 s at
+  times), and after the jam clears a new width is reached.
 * ``franka_node_killed``: SIGKILL while the arm runs a chunk; the sender keeps publishing
   chunks that start where the arm is. franka_node is started again (same ``run_dir``): it
   must find the unclean exit, skip its home move and hold; chunks are refused until
@@ -69,8 +72,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help=f"comma-separated subset of {', '.join(FAULTS)} (default: all)")
     parser.add_argument("--still-mm", type=float, default=3.0,
                         help="the arm 'held still' when it moved less than this (default 3 mm)")
-    parser.add_argument("--box-tol-mm", type=float, default=5.0,
-                        help="out_of_box survives within this distance outside the safety box (default 5 mm)")
+    parser.add_argument("--box-tol-mm", type=float, default=None,
+                        help="out_of_box survives within this distance outside the safety box "
+                             "(default: its floor margin, lab.yaml safety_box.floor_margin_m)")
     parser.add_argument("--policy", choices=["shipped", "standin"], default="shipped",
                         help="policy_node's checkpoint for the policy faults (default: the shipped one if present)")
     parser.add_argument("--domain-id", type=int, default=None, help="ROS_DOMAIN_ID (default: a random private one)")
@@ -336,6 +340,9 @@ def fault_recorder_sigkill(c: Campaign) -> dict:
     return {"survived": readable and c.alive() and moved > 0.02, **detail}
 
 
+JAM_S = 6.0  # how long the gripper stays jammed
+
+
 def fault_gripper_stuck(c: Campaign) -> dict:
     from equidiff_ros.commands.bench_control import approach
 
@@ -358,7 +365,7 @@ def fault_gripper_stuck(c: Campaign) -> dict:
     approach(c.client, target, speed=0.03, settle=0.5)  # the arm goes on meanwhile
     reached = float(np.linalg.norm(c.here() - target))
     # past FrankyConfig.gripper_command_timeout_s (5 s): franka_node warns that the command has not finished
-    time.sleep(max(0.0, t0 + 6.0 - time.time()))
+    time.sleep(max(0.0, t0 + JAM_S - time.time()))
     t1 = time.time()
     s = np.sort([t for t in list(stamps) if t0 <= t <= t1])
     gap = float(np.max(np.diff(np.concatenate([[t0], s, [t1]]))))
@@ -372,7 +379,8 @@ def fault_gripper_stuck(c: Campaign) -> dict:
         followed = False
     send_width(0.08, 0.2)
     faulted = c.client.diag_value("franka_node", "faulted") == "True"
-    return {"survived": change < 0.004 and reached < 0.005 and gap < 1.0 and followed and c.alive() and not faulted,
+    return {"survived": change < 0.004 and reached < 0.005 and gap < JAM_S / 2 and followed and c.alive()
+            and not faulted,
             "jammed_width_change_mm": round(change * 1000, 1), "arm_error_mm": round(reached * 1000, 2),
             "largest_state_gap_s": round(gap, 3), "fingers_followed_after": followed,
             "pending_command_warned": "has not finished" in franka_log(c)}
@@ -476,7 +484,7 @@ def episodes_lost(paths: list[Path]) -> int:
     return lost
 
 
-def run_campaign(faults: list[str], tmp: Path, still_mm: float = 3.0, box_tol_mm: float = 5.0,
+def run_campaign(faults: list[str], tmp: Path, still_mm: float = 3.0, box_tol_mm: float | None = None,
                  log: Callable[[str], None] = lambda _m: None, policy: str = "shipped") -> dict:
     """Run ``faults`` (in FAULTS' order) and return the result dict (the JSON line's content)."""
     from equidiff_core.config import default_config_dir, load_lab_config
@@ -490,6 +498,8 @@ def run_campaign(faults: list[str], tmp: Path, still_mm: float = 3.0, box_tol_mm
     faults = [f for f in FAULTS if f in faults]
     lab_path = default_config_dir() / "lab.yaml"
     lab = load_lab_config(lab_path)
+    if box_tol_mm is None:
+        box_tol_mm = lab.safety_box.floor_margin_m * 1000
     wall0 = time.monotonic()
     result: dict = {"machine": cpu_description(), "ros_domain_id": int(os.environ["ROS_DOMAIN_ID"])}
     per_fault: dict = {}
