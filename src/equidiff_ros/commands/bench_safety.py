@@ -28,6 +28,8 @@ injects one fault at a time, each checked for what "survived" means for it:
   its state kept coming (no gap longer than half the 6 s jam: a control loop waiting on the
   gripper would stall until the jam clears; a loaded 2-core machine starves it for ~1.4 s at
   times), and after the jam clears a new width is reached.
+* between faults the arm goes back home through franka_node's ``/franka/home`` (refused, and
+  the campaign's next fault then fails, if a stop still awaited acknowledgement).
 * ``franka_node_killed``: SIGKILL while the arm runs a chunk; the sender keeps publishing
   chunks that start where the arm is. franka_node is started again (same ``run_dir``): it
   must find the unclean exit, skip its home move and hold; chunks are refused until
@@ -96,6 +98,7 @@ class Campaign:
     auto_resumes: int = 0
     excursion_m: float = 0.0
     t_start: float = field(default_factory=time.time)
+    home_position: np.ndarray = field(default_factory=lambda: np.array([0.45, 0.0, 0.30]))  # control.yaml's
 
     # --- observations --------------------------------------------------------------------
     def diag(self, key: str) -> int:
@@ -143,9 +146,15 @@ class Campaign:
                          np.full(steps, width))
 
     def home(self) -> None:
-        from equidiff_ros.commands.bench_control import approach
+        """Back to the home pose (and its orientation: the policy may have yawed the hand) through
+        franka_node's own /franka/home, then wait until the arm is there."""
+        from equidiff_core.topics import SERVICE_FRANKA_HOME
+        from equidiff_ros.commands.lab_client import LabClient
 
-        approach(self.client, np.asarray(HOME), settle=0.3)
+        with LabClient() as lab:
+            lab.call("std_srvs/srv/Trigger", SERVICE_FRANKA_HOME)
+        self.client.wait_for(lambda: np.linalg.norm(self.here() - self.home_position) < 0.002, 60.0, "the arm home", self.franka)
+        time.sleep(0.3)
 
     def follow_me(self, seconds: float, direction=(0.0, 1.0, 0.0), speed: float = 0.03) -> float:
         """What a policy sends: chunks that start where the arm is and move slowly on; returns the send start."""
@@ -162,9 +171,6 @@ class Campaign:
             self.client.publish_chunk(PoseChunk(now, times, poses, np.full(8, 0.08)))
             time.sleep(0.2)
         return t0
-
-
-HOME = (0.45, 0.0, 0.30)
 
 
 # --- the faults ------------------------------------------------------------------------------
@@ -278,21 +284,28 @@ class PolicyFeed:
             self.stop.wait(1.0 / lab.observation_hz)
 
     def chunks_between(self, t0: float, t1: float) -> int:
+        """Chunks received in [t0, t1] (wall clock, s)."""
         return sum(t0 <= r <= t1 for r, _ in list(self.client.data.chunks))
+
+    def chunks_observed_after(self, t0: float) -> int:
+        """Chunks answering an observation (their stamp) later than ``t0``."""
+        return sum(stamp > t0 for _, stamp in list(self.client.data.chunks))
 
 
 def fault_camera_stall(c: Campaign, feed: PolicyFeed) -> dict:
     time.sleep(3.0)  # the policy acting for a while first
     accepted = c.diag("accepted_chunks") - feed.accepted_before
-    t_stall = time.time()
     feed.stalled.set()
+    t_stall = time.time() + 0.05  # a grid being published as the stall began is stamped before this
     time.sleep(3.5)
     t_end = time.time()
-    during = feed.chunks_between(t_stall + 0.8, t_end)  # an inference already running may still answer
+    # an inference already running may still answer a grid from before the stall: only chunks for
+    # grids stamped during the stall count (there are none to answer)
+    during = feed.chunks_observed_after(t_stall)
     held = c.moved_m(t_end - 1.0, t_end)  # the last chunk's plan has run out by then: the watchdog holds
     feed.stalled.clear()
     try:
-        c.client.wait_for(lambda: feed.chunks_between(t_end, time.time()) > 0, 20.0, "policy chunks again", feed.proc)
+        c.client.wait_for(lambda: feed.chunks_observed_after(t_end) > 0, 30.0, "policy chunks again", feed.proc)
         again = True
     except (TimeoutError, RuntimeError):
         again = False
@@ -488,6 +501,7 @@ def run_campaign(faults: list[str], tmp: Path, still_mm: float = 3.0, box_tol_mm
                  log: Callable[[str], None] = lambda _m: None, policy: str = "shipped") -> dict:
     """Run ``faults`` (in FAULTS' order) and return the result dict (the JSON line's content)."""
     from equidiff_core.config import default_config_dir, load_lab_config
+    from equidiff_core.control import load_control_config
     from equidiff_core.machine import cpu_description
     from equidiff_core.robots.franky.sim import SimServer
     from equidiff_core.twin.processes import start_node, stop_process
@@ -510,6 +524,7 @@ def run_campaign(faults: list[str], tmp: Path, still_mm: float = 3.0, box_tol_mm
         c = Campaign(None, sim, lab.safety_box, tmp,
                      {"robot_ip": sim.host, "realtime": False, "lab_config": str(lab_path), "run_dir": str(run_dir)},
                      still_mm / 1000, box_tol_mm / 1000)
+        c.home_position = np.asarray(load_control_config(default_config_dir() / "control.yaml").home_position)
         try:
             start_franka(c)
             c.recorder = start_node("recorder_node", {"output_dir": str(tmp / "episodes"), "task": "safety",
@@ -541,6 +556,8 @@ def run_campaign(faults: list[str], tmp: Path, still_mm: float = 3.0, box_tol_mm
                 if not c.alive():
                     log("franka_node died: restarting it for the remaining faults")
                     start_franka(c)
+                elif name in POLICY_FAULTS:
+                    c.home()  # the policy moved (and yawed) the arm
                 log(f"  {json.dumps(per_fault[name])}")
             if c.recorder is not None and c.episodes:
                 stop_episode(c)
