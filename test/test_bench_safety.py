@@ -22,7 +22,7 @@ def test_fault_campaign_survives_every_fault_without_resuming_on_its_own(ros_dom
     assert r["faults_survived"] == r["faults_tried"], r["faults"]
     assert r["auto_resumes"] == 0, r
     assert r["episodes_lost"] == 0 and r["episodes_recorded"] == 2, r
-    assert r["max_excursion_mm"] <= r["box_tol_mm"], r
+    assert r["max_excursion_mm"] <= r["box_tol_mm"], r  # the floor margin: the hand never touched the table
     assert r["franka_node_exit_code"] == 0, r
     # the restarted franka_node found the killed one's unclean exit and held until acknowledged
     assert "uncleanly" in r["faults"]["franka_node_killed"]["awaiting_ack"]
