@@ -11,7 +11,13 @@ from hypothesis import strategies as st
 
 from equidiff_core import geometry
 from equidiff_core.chunk import ChunkError, PoseChunk, chunk_from_msg, chunk_to_msg
-from equidiff_core.config import ConfigError, Workspace, default_config_dir, from_dict
+from equidiff_core.config import (
+    ConfigError,
+    SafetyBox,
+    Workspace,
+    default_config_dir,
+    from_dict,
+)
 from equidiff_core.control import (
     ChunkScheduler,
     ControlConfig,
@@ -29,6 +35,7 @@ from equidiff_core.robots.dryrun import DryRunConfig, DryRunRobot
 from equidiff_core.rosmsg import rosbags_factory
 
 WS = Workspace()
+BOX = SafetyBox()
 CENTER = np.asarray(WS.center)
 MS = 1_000_000
 HOME = geometry.pose_from_pos_quat((0.45, 0.0, 0.30), (1.0, 0.0, 0.0, 0.0))
@@ -69,7 +76,7 @@ def make_controller(config=ControlConfig(), start=None, clock=None, robot=None):
     clock = clock or FakeClock()
     robot = robot or DryRunRobot(DryRunConfig(initial_position=tuple(start)))
     robot.connect()
-    ctl = Controller(robot, WS, config, clock=clock)
+    ctl = Controller(robot, BOX, config, clock=clock)
     ctl.start(home=False, thread=False)
     return ctl, robot, clock
 
@@ -91,17 +98,22 @@ def test_control_config_errors_name_the_key():
 
 # --- safety ------------------------------------------------------------------------------
 
-def test_filter_clips_targets_to_the_shrunk_workspace_box():
-    safety = SafetyFilter(WS, SafetyConfig(workspace_margin_m=0.02, max_linear_speed_m_s=100.0))
-    target = pose_at(WS.upper + 0.3)
-    out = safety.filter(pose_at(CENTER), target, dt=1.0)
+def test_filter_clips_targets_to_the_safety_box_and_its_floor_margin():
+    box = SafetyBox(lower=(0.3, -0.1, 0.0), upper=(0.6, 0.1, 0.3), floor_margin_m=0.02)
+    safety = SafetyFilter(box, SafetyConfig(max_linear_speed_m_s=100.0))
+    out = safety.filter(pose_at(CENTER), pose_at(np.array(box.upper) + 0.3), dt=1.0)
     assert out.clipped
-    np.testing.assert_allclose(out.pose[:3, 3], WS.upper - 0.02)
+    np.testing.assert_allclose(out.pose[:3, 3], box.upper)
+    out = safety.filter(pose_at(CENTER), pose_at((0.45, 0.0, -0.1)), dt=1.0)  # into the table
+    assert out.clipped
+    np.testing.assert_allclose(out.pose[:3, 3], (0.45, 0.0, 0.02))  # held the floor margin above it
+    with pytest.raises(ConfigError, match="safety box is empty"):
+        from_dict(SafetyBox, {"lower": [0.3, -0.1, 0.0], "upper": [0.6, 0.1, 0.01], "floor_margin_m": 0.02})
 
 
 def test_filter_limits_linear_and_angular_speed():
     limits = SafetyConfig(max_linear_speed_m_s=0.25, max_angular_speed_rad_s=0.6)
-    safety = SafetyFilter(WS, limits)
+    safety = SafetyFilter(BOX, limits)
     start = pose_at(CENTER)
     far = pose_at(CENTER + [0.1, 0.0, 0.0], base=geometry.rotz_pose(1.0) @ HOME)
     out = safety.filter(start, far, dt=0.005)
@@ -123,7 +135,7 @@ def test_filter_limits_linear_and_angular_speed():
 @settings(max_examples=60, deadline=None)
 @given(st.lists(st.tuples(*[st.floats(-2.0, 2.0)] * 3), min_size=1, max_size=30))
 def test_filtered_commands_never_leave_the_box(targets):
-    safety = SafetyFilter(WS, SafetyConfig(workspace_margin_m=0.01))
+    safety = SafetyFilter(BOX, SafetyConfig())
     pose = pose_at(CENTER)
     for t in targets:
         pose = safety.filter(pose, pose_at(np.asarray(t)), dt=0.05).pose
@@ -332,7 +344,7 @@ def test_arm_running_away_from_its_command_is_stopped_and_held_where_it_is():
 def test_chunk_outside_the_workspace_never_moves_the_command_outside():
     ctl, robot, clock = make_controller(start=(0.45, 0.0, 0.30))
     period = int(1e9 / ctl.config.control_hz)
-    upper = WS.upper - ctl.config.safety.workspace_margin_m
+    upper = BOX.max_corner
     zs = []
     for tick in range(int(2.0 * ctl.config.control_hz)):
         if tick % 40 == 0:  # a sender that keeps asking for 2 cm per step upwards, through the lid
@@ -445,8 +457,8 @@ def test_errors_are_recovered_a_bounded_number_of_times():
 def test_streaming_does_not_start_with_the_tcp_outside_the_box():
     robot = DryRunRobot(DryRunConfig(initial_position=(0.55, 0.0, 0.52)))  # franky-sim's start pose
     robot.connect()
-    ctl = Controller(robot, WS, ControlConfig(), clock=FakeClock())
-    with pytest.raises(RobotError, match="outside the workspace box"):
+    ctl = Controller(robot, BOX, ControlConfig(), clock=FakeClock())
+    with pytest.raises(RobotError, match="outside the safety box"):
         ctl.start(home=False, thread=False)
     assert [k for k, _, _ in robot.sent] == []  # nothing was sent
     ctl.start(home=True, thread=False)  # the home pose is inside: fine
@@ -456,7 +468,7 @@ def test_streaming_does_not_start_with_the_tcp_outside_the_box():
 def test_dryrun_logs_what_would_be_sent(caplog):
     robot = make_robot("dryrun")
     robot.connect()
-    ctl = Controller(robot, WS, ControlConfig(), clock=FakeClock())
+    ctl = Controller(robot, BOX, ControlConfig(), clock=FakeClock())
     with caplog.at_level("INFO", logger="equidiff.robot.dryrun"):
         ctl.start(home=True, thread=False)
         ctl.tick()
@@ -464,6 +476,156 @@ def test_dryrun_logs_what_would_be_sent(caplog):
     assert [k for k, _, _ in robot.sent][:2] == ["move_to", "target"]
     with pytest.raises(ValueError, match="unknown robot backend"):
         make_robot("ur5")
+
+
+# --- explicit limits (issue 16 item 1): cone, joint limits, gripper range, robot limits -----------
+
+def tilted(position, tilt, yaw=0.0, axis=(0.0, 1.0, 0.0)):
+    """A TCP pose at ``position``, yawed by ``yaw`` and then tilted ``tilt`` rad about base ``axis``."""
+    from scipy.spatial.transform import Rotation
+
+    R = Rotation.from_rotvec(np.asarray(axis) * tilt).as_matrix() @ geometry.rotz(yaw) @ HOME[:3, :3]
+    return geometry.make_pose(R, np.asarray(position, dtype=float))
+
+
+def test_tilt_is_measured_from_straight_down_whatever_the_yaw():
+    for yaw in (0.0, 1.0, -2.5):
+        assert geometry.tilt_angle(tilted(CENTER, 0.0, yaw)[:3, :3]) == pytest.approx(0.0, abs=1e-12)
+        assert geometry.tilt_angle(tilted(CENTER, 0.3, yaw)[:3, :3]) == pytest.approx(0.3)
+        R = tilted(CENTER, 1.2, yaw, axis=(0.6, 0.8, 0.0))[:3, :3]
+        limited = geometry.limit_tilt(R, 0.5)
+        assert geometry.tilt_angle(limited) == pytest.approx(0.5)
+        geometry.validate_rotation(limited)
+        # swung back about the tilt's own axis: the shortest way, 0.7 rad
+        assert geometry.rotation_angle(R, limited) == pytest.approx(0.7)
+    inside = tilted(CENTER, 0.4)[:3, :3]
+    assert geometry.limit_tilt(inside, 0.5) is inside
+
+
+def test_chunk_with_a_step_outside_the_cone_is_rejected_and_the_arm_holds():
+    ctl, _robot, clock = make_controller(start=(0.45, 0.0, 0.25))
+    limit = ctl.config.safety.max_tilt_rad
+    here = ctl.state.ee_pose
+    times = clock.t + np.arange(4) * 200 * MS
+    ok = np.stack([tilted((0.45, 0.0, 0.25), a * (limit - 0.05), 0.3 * a) for a in np.linspace(0, 1, 4)])
+    assert ctl.submit(PoseChunk(clock.t, times, ok, np.full(4, 0.08)))  # up to the cone's edge, yawing: fine
+    over = ok.copy()
+    over[3] = tilted((0.45, 0.0, 0.25), limit + 0.05)
+    ctl2, _robot2, clock2 = make_controller(start=(0.45, 0.0, 0.25))
+    assert not ctl2.submit(PoseChunk(clock2.t, times, over, np.full(4, 0.08)))
+    assert ctl2.stats.cone_rejected == 1 and ctl2.stats.rejected_chunks == 1 and ctl2.holding
+    assert "tilts the tool" in ctl2.stats.last_rejection
+    for _ in range(40):
+        clock2.t += int(1e9 / ctl2.config.control_hz)
+        np.testing.assert_allclose(ctl2.tick().target.pose, here, atol=1e-12)  # nothing of it ran
+    with pytest.raises(SafetyRejection) as err:
+        check_chunk(PoseChunk(0, np.array([1]), over[3:], np.zeros(1)), None, ctl.config.safety)
+    assert err.value.kind == "cone"
+
+
+def test_every_command_stays_inside_the_cone():
+    """Interpolating between two steps inside the cone that also yaw can swing the tool axis out by
+    a little; the per-tick filter swings it back."""
+    safety = SafetyFilter(BOX, SafetyConfig(max_tilt_rad=0.5, max_angular_speed_rad_s=100.0))
+    start = tilted(CENTER, 0.5, 0.0, axis=(1.0, 0.0, 0.0))
+    target = tilted(CENTER, 0.9, 3.0, axis=(0.0, 1.0, 0.0))
+    out = safety.filter(start, target, dt=0.005)
+    assert out.clipped and geometry.tilt_angle(out.pose[:3, :3]) <= 0.5 + 1e-9
+
+
+def test_gripper_widths_are_clipped_to_the_hands_range():
+    """The shipped policy predicted widths from -0.059 to 0.154 m on the sample bag: the hand gets
+    its own range (min/max_gripper_width_m), never more, never less."""
+    ctl, robot, clock = make_controller()
+    limits = ctl.config.safety
+    pose = pose_at(circle(0.0))
+    for width in (-0.059, 0.154, 0.04):
+        ctl.submit(PoseChunk(clock.t, clock.t + np.arange(2) * 200 * MS, np.stack([pose] * 2), np.full(2, width)))
+        for _ in range(10):
+            clock.t += int(1e9 / ctl.config.control_hz)
+            ctl.tick()
+    sent = [float(v) for kind, _, v in robot.sent if kind == "gripper"]
+    assert sent == pytest.approx([limits.min_gripper_width_m, limits.max_gripper_width_m, 0.04])
+    narrow = SafetyFilter(BOX, SafetyConfig(min_gripper_width_m=0.01, max_gripper_width_m=0.05))
+    assert [narrow.clip_width(w) for w in (-0.059, 0.03, 0.154)] == pytest.approx([0.01, 0.03, 0.05])
+
+
+def test_joint_moving_into_its_position_limit_stops_the_motion_until_acknowledged():
+    """Joint position limits (SafetyConfig.joint_position_*): a joint within the margin of its limit
+    that still moves towards it stops the motion like a divergence; moving away is allowed."""
+
+    class JointRobot(DryRunRobot):
+        q, dq = np.array(DryRunConfig().joint_positions), np.zeros(7)
+
+        def read_state(self):
+            return dataclasses.replace(super().read_state(), joint_positions=self.q.copy(),
+                                       joint_velocities=self.dq.copy())
+
+    robot = JointRobot(DryRunConfig(initial_position=tuple(circle(0.0))))
+    ctl, _, clock = make_controller(robot=robot)
+    limits = ctl.config.safety
+    period = int(1e9 / ctl.config.control_hz)
+    robot.q[6] = limits.joint_position_max_rad[6] - 0.02  # within the margin ...
+    robot.dq[6] = -0.5  # ... moving away: fine
+    for _ in range(5):
+        clock.t += period
+        assert ctl.tick() is not None
+    robot.q[3], robot.dq[3] = limits.joint_position_min_rad[3] + 0.2, -1.0  # far from its limit: fine
+    clock.t += period
+    assert ctl.tick() is not None and ctl.stats.divergence_stops == 0
+    robot.dq[6] = 0.3  # towards the limit
+    clock.t += period
+    assert ctl.tick() is None
+    assert ctl.stats.divergence_stops == 1 and "joint 7" in ctl.stats.last_divergence
+    assert "moving towards its limit" in ctl.stats.awaiting_ack and ctl.holding
+    assert not ctl.submit(circle_chunk(clock.t, clock.t))
+    assert "joint 7" in ctl.acknowledge()
+
+
+def test_limits_are_explicit_config_keys_with_checked_values():
+    cfg = load_control_config(default_config_dir() / "control.yaml")
+    assert len(cfg.franky.collision_torque_thresholds_nm) == 7 and len(cfg.franky.collision_force_thresholds_n) == 6
+    assert cfg.safety.joint_position_min_rad[3] < cfg.safety.joint_position_max_rad[3] < 0  # the FR3's elbow
+    with pytest.raises(ConfigError, match="collision_torque_thresholds_nm must be 7 positive"):
+        from_dict(ControlConfig, {"franky": {"collision_torque_thresholds_nm": [20.0] * 6}})
+    with pytest.raises(ConfigError, match="min < max"):
+        from_dict(ControlConfig, {"safety": {"joint_position_min_rad": [0.0] * 7, "joint_position_max_rad": [0.0] * 7}})
+    with pytest.raises(ConfigError, match="max_tilt_rad must be positive"):
+        from_dict(ControlConfig, {"safety": {"max_tilt_rad": 0.0}})
+    with pytest.raises(ConfigError, match="floor_margin_m must be >= 0"):
+        from_dict(SafetyBox, {"floor_margin_m": -0.01})
+
+
+def test_streaming_does_not_start_with_the_tool_outside_the_cone():
+    R = tilted((0.45, 0.0, 0.25), 1.0)
+    p, q = geometry.pos_quat_from_pose(R)
+    robot = DryRunRobot(DryRunConfig(initial_position=tuple(p), initial_quaternion_xyzw=tuple(q)))
+    robot.connect()
+    ctl = Controller(robot, BOX, ControlConfig(), clock=FakeClock())
+    with pytest.raises(RobotError, match="outside the 45 deg cone"):
+        ctl.start(home=False, thread=False)
+    assert list(robot.sent) == []  # nothing was sent
+
+
+def test_go_home_glides_slowly_to_the_home_pose_and_is_refused_awaiting_acknowledgement():
+    ctl, robot, clock = make_controller(start=(0.55, 0.1, 0.2))
+    period = int(1e9 / ctl.config.control_hz)
+    duration = ctl.go_home()
+    distance = np.linalg.norm(np.subtract(ctl.config.home_position, (0.55, 0.1, 0.2)))
+    assert duration == pytest.approx(distance / ctl.config.home_speed_m_s, rel=0.01)
+    assert not ctl.submit(circle_chunk(clock.t, clock.t)) and "homing" in ctl.stats.last_rejection
+    positions = []
+    for _ in range(int((duration + 0.5) * ctl.config.control_hz)):
+        clock.t += period
+        positions.append(ctl.tick().target.pose[:3, 3])
+    steps = np.linalg.norm(np.diff(positions, axis=0), axis=1)
+    assert steps.max() <= ctl.config.home_speed_m_s * 1.3 / ctl.config.control_hz  # slowly, at home speed
+    np.testing.assert_allclose(positions[-1], ctl.config.home_position, atol=1e-6)
+    assert [k for k, _, _ in robot.sent if k == "gripper"] == []  # the gripper left alone
+    assert ctl.submit(PoseChunk(clock.t, np.array([clock.t + 200 * MS]), ctl.home_pose[None], np.ones(1) * 0.08))
+    ctl.require_acknowledgement("a test stop")
+    with pytest.raises(ChunkError, match="awaiting an operator's acknowledgement"):
+        ctl.go_home()
 
 
 # --- metrics ---------------------------------------------------------------------------------

@@ -167,8 +167,8 @@ def test_controller_recovers_when_the_franky_motion_stops():
     with SimServer() as sim:
         robot = make_robot("franky", ip=sim.host, config=CONTROL.franky, realtime=False, gripper=False)
         with robot:
-            ctl = Controller(robot, load_lab_config(LAB_PATH).workspace, CONTROL)
-            with pytest.raises(RobotError, match="outside the workspace box"):
+            ctl = Controller(robot, load_lab_config(LAB_PATH).safety_box, CONTROL)
+            with pytest.raises(RobotError, match="outside the safety box"):
                 ctl.start(home=False)  # franky-sim's initial pose is above the box: no surprise motion
             ctl.start(home=True)
             try:
@@ -237,7 +237,7 @@ def test_arm_keeps_its_posture_while_the_tcp_wanders_and_yaws():
     with SimServer() as sim:
         robot = make_robot("franky", ip=sim.host, config=CONTROL.franky, realtime=False, gripper=False)
         with robot:
-            ctl = Controller(robot, lab.workspace, CONTROL)
+            ctl = Controller(robot, lab.safety_box, CONTROL)
             ctl.start(home=True)
             try:
                 q_home, home = ctl.state.joint_positions.copy(), ctl.state.ee_pose[:3, 3].copy()
@@ -285,5 +285,62 @@ def test_arm_keeps_its_posture_while_the_tcp_wanders_and_yaws():
                 assert ctl.stats.rejected_chunks == 0, ctl.stats
                 assert np.linalg.norm(ctl.state.ee_pose[:3, 3] - home) < 0.005, ctl.stats
                 assert np.abs(ctl.state.joint_positions - q_home).max() < 0.2, ctl.state.joint_positions - q_home
+            finally:
+                ctl.stop()
+
+
+def test_limits_are_set_explicitly_on_connect_and_a_joint_driven_into_its_limit_stops():
+    """Issue 16 item 1 on franky-sim: the collision thresholds and the blocking moves' joint
+    velocity limit are set from control.yaml on connect (franky-sim acknowledges the thresholds
+    but simulates no reflex, so only their delivery shows here), and yawing the hand until joint 7
+    reaches a (tightened) position limit stops the motion and holds until acknowledged."""
+    import dataclasses
+
+    from equidiff_core.control import Controller
+    from equidiff_core.robots import make_robot
+    from equidiff_core.twin.expert import tcp_pose, tcp_yaw
+
+    lab = load_lab_config(LAB_PATH)
+    with SimServer() as sim:
+        robot = make_robot("franky", ip=sim.host, config=CONTROL.franky, realtime=False, gripper=False,
+                           safety=CONTROL.safety)
+        with robot:
+            applied = robot.applied_limits
+            assert applied["collision_torque_thresholds_nm"] == list(CONTROL.franky.collision_torque_thresholds_nm)
+            assert applied["collision_force_thresholds_n"] == list(CONTROL.franky.collision_force_thresholds_n)
+            franky_limit = robot._robot.joint_velocity_limit
+            np.testing.assert_allclose(franky_limit.get(), np.minimum(CONTROL.safety.max_joint_speeds_rad_s,
+                                                                      franky_limit.max))
+            ctl = Controller(robot, lab.safety_box, CONTROL)
+            ctl.start(home=True)
+            ctl.stop()
+            q7 = float(ctl.state.joint_positions[6])
+            # joint 7 may turn 0.3 rad either way from home: the tracker pushes back from 0.2 rad on,
+            # the controller stops at 0.25 rad if it still turns towards the limit
+            lo, hi = list(CONTROL.safety.joint_position_min_rad), list(CONTROL.safety.joint_position_max_rad)
+            lo[6], hi[6] = q7 - 0.3, q7 + 0.3
+            tight = dataclasses.replace(CONTROL, safety=dataclasses.replace(
+                CONTROL.safety, joint_position_min_rad=tuple(lo), joint_position_max_rad=tuple(hi)))
+            robot.safety = tight.safety
+            ctl = Controller(robot, lab.safety_box, tight)
+            ctl.start(home=False)
+            try:
+                home = ctl.state.ee_pose.copy()
+                yaw0, yaw = tcp_yaw(home), 0.0
+                deadline = time.monotonic() + 60.0
+                while not ctl.stats.awaiting_ack and yaw < 1.2 and time.monotonic() < deadline:
+                    yaw += 0.01  # ~0.2 rad/s: one-point targets 50 ms ahead at 20 Hz, as teleop sends
+                    now = time.time_ns()
+                    ctl.submit(PoseChunk(now, np.array([now + 50_000_000]),
+                                         tcp_pose(home[:3, 3], yaw0 + yaw)[None], np.array([0.08])))
+                    time.sleep(0.05)
+                assert "joint 7" in ctl.stats.awaiting_ack, ctl.stats
+                assert abs(ctl.state.joint_positions[6] - q7) < 0.3 + 0.05  # stopped near its limit
+                stopped_at = ctl.state.ee_pose.copy()
+                now = time.time_ns()
+                assert not ctl.submit(PoseChunk(now, np.array([now + 50_000_000]), home[None], np.array([0.08])))
+                time.sleep(0.5)
+                assert np.linalg.norm(ctl.state.ee_pose[:3, 3] - stopped_at[:3, 3]) < 0.003  # held
+                assert "joint 7" in ctl.acknowledge()
             finally:
                 ctl.stop()

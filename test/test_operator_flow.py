@@ -175,6 +175,8 @@ def test_policy_publishes_nothing_until_enabled_and_a_takeover_pauses_it(ros_dom
         assert state[-1] == "paused teleop takeover"
         ack = lab_cli("ack")  # franka_node's acknowledgement service answers (nothing was stopped here)
         assert ack.returncode == 0 and "nothing to acknowledge" in ack.stdout, ack.stderr
+        home = lab_cli("home")  # the dry-run arm glides home between episodes
+        assert home.returncode == 0 and "homing to" in home.stdout, home.stderr
     finally:
         stop.set()
         if client is not None:

@@ -153,6 +153,35 @@ class Workspace:
 
 
 @dataclass(frozen=True)
+class SafetyBox:
+    """Where franka_node lets the TCP go, in the robot base frame: separate from the voxel box
+    (``Workspace``), which is where the cameras look. Every command is clipped into it.
+
+    ``lower[2]`` is the floor the hand must not touch (the table top); the TCP stays
+    ``floor_margin_m`` above it."""
+
+    lower: tuple[float, float, float] = (0.26, -0.19, 0.0)  # m; z: the table top
+    upper: tuple[float, float, float] = (0.64, 0.19, 0.37)
+    floor_margin_m: float = 0.01
+
+    def __post_init__(self):
+        if self.floor_margin_m < 0:
+            raise ValueError(f"floor_margin_m must be >= 0, got {self.floor_margin_m}")
+        if not np.all(self.min_corner < np.asarray(self.upper)):
+            raise ValueError(f"safety box is empty: lower {list(self.lower)} (+ floor margin "
+                             f"{self.floor_margin_m}) must be below upper {list(self.upper)} on every axis")
+
+    @property
+    def min_corner(self) -> np.ndarray:
+        """The lowest corner the TCP may reach: ``lower`` raised by the floor margin."""
+        return np.asarray(self.lower, dtype=np.float64) + [0.0, 0.0, self.floor_margin_m]
+
+    @property
+    def max_corner(self) -> np.ndarray:
+        return np.asarray(self.upper, dtype=np.float64)
+
+
+@dataclass(frozen=True)
 class Extrinsics:
     """T_base_optical: pose of the camera's optical frame (x right, y down, z forward) in the base frame."""
 
@@ -207,6 +236,7 @@ class RobotConfig:
 class LabConfig:
     cameras: tuple[CameraConfig, ...]
     workspace: Workspace = field(default_factory=Workspace)
+    safety_box: SafetyBox = field(default_factory=SafetyBox)  # where franka_node lets the TCP go
     robot: RobotConfig = field(default_factory=RobotConfig)
     base_frame: str = "fr3_link0"
     observation_hz: float = 5.0

@@ -165,6 +165,33 @@ def rotation_angle(Ra: np.ndarray, Rb: np.ndarray) -> float:
     return float(np.arctan2(sin, (np.trace(R) - 1.0) / 2.0))
 
 
+TOOL_DOWN = np.array([0.0, 0.0, -1.0])  # the tool axis (TCP z) of a gripper pointing straight down
+
+
+def tilt_angle(R: np.ndarray) -> float:
+    """Angle (rad) between the tool axis of rotation ``R`` (its z column) and straight down.
+
+    Not ``rotation_angle`` to a down pose: that counts yaw too, which the policy uses freely;
+    the tilt is the swing part alone. atan2 as there (exact near 0)."""
+    z = np.asarray(R, dtype=np.float64)[:3, 2]
+    return float(np.arctan2(np.linalg.norm(np.cross(z, TOOL_DOWN)), float(z @ TOOL_DOWN)))
+
+
+def limit_tilt(R: np.ndarray, max_tilt: float) -> np.ndarray:
+    """``R`` swung back (about the axis of its tilt, yaw kept) so its tool axis is at most
+    ``max_tilt`` from straight down; ``R`` itself when it already is."""
+    from scipy.spatial.transform import Rotation
+
+    R = np.asarray(R, dtype=np.float64)
+    tilt = tilt_angle(R)
+    if tilt <= max_tilt:
+        return R
+    axis = np.cross(R[:3, 2], TOOL_DOWN)
+    n = float(np.linalg.norm(axis))
+    axis = axis / n if n > 1e-9 else np.array([1.0, 0.0, 0.0])  # pointing straight up: any horizontal axis
+    return Rotation.from_rotvec(axis * (tilt - max_tilt)).as_matrix() @ R
+
+
 def pose_to_action(T: Array, width: Array) -> Array:
     """Poses (..., 4, 4) and gripper widths (...) -> absolute actions (..., 10)."""
     T = validate_pose(T)

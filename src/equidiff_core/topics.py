@@ -38,6 +38,7 @@ SERVICE_RECORDER_STOP_FAILURE = "/recorder/stop_failure"  # Trigger: keep it, ma
 SERVICE_RECORDER_DISCARD = "/recorder/discard"  # Trigger
 SERVICE_POLICY_ENABLE = "/policy/enable"  # SetBool: true runs the policy, false pauses it
 SERVICE_FRANKA_ACKNOWLEDGE = "/franka/acknowledge"  # Trigger: go on after a robot error / divergence stop
+SERVICE_FRANKA_HOME = "/franka/home"  # Trigger: glide slowly to the configured home pose (refused awaiting ack)
 
 CLOUD_TYPE = "sensor_msgs/msg/PointCloud2"
 POSE_TYPE = "geometry_msgs/msg/PoseStamped"

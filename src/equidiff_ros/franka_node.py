@@ -8,22 +8,33 @@ Wiring:
   timer at ``state_hz`` (>= 100 Hz) -> /franka/ee_pose, /franka/joint_states, /franka/executed_target,
       /tf (base -> fr3_hand_tcp, where tf2_msgs is installed: RViz, easy_handeye2)
   timer at 1 Hz -> /diagnostics (``franka_node``: rejected chunks, recoveries, watchdog holds, ...)
-  service /franka/acknowledge (Trigger) -> ``Controller.acknowledge``: after a robot error or a
-      divergence stop the arm holds and chunks are refused until an operator calls it
+  service /franka/acknowledge (Trigger) -> ``Controller.acknowledge``: after a robot error, a
+      divergence stop (joint speed, joint limit, tracking error) or an unclean exit of a previous
+      franka_node the arm holds and chunks are refused until an operator calls it
+  service /franka/home (Trigger) -> ``Controller.go_home``: glide slowly to the configured home pose
+      (chunks refused until it arrives); refused while a stop awaits acknowledgement
+
+An unclean exit (killed, crashed) leaves its marker file ``<run_dir>/franka_node_<robot_ip>.pid``
+behind; the next franka_node for the same robot then skips the home move and starts holding,
+awaiting acknowledgement: the policy may still be publishing, and the arm must not resume on
+its own. (Not for the dry run, which moves nothing.)
 
 Policy and teleop publish the same chunk topic, so both go through the same checks.
 
 Parameters: ``lab_config`` (lab.yaml: workspace box, robot IP, state rate), ``control_config``
 (control.yaml: limits, scheduling, gains), ``backend`` (franky | dryrun), ``robot_ip`` (overrides
 lab.yaml), ``realtime`` (false for franky-sim or a machine without an RT kernel),
-``home_on_start`` (overrides control.yaml), ``gripper`` (false: arm only).
+``home_on_start`` (overrides control.yaml), ``gripper`` (false: arm only), ``run_dir`` (where
+the unclean-exit marker lives; default $XDG_RUNTIME_DIR, else the temp dir).
 """
 
 from __future__ import annotations
 
 import dataclasses
 import logging
+import os
 import sys
+import tempfile
 import time
 from pathlib import Path
 from typing import ClassVar
@@ -38,7 +49,7 @@ from equidiff_core.control import Controller, load_control_config
 from equidiff_core.control import messages as cm
 from equidiff_core.robots import BACKENDS, make_robot
 from equidiff_core.rosmsg import RclpyFactory
-from equidiff_core.topics import SERVICE_FRANKA_ACKNOWLEDGE
+from equidiff_core.topics import SERVICE_FRANKA_ACKNOWLEDGE, SERVICE_FRANKA_HOME
 from equidiff_ros.common import (
     RELIABLE_QOS,
     TOPIC_COMMAND_CHUNK,
@@ -72,6 +83,7 @@ class FrankaNode(Node):
         robot_ip = self.declare_parameter("robot_ip", "").value or self.lab.robot.ip
         realtime = self.declare_parameter("realtime", True).value
         gripper = self.declare_parameter("gripper", True).value
+        run_dir = self.declare_parameter("run_dir", "").value or os.environ.get("XDG_RUNTIME_DIR") or tempfile.gettempdir()
         self.config = load_control_config(Path(control_path))
         home = self.declare_parameter("home_on_start", self.config.home_on_start).value
         state_hz = declare_number(self, "state_hz", self.lab.robot.state_hz)
@@ -83,12 +95,18 @@ class FrankaNode(Node):
 
         log = _ros_logger_adapter(self.get_logger())
         kwargs = {} if backend == "dryrun" else {"ip": robot_ip, "config": self.config.franky,
-                                                     "realtime": realtime, "gripper": gripper}
+                                                     "realtime": realtime, "gripper": gripper,
+                                                     "safety": self.config.safety}
+        # a dry run moves nothing: no marker (and parallel dry runs on one machine never hold each other)
+        self.marker = None if backend == "dryrun" else Path(run_dir) / f"franka_node_{self.hardware_id}.pid"
+        unclean = "" if self.marker is None else previous_exit_was_unclean(self.marker)
+        if unclean:
+            home = False  # no motion of its own: hold where the arm is until acknowledged
         self.robot = make_robot(backend, logger=log, **kwargs)
         self.get_logger().info(f"connecting to the robot ({backend}, {self.hardware_id})")
         self.robot.connect()
         # ticks, stamps, staleness and the watchdog on the node's clock: simulated time in the twin
-        self.controller = Controller(self.robot, self.lab.workspace,
+        self.controller = Controller(self.robot, self.lab.safety_box,
                                      dataclasses.replace(self.config, home_on_start=home),
                                      clock=node_clock(self), logger=log)
 
@@ -111,14 +129,19 @@ class FrankaNode(Node):
         except Exception:
             self.robot.disconnect()
             raise
+        if unclean:
+            self.controller.require_acknowledgement(unclean)
+        if self.marker is not None:
+            self.marker.write_text(str(os.getpid()))
         self.create_subscription(MultiDOFJointTrajectory, TOPIC_COMMAND_CHUNK, self.on_chunk, RELIABLE_QOS)
         # after a robot error or a divergence stop the arm holds until an operator says go on
         self.create_service(Trigger, SERVICE_FRANKA_ACKNOWLEDGE, self.on_acknowledge)
+        self.create_service(Trigger, SERVICE_FRANKA_HOME, self.on_home)
         self.create_timer(1.0 / state_hz, self.publish_state)
         self.create_timer(1.0, self.publish_diagnostics)
         self._last_target_stamp = None
         self.get_logger().info(f"streaming at {self.config.control_hz:.0f} Hz, state at {state_hz:.0f} Hz; "
-                               f"workspace box {self.controller.safety.lower.round(3).tolist()} .. "
+                               f"safety box {self.controller.safety.lower.round(3).tolist()} .. "
                                f"{self.controller.safety.upper.round(3).tolist()}")
 
     def on_chunk(self, msg) -> None:
@@ -136,6 +159,15 @@ class FrankaNode(Node):
         else:
             response.success = True
             response.message = f"acknowledged: {reason}" if reason else "nothing to acknowledge"
+        return response
+
+    def on_home(self, _request, response):
+        try:
+            seconds = self.controller.go_home()
+            response.success = True
+            response.message = f"homing to {list(self.config.home_position)} in {seconds:.1f} s"
+        except ChunkError as err:
+            response.success, response.message = False, f"refused: {err}"
         return response
 
     def publish_state(self) -> None:
@@ -171,6 +203,27 @@ class FrankaNode(Node):
     def shutdown(self) -> None:
         self.controller.stop()
         self.robot.disconnect()
+        if self.marker is not None:
+            self.marker.unlink(missing_ok=True)  # a clean exit: the next franka_node may move home
+
+
+def previous_exit_was_unclean(marker: Path) -> str:
+    """Why the arm must wait for an operator ('' if it need not): the marker of a franka_node that
+    did not shut down cleanly, whose process is gone. A live one is left alone (its own start-up
+    fails on the robot connection, which a robot gives to one client at a time)."""
+    try:
+        pid = int(marker.read_text().strip() or 0)
+    except (OSError, ValueError):
+        return ""
+    if pid > 0 and pid != os.getpid():
+        try:
+            os.kill(pid, 0)
+            return ""
+        except ProcessLookupError:
+            pass
+        except PermissionError:
+            return ""
+    return f"the previous franka_node (pid {pid}) for this robot exited uncleanly (killed or crashed)"
 
 def _ros_logger_adapter(ros_logger):
     """A logging.Logger whose records go to the node's ROS logger (core modules log with `logging`)."""

@@ -1,7 +1,7 @@
 """Typed configuration of the franka node: safety limits, chunk scheduling, franky gains, rates.
 
 Loaded from ``config/control.yaml`` with ``config.from_dict`` (unknown keys are errors with
-their dotted path). The workspace box itself comes from ``lab.yaml``; here only the margin.
+their dotted path). The safety box the TCP is kept in comes from ``lab.yaml`` (``safety_box``).
 """
 
 from __future__ import annotations
@@ -14,11 +14,13 @@ from ..config import ConfigError, from_dict, load_yaml
 
 @dataclass(frozen=True)
 class SafetyConfig:
-    workspace_margin_m: float = 0.01  # targets are clipped to the workspace box shrunk by this
     max_linear_speed_m_s: float = 0.25  # diffusion_policy's real-robot limits
     max_angular_speed_rad_s: float = 0.6
     max_first_step_jump_m: float = 0.08  # a chunk whose first live step is farther is rejected
     max_first_step_rotation_rad: float = 0.6
+    # Orientation cone: the tool axis may tilt at most this far from pointing straight down (yaw
+    # is free). A chunk with any step outside is rejected; every command is also kept inside.
+    max_tilt_rad: float = 0.785
     watchdog_timeout_s: float = 0.5  # hold the measured pose this long after the last chunk's final step
     # The arm diverging from its command (the FR3's own reflexes stop this; franky-sim has none):
     # stop the motion, restart it where the arm is and hold.
@@ -26,20 +28,33 @@ class SafetyConfig:
     # a joint this fast, per joint: 95 % of the FR3's limits (2.62 rad/s for joints 1-4, 5.26 / 4.18 /
     # 5.26 for the wrist; franky-sim's fr3.urdf). One 2.5 for all had stopped fast but legal wrist turns.
     max_joint_speeds_rad_s: tuple[float, ...] = (2.5, 2.5, 2.5, 2.5, 5.0, 4.0, 5.0)
+    # The FR3's joint position limits (datasheet; franky-sim's fr3.xml): franky's tracker pushes
+    # back near them, and a joint closer than joint_limit_margin_rad that still moves towards its
+    # limit stops the motion like a divergence (hold until acknowledged).
+    joint_position_min_rad: tuple[float, ...] = (-2.7437, -1.7837, -2.9007, -3.0421, -2.8065, 0.5445, -3.0159)
+    joint_position_max_rad: tuple[float, ...] = (2.7437, 1.7837, 2.9007, -0.1518, 2.8065, 4.5169, 3.0159)
+    joint_limit_margin_rad: float = 0.05
     orthonormal_tol: float = 1e-3
+    # The hand's range: every width is clipped into it (the shipped policy predicted -0.059..0.154 m).
     min_gripper_width_m: float = 0.0
     max_gripper_width_m: float = 0.08
 
     def __post_init__(self):
         for name in ("max_linear_speed_m_s", "max_angular_speed_rad_s", "max_first_step_jump_m",
                      "max_first_step_rotation_rad", "watchdog_timeout_s", "orthonormal_tol",
-                     "max_tracking_error_m"):
+                     "max_tracking_error_m", "max_tilt_rad"):
             if getattr(self, name) <= 0:
                 raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
         if len(self.max_joint_speeds_rad_s) != 7 or min(self.max_joint_speeds_rad_s) <= 0:
             raise ValueError(f"max_joint_speeds_rad_s must be 7 positive speeds, got {self.max_joint_speeds_rad_s}")
-        if self.workspace_margin_m < 0:
-            raise ValueError(f"workspace_margin_m must be >= 0, got {self.workspace_margin_m}")
+        if self.max_tilt_rad >= 3.14159:
+            raise ValueError(f"max_tilt_rad must be below pi, got {self.max_tilt_rad}")
+        lo, hi = self.joint_position_min_rad, self.joint_position_max_rad
+        if len(lo) != 7 or len(hi) != 7 or any(a >= b for a, b in zip(lo, hi)):
+            raise ValueError(f"joint_position_min_rad / joint_position_max_rad must be 7 limits each, "
+                             f"min < max, got {lo} / {hi}")
+        if self.joint_limit_margin_rad < 0:
+            raise ValueError(f"joint_limit_margin_rad must be >= 0, got {self.joint_limit_margin_rad}")
         if not 0 <= self.min_gripper_width_m <= self.max_gripper_width_m:
             raise ValueError("need 0 <= min_gripper_width_m <= max_gripper_width_m")
 
@@ -84,10 +99,25 @@ class FrankyConfig:
     gripper_epsilon_outer_m: float = 0.03  # wide, so a grasp commanded below the object holds
     gripper_command_timeout_s: float = 5.0  # warn when one gripper command runs longer (0.08 m takes 1.6 s)
     max_recoveries: int = 3  # consecutive automatic error recoveries before giving up
+    # The FR3's collision reflex (Robot.set_collision_behavior, set once on connect): a joint torque
+    # (Nm) or TCP force (N, x y z; Nm about x y z) beyond these stops the arm. libfranka's example
+    # defaults (examples_common.cpp setDefaultBehavior); franky-sim acknowledges and ignores them.
+    collision_torque_thresholds_nm: tuple[float, ...] = (20.0, 20.0, 18.0, 18.0, 16.0, 14.0, 12.0)
+    collision_force_thresholds_n: tuple[float, ...] = (20.0, 20.0, 20.0, 25.0, 25.0, 25.0)
+    # franky's tracker pushes joints back from their limits (SafetyConfig.joint_position_*) within this
+    joint_limit_activation_rad: float = 0.1
 
     def __post_init__(self):
         if len(self.friction_coulomb) != 7 or len(self.friction_viscous) != 7:
             raise ValueError("friction_coulomb and friction_viscous need 7 values (one per joint)")
+        if len(self.collision_torque_thresholds_nm) != 7 or min(self.collision_torque_thresholds_nm) <= 0:
+            raise ValueError(f"collision_torque_thresholds_nm must be 7 positive torques, "
+                             f"got {self.collision_torque_thresholds_nm}")
+        if len(self.collision_force_thresholds_n) != 6 or min(self.collision_force_thresholds_n) <= 0:
+            raise ValueError(f"collision_force_thresholds_n must be 6 positive values, "
+                             f"got {self.collision_force_thresholds_n}")
+        if self.joint_limit_activation_rad <= 0:
+            raise ValueError(f"joint_limit_activation_rad must be positive, got {self.joint_limit_activation_rad}")
 
 
 @dataclass(frozen=True)
@@ -98,11 +128,16 @@ class ControlConfig:
     # Home pose (TCP, base frame): inside the workspace, gripper pointing down.
     home_position: tuple[float, float, float] = (0.45, 0.0, 0.30)
     home_quaternion_xyzw: tuple[float, float, float, float] = (1.0, 0.0, 0.0, 0.0)
+    # /franka/home (`equidiff lab home`): glide there this slowly, through the usual safety filter
+    home_speed_m_s: float = 0.05
+    home_angular_speed_rad_s: float = 0.3
     safety: SafetyConfig = field(default_factory=SafetyConfig)
     scheduler: SchedulerConfig = field(default_factory=SchedulerConfig)
     franky: FrankyConfig = field(default_factory=FrankyConfig)
 
     def __post_init__(self):
+        if self.home_speed_m_s <= 0 or self.home_angular_speed_rad_s <= 0:
+            raise ValueError("home_speed_m_s and home_angular_speed_rad_s must be positive")
         if not 10 <= self.control_hz <= 1000:
             raise ValueError(f"control_hz must be within 10..1000, got {self.control_hz}")
 

@@ -9,9 +9,12 @@ the robot. Errors reported by the robot trigger ``recover`` with a logged reason
 ``max_recoveries`` times in a row; after that the controller stays faulted and holds nothing
 (the robot's own brakes/reflexes take over) until restarted.
 
-It never resumes on its own: after a recovered robot error or a divergence stop the arm holds
-where it is and every chunk is refused ("awaiting acknowledgement") until an operator calls
-``acknowledge`` (franka_node's ``/franka/acknowledge`` service, ``equidiff lab ack``).
+It never resumes on its own: after a recovered robot error, a divergence stop (tracking error,
+joint speed, a joint moving into its position limit) or ``require_acknowledgement`` (franka_node
+after an unclean exit of its predecessor) the arm holds where it is and every chunk is refused
+("awaiting acknowledgement") until an operator calls ``acknowledge`` (franka_node's
+``/franka/acknowledge`` service, ``equidiff lab ack``). ``go_home`` glides to the home pose
+through the same filter (``/franka/home``).
 """
 
 from __future__ import annotations
@@ -27,7 +30,7 @@ import numpy as np
 from .. import geometry
 from ..chunk import ChunkError, PoseChunk
 from ..clock import Clock, WallClock
-from ..config import Workspace
+from ..config import SafetyBox
 from ..robots.base import Robot, RobotError, RobotState
 from .config import ControlConfig
 from .safety import FilteredTarget, SafetyFilter, SafetyRejection, check_chunk
@@ -44,6 +47,7 @@ class ControllerStats:
     rejected_chunks: int = 0
     nan_rejected: int = 0  # NaN / inf / non-orthonormal (subset of rejected_chunks)
     jump_rejected: int = 0
+    cone_rejected: int = 0  # a step tilted past the orientation cone
     stale_rejected: int = 0
     watchdog_holds: int = 0
     recoveries: int = 0
@@ -71,7 +75,7 @@ class Command:
 
 
 class Controller:
-    def __init__(self, robot: Robot, workspace: Workspace, config: ControlConfig = ControlConfig(),
+    def __init__(self, robot: Robot, box: SafetyBox, config: ControlConfig = ControlConfig(),
                  clock: Clock | None = None, logger: logging.Logger | None = None,
                  on_command: Callable[[Command], None] | None = None):
         self.robot = robot
@@ -79,7 +83,7 @@ class Controller:
         self.clock = clock or WallClock()
         self.log = logger or log
         self.on_command = on_command
-        self.safety = SafetyFilter(workspace, config.safety)
+        self.safety = SafetyFilter(box, config.safety)
         self.scheduler = ChunkScheduler(config.scheduler)
         self.stats = ControllerStats()
         self._lock = threading.Lock()
@@ -98,6 +102,8 @@ class Controller:
         self._gripper_sent = float("nan")
         self._failures_in_row = 0  # failures since the last acknowledgement
         self._divergence_grace_until_ns = 0
+        self._homing_until_ns = 0  # go_home's trajectory runs until then: chunks are refused
+        self._homing = False  # the trajectory is go_home's (until the next chunk): the gripper is left alone
         self._thread: threading.Thread | None = None
         self._stop = threading.Event()
 
@@ -111,16 +117,24 @@ class Controller:
         if home if home is not None else self.config.home_on_start:
             home_pose = self.home_pose
             if not self.safety.inside(home_pose[:3, 3]):
-                raise ValueError(f"home position {self.config.home_position} is outside the workspace box")
+                raise ValueError(f"home position {self.config.home_position} is outside the safety box")
+            if geometry.tilt_angle(home_pose[:3, :3]) > self.config.safety.max_tilt_rad:
+                raise ValueError(f"home orientation {self.config.home_quaternion_xyzw} is outside the orientation cone")
             self.log.info(f"moving to the home pose {self.config.home_position}")
             self.robot.move_to(home_pose)
-        position = self.robot.read_state().ee_pose[:3, 3]
+        pose = self.robot.read_state().ee_pose
+        position = pose[:3, 3]
         if not self.safety.inside(position, tol=1e-3):
             # Every command is clipped into the box, so streaming from outside would pull the
             # arm in at full speed: refuse instead of moving unexpectedly.
-            raise RobotError(f"the TCP is at {np.round(position, 3).tolist()}, outside the workspace box "
+            raise RobotError(f"the TCP is at {np.round(position, 3).tolist()}, outside the safety box "
                              f"{np.round(self.safety.lower, 3).tolist()} .. {np.round(self.safety.upper, 3).tolist()}; "
                              f"move it inside (or enable home_on_start) before streaming")
+        tilt = geometry.tilt_angle(pose[:3, :3])
+        if tilt > self.config.safety.max_tilt_rad + 1e-3:  # the same: every command is swung into the cone
+            raise RobotError(f"the tool is tilted {np.degrees(tilt):.0f} deg from straight down, outside the "
+                             f"{np.degrees(self.config.safety.max_tilt_rad):.0f} deg cone; point it down "
+                             f"(or enable home_on_start) before streaming")
         self.robot.start_streaming()
         self._reset_to_measured()
         if thread:
@@ -172,6 +186,8 @@ class Controller:
                     self.stats.ack_rejected += 1
                     raise ChunkError(f"awaiting an operator's acknowledgement after: {self.stats.awaiting_ack} "
                                      f"(franka_node's /franka/acknowledge, `equidiff lab ack`)")
+                if now < self._homing_until_ns:
+                    raise ChunkError(f"homing: chunks are refused for {(self._homing_until_ns - now) / 1e9:.1f} s more")
                 live = self.scheduler.live_steps(chunk, now)
                 state = self._state
                 check_chunk(live, None if state is None else state.ee_pose, self.config.safety)
@@ -180,6 +196,7 @@ class Controller:
                 self._valid_until_ns = max(now, self.scheduler.end_ns() or now)
                 self._holding = False
                 self._hold_pose = None
+                self._homing = False
             self.stats.accepted_chunks += 1
             return True
         except ChunkError as err:
@@ -191,7 +208,10 @@ class Controller:
         text = str(err)
         self.stats.rejected_chunks += 1
         if isinstance(err, SafetyRejection):
-            self.stats.jump_rejected += 1
+            if err.kind == "cone":
+                self.stats.cone_rejected += 1
+            else:
+                self.stats.jump_rejected += 1
         elif "stale" in text:
             self.stats.stale_rejected += 1
         elif any(word in text for word in ("NaN", "inf", "orthonormal", "unit length", "determinant")):
@@ -257,7 +277,7 @@ class Controller:
         self.stats.ticks += 1
         self.stats.clipped_ticks += int(filtered.clipped)
         self.stats.speed_limited_ticks += int(filtered.speed_limited)
-        if sp is not None and np.isfinite(sp.width):
+        if sp is not None and np.isfinite(sp.width) and not self._homing:
             width = self.safety.clip_width(sp.width)
             if not abs(width - self._gripper_sent) <= self.config.gripper_deadband_m:  # NaN-safe
                 self.robot.move_gripper(width)
@@ -293,11 +313,24 @@ class Controller:
         error = float(np.linalg.norm(self._state.ee_pose[:3, 3] - self._setpoint.pose[:3, 3]))
         if error > limits.max_tracking_error_m:
             return f"TCP {error * 1000:.0f} mm from the command (limit {limits.max_tracking_error_m * 1000:.0f} mm)"
-        speeds = np.abs(np.asarray(self._state.joint_velocities, dtype=float))
+        velocities = np.asarray(self._state.joint_velocities, dtype=float)
+        speeds = np.abs(velocities)
         over = speeds - np.asarray(limits.max_joint_speeds_rad_s)[:len(speeds)]
         if over.size and over.max() > 0:
             j = int(np.argmax(over))
             return f"joint {j + 1} at {speeds[j]:.1f} rad/s (limit {limits.max_joint_speeds_rad_s[j]:.1f} rad/s)"
+        return self._joint_limit_reached(np.asarray(self._state.joint_positions, dtype=float), velocities)
+
+    def _joint_limit_reached(self, q: np.ndarray, dq: np.ndarray) -> str:
+        """A joint within ``joint_limit_margin_rad`` of a position limit and still moving towards it
+        ('' otherwise). Moving away is allowed, so the arm can be brought back after the stop."""
+        limits, moving = self.config.safety, 0.05  # rad/s: slower is holding still (sensor noise, drift)
+        lo = np.asarray(limits.joint_position_min_rad)[:len(q)] + limits.joint_limit_margin_rad
+        hi = np.asarray(limits.joint_position_max_rad)[:len(q)] - limits.joint_limit_margin_rad
+        for j in range(len(q)):
+            if (q[j] < lo[j] and dq[j] < -moving) or (q[j] > hi[j] and dq[j] > moving):
+                return (f"joint {j + 1} at {q[j]:.2f} rad moving towards its limit "
+                        f"[{limits.joint_position_min_rad[j]:.2f}, {limits.joint_position_max_rad[j]:.2f}] rad")
         return ""
 
     def _stop_diverged(self, now: int, reason: str) -> None:
@@ -345,6 +378,50 @@ class Controller:
                          f"an operator acknowledges")
         self._reset_to_measured()
         self.stats.awaiting_ack = f"robot error: {reason}"
+
+    def go_home(self) -> float:
+        """Glide to the configured home pose at ``home_speed_m_s`` / ``home_angular_speed_rad_s``
+        through the ordinary safety filter (box, cone, speed limits, watchdog), the gripper left as
+        it is; chunks are refused until it arrives. Returns the glide's duration (s). Raises
+        ChunkError while a stop awaits acknowledgement or the controller is faulted: an operator
+        looks at the arm first."""
+        from scipy.spatial.transform import Rotation, Slerp
+
+        if self.stats.faulted:
+            raise ChunkError("faulted: restart franka_node once the cause is fixed")
+        now = self.clock.now_ns()
+        with self._lock:
+            if self.stats.awaiting_ack:
+                raise ChunkError(f"awaiting an operator's acknowledgement after: {self.stats.awaiting_ack}")
+            start = (self._state or self._read_state()).ee_pose
+            goal, cfg = self.home_pose, self.config
+            distance = float(np.linalg.norm(goal[:3, 3] - start[:3, 3]))
+            angle = geometry.rotation_angle(start[:3, :3], goal[:3, :3])
+            duration = max(distance / cfg.home_speed_m_s, angle / cfg.home_angular_speed_rad_s, 0.5)
+            s = np.linspace(0.0, 1.0, int(np.ceil(duration / 0.1)) + 1)
+            rotations = Slerp([0.0, 1.0], Rotation.from_matrix([start[:3, :3], goal[:3, :3]]))(s).as_matrix()
+            poses = np.stack([geometry.make_pose(R, (1 - a) * start[:3, 3] + a * goal[:3, 3])
+                              for a, R in zip(s, rotations)])
+            times = now + (s * duration * 1e9).astype(np.int64)
+            chunk = PoseChunk(now, times, poses, np.zeros(len(s)))  # widths unused: no gripper command while homing
+            self.scheduler.schedule(chunk, now, self._current_setpoint())
+            self._valid_until_ns = int(times[-1])
+            self._homing_until_ns = int(times[-1])
+            self._homing = True
+            self._holding = False
+            self._hold_pose = None
+        self.log.info(f"homing: {distance * 1000:.0f} mm and {np.degrees(angle):.0f} deg to {cfg.home_position} "
+                      f"in {duration:.1f} s")
+        return duration
+
+    def require_acknowledgement(self, reason: str) -> None:
+        """Hold and refuse every chunk until an operator acknowledges ``reason`` (franka_node calls
+        it when it starts after an unclean exit: the policy may still be publishing)."""
+        with self._lock:
+            self.stats.awaiting_ack = reason
+            self.scheduler.clear()
+            self._holding = True
+        self.log.warning(f"holding until an operator acknowledges: {reason}")
 
     def acknowledge(self) -> str:
         """An operator's go-ahead after a stop: chunks are accepted again (the arm keeps holding

@@ -2,12 +2,16 @@
 
 Two layers, both pure functions of poses and limits:
 
-* ``check_chunk`` at arrival: NaN/inf, non-orthonormal rotations, widths, and the jump between
-  the robot's current pose and the chunk's first live step. A failing chunk raises
-  ``SafetyRejection`` (a ``ChunkError``) and nothing of it is executed.
-* ``SafetyFilter.filter`` at every control tick: clip the position to the workspace box (shrunk
-  by a margin), then limit the linear and angular speed relative to the previous command. The
-  previous command is inside the box and the box is convex, so every command stays inside.
+* ``check_chunk`` at arrival: NaN/inf, non-orthonormal rotations, the orientation cone (every
+  step's tool axis within ``max_tilt_rad`` of straight down), and the jump between the robot's
+  current pose and the chunk's first live step. A failing chunk raises ``SafetyRejection`` (a
+  ``ChunkError``) and nothing of it is executed: the arm keeps its trajectory or holds.
+* ``SafetyFilter.filter`` at every control tick: clip the position to the safety box (lab.yaml
+  ``safety_box``, its floor raised by the floor margin), swing the orientation back into the
+  cone (only interpolation between two accepted steps can leave it, by a little), then limit
+  the linear and angular speed relative to the previous command. The previous command is
+  inside the box and the box is convex, so every command stays inside. Widths are clipped to
+  the hand's range.
 """
 
 from __future__ import annotations
@@ -19,12 +23,17 @@ from scipy.spatial.transform import Rotation
 
 from .. import geometry
 from ..chunk import ChunkError, PoseChunk
-from ..config import Workspace
+from ..config import SafetyBox
 from .config import SafetyConfig
 
 
 class SafetyRejection(ChunkError):
-    """A chunk that is well-formed but violates a safety limit (too far from the robot)."""
+    """A chunk that is well-formed but violates a safety limit: ``kind`` "jump" (too far from the
+    robot) or "cone" (tilted past the orientation cone)."""
+
+    def __init__(self, message: str, kind: str = "jump"):
+        super().__init__(message)
+        self.kind = kind
 
 
 def check_chunk(chunk: PoseChunk, current_pose: np.ndarray | None, limits: SafetyConfig) -> None:
@@ -39,6 +48,11 @@ def check_chunk(chunk: PoseChunk, current_pose: np.ndarray | None, limits: Safet
         geometry.validate_pose(chunk.poses, tol=limits.orthonormal_tol)
     except geometry.GeometryError as err:
         raise ChunkError(f"chunk pose invalid: {err}") from err
+    tilts = [geometry.tilt_angle(T[:3, :3]) for T in chunk.poses]
+    worst = int(np.argmax(tilts))
+    if tilts[worst] > limits.max_tilt_rad:
+        raise SafetyRejection(f"step {worst} tilts the tool {np.degrees(tilts[worst]):.0f} deg from straight down "
+                              f"(cone {np.degrees(limits.max_tilt_rad):.0f} deg)", kind="cone")
     if current_pose is None:
         return
     first = chunk.poses[0]
@@ -57,20 +71,18 @@ class FilteredTarget:
     pose: np.ndarray  # (4, 4) the command actually sent
     linear_velocity: np.ndarray  # (3,) feed-forward twist, base frame
     angular_velocity: np.ndarray  # (3,)
-    clipped: bool  # the position was outside the (shrunk) workspace box
+    clipped: bool  # the position was outside the safety box (or the orientation outside the cone)
     speed_limited: bool
 
 
 class SafetyFilter:
-    """Per-tick workspace clip + speed limit. Stateless apart from the limits."""
+    """Per-tick safety-box clip, cone limit and speed limit. Stateless apart from the limits."""
 
-    def __init__(self, workspace: Workspace, limits: SafetyConfig):
+    def __init__(self, box: SafetyBox, limits: SafetyConfig):
         self.limits = limits
-        margin = limits.workspace_margin_m
-        if 2 * margin >= workspace.edge:
-            raise ValueError(f"workspace margin {margin} m leaves no room in a {workspace.edge} m box")
-        self.lower = workspace.lower + margin
-        self.upper = workspace.upper - margin
+        self.box = box
+        self.lower = box.min_corner  # the floor margin included
+        self.upper = box.max_corner
 
     def inside(self, position: np.ndarray, tol: float = 1e-9) -> bool:
         return bool(np.all(position >= self.lower - tol) and np.all(position <= self.upper + tol))
@@ -88,7 +100,9 @@ class SafetyFilter:
         if dt <= 0:
             raise ValueError(f"dt must be positive, got {dt}")
         goal_p = self.clip_position(target[:3, 3])
-        clipped = not np.allclose(goal_p, target[:3, 3], atol=1e-9)
+        target_R = np.asarray(target[:3, :3], dtype=np.float64)
+        goal_R = geometry.limit_tilt(target_R, self.limits.max_tilt_rad)
+        clipped = not np.allclose(goal_p, target[:3, 3], atol=1e-9) or goal_R is not target_R
         prev_p = previous[:3, 3]
         step = goal_p - prev_p
         dist = float(np.linalg.norm(step))
@@ -97,14 +111,16 @@ class SafetyFilter:
         new_p = prev_p + step * (max_dist / dist) if lin_limited else goal_p
 
         R_prev = Rotation.from_matrix(previous[:3, :3])
-        delta = Rotation.from_matrix(target[:3, :3]) * R_prev.inv()  # world-frame rotation
+        delta = Rotation.from_matrix(goal_R) * R_prev.inv()  # world-frame rotation
         rotvec = delta.as_rotvec()
         angle = float(np.linalg.norm(rotvec))
         max_angle = self.limits.max_angular_speed_rad_s * dt
         ang_limited = angle > max_angle
         if ang_limited:
             rotvec = rotvec * (max_angle / angle)
-        new_R = (Rotation.from_rotvec(rotvec) * R_prev).as_matrix()
+        slerped = (Rotation.from_rotvec(rotvec) * R_prev).as_matrix()
+        new_R = geometry.limit_tilt(slerped, self.limits.max_tilt_rad)  # a big yaw can swing the axis out midway
+        clipped = clipped or new_R is not slerped
 
         v = np.zeros(3) if linear_velocity is None else np.asarray(linear_velocity, dtype=np.float64)
         w = np.zeros(3) if angular_velocity is None else np.asarray(angular_velocity, dtype=np.float64)

@@ -257,7 +257,7 @@ def _run(episode: _Episode, policy, lab: LabConfig, control, max_duration_s: flo
     cmd_ms = max(tick_ms, round(1000 / COMMAND_HZ))
     max_ms = round(max_duration_s * 1000)
     clock, arm = _SimClock(), _DirectArm(sim, open_width)
-    controller = Controller(arm, lab.workspace, control, clock=clock, logger=_QUIET)
+    controller = Controller(arm, lab.safety_box, control, clock=clock, logger=_QUIET)
     controller.start(home=False, thread=False)  # the arm is at the ready pose: hold it, as franka_node does
     pending: deque = deque()  # (ms at which it arrives, PoseChunk), in order
     answers = AnswerSchedule(execute_steps, n_exec, dt_ms * 1_000_000)  # policy_node's rule

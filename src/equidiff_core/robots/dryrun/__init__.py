@@ -26,6 +26,8 @@ class DryRunConfig:
     initial_position: tuple[float, float, float] = (0.45, 0.0, 0.30)
     initial_quaternion_xyzw: tuple[float, float, float, float] = (1.0, 0.0, 0.0, 0.0)
     initial_width: float = 0.08
+    # the FR3's ready pose, well inside its joint limits (zeros would sit outside joints 4 and 6's)
+    joint_positions: tuple[float, ...] = (0.0, -0.785, 0.0, -2.356, 0.0, 1.571, 0.785)
     log_period_s: float = 1.0
     keep_last: int = 10000
 
@@ -55,7 +57,8 @@ class DryRunRobot(Robot):
         return self._connected
 
     def read_state(self) -> RobotState:
-        return RobotState(time.time_ns(), self._pose.copy(), np.zeros(7), np.zeros(7), self._width)
+        return RobotState(time.time_ns(), self._pose.copy(), np.array(self.config.joint_positions), np.zeros(7),
+                          self._width)
 
     def move_to(self, pose: np.ndarray) -> None:
         self._record("move_to", pose)

@@ -13,6 +13,13 @@ That thread sends one command at a time, as libfranka's blocking gripper API ass
 sent while another runs made franky-sim drop the first one's reply, and franky then blocked the
 second call forever, so the gripper never moved again (the twin's homing failed "gripper 50 mm
 for 80 mm").
+
+Limits set explicitly on connect, never franky's or the robot's defaults: the collision reflex
+thresholds (``FrankyConfig.collision_*``, ``Robot.set_collision_behavior``), the joint velocity
+limit of blocking moves (``SafetyConfig.max_joint_speeds_rad_s``, capped at franky's maximum),
+and the tracker's joint position limits (``SafetyConfig.joint_position_*``: franky pushes the
+joints back within ``FrankyConfig.joint_limit_activation_rad`` of them). ``applied_limits``
+holds what was set. franky-sim acknowledges the collision thresholds but simulates no reflex.
 """
 
 from __future__ import annotations
@@ -32,11 +39,13 @@ log = logging.getLogger("equidiff.robot.franky")
 
 class FrankyRobot(Robot):
     def __init__(self, ip: str, config=None, realtime: bool = True, gripper: bool = True,
-                 logger: logging.Logger | None = None):
-        from ...control.config import FrankyConfig
+                 logger: logging.Logger | None = None, safety=None):
+        from ...control.config import FrankyConfig, SafetyConfig
 
         self.ip = ip
         self.config = config or FrankyConfig()
+        self.safety = safety or SafetyConfig()
+        self.applied_limits: dict = {}
         self.realtime = realtime  # False for franky-sim / a machine without an RT kernel
         self.use_gripper = gripper
         self.log = logger or log
@@ -62,6 +71,7 @@ class FrankyRobot(Robot):
             raise RobotError(f"cannot connect to the robot at {self.ip}: {err}") from err
         self._robot.relative_dynamics_factor = self.config.relative_dynamics_factor
         self._robot.recover_from_errors()
+        self._apply_limits()
         if self.use_gripper:
             try:
                 self._gripper = franky.Gripper(self.ip)
@@ -89,6 +99,23 @@ class FrankyRobot(Robot):
     @property
     def is_connected(self) -> bool:
         return self._robot is not None
+
+    def _apply_limits(self) -> None:
+        cfg, robot = self.config, self._robot
+        try:
+            robot.set_collision_behavior(list(cfg.collision_torque_thresholds_nm), list(cfg.collision_force_thresholds_n))
+            limit = robot.joint_velocity_limit
+            speeds = np.minimum(self.safety.max_joint_speeds_rad_s, limit.max)
+            limit.set(speeds)
+        except Exception as err:  # franky's CommandException / RuntimeError: never stream with unknown limits
+            raise RobotError(f"cannot set the robot's limits at {self.ip}: {err}") from err
+        self.applied_limits = {
+            "collision_torque_thresholds_nm": list(cfg.collision_torque_thresholds_nm),
+            "collision_force_thresholds_n": list(cfg.collision_force_thresholds_n),
+            "move_joint_velocity_limit_rad_s": [float(v) for v in limit.get()],
+            "joint_position_min_rad": list(self.safety.joint_position_min_rad),
+            "joint_position_max_rad": list(self.safety.joint_position_max_rad)}
+        self.log.info(f"limits set: {self.applied_limits}")
 
     def _require(self):
         if self._robot is None:
@@ -166,7 +193,10 @@ class FrankyRobot(Robot):
         try:
             self._tracker = franky.CartesianImpedanceTracker(
                 robot, translational_stiffness=cfg.translational_stiffness,
-                rotational_stiffness=cfg.rotational_stiffness, friction=friction, posture_task=posture)
+                rotational_stiffness=cfg.rotational_stiffness, friction=friction, posture_task=posture,
+                lower_joint_limits=np.asarray(self.safety.joint_position_min_rad, dtype=np.float64),
+                upper_joint_limits=np.asarray(self.safety.joint_position_max_rad, dtype=np.float64),
+                joint_limit_activation_distance=cfg.joint_limit_activation_rad)
         except Exception as err:
             self._tracker = None
             raise RobotError(f"cannot start the impedance tracker: {err}") from err

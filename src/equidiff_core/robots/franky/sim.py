@@ -1,7 +1,11 @@
 """A bare franky-sim server (MuJoCo FR3 speaking libfranka's protocol) for tests and benchmarks.
 
 ``python -m equidiff_core.robots.franky.sim --host 127.0.0.1`` serves one robot until killed;
-``SimServer`` starts that in a subprocess and always kills it. The digital twin's full scene
+``SimServer`` starts that in a subprocess and always kills it. For fault campaigns
+(``equidiff bench safety``) the server takes one injected fault: SIGUSR1 jams the gripper (its
+fingers ignore every new goal and stay where they are, and the command running never finishes:
+franky's gripper future stays pending), SIGUSR2 frees it (``SimServer.jam_gripper``): the
+fingers settle and the pending command is answered. The digital twin's full scene
 lives in ``equidiff_core.twin``; this is the smallest thing the franka node can talk to.
 
 We step the server ourselves instead of ``SimulationServer.run_async()``: the stock loop
@@ -35,8 +39,9 @@ def serve(host: str, realtime: bool = True) -> None:
     signal.signal(signal.SIGINT, _stop)
     raise_priority()
     with MujocoSimulator() as sim:
-        sim.add_robot()
+        robot = sim.add_robot()
         with franky_sim.SimulationServer(sim, hostname_candidates=[host]) as server:
+            jam_gripper_on_signal(robot, getattr(server.robot_servers[0], "_FrankaRobotServer__gripper_server", None))
             print(f"READY {host}", flush=True)
             deadline = start = time.perf_counter()
             steps, next_report = 0, start + 1.0
@@ -53,6 +58,36 @@ def serve(host: str, realtime: bool = True) -> None:
                     time.sleep(delay)
                 elif delay < -0.05:  # far behind (machine overloaded): don't try to catch up in a burst
                     deadline = time.perf_counter()
+
+
+def jam_gripper_on_signal(robot, gripper_server=None) -> None:
+    """SIGUSR1: the hand's fingers hold their width whatever goal arrives and the running command
+    is not answered; SIGUSR2: they follow again (franky-sim's gripper server, private layout:
+    without it only the goals are ignored)."""
+    jammed = {"on": False}
+    set_goal = robot.set_hand_goal
+
+    def guarded(width, max_velocity, max_force):
+        set_goal(robot.hand_width if jammed["on"] else width, max_velocity, max_force)
+
+    if gripper_server is not None and hasattr(gripper_server, "_check_motion_state"):
+        check_motion = gripper_server._check_motion_state
+
+        def unanswered():
+            if not jammed["on"]:
+                check_motion()
+
+        gripper_server._check_motion_state = unanswered
+
+    def toggle(on: bool):
+        jammed["on"] = on
+        if on:
+            set_goal(robot.hand_width, 0.05, 70.0)
+        print(f"GRIPPER {'jammed' if on else 'free'}", flush=True)
+
+    robot.set_hand_goal = guarded
+    signal.signal(signal.SIGUSR1, lambda *_: toggle(True))
+    signal.signal(signal.SIGUSR2, lambda *_: toggle(False))
 
 
 def step_server(server, command_timeout_s: float = 0.02) -> int:
@@ -179,6 +214,12 @@ class SimServer:
             if line.startswith("STATS"):
                 _, steps, wall = line.split()
                 self.stats.append((time.monotonic(), int(steps), float(wall)))
+
+    def jam_gripper(self, jammed: bool = True) -> None:
+        """Inject (or clear) a jammed gripper in the running server (see the module docstring)."""
+        if self.process is None or self.process.poll() is not None:
+            raise RuntimeError("franky-sim is not running")
+        self.process.send_signal(signal.SIGUSR1 if jammed else signal.SIGUSR2)
 
     def realtime_factor(self, since: float | None = None) -> float | None:
         """Simulated seconds per wall second (1.0 = real time) since monotonic time ``since``."""

@@ -1,0 +1,19 @@
+"""`equidiff lab home`: glide the arm slowly to the configured home pose (franka_node's /franka/home).
+
+Between episodes, with the policy paused (`equidiff lab policy pause`): chunks are refused
+until the arm arrives. Refused while a stop awaits acknowledgement (`equidiff lab ack` first,
+after looking at the arm). Speed and pose: control.yaml `home_*`.
+"""
+
+from __future__ import annotations
+
+
+def add_arguments(parser) -> None:
+    parser.epilog = __doc__.split("\n", 1)[1]
+
+
+def run(args) -> int:
+    from equidiff_core.topics import SERVICE_FRANKA_HOME
+    from equidiff_ros.commands.lab_client import call_service
+
+    return call_service("home", "std_srvs/srv/Trigger", SERVICE_FRANKA_HOME, prefix="franka_node ")
