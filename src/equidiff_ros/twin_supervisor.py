@@ -498,7 +498,9 @@ class TwinStack:
                                             **({"backend_options": "{lockstep: true}"} if sim else {})}, {})
         voxel = {"stale_after_s": 3.0, "slop_s": 0.15} if self.lenient and not sim else {}
         specs["voxel_node"] = ({**common, **clouds, **voxel}, {})
-        specs["franka_node"] = ({**common, "robot_ip": self.host, "realtime": False}, {})
+        # run_dir: its unclean-exit marker lives with this job's logs, not in the machine's tmp
+        specs["franka_node"] = ({**common, "robot_ip": self.host, "realtime": False,
+                                 "run_dir": str(self.out_dir / "logs")}, {})
         specs["recorder_node"] = ({**common, "output_dir": str(self.out_dir / "bags"), "task": self.task,
                                    "record_clouds": self.record_clouds}, {})
         if self.policy:
