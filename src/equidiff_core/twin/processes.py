@@ -46,6 +46,17 @@ def private_ros_env(domain_id: int | None = None, **extra: str) -> dict[str, str
     return env
 
 
+def join_private_domain(domain_id: int | None = None) -> int:
+    """Put this process on a private loopback ROS domain (``domain_id``; else the one already in
+    the environment, else a random one) before it starts rclpy: the benches that start nodes."""
+    if domain_id is not None:
+        os.environ["ROS_DOMAIN_ID"] = str(domain_id)
+    elif "ROS_DOMAIN_ID" not in os.environ:
+        os.environ["ROS_DOMAIN_ID"] = str(random_domain_id())
+    os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    return int(os.environ["ROS_DOMAIN_ID"])
+
+
 def job_gone() -> bool:
     """In a node started by a ProcessGroup: whether that job's process has died (we were re-parented).
 

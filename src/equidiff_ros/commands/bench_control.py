@@ -267,13 +267,9 @@ def run(args: argparse.Namespace) -> int:
     from equidiff_core.config import default_config_dir, load_lab_config
     from equidiff_core.control import load_control_config
     from equidiff_core.robots.franky.sim import SimServer
-    from equidiff_core.twin.processes import random_domain_id
+    from equidiff_core.twin.processes import join_private_domain
 
-    if args.domain_id is not None:
-        os.environ["ROS_DOMAIN_ID"] = str(args.domain_id)
-    elif "ROS_DOMAIN_ID" not in os.environ:
-        os.environ["ROS_DOMAIN_ID"] = str(random_domain_id())
-    os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    join_private_domain(args.domain_id)
 
     lab_path = default_config_dir() / "lab.yaml"
     lab = load_lab_config(lab_path)

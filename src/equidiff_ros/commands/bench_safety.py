@@ -595,13 +595,9 @@ def policy_checkpoint(which: str, tmp: Path, workspace) -> tuple[Path, str]:
 
 
 def run(args: argparse.Namespace) -> int:
-    from equidiff_core.twin.processes import random_domain_id
+    from equidiff_core.twin.processes import join_private_domain
 
-    if args.domain_id is not None:
-        os.environ["ROS_DOMAIN_ID"] = str(args.domain_id)
-    elif "ROS_DOMAIN_ID" not in os.environ:
-        os.environ["ROS_DOMAIN_ID"] = str(random_domain_id())
-    os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    join_private_domain(args.domain_id)
     faults = [f.strip() for f in args.faults.split(",") if f.strip()]
     with tempfile.TemporaryDirectory(prefix="bench_safety_") as tmp:
         out = args.keep or Path(tmp)
