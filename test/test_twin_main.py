@@ -60,9 +60,9 @@ def test_node_command_and_private_env():
     assert 101 <= int(env["ROS_DOMAIN_ID"]) <= 215 and env["ROS_AUTOMATIC_DISCOVERY_RANGE"] == "LOCALHOST"
 
 
-def test_node_command_quotes_strings_ros_would_read_as_another_type():
-    cmd = node_command("x", {"backend_options": "{lockstep: true}", "camera": "", "serial": "123", "name": "cam"})
-    assert cmd[-8:] == ["-p", "backend_options:='{lockstep: true}'", "-p", "camera:=''", "-p", "serial:='123'",
+def test_node_command_quotes_mappings_and_empty_strings_but_not_numbers():
+    cmd = node_command("x", {"backend_options": "{lockstep: true}", "camera": "", "rate_hz": "100.0", "name": "cam"})
+    assert cmd[-8:] == ["-p", "backend_options:='{lockstep: true}'", "-p", "camera:=''", "-p", "rate_hz:=100.0",
                         "-p", "name:=cam"]
 
 

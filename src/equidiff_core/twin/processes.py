@@ -82,13 +82,14 @@ def node_command(executable: str, params: dict | None = None, remaps: dict | Non
 
 
 def _param_text(value) -> str:
-    """A ``-p`` value ROS reads back as the same type: ROS parses it as YAML, so a string YAML
-    would read as something else ('{a: 1}', '5', '') is quoted."""
+    """A ``-p`` value as ROS should read it. ROS parses the text as YAML: a string that YAML reads
+    as a mapping or a list (``backend_options``: '{width: 424}') or nothing ('') is quoted; a
+    number written as a string ('100.0') stays a number, as callers mean it."""
     import yaml
 
     if isinstance(value, bool):
         return "true" if value else "false"
-    if isinstance(value, str) and not isinstance(yaml.safe_load(value) if value else None, str):
+    if isinstance(value, str) and (value == "" or isinstance(yaml.safe_load(value), (dict, list))):
         return "'" + value.replace("'", "''") + "'"
     return str(value)
 
