@@ -185,3 +185,78 @@ def test_policy_publishes_nothing_until_enabled_and_a_takeover_pauses_it(ros_dom
         codes = [stop_process(policy, timeout=30.0, sig=signal.SIGINT),
                  stop_process(franka, timeout=30.0, sig=signal.SIGTERM)]
     assert codes == [0, 0], (tmp_path / "policy.log").read_text()[-3000:]
+
+
+@pytest.mark.ros
+@pytest.mark.slow
+@pytest.mark.sim
+def test_the_operator_flow_drives_the_twin_the_same_way(ros_domain, tmp_path):
+    """Issue 16 item 3 in the twin, on simulated time: `equidiff lab` homes the arm, records an
+    episode, pauses and resumes the policy; a SpaceMouse takeover pauses it and is marked in the
+    bag; the episode is kept as a success. The same commands and nodes as in the lab."""
+    import json
+
+    from equidiff_core.bags import read_episode
+    from equidiff_core.control import load_control_config
+    from equidiff_core.twin.config import TwinConfig
+    from equidiff_core.twin.processes import node_command
+    from equidiff_core.twin.standin import make_standin_policy
+    from equidiff_ros.common import SENSOR_QOS
+    from equidiff_ros.twin_supervisor import TwinStack
+
+    cfg_dir = default_config_dir()
+    policy = make_standin_policy(tmp_path / "standin.pt", LAB.workspace, preset="tiny", cfg=TwinConfig())
+    home = np.array(load_control_config(cfg_dir / "control.yaml").home_position)
+    with TwinStack(tmp_path / "run", cfg_dir / "lab.yaml", cfg_dir / "twin.yaml", policy=str(policy), task="lab",
+                   domain_id=221 + (ros_domain + 7) % 12, log=lambda s: None) as stack:
+        sup = stack.sup
+        stack.group.start("teleop_node", node_command("teleop_node", {
+            "lab_config": str(cfg_dir / "lab.yaml"), "use_sim_time": True, "source": "joy", "resync_after_s": 0.5}))
+        f = sup.factory
+        joy_pub = sup.node.create_publisher(f.cls("sensor_msgs/msg/Joy"), "/spacenav/joy", SENSOR_QOS)
+        sup.wait_for(lambda: joy_pub.get_subscription_count() > 0, 60.0, "teleop_node", stack.check)
+
+        homed = lab_cli("home")
+        assert homed.returncode == 0 and "homing" in homed.stdout, homed.stdout + homed.stderr
+        sup.wait_for(lambda: np.linalg.norm(sup.current()[0][:3, 3] - home) < 0.01, 120.0, "the arm at home",
+                     stack.check)
+        started = lab_cli("record", "start")
+        assert started.returncode == 0, started.stderr
+        episode = Path(started.stdout.strip())
+        sup.open_gate()  # the twin passes the policy's chunks to the arm, as in an episode
+
+        def state() -> dict:
+            status = lab_cli("status", "--json")
+            assert status.returncode == 0, status.stderr
+            return json.loads(status.stdout)
+
+        sup.wait_for(lambda: sup.chunk_arrivals, 60.0, "a policy chunk", stack.check)
+        assert lab_cli("policy", "pause").returncode == 0 and state()["policy"].startswith("paused")
+        sup.sim_sleep(0.5, stack.check)  # a chunk in flight may still land
+        paused_at = len(sup.chunk_arrivals)
+        sup.sim_sleep(2.0, stack.check)
+        assert len(sup.chunk_arrivals) == paused_at  # paused: no chunk for 2 s of sim time
+        assert lab_cli("policy", "resume").returncode == 0
+        sup.wait_for(lambda: len(sup.chunk_arrivals) > paused_at, 60.0, "chunks after resuming", stack.check)
+
+        def drive(axes, sim_seconds):  # SpaceMouse reports stamped on the node clock, at ~50 Hz of sim time
+            end = sup.now_ns() + int(sim_seconds * S)
+            while sup.now_ns() < end:
+                joy_pub.publish(f.make("sensor_msgs/msg/Joy", header=f.header(sup.now_ns(), ""),
+                                       axes=[float(a) for a in axes], buttons=[0, 0]))
+                stack.check()
+                time.sleep(0.02)
+
+        drive([0.5, 0, 0, 0, 0, 0], 1.0)
+        assert state()["policy"].startswith("paused") and "teleop" in state()["policy"]
+        drive([0.0] * 6, 1.0)  # let go: the takeover ends, and the policy stays paused until resumed
+        sup.sim_sleep(1.0, stack.check)
+        assert state()["policy"].startswith("paused")
+        kept = lab_cli("record", "success")
+        assert kept.returncode == 0, kept.stderr
+        sup.close_gate()
+    ep = read_episode(episode)
+    assert ep.meta.success is True and ep.meta.task == "lab"
+    assert ep.meta.extra["intervention_count"] == "1", ep.meta.extra
+    assert ep.message_counts.get("/franka/command_chunk", 0) > 0  # the arm's commands were recorded
+    assert ep.message_counts.get("/teleop/active", 0) >= 2  # the takeover's start and end
