@@ -256,16 +256,29 @@ class InferencePolicy:
 
     @torch.no_grad()
     def predict(self, voxels: np.ndarray, ee: np.ndarray, seed: int | None = None,
-                noise: np.ndarray | None = None) -> np.ndarray:
-        """Absolute actions (horizon, 10) for one observation; ``seed`` makes the DDIM noise reproducible."""
+                noise: np.ndarray | None = None, guide: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
+        """Absolute actions (horizon, 10) for one observation; ``seed`` makes the DDIM noise reproducible.
+
+        ``guide = (target (horizon, 10) absolute actions, weights (horizon,))``: real-time chunking,
+        the sample is inpainted towards ``target`` (``chunk.RealTimeChunking``); None: plain DDIM."""
         obs_films = self.encode(voxels, ee)
         gen = None
         if seed is not None:
             gen = torch.Generator(device=self.device).manual_seed(int(seed))
         noise_t = None if noise is None else torch.as_tensor(np.asarray(noise, dtype=np.float32))[None]
-        x = ddim_sample(self.denoise, obs_films, (1, self.preset.horizon, self.codec.dim), self.scheduler,
-                        generator=gen, noise=noise_t, device=self.device)
         ee_t = torch.as_tensor(np.asarray(ee, dtype=np.float32), device=self.device)[None]
+        guide_t = None
+        if guide is not None:
+            target, weights = (np.asarray(g, dtype=np.float32) for g in guide)
+            if target.shape != (self.preset.horizon, 10) or weights.shape != (self.preset.horizon,) \
+                    or not (np.isfinite(target).all() and np.isfinite(weights).all()):
+                raise PolicyInputError(f"guide must be finite ({self.preset.horizon}, 10) actions and "
+                                       f"({self.preset.horizon},) weights, got {target.shape} and {weights.shape}")
+            # the target in model space, relative to the gripper state the sample is decoded with
+            guide_t = (self.codec.encode(torch.from_numpy(target).to(self.device)[None], ee_t),
+                       torch.from_numpy(weights))
+        x = ddim_sample(self.denoise, obs_films, (1, self.preset.horizon, self.codec.dim), self.scheduler,
+                        generator=gen, noise=noise_t, device=self.device, guide=guide_t)
         actions = self.codec.decode(x, ee_t)[0]
         out = actions.double().cpu().numpy()
         if not np.isfinite(out).all():
