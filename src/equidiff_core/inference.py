@@ -95,6 +95,15 @@ def read_policy_file(path: str | Path) -> tuple[dict, dict]:
     return config, state
 
 
+def check_device(device: str) -> None:
+    """A ValueError naming why ``device`` cannot run the policy here (CUDA missing), not torch's
+    assertion deep inside the first ``.to()``."""
+    if str(device).startswith("cuda") and not torch.cuda.is_available():
+        build = f"torch {torch.__version__}, " + ("built without CUDA" if torch.version.cuda is None
+                                                   else f"CUDA {torch.version.cuda}, no GPU visible")
+        raise ValueError(f"device {device!r} requested but CUDA is not available ({build}); use --device cpu")
+
+
 def load_inference_policy(path: str | Path, device: str = "cpu", precision: str = "fp32",
                           jit: bool = False, channels_last: bool | None = None,
                           compile: bool = False) -> InferencePolicy:
@@ -116,6 +125,7 @@ def load_inference_policy(path: str | Path, device: str = "cpu", precision: str 
                               f"{preset.name!r}: {str(err).splitlines()[0]}") from err
     if device == "auto":
         device = "cuda" if torch.cuda.is_available() else "cpu"
+    check_device(device)
     if precision == "auto":
         precision = "bf16" if str(device).startswith("cuda") or cpu_has_native_bf16() else "fp32"
     return InferencePolicy(net, name, preset, workspace, normalizer, torch.device(device), precision, jit,
