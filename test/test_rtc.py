@@ -106,3 +106,66 @@ def test_rtc_is_c4_equivariant_rotated_scene_and_previous_chunk_give_the_rotated
         out = fast.predict(vox_g[0].numpy(), ee_g[0].numpy(), noise=(noise @ rep.T).numpy(), guide=(target_g, weights))
         expected = geometry.rotate_action(guided, theta, WS.center)
         assert float(torch.linalg.norm(torch.from_numpy(out) - expected)) / scale <= 1e-5, angle
+
+
+def test_chunking_probe_measures_boundary_velocity_changes_jerk_and_mode_switches():
+    from types import SimpleNamespace
+
+    from equidiff_core.chunk import PoseChunk
+    from equidiff_core.twin.chunking import ChunkingProbe
+
+    def chunk(stamp_ms, y):
+        times = (stamp_ms + np.arange(4) * 200) * 1_000_000
+        poses = np.repeat(np.eye(4)[None], 4, axis=0)
+        poses[:, 1, 3] = y
+        return PoseChunk(int(times[0]), times.astype(np.int64), poses, np.full(4, 0.08))
+
+    probe = ChunkingProbe(mode_switch_m=0.03)
+    probe.start_episode(0)
+    for i in range(200):  # 1 s at 200 Hz along x at 0.1 m/s, standing still for 5 ms at t = 500 ms
+        x = 0.1 * (i if i < 100 else i - 1) * 0.005
+        probe.command(SimpleNamespace(stamp_ns=i * 5_000_000, target=SimpleNamespace(pose=geometry.make_pose(
+            np.eye(3), np.array([x, 0.0, 0.0])))))
+    assert probe.chunk(0, chunk(0, 0.0), True) is None  # the first chunk starts from rest: not a switch
+    probe.chunk(500_000_000, chunk(400, 0.01), True)  # 1 cm off the previous plan: a correction
+    probe.chunk(700_000_000, chunk(600, 0.10), True)  # 9 cm off: another plan
+    probe.chunk(800_000_000, chunk(800, 0.0), False)  # rejected: not executed
+    probe.end_episode()
+    assert len(probe.boundary_dv) == 2
+    assert probe.boundary_dv[0] == pytest.approx(0.1)  # the 5 ms stand-still: the whole speed lost
+    assert probe.boundary_dv[1] == pytest.approx(0.0, abs=1e-9)
+    summary = probe.summary()
+    assert summary["mode_switches"] == 1 and summary["mode_switch_rate"] == 0.5
+    assert summary["jerk_p95_mps3"] > 0 and summary["chunk_switches"] == 2
+
+
+@pytest.mark.slow
+@pytest.mark.sim
+def test_bench_chunking_prints_one_json_line_with_every_mode_and_latency(tmp_path, capsys):
+    import json
+
+    from equidiff_core.config import default_config_dir, load_lab_config
+    from equidiff_core.twin.config import TwinConfig
+    from equidiff_core.twin.standin import make_standin_policy
+    from equidiff_ros.cli import main
+
+    lab = load_lab_config(default_config_dir() / "lab.yaml")
+    standin = make_standin_policy(tmp_path / "standin.pt", lab.workspace, preset="tiny", cfg=TwinConfig())
+    assert main(["bench", "chunking", "--checkpoint", str(standin), "--seeds", "1", "--duration", "1.2",
+                 "--latencies", "0", "400", "--execute-steps", "2"]) == 0
+    lines = [line for line in capsys.readouterr().out.splitlines() if line.startswith("{")]
+    assert len(lines) == 1
+    out = json.loads(lines[0])
+    for key in ("rtc_0ms_success", "rtc_400ms_success", "replace_400ms_success",
+                "rtc_400ms_boundary_dv_p95_mps", "replace_400ms_boundary_dv_p95_mps"):
+        assert key in out
+    labels = [f"{mode}_{ms}ms" for mode in ("replace", "horizon", "rtc") for ms in (0, 400)]
+    for label in labels:
+        assert out[f"{label}_success"] == 0.0  # an untrained stand-in in 1.2 s
+        dv = out[f"{label}_boundary_dv_p95_mps"]  # None: no second chunk accepted (a stand-in's may jump)
+        assert (dv is None) == (out[f"{label}_chunk_switches"] == 0)
+        assert dv is None or 0 <= dv <= 2 * 0.25 + 1e-6  # two commands within the 0.25 m/s speed limit
+        assert out[f"{label}_jerk_p95_mps3"] >= 0
+    assert sum(out[f"{label}_chunk_switches"] for label in labels) >= 3
+    assert out["replace_400ms_publish_steps"] == 8 and out["horizon_400ms_publish_steps"] == 2 + 2 + 1
+    assert out["horizon_0ms_publish_steps"] == 2 + 0 + 1 and out["execute_steps"] == 2 and out["seeds"] == [100000]
