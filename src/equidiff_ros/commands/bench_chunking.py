@@ -44,6 +44,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--execute-steps", type=int, default=0,
                         help="k for horizon and rtc (0: n_action_steps, policy_node's default)")
     parser.add_argument("--device", default="cpu", help="policy device: cpu | cuda | auto")
+    parser.add_argument("--threads", type=int, default=1,
+                        help="torch intra-op threads (default 1, policy_node's torch_threads: on a shared CPU more "
+                             "threads spin against each other; 0: torch's default)")
     parser.add_argument("--lab-config", type=Path, default=None)
     parser.add_argument("--twin-config", type=Path, default=None)
 
@@ -63,6 +66,10 @@ def run(args: argparse.Namespace) -> int:
     checkpoint = args.checkpoint or SHIPPED_CHECKPOINT
     if not checkpoint.is_file():
         raise SystemExit(f"no checkpoint at {checkpoint}")
+    if args.threads > 0:
+        import torch
+
+        torch.set_num_threads(args.threads)
     lab = load_lab_config(args.lab_config or default_config_dir() / "lab.yaml")
     cfg = load_twin_config(args.twin_config)
     policy = load_inference_policy(checkpoint, device=args.device)
