@@ -137,9 +137,11 @@ def evaluate_policy(policy, cfg: TwinConfig, lab: LabConfig, seeds: Iterable[int
 
     preset = policy.preset
     execute_steps = AnswerSchedule(execute_steps, int(preset.n_action_steps), 1).steps  # checked up front
+    if publish_steps:
+        available = preset.horizon - preset.n_obs_steps + 1  # the predicted steps from the observation on
+        if not 1 <= publish_steps <= available:
+            raise ValueError(f"publish_steps must be within 1..{available}, got {publish_steps}")
     publish_steps = int(publish_steps) or int(preset.n_action_steps)
-    if not 1 <= publish_steps <= preset.horizon - preset.n_obs_steps + 1:
-        raise ValueError(f"publish_steps must be within 1..{preset.horizon - preset.n_obs_steps + 1}, got {publish_steps}")
     if not (math.isfinite(latency_s) and latency_s >= 0):
         raise ValueError(f"latency_s must be finite and >= 0, got {latency_s}")
     control = _control_config()
