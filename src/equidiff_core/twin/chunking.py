@@ -3,11 +3,12 @@
 ``ChunkingProbe`` watches franka_node's own ``Controller`` in ``evaluate.evaluate_policy``: every
 chunk as it arrives and every command it streams (after the safety filter), on the sim clock.
 
-* **Boundary velocity discontinuity** (m/s): at each accepted chunk, the change of the commanded
-  TCP velocity from the control period before the switch to the one after it
-  (|(p_i - p_{i-1}) - (p_{i-1} - p_{i-2})| / dt, with tick i the first that follows the new
-  chunk). A new chunk that continues the running motion changes it no more than a knot inside
-  a chunk does; one that disagrees jerks the arm.
+* **Boundary velocity discontinuity** (m/s): at each accepted chunk, the largest change of the
+  commanded TCP velocity between consecutive control periods around the switch: v_i - v_{i-1}
+  and v_{i+1} - v_i, v_j = (p_j - p_{j-1}) / dt, tick i the first that follows the new chunk
+  (it starts the new trajectory where the command is; tick i + 1 has the new chunk's
+  velocity). A new chunk that continues the running motion changes it no more than a knot
+  inside a chunk does; one that disagrees jerks the arm.
 * **Commanded jerk** (m/s^3): the third difference of the commanded TCP position sampled at
   ``JERK_HZ`` (the rate at which the evaluation's arm receives targets, ``evaluate.COMMAND_HZ``).
 * **Mode switches**: consecutive accepted chunks whose steps still to run (at the same times)
@@ -68,11 +69,15 @@ class ChunkingProbe:
         t = np.asarray(self._times, dtype=np.int64)
         p = np.asarray(self._positions)
         period_s = float(np.median(np.diff(t))) / 1e9
+        velocity = np.diff(p, axis=0) / period_s  # velocity[j]: from tick j to tick j + 1
         for switch in self._switch_ns:
             i = int(np.searchsorted(t, switch, side="left"))  # the first tick that follows the new chunk
-            if 2 <= i < len(t):
-                dv = (p[i] - p[i - 1]) - (p[i - 1] - p[i - 2])
-                self.boundary_dv.append(float(np.linalg.norm(dv)) / period_s)
+            if 2 <= i < len(t) - 1:
+                # The tick at the switch starts the new trajectory where the command is (moved on by
+                # its own velocity), the next one takes up the new chunk's velocity: the larger of
+                # the two changes (a stand-still at the switch shows in the first).
+                changes = velocity[i - 1:i + 1] - velocity[i - 2:i]
+                self.boundary_dv.append(float(np.linalg.norm(changes, axis=1).max()))
         every = max(1, round(1.0 / (JERK_HZ * period_s)))
         sampled = p[::every]
         if len(sampled) >= 4:
