@@ -11,9 +11,11 @@ chunk as it arrives and every command it streams (after the safety filter), on t
   inside a chunk does; one that disagrees jerks the arm.
 * **Commanded jerk** (m/s^3): the third difference of the commanded TCP position sampled at
   ``JERK_HZ`` (the rate at which the evaluation's arm receives targets, ``evaluate.COMMAND_HZ``).
-* **Mode switches**: consecutive accepted chunks whose steps still to run (at the same times)
-  lie more than ``mode_switch_m`` apart somewhere: the new chunk plans another way (another
-  grasp, another approach), not a small correction.
+* **Mode switches**: consecutive accepted chunks whose published steps at the same times lie
+  more than ``mode_switch_m`` apart somewhere: the new chunk plans another way (another grasp,
+  another approach), not a small correction. The overlap is what both published: 7 steps for
+  replace, ceil(L/dt) + 1 around the switch for the horizon (the steps due before the new chunk
+  arrives, which RTC pins to the previous chunk by construction).
 """
 
 from __future__ import annotations
@@ -49,12 +51,9 @@ class ChunkingProbe:
         if previous is None:
             return  # the episode's first chunk starts from rest: no switch between chunks
         self._switch_ns.append(int(now_ns))
-        new = chunk.after(now_ns)
-        if new is None:
-            return
-        _, i_new, i_old = np.intersect1d(new.times_ns, previous.times_ns, return_indices=True)
+        _, i_new, i_old = np.intersect1d(chunk.times_ns, previous.times_ns, return_indices=True)
         if len(i_new):
-            gap = np.linalg.norm(new.poses[i_new, :3, 3] - previous.poses[i_old, :3, 3], axis=1).max()
+            gap = np.linalg.norm(chunk.poses[i_new, :3, 3] - previous.poses[i_old, :3, 3], axis=1).max()
             self.pairs += 1
             self.mode_switches += int(gap > self.mode_switch_m)
 
