@@ -94,12 +94,20 @@ class RealTimeChunking:
     ``models.sampling.ddim_sample``'s ``guide``; ``InferencePolicy.predict`` encodes the target
     relative to the current gripper state as the actions themselves are."""
 
-    def __init__(self, delay_steps: int, dt_ns: int, max_age_ns: int | None = None):
+    # A previous chunk whose step for the new observation's instant lies farther than this from the
+    # TCP observed then is not what the arm is executing (franka_node rejected it: its first-step
+    # limit is 80 mm; or the arm was stopped): pinning the new chunk to it would repeat the
+    # rejection for ever (measured in the twin before this check: 13 of 13 chunks rejected).
+    MAX_GAP_M = 0.08
+
+    def __init__(self, delay_steps: int, dt_ns: int, max_age_ns: int | None = None,
+                 max_gap_m: float = MAX_GAP_M):
         if delay_steps < 0:
             raise ValueError(f"delay_steps must be >= 0, got {delay_steps}")
         self.delay_steps = int(delay_steps)
         self.dt_ns = int(dt_ns)
         self.max_age_ns = max_age_ns  # a previous chunk older than this is forgotten (a pause, a new episode)
+        self.max_gap_m = float(max_gap_m)
         self._previous: tuple[int, np.ndarray] | None = None  # (stamp, (H, 10) absolute actions)
 
     @staticmethod
@@ -115,9 +123,10 @@ class RealTimeChunking:
         """The chunk just predicted for the observation at ``stamp_ns``: all its steps (H, 10)."""
         self._previous = (int(stamp_ns), np.array(actions, dtype=np.float64))
 
-    def guide(self, stamp_ns: int) -> tuple[np.ndarray, np.ndarray] | None:
-        """(target (H, 10) absolute actions, weights (H,)) for the observation at ``stamp_ns``;
-        None when there is no previous chunk overlapping it."""
+    def guide(self, stamp_ns: int, ee: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray] | None:
+        """(target (H, 10) absolute actions, weights (H,)) for the observation at ``stamp_ns``
+        with the TCP state ``ee`` (10-D action); None when there is no previous chunk overlapping
+        it, or when that chunk is more than ``max_gap_m`` from ``ee`` (it was not executed)."""
         if self._previous is None:
             return None
         prev_stamp, prev = self._previous
@@ -131,6 +140,9 @@ class RealTimeChunking:
             return None
         target = np.repeat(prev[-1:], horizon, axis=0)  # rows past the overlap get weight 0
         target[:overlap] = prev[shift:]
+        if ee is not None and np.linalg.norm(target[0, :3] - np.asarray(ee)[:3]) > self.max_gap_m:
+            self._previous = None
+            return None
         weights = np.zeros(horizon)
         hard = min(self.delay_steps, overlap)
         weights[:hard] = 1.0

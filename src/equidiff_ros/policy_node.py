@@ -317,7 +317,7 @@ class PolicyNode(Node):
             if self.chunking is None:
                 actions = self.policy.predict(grid, ee, seed=seed)
             else:
-                actions = self.policy.predict(grid, ee, seed=seed, guide=self.chunking.guide(stamp))
+                actions = self.policy.predict(grid, ee, seed=seed, guide=self.chunking.guide(stamp, ee))
                 self.chunking.remember(stamp, actions)
             inference = time.perf_counter() - t0
             chunk = chunk_from_actions(actions[: self.n_action_steps], stamp, self.dt_ns)

@@ -99,12 +99,13 @@ class _Episode:
         self.hold = SuccessHold(hold_s)
         self.stats = None  # franka_node's Controller's stats once the episode has run
 
-    def observe(self, stamp_ns: int, guide=None) -> np.ndarray:
+    def observe(self, stamp_ns: int, chunking=None) -> np.ndarray:
         """The policy's actions for an observation at ``stamp_ns`` (the current sim state);
-        ``guide``: real-time chunking's (``InferencePolicy.predict``)."""
+        ``chunking``: real-time chunking's state (``chunk.RealTimeChunking``), or None."""
         sim = self.sim
         grid = self.rec.voxel_grid(stamp_ns)
         ee = ee_input(sim.tcp_pose(), sim.gripper_width())  # the state at the stamp itself: no matching needed
+        guide = None if chunking is None else chunking.guide(stamp_ns, ee)
         seed = self.seed * 1000 + self.observations
         actions = (self.policy.predict(grid, ee, seed=seed) if guide is None
                    else self.policy.predict(grid, ee, seed=seed, guide=guide))
@@ -291,7 +292,7 @@ def _run(episode: _Episode, policy, lab: LabConfig, control, max_duration_s: flo
             if answers.due(now * 1_000_000):
                 stamp = now * 1_000_000
                 answers.answer(stamp)
-                actions = episode.observe(stamp, None if chunking is None else chunking.guide(stamp))
+                actions = episode.observe(stamp, chunking)
                 if chunking is not None:
                     chunking.remember(stamp, actions)
                 chunk = chunk_from_actions(actions[:publish_steps], stamp, dt_ms * 1_000_000)
