@@ -55,6 +55,11 @@ def test_the_previous_chunk_is_aligned_in_time_hard_over_the_delay_then_decaying
     assert np.all(np.diff(weights[2:12]) < 0) and 0 < weights[11] < weights[2] < 1
     assert np.array_equal(weights[12:], np.zeros(4))  # past the previous chunk: free
     assert rtc.guide(1_016 * DT_NS) is None  # no overlap left
+    # a previous chunk far from where the arm is was not executed (rejected): forgotten, not pinned
+    ee = prev[4].copy()
+    assert rtc.guide(1_004 * DT_NS, ee) is not None
+    ee[0] += 0.1
+    assert rtc.guide(1_004 * DT_NS, ee) is None and rtc.guide(1_004 * DT_NS) is None
     assert RealTimeChunking(2, DT_NS, max_age_ns=3 * DT_NS).guide(0) is None
 
 
