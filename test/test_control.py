@@ -766,3 +766,33 @@ def test_tf_message_carries_the_tcp_pose_in_the_base_frame():
     t, r = tf.transform.translation, tf.transform.rotation
     np.testing.assert_allclose([t.x, t.y, t.z], [0.4, -0.1, 0.25])
     np.testing.assert_allclose(Rotation.from_quat([r.x, r.y, r.z, r.w]).as_matrix(), pose[:3, :3], atol=1e-12)
+
+
+def test_a_new_chunk_continues_the_motion_without_a_standstill_tick():
+    """A chunk that continues the running straight line starts from the setpoint *now*, not from
+    the one commanded a tick ago: the commanded step at every chunk switch equals the steady one."""
+    ctl, _robot, clock = make_controller(start=np.array([0.40, 0.0, 0.25]))
+    t0, period, speed = clock.t, int(1e9 / ctl.config.control_hz), 0.1
+
+    def line_chunk(stamp_ns):
+        times = stamp_ns + np.arange(8, dtype=np.int64) * 200 * MS
+        poses = np.stack([pose_at((0.40 + speed * (t - t0) / 1e9, 0.0, 0.25)) for t in times])
+        return PoseChunk(int(stamp_ns), times, poses, np.full(8, 0.08))
+
+    steps, switches = [], []
+    previous = ctl.tick().target.pose[:3, 3]
+    clock.t += period
+    for tick in range(1, 400):
+        if tick % 40 == 0:
+            assert ctl.submit(line_chunk(clock.t))
+            switches.append(len(steps))
+        elif tick == 1:
+            assert ctl.submit(line_chunk(t0))
+        position = ctl.tick().target.pose[:3, 3]
+        steps.append(float(np.linalg.norm(position - previous)))
+        previous = position
+        clock.t += period
+    steady = speed * period / 1e9
+    assert len(switches) == 9
+    for i in switches:
+        assert steps[i] == pytest.approx(steady, rel=0.05), (i, steps[i - 2:i + 2])

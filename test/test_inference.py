@@ -228,6 +228,16 @@ def test_bench_policy_command_prints_one_json_line(capsys):
     assert 0 < out["encoder_ms"] < out["ddim16_median_ms"] <= out["ddim16_p99_ms"]
 
 
+@pytest.mark.skipif(torch.cuda.is_available(), reason="checks the message of a machine without CUDA")
+def test_cuda_without_cuda_is_a_clear_error_not_a_traceback(exported, capsys):
+    from equidiff_ros.cli import main
+
+    assert main(["bench", "policy", "--preset", "tiny", "--device", "cuda"]) == 2
+    assert "CUDA is not available" in capsys.readouterr().err
+    with pytest.raises(ValueError, match="CUDA is not available"):
+        load_inference_policy(exported[1], device="cuda")
+
+
 def test_precision_choices(exported):
     from equidiff_core.machine import cpu_has_native_bf16
 

@@ -6,6 +6,7 @@ treats every exported policy alike, and this one loads and predicts in a fractio
 
 from __future__ import annotations
 
+import itertools
 import os
 import signal
 import subprocess
@@ -163,3 +164,61 @@ def test_policy_closes_the_loop_and_skips_stale_observations(ros_domain, checkpo
                  stop_process(franka, timeout=30.0, sig=signal.SIGTERM)]
     assert codes == [0, 0], (codes, (tmp_path / "policy.log").read_text()[-3000:] + (tmp_path / "franka.log").read_text()[-3000:])
 
+
+
+@pytest.mark.ros
+@pytest.mark.slow
+def test_execution_horizon_covers_the_latency_and_rtc_joins_the_previous_chunk(ros_domain, checkpoint, tmp_path):
+    """execute_steps:=2 latency_s:=0.4 rtc:=true: one answer every 2 observations, chunks of
+    2 + 2 + 1 steps, real-time chunking on. (Whether a new chunk's first steps are the previous
+    chunk's is checked where a policy's chunks can be executed, test_rtc.py: this untrained
+    policy's chunks lie far from the arm, so RTC rightly does not pin to them.)"""
+    from equidiff_core.pointcloud import grid_to_voxel_msg
+    from equidiff_core.twin.processes import start_node, stop_process
+    from equidiff_ros.control_client import ControlClient
+
+    lab = load_lab_config(LAB_PATH)
+    ws = lab.workspace
+    grid = np.zeros((4, ws.resolution, ws.resolution, ws.resolution), np.uint8)
+    grid[:, 20:26, 30:36, 2:8] = 200
+    franka = policy = client = None
+    stop_voxels = threading.Event()
+    chunks: dict[int, object] = {}
+    try:
+        franka = start_node("franka_node", {"backend": "dryrun", "lab_config": str(LAB_PATH)}, tmp_path / "franka.log")
+        policy = start_node("policy_node", {"checkpoint": str(checkpoint), "lab_config": str(LAB_PATH), "seed": 0,
+                                            "execute_steps": 2, "latency_s": 0.4, "rtc": True},
+                            tmp_path / "policy.log")
+        client = ControlClient(lab, str(LAB_PATH))
+        client.wait_for(lambda: len(client.data.poses) > 10, 60.0, "/franka/ee_pose from the dry-run arm", franka)
+
+        def publish_voxels():
+            # stamps exactly dt apart (the node aligns chunks by their stamps), paced by the wall clock
+            stamp = time.time_ns()
+            while not stop_voxels.is_set():
+                client.pub_voxels.publish(grid_to_voxel_msg(grid, ws.lower, ws.voxel_size, stamp, lab.base_frame,
+                                                            client.factory))
+                stamp += 200_000_000
+                stop_voxels.wait(max(0.0, (stamp - time.time_ns()) / 1e9))
+
+        feeder = threading.Thread(target=publish_voxels, daemon=True)
+        feeder.start()
+
+        def collected() -> int:
+            msg = client.data.last_chunk
+            if msg is not None:
+                chunks.setdefault(stamp_to_ns(msg.header.stamp), chunk_from_msg(msg))
+            return len(chunks)
+
+        client.wait_for(lambda: collected() >= 4, 120.0, "four chunks from the policy node", policy)
+    finally:
+        stop_voxels.set()
+        if client is not None:
+            client.close()
+        # a loaded machine may need more than 10 s to finish the prediction in flight
+        codes = [stop_process(policy, sig=signal.SIGINT, timeout=30), stop_process(franka, sig=signal.SIGTERM)]
+    assert codes == [0, 0], (len(chunks), (tmp_path / "policy.log").read_text()[-3000:])
+    stamps = sorted(chunks)
+    assert all(len(chunks[s]) == 5 for s in stamps)
+    assert all(round((new - old) / 200_000_000) >= 2 for old, new in itertools.pairwise(stamps))
+    assert "real-time chunking" in (tmp_path / "policy.log").read_text()

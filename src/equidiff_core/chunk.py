@@ -10,6 +10,7 @@ the two functions here.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -70,6 +71,86 @@ class AnswerSchedule:
 
     def answer(self, stamp_ns: int) -> None:
         self.answered_ns = int(stamp_ns)
+
+
+def steps_to_publish(execute_steps: int, latency_s: float, dt_s: float, available: int) -> int:
+    """Steps a chunk must carry so it lasts until the next one arrives: the ``execute_steps`` run
+    before the next observation is answered, the ``latency_s`` until that one's chunk arrives,
+    and one step beyond it to interpolate towards (``execute_steps + ceil(L / dt) + 1``, at most
+    the ``available`` predicted steps)."""
+    return min(int(available), int(execute_steps) + math.ceil(round(latency_s / dt_s, 6)) + 1)
+
+
+class RealTimeChunking:
+    """Real-time chunking for a DDIM policy by guided inpainting: each chunk's denoising is
+    pulled towards the previous chunk where the two overlap in time.
+
+    A chunk's step i runs at its observation's stamp + i·dt, so the previous chunk (all its
+    predicted steps, absolute actions) is shifted by the periods between the two observations.
+    The new chunk's first ``delay_steps`` steps fall due before it can arrive (the latency):
+    they are the previous chunk's, exactly (weight 1). The rest of the overlap is guided with
+    weights decaying from 1 to 0 (RTC's exponential schedule, Black et al. 2025), so the new
+    chunk joins the running one and then follows its own observation. The guidance itself is
+    ``models.sampling.ddim_sample``'s ``guide``; ``InferencePolicy.predict`` encodes the target
+    relative to the current gripper state as the actions themselves are."""
+
+    # A previous chunk whose step for the new observation's instant lies farther than this from the
+    # TCP observed then is not what the arm is executing (franka_node rejected it: its first-step
+    # limit is 80 mm; or the arm was stopped): pinning the new chunk to it would repeat the
+    # rejection for ever (measured in the twin before this check: 13 of 13 chunks rejected).
+    MAX_GAP_M = 0.08
+
+    def __init__(self, delay_steps: int, dt_ns: int, max_age_ns: int | None = None,
+                 max_gap_m: float = MAX_GAP_M):
+        if delay_steps < 0:
+            raise ValueError(f"delay_steps must be >= 0, got {delay_steps}")
+        self.delay_steps = int(delay_steps)
+        self.dt_ns = int(dt_ns)
+        self.max_age_ns = max_age_ns  # a previous chunk older than this is forgotten (a pause, a new episode)
+        self.max_gap_m = float(max_gap_m)
+        self._previous: tuple[int, np.ndarray] | None = None  # (stamp, (H, 10) absolute actions)
+
+    @staticmethod
+    def delay_for(latency_s: float, dt_s: float) -> int:
+        """Steps of a new chunk already due when it arrives ``latency_s`` after its observation
+        (step 0, at the observation itself, always is)."""
+        return math.floor(round(latency_s / dt_s, 6)) + 1
+
+    def reset(self) -> None:
+        self._previous = None
+
+    def remember(self, stamp_ns: int, actions: np.ndarray) -> None:
+        """The chunk just predicted for the observation at ``stamp_ns``: all its steps (H, 10)."""
+        self._previous = (int(stamp_ns), np.array(actions, dtype=np.float64))
+
+    def guide(self, stamp_ns: int, ee: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray] | None:
+        """(target (H, 10) absolute actions, weights (H,)) for the observation at ``stamp_ns``
+        with the TCP state ``ee`` (10-D action); None when there is no previous chunk overlapping
+        it, or when that chunk is more than ``max_gap_m`` from ``ee`` (it was not executed)."""
+        if self._previous is None:
+            return None
+        prev_stamp, prev = self._previous
+        age = int(stamp_ns) - prev_stamp
+        if age < 0 or (self.max_age_ns is not None and age > self.max_age_ns):
+            return None
+        horizon = len(prev)
+        shift = round(age / self.dt_ns)
+        overlap = horizon - shift  # new steps 0 .. overlap-1 are the previous chunk's shift ..
+        if overlap <= 0:
+            return None
+        target = np.repeat(prev[-1:], horizon, axis=0)  # rows past the overlap get weight 0
+        target[:overlap] = prev[shift:]
+        if ee is not None and np.linalg.norm(target[0, :3] - np.asarray(ee)[:3]) > self.max_gap_m:
+            self._previous = None
+            return None
+        weights = np.zeros(horizon)
+        hard = min(self.delay_steps, overlap)
+        weights[:hard] = 1.0
+        soft = np.arange(hard, overlap)
+        if len(soft):
+            c = (overlap - soft) / (overlap - hard + 1)  # in (0, 1): 1 right after the hard part
+            weights[hard:overlap] = c * np.expm1(c) / np.expm1(1.0)
+        return target, weights
 
 
 def validate_chunk(chunk: PoseChunk) -> None:

@@ -95,6 +95,15 @@ def read_policy_file(path: str | Path) -> tuple[dict, dict]:
     return config, state
 
 
+def check_device(device: str) -> None:
+    """A ValueError naming why ``device`` cannot run the policy here (CUDA missing), not torch's
+    assertion deep inside the first ``.to()``."""
+    if str(device).startswith("cuda") and not torch.cuda.is_available():
+        build = f"torch {torch.__version__}, " + ("built without CUDA" if torch.version.cuda is None
+                                                   else f"CUDA {torch.version.cuda}, no GPU visible")
+        raise ValueError(f"device {device!r} requested but CUDA is not available ({build}); use --device cpu")
+
+
 def load_inference_policy(path: str | Path, device: str = "cpu", precision: str = "fp32",
                           jit: bool = False, channels_last: bool | None = None,
                           compile: bool = False) -> InferencePolicy:
@@ -116,6 +125,7 @@ def load_inference_policy(path: str | Path, device: str = "cpu", precision: str 
                               f"{preset.name!r}: {str(err).splitlines()[0]}") from err
     if device == "auto":
         device = "cuda" if torch.cuda.is_available() else "cpu"
+    check_device(device)
     if precision == "auto":
         precision = "bf16" if str(device).startswith("cuda") or cpu_has_native_bf16() else "fp32"
     return InferencePolicy(net, name, preset, workspace, normalizer, torch.device(device), precision, jit,
@@ -256,16 +266,29 @@ class InferencePolicy:
 
     @torch.no_grad()
     def predict(self, voxels: np.ndarray, ee: np.ndarray, seed: int | None = None,
-                noise: np.ndarray | None = None) -> np.ndarray:
-        """Absolute actions (horizon, 10) for one observation; ``seed`` makes the DDIM noise reproducible."""
+                noise: np.ndarray | None = None, guide: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
+        """Absolute actions (horizon, 10) for one observation; ``seed`` makes the DDIM noise reproducible.
+
+        ``guide = (target (horizon, 10) absolute actions, weights (horizon,))``: real-time chunking,
+        the sample is inpainted towards ``target`` (``chunk.RealTimeChunking``); None: plain DDIM."""
         obs_films = self.encode(voxels, ee)
         gen = None
         if seed is not None:
             gen = torch.Generator(device=self.device).manual_seed(int(seed))
         noise_t = None if noise is None else torch.as_tensor(np.asarray(noise, dtype=np.float32))[None]
-        x = ddim_sample(self.denoise, obs_films, (1, self.preset.horizon, self.codec.dim), self.scheduler,
-                        generator=gen, noise=noise_t, device=self.device)
         ee_t = torch.as_tensor(np.asarray(ee, dtype=np.float32), device=self.device)[None]
+        guide_t = None
+        if guide is not None:
+            target, weights = (np.asarray(g, dtype=np.float32) for g in guide)
+            if target.shape != (self.preset.horizon, 10) or weights.shape != (self.preset.horizon,) \
+                    or not (np.isfinite(target).all() and np.isfinite(weights).all()):
+                raise PolicyInputError(f"guide must be finite ({self.preset.horizon}, 10) actions and "
+                                       f"({self.preset.horizon},) weights, got {target.shape} and {weights.shape}")
+            # the target in model space, relative to the gripper state the sample is decoded with
+            guide_t = (self.codec.encode(torch.from_numpy(target).to(self.device)[None], ee_t),
+                       torch.from_numpy(weights))
+        x = ddim_sample(self.denoise, obs_films, (1, self.preset.horizon, self.codec.dim), self.scheduler,
+                        generator=gen, noise=noise_t, device=self.device, guide=guide_t)
         actions = self.codec.decode(x, ee_t)[0]
         out = actions.double().cpu().numpy()
         if not np.isfinite(out).all():

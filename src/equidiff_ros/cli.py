@@ -29,6 +29,7 @@ COMMANDS: dict[tuple[str, ...], tuple[str, str]] = {
     ("bench", "control"): ("bench_control", "tracking, safety and latency of the franka node on franky-sim"),
     ("bench", "generalization"): ("bench_generalization", "EquiDiff vs baseline on unseen object yaw in the twin"),
     ("bench", "safety"): ("bench_safety", "fault campaign against franky-sim through franka_node (one JSON line)"),
+    ("bench", "chunking"): ("bench_chunking", "replace vs execution horizon vs real-time chunking by latency, in the twin"),
     ("bench", "twin"): ("bench_twin", "where the twin's CPU goes: each process's share and wall s per sim s"),
     ("twin", "collect"): ("twin_collect", "record scripted-expert demonstrations in the digital twin"),
     ("twin", "run"): ("twin_run", "the main job: evaluate a policy end to end in the digital twin"),

@@ -35,320 +35,352 @@ Parameters: ``checkpoint`` (exported policy file, required), ``device`` (cpu | c
 ``precision`` (auto | fp32 | bf16; auto = bf16 where the CPU has native bf16), ``jit``
 (default true: jit.trace), ``rate_hz`` (the rate at which a missing observation is reported),
 ``max_observation_age_s``, ``max_state_offset_s``,
-``seed`` (-1: random), ``n_action_steps`` (0: the preset's), ``execute_steps`` (how many
+``seed`` (-1: random), ``n_action_steps`` (steps published per chunk; 0: the preset's, or
+with ``latency_s`` enough to last until the next chunk arrives), ``execute_steps`` (k: how many
 steps of a chunk run before the next observation is answered; 0: all ``n_action_steps``, the
 default, chosen by measurement: in the twin's closed-loop evaluation whole chunks solved 4 of
 10 scenes where a new chunk every observation solved 1, docs/evaluation_scheme.md; 1: answer
 every observation; the others are announced on /policy/skipped as ``executing``),
+``latency_s`` (the expected observation-to-arrival latency L; -1, the default: not set, chunks
+carry ``n_action_steps``; >= 0: they carry k + ceil(L/dt) + 1 steps, so the next chunk is
+there before this one runs out), ``rtc`` (default false: real-time chunking, each chunk
+denoised towards the previous one, hard on the steps due before it arrives (from
+``latency_s``), decaying over the rest of the overlap; ``chunk.RealTimeChunking``,
+docs/control.md),
 ``torch_threads`` (default 1: on a shared CPU more threads are slower; 0: torch's default),
 ``start_paused``, ``lab_config``.
 """
 
 from __future__ import annotations
 
+import collections
+import json
 import sys
+import threading
+import time
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
 
+import numpy as np
+from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import PoseStamped
+from rcl_interfaces.msg import ParameterDescriptor
+from rclpy.node import Node
+from sensor_msgs.msg import JointState, PointCloud2
+from std_msgs.msg import Bool, String
+from std_srvs.srv import SetBool
+from trajectory_msgs.msg import MultiDOFJointTrajectory
+
+from equidiff_core import geometry
+from equidiff_core.chunk import (
+    AnswerSchedule,
+    RealTimeChunking,
+    chunk_from_actions,
+    chunk_to_msg,
+    steps_to_publish,
+)
+from equidiff_core.control import messages as cm
+from equidiff_core.control.metrics import percentiles_ms
+from equidiff_core.inference import CheckpointError, load_inference_policy
+from equidiff_core.observation import STATE_TOLERANCE_S, StateHistory, ee_input
+from equidiff_core.pointcloud import voxel_msg_to_grid
+from equidiff_core.rosmsg import RclpyFactory, stamp_to_ns
+from equidiff_core.topics import SERVICE_POLICY_ENABLE
+from equidiff_ros.common import (
+    LATCHED_QOS,
+    RELIABLE_QOS,
+    TOPIC_COMMAND_CHUNK,
+    TOPIC_DIAGNOSTICS,
+    TOPIC_EE_POSE,
+    TOPIC_JOINT_STATES,
+    TOPIC_POLICY_SKIPPED,
+    TOPIC_POLICY_STATE,
+    TOPIC_TELEOP_ACTIVE,
+    TOPIC_VOXELS,
+    VOXEL_QOS,
+    declare_lab_config,
+    now_ns,
+    wait_for_clock,
+)
 from equidiff_ros.runner import declare_number, run_node
 
 USAGE = __doc__ + """
 usage: policy_node --ros-args -p checkpoint:=/path/policy.pt [-p device:=cpu -p precision:=auto|fp32|bf16
-                   -p rate_hz:=5.0 -p max_observation_age_s:=0.5]
+                   -p rate_hz:=5.0 -p max_observation_age_s:=0.5 -p execute_steps:=0 -p latency_s:=-1.0
+                   -p rtc:=false]
 """
 
 NODE_NAME = "policy_node"
 
 
-def build_node():
-    import collections
-    import json
-    import threading
-    import time
-    from concurrent.futures import ThreadPoolExecutor
-    from pathlib import Path
+class PolicyNode(Node):
+    def __init__(self):
+        super().__init__(NODE_NAME)
+        wait_for_clock(self)  # simulated time (the twin): nothing is timed before /clock
+        self.lab = declare_lab_config(self)
+        checkpoint = self.declare_parameter("checkpoint", "").value
+        device = self.declare_parameter("device", "cpu").value
+        precision = self.declare_parameter("precision", "auto").value
+        jit = self.declare_parameter("jit", True).value
+        compile_step = self.declare_parameter("compile", False).value
+        rate_hz = declare_number(self, "rate_hz", self.lab.observation_hz)
+        self.max_obs_age_ns = int(declare_number(self, "max_observation_age_s", 0.5) * 1e9)
+        self.max_state_offset_ns = int(declare_number(self, "max_state_offset_s", STATE_TOLERANCE_S) * 1e9)
+        seed = self.declare_parameter("seed", -1).value
+        n_steps = self.declare_parameter("n_action_steps", 0).value
+        execute_steps = self.declare_parameter("execute_steps", 0).value
+        latency_s = self.declare_parameter("latency_s", -1.0, ParameterDescriptor(dynamic_typing=True)).value
+        if isinstance(latency_s, bool) or not isinstance(latency_s, (int, float)) or not (
+                latency_s == -1 or 0 <= latency_s < 10):
+            raise ValueError(f"parameter latency_s must be -1 (not set) or 0..10 s, got {latency_s!r}")
+        latency_s = float(latency_s)
+        rtc = self.declare_parameter("rtc", False).value
+        threads = self.declare_parameter("torch_threads", 1).value
+        self._paused = "waiting for an enable (start_paused)" if self.declare_parameter(
+            "start_paused", False).value else ""  # why no chunks are published; "" = running
+        if not checkpoint:
+            raise CheckpointError("the 'checkpoint' parameter is required (an exported policy file, "
+                                  "e.g. -p checkpoint:=runs/pick/policy.pt)")
+        if threads > 0:
+            import torch
 
-    import numpy as np
-    from diagnostic_msgs.msg import DiagnosticArray
-    from geometry_msgs.msg import PoseStamped
-    from rclpy.node import Node
-    from sensor_msgs.msg import JointState, PointCloud2
-    from std_msgs.msg import Bool, String
-    from std_srvs.srv import SetBool
-    from trajectory_msgs.msg import MultiDOFJointTrajectory
+            torch.set_num_threads(int(threads))
+        t0 = time.perf_counter()
+        self.policy = load_inference_policy(Path(checkpoint), device=device, precision=precision, jit=jit,
+                                            compile=compile_step)
+        if self.policy.workspace != self.lab.workspace:
+            raise CheckpointError(f"{checkpoint}: trained for workspace {self.policy.workspace}, but lab.yaml "
+                                  f"has {self.lab.workspace}: the voxel grids would not match")
+        self.policy.warmup()
+        preset = self.policy.preset
+        self.n_action_steps = int(n_steps) or int(preset.n_action_steps)
+        if not 1 <= self.n_action_steps <= preset.horizon:
+            raise ValueError(f"n_action_steps must be within 1..{preset.horizon}, got {self.n_action_steps}")
+        self.dt_ns = round(preset.dt * 1e9)
+        self.answers = AnswerSchedule(execute_steps, self.n_action_steps, self.dt_ns)
+        if latency_s >= 0 and not n_steps:  # enough steps to last until the next chunk arrives
+            self.n_action_steps = steps_to_publish(self.answers.steps, latency_s, preset.dt,
+                                                   preset.horizon - preset.n_obs_steps + 1)
+        # real-time chunking: each chunk denoised towards the previous one (None: plain DDIM, as without it)
+        self.chunking = RealTimeChunking(RealTimeChunking.delay_for(max(latency_s, 0.0), preset.dt),
+                                         self.dt_ns) if rtc else None
+        self.rng = np.random.default_rng(None if seed < 0 else int(seed))
+        self.get_logger().info(
+            f"loaded {self.policy.name} policy '{preset.name}' from {checkpoint} on {device} ({precision}) "
+            f"and warmed up in {time.perf_counter() - t0:.1f} s; publishing {self.n_action_steps} of "
+            f"{preset.horizon} steps, dt {preset.dt} s, executing {self.answers.steps} before the next"
+            f"{'; real-time chunking' if self.chunking is not None else ''}")
 
-    from equidiff_core import geometry
-    from equidiff_core.chunk import AnswerSchedule, chunk_from_actions, chunk_to_msg
-    from equidiff_core.control import messages as cm
-    from equidiff_core.control.metrics import percentiles_ms
-    from equidiff_core.inference import CheckpointError, load_inference_policy
-    from equidiff_core.observation import STATE_TOLERANCE_S, StateHistory, ee_input
-    from equidiff_core.pointcloud import voxel_msg_to_grid
-    from equidiff_core.rosmsg import RclpyFactory, stamp_to_ns
-    from equidiff_core.topics import SERVICE_POLICY_ENABLE
-    from equidiff_ros.common import (
-        LATCHED_QOS,
-        RELIABLE_QOS,
-        TOPIC_COMMAND_CHUNK,
-        TOPIC_DIAGNOSTICS,
-        TOPIC_EE_POSE,
-        TOPIC_JOINT_STATES,
-        TOPIC_POLICY_SKIPPED,
-        TOPIC_POLICY_STATE,
-        TOPIC_TELEOP_ACTIVE,
-        TOPIC_VOXELS,
-        VOXEL_QOS,
-        declare_lab_config,
-        now_ns,
-        wait_for_clock,
-    )
+        self.factory = RclpyFactory()
+        self._lock = threading.Lock()
+        self._voxels = None  # newest PointCloud2
+        self._poses = StateHistory()  # TCP poses, matched to observations as training matches them
+        self._widths = StateHistory()  # gripper widths
+        self._voxel_error = ""  # voxel node status at ERROR level, if any
+        self._busy = False
+        self._cycle_lock = threading.Lock()  # the executor thread and the worker both start cycles
+        self._last_obs_stamp = None
+        self.skipped = collections.Counter()
+        self.published = 0
+        self.failures = 0
+        self.inference_s = collections.deque(maxlen=50)
+        self.obs_to_cmd_s = collections.deque(maxlen=50)
+        self.obs_age_s = collections.deque(maxlen=50)
 
-    class PolicyNode(Node):
-        def __init__(self):
-            super().__init__(NODE_NAME)
-            wait_for_clock(self)  # simulated time (the twin): nothing is timed before /clock
-            self.lab = declare_lab_config(self)
-            checkpoint = self.declare_parameter("checkpoint", "").value
-            device = self.declare_parameter("device", "cpu").value
-            precision = self.declare_parameter("precision", "auto").value
-            jit = self.declare_parameter("jit", True).value
-            compile_step = self.declare_parameter("compile", False).value
-            rate_hz = declare_number(self, "rate_hz", self.lab.observation_hz)
-            self.max_obs_age_ns = int(declare_number(self, "max_observation_age_s", 0.5) * 1e9)
-            self.max_state_offset_ns = int(declare_number(self, "max_state_offset_s", STATE_TOLERANCE_S) * 1e9)
-            seed = self.declare_parameter("seed", -1).value
-            n_steps = self.declare_parameter("n_action_steps", 0).value
-            execute_steps = self.declare_parameter("execute_steps", 0).value
-            threads = self.declare_parameter("torch_threads", 1).value
-            self._paused = "waiting for an enable (start_paused)" if self.declare_parameter(
-                "start_paused", False).value else ""  # why no chunks are published; "" = running
-            if not checkpoint:
-                raise CheckpointError("the 'checkpoint' parameter is required (an exported policy file, "
-                                      "e.g. -p checkpoint:=runs/pick/policy.pt)")
-            if threads > 0:
-                import torch
+        self.pub_chunk = self.create_publisher(MultiDOFJointTrajectory, TOPIC_COMMAND_CHUNK, RELIABLE_QOS)
+        self.pub_diag = self.create_publisher(DiagnosticArray, TOPIC_DIAGNOSTICS, RELIABLE_QOS)
+        self.pub_skipped = self.create_publisher(String, TOPIC_POLICY_SKIPPED, RELIABLE_QOS)
+        self.create_subscription(PointCloud2, TOPIC_VOXELS, self.on_voxels, VOXEL_QOS)
+        self.create_subscription(PoseStamped, TOPIC_EE_POSE, self.on_pose, RELIABLE_QOS)
+        self.create_subscription(JointState, TOPIC_JOINT_STATES, self.on_joints, RELIABLE_QOS)
+        self.create_subscription(DiagnosticArray, TOPIC_DIAGNOSTICS, self.on_diagnostics, RELIABLE_QOS)
+        self.pub_state = self.create_publisher(String, TOPIC_POLICY_STATE, LATCHED_QOS)
+        self.create_subscription(Bool, TOPIC_TELEOP_ACTIVE, self.on_teleop_active, LATCHED_QOS)
+        self.create_service(SetBool, SERVICE_POLICY_ENABLE, self.on_enable)
+        self.publish_state()
+        self.worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="policy")
+        self.create_timer(1.0 / rate_hz, self.watch_observations)
+        self.create_timer(1.0, self.publish_diagnostics)
 
-                torch.set_num_threads(int(threads))
-            t0 = time.perf_counter()
-            self.policy = load_inference_policy(Path(checkpoint), device=device, precision=precision, jit=jit,
-                                                compile=compile_step)
-            if self.policy.workspace != self.lab.workspace:
-                raise CheckpointError(f"{checkpoint}: trained for workspace {self.policy.workspace}, but lab.yaml "
-                                      f"has {self.lab.workspace}: the voxel grids would not match")
-            self.policy.warmup()
-            preset = self.policy.preset
-            self.n_action_steps = int(n_steps) or int(preset.n_action_steps)
-            if not 1 <= self.n_action_steps <= preset.horizon:
-                raise ValueError(f"n_action_steps must be within 1..{preset.horizon}, got {self.n_action_steps}")
-            self.dt_ns = round(preset.dt * 1e9)
-            self.answers = AnswerSchedule(execute_steps, self.n_action_steps, self.dt_ns)
-            self.rng = np.random.default_rng(None if seed < 0 else int(seed))
-            self.get_logger().info(
-                f"loaded {self.policy.name} policy '{preset.name}' from {checkpoint} on {device} ({precision}) "
-                f"and warmed up in {time.perf_counter() - t0:.1f} s; publishing {self.n_action_steps} of "
-                f"{preset.horizon} steps, dt {preset.dt} s, executing {self.answers.steps} before the next")
+    # --- inputs (cheap: callbacks never wait for inference) ---------------------------
+    def on_voxels(self, msg) -> None:
+        with self._cycle_lock:
+            previous = self._voxels
+            if self._busy and previous is not None and stamp_to_ns(previous.header.stamp) != self._last_obs_stamp:
+                self.skip("busy", "an observation was replaced by a newer one while the previous inference ran",
+                          stamp_to_ns(previous.header.stamp))
+            self._voxels = msg
+        self.start_cycle()
 
-            self.factory = RclpyFactory()
-            self._lock = threading.Lock()
-            self._voxels = None  # newest PointCloud2
-            self._poses = StateHistory()  # TCP poses, matched to observations as training matches them
-            self._widths = StateHistory()  # gripper widths
-            self._voxel_error = ""  # voxel node status at ERROR level, if any
-            self._busy = False
-            self._cycle_lock = threading.Lock()  # the executor thread and the worker both start cycles
-            self._last_obs_stamp = None
-            self.skipped = collections.Counter()
-            self.published = 0
-            self.failures = 0
-            self.inference_s = collections.deque(maxlen=50)
-            self.obs_to_cmd_s = collections.deque(maxlen=50)
-            self.obs_age_s = collections.deque(maxlen=50)
+    def on_pose(self, msg) -> None:
+        try:
+            pose = cm.pose_from_msg(msg)
+        except geometry.GeometryError as err:
+            self.get_logger().warning(f"ignoring invalid ee pose: {err}", throttle_duration_sec=5.0)
+            return
+        with self._lock:
+            self._poses.add(stamp_to_ns(msg.header.stamp), pose)
 
-            self.pub_chunk = self.create_publisher(MultiDOFJointTrajectory, TOPIC_COMMAND_CHUNK, RELIABLE_QOS)
-            self.pub_diag = self.create_publisher(DiagnosticArray, TOPIC_DIAGNOSTICS, RELIABLE_QOS)
-            self.pub_skipped = self.create_publisher(String, TOPIC_POLICY_SKIPPED, RELIABLE_QOS)
-            self.create_subscription(PointCloud2, TOPIC_VOXELS, self.on_voxels, VOXEL_QOS)
-            self.create_subscription(PoseStamped, TOPIC_EE_POSE, self.on_pose, RELIABLE_QOS)
-            self.create_subscription(JointState, TOPIC_JOINT_STATES, self.on_joints, RELIABLE_QOS)
-            self.create_subscription(DiagnosticArray, TOPIC_DIAGNOSTICS, self.on_diagnostics, RELIABLE_QOS)
-            self.pub_state = self.create_publisher(String, TOPIC_POLICY_STATE, LATCHED_QOS)
-            self.create_subscription(Bool, TOPIC_TELEOP_ACTIVE, self.on_teleop_active, LATCHED_QOS)
-            self.create_service(SetBool, SERVICE_POLICY_ENABLE, self.on_enable)
+    def on_joints(self, msg) -> None:
+        width = cm.gripper_width_from_joint_state(msg)
+        if width is not None and np.isfinite(width):
+            with self._lock:
+                self._widths.add(stamp_to_ns(msg.header.stamp), width)
+
+    def on_diagnostics(self, msg) -> None:
+        for status in msg.status:
+            if status.name.startswith("voxel"):
+                level = status.level[0] if isinstance(status.level, bytes) else int(status.level)
+                self._voxel_error = status.message if level >= cm.ERROR else ""
+
+    # --- the operator's gate -------------------------------------------------------------
+    def set_paused(self, reason: str) -> None:
+        if reason != self._paused:
+            self._paused = reason
+            if reason and self.chunking is not None:
+                self.chunking.reset()  # the operator has the arm: the next chunk starts afresh
+            self.get_logger().info(f"policy paused: {reason}" if reason else "policy running")
             self.publish_state()
-            self.worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="policy")
-            self.create_timer(1.0 / rate_hz, self.watch_observations)
-            self.create_timer(1.0, self.publish_diagnostics)
 
-        # --- inputs (cheap: callbacks never wait for inference) ---------------------------
-        def on_voxels(self, msg) -> None:
-            with self._cycle_lock:
-                previous = self._voxels
-                if self._busy and previous is not None and stamp_to_ns(previous.header.stamp) != self._last_obs_stamp:
-                    self.skip("busy", "an observation was replaced by a newer one while the previous inference ran",
-                              stamp_to_ns(previous.header.stamp))
-                self._voxels = msg
-            self.start_cycle()
+    def publish_state(self) -> None:
+        self.pub_state.publish(String(data=f"paused {self._paused}" if self._paused else "running"))
 
-        def on_pose(self, msg) -> None:
-            try:
-                pose = cm.pose_from_msg(msg)
-            except geometry.GeometryError as err:
-                self.get_logger().warning(f"ignoring invalid ee pose: {err}", throttle_duration_sec=5.0)
-                return
-            with self._lock:
-                self._poses.add(stamp_to_ns(msg.header.stamp), pose)
+    def on_enable(self, request, response):
+        self.set_paused("" if request.data else "by the operator")
+        response.success, response.message = True, "running" if not self._paused else "paused"
+        return response
 
-        def on_joints(self, msg) -> None:
-            width = cm.gripper_width_from_joint_state(msg)
-            if width is not None and np.isfinite(width):
-                with self._lock:
-                    self._widths.add(stamp_to_ns(msg.header.stamp), width)
+    def on_teleop_active(self, msg) -> None:
+        if msg.data and not self._paused:  # never resumes on its own: the operator enables again
+            self.set_paused("teleop takeover")
 
-        def on_diagnostics(self, msg) -> None:
-            for status in msg.status:
-                if status.name.startswith("voxel"):
-                    level = status.level[0] if isinstance(status.level, bytes) else int(status.level)
-                    self._voxel_error = status.message if level >= cm.ERROR else ""
+    # --- the 5 Hz cycle ------------------------------------------------------------------
+    def skip(self, reason: str, detail: str, stamp: int | None = None) -> None:
+        """Count and report a skip; with the observation's ``stamp``, announce that it gets no chunk."""
+        self.skipped[reason] += 1
+        self.get_logger().warning(f"skipping a cycle: {detail}", throttle_duration_sec=2.0)
+        if stamp is not None:
+            self.pub_skipped.publish(String(data=json.dumps({"stamp_ns": int(stamp), "reason": reason})))
 
-        # --- the operator's gate -------------------------------------------------------------
-        def set_paused(self, reason: str) -> None:
-            if reason != self._paused:
-                self._paused = reason
-                self.get_logger().info(f"policy paused: {reason}" if reason else "policy running")
-                self.publish_state()
+    def watch_observations(self) -> None:
+        msg = self._voxels
+        if msg is None:
+            return self.skip("no_observation", f"no {TOPIC_VOXELS} received yet")
+        age = now_ns(self) - stamp_to_ns(msg.header.stamp)
+        if age > self.max_obs_age_ns:
+            self.skip("stale_observation", f"newest voxel grid is {age / 1e6:.0f} ms old "
+                      f"(limit {self.max_obs_age_ns / 1e6:.0f} ms): a camera or the voxel node is down")
 
-        def publish_state(self) -> None:
-            self.pub_state.publish(String(data=f"paused {self._paused}" if self._paused else "running"))
-
-        def on_enable(self, request, response):
-            self.set_paused("" if request.data else "by the operator")
-            response.success, response.message = True, "running" if not self._paused else "paused"
-            return response
-
-        def on_teleop_active(self, msg) -> None:
-            if msg.data and not self._paused:  # never resumes on its own: the operator enables again
-                self.set_paused("teleop takeover")
-
-        # --- the 5 Hz cycle ------------------------------------------------------------------
-        def skip(self, reason: str, detail: str, stamp: int | None = None) -> None:
-            """Count and report a skip; with the observation's ``stamp``, announce that it gets no chunk."""
-            self.skipped[reason] += 1
-            self.get_logger().warning(f"skipping a cycle: {detail}", throttle_duration_sec=2.0)
-            if stamp is not None:
-                self.pub_skipped.publish(String(data=json.dumps({"stamp_ns": int(stamp), "reason": reason})))
-
-        def watch_observations(self) -> None:
+    def start_cycle(self) -> None:
+        """Hand the newest unused observation to the worker if it is idle and the inputs are fresh."""
+        with self._cycle_lock:
             msg = self._voxels
-            if msg is None:
-                return self.skip("no_observation", f"no {TOPIC_VOXELS} received yet")
-            age = now_ns(self) - stamp_to_ns(msg.header.stamp)
-            if age > self.max_obs_age_ns:
-                self.skip("stale_observation", f"newest voxel grid is {age / 1e6:.0f} ms old "
-                          f"(limit {self.max_obs_age_ns / 1e6:.0f} ms): a camera or the voxel node is down")
-
-        def start_cycle(self) -> None:
-            """Hand the newest unused observation to the worker if it is idle and the inputs are fresh."""
-            with self._cycle_lock:
-                msg = self._voxels
-                if self._busy or msg is None:
-                    return
-                stamp = stamp_to_ns(msg.header.stamp)
-                if stamp == self._last_obs_stamp:
-                    return  # answered already
-                self._last_obs_stamp = stamp  # whatever happens next, this observation is used up
-                if self._paused:
-                    self.skipped["paused"] += 1
-                    self.pub_skipped.publish(String(data=json.dumps({"stamp_ns": int(stamp), "reason": "paused"})))
-                    return
-                if not self.answers.due(stamp):
-                    # the last chunk is still being executed: no warning, this is the schedule
-                    self.skipped["executing"] += 1
-                    self.pub_skipped.publish(String(data=json.dumps({"stamp_ns": int(stamp), "reason": "executing"})))
-                    return
-                age = now_ns(self) - stamp
-                if age > self.max_obs_age_ns:
-                    return self.skip("stale_observation", f"a voxel grid {age / 1e6:.0f} ms old arrived "
-                                     f"(limit {self.max_obs_age_ns / 1e6:.0f} ms)", stamp)
-                if self._voxel_error:
-                    return self.skip("voxel_error", f"voxel node reports: {self._voxel_error}", stamp)
-                with self._lock:
-                    pose = self._poses.nearest(stamp, self.max_state_offset_ns)
-                    width = self._widths.nearest(stamp, self.max_state_offset_ns)
-                if pose is None or width is None:  # no guessed state: training would have dropped this step too
-                    missing = TOPIC_EE_POSE if pose is None else f"gripper width on {TOPIC_JOINT_STATES}"
-                    return self.skip("no_robot_state", f"no {missing} within "
-                                     f"{self.max_state_offset_ns / 1e6:.0f} ms of the observation", stamp)
-                self._busy = True
-                self.answers.answer(stamp)
-                self.obs_age_s.append(age / 1e9)
-                self.worker.submit(self.infer, msg, stamp, pose, float(width))
-
-        def infer(self, msg, stamp: int, pose, width: float) -> None:
-            try:
-                t0 = time.perf_counter()
-                grid = voxel_msg_to_grid(msg, self.policy.workspace.resolution)
-                ee = ee_input(pose, width)
-                actions = self.policy.predict(grid, ee, seed=int(self.rng.integers(2**31)))
-                inference = time.perf_counter() - t0
-                chunk = chunk_from_actions(actions[: self.n_action_steps], stamp, self.dt_ns)
-                if self._paused:  # paused while it ran: the operator has the arm now
-                    self.skipped["paused"] += 1
-                    self.pub_skipped.publish(String(data=json.dumps({"stamp_ns": int(stamp), "reason": "paused"})))
-                    return
-                self.pub_chunk.publish(chunk_to_msg(chunk, self.factory, self.lab.base_frame))
-                with self._lock:  # the diagnostics read both as a pair
-                    self.inference_s.append(inference)
-                    self.obs_to_cmd_s.append((now_ns(self) - stamp) / 1e9)
-                    self.published += 1
-            except Exception as err:  # noqa: BLE001 - bad input or a bad prediction: skip it, say why, keep serving
-                self.failures += 1
-                self.get_logger().error(f"inference failed: {type(err).__name__}: {err}",
-                                        throttle_duration_sec=2.0)
-                self.pub_skipped.publish(String(data=json.dumps({"stamp_ns": int(stamp), "reason": "failure"})))
-            finally:
-                with self._cycle_lock:
-                    self._busy = False
-            self.start_cycle()  # an observation that came in meanwhile
-
-        def publish_diagnostics(self) -> None:
-            def last_ms(values):
-                return round(values[-1] * 1000, 1) if values else -1.0
-
-            with self._lock:
-                inference, obs_to_cmd = last_ms(self.inference_s), last_ms(self.obs_to_cmd_s)
-                p50, p95 = percentiles_ms(self.obs_to_cmd_s)
-            values = {
-                "inference_ms": inference,
-                "observation_age_ms": last_ms(self.obs_age_s),
-                "obs_to_cmd_ms": obs_to_cmd,
-                "obs_to_cmd_p50_ms": -1.0 if p50 is None else p50,
-                "obs_to_cmd_p95_ms": -1.0 if p95 is None else p95,
-                "skipped_cycles": sum(self.skipped.values()),
-                "published_chunks": self.published,
-                "failures": self.failures,
-                "state": f"paused {self._paused}" if self._paused else "running",
-                **{f"skipped_{k}": v for k, v in self.skipped.items()},
-            }
-            stale = self.skipped["stale_observation"] + self.skipped["no_observation"]
-            level = cm.WARN if (self.failures or stale) and not self.obs_to_cmd_s else cm.OK
-            message = f"{self.published} chunks published"
+            if self._busy or msg is None:
+                return
+            stamp = stamp_to_ns(msg.header.stamp)
+            if stamp == self._last_obs_stamp:
+                return  # answered already
+            self._last_obs_stamp = stamp  # whatever happens next, this observation is used up
             if self._paused:
-                message = f"paused ({self._paused}), no chunks; {message}"
-            self.pub_diag.publish(cm.diagnostic_array(self.factory, now_ns(self), NODE_NAME, self.policy.name,
-                                                      level, message, values))
+                self.skipped["paused"] += 1
+                self.pub_skipped.publish(String(data=json.dumps({"stamp_ns": int(stamp), "reason": "paused"})))
+                return
+            if not self.answers.due(stamp):
+                # the last chunk is still being executed: no warning, this is the schedule
+                self.skipped["executing"] += 1
+                self.pub_skipped.publish(String(data=json.dumps({"stamp_ns": int(stamp), "reason": "executing"})))
+                return
+            age = now_ns(self) - stamp
+            if age > self.max_obs_age_ns:
+                return self.skip("stale_observation", f"a voxel grid {age / 1e6:.0f} ms old arrived "
+                                 f"(limit {self.max_obs_age_ns / 1e6:.0f} ms)", stamp)
+            if self._voxel_error:
+                return self.skip("voxel_error", f"voxel node reports: {self._voxel_error}", stamp)
+            with self._lock:
+                pose = self._poses.nearest(stamp, self.max_state_offset_ns)
+                width = self._widths.nearest(stamp, self.max_state_offset_ns)
+            if pose is None or width is None:  # no guessed state: training would have dropped this step too
+                missing = TOPIC_EE_POSE if pose is None else f"gripper width on {TOPIC_JOINT_STATES}"
+                return self.skip("no_robot_state", f"no {missing} within "
+                                 f"{self.max_state_offset_ns / 1e6:.0f} ms of the observation", stamp)
+            self._busy = True
+            self.answers.answer(stamp)
+            self.obs_age_s.append(age / 1e9)
+            self.worker.submit(self.infer, msg, stamp, pose, float(width))
 
-        def shutdown(self) -> None:
-            self.worker.shutdown(wait=True, cancel_futures=True)
+    def infer(self, msg, stamp: int, pose, width: float) -> None:
+        try:
+            t0 = time.perf_counter()
+            grid = voxel_msg_to_grid(msg, self.policy.workspace.resolution)
+            ee = ee_input(pose, width)
+            seed = int(self.rng.integers(2**31))
+            if self.chunking is None:
+                actions = self.policy.predict(grid, ee, seed=seed)
+            else:
+                actions = self.policy.predict(grid, ee, seed=seed, guide=self.chunking.guide(stamp, ee))
+                self.chunking.remember(stamp, actions)
+            inference = time.perf_counter() - t0
+            chunk = chunk_from_actions(actions[: self.n_action_steps], stamp, self.dt_ns)
+            if self._paused:  # paused while it ran: the operator has the arm now
+                self.skipped["paused"] += 1
+                self.pub_skipped.publish(String(data=json.dumps({"stamp_ns": int(stamp), "reason": "paused"})))
+                return
+            self.pub_chunk.publish(chunk_to_msg(chunk, self.factory, self.lab.base_frame))
+            with self._lock:  # the diagnostics read both as a pair
+                self.inference_s.append(inference)
+                self.obs_to_cmd_s.append((now_ns(self) - stamp) / 1e9)
+                self.published += 1
+        except Exception as err:  # noqa: BLE001 - bad input or a bad prediction: skip it, say why, keep serving
+            self.failures += 1
+            self.get_logger().error(f"inference failed: {type(err).__name__}: {err}",
+                                    throttle_duration_sec=2.0)
+            self.pub_skipped.publish(String(data=json.dumps({"stamp_ns": int(stamp), "reason": "failure"})))
+        finally:
+            with self._cycle_lock:
+                self._busy = False
+        self.start_cycle()  # an observation that came in meanwhile
 
-    return PolicyNode()
+    def publish_diagnostics(self) -> None:
+        def last_ms(values):
+            return round(values[-1] * 1000, 1) if values else -1.0
+
+        with self._lock:
+            inference, obs_to_cmd = last_ms(self.inference_s), last_ms(self.obs_to_cmd_s)
+            p50, p95 = percentiles_ms(self.obs_to_cmd_s)
+        values = {
+            "inference_ms": inference,
+            "observation_age_ms": last_ms(self.obs_age_s),
+            "obs_to_cmd_ms": obs_to_cmd,
+            "obs_to_cmd_p50_ms": -1.0 if p50 is None else p50,
+            "obs_to_cmd_p95_ms": -1.0 if p95 is None else p95,
+            "skipped_cycles": sum(self.skipped.values()),
+            "published_chunks": self.published,
+            "failures": self.failures,
+            "state": f"paused {self._paused}" if self._paused else "running",
+            **{f"skipped_{k}": v for k, v in self.skipped.items()},
+        }
+        stale = self.skipped["stale_observation"] + self.skipped["no_observation"]
+        level = cm.WARN if (self.failures or stale) and not self.obs_to_cmd_s else cm.OK
+        message = f"{self.published} chunks published"
+        if self._paused:
+            message = f"paused ({self._paused}), no chunks; {message}"
+        self.pub_diag.publish(cm.diagnostic_array(self.factory, now_ns(self), NODE_NAME, self.policy.name,
+                                                  level, message, values))
+
+    def shutdown(self) -> None:
+        self.worker.shutdown(wait=True, cancel_futures=True)
+
+
+def startup_errors() -> tuple[type[BaseException], ...]:
+    """The errors that end a start-up with a one-line message (exit 1), not a traceback."""
+    from equidiff_core.config import ConfigError
+    from equidiff_core.inference import CheckpointError
+
+    return (CheckpointError, ConfigError, ValueError)
 
 
 def main(args=None) -> int:
-    def startup_errors():
-        from equidiff_core.config import ConfigError
-        from equidiff_core.inference import CheckpointError
-
-        return (CheckpointError, ConfigError, ValueError)
-
-    return run_node(NODE_NAME, USAGE, build_node, startup_errors, args)
+    return run_node(NODE_NAME, USAGE, PolicyNode, startup_errors, args)
 
 
 if __name__ == "__main__":

@@ -26,6 +26,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from .. import geometry
 from ..chunk import ChunkError, PoseChunk
@@ -191,7 +192,7 @@ class Controller:
                 live = self.scheduler.live_steps(chunk, now)
                 state = self._state
                 check_chunk(live, None if state is None else state.ee_pose, self.config.safety)
-                current = self._current_setpoint()
+                current = self._current_setpoint(now)
                 self.scheduler.schedule(live, now, current)
                 self._valid_until_ns = max(now, self.scheduler.end_ns() or now)
                 self._holding = False
@@ -220,12 +221,21 @@ class Controller:
         self.log.warning(f"rejected chunk: {text}; holding the current trajectory")
 
     # --- the tick ------------------------------------------------------------------------
-    def _current_setpoint(self) -> Setpoint:
+    def _current_setpoint(self, now_ns: int) -> Setpoint:
+        """Where the command is at ``now_ns``: the last one sent, moved on by its twist for the
+        time since its tick (at most a period). A new trajectory starting from the last command
+        itself stood still for one tick at every chunk switch."""
         sp = self._setpoint
         if sp is None:
             pose = self._state.ee_pose if self._state is not None else self.robot.read_state().ee_pose
             return Setpoint(pose, np.zeros(3), np.zeros(3), float("nan"), False)
-        return Setpoint(sp.pose, sp.linear_velocity, sp.angular_velocity, float("nan"), not self._holding)
+        pose = sp.pose
+        if not self._holding and self._last_tick_ns is not None:
+            elapsed = float(np.clip((now_ns - self._last_tick_ns) / 1e9, 0.0, 1.0 / self.config.control_hz))
+            pose = geometry.make_pose(
+                Rotation.from_rotvec(sp.angular_velocity * elapsed).as_matrix() @ sp.pose[:3, :3],
+                sp.pose[:3, 3] + sp.linear_velocity * elapsed)
+        return Setpoint(pose, sp.linear_velocity, sp.angular_velocity, float("nan"), not self._holding)
 
     def _reset_to_measured(self) -> None:
         state = self._read_state()

@@ -29,15 +29,40 @@ def make_inference_scheduler(preset: PolicyPreset) -> DDIMScheduler:
 @torch.no_grad()
 def ddim_sample(denoise, cond, shape: tuple[int, int, int], scheduler: DDIMScheduler, *,
                 generator: torch.Generator | None = None, noise: torch.Tensor | None = None,
-                device="cpu") -> torch.Tensor:
-    """Run the reverse process from ``noise`` (or fresh Gaussian noise) with ``denoise(x, t, cond)``."""
+                device="cpu", guide: tuple[torch.Tensor, torch.Tensor] | None = None) -> torch.Tensor:
+    """Run the reverse process from ``noise`` (or fresh Gaussian noise) with ``denoise(x, t, cond)``.
+
+    ``guide = (target (B, T, D), weights (T,) in [0, 1])`` inpaints: at every step the predicted
+    clean sample is pulled towards ``target`` by each step's weight (1: replaced by it, 0: left
+    free) and the noise is re-derived from it, so the DDIM update continues from the guided
+    estimate (real-time chunking, ``chunk.RealTimeChunking``). The weights scale whole steps,
+    never single dimensions, so an equivariant denoiser stays equivariant. None: plain DDIM,
+    the same operations as without the argument."""
     x = noise.to(device=device, dtype=torch.float32) if noise is not None else torch.randn(
         shape, generator=generator, device=device, dtype=torch.float32)
     B = x.shape[0]
+    if guide is not None:
+        target = guide[0].to(device=device, dtype=torch.float32)
+        weights = guide[1].to(device=device, dtype=torch.float32)[None, :, None]
+        if target.shape != x.shape or weights.shape[1] != x.shape[1]:
+            raise ValueError(f"guide target {tuple(target.shape)} / weights {tuple(guide[1].shape)} do not match "
+                             f"the sample {tuple(x.shape)}")
     for t in scheduler.timesteps:
         eps = denoise(x, t.to(device).expand(B), cond).float()
+        if guide is not None:
+            eps = _guided_noise(scheduler, t, x, eps, target, weights)
         x = scheduler.step(eps, t, x).prev_sample
     return x
+
+
+def _guided_noise(scheduler: DDIMScheduler, t, x: torch.Tensor, eps: torch.Tensor, target: torch.Tensor,
+                  weights: torch.Tensor) -> torch.Tensor:
+    """The noise that makes epsilon-DDIM's clean estimate at ``t`` the guided one (x0 + w (target - x0))."""
+    alpha = scheduler.alphas_cumprod[int(t)].to(x.device, torch.float32)
+    a, b = alpha.sqrt(), (1 - alpha).sqrt()
+    x0 = (x - b * eps) / a
+    x0 = x0 + weights * (target - x0)
+    return (x - a * x0) / b
 
 
 class ActionCodec:

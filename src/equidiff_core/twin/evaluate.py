@@ -99,12 +99,16 @@ class _Episode:
         self.hold = SuccessHold(hold_s)
         self.stats = None  # franka_node's Controller's stats once the episode has run
 
-    def observe(self, stamp_ns: int) -> np.ndarray:
-        """The policy's actions for an observation at ``stamp_ns`` (the current sim state)."""
+    def observe(self, stamp_ns: int, chunking=None) -> np.ndarray:
+        """The policy's actions for an observation at ``stamp_ns`` (the current sim state);
+        ``chunking``: real-time chunking's state (``chunk.RealTimeChunking``), or None."""
         sim = self.sim
         grid = self.rec.voxel_grid(stamp_ns)
         ee = ee_input(sim.tcp_pose(), sim.gripper_width())  # the state at the stamp itself: no matching needed
-        actions = self.policy.predict(grid, ee, seed=self.seed * 1000 + self.observations)
+        guide = None if chunking is None else chunking.guide(stamp_ns, ee)
+        seed = self.seed * 1000 + self.observations
+        actions = (self.policy.predict(grid, ee, seed=seed) if guide is None
+                   else self.policy.predict(grid, ee, seed=seed, guide=guide))
         self.observations += 1
         return actions
 
@@ -117,17 +121,28 @@ class _Episode:
 
 def evaluate_policy(policy, cfg: TwinConfig, lab: LabConfig, seeds: Iterable[int], max_duration_s: float = 30.0,
                     log: Callable[[str], None] = print, recorder=None, latency_s: float = 0.1,
-                    execute_steps: int = 0) -> list[EvalEpisode]:
+                    execute_steps: int = 0, publish_steps: int = 0, rtc: bool = False,
+                    probe=None) -> list[EvalEpisode]:
     """Roll ``policy`` (an ``inference.InferencePolicy``) out from each seed's scene; returns per-episode results.
 
     Each answered observation's chunk takes effect ``latency_s`` after it (default 0.1 s, the
     twin's default budget); the policy answers every ``execute_steps``-th observation (0: every
-    ``n_action_steps``-th, policy_node's default); see the module doc. The policy's sampling
-    seed is ``seed * 1000 + observation index``."""
+    ``n_action_steps``-th, policy_node's default) and publishes ``publish_steps`` steps of each
+    chunk (0: ``n_action_steps``); with ``rtc`` each chunk is denoised towards the previous one
+    (``chunk.RealTimeChunking``, its delay from ``latency_s``), as policy_node's ``rtc``; see the
+    module doc. The policy's sampling seed is ``seed * 1000 + observation index``. ``probe``
+    (e.g. ``twin.chunking.ChunkingProbe``) sees each episode's chunks as franka_node's
+    Controller receives them and its every command."""
     from .demos import DirectRecorder
     from .expert import tcp_pose
 
-    execute_steps = AnswerSchedule(execute_steps, int(policy.preset.n_action_steps), 1).steps  # checked up front
+    preset = policy.preset
+    execute_steps = AnswerSchedule(execute_steps, int(preset.n_action_steps), 1).steps  # checked up front
+    if publish_steps:
+        available = preset.horizon - preset.n_obs_steps + 1  # the predicted steps from the observation on
+        if not 1 <= publish_steps <= available:
+            raise ValueError(f"publish_steps must be within 1..{available}, got {publish_steps}")
+    publish_steps = int(publish_steps) or int(preset.n_action_steps)
     if not (math.isfinite(latency_s) and latency_s >= 0):
         raise ValueError(f"latency_s must be finite and >= 0, got {latency_s}")
     control = _control_config()
@@ -140,7 +155,12 @@ def evaluate_policy(policy, cfg: TwinConfig, lab: LabConfig, seeds: Iterable[int
             sim.command(tcp_pose(ex.ready_position, 0.0), ex.open_width)
             sim.step(1500)
             episode = _Episode(policy, rec, seed, cfg.success.hold_s)
-            _run(episode, policy, lab, control, max_duration_s, latency_s, execute_steps, ex.open_width)
+            if probe is not None:
+                probe.start_episode(seed)
+            _run(episode, policy, lab, control, max_duration_s, latency_s, execute_steps, ex.open_width,
+                 publish_steps, rtc, probe)
+            if probe is not None:
+                probe.end_episode()
             progress, t = episode.progress, sim.time - episode.t0
             results.append(EvalEpisode(seed, episode.ok, round(t, 2), episode.observations,
                                        round(float(np.degrees(poses.block_yaw)), 1), progress.reached,
@@ -238,7 +258,7 @@ class _DirectArm(Robot):
 
 
 def _run(episode: _Episode, policy, lab: LabConfig, control, max_duration_s: float, latency_s: float,
-         execute_steps: int, open_width: float) -> None:
+         execute_steps: int, open_width: float, publish_steps: int, rtc: bool, probe) -> None:
     """One episode as policy_node + franka_node run it on simulated time (1 ms sim ticks).
 
     Four event streams on one integer-millisecond clock from the episode's start: observations
@@ -246,7 +266,7 @@ def _run(episode: _Episode, policy, lab: LabConfig, control, max_duration_s: flo
     answered); each answered observation's chunk reaching franka_node's ``Controller`` latency_s
     later (several can be in flight when latency_s > the answering period); the controller's
     ticks at control_hz; and its newest target sent to the sim at COMMAND_HZ."""
-    from ..chunk import chunk_from_actions
+    from ..chunk import RealTimeChunking, chunk_from_actions
     from ..control import Controller
 
     sim = episode.sim
@@ -257,7 +277,9 @@ def _run(episode: _Episode, policy, lab: LabConfig, control, max_duration_s: flo
     cmd_ms = max(tick_ms, round(1000 / COMMAND_HZ))
     max_ms = round(max_duration_s * 1000)
     clock, arm = _SimClock(), _DirectArm(sim, open_width)
-    controller = Controller(arm, lab.safety_box, control, clock=clock, logger=_QUIET)
+    controller = Controller(arm, lab.safety_box, control, clock=clock, logger=_QUIET,
+                            on_command=None if probe is None else probe.command)
+    chunking = RealTimeChunking(RealTimeChunking.delay_for(latency_s, dt_ms / 1000), dt_ms * 1_000_000) if rtc else None
     controller.start(home=False, thread=False)  # the arm is at the ready pose: hold it, as franka_node does
     pending: deque = deque()  # (ms at which it arrives, PoseChunk), in order
     answers = AnswerSchedule(execute_steps, n_exec, dt_ms * 1_000_000)  # policy_node's rule
@@ -268,13 +290,19 @@ def _run(episode: _Episode, policy, lab: LabConfig, control, max_duration_s: flo
             if (now > 0 and episode.check()) or now >= max_ms:
                 break
             if answers.due(now * 1_000_000):
-                answers.answer(now * 1_000_000)
-                chunk = chunk_from_actions(episode.observe(now * 1_000_000)[:n_exec], now * 1_000_000,
-                                           dt_ms * 1_000_000)
+                stamp = now * 1_000_000
+                answers.answer(stamp)
+                actions = episode.observe(stamp, chunking)
+                if chunking is not None:
+                    chunking.remember(stamp, actions)
+                chunk = chunk_from_actions(actions[:publish_steps], stamp, dt_ms * 1_000_000)
                 pending.append((now + latency_ms, chunk))
             next_obs += dt_ms
         while pending and pending[0][0] <= now:  # a chunk arrives: franka_node's subscription callback
-            controller.submit(pending.popleft()[1])
+            chunk = pending.popleft()[1]
+            accepted = controller.submit(chunk)
+            if probe is not None:
+                probe.chunk(clock.now_ns(), chunk, accepted)
         if now >= next_tick:
             controller.tick()
             next_tick += tick_ms

@@ -61,6 +61,7 @@ def run(args) -> int:
     from equidiff_core.config import Workspace
     from equidiff_core.inference import (
         CheckpointError,
+        check_device,
         export_policy,
         load_inference_policy,
     )
@@ -73,6 +74,11 @@ def run(args) -> int:
         torch.set_num_threads(args.threads)
     device = torch.device("cuda" if args.device == "auto" and torch.cuda.is_available() else
                           ("cpu" if args.device == "auto" else args.device))
+    try:
+        check_device(str(device))
+    except ValueError as err:
+        print(f"equidiff bench policy: {err}", file=sys.stderr)
+        return 2
     precision = args.precision
     if precision == "auto":
         from equidiff_core.machine import cpu_has_native_bf16

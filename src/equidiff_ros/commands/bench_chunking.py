@@ -1,0 +1,112 @@
+"""`equidiff bench chunking`: replace vs execution horizon vs real-time chunking, by latency, in the twin.
+
+    equidiff bench chunking                                  # shipped checkpoint, 4 seeds, 20 s episodes
+    equidiff bench chunking --seeds 1 --duration 2 --latencies 0 400 --checkpoint stand-in.pt
+
+The in-process evaluation (``twin.evaluate.evaluate_policy``: the twin's scenes, cameras,
+voxeliser, franka_node's own Controller, on simulated time, latency a parameter) rolls the same
+seeds out under each execution mode and latency L:
+
+* ``replace``: a chunk for every observation (policy_node ``execute_steps:=1``), each replacing
+  the rest of the previous one;
+* ``horizon``: ``--execute-steps`` k steps of each chunk run before the next observation is
+  answered, and each chunk carries k + ceil(L/dt) + 1 steps so it lasts until the next one
+  arrives (policy_node ``execute_steps:=k latency_s:=L``);
+* ``rtc``: the horizon's schedule, and each chunk denoised towards the previous one (hard on the
+  steps due before it arrives, decaying over the rest of the overlap; policy_node ``rtc:=true``).
+
+Prints one JSON line with ``<mode>_<L>ms_success`` (fraction of episodes),
+``_boundary_dv_p95_mps`` (velocity change of the command at chunk switches, p95),
+``_jerk_p95_mps3`` (commanded jerk, p95), ``_mode_switch_rate`` (consecutive chunks whose
+remaining steps lie more than 3 cm apart) and ``_mode_switches`` for every mode and latency
+(definitions: ``twin.chunking``), with the seeds, episode length, k and wall time.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+MODES = ("replace", "horizon", "rtc")
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.epilog = __doc__.split("\n", 1)[1]
+    parser.formatter_class = argparse.RawDescriptionHelpFormatter
+    parser.add_argument("--checkpoint", type=Path, default=None, help="policy.pt (default: the shipped checkpoint)")
+    parser.add_argument("--seeds", type=int, default=4, help="episodes per mode and latency (same scenes for all)")
+    parser.add_argument("--seed", type=int, default=100_000, help="first scene seed (twin run's)")
+    parser.add_argument("--duration", type=float, default=20.0, help="sim seconds per episode")
+    parser.add_argument("--latencies", type=float, nargs="+", default=(0.0, 100.0, 200.0, 400.0), metavar="MS")
+    parser.add_argument("--modes", nargs="+", choices=MODES, default=MODES)
+    parser.add_argument("--execute-steps", type=int, default=0,
+                        help="k for horizon and rtc (0: n_action_steps, policy_node's default)")
+    parser.add_argument("--device", default="cpu", help="policy device: cpu | cuda | auto")
+    parser.add_argument("--threads", type=int, default=1,
+                        help="torch intra-op threads (default 1, policy_node's torch_threads: on a shared CPU more "
+                             "threads spin against each other; 0: torch's default)")
+    parser.add_argument("--lab-config", type=Path, default=None)
+    parser.add_argument("--twin-config", type=Path, default=None)
+
+
+def run(args: argparse.Namespace) -> int:
+    from equidiff_core.chunk import AnswerSchedule, steps_to_publish
+    from equidiff_core.config import default_config_dir, load_lab_config
+    from equidiff_core.inference import load_inference_policy
+    from equidiff_core.twin.chunking import ChunkingProbe
+    from equidiff_core.twin.config import load_twin_config
+    from equidiff_core.twin.demos import DirectRecorder
+    from equidiff_core.twin.evaluate import evaluate_policy
+    from equidiff_ros.commands.twin_run import SHIPPED_CHECKPOINT
+
+    if args.seeds < 1 or args.duration <= 0 or any(ms < 0 for ms in args.latencies):
+        raise SystemExit("equidiff bench chunking: need --seeds >= 1, --duration > 0 and latencies >= 0")
+    checkpoint = args.checkpoint or SHIPPED_CHECKPOINT
+    if not checkpoint.is_file():
+        raise SystemExit(f"no checkpoint at {checkpoint}")
+    if args.threads > 0:
+        import torch
+
+        torch.set_num_threads(args.threads)
+    lab = load_lab_config(args.lab_config or default_config_dir() / "lab.yaml")
+    cfg = load_twin_config(args.twin_config)
+    policy = load_inference_policy(checkpoint, device=args.device)
+    preset = policy.preset
+    try:
+        k = AnswerSchedule(args.execute_steps, preset.n_action_steps, 1).steps
+    except ValueError as err:
+        raise SystemExit(f"equidiff bench chunking: {err}") from err
+    available = preset.horizon - preset.n_obs_steps + 1
+    seeds = list(range(args.seed, args.seed + args.seeds))
+    result: dict = {}
+    t0 = time.monotonic()
+    rec = DirectRecorder(cfg, lab)
+    try:
+        policy.warmup()
+        for latency_ms in args.latencies:
+            for mode in args.modes:
+                label = f"{mode}_{latency_ms:g}ms"
+                if mode == "replace":
+                    schedule = {"execute_steps": 1, "publish_steps": 0, "rtc": False}
+                else:
+                    schedule = {"execute_steps": k, "rtc": mode == "rtc",
+                                "publish_steps": steps_to_publish(k, latency_ms / 1000, preset.dt, available)}
+                probe = ChunkingProbe()
+                episodes = evaluate_policy(policy, cfg, lab, seeds, args.duration, recorder=rec,
+                                           latency_s=latency_ms / 1000, probe=probe,
+                                           log=lambda s, w=label: print(f"[{w}] {s}", flush=True), **schedule)
+                result[f"{label}_success"] = round(sum(e.success for e in episodes) / len(episodes), 3)
+                result[f"{label}_lifted"] = round(sum(e.lifted for e in episodes) / len(episodes), 3)
+                result.update({f"{label}_{key}": value for key, value in probe.summary().items()})
+                result[f"{label}_publish_steps"] = schedule["publish_steps"] or preset.n_action_steps
+    finally:
+        rec.close()
+    from equidiff_core.machine import cpu_model
+
+    result.update({"execute_steps": k, "seeds": seeds, "episode_s": args.duration,
+                   "latencies_ms": list(args.latencies), "checkpoint": str(checkpoint), "preset": preset.name,
+                   "cpu": cpu_model(), "wall_s": round(time.monotonic() - t0, 1)})
+    print(json.dumps(result), flush=True)
+    return 0
