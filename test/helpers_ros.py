@@ -8,9 +8,12 @@ import subprocess
 def spawn_node(module: str, *params: str) -> subprocess.Popen:
     """The node ``module`` started the project's one way (``processes.start_node``), with
     ``k:=v`` parameters and its output captured."""
+    import yaml
+
     from equidiff_core.twin.processes import start_node
 
-    values = dict(p.split(":=", 1) for p in params)
+    # ROS reads a -p value as YAML: read it the same way, so start_node gets the typed value
+    values = {key: yaml.safe_load(text) if text else "" for key, text in (p.split(":=", 1) for p in params)}
     return start_node(module, values, env=dict(os.environ, OMP_NUM_THREADS="1"), capture=True)
 
 

@@ -414,7 +414,7 @@ class Controller:
                               for a, R in zip(s, rotations)])
             times = now + (s * duration * 1e9).astype(np.int64)
             chunk = PoseChunk(now, times, poses, np.zeros(len(s)))  # widths unused: no gripper command while homing
-            self.scheduler.schedule(chunk, now, self._current_setpoint())
+            self.scheduler.schedule(chunk, now, self._current_setpoint(now))
             self._valid_until_ns = int(times[-1])
             self._homing_until_ns = int(times[-1])
             self._homing = True
