@@ -77,7 +77,8 @@ def spin_until_signal(nodes, multithreaded: bool = False) -> None:
             executor.spin_once(timeout_sec=0.1)
             if job_gone():
                 names = ", ".join(n.get_name() for n in nodes)
-                print(f"{names}: the job that started this process is gone; shutting down", file=sys.stderr)
+                them = "this node" if len(nodes) == 1 else "these nodes"
+                print(f"{names}: the job that started {them} is gone; shutting down", file=sys.stderr)
                 break
     finally:
         executor.shutdown(timeout_sec=1.0)  # first: no callback may still run while the nodes go
