@@ -208,6 +208,11 @@ def test_a_hung_policy_ends_its_episode_as_stalled_naming_it_and_the_job_goes_on
         assert not stalled.success
         episode = read_episode(Path(stalled.bag))
         assert episode.meta.success is False and "stalled" in (episode.meta.notes or "")
+        # "once the policy answers again": SIGCONT'ed, it first works off what queued up while it
+        # was stopped; the next episode starts once it answers (its chunks arrive, gate closed)
+        seen = stack.sup.policy_chunks_seen
+        stack.sup.wait_for(lambda: stack.sup.policy_chunks_seen > seen + 2, 120.0, "policy_node answering again",
+                           stack.check)
         after = run_policy_episode(stack, 2, 4.0)
         assert not after.stalled and after.chunks >= 2 and after.dropped_cycles == 0
 
