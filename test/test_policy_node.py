@@ -76,6 +76,13 @@ def test_bad_checkpoint_is_a_clear_error_at_start(ros_domain, tmp_path, checkpoi
     assert expected in capsys.readouterr().err
 
 
+
+def block_grid(ws) -> np.ndarray:
+    """A voxel grid with one block in it, what the tests feed policy_node as /voxels."""
+    grid = np.zeros((4, ws.resolution, ws.resolution, ws.resolution), np.uint8)
+    grid[:, 20:26, 30:36, 2:8] = 200
+    return grid
+
 @pytest.mark.ros
 @pytest.mark.slow
 def test_policy_closes_the_loop_and_skips_stale_observations(ros_domain, checkpoint, tmp_path):
@@ -85,8 +92,7 @@ def test_policy_closes_the_loop_and_skips_stale_observations(ros_domain, checkpo
 
     lab = load_lab_config(LAB_PATH)
     ws = lab.workspace
-    grid = np.zeros((4, ws.resolution, ws.resolution, ws.resolution), np.uint8)
-    grid[:, 20:26, 30:36, 2:8] = 200
+    grid = block_grid(ws)
     franka = policy = client = None
     stop_voxels = threading.Event()
     stamps: list[int] = []
@@ -181,8 +187,7 @@ def test_execution_horizon_covers_the_latency_and_rtc_joins_the_previous_chunk(r
 
     lab = load_lab_config(LAB_PATH)
     ws = lab.workspace
-    grid = np.zeros((4, ws.resolution, ws.resolution, ws.resolution), np.uint8)
-    grid[:, 20:26, 30:36, 2:8] = 200
+    grid = block_grid(ws)
     franka = policy = client = None
     stop_voxels = threading.Event()
     chunks: dict[int, object] = {}

@@ -26,7 +26,6 @@ from ..control import messages as cm
 from ..episode import run_episode
 from ..pointcloud import grid_to_voxel_msg
 from ..recording import EpisodeWriter, next_episode_path
-from ..robots.base import ARM_JOINT_NAMES, FINGER_JOINT_NAMES
 from ..rosmsg import rosbags_factory
 from ..topics import (
     TOPIC_COMMAND_CHUNK,
@@ -144,14 +143,10 @@ class DirectWorld:
         """Write the messages due at this instant, then advance 1 ms."""
 
         sim, f, frame, t_ns = self.sim, self.rec.factory, self.lab.base_frame, self.stamp_ns()
-        if self.ms % self.state_every == 0:
-            w = sim.gripper_width()
-            self.writer.write(TOPIC_EE_POSE, cm.pose_stamped(f, sim.tcp_pose(), t_ns, frame), t_ns)
-            js = f.make("sensor_msgs/msg/JointState", header=f.header(t_ns, ""),
-                        name=[*ARM_JOINT_NAMES, *FINGER_JOINT_NAMES],
-                        position=f.float64_array([*map(float, sim.joint_positions()), w / 2, w / 2]),
-                        velocity=f.float64_array([0.0] * 9), effort=f.float64_array([]))
-            self.writer.write(TOPIC_JOINT_STATES, js, t_ns)
+        if self.ms % self.state_every == 0:  # the messages franka_node publishes
+            state = sim.robot_state(t_ns)
+            self.writer.write(TOPIC_EE_POSE, cm.pose_stamped(f, state.ee_pose, t_ns, frame), t_ns)
+            self.writer.write(TOPIC_JOINT_STATES, cm.joint_state(f, state, t_ns), t_ns)
         if self.ms % self.obs_every == 0:
             ws = self.lab.workspace
             grid = self.rec.voxel_grid(t_ns)

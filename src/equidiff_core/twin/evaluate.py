@@ -225,9 +225,7 @@ class _DirectArm(Robot):
         return True
 
     def read_state(self) -> RobotState:
-        sim = self.sim
-        return RobotState(round(sim.time * 1e9), sim.tcp_pose(), sim.joint_positions(), sim.joint_velocities(),
-                          sim.gripper_width(), robot_time_s=sim.time)
+        return self.sim.robot_state()
 
     def move_to(self, pose: np.ndarray) -> None:
         raise RobotError("the evaluation homes the arm itself")

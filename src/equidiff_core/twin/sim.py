@@ -36,6 +36,7 @@ from franky_sim import SimulationServer
 from franky_sim.mujoco_simulator import MUJOCO_DEFAULT_KP, MUJOCO_DEFAULT_KV
 from scipy.spatial.transform import Rotation
 
+from ..robots.base import RobotState
 from ..robots.franky.sim import (
     free_loopback_host,
     keep_alive,
@@ -325,6 +326,12 @@ class DirectSim:
 
     def joint_velocities(self) -> np.ndarray:
         return self.data.qvel[self._dadr].copy()
+
+    def robot_state(self, stamp_ns: int | None = None) -> RobotState:
+        """The arm as a robot backend reports it (stamped ``stamp_ns``, default the sim time)."""
+        stamp = round(self.time * 1e9) if stamp_ns is None else int(stamp_ns)
+        return RobotState(stamp, self.tcp_pose(), self.joint_positions(), self.joint_velocities(),
+                          self.gripper_width(), robot_time_s=self.time)
 
     def _solve_ik(self, target: np.ndarray, iterations: int = 8, damping: float = 1e-4) -> np.ndarray:
         d = self._ik_data
