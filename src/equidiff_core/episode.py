@@ -17,9 +17,28 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Protocol
 
-from .twin.metrics import SuccessHold
+__all__ = ["Actor", "EpisodeResult", "EpisodeWorld", "SuccessHold", "run_episode"]
 
-__all__ = ["Actor", "EpisodeResult", "EpisodeWorld", "run_episode"]
+
+class SuccessHold:
+    """The task counts as solved once it has been successful for ``hold_s`` without a break.
+
+    The one judge of "success held" for every episode loop (live supervisor, expert demos,
+    in-process evaluation): a lapse restarts the hold, so a block that bounces out of the bowl
+    is not a success."""
+
+    def __init__(self, hold_s: float):
+        self.hold_s = float(hold_s)
+        self.since: float | None = None  # time the current unbroken success began
+
+    def update(self, success: bool, now_s: float) -> bool:
+        """Report the success test's result at ``now_s``; True once it has held ``hold_s``."""
+        if not success:
+            self.since = None
+            return False
+        if self.since is None:
+            self.since = now_s
+        return now_s - self.since >= self.hold_s
 
 
 class EpisodeWorld(Protocol):

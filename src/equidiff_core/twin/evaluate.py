@@ -31,10 +31,10 @@ import numpy as np
 
 from ..chunk import AnswerSchedule
 from ..config import LabConfig
+from ..episode import SuccessHold
 from ..observation import ee_input
 from ..robots.base import Robot, RobotError, RobotState
 from .config import TwinConfig
-from .metrics import SuccessHold
 from .scene import BLOCK, BOWL, body_pose, sample_scene
 
 # Rate at which the controller's newest target is sent to DirectSim.command.

@@ -22,27 +22,6 @@ class EpisodeRecord:
     stalled: str = ""  # the stage that did not deliver (simulated time); '' if none
 
 
-class SuccessHold:
-    """The task counts as solved once it has been successful for ``hold_s`` without a break.
-
-    The one judge of "success held" for every episode loop (live supervisor, expert demos,
-    in-process evaluation): a lapse restarts the hold, so a block that bounces out of the bowl
-    is not a success."""
-
-    def __init__(self, hold_s: float):
-        self.hold_s = float(hold_s)
-        self.since: float | None = None  # time the current unbroken success began
-
-    def update(self, success: bool, now_s: float) -> bool:
-        """Report the success test's result at ``now_s``; True once it has held ``hold_s``."""
-        if not success:
-            self.since = None
-            return False
-        if self.since is None:
-            self.since = now_s
-        return now_s - self.since >= self.hold_s
-
-
 def percentile(values: list[float], q: float) -> float | None:
     return None if not values else round(float(np.percentile(values, q)), 1)
 
