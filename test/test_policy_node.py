@@ -133,7 +133,6 @@ def test_policy_closes_the_loop_and_skips_stale_observations(ros_domain, checkpo
         stamp = stamp_to_ns(msg.header.stamp)
         assert stamp in stamps  # stamped with the observation it answers
         np.testing.assert_array_equal(chunk.times_ns - stamp, np.arange(8) * 200_000_000)  # obs + i*dt
-        sent = {st / 1e9 for st in stamps}
         diag = client.data.diagnostics["policy_node"]
         for key in ("inference_ms", "observation_age_ms", "skipped_cycles", "obs_to_cmd_ms",
                     "obs_to_cmd_p50_ms", "obs_to_cmd_p95_ms"):
@@ -149,6 +148,9 @@ def test_policy_closes_the_loop_and_skips_stale_observations(ros_domain, checkpo
         # The camera pipeline stops: the node skips (and says so) instead of acting on old data.
         stop_voxels.set()
         feeder.join(timeout=2)
+        # the feeder ran on while the test waited above: the sent set is read after it stopped
+        # (CI once saw a late chunk answer an observation sent after an earlier read of it)
+        sent = {st / 1e9 for st in stamps}
         n_chunks = len(client.data.chunks)
         skipped_before = int(diag.get("skipped_stale_observation", 0))
         # > 0.5 s to go stale, then a cycle every 0.2 s, reported at 1 Hz (waited for, not timed:
