@@ -33,39 +33,88 @@ except (ImportError, LookupError):  # a source checkout (PackageNotFoundError is
 def generate_launch_description():
     lab = LaunchConfiguration("lab_config")
     common = {"lab_config": lab}
-    return LaunchDescription([
-        DeclareLaunchArgument("mode", default_value="policy", choices=["policy", "teleop"]),
-        DeclareLaunchArgument("checkpoint", default_value=""),
-        DeclareLaunchArgument("device", default_value="auto"),
-        DeclareLaunchArgument("precision", default_value="fp32"),
-        DeclareLaunchArgument("robot_ip", default_value="", description="empty: lab.yaml's robot.ip"),
-        DeclareLaunchArgument("robot_backend", default_value="franky", choices=["franky", "dryrun"],
-                              description="dryrun: the whole stack with an arm that only pretends to move"),
-        DeclareLaunchArgument("teleop_source", default_value="joy", choices=["joy", "spacemouse"]),
-        DeclareLaunchArgument("task", default_value="episode"),
-        DeclareLaunchArgument("operator", default_value=""),
-        DeclareLaunchArgument("output_dir", default_value="bags"),
-        DeclareLaunchArgument("lab_config", default_value=str(SHARE / "config" / "lab.yaml")),
-        Node(package="equidiff_ros", executable="camera_node", output="screen",
-             parameters=[{**common, "backend": "realsense"}]),
-        Node(package="equidiff_ros", executable="voxel_node", output="screen", parameters=[common]),
-        Node(package="equidiff_ros", executable="franka_node", output="screen",
-             parameters=[{**common, "robot_ip": LaunchConfiguration("robot_ip"), "realtime": True,
-                          "backend": LaunchConfiguration("robot_backend")}]),
-        Node(package="equidiff_ros", executable="policy_node", output="screen",
-             condition=LaunchConfigurationEquals("mode", "policy"),
-             parameters=[{**common, "checkpoint": LaunchConfiguration("checkpoint"),
-                          "device": LaunchConfiguration("device"), "precision": LaunchConfiguration("precision"),
-                          "start_paused": True}]),
-        # The SpaceMouse through spacenavd: sensor_msgs/Joy on /spacenav/joy, stamped per device
-        # event and zeroed once the device goes quiet (its zero_when_static default).
-        Node(package="spacenav", executable="spacenav_node", output="screen",
-             condition=LaunchConfigurationEquals("teleop_source", "joy")),
-        # In both modes: in mode:=policy it is the operator's takeover (it publishes nothing while idle).
-        Node(package="equidiff_ros", executable="teleop_node", output="screen",
-             parameters=[{**common, "source": LaunchConfiguration("teleop_source")}]),
-        Node(package="equidiff_ros", executable="recorder_node", output="screen", emulate_tty=True,
-             parameters=[{**common, "output_dir": LaunchConfiguration("output_dir"), "task": LaunchConfiguration("task"),
-                          "operator": LaunchConfiguration("operator"),
-                          "keyboard": True}]),
-    ])
+    return LaunchDescription(
+        [
+            DeclareLaunchArgument("mode", default_value="policy", choices=["policy", "teleop"]),
+            DeclareLaunchArgument("checkpoint", default_value=""),
+            DeclareLaunchArgument("device", default_value="auto"),
+            DeclareLaunchArgument("precision", default_value="fp32"),
+            DeclareLaunchArgument("robot_ip", default_value="", description="empty: lab.yaml's robot.ip"),
+            DeclareLaunchArgument(
+                "robot_backend",
+                default_value="franky",
+                choices=["franky", "dryrun"],
+                description="dryrun: the whole stack with an arm that only pretends to move",
+            ),
+            DeclareLaunchArgument("teleop_source", default_value="joy", choices=["joy", "spacemouse"]),
+            DeclareLaunchArgument("task", default_value="episode"),
+            DeclareLaunchArgument("operator", default_value=""),
+            DeclareLaunchArgument("output_dir", default_value="bags"),
+            DeclareLaunchArgument("lab_config", default_value=str(SHARE / "config" / "lab.yaml")),
+            Node(
+                package="equidiff_ros",
+                executable="camera_node",
+                output="screen",
+                parameters=[{**common, "backend": "realsense"}],
+            ),
+            Node(package="equidiff_ros", executable="voxel_node", output="screen", parameters=[common]),
+            Node(
+                package="equidiff_ros",
+                executable="franka_node",
+                output="screen",
+                parameters=[
+                    {
+                        **common,
+                        "robot_ip": LaunchConfiguration("robot_ip"),
+                        "realtime": True,
+                        "backend": LaunchConfiguration("robot_backend"),
+                    }
+                ],
+            ),
+            Node(
+                package="equidiff_ros",
+                executable="policy_node",
+                output="screen",
+                condition=LaunchConfigurationEquals("mode", "policy"),
+                parameters=[
+                    {
+                        **common,
+                        "checkpoint": LaunchConfiguration("checkpoint"),
+                        "device": LaunchConfiguration("device"),
+                        "precision": LaunchConfiguration("precision"),
+                        "start_paused": True,
+                    }
+                ],
+            ),
+            # The SpaceMouse through spacenavd: sensor_msgs/Joy on /spacenav/joy, stamped per device
+            # event and zeroed once the device goes quiet (its zero_when_static default).
+            Node(
+                package="spacenav",
+                executable="spacenav_node",
+                output="screen",
+                condition=LaunchConfigurationEquals("teleop_source", "joy"),
+            ),
+            # In both modes: in mode:=policy it is the operator's takeover (it publishes nothing while idle).
+            Node(
+                package="equidiff_ros",
+                executable="teleop_node",
+                output="screen",
+                parameters=[{**common, "source": LaunchConfiguration("teleop_source")}],
+            ),
+            Node(
+                package="equidiff_ros",
+                executable="recorder_node",
+                output="screen",
+                emulate_tty=True,
+                parameters=[
+                    {
+                        **common,
+                        "output_dir": LaunchConfiguration("output_dir"),
+                        "task": LaunchConfiguration("task"),
+                        "operator": LaunchConfiguration("operator"),
+                        "keyboard": True,
+                    }
+                ],
+            ),
+        ]
+    )

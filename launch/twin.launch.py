@@ -55,43 +55,109 @@ def generate_launch_description():
     common = {"lab_config": lab, "use_sim_time": sim}
     clouds = {"reliable_clouds": sim}  # lockstep: no frame owed a chunk may be lost in transport
     nodes = [
-        Node(package="equidiff_ros", executable="twin_node", output="screen",
-             parameters=[{"lab_config": lab, "twin_config": twin, "host": host, "seed": LaunchConfiguration("seed"),
-                          "clock": clock, "latency_s": PythonExpression([LaunchConfiguration("latency_ms"), " / 1000.0"])}]),
-        *[Node(package="equidiff_ros", executable="camera_node", name=f"camera_{cam}", output="screen",
-               parameters=[{**common, **clouds, "backend": "twin", "camera": cam,
-                            "backend_options": PythonExpression(["'lockstep: true' if ", sim, " else ''"])}])
-          for cam in CAMERAS],
+        Node(
+            package="equidiff_ros",
+            executable="twin_node",
+            output="screen",
+            parameters=[
+                {
+                    "lab_config": lab,
+                    "twin_config": twin,
+                    "host": host,
+                    "seed": LaunchConfiguration("seed"),
+                    "clock": clock,
+                    "latency_s": PythonExpression([LaunchConfiguration("latency_ms"), " / 1000.0"]),
+                }
+            ],
+        ),
+        *[
+            Node(
+                package="equidiff_ros",
+                executable="camera_node",
+                name=f"camera_{cam}",
+                output="screen",
+                parameters=[
+                    {
+                        **common,
+                        **clouds,
+                        "backend": "twin",
+                        "camera": cam,
+                        "backend_options": PythonExpression(["'lockstep: true' if ", sim, " else ''"]),
+                    }
+                ],
+            )
+            for cam in CAMERAS
+        ],
         Node(package="equidiff_ros", executable="voxel_node", output="screen", parameters=[{**common, **clouds}]),
-        Node(package="equidiff_ros", executable="franka_node", output="screen",
-             parameters=[{**common, "robot_ip": host, "realtime": False}]),
-        Node(package="equidiff_ros", executable="policy_node", output="screen",
-             parameters=[{**common, "checkpoint": LaunchConfiguration("checkpoint"),
-                          "device": LaunchConfiguration("device")}],
-             remappings=[("/franka/command_chunk", "/twin/policy_chunk")]),
-        Node(package="equidiff_ros", executable="recorder_node", output="screen",
-             parameters=[{**common, "output_dir": PathJoinSubstitution([out, "bags"]), "task": "twin_eval"}]),
+        Node(
+            package="equidiff_ros",
+            executable="franka_node",
+            output="screen",
+            parameters=[{**common, "robot_ip": host, "realtime": False}],
+        ),
+        Node(
+            package="equidiff_ros",
+            executable="policy_node",
+            output="screen",
+            parameters=[
+                {**common, "checkpoint": LaunchConfiguration("checkpoint"), "device": LaunchConfiguration("device")}
+            ],
+            remappings=[("/franka/command_chunk", "/twin/policy_chunk")],
+        ),
+        Node(
+            package="equidiff_ros",
+            executable="recorder_node",
+            output="screen",
+            parameters=[{**common, "output_dir": PathJoinSubstitution([out, "bags"]), "task": "twin_eval"}],
+        ),
     ]
     driver = ExecuteProcess(
-        cmd=["equidiff", "twin", "run", "--attach", "--episodes", LaunchConfiguration("episodes"),
-             "--seed", LaunchConfiguration("seed"), "--out", out, "--checkpoint", LaunchConfiguration("checkpoint"),
-             "--lab-config", lab, "--twin-config", twin, "--clock", clock,
-             "--latency-ms", LaunchConfiguration("latency_ms")],
-        output="screen")
-    return LaunchDescription([
-        DeclareLaunchArgument("episodes", default_value="5"),
-        DeclareLaunchArgument("seed", default_value="100000"),
-        DeclareLaunchArgument("host", default_value="127.0.0.1", description="loopback address franky-sim serves on"),
-        DeclareLaunchArgument("checkpoint", default_value=str(SHARE / "checkpoints" / "twin_compact" / "policy.pt")),
-        DeclareLaunchArgument("device", default_value="cpu"),
-        DeclareLaunchArgument("clock", default_value="sim", description="sim (lockstep, /clock) or realtime"),
-        DeclareLaunchArgument("latency_ms", default_value="100", description="latency budget L (clock:=sim)"),
-        DeclareLaunchArgument("out", default_value="runs/twin_launch"),
-        DeclareLaunchArgument("lab_config", default_value=str(SHARE / "config" / "lab.yaml")),
-        DeclareLaunchArgument("twin_config", default_value=str(SHARE / "config" / "twin.yaml")),
-        SetEnvironmentVariable("MUJOCO_GL", "egl"),
-        SetEnvironmentVariable("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST"),
-        *nodes,
-        driver,
-        RegisterEventHandler(OnProcessExit(target_action=driver, on_exit=[EmitEvent(event=Shutdown(reason="episodes done"))])),
-    ])
+        cmd=[
+            "equidiff",
+            "twin",
+            "run",
+            "--attach",
+            "--episodes",
+            LaunchConfiguration("episodes"),
+            "--seed",
+            LaunchConfiguration("seed"),
+            "--out",
+            out,
+            "--checkpoint",
+            LaunchConfiguration("checkpoint"),
+            "--lab-config",
+            lab,
+            "--twin-config",
+            twin,
+            "--clock",
+            clock,
+            "--latency-ms",
+            LaunchConfiguration("latency_ms"),
+        ],
+        output="screen",
+    )
+    return LaunchDescription(
+        [
+            DeclareLaunchArgument("episodes", default_value="5"),
+            DeclareLaunchArgument("seed", default_value="100000"),
+            DeclareLaunchArgument(
+                "host", default_value="127.0.0.1", description="loopback address franky-sim serves on"
+            ),
+            DeclareLaunchArgument(
+                "checkpoint", default_value=str(SHARE / "checkpoints" / "twin_compact" / "policy.pt")
+            ),
+            DeclareLaunchArgument("device", default_value="cpu"),
+            DeclareLaunchArgument("clock", default_value="sim", description="sim (lockstep, /clock) or realtime"),
+            DeclareLaunchArgument("latency_ms", default_value="100", description="latency budget L (clock:=sim)"),
+            DeclareLaunchArgument("out", default_value="runs/twin_launch"),
+            DeclareLaunchArgument("lab_config", default_value=str(SHARE / "config" / "lab.yaml")),
+            DeclareLaunchArgument("twin_config", default_value=str(SHARE / "config" / "twin.yaml")),
+            SetEnvironmentVariable("MUJOCO_GL", "egl"),
+            SetEnvironmentVariable("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST"),
+            *nodes,
+            driver,
+            RegisterEventHandler(
+                OnProcessExit(target_action=driver, on_exit=[EmitEvent(event=Shutdown(reason="episodes done"))])
+            ),
+        ]
+    )

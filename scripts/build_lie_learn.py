@@ -24,7 +24,7 @@ from pathlib import Path
 
 VERSION = "0.0.2+np2"
 
-SETUP_PY = '''
+SETUP_PY = """
 import numpy
 from Cython.Build import cythonize
 from setuptools import Extension, find_packages, setup
@@ -45,7 +45,7 @@ setup(
         compiler_directives={{"language_level": 2, "legacy_implicit_noexcept": True}},
     ),
 )
-'''
+"""
 
 SCIPY_COMPAT = '''"""scipy.special.sph_harm was removed in SciPy 1.17; sph_harm_y swaps the argument order."""
 try:
@@ -80,8 +80,7 @@ def patch_source(text: str) -> str:
             lines.insert(0, f"{indent}from scipy.special import {', '.join(rest)}")
         return "\n".join(lines)
 
-    return re.sub(r"^([ \t]*)from scipy\.special import ([^\n]*\bsph_harm\b[^\n]*)$",
-                  fix_import, text, flags=re.M)
+    return re.sub(r"^([ \t]*)from scipy\.special import ([^\n]*\bsph_harm\b[^\n]*)$", fix_import, text, flags=re.M)
 
 
 def build(cache: Path) -> Path:
@@ -94,8 +93,21 @@ def build(cache: Path) -> Path:
         # The registry's wheel, or one already placed in CACHE_DIR (machines without a registry).
         wheel = next(iter(sorted(cache.glob("lie_learn-0.0.2-*.whl"))), None)
         if wheel is None:
-            subprocess.run([sys.executable, "-m", "pip", "download", "--no-deps", "--only-binary=:all:",
-                            "lie_learn==0.0.2", "-d", str(tmp / "dl"), "-q"], check=True)
+            subprocess.run(
+                [
+                    sys.executable,
+                    "-m",
+                    "pip",
+                    "download",
+                    "--no-deps",
+                    "--only-binary=:all:",
+                    "lie_learn==0.0.2",
+                    "-d",
+                    str(tmp / "dl"),
+                    "-q",
+                ],
+                check=True,
+            )
             wheel = next((tmp / "dl").glob("lie_learn-0.0.2-*.whl"))
         src = tmp / "src"
         with zipfile.ZipFile(wheel) as zf:
@@ -112,8 +124,21 @@ def build(cache: Path) -> Path:
                 (pkg_dir / "__init__.py").write_text("")
         pyx = sorted(str(p.relative_to(src)) for p in src.rglob("*.pyx"))
         (src / "setup.py").write_text(SETUP_PY.format(pyx=pyx, version=VERSION))
-        subprocess.run([sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation",
-                        "-w", str(cache), str(src), "-q"], check=True)
+        subprocess.run(
+            [
+                sys.executable,
+                "-m",
+                "pip",
+                "wheel",
+                "--no-deps",
+                "--no-build-isolation",
+                "-w",
+                str(cache),
+                str(src),
+                "-q",
+            ],
+            check=True,
+        )
     return next(cache.glob("lie_learn-0.0.2+np2-*.whl"))
 
 

@@ -115,13 +115,18 @@ def voxel_grid(ep: SyntheticEpisode, ws: Workspace, t: float) -> np.ndarray:
     return grid
 
 
-def write_synthetic_episode(path: str | Path, ep: SyntheticEpisode = SyntheticEpisode(),
-                            meta: EpisodeMeta | None = None, ws: Workspace | None = None,
-                            config: RecordingConfig = RecordingConfig(min_free_gib=0.0)) -> Path:
+def write_synthetic_episode(
+    path: str | Path,
+    ep: SyntheticEpisode = SyntheticEpisode(),
+    meta: EpisodeMeta | None = None,
+    ws: Workspace | None = None,
+    config: RecordingConfig = RecordingConfig(min_free_gib=0.0),
+) -> Path:
     ws = ws or LAB.workspace
     f = rosbags_factory()
-    meta = meta or EpisodeMeta(task="pick_cube", operator="synthetic", success=True,
-                               notes="synthetic episode (test/helpers_data.py)", seed=0)
+    meta = meta or EpisodeMeta(
+        task="pick_cube", operator="synthetic", success=True, notes="synthetic episode (test/helpers_data.py)", seed=0
+    )
     frame = LAB.base_frame
     events: list[tuple[int, str, object]] = []
     ns = lambda s: ep.t0_ns + round(s * NS_PER_S)
@@ -130,15 +135,25 @@ def write_synthetic_episode(path: str | Path, ep: SyntheticEpisode = SyntheticEp
         t = i / ep.state_hz
         pose, width = measured_at(ep, t)
         p, q = geometry.pos_quat_from_pose(pose)
-        msg = f.make("geometry_msgs/msg/PoseStamped", header=f.header(ns(t), frame),
-                     pose=f.make("geometry_msgs/msg/Pose",
-                                 position=f.make("geometry_msgs/msg/Point", x=p[0], y=p[1], z=p[2]),
-                                 orientation=f.make("geometry_msgs/msg/Quaternion", x=q[0], y=q[1], z=q[2], w=q[3])))
+        msg = f.make(
+            "geometry_msgs/msg/PoseStamped",
+            header=f.header(ns(t), frame),
+            pose=f.make(
+                "geometry_msgs/msg/Pose",
+                position=f.make("geometry_msgs/msg/Point", x=p[0], y=p[1], z=p[2]),
+                orientation=f.make("geometry_msgs/msg/Quaternion", x=q[0], y=q[1], z=q[2], w=q[3]),
+            ),
+        )
         events.append((ns(t) + 300_000, "/franka/ee_pose", msg))
         names = [f"fr3_joint{j}" for j in range(1, 8)] + ["fr3_finger_joint1", "fr3_finger_joint2"]
-        js = f.make("sensor_msgs/msg/JointState", header=f.header(ns(t), ""), name=names,
-                    position=f.float64_array([0.0, -0.78, 0.0, -2.36, 0.0, 1.57, 0.78, width / 2, width / 2]),
-                    velocity=f.float64_array([]), effort=f.float64_array([]))
+        js = f.make(
+            "sensor_msgs/msg/JointState",
+            header=f.header(ns(t), ""),
+            name=names,
+            position=f.float64_array([0.0, -0.78, 0.0, -2.36, 0.0, 1.57, 0.78, width / 2, width / 2]),
+            velocity=f.float64_array([]),
+            effort=f.float64_array([]),
+        )
         events.append((ns(t) + 300_000, "/franka/joint_states", js))
     n_cmd = int(ep.duration_s * ep.command_hz)
     for i in range(n_cmd):
@@ -148,9 +163,12 @@ def write_synthetic_episode(path: str | Path, ep: SyntheticEpisode = SyntheticEp
         events.append((ns(t) + 500_000, "/franka/command_chunk", chunk_to_msg(chunk, f, frame)))
         prev = command_at(ep, max(0.0, t - 1 / ep.command_hz))[0]
         v = (pose[:3, 3] - prev[:3, 3]) * ep.command_hz / 0.1  # as a SpaceMouse deflection
-        joy = f.make("sensor_msgs/msg/Joy", header=f.header(ns(t), ""),
-                     axes=np.clip(np.array([v[0], v[1], v[2], 0, 0, 0], dtype=np.float32), -1, 1),
-                     buttons=np.array([int(width < OPEN_W), 0], dtype=np.int32))
+        joy = f.make(
+            "sensor_msgs/msg/Joy",
+            header=f.header(ns(t), ""),
+            axes=np.clip(np.array([v[0], v[1], v[2], 0, 0, 0], dtype=np.float32), -1, 1),
+            buttons=np.array([int(width < OPEN_W), 0], dtype=np.int32),
+        )
         events.append((ns(t) + 200_000, "/spacenav/joy", joy))
     n_obs = int(ep.duration_s * ep.obs_hz)
     for i in range(n_obs):
@@ -166,6 +184,7 @@ def write_synthetic_episode(path: str | Path, ep: SyntheticEpisode = SyntheticEp
 
 
 # --- live-ROS test helpers (rclpy imported lazily) ------------------------------------------
+
 
 class RosHarness:
     """An rclpy node in its own context, spun on demand."""

@@ -11,14 +11,15 @@ from equidiff_core import geometry
 from equidiff_core.config import Workspace
 
 
-def cube_sample(rng: np.random.Generator, ws: Workspace, horizon: int = 16, n_obs_steps: int = 1,
-                random_yaw: bool = True) -> dict:
+def cube_sample(
+    rng: np.random.Generator, ws: Workspace, horizon: int = 16, n_obs_steps: int = 1, random_yaw: bool = True
+) -> dict:
     R = ws.resolution
     vox = np.zeros((4, R, R, R), np.uint8)
     i, j = rng.integers(12, R - 16, size=2)
     k = 8
-    vox[0, i:i + 4, j:j + 4, k:k + 4] = 255
-    vox[1:, i:i + 4, j:j + 4, k:k + 4] = np.array([200, 40, 40], np.uint8)[:, None, None, None]
+    vox[0, i : i + 4, j : j + 4, k : k + 4] = 255
+    vox[1:, i : i + 4, j : j + 4, k : k + 4] = np.array([200, 40, 40], np.uint8)[:, None, None, None]
     vox[0, :, :, :2] = 255  # table
     vox[1:, :, :, :2] = 120
     cube = ws.lower + (np.array([i, j, k]) + 2) * ws.voxel_size
@@ -31,14 +32,23 @@ def cube_sample(rng: np.random.Generator, ws: Workspace, horizon: int = 16, n_ob
     poses = geometry.make_pose(np.repeat(R_ee[None], horizon, 0), pos)
     action = geometry.pose_to_action(poses, np.full(horizon, 0.08))
     ee = geometry.pose_to_action(geometry.make_pose(R_ee, p0), np.array(0.08))
-    return {"voxels": torch.from_numpy(np.repeat(vox[None], n_obs_steps, 0)),
-            "ee": torch.from_numpy(np.repeat(ee[None], n_obs_steps, 0).astype(np.float32)),
-            "action": torch.from_numpy(action.astype(np.float32))}
+    return {
+        "voxels": torch.from_numpy(np.repeat(vox[None], n_obs_steps, 0)),
+        "ee": torch.from_numpy(np.repeat(ee[None], n_obs_steps, 0).astype(np.float32)),
+        "action": torch.from_numpy(action.astype(np.float32)),
+    }
 
 
 class CubeDataset(Dataset):
-    def __init__(self, n: int, ws: Workspace | None = None, seed: int = 0, horizon: int = 16, n_obs_steps: int = 1,
-                 random_yaw: bool = True):
+    def __init__(
+        self,
+        n: int,
+        ws: Workspace | None = None,
+        seed: int = 0,
+        horizon: int = 16,
+        n_obs_steps: int = 1,
+        random_yaw: bool = True,
+    ):
         self.ws = ws or Workspace()
         rng = np.random.default_rng(seed)
         self.samples = [cube_sample(rng, self.ws, horizon, n_obs_steps, random_yaw) for _ in range(n)]
@@ -50,8 +60,10 @@ class CubeDataset(Dataset):
         return self.samples[i]
 
     def normalizer_arrays(self):
-        return (np.concatenate([s["action"].numpy() for s in self.samples]),
-                np.concatenate([s["ee"].numpy() for s in self.samples]))
+        return (
+            np.concatenate([s["action"].numpy() for s in self.samples]),
+            np.concatenate([s["ee"].numpy() for s in self.samples]),
+        )
 
 
 def export_tiny_baseline(path):

@@ -20,8 +20,16 @@ from types import SimpleNamespace as NS
 
 import numpy as np
 
-OPTIONS = ("global_time_enabled", "visual_preset", "laser_power", "enable_auto_exposure", "exposure",
-           "enable_auto_white_balance", "white_balance", "filter_magnitude")
+OPTIONS = (
+    "global_time_enabled",
+    "visual_preset",
+    "laser_power",
+    "enable_auto_exposure",
+    "exposure",
+    "enable_auto_white_balance",
+    "white_balance",
+    "filter_magnitude",
+)
 
 
 class FakeClock:
@@ -89,8 +97,12 @@ class FakeSensor:
 class FakeDevice:
     def __init__(self, bus, serial, name="Intel RealSense D455", firmware="5.16.0.1", usb_type="3.2"):
         self.bus = bus
-        self.info = {"serial_number": serial, "name": name, "firmware_version": firmware,
-                     "usb_type_descriptor": usb_type}
+        self.info = {
+            "serial_number": serial,
+            "name": name,
+            "firmware_version": firmware,
+            "usb_type_descriptor": usb_type,
+        }
         self.depth_sensor, self.color_sensor = FakeSensor(), FakeSensor()
         self.plugged = True
         self.stalled = False  # streams started on it deliver no frames
@@ -170,13 +182,18 @@ class FakeRealSense:
         intr = NS(width=w, height=h, fx=4.0, fy=4.0, ppx=w / 2, ppy=h / 2, coeffs=[0.0] * 5, model="none")
 
         def frame(data):
-            return NS(get_data=lambda: data,
-                      profile=NS(as_video_stream_profile=lambda: NS(get_intrinsics=lambda: intr)))
+            return NS(
+                get_data=lambda: data, profile=NS(as_video_stream_profile=lambda: NS(get_intrinsics=lambda: intr))
+            )
 
         depth, color = frame(self.depth), frame(self.color)
         stamp_ms = self.clock.now * 1e3
-        return NS(get_depth_frame=lambda: depth, get_color_frame=lambda: color, get_timestamp=lambda: stamp_ms,
-                  get_frame_timestamp_domain=lambda: "global")
+        return NS(
+            get_depth_frame=lambda: depth,
+            get_color_frame=lambda: color,
+            get_timestamp=lambda: stamp_ms,
+            get_frame_timestamp_domain=lambda: "global",
+        )
 
     def _module(self):
         bus = self
@@ -204,7 +221,8 @@ class FakeRealSense:
                 if device is None:
                     raise RuntimeError("No device connected")
                 if device.info["usb_type_descriptor"].startswith("2") and any(
-                        s[0] == "depth" and s[1] >= 848 for s in cfg.streams):
+                    s[0] == "depth" and s[1] >= 848 for s in cfg.streams
+                ):
                     raise RuntimeError("Couldn't resolve requests")
                 self.device = device
                 bus.starts.append(device.serial)
@@ -231,21 +249,30 @@ class FakeRealSense:
                 f = FakeFilter(kind)
                 bus.filters.append(f)
                 return f
+
             return build
 
         module = types.ModuleType("pyrealsense2")
         module.context, module.config, module.pipeline = context, config, pipeline
-        module.camera_info = NS(serial_number="serial_number", name="name", firmware_version="firmware_version",
-                                usb_type_descriptor="usb_type_descriptor")
+        module.camera_info = NS(
+            serial_number="serial_number",
+            name="name",
+            firmware_version="firmware_version",
+            usb_type_descriptor="usb_type_descriptor",
+        )
         module.option = NS(**{name: name for name in OPTIONS})
-        module.rs400_visual_preset = NS(custom=0, default=1, hand=2, high_accuracy=3, high_density=4,
-                                        medium_density=5)
+        module.rs400_visual_preset = NS(custom=0, default=1, hand=2, high_accuracy=3, high_density=4, medium_density=5)
         module.stream = NS(depth="depth", color="color")
         module.format = NS(z16="z16", rgb8="rgb8")
         module.timestamp_domain = NS(global_time="global", system_time="system")
         module.distortion = NS(none="none")
         module.align = lambda stream: NS(process=lambda frames: frames)
-        for kind in ("decimation_filter", "disparity_transform", "spatial_filter", "temporal_filter",
-                     "hole_filling_filter"):
+        for kind in (
+            "decimation_filter",
+            "disparity_transform",
+            "spatial_filter",
+            "temporal_filter",
+            "hole_filling_filter",
+        ):
             setattr(module, kind, make_filter(kind))
         return module

@@ -40,8 +40,7 @@ def run_job(args: list[str], timeout_s: float, env: dict, log_dir) -> subprocess
     log_dir.mkdir(parents=True, exist_ok=True)
     out_path, err_path = log_dir / "job.stdout", log_dir / "job.stderr"
     with open(out_path, "wb") as out, open(err_path, "wb") as err:
-        proc = subprocess.Popen(args, env=env, stdout=out, stderr=err, stdin=subprocess.DEVNULL,
-                                start_new_session=True)
+        proc = subprocess.Popen(args, env=env, stdout=out, stderr=err, stdin=subprocess.DEVNULL, start_new_session=True)
     try:
         proc.wait(timeout=timeout_s)
     except subprocess.TimeoutExpired:
@@ -57,5 +56,6 @@ def run_job(args: list[str], timeout_s: float, env: dict, log_dir) -> subprocess
             except subprocess.TimeoutExpired:
                 pass
         time.sleep(0.5)
-    return subprocess.CompletedProcess(args, proc.returncode, out_path.read_text(errors="replace"),
-                                       err_path.read_text(errors="replace"))
+    return subprocess.CompletedProcess(
+        args, proc.returncode, out_path.read_text(errors="replace"), err_path.read_text(errors="replace")
+    )

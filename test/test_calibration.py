@@ -50,6 +50,7 @@ def _random_pose(rng, angle_deg=30.0, scale=0.3):
 
 # --- board ------------------------------------------------------------------------------------
 
+
 def test_printable_board_has_the_stated_size_and_is_detected(tmp_path):
     from PIL import Image
 
@@ -83,6 +84,7 @@ def test_board_sizes_that_would_print_wrong_are_refused(tmp_path):
 
 # --- solver -----------------------------------------------------------------------------------
 
+
 def test_hand_eye_recovers_exact_transforms_and_refuses_degenerate_motion():
     rng = np.random.default_rng(0)
     X, Y = _random_pose(rng, 180, 1.0), _random_pose(rng, 180, 0.1)  # T_base_cam, T_tcp_board
@@ -92,8 +94,10 @@ def test_hand_eye_recovers_exact_transforms_and_refuses_degenerate_motion():
     assert pose_error(X_est, X) == pytest.approx((0, 0), abs=1e-6)
     assert pose_error(Y_est, Y) == pytest.approx((0, 0), abs=1e-6)
     # turning only about one axis leaves the camera pose undetermined: say so
-    H_z = [make_pose(Rotation.from_euler("z", a, degrees=True).as_matrix(), rng.normal(size=3) * 0.1)
-           for a in (0, 20, 40, 60, 80)]
+    H_z = [
+        make_pose(Rotation.from_euler("z", a, degrees=True).as_matrix(), rng.normal(size=3) * 0.1)
+        for a in (0, 20, 40, 60, 80)
+    ]
     with pytest.raises(CalibrationError, match="same axis"):
         solve_hand_eye(H_z, [invert_pose(X) @ h @ Y for h in H_z])
     with pytest.raises(CalibrationError, match="at least 3"):
@@ -157,19 +161,40 @@ def test_planned_poses_stay_in_the_workspace_and_every_camera_gets_its_share():
         assert np.all(T[:3, 3] >= ws.lower) and np.all(T[:3, 3] <= ws.upper)
         assert T[2, 3] >= cfg.min_tcp_height
         assert math.degrees(math.acos(np.clip(-T[2, 2], -1, 1))) <= cfg.max_tilt_deg + 1e-6  # z points down
-        seen = [board_visible(SPEC, T @ mount, LAB.camera(m.name).extrinsics.matrix(), m, cfg.margin_px,
-                              cfg.max_view_angle_deg, arm_capsules(T)) for m in models]
+        seen = [
+            board_visible(
+                SPEC,
+                T @ mount,
+                LAB.camera(m.name).extrinsics.matrix(),
+                m,
+                cfg.margin_px,
+                cfg.max_view_angle_deg,
+                arm_capsules(T),
+            )
+            for m in models
+        ]
         assert sum(seen) >= cfg.cameras_per_pose
         views += seen
     assert views.min() >= len(poses) // 2, views  # the pick spreads the poses over the cameras
     # a camera looking away from the workspace: no pose serves it, and the error says what to check
-    away = replace(LAB, cameras=(replace(LAB.cameras[0], extrinsics=LAB.cameras[1].extrinsics.from_matrix(
-        make_pose(np.diag([1.0, -1.0, -1.0]), [0.45, 0.0, 0.0]))),) + LAB.cameras[1:])
+    away = replace(
+        LAB,
+        cameras=(
+            replace(
+                LAB.cameras[0],
+                extrinsics=LAB.cameras[1].extrinsics.from_matrix(
+                    make_pose(np.diag([1.0, -1.0, -1.0]), [0.45, 0.0, 0.0])
+                ),
+            ),
+        )
+        + LAB.cameras[1:],
+    )
     with pytest.raises(CalibrationError, match="extrinsics"):
         plan_poses(away, models, SPEC, mount, cfg)
 
 
 # --- lab file ---------------------------------------------------------------------------------
+
 
 def test_calibrated_lab_file_loads_and_is_never_overwritten_silently(tmp_path):
     new = {c.name: c.extrinsics.matrix() @ make_pose(np.eye(3), [0.001, 0.002, 0.003]) for c in LAB.cameras}
@@ -196,6 +221,7 @@ def test_calibrated_lab_file_loads_and_is_never_overwritten_silently(tmp_path):
 
 # --- twin ---------------------------------------------------------------------------------------
 
+
 def test_twin_board_is_off_by_default_and_leaves_the_state_layout_alone(tmp_path):
     from equidiff_core.calibration.twin import twin_config_with_board
     from equidiff_core.twin import scene
@@ -215,11 +241,13 @@ def test_twin_cameras_calibrated_from_perturbed_guesses_within_2mm_and_0_2deg(tm
     from equidiff_core.calibration.check import check_alignment
     from equidiff_core.calibration.twin import calibrate_twin
 
-    report, result, guess = calibrate_twin(LAB, TwinConfig(), SPEC, PlanConfig(poses=10), arm="direct",
-                                           perturb_m=0.03, perturb_deg=3.0, log=lambda m: None)
+    report, result, guess = calibrate_twin(
+        LAB, TwinConfig(), SPEC, PlanConfig(poses=10), arm="direct", perturb_m=0.03, perturb_deg=3.0, log=lambda m: None
+    )
     for cam in LAB.cameras:
-        assert pose_error(guess.camera(cam.name).extrinsics.matrix(), cam.extrinsics.matrix()) == \
-            pytest.approx((30.0, 3.0), abs=1e-6)
+        assert pose_error(guess.camera(cam.name).extrinsics.matrix(), cam.extrinsics.matrix()) == pytest.approx(
+            (30.0, 3.0), abs=1e-6
+        )
         errors = report["cameras"][cam.name]
         assert errors["translation_error_mm"] < 2.0 and errors["rotation_error_deg"] < 0.2, (cam.name, errors)
         assert errors["detections"] >= 4 and errors["rms_px"] < 1.0
@@ -261,8 +289,24 @@ def test_check_command_flags_a_misplaced_camera_and_writes_a_rerun_view(tmp_path
     shifted = {"cam_left": LAB.camera("cam_left").extrinsics.matrix() @ make_pose(np.eye(3), [0.01, 0, 0])}
     lab_file, _ = tmp_path / "shifted.yaml", write_calibrated_lab(LAB_PATH, shifted, tmp_path / "shifted.yaml")
     rrd = tmp_path / "check.rrd"
-    proc = subprocess.run([sys.executable, "-m", "equidiff_ros.cli", "calibrate", "check", "--twin", "--direct",
-                           "--lab", str(lab_file), "--rrd", str(rrd)], capture_output=True, text=True, timeout=300)
+    proc = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "equidiff_ros.cli",
+            "calibrate",
+            "check",
+            "--twin",
+            "--direct",
+            "--lab",
+            str(lab_file),
+            "--rrd",
+            str(rrd),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert proc.returncode == 3, proc.stderr  # beyond the 2 mm tolerance
     report = json.loads(proc.stdout.strip().splitlines()[-1])
     cams = report["cameras"]
@@ -280,8 +324,12 @@ def test_check_command_flags_a_misplaced_camera_and_writes_a_rerun_view(tmp_path
 def test_cli_refuses_to_overwrite_before_moving_anything(tmp_path):
     existing = tmp_path / "lab_calibrated.yaml"
     existing.write_text("keep me")
-    proc = subprocess.run([sys.executable, "-m", "equidiff_ros.cli", "calibrate", "cameras", "--output", str(existing)],
-                          capture_output=True, text=True, timeout=120)
+    proc = subprocess.run(
+        [sys.executable, "-m", "equidiff_ros.cli", "calibrate", "cameras", "--output", str(existing)],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert proc.returncode == 1 and "exists" in proc.stderr
     assert existing.read_text() == "keep me"
 
@@ -324,18 +372,31 @@ def test_operator_mode_streams_spacemouse_motion_to_franky_and_captures_at_rest(
     try:
         arm.move_to(make_pose(np.diag([1.0, -1.0, -1.0]), [0.45, 0.0, 0.28]))
         still, press, finish = (0.0,) * 6, (1, 0), (0, 1)
-        script = [(5, still, (0, 0)), (3, still, press), (5, still, (0, 0)),
-                  (100, (0.5, 0, 0, 0, 0, 0), (0, 0)), (5, still, (0, 0)), (3, still, press), (5, still, (0, 0)),
-                  (3, still, finish), (5, still, (0, 0)),  # too early: two samples, three required
-                  (100, (0, 0.5, 0, 0, 0, 0.5), (0, 0)), (5, still, (0, 0)), (3, still, press), (5, still, (0, 0)),
-                  (3, still, finish), (1, still, (0, 0))]
+        script = [
+            (5, still, (0, 0)),
+            (3, still, press),
+            (5, still, (0, 0)),
+            (100, (0.5, 0, 0, 0, 0, 0), (0, 0)),
+            (5, still, (0, 0)),
+            (3, still, press),
+            (5, still, (0, 0)),
+            (3, still, finish),
+            (5, still, (0, 0)),  # too early: two samples, three required
+            (100, (0, 0.5, 0, 0, 0, 0.5), (0, 0)),
+            (5, still, (0, 0)),
+            (3, still, press),
+            (5, still, (0, 0)),
+            (3, still, finish),
+            (1, still, (0, 0)),
+        ]
 
         def grab(_state):
             qpos, _, _ = arm.reader.read()
             return cams.grab(qpos)
 
-        samples = capture_operator(arm.arm, grab, SPEC, LAB.workspace, source=ScriptedSpaceMouse(script),
-                                   min_samples=3, log=lambda m: None)
+        samples = capture_operator(
+            arm.arm, grab, SPEC, LAB.workspace, source=ScriptedSpaceMouse(script), min_samples=3, log=lambda m: None
+        )
     finally:
         cams.close()
         arm.close()

@@ -50,8 +50,9 @@ def test_realsense_without_device_fails_fast_naming_the_serial():
 def test_realsense_options_come_from_lab_yaml_and_bad_ones_name_the_camera():
     lab = load_lab_config(default_config_dir() / "lab.yaml")
     cam = make_camera("realsense", lab.cameras[0])
-    assert cam.options == RealSenseOptions(decimation=2, spatial=True, temporal=True, hole_filling=False,
-                                           exposure_us=8500, white_balance_k=4600)
+    assert cam.options == RealSenseOptions(
+        decimation=2, spatial=True, temporal=True, hole_filling=False, exposure_us=8500, white_balance_k=4600
+    )
     with pytest.raises(CameraError, match=r"cameras\[cam_a\]\.options: .*decimation must be 1..8"):
         make_camera("realsense", _camera(options={"decimation": 9}))
     with pytest.raises(CameraError, match=r"unknown key\(s\) \['exposure'\]"):
@@ -64,8 +65,9 @@ def test_depth_image_deprojects_to_the_expected_points_and_colours():
     w, h, fx, fy, ppx, ppy = 8, 6, 4.0, 5.0, 3.5, 2.5
     rays = pixel_rays(w, h, fx, fy, ppx, ppy)
     # the closed form equals a per-pixel deprojection callback (the distortion path)
-    np.testing.assert_allclose(pixel_rays(w, h, fx, fy, ppx, ppy, lambda u, v: ((u - ppx) / fx, (v - ppy) / fy)),
-                               rays, rtol=0, atol=1e-6)
+    np.testing.assert_allclose(
+        pixel_rays(w, h, fx, fy, ppx, ppy, lambda u, v: ((u - ppx) / fx, (v - ppy) / fy)), rays, rtol=0, atol=1e-6
+    )
     depth = np.zeros((h, w), np.uint16)
     depth[0, 0] = 1000  # 1 m at scale 1 mm
     depth[5, 7] = 2500  # 2.5 m: beyond max_depth below
@@ -74,8 +76,11 @@ def test_depth_image_deprojects_to_the_expected_points_and_colours():
     color[0, 0] = (10, 20, 30)
     color[2, 3] = (1, 2, 3)
     pts, cols = depth_to_cloud(depth, 0.001, color, rays, min_depth=0.1, max_depth=2.0)
-    np.testing.assert_allclose(pts, [[(0 - 3.5) / 4 * 1.0, (0 - 2.5) / 5 * 1.0, 1.0],
-                                     [(3 - 3.5) / 4 * 0.5, (2 - 2.5) / 5 * 0.5, 0.5]], atol=1e-6)
+    np.testing.assert_allclose(
+        pts,
+        [[(0 - 3.5) / 4 * 1.0, (0 - 2.5) / 5 * 1.0, 1.0], [(3 - 3.5) / 4 * 0.5, (2 - 2.5) / 5 * 0.5, 0.5]],
+        atol=1e-6,
+    )
     np.testing.assert_array_equal(cols, [[10, 20, 30], [1, 2, 3]])
     with pytest.raises(CameraError, match="disagree"):
         depth_to_cloud(depth[:5], 0.001, color, rays, 0.1, 2.0)
@@ -112,8 +117,10 @@ def write_cloud_bag(path, clouds_by_topic, period_ns=100_000_000, start_ns=1_700
 
 def _clouds(n, seed=0, size=50):
     rng = np.random.default_rng(seed)
-    return [(rng.normal(size=(size, 3)).astype(np.float32), rng.integers(0, 256, (size, 3), dtype=np.uint8))
-            for _ in range(n)]
+    return [
+        (rng.normal(size=(size, 3)).astype(np.float32), rng.integers(0, 256, (size, 3), dtype=np.uint8))
+        for _ in range(n)
+    ]
 
 
 def _frame_index(frame, clouds):
@@ -127,7 +134,7 @@ def test_replay_plays_a_bag_at_the_recorded_pace_restamped_and_loops(tmp_path):
     clouds[1][0][0] = np.nan  # a NaN point in a recorded frame is dropped, not fatal
     bag = tmp_path / "bag"
     recorded = write_cloud_bag(bag, {"/cameras/cam_a/points": clouds, "/cameras/cam_b/points": _clouds(3, 1)})
-    offset = 10 ** 12  # a clock that is not the wall clock: stamps come from it
+    offset = 10**12  # a clock that is not the wall clock: stamps come from it
 
     cam = make_camera("replay", _camera(), bag=str(bag), clock=lambda: time.time_ns() + offset)
     with cam:
@@ -180,8 +187,11 @@ def test_replays_in_separate_processes_deliver_the_same_instant_together(tmp_pat
 def test_replay_errors_name_the_bag_and_topic(tmp_path):
     bag = tmp_path / "bag"
     write_cloud_bag(bag, {"/cameras/cam_a/points": _clouds(1)})
-    with pytest.raises(CameraError, match=r"no messages on /cameras/cam_z/points; its PointCloud2 topics: "
-                                          r"\['/cameras/cam_a/points'\]"):
+    with pytest.raises(
+        CameraError,
+        match=r"no messages on /cameras/cam_z/points; its PointCloud2 topics: "
+        r"\['/cameras/cam_a/points'\]",
+    ):
         make_camera("replay", _camera("cam_z"), bag=str(bag)).connect()
     with pytest.raises(CameraError, match="not a rosbag2 directory"):
         make_camera("replay", _camera(), bag=str(tmp_path / "nowhere")).connect()
@@ -207,7 +217,9 @@ def test_extrinsics_tf_message_carries_each_optical_frame():
     lab = load_lab_config(default_config_dir() / "lab.yaml")
     f = rosbags_factory()
     msg = extrinsics_tf_message(lab.cameras, lab.base_frame, 123, f)
-    msg = f.typestore.deserialize_cdr(f.typestore.serialize_cdr(msg, "tf2_msgs/msg/TFMessage"), "tf2_msgs/msg/TFMessage")
+    msg = f.typestore.deserialize_cdr(
+        f.typestore.serialize_cdr(msg, "tf2_msgs/msg/TFMessage"), "tf2_msgs/msg/TFMessage"
+    )
     assert [t.child_frame_id for t in msg.transforms] == [c.frame_id for c in lab.cameras]
     for t, cam in zip(msg.transforms, lab.cameras):
         assert t.header.frame_id == "fr3_link0" and t.header.stamp.nanosec == 123
@@ -224,8 +236,9 @@ class _FakeRealSense:
 
         self.rs = NS(timestamp_domain=NS(global_time="global", system_time="system"), distortion=NS(none="none"))
         self.depth, self.color, self.fps, self.global_time = depth, color, fps, global_time
-        self.intr = NS(width=depth.shape[1], height=depth.shape[0], fx=fx, fy=fx, ppx=ppx, ppy=ppy,
-                       coeffs=[0.0] * 5, model="none")
+        self.intr = NS(
+            width=depth.shape[1], height=depth.shape[0], fx=fx, fy=fx, ppx=ppx, ppy=ppy, coeffs=[0.0] * 5, model="none"
+        )
         self.served = 0
         self.fail = False
 
@@ -243,9 +256,12 @@ class _FakeRealSense:
         time.sleep(1.0 / self.fps)
         self.served += 1
         depth, color = self.frame(self.depth, self.intr), self.frame(self.color, None)
-        return NS(get_depth_frame=lambda: depth, get_color_frame=lambda: color,
-                  get_timestamp=lambda: 1_700_000_000_123.5,
-                  get_frame_timestamp_domain=lambda: "global" if self.global_time else "system")
+        return NS(
+            get_depth_frame=lambda: depth,
+            get_color_frame=lambda: color,
+            get_timestamp=lambda: 1_700_000_000_123.5,
+            get_frame_timestamp_domain=lambda: "global" if self.global_time else "system",
+        )
 
     def attach(self, cam, filters=()):
         from types import SimpleNamespace as NS

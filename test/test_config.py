@@ -47,16 +47,22 @@ def _write(tmp_path, data) -> Path:
     return path
 
 
-@pytest.mark.parametrize("mutate, message", [
-    (lambda d: d["cameras"][1]["extrinsics"].update(translation=[0, 1]), r"cameras\[1\].extrinsics.translation: expected 3 items"),
-    (lambda d: d["cameras"][0].pop("serial"), r"cameras\[0\]: missing required key 'serial'"),
-    (lambda d: d["workspace"].update(edge="big"), r"workspace.edge: expected a finite number"),
-    (lambda d: d["workspace"].update(edge=-1.0), r"edge must be positive"),
-    (lambda d: d.update(colour="red"), r"unknown key\(s\) \['colour'\]"),
-    (lambda d: d["cameras"][2]["extrinsics"].update(quaternion_xyzw=[0, 0, 0, 3]), r"not unit length"),
-    (lambda d: d["cameras"][2].update(name="cam_front"), r"unique"),
-    (lambda d: d["workspace"].update(resolution=64.5), r"expected an integer"),
-])
+@pytest.mark.parametrize(
+    "mutate, message",
+    [
+        (
+            lambda d: d["cameras"][1]["extrinsics"].update(translation=[0, 1]),
+            r"cameras\[1\].extrinsics.translation: expected 3 items",
+        ),
+        (lambda d: d["cameras"][0].pop("serial"), r"cameras\[0\]: missing required key 'serial'"),
+        (lambda d: d["workspace"].update(edge="big"), r"workspace.edge: expected a finite number"),
+        (lambda d: d["workspace"].update(edge=-1.0), r"edge must be positive"),
+        (lambda d: d.update(colour="red"), r"unknown key\(s\) \['colour'\]"),
+        (lambda d: d["cameras"][2]["extrinsics"].update(quaternion_xyzw=[0, 0, 0, 3]), r"not unit length"),
+        (lambda d: d["cameras"][2].update(name="cam_front"), r"unique"),
+        (lambda d: d["workspace"].update(resolution=64.5), r"expected an integer"),
+    ],
+)
 def test_malformed_config_gives_a_clear_error(tmp_path, mutate, message):
     data = yaml.safe_load(LAB.read_text())
     mutate(data)

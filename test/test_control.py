@@ -83,6 +83,7 @@ def make_controller(config=ControlConfig(), start=None, clock=None, robot=None):
 
 # --- config ------------------------------------------------------------------------------
 
+
 def test_control_yaml_loads_and_matches_the_documented_defaults():
     assert load_control_config(default_config_dir() / "control.yaml") == ControlConfig()
 
@@ -97,6 +98,7 @@ def test_control_config_errors_name_the_key():
 
 
 # --- safety ------------------------------------------------------------------------------
+
 
 def test_filter_clips_targets_to_the_safety_box_and_its_floor_margin():
     box = SafetyBox(lower=(0.3, -0.1, 0.0), upper=(0.6, 0.1, 0.3), floor_margin_m=0.02)
@@ -161,6 +163,7 @@ def test_check_chunk_rejects_jumps_and_bad_rotations():
 
 # --- scheduler ------------------------------------------------------------------------------
 
+
 def rest_at(pose):
     return Setpoint(pose, np.zeros(3), np.zeros(3), float("nan"), False)
 
@@ -221,6 +224,7 @@ def test_streamed_chunks_track_a_curve_without_velocity_reversals(interpolation)
 
 
 # --- controller -------------------------------------------------------------------------
+
 
 def test_watchdog_holds_the_pose_when_commands_stop():
     """A chunk is a plan for its whole span: its steps run to the last one (policy_node answers
@@ -405,7 +409,9 @@ def test_teleop_one_point_chunks_are_followed_smoothly():
     for tick in range(int(1.5 * ctl.config.control_hz)):
         if tick % 10 == 0:  # 20 Hz, the operator pushes +x at 4 cm/s
             target = target + [0.002, 0.0, 0.0]
-            assert ctl.submit(PoseChunk(clock.t, np.array([clock.t + 50 * MS]), pose_at(target)[None], np.ones(1) * 0.08))
+            assert ctl.submit(
+                PoseChunk(clock.t, np.array([clock.t + 50 * MS]), pose_at(target)[None], np.ones(1) * 0.08)
+            )
         xs.append(ctl.tick().target.pose[0, 3])
         clock.t += period
     assert not ctl.holding and ctl.stats.rejected_chunks == 0
@@ -479,6 +485,7 @@ def test_dryrun_logs_what_would_be_sent(caplog):
 
 
 # --- explicit limits (issue 16 item 1): cone, joint limits, gripper range, robot limits -----------
+
 
 def tilted(position, tilt, yaw=0.0, axis=(0.0, 1.0, 0.0)):
     """A TCP pose at ``position``, yawed by ``yaw`` and then tilted ``tilt`` rad about base ``axis``."""
@@ -558,8 +565,9 @@ def test_joint_moving_into_its_position_limit_stops_the_motion_until_acknowledge
         q, dq = np.array(DryRunConfig().joint_positions), np.zeros(7)
 
         def read_state(self):
-            return dataclasses.replace(super().read_state(), joint_positions=self.q.copy(),
-                                       joint_velocities=self.dq.copy())
+            return dataclasses.replace(
+                super().read_state(), joint_positions=self.q.copy(), joint_velocities=self.dq.copy()
+            )
 
     robot = JointRobot(DryRunConfig(initial_position=tuple(circle(0.0))))
     ctl, _, clock = make_controller(robot=robot)
@@ -630,6 +638,7 @@ def test_go_home_glides_slowly_to_the_home_pose_and_is_refused_awaiting_acknowle
 
 # --- metrics ---------------------------------------------------------------------------------
 
+
 def test_metrics_measure_what_they_claim():
     from equidiff_core.control import metrics
 
@@ -648,7 +657,9 @@ def test_metrics_measure_what_they_claim():
     jerky = np.stack([circle(x) for x in progress])
     assert metrics.velocity_reversals(t, jerky, tangent) == pytest.approx(len(t) * 0.01 / 0.2, abs=2)
     assert metrics.max_outside_box(path, WS.lower, WS.upper) == 0.0
-    assert metrics.max_outside_box(np.array([[0.7, 0.0, 0.4]]), WS.lower, WS.upper) == pytest.approx(np.hypot(0.05, 0.02))
+    assert metrics.max_outside_box(np.array([[0.7, 0.0, 0.4]]), WS.lower, WS.upper) == pytest.approx(
+        np.hypot(0.05, 0.02)
+    )
     settle = np.concatenate([path[:100], np.repeat(path[100:101], 300, axis=0)])
     assert metrics.settle_time(t, settle) == pytest.approx(t[100])
     assert metrics.percentiles_ms([0.1, 0.2, 0.3]) == [200.0, 290.0]
@@ -795,4 +806,4 @@ def test_a_new_chunk_continues_the_motion_without_a_standstill_tick():
     steady = speed * period / 1e9
     assert len(switches) == 9
     for i in switches:
-        assert steps[i] == pytest.approx(steady, rel=0.05), (i, steps[i - 2:i + 2])
+        assert steps[i] == pytest.approx(steady, rel=0.05), (i, steps[i - 2 : i + 2])

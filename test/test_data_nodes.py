@@ -47,13 +47,31 @@ def make_messages(f, n: int, t0_ns: int):
         out.append(("/voxels", grid_to_voxel_msg(grid, ws.lower, ws.voxel_size, t, LAB.base_frame, f)))
         pose = geometry.make_pose(geometry.rotz(0.01 * i) @ np.diag([1.0, -1, -1]), [0.4 + 0.001 * i, 0.0, 0.2])
         p, q = geometry.pos_quat_from_pose(pose)
-        out.append(("/franka/ee_pose", f.make(
-            "geometry_msgs/msg/PoseStamped", header=f.header(t, LAB.base_frame),
-            pose=f.make("geometry_msgs/msg/Pose", position=f.make("geometry_msgs/msg/Point", x=p[0], y=p[1], z=p[2]),
-                        orientation=f.make("geometry_msgs/msg/Quaternion", x=q[0], y=q[1], z=q[2], w=q[3])))))
-        out.append(("/franka/joint_states", f.make(
-            "sensor_msgs/msg/JointState", header=f.header(t, ""),
-            name=["fr3_finger_joint1", "fr3_finger_joint2"], position=[0.01 * (i % 4), 0.01 * (i % 4)])))
+        out.append(
+            (
+                "/franka/ee_pose",
+                f.make(
+                    "geometry_msgs/msg/PoseStamped",
+                    header=f.header(t, LAB.base_frame),
+                    pose=f.make(
+                        "geometry_msgs/msg/Pose",
+                        position=f.make("geometry_msgs/msg/Point", x=p[0], y=p[1], z=p[2]),
+                        orientation=f.make("geometry_msgs/msg/Quaternion", x=q[0], y=q[1], z=q[2], w=q[3]),
+                    ),
+                ),
+            )
+        )
+        out.append(
+            (
+                "/franka/joint_states",
+                f.make(
+                    "sensor_msgs/msg/JointState",
+                    header=f.header(t, ""),
+                    name=["fr3_finger_joint1", "fr3_finger_joint2"],
+                    position=[0.01 * (i % 4), 0.01 * (i % 4)],
+                ),
+            )
+        )
         chunk = PoseChunk(t, np.array([t + 100_000_000]), pose[None], np.array([0.08]))
         out.append(("/franka/command_chunk", chunk_to_msg(chunk, f, LAB.base_frame)))
     return out
@@ -63,8 +81,9 @@ def wait_status(ros: RosHarness, prefix: str, timeout: float = 20.0) -> str:
     from equidiff_ros.common import LATCHED_QOS
 
     seen = []
-    sub = ros.node.create_subscription(ros.f.cls("std_msgs/msg/String"), "/recorder/status",
-                                       lambda m: seen.append(m.data), LATCHED_QOS)
+    sub = ros.node.create_subscription(
+        ros.f.cls("std_msgs/msg/String"), "/recorder/status", lambda m: seen.append(m.data), LATCHED_QOS
+    )
     ok = ros.spin_until(lambda: bool(seen) and seen[-1].startswith(prefix), timeout)
     ros.node.destroy_subscription(sub)
     assert ok, f"recorder status never became {prefix!r} (saw {seen})"
@@ -74,17 +93,21 @@ def wait_status(ros: RosHarness, prefix: str, timeout: float = 20.0) -> str:
 def publishers(ros: RosHarness):
     from equidiff_ros.common import RELIABLE_QOS, TOPIC_RECORDER_COMMAND
 
-    types = {"/voxels": "sensor_msgs/msg/PointCloud2", "/franka/ee_pose": "geometry_msgs/msg/PoseStamped",
-             "/franka/joint_states": "sensor_msgs/msg/JointState",
-             "/franka/command_chunk": "trajectory_msgs/msg/MultiDOFJointTrajectory"}
+    types = {
+        "/voxels": "sensor_msgs/msg/PointCloud2",
+        "/franka/ee_pose": "geometry_msgs/msg/PoseStamped",
+        "/franka/joint_states": "sensor_msgs/msg/JointState",
+        "/franka/command_chunk": "trajectory_msgs/msg/MultiDOFJointTrajectory",
+    }
     pubs = {t: ros.node.create_publisher(ros.f.cls(m), t, RELIABLE_QOS) for t, m in types.items()}
     cmd = ros.node.create_publisher(ros.f.cls("std_msgs/msg/String"), TOPIC_RECORDER_COMMAND, RELIABLE_QOS)
     return pubs, cmd
 
 
 def wait_matched(ros: RosHarness, pubs, timeout=20.0):
-    assert ros.spin_until(lambda: all(p.get_subscription_count() > 0 for p in pubs), timeout), \
+    assert ros.spin_until(lambda: all(p.get_subscription_count() > 0 for p in pubs), timeout), (
         "recorder_node never subscribed"
+    )
 
 
 def test_recorder_episode_reads_back_identically(ros, tmp_path):
@@ -130,8 +153,11 @@ def test_recorder_episode_reads_back_identically(ros, tmp_path):
     assert ep.meta.success is False and ep.meta.notes == "slipped at the end"
     assert [t.child_frame_id for t in ep["/tf_static"].messages[0].transforms] == [c.frame_id for c in LAB.cameras]
     chunks_back = [chunk_from_msg(m) for m in ep["/franka/command_chunk"].messages]
-    assert len(chunks_back) == 12 and chunks_back[3].times_ns[0] == msgs[3 * 4 + 3][1].header.stamp.sec * 10**9 + \
-        msgs[3 * 4 + 3][1].header.stamp.nanosec + 100_000_000
+    assert (
+        len(chunks_back) == 12
+        and chunks_back[3].times_ns[0]
+        == msgs[3 * 4 + 3][1].header.stamp.sec * 10**9 + msgs[3 * 4 + 3][1].header.stamp.nanosec + 100_000_000
+    )
 
     # Never overwrite: the next episode of the same task gets the next index. This time the
     # episode is driven by the std_srvs/Trigger services; discard removes it.
@@ -162,8 +188,15 @@ def test_recorder_episode_reads_back_identically(ros, tmp_path):
 def test_sigkilled_recorder_bag_is_recovered(ros, tmp_path):
 
     out = tmp_path / "episodes"
-    proc = spawn_node("recorder_node", f"output_dir:={out}", "task:=kill", "min_free_gib:=0.0",
-                 "chunk_size_mib:=2.0", "chunk_max_age_s:=0.3", "autostart:=true")
+    proc = spawn_node(
+        "recorder_node",
+        f"output_dir:={out}",
+        "task:=kill",
+        "min_free_gib:=0.0",
+        "chunk_size_mib:=2.0",
+        "chunk_max_age_s:=0.3",
+        "autostart:=true",
+    )
     try:
         pubs, _cmd = publishers(ros)
         wait_matched(ros, list(pubs.values()))
@@ -191,7 +224,7 @@ def test_sigkilled_recorder_bag_is_recovered(ros, tmp_path):
     published = [m for _t, m in msgs]
     # Everything up to the last completed chunk: a non-empty prefix of what was published.
     assert 0 < len(recovered) <= len(published)
-    assert_same(recovered, published[:len(recovered)], "/voxels")
+    assert_same(recovered, published[: len(recovered)], "/voxels")
     assert len(recovered) == len(published), "all voxels were flushed (chunk_max_age_s) before the kill"
     assert "recovered by equidiff bags repair" in ep.meta.notes and ep.meta.task == "kill"
     assert report.messages["/voxels"] == len(recovered)
@@ -200,31 +233,48 @@ def test_sigkilled_recorder_bag_is_recovered(ros, tmp_path):
 def test_teleop_node_drives_target_from_joy(ros):
     from equidiff_ros.common import RELIABLE_QOS, SENSOR_QOS
 
-    proc = spawn_node("teleop_node", "source:=joy", "deadzone:=0.1", "linear_scale:=[0.1, 0.1, 0.1]",
-                 "gripper_mode:=buttons", "rate_hz:=100.0", "publish_hz:=20.0")
+    proc = spawn_node(
+        "teleop_node",
+        "source:=joy",
+        "deadzone:=0.1",
+        "linear_scale:=[0.1, 0.1, 0.1]",
+        "gripper_mode:=buttons",
+        "rate_hz:=100.0",
+        "publish_hz:=20.0",
+    )
     chunks = []
     try:
         f = ros.f
         pose_pub = ros.node.create_publisher(f.cls("geometry_msgs/msg/PoseStamped"), "/franka/ee_pose", RELIABLE_QOS)
         joy_pub = ros.node.create_publisher(f.cls("sensor_msgs/msg/Joy"), "/spacenav/joy", SENSOR_QOS)
-        ros.node.create_subscription(f.cls("trajectory_msgs/msg/MultiDOFJointTrajectory"), "/franka/command_chunk",
-                                     lambda m: chunks.append(chunk_from_msg(m)), RELIABLE_QOS)
-        assert ros.spin_until(lambda: pose_pub.get_subscription_count() > 0 and joy_pub.get_subscription_count() > 0,
-                              20.0), stop_node(proc)
+        ros.node.create_subscription(
+            f.cls("trajectory_msgs/msg/MultiDOFJointTrajectory"),
+            "/franka/command_chunk",
+            lambda m: chunks.append(chunk_from_msg(m)),
+            RELIABLE_QOS,
+        )
+        assert ros.spin_until(
+            lambda: pose_pub.get_subscription_count() > 0 and joy_pub.get_subscription_count() > 0, 20.0
+        ), stop_node(proc)
         start = geometry.make_pose(np.diag([1.0, -1, -1]), [0.45, 0.0, 0.2])
         p, q = geometry.pos_quat_from_pose(start)
 
         def pose_msg():
-            return f.make("geometry_msgs/msg/PoseStamped", header=f.header(0, LAB.base_frame),
-                          pose=f.make("geometry_msgs/msg/Pose",
-                                      position=f.make("geometry_msgs/msg/Point", x=p[0], y=p[1], z=p[2]),
-                                      orientation=f.make("geometry_msgs/msg/Quaternion", x=q[0], y=q[1], z=q[2],
-                                                         w=q[3])))
+            return f.make(
+                "geometry_msgs/msg/PoseStamped",
+                header=f.header(0, LAB.base_frame),
+                pose=f.make(
+                    "geometry_msgs/msg/Pose",
+                    position=f.make("geometry_msgs/msg/Point", x=p[0], y=p[1], z=p[2]),
+                    orientation=f.make("geometry_msgs/msg/Quaternion", x=q[0], y=q[1], z=q[2], w=q[3]),
+                ),
+            )
 
         def joy(axes, buttons=(0, 0), age_s=0.0):
             stamp = ros.node.get_clock().now().nanoseconds - int(age_s * 1e9)  # as the spacenav driver stamps
-            return f.make("sensor_msgs/msg/Joy", header=f.header(stamp, ""), axes=[float(a) for a in axes],
-                          buttons=list(buttons))
+            return f.make(
+                "sensor_msgs/msg/Joy", header=f.header(stamp, ""), axes=[float(a) for a in axes], buttons=list(buttons)
+            )
 
         # idle input: no commands
         for _ in range(20):
@@ -280,10 +330,28 @@ def test_recorder_keyboard_mode(ros, tmp_path):
 
     out = tmp_path / "episodes"
     master, slave = pty.openpty()
-    args = [sys.executable, "-m", "equidiff_ros.recorder_node", "--ros-args", "-p", f"output_dir:={out}",
-            "-p", "task:=keys", "-p", "min_free_gib:=0.0", "-p", "keyboard:=true"]
-    proc = subprocess.Popen(args, stdin=slave, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-                            env=dict(os.environ, OMP_NUM_THREADS="1", PYTHONUNBUFFERED="1"))
+    args = [
+        sys.executable,
+        "-m",
+        "equidiff_ros.recorder_node",
+        "--ros-args",
+        "-p",
+        f"output_dir:={out}",
+        "-p",
+        "task:=keys",
+        "-p",
+        "min_free_gib:=0.0",
+        "-p",
+        "keyboard:=true",
+    ]
+    proc = subprocess.Popen(
+        args,
+        stdin=slave,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        env=dict(os.environ, OMP_NUM_THREADS="1", PYTHONUNBUFFERED="1"),
+    )
     os.close(slave)
     try:
         wait_status(ros, "idle")

@@ -63,7 +63,7 @@ def test_command_schedule_newer_chunk_replaces_the_remaining_steps():
     eye = np.repeat(np.eye(4)[None], 3, axis=0)
 
     def chunk(stamp, times, widths):
-        return PoseChunk(stamp, np.asarray(times, dtype=np.int64), eye[:len(times)].copy(), np.asarray(widths, float))
+        return PoseChunk(stamp, np.asarray(times, dtype=np.int64), eye[: len(times)].copy(), np.asarray(widths, float))
 
     a = chunk(0, [10, 20, 30], [1, 2, 3])
     b = chunk(15, [25, 35], [4, 5])  # arrives before a's step at 30: replaces it
@@ -89,8 +89,9 @@ def test_samples_match_the_recorded_episode(bag):
         np.testing.assert_allclose(s["ee"][0].numpy(), action(measured_at(EP, t)), atol=1e-6)
         for j in range(16):
             tj = 0.2 * min(k + j, n - 1)  # padded with the last step past the end
-            np.testing.assert_allclose(s["action"][j].numpy(), action(command_at(EP, tj)), atol=1e-6,
-                                       err_msg=f"sample {i} step {j}")
+            np.testing.assert_allclose(
+                s["action"][j].numpy(), action(command_at(EP, tj)), atol=1e-6, err_msg=f"sample {i} step {j}"
+            )
 
 
 def test_end_padding_repeats_the_last_step(bag):
@@ -170,8 +171,12 @@ def test_bad_bags_are_reported_and_skipped(bag, tmp_path):
 
 def test_packed_episodes_hold_exactly_what_the_bag_decodes_to(bag, tmp_path):
     """`equidiff dataset pack`: a compressed file per bag that training reads instead of the bag."""
-    out = subprocess.run([sys.executable, "-m", "equidiff_ros.cli", "dataset", "pack", str(bag),
-                          "--out", str(tmp_path / "packed")], capture_output=True, text=True, timeout=120)
+    out = subprocess.run(
+        [sys.executable, "-m", "equidiff_ros.cli", "dataset", "pack", str(bag), "--out", str(tmp_path / "packed")],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert out.returncode == 0, out.stderr
     assert json.loads(out.stdout.splitlines()[-1])["packed"] == 1
     packed = tmp_path / "packed" / f"ep_0000{dataset_mod.PACKED_SUFFIX}"
@@ -219,13 +224,21 @@ def test_stats(bag, tmp_path):
 
 
 def test_dataset_stats_cli(bag, tmp_path):
-    out = subprocess.run([sys.executable, "-m", "equidiff_ros.cli", "dataset", "stats", str(bag),
-                          str(tmp_path / "missing"), "--json"], capture_output=True, text=True, timeout=120)
+    out = subprocess.run(
+        [sys.executable, "-m", "equidiff_ros.cli", "dataset", "stats", str(bag), str(tmp_path / "missing"), "--json"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert out.returncode == 1, out.stderr  # a skipped bag makes it fail loudly (exit 1)
     data = json.loads(out.stdout)
     assert data["total"]["episodes"] == 1 and data["total"]["steps"] == 30
-    table = subprocess.run([sys.executable, "-m", "equidiff_ros.cli", "dataset", "stats", str(bag)],
-                           capture_output=True, text=True, timeout=120)
+    table = subprocess.run(
+        [sys.executable, "-m", "equidiff_ros.cli", "dataset", "stats", str(bag)],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert table.returncode == 0, table.stderr
     assert "ep_0000" in table.stdout and "30" in table.stdout and "total" in table.stdout
 
@@ -235,8 +248,9 @@ def test_export_lerobot_v21(bag, tmp_path):
 
     from equidiff_ros.cli import main as cli
 
-    second = write_synthetic_episode(tmp_path / "ep_0001", SyntheticEpisode(duration_s=3.0, yaw=-0.2),
-                                     meta=None, config=CFG)
+    second = write_synthetic_episode(
+        tmp_path / "ep_0001", SyntheticEpisode(duration_s=3.0, yaw=-0.2), meta=None, config=CFG
+    )
     out = tmp_path / "lerobot"
     assert cli(["export", "lerobot", str(bag), str(second), "--out", str(out)]) == 0
     info = json.loads((out / "meta" / "info.json").read_text())

@@ -90,8 +90,13 @@ def test_single_process_helpers_and_a_torchrun_environment_missing_variables(mon
 def test_training_from_the_device_source_and_in_bf16_on_the_cpu(tmp_path):
     ds = CubeDataset(4, seed=1)
     cfg = {"steps": 2, "batch_size": 2, "warmup_steps": 1, "eval_every": 0, "log_every": 1, "checkpoint_every": 0}
-    result = train(make_policy("baseline", get_preset("tiny"), Workspace()), ds, None,
-                   TrainConfig(**cfg, data="device", precision="bf16"), tmp_path / "a")
+    result = train(
+        make_policy("baseline", get_preset("tiny"), Workspace()),
+        ds,
+        None,
+        TrainConfig(**cfg, data="device", precision="bf16"),
+        tmp_path / "a",
+    )
     assert (result.data, result.precision, result.world_size) == ("device", "bf16", 1)
     assert all(np.isfinite(h["loss"]) for h in result.history if "loss" in h)
     # "auto": bf16 on CUDA, fp32 on the CPU
@@ -114,13 +119,55 @@ def test_two_gloo_ranks_train_in_sync_and_leave_a_normal_checkpoint(tmp_path):
     from equidiff_ros.cli import main as cli
 
     out = tmp_path / "run"
-    args = ["train", str(SAMPLE_BAG), "--out", str(out), "--preset", "tiny", "--steps", "3", "--batch-size", "2",
-            "--warmup-steps", "1", "--eval-every", "3", "--eval-max-samples", "2", "--checkpoint-every", "0",
-            "--val-fraction", "0", "--seed", "5", "--device", "cpu", "--data", "device", "--no-progress",
-            "--cache-dir", str(tmp_path / "cache")]
+    args = [
+        "train",
+        str(SAMPLE_BAG),
+        "--out",
+        str(out),
+        "--preset",
+        "tiny",
+        "--steps",
+        "3",
+        "--batch-size",
+        "2",
+        "--warmup-steps",
+        "1",
+        "--eval-every",
+        "3",
+        "--eval-max-samples",
+        "2",
+        "--checkpoint-every",
+        "0",
+        "--val-fraction",
+        "0",
+        "--seed",
+        "5",
+        "--device",
+        "cpu",
+        "--data",
+        "device",
+        "--no-progress",
+        "--cache-dir",
+        str(tmp_path / "cache"),
+    ]
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT / "src"), os.environ.get("PYTHONPATH", "")])}
-    proc = subprocess.run([sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc-per-node", "2",
-                           "-m", "equidiff_ros.cli", *args], env=env, capture_output=True, text=True, timeout=300)
+    proc = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "torch.distributed.run",
+            "--standalone",
+            "--nproc-per-node",
+            "2",
+            "-m",
+            "equidiff_ros.cli",
+            *args,
+        ],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert proc.returncode == 0, proc.stderr[-3000:]
     summaries = [json.loads(line) for line in proc.stdout.splitlines() if line.startswith("{")]
     assert len(summaries) == 1 and summaries[0]["steps"] == 3  # rank 0 alone reports
@@ -134,24 +181,43 @@ def test_two_gloo_ranks_train_in_sync_and_leave_a_normal_checkpoint(tmp_path):
     assert (recipe["world_size"], recipe["data"], recipe["precision"]) == (2, "device", "fp32")
 
     sample = DemoDataset.from_bags([SAMPLE_BAG], DatasetConfig(cache_dir=str(tmp_path / "cache")))[0]
-    pred = load_inference_policy(out / "policy.pt").predict(sample["voxels"][0].numpy(), sample["ee"][0].numpy(),
-                                                            seed=0)
+    pred = load_inference_policy(out / "policy.pt").predict(
+        sample["voxels"][0].numpy(), sample["ee"][0].numpy(), seed=0
+    )
     assert pred.shape == (16, 10) and np.all(np.isfinite(pred))
 
     # the data-parallel checkpoint resumes in one process like any other
     steps_at = args.index("--steps") + 1
-    assert cli([*args[:steps_at], "4", *args[steps_at + 1:], "--resume"]) == 0
+    assert cli([*args[:steps_at], "4", *args[steps_at + 1 :], "--resume"]) == 0
     assert load_training_checkpoint(out / "last.ckpt")["step"] == 4
     steps = [h["step"] for h in json.loads((out / "history.json").read_text()) if "loss" in h]
     assert steps[0] == 1 and steps[-1] == 4
 
 
-
 def test_bench_train_prints_one_json_line_naming_preset_batch_and_devices(capsys):
     from equidiff_ros.cli import main
 
-    assert main(["bench", "train", "--preset", "tiny", "--policy", "baseline", "--batch-size", "2", "--steps", "1",
-                 "--warmup", "1", "--samples", "2"]) == 0
+    assert (
+        main(
+            [
+                "bench",
+                "train",
+                "--preset",
+                "tiny",
+                "--policy",
+                "baseline",
+                "--batch-size",
+                "2",
+                "--steps",
+                "1",
+                "--warmup",
+                "1",
+                "--samples",
+                "2",
+            ]
+        )
+        == 0
+    )
     lines = capsys.readouterr().out.strip().splitlines()
     assert len(lines) == 1
     out = json.loads(lines[0])

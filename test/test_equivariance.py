@@ -167,8 +167,16 @@ def test_check_equivariance_of_a_training_checkpoint(tmp_path, capsys):
     from equidiff_core.training import TrainConfig, train
     from equidiff_ros.cli import main
 
-    cfg = TrainConfig(steps=1, batch_size=2, warmup_steps=1, eval_every=1, eval_samples=1, val_batches=1,
-                      checkpoint_every=1, log_every=1)
+    cfg = TrainConfig(
+        steps=1,
+        batch_size=2,
+        warmup_steps=1,
+        eval_every=1,
+        eval_samples=1,
+        val_batches=1,
+        checkpoint_every=1,
+        log_every=1,
+    )
     torch.manual_seed(0)  # train() fits the normaliser to the data
     policy = make_policy("equidiff", get_preset("tiny"), WS)
     result = train(policy, CubeDataset(2, seed=1), CubeDataset(1, seed=2), cfg, tmp_path)

@@ -42,9 +42,12 @@ def franka(tmp_path_factory):
     proc = client = None
     with SimServer() as sim:
         try:
-            proc = start_node("franka_node", {"robot_ip": sim.host, "realtime": False,
-                                                    "lab_config": str(LAB_PATH)}, log_dir / "franka_node.log",
-                                    priority=True)
+            proc = start_node(
+                "franka_node",
+                {"robot_ip": sim.host, "realtime": False, "lab_config": str(LAB_PATH)},
+                log_dir / "franka_node.log",
+                priority=True,
+            )
             client = ControlClient(lab, str(LAB_PATH))
             client.record_pose_stamps()  # every state's stamp, none dropped while the test runner is starved
             client.wait_for(lambda: len(client.data.poses) > 10, 90.0, "/franka/ee_pose", proc)
@@ -95,8 +98,15 @@ def test_state_is_published_at_100_hz_from_the_home_pose(franka):
 def test_curve_is_tracked_smoothly_and_held_when_commands_stop(franka):
     client, proc, _lab, sim = franka
     t0, t_start = time.monotonic(), time.time()
-    r = bench.run_track_and_hold(client, speed=0.06, radius=0.05, duration=4.0, settle=1.0, obs_latency=0.1,
-                                 watchdog_s=CONTROL.safety.watchdog_timeout_s)
+    r = bench.run_track_and_hold(
+        client,
+        speed=0.06,
+        radius=0.05,
+        duration=4.0,
+        settle=1.0,
+        obs_latency=0.1,
+        watchdog_s=CONTROL.safety.watchdog_timeout_s,
+    )
     r["sim_realtime_factor"] = sim.realtime_factor(since=t0)  # < 1: the sim itself was starved of CPU
     _, gaps = state_stamps(client, t_start, time.time())
     r["largest_state_gap_s"] = round(float(gaps.max()), 3)
@@ -252,8 +262,10 @@ def test_arm_keeps_its_posture_while_the_tcp_wanders_and_yaws():
 
                 def behind() -> bool:  # the TCP trails its last target by more than 3 cm or 14 deg
                     tcp, target = ctl.state.ee_pose, state["pose"]
-                    return (np.linalg.norm(tcp[:3, 3] - target[:3, 3]) > 0.03
-                            or rotation_angle(tcp[:3, :3], target[:3, :3]) > 0.25)
+                    return (
+                        np.linalg.norm(tcp[:3, 3] - target[:3, 3]) > 0.03
+                        or rotation_angle(tcp[:3, :3], target[:3, :3]) > 0.25
+                    )
 
                 def glide(p0, y0, p1, y1, seconds):
                     """Targets at 20 Hz moving from (p0, y0) to (p1, y1) in ``seconds`` of the robot's own
@@ -302,15 +314,17 @@ def test_limits_are_set_explicitly_on_connect_and_a_joint_driven_into_its_limit_
 
     lab = load_lab_config(LAB_PATH)
     with SimServer() as sim:
-        robot = make_robot("franky", ip=sim.host, config=CONTROL.franky, realtime=False, gripper=False,
-                           safety=CONTROL.safety)
+        robot = make_robot(
+            "franky", ip=sim.host, config=CONTROL.franky, realtime=False, gripper=False, safety=CONTROL.safety
+        )
         with robot:
             applied = robot.applied_limits
             assert applied["collision_torque_thresholds_nm"] == list(CONTROL.franky.collision_torque_thresholds_nm)
             assert applied["collision_force_thresholds_n"] == list(CONTROL.franky.collision_force_thresholds_n)
             franky_limit = robot._robot.joint_velocity_limit
-            np.testing.assert_allclose(franky_limit.get(), np.minimum(CONTROL.safety.max_joint_speeds_rad_s,
-                                                                      franky_limit.max))
+            np.testing.assert_allclose(
+                franky_limit.get(), np.minimum(CONTROL.safety.max_joint_speeds_rad_s, franky_limit.max)
+            )
             ctl = Controller(robot, lab.safety_box, CONTROL)
             ctl.start(home=True)
             ctl.stop()
@@ -319,8 +333,12 @@ def test_limits_are_set_explicitly_on_connect_and_a_joint_driven_into_its_limit_
             # the controller stops at 0.25 rad if it still turns towards the limit
             lo, hi = list(CONTROL.safety.joint_position_min_rad), list(CONTROL.safety.joint_position_max_rad)
             lo[6], hi[6] = q7 - 0.3, q7 + 0.3
-            tight = dataclasses.replace(CONTROL, safety=dataclasses.replace(
-                CONTROL.safety, joint_position_min_rad=tuple(lo), joint_position_max_rad=tuple(hi)))
+            tight = dataclasses.replace(
+                CONTROL,
+                safety=dataclasses.replace(
+                    CONTROL.safety, joint_position_min_rad=tuple(lo), joint_position_max_rad=tuple(hi)
+                ),
+            )
             robot.safety = tight.safety
             ctl = Controller(robot, lab.safety_box, tight)
             ctl.start(home=False)
@@ -331,8 +349,11 @@ def test_limits_are_set_explicitly_on_connect_and_a_joint_driven_into_its_limit_
                 while not ctl.stats.awaiting_ack and yaw < 1.2 and time.monotonic() < deadline:
                     yaw += 0.01  # ~0.2 rad/s: one-point targets 50 ms ahead at 20 Hz, as teleop sends
                     now = time.time_ns()
-                    ctl.submit(PoseChunk(now, np.array([now + 50_000_000]),
-                                         tcp_pose(home[:3, 3], yaw0 + yaw)[None], np.array([0.08])))
+                    ctl.submit(
+                        PoseChunk(
+                            now, np.array([now + 50_000_000]), tcp_pose(home[:3, 3], yaw0 + yaw)[None], np.array([0.08])
+                        )
+                    )
                     time.sleep(0.05)
                 assert "joint 7" in ctl.stats.awaiting_ack, ctl.stats
                 assert abs(ctl.state.joint_positions[6] - q7) < 0.3 + 0.05  # stopped near its limit

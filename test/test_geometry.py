@@ -163,12 +163,15 @@ def test_arbitrary_angle_rotation_moves_a_blob_like_its_pose():
     assert out[0, :, :, [0, 2, 3]].sum() == 0  # z untouched
 
 
-@pytest.mark.parametrize("bad, message", [
-    (np.diag([1.0, 1.0, -1.0]), "reflection"),
-    (np.eye(3) * 1.1, "orthonormal"),
-    (np.full((3, 3), np.nan), "NaN"),
-    (np.eye(2), "shape"),
-])
+@pytest.mark.parametrize(
+    "bad, message",
+    [
+        (np.diag([1.0, 1.0, -1.0]), "reflection"),
+        (np.eye(3) * 1.1, "orthonormal"),
+        (np.full((3, 3), np.nan), "NaN"),
+        (np.eye(2), "shape"),
+    ],
+)
 def test_invalid_rotations_are_rejected(bad, message):
     with pytest.raises(g.GeometryError, match=message):
         g.validate_rotation(bad)

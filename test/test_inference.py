@@ -91,6 +91,7 @@ def test_a_failed_compile_warns_and_keeps_the_traced_step(exported, monkeypatch)
     def broken_compile(fn, **_):
         def run(*args):
             raise RuntimeError("InductorError: no working C++ compiler found\nmore detail")
+
         return run
 
     monkeypatch.setattr(torch, "compile", broken_compile)
@@ -221,8 +222,16 @@ def test_bench_policy_command_prints_one_json_line(capsys):
     lines = capsys.readouterr().out.strip().splitlines()
     assert len(lines) == 1
     out = json.loads(lines[0])
-    for key in ("preset", "params", "encoder_ms", "step_ms", "ddim16_median_ms", "ddim16_p99_ms",
-                "eager_ddim16_median_ms", "device"):
+    for key in (
+        "preset",
+        "params",
+        "encoder_ms",
+        "step_ms",
+        "ddim16_median_ms",
+        "ddim16_p99_ms",
+        "eager_ddim16_median_ms",
+        "device",
+    ):
         assert key in out
     assert out["preset"] == "tiny" and out["params"] > 0
     assert 0 < out["encoder_ms"] < out["ddim16_median_ms"] <= out["ddim16_p99_ms"]

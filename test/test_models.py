@@ -101,7 +101,7 @@ def test_action_codec_round_trip_and_equivariance(control):
 
 
 def test_crops():
-    vox = torch.arange(64 ** 3, dtype=torch.int32).reshape(1, 1, 64, 64, 64)
+    vox = torch.arange(64**3, dtype=torch.int32).reshape(1, 1, 64, 64, 64)
     c = augment.center_crop(vox, 58)
     assert c.shape[-3:] == (58, 58, 58) and c[0, 0, 0, 0, 0] == vox[0, 0, 3, 3, 3]
     # centred crop commutes with rot90: C4 stays exact after cropping
@@ -131,8 +131,11 @@ def test_rotation_augmentation_moves_voxels_and_actions_together():
 def test_bad_batches_are_rejected_with_clear_errors():
     policy = make_policy("baseline", get_preset("tiny"), WS)
     policy.set_normalizer(Normalizer.from_workspace(WS))
-    good = {"voxels": torch.zeros(2, 1, 4, 64, 64, 64, dtype=torch.uint8), "ee": torch.zeros(2, 1, 10),
-            "action": torch.zeros(2, 16, 10)}
+    good = {
+        "voxels": torch.zeros(2, 1, 4, 64, 64, 64, dtype=torch.uint8),
+        "ee": torch.zeros(2, 1, 10),
+        "action": torch.zeros(2, 16, 10),
+    }
     with pytest.raises(PolicyInputError, match="uint8"):
         policy.compute_loss({**good, "voxels": good["voxels"].float()})
     with pytest.raises(PolicyInputError, match="NaN"):

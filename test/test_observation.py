@@ -23,9 +23,12 @@ def test_training_and_the_live_node_build_identical_inputs_from_the_same_bag(tmp
     episode = read_episode(BAG, topics=("/voxels", "/franka/ee_pose", "/franka/joint_states"))
     arrival = sorted(
         [(t, "pose", m) for t, m in zip(episode["/franka/ee_pose"].header_ns(), episode["/franka/ee_pose"].messages)]
-        + [(t, "joints", m) for t, m in zip(episode["/franka/joint_states"].header_ns(),
-                                            episode["/franka/joint_states"].messages)],
-        key=lambda item: item[0])
+        + [
+            (t, "joints", m)
+            for t, m in zip(episode["/franka/joint_states"].header_ns(), episode["/franka/joint_states"].messages)
+        ],
+        key=lambda item: item[0],
+    )
     poses, widths = StateHistory(maxlen=100_000), StateHistory(maxlen=100_000)
     for _t, kind, msg in arrival:  # as policy_node's callbacks receive them
         if kind == "pose":

@@ -24,8 +24,13 @@ S = 1_000_000_000
 
 
 def lab_cli(*args: str) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "equidiff_ros.cli", "lab", *args], capture_output=True, text=True,
-                          timeout=120, env=dict(os.environ, OMP_NUM_THREADS="1"))
+    return subprocess.run(
+        [sys.executable, "-m", "equidiff_ros.cli", "lab", *args],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        env=dict(os.environ, OMP_NUM_THREADS="1"),
+    )
 
 
 def test_intervention_log_lists_each_takeover_from_the_episode_start():
@@ -58,15 +63,22 @@ def test_lab_cli_records_an_episode_with_a_teleop_takeover(ros_domain, tmp_path)
         pose_pub = ros.node.create_publisher(f.cls("geometry_msgs/msg/PoseStamped"), "/franka/ee_pose", RELIABLE_QOS)
         joy_pub = ros.node.create_publisher(f.cls("sensor_msgs/msg/Joy"), "/spacenav/joy", SENSOR_QOS)
         active: list[bool] = []
-        ros.node.create_subscription(f.cls("std_msgs/msg/Bool"), "/teleop/active", lambda m: active.append(m.data),
-                                     LATCHED_QOS)
-        assert ros.spin_until(lambda: active == [False] and joy_pub.get_subscription_count() > 0, 30.0), \
-            stop_node(teleop)
+        ros.node.create_subscription(
+            f.cls("std_msgs/msg/Bool"), "/teleop/active", lambda m: active.append(m.data), LATCHED_QOS
+        )
+        assert ros.spin_until(lambda: active == [False] and joy_pub.get_subscription_count() > 0, 30.0), stop_node(
+            teleop
+        )
         p, q = geometry.pos_quat_from_pose(geometry.make_pose(np.diag([1.0, -1, -1]), [0.45, 0.0, 0.2]))
-        pose = f.make("geometry_msgs/msg/PoseStamped", header=f.header(0, LAB.base_frame),
-                      pose=f.make("geometry_msgs/msg/Pose", position=f.make("geometry_msgs/msg/Point", x=p[0], y=p[1],
-                                                                            z=p[2]),
-                                  orientation=f.make("geometry_msgs/msg/Quaternion", x=q[0], y=q[1], z=q[2], w=q[3])))
+        pose = f.make(
+            "geometry_msgs/msg/PoseStamped",
+            header=f.header(0, LAB.base_frame),
+            pose=f.make(
+                "geometry_msgs/msg/Pose",
+                position=f.make("geometry_msgs/msg/Point", x=p[0], y=p[1], z=p[2]),
+                orientation=f.make("geometry_msgs/msg/Quaternion", x=q[0], y=q[1], z=q[2], w=q[3]),
+            ),
+        )
 
         started = lab_cli("record", "start")
         assert started.returncode == 0, started.stderr
@@ -77,9 +89,14 @@ def test_lab_cli_records_an_episode_with_a_teleop_takeover(ros_domain, tmp_path)
             end = time.monotonic() + seconds
             while time.monotonic() < end:
                 pose_pub.publish(pose)
-                joy_pub.publish(f.make("sensor_msgs/msg/Joy", header=f.header(ros.node.get_clock().now().nanoseconds,
-                                                                              ""),
-                                       axes=[float(a) for a in axes], buttons=[0, 0]))
+                joy_pub.publish(
+                    f.make(
+                        "sensor_msgs/msg/Joy",
+                        header=f.header(ros.node.get_clock().now().nanoseconds, ""),
+                        axes=[float(a) for a in axes],
+                        buttons=[0, 0],
+                    )
+                )
                 ros.spin_for(0.02)
 
         drive([0.0] * 6, 0.5)  # input inside the deadzone is no takeover
@@ -105,7 +122,9 @@ def test_lab_cli_records_an_episode_with_a_teleop_takeover(ros_domain, tmp_path)
     start_s, end_s = (float(v) for v in ep.meta.extra["interventions"].split("-"))
     assert 0.4 < start_s < end_s
     with Reader(episode) as reader:
-        marks = [decoded(raw, conn.msgtype).data for conn, _t, raw in reader.messages() if conn.topic == "/teleop/active"]
+        marks = [
+            decoded(raw, conn.msgtype).data for conn, _t, raw in reader.messages() if conn.topic == "/teleop/active"
+        ]
     assert marks[-2:] == [True, False]
 
 
@@ -138,19 +157,30 @@ def test_policy_publishes_nothing_until_enabled_and_a_takeover_pauses_it(ros_dom
     state: list[str] = []
     try:
         franka = start_node("franka_node", {"backend": "dryrun", "lab_config": lab_path}, tmp_path / "franka.log")
-        policy = start_node("policy_node", {"checkpoint": str(checkpoint), "lab_config": lab_path, "seed": 0,
-                                                  "execute_steps": 1, "start_paused": True}, tmp_path / "policy.log")
+        policy = start_node(
+            "policy_node",
+            {
+                "checkpoint": str(checkpoint),
+                "lab_config": lab_path,
+                "seed": 0,
+                "execute_steps": 1,
+                "start_paused": True,
+            },
+            tmp_path / "policy.log",
+        )
         client = ControlClient(LAB, lab_path)
-        client.node.create_subscription(String, "/policy/skipped",
-                                        lambda m: skipped.append(json.loads(m.data)["reason"]), RELIABLE_QOS)
+        client.node.create_subscription(
+            String, "/policy/skipped", lambda m: skipped.append(json.loads(m.data)["reason"]), RELIABLE_QOS
+        )
         client.node.create_subscription(String, "/policy/state", lambda m: state.append(m.data), LATCHED_QOS)
         takeover = client.node.create_publisher(Bool, "/teleop/active", LATCHED_QOS)
         client.wait_for(lambda: len(client.data.poses) > 10, 60.0, "/franka/ee_pose from the dry-run arm", franka)
 
         def feed():
             while not stop.is_set():
-                client.pub_voxels.publish(grid_to_voxel_msg(grid, ws.lower, ws.voxel_size, time.time_ns(),
-                                                            LAB.base_frame, client.factory))
+                client.pub_voxels.publish(
+                    grid_to_voxel_msg(grid, ws.lower, ws.voxel_size, time.time_ns(), LAB.base_frame, client.factory)
+                )
                 stop.wait(0.2)
 
         threading.Thread(target=feed, daemon=True).start()
@@ -182,8 +212,10 @@ def test_policy_publishes_nothing_until_enabled_and_a_takeover_pauses_it(ros_dom
         if client is not None:
             client.close()
         # 30 s: a hang guard only; an inference in flight on a loaded machine finishes first
-        codes = [stop_process(policy, timeout=30.0, sig=signal.SIGINT),
-                 stop_process(franka, timeout=30.0, sig=signal.SIGTERM)]
+        codes = [
+            stop_process(policy, timeout=30.0, sig=signal.SIGINT),
+            stop_process(franka, timeout=30.0, sig=signal.SIGTERM),
+        ]
     assert codes == [0, 0], (tmp_path / "policy.log").read_text()[-3000:]
 
 
@@ -207,19 +239,32 @@ def test_the_operator_flow_drives_the_twin_the_same_way(ros_domain, tmp_path):
     cfg_dir = default_config_dir()
     policy = make_standin_policy(tmp_path / "standin.pt", LAB.workspace, preset="tiny", cfg=TwinConfig())
     home = np.array(load_control_config(cfg_dir / "control.yaml").home_position)
-    with TwinStack(tmp_path / "run", cfg_dir / "lab.yaml", cfg_dir / "twin.yaml", policy=str(policy), task="lab",
-                   domain_id=221 + (ros_domain + 7) % 12, log=lambda s: None) as stack:
+    with TwinStack(
+        tmp_path / "run",
+        cfg_dir / "lab.yaml",
+        cfg_dir / "twin.yaml",
+        policy=str(policy),
+        task="lab",
+        domain_id=221 + (ros_domain + 7) % 12,
+        log=lambda s: None,
+    ) as stack:
         sup = stack.sup
-        stack.group.start("teleop_node", node_command("teleop_node", {
-            "lab_config": str(cfg_dir / "lab.yaml"), "use_sim_time": True, "source": "joy", "resync_after_s": 0.5}))
+        stack.group.start(
+            "teleop_node",
+            node_command(
+                "teleop_node",
+                {"lab_config": str(cfg_dir / "lab.yaml"), "use_sim_time": True, "source": "joy", "resync_after_s": 0.5},
+            ),
+        )
         f = sup.factory
         joy_pub = sup.node.create_publisher(f.cls("sensor_msgs/msg/Joy"), "/spacenav/joy", SENSOR_QOS)
         sup.wait_for(lambda: joy_pub.get_subscription_count() > 0, 60.0, "teleop_node", stack.check)
 
         homed = lab_cli("home")
         assert homed.returncode == 0 and "homing" in homed.stdout, homed.stdout + homed.stderr
-        sup.wait_for(lambda: np.linalg.norm(sup.current()[0][:3, 3] - home) < 0.01, 120.0, "the arm at home",
-                     stack.check)
+        sup.wait_for(
+            lambda: np.linalg.norm(sup.current()[0][:3, 3] - home) < 0.01, 120.0, "the arm at home", stack.check
+        )
         started = lab_cli("record", "start")
         assert started.returncode == 0, started.stderr
         episode = Path(started.stdout.strip())
@@ -242,8 +287,14 @@ def test_the_operator_flow_drives_the_twin_the_same_way(ros_domain, tmp_path):
         def drive(axes, sim_seconds):  # SpaceMouse reports stamped on the node clock, at ~50 Hz of sim time
             end = sup.now_ns() + int(sim_seconds * S)
             while sup.now_ns() < end:
-                joy_pub.publish(f.make("sensor_msgs/msg/Joy", header=f.header(sup.now_ns(), ""),
-                                       axes=[float(a) for a in axes], buttons=[0, 0]))
+                joy_pub.publish(
+                    f.make(
+                        "sensor_msgs/msg/Joy",
+                        header=f.header(sup.now_ns(), ""),
+                        axes=[float(a) for a in axes],
+                        buttons=[0, 0],
+                    )
+                )
                 stack.check()
                 time.sleep(0.02)
 

@@ -21,12 +21,31 @@ def colcon_install(tmp_path_factory) -> Path:
     base = tmp_path_factory.mktemp("colcon")
     # Build from a copy so colcon's build artefacts never touch the checkout.
     src = base / "src" / "equidiff_ros"
-    shutil.copytree(ROOT, src, ignore=shutil.ignore_patterns(".venv", ".git", "*.egg-info", "__pycache__", "bags",
-                                                             "build", "install", "log", "runs", "out"))
+    shutil.copytree(
+        ROOT,
+        src,
+        ignore=shutil.ignore_patterns(
+            ".venv", ".git", "*.egg-info", "__pycache__", "bags", "build", "install", "log", "runs", "out"
+        ),
+    )
     result = subprocess.run(
-        [colcon, "--log-base", str(base / "log"), "build", "--base-paths", str(base / "src"),
-         "--build-base", str(base / "build"), "--install-base", str(base / "install")],
-        cwd=base, capture_output=True, text=True, timeout=300)
+        [
+            colcon,
+            "--log-base",
+            str(base / "log"),
+            "build",
+            "--base-paths",
+            str(base / "src"),
+            "--build-base",
+            str(base / "build"),
+            "--install-base",
+            str(base / "install"),
+        ],
+        cwd=base,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert result.returncode == 0, result.stdout + result.stderr
     return base / "install"
 
@@ -79,8 +98,16 @@ def test_package_xml_declares_runtime_dependencies():
     root = ET.parse(ROOT / "package.xml").getroot()
     assert root.get("format") == "3"
     deps = {e.text for e in root.iter("exec_depend")}
-    assert {"rclpy", "sensor_msgs", "geometry_msgs", "trajectory_msgs", "std_msgs", "std_srvs",
-            "diagnostic_msgs", "tf2_msgs"} <= deps
+    assert {
+        "rclpy",
+        "sensor_msgs",
+        "geometry_msgs",
+        "trajectory_msgs",
+        "std_msgs",
+        "std_srvs",
+        "diagnostic_msgs",
+        "tf2_msgs",
+    } <= deps
     assert root.find("export/build_type").text == "ament_python"
 
 
@@ -97,10 +124,12 @@ def test_escnn_imports_under_numpy2_and_pip_check_is_clean():
     assert check.returncode == 0, check.stdout
 
 
-def test_ruff_finds_nothing_in_the_sources_and_tests():
-    """The README's test command is also the lint gate (ruff.toml holds the rules)."""
+@pytest.mark.parametrize("command", [["check"], ["format", "--check"]], ids=["lint", "format"])
+def test_ruff_finds_nothing_in_the_sources_and_tests(command):
+    """The README's test command is also the lint and format gate (ruff.toml holds the rules)."""
     ruff = shutil.which("ruff", path=str(BIN))
     assert ruff is not None, "ruff is not installed (scripts/setup.sh installs the dev extras)"
-    result = subprocess.run([ruff, "check", "src", "test", "launch"], cwd=ROOT, capture_output=True, text=True,
-                            timeout=120)
+    result = subprocess.run(
+        [ruff, *command, "src", "test", "launch"], cwd=ROOT, capture_output=True, text=True, timeout=120
+    )
     assert result.returncode == 0, result.stdout + result.stderr

@@ -17,13 +17,15 @@ LAB_YAML = str(default_config_dir() / "lab.yaml")
 
 def test_nodes_print_usage_without_starting_ros():
     for node in ("camera_node", "voxel_node"):
-        out = subprocess.run([sys.executable, "-m", f"equidiff_ros.{node}", "--help"], capture_output=True,
-                             text=True, timeout=60)
+        out = subprocess.run(
+            [sys.executable, "-m", f"equidiff_ros.{node}", "--help"], capture_output=True, text=True, timeout=60
+        )
         assert out.returncode == 0, out.stderr
         assert f"usage: {node}" in out.stdout and "Parameters" in out.stdout
 
 
 # --- helpers -----------------------------------------------------------------------------
+
 
 def _spawn(node, *params):
     return spawn_node(node, f"lab_config:={LAB_YAML}", *params)
@@ -120,6 +122,7 @@ def _grid(msg, lab):
 
 # --- voxel_node ---------------------------------------------------------------------------
 
+
 @pytest.mark.ros
 @pytest.mark.slow
 def test_three_clouds_become_the_expected_grid_and_a_missing_camera_stops_output(tester, scene):
@@ -148,8 +151,7 @@ def test_three_clouds_become_the_expected_grid_and_a_missing_camera_stops_output
         tester.wait_for(lambda: False, 1.0, lambda: publish(names[:2]))  # let it go stale
         count = len(tester.voxels)
         assert not tester.wait_for(lambda: len(tester.voxels) > count, 2.0, lambda: publish(names[:2]))
-        assert tester.wait_for(lambda: "cam_right" in (tester.voxel_status()[0] or ""), 3.0,
-                               lambda: publish(names[:2]))
+        assert tester.wait_for(lambda: "cam_right" in (tester.voxel_status()[0] or ""), 3.0, lambda: publish(names[:2]))
         message, values = tester.voxel_status()
         assert message.startswith("stale") and "cam_right (last cloud" in message
         assert float(values["voxelize_ms"]) > 0 and int(values["published"]) >= 1
@@ -178,8 +180,7 @@ def test_a_camera_never_seen_blocks_output_and_malformed_clouds_do_not_crash_the
         no_z.fields = [fl for fl in no_z.fields if fl.name != "z"]
         bad_step = good()
         bad_step.point_step = 12
-        nan = cloud_to_msg(np.full((10, 3), np.nan, np.float32), np.zeros((10, 3), np.uint8), stamp,
-                           front.frame_id, f)
+        nan = cloud_to_msg(np.full((10, 3), np.nan, np.float32), np.zeros((10, 3), np.uint8), stamp, front.frame_id, f)
         empty = cloud_to_msg(np.zeros((0, 3), np.float32), np.zeros((0, 3), np.uint8), stamp, front.frame_id, f)
         wrong_frame = cloud_to_msg(clouds[0][0], clouds[0][1], stamp, "somewhere_else", f)
         return [no_z, bad_step, nan, empty, wrong_frame]
@@ -191,15 +192,16 @@ def test_a_camera_never_seen_blocks_output_and_malformed_clouds_do_not_crash_the
         msgs = _cloud_msgs(lab, clouds, stamp)
         bad_ones = malformed(stamp)
         rounds[0] += 1  # rotate the order: a best-effort burst may lose its tail, never every kind
-        for bad in bad_ones[rounds[0] % 5:] + bad_ones[:rounds[0] % 5]:
+        for bad in bad_ones[rounds[0] % 5 :] + bad_ones[: rounds[0] % 5]:
             tester.publish(front.name, bad)
         for name in ("cam_left", "cam_right"):
             tester.publish(name, msgs[name])
 
     try:
         # only malformed clouds from cam_front: no output, the node keeps running and counts drops
-        assert tester.wait_for(lambda: int(tester.voxel_status()[1].get("cam_front_dropped", 0)) >= 25, 40.0,
-                               publish_malformed_front), stop_node(proc)
+        assert tester.wait_for(
+            lambda: int(tester.voxel_status()[1].get("cam_front_dropped", 0)) >= 25, 40.0, publish_malformed_front
+        ), stop_node(proc)
         assert not tester.voxels and proc.poll() is None
         assert "cam_front (never received)" in tester.voxel_status()[0]
 
@@ -221,6 +223,7 @@ def test_a_camera_never_seen_blocks_output_and_malformed_clouds_do_not_crash_the
 
 # --- camera_node ---------------------------------------------------------------------------
 
+
 @pytest.mark.ros
 @pytest.mark.slow
 def test_replayed_bag_through_camera_node_and_voxel_node(tester, scene, tmp_path):
@@ -236,7 +239,7 @@ def test_replayed_bag_through_camera_node_and_voxel_node(tester, scene, tmp_path
         cloud = tester.clouds[-1]
         assert cloud.header.frame_id == "cam_front_color_optical_frame"
         assert cloud.width == len(clouds[0][0]) and cloud.point_step == 16
-        age_s = (time.time_ns() - (cloud.header.stamp.sec * 10 ** 9 + cloud.header.stamp.nanosec)) / 1e9
+        age_s = (time.time_ns() - (cloud.header.stamp.sec * 10**9 + cloud.header.stamp.nanosec)) / 1e9
         assert -0.5 < age_s < 2.0  # restamped: live, not the bag's 2023 stamps
         np.testing.assert_array_equal(_grid(tester.voxels[-1], lab), expected)
         # The replay keeps flowing (looped) and never faster than the bag's 5 Hz; the grids follow,
@@ -247,7 +250,7 @@ def test_replayed_bag_through_camera_node_and_voxel_node(tester, scene, tmp_path
         n_clouds, n_voxels = len(tester.clouds) - clouds_before, len(tester.voxels) - voxels_before
         assert 2 <= n_clouds <= 20, n_clouds  # 15 expected (3 cameras at 5 Hz)
         assert 2 <= n_voxels <= 20, n_voxels
-        stamps = [v.header.stamp.sec * 10 ** 9 + v.header.stamp.nanosec for v in tester.voxels[voxels_before - 1:]]
+        stamps = [v.header.stamp.sec * 10**9 + v.header.stamp.nanosec for v in tester.voxels[voxels_before - 1 :]]
         assert min(np.diff(stamps)) >= 0.75 * 0.2e9, np.diff(stamps)  # voxel_node's rate cap at 5 Hz
         assert camera.poll() is None and voxel.poll() is None
     finally:

@@ -27,8 +27,13 @@ LAB_PATH = default_config_dir() / "lab.yaml"
 
 
 def run_node(module: str, *ros_args: str, timeout: float = 120) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", f"equidiff_ros.{module}", *ros_args], capture_output=True,
-                          text=True, timeout=timeout, env=dict(os.environ, OMP_NUM_THREADS="1"))
+    return subprocess.run(
+        [sys.executable, "-m", f"equidiff_ros.{module}", *ros_args],
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+        env=dict(os.environ, OMP_NUM_THREADS="1"),
+    )
 
 
 @pytest.fixture(scope="module")
@@ -51,12 +56,15 @@ def test_nodes_print_usage(module):
 
 
 @pytest.mark.ros
-@pytest.mark.parametrize("case, expected", [
-    ("none", "'checkpoint' parameter is required"),
-    ("missing", "no such policy file"),
-    ("corrupt", "not a readable policy file"),
-    ("workspace", "trained for workspace"),
-])
+@pytest.mark.parametrize(
+    "case, expected",
+    [
+        ("none", "'checkpoint' parameter is required"),
+        ("missing", "no such policy file"),
+        ("corrupt", "not a readable policy file"),
+        ("workspace", "trained for workspace"),
+    ],
+)
 def test_bad_checkpoint_is_a_clear_error_at_start(ros_domain, tmp_path, checkpoint, capsys, case, expected):
     """In-process ``main`` (the console script is ``sys.exit(main())``): exit status 1 and the reason."""
     from equidiff_ros import policy_node
@@ -76,12 +84,12 @@ def test_bad_checkpoint_is_a_clear_error_at_start(ros_domain, tmp_path, checkpoi
     assert expected in capsys.readouterr().err
 
 
-
 def block_grid(ws) -> np.ndarray:
     """A voxel grid with one block in it, what the tests feed policy_node as /voxels."""
     grid = np.zeros((4, ws.resolution, ws.resolution, ws.resolution), np.uint8)
     grid[:, 20:26, 30:36, 2:8] = 200
     return grid
+
 
 @pytest.mark.ros
 @pytest.mark.slow
@@ -97,11 +105,18 @@ def test_policy_closes_the_loop_and_skips_stale_observations(ros_domain, checkpo
     stop_voxels = threading.Event()
     stamps: list[int] = []
     try:
-        franka = start_node("franka_node", {"backend": "dryrun", "lab_config": str(LAB_PATH)},
-                                  tmp_path / "franka.log")
-        policy = start_node("policy_node", {"checkpoint": str(checkpoint), "lab_config": str(LAB_PATH),
-                                                  "seed": 0, "max_observation_age_s": 0.5, "execute_steps": 1},
-                                  tmp_path / "policy.log")
+        franka = start_node("franka_node", {"backend": "dryrun", "lab_config": str(LAB_PATH)}, tmp_path / "franka.log")
+        policy = start_node(
+            "policy_node",
+            {
+                "checkpoint": str(checkpoint),
+                "lab_config": str(LAB_PATH),
+                "seed": 0,
+                "max_observation_age_s": 0.5,
+                "execute_steps": 1,
+            },
+            tmp_path / "policy.log",
+        )
         client = ControlClient(lab, str(LAB_PATH))
         client.wait_for(lambda: len(client.data.poses) > 10, 60.0, "/franka/ee_pose from the dry-run arm", franka)
 
@@ -109,8 +124,9 @@ def test_policy_closes_the_loop_and_skips_stale_observations(ros_domain, checkpo
             while not stop_voxels.is_set():
                 stamp = time.time_ns()
                 stamps.append(stamp)
-                client.pub_voxels.publish(grid_to_voxel_msg(grid, ws.lower, ws.voxel_size, stamp, lab.base_frame,
-                                                            client.factory))
+                client.pub_voxels.publish(
+                    grid_to_voxel_msg(grid, ws.lower, ws.voxel_size, stamp, lab.base_frame, client.factory)
+                )
                 stop_voxels.wait(0.2)
 
         feeder = threading.Thread(target=publish_voxels, daemon=True)
@@ -124,8 +140,12 @@ def test_policy_closes_the_loop_and_skips_stale_observations(ros_domain, checkpo
         # five answers, however long a loaded machine takes (3 s of wall time gave 4 once on CI)
         client.wait_for(lambda: len(answered()) >= 5, 90.0, "five chunks from the policy node", policy)
         # a 1 Hz report that counts an inference (one sent before the first had inference_ms -1)
-        client.wait_for(lambda: float(client.data.diagnostics.get("policy_node", {}).get("inference_ms", -1)) > 0,
-                        30.0, "policy diagnostics with an inference", policy)
+        client.wait_for(
+            lambda: float(client.data.diagnostics.get("policy_node", {}).get("inference_ms", -1)) > 0,
+            30.0,
+            "policy diagnostics with an inference",
+            policy,
+        )
 
         msg = client.data.last_chunk
         chunk = chunk_from_msg(msg)
@@ -134,10 +154,17 @@ def test_policy_closes_the_loop_and_skips_stale_observations(ros_domain, checkpo
         assert stamp in stamps  # stamped with the observation it answers
         np.testing.assert_array_equal(chunk.times_ns - stamp, np.arange(8) * 200_000_000)  # obs + i*dt
         diag = client.data.diagnostics["policy_node"]
-        for key in ("inference_ms", "observation_age_ms", "skipped_cycles", "obs_to_cmd_ms",
-                    "obs_to_cmd_p50_ms", "obs_to_cmd_p95_ms"):
+        for key in (
+            "inference_ms",
+            "observation_age_ms",
+            "skipped_cycles",
+            "obs_to_cmd_ms",
+            "obs_to_cmd_p50_ms",
+            "obs_to_cmd_p95_ms",
+        ):
             assert key in diag
         assert 0 < float(diag["inference_ms"]) <= float(diag["obs_to_cmd_ms"])
+
         # franka_node reports at 1 Hz: its newest report may predate the chunks (CI once saw 0 + 0)
         def franka_judged() -> int:
             franka_diag = client.data.diagnostics.get("franka_node", {})
@@ -155,8 +182,14 @@ def test_policy_closes_the_loop_and_skips_stale_observations(ros_domain, checkpo
         skipped_before = int(diag.get("skipped_stale_observation", 0))
         # > 0.5 s to go stale, then a cycle every 0.2 s, reported at 1 Hz (waited for, not timed:
         # a busy machine runs fewer cycles per wall second)
-        client.wait_for(lambda: int(client.data.diagnostics["policy_node"].get("skipped_stale_observation", 0))
-                        >= skipped_before + 3, 30.0, "three observations skipped as stale", policy)
+        client.wait_for(
+            lambda: (
+                int(client.data.diagnostics["policy_node"].get("skipped_stale_observation", 0)) >= skipped_before + 3
+            ),
+            30.0,
+            "three observations skipped as stale",
+            policy,
+        )
         # at most the one in flight, one more for the newest observation (still < 0.5 s old and not
         # yet used when the feed stopped), and one already published but not yet received
         # (+1 had failed once under load); every one answers an observation that was sent (on a
@@ -170,10 +203,14 @@ def test_policy_closes_the_loop_and_skips_stale_observations(ros_domain, checkpo
         if client is not None:
             client.close()
         # Ctrl-C for one, SIGTERM (what launch/systemd send) for the other: both exit cleanly.
-        codes = [stop_process(policy, timeout=30.0, sig=signal.SIGINT),  # 30 s: a loaded machine
-                 stop_process(franka, timeout=30.0, sig=signal.SIGTERM)]
-    assert codes == [0, 0], (codes, (tmp_path / "policy.log").read_text()[-3000:] + (tmp_path / "franka.log").read_text()[-3000:])
-
+        codes = [
+            stop_process(policy, timeout=30.0, sig=signal.SIGINT),  # 30 s: a loaded machine
+            stop_process(franka, timeout=30.0, sig=signal.SIGTERM),
+        ]
+    assert codes == [0, 0], (
+        codes,
+        (tmp_path / "policy.log").read_text()[-3000:] + (tmp_path / "franka.log").read_text()[-3000:],
+    )
 
 
 @pytest.mark.ros
@@ -195,9 +232,18 @@ def test_execution_horizon_covers_the_latency_and_rtc_joins_the_previous_chunk(r
     chunks: dict[int, object] = {}
     try:
         franka = start_node("franka_node", {"backend": "dryrun", "lab_config": str(LAB_PATH)}, tmp_path / "franka.log")
-        policy = start_node("policy_node", {"checkpoint": str(checkpoint), "lab_config": str(LAB_PATH), "seed": 0,
-                                            "execute_steps": 2, "latency_s": 0.4, "rtc": True},
-                            tmp_path / "policy.log")
+        policy = start_node(
+            "policy_node",
+            {
+                "checkpoint": str(checkpoint),
+                "lab_config": str(LAB_PATH),
+                "seed": 0,
+                "execute_steps": 2,
+                "latency_s": 0.4,
+                "rtc": True,
+            },
+            tmp_path / "policy.log",
+        )
         client = ControlClient(lab, str(LAB_PATH))
         client.wait_for(lambda: len(client.data.poses) > 10, 60.0, "/franka/ee_pose from the dry-run arm", franka)
 
@@ -205,8 +251,9 @@ def test_execution_horizon_covers_the_latency_and_rtc_joins_the_previous_chunk(r
             # stamps exactly dt apart (the node aligns chunks by their stamps), paced by the wall clock
             stamp = time.time_ns()
             while not stop_voxels.is_set():
-                client.pub_voxels.publish(grid_to_voxel_msg(grid, ws.lower, ws.voxel_size, stamp, lab.base_frame,
-                                                            client.factory))
+                client.pub_voxels.publish(
+                    grid_to_voxel_msg(grid, ws.lower, ws.voxel_size, stamp, lab.base_frame, client.factory)
+                )
                 stamp += 200_000_000
                 stop_voxels.wait(max(0.0, (stamp - time.time_ns()) / 1e9))
 

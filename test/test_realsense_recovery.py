@@ -15,14 +15,30 @@ from equidiff_core.config import default_config_dir, load_lab_config
 LAB = load_lab_config(default_config_dir() / "lab.yaml")
 FRONT = LAB.cameras[0]  # decimation 2, spatial, temporal, exposure 8500 us, white balance 4600 K
 # options on top of lab.yaml's so that every kind of setting is re-applied
-EXTRA = {"laser_power": 150.0, "depth_exposure_us": 8000.0, "visual_preset": "high_accuracy",
-         "reset_after_timeouts": 3, "reenumerate_timeout_s": 10.0, "reconnect_backoff_s": 1.0,
-         "reconnect_backoff_max_s": 4.0}
+EXTRA = {
+    "laser_power": 150.0,
+    "depth_exposure_us": 8000.0,
+    "visual_preset": "high_accuracy",
+    "reset_after_timeouts": 3,
+    "reenumerate_timeout_s": 10.0,
+    "reconnect_backoff_s": 1.0,
+    "reconnect_backoff_max_s": 4.0,
+}
 EXPECTED_OPTIONS = {
-    "depth": {"global_time_enabled": 1.0, "visual_preset": 3.0, "laser_power": 150.0, "enable_auto_exposure": 0.0,
-              "exposure": 8000.0},
-    "color": {"global_time_enabled": 1.0, "enable_auto_exposure": 0.0, "exposure": 85.0,
-              "enable_auto_white_balance": 0.0, "white_balance": 4600.0},
+    "depth": {
+        "global_time_enabled": 1.0,
+        "visual_preset": 3.0,
+        "laser_power": 150.0,
+        "enable_auto_exposure": 0.0,
+        "exposure": 8000.0,
+    },
+    "color": {
+        "global_time_enabled": 1.0,
+        "enable_auto_exposure": 0.0,
+        "exposure": 85.0,
+        "enable_auto_white_balance": 0.0,
+        "white_balance": 4600.0,
+    },
 }
 
 
@@ -60,8 +76,13 @@ def test_a_stalled_camera_is_reset_reconnected_with_every_option_and_streams_aga
     cam.connect()
     assert device.applied() == EXPECTED_OPTIONS
     first_filters = list(bus.filters)
-    assert _filter_kinds(bus) == ["decimation_filter", "disparity_transform", "disparity_transform",
-                                  "spatial_filter", "temporal_filter"]
+    assert _filter_kinds(bus) == [
+        "decimation_filter",
+        "disparity_transform",
+        "disparity_transform",
+        "spatial_filter",
+        "temporal_filter",
+    ]
     assert first_filters[0].values == {"filter_magnitude": 2}
     assert len(cam.read().points) == 48 and cam.health() == CameraHealth()
 
@@ -80,14 +101,19 @@ def test_a_stalled_camera_is_reset_reconnected_with_every_option_and_streams_aga
 
     frame, recovering = _read_until_frame(cam)
     # while the device is off the bus (3 s on the fake clock), each read says what is happening
-    assert recovering and all("recovering after 3 frame timeouts in a row: hardware reset, waiting for the serial "
-                              "to re-enumerate" in e for e in recovering)
+    assert recovering and all(
+        "recovering after 3 frame timeouts in a row: hardware reset, waiting for the serial to re-enumerate" in e
+        for e in recovering
+    )
     assert len(frame.points) == 48
     assert device.applied() == EXPECTED_OPTIONS  # every option re-applied, by the same code as connect
     assert bus.starts == [FRONT.serial, FRONT.serial]
-    assert len(bus.filters) == 2 * len(first_filters) and bus.filters[len(first_filters)].values == {"filter_magnitude": 2}
-    assert cam.health() == CameraHealth(resets=1, reconnects=1, recovering=False,
-                                        last_recovery_reason="3 frame timeouts in a row")
+    assert len(bus.filters) == 2 * len(first_filters) and bus.filters[len(first_filters)].values == {
+        "filter_magnitude": 2
+    }
+    assert cam.health() == CameraHealth(
+        resets=1, reconnects=1, recovering=False, last_recovery_reason="3 frame timeouts in a row"
+    )
     assert len(cam.read().points) == 48  # frames keep flowing
     assert cam.health().resets == 1
 
@@ -119,8 +145,9 @@ def test_an_unplugged_camera_is_retried_with_back_off_and_comes_back_when_plugge
     device.plugged = True
     frame, _ = _read_until_frame(cam)
     assert len(frame.points) == 48 and device.applied() == EXPECTED_OPTIONS
-    assert cam.health() == CameraHealth(resets=0, reconnects=1, recovering=False,
-                                        last_recovery_reason="3 frame timeouts in a row")
+    assert cam.health() == CameraHealth(
+        resets=0, reconnects=1, recovering=False, last_recovery_reason="3 frame timeouts in a row"
+    )
 
 
 def test_a_reset_that_does_not_cure_the_stall_backs_off_before_the_next_one(bus):
@@ -153,13 +180,17 @@ def test_bad_serial_and_usb2_each_give_one_clear_line(bus):
     bus.plug("215122250009")
     with pytest.raises(CameraError) as err:
         _camera(bus).connect()
-    assert str(err.value) == (f"RealSense camera 'cam_front' with serial {FRONT.serial} not found; "
-                              "connected RealSense serials: ['215122250009']")
+    assert str(err.value) == (
+        f"RealSense camera 'cam_front' with serial {FRONT.serial} not found; "
+        "connected RealSense serials: ['215122250009']"
+    )
     bus.plug(FRONT.serial, usb_type="2.1")
     with pytest.raises(CameraError) as err:
         _camera(bus).connect()
-    assert f"({FRONT.serial}): cannot start 848x480@30: Couldn't resolve requests; RealSense {FRONT.serial} " \
-           "(Intel RealSense D455) is on a USB 2.1 link: a D4xx needs USB 3 for 848x480@30" in str(err.value)
+    assert (
+        f"({FRONT.serial}): cannot start 848x480@30: Couldn't resolve requests; RealSense {FRONT.serial} "
+        "(Intel RealSense D455) is on a USB 2.1 link: a D4xx needs USB 3 for 848x480@30" in str(err.value)
+    )
     assert "\n" not in str(err.value)
 
 
@@ -173,6 +204,7 @@ def test_recovery_options_are_validated():
 
 
 # --- equidiff cameras list ---------------------------------------------------------------------------
+
 
 def _cameras_list(capsys, *argv):
     from equidiff_ros.cli import main
@@ -193,10 +225,18 @@ def test_cameras_list_shows_each_device_and_names_usb2_links_and_missing_serials
     assert "  215122250009  Intel RealSense D455  firmware 5.16.0.1  USB 3.2  (not in lab.yaml)" in out
     assert f"  cam_right  {LAB.cameras[2].serial}  NOT CONNECTED" in out
     warnings = [line for line in out.splitlines() if line.startswith("warning:")]
-    assert warnings == [(f"warning: cam_left: RealSense {LAB.cameras[1].serial} (Intel RealSense D455) is on a USB 2.1 "
-                        "link: a D4xx needs USB 3 for depth at 848x480@30; plug it into a USB 3 port with a USB 3 cable")]
-    assert err.splitlines() == [(f"error: cam_right: serial {LAB.cameras[2].serial} from lab.yaml is not connected; "
-                                f"connected RealSense serials: 215122250001, 215122250002, 215122250009")]
+    assert warnings == [
+        (
+            f"warning: cam_left: RealSense {LAB.cameras[1].serial} (Intel RealSense D455) is on a USB 2.1 "
+            "link: a D4xx needs USB 3 for depth at 848x480@30; plug it into a USB 3 port with a USB 3 cable"
+        )
+    ]
+    assert err.splitlines() == [
+        (
+            f"error: cam_right: serial {LAB.cameras[2].serial} from lab.yaml is not connected; "
+            f"connected RealSense serials: 215122250001, 215122250002, 215122250009"
+        )
+    ]
 
     bus.plug(LAB.cameras[2].serial)
     rc, out, err = _cameras_list(capsys, "--json")
@@ -226,9 +266,14 @@ def test_camera_node_diagnostics_carry_the_recovery_counters(bus, monkeypatch):
         with pytest.raises(CameraError):
             cam.read(timeout_s=1.0)
     published = []
-    node = NS(configs=[FRONT], cameras=[cam], stats={FRONT.name: {"published": 5, "read_errors": 3,
-                                                                  "last_stamp_ns": None}},
-              backend="realsense", factory=rosbags_factory(), diag_pub=NS(publish=published.append))
+    node = NS(
+        configs=[FRONT],
+        cameras=[cam],
+        stats={FRONT.name: {"published": 5, "read_errors": 3, "last_stamp_ns": None}},
+        backend="realsense",
+        factory=rosbags_factory(),
+        diag_pub=NS(publish=published.append),
+    )
     monkeypatch.setattr("equidiff_ros.camera_node.now_ns", lambda _node: 10**9)
     CameraNode._publish_diagnostics(node)
     status = published[0].status[0]

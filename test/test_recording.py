@@ -64,12 +64,20 @@ def test_episode_round_trip_with_metadata_and_tf_static(tmp_path):
     np.testing.assert_array_equal(ep["/voxels"].header_ns(), [1000, 1001, 1002])
     tf = ep["/tf_static"].messages[0].transforms
     assert [t.child_frame_id for t in tf] == [c.frame_id for c in LAB.cameras]
-    np.testing.assert_allclose([tf[0].transform.translation.x, tf[0].transform.rotation.w],
-                               [LAB.cameras[0].extrinsics.translation[0], LAB.cameras[0].extrinsics.quaternion_xyzw[3]])
+    np.testing.assert_allclose(
+        [tf[0].transform.translation.x, tf[0].transform.rotation.w],
+        [LAB.cameras[0].extrinsics.translation[0], LAB.cameras[0].extrinsics.quaternion_xyzw[3]],
+    )
     info = yaml.safe_load((tmp_path / "ep" / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
     assert info["storage_identifier"] == "mcap" and info["custom_data"]["task"] == "pick"
-    qos = {t["topic_metadata"]["name"]: t["topic_metadata"]["offered_qos_profiles"] for t in info["topics_with_message_count"]}
-    assert "durability: transient_local" in qos["/tf_static"] or qos["/tf_static"][0]["durability"] in (1, "transient_local")
+    qos = {
+        t["topic_metadata"]["name"]: t["topic_metadata"]["offered_qos_profiles"]
+        for t in info["topics_with_message_count"]
+    }
+    assert "durability: transient_local" in qos["/tf_static"] or qos["/tf_static"][0]["durability"] in (
+        1,
+        "transient_local",
+    )
 
 
 def test_close_records_success_and_notes(tmp_path):
@@ -124,8 +132,9 @@ def test_config_rejects_chunks_smaller_than_messages():
 
 
 def test_repair_recovers_every_complete_chunk(tmp_path):
-    path = write_synthetic_episode(tmp_path / "ep", SyntheticEpisode(duration_s=8.0),
-                                   config=RecordingConfig(min_free_gib=0.0, chunk_size_mib=2.0))
+    path = write_synthetic_episode(
+        tmp_path / "ep", SyntheticEpisode(duration_s=8.0), config=RecordingConfig(min_free_gib=0.0, chunk_size_mib=2.0)
+    )
     full = read_episode(path)
     # simulate SIGKILL: no metadata.yaml, file cut inside the last chunk
     mcap = path / "ep.mcap"
@@ -145,7 +154,7 @@ def test_repair_recovers_every_complete_chunk(tmp_path):
     # recovered set is exactly the complete chunks: more than half, not all
     for topic, msgs in got.topics.items():
         orig = full[topic].log_ns
-        np.testing.assert_array_equal(msgs.log_ns, orig[:len(msgs)])
+        np.testing.assert_array_equal(msgs.log_ns, orig[: len(msgs)])
     vox_full, vox_got = full["/voxels"], got["/voxels"]
     assert len(vox_full) // 3 < len(vox_got) < len(vox_full)
     for a, b in zip(vox_got.messages, vox_full.messages):
@@ -169,8 +178,9 @@ def test_repair_of_a_bag_cut_before_the_first_chunk_says_so(tmp_path):
 
 
 def test_repair_to_a_separate_output_keeps_the_original_untouched(tmp_path):
-    path = write_synthetic_episode(tmp_path / "ep", SyntheticEpisode(duration_s=4.0),
-                                   config=RecordingConfig(min_free_gib=0.0, chunk_size_mib=2.0))
+    path = write_synthetic_episode(
+        tmp_path / "ep", SyntheticEpisode(duration_s=4.0), config=RecordingConfig(min_free_gib=0.0, chunk_size_mib=2.0)
+    )
     (path / "metadata.yaml").unlink()
     before = sorted(p.name for p in path.iterdir())
     report = repair_bag(path, output=tmp_path / "fixed")
@@ -221,8 +231,10 @@ def test_recorder_command_parsing():
     assert parse_command("start") == ("start", {})
     assert parse_command("start pick_cube") == ("start", {"task": "pick_cube"})
     assert parse_command("stop") == ("stop", {"success": True})
-    assert parse_command("STOP failure seed=7 operator=ana slipped off") == \
-        ("stop", {"success": False, "seed": 7, "operator": "ana", "notes": "slipped off"})
+    assert parse_command("STOP failure seed=7 operator=ana slipped off") == (
+        "stop",
+        {"success": False, "seed": 7, "operator": "ana", "notes": "slipped off"},
+    )
     assert parse_command("stop success fine") == ("stop", {"success": True, "notes": "fine"})
     assert parse_command(" discard ") == ("discard", {})
     with pytest.raises(ValueError, match="unknown recorder command"):
@@ -235,8 +247,11 @@ def test_bags_repair_cli(tmp_path, capsys):
     from equidiff_ros.cli import main as cli
 
     healthy = write_synthetic_episode(tmp_path / "ok", SyntheticEpisode(duration_s=1.0), config=CFG)
-    killed = write_synthetic_episode(tmp_path / "killed", SyntheticEpisode(duration_s=4.0),
-                                     config=RecordingConfig(min_free_gib=0.0, chunk_size_mib=2.0))
+    killed = write_synthetic_episode(
+        tmp_path / "killed",
+        SyntheticEpisode(duration_s=4.0),
+        config=RecordingConfig(min_free_gib=0.0, chunk_size_mib=2.0),
+    )
     (killed / "metadata.yaml").unlink()
     mcap = killed / "killed.mcap"
     mcap.write_bytes(mcap.read_bytes()[:-1000])

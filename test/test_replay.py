@@ -20,9 +20,13 @@ from equidiff_core.rosmsg import stamp_to_ns
 pytestmark = [pytest.mark.ros, pytest.mark.slow]
 
 BAG = Path(__file__).resolve().parents[1] / "bags" / "sample_pick_0000"
-TOPICS = {"/voxels": "sensor_msgs/msg/PointCloud2", "/franka/ee_pose": "geometry_msgs/msg/PoseStamped",
-          "/franka/command_chunk": "trajectory_msgs/msg/MultiDOFJointTrajectory",
-          "/spacenav/joy": "sensor_msgs/msg/Joy", "/franka/joint_states": "sensor_msgs/msg/JointState"}
+TOPICS = {
+    "/voxels": "sensor_msgs/msg/PointCloud2",
+    "/franka/ee_pose": "geometry_msgs/msg/PoseStamped",
+    "/franka/command_chunk": "trajectory_msgs/msg/MultiDOFJointTrajectory",
+    "/spacenav/joy": "sensor_msgs/msg/Joy",
+    "/franka/joint_states": "sensor_msgs/msg/JointState",
+}
 
 
 @pytest.fixture
@@ -34,8 +38,13 @@ def ros(ros_domain):
 
 def replay(*args: str) -> subprocess.Popen:
     env = dict(os.environ, OMP_NUM_THREADS="1")
-    return subprocess.Popen([sys.executable, "-m", "equidiff_ros.cli", "replay", str(BAG), *args], env=env,
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    return subprocess.Popen(
+        [sys.executable, "-m", "equidiff_ros.cli", "replay", str(BAG), *args],
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
 
 
 def collect(ros: RosHarness, proc: subprocess.Popen, topics, timeout=90.0):
@@ -45,9 +54,11 @@ def collect(ros: RosHarness, proc: subprocess.Popen, topics, timeout=90.0):
     got = {t: [] for t in topics}
     arrival = {t: [] for t in topics}
     for t in topics:
+
         def cb(m, t=t):
             got[t].append(m)
             arrival[t].append(time.monotonic())
+
         ros.node.create_subscription(ros.f.cls(TOPICS[t]), t, cb, deep)
     ros.spin_until(lambda: proc.poll() is not None, timeout)
     ros.spin_for(0.5)
@@ -73,8 +84,9 @@ def test_replay_feeds_a_subscriber_the_recorded_messages(ros):
 def test_replay_restamped_to_now_keeps_relative_timing(ros):
     ep = read_episode(BAG)
     t_start = time.time_ns()
-    proc = replay("--rate", "8", "--restamp", "--topics", "/voxels", "/franka/command_chunk",
-                  "--wait-subscribers", "15")
+    proc = replay(
+        "--rate", "8", "--restamp", "--topics", "/voxels", "/franka/command_chunk", "--wait-subscribers", "15"
+    )
     got, _arrival, summary = collect(ros, proc, ["/voxels", "/franka/command_chunk"])
     assert summary["restamped"] and set(summary["published"]) == {"/voxels", "/franka/command_chunk"}
     orig = ep["/voxels"].header_ns()
@@ -102,19 +114,29 @@ def test_replay_robot_mode_publishes_only_commands_after_checking_the_start(ros)
     def publish_pose(offset):
         p, q = geometry.pos_quat_from_pose(first.poses[0])
         p = p + offset
-        pose_pub.publish(f.make("geometry_msgs/msg/PoseStamped", header=f.header(0, "fr3_link0"),
-                                pose=f.make("geometry_msgs/msg/Pose",
-                                            position=f.make("geometry_msgs/msg/Point", x=p[0], y=p[1], z=p[2]),
-                                            orientation=f.make("geometry_msgs/msg/Quaternion", x=q[0], y=q[1],
-                                                               z=q[2], w=q[3]))))
+        pose_pub.publish(
+            f.make(
+                "geometry_msgs/msg/PoseStamped",
+                header=f.header(0, "fr3_link0"),
+                pose=f.make(
+                    "geometry_msgs/msg/Pose",
+                    position=f.make("geometry_msgs/msg/Point", x=p[0], y=p[1], z=p[2]),
+                    orientation=f.make("geometry_msgs/msg/Quaternion", x=q[0], y=q[1], z=q[2], w=q[3]),
+                ),
+            )
+        )
 
     # a (fake) franka node far from the start pose: refused, nothing published
     chunks = []
     # Deep enough for every chunk of the episode: a keep-last-10 reader on a busy machine (the
     # test spins only every 50 ms) lost chunks that replay had delivered.
     every_chunk = QoSProfile(depth=len(ep["/franka/command_chunk"]) + 10, reliability=ReliabilityPolicy.RELIABLE)
-    ros.node.create_subscription(f.cls(TOPICS["/franka/command_chunk"]), "/franka/command_chunk",
-                                 lambda m: chunks.append(chunk_from_msg(m)), every_chunk)
+    ros.node.create_subscription(
+        f.cls(TOPICS["/franka/command_chunk"]),
+        "/franka/command_chunk",
+        lambda m: chunks.append(chunk_from_msg(m)),
+        every_chunk,
+    )
     proc = replay("--robot", "--rate", "8")
     ros.spin_until(lambda: proc.poll() is not None or (publish_pose(np.array([0.2, 0, 0])) and False), 60.0, 0.05)
     _out, err = proc.communicate(timeout=30)
@@ -136,6 +158,7 @@ def test_replay_of_a_broken_bag_fails_clearly(tmp_path):
     bad = tmp_path / "bad"
     bad.mkdir()
     (bad / "bad.mcap").write_bytes(b"\x89MCAP0\r\n")
-    out = subprocess.run([sys.executable, "-m", "equidiff_ros.cli", "replay", str(bad)], capture_output=True,
-                         text=True, timeout=60)
+    out = subprocess.run(
+        [sys.executable, "-m", "equidiff_ros.cli", "replay", str(bad)], capture_output=True, text=True, timeout=60
+    )
     assert out.returncode == 1 and "unreadable bag" in out.stderr

@@ -35,10 +35,16 @@ def _record(path, lab, clouds, n_sets=6, with_clouds=True):
             stamp = T0 + i * NS // 5
             if with_clouds:
                 for k, (cam, (pts, cols)) in enumerate(zip(lab.cameras, clouds)):
-                    writer.write(cam.topic, cloud_to_msg(pts, cols, stamp + k * 1_000_000, cam.frame_id,
-                                                         writer.factory), stamp + k * 1_000_000 + 30_000_000)
-            writer.write(TOPIC_VOXELS, grid_to_voxel_msg(wrong, ws.lower, ws.voxel_size, stamp, lab.base_frame,
-                                                         writer.factory), stamp + 60_000_000)
+                    writer.write(
+                        cam.topic,
+                        cloud_to_msg(pts, cols, stamp + k * 1_000_000, cam.frame_id, writer.factory),
+                        stamp + k * 1_000_000 + 30_000_000,
+                    )
+            writer.write(
+                TOPIC_VOXELS,
+                grid_to_voxel_msg(wrong, ws.lower, ws.voxel_size, stamp, lab.base_frame, writer.factory),
+                stamp + 60_000_000,
+            )
             for j in range(20):
                 t = stamp + j * NS // 100
                 writer.write(TOPIC_EE_POSE, cm.pose_stamped(writer.factory, np.eye(4), t, lab.base_frame), t)
@@ -61,10 +67,12 @@ def test_revoxelize_rebuilds_the_voxels_from_the_clouds_with_new_extrinsics(tmp_
     T = left.extrinsics.matrix()
     T[:3, :3] = Rotation.from_euler("z", 3, degrees=True).as_matrix() @ T[:3, :3]
     T[:3, 3] += [0.01, 0.0, 0.0]
-    new_ext = dataclasses.replace(left.extrinsics, translation=tuple(T[:3, 3]),
-                                  quaternion_xyzw=tuple(Rotation.from_matrix(T[:3, :3]).as_quat()))
-    new_lab = dataclasses.replace(LAB, cameras=(LAB.cameras[0], dataclasses.replace(left, extrinsics=new_ext),
-                                                *LAB.cameras[2:]))
+    new_ext = dataclasses.replace(
+        left.extrinsics, translation=tuple(T[:3, 3]), quaternion_xyzw=tuple(Rotation.from_matrix(T[:3, :3]).as_quat())
+    )
+    new_lab = dataclasses.replace(
+        LAB, cameras=(LAB.cameras[0], dataclasses.replace(left, extrinsics=new_ext), *LAB.cameras[2:])
+    )
     report = revoxelize_bag(src, tmp_path / "out" / "demo", new_lab)
 
     assert report.grids == 6 and report.replaced == 6 and set(report.clouds.values()) == {6}
@@ -102,11 +110,15 @@ def test_revoxelize_command_writes_one_bag_per_input(tmp_path, clouds, capsys):
     _record(tmp_path / "bags" / "a", LAB, clouds, n_sets=2)
     _record(tmp_path / "bags" / "b", LAB, clouds, n_sets=3)
     lab_yaml = default_config_dir() / "lab.yaml"
-    assert main(["dataset", "revoxelize", str(tmp_path / "bags"), "--lab", str(lab_yaml),
-                 "--out", str(tmp_path / "new")]) == 0
+    assert (
+        main(["dataset", "revoxelize", str(tmp_path / "bags"), "--lab", str(lab_yaml), "--out", str(tmp_path / "new")])
+        == 0
+    )
     assert sorted(p.name for p in (tmp_path / "new").iterdir()) == ["a", "b"]
     out = capsys.readouterr().out
     assert "a: 2 grids" in out and "b: 3 grids" in out
-    assert main(["dataset", "revoxelize", str(tmp_path / "bags"), "--lab", str(lab_yaml),
-                 "--out", str(tmp_path / "new")]) == 1  # never overwrites
+    assert (
+        main(["dataset", "revoxelize", str(tmp_path / "bags"), "--lab", str(lab_yaml), "--out", str(tmp_path / "new")])
+        == 1
+    )  # never overwrites
     assert "already exists" in capsys.readouterr().err

@@ -129,8 +129,12 @@ def test_chunking_probe_measures_boundary_velocity_changes_jerk_and_mode_switche
     probe.start_episode(0)
     for i in range(200):  # 1 s at 200 Hz along x at 0.1 m/s, standing still for 5 ms at t = 500 ms
         x = 0.1 * (i if i < 100 else i - 1) * 0.005
-        probe.command(SimpleNamespace(stamp_ns=i * 5_000_000, target=SimpleNamespace(pose=geometry.make_pose(
-            np.eye(3), np.array([x, 0.0, 0.0])))))
+        probe.command(
+            SimpleNamespace(
+                stamp_ns=i * 5_000_000,
+                target=SimpleNamespace(pose=geometry.make_pose(np.eye(3), np.array([x, 0.0, 0.0]))),
+            )
+        )
     assert probe.chunk(0, chunk(0, 0.0), True) is None  # the first chunk starts from rest: not a switch
     probe.chunk(500_000_000, chunk(400, 0.01), True)  # 1 cm off the previous plan: a correction
     probe.chunk(700_000_000, chunk(600, 0.10), True)  # 9 cm off: another plan
@@ -180,13 +184,36 @@ def test_bench_chunking_prints_one_json_line_with_every_mode_and_latency(tmp_pat
     monkeypatch.setattr(equidiff_core.inference, "load_inference_policy", lambda path, device: policy)
     checkpoint = tmp_path / "policy.pt"
     checkpoint.write_bytes(b"stands in")
-    assert main(["bench", "chunking", "--checkpoint", str(checkpoint), "--seeds", "1", "--duration", "2",
-                 "--latencies", "0", "400", "--execute-steps", "2"]) == 0
+    assert (
+        main(
+            [
+                "bench",
+                "chunking",
+                "--checkpoint",
+                str(checkpoint),
+                "--seeds",
+                "1",
+                "--duration",
+                "2",
+                "--latencies",
+                "0",
+                "400",
+                "--execute-steps",
+                "2",
+            ]
+        )
+        == 0
+    )
     lines = [line for line in capsys.readouterr().out.splitlines() if line.startswith("{")]
     assert len(lines) == 1
     out = json.loads(lines[0])
-    for key in ("rtc_0ms_success", "rtc_400ms_success", "replace_400ms_success",
-                "rtc_400ms_boundary_dv_p95_mps", "replace_400ms_boundary_dv_p95_mps"):
+    for key in (
+        "rtc_0ms_success",
+        "rtc_400ms_success",
+        "replace_400ms_success",
+        "rtc_400ms_boundary_dv_p95_mps",
+        "replace_400ms_boundary_dv_p95_mps",
+    ):
         assert key in out
     for label in (f"{mode}_{ms}ms" for mode in ("replace", "horizon", "rtc") for ms in (0, 400)):
         assert out[f"{label}_success"] == 0.0  # drifting 2 cm/s solves nothing in 2 s
@@ -199,4 +226,4 @@ def test_bench_chunking_prints_one_json_line_with_every_mode_and_latency(tmp_pat
     assert out["replace_0ms_mode_switch_rate"] > 0.5 and out["rtc_400ms_mode_switches"] == 0
     # RTC was asked with the previous chunk: at 400 ms the three steps due before arrival pinned
     pinned = [g for g in policy.guides if g is not None]
-    assert pinned and all(np.array_equal(g[1][:3], np.ones(3)) for g in pinned[len(pinned) // 2:])
+    assert pinned and all(np.array_equal(g[1][:3], np.ones(3)) for g in pinned[len(pinned) // 2 :])

@@ -112,11 +112,14 @@ def test_target_never_leads_the_measured_pose_by_more_than_max_lead():
     assert T[0, 3] == pytest.approx(0.50)
 
 
-@pytest.mark.parametrize("mode, presses, expected", [
-    ("buttons", [(0, 1), (0, 0), (0, 1), (1, 0)], [0.0, 0.0, 0.0, 0.08]),
-    ("toggle", [(1, 0), (0, 0), (1, 0), (1, 0), (0, 0), (0, 1)], [0.0, 0.0, 0.08, 0.08, 0.08, 0.0]),
-    ("hold", [(0, 1), (0, 1), (0, 0), (1, 0)], [0.0, 0.0, 0.08, 0.08]),
-])
+@pytest.mark.parametrize(
+    "mode, presses, expected",
+    [
+        ("buttons", [(0, 1), (0, 0), (0, 1), (1, 0)], [0.0, 0.0, 0.0, 0.08]),
+        ("toggle", [(1, 0), (0, 0), (1, 0), (1, 0), (0, 0), (0, 1)], [0.0, 0.0, 0.08, 0.08, 0.08, 0.0]),
+        ("hold", [(0, 1), (0, 1), (0, 0), (1, 0)], [0.0, 0.0, 0.08, 0.08]),
+    ],
+)
 def test_gripper_buttons(mode, presses, expected):
     t = make(gripper_mode=mode)
     widths = [t.step(TeleopInput((0,) * 6, b), 0.01)[1] for b in presses]
@@ -154,13 +157,18 @@ def test_chunk_is_one_point_ahead_and_round_trips_the_wire_format():
 
 def test_joy_input_parsing():
     f = rosbags_factory()
-    msg = f.make("sensor_msgs/msg/Joy", header=f.header(2_000_000_123, ""),
-                 axes=np.array([0.1, 0.2, 0.3, 0.4, 0.5, 0.6], np.float32), buttons=np.array([1, 0], np.int32))
+    msg = f.make(
+        "sensor_msgs/msg/Joy",
+        header=f.header(2_000_000_123, ""),
+        axes=np.array([0.1, 0.2, 0.3, 0.4, 0.5, 0.6], np.float32),
+        buttons=np.array([1, 0], np.int32),
+    )
     inp = TeleopInput.from_joy(msg)
     np.testing.assert_allclose(inp.axes, [0.1, 0.2, 0.3, 0.4, 0.5, 0.6], atol=1e-6)
     assert inp.buttons == (1, 0) and inp.stamp_ns == 2_000_000_123
-    short = f.make("sensor_msgs/msg/Joy", header=f.header(0, ""), axes=np.zeros(3, np.float32),
-                   buttons=np.zeros(0, np.int32))
+    short = f.make(
+        "sensor_msgs/msg/Joy", header=f.header(0, ""), axes=np.zeros(3, np.float32), buttons=np.zeros(0, np.int32)
+    )
     with pytest.raises(TeleopError, match="6"):
         TeleopInput.from_joy(short)
     assert is_fresh(inp, 2_100_000_000, 0.25) and not is_fresh(inp, 2_400_000_000, 0.25)
@@ -192,6 +200,7 @@ def test_yaw_integrates_at_the_commanded_rate():
 
 
 # --- the device stops reporting: the motion stops input_timeout_s later ----------------------
+
 
 class FakeClock:
     """pyspacemouse's report clock (``device.high_acc_clock``), advanced by the test, not the wall."""
@@ -299,6 +308,7 @@ def test_spacemouse_report_stamp_is_its_age_on_the_callers_clock(monkeypatch):
 
 
 # --- clutch and rotation-enable buttons -------------------------------------------------------
+
 
 def test_clutch_button_gates_all_motion_but_not_the_gripper():
     t = make(deadzone=0.0, clutch_button=2, gripper_mode="buttons")

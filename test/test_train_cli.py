@@ -22,18 +22,48 @@ def bags(tmp_path_factory):
 
     folder = tmp_path_factory.mktemp("bags")
     cfg = RecordingConfig(min_free_gib=0.0)
-    write_synthetic_episode(folder / "pick_0001", SyntheticEpisode(duration_s=4.0, cube_xy=(0.42, -0.05), yaw=-0.4),
-                            config=cfg)
-    write_synthetic_episode(folder / "pick_0002", SyntheticEpisode(duration_s=4.0, cube_xy=(0.50, 0.06), yaw=0.8),
-                            config=cfg)
+    write_synthetic_episode(
+        folder / "pick_0001", SyntheticEpisode(duration_s=4.0, cube_xy=(0.42, -0.05), yaw=-0.4), config=cfg
+    )
+    write_synthetic_episode(
+        folder / "pick_0002", SyntheticEpisode(duration_s=4.0, cube_xy=(0.50, 0.06), yaw=0.8), config=cfg
+    )
     return [str(ROOT / "bags" / "sample_pick_0000"), str(folder)]
 
 
 def train(bags, out, *extra):
-    return cli(["train", *bags, "--out", str(out), "--preset", "tiny", "--policy", "equidiff", "--steps", "3",
-                "--batch-size", "4", "--warmup-steps", "1", "--eval-every", "3", "--checkpoint-every", "2",
-                "--eval-max-samples", "3", "--val-fraction", "0.34", "--seed", "5", "--device", "cpu",
-                "--no-progress", *extra])
+    return cli(
+        [
+            "train",
+            *bags,
+            "--out",
+            str(out),
+            "--preset",
+            "tiny",
+            "--policy",
+            "equidiff",
+            "--steps",
+            "3",
+            "--batch-size",
+            "4",
+            "--warmup-steps",
+            "1",
+            "--eval-every",
+            "3",
+            "--checkpoint-every",
+            "2",
+            "--eval-max-samples",
+            "3",
+            "--val-fraction",
+            "0.34",
+            "--seed",
+            "5",
+            "--device",
+            "cpu",
+            "--no-progress",
+            *extra,
+        ]
+    )
 
 
 def test_train_writes_a_loadable_policy_and_plot(bags, tmp_path, capsys):
@@ -69,9 +99,39 @@ def test_train_writes_a_loadable_policy_and_plot(bags, tmp_path, capsys):
 
     # an existing run is never silently restarted; --resume continues it from its checkpoint and split
     assert train(bags, out) == 2
-    assert cli(["train", *bags, "--out", str(out), "--preset", "tiny", "--steps", "5", "--batch-size", "4",
-                "--warmup-steps", "1", "--eval-every", "5", "--checkpoint-every", "0", "--eval-max-samples", "2",
-                "--val-fraction", "0.9", "--seed", "5", "--device", "cpu", "--no-progress", "--resume"]) == 0
+    assert (
+        cli(
+            [
+                "train",
+                *bags,
+                "--out",
+                str(out),
+                "--preset",
+                "tiny",
+                "--steps",
+                "5",
+                "--batch-size",
+                "4",
+                "--warmup-steps",
+                "1",
+                "--eval-every",
+                "5",
+                "--checkpoint-every",
+                "0",
+                "--eval-max-samples",
+                "2",
+                "--val-fraction",
+                "0.9",
+                "--seed",
+                "5",
+                "--device",
+                "cpu",
+                "--no-progress",
+                "--resume",
+            ]
+        )
+        == 0
+    )
     resumed = json.loads((out / "history.json").read_text())
     steps = [h["step"] for h in resumed if "loss" in h]
     assert steps[0] == 1 and steps[-1] == 5  # history kept, continued to step 5
@@ -89,7 +149,21 @@ def test_train_writes_a_loadable_policy_and_plot(bags, tmp_path, capsys):
 
 
 def test_train_reports_missing_data(tmp_path, capsys):
-    assert cli(["train", str(tmp_path / "nothing"), "--out", str(tmp_path / "run"), "--preset", "tiny",
-                "--steps", "1", "--no-progress"]) == 1
+    assert (
+        cli(
+            [
+                "train",
+                str(tmp_path / "nothing"),
+                "--out",
+                str(tmp_path / "run"),
+                "--preset",
+                "tiny",
+                "--steps",
+                "1",
+                "--no-progress",
+            ]
+        )
+        == 1
+    )
     err = capsys.readouterr().err
     assert "no such bag" in err and "no usable episodes" in err

@@ -38,8 +38,16 @@ class Recorder:
 
 
 def _quick_cfg(**kw):
-    base = {"steps": 2, "batch_size": 2, "warmup_steps": 1, "eval_every": 2, "eval_samples": 1, "val_batches": 1,
-                "checkpoint_every": 1, "log_every": 1}
+    base = {
+        "steps": 2,
+        "batch_size": 2,
+        "warmup_steps": 1,
+        "eval_every": 2,
+        "eval_samples": 1,
+        "val_batches": 1,
+        "checkpoint_every": 1,
+        "log_every": 1,
+    }
     return TrainConfig(**{**base, **kw})
 
 
@@ -49,15 +57,18 @@ def test_train_resume_callbacks_and_files(tmp_path):
     policy = make_policy("equidiff", get_preset("tiny"), WS)
     result = train(policy, ds, CubeDataset(2, seed=2), _quick_cfg(ema=True), tmp_path, [rec])
     assert [s for s, _ in rec.steps] == [1, 2] and rec.ended is result
-    (step, metrics, samples), = rec.evals
+    ((step, metrics, samples),) = rec.evals
     assert step == 2 and np.isfinite(metrics["val_loss"])
-    assert samples[0]["pred"].shape == (16, 10) and samples[0]["gt"].shape == (16, 10) and samples[0]["ee"].shape == (10,)
+    assert (
+        samples[0]["pred"].shape == (16, 10) and samples[0]["gt"].shape == (16, 10) and samples[0]["ee"].shape == (10,)
+    )
     assert result.checkpoint == tmp_path / "last.ckpt" and result.exported == tmp_path / "policy.pt"
     assert json.loads((tmp_path / "history.json").read_text())[-1]["step"] == 2
     state = load_training_checkpoint(result.checkpoint)  # weights_only=True inside
     assert state["step"] == 2 and state["ema"] is not None
     assert load_inference_policy(result.exported).predict(
-        ds[0]["voxels"][0].numpy(), ds[0]["ee"][0].numpy(), seed=0).shape == (16, 10)
+        ds[0]["voxels"][0].numpy(), ds[0]["ee"][0].numpy(), seed=0
+    ).shape == (16, 10)
 
     # resume: a fresh policy object continues at step 3 from last.ckpt
     rec2 = Recorder()
@@ -132,8 +143,17 @@ def test_overfits_tiny_dataset(tmp_path):
     torch.manual_seed(0)
     ds = CubeDataset(2, seed=0, random_yaw=False)
     policy = make_policy("equidiff", get_preset("tiny", rotation_aug="none"), WS)
-    cfg = TrainConfig(steps=1200, batch_size=2, lr=2e-3, warmup_steps=20, eval_every=0, checkpoint_every=0,
-                      noise_repeats=16, log_every=50, ema=True)
+    cfg = TrainConfig(
+        steps=1200,
+        batch_size=2,
+        lr=2e-3,
+        warmup_steps=20,
+        eval_every=0,
+        checkpoint_every=0,
+        noise_repeats=16,
+        log_every=50,
+        ema=True,
+    )
     result = train(policy, ds, None, cfg, tmp_path)
     losses = [h["loss"] for h in result.history if "loss" in h]
     assert np.mean(losses[-3:]) < losses[0] / 10, losses

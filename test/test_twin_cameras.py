@@ -60,17 +60,17 @@ def test_clouds_fill_the_voxels_where_the_objects_are():
         grid = _grid(_read_all(qpos))
         bx, by = poses.block_xy
         top = _voxel((bx, by, CFG.scene.block_size[2] - 1e-3))  # the block's top face
-        neighbourhood = grid[:, top[0] - 1:top[0] + 2, top[1] - 1:top[1] + 2, top[2]]
+        neighbourhood = grid[:, top[0] - 1 : top[0] + 2, top[1] - 1 : top[1] + 2, top[2]]
         assert neighbourhood[0].max() == 255, f"seed {seed}: no occupied voxel on the block's top"
         colors = neighbourhood[1:, neighbourhood[0] > 0].T
         assert (colors[:, 0] > 2 * colors[:, 1]).any(), "block voxels should be red"
         # nothing floats 8 cm above the block; the bowl's rim is seen where the bowl is
         above = _voxel((bx, by, 0.11))
-        assert grid[0, above[0] - 1:above[0] + 2, above[1] - 1:above[1] + 2, above[2]].max() == 0
+        assert grid[0, above[0] - 1 : above[0] + 2, above[1] - 1 : above[1] + 2, above[2]].max() == 0
         rim = _voxel((poses.bowl_xy[0], poses.bowl_xy[1], 0.0))
         r = int(np.ceil(CFG.scene.bowl_outer_radius / WS.voxel_size)) + 1
         wall_z = int((CFG.scene.bowl_wall_height + CFG.scene.bowl_base_thickness - WS.lower[2]) / WS.voxel_size)
-        bowl_region = grid[:, rim[0] - r:rim[0] + r + 1, rim[1] - r:rim[1] + r + 1, wall_z - 2:wall_z + 1]
+        bowl_region = grid[:, rim[0] - r : rim[0] + r + 1, rim[1] - r : rim[1] + r + 1, wall_z - 2 : wall_z + 1]
         blue = bowl_region[1:, bowl_region[0] > 0].T
         assert len(blue) > 20 and (blue[:, 2] > 2 * blue[:, 0]).sum() > 10
 
@@ -84,8 +84,11 @@ def test_noise_free_points_are_exact_and_in_the_optical_frame():
         T = cam.extrinsics.matrix()
         pts = frame.points.astype(np.float64) @ T[:3, :3].T + T[:3, 3]
         # the table top (z = 0) is a plane: its points land on it to well under a millimetre
-        away = ((np.hypot(*(pts[:, :2] - poses.block_xy).T) > 0.06)
-                & (np.hypot(*(pts[:, :2] - poses.bowl_xy).T) > 0.1) & (pts[:, 0] > 0.3))
+        away = (
+            (np.hypot(*(pts[:, :2] - poses.block_xy).T) > 0.06)
+            & (np.hypot(*(pts[:, :2] - poses.bowl_xy).T) > 0.1)
+            & (pts[:, 0] > 0.3)
+        )
         table = away & (np.abs(pts[:, 2]) < 0.004) & (np.hypot(pts[:, 0] - 0.45, pts[:, 1]) < 0.3)
         assert table.sum() > 1000
         assert np.abs(pts[table, 2]).max() < 1e-3
@@ -143,7 +146,10 @@ def test_bad_options_missing_twin_and_nan_state_are_clear_errors():
     qpos, _ = _state(1)
     bad = qpos.copy()
     bad[0] = np.nan
-    with TwinCamera(cam, state_source=lambda t: (bad, 0.0, 1), paced=False) as c, pytest.raises(CameraError, match="NaN"):
+    with (
+        TwinCamera(cam, state_source=lambda t: (bad, 0.0, 1), paced=False) as c,
+        pytest.raises(CameraError, match="NaN"),
+    ):
         c.read()
     with pytest.raises(CameraError, match="not connected"):
         TwinCamera(cam, state_source=lambda t: (qpos, 0.0, 1)).read()

@@ -161,10 +161,17 @@ class _ExpertAsPolicy:
 
         assert grid.shape == (4, 64, 64, 64) and ee.shape == (10,)
         if self.plan is None:
-            self.plan, self.t0 = plan_pick_place(self.sim.tcp_pose(), self.sim.gripper_width(),
-                                                 body_pose(self.sim.model, self.sim.data, BLOCK),
-                                                 body_pose(self.sim.model, self.sim.data, BOWL),
-                                                 CFG.scene.block_size[2], CFG.expert), self.sim.time
+            self.plan, self.t0 = (
+                plan_pick_place(
+                    self.sim.tcp_pose(),
+                    self.sim.gripper_width(),
+                    body_pose(self.sim.model, self.sim.data, BLOCK),
+                    body_pose(self.sim.model, self.sim.data, BOWL),
+                    CFG.scene.block_size[2],
+                    CFG.expert,
+                ),
+                self.sim.time,
+            )
         t, dt = self.sim.time - self.t0, self.preset.dt
         steps = [self.plan.target_at(t + dt * k) for k in range(16)]
         return np.stack([geometry.pose_to_action(pose, np.asarray(width)) for pose, width in steps])
@@ -189,10 +196,12 @@ def test_closed_loop_evaluation_scores_the_expert_and_the_stages_a_frozen_policy
     lab = load_lab_config(default_config_dir() / "lab.yaml")
     rec = DirectRecorder(CFG, lab)
     try:
-        solved, = evaluate_policy(_ExpertAsPolicy(rec.sim), CFG, lab, [3], 30.0,
-                                  log=lambda s: None, recorder=rec, execute_steps=execute_steps)
-        frozen, = evaluate_policy(_FrozenPolicy(rec.sim), CFG, lab, [3], 4.0, log=lambda s: None, recorder=rec,
-                                  execute_steps=execute_steps)
+        (solved,) = evaluate_policy(
+            _ExpertAsPolicy(rec.sim), CFG, lab, [3], 30.0, log=lambda s: None, recorder=rec, execute_steps=execute_steps
+        )
+        (frozen,) = evaluate_policy(
+            _FrozenPolicy(rec.sim), CFG, lab, [3], 4.0, log=lambda s: None, recorder=rec, execute_steps=execute_steps
+        )
     finally:
         rec.close()
     assert solved.success and solved.reached and solved.lifted
@@ -249,9 +258,17 @@ def test_a_chunk_takes_effect_only_after_the_latency_budget(execute_steps, laten
     policy = JumpPolicy(spy)
     policy.times, policy.times_ee = [], []
     try:
-        episode, = evaluate_policy(policy, CFG, lab, [3], 1.2 if execute_steps == 1 else 2.4, log=lambda s: None,
-                                   recorder=SimpleNamespace(sim=spy, voxel_grid=rec.voxel_grid),
-                                   latency_s=latency_s, execute_steps=execute_steps)
+        (episode,) = evaluate_policy(
+            policy,
+            CFG,
+            lab,
+            [3],
+            1.2 if execute_steps == 1 else 2.4,
+            log=lambda s: None,
+            recorder=SimpleNamespace(sim=spy, voxel_grid=rec.voxel_grid),
+            latency_s=latency_s,
+            execute_steps=execute_steps,
+        )
     finally:
         rec.close()
     t_obs = policy.times[1]  # the observation whose chunk jumps
@@ -298,8 +315,16 @@ def test_the_evaluation_executes_chunks_through_franka_nodes_controller():
     policy = FarPolicy(spy)
     policy.start = None
     try:
-        evaluate_policy(policy, CFG, lab, [3], 1.6, log=lambda s: None,
-                        recorder=SimpleNamespace(sim=spy, voxel_grid=rec.voxel_grid), latency_s=0.1)
+        evaluate_policy(
+            policy,
+            CFG,
+            lab,
+            [3],
+            1.6,
+            log=lambda s: None,
+            recorder=SimpleNamespace(sim=spy, voxel_grid=rec.voxel_grid),
+            latency_s=0.1,
+        )
     finally:
         rec.close()
     times = np.array([t for t, _ in spy.commands])

@@ -24,8 +24,10 @@ REQUIRED_KEYS = {"episodes", "success_rate", "inference_p95_ms", "end_to_end_p95
 
 
 def test_summary_json_line_has_the_issue_keys_and_pools_episodes():
-    eps = [EpisodeRecord(1, True, 10.0, 50, 2, end_to_end_ms=[100, 200], inference_ms=[80]),
-           EpisodeRecord(2, False, 40.0, 190, 10, end_to_end_ms=[300], inference_ms=[90, 100])]
+    eps = [
+        EpisodeRecord(1, True, 10.0, 50, 2, end_to_end_ms=[100, 200], inference_ms=[80]),
+        EpisodeRecord(2, False, 40.0, 190, 10, end_to_end_ms=[300], inference_ms=[90, 100]),
+    ]
     s = RunSummary(eps, sim_rate=0.97, policy="p")
     d = json.loads(s.json_line())
     assert REQUIRED_KEYS <= set(d)
@@ -37,8 +39,13 @@ def test_summary_json_line_has_the_issue_keys_and_pools_episodes():
 
 def test_success_counts_only_once_it_has_held_without_a_break():
     hold = SuccessHold(0.5)
-    assert [hold.update(ok, t) for ok, t in [(True, 0.0), (True, 0.3), (False, 0.4), (True, 0.6), (True, 1.0)]] \
-        == [False, False, False, False, False]  # the lapse at 0.4 s restarted the hold
+    assert [hold.update(ok, t) for ok, t in [(True, 0.0), (True, 0.3), (False, 0.4), (True, 0.6), (True, 1.0)]] == [
+        False,
+        False,
+        False,
+        False,
+        False,
+    ]  # the lapse at 0.4 s restarted the hold
     assert hold.update(True, 1.1) and hold.since == 0.6
 
 
@@ -63,8 +70,16 @@ def test_node_command_and_private_env():
 
 def test_node_command_quotes_mappings_and_empty_strings_but_not_numbers():
     cmd = node_command("x", {"backend_options": "{lockstep: true}", "camera": "", "rate_hz": "100.0", "name": "cam"})
-    assert cmd[-8:] == ["-p", "backend_options:='{lockstep: true}'", "-p", "camera:=''", "-p", "rate_hz:=100.0",
-                        "-p", "name:=cam"]
+    assert cmd[-8:] == [
+        "-p",
+        "backend_options:='{lockstep: true}'",
+        "-p",
+        "camera:=''",
+        "-p",
+        "rate_hz:=100.0",
+        "-p",
+        "name:=cam",
+    ]
 
 
 def test_composed_command_writes_each_nodes_parameters_under_its_name(tmp_path):
@@ -73,15 +88,24 @@ def test_composed_command_writes_each_nodes_parameters_under_its_name(tmp_path):
     from equidiff_core.twin.processes import composed_command
     from equidiff_ros.composed import parse_nodes
 
-    cmd = composed_command({"voxel_node": {"slop_s": 0.15, "use_sim_time": True}, "policy_node": {"seed": 3}},
-                           tmp_path / "p.yaml", {"policy_node": {"/franka/command_chunk": "/twin/policy_chunk"}})
+    cmd = composed_command(
+        {"voxel_node": {"slop_s": 0.15, "use_sim_time": True}, "policy_node": {"seed": 3}},
+        tmp_path / "p.yaml",
+        {"policy_node": {"/franka/command_chunk": "/twin/policy_chunk"}},
+    )
     i = cmd.index("--nodes")
     assert cmd[i + 1] == "voxel_node,policy_node"
-    assert cmd[i + 2:] == ["--ros-args", "--params-file", str(tmp_path / "p.yaml"),
-                           "-r", "policy_node:/franka/command_chunk:=/twin/policy_chunk"]
+    assert cmd[i + 2 :] == [
+        "--ros-args",
+        "--params-file",
+        str(tmp_path / "p.yaml"),
+        "-r",
+        "policy_node:/franka/command_chunk:=/twin/policy_chunk",
+    ]
     assert yaml.safe_load((tmp_path / "p.yaml").read_text()) == {
         "voxel_node": {"ros__parameters": {"slop_s": 0.15, "use_sim_time": True}},
-        "policy_node": {"ros__parameters": {"seed": 3}}}
+        "policy_node": {"ros__parameters": {"seed": 3}},
+    }
     names, rest = parse_nodes(cmd[i:])
     assert names == ["voxel_node", "policy_node"] and rest[0] == "--ros-args"
     for bad in (["--nodes", "voxel_node,twin_node"], ["--nodes", "voxel_node,voxel_node"], ["--ros-args"]):
@@ -93,10 +117,18 @@ def test_process_group_detects_deaths_and_stops_whole_process_trees(tmp_path):
     env = dict(os.environ)
     with ProcessGroup(env, tmp_path, grace_s=2.0) as group:
         # a "node" that ignores SIGINT and has a child: both must still be gone afterwards
-        tree = group.start("stubborn", [sys.executable, "-c",
-                                        ("import signal, subprocess, sys, time; signal.signal(signal.SIGINT, signal.SIG_IGN);"
-                                        "p = subprocess.Popen([sys.executable, '-c', 'import time; time.sleep(60)']);"
-                                        "print(p.pid, flush=True); time.sleep(60)")])
+        tree = group.start(
+            "stubborn",
+            [
+                sys.executable,
+                "-c",
+                (
+                    "import signal, subprocess, sys, time; signal.signal(signal.SIGINT, signal.SIG_IGN);"
+                    "p = subprocess.Popen([sys.executable, '-c', 'import time; time.sleep(60)']);"
+                    "print(p.pid, flush=True); time.sleep(60)"
+                ),
+            ],
+        )
         group.start("dies", [sys.executable, "-c", "print('bad config'); raise SystemExit(3)"])
         time.sleep(1.0)
         with pytest.raises(NodeProcessError, match="(?s)dies exited with code 3.*bad config"):
@@ -115,10 +147,12 @@ def test_process_group_detects_deaths_and_stops_whole_process_trees(tmp_path):
 @pytest.mark.ros
 def test_nodes_shut_down_when_their_job_is_killed(ros_domain, tmp_path):
     """A job killed with SIGKILL cannot stop its nodes (their own sessions): they notice and exit."""
-    job_script = ("import sys, time; from pathlib import Path;"
-                  "from equidiff_core.twin.processes import ProcessGroup, node_command, private_ros_env;"
-                  "g = ProcessGroup(private_ros_env(), Path(sys.argv[1])).__enter__();"
-                  "print(g.start('voxel_node', node_command('voxel_node')).popen.pid, flush=True); time.sleep(600)")
+    job_script = (
+        "import sys, time; from pathlib import Path;"
+        "from equidiff_core.twin.processes import ProcessGroup, node_command, private_ros_env;"
+        "g = ProcessGroup(private_ros_env(), Path(sys.argv[1])).__enter__();"
+        "print(g.start('voxel_node', node_command('voxel_node')).popen.pid, flush=True); time.sleep(600)"
+    )
     job = subprocess.Popen([sys.executable, "-c", job_script, str(tmp_path)], stdout=subprocess.PIPE, text=True)
     node_pid = int(job.stdout.readline())
     log = tmp_path / "voxel_node.log"
@@ -145,8 +179,9 @@ def _alive(pid: int) -> bool:
 
 
 def test_twin_node_help():
-    out = subprocess.run([sys.executable, "-m", "equidiff_ros.twin_node", "--help"], capture_output=True, text=True,
-                         timeout=60)
+    out = subprocess.run(
+        [sys.executable, "-m", "equidiff_ros.twin_node", "--help"], capture_output=True, text=True, timeout=60
+    )
     assert out.returncode == 0 and "/twin/reset" in out.stdout
 
 
@@ -162,8 +197,22 @@ def test_twin_node_resets_from_a_seed_and_reports_state(ros_domain, tmp_path):
 
     shm = f"equidiff_twin_nodetest_{os.getpid()}"
     with open(tmp_path / "twin.log", "w") as log:  # the child keeps its own copy of the descriptor
-        proc = subprocess.Popen([sys.executable, "-m", "equidiff_ros.twin_node", "--ros-args", "-p", "host:=auto",
-                                 "-p", "seed:=3", "-p", f"shm_name:={shm}"], stdout=log, stderr=subprocess.STDOUT)
+        proc = subprocess.Popen(
+            [
+                sys.executable,
+                "-m",
+                "equidiff_ros.twin_node",
+                "--ros-args",
+                "-p",
+                "host:=auto",
+                "-p",
+                "seed:=3",
+                "-p",
+                f"shm_name:={shm}",
+            ],
+            stdout=log,
+            stderr=subprocess.STDOUT,
+        )
     rclpy.init()
     node = Node("twin_probe")
     got = {"scene": [], "state": []}
@@ -219,8 +268,23 @@ def test_main_job_smoke_run_end_to_end(ros_domain, tmp_path):
     # a domain from the top of the range (221-232), away from other tests' 1-100 and the twin's default
     # 101-215: a stray policy or teleop in the same domain would command this robot
     domain = 221 + ros_domain % 12
-    proc = run_job([sys.executable, "-m", "equidiff_ros.cli", "twin", "run", "--smoke", "--out", str(out),
-                    "--domain", str(domain)], timeout_s=420, env=env, log_dir=tmp_path)
+    proc = run_job(
+        [
+            sys.executable,
+            "-m",
+            "equidiff_ros.cli",
+            "twin",
+            "run",
+            "--smoke",
+            "--out",
+            str(out),
+            "--domain",
+            str(domain),
+        ],
+        timeout_s=420,
+        env=env,
+        log_dir=tmp_path,
+    )
     logs = "\n".join(f"== {p.name}\n{p.read_text()[-1500:]}" for p in sorted((out / "logs").glob("*.log")))
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:] + logs
     last = json.loads(proc.stdout.strip().splitlines()[-1])
@@ -258,9 +322,29 @@ def test_twin_collect_over_ros_records_the_experts_demo_with_its_seed(ros_domain
     from equidiff_core.bags import read_meta
 
     out = tmp_path / "demos"
-    proc = run_job([sys.executable, "-m", "equidiff_ros.cli", "twin", "collect", "--episodes", "1", "--seed", "4",
-                    "--yaw-range", "-10", "10", "--out", str(out), "--domain", str(221 + (ros_domain + 3) % 12)],
-                   timeout_s=420, env={**os.environ, "OMP_NUM_THREADS": "1"}, log_dir=tmp_path)
+    proc = run_job(
+        [
+            sys.executable,
+            "-m",
+            "equidiff_ros.cli",
+            "twin",
+            "collect",
+            "--episodes",
+            "1",
+            "--seed",
+            "4",
+            "--yaw-range",
+            "-10",
+            "10",
+            "--out",
+            str(out),
+            "--domain",
+            str(221 + (ros_domain + 3) % 12),
+        ],
+        timeout_s=420,
+        env={**os.environ, "OMP_NUM_THREADS": "1"},
+        log_dir=tmp_path,
+    )
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
     last = json.loads(proc.stdout.strip().splitlines()[-1])
     assert last["episodes"] == 1 and last["successes"] == 1 and last["kept"] == 1 and last["mode"] == "ros"
@@ -292,8 +376,11 @@ def test_generalisation_eval_scenes_have_unseen_block_yaw_modulo_its_half_turn_s
         assert min(abs(yaw - k * 180.0) for k in (-1, 0, 1)) > 30.0
     # a scene whose block is a half turn from the training range is not among them
     seeds = unseen_yaw_seeds(cfg, (-15.0, 15.0), 60)
-    near_half_turn = [s for s in range(10_000_000, seeds[-1])
-                      if abs(abs(math.degrees(sample_scene(cfg.scene, s).block_yaw)) - 180.0) < 15.0]
+    near_half_turn = [
+        s
+        for s in range(10_000_000, seeds[-1])
+        if abs(abs(math.degrees(sample_scene(cfg.scene, s).block_yaw)) - 180.0) < 15.0
+    ]
     assert near_half_turn and not set(near_half_turn) & set(seeds)
     # and the training-range config never draws such yaws
     narrow = cfg.with_yaw_range((-15.0, 15.0))
@@ -307,8 +394,11 @@ def test_generalisation_eval_scenes_have_unseen_block_yaw_modulo_its_half_turn_s
 def test_bench_and_collect_commands_parse():
     from equidiff_ros.cli import build_parser
 
-    for argv in (["bench", "generalization", "--quick"], ["twin", "collect", "--episodes", "2", "--out", "x", "--direct"],
-                 ["twin", "run", "--smoke"]):
+    for argv in (
+        ["bench", "generalization", "--quick"],
+        ["twin", "collect", "--episodes", "2", "--out", "x", "--direct"],
+        ["twin", "run", "--smoke"],
+    ):
         args = build_parser(argv).parse_args(argv)
         assert not getattr(args, "_missing", False), argv
 
@@ -345,8 +435,25 @@ def test_bench_generalization_reports_a_failed_training_run_and_keeps_the_demos(
 
     demos = tmp_path / "demos"
     demos.mkdir()  # no bags: equidiff train refuses them
-    assert main(["bench", "generalization", "--demos-dir", str(demos), "--out", str(tmp_path / "run"),
-                 "--preset", "tiny", "--train-steps", "2", "--device", "cpu"]) == 1
+    assert (
+        main(
+            [
+                "bench",
+                "generalization",
+                "--demos-dir",
+                str(demos),
+                "--out",
+                str(tmp_path / "run"),
+                "--preset",
+                "tiny",
+                "--train-steps",
+                "2",
+                "--device",
+                "cpu",
+            ]
+        )
+        == 1
+    )
     err = capsys.readouterr().err
     assert "equidiff train equidiff failed" in err and f"--demos-dir {demos}" in err
     assert "Traceback" not in err
@@ -369,8 +476,27 @@ def test_bench_generalization_evaluates_policies_trained_elsewhere(tmp_path, cap
         (trained / name).mkdir(parents=True)
         shutil.copy(SHIPPED_CHECKPOINT, trained / name / "policy.pt")
         (trained / name / "history.json").write_text(json.dumps([{"step": steps, "loss": 0.1}]))
-    assert main(["bench", "generalization", "--trained", str(trained), "--out", str(tmp_path / "b"),
-                 "--eval-episodes", "1", "--in-range-episodes", "1", "--max-duration", "1", "--device", "cpu"]) == 0
+    assert (
+        main(
+            [
+                "bench",
+                "generalization",
+                "--trained",
+                str(trained),
+                "--out",
+                str(tmp_path / "b"),
+                "--eval-episodes",
+                "1",
+                "--in-range-episodes",
+                "1",
+                "--max-duration",
+                "1",
+                "--device",
+                "cpu",
+            ]
+        )
+        == 0
+    )
     out = capsys.readouterr().out
     result = json.loads(out.strip().splitlines()[-1])
     assert out.count("[equidiff, unseen] [eval]") == 1 and out.count("[baseline, in_range] [eval]") == 1
@@ -392,7 +518,7 @@ def test_shipped_checkpoint_loads_and_its_training_is_recorded():
     from equidiff_ros.commands.twin_run import SHIPPED_CHECKPOINT
 
     assert SHIPPED_CHECKPOINT.is_file(), SHIPPED_CHECKPOINT
-    assert SHIPPED_CHECKPOINT.stat().st_size < 20 * 2 ** 20  # small enough for the repository
+    assert SHIPPED_CHECKPOINT.stat().st_size < 20 * 2**20  # small enough for the repository
     readme = (SHIPPED_CHECKPOINT.parent / "README.md").read_text()
     assert "equidiff train" in readme and "equidiff twin collect" in readme
     policy = load_inference_policy(SHIPPED_CHECKPOINT)
@@ -415,8 +541,10 @@ def test_bench_generalization_trains_both_policies_side_by_side_on_half_the_core
     from equidiff_ros.commands import bench_generalization as bench
 
     runs = {}
-    script = ("import pathlib, sys, time; time.sleep(float(sys.argv[2])); "
-              "pathlib.Path(sys.argv[1]).write_text(str(time.time())); sys.exit(int(sys.argv[3]))")
+    script = (
+        "import pathlib, sys, time; time.sleep(float(sys.argv[2])); "
+        "pathlib.Path(sys.argv[1]).write_text(str(time.time())); sys.exit(int(sys.argv[3]))"
+    )
     behaviour = {"equidiff": (0.3, 0), "baseline": (0.3, 0)}  # seconds, exit code
 
     def fake_start(policy, bags, out, args, steps, threads):
@@ -429,7 +557,10 @@ def test_bench_generalization_trains_both_policies_side_by_side_on_half_the_core
     monkeypatch.setattr(bench, "_start_training", fake_start)
     args = argparse.Namespace(train_steps=7, max_minutes=None)
     policies = bench._train_both(tmp_path / "demos", tmp_path, args)
-    assert policies == {"equidiff": tmp_path / "equidiff" / "policy.pt", "baseline": tmp_path / "baseline" / "policy.pt"}
+    assert policies == {
+        "equidiff": tmp_path / "equidiff" / "policy.pt",
+        "baseline": tmp_path / "baseline" / "policy.pt",
+    }
     (a0, threads_a, steps_a), (b0, threads_b, _) = runs["equidiff"], runs["baseline"]
     a1, b1 = (float(policies[n].read_text()) for n in ("equidiff", "baseline"))
     assert a0 < b1 and b0 < a1  # the two runs overlapped
@@ -461,8 +592,22 @@ def test_bench_generalization_quick_runs_end_to_end_on_the_cpu(tmp_path, capsys)
     demos = tmp_path / "demos"
     lab = load_lab_config(default_config_dir() / "lab.yaml")
     assert collect_direct(TwinConfig().with_yaw_range((-15.0, 15.0)), lab, demos, [0], log=lambda s: None)[0][1]
-    assert main(["bench", "generalization", "--quick", "--demos-dir", str(demos), "--device", "cpu",
-                 "--out", str(tmp_path / "run")]) == 0
+    assert (
+        main(
+            [
+                "bench",
+                "generalization",
+                "--quick",
+                "--demos-dir",
+                str(demos),
+                "--device",
+                "cpu",
+                "--out",
+                str(tmp_path / "run"),
+            ]
+        )
+        == 0
+    )
     result = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     for key in ("equidiff_success", "baseline_success", "demos", "train_steps", "eval_episodes", "train_yaw_range_deg"):
         assert key in result, key

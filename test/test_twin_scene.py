@@ -78,8 +78,8 @@ def _settle(model, data, seconds=0.6):
 
 def _place_block(model, data, xyz, yaw=0.0):
     qadr = model.jnt_qposadr[mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT, "block_joint")]
-    data.qpos[qadr:qadr + 3] = xyz
-    data.qpos[qadr + 3:qadr + 7] = (math.cos(yaw / 2), 0, 0, math.sin(yaw / 2))
+    data.qpos[qadr : qadr + 3] = xyz
+    data.qpos[qadr + 3 : qadr + 7] = (math.cos(yaw / 2), 0, 0, math.sin(yaw / 2))
     mujoco.mj_forward(model, data)
 
 
@@ -146,7 +146,7 @@ def test_sim_server_runs_in_real_time_and_shares_its_state():
         assert poses == scene.sample_scene(CFG.scene, 9)
         qpos, _, _ = reader.read()
         qadr = twin.model.jnt_qposadr[mujoco.mj_name2id(twin.model, mujoco.mjtObj.mjOBJ_JOINT, "block_joint")]
-        np.testing.assert_allclose(qpos[qadr:qadr + 2], poses.block_xy, atol=2e-3)
+        np.testing.assert_allclose(qpos[qadr : qadr + 2], poses.block_xy, atol=2e-3)
         status = twin.status()
         assert status["seed"] == 9 and status["success"] is False
         reader.close()

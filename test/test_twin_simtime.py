@@ -79,8 +79,14 @@ def test_sim_waits_for_cameras_and_the_policy_and_keeps_franky_alive_through_a_l
 
     clock: list[int] = []
     cfg = LockstepConfig(frame_period_ticks=200, latency_ticks=100, stall_timeout_s=60.0, max_speed=0.0)
-    sim = TwinSim(TwinConfig(), host=free_loopback_host(), shm_name=f"eqd_simtime_{os.getpid()}", lockstep=cfg,
-                  on_clock=clock.append, camera_names=("cam_a",))
+    sim = TwinSim(
+        TwinConfig(),
+        host=free_loopback_host(),
+        shm_name=f"eqd_simtime_{os.getpid()}",
+        lockstep=cfg,
+        on_clock=clock.append,
+        camera_names=("cam_a",),
+    )
     sim.start(seed=1)
     try:
         with keep_thread_scheduler():
@@ -129,8 +135,13 @@ def test_a_camera_that_never_takes_its_frame_is_reported_as_a_stall_and_dropped(
     from equidiff_core.twin.sim import TwinSim
 
     cfg = LockstepConfig(frame_period_ticks=50, latency_ticks=10, stall_timeout_s=1.0, max_speed=0.0)
-    sim = TwinSim(TwinConfig(), host=free_loopback_host(), shm_name=f"eqd_stall_{os.getpid()}", lockstep=cfg,
-                  camera_names=("cam_a", "cam_b"))
+    sim = TwinSim(
+        TwinConfig(),
+        host=free_loopback_host(),
+        shm_name=f"eqd_stall_{os.getpid()}",
+        lockstep=cfg,
+        camera_names=("cam_a", "cam_b"),
+    )
     sim.start(seed=1)
     try:
         dead = StateReader(sim.shm_name)
@@ -138,7 +149,11 @@ def test_a_camera_that_never_takes_its_frame_is_reported_as_a_stall_and_dropped(
         deadline = time.monotonic() + 20
         while not sim.lockstep.stalls and time.monotonic() < deadline:
             time.sleep(0.05)
-        assert sim.lockstep.stalls and "cam_b" in sim.lockstep.stalls[0] and "did not take the frame" in sim.lockstep.stalls[0]
+        assert (
+            sim.lockstep.stalls
+            and "cam_b" in sim.lockstep.stalls[0]
+            and "did not take the frame" in sim.lockstep.stalls[0]
+        )
         before = sim.tick
         time.sleep(0.5)
         assert sim.tick > before + 50  # dropped: the sim goes on without it
@@ -152,8 +167,11 @@ def test_a_camera_that_never_takes_its_frame_is_reported_as_a_stall_and_dropped(
 def test_a_node_on_simulated_time_without_clock_waits_and_says_why(ros_domain, tmp_path):
     log = tmp_path / "voxel.log"
     with open(log, "w") as fh:
-        proc = subprocess.Popen([sys.executable, "-m", "equidiff_ros.voxel_node", "--ros-args",
-                                 "-p", "use_sim_time:=true"], stdout=fh, stderr=subprocess.STDOUT)
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "equidiff_ros.voxel_node", "--ros-args", "-p", "use_sim_time:=true"],
+            stdout=fh,
+            stderr=subprocess.STDOUT,
+        )
     try:
         deadline = time.monotonic() + 60
         while time.monotonic() < deadline and "no /clock has arrived" not in log.read_text():
@@ -196,8 +214,15 @@ def test_a_hung_policy_ends_its_episode_as_stalled_naming_it_and_the_job_goes_on
     cfg_dir = default_config_dir()
     lab = load_lab_config(cfg_dir / "lab.yaml")
     policy = make_standin_policy(tmp_path / "standin.pt", lab.workspace, preset="tiny", cfg=TwinConfig())
-    with TwinStack(tmp_path / "run", cfg_dir / "lab.yaml", cfg_dir / "twin.yaml", policy=str(policy),
-                   domain_id=221 + (ros_domain + 5) % 12, stall_timeout_s=5.0, log=lambda s: None) as stack:
+    with TwinStack(
+        tmp_path / "run",
+        cfg_dir / "lab.yaml",
+        cfg_dir / "twin.yaml",
+        policy=str(policy),
+        domain_id=221 + (ros_domain + 5) % 12,
+        stall_timeout_s=5.0,
+        log=lambda s: None,
+    ) as stack:
         pid = next(n.popen.pid for n in stack.group.nodes if n.name == "policy_node")
         os.kill(pid, signal.SIGSTOP)
         try:
@@ -211,8 +236,9 @@ def test_a_hung_policy_ends_its_episode_as_stalled_naming_it_and_the_job_goes_on
         # "once the policy answers again": SIGCONT'ed, it first works off what queued up while it
         # was stopped; the next episode starts once it answers (its chunks arrive, gate closed)
         seen = stack.sup.policy_chunks_seen
-        stack.sup.wait_for(lambda: stack.sup.policy_chunks_seen > seen + 2, 120.0, "policy_node answering again",
-                           stack.check)
+        stack.sup.wait_for(
+            lambda: stack.sup.policy_chunks_seen > seen + 2, 120.0, "policy_node answering again", stack.check
+        )
         after = run_policy_episode(stack, 2, 4.0)
         assert not after.stalled and after.chunks >= 2 and after.dropped_cycles == 0
 

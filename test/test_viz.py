@@ -36,11 +36,12 @@ EVERYTHING = VizConfig(ee_hz=1000.0, clouds=True, cloud_hz=1000.0)  # no throttl
 
 # --- message builders shared with test_viz_live.py -------------------------------------------
 
+
 def voxel_grid(n_occupied: int, seed: int) -> np.ndarray:
     rng = np.random.default_rng(seed)
     r = LAB.workspace.resolution
     grid = np.zeros((4, r, r, r), dtype=np.uint8)
-    flat = rng.choice(r ** 3, size=n_occupied, replace=False)
+    flat = rng.choice(r**3, size=n_occupied, replace=False)
     i, j, k = np.unravel_index(flat, (r, r, r))
     grid[0, i, j, k] = 255
     grid[1:, i, j, k] = rng.integers(0, 256, (3, n_occupied), dtype=np.uint8)
@@ -60,18 +61,27 @@ def tcp_pose(t_s: float) -> np.ndarray:
 def pose_msg(T: np.ndarray, stamp_ns: int, factory: MsgFactory):
     p, q = geometry.pos_quat_from_pose(T)
     mk = factory.make
-    return mk("geometry_msgs/msg/PoseStamped", header=factory.header(stamp_ns, LAB.base_frame),
-              pose=mk("geometry_msgs/msg/Pose",
-                      position=mk("geometry_msgs/msg/Point", x=float(p[0]), y=float(p[1]), z=float(p[2])),
-                      orientation=mk("geometry_msgs/msg/Quaternion", x=float(q[0]), y=float(q[1]),
-                                     z=float(q[2]), w=float(q[3]))))
+    return mk(
+        "geometry_msgs/msg/PoseStamped",
+        header=factory.header(stamp_ns, LAB.base_frame),
+        pose=mk(
+            "geometry_msgs/msg/Pose",
+            position=mk("geometry_msgs/msg/Point", x=float(p[0]), y=float(p[1]), z=float(p[2])),
+            orientation=mk("geometry_msgs/msg/Quaternion", x=float(q[0]), y=float(q[1]), z=float(q[2]), w=float(q[3])),
+        ),
+    )
 
 
 def joint_state_msg(width: float, stamp_ns: int, factory: MsgFactory):
     names = [f"fr3_joint{i}" for i in range(1, 8)] + ["fr3_finger_joint1", "fr3_finger_joint2"]
-    return factory.make("sensor_msgs/msg/JointState", header=factory.header(stamp_ns, ""), name=names,
-                        position=factory.float64_array([0.0] * 7 + [width / 2, width / 2]),
-                        velocity=factory.float64_array([]), effort=factory.float64_array([]))
+    return factory.make(
+        "sensor_msgs/msg/JointState",
+        header=factory.header(stamp_ns, ""),
+        name=names,
+        position=factory.float64_array([0.0] * 7 + [width / 2, width / 2]),
+        velocity=factory.float64_array([]),
+        effort=factory.float64_array([]),
+    )
 
 
 def chunk_msg(t_s: float, stamp_ns: int, factory: MsgFactory, steps: int = 8, dt_s: float = 0.2):
@@ -82,11 +92,24 @@ def chunk_msg(t_s: float, stamp_ns: int, factory: MsgFactory, steps: int = 8, dt
 
 def diagnostics_msg(inference_ms: float, stamp_ns: int, factory: MsgFactory):
     mk = factory.make
-    values = [mk("diagnostic_msgs/msg/KeyValue", key=k, value=v) for k, v in
-              (("inference_ms", f"{inference_ms:.3f}"), ("observation_age_ms", "35.5"), ("obs_to_cmd_ms", "140"),
-               ("skipped_cycles", "2"), ("backend", "cpu-bf16"))]
-    status = mk("diagnostic_msgs/msg/DiagnosticStatus", level=0 if isinstance(factory, RosbagsFactory) else b"\x00",
-                name="policy_node: inference", message="ok", hardware_id="", values=values)
+    values = [
+        mk("diagnostic_msgs/msg/KeyValue", key=k, value=v)
+        for k, v in (
+            ("inference_ms", f"{inference_ms:.3f}"),
+            ("observation_age_ms", "35.5"),
+            ("obs_to_cmd_ms", "140"),
+            ("skipped_cycles", "2"),
+            ("backend", "cpu-bf16"),
+        )
+    ]
+    status = mk(
+        "diagnostic_msgs/msg/DiagnosticStatus",
+        level=0 if isinstance(factory, RosbagsFactory) else b"\x00",
+        name="policy_node: inference",
+        message="ok",
+        hardware_id="",
+        values=values,
+    )
     return mk("diagnostic_msgs/msg/DiagnosticArray", header=factory.header(stamp_ns, ""), status=[status])
 
 
@@ -103,12 +126,18 @@ def tf_static_msg(stamp_ns: int, factory: MsgFactory, shift: float = 0.0):
     transforms = []
     for cam in LAB.cameras:
         t, q = cam.extrinsics.translation, cam.extrinsics.quaternion_xyzw
-        transforms.append(mk(
-            "geometry_msgs/msg/TransformStamped", header=factory.header(stamp_ns, LAB.base_frame),
-            child_frame_id=cam.frame_id,
-            transform=mk("geometry_msgs/msg/Transform",
-                         translation=mk("geometry_msgs/msg/Vector3", x=t[0] + shift, y=t[1], z=t[2]),
-                         rotation=mk("geometry_msgs/msg/Quaternion", x=q[0], y=q[1], z=q[2], w=q[3]))))
+        transforms.append(
+            mk(
+                "geometry_msgs/msg/TransformStamped",
+                header=factory.header(stamp_ns, LAB.base_frame),
+                child_frame_id=cam.frame_id,
+                transform=mk(
+                    "geometry_msgs/msg/Transform",
+                    translation=mk("geometry_msgs/msg/Vector3", x=t[0] + shift, y=t[1], z=t[2]),
+                    rotation=mk("geometry_msgs/msg/Quaternion", x=q[0], y=q[1], z=q[2], w=q[3]),
+                ),
+            )
+        )
     return mk("tf2_msgs/msg/TFMessage", transforms=transforms)
 
 
@@ -126,29 +155,58 @@ def write_episode_bag(path: Path, t0_ns: int = T0_NS, task: str = "pick_cube", w
     f = rosbags_factory()
     ts = f.typestore
     messages: list[tuple[str, str, int, object]] = [
-        ("/tf_static", "tf2_msgs/msg/TFMessage", t0_ns, tf_static_msg(t0_ns, f, shift=0.01))]
+        ("/tf_static", "tf2_msgs/msg/TFMessage", t0_ns, tf_static_msg(t0_ns, f, shift=0.01))
+    ]
     for i in range(N_OBS):
         t = t0_ns + i * 200_000_000
-        messages.append(("/voxels", "sensor_msgs/msg/PointCloud2", t + 30_000_000, voxel_msg(VOXELS_AT[i], t, f, seed=i)))
-        messages.append(("/franka/command_chunk", "trajectory_msgs/msg/MultiDOFJointTrajectory", t + 150_000_000,
-                         chunk_msg(i * 0.2, t, f)))
-        messages.append(("/diagnostics", "diagnostic_msgs/msg/DiagnosticArray", t + 160_000_000,
-                         diagnostics_msg(120.0 + i, t + 160_000_000, f)))
-        messages.append(("/cameras/cam_front/points", "sensor_msgs/msg/PointCloud2", t + 10_000_000,
-                         camera_cloud_msg(2000, t, f)))
+        messages.append(
+            ("/voxels", "sensor_msgs/msg/PointCloud2", t + 30_000_000, voxel_msg(VOXELS_AT[i], t, f, seed=i))
+        )
+        messages.append(
+            (
+                "/franka/command_chunk",
+                "trajectory_msgs/msg/MultiDOFJointTrajectory",
+                t + 150_000_000,
+                chunk_msg(i * 0.2, t, f),
+            )
+        )
+        messages.append(
+            (
+                "/diagnostics",
+                "diagnostic_msgs/msg/DiagnosticArray",
+                t + 160_000_000,
+                diagnostics_msg(120.0 + i, t + 160_000_000, f),
+            )
+        )
+        messages.append(
+            ("/cameras/cam_front/points", "sensor_msgs/msg/PointCloud2", t + 10_000_000, camera_cloud_msg(2000, t, f))
+        )
     for i in range(N_OBS * 200_000_000 // (NS_PER_S // STATE_HZ)):
         t = t0_ns + i * (NS_PER_S // STATE_HZ)
         T = tcp_pose(i / STATE_HZ)
         messages.append(("/franka/ee_pose", "geometry_msgs/msg/PoseStamped", t + 1_000_000, pose_msg(T, t, f)))
-        messages.append(("/franka/joint_states", "sensor_msgs/msg/JointState", t + 1_000_000,
-                         joint_state_msg(0.08 - 0.0001 * i, t, f)))
-        messages.append(("/franka/executed_target", "geometry_msgs/msg/PoseStamped", t + 2_000_000,
-                         pose_msg(tcp_pose(i / STATE_HZ + 0.1), t, f)))
+        messages.append(
+            (
+                "/franka/joint_states",
+                "sensor_msgs/msg/JointState",
+                t + 1_000_000,
+                joint_state_msg(0.08 - 0.0001 * i, t, f),
+            )
+        )
+        messages.append(
+            (
+                "/franka/executed_target",
+                "geometry_msgs/msg/PoseStamped",
+                t + 2_000_000,
+                pose_msg(tcp_pose(i / STATE_HZ + 0.1), t, f),
+            )
+        )
     if with_bad_chunk:  # a NaN chunk must be dropped and counted, not stop the conversion
         bad = chunk_msg(0.0, t0_ns + 1_000_000_000, f)
         bad.points[3].transforms[0].translation.x = float("nan")
-        messages.append(("/franka/command_chunk", "trajectory_msgs/msg/MultiDOFJointTrajectory",
-                         t0_ns + 1_050_000_000, bad))
+        messages.append(
+            ("/franka/command_chunk", "trajectory_msgs/msg/MultiDOFJointTrajectory", t0_ns + 1_050_000_000, bad)
+        )
     messages.sort(key=lambda m: m[2])
     with Writer(path, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
         writer.set_custom_data("task", task)
@@ -161,8 +219,12 @@ def write_episode_bag(path: Path, t0_ns: int = T0_NS, task: str = "pick_cube", w
         for topic, msgtype, t, msg in messages:
             writer.write(conns[topic], t, ts.serialize_cdr(msg, msgtype))
     n_state = N_OBS * 200_000_000 // (NS_PER_S // STATE_HZ)
-    return {"t0": t0_ns, "voxel_stamps": [t0_ns + i * 200_000_000 for i in range(N_OBS)],
-            "n_state": n_state, "state_last": t0_ns + (n_state - 1) * (NS_PER_S // STATE_HZ)}
+    return {
+        "t0": t0_ns,
+        "voxel_stamps": [t0_ns + i * 200_000_000 for i in range(N_OBS)],
+        "n_state": n_state,
+        "state_last": t0_ns + (n_state - 1) * (NS_PER_S // STATE_HZ),
+    }
 
 
 @pytest.fixture(scope="module")
@@ -177,6 +239,7 @@ def episode_bags(tmp_path_factory) -> tuple[list[Path], list[dict]]:
 
 
 # --- bag -> .rrd ---------------------------------------------------------------------------
+
 
 def test_converted_bag_has_expected_entities_counts_and_time_range(episode_bags, tmp_path):
     bags, written = episode_bags
@@ -235,15 +298,28 @@ def test_converted_transforms_and_values_match_the_bag(episode_bags, tmp_path):
     for chunk in RrdReader(out).stream():
         if not chunk.is_static:
             by_entity.setdefault(chunk.entity_path, []).append(chunk.to_record_batch())
-    front = [np.array(t, dtype=float).reshape(-1) for b in by_entity["/world/cameras/cam_front"]
-             for t in b.column("Transform3D:translation").to_pylist()]
+    front = [
+        np.array(t, dtype=float).reshape(-1)
+        for b in by_entity["/world/cameras/cam_front"]
+        for t in b.column("Transform3D:translation").to_pylist()
+    ]
     configured = np.array(LAB.camera("cam_front").extrinsics.translation)
     np.testing.assert_allclose(sorted(front, key=lambda t: t[0]), [configured, configured + [0.01, 0, 0]], atol=1e-6)
-    widths = np.concatenate([np.array(b.column("Scalars:scalars").to_pylist(), dtype=float).reshape(-1)
-                             for b in by_entity["/metrics/gripper_width/commanded"]])
+    widths = np.concatenate(
+        [
+            np.array(b.column("Scalars:scalars").to_pylist(), dtype=float).reshape(-1)
+            for b in by_entity["/metrics/gripper_width/commanded"]
+        ]
+    )
     np.testing.assert_allclose(widths, 0.08)  # step 0 of every chunk
-    inference = np.sort(np.concatenate([np.array(b.column("Scalars:scalars").to_pylist(), dtype=float).reshape(-1)
-                                        for b in by_entity["/metrics/latency/inference"]]))
+    inference = np.sort(
+        np.concatenate(
+            [
+                np.array(b.column("Scalars:scalars").to_pylist(), dtype=float).reshape(-1)
+                for b in by_entity["/metrics/latency/inference"]
+            ]
+        )
+    )
     np.testing.assert_allclose(inference, 120.0 + np.arange(N_OBS), atol=1e-3)
 
 
@@ -343,8 +419,10 @@ def test_missing_rerun_names_the_install_extra(monkeypatch):
 
 def test_nodes_and_core_import_without_rerun():
     """rerun is optional at run time: the live node module and core viz import without it."""
-    code = ("import sys; sys.modules['rerun'] = None; import equidiff_core.viz, equidiff_ros.viz_node; "
-            "import equidiff_ros.commands.viz; print('ok')")
+    code = (
+        "import sys; sys.modules['rerun'] = None; import equidiff_core.viz, equidiff_ros.viz_node; "
+        "import equidiff_ros.commands.viz; print('ok')"
+    )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
     assert out.returncode == 0 and "ok" in out.stdout, out.stderr
 
@@ -393,6 +471,7 @@ def test_sample_bag_converts_if_present(tmp_path):
 
 
 # --- training views ------------------------------------------------------------------------
+
 
 def _fake_sample(rng, horizon: int = 16) -> dict:
     poses = np.stack([tcp_pose(0.1 * i) for i in range(horizon)])
@@ -446,10 +525,24 @@ def test_training_callback_with_the_real_trainer(tmp_path):
     for i in range(8):
         s = _fake_sample(rng, preset.horizon)
         vox = torch.from_numpy(voxel_grid(200, seed=i))[None].expand(preset.n_obs_steps, -1, -1, -1, -1)
-        samples.append({"voxels": vox.contiguous(), "ee": torch.from_numpy(s["ee"])[None].repeat(preset.n_obs_steps, 1),
-                        "action": torch.from_numpy(s["gt"])})
-    cfg = training.TrainConfig(steps=4, batch_size=4, warmup_steps=1, eval_every=2, eval_samples=2, val_batches=1,
-                               checkpoint_every=0, log_every=1, device="cpu")
+        samples.append(
+            {
+                "voxels": vox.contiguous(),
+                "ee": torch.from_numpy(s["ee"])[None].repeat(preset.n_obs_steps, 1),
+                "action": torch.from_numpy(s["gt"]),
+            }
+        )
+    cfg = training.TrainConfig(
+        steps=4,
+        batch_size=4,
+        warmup_steps=1,
+        eval_every=2,
+        eval_samples=2,
+        val_batches=1,
+        checkpoint_every=0,
+        log_every=1,
+        device="cpu",
+    )
     cb = RerunTrainingCallback(tmp_path / "train.rrd", max_samples=2)
     training.train(policy, samples, samples[:4], cfg, tmp_path / "run", callbacks=[cb])
     assert cb.closed  # on_end closed the recording
@@ -475,11 +568,31 @@ def test_equidiff_train_logs_to_rerun(tmp_path):
     if not bags:
         pytest.skip("no sample bag under bags/ in this checkout")
     out = tmp_path / "train.rrd"
-    cmd = [sys.executable, "-m", "equidiff_ros.cli", "train", str(bags[0]), "--out", str(tmp_path / "run"),
-           "--policy", "baseline", "--preset", "tiny", "--steps", "4", "--batch-size", "4", "--eval-every", "2",
-           "--no-progress", "--rerun", str(out)]
-    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=300,
-                          env={**__import__("os").environ, "OMP_NUM_THREADS": "1"})
+    cmd = [
+        sys.executable,
+        "-m",
+        "equidiff_ros.cli",
+        "train",
+        str(bags[0]),
+        "--out",
+        str(tmp_path / "run"),
+        "--policy",
+        "baseline",
+        "--preset",
+        "tiny",
+        "--steps",
+        "4",
+        "--batch-size",
+        "4",
+        "--eval-every",
+        "2",
+        "--no-progress",
+        "--rerun",
+        str(out),
+    ]
+    proc = subprocess.run(
+        cmd, capture_output=True, text=True, timeout=300, env={**__import__("os").environ, "OMP_NUM_THREADS": "1"}
+    )
     assert proc.returncode == 0, proc.stderr[-2000:]
     s = summarize_rrd(out)
     assert s["train/loss"].rows == 4 and s["train/loss"].time_range_ns("step") == (1, 4)
@@ -491,11 +604,13 @@ def test_bag_conversion_needs_no_ros(episode_bags, tmp_path):
     """`equidiff viz BAG -o out.rrd` with rclpy and every ROS message package made unimportable."""
     bags, _ = episode_bags
     out = tmp_path / "noros.rrd"
-    code = ("import sys\n"
-            "for m in ('rclpy', 'sensor_msgs', 'geometry_msgs', 'std_msgs', 'trajectory_msgs', 'diagnostic_msgs',"
-            " 'tf2_msgs', 'builtin_interfaces'):\n    sys.modules[m] = None\n"
-            "from equidiff_ros.cli import main\n"
-            f"sys.exit(main(['viz', {str(bags[0])!r}, '-o', {str(out)!r}]))\n")
+    code = (
+        "import sys\n"
+        "for m in ('rclpy', 'sensor_msgs', 'geometry_msgs', 'std_msgs', 'trajectory_msgs', 'diagnostic_msgs',"
+        " 'tf2_msgs', 'builtin_interfaces'):\n    sys.modules[m] = None\n"
+        "from equidiff_ros.cli import main\n"
+        f"sys.exit(main(['viz', {str(bags[0])!r}, '-o', {str(out)!r}]))\n"
+    )
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert summarize_rrd(out)["world/voxels"].rows == N_OBS
@@ -525,8 +640,12 @@ def test_voxel_box_size_follows_the_message_not_a_mismatched_lab_config(tmp_path
     rec.disconnect()
     from rerun.chunk import RrdReader
 
-    half_sizes = [np.array(b.column("Boxes3D:half_sizes").to_pylist(), dtype=float).reshape(-1, 3)
-                  for c in RrdReader(tmp_path / "size.rrd").stream() if c.is_static and c.entity_path == "/world/voxels"
-                  for b in [c.to_record_batch()] if "Boxes3D:half_sizes" in b.schema.names]
+    half_sizes = [
+        np.array(b.column("Boxes3D:half_sizes").to_pylist(), dtype=float).reshape(-1, 3)
+        for c in RrdReader(tmp_path / "size.rrd").stream()
+        if c.is_static and c.entity_path == "/world/voxels"
+        for b in [c.to_record_batch()]
+        if "Boxes3D:half_sizes" in b.schema.names
+    ]
     sizes = sorted(float(h[0, 0]) for h in half_sizes)
     np.testing.assert_allclose(sizes, [LAB.workspace.voxel_size / 2, other_size / 2], rtol=1e-5)

@@ -37,8 +37,9 @@ def _wait_for(predicate, timeout_s: float, what: str, proc: subprocess.Popen | N
         if predicate():
             return
         if proc is not None and proc.poll() is not None:
-            raise AssertionError(f"viz exited early ({proc.returncode}) while waiting for {what}:\n"
-                                 f"{proc.stdout.read()}")
+            raise AssertionError(
+                f"viz exited early ({proc.returncode}) while waiting for {what}:\n{proc.stdout.read()}"
+            )
         time.sleep(0.1)
     raise AssertionError(f"timed out after {timeout_s} s waiting for {what}")
 
@@ -65,8 +66,13 @@ def test_live_viz_logs_real_topics_to_a_readable_rrd(ros_domain, tmp_path):
 
     out = tmp_path / "live.rrd"
     env = dict(os.environ, OMP_NUM_THREADS="1", PYTHONUNBUFFERED="1")
-    proc = subprocess.Popen([sys.executable, "-m", "equidiff_ros.cli", "viz", "-o", str(out), "--duration", "120"],
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "equidiff_ros.cli", "viz", "-o", str(out), "--duration", "120"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        env=env,
+    )
     ctx = rclpy.Context()
     rclpy.init(context=ctx)
     node = rclpy.create_node("viz_test_publisher", context=ctx)
@@ -135,8 +141,13 @@ def test_live_viz_refuses_to_spawn_without_a_display(ros_domain, monkeypatch, ca
 
 
 def test_viz_command_help_lists_the_three_sinks():
-    out = subprocess.run([sys.executable, "-m", "equidiff_ros.cli", "viz", "--help"], capture_output=True,
-                         text=True, timeout=60, cwd=Path(__file__).resolve().parents[1])
+    out = subprocess.run(
+        [sys.executable, "-m", "equidiff_ros.cli", "viz", "--help"],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        cwd=Path(__file__).resolve().parents[1],
+    )
     assert out.returncode == 0, out.stderr
     for flag in ("--spawn", "--connect", "--output", "--per-episode", "--clouds"):
         assert flag in out.stdout

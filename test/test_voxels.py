@@ -64,21 +64,22 @@ def test_mean_colour_is_integer_mean_rounded_half_up():
 
 def test_workspace_is_half_open_lower_inclusive_upper_exclusive():
     lo, hi = WS.lower, WS.upper
-    just_below_hi = hi - 2.0 ** -12  # 0.03 voxel inside, exact in float32 all the way
-    pts = np.array([
-        lo,  # exactly the minimum corner -> voxel (0, 0, 0)
-        hi,  # exactly the maximum corner -> outside
-        [hi[0], 0.0, 0.25],  # on the upper x face -> outside
-        [lo[0], 0.0, 0.25],  # on the lower x face -> inside, i = 0
-        just_below_hi,  # a hair inside the maximum corner -> voxel (63, 63, 63)
-        lo - [1e-6, 0, 0],  # a hair below the lower x face -> outside
-        [0.5, 0.0, lo[2] + 32 * SIZE],  # exactly on an inner face -> the upper cell (floor)
-    ])
+    just_below_hi = hi - 2.0**-12  # 0.03 voxel inside, exact in float32 all the way
+    pts = np.array(
+        [
+            lo,  # exactly the minimum corner -> voxel (0, 0, 0)
+            hi,  # exactly the maximum corner -> outside
+            [hi[0], 0.0, 0.25],  # on the upper x face -> outside
+            [lo[0], 0.0, 0.25],  # on the lower x face -> inside, i = 0
+            just_below_hi,  # a hair inside the maximum corner -> voxel (63, 63, 63)
+            lo - [1e-6, 0, 0],  # a hair below the lower x face -> outside
+            [0.5, 0.0, lo[2] + 32 * SIZE],  # exactly on an inner face -> the upper cell (floor)
+        ]
+    )
     grid = voxelize([_cloud(pts, np.full((len(pts), 3), 9))], [IDENTITY], WS)
     occupied = sorted(map(tuple, np.argwhere(grid[0] > 0)))
     assert occupied == sorted([(0, 0, 0), (0, 32, 32), (63, 63, 63), (32, 32, 32)])
-    np.testing.assert_array_equal(grid, voxelize_reference([_cloud(pts, np.full((len(pts), 3), 9))],
-                                                           [IDENTITY], WS))
+    np.testing.assert_array_equal(grid, voxelize_reference([_cloud(pts, np.full((len(pts), 3), 9))], [IDENTITY], WS))
 
 
 def test_empty_and_fully_outside_input_give_an_empty_grid():
@@ -109,8 +110,10 @@ def test_extrinsics_move_camera_points_into_the_base_frame():
     clouds = [_camera_cloud(T, base[i::3], colors[i::3]) for i, T in enumerate(exts)]
     grid = voxelize(clouds, exts, ws)
     expected = np.zeros_like(grid)
-    for (i, j, k), col in zip(np.concatenate([cells[0::3], cells[1::3], cells[2::3]]),
-                              np.concatenate([colors[0::3], colors[1::3], colors[2::3]])):
+    for (i, j, k), col in zip(
+        np.concatenate([cells[0::3], cells[1::3], cells[2::3]]),
+        np.concatenate([colors[0::3], colors[1::3], colors[2::3]]),
+    ):
         expected[0, i, j, k] = 255
         expected[1:, i, j, k] = col  # cells may repeat; recompute the mean below
     uniq, inverse = np.unique(cells, axis=0, return_inverse=True)
@@ -139,8 +142,7 @@ def test_rotating_the_scene_about_the_workspace_centre_rotates_the_grid(quarter_
     moved = [_camera_cloud(T, rotated[i::3], colors[i::3]) for i, T in enumerate(exts)]
     np.testing.assert_array_equal(voxelize(moved, exts, ws), geometry.rotate_voxel_grid(grid, theta))
     # (b) the whole rig (cameras and scene) rotates: same camera-frame points, rotated extrinsics
-    np.testing.assert_array_equal(voxelize(clouds, [Rz @ T for T in exts], ws),
-                                  geometry.rotate_voxel_grid(grid, theta))
+    np.testing.assert_array_equal(voxelize(clouds, [Rz @ T for T in exts], ws), geometry.rotate_voxel_grid(grid, theta))
 
 
 def _awkward_scene(seed):
@@ -156,7 +158,7 @@ def _awkward_scene(seed):
         if n:
             face = rng.integers(0, ws.resolution + 1, (n // 4, 3))
             base[: n // 4] = ws.lower + face * ws.voxel_size  # exactly on voxel faces (in float64)
-            base[n // 4: n // 4 + 600] = np.asarray(ws.center) + 0.001  # 600 points in one voxel: crowded path
+            base[n // 4 : n // 4 + 600] = np.asarray(ws.center) + 0.001  # 600 points in one voxel: crowded path
         pts, cols = _camera_cloud(T, base, rng.integers(0, 256, (n, 3), dtype=np.uint8))
         if n:
             pts[:7] = np.nan
@@ -165,8 +167,11 @@ def _awkward_scene(seed):
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
-@pytest.mark.parametrize("cfg", [VoxelizerConfig(), VoxelizerConfig(table_z=0.03),
-                                 VoxelizerConfig(min_depth=0.5, max_depth=0.9)], ids=["plain", "table", "depth"])
+@pytest.mark.parametrize(
+    "cfg",
+    [VoxelizerConfig(), VoxelizerConfig(table_z=0.03), VoxelizerConfig(min_depth=0.5, max_depth=0.9)],
+    ids=["plain", "table", "depth"],
+)
 def test_fast_path_equals_reference_bit_for_bit(seed, cfg):
     clouds, exts, ws = _awkward_scene(seed)
     vox = Voxelizer(ws, exts, cfg)
@@ -245,12 +250,15 @@ def test_dense_grid_path_equals_reference():
     exts = [c.extrinsics.matrix() for c in lab.cameras]
     clouds = synthetic_scene(lab, 250_000, seed=11, kind="uniform")
     pts, cols = clouds[0]
-    crowd = _camera_cloud(exts[0], np.tile(np.asarray(lab.workspace.center) + 0.001, (700, 1)),
-                          np.random.default_rng(2).integers(0, 256, (700, 3), dtype=np.uint8))
+    crowd = _camera_cloud(
+        exts[0],
+        np.tile(np.asarray(lab.workspace.center) + 0.001, (700, 1)),
+        np.random.default_rng(2).integers(0, 256, (700, 3), dtype=np.uint8),
+    )
     clouds[0] = (np.vstack([pts, crowd[0]]), np.vstack([cols, crowd[1]]))
     vox = Voxelizer(lab.workspace, exts)
     grid = vox(clouds)
-    assert vox.last_stats.occupied > lab.workspace.resolution ** 3 // 2  # the dense path ran
+    assert vox.last_stats.occupied > lab.workspace.resolution**3 // 2  # the dense path ran
     assert vox.last_stats.max_points_per_voxel >= 700  # with a crowded voxel
     assert vox.last_stats.occupied == int(np.count_nonzero(grid[0]))
     np.testing.assert_array_equal(grid, voxelize_reference(clouds, exts, lab.workspace))

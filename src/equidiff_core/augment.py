@@ -21,7 +21,7 @@ def center_crop(voxels: torch.Tensor, size: int) -> torch.Tensor:
     if res < size or voxels.shape[-3] != res or voxels.shape[-2] != res:
         raise ValueError(f"voxel grid {tuple(voxels.shape[-3:])} cannot be cropped to {size}^3")
     lo = (res - size) // 2
-    return voxels[..., lo:lo + size, lo:lo + size, lo:lo + size]
+    return voxels[..., lo : lo + size, lo : lo + size, lo : lo + size]
 
 
 def random_crop(voxels: torch.Tensor, size: int, generator: torch.Generator | None = None) -> torch.Tensor:
@@ -31,7 +31,9 @@ def random_crop(voxels: torch.Tensor, size: int, generator: torch.Generator | No
         raise ValueError(f"voxel grid {res}^3 cannot be cropped to {size}^3")
     B = voxels.shape[0]
     offs = torch.randint(0, res - size + 1, (B, 3), generator=generator)
-    return torch.stack([voxels[b, ..., i:i + size, j:j + size, k:k + size] for b, (i, j, k) in enumerate(offs.tolist())])
+    return torch.stack(
+        [voxels[b, ..., i : i + size, j : j + size, k : k + size] for b, (i, j, k) in enumerate(offs.tolist())]
+    )
 
 
 def sample_angles(batch: int, mode: str, generator: torch.Generator | None = None) -> list[float]:
@@ -45,17 +47,27 @@ def sample_angles(batch: int, mode: str, generator: torch.Generator | None = Non
     raise ValueError(f"unknown rotation augmentation {mode!r}")
 
 
-def rotate_sample(voxels: torch.Tensor, ee: torch.Tensor, action: torch.Tensor, theta: float,
-                  center) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+def rotate_sample(
+    voxels: torch.Tensor, ee: torch.Tensor, action: torch.Tensor, theta: float, center
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """One sample: voxels (To, C, X, Y, Z), ee (To, 10), action (T, 10), rotated by theta about the centre."""
     if theta == 0.0:
         return voxels, ee, action
-    return (geometry.rotate_voxel_grid(voxels, theta, mode="nearest"),
-            geometry.rotate_action(ee, theta, center), geometry.rotate_action(action, theta, center))
+    return (
+        geometry.rotate_voxel_grid(voxels, theta, mode="nearest"),
+        geometry.rotate_action(ee, theta, center),
+        geometry.rotate_action(action, theta, center),
+    )
 
 
-def random_rotation(voxels: torch.Tensor, ee: torch.Tensor, action: torch.Tensor, mode: str, center,
-                    generator: torch.Generator | None = None):
+def random_rotation(
+    voxels: torch.Tensor,
+    ee: torch.Tensor,
+    action: torch.Tensor,
+    mode: str,
+    center,
+    generator: torch.Generator | None = None,
+):
     """Batched: each sample gets its own angle drawn per ``mode`` ('none', 'c4', 'c8', 'continuous')."""
     angles = sample_angles(voxels.shape[0], mode, generator)
     if not any(angles):

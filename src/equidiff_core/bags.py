@@ -40,6 +40,7 @@ class BagError(RuntimeError):
 
 # --- metadata ------------------------------------------------------------------------------
 
+
 @dataclass(frozen=True)
 class EpisodeMeta:
     """Operator-facing facts about an episode, stored in metadata.yaml custom_data (all strings there)."""
@@ -58,9 +59,13 @@ class EpisodeMeta:
         return dataclasses.asdict(self)
 
     def to_custom_data(self) -> dict[str, str]:
-        data = {"task": self.task, "operator": self.operator,
-                "success": "" if self.success is None else str(self.success).lower(),
-                "notes": self.notes, "seed": "" if self.seed is None else str(self.seed)}
+        data = {
+            "task": self.task,
+            "operator": self.operator,
+            "success": "" if self.success is None else str(self.success).lower(),
+            "notes": self.notes,
+            "seed": "" if self.seed is None else str(self.seed),
+        }
         data.update({f"extra.{k}": str(v) for k, v in self.extra.items()})
         return data
 
@@ -69,10 +74,14 @@ class EpisodeMeta:
         data = dict(data or {})
         success = data.get("success", "")
         seed = data.get("seed", "")
-        return cls(task=data.get("task", ""), operator=data.get("operator", ""),
-                   success=None if success in ("", None) else success.lower() == "true",
-                   notes=data.get("notes", ""), seed=int(seed) if seed not in ("", None) else None,
-                   extra={k[6:]: v for k, v in data.items() if k.startswith("extra.")})
+        return cls(
+            task=data.get("task", ""),
+            operator=data.get("operator", ""),
+            success=None if success in ("", None) else success.lower() == "true",
+            notes=data.get("notes", ""),
+            seed=int(seed) if seed not in ("", None) else None,
+            extra={k[6:]: v for k, v in data.items() if k.startswith("extra.")},
+        )
 
     @classmethod
     def from_dict(cls, data: dict[str, Any] | None) -> EpisodeMeta:
@@ -82,6 +91,7 @@ class EpisodeMeta:
 
 
 # --- reading ------------------------------------------------------------------------------
+
 
 @dataclass
 class TopicMessages:
@@ -129,8 +139,9 @@ def find_bags(paths: Iterable[str | Path]) -> list[Path]:
         if is_bag_dir(p) or not p.is_dir():
             out.append(p)  # missing paths are reported by the reader, not dropped here
             continue
-        subs = sorted(s for s in p.iterdir() if s.is_dir() and not s.name.endswith(UNREPAIRED_SUFFIX)
-                      and (is_bag_dir(s)))
+        subs = sorted(
+            s for s in p.iterdir() if s.is_dir() and not s.name.endswith(UNREPAIRED_SUFFIX) and (is_bag_dir(s))
+        )
         out.extend(subs)
     return out
 
@@ -177,8 +188,9 @@ def read_episode(path: str | Path, topics: Iterable[str] | None = None) -> Episo
                 try:
                     msg = typestore.deserialize_cdr(raw, conn.msgtype)
                 except Exception as err:  # rosbags raises several kinds on bad CDR
-                    raise BagError(f"{path}: undecodable {conn.msgtype} message on {conn.topic} "
-                                   f"at {ts} ns: {err}") from err
+                    raise BagError(
+                        f"{path}: undecodable {conn.msgtype} message on {conn.topic} at {ts} ns: {err}"
+                    ) from err
                 out[conn.topic].messages.append(msg)
                 log[conn.topic].append(ts)
             for t, stamps in log.items():
@@ -187,13 +199,17 @@ def read_episode(path: str | Path, topics: Iterable[str] | None = None) -> Episo
     except BagError:
         raise
     except Exception as err:  # ReaderError, struct.error, OSError on truncated/corrupt files
-        raise BagError(f"{path}: unreadable bag ({type(err).__name__}: {err}); "
-                       f"if its recorder was killed, run: equidiff bags repair {path}") from err
-    return Episode(path, read_meta(path), int(start) if counts and sum(counts.values()) else 0,
-                   int(duration), out, counts)
+        raise BagError(
+            f"{path}: unreadable bag ({type(err).__name__}: {err}); "
+            f"if its recorder was killed, run: equidiff bags repair {path}"
+        ) from err
+    return Episode(
+        path, read_meta(path), int(start) if counts and sum(counts.values()) else 0, int(duration), out, counts
+    )
 
 
 # --- repair -------------------------------------------------------------------------------
+
 
 @dataclass
 class RepairReport:
@@ -221,7 +237,7 @@ class _Scan:
 
 def _string(buf: bytes, off: int) -> tuple[str, int]:
     (n,) = struct.unpack_from("<I", buf, off)
-    return buf[off + 4: off + 4 + n].decode(), off + 4 + n
+    return buf[off + 4 : off + 4 + n].decode(), off + 4 + n
 
 
 def _records(buf: bytes, scan: _Scan, top_level: bool, base: int = 0) -> None:
@@ -245,13 +261,13 @@ def _records(buf: bytes, scan: _Scan, top_level: bool, base: int = 0) -> None:
             name, p = _string(body, 2)
             enc, p = _string(body, p)
             (n,) = struct.unpack_from("<I", body, p)
-            scan.schemas[sid] = (name, enc, body[p + 4:p + 4 + n].decode())
+            scan.schemas[sid] = (name, enc, body[p + 4 : p + 4 + n].decode())
         elif op == 0x04:
             cid, sid = struct.unpack_from("<HH", body, 0)
             topic, p = _string(body, 4)
             enc, p = _string(body, p)
             (n,) = struct.unpack_from("<I", body, p)
-            scan.channels[cid] = (sid, topic, enc, body[p + 4:p + 4 + n])
+            scan.channels[cid] = (sid, topic, enc, body[p + 4 : p + 4 + n])
         elif op == 0x05:
             cid, _seq, log_time = struct.unpack_from("<HIQ", body, 0)
             scan.messages.append((cid, log_time, body[22:]))
@@ -262,14 +278,14 @@ def _records(buf: bytes, scan: _Scan, top_level: bool, base: int = 0) -> None:
             comp, p = _string(body, 28)
             (csize,) = struct.unpack_from("<Q", body, p)
             try:
-                inner = decompress(body[p + 8:p + 8 + csize], comp, usize, crc)
+                inner = decompress(body[p + 8 : p + 8 + csize], comp, usize, crc)
             except Exception as err:
                 raise _Truncated(base + off, f"corrupt chunk ({err})") from err
             before = (len(scan.messages), dict(scan.schemas), dict(scan.channels))
             try:
                 _records(inner, scan, top_level=False)
             except _Truncated as err:  # a chunk is all or nothing
-                del scan.messages[before[0]:]
+                del scan.messages[before[0] :]
                 scan.schemas, scan.channels = before[1], before[2]
                 raise _Truncated(base + off, f"corrupt chunk ({err.reason})") from None
             scan.chunks += 1
@@ -291,7 +307,7 @@ def scan_mcap(mcap: Path) -> _Scan:
         raise BagError(f"{mcap}: not an MCAP file (bad magic)")
     scan = _Scan(good_until=len(MCAP_MAGIC))
     try:
-        _records(data[len(MCAP_MAGIC):], scan, top_level=True, base=len(MCAP_MAGIC))
+        _records(data[len(MCAP_MAGIC) :], scan, top_level=True, base=len(MCAP_MAGIC))
     except _Truncated as err:
         scan.reason = f"{err.reason} at byte {err.offset}"
     return scan
@@ -371,16 +387,21 @@ def repair_bag(path: str | Path, output: str | Path | None = None, force: bool =
 
                 typestore.register(get_types_from_msg(text, name))
                 rihs = typestore.hash_rihs01(name)
-            conns[cid] = writer.add_connection(topic, name, msgdef=text, rihs01=rihs, serialization_format=enc,
-                                               offered_qos_profiles=get_qos(meta))
+            conns[cid] = writer.add_connection(
+                topic, name, msgdef=text, rihs01=rihs, serialization_format=enc, offered_qos_profiles=get_qos(meta)
+            )
             counts[topic] = 0
         for cid, log_time, data in scan.messages:
             if cid in conns:
                 writer.write(conns[cid], log_time, data)
                 counts[conns[cid].topic] += 1
         lost = size - scan.good_until
-        close_derived_bag(writer, path, target,
-                          f"recovered by equidiff bags repair: {sum(counts.values())} messages, {lost} trailing bytes lost")
+        close_derived_bag(
+            writer,
+            path,
+            target,
+            f"recovered by equidiff bags repair: {sum(counts.values())} messages, {lost} trailing bytes lost",
+        )
     except BaseException:
         writer.abort()
         shutil.rmtree(staging if in_place else target, ignore_errors=True)

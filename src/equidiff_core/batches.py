@@ -40,11 +40,18 @@ def _epochs(sampler: DistributedSampler) -> Iterator[list[int]]:
         epoch += 1
 
 
-def loader_batches(dataset: Dataset, sampler: DistributedSampler, batch_size: int,
-                   num_workers: int = 0) -> Iterator[dict]:
+def loader_batches(
+    dataset: Dataset, sampler: DistributedSampler, batch_size: int, num_workers: int = 0
+) -> Iterator[dict]:
     """Endless batches through a DataLoader (a partial last batch only when the shard is smaller than one)."""
-    loader = DataLoader(dataset, batch_size=batch_size, sampler=sampler, drop_last=len(sampler) >= batch_size,
-                        num_workers=num_workers, persistent_workers=num_workers > 0)
+    loader = DataLoader(
+        dataset,
+        batch_size=batch_size,
+        sampler=sampler,
+        drop_last=len(sampler) >= batch_size,
+        num_workers=num_workers,
+        persistent_workers=num_workers > 0,
+    )
     epoch = 0
     while True:
         sampler.set_epoch(epoch)
@@ -65,7 +72,7 @@ def estimate_nbytes(dataset: Dataset) -> int:
     if _is_episode_dataset(dataset):
         frames = sum(len(ep) for ep in dataset.episodes)
         R = dataset.config.resolution
-        frame_bytes = 4 * R ** 3
+        frame_bytes = 4 * R**3
         To, H = dataset.config.n_obs_steps, dataset.config.horizon
         return frames * frame_bytes + n * (To * (8 + 40) + H * 40)
     s = dataset[0]
@@ -136,7 +143,7 @@ class DeviceBatchSource:
         action = torch.empty((n, *first["action"].shape), dtype=torch.float32, device=device)
         for i in range(n):  # one sample at a time: host memory stays at one sample
             s = dataset[i]
-            frames[i * To:(i + 1) * To] = torch.as_tensor(s["voxels"]).to(device)
+            frames[i * To : (i + 1) * To] = torch.as_tensor(s["voxels"]).to(device)
             ee[i] = torch.as_tensor(s["ee"]).to(device)
             action[i] = torch.as_tensor(s["action"]).to(device)
         obs_index = torch.arange(n * To, device=device).view(n, To)
@@ -154,4 +161,4 @@ class DeviceBatchSource:
             order = torch.as_tensor(order, dtype=torch.long, device=self.device)
             stop = len(order) - len(order) % batch_size if len(order) >= batch_size else len(order)
             for a in range(0, stop, batch_size):
-                yield self.batch(order[a:a + batch_size])
+                yield self.batch(order[a : a + batch_size])

@@ -100,8 +100,7 @@ class RealTimeChunking:
     # rejection for ever (measured in the twin before this check: 13 of 13 chunks rejected).
     MAX_GAP_M = 0.08
 
-    def __init__(self, delay_steps: int, dt_ns: int, max_age_ns: int | None = None,
-                 max_gap_m: float = MAX_GAP_M):
+    def __init__(self, delay_steps: int, dt_ns: int, max_age_ns: int | None = None, max_gap_m: float = MAX_GAP_M):
         if delay_steps < 0:
             raise ValueError(f"delay_steps must be >= 0, got {delay_steps}")
         self.delay_steps = int(delay_steps)
@@ -187,17 +186,31 @@ def chunk_to_msg(chunk: PoseChunk, factory: MsgFactory, frame_id: str):
     identity = mk("geometry_msgs/msg/Quaternion", x=0.0, y=0.0, z=0.0, w=1.0)
     points = []
     for p, q, w, t in zip(positions, quats, chunk.widths, chunk.times_ns):
-        tcp = mk("geometry_msgs/msg/Transform",
-                 translation=mk("geometry_msgs/msg/Vector3", x=float(p[0]), y=float(p[1]), z=float(p[2])),
-                 rotation=mk("geometry_msgs/msg/Quaternion", x=float(q[0]), y=float(q[1]), z=float(q[2]), w=float(q[3])))
-        gripper = mk("geometry_msgs/msg/Transform",
-                     translation=mk("geometry_msgs/msg/Vector3", x=float(w), y=0.0, z=0.0), rotation=identity)
-        points.append(mk("trajectory_msgs/msg/MultiDOFJointTrajectoryPoint",
-                         transforms=[tcp, gripper], velocities=[], accelerations=[],
-                         time_from_start=factory.duration(int(t) - chunk.stamp_ns)))
-    return mk("trajectory_msgs/msg/MultiDOFJointTrajectory",
-              header=factory.header(chunk.stamp_ns, frame_id),
-              joint_names=list(JOINT_NAMES), points=points)
+        tcp = mk(
+            "geometry_msgs/msg/Transform",
+            translation=mk("geometry_msgs/msg/Vector3", x=float(p[0]), y=float(p[1]), z=float(p[2])),
+            rotation=mk("geometry_msgs/msg/Quaternion", x=float(q[0]), y=float(q[1]), z=float(q[2]), w=float(q[3])),
+        )
+        gripper = mk(
+            "geometry_msgs/msg/Transform",
+            translation=mk("geometry_msgs/msg/Vector3", x=float(w), y=0.0, z=0.0),
+            rotation=identity,
+        )
+        points.append(
+            mk(
+                "trajectory_msgs/msg/MultiDOFJointTrajectoryPoint",
+                transforms=[tcp, gripper],
+                velocities=[],
+                accelerations=[],
+                time_from_start=factory.duration(int(t) - chunk.stamp_ns),
+            )
+        )
+    return mk(
+        "trajectory_msgs/msg/MultiDOFJointTrajectory",
+        header=factory.header(chunk.stamp_ns, frame_id),
+        joint_names=list(JOINT_NAMES),
+        points=points,
+    )
 
 
 def chunk_from_msg(msg) -> PoseChunk:

@@ -124,6 +124,7 @@ def load_yaml(path: str | Path) -> Any:
 
 # --- The lab set-up ----------------------------------------------------------------------
 
+
 @dataclass(frozen=True)
 class Workspace:
     """The cube the voxel grid covers, in the robot base frame."""
@@ -168,8 +169,10 @@ class SafetyBox:
         if self.floor_margin_m < 0:
             raise ValueError(f"floor_margin_m must be >= 0, got {self.floor_margin_m}")
         if not np.all(self.min_corner < np.asarray(self.upper)):
-            raise ValueError(f"safety box is empty: lower {list(self.lower)} (+ floor margin "
-                             f"{self.floor_margin_m}) must be below upper {list(self.upper)} on every axis")
+            raise ValueError(
+                f"safety box is empty: lower {list(self.lower)} (+ floor margin "
+                f"{self.floor_margin_m}) must be below upper {list(self.upper)} on every axis"
+            )
 
     @property
     def min_corner(self) -> np.ndarray:

@@ -152,8 +152,10 @@ def _ee_actions(episode, stamps_ns: np.ndarray, tol_ns: int) -> tuple[np.ndarray
     js_ns = js_t.header_ns()
     js_order = np.argsort(js_ns, kind="stable")
     # a message without finger joints (e.g. an arm-only publisher) is no gripper state
-    widths = np.array([np.nan if (w := gripper_width_from_joint_state(js_t.messages[i])) is None else w
-                       for i in js_order], dtype=np.float64)
+    widths = np.array(
+        [np.nan if (w := gripper_width_from_joint_state(js_t.messages[i])) is None else w for i in js_order],
+        dtype=np.float64,
+    )
     valid_js = np.isfinite(widths)
     if not valid_js.any():
         raise BagError(f"{episode.path}: /franka/joint_states has no {' / '.join(FINGER_JOINT_NAMES)} positions")
@@ -203,8 +205,9 @@ def load_episode_arrays(path: str | Path, config: DatasetConfig = DatasetConfig(
 
     keep = np.nonzero(ok)[0]
     if not len(keep):
-        raise BagError(f"{path}: no /voxels stamp has an ee pose and joint state within "
-                       f"{config.state_tolerance_s * 1e3:.0f} ms")
+        raise BagError(
+            f"{path}: no /voxels stamp has an ee pose and joint state within {config.state_tolerance_s * 1e3:.0f} ms"
+        )
     offsets, idx_parts, rgb_parts = [0], [], []
     for n in keep:
         try:
@@ -220,11 +223,19 @@ def load_episode_arrays(path: str | Path, config: DatasetConfig = DatasetConfig(
     sched_ns = np.concatenate([[np.iinfo(np.int64).min], sched_ns])
     sched = np.concatenate([hold[None], sched])
     arrays = EpisodeArrays(
-        path=path, meta=episode.meta, stamps_ns=stamps[keep], voxel_offsets=np.asarray(offsets, dtype=np.int64),
+        path=path,
+        meta=episode.meta,
+        stamps_ns=stamps[keep],
+        voxel_offsets=np.asarray(offsets, dtype=np.int64),
         voxel_idx=np.concatenate(idx_parts) if idx_parts else np.zeros((0, 3), np.uint16),
         voxel_rgb=np.concatenate(rgb_parts) if rgb_parts else np.zeros((0, 3), np.uint8),
-        ee=ee[keep], schedule_ns=sched_ns, schedule=sched, obs_period_ns=period,
-        dropped_steps=int(len(stamps) - len(keep)), rejected_chunks=rejected)
+        ee=ee[keep],
+        schedule_ns=sched_ns,
+        schedule=sched,
+        obs_period_ns=period,
+        dropped_steps=int(len(stamps) - len(keep)),
+        rejected_chunks=rejected,
+    )
     if not np.all(np.isfinite(arrays.ee)) or not np.all(np.isfinite(arrays.schedule)):
         raise BagError(f"{path}: NaN/inf in poses or commands")
     _cache_save(arrays, config)
@@ -238,22 +249,36 @@ _ARRAY_FIELDS = ("stamps_ns", "voxel_offsets", "voxel_idx", "voxel_rgb", "ee", "
 
 def _decoding(config: DatasetConfig) -> dict:
     """The settings that change what a bag decodes to (the rest only change the sampling)."""
-    return {"resolution": config.resolution, "state_tolerance_s": config.state_tolerance_s,
-            "obs_period_s": config.obs_period_s}
+    return {
+        "resolution": config.resolution,
+        "state_tolerance_s": config.state_tolerance_s,
+        "obs_period_s": config.obs_period_s,
+    }
 
 
 def write_packed(arrays: EpisodeArrays, file: Path, config: DatasetConfig) -> Path:
     """Write ``arrays`` compressed to ``file`` (atomically: a killed writer leaves no partial file)."""
     file.parent.mkdir(parents=True, exist_ok=True)
-    extra = json.dumps({"version": CACHE_VERSION, "source": str(arrays.path), "decoding": _decoding(config),
-                        "meta": arrays.meta.to_dict(), "obs_period_ns": arrays.obs_period_ns,
-                        "dropped_steps": arrays.dropped_steps, "rejected_chunks": arrays.rejected_chunks})
+    extra = json.dumps(
+        {
+            "version": CACHE_VERSION,
+            "source": str(arrays.path),
+            "decoding": _decoding(config),
+            "meta": arrays.meta.to_dict(),
+            "obs_period_ns": arrays.obs_period_ns,
+            "dropped_steps": arrays.dropped_steps,
+            "rejected_chunks": arrays.rejected_chunks,
+        }
+    )
     fields = {k: getattr(arrays, k) for k in _ARRAY_FIELDS if k != "voxel_idx"}
     # Occupied voxels come in C order, so their flat indices rise within a frame: stored as
     # differences they compress 4x better than the (M, 3) indices.
     res = config.resolution
-    flat = np.ravel_multi_index(arrays.voxel_idx.T.astype(np.intp), (res, res, res)) if len(arrays.voxel_idx) else \
-        np.zeros(0, np.intp)
+    flat = (
+        np.ravel_multi_index(arrays.voxel_idx.T.astype(np.intp), (res, res, res))
+        if len(arrays.voxel_idx)
+        else np.zeros(0, np.intp)
+    )
     fields["voxel_flat_delta"] = np.diff(flat, prepend=0).astype(np.int32)
     # per-process temporary name: data-parallel ranks decoding the same bag may cache it at once
     tmp = file.with_name(f"{file.name}.{os.getpid()}.tmp.npz")
@@ -272,13 +297,20 @@ def read_packed(file: Path, config: DatasetConfig, path: Path | None = None) -> 
     except Exception as err:  # zipfile, ValueError, KeyError, JSON: all mean "not a usable packed episode"
         raise BagError(f"{file}: not a readable packed episode ({type(err).__name__}: {err})") from err
     if extra.get("version") != CACHE_VERSION or extra.get("decoding") != _decoding(config):
-        raise BagError(f"{file}: packed with {extra.get('decoding')} (format {extra.get('version')}), but "
-                       f"training asks for {_decoding(config)} (format {CACHE_VERSION}): pack the bags again")
+        raise BagError(
+            f"{file}: packed with {extra.get('decoding')} (format {extra.get('version')}), but "
+            f"training asks for {_decoding(config)} (format {CACHE_VERSION}): pack the bags again"
+        )
     res = config.resolution
     arrays["voxel_idx"] = np.stack(np.unravel_index(flat, (res, res, res)), axis=1).astype(np.uint16)
-    return EpisodeArrays(path=path or file, meta=EpisodeMeta.from_dict(extra["meta"]),
-                         obs_period_ns=extra["obs_period_ns"], dropped_steps=extra["dropped_steps"],
-                         rejected_chunks=extra["rejected_chunks"], **arrays)
+    return EpisodeArrays(
+        path=path or file,
+        meta=EpisodeMeta.from_dict(extra["meta"]),
+        obs_period_ns=extra["obs_period_ns"],
+        dropped_steps=extra["dropped_steps"],
+        rejected_chunks=extra["rejected_chunks"],
+        **arrays,
+    )
 
 
 def find_episodes(paths: Iterable[str | Path]) -> list[Path]:
@@ -291,12 +323,15 @@ def find_episodes(paths: Iterable[str | Path]) -> list[Path]:
     return out
 
 
-def pack_episodes(paths: Iterable[str | Path], out_dir: str | Path, config: DatasetConfig = DatasetConfig(),
-                  log=None) -> tuple[list[Path], list[tuple[Path, str]]]:
+def pack_episodes(
+    paths: Iterable[str | Path], out_dir: str | Path, config: DatasetConfig = DatasetConfig(), log=None
+) -> tuple[list[Path], list[tuple[Path, str]]]:
     """Decode every bag under ``paths`` and write one packed episode per bag into ``out_dir``."""
     skipped: list[tuple[Path, str]] = []
-    written = [write_packed(ep, Path(out_dir) / f"{ep.path.name}{PACKED_SUFFIX}", config)
-               for ep in iter_episodes(paths, config, skipped, log, find=find_bags)]
+    written = [
+        write_packed(ep, Path(out_dir) / f"{ep.path.name}{PACKED_SUFFIX}", config)
+        for ep in iter_episodes(paths, config, skipped, log, find=find_bags)
+    ]
     return written, skipped
 
 
@@ -330,6 +365,7 @@ def _cache_save(arrays: EpisodeArrays, config: DatasetConfig) -> None:
 
 # --- sampling ---------------------------------------------------------------------------------
 
+
 def sample_starts(n: int, horizon: int, n_obs_steps: int, n_action_steps: int) -> np.ndarray:
     """Window starts of the official SequenceSampler: -pad_before ... n - horizon + pad_after."""
     pad_before, pad_after = n_obs_steps - 1, n_action_steps - 1
@@ -337,8 +373,9 @@ def sample_starts(n: int, horizon: int, n_obs_steps: int, n_action_steps: int) -
     return np.arange(lo, hi + 1, dtype=np.int64) if hi >= lo else np.zeros(0, np.int64)
 
 
-def iter_episodes(paths: Iterable[str | Path], config: DatasetConfig, skipped: list, log=None,
-                  find=find_episodes) -> Iterable[EpisodeArrays]:
+def iter_episodes(
+    paths: Iterable[str | Path], config: DatasetConfig, skipped: list, log=None, find=find_episodes
+) -> Iterable[EpisodeArrays]:
     """Decode each episode in turn; bad ones go to ``skipped`` as ``(path, reason)`` (and ``log``)."""
     for path in find(paths):
         try:
@@ -349,8 +386,9 @@ def iter_episodes(paths: Iterable[str | Path], config: DatasetConfig, skipped: l
                 log(f"skipping {path}: {err}")
 
 
-def load_episodes(paths: Iterable[str | Path], config: DatasetConfig = DatasetConfig(),
-                  log=None) -> tuple[list[EpisodeArrays], list[tuple[Path, str]]]:
+def load_episodes(
+    paths: Iterable[str | Path], config: DatasetConfig = DatasetConfig(), log=None
+) -> tuple[list[EpisodeArrays], list[tuple[Path, str]]]:
     """Decode every bag or packed episode (folders expand to those inside); bad ones are reported and skipped."""
     skipped: list[tuple[Path, str]] = []
     return list(iter_episodes(paths, config, skipped, log)), skipped
@@ -417,9 +455,11 @@ class DemoDataset(_TorchDataset):
 
         ep, obs_idx, times = self.window(i)
         voxels = np.stack([ep.grid(int(k), self.config.resolution) for k in obs_idx])
-        return {"voxels": torch.from_numpy(voxels),
-                "ee": torch.from_numpy(ep.ee[obs_idx].astype(np.float32)),
-                "action": torch.from_numpy(ep.targets_at(times).astype(np.float32))}
+        return {
+            "voxels": torch.from_numpy(voxels),
+            "ee": torch.from_numpy(ep.ee[obs_idx].astype(np.float32)),
+            "action": torch.from_numpy(ep.targets_at(times).astype(np.float32)),
+        }
 
     def all_actions(self) -> np.ndarray:
         """(N, 10) every observation step's commanded target (for Normalizer.fit)."""
@@ -437,28 +477,39 @@ class DemoDataset(_TorchDataset):
 
 # --- stats ------------------------------------------------------------------------------------
 
+
 def dataset_stats(paths: Iterable[str | Path], config: DatasetConfig = DatasetConfig()) -> dict:
     """Episodes, durations, steps, samples and action ranges of bags; bad bags listed with reasons."""
     episodes, skipped = load_episodes(paths, config)
     rows = []
     for ep in episodes:
         acts = ep.actions
-        rows.append({
-            "path": str(ep.path), "task": ep.meta.task, "operator": ep.meta.operator, "success": ep.meta.success,
-            "duration_s": round(ep.duration_s, 3), "steps": len(ep),
-            "obs_hz": round(NS_PER_S / ep.obs_period_ns, 2) if ep.obs_period_ns else None,
-            "samples": len(sample_starts(len(ep), config.horizon, config.n_obs_steps, config.n_action_steps)),
-            "dropped_steps": ep.dropped_steps, "rejected_chunks": ep.rejected_chunks,
-            "action_min": acts.min(0).round(4).tolist(), "action_max": acts.max(0).round(4).tolist(),
-        })
+        rows.append(
+            {
+                "path": str(ep.path),
+                "task": ep.meta.task,
+                "operator": ep.meta.operator,
+                "success": ep.meta.success,
+                "duration_s": round(ep.duration_s, 3),
+                "steps": len(ep),
+                "obs_hz": round(NS_PER_S / ep.obs_period_ns, 2) if ep.obs_period_ns else None,
+                "samples": len(sample_starts(len(ep), config.horizon, config.n_obs_steps, config.n_action_steps)),
+                "dropped_steps": ep.dropped_steps,
+                "rejected_chunks": ep.rejected_chunks,
+                "action_min": acts.min(0).round(4).tolist(),
+                "action_max": acts.max(0).round(4).tolist(),
+            }
+        )
     all_actions = np.concatenate([ep.actions for ep in episodes]) if episodes else np.zeros((0, 10))
     return {
         "episodes": rows,
         "skipped": [{"path": str(p), "reason": r} for p, r in skipped],
         "total": {
-            "episodes": len(episodes), "skipped": len(skipped),
+            "episodes": len(episodes),
+            "skipped": len(skipped),
             "duration_s": round(sum(r["duration_s"] for r in rows), 3),
-            "steps": int(sum(r["steps"] for r in rows)), "samples": int(sum(r["samples"] for r in rows)),
+            "steps": int(sum(r["steps"] for r in rows)),
+            "samples": int(sum(r["samples"] for r in rows)),
             "action_min": all_actions.min(0).round(4).tolist() if len(all_actions) else None,
             "action_max": all_actions.max(0).round(4).tolist() if len(all_actions) else None,
         },

@@ -85,8 +85,9 @@ def init_from_env(device_type: str | None = None) -> DistInfo:
 def info() -> DistInfo:
     if not (dist.is_available() and dist.is_initialized()):
         return DistInfo()
-    return DistInfo(rank=dist.get_rank(), world_size=dist.get_world_size(),
-                    local_rank=env_local_rank(), backend=dist.get_backend())
+    return DistInfo(
+        rank=dist.get_rank(), world_size=dist.get_world_size(), local_rank=env_local_rank(), backend=dist.get_backend()
+    )
 
 
 def rank() -> int:

@@ -97,9 +97,16 @@ class EpisodeResult:
     bag: str  # '' when nothing was recorded or the bag was discarded
 
 
-def run_episode(world: EpisodeWorld, actor: Actor, seed: int, max_duration_s: float, hold_s: float,
-                settle_s: float = 0.6, keep: Callable[[bool], bool] = lambda success: True,
-                note: str = "") -> EpisodeResult:
+def run_episode(
+    world: EpisodeWorld,
+    actor: Actor,
+    seed: int,
+    max_duration_s: float,
+    hold_s: float,
+    settle_s: float = 0.6,
+    keep: Callable[[bool], bool] = lambda success: True,
+    note: str = "",
+) -> EpisodeResult:
     """The sequence in the module doc; ``keep(success)`` decides whether the bag stays.
 
     The bag is closed (kept as a failure, or discarded as ``keep`` says) whatever happens while

@@ -62,16 +62,15 @@ class RevoxelizeReport:
     clouds: dict[str, int]  # camera -> clouds read
 
 
-def revoxelize_bag(source: str | Path, output: str | Path, lab: LabConfig, slop_s: float = 0.1,
-                   cleanup: VoxelizerConfig | None = None) -> RevoxelizeReport:
+def revoxelize_bag(
+    source: str | Path, output: str | Path, lab: LabConfig, slop_s: float = 0.1, cleanup: VoxelizerConfig | None = None
+) -> RevoxelizeReport:
     """A copy of the bag at ``source`` whose /voxels are rebuilt from its recorded camera clouds
     with ``lab``'s cameras and extrinsics (every other topic and the metadata copied as is).
 
     A grid is written at the log time of the cloud that completed its set (as voxel_node
     publishes it). Raises ``BagError`` for a bag without the clouds of every camera in ``lab``
     (recorded without ``record_clouds``) or an ``output`` that exists."""
-
-
 
     source, output = Path(source), Path(output)
     if output.exists():
@@ -85,8 +84,10 @@ def revoxelize_bag(source: str | Path, output: str | Path, lab: LabConfig, slop_
     with Reader(source) as reader:
         missing = sorted(t for t in camera_of if t not in reader.topics)
         if missing:
-            raise BagError(f"{source}: no recorded clouds on {', '.join(missing)} (recorded without "
-                           f"record_clouds?): nothing to re-voxelise from")
+            raise BagError(
+                f"{source}: no recorded clouds on {', '.join(missing)} (recorded without "
+                f"record_clouds?): nothing to re-voxelise from"
+            )
         output.parent.mkdir(parents=True, exist_ok=True)
         writer = open_bag_writer(output, chunk_max_age_s=float("inf"))
         try:
@@ -94,9 +95,13 @@ def revoxelize_bag(source: str | Path, output: str | Path, lab: LabConfig, slop_
             for conn in reader.connections:
                 if conn.topic != TOPIC_VOXELS:
                     out_conns[conn.id] = writer.add_connection(
-                        conn.topic, conn.msgtype, msgdef=conn.msgdef.data, rihs01=conn.digest,
+                        conn.topic,
+                        conn.msgtype,
+                        msgdef=conn.msgdef.data,
+                        rihs01=conn.digest,
                         serialization_format=conn.ext.serialization_format,
-                        offered_qos_profiles=conn.ext.offered_qos_profiles)
+                        offered_qos_profiles=conn.ext.offered_qos_profiles,
+                    )
             voxels_conn = writer.add_connection(TOPIC_VOXELS, CLOUD_TYPE, typestore=factory.typestore)
             for conn, log_ns, raw in reader.messages():
                 if conn.topic == TOPIC_VOXELS:
@@ -117,8 +122,12 @@ def revoxelize_bag(source: str | Path, output: str | Path, lab: LabConfig, slop_
                     msg = grid_to_voxel_msg(grid, ws.lower, ws.voxel_size, stamp_ns, lab.base_frame, factory)
                     writer.write(voxels_conn, log_ns, factory.typestore.serialize_cdr(msg, CLOUD_TYPE))
                     grids += 1
-            close_derived_bag(writer, source, output,
-                              f"re-voxelised by equidiff dataset revoxelize from {source.name} ({grids} grids)")
+            close_derived_bag(
+                writer,
+                source,
+                output,
+                f"re-voxelised by equidiff dataset revoxelize from {source.name} ({grids} grids)",
+            )
         except BaseException:
             writer.abort()
             shutil.rmtree(output, ignore_errors=True)

@@ -74,7 +74,7 @@ def _check_finite(x: Array, what: str) -> None:
 
 
 def _check_shape(x: Array, tail: tuple[int, ...], what: str) -> None:
-    if tuple(x.shape[-len(tail):]) != tail or x.ndim < len(tail):
+    if tuple(x.shape[-len(tail) :]) != tail or x.ndim < len(tail):
         raise GeometryError(f"{what} must have shape (..., {', '.join(map(str, tail))}), got {tuple(x.shape)}")
 
 
@@ -141,8 +141,11 @@ def make_pose(R: Array, p: Array) -> Array:
     """Assemble (..., 4, 4) poses from rotations (..., 3, 3) and positions (..., 3)."""
     R, p = _asarray(R), _asarray(p)
     xp = _xp(R)
-    T = xp.zeros((*R.shape[:-2], 4, 4), dtype=R.dtype) if xp is np else torch.zeros(
-        (*R.shape[:-2], 4, 4), dtype=R.dtype, device=R.device)
+    T = (
+        xp.zeros((*R.shape[:-2], 4, 4), dtype=R.dtype)
+        if xp is np
+        else torch.zeros((*R.shape[:-2], 4, 4), dtype=R.dtype, device=R.device)
+    )
     T[..., :3, :3] = R
     T[..., :3, 3] = p
     T[..., 3, 3] = 1
@@ -232,6 +235,7 @@ def pos_quat_from_pose(T: Array) -> tuple[np.ndarray, np.ndarray]:
 
 # --- SO(2) about the workspace z axis -------------------------------------------------------
 
+
 def rho1(theta: float) -> np.ndarray:
     c, s = math.cos(theta), math.sin(theta)
     return np.array([[c, -s], [s, c]])
@@ -284,6 +288,7 @@ def rotate_pose(T: Array, theta: float, center: Array = (0.0, 0.0, 0.0)) -> Arra
 
 # --- Relative (delta) control: g . A = T_g A T_g^-1, paper appendices B and C --------------
 
+
 def relative_rotation_rep(theta: float) -> np.ndarray:
     """9x9 rho_R with rho_R(g) vec_r(R) = vec_r(R_g R R_g^-1) (row-major flattening)."""
     Rg = rotz(theta)
@@ -298,26 +303,44 @@ def relative_pose_rep(theta: float) -> np.ndarray:
 
 
 # Change of basis for the 9-D rotation part (paper appendix C): P rho_R P^-1 = rho0^3 + rho1^2 + rho2.
-P_REL_ROT = np.array([
-    [1, 0, 0, 0, 1, 0, 0, 0, 0],
-    [0, -1, 0, 1, 0, 0, 0, 0, 0],
-    [0, 0, 0, 0, 0, 0, 0, 0, 1],
-    [0, 0, 1, 0, 0, 0, 0, 0, 0],
-    [0, 0, 0, 0, 0, 1, 0, 0, 0],
-    [0, 0, 0, 0, 0, 0, 1, 0, 0],
-    [0, 0, 0, 0, 0, 0, 0, 1, 0],
-    [0, 1, 0, 1, 0, 0, 0, 0, 0],
-    [-1, 0, 0, 0, 1, 0, 0, 0, 0],
-], dtype=np.float64)
+P_REL_ROT = np.array(
+    [
+        [1, 0, 0, 0, 1, 0, 0, 0, 0],
+        [0, -1, 0, 1, 0, 0, 0, 0, 0],
+        [0, 0, 0, 0, 0, 0, 0, 0, 1],
+        [0, 0, 1, 0, 0, 0, 0, 0, 0],
+        [0, 0, 0, 0, 0, 1, 0, 0, 0],
+        [0, 0, 0, 0, 0, 0, 1, 0, 0],
+        [0, 0, 0, 0, 0, 0, 0, 1, 0],
+        [0, 1, 0, 1, 0, 0, 0, 0, 0],
+        [-1, 0, 0, 0, 1, 0, 0, 0, 0],
+    ],
+    dtype=np.float64,
+)
 REL_ROT_IRREPS = (0, 0, 0, 1, 1, 2)  # frequencies of the blocks of P rho_R P^-1, in order
 
 # Change of basis for the full 16-D relative pose (paper appendix B): rho0^6 + rho1^4 + rho2.
 P_REL_POSE = np.zeros((16, 16))
-for _row, _cols in enumerate([
-    {0: 1, 5: 1}, {1: 1, 4: -1}, {10: 1}, {11: 1}, {14: 1}, {15: 1},
-    {2: 1}, {6: 1}, {3: 1}, {7: 1}, {8: 1}, {9: 1}, {12: 1}, {13: 1},
-    {1: 1, 4: 1}, {0: -1, 5: 1},
-]):
+for _row, _cols in enumerate(
+    [
+        {0: 1, 5: 1},
+        {1: 1, 4: -1},
+        {10: 1},
+        {11: 1},
+        {14: 1},
+        {15: 1},
+        {2: 1},
+        {6: 1},
+        {3: 1},
+        {7: 1},
+        {8: 1},
+        {9: 1},
+        {12: 1},
+        {13: 1},
+        {1: 1, 4: 1},
+        {0: -1, 5: 1},
+    ]
+):
     for _col, _val in _cols.items():
         P_REL_POSE[_row, _col] = _val
 REL_POSE_IRREPS = (0, 0, 0, 0, 0, 0, 1, 1, 1, 1, 2)
@@ -333,7 +356,7 @@ def irrep_block_diag(theta: float, frequencies: tuple[int, ...]) -> np.ndarray:
             out[i, i] = 1.0
             i += 1
         else:
-            out[i:i + 2, i:i + 2] = rho1(k * theta)
+            out[i : i + 2, i : i + 2] = rho1(k * theta)
             i += 2
     return out
 
@@ -348,6 +371,7 @@ def rotate_relative_pose(A: Array, theta: float) -> Array:
 
 
 # --- Voxel grids ---------------------------------------------------------------------------
+
 
 def rotate_voxel_grid(grid: Array, theta: float, mode: str = "nearest") -> Array:
     """Rotate (..., C, X, Y, Z) grids by ``theta`` about the z axis through the grid centre.
@@ -384,10 +408,13 @@ def _resample_rotated(grid: Array, theta: float, mode: str) -> Array:
     # Output point q comes from input R^-1 q. In (x=H, y=W) order R^-1 = [[c, s], [-s, c]];
     # in (W, H) order it becomes [[c, -s], [s, c]].
     c, s = math.cos(theta), math.sin(theta)
-    affine = torch.tensor([[c, -s, 0.0], [s, c, 0.0]], dtype=torch.float32, device=img.device).expand(img.shape[0], 2, 3)
+    affine = torch.tensor([[c, -s, 0.0], [s, c, 0.0]], dtype=torch.float32, device=img.device).expand(
+        img.shape[0], 2, 3
+    )
     coords = F.affine_grid(affine, list(img.shape), align_corners=False)
-    out = F.grid_sample(img, coords, mode="nearest" if mode == "nearest" else "bilinear",
-                        padding_mode="zeros", align_corners=False)
+    out = F.grid_sample(
+        img, coords, mode="nearest" if mode == "nearest" else "bilinear", padding_mode="zeros", align_corners=False
+    )
     out = out.reshape(-1, C, Z, X, Y).permute(0, 1, 3, 4, 2).reshape(*lead, C, X, Y, Z)
     if not orig_dtype.is_floating_point:
         out = out.round().clamp(torch.iinfo(orig_dtype).min, torch.iinfo(orig_dtype).max)

@@ -50,10 +50,16 @@ def export_policy(policy, path: str | Path) -> Path:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     plain = policy.model.export_plain()
-    state = {k: v.detach().to("cpu", torch.float32).contiguous() if v.is_floating_point() else v.detach().cpu()
-             for k, v in plain.state_dict().items()}
-    payload = {"format": FORMAT, "version": VERSION, "config_json": json.dumps(policy.config_dict()),
-               "state_dict": state}
+    state = {
+        k: v.detach().to("cpu", torch.float32).contiguous() if v.is_floating_point() else v.detach().cpu()
+        for k, v in plain.state_dict().items()
+    }
+    payload = {
+        "format": FORMAT,
+        "version": VERSION,
+        "config_json": json.dumps(policy.config_dict()),
+        "state_dict": state,
+    }
     tmp = path.with_name(path.name + ".tmp")
     torch.save(payload, tmp)
     tmp.replace(path)
@@ -81,12 +87,17 @@ def read_policy_file(path: str | Path) -> tuple[dict, dict]:
     try:
         payload = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as err:
-        raise CheckpointError(f"{path}: not a readable policy file "
-                              f"({type(err).__name__}: {(str(err).splitlines() or [''])[0]})") from err
+        raise CheckpointError(
+            f"{path}: not a readable policy file ({type(err).__name__}: {(str(err).splitlines() or [''])[0]})"
+        ) from err
     if not isinstance(payload, dict) or payload.get("format") != FORMAT:
-        raise CheckpointError(f"{path}: not an exported equidiff policy (format {payload.get('format') if isinstance(payload, dict) else type(payload).__name__!r})")
+        raise CheckpointError(
+            f"{path}: not an exported equidiff policy (format {payload.get('format') if isinstance(payload, dict) else type(payload).__name__!r})"
+        )
     if payload.get("version") != VERSION:
-        raise CheckpointError(f"{path}: policy file version {payload.get('version')} is not supported (expected {VERSION})")
+        raise CheckpointError(
+            f"{path}: policy file version {payload.get('version')} is not supported (expected {VERSION})"
+        )
     try:
         config = json.loads(payload["config_json"])
         state = payload["state_dict"]
@@ -99,14 +110,20 @@ def check_device(device: str) -> None:
     """A ValueError naming why ``device`` cannot run the policy here (CUDA missing), not torch's
     assertion deep inside the first ``.to()``."""
     if str(device).startswith("cuda") and not torch.cuda.is_available():
-        build = f"torch {torch.__version__}, " + ("built without CUDA" if torch.version.cuda is None
-                                                   else f"CUDA {torch.version.cuda}, no GPU visible")
+        build = f"torch {torch.__version__}, " + (
+            "built without CUDA" if torch.version.cuda is None else f"CUDA {torch.version.cuda}, no GPU visible"
+        )
         raise ValueError(f"device {device!r} requested but CUDA is not available ({build}); use --device cpu")
 
 
-def load_inference_policy(path: str | Path, device: str = "cpu", precision: str = "fp32",
-                          jit: bool = False, channels_last: bool | None = None,
-                          compile: bool = False) -> InferencePolicy:
+def load_inference_policy(
+    path: str | Path,
+    device: str = "cpu",
+    precision: str = "fp32",
+    jit: bool = False,
+    channels_last: bool | None = None,
+    compile: bool = False,
+) -> InferencePolicy:
     if precision not in PRECISIONS:
         raise ValueError(f"precision must be one of {PRECISIONS}, got {precision!r}")
     config, state = read_policy_file(path)
@@ -121,23 +138,44 @@ def load_inference_policy(path: str | Path, device: str = "cpu", precision: str 
     try:
         net.load_state_dict(state, strict=True)
     except (RuntimeError, TypeError, AttributeError) as err:
-        raise CheckpointError(f"{path}: weights do not fit the {name} network of preset "
-                              f"{preset.name!r}: {str(err).splitlines()[0]}") from err
+        raise CheckpointError(
+            f"{path}: weights do not fit the {name} network of preset {preset.name!r}: {str(err).splitlines()[0]}"
+        ) from err
     if device == "auto":
         device = "cuda" if torch.cuda.is_available() else "cpu"
     check_device(device)
     if precision == "auto":
         precision = "bf16" if str(device).startswith("cuda") or cpu_has_native_bf16() else "fp32"
-    return InferencePolicy(net, name, preset, workspace, normalizer, torch.device(device), precision, jit,
-                           channels_last if channels_last is not None else precision == "bf16", compile)
+    return InferencePolicy(
+        net,
+        name,
+        preset,
+        workspace,
+        normalizer,
+        torch.device(device),
+        precision,
+        jit,
+        channels_last if channels_last is not None else precision == "bf16",
+        compile,
+    )
 
 
 class InferencePolicy:
     """Plain-torch DDIM policy: ``predict(voxels (4, R, R, R) uint8, ee (10,)) -> (horizon, 10)``."""
 
-    def __init__(self, net, name: str, preset: PolicyPreset, workspace: Workspace, normalizer: Normalizer,
-                 device: torch.device, precision: str = "fp32", jit: bool = False, channels_last: bool = False,
-                 compile: bool = False):
+    def __init__(
+        self,
+        net,
+        name: str,
+        preset: PolicyPreset,
+        workspace: Workspace,
+        normalizer: Normalizer,
+        device: torch.device,
+        precision: str = "fp32",
+        jit: bool = False,
+        channels_last: bool = False,
+        compile: bool = False,
+    ):
         self.name = name
         self.preset = preset
         self.workspace = workspace
@@ -202,8 +240,12 @@ class InferencePolicy:
                 films = self.encode(*self._blank_observation())
                 compiled(x, films)  # compiles now, not in the first control cycle
         except Exception as err:  # noqa: BLE001 - inductor/compiler failures vary; fall back, loudly
-            warnings.warn(f"torch.compile of the denoising step failed, running without it: "
-                          f"{type(err).__name__}: {(str(err).splitlines() or [''])[0]}", RuntimeWarning, stacklevel=3)
+            warnings.warn(
+                f"torch.compile of the denoising step failed, running without it: "
+                f"{type(err).__name__}: {(str(err).splitlines() or [''])[0]}",
+                RuntimeWarning,
+                stacklevel=3,
+            )
             return
         self._denoise_films, self.compiled = compiled, True
 
@@ -260,13 +302,20 @@ class InferencePolicy:
         step = int(t.reshape(-1)[0])
         films = self._step_films.get(step)
         if films is None:  # at most num_train_timesteps entries; DDIM-16 uses 16
-            films = self._step_films[step] = self.net.unet.step_films(
-                torch.tensor([step], device=self.device)).to(self.dtype)
+            films = self._step_films[step] = self.net.unet.step_films(torch.tensor([step], device=self.device)).to(
+                self.dtype
+            )
         return self._denoise_films(x, obs_films + films)
 
     @torch.no_grad()
-    def predict(self, voxels: np.ndarray, ee: np.ndarray, seed: int | None = None,
-                noise: np.ndarray | None = None, guide: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
+    def predict(
+        self,
+        voxels: np.ndarray,
+        ee: np.ndarray,
+        seed: int | None = None,
+        noise: np.ndarray | None = None,
+        guide: tuple[np.ndarray, np.ndarray] | None = None,
+    ) -> np.ndarray:
         """Absolute actions (horizon, 10) for one observation; ``seed`` makes the DDIM noise reproducible.
 
         ``guide = (target (horizon, 10) absolute actions, weights (horizon,))``: real-time chunking,
@@ -280,15 +329,30 @@ class InferencePolicy:
         guide_t = None
         if guide is not None:
             target, weights = (np.asarray(g, dtype=np.float32) for g in guide)
-            if target.shape != (self.preset.horizon, 10) or weights.shape != (self.preset.horizon,) \
-                    or not (np.isfinite(target).all() and np.isfinite(weights).all()):
-                raise PolicyInputError(f"guide must be finite ({self.preset.horizon}, 10) actions and "
-                                       f"({self.preset.horizon},) weights, got {target.shape} and {weights.shape}")
+            if (
+                target.shape != (self.preset.horizon, 10)
+                or weights.shape != (self.preset.horizon,)
+                or not (np.isfinite(target).all() and np.isfinite(weights).all())
+            ):
+                raise PolicyInputError(
+                    f"guide must be finite ({self.preset.horizon}, 10) actions and "
+                    f"({self.preset.horizon},) weights, got {target.shape} and {weights.shape}"
+                )
             # the target in model space, relative to the gripper state the sample is decoded with
-            guide_t = (self.codec.encode(torch.from_numpy(target).to(self.device)[None], ee_t),
-                       torch.from_numpy(weights))
-        x = ddim_sample(self.denoise, obs_films, (1, self.preset.horizon, self.codec.dim), self.scheduler,
-                        generator=gen, noise=noise_t, device=self.device, guide=guide_t)
+            guide_t = (
+                self.codec.encode(torch.from_numpy(target).to(self.device)[None], ee_t),
+                torch.from_numpy(weights),
+            )
+        x = ddim_sample(
+            self.denoise,
+            obs_films,
+            (1, self.preset.horizon, self.codec.dim),
+            self.scheduler,
+            generator=gen,
+            noise=noise_t,
+            device=self.device,
+            guide=guide_t,
+        )
         actions = self.codec.decode(x, ee_t)[0]
         out = actions.double().cpu().numpy()
         if not np.isfinite(out).all():
@@ -311,8 +375,14 @@ def _pad_first_conv(encoder: torch.nn.Sequential, multiple: int) -> int:
     extra = -conv.in_channels % multiple
     if not isinstance(conv, torch.nn.Conv3d) or extra == 0:
         return 0
-    padded = torch.nn.Conv3d(conv.in_channels + extra, conv.out_channels, conv.kernel_size, conv.stride,
-                             conv.padding, bias=conv.bias is not None).to(conv.weight.device, conv.weight.dtype)
+    padded = torch.nn.Conv3d(
+        conv.in_channels + extra,
+        conv.out_channels,
+        conv.kernel_size,
+        conv.stride,
+        conv.padding,
+        bias=conv.bias is not None,
+    ).to(conv.weight.device, conv.weight.dtype)
     with torch.no_grad():
         padded.weight.zero_()
         padded.weight[:, : conv.in_channels] = conv.weight
@@ -336,8 +406,9 @@ class MatmulConv1d(torch.nn.Module):
         self.kernel, self.stride, self.padding = conv.kernel_size[0], conv.stride[0], conv.padding[0]
         out_ch, in_ch, k = conv.weight.shape
         # (out, in, k) -> (out, k*in), matching windows flattened as (k, in)
-        self.weight = torch.nn.Parameter(conv.weight.detach().permute(0, 2, 1).reshape(out_ch, k * in_ch).contiguous(),
-                                         requires_grad=False)
+        self.weight = torch.nn.Parameter(
+            conv.weight.detach().permute(0, 2, 1).reshape(out_ch, k * in_ch).contiguous(), requires_grad=False
+        )
         self.bias = None if conv.bias is None else torch.nn.Parameter(conv.bias.detach().clone(), requires_grad=False)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
@@ -364,8 +435,9 @@ class MatmulConvTranspose1d(torch.nn.Module):
         self.stride, self.padding = s, p
         in_ch, out_ch, _ = conv.weight.shape
         # (in, out, k) -> (k*out, in): one product gives every input step's k output contributions
-        self.weight = torch.nn.Parameter(conv.weight.detach().permute(2, 1, 0).reshape(k * out_ch, in_ch).contiguous(),
-                                         requires_grad=False)
+        self.weight = torch.nn.Parameter(
+            conv.weight.detach().permute(2, 1, 0).reshape(k * out_ch, in_ch).contiguous(), requires_grad=False
+        )
         self.bias = None if conv.bias is None else torch.nn.Parameter(conv.bias.detach().clone(), requires_grad=False)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
@@ -374,8 +446,10 @@ class MatmulConvTranspose1d(torch.nn.Module):
         z = torch.nn.functional.linear(x.transpose(1, 2).reshape(B * T, C), self.weight)
         z = z.reshape(B, T, 2, s, -1)  # input step i writes output steps i*s + (0..2s-1) - padding
         # overlap-add: output block j (steps j*s .. j*s+s-1, before cropping) = first half of input j + second half of j-1
-        full = torch.nn.functional.pad(z[:, :, 0], (0, 0, 0, 0, 0, 1)) + torch.nn.functional.pad(z[:, :, 1], (0, 0, 0, 0, 1, 0))
-        y = full.reshape(B, (T + 1) * s, -1)[:, self.padding: self.padding + T * s]
+        full = torch.nn.functional.pad(z[:, :, 0], (0, 0, 0, 0, 0, 1)) + torch.nn.functional.pad(
+            z[:, :, 1], (0, 0, 0, 0, 1, 0)
+        )
+        y = full.reshape(B, (T + 1) * s, -1)[:, self.padding : self.padding + T * s]
         if self.bias is not None:
             y = y + self.bias
         return y.transpose(1, 2)
@@ -406,8 +480,9 @@ def _swap_modules(module: torch.nn.Module, kind: type, replacement) -> int:
 
 def _convs_as_matmuls(module: torch.nn.Module) -> int:
     """Replace every plain Conv1d and the upsampling ConvTranspose1d under ``module`` by GEMM modules."""
-    return _swap_modules(module, torch.nn.Conv1d, MatmulConv1d) + \
-        _swap_modules(module, torch.nn.ConvTranspose1d, MatmulConvTranspose1d)
+    return _swap_modules(module, torch.nn.Conv1d, MatmulConv1d) + _swap_modules(
+        module, torch.nn.ConvTranspose1d, MatmulConvTranspose1d
+    )
 
 
 class _Method(torch.nn.Module):

@@ -21,8 +21,12 @@ from typing import ClassVar
 MiB = 1 << 20
 
 
-def open_bag_writer(path: str | Path, chunk_size: int = 8 * MiB, chunk_max_age_s: float = 2.0,
-                    on_chunk: Callable[[], None] | None = None):
+def open_bag_writer(
+    path: str | Path,
+    chunk_size: int = 8 * MiB,
+    chunk_max_age_s: float = 2.0,
+    on_chunk: Callable[[], None] | None = None,
+):
     """An opened rosbags ``Writer`` (rosbag2 version 9, MCAP storage) at ``path``, which must not exist.
 
     ``on_chunk`` is called after each completed chunk (the recorder checks free disk there)."""

@@ -63,16 +63,24 @@ class Normalizer:
 
     def to_dict(self) -> dict:
         # plain floats: numpy scalars here made a checkpoint unloadable with torch.load(weights_only=True)
-        return {"center_xy": [float(v) for v in self.center_xy], "xy_scale": float(self.xy_scale),
-                "z_min": float(self.z_min), "z_max": float(self.z_max),
-                "rel_translation_scale": float(self.rel_translation_scale)}
-
+        return {
+            "center_xy": [float(v) for v in self.center_xy],
+            "xy_scale": float(self.xy_scale),
+            "z_min": float(self.z_min),
+            "z_max": float(self.z_max),
+            "rel_translation_scale": float(self.rel_translation_scale),
+        }
 
     @classmethod
     def from_dict(cls, d: dict) -> Normalizer:
         try:
-            return cls(tuple(float(v) for v in d["center_xy"]), float(d["xy_scale"]), float(d["z_min"]),
-                       float(d["z_max"]), float(d["rel_translation_scale"]))
+            return cls(
+                tuple(float(v) for v in d["center_xy"]),
+                float(d["xy_scale"]),
+                float(d["z_min"]),
+                float(d["z_max"]),
+                float(d["rel_translation_scale"]),
+            )
         except (KeyError, TypeError, ValueError) as err:
             raise NormalizerError(f"malformed normaliser {d!r}: {err}") from err
 
@@ -82,8 +90,10 @@ class Normalizer:
         scale = [self.xy_scale, self.xy_scale, (self.z_max - self.z_min) / 2] + [1.0] * 7
         offset = [self.center_xy[0], self.center_xy[1], (self.z_max + self.z_min) / 2] + [0.0] * 7
         if isinstance(x, torch.Tensor):
-            return (torch.tensor(scale, dtype=x.dtype, device=x.device),
-                    torch.tensor(offset, dtype=x.dtype, device=x.device))
+            return (
+                torch.tensor(scale, dtype=x.dtype, device=x.device),
+                torch.tensor(offset, dtype=x.dtype, device=x.device),
+            )
         return np.asarray(scale, dtype=x.dtype), np.asarray(offset, dtype=x.dtype)
 
     def normalize(self, x):

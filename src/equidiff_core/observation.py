@@ -42,8 +42,9 @@ def nearest(sorted_ns: np.ndarray, t_ns: np.ndarray) -> tuple[np.ndarray, np.nda
 
 def ee_input(tcp_pose: np.ndarray, gripper_width: float) -> np.ndarray:
     """The policy's (10,) float32 robot-state input: TCP position, rot6d, gripper width."""
-    return geometry.pose_to_action(np.asarray(tcp_pose, dtype=np.float64),
-                                   np.asarray(gripper_width, dtype=np.float64)).astype(np.float32)
+    return geometry.pose_to_action(
+        np.asarray(tcp_pose, dtype=np.float64), np.asarray(gripper_width, dtype=np.float64)
+    ).astype(np.float32)
 
 
 class StateHistory:
@@ -69,4 +70,3 @@ class StateHistory:
 
     def __len__(self) -> int:
         return len(self._samples)
-

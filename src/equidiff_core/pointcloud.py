@@ -20,8 +20,16 @@ from .rosmsg import MsgFactory, stamp_to_ns, uint8_buffer
 
 # sensor_msgs/PointField datatypes
 INT8, UINT8, INT16, UINT16, INT32, UINT32, FLOAT32, FLOAT64 = range(1, 9)
-_NUMPY_OF = {INT8: "i1", UINT8: "u1", INT16: "<i2", UINT16: "<u2", INT32: "<i4", UINT32: "<u4",
-             FLOAT32: "<f4", FLOAT64: "<f8"}
+_NUMPY_OF = {
+    INT8: "i1",
+    UINT8: "u1",
+    INT16: "<i2",
+    UINT16: "<u2",
+    INT32: "<i4",
+    UINT32: "<u4",
+    FLOAT32: "<f4",
+    FLOAT64: "<f8",
+}
 
 CLOUD_FIELDS = (("x", 0, FLOAT32), ("y", 4, FLOAT32), ("z", 8, FLOAT32), ("rgb", 12, FLOAT32))
 CLOUD_POINT_STEP = 16
@@ -61,14 +69,26 @@ def _make_cloud_msg(factory: MsgFactory, record: np.ndarray, spec, step: int, st
     return factory.make(
         "sensor_msgs/msg/PointCloud2",
         header=factory.header(stamp_ns, frame_id),
-        height=1, width=len(record), fields=_fields(factory, spec), is_bigendian=False,
-        point_step=step, row_step=step * len(record),
-        data=factory.uint8_array(record.view(np.uint8).reshape(-1)), is_dense=True)
+        height=1,
+        width=len(record),
+        fields=_fields(factory, spec),
+        is_bigendian=False,
+        point_step=step,
+        row_step=step * len(record),
+        data=factory.uint8_array(record.view(np.uint8).reshape(-1)),
+        is_dense=True,
+    )
 
 
 def _dtype(spec, step: int) -> np.dtype:
-    return np.dtype({"names": [n for n, _, _ in spec], "formats": [_NUMPY_OF[d] for _, _, d in spec],
-                     "offsets": [o for _, o, _ in spec], "itemsize": step})
+    return np.dtype(
+        {
+            "names": [n for n, _, _ in spec],
+            "formats": [_NUMPY_OF[d] for _, _, d in spec],
+            "offsets": [o for _, o, _ in spec],
+            "itemsize": step,
+        }
+    )
 
 
 def cloud_to_msg(points: np.ndarray, colors: np.ndarray, stamp_ns: int, frame_id: str, factory: MsgFactory):
@@ -131,8 +151,9 @@ def msg_to_cloud(msg, drop_invalid: bool = False) -> Cloud:
     return Cloud(points, colors, stamp_to_ns(msg.header.stamp), str(msg.header.frame_id))
 
 
-def grid_to_voxel_msg(grid: np.ndarray, lower: np.ndarray, voxel_size: float, stamp_ns: int, frame_id: str,
-                      factory: MsgFactory):
+def grid_to_voxel_msg(
+    grid: np.ndarray, lower: np.ndarray, voxel_size: float, stamp_ns: int, frame_id: str, factory: MsgFactory
+):
     """uint8 grid (4, R, R, R) -> occupied-voxel PointCloud2 (architecture.md note 2)."""
     if grid.ndim != 4 or grid.shape[0] != 4 or grid.dtype != np.uint8:
         raise CloudError(f"grid must be uint8 (4, R, R, R), got {grid.dtype} {grid.shape}")

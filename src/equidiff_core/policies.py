@@ -73,18 +73,27 @@ class DiffusionPolicy(nn.Module):
 
     def config_dict(self) -> dict:
         """Everything besides weights that rebuilds this policy (saved in checkpoints)."""
-        return {"policy": self.name, "preset": self.preset.to_dict(), "workspace": to_dict(self.workspace),
-                "normalizer": None if self.normalizer is None else self.normalizer.to_dict()}
+        return {
+            "policy": self.name,
+            "preset": self.preset.to_dict(),
+            "workspace": to_dict(self.workspace),
+            "normalizer": None if self.normalizer is None else self.normalizer.to_dict(),
+        }
 
     # --- shared pre-processing --------------------------------------------------------
     def _prepare(self, voxels: torch.Tensor, ee: torch.Tensor, crop: str, generator=None):
-        vox = (augment.random_crop(voxels, self.preset.crop, generator) if crop == "random"
-               else augment.center_crop(voxels, self.preset.crop))
+        vox = (
+            augment.random_crop(voxels, self.preset.crop, generator)
+            if crop == "random"
+            else augment.center_crop(voxels, self.preset.crop)
+        )
         device = next(self.model.parameters()).device
         vox = vox.to(device).float().div_(255.0)
         return vox, self.normalizer.normalize(ee.to(device).float())
 
-    def compute_loss(self, batch: dict, generator: torch.Generator | None = None, noise_repeats: int = 1) -> torch.Tensor:
+    def compute_loss(
+        self, batch: dict, generator: torch.Generator | None = None, noise_repeats: int = 1
+    ) -> torch.Tensor:
         """Epsilon-prediction MSE. ``noise_repeats`` > 1 denoises that many independent (noise, step)
         draws per observation with one encoder pass: cheaper gradient variance reduction when the
         3D encoder dominates the step time (the paper trains with 1)."""
@@ -97,8 +106,9 @@ class DiffusionPolicy(nn.Module):
         # which left a GPU idle for most of each step.
         voxels = voxels.to(next(self.model.parameters()).device)
         if self.training and self.preset.rotation_aug != "none":
-            voxels, ee, action = augment.random_rotation(voxels, ee.double(), action.double(), self.preset.rotation_aug,
-                                                         self.workspace.center, generator)
+            voxels, ee, action = augment.random_rotation(
+                voxels, ee.double(), action.double(), self.preset.rotation_aug, self.workspace.center, generator
+            )
         vox, ee_n = self._prepare(voxels, ee, "random" if self.training else "center", generator)
         device = vox.device
         x0 = codec.encode(action.to(device).float(), ee[:, -1].to(device).float())
@@ -114,8 +124,9 @@ class DiffusionPolicy(nn.Module):
         return F.mse_loss(pred, noise)
 
     @torch.no_grad()
-    def predict_action(self, obs: dict, generator: torch.Generator | None = None,
-                       noise: torch.Tensor | None = None) -> dict:
+    def predict_action(
+        self, obs: dict, generator: torch.Generator | None = None, noise: torch.Tensor | None = None
+    ) -> dict:
         """obs {"voxels": uint8 (B, To, 4, R, R, R), "ee": (B, To, 10)} -> absolute actions.
 
         ``noise`` (B, horizon, D) fixes the initial DDIM sample (model space), e.g. for the
@@ -126,12 +137,22 @@ class DiffusionPolicy(nn.Module):
         vox, ee_n = self._prepare(voxels, ee, "center")
         cond = self.model.encode_obs(vox, ee_n)
         B, H = voxels.shape[0], self.preset.horizon
-        x = ddim_sample(self.model.denoise, cond, (B, H, codec.dim), make_inference_scheduler(self.preset),
-                        generator=generator, noise=noise, device=vox.device)
+        x = ddim_sample(
+            self.model.denoise,
+            cond,
+            (B, H, codec.dim),
+            make_inference_scheduler(self.preset),
+            generator=generator,
+            noise=noise,
+            device=vox.device,
+        )
         action_pred = codec.decode(x, ee[:, -1].to(x.device).float())
         start = self.preset.n_obs_steps - 1
-        return {"action": action_pred[:, start:start + self.preset.n_action_steps], "action_pred": action_pred,
-                "model_sample": x}
+        return {
+            "action": action_pred[:, start : start + self.preset.n_action_steps],
+            "action_pred": action_pred,
+            "model_sample": x,
+        }
 
 
 def make_policy(name: str, preset: PolicyPreset, workspace: Workspace) -> DiffusionPolicy:

@@ -51,7 +51,9 @@ class PolicyPreset:
 
     def __post_init__(self):
         if len(self.encoder_channels) != 8:
-            raise ValueError(f"encoder_channels must have 8 entries (one per conv layer), got {len(self.encoder_channels)}")
+            raise ValueError(
+                f"encoder_channels must have 8 entries (one per conv layer), got {len(self.encoder_channels)}"
+            )
         if self.baseline_channels is not None and len(self.baseline_channels) != 8:
             raise ValueError(f"baseline_channels must have 8 entries, got {len(self.baseline_channels)}")
         if self.control not in CONTROL_MODES:
@@ -63,7 +65,9 @@ class PolicyPreset:
         if self.horizon % (2 ** (len(self.down_dims) - 1)):
             raise ValueError(f"horizon {self.horizon} must be divisible by 2^{len(self.down_dims) - 1} (U-Net levels)")
         if self.group_order % 4:
-            raise ValueError(f"group_order must be a multiple of 4 (C4 must be exact on the grid), got {self.group_order}")
+            raise ValueError(
+                f"group_order must be a multiple of 4 (C4 must be exact on the grid), got {self.group_order}"
+            )
         if not 1 <= self.num_inference_steps <= self.num_train_timesteps:
             raise ValueError("num_inference_steps must be in 1..num_train_timesteps")
         if encoder_output_size(self.crop) != 1:
@@ -84,10 +88,17 @@ class PolicyPreset:
 # (a 3³ kernel with padding 1 there only ever uses its centre tap). Shared with the plain-torch
 # inference model so the two cannot drift apart.
 ENCODER_LAYOUT = (
-    ("conv", 0), ("pool", 2),  # 58 -> 29
-    ("conv", 1), ("conv0", 2), ("pool", 3),  # 29 -> 27 -> 9
-    ("conv", 3), ("conv", 4), ("pool", 3),  # 9 -> 3
-    ("conv", 5), ("conv", 6), ("pool", 3),  # 3 -> 1
+    ("conv", 0),
+    ("pool", 2),  # 58 -> 29
+    ("conv", 1),
+    ("conv0", 2),
+    ("pool", 3),  # 29 -> 27 -> 9
+    ("conv", 3),
+    ("conv", 4),
+    ("pool", 3),  # 9 -> 3
+    ("conv", 5),
+    ("conv", 6),
+    ("pool", 3),  # 3 -> 1
     ("conv1x1", 7),
 )
 

@@ -66,8 +66,7 @@ class InterventionLog:
             return f"{(t - self.start_ns) / 1e9:.2f}"
 
         spans = [(a, end_ns if b is None else b) for a, b in self.spans]
-        return {"interventions": " ".join(f"{s(a)}-{s(b)}" for a, b in spans),
-                "intervention_count": str(len(spans))}
+        return {"interventions": " ".join(f"{s(a)}-{s(b)}" for a, b in spans), "intervention_count": str(len(spans))}
 
 
 @dataclass(frozen=True)
@@ -100,8 +99,9 @@ def next_episode_path(output_dir: str | Path, task: str = "episode") -> Path:
     output_dir = Path(output_dir)
     slug = re.sub(r"[^A-Za-z0-9_-]+", "_", task).strip("_") or "episode"
     pattern = re.compile(rf"^{re.escape(slug)}_(\d+)(?:\.\w+)?$")
-    taken = [int(m.group(1)) for p in (output_dir.iterdir() if output_dir.is_dir() else ())
-             if (m := pattern.match(p.name))]
+    taken = [
+        int(m.group(1)) for p in (output_dir.iterdir() if output_dir.is_dir() else ()) if (m := pattern.match(p.name))
+    ]
     return output_dir / f"{slug}_{(max(taken) + 1 if taken else 0):04d}"
 
 
@@ -116,17 +116,29 @@ def _qos(reliable: bool = True, transient_local: bool = False, depth: int = 10):
     )
 
     zero = QosTime(0, 0)
-    return Qos(QosHistory.KEEP_LAST, depth,
-               QosReliability.RELIABLE if reliable else QosReliability.BEST_EFFORT,
-               QosDurability.TRANSIENT_LOCAL if transient_local else QosDurability.VOLATILE,
-               zero, zero, QosLiveliness.AUTOMATIC, zero, False)
+    return Qos(
+        QosHistory.KEEP_LAST,
+        depth,
+        QosReliability.RELIABLE if reliable else QosReliability.BEST_EFFORT,
+        QosDurability.TRANSIENT_LOCAL if transient_local else QosDurability.VOLATILE,
+        zero,
+        zero,
+        QosLiveliness.AUTOMATIC,
+        zero,
+        False,
+    )
 
 
 class EpisodeWriter:
     """Writes one episode bag. ``open`` -> ``write``/``write_raw`` ... -> ``close`` (keep) or ``discard``."""
 
-    def __init__(self, path: str | Path, meta: EpisodeMeta | None = None,
-                 config: RecordingConfig = RecordingConfig(), factory: RosbagsFactory | None = None):
+    def __init__(
+        self,
+        path: str | Path,
+        meta: EpisodeMeta | None = None,
+        config: RecordingConfig = RecordingConfig(),
+        factory: RosbagsFactory | None = None,
+    ):
         self.path = Path(path)
         self.meta = meta or EpisodeMeta()
         self.config = config
@@ -143,12 +155,15 @@ class EpisodeWriter:
         need = int(self.config.min_free_gib * (1 << 30))
         have = free_bytes(self.path.parent)
         if have < need:
-            raise RecordingError(f"only {have / (1 << 30):.2f} GiB free on {self.path.parent} "
-                                 f"(need {self.config.min_free_gib} GiB, recorder.min_free_gib)")
+            raise RecordingError(
+                f"only {have / (1 << 30):.2f} GiB free on {self.path.parent} "
+                f"(need {self.config.min_free_gib} GiB, recorder.min_free_gib)"
+            )
         self.path.parent.mkdir(parents=True, exist_ok=True)
 
-        self._writer = open_bag_writer(self.path, int(self.config.chunk_size_mib * MiB),
-                                       self.config.chunk_max_age_s, on_chunk=self._check_disk)
+        self._writer = open_bag_writer(
+            self.path, int(self.config.chunk_size_mib * MiB), self.config.chunk_max_age_s, on_chunk=self._check_disk
+        )
         self._write_sidecar()
         return self
 
@@ -206,8 +221,9 @@ class EpisodeWriter:
             if conn.msgtype != msgtype:
                 raise RecordingError(f"{topic} already recorded as {conn.msgtype}, not {msgtype}")
             return conn
-        conn = writer.add_connection(topic, msgtype, typestore=self.factory.typestore,
-                                     offered_qos_profiles=[_qos(reliable, transient_local)])
+        conn = writer.add_connection(
+            topic, msgtype, typestore=self.factory.typestore, offered_qos_profiles=[_qos(reliable, transient_local)]
+        )
         self._connections[topic] = conn
         self.counts[topic] = 0
         return conn
@@ -243,15 +259,26 @@ class EpisodeWriter:
         transforms = []
         for cam in lab.cameras:
             e = cam.extrinsics
-            transforms.append(mk(
-                "geometry_msgs/msg/TransformStamped",
-                header=self.factory.header(stamp_ns, lab.base_frame), child_frame_id=cam.frame_id,
-                transform=mk("geometry_msgs/msg/Transform",
-                             translation=mk("geometry_msgs/msg/Vector3", x=e.translation[0], y=e.translation[1],
-                                            z=e.translation[2]),
-                             rotation=mk("geometry_msgs/msg/Quaternion", x=e.quaternion_xyzw[0],
-                                         y=e.quaternion_xyzw[1], z=e.quaternion_xyzw[2],
-                                         w=e.quaternion_xyzw[3]))))
+            transforms.append(
+                mk(
+                    "geometry_msgs/msg/TransformStamped",
+                    header=self.factory.header(stamp_ns, lab.base_frame),
+                    child_frame_id=cam.frame_id,
+                    transform=mk(
+                        "geometry_msgs/msg/Transform",
+                        translation=mk(
+                            "geometry_msgs/msg/Vector3", x=e.translation[0], y=e.translation[1], z=e.translation[2]
+                        ),
+                        rotation=mk(
+                            "geometry_msgs/msg/Quaternion",
+                            x=e.quaternion_xyzw[0],
+                            y=e.quaternion_xyzw[1],
+                            z=e.quaternion_xyzw[2],
+                            w=e.quaternion_xyzw[3],
+                        ),
+                    ),
+                )
+            )
         self.write(TOPIC_TF_STATIC, mk(TF_TYPE, transforms=transforms), stamp_ns, TF_TYPE)
 
 

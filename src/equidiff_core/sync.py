@@ -63,7 +63,7 @@ class ApproximateTimeMatcher(Generic[T]):
         if q and stamp_ns < q[-1][0]:
             items = sorted([*q, (int(stamp_ns), item)], key=lambda e: e[0])
             q.clear()
-            q.extend(items[-q.maxlen:])
+            q.extend(items[-q.maxlen :])
         else:
             q.append((int(stamp_ns), item))
 

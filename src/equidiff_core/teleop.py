@@ -89,8 +89,10 @@ class TeleopConfig:
             if button < -1:
                 raise ValueError(f"{name} must be a button index or -1 (off), got {button}")
             if button in gripper:
-                raise ValueError(f"{name} {button} is also a gripper button (open_button {self.open_button}, "
-                                 f"close_button {self.close_button}); pick another button")
+                raise ValueError(
+                    f"{name} {button} is also a gripper button (open_button {self.open_button}, "
+                    f"close_button {self.close_button}); pick another button"
+                )
         if self.clutch_button >= 0 and self.clutch_button == self.rotation_button:
             raise ValueError(f"clutch_button and rotation_button are both {self.clutch_button}")
 
@@ -206,8 +208,12 @@ class TeleopIntegrator:
         if self.target is None:
             raise TeleopError("teleop has no target yet")
         t = now_ns + int(self.config.command_lead_s * NS_PER_S)
-        return PoseChunk(int(now_ns), np.array([t], dtype=np.int64), self.target[None].copy(),
-                         np.array([self.width], dtype=np.float64))
+        return PoseChunk(
+            int(now_ns),
+            np.array([t], dtype=np.int64),
+            self.target[None].copy(),
+            np.array([self.width], dtype=np.float64),
+        )
 
     # -- helpers ---------------------------------------------------------------------------
     def _clamp_box(self, p: np.ndarray) -> np.ndarray:
@@ -270,6 +276,7 @@ def _orthonormalise(R: np.ndarray) -> np.ndarray:
 
 # --- input sources ----------------------------------------------------------------------------
 
+
 class SpaceMouseSource:
     """A 3Dconnexion SpaceMouse read directly over HID with pyspacemouse (ROS axis convention).
 
@@ -290,18 +297,22 @@ class SpaceMouseSource:
         try:
             import pyspacemouse
         except ImportError as err:
-            raise TeleopError("source 'spacemouse' needs pyspacemouse and hidapi "
-                              "(pip install 'equidiff_ros[spacemouse]'); or use source:=joy with the "
-                              "spacenav driver") from err
+            raise TeleopError(
+                "source 'spacemouse' needs pyspacemouse and hidapi "
+                "(pip install 'equidiff_ros[spacemouse]'); or use source:=joy with the "
+                "spacenav driver"
+            ) from err
         try:
             connected = pyspacemouse.get_connected_devices()
         except Exception as err:  # hidapi missing its shared library, udev permissions, ...
             raise TeleopError(f"cannot enumerate HID devices for a SpaceMouse: {err}") from err
         supported = [name for name, *_ in pyspacemouse.get_supported_devices()]
         if not connected:
-            raise TeleopError("no SpaceMouse found: looked for USB HID devices of the supported 3Dconnexion "
-                              f"models ({', '.join(supported[:6])}, ...); check the cable/receiver and "
-                              "udev permissions (/dev/hidraw*), or use source:=joy with the spacenav driver")
+            raise TeleopError(
+                "no SpaceMouse found: looked for USB HID devices of the supported 3Dconnexion "
+                f"models ({', '.join(supported[:6])}, ...); check the cable/receiver and "
+                "udev permissions (/dev/hidraw*), or use source:=joy with the spacenav driver"
+            )
         name = self.device_name or connected[0]
         if name not in connected:
             raise TeleopError(f"SpaceMouse {name!r} not found; connected: {connected}")

@@ -57,5 +57,6 @@ RECORDED_TOPICS: dict[str, str] = {
     TOPIC_POLICY_STATE: "std_msgs/msg/String",
 }
 # What training needs of a bag: the in-process demos write just these.
-TRAINING_TOPICS: dict[str, str] = {t: RECORDED_TOPICS[t] for t in (TOPIC_VOXELS, TOPIC_EE_POSE, TOPIC_JOINT_STATES,
-                                                                    TOPIC_COMMAND_CHUNK)}
+TRAINING_TOPICS: dict[str, str] = {
+    t: RECORDED_TOPICS[t] for t in (TOPIC_VOXELS, TOPIC_EE_POSE, TOPIC_JOINT_STATES, TOPIC_COMMAND_CHUNK)
+}

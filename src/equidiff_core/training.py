@@ -109,7 +109,7 @@ class TrainResult:
 
 
 def resolve_device(device: str) -> torch.device:
-    """"auto": CUDA if available; under torchrun on CUDA "auto" and "cuda" mean this rank's ``cuda:LOCAL_RANK``."""
+    """ "auto": CUDA if available; under torchrun on CUDA "auto" and "cuda" mean this rank's ``cuda:LOCAL_RANK``."""
     if device == "auto":
         device = "cuda" if torch.cuda.is_available() else "cpu"
     if device.startswith("cuda") and not torch.cuda.is_available():
@@ -120,7 +120,7 @@ def resolve_device(device: str) -> torch.device:
 
 
 def resolve_precision(precision: str, device: torch.device) -> str:
-    """"auto": bf16 autocast on CUDA; fp32 on the CPU (bf16 autocast trained no faster there even on a CPU
+    """ "auto": bf16 autocast on CUDA; fp32 on the CPU (bf16 autocast trained no faster there even on a CPU
     with AVX512-BF16: ``equidiff bench train --cpu-precision bf16``, docs/model.md)."""
     if precision != "auto":
         return precision
@@ -208,8 +208,14 @@ class _PolicyLoss(torch.nn.Module):
         return self.policy.compute_loss(batch, generator=generator, noise_repeats=noise_repeats)
 
 
-def train(policy: DiffusionPolicy, train_set: Dataset, val_set: Dataset | None, cfg: TrainConfig,
-          out_dir: str | Path, callbacks: Iterable[Any] = ()) -> TrainResult:
+def train(
+    policy: DiffusionPolicy,
+    train_set: Dataset,
+    val_set: Dataset | None,
+    cfg: TrainConfig,
+    out_dir: str | Path,
+    callbacks: Iterable[Any] = (),
+) -> TrainResult:
     """Train ``policy`` for ``cfg.steps`` in all (resuming ``out_dir/last.ckpt`` when it exists).
 
     Under torchrun every rank calls this with the same arguments; callbacks run on rank 0 only."""
@@ -261,11 +267,18 @@ def train(policy: DiffusionPolicy, train_set: Dataset, val_set: Dataset | None, 
     def save_checkpoint():
         if not main:
             return
-        state = {"format": CKPT_FORMAT, "version": CKPT_VERSION, "step": step,
-                 "config": policy.config_dict(), "train_config": to_dict(cfg),
-                 "model": policy.model.state_dict(), "optimizer": optimizer.state_dict(),
-                 "lr_scheduler": scheduler.state_dict(), "ema": ema.state_dict() if ema else None,
-                 "history_json": json.dumps(history)}
+        state = {
+            "format": CKPT_FORMAT,
+            "version": CKPT_VERSION,
+            "step": step,
+            "config": policy.config_dict(),
+            "train_config": to_dict(cfg),
+            "model": policy.model.state_dict(),
+            "optimizer": optimizer.state_dict(),
+            "lr_scheduler": scheduler.state_dict(),
+            "ema": ema.state_dict() if ema else None,
+            "history_json": json.dumps(history),
+        }
         tmp = ckpt_path.with_suffix(".tmp")
         torch.save(state, tmp)
         tmp.replace(ckpt_path)  # atomic: a killed run never leaves a half-written last.ckpt
@@ -279,8 +292,11 @@ def train(policy: DiffusionPolicy, train_set: Dataset, val_set: Dataset | None, 
 
         # rank 0's weights and buffers are broadcast once; no buffer sync per step: the models' buffers
         # are constants (no batch norm statistics). Newer torch renamed broadcast_buffers.
-        no_buffer_sync = "forward_sync_buffers" if "forward_sync_buffers" in inspect.signature(DDP).parameters \
+        no_buffer_sync = (
+            "forward_sync_buffers"
+            if "forward_sync_buffers" in inspect.signature(DDP).parameters
             else "broadcast_buffers"
+        )
         loss_fn = DDP(loss_fn, device_ids=[device] if device.type == "cuda" else None, **{no_buffer_sync: False})
     # every rank: the same epoch permutations (sampler seed), its own augmentation and noise draws
     sampler = make_sampler(train_set, cfg.seed + step, dist_info.rank, dist_info.world_size)
@@ -289,8 +305,9 @@ def train(policy: DiffusionPolicy, train_set: Dataset, val_set: Dataset | None, 
     else:
         batches = loader_batches(train_set, sampler, cfg.batch_size, cfg.num_workers)
     aug_gen = torch.Generator().manual_seed(cfg.seed * 7919 + step + 1_000_003 * dist_info.rank)
-    autocast = (lambda: torch.autocast(device.type, dtype=torch.bfloat16)) if precision == "bf16" else \
-        contextlib.nullcontext
+    autocast = (
+        (lambda: torch.autocast(device.type, dtype=torch.bfloat16)) if precision == "bf16" else contextlib.nullcontext
+    )
 
     t_last = time.perf_counter()
     deadline = None if cfg.max_minutes is None else time.monotonic() + 60.0 * cfg.max_minutes
@@ -309,7 +326,8 @@ def train(policy: DiffusionPolicy, train_set: Dataset, val_set: Dataset | None, 
         # any rank is past the time budget (all stop after the same step)
         loss_sum, late = distributed.all_reduce_sum(
             [float(loss.item()), float(deadline is not None and time.monotonic() > deadline)],
-            device if dist_info.backend == "nccl" else "cpu")
+            device if dist_info.backend == "nccl" else "cpu",
+        )
         mean_loss = loss_sum / dist_info.world_size
         past_deadline = late > 0
         if not math.isfinite(mean_loss):
@@ -334,7 +352,7 @@ def train(policy: DiffusionPolicy, train_set: Dataset, val_set: Dataset | None, 
                 cb.on_step(step, metrics)
         if main and cfg.eval_every and (step % cfg.eval_every == 0 or step == cfg.steps):
             # the other ranks wait in the next step's collectives meanwhile
-            with (ema.swapped_in() if ema else contextlib.nullcontext()):
+            with ema.swapped_in() if ema else contextlib.nullcontext():
                 ev, samples = evaluate(policy, val_set if val_set is not None else train_set, cfg, device)
             ev["step"] = step
             history.append(ev)
@@ -353,7 +371,7 @@ def train(policy: DiffusionPolicy, train_set: Dataset, val_set: Dataset | None, 
     save_checkpoint()
     exported = out_dir / "policy.pt"
     if main:
-        with (ema.swapped_in() if ema else contextlib.nullcontext()):
+        with ema.swapped_in() if ema else contextlib.nullcontext():
             export_policy(policy, exported)
     distributed.barrier()  # every rank returns once the files are written
     result = TrainResult(ckpt_path, exported, history, step, stopped, dist_info.world_size, precision, data)
@@ -380,8 +398,10 @@ def evaluate(policy: DiffusionPolicy, dataset: Dataset, cfg: TrainConfig, device
     samples: list[dict] = []
     if first is not None and cfg.eval_samples > 0:
         n = min(cfg.eval_samples, first["voxels"].shape[0])
-        out = policy.predict_action({"voxels": first["voxels"][:n], "ee": first["ee"][:n]},
-                                    generator=torch.Generator(device=device).manual_seed(0))
+        out = policy.predict_action(
+            {"voxels": first["voxels"][:n], "ee": first["ee"][:n]},
+            generator=torch.Generator(device=device).manual_seed(0),
+        )
         pred = _to_numpy(out["action_pred"])
         gt = _to_numpy(first["action"][:n])
         ee = _to_numpy(first["ee"][:n, -1])
@@ -400,8 +420,9 @@ def load_training_checkpoint(path: str | Path) -> dict:
     try:
         state = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as err:
-        raise CheckpointError(f"{path}: not a readable checkpoint "
-                              f"({type(err).__name__}: {(str(err).splitlines() or [''])[0]})") from err
+        raise CheckpointError(
+            f"{path}: not a readable checkpoint ({type(err).__name__}: {(str(err).splitlines() or [''])[0]})"
+        ) from err
     if not isinstance(state, dict) or state.get("format") != CKPT_FORMAT:
         raise CheckpointError(f"{path}: not an equidiff training checkpoint")
     if state.get("version") != CKPT_VERSION:
@@ -430,11 +451,16 @@ def load_policy_from_checkpoint(path: str | Path, device: str = "cpu") -> Diffus
         except CheckpointError:
             raise train_err from None
         if config.get("policy") != "baseline":
-            raise CheckpointError(f"{path}: an exported EquiDiff policy has no escnn weights; use last.ckpt "
-                                  "or inference.load_inference_policy") from None
+            raise CheckpointError(
+                f"{path}: an exported EquiDiff policy has no escnn weights; use last.ckpt "
+                "or inference.load_inference_policy"
+            ) from None
     try:
-        policy = make_policy(config["policy"], preset_from_dict(config["preset"]),
-                             from_dict(Workspace, config["workspace"], where="workspace"))
+        policy = make_policy(
+            config["policy"],
+            preset_from_dict(config["preset"]),
+            from_dict(Workspace, config["workspace"], where="workspace"),
+        )
         if config.get("normalizer") is not None:
             policy.set_normalizer(Normalizer.from_dict(config["normalizer"]))
         policy.model.load_state_dict(weights)

@@ -83,6 +83,7 @@ class VoxelStats:
 
 # --- The shared definition -----------------------------------------------------------------
 
+
 def voxel_affine(T_base_cam: np.ndarray, workspace: Workspace) -> tuple[np.ndarray, np.ndarray]:
     """(A, c) float32 with u = A·p + c the voxel-unit coordinates of camera-frame point p."""
     T = np.asarray(T_base_cam, dtype=np.float64)
@@ -138,6 +139,7 @@ def _check_inputs(clouds: Sequence[Any], n_cameras: int) -> list[tuple[np.ndarra
 
 # --- Fast path -----------------------------------------------------------------------------
 
+
 class Voxelizer:
     """Voxelise clouds from fixed cameras: ``grid = Voxelizer(ws, [T_base_cam, ...])(clouds)``.
 
@@ -146,15 +148,14 @@ class Voxelizer:
     object with ``.points``/``.colors`` in camera i's optical frame.
     """
 
-    def __init__(self, workspace: Workspace, extrinsics: Sequence[np.ndarray],
-                 config: VoxelizerConfig | None = None):
+    def __init__(self, workspace: Workspace, extrinsics: Sequence[np.ndarray], config: VoxelizerConfig | None = None):
         if len(extrinsics) == 0:
             raise VoxelError("at least one camera extrinsics is required")
         self.workspace = workspace
         self.config = config or VoxelizerConfig()
         self._affine = [voxel_affine(T, workspace) for T in extrinsics]
         R = workspace.resolution
-        if R ** 3 >= 2 ** 31:
+        if R**3 >= 2**31:
             raise VoxelError(f"resolution {R} too large for int32 voxel indices")
         self._capacity = 0
         self._camera_capacity = 0
@@ -197,10 +198,10 @@ class Voxelizer:
                 self._transform(points, A, c, u_cam)
                 idx = np.flatnonzero(self._lands(points, u_cam))
             k = len(idx)
-            np.take(u_cam, idx, axis=1, out=self._u[:, off:off + k])
+            np.take(u_cam, idx, axis=1, out=self._u[:, off : off + k])
             rgb_cam = self._rgb_camera[:m]
             _pack_rgb24(colors, rgb_cam)  # packing all and taking is cheaper than gathering (k, 3) rows
-            np.take(rgb_cam, idx, out=self._rgb[off:off + k])
+            np.take(rgb_cam, idx, out=self._rgb[off : off + k])
             off += k
         n = off
         u, iu, rgb = self._u[:, :n], self._iu[:, :n], self._rgb[:n]
@@ -281,7 +282,7 @@ def _pack_rgb24(colors: np.ndarray, out: np.ndarray) -> None:
 
 def _aggregate(lin: np.ndarray, rgb: np.ndarray, R: int) -> tuple[np.ndarray, int, int]:
     """(grid, occupied voxels, max points per voxel) from linear voxel indices and packed RGB24."""
-    nvox = R ** 3
+    nvox = R**3
     grid = np.zeros((4, nvox), np.uint8)
     if len(lin) == 0:
         return grid.reshape(4, R, R, R), 0, 0
@@ -289,7 +290,7 @@ def _aggregate(lin: np.ndarray, rgb: np.ndarray, R: int) -> tuple[np.ndarray, in
     sum_rb = np.bincount(lin, weights=rb, minlength=nvox)
     # Sparse grids (real scenes): work on the occupied voxels only. Dense ones (over half the
     # voxels occupied): whole contiguous arrays beat gathers and scatters.
-    if len(lin) < 2 ** _COUNT_BITS:
+    if len(lin) < 2**_COUNT_BITS:
         g1 = np.bitwise_and(rgb, np.uint32(0xFF00))
         g1 <<= np.uint32(_COUNT_BITS - 8)
         g1 |= np.uint32(1)  # G*2^20 + 1
@@ -331,16 +332,19 @@ def _aggregate(lin: np.ndarray, rgb: np.ndarray, R: int) -> tuple[np.ndarray, in
     return grid.reshape(4, R, R, R), occupied, int(count.max())
 
 
-def voxelize(clouds: Sequence[Any], extrinsics: Sequence[np.ndarray], workspace: Workspace,
-             config: VoxelizerConfig | None = None) -> np.ndarray:
+def voxelize(
+    clouds: Sequence[Any], extrinsics: Sequence[np.ndarray], workspace: Workspace, config: VoxelizerConfig | None = None
+) -> np.ndarray:
     """One-shot ``Voxelizer(workspace, extrinsics, config)(clouds)``."""
     return Voxelizer(workspace, extrinsics, config)(clouds)
 
 
 # --- Reference ------------------------------------------------------------------------------
 
-def voxelize_reference(clouds: Sequence[Any], extrinsics: Sequence[np.ndarray], workspace: Workspace,
-                       config: VoxelizerConfig | None = None) -> np.ndarray:
+
+def voxelize_reference(
+    clouds: Sequence[Any], extrinsics: Sequence[np.ndarray], workspace: Workspace, config: VoxelizerConfig | None = None
+) -> np.ndarray:
     """The definition in the module docstring written as directly as possible (slow, for tests).
 
     The fast path must equal this bit for bit.

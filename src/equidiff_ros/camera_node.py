@@ -61,10 +61,13 @@ from equidiff_ros.common import (
 )
 from equidiff_ros.runner import run_node
 
-USAGE = __doc__ + """
+USAGE = (
+    __doc__
+    + """
 usage: camera_node [--ros-args -p backend:=realsense|replay|twin -p camera:=cam_left
                     -p lab_config:=config/lab.yaml -p bag:=bags/episode_0001 -p loop:=true]
 """
+)
 
 NODE_NAME = "camera_node"
 
@@ -115,16 +118,20 @@ class CameraNode(Node):
         except CameraError:
             self._disconnect_all()
             raise
-        self.pubs = {c.name: self.create_publisher(self._cloud_type(), c.topic, cloud_qos(reliable))
-                     for c in self.configs}
+        self.pubs = {
+            c.name: self.create_publisher(self._cloud_type(), c.topic, cloud_qos(reliable)) for c in self.configs
+        }
         self.stats = {c.name: {"published": 0, "read_errors": 0, "last_stamp_ns": None} for c in self.configs}
         self._publish_tf_static()
-        self.diag_pub = self.create_publisher(self.factory.cls("diagnostic_msgs/msg/DiagnosticArray"),
-                                              TOPIC_DIAGNOSTICS, RELIABLE_QOS)
+        self.diag_pub = self.create_publisher(
+            self.factory.cls("diagnostic_msgs/msg/DiagnosticArray"), TOPIC_DIAGNOSTICS, RELIABLE_QOS
+        )
         self.create_timer(1.0, self._publish_diagnostics)
         self._stop = threading.Event()
-        self.threads = [threading.Thread(target=self._run, args=(cfg, cam), name=f"camera-{cfg.name}", daemon=True)
-                        for cfg, cam in zip(self.configs, self.cameras)]
+        self.threads = [
+            threading.Thread(target=self._run, args=(cfg, cam), name=f"camera-{cfg.name}", daemon=True)
+            for cfg, cam in zip(self.configs, self.cameras)
+        ]
         for t in self.threads:
             t.start()
         self.get_logger().info(f"{self.backend} backend: publishing {[c.topic for c in self.configs]}")
@@ -136,8 +143,10 @@ class CameraNode(Node):
         try:
             tf_type = self.factory.cls("tf2_msgs/msg/TFMessage")
         except ImportError:
-            self.get_logger().info("tf2_msgs is not installed: /tf_static is not published "
-                                   "(the recorder writes the camera extrinsics into bags)")
+            self.get_logger().info(
+                "tf2_msgs is not installed: /tf_static is not published "
+                "(the recorder writes the camera extrinsics into bags)"
+            )
             return
         self.tf_pub = self.create_publisher(tf_type, TOPIC_TF_STATIC, LATCHED_QOS)
         self.tf_pub.publish(extrinsics_tf_message(self.configs, self.lab.base_frame, now_ns(self), self.factory))
@@ -165,8 +174,9 @@ class CameraNode(Node):
                 continue  # the device runs faster than publish_hz: skip this frame
             frame = limit_depth(frame, cfg.min_depth, cfg.max_depth)
             if len(frame.points) == 0:
-                log.warning(f"{cfg.name}: no points within [{cfg.min_depth}, {cfg.max_depth}] m",
-                            throttle_duration_sec=2.0)
+                log.warning(
+                    f"{cfg.name}: no points within [{cfg.min_depth}, {cfg.max_depth}] m", throttle_duration_sec=2.0
+                )
                 continue
             msg = cloud_to_msg(frame.points, frame.colors, frame.stamp_ns, cfg.frame_id, self.factory)
             if self._stop.is_set() or not self.context.ok():
@@ -191,12 +201,25 @@ class CameraNode(Node):
                 message = f"recovering: {health.last_recovery_reason}"
             else:
                 message = "publishing" if ok else "no recent frames"
-            self.diag_pub.publish(cm.diagnostic_array(
-                self.factory, now, f"{NODE_NAME}/{cfg.name}", cfg.serial,
-                cm.OK if ok and not health.recovering else cm.WARN, message,
-                {"backend": self.backend, "published": s["published"], "read_errors": s["read_errors"],
-                 "age_ms": "none" if age_ms is None else round(age_ms, 1), "resets": health.resets,
-                 "reconnects": health.reconnects, "last_recovery_reason": health.last_recovery_reason or "none"}))
+            self.diag_pub.publish(
+                cm.diagnostic_array(
+                    self.factory,
+                    now,
+                    f"{NODE_NAME}/{cfg.name}",
+                    cfg.serial,
+                    cm.OK if ok and not health.recovering else cm.WARN,
+                    message,
+                    {
+                        "backend": self.backend,
+                        "published": s["published"],
+                        "read_errors": s["read_errors"],
+                        "age_ms": "none" if age_ms is None else round(age_ms, 1),
+                        "resets": health.resets,
+                        "reconnects": health.reconnects,
+                        "last_recovery_reason": health.last_recovery_reason or "none",
+                    },
+                )
+            )
 
     def _disconnect_all(self):
         for camera in getattr(self, "cameras", []):

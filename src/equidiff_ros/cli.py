@@ -29,20 +29,32 @@ COMMANDS: dict[tuple[str, ...], tuple[str, str]] = {
     ("bench", "control"): ("bench_control", "tracking, safety and latency of the franka node on franky-sim"),
     ("bench", "generalization"): ("bench_generalization", "EquiDiff vs baseline on unseen object yaw in the twin"),
     ("bench", "safety"): ("bench_safety", "fault campaign against franky-sim through franka_node (one JSON line)"),
-    ("bench", "chunking"): ("bench_chunking", "replace vs execution horizon vs real-time chunking by latency, in the twin"),
+    ("bench", "chunking"): (
+        "bench_chunking",
+        "replace vs execution horizon vs real-time chunking by latency, in the twin",
+    ),
     ("bench", "twin"): ("bench_twin", "where the twin's CPU goes: each process's share and wall s per sim s"),
     ("twin", "collect"): ("twin_collect", "record scripted-expert demonstrations in the digital twin"),
     ("twin", "run"): ("twin_run", "the main job: evaluate a policy end to end in the digital twin"),
     ("twin", "evaluate"): ("twin_evaluate", "the main job's episodes in-process on the sim clock (no ROS)"),
     ("export", "lerobot"): ("export_lerobot", "export bags to a LeRobot dataset"),
-    ("calibrate", "cameras"): ("calibrate", "camera extrinsics from a ChArUco board on the hand (hand-eye + joint refinement)"),
+    ("calibrate", "cameras"): (
+        "calibrate",
+        "camera extrinsics from a ChArUco board on the hand (hand-eye + joint refinement)",
+    ),
     ("lab", "record"): ("lab_record", "start / keep as success or failure / discard the recorder's episode"),
-    ("lab", "ack"): ("lab_ack", "let the arm go on after a robot error or divergence stop (it never resumes by itself)"),
+    ("lab", "ack"): (
+        "lab_ack",
+        "let the arm go on after a robot error or divergence stop (it never resumes by itself)",
+    ),
     ("lab", "home"): ("lab_home", "glide the arm slowly to the home pose (refused while a stop awaits ack)"),
     ("lab", "policy"): ("lab_policy", "enable, pause or resume the policy"),
     ("lab", "status"): ("lab_status", "episode, policy state and teleop takeover, from the live graph"),
     ("cameras", "list"): ("cameras_list", "connected RealSense serials, firmware and USB links vs lab.yaml"),
-    ("calibrate", "check"): ("calibrate_check", "each camera's alignment in mm against the other clouds and the fingertips"),
+    ("calibrate", "check"): (
+        "calibrate_check",
+        "each camera's alignment in mm against the other clouds and the fingertips",
+    ),
 }
 
 

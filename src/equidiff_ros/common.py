@@ -49,18 +49,34 @@ from equidiff_core.topics import (  # noqa: F401
 )
 
 SENSOR_QOS = qos_profile_sensor_data  # best effort, volatile, keep last 5
-RELIABLE_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE,
-                          durability=DurabilityPolicy.VOLATILE, history=HistoryPolicy.KEEP_LAST)
-VOXEL_QOS = QoSProfile(depth=5, reliability=ReliabilityPolicy.RELIABLE,
-                       durability=DurabilityPolicy.VOLATILE, history=HistoryPolicy.KEEP_LAST)
+RELIABLE_QOS = QoSProfile(
+    depth=10,
+    reliability=ReliabilityPolicy.RELIABLE,
+    durability=DurabilityPolicy.VOLATILE,
+    history=HistoryPolicy.KEEP_LAST,
+)
+VOXEL_QOS = QoSProfile(
+    depth=5,
+    reliability=ReliabilityPolicy.RELIABLE,
+    durability=DurabilityPolicy.VOLATILE,
+    history=HistoryPolicy.KEEP_LAST,
+)
 # The twin on simulated time owes every camera frame a chunk: a frame whose cloud is lost in
 # transport (best effort drops a large sample when a queue overflows) would hold the sim until
 # its stall timeout. So there both ends of the cloud topics are reliable (``reliable_clouds``);
 # a best-effort subscriber (the recorder, viz) still matches a reliable publisher.
-RELIABLE_CLOUD_QOS = QoSProfile(depth=5, reliability=ReliabilityPolicy.RELIABLE,
-                                durability=DurabilityPolicy.VOLATILE, history=HistoryPolicy.KEEP_LAST)
-LATCHED_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
-                         durability=DurabilityPolicy.TRANSIENT_LOCAL, history=HistoryPolicy.KEEP_LAST)
+RELIABLE_CLOUD_QOS = QoSProfile(
+    depth=5,
+    reliability=ReliabilityPolicy.RELIABLE,
+    durability=DurabilityPolicy.VOLATILE,
+    history=HistoryPolicy.KEEP_LAST,
+)
+LATCHED_QOS = QoSProfile(
+    depth=1,
+    reliability=ReliabilityPolicy.RELIABLE,
+    durability=DurabilityPolicy.TRANSIENT_LOCAL,
+    history=HistoryPolicy.KEEP_LAST,
+)
 
 
 def cloud_qos(reliable: bool) -> QoSProfile:
@@ -121,7 +137,8 @@ def wait_for_clock(node: Node, log_every_s: float = 5.0) -> None:
             node.get_logger().warning(
                 f"use_sim_time is true but no /clock has arrived after {last - start:.0f} s: waiting. Is twin_node "
                 f"running on ROS_DOMAIN_ID={os.environ.get('ROS_DOMAIN_ID', '0')}? (In the lab, leave "
-                f"use_sim_time false.)")
+                f"use_sim_time false.)"
+            )
         rclpy.spin_once(node, timeout_sec=0.1)
 
 

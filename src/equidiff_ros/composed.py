@@ -29,9 +29,12 @@ COMPOSABLE = {
     "policy_node": ("equidiff_ros.policy_node", "PolicyNode"),
 }
 
-USAGE = __doc__ + f"""
+USAGE = (
+    __doc__
+    + f"""
 usage: equidiff_composed --nodes NAME[,NAME...] [--ros-args ...]   (names: {", ".join(COMPOSABLE)})
 """
+)
 
 
 def parse_nodes(argv: list[str]) -> tuple[list[str], list[str]]:
@@ -44,8 +47,10 @@ def parse_nodes(argv: list[str]) -> tuple[list[str], list[str]]:
     names = [n for n in own[i + 1].split(",") if n]
     unknown = [n for n in names if n not in COMPOSABLE]
     if unknown or not names or len(set(names)) != len(names):
-        raise ValueError(f"--nodes: {', '.join(unknown) or 'repeated or no names'}; composable: {', '.join(COMPOSABLE)}")
-    return names, own[:i] + own[i + 2:] + ros
+        raise ValueError(
+            f"--nodes: {', '.join(unknown) or 'repeated or no names'}; composable: {', '.join(COMPOSABLE)}"
+        )
+    return names, own[:i] + own[i + 2 :] + ros
 
 
 def main(args=None) -> int:
@@ -64,8 +69,7 @@ def main(args=None) -> int:
     def startup_errors() -> tuple[type[BaseException], ...]:
         return tuple({err for m in modules for err in m.startup_errors()})
 
-    return run_nodes("equidiff_composed", USAGE, builders, startup_errors, [sys.argv[0], *rest],
-                     multithreaded=True)
+    return run_nodes("equidiff_composed", USAGE, builders, startup_errors, [sys.argv[0], *rest], multithreaded=True)
 
 
 if __name__ == "__main__":

@@ -127,8 +127,16 @@ class ControlClient:
     def publish_chunk(self, chunk) -> None:
         self.pub_chunk.publish(chunk_to_msg(chunk, self.factory, self.lab.base_frame))
 
-    def stream(self, path, duration: float, obs_latency: float = 0.1, steps: int = 16, dt: float = 0.2,
-               period: float = 0.2, width: float = 0.08) -> tuple[float, float]:
+    def stream(
+        self,
+        path,
+        duration: float,
+        obs_latency: float = 0.1,
+        steps: int = 16,
+        dt: float = 0.2,
+        period: float = 0.2,
+        width: float = 0.08,
+    ) -> tuple[float, float]:
         """Publish chunks sampled from ``path(t) -> position`` every ``period`` s; returns the last
         send time and the time the last chunk's final step is due (wall clock, s)."""
 
@@ -163,9 +171,12 @@ class ControlClient:
         one keeps them, so a gap in these stamps is the publisher's own. Returns that deque."""
 
         self.pose_stamps: deque = deque(maxlen=200000)
-        self.node.create_subscription(PoseStamped, topic or TOPIC_EE_POSE,
-                                      lambda msg: self.pose_stamps.append(stamp_to_ns(msg.header.stamp) / 1e9),
-                                      QoSProfile(depth=depth, reliability=ReliabilityPolicy.RELIABLE))
+        self.node.create_subscription(
+            PoseStamped,
+            topic or TOPIC_EE_POSE,
+            lambda msg: self.pose_stamps.append(stamp_to_ns(msg.header.stamp) / 1e9),
+            QoSProfile(depth=depth, reliability=ReliabilityPolicy.RELIABLE),
+        )
         return self.pose_stamps
 
 

@@ -65,10 +65,13 @@ from equidiff_ros.common import (
 )
 from equidiff_ros.runner import declare_number, run_node
 
-USAGE = __doc__ + """
+USAGE = (
+    __doc__
+    + """
 usage: franka_node [--ros-args -p backend:=franky|dryrun -p robot_ip:=172.16.0.2 -p realtime:=true
                     -p control_config:=config/control.yaml -p lab_config:=config/lab.yaml]
 """
+)
 
 NODE_NAME = "franka_node"
 
@@ -83,7 +86,9 @@ class FrankaNode(Node):
         robot_ip = self.declare_parameter("robot_ip", "").value or self.lab.robot.ip
         realtime = self.declare_parameter("realtime", True).value
         gripper = self.declare_parameter("gripper", True).value
-        run_dir = self.declare_parameter("run_dir", "").value or os.environ.get("XDG_RUNTIME_DIR") or tempfile.gettempdir()
+        run_dir = (
+            self.declare_parameter("run_dir", "").value or os.environ.get("XDG_RUNTIME_DIR") or tempfile.gettempdir()
+        )
         self.config = load_control_config(Path(control_path))
         home = self.declare_parameter("home_on_start", self.config.home_on_start).value
         state_hz = declare_number(self, "state_hz", self.lab.robot.state_hz)
@@ -94,9 +99,17 @@ class FrankaNode(Node):
         self.hardware_id = "dryrun" if backend == "dryrun" else robot_ip
 
         log = _ros_logger_adapter(self.get_logger())
-        kwargs = {} if backend == "dryrun" else {"ip": robot_ip, "config": self.config.franky,
-                                                     "realtime": realtime, "gripper": gripper,
-                                                     "safety": self.config.safety}
+        kwargs = (
+            {}
+            if backend == "dryrun"
+            else {
+                "ip": robot_ip,
+                "config": self.config.franky,
+                "realtime": realtime,
+                "gripper": gripper,
+                "safety": self.config.safety,
+            }
+        )
         # a dry run moves nothing: no marker (and parallel dry runs on one machine never hold each other)
         self.marker = None if backend == "dryrun" else Path(run_dir) / f"franka_node_{self.hardware_id}.pid"
         unclean = "" if self.marker is None else previous_exit_was_unclean(self.marker)
@@ -106,24 +119,30 @@ class FrankaNode(Node):
         self.get_logger().info(f"connecting to the robot ({backend}, {self.hardware_id})")
         self.robot.connect()
         # ticks, stamps, staleness and the watchdog on the node's clock: simulated time in the twin
-        self.controller = Controller(self.robot, self.lab.safety_box,
-                                     dataclasses.replace(self.config, home_on_start=home),
-                                     clock=node_clock(self), logger=log)
+        self.controller = Controller(
+            self.robot,
+            self.lab.safety_box,
+            dataclasses.replace(self.config, home_on_start=home),
+            clock=node_clock(self),
+            logger=log,
+        )
 
         cls = self.factory.cls
         self.pub_pose = self.create_publisher(cls("geometry_msgs/msg/PoseStamped"), TOPIC_EE_POSE, RELIABLE_QOS)
-        self.pub_joints = self.create_publisher(cls("sensor_msgs/msg/JointState"), TOPIC_JOINT_STATES,
-                                                RELIABLE_QOS)
-        self.pub_target = self.create_publisher(cls("geometry_msgs/msg/PoseStamped"), TOPIC_EXECUTED_TARGET,
-                                                RELIABLE_QOS)
-        self.pub_diag = self.create_publisher(cls("diagnostic_msgs/msg/DiagnosticArray"), TOPIC_DIAGNOSTICS,
-                                              RELIABLE_QOS)
+        self.pub_joints = self.create_publisher(cls("sensor_msgs/msg/JointState"), TOPIC_JOINT_STATES, RELIABLE_QOS)
+        self.pub_target = self.create_publisher(
+            cls("geometry_msgs/msg/PoseStamped"), TOPIC_EXECUTED_TARGET, RELIABLE_QOS
+        )
+        self.pub_diag = self.create_publisher(
+            cls("diagnostic_msgs/msg/DiagnosticArray"), TOPIC_DIAGNOSTICS, RELIABLE_QOS
+        )
         self.pub_tf = None  # base -> TCP on /tf for RViz and ROS hand-eye tools, where tf2_msgs exists
         try:
             self.pub_tf = self.create_publisher(cls("tf2_msgs/msg/TFMessage"), TOPIC_TF, RELIABLE_QOS)
         except ImportError:
-            self.get_logger().info("tf2_msgs is not installed: base -> TCP is not published on /tf "
-                                   "(/franka/ee_pose carries the same pose)")
+            self.get_logger().info(
+                "tf2_msgs is not installed: base -> TCP is not published on /tf (/franka/ee_pose carries the same pose)"
+            )
         try:
             self.controller.start()
         except Exception:
@@ -140,9 +159,11 @@ class FrankaNode(Node):
         self.create_timer(1.0 / state_hz, self.publish_state)
         self.create_timer(1.0, self.publish_diagnostics)
         self._last_target_stamp = None
-        self.get_logger().info(f"streaming at {self.config.control_hz:.0f} Hz, state at {state_hz:.0f} Hz; "
-                               f"safety box {self.controller.safety.lower.round(3).tolist()} .. "
-                               f"{self.controller.safety.upper.round(3).tolist()}")
+        self.get_logger().info(
+            f"streaming at {self.config.control_hz:.0f} Hz, state at {state_hz:.0f} Hz; "
+            f"safety box {self.controller.safety.lower.round(3).tolist()} .. "
+            f"{self.controller.safety.upper.round(3).tolist()}"
+        )
 
     def on_chunk(self, msg) -> None:
         try:
@@ -177,12 +198,13 @@ class FrankaNode(Node):
         self.pub_pose.publish(cm.pose_stamped(self.factory, state.ee_pose, state.stamp_ns, self.frame))
         self.pub_joints.publish(cm.joint_state(self.factory, state, state.stamp_ns))
         if self.pub_tf is not None:
-            self.pub_tf.publish(cm.tf_message(self.factory, [(self.frame, cm.TCP_FRAME, state.ee_pose)], state.stamp_ns))
+            self.pub_tf.publish(
+                cm.tf_message(self.factory, [(self.frame, cm.TCP_FRAME, state.ee_pose)], state.stamp_ns)
+            )
         command = self.controller.last_command
         if command is not None and command.stamp_ns != self._last_target_stamp:
             self._last_target_stamp = command.stamp_ns
-            self.pub_target.publish(cm.pose_stamped(self.factory, command.target.pose, command.stamp_ns,
-                                                    self.frame))
+            self.pub_target.publish(cm.pose_stamped(self.factory, command.target.pose, command.stamp_ns, self.frame))
 
     def publish_diagnostics(self) -> None:
         stats = self.controller.stats
@@ -197,8 +219,9 @@ class FrankaNode(Node):
         if stats.last_rejection and level == cm.OK:
             level, text = cm.WARN, f"{text}; last rejected chunk: {stats.last_rejection}"
         values = {k: v for k, v in stats.as_dict().items() if k not in ("last_rejection",)}
-        self.pub_diag.publish(cm.diagnostic_array(self.factory, now_ns(self), NODE_NAME, self.hardware_id,
-                                                  level, text, values))
+        self.pub_diag.publish(
+            cm.diagnostic_array(self.factory, now_ns(self), NODE_NAME, self.hardware_id, level, text, values)
+        )
 
     def shutdown(self) -> None:
         self.controller.stop()
@@ -224,6 +247,7 @@ def previous_exit_was_unclean(marker: Path) -> str:
         except PermissionError:
             return ""
     return f"the previous franka_node (pid {pid}) for this robot exited uncleanly (killed or crashed)"
+
 
 def _ros_logger_adapter(ros_logger):
     """A logging.Logger whose records go to the node's ROS logger (core modules log with `logging`)."""

@@ -104,11 +104,14 @@ from equidiff_ros.common import (
 )
 from equidiff_ros.runner import declare_number, run_node
 
-USAGE = __doc__ + """
+USAGE = (
+    __doc__
+    + """
 usage: policy_node --ros-args -p checkpoint:=/path/policy.pt [-p device:=cpu -p precision:=auto|fp32|bf16
                    -p rate_hz:=5.0 -p max_observation_age_s:=0.5 -p execute_steps:=0 -p latency_s:=-1.0
                    -p rtc:=false]
 """
+)
 
 NODE_NAME = "policy_node"
 
@@ -130,27 +133,36 @@ class PolicyNode(Node):
         n_steps = self.declare_parameter("n_action_steps", 0).value
         execute_steps = self.declare_parameter("execute_steps", 0).value
         latency_s = self.declare_parameter("latency_s", -1.0, ParameterDescriptor(dynamic_typing=True)).value
-        if isinstance(latency_s, bool) or not isinstance(latency_s, (int, float)) or not (
-                latency_s == -1 or 0 <= latency_s < 10):
+        if (
+            isinstance(latency_s, bool)
+            or not isinstance(latency_s, (int, float))
+            or not (latency_s == -1 or 0 <= latency_s < 10)
+        ):
             raise ValueError(f"parameter latency_s must be -1 (not set) or 0..10 s, got {latency_s!r}")
         latency_s = float(latency_s)
         rtc = self.declare_parameter("rtc", False).value
         threads = self.declare_parameter("torch_threads", 1).value
-        self._paused = "waiting for an enable (start_paused)" if self.declare_parameter(
-            "start_paused", False).value else ""  # why no chunks are published; "" = running
+        self._paused = (
+            "waiting for an enable (start_paused)" if self.declare_parameter("start_paused", False).value else ""
+        )  # why no chunks are published; "" = running
         if not checkpoint:
-            raise CheckpointError("the 'checkpoint' parameter is required (an exported policy file, "
-                                  "e.g. -p checkpoint:=runs/pick/policy.pt)")
+            raise CheckpointError(
+                "the 'checkpoint' parameter is required (an exported policy file, "
+                "e.g. -p checkpoint:=runs/pick/policy.pt)"
+            )
         if threads > 0:
             import torch
 
             torch.set_num_threads(int(threads))
         t0 = time.perf_counter()
-        self.policy = load_inference_policy(Path(checkpoint), device=device, precision=precision, jit=jit,
-                                            compile=compile_step)
+        self.policy = load_inference_policy(
+            Path(checkpoint), device=device, precision=precision, jit=jit, compile=compile_step
+        )
         if self.policy.workspace != self.lab.workspace:
-            raise CheckpointError(f"{checkpoint}: trained for workspace {self.policy.workspace}, but lab.yaml "
-                                  f"has {self.lab.workspace}: the voxel grids would not match")
+            raise CheckpointError(
+                f"{checkpoint}: trained for workspace {self.policy.workspace}, but lab.yaml "
+                f"has {self.lab.workspace}: the voxel grids would not match"
+            )
         self.policy.warmup()
         preset = self.policy.preset
         self.n_action_steps = int(n_steps) or int(preset.n_action_steps)
@@ -159,17 +171,20 @@ class PolicyNode(Node):
         self.dt_ns = round(preset.dt * 1e9)
         self.answers = AnswerSchedule(execute_steps, self.n_action_steps, self.dt_ns)
         if latency_s >= 0 and not n_steps:  # enough steps to last until the next chunk arrives
-            self.n_action_steps = steps_to_publish(self.answers.steps, latency_s, preset.dt,
-                                                   preset.horizon - preset.n_obs_steps + 1)
+            self.n_action_steps = steps_to_publish(
+                self.answers.steps, latency_s, preset.dt, preset.horizon - preset.n_obs_steps + 1
+            )
         # real-time chunking: each chunk denoised towards the previous one (None: plain DDIM, as without it)
-        self.chunking = RealTimeChunking(RealTimeChunking.delay_for(max(latency_s, 0.0), preset.dt),
-                                         self.dt_ns) if rtc else None
+        self.chunking = (
+            RealTimeChunking(RealTimeChunking.delay_for(max(latency_s, 0.0), preset.dt), self.dt_ns) if rtc else None
+        )
         self.rng = np.random.default_rng(None if seed < 0 else int(seed))
         self.get_logger().info(
             f"loaded {self.policy.name} policy '{preset.name}' from {checkpoint} on {device} ({precision}) "
             f"and warmed up in {time.perf_counter() - t0:.1f} s; publishing {self.n_action_steps} of "
             f"{preset.horizon} steps, dt {preset.dt} s, executing {self.answers.steps} before the next"
-            f"{'; real-time chunking' if self.chunking is not None else ''}")
+            f"{'; real-time chunking' if self.chunking is not None else ''}"
+        )
 
         self.factory = RclpyFactory()
         self._lock = threading.Lock()
@@ -207,8 +222,11 @@ class PolicyNode(Node):
         with self._cycle_lock:
             previous = self._voxels
             if self._busy and previous is not None and stamp_to_ns(previous.header.stamp) != self._last_obs_stamp:
-                self.skip("busy", "an observation was replaced by a newer one while the previous inference ran",
-                          stamp_to_ns(previous.header.stamp))
+                self.skip(
+                    "busy",
+                    "an observation was replaced by a newer one while the previous inference ran",
+                    stamp_to_ns(previous.header.stamp),
+                )
             self._voxels = msg
         self.start_cycle()
 
@@ -268,8 +286,11 @@ class PolicyNode(Node):
             return self.skip("no_observation", f"no {TOPIC_VOXELS} received yet")
         age = now_ns(self) - stamp_to_ns(msg.header.stamp)
         if age > self.max_obs_age_ns:
-            self.skip("stale_observation", f"newest voxel grid is {age / 1e6:.0f} ms old "
-                      f"(limit {self.max_obs_age_ns / 1e6:.0f} ms): a camera or the voxel node is down")
+            self.skip(
+                "stale_observation",
+                f"newest voxel grid is {age / 1e6:.0f} ms old "
+                f"(limit {self.max_obs_age_ns / 1e6:.0f} ms): a camera or the voxel node is down",
+            )
 
     def start_cycle(self) -> None:
         """Hand the newest unused observation to the worker if it is idle and the inputs are fresh."""
@@ -292,8 +313,11 @@ class PolicyNode(Node):
                 return
             age = now_ns(self) - stamp
             if age > self.max_obs_age_ns:
-                return self.skip("stale_observation", f"a voxel grid {age / 1e6:.0f} ms old arrived "
-                                 f"(limit {self.max_obs_age_ns / 1e6:.0f} ms)", stamp)
+                return self.skip(
+                    "stale_observation",
+                    f"a voxel grid {age / 1e6:.0f} ms old arrived (limit {self.max_obs_age_ns / 1e6:.0f} ms)",
+                    stamp,
+                )
             if self._voxel_error:
                 return self.skip("voxel_error", f"voxel node reports: {self._voxel_error}", stamp)
             with self._lock:
@@ -301,8 +325,11 @@ class PolicyNode(Node):
                 width = self._widths.nearest(stamp, self.max_state_offset_ns)
             if pose is None or width is None:  # no guessed state: training would have dropped this step too
                 missing = TOPIC_EE_POSE if pose is None else f"gripper width on {TOPIC_JOINT_STATES}"
-                return self.skip("no_robot_state", f"no {missing} within "
-                                 f"{self.max_state_offset_ns / 1e6:.0f} ms of the observation", stamp)
+                return self.skip(
+                    "no_robot_state",
+                    f"no {missing} within {self.max_state_offset_ns / 1e6:.0f} ms of the observation",
+                    stamp,
+                )
             self._busy = True
             self.answers.answer(stamp)
             self.obs_age_s.append(age / 1e9)
@@ -332,8 +359,7 @@ class PolicyNode(Node):
                 self.published += 1
         except Exception as err:  # noqa: BLE001 - bad input or a bad prediction: skip it, say why, keep serving
             self.failures += 1
-            self.get_logger().error(f"inference failed: {type(err).__name__}: {err}",
-                                    throttle_duration_sec=2.0)
+            self.get_logger().error(f"inference failed: {type(err).__name__}: {err}", throttle_duration_sec=2.0)
             self.pub_skipped.publish(String(data=json.dumps({"stamp_ns": int(stamp), "reason": "failure"})))
         finally:
             with self._cycle_lock:
@@ -364,8 +390,9 @@ class PolicyNode(Node):
         message = f"{self.published} chunks published"
         if self._paused:
             message = f"paused ({self._paused}), no chunks; {message}"
-        self.pub_diag.publish(cm.diagnostic_array(self.factory, now_ns(self), NODE_NAME, self.policy.name,
-                                                  level, message, values))
+        self.pub_diag.publish(
+            cm.diagnostic_array(self.factory, now_ns(self), NODE_NAME, self.policy.name, level, message, values)
+        )
 
     def shutdown(self) -> None:
         self.worker.shutdown(wait=True, cancel_futures=True)

@@ -58,16 +58,31 @@ from equidiff_ros.runner import run_node
 
 # The contract's profiles, but with deep queues: a recorder must not drop 100 Hz state
 # while a chunk is being flushed to disk (best effort still matches either publisher kind).
-RECORD_SENSOR_QOS = QoSProfile(depth=200, reliability=ReliabilityPolicy.BEST_EFFORT,
-                               durability=DurabilityPolicy.VOLATILE, history=HistoryPolicy.KEEP_LAST)
-RECORD_RELIABLE_QOS = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE,
-                                 durability=DurabilityPolicy.VOLATILE, history=HistoryPolicy.KEEP_LAST)
-RECORD_CLOUD_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.BEST_EFFORT,  # ~5 MB each
-                              durability=DurabilityPolicy.VOLATILE, history=HistoryPolicy.KEEP_LAST)
+RECORD_SENSOR_QOS = QoSProfile(
+    depth=200,
+    reliability=ReliabilityPolicy.BEST_EFFORT,
+    durability=DurabilityPolicy.VOLATILE,
+    history=HistoryPolicy.KEEP_LAST,
+)
+RECORD_RELIABLE_QOS = QoSProfile(
+    depth=100,
+    reliability=ReliabilityPolicy.RELIABLE,
+    durability=DurabilityPolicy.VOLATILE,
+    history=HistoryPolicy.KEEP_LAST,
+)
+RECORD_CLOUD_QOS = QoSProfile(
+    depth=10,
+    reliability=ReliabilityPolicy.BEST_EFFORT,  # ~5 MB each
+    durability=DurabilityPolicy.VOLATILE,
+    history=HistoryPolicy.KEEP_LAST,
+)
 
-USAGE = __doc__ + """
+USAGE = (
+    __doc__
+    + """
 usage: recorder_node [--ros-args -p output_dir:=DIR -p task:=NAME -p operator:=NAME -p record_clouds:=false ...]
 """
+)
 
 BEST_EFFORT_TOPICS = (topics.TOPIC_EE_POSE, topics.TOPIC_JOINT_STATES, topics.TOPIC_JOY)  # match any publisher
 
@@ -126,17 +141,19 @@ class RecorderNode(Node):
                 qos = RECORD_CLOUD_QOS
             else:
                 qos = RECORD_SENSOR_QOS if topic in BEST_EFFORT_TOPICS else RECORD_RELIABLE_QOS
-            self.create_subscription(self.factory.cls(msgtype), topic, self._writer_cb(topic, msgtype), qos,
-                                     raw=True)
+            self.create_subscription(self.factory.cls(msgtype), topic, self._writer_cb(topic, msgtype), qos, raw=True)
         String = self.factory.cls("std_msgs/msg/String")
         Trigger = self.factory.cls("std_srvs/srv/Trigger")
         self.status_pub = self.create_publisher(String, topics.TOPIC_RECORDER_STATUS, LATCHED_QOS)
-        self.create_subscription(self.factory.cls("std_msgs/msg/Bool"), TOPIC_TELEOP_ACTIVE,
-                                 self.on_teleop_active, LATCHED_QOS)
+        self.create_subscription(
+            self.factory.cls("std_msgs/msg/Bool"), TOPIC_TELEOP_ACTIVE, self.on_teleop_active, LATCHED_QOS
+        )
         self.create_subscription(String, TOPIC_RECORDER_COMMAND, self.on_command, RELIABLE_QOS)
         self.create_service(Trigger, topics.SERVICE_RECORDER_START, self._service(lambda: self.start()))
         self.create_service(Trigger, topics.SERVICE_RECORDER_STOP, self._service(lambda: self.stop(success=True)))
-        self.create_service(Trigger, topics.SERVICE_RECORDER_STOP_FAILURE, self._service(lambda: self.stop(success=False)))
+        self.create_service(
+            Trigger, topics.SERVICE_RECORDER_STOP_FAILURE, self._service(lambda: self.stop(success=False))
+        )
         self.create_service(Trigger, topics.SERVICE_RECORDER_DISCARD, self._service(self.discard))
         self.create_timer(0.5, self.housekeeping)
         self.publish_status()
@@ -206,6 +223,7 @@ class RecorderNode(Node):
             with self.lock:
                 if self.writer is not None:
                     self.writer.write_raw(topic, now_ns(self), data, msgtype)
+
         return cb
 
     def _service(self, action):
@@ -217,6 +235,7 @@ class RecorderNode(Node):
                 response.success, response.message = False, str(err)
                 self.get_logger().error(str(err))
             return response
+
         return handler
 
     def on_command(self, msg):
@@ -247,14 +266,19 @@ class RecorderNode(Node):
 
     def start_keyboard(self):
         if not sys.stdin or not sys.stdin.isatty():
-            self.get_logger().warn("keyboard:=true but stdin is not a terminal; use services or "
-                                   f"{TOPIC_RECORDER_COMMAND}")
+            self.get_logger().warn(
+                f"keyboard:=true but stdin is not a terminal; use services or {TOPIC_RECORDER_COMMAND}"
+            )
             return
         print("recorder keys: s=start  k=keep (success)  f=keep (failure)  d=discard  [Enter]", flush=True)
 
         def loop():
-            actions = {"s": self.start, "k": lambda: self.stop(success=True),
-                       "f": lambda: self.stop(success=False), "d": self.discard}
+            actions = {
+                "s": self.start,
+                "k": lambda: self.stop(success=True),
+                "f": lambda: self.stop(success=False),
+                "d": self.discard,
+            }
             for line in sys.stdin:
                 key = line.strip()[:1].lower()
                 if key in actions:
@@ -262,6 +286,7 @@ class RecorderNode(Node):
                         print(actions[key](), flush=True)
                     except RecordingError as err:
                         print(f"recorder: {err}", flush=True)
+
         threading.Thread(target=loop, daemon=True, name="recorder-keyboard").start()
 
     def shutdown(self):

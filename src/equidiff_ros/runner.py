@@ -15,16 +15,26 @@ import threading
 from collections.abc import Callable, Sequence
 
 
-def run_node(name: str, usage: str, build_node: Callable[[], object],
-             startup_errors: Callable[[], tuple[type[BaseException], ...]], args: Sequence[str] | None = None) -> int:
+def run_node(
+    name: str,
+    usage: str,
+    build_node: Callable[[], object],
+    startup_errors: Callable[[], tuple[type[BaseException], ...]],
+    args: Sequence[str] | None = None,
+) -> int:
     """Build (``build_node()``: usually the node class) and spin a node; exit 1 with a one-line
     message on an expected start-up error (``startup_errors()``: the exception types)."""
     return run_nodes(name, usage, [build_node], startup_errors, args)
 
 
-def run_nodes(name: str, usage: str, builders: Sequence[Callable[[], object]],
-              startup_errors: Callable[[], tuple[type[BaseException], ...]], args: Sequence[str] | None = None,
-              multithreaded: bool = False) -> int:
+def run_nodes(
+    name: str,
+    usage: str,
+    builders: Sequence[Callable[[], object]],
+    startup_errors: Callable[[], tuple[type[BaseException], ...]],
+    args: Sequence[str] | None = None,
+    multithreaded: bool = False,
+) -> int:
     """``run_node`` for several nodes in one process (``equidiff_ros.composed``): built in order,
     spun by one executor (a MultiThreadedExecutor with ``multithreaded``, so a slow callback of
     one node does not hold up the others), shut down newest first."""

@@ -57,9 +57,12 @@ from equidiff_ros.common import (
 )
 from equidiff_ros.runner import run_node
 
-USAGE = __doc__ + """
+USAGE = (
+    __doc__
+    + """
 usage: teleop_node [--ros-args -p source:=joy|spacemouse -p gripper_mode:=buttons|toggle|hold ...]
 """
+)
 
 
 class TeleopNode(Node):
@@ -79,16 +82,19 @@ class TeleopNode(Node):
         self.last_publish_ns = 0
         self.last_tick_ns: int | None = None
 
-        self.pub = self.create_publisher(self.factory.cls("trajectory_msgs/msg/MultiDOFJointTrajectory"),
-                                         TOPIC_COMMAND_CHUNK, RELIABLE_QOS)
+        self.pub = self.create_publisher(
+            self.factory.cls("trajectory_msgs/msg/MultiDOFJointTrajectory"), TOPIC_COMMAND_CHUNK, RELIABLE_QOS
+        )
         self.Bool = self.factory.cls("std_msgs/msg/Bool")
         self.pub_active = self.create_publisher(self.Bool, TOPIC_TELEOP_ACTIVE, LATCHED_QOS)
         self.taken_over = False
         self.pub_active.publish(self.Bool(data=False))
-        self.create_subscription(self.factory.cls("geometry_msgs/msg/PoseStamped"), TOPIC_EE_POSE,
-                                 self.on_pose, SENSOR_QOS)
-        self.create_subscription(self.factory.cls("sensor_msgs/msg/JointState"), TOPIC_JOINT_STATES,
-                                 self.on_joints, SENSOR_QOS)
+        self.create_subscription(
+            self.factory.cls("geometry_msgs/msg/PoseStamped"), TOPIC_EE_POSE, self.on_pose, SENSOR_QOS
+        )
+        self.create_subscription(
+            self.factory.cls("sensor_msgs/msg/JointState"), TOPIC_JOINT_STATES, self.on_joints, SENSOR_QOS
+        )
         self.device = None
         if self.cfg.source == "spacemouse":
             self.device = SpaceMouseSource(self.cfg.device)
@@ -96,8 +102,10 @@ class TeleopNode(Node):
         else:
             self.create_subscription(self.factory.cls("sensor_msgs/msg/Joy"), TOPIC_JOY, self.on_joy, SENSOR_QOS)
         self.create_timer(1.0 / self.cfg.rate_hz, self.tick)
-        self.get_logger().info(f"teleop from {self.cfg.source} ({TOPIC_JOY if self.device is None else 'HID'}), "
-                               f"{self.cfg.translation_frame}-frame translation, gripper {self.cfg.gripper_mode}")
+        self.get_logger().info(
+            f"teleop from {self.cfg.source} ({TOPIC_JOY if self.device is None else 'HID'}), "
+            f"{self.cfg.translation_frame}-frame translation, gripper {self.cfg.gripper_mode}"
+        )
 
     def on_pose(self, msg):
         try:
@@ -112,8 +120,9 @@ class TeleopNode(Node):
     def on_joints(self, msg):
         names = list(msg.name)
         if "fr3_finger_joint1" in names and "fr3_finger_joint2" in names:
-            self.width_measured = float(msg.position[names.index("fr3_finger_joint1")]
-                                        + msg.position[names.index("fr3_finger_joint2")])
+            self.width_measured = float(
+                msg.position[names.index("fr3_finger_joint1")] + msg.position[names.index("fr3_finger_joint2")]
+            )
 
     def on_joy(self, msg):
         try:
@@ -125,8 +134,10 @@ class TeleopNode(Node):
         if inp.stamp_ns <= 0:
             if not self.warned_unstamped:
                 self.warned_unstamped = True
-                self.get_logger().warn(f"{TOPIC_JOY} messages carry no header stamp: their age is "
-                                       "counted from receipt, so a stalled driver is noticed late")
+                self.get_logger().warn(
+                    f"{TOPIC_JOY} messages carry no header stamp: their age is "
+                    "counted from receipt, so a stalled driver is noticed late"
+                )
             stamp = received
         else:
             # Messages delayed in transport are as old as their stamp; a stamp from the future
@@ -136,7 +147,8 @@ class TeleopNode(Node):
                 self.get_logger().warn(
                     f"{TOPIC_JOY} stamps are {(received - inp.stamp_ns) / 1e9:.1f} s behind this node's "
                     "clock (use_sim_time on one side only?): input treated as stale, teleop holds",
-                    throttle_duration_sec=5.0)
+                    throttle_duration_sec=5.0,
+                )
         self.input = dataclasses.replace(inp, stamp_ns=stamp)
 
     def tick(self):
@@ -157,8 +169,9 @@ class TeleopNode(Node):
                 self.set_taken_over(False)
             return
         if self.measured is None:
-            self.get_logger().warn(f"operator input but no {TOPIC_EE_POSE} yet: not commanding",
-                                   throttle_duration_sec=2.0)
+            self.get_logger().warn(
+                f"operator input but no {TOPIC_EE_POSE} yet: not commanding", throttle_duration_sec=2.0
+            )
             return
         if not self.taken_over:
             self.set_taken_over(True)

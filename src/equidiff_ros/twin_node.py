@@ -63,9 +63,12 @@ from equidiff_ros.common import (
 )
 from equidiff_ros.runner import declare_number, run_node
 
-USAGE = __doc__ + """
+USAGE = (
+    __doc__
+    + """
 usage: twin_node [--ros-args -p host:=127.0.0.1 -p seed:=0 -p twin_config:=config/twin.yaml]
 """
+)
 
 NODE_NAME = "twin_node"
 CLOCKS = ("sim", "realtime")
@@ -87,18 +90,28 @@ class TwinNode(Node):
         if clock == "sim":
             periods = {round(1000 / c.publish_hz) for c in self.lab.cameras}
             if len(periods) != 1:
-                raise ValueError(f"on simulated time every camera must publish at the same rate; lab.yaml has "
-                                 f"{sorted(c.publish_hz for c in self.lab.cameras)} Hz")
+                raise ValueError(
+                    f"on simulated time every camera must publish at the same rate; lab.yaml has "
+                    f"{sorted(c.publish_hz for c in self.lab.cameras)} Hz"
+                )
             lockstep = LockstepConfig(
                 frame_period_ticks=periods.pop(),
                 latency_ticks=round(1000 * self.declare_parameter("latency_s", 0.1).value),
                 stall_timeout_s=declare_number(self, "stall_timeout_s", 30.0),
-                max_speed=float(self.declare_parameter("max_speed", 1.0).value))
+                max_speed=float(self.declare_parameter("max_speed", 1.0).value),
+            )
             # best effort like rclpy's own /clock subscription; a lost message is repeated while the sim waits
-            self.pub_clock = self.create_publisher(Clock, TOPIC_CLOCK, QoSProfile(
-                depth=1, reliability=ReliabilityPolicy.BEST_EFFORT))
-        self.twin = TwinSim(self.cfg, host=host or None, shm_name=shm, lockstep=lockstep,
-                            on_clock=self.publish_clock, camera_names=tuple(c.name for c in self.lab.cameras))
+            self.pub_clock = self.create_publisher(
+                Clock, TOPIC_CLOCK, QoSProfile(depth=1, reliability=ReliabilityPolicy.BEST_EFFORT)
+            )
+        self.twin = TwinSim(
+            self.cfg,
+            host=host or None,
+            shm_name=shm,
+            lockstep=lockstep,
+            on_clock=self.publish_clock,
+            camera_names=tuple(c.name for c in self.lab.cameras),
+        )
         self.pub_scene = self.create_publisher(String, TOPIC_TWIN_SCENE, LATCHED_QOS)
         self.pub_state = self.create_publisher(String, TOPIC_TWIN_STATE, RELIABLE_QOS)
         self.create_subscription(Int64, TOPIC_TWIN_RESET, self.on_reset, RELIABLE_QOS)
@@ -106,21 +119,32 @@ class TwinNode(Node):
             ls = self.twin.lockstep
             self.create_subscription(Bool, TOPIC_TWIN_AWAIT_POLICY, lambda m: ls.set_awaiting(m.data), LATCHED_QOS)
             # stamps only: read from the serialised messages (a voxel grid is up to 1 MiB)
-            self.create_subscription(MultiDOFJointTrajectory, TOPIC_COMMAND_CHUNK,
-                                     lambda m: ls.on_chunk(header_stamp_ns_from_cdr(m)), RELIABLE_QOS, raw=True)
-            self.create_subscription(PointCloud2, TOPIC_VOXELS,
-                                     lambda m: ls.on_voxels(header_stamp_ns_from_cdr(m)), VOXEL_QOS, raw=True)
-            self.create_subscription(String, TOPIC_POLICY_SKIPPED,
-                                     lambda m: ls.on_skipped(json.loads(m.data)["stamp_ns"]), RELIABLE_QOS)
+            self.create_subscription(
+                MultiDOFJointTrajectory,
+                TOPIC_COMMAND_CHUNK,
+                lambda m: ls.on_chunk(header_stamp_ns_from_cdr(m)),
+                RELIABLE_QOS,
+                raw=True,
+            )
+            self.create_subscription(
+                PointCloud2, TOPIC_VOXELS, lambda m: ls.on_voxels(header_stamp_ns_from_cdr(m)), VOXEL_QOS, raw=True
+            )
+            self.create_subscription(
+                String, TOPIC_POLICY_SKIPPED, lambda m: ls.on_skipped(json.loads(m.data)["stamp_ns"]), RELIABLE_QOS
+            )
         self.twin.start(seed)
         self.create_timer(1.0 / self.cfg.sim.status_hz, self.publish_state)
         self.publish_scene()
         self.get_logger().info(
             f"franky-sim serving on {self.twin.host} (robot_ip:={self.twin.host}); state in shared memory "
-            f"{self.twin.shm_name!r}; seed {seed}; " + (
-                "real time" if lockstep is None else
-                f"simulated time on /clock, latency budget {lockstep.latency_ticks} ms, "
-                f"at most {lockstep.max_speed or 'unbounded'}x real time"))
+            f"{self.twin.shm_name!r}; seed {seed}; "
+            + (
+                "real time"
+                if lockstep is None
+                else f"simulated time on /clock, latency budget {lockstep.latency_ticks} ms, "
+                f"at most {lockstep.max_speed or 'unbounded'}x real time"
+            )
+        )
 
     def publish_clock(self, t_ns: int) -> None:
         msg = Clock()

@@ -87,8 +87,15 @@ class SupervisorError(RuntimeError):
 class Supervisor:
     """The job's node. ``sim_time``: its clock is the twin's /clock and chunks are held for ``latency_s``."""
 
-    def __init__(self, base_frame: str = "fr3_link0", command_lead_s: float = 0.05, name: str = "twin_supervisor",
-                 sim_time: bool = False, latency_s: float = 0.0, stall_timeout_s: float = 30.0):
+    def __init__(
+        self,
+        base_frame: str = "fr3_link0",
+        command_lead_s: float = 0.05,
+        name: str = "twin_supervisor",
+        sim_time: bool = False,
+        latency_s: float = 0.0,
+        stall_timeout_s: float = 30.0,
+    ):
         if not rclpy.ok():
             # No rclpy signal handlers: Ctrl-C must raise KeyboardInterrupt in the job's main thread
             # (rclpy's would only shut the context down under it) so every node gets stopped.
@@ -123,8 +130,9 @@ class Supervisor:
         self.pub_await = n.create_publisher(Bool, TOPIC_TWIN_AWAIT_POLICY, LATCHED_QOS)
         self._Bool = Bool
         if self.sim_time:  # best effort: the publisher's QoS (a reliable subscription would not match it)
-            n.create_subscription(Clock, TOPIC_CLOCK, self._on_clock,
-                                  QoSProfile(depth=10, reliability=ReliabilityPolicy.BEST_EFFORT))
+            n.create_subscription(
+                Clock, TOPIC_CLOCK, self._on_clock, QoSProfile(depth=10, reliability=ReliabilityPolicy.BEST_EFFORT)
+            )
         n.create_subscription(MultiDOFJointTrajectory, TOPIC_TWIN_POLICY_CHUNK, self._on_policy_chunk, RELIABLE_QOS)
         n.create_subscription(PoseStamped, TOPIC_EE_POSE, self._on_pose, RELIABLE_QOS)
         n.create_subscription(JointState, TOPIC_JOINT_STATES, self._on_joints, RELIABLE_QOS)
@@ -177,8 +185,10 @@ class Supervisor:
         if now != seen:
             self._clock_seen = (now, time.monotonic())
         elif time.monotonic() - since > self.stall_timeout_s + 10.0:
-            raise SupervisorError(f"the sim clock has stood at t={now / NS:.3f} s for {time.monotonic() - since:.0f} s "
-                                  f"of wall time: twin_node is hung ({self.twin().get('last_stall') or 'no stall reported'})")
+            raise SupervisorError(
+                f"the sim clock has stood at t={now / NS:.3f} s for {time.monotonic() - since:.0f} s "
+                f"of wall time: twin_node is hung ({self.twin().get('last_stall') or 'no stall reported'})"
+            )
 
     # -- callbacks ------------------------------------------------------------------------------
     def _on_policy_chunk(self, msg):
@@ -275,8 +285,12 @@ class Supervisor:
         self.wait_for(lambda: self.twin_state is not None, timeout_s, "twin_node's /twin/state", check)
         if self.sim_time:
             self.wait_for(lambda: self.now_ns() > 0, timeout_s, "twin_node's /clock (simulated time)", check)
-        self.wait_for(lambda: self.ee_pose is not None and self.width is not None, timeout_s,
-                      "franka_node's /franka/ee_pose and joint states", check)
+        self.wait_for(
+            lambda: self.ee_pose is not None and self.width is not None,
+            timeout_s,
+            "franka_node's /franka/ee_pose and joint states",
+            check,
+        )
 
     # -- commanding --------------------------------------------------------------------------------
     def sim_sleep(self, seconds: float, check=None) -> None:
@@ -290,17 +304,27 @@ class Supervisor:
 
     def send_target(self, pose: np.ndarray, width: float) -> None:
         now = self.now_ns()
-        chunk = PoseChunk(now, np.array([now + self.lead_ns], dtype=np.int64), np.asarray(pose)[None].copy(),
-                          np.array([float(width)]))
+        chunk = PoseChunk(
+            now, np.array([now + self.lead_ns], dtype=np.int64), np.asarray(pose)[None].copy(), np.array([float(width)])
+        )
         self.pub_chunk.publish(chunk_to_msg(chunk, self.factory, self.frame))
 
     def current(self) -> tuple[np.ndarray, float]:
         with self.lock:
             return self.ee_pose.copy(), float(self.width)
 
-    def move_to(self, target: np.ndarray, width: float, speed: float = 0.12, angular_speed: float = 1.0,
-                timeout_s: float = 20.0, tol_m: float = 0.01, hz: float = 20.0, max_lag_m: float = 0.03,
-                check=None) -> None:
+    def move_to(
+        self,
+        target: np.ndarray,
+        width: float,
+        speed: float = 0.12,
+        angular_speed: float = 1.0,
+        timeout_s: float = 20.0,
+        tol_m: float = 0.01,
+        hz: float = 20.0,
+        max_lag_m: float = 0.03,
+        check=None,
+    ) -> None:
         """Stream teleop-like targets along a straight line to ``target`` (never a jump the safety
         filter would reject; ``expert.LinePath`` waits for the arm and restarts from it), then hold
         until the TCP is within ``tol_m`` and the gripper settled."""
@@ -322,16 +346,22 @@ class Supervisor:
                     return
             time.sleep(1.0 / hz)
         now, w = self.current()
-        raise SupervisorError(f"the arm did not reach {np.round(p1, 3).tolist()} within {timeout_s:.0f} s of sim time "
-                              f"({timeout_s / rate:.0f} s of the node's clock at {rate:.2f}x; TCP at "
-                              f"{np.round(now[:3, 3], 3).tolist()}, {100 * path.s:.0f} % along the path "
-                              f"after {path.restarts} restart(s) from the arm, "
-                              f"gripper {w * 1000:.0f} mm for {width * 1000:.0f} mm)")
+        raise SupervisorError(
+            f"the arm did not reach {np.round(p1, 3).tolist()} within {timeout_s:.0f} s of sim time "
+            f"({timeout_s / rate:.0f} s of the node's clock at {rate:.2f}x; TCP at "
+            f"{np.round(now[:3, 3], 3).tolist()}, {100 * path.s:.0f} % along the path "
+            f"after {path.restarts} restart(s) from the arm, "
+            f"gripper {w * 1000:.0f} mm for {width * 1000:.0f} mm)"
+        )
 
     def reset_scene(self, seed: int, timeout_s: float = 10.0, check=None) -> dict:
         self.pub_reset.publish(self._Int64(data=int(seed)))
-        return self.wait_for(lambda: self.scene if self.scene and self.scene.get("seed") == seed else None,
-                             timeout_s, f"{TOPIC_TWIN_SCENE} for seed {seed}", check)
+        return self.wait_for(
+            lambda: self.scene if self.scene and self.scene.get("seed") == seed else None,
+            timeout_s,
+            f"{TOPIC_TWIN_SCENE} for seed {seed}",
+            check,
+        )
 
     def sim_rate(self) -> float:
         """How fast the twin runs against the wall clock (0.05-1): timeouts and plan clocks scale by it."""
@@ -348,16 +378,24 @@ class Supervisor:
         if not self.ack_client.wait_for_service(timeout_sec=timeout_s):
             raise SupervisorError(f"no {SERVICE_FRANKA_ACKNOWLEDGE} service: is franka_node running?")
         future = self.ack_client.call_async(self._Trigger.Request())
-        response = self.wait_for(lambda: future.result() if future.done() else None, timeout_s,
-                                 f"{SERVICE_FRANKA_ACKNOWLEDGE}'s answer", check)
+        response = self.wait_for(
+            lambda: future.result() if future.done() else None,
+            timeout_s,
+            f"{SERVICE_FRANKA_ACKNOWLEDGE}'s answer",
+            check,
+        )
         if not response.success:
             raise SupervisorError(f"franka_node refused the acknowledgement: {response.message}")
         return response.message.removeprefix("acknowledged: ") if response.message.startswith("acknowledged") else ""
 
     def recorder(self, command: str, expect_prefix: str, timeout_s: float = 10.0, check=None) -> str:
         self.pub_recorder.publish(self._String(data=command))
-        return self.wait_for(lambda: self.recorder_status if self.recorder_status.startswith(expect_prefix) else None,
-                             timeout_s, f"recorder status '{expect_prefix}…' after '{command}'", check)
+        return self.wait_for(
+            lambda: self.recorder_status if self.recorder_status.startswith(expect_prefix) else None,
+            timeout_s,
+            f"recorder status '{expect_prefix}…' after '{command}'",
+            check,
+        )
 
     def open_gate(self) -> None:
         """Start forwarding policy chunks answering observations from now on (and, on simulated
@@ -378,11 +416,11 @@ class Supervisor:
         with self.lock:
             self.gate_open = False
             self._held = []
-            return (list(self.chunk_arrivals), list(self.dropped), list(self.end_to_end_ms),
-                    list(self.inference_ms))
+            return (list(self.chunk_arrivals), list(self.dropped), list(self.end_to_end_ms), list(self.inference_ms))
 
 
 # --- bringing up the twin stack -------------------------------------------------------------------
+
 
 class TwinStack:
     """All nodes of the twin as separate processes on a private ROS domain, plus the supervisor.
@@ -398,11 +436,28 @@ class TwinStack:
     wall clock, as on a lab machine; only meaningful where the machine holds real time.
     """
 
-    def __init__(self, out_dir, lab_path, twin_path, policy: str | None = None, domain_id: int | None = None,
-                 task: str = "twin", device: str = "cpu", seed: int = 0, record_clouds: bool = False,
-                 start_timeout_s: float = 120.0, torch_threads: int | None = None, lenient: bool = False,
-                 attach: bool = False, realtime: bool = False, latency_s: float = 0.1,
-                 stall_timeout_s: float = 30.0, max_speed: float = 1.0, composed: bool = False, log=print):
+    def __init__(
+        self,
+        out_dir,
+        lab_path,
+        twin_path,
+        policy: str | None = None,
+        domain_id: int | None = None,
+        task: str = "twin",
+        device: str = "cpu",
+        seed: int = 0,
+        record_clouds: bool = False,
+        start_timeout_s: float = 120.0,
+        torch_threads: int | None = None,
+        lenient: bool = False,
+        attach: bool = False,
+        realtime: bool = False,
+        latency_s: float = 0.1,
+        stall_timeout_s: float = 30.0,
+        max_speed: float = 1.0,
+        composed: bool = False,
+        log=print,
+    ):
         self.out_dir = Path(out_dir)
         self.lab_path, self.twin_path = Path(lab_path), Path(twin_path)
         self.lab = load_lab_config(self.lab_path)
@@ -428,8 +483,9 @@ class TwinStack:
             self.sup = self._supervisor()
             try:
                 self.sup.wait_ready(self.start_timeout_s)
-                self.sup.wait_for(lambda: self.sup.recorder_status.startswith("idle"), self.start_timeout_s,
-                                  "recorder_node")
+                self.sup.wait_for(
+                    lambda: self.sup.recorder_status.startswith("idle"), self.start_timeout_s, "recorder_node"
+                )
             except BaseException:
                 self.__exit__(None, None, None)
                 raise
@@ -450,22 +506,41 @@ class TwinStack:
         return self
 
     def _supervisor(self) -> Supervisor:
-        return Supervisor(self.lab.base_frame, sim_time=not self.realtime, latency_s=self.latency_s,
-                          stall_timeout_s=self.stall_timeout_s)
+        return Supervisor(
+            self.lab.base_frame,
+            sim_time=not self.realtime,
+            latency_s=self.latency_s,
+            stall_timeout_s=self.stall_timeout_s,
+        )
 
     def _start_nodes(self, node_command) -> None:
         g = self.group
         sim = not self.realtime
-        clock = (f"simulated time (latency budget {self.latency_s * 1000:.0f} ms)" if sim else "real time")
-        self.log(f"[twin] ROS_DOMAIN_ID={self.domain_id}; franky-sim on {self.host}; {clock}; logs in {g.log_dir}"
-                 + ("; the pipeline's nodes in one process" if self.composed else ""))
-        g.start("twin_node", node_command("twin_node", {
-            "lab_config": str(self.lab_path), "twin_config": str(self.twin_path), "host": self.host,
-            "seed": self.seed, "clock": "sim" if sim else "realtime", "latency_s": float(self.latency_s),
-            "stall_timeout_s": float(self.stall_timeout_s), "max_speed": float(self.max_speed)}))
+        clock = f"simulated time (latency budget {self.latency_s * 1000:.0f} ms)" if sim else "real time"
+        self.log(
+            f"[twin] ROS_DOMAIN_ID={self.domain_id}; franky-sim on {self.host}; {clock}; logs in {g.log_dir}"
+            + ("; the pipeline's nodes in one process" if self.composed else "")
+        )
+        g.start(
+            "twin_node",
+            node_command(
+                "twin_node",
+                {
+                    "lab_config": str(self.lab_path),
+                    "twin_config": str(self.twin_path),
+                    "host": self.host,
+                    "seed": self.seed,
+                    "clock": "sim" if sim else "realtime",
+                    "latency_s": float(self.latency_s),
+                    "stall_timeout_s": float(self.stall_timeout_s),
+                    "max_speed": float(self.max_speed),
+                },
+            ),
+        )
         self.sup = self._supervisor()
-        self.sup.wait_for(lambda: self.sup.twin_state is not None, self.start_timeout_s,
-                          "twin_node's /twin/state", g.check)
+        self.sup.wait_for(
+            lambda: self.sup.twin_state is not None, self.start_timeout_s, "twin_node's /twin/state", g.check
+        )
         specs = self._pipeline_specs()
         if self.composed:  # one node per camera would need one name each: one camera_node serves them all
             nodes = {"camera_node": {**specs.pop(f"camera_{self.lab.cameras[0].name}")[0], "camera": ""}}
@@ -473,18 +548,26 @@ class TwinStack:
                 del specs[name]
             nodes.update({name: params for name, (params, _remaps) in specs.items()})
             remaps = {name: r for name, (_params, r) in specs.items() if r}
-            g.start("pipeline", composed_command(nodes, self.out_dir / "logs" / "pipeline_params.yaml", remaps),
-                    priority=True)  # franka_node is in it
+            g.start(
+                "pipeline",
+                composed_command(nodes, self.out_dir / "logs" / "pipeline_params.yaml", remaps),
+                priority=True,
+            )  # franka_node is in it
         else:
             for name, (params, remaps) in specs.items():
                 executable = "camera_node" if name.startswith("camera_") else name
                 g.start(name, node_command(executable, params, remaps), priority=name == "franka_node")
         self.sup.wait_ready(self.start_timeout_s, g.check)
-        self.sup.wait_for(lambda: self.sup.recorder_status.startswith("idle"), self.start_timeout_s,
-                          "recorder_node", g.check)
+        self.sup.wait_for(
+            lambda: self.sup.recorder_status.startswith("idle"), self.start_timeout_s, "recorder_node", g.check
+        )
         if self.policy:  # an episode must not owe chunks to a policy still loading its checkpoint
-            self.sup.wait_for(lambda: self.sup.policy_chunks_seen > 0, self.start_timeout_s,
-                              "policy_node's first chunk (loading and warming up the policy)", g.check)
+            self.sup.wait_for(
+                lambda: self.sup.policy_chunks_seen > 0,
+                self.start_timeout_s,
+                "policy_node's first chunk (loading and warming up the policy)",
+                g.check,
+            )
         self.log("[twin] all nodes up")
 
     def _pipeline_specs(self) -> dict[str, tuple[dict, dict]]:
@@ -494,23 +577,47 @@ class TwinStack:
         clouds = {"reliable_clouds": True} if sim else {}  # the lockstep owes every frame a chunk
         specs = {}
         for cam in self.lab.cameras:
-            specs[f"camera_{cam.name}"] = ({**common, **clouds, "backend": "twin", "camera": cam.name,
-                                            **({"backend_options": "{lockstep: true}"} if sim else {})}, {})
+            specs[f"camera_{cam.name}"] = (
+                {
+                    **common,
+                    **clouds,
+                    "backend": "twin",
+                    "camera": cam.name,
+                    **({"backend_options": "{lockstep: true}"} if sim else {}),
+                },
+                {},
+            )
         voxel = {"stale_after_s": 3.0, "slop_s": 0.15} if self.lenient and not sim else {}
         specs["voxel_node"] = ({**common, **clouds, **voxel}, {})
         # run_dir: its unclean-exit marker lives with this job's logs, not in the machine's tmp
-        specs["franka_node"] = ({**common, "robot_ip": self.host, "realtime": False,
-                                 "run_dir": str(self.out_dir / "logs")}, {})
-        specs["recorder_node"] = ({**common, "output_dir": str(self.out_dir / "bags"), "task": self.task,
-                                   "record_clouds": self.record_clouds}, {})
+        specs["franka_node"] = (
+            {**common, "robot_ip": self.host, "realtime": False, "run_dir": str(self.out_dir / "logs")},
+            {},
+        )
+        specs["recorder_node"] = (
+            {
+                **common,
+                "output_dir": str(self.out_dir / "bags"),
+                "task": self.task,
+                "record_clouds": self.record_clouds,
+            },
+            {},
+        )
         if self.policy:
             if sim:  # an observation is at most L old in sim time when its chunk is due
                 ages = {"max_observation_age_s": max(0.5, self.latency_s + 0.2)}
             else:
                 ages = {"max_observation_age_s": 4.0, "max_state_offset_s": 0.5} if self.lenient else {}
-            specs["policy_node"] = ({**common, "checkpoint": str(self.policy), "device": self.device,
-                                     "torch_threads": self.torch_threads, **ages},
-                                    {TOPIC_COMMAND_CHUNK: TOPIC_TWIN_POLICY_CHUNK})
+            specs["policy_node"] = (
+                {
+                    **common,
+                    "checkpoint": str(self.policy),
+                    "device": self.device,
+                    "torch_threads": self.torch_threads,
+                    **ages,
+                },
+                {TOPIC_COMMAND_CHUNK: TOPIC_TWIN_POLICY_CHUNK},
+            )
         return specs
 
     def __exit__(self, *exc) -> None:
@@ -537,11 +644,17 @@ class TwinStack:
 
         stopped = self.sup.acknowledge_stop(check=self.check)
         if stopped:
-            print(f"[twin] franka_node held after '{stopped}'; acknowledged (as the operator) before homing",
-                  flush=True)
+            print(
+                f"[twin] franka_node held after '{stopped}'; acknowledged (as the operator) before homing", flush=True
+            )
         ex = self.cfg.expert
-        self.sup.move_to(tcp_pose(ex.ready_position, 0.0), ex.open_width, speed=ex.speed,
-                         timeout_s=self.cfg.episode.home_timeout_s, check=self.check)
+        self.sup.move_to(
+            tcp_pose(ex.ready_position, 0.0),
+            ex.open_width,
+            speed=ex.speed,
+            timeout_s=self.cfg.episode.home_timeout_s,
+            check=self.check,
+        )
 
 
 def object_poses_from_state(state: dict) -> tuple[np.ndarray, np.ndarray]:
@@ -603,8 +716,12 @@ class GatedPolicy:
         self.stalls0 = sup.twin().get("stalls", 0)
         sup.open_gate()
         gate_t = sup.now_ns() / NS
-        sup.wait_for(lambda: sup.chunk_arrivals or sup.twin().get("stalls", 0) > self.stalls0,
-                     60.0 + self.stack.stall_timeout_s, "the first policy chunk", self.stack.check)
+        sup.wait_for(
+            lambda: sup.chunk_arrivals or sup.twin().get("stalls", 0) > self.stalls0,
+            60.0 + self.stack.stall_timeout_s,
+            "the first policy chunk",
+            self.stack.check,
+        )
         return sup.chunk_arrivals[0] if sup.chunk_arrivals else gate_t
 
     def advance(self) -> None:
@@ -637,8 +754,14 @@ class LiveExpert:
     expert gives up. An arm that never catches up (blocked, in a reflex) raises
     SupervisorError after ``timeout_s`` (default: 30 s + 10x the plan)."""
 
-    def __init__(self, stack: TwinStack, hz: float | None = None, max_lag_m: float = 0.03, extra_s: float = 4.0,
-                 timeout_s: float | None = None):
+    def __init__(
+        self,
+        stack: TwinStack,
+        hz: float | None = None,
+        max_lag_m: float = 0.03,
+        extra_s: float = 4.0,
+        timeout_s: float | None = None,
+    ):
         self.stack, self.sup, self.cfg = stack, stack.sup, stack.cfg
         self.hz = hz or self.cfg.expert.command_hz
         self.max_lag_m, self.extra_s, self.timeout_s = max_lag_m, extra_s, timeout_s
@@ -660,8 +783,10 @@ class LiveExpert:
         now = sup.now_ns() / NS
         if now > self.deadline:
             lag_mm = 1000 * np.linalg.norm(sup.current()[0][:3, 3] - plan.target_at(self.t_plan)[0][:3, 3])
-            raise SupervisorError(f"the scripted expert's {plan.duration:.0f} s plan did not finish in time: "
-                                  f"plan clock at {self.t_plan:.1f} s, TCP {lag_mm:.0f} mm from its target")
+            raise SupervisorError(
+                f"the scripted expert's {plan.duration:.0f} s plan did not finish in time: "
+                f"plan clock at {self.t_plan:.1f} s, TCP {lag_mm:.0f} mm from its target"
+            )
         dt, self.last = now - self.last, now
         pose, width = plan.target_at(self.t_plan)
         keeping_up = np.linalg.norm(sup.current()[0][:3, 3] - pose[:3, 3]) < self.max_lag_m
@@ -695,7 +820,14 @@ def run_policy_episode(stack: TwinStack, seed: int, max_duration_s: float) -> Ep
 
     policy = GatedPolicy(stack)
     result = run_episode(LiveTwin(stack), policy, seed, max_duration_s, stack.cfg.success.hold_s)
-    return EpisodeRecord(seed=seed, success=result.success, duration_s=result.duration_s, chunks=len(policy.arrivals),
-                         dropped_cycles=len(policy.dropped),  # observations due an answer that got none
-                         bag=result.bag, end_to_end_ms=policy.end_to_end_ms, inference_ms=policy.inference_ms,
-                         stalled=result.stalled)
+    return EpisodeRecord(
+        seed=seed,
+        success=result.success,
+        duration_s=result.duration_s,
+        chunks=len(policy.arrivals),
+        dropped_cycles=len(policy.dropped),  # observations due an answer that got none
+        bag=result.bag,
+        end_to_end_ms=policy.end_to_end_ms,
+        inference_ms=policy.inference_ms,
+        stalled=result.stalled,
+    )

@@ -78,20 +78,23 @@ class VizNode(Node):
                     self.viz.log_message(topic, msg, receive_ns)
             except Exception as err:  # noqa: BLE001 - a viewer must never take the graph down; say why, keep going
                 self.failures += 1
-                self.get_logger().error(f"could not log {topic}: {type(err).__name__}: {err}",
-                                        throttle_duration_sec=5.0)
+                self.get_logger().error(
+                    f"could not log {topic}: {type(err).__name__}: {err}", throttle_duration_sec=5.0
+                )
 
         return on_message
 
     def _report(self) -> None:
         dropped = dict(getattr(self.viz, "errors", {}))
         last = getattr(self.viz, "last_error", None)
-        self.get_logger().info(f"received {self.received}; dropped {dropped or 'none'}"
-                               + (f" (last: {last})" if dropped else ""))
+        self.get_logger().info(
+            f"received {self.received}; dropped {dropped or 'none'}" + (f" (last: {last})" if dropped else "")
+        )
 
 
-def run_live(logger: Any, lab: LabConfig, clouds: bool = False, duration_s: float | None = None,
-             args: list[str] | None = None) -> dict[str, int]:
+def run_live(
+    logger: Any, lab: LabConfig, clouds: bool = False, duration_s: float | None = None, args: list[str] | None = None
+) -> dict[str, int]:
     """Spin a VizNode until Ctrl-C / SIGTERM (or ``duration_s``); returns messages received per topic."""
     rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     stop = threading.Event()

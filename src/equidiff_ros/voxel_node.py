@@ -50,9 +50,12 @@ from equidiff_ros.common import (
 )
 from equidiff_ros.runner import run_node
 
-USAGE = __doc__ + """
+USAGE = (
+    __doc__
+    + """
 usage: voxel_node [--ros-args -p lab_config:=config/lab.yaml -p slop_s:=0.1 -p stale_after_s:=0.5]
 """
+)
 
 NODE_NAME = "voxel_node"
 
@@ -74,9 +77,11 @@ class VoxelNode(Node):
         reliable = param("reliable_clouds", False)
         remove_table = param("remove_table", False)
         table_z = param("table_z", 0.0)
-        cleanup = VoxelizerConfig(table_z=table_z if remove_table else None,
-                                  outlier_neighbors=param("outlier_neighbors", 0),
-                                  outlier_std_ratio=param("outlier_std_ratio", 2.0))
+        cleanup = VoxelizerConfig(
+            table_z=table_z if remove_table else None,
+            outlier_neighbors=param("outlier_neighbors", 0),
+            outlier_std_ratio=param("outlier_std_ratio", 2.0),
+        )
         self.cameras = list(self.lab.cameras)
         self.names = [c.name for c in self.cameras]
         self.fusion = CloudFusion(dataclasses.replace(self.lab, observation_hz=hz), self.slop_ns, queue_size, cleanup)
@@ -84,11 +89,13 @@ class VoxelNode(Node):
         self.factory = RclpyFactory()
         cloud_type = self.factory.cls("sensor_msgs/msg/PointCloud2")
         for cam in self.cameras:
-            self.create_subscription(cloud_type, cam.topic, lambda msg, cam=cam: self._on_cloud(cam, msg),
-                                     cloud_qos(reliable))
+            self.create_subscription(
+                cloud_type, cam.topic, lambda msg, cam=cam: self._on_cloud(cam, msg), cloud_qos(reliable)
+            )
         self.pub = self.create_publisher(cloud_type, TOPIC_VOXELS, VOXEL_QOS)
-        self.diag_pub = self.create_publisher(self.factory.cls("diagnostic_msgs/msg/DiagnosticArray"),
-                                              TOPIC_DIAGNOSTICS, RELIABLE_QOS)
+        self.diag_pub = self.create_publisher(
+            self.factory.cls("diagnostic_msgs/msg/DiagnosticArray"), TOPIC_DIAGNOSTICS, RELIABLE_QOS
+        )
         self.dropped = {n: 0 for n in self.names}
         self._last_warned: dict[tuple[str, str], float] = {}
         self.published = 0
@@ -103,8 +110,9 @@ class VoxelNode(Node):
         try:
             cloud = msg_to_cloud(msg, drop_invalid=self.allow_nan)
             if self.check_frame_id and cloud.frame_id != cam.frame_id:
-                raise CloudError(f"frame_id {cloud.frame_id!r} is not {cam.frame_id!r}, "
-                                 f"whose extrinsics lab.yaml holds")
+                raise CloudError(
+                    f"frame_id {cloud.frame_id!r} is not {cam.frame_id!r}, whose extrinsics lab.yaml holds"
+                )
         except CloudError as err:
             self.dropped[cam.name] += 1
             # throttled per camera and kind of problem (numbers removed), so each is seen
@@ -124,19 +132,24 @@ class VoxelNode(Node):
         if stale:
             self.skipped_stale += 1
             ages = self.matcher.ages_ns(now)
-            why = ", ".join(f"{n} (never received)" if ages[n] is None else f"{n} (last cloud {ages[n] / 1e9:.2f} s ago)"
-                            for n in stale)
+            why = ", ".join(
+                f"{n} (never received)" if ages[n] is None else f"{n} (last cloud {ages[n] / 1e9:.2f} s ago)"
+                for n in stale
+            )
             self.state = f"stale: {why}"
-            self.get_logger().warning(f"not publishing {TOPIC_VOXELS}: stale camera(s) {why}",
-                                      throttle_duration_sec=2.0)
+            self.get_logger().warning(
+                f"not publishing {TOPIC_VOXELS}: stale camera(s) {why}", throttle_duration_sec=2.0
+            )
         return bool(stale)
 
     def _on_tick(self):
         if not self._stale_cameras() and self.matcher.peek() is None:
             self.state = f"no cloud set within slop {self.slop_ns / 1e9:.3f} s"
-            self.get_logger().warning(f"not publishing {TOPIC_VOXELS}: the cameras' newest clouds are not "
-                                      f"within slop_s {self.slop_ns / 1e9:.3f} s of each other",
-                                      throttle_duration_sec=2.0)
+            self.get_logger().warning(
+                f"not publishing {TOPIC_VOXELS}: the cameras' newest clouds are not "
+                f"within slop_s {self.slop_ns / 1e9:.3f} s of each other",
+                throttle_duration_sec=2.0,
+            )
 
     def _publish_new_set(self):
         if self._stale_cameras():
@@ -156,10 +169,13 @@ class VoxelNode(Node):
         now = now_ns(self)
         ages = self.matcher.ages_ns(now)
         stats = self.fusion.voxelizer.last_stats
-        values = {"voxelize_ms": self.voxelize_ms, "published": self.published,
-                  "skipped_stale": self.skipped_stale,
-                  "points_used": stats.points_used if stats else 0,
-                  "occupied_voxels": stats.occupied if stats else 0}
+        values = {
+            "voxelize_ms": self.voxelize_ms,
+            "published": self.published,
+            "skipped_stale": self.skipped_stale,
+            "points_used": stats.points_used if stats else 0,
+            "occupied_voxels": stats.occupied if stats else 0,
+        }
         for n in self.names:
             values[f"{n}_age_ms"] = "none" if ages[n] is None else round(ages[n] / 1e6, 1)
             values[f"{n}_dropped"] = self.dropped[n]

@@ -28,8 +28,9 @@ def _cv2():
     try:
         import cv2
     except ImportError as err:  # an optional extra: say how to get it
-        raise CalibrationError("camera calibration needs OpenCV's aruco module: "
-                               "pip install -e '.[calib]' (opencv-contrib-python-headless)") from err
+        raise CalibrationError(
+            "camera calibration needs OpenCV's aruco module: pip install -e '.[calib]' (opencv-contrib-python-headless)"
+        ) from err
     return cv2
 
 
@@ -47,8 +48,7 @@ class BoardSpec:
         if self.squares_x < 3 or self.squares_y < 3:
             raise ValueError("a ChArUco board needs at least 3 x 3 squares")
         if not 0 < self.marker_length < self.square_length:
-            raise ValueError(f"marker_length {self.marker_length} must be in (0, square_length "
-                             f"{self.square_length})")
+            raise ValueError(f"marker_length {self.marker_length} must be in (0, square_length {self.square_length})")
 
     @property
     def size_m(self) -> tuple[float, float]:
@@ -59,8 +59,9 @@ class BoardSpec:
         if not hasattr(cv2.aruco, self.dictionary):
             raise CalibrationError(f"unknown ArUco dictionary {self.dictionary!r} (e.g. DICT_4X4_50)")
         dictionary = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, self.dictionary))
-        return cv2.aruco.CharucoBoard((self.squares_x, self.squares_y), self.square_length,
-                                      self.marker_length, dictionary)
+        return cv2.aruco.CharucoBoard(
+            (self.squares_x, self.squares_y), self.square_length, self.marker_length, dictionary
+        )
 
     def corners(self) -> np.ndarray:
         """(N, 3) inner corners in the board frame (m), indexed by ChArUco corner id."""
@@ -82,11 +83,13 @@ class PrintedBoard:
     marker_mm: float
 
     def instructions(self) -> str:
-        return (f"{self.path}: print at 100 % scale (no 'fit to page'); the page is "
-                f"{self.page_mm[0]:.1f} x {self.page_mm[1]:.1f} mm at {self.dpi} dpi, the board "
-                f"{self.board_mm[0]:.1f} x {self.board_mm[1]:.1f} mm, each square {self.square_mm:.2f} mm, "
-                f"each marker {self.marker_mm:.2f} mm. Measure a square after printing: if it is not "
-                f"{self.square_mm:.2f} mm, pass the measured size with --square-mm.")
+        return (
+            f"{self.path}: print at 100 % scale (no 'fit to page'); the page is "
+            f"{self.page_mm[0]:.1f} x {self.page_mm[1]:.1f} mm at {self.dpi} dpi, the board "
+            f"{self.board_mm[0]:.1f} x {self.board_mm[1]:.1f} mm, each square {self.square_mm:.2f} mm, "
+            f"each marker {self.marker_mm:.2f} mm. Measure a square after printing: if it is not "
+            f"{self.square_mm:.2f} mm, pass the measured size with --square-mm."
+        )
 
 
 def write_printable(spec: BoardSpec, path: str | Path, dpi: int = 508, margin_mm: float = 10.0) -> PrintedBoard:
@@ -100,12 +103,14 @@ def write_printable(spec: BoardSpec, path: str | Path, dpi: int = 508, margin_mm
     px_per_square = spec.square_length * px_per_m
     if abs(px_per_square - round(px_per_square)) > 1e-6:
         # a non-integer square would be rounded by the renderer and the print would be off size
-        raise CalibrationError(f"square {spec.square_length * 1000:.3f} mm is not a whole number of "
-                               f"pixels at {dpi} dpi; pick another dpi or square size")
+        raise CalibrationError(
+            f"square {spec.square_length * 1000:.3f} mm is not a whole number of "
+            f"pixels at {dpi} dpi; pick another dpi or square size"
+        )
     board = spec.image(round(px_per_square))
     margin = round(margin_mm / 1000 * px_per_m)
     page = np.full((board.shape[0] + 2 * margin, board.shape[1] + 2 * margin), 255, np.uint8)
-    page[margin:margin + board.shape[0], margin:margin + board.shape[1]] = board
+    page[margin : margin + board.shape[0], margin : margin + board.shape[1]] = board
     path.parent.mkdir(parents=True, exist_ok=True)
     image = Image.fromarray(page)
     if path.suffix.lower() == ".pdf":
@@ -113,9 +118,14 @@ def write_printable(spec: BoardSpec, path: str | Path, dpi: int = 508, margin_mm
     else:
         image.save(path, dpi=(dpi, dpi))
     to_mm = MM_PER_INCH / dpi
-    return PrintedBoard(path, dpi, (page.shape[1] * to_mm, page.shape[0] * to_mm),
-                        (board.shape[1] * to_mm, board.shape[0] * to_mm),
-                        spec.square_length * 1000, spec.marker_length * 1000)
+    return PrintedBoard(
+        path,
+        dpi,
+        (page.shape[1] * to_mm, page.shape[0] * to_mm),
+        (board.shape[1] * to_mm, board.shape[0] * to_mm),
+        spec.square_length * 1000,
+        spec.marker_length * 1000,
+    )
 
 
 @dataclass(frozen=True)
@@ -152,8 +162,9 @@ class BoardDetector:
         return Detection(ids.reshape(-1).astype(int), corners.reshape(-1, 2).astype(np.float64))
 
 
-def board_pose(spec: BoardSpec, det: Detection, K: np.ndarray, dist: np.ndarray | None = None
-               ) -> tuple[np.ndarray, float]:
+def board_pose(
+    spec: BoardSpec, det: Detection, K: np.ndarray, dist: np.ndarray | None = None
+) -> tuple[np.ndarray, float]:
     """(T_cam_board 4x4, RMS reprojection px) from one detection by PnP (IPPE for a plane, then LM)."""
     cv2 = _cv2()
     obj = spec.corners()[det.ids]
@@ -168,4 +179,3 @@ def board_pose(spec: BoardSpec, det: Detection, K: np.ndarray, dist: np.ndarray 
     T[:3, :3] = cv2.Rodrigues(rvec)[0]
     T[:3, 3] = tvec.ravel()
     return T, rms
-

@@ -25,8 +25,9 @@ class FrankyArm:
     ``relative_dynamics_factor``, 0.15 by default), so the arm stays inside its speed limits.
     """
 
-    def __init__(self, ip: str, realtime: bool = True, settle_s: float = 0.5, max_joint_step: float = 2e-4,
-                 gripper: bool = False):
+    def __init__(
+        self, ip: str, realtime: bool = True, settle_s: float = 0.5, max_joint_step: float = 2e-4, gripper: bool = False
+    ):
         from ..robots.franky import FrankyRobot
 
         self.settle_s = settle_s
@@ -85,8 +86,7 @@ class RealSenseColour:
         intr = profile.get_stream(rs.stream.color).as_video_stream_profile().get_intrinsics()
         K = np.array([[intr.fx, 0, intr.ppx], [0, intr.fy, intr.ppy], [0, 0, 1.0]])
         # librealsense's colour model is Brown-Conrady with OpenCV's coefficient order
-        self.model = CameraModel(camera.name, K, np.asarray(intr.coeffs[:5], dtype=np.float64), intr.width,
-                                 intr.height)
+        self.model = CameraModel(camera.name, K, np.asarray(intr.coeffs[:5], dtype=np.float64), intr.width, intr.height)
         for _ in range(15):  # let auto exposure settle
             self._pipe.wait_for_frames()
 
@@ -100,8 +100,9 @@ class RealSenseColour:
         self._pipe.stop()
 
 
-def capture_samples(arm, poses: list[np.ndarray], grab: Grab, spec: BoardSpec, log=print,
-                    images: dict | None = None) -> list[Sample]:
+def capture_samples(
+    arm, poses: list[np.ndarray], grab: Grab, spec: BoardSpec, log=print, images: dict | None = None
+) -> list[Sample]:
     """Visit ``poses``; at each, detect the board in every camera's image. ``images`` collects them if given."""
     detector = BoardDetector(spec)
     samples = []
@@ -115,8 +116,9 @@ def capture_samples(arm, poses: list[np.ndarray], grab: Grab, spec: BoardSpec, l
                 dets[name] = det
             if images is not None:
                 images.setdefault(name, []).append(rgb)
-        log(f"pose {k + 1}/{len(poses)}: board corners " + ", ".join(
-            f"{name} {len(dets[name]) if name in dets else 0}" for name in frames))
+        log(
+            f"pose {k + 1}/{len(poses)}: board corners "
+            + ", ".join(f"{name} {len(dets[name]) if name in dets else 0}" for name in frames)
+        )
         samples.append(Sample(measured, dets))
     return samples
-

@@ -29,8 +29,7 @@ def to_base(points: np.ndarray, T_base_optical: np.ndarray) -> np.ndarray:
     return points.astype(np.float64) @ T_base_optical[:3, :3].T + T_base_optical[:3, 3]
 
 
-def point_to_surface(points: np.ndarray, surface: np.ndarray, k: int = 10,
-                     max_gap: float = 0.02) -> np.ndarray:
+def point_to_surface(points: np.ndarray, surface: np.ndarray, k: int = 10, max_gap: float = 0.02) -> np.ndarray:
     """Distance (m) from each point to the plane through its ``k`` nearest ``surface`` points.
 
     Points whose nearest surface point is farther than ``max_gap`` are not on that surface
@@ -65,9 +64,13 @@ class CameraCheck:
     fingertips_mm: float | None  # median distance of its finger points to the finger model
 
     def summary(self) -> dict:
-        return {"points": self.points, "overlap_points": self.overlap_points,
-                "cloud_to_cloud_mm": self.cloud_to_cloud_mm, "finger_points": self.finger_points,
-                "fingertips_mm": self.fingertips_mm}
+        return {
+            "points": self.points,
+            "overlap_points": self.overlap_points,
+            "cloud_to_cloud_mm": self.cloud_to_cloud_mm,
+            "finger_points": self.finger_points,
+            "fingertips_mm": self.fingertips_mm,
+        }
 
 
 def finger_surface_tcp(width: float, samples_per_m2: float = 2e7, seed: int = 0) -> np.ndarray:
@@ -90,12 +93,15 @@ def finger_surface_tcp(width: float, samples_per_m2: float = 2e7, seed: int = 0)
     out = []
     for g in range(model.ngeom):
         # the visual meshes (group 2): what a camera sees, not the collision boxes
-        if model.geom_bodyid[g] not in finger_ids or model.geom_type[g] != mujoco.mjtGeom.mjGEOM_MESH \
-                or model.geom_group[g] != 2:
+        if (
+            model.geom_bodyid[g] not in finger_ids
+            or model.geom_type[g] != mujoco.mjtGeom.mjGEOM_MESH
+            or model.geom_group[g] != 2
+        ):
             continue
         m = model.geom_dataid[g]
-        verts = model.mesh_vert[model.mesh_vertadr[m]:model.mesh_vertadr[m] + model.mesh_vertnum[m]]
-        faces = model.mesh_face[model.mesh_faceadr[m]:model.mesh_faceadr[m] + model.mesh_facenum[m]]
+        verts = model.mesh_vert[model.mesh_vertadr[m] : model.mesh_vertadr[m] + model.mesh_vertnum[m]]
+        faces = model.mesh_face[model.mesh_faceadr[m] : model.mesh_faceadr[m] + model.mesh_facenum[m]]
         a, b, c = verts[faces[:, 0]], verts[faces[:, 1]], verts[faces[:, 2]]
         area = 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1)
         n = max(1, int(area.sum() * samples_per_m2))
@@ -110,9 +116,14 @@ def finger_surface_tcp(width: float, samples_per_m2: float = 2e7, seed: int = 0)
     return (pts - t) @ R
 
 
-def check_alignment(lab: LabConfig, clouds: dict[str, np.ndarray], T_base_tcp: np.ndarray | None = None,
-                    gripper_width: float | None = None, fingertip_length: float = 0.04,
-                    overlap_gap: float = 0.01) -> dict[str, CameraCheck]:
+def check_alignment(
+    lab: LabConfig,
+    clouds: dict[str, np.ndarray],
+    T_base_tcp: np.ndarray | None = None,
+    gripper_width: float | None = None,
+    fingertip_length: float = 0.04,
+    overlap_gap: float = 0.01,
+) -> dict[str, CameraCheck]:
     """Each camera's misalignment against the others' clouds and the fingertips.
 
     ``clouds``: camera name -> (N, 3) points in that camera's optical frame; the extrinsics come
@@ -148,8 +159,14 @@ def check_alignment(lab: LabConfig, clouds: dict[str, np.ndarray], T_base_tcp: n
     return results
 
 
-def log_check(rec, lab: LabConfig, clouds: dict[str, tuple[np.ndarray, np.ndarray]], results: dict[str, CameraCheck],
-              T_base_tcp: np.ndarray | None, gripper_width: float | None) -> None:
+def log_check(
+    rec,
+    lab: LabConfig,
+    clouds: dict[str, tuple[np.ndarray, np.ndarray]],
+    results: dict[str, CameraCheck],
+    T_base_tcp: np.ndarray | None,
+    gripper_width: float | None,
+) -> None:
     """The check in rerun: each camera's cloud in the base frame, its frame, and the finger model at the TCP."""
     import rerun as rr
 

@@ -18,8 +18,9 @@ from ..config import ConfigError, Extrinsics, LabConfig, load_lab_config, load_y
 from .board import CalibrationError
 
 
-def write_calibrated_lab(source: str | Path, extrinsics: dict[str, np.ndarray], out: str | Path,
-                         force: bool = False, notes: list[str] = ()) -> tuple[LabConfig, Path | None]:
+def write_calibrated_lab(
+    source: str | Path, extrinsics: dict[str, np.ndarray], out: str | Path, force: bool = False, notes: list[str] = ()
+) -> tuple[LabConfig, Path | None]:
     """Write ``source`` with the cameras' new T_base_optical to ``out``; (loaded result, backup path or None)."""
     source, out = Path(source), Path(out)
     data = load_yaml(source)
@@ -34,18 +35,26 @@ def write_calibrated_lab(source: str | Path, extrinsics: dict[str, np.ndarray], 
         if T is not None:
             ext = Extrinsics.from_matrix(np.asarray(T, dtype=np.float64))
             # 1 um and 1e-6 (about 0.0001 deg) are far below what any calibration resolves
-            cam["extrinsics"] = {"translation": [round(v, 6) for v in ext.translation],
-                                 "quaternion_xyzw": [round(v, 6) for v in ext.quaternion_xyzw]}
+            cam["extrinsics"] = {
+                "translation": [round(v, 6) for v in ext.translation],
+                "quaternion_xyzw": [round(v, 6) for v in ext.quaternion_xyzw],
+            }
     backup = None
     if out.exists():
         if not force:
-            raise CalibrationError(f"{out} exists and is left as it is: choose a new --output, or pass "
-                                   "--force to replace it (the old file is then kept as a .bak copy)")
+            raise CalibrationError(
+                f"{out} exists and is left as it is: choose a new --output, or pass "
+                "--force to replace it (the old file is then kept as a .bak copy)"
+            )
         backup = out.with_name(f"{out.name}.{time.strftime('%Y%m%d-%H%M%S')}.bak")
-    header = [f"Written by `equidiff calibrate cameras` on {time.strftime('%Y-%m-%d %H:%M:%S %Z')} from {source}.",
-              "Extrinsics are T_base_optical (colour optical frame in the robot base frame).", *notes]
-    text = "".join(f"# {line}\n" for line in header) + yaml.safe_dump(data, sort_keys=False,
-                                                                         default_flow_style=None, width=120)
+    header = [
+        f"Written by `equidiff calibrate cameras` on {time.strftime('%Y-%m-%d %H:%M:%S %Z')} from {source}.",
+        "Extrinsics are T_base_optical (colour optical frame in the robot base frame).",
+        *notes,
+    ]
+    text = "".join(f"# {line}\n" for line in header) + yaml.safe_dump(
+        data, sort_keys=False, default_flow_style=None, width=120
+    )
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = out.with_name(f".{out.name}.tmp")
     tmp.write_text(text)

@@ -28,9 +28,16 @@ CAPTURE_BUTTON = 0
 FINISH_BUTTON = 1
 
 
-def capture_operator(arm, grab: Grab, spec: BoardSpec, workspace: Workspace, log=print,
-                     source: SpaceMouseSource | None = None, rate_hz: float = 100.0,
-                     min_samples: int = 8) -> list[Sample]:
+def capture_operator(
+    arm,
+    grab: Grab,
+    spec: BoardSpec,
+    workspace: Workspace,
+    log=print,
+    source: SpaceMouseSource | None = None,
+    rate_hz: float = 100.0,
+    min_samples: int = 8,
+) -> list[Sample]:
     """Stream SpaceMouse motion to ``arm.robot`` until the finish button; a sample per capture press."""
     source = source or SpaceMouseSource()
     integrator = TeleopIntegrator(TeleopConfig(source="spacemouse", rate_hz=max(rate_hz, 100.0)), workspace)
@@ -60,8 +67,10 @@ def capture_operator(arm, grab: Grab, spec: BoardSpec, workspace: Workspace, log
                 frames = grab(None)
                 dets = {n: d for n, d in ((n, detector.detect(img)) for n, img in frames.items()) if d is not None}
                 samples.append(Sample(measured, dets))
-                log(f"sample {len(samples)}: board corners " + ", ".join(
-                    f"{n} {len(dets[n]) if n in dets else 0}" for n in frames))
+                log(
+                    f"sample {len(samples)}: board corners "
+                    + ", ".join(f"{n} {len(dets[n]) if n in dets else 0}" for n in frames)
+                )
                 integrator.reset(robot.read_state().ee_pose)
                 continue
             state = robot.read_state()

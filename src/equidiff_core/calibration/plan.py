@@ -57,8 +57,12 @@ def arm_capsules(T_base_tcp: np.ndarray) -> list[tuple[np.ndarray, np.ndarray, f
     shoulder = np.array([0.0, 0.0, 0.333])
     elbow = wrist + 0.5 * (shoulder - wrist) + np.array([0.0, 0.0, 0.15])
     hand = tcp - 0.08 * z  # the hand is ~0.2 m wide across the fingers (its y) and the fingers hang below
-    return [(tcp - 0.02 * z, wrist, 0.07), (wrist, elbow, 0.07), (hand - 0.09 * y, hand + 0.09 * y, 0.045),
-            (tcp - 0.03 * z - 0.05 * y, tcp - 0.03 * z + 0.05 * y, 0.035)]
+    return [
+        (tcp - 0.02 * z, wrist, 0.07),
+        (wrist, elbow, 0.07),
+        (hand - 0.09 * y, hand + 0.09 * y, 0.045),
+        (tcp - 0.03 * z - 0.05 * y, tcp - 0.03 * z + 0.05 * y, 0.035),
+    ]
 
 
 def _segment_distance(points: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -67,9 +71,15 @@ def _segment_distance(points: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.nd
     return np.linalg.norm(points - (a + t[..., None] * ab), axis=-1)
 
 
-def board_visible(spec: BoardSpec, T_base_board: np.ndarray, T_base_cam: np.ndarray, cam: CameraModel,
-                  margin_px: float, max_view_angle_deg: float,
-                  occluders: list[tuple[np.ndarray, np.ndarray, float]] = ()) -> bool:
+def board_visible(
+    spec: BoardSpec,
+    T_base_board: np.ndarray,
+    T_base_cam: np.ndarray,
+    cam: CameraModel,
+    margin_px: float,
+    max_view_angle_deg: float,
+    occluders: list[tuple[np.ndarray, np.ndarray, float]] = (),
+) -> bool:
     """Whether ``cam`` would see every inner corner: in its image with a margin, not edge-on,
     and (given ``occluders``, capsules in the base frame) with a free line of sight."""
     T = invert_pose(T_base_cam) @ T_base_board
@@ -81,8 +91,11 @@ def board_visible(spec: BoardSpec, T_base_board: np.ndarray, T_base_cam: np.ndar
     if normal @ sight < math.cos(math.radians(max_view_angle_deg)):
         return False  # seen edge-on, or from behind (the printed side faces -z)
     uv = project_points(cam.K, cam.dist, pts)
-    if not (np.all(uv >= margin_px) and np.all(uv[:, 0] <= cam.width - 1 - margin_px)
-            and np.all(uv[:, 1] <= cam.height - 1 - margin_px)):
+    if not (
+        np.all(uv >= margin_px)
+        and np.all(uv[:, 0] <= cam.width - 1 - margin_px)
+        and np.all(uv[:, 1] <= cam.height - 1 - margin_px)
+    ):
         return False
     if occluders:
         # points along each line of sight, stopping 1 cm short of the corner (the board's own mount)
@@ -98,16 +111,23 @@ def board_visible(spec: BoardSpec, T_base_board: np.ndarray, T_base_cam: np.ndar
     return True
 
 
-def plan_poses(lab: LabConfig, cameras: list[CameraModel], spec: BoardSpec, T_tcp_board: np.ndarray,
-               cfg: PlanConfig = PlanConfig(), start: np.ndarray | None = None) -> list[np.ndarray]:
+def plan_poses(
+    lab: LabConfig,
+    cameras: list[CameraModel],
+    spec: BoardSpec,
+    T_tcp_board: np.ndarray,
+    cfg: PlanConfig = PlanConfig(),
+    start: np.ndarray | None = None,
+) -> list[np.ndarray]:
     """``cfg.poses`` TCP poses (4x4, base frame) that every camera should see the board from."""
     rng = np.random.default_rng(cfg.seed)
     ws = lab.workspace
     lo = np.maximum(ws.lower, [-np.inf, -np.inf, cfg.min_tcp_height])
     hi = ws.upper
     if np.any(hi <= lo):
-        raise CalibrationError(f"the workspace {ws.lower}..{ws.upper} has no room above "
-                               f"min_tcp_height {cfg.min_tcp_height} m")
+        raise CalibrationError(
+            f"the workspace {ws.lower}..{ws.upper} has no room above min_tcp_height {cfg.min_tcp_height} m"
+        )
     guesses = {c.name: c.extrinsics.matrix() for c in lab.cameras}
     need = len(cameras) if cfg.cameras_per_pose is None else min(cfg.cameras_per_pose, len(cameras))
     accepted, features, seen_by = [], [], []
@@ -126,8 +146,12 @@ def plan_poses(lab: LabConfig, cameras: list[CameraModel], spec: BoardSpec, T_tc
         if np.min((spec.corners() @ board[:3, :3].T + board[:3, 3])[:, 2]) < cfg.min_board_height:
             continue
         arm = arm_capsules(T)
-        seen = np.array([board_visible(spec, board, guesses[cam.name], cam, cfg.margin_px,
-                                       cfg.max_view_angle_deg, arm) for cam in cameras])
+        seen = np.array(
+            [
+                board_visible(spec, board, guesses[cam.name], cam, cfg.margin_px, cfg.max_view_angle_deg, arm)
+                for cam in cameras
+            ]
+        )
         if seen.sum() >= need:
             accepted.append(T)
             seen_by.append(seen)
@@ -136,9 +160,11 @@ def plan_poses(lab: LabConfig, cameras: list[CameraModel], spec: BoardSpec, T_tc
     seen_by = np.array(seen_by, dtype=bool).reshape(-1, len(cameras))
     short = [cam.name for c, cam in enumerate(cameras) if seen_by[:, c].sum() < cfg.poses // 2]
     if len(accepted) < cfg.poses or short:
-        raise CalibrationError(f"only {len(accepted)} of {cfg.candidates} candidate poses show the whole board "
-                               f"to {need} cameras ({cfg.poses} wanted; too few for {short or 'all'}): check the "
-                               "cameras' current extrinsics and the board mount, or relax --max-tilt / margins")
+        raise CalibrationError(
+            f"only {len(accepted)} of {cfg.candidates} candidate poses show the whole board "
+            f"to {need} cameras ({cfg.poses} wanted; too few for {short or 'all'}): check the "
+            "cameras' current extrinsics and the board mount, or relax --max-tilt / margins"
+        )
     features = np.array(features)
     chosen = [int(np.argmin(np.linalg.norm(features[:, :3] - (np.asarray(ws.center) / 0.1), axis=1)))]
     dist = np.linalg.norm(features - features[chosen[0]], axis=1)
@@ -151,8 +177,11 @@ def plan_poses(lab: LabConfig, cameras: list[CameraModel], spec: BoardSpec, T_tc
         views += seen_by[k]
         dist = np.minimum(dist, np.linalg.norm(features - features[k], axis=1))
     # nearest-neighbour tour from the start (or the first pick): short moves between captures
-    here = features[chosen[0]] if start is None else np.concatenate(
-        [start[:3, 3] / 0.1, Rotation.from_matrix(start[:3, :3] @ R_DOWN.T).as_rotvec()])
+    here = (
+        features[chosen[0]]
+        if start is None
+        else np.concatenate([start[:3, 3] / 0.1, Rotation.from_matrix(start[:3, :3] @ R_DOWN.T).as_rotvec()])
+    )
     order, left = [], list(chosen)
     while left:
         k = min(left, key=lambda j: np.linalg.norm(features[j] - here))

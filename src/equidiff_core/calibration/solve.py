@@ -49,8 +49,10 @@ class Sample:
 
 def pose_error(T_est: np.ndarray, T_true: np.ndarray) -> tuple[float, float]:
     """(translation error mm, rotation error deg) between two poses."""
-    return (float(np.linalg.norm(T_est[:3, 3] - T_true[:3, 3]) * 1000),
-            math.degrees(rotation_angle(T_est[:3, :3], T_true[:3, :3])))
+    return (
+        float(np.linalg.norm(T_est[:3, 3] - T_true[:3, 3]) * 1000),
+        math.degrees(rotation_angle(T_est[:3, :3], T_true[:3, :3])),
+    )
 
 
 def mean_pose(poses: list[np.ndarray]) -> np.ndarray:
@@ -58,8 +60,9 @@ def mean_pose(poses: list[np.ndarray]) -> np.ndarray:
     return make_pose(R, np.mean([T[:3, 3] for T in poses], axis=0))
 
 
-def solve_hand_eye(T_base_tcp: list[np.ndarray], T_cam_board: list[np.ndarray],
-                   min_angle_deg: float = 5.0) -> tuple[np.ndarray, np.ndarray]:
+def solve_hand_eye(
+    T_base_tcp: list[np.ndarray], T_cam_board: list[np.ndarray], min_angle_deg: float = 5.0
+) -> tuple[np.ndarray, np.ndarray]:
     """Closed-form eye-to-hand: (T_base_cam, T_tcp_board) from paired robot and board poses."""
     n = len(T_base_tcp)
     if n != len(T_cam_board) or n < 3:
@@ -77,13 +80,17 @@ def solve_hand_eye(T_base_tcp: list[np.ndarray], T_cam_board: list[np.ndarray],
             betas.append(b)
             pairs.append((A, B))
     if len(pairs) < 2:
-        raise CalibrationError("the poses rotate the board too little: turn the hand by "
-                               f"more than {min_angle_deg:.0f} deg about at least two different axes")
+        raise CalibrationError(
+            "the poses rotate the board too little: turn the hand by "
+            f"more than {min_angle_deg:.0f} deg about at least two different axes"
+        )
     alphas, betas = np.array(alphas), np.array(betas)
     axes = alphas / np.linalg.norm(alphas, axis=1, keepdims=True)
     if np.linalg.svd(axes, compute_uv=False)[1] < 0.1:
-        raise CalibrationError("every pose change rotates about (nearly) the same axis: the camera "
-                               "pose is not determined; add tilts about another axis")
+        raise CalibrationError(
+            "every pose change rotates about (nearly) the same axis: the camera "
+            "pose is not determined; add tilts about another axis"
+        )
     # Kabsch: R_X = argmin sum |alpha - R beta|^2
     U, _, Vt = np.linalg.svd(alphas.T @ betas)
     D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
@@ -110,9 +117,14 @@ class CameraResult:
     hand_eye_T_base_cam: np.ndarray  # the closed-form solution before refinement
 
     def summary(self) -> dict:
-        return {"detections": self.detections, "corners": self.corners,
-                "rms_px": round(self.rms_px, 3), "max_px": round(self.max_px, 3),
-                "rms_mm": round(self.rms_mm, 3), "max_mm": round(self.max_mm, 3)}
+        return {
+            "detections": self.detections,
+            "corners": self.corners,
+            "rms_px": round(self.rms_px, 3),
+            "max_px": round(self.max_px, 3),
+            "rms_mm": round(self.rms_mm, 3),
+            "max_mm": round(self.max_mm, 3),
+        }
 
 
 @dataclass
@@ -130,18 +142,24 @@ def project_points(K: np.ndarray, dist: np.ndarray, pts_cam: np.ndarray) -> np.n
     return uv.reshape(-1, 2)
 
 
-def calibrate(spec: BoardSpec, cameras: list[CameraModel], samples: list[Sample],
-              min_detections: int = 4) -> Calibration:
+def calibrate(
+    spec: BoardSpec, cameras: list[CameraModel], samples: list[Sample], min_detections: int = 4
+) -> Calibration:
     """Hand-eye per camera, then the joint reprojection refinement over all cameras."""
     corners = spec.corners()
     pnp: dict[str, list[tuple[int, np.ndarray]]] = {}
     for cam in cameras:
-        seen = [(i, board_pose(spec, s.detections[cam.name], cam.K, cam.dist)[0])
-                for i, s in enumerate(samples) if cam.name in s.detections]
+        seen = [
+            (i, board_pose(spec, s.detections[cam.name], cam.K, cam.dist)[0])
+            for i, s in enumerate(samples)
+            if cam.name in s.detections
+        ]
         if len(seen) < min_detections:
-            raise CalibrationError(f"camera {cam.name} saw the board in {len(seen)} of {len(samples)} poses; "
-                                   f"at least {min_detections} are needed (is it pointed at the workspace? "
-                                   "is the board in its view?)")
+            raise CalibrationError(
+                f"camera {cam.name} saw the board in {len(seen)} of {len(samples)} poses; "
+                f"at least {min_detections} are needed (is it pointed at the workspace? "
+                "is the board in its view?)"
+            )
         pnp[cam.name] = seen
     hand_eye = {}
     boards = []
@@ -153,14 +171,14 @@ def calibrate(spec: BoardSpec, cameras: list[CameraModel], samples: list[Sample]
     Y0 = mean_pose(boards)
 
     # Parameters: small corrections (rotation vector, translation) to Y0 and to each X0.
-    obs = [(c, i, samples[i].detections[cam.name]) for c, cam in enumerate(cameras)
-           for i, _ in pnp[cam.name]]
+    obs = [(c, i, samples[i].detections[cam.name]) for c, cam in enumerate(cameras) for i, _ in pnp[cam.name]]
 
     def unpack(x: np.ndarray) -> tuple[np.ndarray, list[np.ndarray]]:
         def delta(v):
             return make_pose(Rotation.from_rotvec(v[:3]).as_matrix(), v[3:6])
+
         Y = Y0 @ delta(x[:6])
-        Xs = [hand_eye[cam.name] @ delta(x[6 + 6 * c: 12 + 6 * c]) for c, cam in enumerate(cameras)]
+        Xs = [hand_eye[cam.name] @ delta(x[6 + 6 * c : 12 + 6 * c]) for c, cam in enumerate(cameras)]
         return Y, Xs
 
     def residuals(x: np.ndarray) -> np.ndarray:
@@ -191,6 +209,14 @@ def calibrate(spec: BoardSpec, cameras: list[CameraModel], samples: list[Sample]
             mm.append(e * pts[:, 2] / cam.K[0, 0] * 1000)  # the pixel error as a distance at the corner's depth
         px, mm = np.concatenate(px), np.concatenate(mm)
         results[cam.name] = CameraResult(
-            cam.name, Xs[c], len(pnp[cam.name]), len(px), float(np.sqrt(np.mean(px ** 2))),
-            float(px.max()), float(np.sqrt(np.mean(mm ** 2))), float(mm.max()), hand_eye[cam.name])
+            cam.name,
+            Xs[c],
+            len(pnp[cam.name]),
+            len(px),
+            float(np.sqrt(np.mean(px**2))),
+            float(px.max()),
+            float(np.sqrt(np.mean(mm**2))),
+            float(mm.max()),
+            hand_eye[cam.name],
+        )
     return Calibration(results, Y, len(samples), float(sol.cost))

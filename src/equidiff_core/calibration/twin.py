@@ -57,8 +57,9 @@ def twin_camera_model(cam, render) -> CameraModel:
     return CameraModel(cam.name, K, np.zeros(5), intr.width, intr.height)
 
 
-def twin_config_with_board(twin_cfg, spec: BoardSpec, T_tcp_board: np.ndarray, texture_dir: str | Path,
-                           width: int = 1280, height: int = 720):
+def twin_config_with_board(
+    twin_cfg, spec: BoardSpec, T_tcp_board: np.ndarray, texture_dir: str | Path, width: int = 1280, height: int = 720
+):
     """The twin config with the board on the hand and noise-free colour at ``width`` x ``height``.
 
     The hand body sits ``TCP_OFFSET`` behind the TCP (same rotation), so the mount moves by it.
@@ -70,8 +71,12 @@ def twin_config_with_board(twin_cfg, spec: BoardSpec, T_tcp_board: np.ndarray, t
     Image.fromarray(spec.image(200)).save(texture)
     T_hand_board = make_pose(np.eye(3), DirectSim.TCP_OFFSET) @ T_tcp_board
     q = Rotation.from_matrix(T_hand_board[:3, :3]).as_quat()  # xyzw
-    mount = BoardMountConfig(str(texture), spec.size_m, tuple(map(float, T_hand_board[:3, 3])),
-                             (float(q[3]), float(q[0]), float(q[1]), float(q[2])))
+    mount = BoardMountConfig(
+        str(texture),
+        spec.size_m,
+        tuple(map(float, T_hand_board[:3, 3])),
+        (float(q[3]), float(q[0]), float(q[1]), float(q[2])),
+    )
     render = replace(twin_cfg.render, width=width, height=height, depth_noise=False, dropout=0.0)
     return replace(twin_cfg, scene=replace(twin_cfg.scene, calibration_board=mount), render=render)
 
@@ -84,8 +89,10 @@ def perturb_lab(lab: LabConfig, translation_m: float, rotation_deg: float, seed:
     for cam in lab.cameras:
         d = rng.normal(size=3)
         axis = rng.normal(size=3)
-        delta = make_pose(Rotation.from_rotvec(axis / np.linalg.norm(axis) * math.radians(rotation_deg)).as_matrix(),
-                          d / np.linalg.norm(d) * translation_m)
+        delta = make_pose(
+            Rotation.from_rotvec(axis / np.linalg.norm(axis) * math.radians(rotation_deg)).as_matrix(),
+            d / np.linalg.norm(d) * translation_m,
+        )
         cams.append(replace(cam, extrinsics=Extrinsics.from_matrix(cam.extrinsics.matrix() @ delta)))
     return replace(lab, cameras=tuple(cams))
 
@@ -107,12 +114,16 @@ class DirectSimArm:
         """Go to ``T`` and come to rest; (measured TCP pose, qpos) there."""
         steps = 100
         for _ in range(self.settle_ms // steps):
-            self.sim.command(T, self.gripper_width)  # IK again from where the arm got to (DirectSim's IK iterates 8 times)
+            self.sim.command(
+                T, self.gripper_width
+            )  # IK again from where the arm got to (DirectSim's IK iterates 8 times)
             self.sim.step(steps)
         measured = self.sim.tcp_pose()
         if np.linalg.norm(measured[:3, 3] - T[:3, 3]) > self.tolerance_m:
-            raise CalibrationError(f"the arm did not reach {np.round(T[:3, 3], 3)} (stopped at "
-                                   f"{np.round(measured[:3, 3], 3)}): unreachable pose")
+            raise CalibrationError(
+                f"the arm did not reach {np.round(T[:3, 3], 3)} (stopped at "
+                f"{np.round(measured[:3, 3], 3)}): unreachable pose"
+            )
         return measured, self.sim.data.qpos.copy()
 
     def close(self) -> None:
@@ -154,8 +165,10 @@ class TwinCameras:
     """The twin's cameras at their true poses, rendering a given sim state (colour only is used)."""
 
     def __init__(self, lab_truth: LabConfig, twin_cfg):
-        self.cams = [TwinCamera(cam, state_source=lambda t: (None, 0.0, 0), paced=False, twin_config=twin_cfg)
-                     for cam in lab_truth.cameras]
+        self.cams = [
+            TwinCamera(cam, state_source=lambda t: (None, 0.0, 0), paced=False, twin_config=twin_cfg)
+            for cam in lab_truth.cameras
+        ]
         for cam in self.cams:
             cam.connect()
 
@@ -176,9 +189,17 @@ def errors_against_truth(result, lab_truth: LabConfig) -> dict[str, dict]:
     return out
 
 
-def calibrate_twin(lab_truth: LabConfig, twin_cfg, spec: BoardSpec, plan: PlanConfig, arm: str = "franky",
-                   perturb_m: float = 0.03, perturb_deg: float = 3.0, texture_dir: str | Path | None = None,
-                   log=print) -> tuple[dict, Calibration, LabConfig]:
+def calibrate_twin(
+    lab_truth: LabConfig,
+    twin_cfg,
+    spec: BoardSpec,
+    plan: PlanConfig,
+    arm: str = "franky",
+    perturb_m: float = 0.03,
+    perturb_deg: float = 3.0,
+    texture_dir: str | Path | None = None,
+    log=print,
+) -> tuple[dict, Calibration, LabConfig]:
     """The whole calibration in the twin from perturbed guesses; (report, calibration, the guessed lab).
 
     ``arm``: "franky" (franky against franky-sim, the lab's path) or "direct" (in-process sim).
@@ -207,7 +228,9 @@ def calibrate_twin(lab_truth: LabConfig, twin_cfg, spec: BoardSpec, plan: PlanCo
         "max_rotation_error_deg": max(e["rotation_error_deg"] for e in errors.values()),
         "cameras": {name: {**errors[name], **result.cameras[name].summary()} for name in errors},
         "initial_guess_error": {"translation_mm": round(perturb_m * 1000, 3), "rotation_deg": perturb_deg},
-        "poses": len(samples), "arm": "franky+franky-sim" if arm == "franky" else "in-process MuJoCo",
-        "image": f"{cfg.render.width}x{cfg.render.height}", "wall_s": round(time.monotonic() - start, 1),
+        "poses": len(samples),
+        "arm": "franky+franky-sim" if arm == "franky" else "in-process MuJoCo",
+        "image": f"{cfg.render.width}x{cfg.render.height}",
+        "wall_s": round(time.monotonic() - start, 1),
     }
     return report, result, guess

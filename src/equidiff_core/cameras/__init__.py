@@ -18,7 +18,17 @@ BACKENDS: dict[str, tuple[str, str]] = {
     "twin": (".twin", "TwinCamera"),
 }
 
-__all__ = ["BACKENDS", "Camera", "CameraError", "CameraHealth", "CloudFrame", "NoFrameYet", "extrinsics_tf_message", "limit_depth", "make_camera"]
+__all__ = [
+    "BACKENDS",
+    "Camera",
+    "CameraError",
+    "CameraHealth",
+    "CloudFrame",
+    "NoFrameYet",
+    "extrinsics_tf_message",
+    "limit_depth",
+    "make_camera",
+]
 
 
 def make_camera(backend: str, camera: CameraConfig, **backend_kwargs) -> Camera:

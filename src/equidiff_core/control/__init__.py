@@ -4,21 +4,34 @@ Pure and ROS-free; the franka node only wires ROS topics to ``Controller``.
 """
 
 from .config import (
-           ControlConfig,
-           FrankyConfig,
-           SafetyConfig,
-           SchedulerConfig,
-           load_control_config,
+    ControlConfig,
+    FrankyConfig,
+    SafetyConfig,
+    SchedulerConfig,
+    load_control_config,
 )
 from .controller import Command, Controller, ControllerStats
 from .safety import (
-           FilteredTarget,
-           SafetyFilter,
-           SafetyRejection,
-           check_chunk,
+    FilteredTarget,
+    SafetyFilter,
+    SafetyRejection,
+    check_chunk,
 )
 from .scheduler import ChunkScheduler, Setpoint
 
-__all__ = ["ChunkScheduler", "Command", "ControlConfig", "Controller", "ControllerStats", "FilteredTarget",
-           "FrankyConfig", "SafetyConfig", "SafetyFilter", "SafetyRejection", "SchedulerConfig", "Setpoint",
-           "check_chunk", "load_control_config"]
+__all__ = [
+    "ChunkScheduler",
+    "Command",
+    "ControlConfig",
+    "Controller",
+    "ControllerStats",
+    "FilteredTarget",
+    "FrankyConfig",
+    "SafetyConfig",
+    "SafetyFilter",
+    "SafetyRejection",
+    "SchedulerConfig",
+    "Setpoint",
+    "check_chunk",
+    "load_control_config",
+]

@@ -40,9 +40,16 @@ class SafetyConfig:
     max_gripper_width_m: float = 0.08
 
     def __post_init__(self):
-        for name in ("max_linear_speed_m_s", "max_angular_speed_rad_s", "max_first_step_jump_m",
-                     "max_first_step_rotation_rad", "watchdog_timeout_s", "orthonormal_tol",
-                     "max_tracking_error_m", "max_tilt_rad"):
+        for name in (
+            "max_linear_speed_m_s",
+            "max_angular_speed_rad_s",
+            "max_first_step_jump_m",
+            "max_first_step_rotation_rad",
+            "watchdog_timeout_s",
+            "orthonormal_tol",
+            "max_tracking_error_m",
+            "max_tilt_rad",
+        ):
             if getattr(self, name) <= 0:
                 raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
         if len(self.max_joint_speeds_rad_s) != 7 or min(self.max_joint_speeds_rad_s) <= 0:
@@ -51,8 +58,9 @@ class SafetyConfig:
             raise ValueError(f"max_tilt_rad must be below pi, got {self.max_tilt_rad}")
         lo, hi = self.joint_position_min_rad, self.joint_position_max_rad
         if len(lo) != 7 or len(hi) != 7 or any(a >= b for a, b in zip(lo, hi)):
-            raise ValueError(f"joint_position_min_rad / joint_position_max_rad must be 7 limits each, "
-                             f"min < max, got {lo} / {hi}")
+            raise ValueError(
+                f"joint_position_min_rad / joint_position_max_rad must be 7 limits each, min < max, got {lo} / {hi}"
+            )
         if self.joint_limit_margin_rad < 0:
             raise ValueError(f"joint_limit_margin_rad must be >= 0, got {self.joint_limit_margin_rad}")
         if not 0 <= self.min_gripper_width_m <= self.max_gripper_width_m:
@@ -80,7 +88,9 @@ class SchedulerConfig:
 class FrankyConfig:
     """franky 2.0 backend: a CartesianImpedanceTracker streamed at ``ControlConfig.control_hz``."""
 
-    translational_stiffness: float = 3000.0  # N/m; on franky-sim a 5 Hz chunk stream tracked 3.5 mm RMS at 3000, 8-9 mm at 1000
+    translational_stiffness: float = (
+        3000.0  # N/m; on franky-sim a 5 Hz chunk stream tracked 3.5 mm RMS at 3000, 8-9 mm at 1000
+    )
     rotational_stiffness: float = 150.0  # Nm/rad
     # Joint friction feed-forward (Nm, Nms/rad). Defaults are franky-sim's own MuJoCo values
     # (fr3.xml frictionloss / damping); on a real FR3 identify them or set them to zero.
@@ -111,11 +121,13 @@ class FrankyConfig:
         if len(self.friction_coulomb) != 7 or len(self.friction_viscous) != 7:
             raise ValueError("friction_coulomb and friction_viscous need 7 values (one per joint)")
         if len(self.collision_torque_thresholds_nm) != 7 or min(self.collision_torque_thresholds_nm) <= 0:
-            raise ValueError(f"collision_torque_thresholds_nm must be 7 positive torques, "
-                             f"got {self.collision_torque_thresholds_nm}")
+            raise ValueError(
+                f"collision_torque_thresholds_nm must be 7 positive torques, got {self.collision_torque_thresholds_nm}"
+            )
         if len(self.collision_force_thresholds_n) != 6 or min(self.collision_force_thresholds_n) <= 0:
-            raise ValueError(f"collision_force_thresholds_n must be 6 positive values, "
-                             f"got {self.collision_force_thresholds_n}")
+            raise ValueError(
+                f"collision_force_thresholds_n must be 6 positive values, got {self.collision_force_thresholds_n}"
+            )
         if self.joint_limit_activation_rad <= 0:
             raise ValueError(f"joint_limit_activation_rad must be positive, got {self.joint_limit_activation_rad}")
 

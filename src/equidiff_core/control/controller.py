@@ -76,9 +76,15 @@ class Command:
 
 
 class Controller:
-    def __init__(self, robot: Robot, box: SafetyBox, config: ControlConfig = ControlConfig(),
-                 clock: Clock | None = None, logger: logging.Logger | None = None,
-                 on_command: Callable[[Command], None] | None = None):
+    def __init__(
+        self,
+        robot: Robot,
+        box: SafetyBox,
+        config: ControlConfig = ControlConfig(),
+        clock: Clock | None = None,
+        logger: logging.Logger | None = None,
+        on_command: Callable[[Command], None] | None = None,
+    ):
         self.robot = robot
         self.config = config
         self.clock = clock or WallClock()
@@ -128,14 +134,18 @@ class Controller:
         if not self.safety.inside(position, tol=1e-3):
             # Every command is clipped into the box, so streaming from outside would pull the
             # arm in at full speed: refuse instead of moving unexpectedly.
-            raise RobotError(f"the TCP is at {np.round(position, 3).tolist()}, outside the safety box "
-                             f"{np.round(self.safety.lower, 3).tolist()} .. {np.round(self.safety.upper, 3).tolist()}; "
-                             f"move it inside (or enable home_on_start) before streaming")
+            raise RobotError(
+                f"the TCP is at {np.round(position, 3).tolist()}, outside the safety box "
+                f"{np.round(self.safety.lower, 3).tolist()} .. {np.round(self.safety.upper, 3).tolist()}; "
+                f"move it inside (or enable home_on_start) before streaming"
+            )
         tilt = geometry.tilt_angle(pose[:3, :3])
         if tilt > self.config.safety.max_tilt_rad + 1e-3:  # the same: every command is swung into the cone
-            raise RobotError(f"the tool is tilted {np.degrees(tilt):.0f} deg from straight down, outside the "
-                             f"{np.degrees(self.config.safety.max_tilt_rad):.0f} deg cone; point it down "
-                             f"(or enable home_on_start) before streaming")
+            raise RobotError(
+                f"the tool is tilted {np.degrees(tilt):.0f} deg from straight down, outside the "
+                f"{np.degrees(self.config.safety.max_tilt_rad):.0f} deg cone; point it down "
+                f"(or enable home_on_start) before streaming"
+            )
         self.robot.start_streaming()
         self._reset_to_measured()
         if thread:
@@ -185,8 +195,10 @@ class Controller:
             with self._lock:
                 if self.stats.awaiting_ack:
                     self.stats.ack_rejected += 1
-                    raise ChunkError(f"awaiting an operator's acknowledgement after: {self.stats.awaiting_ack} "
-                                     f"(franka_node's /franka/acknowledge, `equidiff lab ack`)")
+                    raise ChunkError(
+                        f"awaiting an operator's acknowledgement after: {self.stats.awaiting_ack} "
+                        f"(franka_node's /franka/acknowledge, `equidiff lab ack`)"
+                    )
                 if now < self._homing_until_ns:
                     raise ChunkError(f"homing: chunks are refused for {(self._homing_until_ns - now) / 1e9:.1f} s more")
                 live = self.scheduler.live_steps(chunk, now)
@@ -234,7 +246,8 @@ class Controller:
             elapsed = float(np.clip((now_ns - self._last_tick_ns) / 1e9, 0.0, 1.0 / self.config.control_hz))
             pose = geometry.make_pose(
                 Rotation.from_rotvec(sp.angular_velocity * elapsed).as_matrix() @ sp.pose[:3, :3],
-                sp.pose[:3, 3] + sp.linear_velocity * elapsed)
+                sp.pose[:3, 3] + sp.linear_velocity * elapsed,
+            )
         return Setpoint(pose, sp.linear_velocity, sp.angular_velocity, float("nan"), not self._holding)
 
     def _reset_to_measured(self) -> None:
@@ -261,16 +274,21 @@ class Controller:
             return None
         dt = self._tick_dt(now)
         with self._lock:
-            if (not self._holding and self._valid_until_ns is not None
-                    and now - self._valid_until_ns > self.config.safety.watchdog_timeout_s * 1e9):
+            if (
+                not self._holding
+                and self._valid_until_ns is not None
+                and now - self._valid_until_ns > self.config.safety.watchdog_timeout_s * 1e9
+            ):
                 # Hold where the arm *is* (not where the setpoint had got to, ~0.1 s ahead of a
                 # moving arm): stopping there takes the shortest way.
                 self.scheduler.clear()
                 self._holding = True
                 self._hold_pose = self._state.ee_pose.copy()
                 self.stats.watchdog_holds += 1
-                self.log.warning(f"no new command for {self.config.safety.watchdog_timeout_s} s after the last "
-                                 f"one's final step: holding the current pose")
+                self.log.warning(
+                    f"no new command for {self.config.safety.watchdog_timeout_s} s after the last "
+                    f"one's final step: holding the current pose"
+                )
             sp = None if self._holding else self.scheduler.sample(now)
             previous = self._setpoint
             hold_pose = self._hold_pose
@@ -325,7 +343,7 @@ class Controller:
             return f"TCP {error * 1000:.0f} mm from the command (limit {limits.max_tracking_error_m * 1000:.0f} mm)"
         velocities = np.asarray(self._state.joint_velocities, dtype=float)
         speeds = np.abs(velocities)
-        over = speeds - np.asarray(limits.max_joint_speeds_rad_s)[:len(speeds)]
+        over = speeds - np.asarray(limits.max_joint_speeds_rad_s)[: len(speeds)]
         if over.size and over.max() > 0:
             j = int(np.argmax(over))
             return f"joint {j + 1} at {speeds[j]:.1f} rad/s (limit {limits.max_joint_speeds_rad_s[j]:.1f} rad/s)"
@@ -335,12 +353,14 @@ class Controller:
         """A joint within ``joint_limit_margin_rad`` of a position limit and still moving towards it
         ('' otherwise). Moving away is allowed, so the arm can be brought back after the stop."""
         limits, moving = self.config.safety, 0.05  # rad/s: slower is holding still (sensor noise, drift)
-        lo = np.asarray(limits.joint_position_min_rad)[:len(q)] + limits.joint_limit_margin_rad
-        hi = np.asarray(limits.joint_position_max_rad)[:len(q)] - limits.joint_limit_margin_rad
+        lo = np.asarray(limits.joint_position_min_rad)[: len(q)] + limits.joint_limit_margin_rad
+        hi = np.asarray(limits.joint_position_max_rad)[: len(q)] - limits.joint_limit_margin_rad
         for j in range(len(q)):
             if (q[j] < lo[j] and dq[j] < -moving) or (q[j] > hi[j] and dq[j] > moving):
-                return (f"joint {j + 1} at {q[j]:.2f} rad moving towards its limit "
-                        f"[{limits.joint_position_min_rad[j]:.2f}, {limits.joint_position_max_rad[j]:.2f}] rad")
+                return (
+                    f"joint {j + 1} at {q[j]:.2f} rad moving towards its limit "
+                    f"[{limits.joint_position_min_rad[j]:.2f}, {limits.joint_position_max_rad[j]:.2f}] rad"
+                )
         return ""
 
     def _stop_diverged(self, now: int, reason: str) -> None:
@@ -350,8 +370,10 @@ class Controller:
         self._divergence_grace_until_ns = now + int(1e9)
         if not self._count_failure(f"the arm diverged from its command again ({reason})"):
             return
-        self.log.error(f"the arm diverged from its command ({reason}): stopping the motion and holding where it "
-                       f"is until an operator acknowledges")
+        self.log.error(
+            f"the arm diverged from its command ({reason}): stopping the motion and holding where it "
+            f"is until an operator acknowledges"
+        )
         try:
             self.robot.stop_streaming()
             self.robot.start_streaming()
@@ -368,8 +390,9 @@ class Controller:
         limit = self.config.franky.max_recoveries
         if self._failures_in_row > limit:
             self.stats.faulted = True
-            self.log.error(f"{what} after {limit} recoveries in a row: giving up; "
-                           f"restart the node once the cause is fixed")
+            self.log.error(
+                f"{what} after {limit} recoveries in a row: giving up; restart the node once the cause is fixed"
+            )
             return False
         return True
 
@@ -384,8 +407,10 @@ class Controller:
             return
         self.stats.recoveries += 1
         self.stats.last_recovery_reason = reason
-        self.log.warning(f"robot error ({reason}); recovered ({self._failures_in_row}/{limit}), holding until "
-                         f"an operator acknowledges")
+        self.log.warning(
+            f"robot error ({reason}); recovered ({self._failures_in_row}/{limit}), holding until "
+            f"an operator acknowledges"
+        )
         self._reset_to_measured()
         self.stats.awaiting_ack = f"robot error: {reason}"
 
@@ -410,8 +435,9 @@ class Controller:
             duration = max(distance / cfg.home_speed_m_s, angle / cfg.home_angular_speed_rad_s, 0.5)
             s = np.linspace(0.0, 1.0, int(np.ceil(duration / 0.1)) + 1)
             rotations = Slerp([0.0, 1.0], Rotation.from_matrix([start[:3, :3], goal[:3, :3]]))(s).as_matrix()
-            poses = np.stack([geometry.make_pose(R, (1 - a) * start[:3, 3] + a * goal[:3, 3])
-                              for a, R in zip(s, rotations)])
+            poses = np.stack(
+                [geometry.make_pose(R, (1 - a) * start[:3, 3] + a * goal[:3, 3]) for a, R in zip(s, rotations)]
+            )
             times = now + (s * duration * 1e9).astype(np.int64)
             chunk = PoseChunk(now, times, poses, np.zeros(len(s)))  # widths unused: no gripper command while homing
             self.scheduler.schedule(chunk, now, self._current_setpoint(now))
@@ -420,8 +446,10 @@ class Controller:
             self._homing = True
             self._holding = False
             self._hold_pose = None
-        self.log.info(f"homing: {distance * 1000:.0f} mm and {np.degrees(angle):.0f} deg to {cfg.home_position} "
-                      f"in {duration:.1f} s")
+        self.log.info(
+            f"homing: {distance * 1000:.0f} mm and {np.degrees(angle):.0f} deg to {cfg.home_position} "
+            f"in {duration:.1f} s"
+        )
         return duration
 
     def require_acknowledgement(self, reason: str) -> None:

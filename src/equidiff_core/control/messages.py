@@ -26,11 +26,15 @@ OK, WARN, ERROR, STALE = 0, 1, 2, 3
 def pose_stamped(factory: MsgFactory, pose: np.ndarray, stamp_ns: int, frame_id: str) -> Any:
     p, q = geometry.pos_quat_from_pose(pose)
     mk = factory.make
-    return mk("geometry_msgs/msg/PoseStamped", header=factory.header(stamp_ns, frame_id),
-              pose=mk("geometry_msgs/msg/Pose",
-                      position=mk("geometry_msgs/msg/Point", x=float(p[0]), y=float(p[1]), z=float(p[2])),
-                      orientation=mk("geometry_msgs/msg/Quaternion", x=float(q[0]), y=float(q[1]),
-                                     z=float(q[2]), w=float(q[3]))))
+    return mk(
+        "geometry_msgs/msg/PoseStamped",
+        header=factory.header(stamp_ns, frame_id),
+        pose=mk(
+            "geometry_msgs/msg/Pose",
+            position=mk("geometry_msgs/msg/Point", x=float(p[0]), y=float(p[1]), z=float(p[2])),
+            orientation=mk("geometry_msgs/msg/Quaternion", x=float(q[0]), y=float(q[1]), z=float(q[2]), w=float(q[3])),
+        ),
+    )
 
 
 def pose_from_msg(msg: Any) -> np.ndarray:
@@ -46,13 +50,20 @@ def tf_message(factory: MsgFactory, transforms: list[tuple[str, str, np.ndarray]
     out = []
     for parent, child, pose in transforms:
         p, q = geometry.pos_quat_from_pose(pose)
-        out.append(mk("geometry_msgs/msg/TransformStamped", header=factory.header(stamp_ns, parent),
-                      child_frame_id=child,
-                      transform=mk("geometry_msgs/msg/Transform",
-                                   translation=mk("geometry_msgs/msg/Vector3", x=float(p[0]), y=float(p[1]),
-                                                  z=float(p[2])),
-                                   rotation=mk("geometry_msgs/msg/Quaternion", x=float(q[0]), y=float(q[1]),
-                                               z=float(q[2]), w=float(q[3])))))
+        out.append(
+            mk(
+                "geometry_msgs/msg/TransformStamped",
+                header=factory.header(stamp_ns, parent),
+                child_frame_id=child,
+                transform=mk(
+                    "geometry_msgs/msg/Transform",
+                    translation=mk("geometry_msgs/msg/Vector3", x=float(p[0]), y=float(p[1]), z=float(p[2])),
+                    rotation=mk(
+                        "geometry_msgs/msg/Quaternion", x=float(q[0]), y=float(q[1]), z=float(q[2]), w=float(q[3])
+                    ),
+                ),
+            )
+        )
     return mk("tf2_msgs/msg/TFMessage", transforms=out)
 
 
@@ -60,11 +71,14 @@ def joint_state(factory: MsgFactory, state: RobotState, stamp_ns: int) -> Any:
     width = float(state.gripper_width) if np.isfinite(state.gripper_width) else 0.0
     positions = [*map(float, state.joint_positions), width / 2, width / 2]
     velocities = [*map(float, state.joint_velocities), 0.0, 0.0]
-    return factory.make("sensor_msgs/msg/JointState", header=factory.header(stamp_ns, ""),
-                        name=[*ARM_JOINT_NAMES, *FINGER_JOINT_NAMES],
-                        position=factory.float64_array(positions),
-                        velocity=factory.float64_array(velocities),
-                        effort=factory.float64_array([]))
+    return factory.make(
+        "sensor_msgs/msg/JointState",
+        header=factory.header(stamp_ns, ""),
+        name=[*ARM_JOINT_NAMES, *FINGER_JOINT_NAMES],
+        position=factory.float64_array(positions),
+        velocity=factory.float64_array(velocities),
+        effort=factory.float64_array([]),
+    )
 
 
 def gripper_width_from_joint_state(msg: Any) -> float | None:
@@ -78,17 +92,23 @@ def gripper_width_from_joint_state(msg: Any) -> float | None:
         return None
 
 
-def diagnostic_array(factory: MsgFactory, stamp_ns: int, name: str, hardware_id: str, level: int,
-                     message: str, values: Mapping[str, Any]) -> Any:
+def diagnostic_array(
+    factory: MsgFactory, stamp_ns: int, name: str, hardware_id: str, level: int, message: str, values: Mapping[str, Any]
+) -> Any:
     mk = factory.make
     # DiagnosticStatus.level is a ROS `byte`: rclpy wants bytes (an int serialises as garbage),
     # rosbags an int.
     from ..rosmsg import RclpyFactory
 
     level = bytes([int(level)]) if isinstance(factory, RclpyFactory) else int(level)
-    status = mk("diagnostic_msgs/msg/DiagnosticStatus", level=level,
-                name=name, message=message, hardware_id=hardware_id,
-                values=[mk("diagnostic_msgs/msg/KeyValue", key=str(k), value=_fmt(v)) for k, v in values.items()])
+    status = mk(
+        "diagnostic_msgs/msg/DiagnosticStatus",
+        level=level,
+        name=name,
+        message=message,
+        hardware_id=hardware_id,
+        values=[mk("diagnostic_msgs/msg/KeyValue", key=str(k), value=_fmt(v)) for k, v in values.items()],
+    )
     return mk("diagnostic_msgs/msg/DiagnosticArray", header=factory.header(stamp_ns, ""), status=[status])
 
 

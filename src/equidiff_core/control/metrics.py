@@ -29,8 +29,13 @@ def tracking_rms(times: np.ndarray, positions: np.ndarray, reference: Callable[[
     return float(np.sqrt(np.mean(np.sum((np.asarray(positions) - ref) ** 2, axis=1))))
 
 
-def tracking_lag(times: np.ndarray, positions: np.ndarray, reference: Callable[[float], np.ndarray],
-                 max_lag_s: float = 0.3, step_s: float = 0.005) -> tuple[float, float]:
+def tracking_lag(
+    times: np.ndarray,
+    positions: np.ndarray,
+    reference: Callable[[float], np.ndarray],
+    max_lag_s: float = 0.3,
+    step_s: float = 0.005,
+) -> tuple[float, float]:
     """(lag s, RMS m at that lag): the time shift of the reference that fits the positions best.
 
     Splits a tracking error into "late" (a pure delay: controller lag, stale state stamps) and
@@ -43,8 +48,14 @@ def tracking_lag(times: np.ndarray, positions: np.ndarray, reference: Callable[[
     return best
 
 
-def velocity_reversals(times: np.ndarray, positions: np.ndarray, tangent: Callable[[float], np.ndarray],
-                       threshold_m_s: float = 0.005, min_duration_s: float = 0.03, hz: float = 100.0) -> int:
+def velocity_reversals(
+    times: np.ndarray,
+    positions: np.ndarray,
+    tangent: Callable[[float], np.ndarray],
+    threshold_m_s: float = 0.005,
+    min_duration_s: float = 0.03,
+    hz: float = 100.0,
+) -> int:
     """How often the motion runs backwards along the path (stop-and-go or overshoot at chunk switches).
 
     Velocity is projected on the reference's unit tangent; a reversal is a stretch of at least

@@ -51,19 +51,26 @@ def check_chunk(chunk: PoseChunk, current_pose: np.ndarray | None, limits: Safet
     tilts = [geometry.tilt_angle(T[:3, :3]) for T in chunk.poses]
     worst = int(np.argmax(tilts))
     if tilts[worst] > limits.max_tilt_rad:
-        raise SafetyRejection(f"step {worst} tilts the tool {np.degrees(tilts[worst]):.0f} deg from straight down "
-                              f"(cone {np.degrees(limits.max_tilt_rad):.0f} deg)", kind="cone")
+        raise SafetyRejection(
+            f"step {worst} tilts the tool {np.degrees(tilts[worst]):.0f} deg from straight down "
+            f"(cone {np.degrees(limits.max_tilt_rad):.0f} deg)",
+            kind="cone",
+        )
     if current_pose is None:
         return
     first = chunk.poses[0]
     jump = float(np.linalg.norm(first[:3, 3] - current_pose[:3, 3]))
     if jump > limits.max_first_step_jump_m:
-        raise SafetyRejection(f"first step is {jump * 1000:.0f} mm from the current pose "
-                              f"(limit {limits.max_first_step_jump_m * 1000:.0f} mm)")
+        raise SafetyRejection(
+            f"first step is {jump * 1000:.0f} mm from the current pose "
+            f"(limit {limits.max_first_step_jump_m * 1000:.0f} mm)"
+        )
     angle = geometry.rotation_angle(current_pose[:3, :3], first[:3, :3])
     if angle > limits.max_first_step_rotation_rad:
-        raise SafetyRejection(f"first step is rotated {np.degrees(angle):.0f} deg from the current pose "
-                              f"(limit {np.degrees(limits.max_first_step_rotation_rad):.0f} deg)")
+        raise SafetyRejection(
+            f"first step is rotated {np.degrees(angle):.0f} deg from the current pose "
+            f"(limit {np.degrees(limits.max_first_step_rotation_rad):.0f} deg)"
+        )
 
 
 @dataclass(frozen=True)
@@ -93,9 +100,14 @@ class SafetyFilter:
     def clip_width(self, width: float) -> float:
         return float(np.clip(width, self.limits.min_gripper_width_m, self.limits.max_gripper_width_m))
 
-    def filter(self, previous: np.ndarray, target: np.ndarray, dt: float,
-               linear_velocity: np.ndarray | None = None,
-               angular_velocity: np.ndarray | None = None) -> FilteredTarget:
+    def filter(
+        self,
+        previous: np.ndarray,
+        target: np.ndarray,
+        dt: float,
+        linear_velocity: np.ndarray | None = None,
+        angular_velocity: np.ndarray | None = None,
+    ) -> FilteredTarget:
         """Clip ``target`` to the box and move from ``previous`` towards it within the speed limits."""
         if dt <= 0:
             raise ValueError(f"dt must be positive, got {dt}")

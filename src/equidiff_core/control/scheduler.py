@@ -74,10 +74,16 @@ class ChunkScheduler:
             return live
         age_s = (now_ns - int(chunk.times_ns[-1])) / NS
         if age_s > cfg.max_step_age_s:
-            raise ChunkError(f"chunk is stale: its last step was {age_s * 1000:.0f} ms ago "
-                             f"(limit {cfg.max_step_age_s * 1000:.0f} ms)")
-        return PoseChunk(chunk.stamp_ns, np.array([now_ns + int(cfg.lead_s * NS)], dtype=np.int64),
-                         chunk.poses[-1:], chunk.widths[-1:])
+            raise ChunkError(
+                f"chunk is stale: its last step was {age_s * 1000:.0f} ms ago "
+                f"(limit {cfg.max_step_age_s * 1000:.0f} ms)"
+            )
+        return PoseChunk(
+            chunk.stamp_ns,
+            np.array([now_ns + int(cfg.lead_s * NS)], dtype=np.int64),
+            chunk.poses[-1:],
+            chunk.widths[-1:],
+        )
 
     def schedule(self, live: PoseChunk, now_ns: int, current: Setpoint) -> None:
         """Replace the trajectory by: ``current`` setpoint at ``now_ns``, then the live steps."""

@@ -35,9 +35,13 @@ class BaselineNoisePredictor(nn.Module):
         self.encoder = build_plain_encoder(preset, channels)
         cond_dim = preset.n_obs_steps * (channels[-1] + action_space.dim_of(action_space.EE_FREQS))
         self.unet = ConditionalUnet1D(
-            input_dim=self.action_dim, global_cond_dim=cond_dim,
-            diffusion_step_embed_dim=preset.diffusion_step_embed_dim, down_dims=tuple(preset.down_dims),
-            kernel_size=preset.kernel_size, n_groups=preset.n_groups)
+            input_dim=self.action_dim,
+            global_cond_dim=cond_dim,
+            diffusion_step_embed_dim=preset.diffusion_step_embed_dim,
+            down_dims=tuple(preset.down_dims),
+            kernel_size=preset.kernel_size,
+            n_groups=preset.n_groups,
+        )
 
     def encode_obs(self, voxels: torch.Tensor, ee: torch.Tensor) -> torch.Tensor:
         B = voxels.shape[0]

@@ -50,6 +50,7 @@ def is_c4(angle_deg: float) -> bool:
 
 # --- Observations ---------------------------------------------------------------------------------
 
+
 def random_observation(policy, batch: int = 2, seed: int = 0, fill: float = 0.03) -> tuple[torch.Tensor, torch.Tensor]:
     """(voxels uint8 (B, To, 4, R, R, R), ee (B, To, 10)): random coloured voxels inside the crop's
     inscribed cylinder. Cheap valid input for timing and shape tests; for measuring equivariance use
@@ -69,7 +70,9 @@ def random_observation(policy, batch: int = 2, seed: int = 0, fill: float = 0.03
     return torch.from_numpy(vox), torch.from_numpy(ee.astype(np.float32))
 
 
-def _random_gripper_states(ws, rng, batch: int, radius: float, z_range: tuple[float, float] | None = None) -> np.ndarray:
+def _random_gripper_states(
+    ws, rng, batch: int, radius: float, z_range: tuple[float, float] | None = None
+) -> np.ndarray:
     """(batch, 10) absolute gripper states pointing down, yaw uniform, within ``radius`` (m) of the centre's axis."""
     yaw = rng.uniform(-math.pi, math.pi, batch)
     Rm = np.stack([geometry.rotz(y) @ np.diag([1.0, -1.0, -1.0]) for y in yaw])
@@ -103,7 +106,7 @@ def _box_surface(center, half, yaw: float, rng) -> np.ndarray:
 
 def _disc(center, radius: float, rng) -> np.ndarray:
     """Uniform random points (N, 3) on a horizontal disc."""
-    n = max(1, math.ceil(math.pi * radius ** 2 * SURFACE_POINTS_PER_M2))
+    n = max(1, math.ceil(math.pi * radius**2 * SURFACE_POINTS_PER_M2))
     r = radius * np.sqrt(rng.random(n))
     a = rng.uniform(0, 2 * math.pi, n)
     return np.asarray(center) + np.stack([r * np.cos(a), r * np.sin(a), np.zeros(n)], 1)
@@ -167,10 +170,11 @@ def twin_scenes(preset, workspace, count: int = 2, seed: int = 0, scene_cfg=None
     scene_cfg = scene_cfg or load_twin_config().scene
     rng = np.random.default_rng(seed)
     radius = rotation_safe_radius(preset, workspace)
-    grids = [voxelize([twin_scene_cloud(scene_cfg, workspace, radius, rng)], [np.eye(4)], workspace)
-             for _ in range(count)]
+    grids = [
+        voxelize([twin_scene_cloud(scene_cfg, workspace, radius, rng)], [np.eye(4)], workspace) for _ in range(count)
+    ]
     vox = np.repeat(np.stack(grids)[:, None], preset.n_obs_steps, 1)
-    ee = _random_gripper_states(workspace, rng, count, radius=radius / 2 ** 0.5 * 0.8, z_range=(0.03, 0.25))
+    ee = _random_gripper_states(workspace, rng, count, radius=radius / 2**0.5 * 0.8, z_range=(0.03, 0.25))
     ee = np.repeat(ee[:, None], preset.n_obs_steps, 1)
     return torch.from_numpy(vox), torch.from_numpy(ee.astype(np.float32))
 
@@ -181,6 +185,7 @@ def rotate_observation(workspace, voxels: torch.Tensor, ee: torch.Tensor, theta:
 
 
 # --- Subjects -----------------------------------------------------------------------------------------
+
 
 class TrainingModel:
     """A ``policies.DiffusionPolicy`` (escnn for EquiDiff), one observation at a time."""
@@ -219,30 +224,35 @@ class ExportedModel:
 
 # --- Errors ------------------------------------------------------------------------------------------------
 
+
 def _rep(subject, theta: float) -> torch.Tensor:
     return torch.as_tensor(action_space.rep_matrix(subject.freqs, theta), dtype=torch.float32)
 
 
-def denoiser_errors(subject, voxels: torch.Tensor, ee: torch.Tensor, angles_deg=C8_ANGLES_DEG,
-                    timestep: int = 10, seed: int = 0) -> dict[float, float]:
+def denoiser_errors(
+    subject, voxels: torch.Tensor, ee: torch.Tensor, angles_deg=C8_ANGLES_DEG, timestep: int = 10, seed: int = 0
+) -> dict[float, float]:
     """{angle (deg): ||eps(g.o, g.x) - g.eps(o, x)|| / ||eps(o, x)||} over the scenes (B, To, ...)."""
     gen = torch.Generator().manual_seed(seed)
     xs = [torch.randn(1, subject.preset.horizon, subject.dim, generator=gen) for _ in range(len(voxels))]
     eps = [subject.denoise(v, e, x, timestep) for v, e, x in zip(voxels, ee, xs)]
-    ref = math.sqrt(sum(float(torch.sum(e ** 2)) for e in eps))
+    ref = math.sqrt(sum(float(torch.sum(e**2)) for e in eps))
     errors = {}
     for angle in angles_deg:
         theta = math.radians(angle)
         rep = _rep(subject, theta)
         vox_g, ee_g = rotate_observation(subject.workspace, voxels, ee, theta)
-        diff = sum(float(torch.sum((subject.denoise(v, e, x @ rep.T, timestep) - ep @ rep.T) ** 2))
-                   for v, e, x, ep in zip(vox_g, ee_g, xs, eps))
+        diff = sum(
+            float(torch.sum((subject.denoise(v, e, x @ rep.T, timestep) - ep @ rep.T) ** 2))
+            for v, e, x, ep in zip(vox_g, ee_g, xs, eps)
+        )
         errors[angle] = math.sqrt(diff) / ref
     return errors
 
 
-def sampling_errors(subject, voxels: torch.Tensor, ee: torch.Tensor, angles_deg=C8_ANGLES_DEG,
-                    seed: int = 0) -> dict[float, float]:
+def sampling_errors(
+    subject, voxels: torch.Tensor, ee: torch.Tensor, angles_deg=C8_ANGLES_DEG, seed: int = 0
+) -> dict[float, float]:
     """{angle (deg): ||a(g.o, g.z) - g.a(o, z)|| / ||a(o, z) - centre||} for DDIM from fixed noise z."""
     gen = torch.Generator().manual_seed(seed + 1)
     zs = [torch.randn(1, subject.preset.horizon, subject.dim, generator=gen) for _ in range(len(voxels))]
@@ -267,15 +277,26 @@ def summarize(errors: dict[float, float]) -> dict:
     """``c4_max_rel_err`` (90, 180, 270 deg), ``rot45_max_rel_err`` (45, 135, 225, 315 deg), ``per_element``."""
     c4 = [e for a, e in errors.items() if is_c4(a)]
     off = [e for a, e in errors.items() if not is_c4(a)]
+
     def r(e):  # 3 significant digits: the errors span 0 to ~1, their last digits are rounding noise
         return float(f"{e:.3g}")
 
-    return {"c4_max_rel_err": r(max(c4)) if c4 else None, "rot45_max_rel_err": r(max(off)) if off else None,
-            "per_element": {f"{a:g}deg": r(e) for a, e in errors.items()}}
+    return {
+        "c4_max_rel_err": r(max(c4)) if c4 else None,
+        "rot45_max_rel_err": r(max(off)) if off else None,
+        "per_element": {f"{a:g}deg": r(e) for a, e in errors.items()},
+    }
 
 
-def measure(subject, voxels: torch.Tensor, ee: torch.Tensor, sampling: bool = True, timestep: int = 10,
-            seed: int = 0, angles_deg=C8_ANGLES_DEG) -> dict:
+def measure(
+    subject,
+    voxels: torch.Tensor,
+    ee: torch.Tensor,
+    sampling: bool = True,
+    timestep: int = 10,
+    seed: int = 0,
+    angles_deg=C8_ANGLES_DEG,
+) -> dict:
     """{"denoiser": summary, "sampling": summary or None} of ``subject`` on the scenes (see ``summarize``)."""
     den = summarize(denoiser_errors(subject, voxels, ee, angles_deg, timestep, seed))
     samp = summarize(sampling_errors(subject, voxels, ee, angles_deg, seed)) if sampling else None

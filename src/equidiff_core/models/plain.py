@@ -62,9 +62,13 @@ class EquiNoiseCore(nn.Module):
         self.action_dim = action_space.dim_of(self.action_freqs)
         self.register_buffer("ee_order", torch.tensor(action_space.ABS_ORDER), persistent=False)
         self.unet = ConditionalUnet1D(
-            input_dim=preset.action_hidden, global_cond_dim=preset.obs_hidden,
-            diffusion_step_embed_dim=preset.diffusion_step_embed_dim, down_dims=tuple(preset.down_dims),
-            kernel_size=preset.kernel_size, n_groups=preset.n_groups)
+            input_dim=preset.action_hidden,
+            global_cond_dim=preset.obs_hidden,
+            diffusion_step_embed_dim=preset.diffusion_step_embed_dim,
+            down_dims=tuple(preset.down_dims),
+            kernel_size=preset.kernel_size,
+            n_groups=preset.n_groups,
+        )
 
     # subclasses: _encode_voxels(x) -> (B', F*N); _obs_linear(x) -> (B, H*N); _action_enc(x); _action_dec(x)
 

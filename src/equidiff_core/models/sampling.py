@@ -14,22 +14,40 @@ from . import action_space
 
 
 def make_train_scheduler(preset: PolicyPreset) -> DDPMScheduler:
-    return DDPMScheduler(num_train_timesteps=preset.num_train_timesteps, beta_schedule=preset.beta_schedule,
-                         prediction_type="epsilon", clip_sample=True)
+    return DDPMScheduler(
+        num_train_timesteps=preset.num_train_timesteps,
+        beta_schedule=preset.beta_schedule,
+        prediction_type="epsilon",
+        clip_sample=True,
+    )
 
 
 def make_inference_scheduler(preset: PolicyPreset) -> DDIMScheduler:
     # Same betas as training; eta = 0 (deterministic given the initial noise), as diffusion_policy's DDIM.
-    sched = DDIMScheduler(num_train_timesteps=preset.num_train_timesteps, beta_schedule=preset.beta_schedule,
-                          prediction_type="epsilon", clip_sample=True, set_alpha_to_one=True, steps_offset=0)
+    sched = DDIMScheduler(
+        num_train_timesteps=preset.num_train_timesteps,
+        beta_schedule=preset.beta_schedule,
+        prediction_type="epsilon",
+        clip_sample=True,
+        set_alpha_to_one=True,
+        steps_offset=0,
+    )
     sched.set_timesteps(preset.num_inference_steps)
     return sched
 
 
 @torch.no_grad()
-def ddim_sample(denoise, cond, shape: tuple[int, int, int], scheduler: DDIMScheduler, *,
-                generator: torch.Generator | None = None, noise: torch.Tensor | None = None,
-                device="cpu", guide: tuple[torch.Tensor, torch.Tensor] | None = None) -> torch.Tensor:
+def ddim_sample(
+    denoise,
+    cond,
+    shape: tuple[int, int, int],
+    scheduler: DDIMScheduler,
+    *,
+    generator: torch.Generator | None = None,
+    noise: torch.Tensor | None = None,
+    device="cpu",
+    guide: tuple[torch.Tensor, torch.Tensor] | None = None,
+) -> torch.Tensor:
     """Run the reverse process from ``noise`` (or fresh Gaussian noise) with ``denoise(x, t, cond)``.
 
     ``guide = (target (B, T, D), weights (T,) in [0, 1])`` inpaints: at every step the predicted
@@ -38,15 +56,20 @@ def ddim_sample(denoise, cond, shape: tuple[int, int, int], scheduler: DDIMSched
     estimate (real-time chunking, ``chunk.RealTimeChunking``). The weights scale whole steps,
     never single dimensions, so an equivariant denoiser stays equivariant. None: plain DDIM,
     the same operations as without the argument."""
-    x = noise.to(device=device, dtype=torch.float32) if noise is not None else torch.randn(
-        shape, generator=generator, device=device, dtype=torch.float32)
+    x = (
+        noise.to(device=device, dtype=torch.float32)
+        if noise is not None
+        else torch.randn(shape, generator=generator, device=device, dtype=torch.float32)
+    )
     B = x.shape[0]
     if guide is not None:
         target = guide[0].to(device=device, dtype=torch.float32)
         weights = guide[1].to(device=device, dtype=torch.float32)[None, :, None]
         if target.shape != x.shape or weights.shape[1] != x.shape[1]:
-            raise ValueError(f"guide target {tuple(target.shape)} / weights {tuple(guide[1].shape)} do not match "
-                             f"the sample {tuple(x.shape)}")
+            raise ValueError(
+                f"guide target {tuple(target.shape)} / weights {tuple(guide[1].shape)} do not match "
+                f"the sample {tuple(x.shape)}"
+            )
     for t in scheduler.timesteps:
         eps = denoise(x, t.to(device).expand(B), cond).float()
         if guide is not None:
@@ -55,8 +78,9 @@ def ddim_sample(denoise, cond, shape: tuple[int, int, int], scheduler: DDIMSched
     return x
 
 
-def _guided_noise(scheduler: DDIMScheduler, t, x: torch.Tensor, eps: torch.Tensor, target: torch.Tensor,
-                  weights: torch.Tensor) -> torch.Tensor:
+def _guided_noise(
+    scheduler: DDIMScheduler, t, x: torch.Tensor, eps: torch.Tensor, target: torch.Tensor, weights: torch.Tensor
+) -> torch.Tensor:
     """The noise that makes epsilon-DDIM's clean estimate at ``t`` the guided one (x0 + w (target - x0))."""
     alpha = scheduler.alphas_cumprod[int(t)].to(x.device, torch.float32)
     a, b = alpha.sqrt(), (1 - alpha).sqrt()
@@ -104,7 +128,7 @@ class ActionCodec:
         P = torch.as_tensor(geometry.P_REL_ROT, dtype=actions.dtype, device=actions.device)
         rot = (dR.flatten(-2) @ P.T) * self.REL_ROT_SCALE
         s = self.normalizer.rel_translation_scale
-        return torch.cat([t / s, rot, actions[..., geometry.WIDTH:]], dim=-1)
+        return torch.cat([t / s, rot, actions[..., geometry.WIDTH :]], dim=-1)
 
     def _decode_relative(self, x, ee):
         c = self._center(x)

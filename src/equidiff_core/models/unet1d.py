@@ -32,15 +32,17 @@ class SinusoidalPosEmb(nn.Module):
 
 class Conv1dBlock(nn.Sequential):
     def __init__(self, inp: int, out: int, kernel_size: int, n_groups: int):
-        super().__init__(nn.Conv1d(inp, out, kernel_size, padding=kernel_size // 2),
-                         nn.GroupNorm(n_groups, out), nn.Mish())
+        super().__init__(
+            nn.Conv1d(inp, out, kernel_size, padding=kernel_size // 2), nn.GroupNorm(n_groups, out), nn.Mish()
+        )
 
 
 class ConditionalResidualBlock1D(nn.Module):
     def __init__(self, inp: int, out: int, cond_dim: int, kernel_size: int, n_groups: int):
         super().__init__()
-        self.blocks = nn.ModuleList([Conv1dBlock(inp, out, kernel_size, n_groups),
-                                     Conv1dBlock(out, out, kernel_size, n_groups)])
+        self.blocks = nn.ModuleList(
+            [Conv1dBlock(inp, out, kernel_size, n_groups), Conv1dBlock(out, out, kernel_size, n_groups)]
+        )
         self.out_channels = out
         # FiLM: per-channel scale and bias predicted from the condition (Mish, then Linear; the
         # U-Net evaluates this Linear in two parts: ConditionalUnet1D.step_films and global_films).
@@ -51,7 +53,7 @@ class ConditionalResidualBlock1D(nn.Module):
         """x (B, inp, T), film (B, 2 * out): this block's FiLM scale and bias."""
         out = self.blocks[0](x)
         film = film.unsqueeze(-1)
-        scale, bias = film[:, : self.out_channels], film[:, self.out_channels:]
+        scale, bias = film[:, : self.out_channels], film[:, self.out_channels :]
         # one fused op: bf16 `scale * out + bias` broadcast over time ran 3x slower on CPU (measured)
         out = self.blocks[1](torch.addcmul(bias, scale, out))
         return out + self.residual_conv(x)
@@ -60,12 +62,20 @@ class ConditionalResidualBlock1D(nn.Module):
 class ConditionalUnet1D(nn.Module):
     """(B, input_dim, T) noisy sample, (B,) diffusion step, (B, global_cond_dim) -> (B, input_dim, T)."""
 
-    def __init__(self, input_dim: int, global_cond_dim: int, diffusion_step_embed_dim: int = 256,
-                 down_dims: tuple[int, ...] = (256, 512, 1024), kernel_size: int = 5, n_groups: int = 8):
+    def __init__(
+        self,
+        input_dim: int,
+        global_cond_dim: int,
+        diffusion_step_embed_dim: int = 256,
+        down_dims: tuple[int, ...] = (256, 512, 1024),
+        kernel_size: int = 5,
+        n_groups: int = 8,
+    ):
         super().__init__()
         dsed = diffusion_step_embed_dim
         self.diffusion_step_encoder = nn.Sequential(
-            SinusoidalPosEmb(dsed), nn.Linear(dsed, dsed * 4), nn.Mish(), nn.Linear(dsed * 4, dsed))
+            SinusoidalPosEmb(dsed), nn.Linear(dsed, dsed * 4), nn.Mish(), nn.Linear(dsed * 4, dsed)
+        )
         cond_dim = dsed + global_cond_dim
         dims = [input_dim, *down_dims]
         in_out = list(itertools.pairwise(dims))
@@ -75,19 +85,37 @@ class ConditionalUnet1D(nn.Module):
         self.down_modules = nn.ModuleList()
         for i, (d_in, d_out) in enumerate(in_out):
             last = i == len(in_out) - 1
-            self.down_modules.append(nn.ModuleList([
-                block(d_in, d_out), block(d_out, d_out),
-                nn.Conv1d(d_out, d_out, 3, 2, 1) if not last else nn.Identity()]))
+            self.down_modules.append(
+                nn.ModuleList(
+                    [
+                        block(d_in, d_out),
+                        block(d_out, d_out),
+                        nn.Conv1d(d_out, d_out, 3, 2, 1) if not last else nn.Identity(),
+                    ]
+                )
+            )
         self.up_modules = nn.ModuleList()
         for i, (d_in, d_out) in enumerate(reversed(in_out[1:])):
             last = i == len(in_out) - 1
-            self.up_modules.append(nn.ModuleList([
-                block(d_out * 2, d_in), block(d_in, d_in),
-                nn.ConvTranspose1d(d_in, d_in, 4, 2, 1) if not last else nn.Identity()]))
+            self.up_modules.append(
+                nn.ModuleList(
+                    [
+                        block(d_out * 2, d_in),
+                        block(d_in, d_in),
+                        nn.ConvTranspose1d(d_in, d_in, 4, 2, 1) if not last else nn.Identity(),
+                    ]
+                )
+            )
         start = down_dims[0]
-        self.final_conv = nn.Sequential(Conv1dBlock(start, start, kernel_size, n_groups), nn.Conv1d(start, input_dim, 1))
-        self.res_blocks = [m for level in (*self.down_modules, self.mid_modules, *self.up_modules)
-                           for m in level if isinstance(m, ConditionalResidualBlock1D)]
+        self.final_conv = nn.Sequential(
+            Conv1dBlock(start, start, kernel_size, n_groups), nn.Conv1d(start, input_dim, 1)
+        )
+        self.res_blocks = [
+            m
+            for level in (*self.down_modules, self.mid_modules, *self.up_modules)
+            for m in level
+            if isinstance(m, ConditionalResidualBlock1D)
+        ]
         self.film_sizes = [2 * b.out_channels for b in self.res_blocks]
 
     # FiLM of all residual blocks, concatenated: films = step_films(t) + global_films(cond). Each
@@ -100,8 +128,9 @@ class ConditionalUnet1D(nn.Module):
         step_emb = enc[0](timestep).to(enc[1].weight.dtype)  # sinusoid in fp32, then model dtype
         h = F.mish(enc[1:](step_emb))
         dsed = h.shape[-1]
-        return torch.cat([F.linear(h, b.cond_encoder[1].weight[:, :dsed], b.cond_encoder[1].bias)
-                          for b in self.res_blocks], dim=-1)
+        return torch.cat(
+            [F.linear(h, b.cond_encoder[1].weight[:, :dsed], b.cond_encoder[1].bias) for b in self.res_blocks], dim=-1
+        )
 
     def global_films(self, global_cond: torch.Tensor) -> torch.Tensor:
         """(B, global_cond_dim) -> (B, sum(film_sizes)), without biases (step_films has them)."""

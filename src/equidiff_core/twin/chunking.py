@@ -75,20 +75,22 @@ class ChunkingProbe:
                 # The tick at the switch starts the new trajectory where the command is (moved on by
                 # its own velocity), the next one takes up the new chunk's velocity: the larger of
                 # the two changes (a stand-still at the switch shows in the first).
-                changes = velocity[i - 1:i + 1] - velocity[i - 2:i]
+                changes = velocity[i - 1 : i + 1] - velocity[i - 2 : i]
                 self.boundary_dv.append(float(np.linalg.norm(changes, axis=1).max()))
         every = max(1, round(1.0 / (JERK_HZ * period_s)))
         sampled = p[::every]
         if len(sampled) >= 4:
             h = every * period_s
-            self.jerk.extend((np.linalg.norm(np.diff(sampled, n=3, axis=0), axis=1) / h ** 3).tolist())
+            self.jerk.extend((np.linalg.norm(np.diff(sampled, n=3, axis=0), axis=1) / h**3).tolist())
 
     def summary(self) -> dict:
         def p95(values):
             return round(float(np.percentile(values, 95)), 4) if values else None
 
-        return {"boundary_dv_p95_mps": p95(self.boundary_dv),
-                "jerk_p95_mps3": p95(self.jerk),
-                "mode_switches": self.mode_switches,
-                "mode_switch_rate": round(self.mode_switches / self.pairs, 3) if self.pairs else None,
-                "chunk_switches": len(self.boundary_dv)}
+        return {
+            "boundary_dv_p95_mps": p95(self.boundary_dv),
+            "jerk_p95_mps3": p95(self.jerk),
+            "mode_switches": self.mode_switches,
+            "mode_switch_rate": round(self.mode_switches / self.pairs, 3) if self.pairs else None,
+            "chunk_switches": len(self.boundary_dv),
+        }

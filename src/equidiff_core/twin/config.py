@@ -155,8 +155,11 @@ class TwinConfig:
 
     def with_yaw_range(self, block_deg: tuple[float, float], bowl_deg: tuple[float, float] | None = None):
         """A copy whose object yaw is drawn from narrower ranges (generalisation benchmark)."""
-        scene = replace(self.scene, block_yaw_deg=tuple(block_deg),
-                        bowl_yaw_deg=tuple(bowl_deg if bowl_deg is not None else block_deg))
+        scene = replace(
+            self.scene,
+            block_yaw_deg=tuple(block_deg),
+            bowl_yaw_deg=tuple(bowl_deg if bowl_deg is not None else block_deg),
+        )
         return replace(self, scene=scene)
 
 

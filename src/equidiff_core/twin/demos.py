@@ -50,8 +50,10 @@ class DirectRecorder:
         self.cfg, self.lab = cfg, lab
         self.sim = DirectSim(cfg)
         self._qpos = None
-        self.cameras = [TwinCamera(cam, state_source=lambda t: (self._qpos, 0.0, self._stamp), paced=False,
-                                   twin_config=cfg) for cam in lab.cameras]
+        self.cameras = [
+            TwinCamera(cam, state_source=lambda t: (self._qpos, 0.0, self._stamp), paced=False, twin_config=cfg)
+            for cam in lab.cameras
+        ]
         for c in self.cameras:
             c.connect()
         self.voxelizer = Voxelizer(lab.workspace, [c.extrinsics.matrix() for c in lab.cameras])
@@ -113,8 +115,9 @@ class DirectWorld:
 
     def start_recording(self) -> str:
         self.path = next_episode_path(self.out, self.task)
-        self.writer = EpisodeWriter(self.path, EpisodeMeta(task=self.task, operator=self.operator,
-                                                           seed=self.seed)).open()
+        self.writer = EpisodeWriter(
+            self.path, EpisodeMeta(task=self.task, operator=self.operator, seed=self.seed)
+        ).open()
         for topic, msgtype in TRAINING_TOPICS.items():
             self.writer.add_topic(topic, msgtype)
         self.writer.write_tf_static(self.lab, self.epoch_ns)
@@ -167,8 +170,14 @@ class DirectExpert:
 
     def begin(self) -> float:
         sim, cfg = self.world.sim, self.world.rec.cfg
-        self.plan = plan_pick_place(sim.tcp_pose(), sim.gripper_width(), body_pose(sim.model, sim.data, BLOCK),
-                                    body_pose(sim.model, sim.data, BOWL), cfg.scene.block_size[2], cfg.expert)
+        self.plan = plan_pick_place(
+            sim.tcp_pose(),
+            sim.gripper_width(),
+            body_pose(sim.model, sim.data, BLOCK),
+            body_pose(sim.model, sim.data, BOWL),
+            cfg.scene.block_size[2],
+            cfg.expert,
+        )
         self.t0 = sim.time
         return self.t0
 
@@ -194,9 +203,16 @@ class DirectExpert:
         pass  # the next reset re-poses the arm
 
 
-def collect_direct(cfg: TwinConfig, lab: LabConfig, out: Path, seeds: Iterable[int], task: str = "twin_block_in_bowl",
-                   keep_failures: bool = False, log: Callable[[str], None] = print,
-                   stop_after: int | None = None) -> list[tuple[int, bool, str]]:
+def collect_direct(
+    cfg: TwinConfig,
+    lab: LabConfig,
+    out: Path,
+    seeds: Iterable[int],
+    task: str = "twin_block_in_bowl",
+    keep_failures: bool = False,
+    log: Callable[[str], None] = print,
+    stop_after: int | None = None,
+) -> list[tuple[int, bool, str]]:
     """Record one bag per seed under ``out`` (``episode.run_episode`` with the scripted expert);
     failed episodes are deleted unless ``keep_failures``; stop once ``stop_after`` successful
     demos exist."""
@@ -208,11 +224,20 @@ def collect_direct(cfg: TwinConfig, lab: LabConfig, out: Path, seeds: Iterable[i
         for seed in seeds:
             t0 = time.monotonic()
             world.epoch_ns = time.time_ns()
-            result = run_episode(world, DirectExpert(world), seed, float("inf"), cfg.success.hold_s,
-                                 keep=lambda ok: ok or keep_failures, note="scripted expert (direct)")
+            result = run_episode(
+                world,
+                DirectExpert(world),
+                seed,
+                float("inf"),
+                cfg.success.hold_s,
+                keep=lambda ok: ok or keep_failures,
+                note="scripted expert (direct)",
+            )
             results.append((seed, result.success, result.bag))
-            log(f"[collect] seed {seed}: {'success' if result.success else 'failure'} in "
-                f"{time.monotonic() - t0:.1f} s{'' if result.bag else ' (discarded)'} {world.path.name}")
+            log(
+                f"[collect] seed {seed}: {'success' if result.success else 'failure'} in "
+                f"{time.monotonic() - t0:.1f} s{'' if result.bag else ' (discarded)'} {world.path.name}"
+            )
             if stop_after is not None and sum(1 for _, s, _ in results if s) >= stop_after:
                 break
     finally:

@@ -107,8 +107,11 @@ class _Episode:
         ee = ee_input(sim.tcp_pose(), sim.gripper_width())  # the state at the stamp itself: no matching needed
         guide = None if chunking is None else chunking.guide(stamp_ns, ee)
         seed = self.seed * 1000 + self.observations
-        actions = (self.policy.predict(grid, ee, seed=seed) if guide is None
-                   else self.policy.predict(grid, ee, seed=seed, guide=guide))
+        actions = (
+            self.policy.predict(grid, ee, seed=seed)
+            if guide is None
+            else self.policy.predict(grid, ee, seed=seed, guide=guide)
+        )
         self.observations += 1
         return actions
 
@@ -119,10 +122,20 @@ class _Episode:
         return self.ok
 
 
-def evaluate_policy(policy, cfg: TwinConfig, lab: LabConfig, seeds: Iterable[int], max_duration_s: float = 30.0,
-                    log: Callable[[str], None] = print, recorder=None, latency_s: float = 0.1,
-                    execute_steps: int = 0, publish_steps: int = 0, rtc: bool = False,
-                    probe=None) -> list[EvalEpisode]:
+def evaluate_policy(
+    policy,
+    cfg: TwinConfig,
+    lab: LabConfig,
+    seeds: Iterable[int],
+    max_duration_s: float = 30.0,
+    log: Callable[[str], None] = print,
+    recorder=None,
+    latency_s: float = 0.1,
+    execute_steps: int = 0,
+    publish_steps: int = 0,
+    rtc: bool = False,
+    probe=None,
+) -> list[EvalEpisode]:
     """Roll ``policy`` (an ``inference.InferencePolicy``) out from each seed's scene; returns per-episode results.
 
     Each answered observation's chunk takes effect ``latency_s`` after it (default 0.1 s, the
@@ -157,26 +170,53 @@ def evaluate_policy(policy, cfg: TwinConfig, lab: LabConfig, seeds: Iterable[int
             episode = _Episode(policy, rec, seed, cfg.success.hold_s)
             if probe is not None:
                 probe.start_episode(seed)
-            _run(episode, policy, lab, control, max_duration_s, latency_s, execute_steps, ex.open_width,
-                 publish_steps, rtc, probe)
+            _run(
+                episode,
+                policy,
+                lab,
+                control,
+                max_duration_s,
+                latency_s,
+                execute_steps,
+                ex.open_width,
+                publish_steps,
+                rtc,
+                probe,
+            )
             if probe is not None:
                 probe.end_episode()
             progress, t = episode.progress, sim.time - episode.t0
-            results.append(EvalEpisode(seed, episode.ok, round(t, 2), episode.observations,
-                                       round(float(np.degrees(poses.block_yaw)), 1), progress.reached,
-                                       progress.lifted, round(progress.closest_to_bowl_m, 3),
-                                       round(progress.closest_to_block_m, 3)))
+            results.append(
+                EvalEpisode(
+                    seed,
+                    episode.ok,
+                    round(t, 2),
+                    episode.observations,
+                    round(float(np.degrees(poses.block_yaw)), 1),
+                    progress.reached,
+                    progress.lifted,
+                    round(progress.closest_to_bowl_m, 3),
+                    round(progress.closest_to_block_m, 3),
+                )
+            )
             stats = episode.stats
-            control_note = "".join([
-                f"; {stats.rejected_chunks} chunks rejected ({stats.last_rejection})" if stats.rejected_chunks else "",
-                f"; {stats.watchdog_holds} watchdog holds" if stats.watchdog_holds else "",
-                f"; {stats.divergence_stops} divergence stops" if stats.divergence_stops else ""])
-            log(f"[eval] seed {seed} (block yaw {np.degrees(poses.block_yaw):+.0f} deg): "
+            control_note = "".join(
+                [
+                    f"; {stats.rejected_chunks} chunks rejected ({stats.last_rejection})"
+                    if stats.rejected_chunks
+                    else "",
+                    f"; {stats.watchdog_holds} watchdog holds" if stats.watchdog_holds else "",
+                    f"; {stats.divergence_stops} divergence stops" if stats.divergence_stops else "",
+                ]
+            )
+            log(
+                f"[eval] seed {seed} (block yaw {np.degrees(poses.block_yaw):+.0f} deg): "
                 f"{'success' if episode.ok else 'failure'} after {t:.1f} s sim, {episode.observations} observations; "
                 f"TCP within {progress.closest_to_block_m * 1000:.0f} mm of the block, "
                 f"reached it: {'yes' if progress.reached else 'no'}, lifted it: "
                 f"{'yes' if progress.lifted else 'no'}, block came within {progress.closest_to_bowl_m * 1000:.0f} mm "
-                f"of the bowl's centre{control_note}")
+                f"of the bowl's centre{control_note}"
+            )
     finally:
         if recorder is None:
             rec.close()
@@ -255,8 +295,19 @@ class _DirectArm(Robot):
             self.sim.command(self.target, self.width)
 
 
-def _run(episode: _Episode, policy, lab: LabConfig, control, max_duration_s: float, latency_s: float,
-         execute_steps: int, open_width: float, publish_steps: int, rtc: bool, probe) -> None:
+def _run(
+    episode: _Episode,
+    policy,
+    lab: LabConfig,
+    control,
+    max_duration_s: float,
+    latency_s: float,
+    execute_steps: int,
+    open_width: float,
+    publish_steps: int,
+    rtc: bool,
+    probe,
+) -> None:
     """One episode as policy_node + franka_node run it on simulated time (1 ms sim ticks).
 
     Four event streams on one integer-millisecond clock from the episode's start: observations
@@ -275,8 +326,9 @@ def _run(episode: _Episode, policy, lab: LabConfig, control, max_duration_s: flo
     cmd_ms = max(tick_ms, round(1000 / COMMAND_HZ))
     max_ms = round(max_duration_s * 1000)
     clock, arm = _SimClock(), _DirectArm(sim, open_width)
-    controller = Controller(arm, lab.safety_box, control, clock=clock, logger=_QUIET,
-                            on_command=None if probe is None else probe.command)
+    controller = Controller(
+        arm, lab.safety_box, control, clock=clock, logger=_QUIET, on_command=None if probe is None else probe.command
+    )
     chunking = RealTimeChunking(RealTimeChunking.delay_for(latency_s, dt_ms / 1000), dt_ms * 1_000_000) if rtc else None
     controller.start(home=False, thread=False)  # the arm is at the ready pose: hold it, as franka_node does
     pending: deque = deque()  # (ms at which it arrives, PoseChunk), in order
@@ -313,8 +365,9 @@ def _run(episode: _Episode, policy, lab: LabConfig, control, max_duration_s: flo
     episode.stats = controller.stats
 
 
-def unseen_yaw_seeds(cfg: TwinConfig, train_yaw_deg: tuple[float, float], n: int, start: int = 10_000_000,
-                     margin_deg: float = 15.0) -> list[int]:
+def unseen_yaw_seeds(
+    cfg: TwinConfig, train_yaw_deg: tuple[float, float], n: int, start: int = 10_000_000, margin_deg: float = 15.0
+) -> list[int]:
     """Seeds whose block yaw lies at least ``margin_deg`` outside the training range, modulo 180 deg.
 
     The block is a box grasped across its short side: at yaw and yaw + 180 deg it looks and is
@@ -324,12 +377,15 @@ def unseen_yaw_seeds(cfg: TwinConfig, train_yaw_deg: tuple[float, float], n: int
     lo, hi = train_yaw_deg
     centre, half = (lo + hi) / 2, (hi - lo) / 2 + margin_deg
     if half >= 90.0:
-        raise ValueError(f"training yaw range {train_yaw_deg} plus a {margin_deg} deg margin leaves no unseen block yaw")
+        raise ValueError(
+            f"training yaw range {train_yaw_deg} plus a {margin_deg} deg margin leaves no unseen block yaw"
+        )
     return _seeds_where(cfg, n, start, lambda yaw: abs(block_yaw_offset_deg(yaw, centre)) > half)
 
 
-def in_range_yaw_seeds(cfg: TwinConfig, train_yaw_deg: tuple[float, float], n: int,
-                       start: int = 20_000_000) -> list[int]:
+def in_range_yaw_seeds(
+    cfg: TwinConfig, train_yaw_deg: tuple[float, float], n: int, start: int = 20_000_000
+) -> list[int]:
     """Seeds whose block yaw lies inside the training range (modulo 180 deg, as above): the
     control for ``unseen_yaw_seeds`` (a policy that fails here has not learned the task)."""
     lo, hi = train_yaw_deg
@@ -342,8 +398,9 @@ def _seeds_where(cfg: TwinConfig, n: int, start: int, keep: Callable[[float], bo
     seeds, seed = [], start
     while len(seeds) < n:
         if seed - start > 10_000 + 1_000 * n:
-            raise ValueError(f"only {len(seeds)} of {n} scenes from seed {start} have such a block yaw "
-                             f"(is the yaw range empty?)")
+            raise ValueError(
+                f"only {len(seeds)} of {n} scenes from seed {start} have such a block yaw (is the yaw range empty?)"
+            )
         if keep(sample_scene(cfg.scene, seed).block_yaw):
             seeds.append(seed)
         seed += 1

@@ -59,9 +59,18 @@ class LinePath:
     is: a fresh-clone main job once failed its homing that way with the arm 319 mm off the path.
     Rotation is slerped from the start orientation, so a tilted start is no jump either."""
 
-    def __init__(self, start: np.ndarray, target: np.ndarray, speed: float = 0.12, angular_speed: float = 1.0,
-                 hz: float = 20.0, max_lag_m: float = 0.03, max_lag_rad: float = 0.2, restart_m: float = 0.05,
-                 restart_rad: float = 0.4):
+    def __init__(
+        self,
+        start: np.ndarray,
+        target: np.ndarray,
+        speed: float = 0.12,
+        angular_speed: float = 1.0,
+        hz: float = 20.0,
+        max_lag_m: float = 0.03,
+        max_lag_rad: float = 0.2,
+        restart_m: float = 0.05,
+        restart_rad: float = 0.4,
+    ):
         self.target = np.asarray(target, dtype=float)
         self.speed, self.angular_speed, self.hz = speed, angular_speed, hz
         self.max_lag_m, self.max_lag_rad = max_lag_m, max_lag_rad
@@ -72,8 +81,11 @@ class LinePath:
     def _restart(self, start: np.ndarray) -> None:
         self.p0 = start[:3, 3].copy()
         self._slerp = Slerp([0.0, 1.0], Rotation.from_matrix(np.stack([start[:3, :3], self.target[:3, :3]])))
-        self.duration = max(float(np.linalg.norm(self.target[:3, 3] - self.p0)) / self.speed,
-                            rotation_angle(start[:3, :3], self.target[:3, :3]) / self.angular_speed, 0.3)
+        self.duration = max(
+            float(np.linalg.norm(self.target[:3, 3] - self.p0)) / self.speed,
+            rotation_angle(start[:3, :3], self.target[:3, :3]) / self.angular_speed,
+            0.3,
+        )
         self.s = 0.0
         self.pose = start.copy()
 
@@ -93,8 +105,9 @@ class LinePath:
         if self.done:
             self.pose = self.target.copy()
         else:
-            self.pose = geometry.make_pose(self._slerp(self.s).as_matrix(),
-                                           (1 - self.s) * self.p0 + self.s * self.target[:3, 3])
+            self.pose = geometry.make_pose(
+                self._slerp(self.s).as_matrix(), (1 - self.s) * self.p0 + self.s * self.target[:3, 3]
+            )
         return self.pose
 
 
@@ -137,8 +150,9 @@ class ExpertPlan:
         return tcp_pose(ks[-1].position, ks[-1].yaw), ks[-1].width
 
 
-def plan_pick_place(start: np.ndarray, start_width: float, block: np.ndarray, bowl: np.ndarray,
-                    block_height: float, cfg: ExpertConfig) -> ExpertPlan:
+def plan_pick_place(
+    start: np.ndarray, start_width: float, block: np.ndarray, bowl: np.ndarray, block_height: float, cfg: ExpertConfig
+) -> ExpertPlan:
     """Plan from the current TCP pose to the block (4x4), grasp, lift, over the bowl (4x4), release."""
     yaw0 = tcp_yaw(start)
     g_yaw = grasp_yaw(tcp_yaw(block), reference_yaw=0.0)
@@ -191,8 +205,14 @@ def run_direct_episode(sim, seed: int, cfg: TwinConfig, max_extra_s: float = 3.0
     ready = tcp_pose(ex.ready_position, 0.0)
     sim.command(ready, ex.open_width)
     sim.step(1500)
-    plan = plan_pick_place(sim.tcp_pose(), sim.gripper_width(), body_pose(sim.model, sim.data, BLOCK),
-                           body_pose(sim.model, sim.data, BOWL), cfg.scene.block_size[2], ex)
+    plan = plan_pick_place(
+        sim.tcp_pose(),
+        sim.gripper_width(),
+        body_pose(sim.model, sim.data, BLOCK),
+        body_pose(sim.model, sim.data, BOWL),
+        cfg.scene.block_size[2],
+        ex,
+    )
     t0 = sim.time
     control_dt = 1.0 / ex.command_hz
     steps = round(control_dt * 1000)

@@ -43,7 +43,9 @@ class LockstepConfig:
 
     def __post_init__(self):
         if self.frame_period_ticks < 1 or self.latency_ticks < 0 or self.clock_period_ticks < 1:
-            raise ValueError(f"lockstep needs a frame period >= 1 ms, a latency >= 0 and a clock period >= 1 ms: {self}")
+            raise ValueError(
+                f"lockstep needs a frame period >= 1 ms, a latency >= 0 and a clock period >= 1 ms: {self}"
+            )
 
 
 class Lockstep:
@@ -97,8 +99,10 @@ class Lockstep:
     def chunk_blocker(self, tick: int) -> str:
         """Why the sim may not step past ``tick`` ('' when it may): a chunk due by now is missing."""
         with self._lock:
-            while self._pending and (self._pending[0] * NS_PER_TICK <= self._chunk_stamp_ns
-                                     or self._pending[0] * NS_PER_TICK in self._skipped):
+            while self._pending and (
+                self._pending[0] * NS_PER_TICK <= self._chunk_stamp_ns
+                or self._pending[0] * NS_PER_TICK in self._skipped
+            ):
                 self._skipped.discard(self._pending.popleft() * NS_PER_TICK)
             if not self._pending or tick < self._pending[0] + self.config.latency_ticks:
                 return ""

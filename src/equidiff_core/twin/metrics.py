@@ -72,33 +72,56 @@ class RunSummary:
 
     def human(self) -> str:
         d = self.as_dict()
-        lines = ["", "== twin run summary ==",
-                 f"policy:            {d['policy']}",
-                 f"episodes:          {d['episodes']}",
-                 f"success rate:      {d['success_rate'] * 100:.0f} %",
-                 f"mean episode time: {d['mean_episode_s']} s (successful: {d['mean_success_episode_s']} s)",
-                 f"inference:         p50 {d['inference_p50_ms']} ms, p95 {d['inference_p95_ms']} ms",
-                 (f"end to end:        p50 {d['end_to_end_p50_ms']} ms, p95 {d['end_to_end_p95_ms']} ms "
-                 "(camera capture -> chunk at the robot)"),
-                 f"dropped cycles:    {d['dropped_cycles']} (observations due an answer that got none; {d['chunks']} chunks)",
-                 "clock:             " + (f"simulated time, latency budget {d['latency_budget_ms']} ms"
-                                              if d["clock"] == "sim" else "real time"),
-                 f"sim speed:         {d['sim_realtime_factor']} x real time; whole job {d['wall_s']} s of wall time",
-                 f"stalled episodes:  {d['stalled_episodes']}",
-                 f"rerun recording:   {d['rrd'] or '-'}"]
+        lines = [
+            "",
+            "== twin run summary ==",
+            f"policy:            {d['policy']}",
+            f"episodes:          {d['episodes']}",
+            f"success rate:      {d['success_rate'] * 100:.0f} %",
+            f"mean episode time: {d['mean_episode_s']} s (successful: {d['mean_success_episode_s']} s)",
+            f"inference:         p50 {d['inference_p50_ms']} ms, p95 {d['inference_p95_ms']} ms",
+            (
+                f"end to end:        p50 {d['end_to_end_p50_ms']} ms, p95 {d['end_to_end_p95_ms']} ms "
+                "(camera capture -> chunk at the robot)"
+            ),
+            f"dropped cycles:    {d['dropped_cycles']} (observations due an answer that got none; {d['chunks']} chunks)",
+            "clock:             "
+            + (f"simulated time, latency budget {d['latency_budget_ms']} ms" if d["clock"] == "sim" else "real time"),
+            f"sim speed:         {d['sim_realtime_factor']} x real time; whole job {d['wall_s']} s of wall time",
+            f"stalled episodes:  {d['stalled_episodes']}",
+            f"rerun recording:   {d['rrd'] or '-'}",
+        ]
         if not d["representative"]:
-            lines.append(f"NOT REPRESENTATIVE: on real time the sim ran at {d['sim_realtime_factor']}x (< "
-                         f"{self.MIN_REALTIME_FACTOR}x): this machine, not the policy, set the timing; "
-                         f"run without --realtime")
+            lines.append(
+                f"NOT REPRESENTATIVE: on real time the sim ran at {d['sim_realtime_factor']}x (< "
+                f"{self.MIN_REALTIME_FACTOR}x): this machine, not the policy, set the timing; "
+                f"run without --realtime"
+            )
         for e in self.episodes:
             outcome = "stalled" if e.stalled else "success" if e.success else "failure"
-            lines.append(f"  seed {e.seed:>6}: {outcome} in {e.duration_s:.1f} s, "
-                         f"{e.chunks} chunks, {e.dropped_cycles} dropped {e.note}{e.stalled}  {e.bag}")
+            lines.append(
+                f"  seed {e.seed:>6}: {outcome} in {e.duration_s:.1f} s, "
+                f"{e.chunks} chunks, {e.dropped_cycles} dropped {e.note}{e.stalled}  {e.bag}"
+            )
         return "\n".join(lines)
 
     def json_line(self) -> str:
         d = self.as_dict()
-        keys = ("episodes", "success_rate", "inference_p95_ms", "end_to_end_p95_ms", "dropped_cycles",
-                "inference_p50_ms", "end_to_end_p50_ms", "mean_episode_s", "chunks", "sim_realtime_factor",
-                "stalled_episodes", "clock", "latency_budget_ms", "wall_s", "representative")
+        keys = (
+            "episodes",
+            "success_rate",
+            "inference_p95_ms",
+            "end_to_end_p95_ms",
+            "dropped_cycles",
+            "inference_p50_ms",
+            "end_to_end_p50_ms",
+            "mean_episode_s",
+            "chunks",
+            "sim_realtime_factor",
+            "stalled_episodes",
+            "clock",
+            "latency_budget_ms",
+            "wall_s",
+            "representative",
+        )
         return json.dumps({k: d[k] for k in keys})

@@ -38,10 +38,16 @@ def private_ros_env(domain_id: int | None = None, **extra: str) -> dict[str, str
     env = dict(os.environ)
     if domain_id is None:
         domain_id = random_domain_id()
-    env.update({"ROS_DOMAIN_ID": str(domain_id), "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST",
-                "MUJOCO_GL": env.get("MUJOCO_GL", "egl"), "PYTHONUNBUFFERED": "1",
-                # rcutils block-buffers log lines into a file: a killed node lost its last minute of logs
-                "RCUTILS_LOGGING_BUFFERED_STREAM": "0"})
+    env.update(
+        {
+            "ROS_DOMAIN_ID": str(domain_id),
+            "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST",
+            "MUJOCO_GL": env.get("MUJOCO_GL", "egl"),
+            "PYTHONUNBUFFERED": "1",
+            # rcutils block-buffers log lines into a file: a killed node lost its last minute of logs
+            "RCUTILS_LOGGING_BUFFERED_STREAM": "0",
+        }
+    )
     env.update({k: str(v) for k, v in extra.items()})
     return env
 
@@ -102,8 +108,7 @@ def composed_command(nodes: dict[str, dict], params_file: Path, remaps: dict[str
 
     params_file = Path(params_file)
     params_file.parent.mkdir(parents=True, exist_ok=True)
-    params_file.write_text(yaml.safe_dump({name: {"ros__parameters": p} for name, p in nodes.items()},
-                                          sort_keys=False))
+    params_file.write_text(yaml.safe_dump({name: {"ros__parameters": p} for name, p in nodes.items()}, sort_keys=False))
     exe = shutil.which("equidiff_composed")
     cmd = [exe] if exe else [sys.executable, "-m", "equidiff_ros.composed"]
     cmd += ["--nodes", ",".join(nodes), "--ros-args", "--params-file", str(params_file)]
@@ -113,19 +118,39 @@ def composed_command(nodes: dict[str, dict], params_file: Path, remaps: dict[str
     return cmd
 
 
-def start_node(executable: str, params: dict | None = None, log_path: Path | None = None, priority: bool = False,
-               remaps: dict | None = None, env: dict[str, str] | None = None, capture: bool = False) -> subprocess.Popen:
+def start_node(
+    executable: str,
+    params: dict | None = None,
+    log_path: Path | None = None,
+    priority: bool = False,
+    remaps: dict | None = None,
+    env: dict[str, str] | None = None,
+    capture: bool = False,
+) -> subprocess.Popen:
     """One node process, the way every node is started (``ProcessGroup.start``, the benches, the
     tests): ``node_command`` with ``node_preexec``; output to ``log_path`` (default: discarded) or,
     with ``capture``, to a text pipe the caller reads."""
     cmd = node_command(executable, params, remaps)
     env = {**(os.environ if env is None else env), "PYTHONUNBUFFERED": "1"}
     if capture:
-        return subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-                                stdin=subprocess.DEVNULL, preexec_fn=node_preexec(priority))
+        return subprocess.Popen(
+            cmd,
+            env=env,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            text=True,
+            stdin=subprocess.DEVNULL,
+            preexec_fn=node_preexec(priority),
+        )
     with open(log_path or os.devnull, "wb") as out:  # the child keeps its own copy of the descriptor
-        return subprocess.Popen(cmd, env=env, stdout=out, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-                                preexec_fn=node_preexec(priority))
+        return subprocess.Popen(
+            cmd,
+            env=env,
+            stdout=out,
+            stderr=subprocess.STDOUT,
+            stdin=subprocess.DEVNULL,
+            preexec_fn=node_preexec(priority),
+        )
 
 
 def stop_process(proc: subprocess.Popen | None, timeout: float = 10.0, sig: int = signal.SIGINT) -> int | None:
@@ -177,9 +202,15 @@ class ProcessGroup:
         # the node shuts itself down if this process dies without stopping it (equidiff_ros.runner)
         env = {**self.env, PARENT_PID_ENV: str(os.getpid())}
         with open(log, "wb") as fh:
-            popen = subprocess.Popen(cmd, env=env, stdout=fh, stderr=subprocess.STDOUT,
-                                     stdin=subprocess.DEVNULL, start_new_session=True,
-                                     preexec_fn=node_preexec(priority))
+            popen = subprocess.Popen(
+                cmd,
+                env=env,
+                stdout=fh,
+                stderr=subprocess.STDOUT,
+                stdin=subprocess.DEVNULL,
+                start_new_session=True,
+                preexec_fn=node_preexec(priority),
+            )
         node = NodeProcess(name, cmd, popen, log)
         self.nodes.append(node)
         return node
@@ -188,8 +219,10 @@ class ProcessGroup:
         """Raise if any node has exited (they are all meant to run until we stop them)."""
         for node in self.nodes:
             if not node.alive():
-                raise NodeProcessError(f"{node.name} exited with code {node.popen.returncode}; "
-                                       f"last lines of {node.log}:\n{node.log_tail()}")
+                raise NodeProcessError(
+                    f"{node.name} exited with code {node.popen.returncode}; "
+                    f"last lines of {node.log}:\n{node.log_tail()}"
+                )
 
     def stop(self, name: str) -> None:
         for node in [n for n in self.nodes if n.name == name]:
@@ -222,6 +255,7 @@ class ProcessGroup:
     def __enter__(self) -> Self:
         def on_term(signum, frame):
             raise KeyboardInterrupt  # unwinds the job through its finally blocks
+
         try:
             self._old_sigterm = signal.signal(signal.SIGTERM, on_term)
         except ValueError:  # not the main thread
@@ -245,6 +279,7 @@ def node_preexec(priority: bool = False):
     real-time policy inherited from whoever started it (libfranka had left a test runner's main
     thread at SCHED_FIFO 99, and nodes busy rendering then starved the machine); ``priority``
     adds a raised nice level where permitted."""
+
     def setup() -> None:
         from ..robots.franky.sim import raise_priority
 
@@ -254,4 +289,5 @@ def node_preexec(priority: bool = False):
             pass
         if priority:
             raise_priority(-5)
+
     return setup

@@ -42,6 +42,7 @@ def _fmt(values: Iterable[float]) -> str:
 
 # --- Building the MJCF --------------------------------------------------------------------
 
+
 def add_task_objects(scene: ET.Element, cfg: SceneConfig) -> None:
     """Add the table, block and bowl to franky-sim's scene tree (call before the sim starts)."""
     worldbody = scene.find("worldbody")
@@ -52,36 +53,65 @@ def add_task_objects(scene: ET.Element, cfg: SceneConfig) -> None:
         if geom.get("name") == "ground":
             geom.set("pos", _fmt((0, 0, -cfg.table_height)))
     hx, hy = cfg.table_half_xy
-    ET.SubElement(worldbody, "geom", name=TABLE, type="box",
-                  pos=_fmt((*cfg.table_center_xy, -cfg.table_height / 2)),
-                  size=_fmt((hx, hy, cfg.table_height / 2)), rgba=_fmt(cfg.table_rgba),
-                  friction=_fmt(cfg.friction))
+    ET.SubElement(
+        worldbody,
+        "geom",
+        name=TABLE,
+        type="box",
+        pos=_fmt((*cfg.table_center_xy, -cfg.table_height / 2)),
+        size=_fmt((hx, hy, cfg.table_height / 2)),
+        rgba=_fmt(cfg.table_rgba),
+        friction=_fmt(cfg.friction),
+    )
 
     sx, sy, sz = (s / 2 for s in cfg.block_size)
     block = ET.SubElement(worldbody, "body", name=BLOCK, pos=_fmt((0.45, 0.1, sz)))
     ET.SubElement(block, "freejoint", name=f"{BLOCK}_joint")
-    ET.SubElement(block, "geom", name=f"{BLOCK}_geom", type="box", size=_fmt((sx, sy, sz)),
-                  mass=f"{cfg.block_mass}", rgba=_fmt(cfg.block_rgba), friction=_fmt(cfg.friction),
-                  condim="4")
+    ET.SubElement(
+        block,
+        "geom",
+        name=f"{BLOCK}_geom",
+        type="box",
+        size=_fmt((sx, sy, sz)),
+        mass=f"{cfg.block_mass}",
+        rgba=_fmt(cfg.block_rgba),
+        friction=_fmt(cfg.friction),
+        condim="4",
+    )
 
     bowl = ET.SubElement(worldbody, "body", name=BOWL, pos=_fmt((0.45, -0.1, 0)))
     ET.SubElement(bowl, "freejoint", name=f"{BOWL}_joint")
     n = cfg.bowl_segments
     geom_mass = cfg.bowl_mass / (n + 1)
     outer = cfg.bowl_outer_radius
-    ET.SubElement(bowl, "geom", name=f"{BOWL}_base", type="cylinder",
-                  size=_fmt((outer, cfg.bowl_base_thickness / 2)), pos=_fmt((0, 0, cfg.bowl_base_thickness / 2)),
-                  mass=f"{geom_mass}", rgba=_fmt(cfg.bowl_rgba), friction=_fmt(cfg.friction))
+    ET.SubElement(
+        bowl,
+        "geom",
+        name=f"{BOWL}_base",
+        type="cylinder",
+        size=_fmt((outer, cfg.bowl_base_thickness / 2)),
+        pos=_fmt((0, 0, cfg.bowl_base_thickness / 2)),
+        mass=f"{geom_mass}",
+        rgba=_fmt(cfg.bowl_rgba),
+        friction=_fmt(cfg.friction),
+    )
     r_mid = cfg.bowl_inner_radius + cfg.bowl_wall_thickness / 2
     seg_half_len = r_mid * math.tan(math.pi / n) * 1.08  # slight overlap closes the ring
     wall_top = cfg.bowl_base_thickness + cfg.bowl_wall_height
     for i in range(n):
         a = 2 * math.pi * i / n
-        ET.SubElement(bowl, "geom", name=f"{BOWL}_wall{i}", type="box",
-                      size=_fmt((cfg.bowl_wall_thickness / 2, seg_half_len, wall_top / 2)),
-                      pos=_fmt((r_mid * math.cos(a), r_mid * math.sin(a), wall_top / 2)),
-                      euler=_fmt((0, 0, a)), mass=f"{geom_mass}",
-                      rgba=_fmt(cfg.bowl_mark_rgba if i == 0 else cfg.bowl_rgba), friction=_fmt(cfg.friction))
+        ET.SubElement(
+            bowl,
+            "geom",
+            name=f"{BOWL}_wall{i}",
+            type="box",
+            size=_fmt((cfg.bowl_wall_thickness / 2, seg_half_len, wall_top / 2)),
+            pos=_fmt((r_mid * math.cos(a), r_mid * math.sin(a), wall_top / 2)),
+            euler=_fmt((0, 0, a)),
+            mass=f"{geom_mass}",
+            rgba=_fmt(cfg.bowl_mark_rgba if i == 0 else cfg.bowl_rgba),
+            friction=_fmt(cfg.friction),
+        )
 
 
 def add_calibration_board(scene: ET.Element, board: BoardMountConfig) -> None:
@@ -103,17 +133,51 @@ def add_calibration_board(scene: ET.Element, board: BoardMountConfig) -> None:
     vertices = [(x, y, 0.0) for x, y in corners] + [(x, y, t) for x, y in corners]
     # image column x/w, row y/h; MuJoCo's texture v runs from the image's top row downwards
     texcoords = [(x / w, y / h) for x, y in corners] * 2
-    faces = [(0, 2, 1), (0, 3, 2),  # printed side (normal -z, towards the viewer)
-             (4, 5, 6), (4, 6, 7), (0, 1, 5), (0, 5, 4), (1, 2, 6), (1, 6, 5),
-             (2, 3, 7), (2, 7, 6), (3, 0, 4), (3, 4, 7)]
+    faces = [
+        (0, 2, 1),
+        (0, 3, 2),  # printed side (normal -z, towards the viewer)
+        (4, 5, 6),
+        (4, 6, 7),
+        (0, 1, 5),
+        (0, 5, 4),
+        (1, 2, 6),
+        (1, 6, 5),
+        (2, 3, 7),
+        (2, 7, 6),
+        (3, 0, 4),
+        (3, 4, 7),
+    ]
     ET.SubElement(asset, "texture", name=CALIBRATION_BOARD, type="2d", file=str(board.texture))
-    ET.SubElement(asset, "material", name=CALIBRATION_BOARD, texture=CALIBRATION_BOARD,
-                  specular="0", shininess="0", reflectance="0")
-    ET.SubElement(asset, "mesh", name=CALIBRATION_BOARD, vertex=_fmt(np.ravel(vertices)),
-                  face=" ".join(str(i) for f in faces for i in f), texcoord=_fmt(np.ravel(texcoords)))
-    ET.SubElement(hand, "geom", name=CALIBRATION_BOARD, type="mesh", mesh=CALIBRATION_BOARD,
-                  material=CALIBRATION_BOARD, pos=_fmt(board.pos), quat=_fmt(board.quat_wxyz),
-                  contype="0", conaffinity="0", mass="1e-6")
+    ET.SubElement(
+        asset,
+        "material",
+        name=CALIBRATION_BOARD,
+        texture=CALIBRATION_BOARD,
+        specular="0",
+        shininess="0",
+        reflectance="0",
+    )
+    ET.SubElement(
+        asset,
+        "mesh",
+        name=CALIBRATION_BOARD,
+        vertex=_fmt(np.ravel(vertices)),
+        face=" ".join(str(i) for f in faces for i in f),
+        texcoord=_fmt(np.ravel(texcoords)),
+    )
+    ET.SubElement(
+        hand,
+        "geom",
+        name=CALIBRATION_BOARD,
+        type="mesh",
+        mesh=CALIBRATION_BOARD,
+        material=CALIBRATION_BOARD,
+        pos=_fmt(board.pos),
+        quat=_fmt(board.quat_wxyz),
+        contype="0",
+        conaffinity="0",
+        mass="1e-6",
+    )
 
 
 def optical_to_mujoco_camera(T_base_optical: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -140,8 +204,14 @@ def add_cameras(scene: ET.Element, cameras: Iterable[CameraConfig], render: Rend
     worldbody = scene.find("worldbody")
     for cam in cameras:
         pos, R = optical_to_mujoco_camera(cam.extrinsics.matrix())
-        ET.SubElement(worldbody, "camera", name=cam.name, pos=_fmt(pos),
-                      xyaxes=_fmt(np.concatenate([R[:, 0], R[:, 1]])), fovy=f"{render.fovy_deg}")
+        ET.SubElement(
+            worldbody,
+            "camera",
+            name=cam.name,
+            pos=_fmt(pos),
+            xyaxes=_fmt(np.concatenate([R[:, 0], R[:, 1]])),
+            fovy=f"{render.fovy_deg}",
+        )
 
 
 def build_simulator(cfg: TwinConfig, enable_visualization: bool = False):
@@ -174,6 +244,7 @@ def build_model(cfg: TwinConfig, cameras: Iterable[CameraConfig] = ()):
 
 # --- Episodes: seeded object poses -----------------------------------------------------------
 
+
 @dataclass(frozen=True)
 class ScenePoses:
     """Where an episode starts: planar object poses (base frame, m / rad) and the seed that drew them."""
@@ -189,8 +260,13 @@ class ScenePoses:
 
     @classmethod
     def from_dict(cls, d: dict) -> ScenePoses:
-        return cls(int(d["seed"]), tuple(map(float, d["block_xy"])), float(d["block_yaw"]),
-                   tuple(map(float, d["bowl_xy"])), float(d["bowl_yaw"]))
+        return cls(
+            int(d["seed"]),
+            tuple(map(float, d["block_xy"])),
+            float(d["block_yaw"]),
+            tuple(map(float, d["bowl_xy"])),
+            float(d["bowl_yaw"]),
+        )
 
 
 def sample_scene(cfg: SceneConfig, seed: int, max_tries: int = 1000) -> ScenePoses:
@@ -202,10 +278,14 @@ def sample_scene(cfg: SceneConfig, seed: int, max_tries: int = 1000) -> ScenePos
         block_yaw = math.radians(rng.uniform(*cfg.block_yaw_deg))
         bowl_yaw = math.radians(rng.uniform(*cfg.bowl_yaw_deg))
         if np.linalg.norm(bowl - block) >= cfg.min_separation:
-            return ScenePoses(int(seed), (float(block[0]), float(block[1])), _wrap(block_yaw),
-                              (float(bowl[0]), float(bowl[1])), _wrap(bowl_yaw))
-    raise SceneError(f"no object placement {cfg.min_separation} m apart fits region "
-                     f"x {cfg.region_x}, y {cfg.region_y}")
+            return ScenePoses(
+                int(seed),
+                (float(block[0]), float(block[1])),
+                _wrap(block_yaw),
+                (float(bowl[0]), float(bowl[1])),
+                _wrap(bowl_yaw),
+            )
+    raise SceneError(f"no object placement {cfg.min_separation} m apart fits region x {cfg.region_x}, y {cfg.region_y}")
 
 
 def _wrap(angle: float) -> float:
@@ -229,12 +309,14 @@ def apply_scene(model, data, poses: ScenePoses, cfg: SceneConfig) -> None:
     """Place block and bowl (at rest, on the table) in ``data``; the robot is left as it is."""
     import mujoco
 
-    for body, xy, yaw, z in ((BLOCK, poses.block_xy, poses.block_yaw, cfg.block_size[2] / 2 + 1e-4),
-                             (BOWL, poses.bowl_xy, poses.bowl_yaw, 1e-4)):
+    for body, xy, yaw, z in (
+        (BLOCK, poses.block_xy, poses.block_yaw, cfg.block_size[2] / 2 + 1e-4),
+        (BOWL, poses.bowl_xy, poses.bowl_yaw, 1e-4),
+    ):
         qadr, dadr = _free_qpos_addr(model, body)
-        data.qpos[qadr:qadr + 3] = (xy[0], xy[1], z)
-        data.qpos[qadr + 3:qadr + 7] = _yaw_quat_wxyz(yaw)
-        data.qvel[dadr:dadr + 6] = 0.0
+        data.qpos[qadr : qadr + 3] = (xy[0], xy[1], z)
+        data.qpos[qadr + 3 : qadr + 7] = _yaw_quat_wxyz(yaw)
+        data.qvel[dadr : dadr + 6] = 0.0
     mujoco.mj_forward(model, data)
 
 
@@ -286,7 +368,7 @@ def success_details(model, data, scene: SceneConfig, success: SuccessConfig) -> 
     horizontal = float(np.hypot(offset[0], offset[1]))
     rim = scene.bowl_base_thickness + scene.bowl_wall_height
     _, dadr = _free_qpos_addr(model, BLOCK)
-    speed = float(np.linalg.norm(data.qvel[dadr:dadr + 3]))
+    speed = float(np.linalg.norm(data.qvel[dadr : dadr + 3]))
     details = {
         "inside": horizontal < scene.bowl_inner_radius - success.margin,
         "below_rim": bool(0.0 < offset[2] < rim),
@@ -296,8 +378,7 @@ def success_details(model, data, scene: SceneConfig, success: SuccessConfig) -> 
         "height_m": round(float(offset[2]), 4),
         "speed_mps": round(speed, 4),
     }
-    details["success"] = bool(details["inside"] and details["below_rim"] and details["at_rest"]
-                              and details["released"])
+    details["success"] = bool(details["inside"] and details["below_rim"] and details["at_rest"] and details["released"])
     return details
 
 

@@ -60,8 +60,12 @@ def _ring_offset(nq: int) -> int:
 
 
 def _slot_views(buf, off: int, nq: int):
-    return (np.ndarray(1, np.uint64, buf, off), np.ndarray(1, np.float64, buf, off + 8),
-            np.ndarray(1, np.int64, buf, off + 16), np.ndarray(nq, np.float64, buf, off + SLOT_HEADER))
+    return (
+        np.ndarray(1, np.uint64, buf, off),
+        np.ndarray(1, np.float64, buf, off + 8),
+        np.ndarray(1, np.int64, buf, off + 16),
+        np.ndarray(nq, np.float64, buf, off + SLOT_HEADER),
+    )
 
 
 def _write_slot(views, qpos: np.ndarray, sim_time: float, stamp_ns: int) -> None:
@@ -161,16 +165,20 @@ class StateReader:
         try:
             self._shm = shared_memory.SharedMemory(self.name)
         except FileNotFoundError as err:
-            raise SharedStateError(f"no twin state in shared memory {self.name!r}: is twin_node running "
-                                   f"on this ROS_DOMAIN_ID (or {ENV_VAR} set to its name)?") from err
+            raise SharedStateError(
+                f"no twin state in shared memory {self.name!r}: is twin_node running "
+                f"on this ROS_DOMAIN_ID (or {ENV_VAR} set to its name)?"
+            ) from err
         if self.name not in _WRITTEN_HERE:
             _untrack(self._shm)
         self._header = np.ndarray(4, dtype=np.uint64, buffer=self._shm.buf)
         self.nq, self.slots = int(self._header[1]), int(self._header[2])
         self._slot: int | None = None  # this camera's registration (lockstep frames)
         if nq is not None and nq != self.nq:
-            raise SharedStateError(f"twin state has {self.nq} positions, the camera's model {nq}: "
-                                   "the twin and camera use different scene configs")
+            raise SharedStateError(
+                f"twin state has {self.nq} positions, the camera's model {nq}: "
+                "the twin and camera use different scene configs"
+            )
 
     def _read_slot(self, i: int):
         return _read_slot(self._shm.buf, _ring_offset(self.nq) + i * _slot_bytes(self.nq), self.nq)

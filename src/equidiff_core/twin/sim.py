@@ -72,9 +72,16 @@ class LoopStats:
 class TwinSim:
     """franky-sim + task scene + real-time loop + shared-memory state for the cameras."""
 
-    def __init__(self, cfg: TwinConfig, host: str | None = None, shm_name: str | None = None,
-                 max_lag_s: float = 0.05, lockstep: LockstepConfig | None = None,
-                 on_clock: Callable[[int], None] | None = None, camera_names: tuple[str, ...] = ()):
+    def __init__(
+        self,
+        cfg: TwinConfig,
+        host: str | None = None,
+        shm_name: str | None = None,
+        max_lag_s: float = 0.05,
+        lockstep: LockstepConfig | None = None,
+        on_clock: Callable[[int], None] | None = None,
+        camera_names: tuple[str, ...] = (),
+    ):
         self.cfg = cfg
         self.host = host or cfg.sim.host
         if self.host == "auto":
@@ -199,8 +206,9 @@ class TwinSim:
         behind = self._writer.cameras_behind(frame) if frame else []
         if behind:
             names = [self.camera_names[i] if i < len(self.camera_names) else f"slot {i}" for i in behind]
-            return "cameras", (f"camera_node ({', '.join(names)}): did not take the frame at "
-                               f"t={self._frame_tick / 1000:.3f} s")
+            return "cameras", (
+                f"camera_node ({', '.join(names)}): did not take the frame at t={self._frame_tick / 1000:.3f} s"
+            )
         why = self.lockstep.chunk_blocker(self.tick)
         return ("policy", why) if why else ("", "")
 
@@ -253,14 +261,28 @@ class TwinSim:
             details = success_details(self.model, self.data, self.cfg.scene, self.cfg.success)
             objects = object_state(self.model, self.data)
         ls = self.lockstep
-        return {"seed": self.poses.seed if self.poses else None, "sim_time": round(self.tick / 1000, 4),
-                "success": details["success"], "details": details, "objects": objects,
-                "steps_per_s": round(self.stats.steps_per_s(), 1), "overruns": self.stats.overruns,
-                "missed_commands": self.stats.missed_commands, "host": self.host,
-                "clock": "realtime" if ls is None else "sim",
-                **({} if ls is None else {"awaiting_policy": ls.awaiting, "stalls": len(ls.stalls),
-                                          "last_stall": ls.stalls[-1] if ls.stalls else "",
-                                          "wait_s": {k: round(v, 2) for k, v in self.stats.wait_s.items()}})}
+        return {
+            "seed": self.poses.seed if self.poses else None,
+            "sim_time": round(self.tick / 1000, 4),
+            "success": details["success"],
+            "details": details,
+            "objects": objects,
+            "steps_per_s": round(self.stats.steps_per_s(), 1),
+            "overruns": self.stats.overruns,
+            "missed_commands": self.stats.missed_commands,
+            "host": self.host,
+            "clock": "realtime" if ls is None else "sim",
+            **(
+                {}
+                if ls is None
+                else {
+                    "awaiting_policy": ls.awaiting,
+                    "stalls": len(ls.stalls),
+                    "last_stall": ls.stalls[-1] if ls.stalls else "",
+                    "wait_s": {k: round(v, 2) for k, v in self.stats.wait_s.items()},
+                }
+            ),
+        }
 
 
 class DirectSim:
@@ -330,8 +352,14 @@ class DirectSim:
     def robot_state(self, stamp_ns: int | None = None) -> RobotState:
         """The arm as a robot backend reports it (stamped ``stamp_ns``, default the sim time)."""
         stamp = round(self.time * 1e9) if stamp_ns is None else int(stamp_ns)
-        return RobotState(stamp, self.tcp_pose(), self.joint_positions(), self.joint_velocities(),
-                          self.gripper_width(), robot_time_s=self.time)
+        return RobotState(
+            stamp,
+            self.tcp_pose(),
+            self.joint_positions(),
+            self.joint_velocities(),
+            self.gripper_width(),
+            robot_time_s=self.time,
+        )
 
     def _solve_ik(self, target: np.ndarray, iterations: int = 8, damping: float = 1e-4) -> np.ndarray:
         d = self._ik_data
@@ -343,8 +371,9 @@ class DirectSim:
             mujoco.mj_kinematics(self.model, d)
             mujoco.mj_comPos(self.model, d)  # mj_jac needs the com-based dof axes
             T = self._tcp(d)
-            err = np.concatenate([target[:3, 3] - T[:3, 3],
-                                  Rotation.from_matrix(target[:3, :3] @ T[:3, :3].T).as_rotvec()])
+            err = np.concatenate(
+                [target[:3, 3] - T[:3, 3], Rotation.from_matrix(target[:3, :3] @ T[:3, :3].T).as_rotvec()]
+            )
             if np.linalg.norm(err) < 1e-5:
                 break
             mujoco.mj_jac(self.model, d, jacp, jacr, T[:3, 3], self._hand)

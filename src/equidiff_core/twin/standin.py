@@ -27,16 +27,23 @@ def expert_actions(cfg: TwinConfig, seeds=range(8), dt: float = 0.2) -> np.ndarr
         p = sample_scene(cfg.scene, seed)
         block = tcp_pose((*p.block_xy, cfg.scene.block_size[2] / 2), p.block_yaw) @ np.diag([1, -1, -1, 1])
         bowl = geometry.make_pose(geometry.rotz(p.bowl_yaw), np.array([*p.bowl_xy, 0.0]))
-        plan = plan_pick_place(tcp_pose(ex.ready_position, 0.0), ex.open_width, block, bowl,
-                               cfg.scene.block_size[2], ex)
+        plan = plan_pick_place(
+            tcp_pose(ex.ready_position, 0.0), ex.open_width, block, bowl, cfg.scene.block_size[2], ex
+        )
         for t in np.arange(0.0, plan.duration, dt):
             pose, width = plan.target_at(t)
             out.append(geometry.pose_to_action(pose, np.asarray(width)))
     return np.asarray(out, dtype=np.float32)
 
 
-def make_standin_policy(path: str | Path, workspace: Workspace, preset: str = "tiny", policy: str = "equidiff",
-                        cfg: TwinConfig | None = None, seed: int = 0) -> Path:
+def make_standin_policy(
+    path: str | Path,
+    workspace: Workspace,
+    preset: str = "tiny",
+    policy: str = "equidiff",
+    cfg: TwinConfig | None = None,
+    seed: int = 0,
+) -> Path:
     import torch
 
     from ..inference import export_policy

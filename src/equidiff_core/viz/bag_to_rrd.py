@@ -100,8 +100,10 @@ def _log_bag(logger: RerunLogger, bag: Path, index: int, result: EpisodeResult) 
     if not bag.exists():
         raise BagConversionError(f"{bag}: no such bag directory")
     if not bag.is_dir() or not (bag / "metadata.yaml").is_file():
-        raise BagConversionError(f"{bag}: not a rosbag2 directory (expected metadata.yaml + .mcap); "
-                                 f"a killed recording can be recovered with: equidiff bags repair {bag}")
+        raise BagConversionError(
+            f"{bag}: not a rosbag2 directory (expected metadata.yaml + .mcap); "
+            f"a killed recording can be recovered with: equidiff bags repair {bag}"
+        )
     typestore = rosbags_factory().typestore
     try:
         with Reader(bag) as reader:
@@ -118,12 +120,22 @@ def _log_bag(logger: RerunLogger, bag: Path, index: int, result: EpisodeResult) 
     except BagConversionError:
         raise
     except Exception as err:  # ReaderError, struct.error, OSError on truncated/corrupt files
-        raise BagConversionError(f"{bag}: unreadable bag ({type(err).__name__}: {err}); if its recorder "
-                                 f"was killed, run: equidiff bags repair {bag}") from err
+        raise BagConversionError(
+            f"{bag}: unreadable bag ({type(err).__name__}: {err}); if its recorder "
+            f"was killed, run: equidiff bags repair {bag}"
+        ) from err
 
 
-def convert_bags(bags: Iterable[str | Path], out: str | Path | None, lab: LabConfig, config: VizConfig = VizConfig(),
-                 per_episode: bool = False, *, spawn: bool = False, connect: str | None = None) -> ConversionReport:
+def convert_bags(
+    bags: Iterable[str | Path],
+    out: str | Path | None,
+    lab: LabConfig,
+    config: VizConfig = VizConfig(),
+    per_episode: bool = False,
+    *,
+    spawn: bool = False,
+    connect: str | None = None,
+) -> ConversionReport:
     """Convert bags to .rrd (``out`` a file, or a directory with ``per_episode``), or stream them to a viewer
     (``spawn`` / ``connect``, one recording); never raises because of one bad bag."""
     t0 = time.perf_counter()
@@ -138,8 +150,9 @@ def convert_bags(bags: Iterable[str | Path], out: str | Path | None, lab: LabCon
         for index, bag in enumerate(bags):
             target = out / f"{bag.name}.rrd"
             result = EpisodeResult(bag, target)
-            rec = open_recording(recording_id=bag.name, save=target, application_id=APPLICATION_ID,
-                                 blueprint=default_blueprint())
+            rec = open_recording(
+                recording_id=bag.name, save=target, application_id=APPLICATION_ID, blueprint=default_blueprint()
+            )
             logger = RerunLogger(rec, lab, config)
             logger.log_static_scene(static_cameras=False)
             try:
@@ -158,8 +171,14 @@ def convert_bags(bags: Iterable[str | Path], out: str | Path | None, lab: LabCon
     if out is not None and out.suffix != ".rrd":
         raise BagConversionError(f"output must be a .rrd file (or use --per-episode with a directory), got {out}")
     name = out.stem if out is not None else (bags[0].name if len(bags) == 1 else "episodes")
-    rec = open_recording(recording_id=name, save=out, spawn=spawn, connect=connect, application_id=APPLICATION_ID,
-                         blueprint=default_blueprint())
+    rec = open_recording(
+        recording_id=name,
+        save=out,
+        spawn=spawn,
+        connect=connect,
+        application_id=APPLICATION_ID,
+        blueprint=default_blueprint(),
+    )
     logger = RerunLogger(rec, lab, config)
     logger.log_static_scene(static_cameras=False)
     for index, bag in enumerate(bags):

@@ -133,9 +133,15 @@ def default_blueprint() -> Any:
     )
 
 
-def open_recording(recording_id: str | None = None, *, spawn: bool = False, connect: str | None = None,
-                   save: str | Path | None = None, application_id: str = APPLICATION_ID,
-                   blueprint: Any = None) -> Any:
+def open_recording(
+    recording_id: str | None = None,
+    *,
+    spawn: bool = False,
+    connect: str | None = None,
+    save: str | Path | None = None,
+    application_id: str = APPLICATION_ID,
+    blueprint: Any = None,
+) -> Any:
     """A rerun RecordingStream sending to exactly one sink: a spawned viewer, a remote viewer, or an .rrd file."""
     rr = require_rerun()
     if sum([bool(spawn), connect is not None, save is not None]) != 1:
@@ -289,11 +295,20 @@ class RerunLogger:
         ws = self.lab.workspace
         self.rec.log(WORLD, rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
         self.rec.log(BASE, rr.TransformAxes3D(self.config.axis_length * 2), static=True)
-        self.rec.log(BASE, rr.Points3D([[0, 0, 0]], radii=0.0, labels=[self.lab.base_frame], show_labels=True),
-                     static=True)
-        self.rec.log(WORKSPACE, rr.Boxes3D(centers=[ws.center], half_sizes=[[ws.edge / 2] * 3],
-                                           colors=[(150, 150, 150)], labels=["workspace"], show_labels=False),
-                     static=True)
+        self.rec.log(
+            BASE, rr.Points3D([[0, 0, 0]], radii=0.0, labels=[self.lab.base_frame], show_labels=True), static=True
+        )
+        self.rec.log(
+            WORKSPACE,
+            rr.Boxes3D(
+                centers=[ws.center],
+                half_sizes=[[ws.edge / 2] * 3],
+                colors=[(150, 150, 150)],
+                labels=["workspace"],
+                show_labels=False,
+            ),
+            static=True,
+        )
         half = ws.voxel_size / 2
         fill = rr.components.FillMode.Solid if self.config.solid_voxels else rr.components.FillMode.MajorWireframe
         # Sizes once, static: per frame only centres and colours travel (10k voxels ~ 150 kB).
@@ -304,15 +319,19 @@ class RerunLogger:
         for cam in self.lab.cameras:
             entity = f"{CAMERAS}/{cam.name}"
             self.rec.log(entity, rr.TransformAxes3D(self.config.axis_length), static=True)
-            self.rec.log(f"{entity}/label", rr.Points3D([[0, 0, 0]], radii=0.0, labels=[cam.name], show_labels=True),
-                         static=True)
+            self.rec.log(
+                f"{entity}/label", rr.Points3D([[0, 0, 0]], radii=0.0, labels=[cam.name], show_labels=True), static=True
+            )
             if static_cameras:
                 self._log_camera_transform(cam.name, cam.extrinsics.matrix(), static=True)
 
     def _log_camera_transform(self, name: str, T: np.ndarray, static: bool = False) -> None:
         p, q = geometry.pos_quat_from_pose(T)
-        self.rec.log(f"{CAMERAS}/{name}", self.rr.Transform3D(translation=p, quaternion=self.rr.Quaternion(xyzw=q)),
-                     static=static)
+        self.rec.log(
+            f"{CAMERAS}/{name}",
+            self.rr.Transform3D(translation=p, quaternion=self.rr.Quaternion(xyzw=q)),
+            static=static,
+        )
 
     # --- one method per message kind ------------------------------------------------------
 
@@ -330,8 +349,10 @@ class RerunLogger:
                     self._log_camera_transform(name, T)
                 else:
                     p, q = geometry.pos_quat_from_pose(T)
-                    self.rec.log(f"{WORLD}/frames/{child}",
-                                 self.rr.Transform3D(translation=p, quaternion=self.rr.Quaternion(xyzw=q)))
+                    self.rec.log(
+                        f"{WORLD}/frames/{child}",
+                        self.rr.Transform3D(translation=p, quaternion=self.rr.Quaternion(xyzw=q)),
+                    )
                 any_logged = True
             self.logged["tf"] += any_logged
             return any_logged
@@ -374,8 +395,10 @@ class RerunLogger:
         size = float(centers[hi, 0] - centers[lo, 0]) / float(i[hi] - i[lo])
         configured = self.lab.workspace.voxel_size
         if abs(size - configured) > 0.01 * configured:
-            self.warnings.append(f"/voxels encode {size * 1e3:.2f} mm voxels but the lab config says "
-                                 f"{configured * 1e3:.2f} mm: drawing the message's size")
+            self.warnings.append(
+                f"/voxels encode {size * 1e3:.2f} mm voxels but the lab config says "
+                f"{configured * 1e3:.2f} mm: drawing the message's size"
+            )
             self.rec.log(VOXELS, self.rr.Boxes3D.from_fields(half_sizes=[[size / 2] * 3]), static=True)
 
     def log_camera_cloud(self, camera: str, msg: Any, receive_ns: int | None = None) -> bool:
@@ -389,8 +412,10 @@ class RerunLogger:
             return self._drop("clouds", err)
         stride = max(1, -(-len(cloud.points) // self.config.max_cloud_points))
         self._at(stamp)
-        self.rec.log(f"{CAMERAS}/{camera}/points",
-                     self.rr.Points3D(cloud.points[::stride], colors=cloud.colors[::stride], radii=0.001))
+        self.rec.log(
+            f"{CAMERAS}/{camera}/points",
+            self.rr.Points3D(cloud.points[::stride], colors=cloud.colors[::stride], radii=0.001),
+        )
         self.logged["clouds"] += 1
         return True
 
@@ -436,7 +461,9 @@ class RerunLogger:
             return self._drop("chunk", err)
         stamp = chunk.stamp_ns if chunk.stamp_ns > 0 else (receive_ns or time.time_ns())
         self._at(stamp)
-        labels = [f"t+{(t - chunk.stamp_ns) / 1e9:.1f}s w={w * 1000:.0f}mm" for t, w in zip(chunk.times_ns, chunk.widths)]
+        labels = [
+            f"t+{(t - chunk.stamp_ns) / 1e9:.1f}s w={w * 1000:.0f}mm" for t, w in zip(chunk.times_ns, chunk.widths)
+        ]
         log_pose_path(self.rec, CHUNK, chunk.poses, chunk.widths, CHUNK_COLOR, labels)
         self.rec.log(f"{GRIPPER_WIDTH}/commanded", self.rr.Scalars(float(chunk.widths[0])))
         self.logged["chunk"] += 1
@@ -504,8 +531,14 @@ class RerunLogger:
         }
 
 
-def log_pose_path(rec: Any, entity: str, poses: np.ndarray, widths: np.ndarray, color: tuple[int, int, int],
-                  labels: list[str] | None = None) -> None:
+def log_pose_path(
+    rec: Any,
+    entity: str,
+    poses: np.ndarray,
+    widths: np.ndarray,
+    color: tuple[int, int, int],
+    labels: list[str] | None = None,
+) -> None:
     """A pose sequence as ``<entity>/path`` (line), ``/steps`` (points, fading with time, labelled) and
     ``/gripper`` (one segment per step along the TCP y axis, as long as the gripper opening)."""
     rr = require_rerun()
@@ -515,8 +548,10 @@ def log_pose_path(rec: Any, entity: str, poses: np.ndarray, widths: np.ndarray, 
     colors = (np.asarray(color, dtype=np.float64)[None, :] * fade).astype(np.uint8)
     rec.log(f"{entity}/path", rr.LineStrips3D([positions], colors=[color], radii=0.0015))
     rec.log(f"{entity}/steps", rr.Points3D(positions, colors=colors, radii=0.004, labels=labels, show_labels=False))
-    rec.log(f"{entity}/gripper", rr.LineStrips3D(np.stack([positions - half, positions + half], axis=1),
-                                                 colors=colors, radii=0.001))
+    rec.log(
+        f"{entity}/gripper",
+        rr.LineStrips3D(np.stack([positions - half, positions + half], axis=1), colors=colors, radii=0.001),
+    )
 
 
 def _entity_part(name: str) -> str:
@@ -524,5 +559,12 @@ def _entity_part(name: str) -> str:
     return re.sub(r"[^A-Za-z0-9_-]+", "_", name).strip("_") or "unnamed"
 
 
-TOPICS_HANDLED = (topics.TOPIC_VOXELS, topics.TOPIC_EE_POSE, topics.TOPIC_JOINT_STATES, topics.TOPIC_COMMAND_CHUNK,
-                  topics.TOPIC_EXECUTED_TARGET, topics.TOPIC_DIAGNOSTICS, topics.TOPIC_TF_STATIC)
+TOPICS_HANDLED = (
+    topics.TOPIC_VOXELS,
+    topics.TOPIC_EE_POSE,
+    topics.TOPIC_JOINT_STATES,
+    topics.TOPIC_COMMAND_CHUNK,
+    topics.TOPIC_EXECUTED_TARGET,
+    topics.TOPIC_DIAGNOSTICS,
+    topics.TOPIC_TF_STATIC,
+)

@@ -47,7 +47,9 @@ class RrdSummary:
 _CONTROL_COLUMNS = ("rerun.controls.RowId",)
 
 
-def summarize_rrd(path: str | Path, recording_id: str | None = None, count_instances: tuple[str, ...] = ()) -> RrdSummary:
+def summarize_rrd(
+    path: str | Path, recording_id: str | None = None, count_instances: tuple[str, ...] = ()
+) -> RrdSummary:
     """Entities, row counts and time ranges of one recording in ``path`` (the first, or ``recording_id``).
 
     ``count_instances`` lists components ("Boxes3D:centers") whose per-row instance counts to collect.
@@ -86,8 +88,11 @@ def summarize_rrd(path: str | Path, recording_id: str | None = None, count_insta
                 old = summary.time_ranges.get(timeline)
                 summary.time_ranges[timeline] = (lo, hi) if old is None else (min(old[0], lo), max(old[1], hi))
         order = next((t for t in ("ros_time", "step") if t in timelines), min(timelines) if timelines else None)
-        times = (batch.column(order).cast("int64").fill_null(0).to_numpy(zero_copy_only=False)
-                 if order else np.zeros(chunk.num_rows, np.int64))
+        times = (
+            batch.column(order).cast("int64").fill_null(0).to_numpy(zero_copy_only=False)
+            if order
+            else np.zeros(chunk.num_rows, np.int64)
+        )
         for component in count_instances:
             if component in batch.schema.names:
                 import pyarrow.compute as pc

@@ -37,30 +37,49 @@ def training_blueprint(max_samples: int) -> Any:
     require_rerun()
     import rerun.blueprint as rrb
 
-    curves = rrb.Vertical(rrb.TimeSeriesView(name="train", origin="/train"),
-                          rrb.TimeSeriesView(name="eval", origin="/eval"))
-    views = [rrb.Spatial3DView(name=f"sample {j}: prediction (orange) vs ground truth (green)", origin=f"/samples/{j}")
-             for j in range(max_samples)]
+    curves = rrb.Vertical(
+        rrb.TimeSeriesView(name="train", origin="/train"), rrb.TimeSeriesView(name="eval", origin="/eval")
+    )
+    views = [
+        rrb.Spatial3DView(name=f"sample {j}: prediction (orange) vs ground truth (green)", origin=f"/samples/{j}")
+        for j in range(max_samples)
+    ]
     if not views:
         return rrb.Blueprint(curves, rrb.TimePanel(timeline="step"), rrb.SelectionPanel(state="collapsed"))
-    return rrb.Blueprint(rrb.Horizontal(curves, rrb.Grid(*views), column_shares=[2, 3]),
-                         rrb.TimePanel(timeline="step"), rrb.SelectionPanel(state="collapsed"))
+    return rrb.Blueprint(
+        rrb.Horizontal(curves, rrb.Grid(*views), column_shares=[2, 3]),
+        rrb.TimePanel(timeline="step"),
+        rrb.SelectionPanel(state="collapsed"),
+    )
 
 
 class RerunTrainingCallback:
     """Log training to rerun: ``path`` (.rrd file), or ``spawn=True`` / ``connect="host:port"`` for a live viewer."""
 
-    def __init__(self, path: str | Path | None = None, *, spawn: bool = False, connect: str | None = None,
-                 recording_id: str | None = None, max_samples: int = 4, log_every: int = 1):
+    def __init__(
+        self,
+        path: str | Path | None = None,
+        *,
+        spawn: bool = False,
+        connect: str | None = None,
+        recording_id: str | None = None,
+        max_samples: int = 4,
+        log_every: int = 1,
+    ):
         if log_every < 1 or max_samples < 0:
             raise ValueError(f"log_every must be >= 1 and max_samples >= 0, got {log_every}, {max_samples}")
         self.rr = require_rerun()
         self.max_samples = max_samples
         self.log_every = log_every
         self.path = Path(path) if path is not None else None
-        self.rec = open_recording(recording_id=recording_id or (self.path.stem if self.path else "training"),
-                                  spawn=spawn, connect=connect, save=self.path, application_id=f"{APPLICATION_ID}_train",
-                                  blueprint=training_blueprint(max_samples))
+        self.rec = open_recording(
+            recording_id=recording_id or (self.path.stem if self.path else "training"),
+            spawn=spawn,
+            connect=connect,
+            save=self.path,
+            application_id=f"{APPLICATION_ID}_train",
+            blueprint=training_blueprint(max_samples),
+        )
         self.rec.log("samples", self.rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
         self.steps_logged = 0
         self.evals_logged = 0
@@ -100,24 +119,39 @@ class RerunTrainingCallback:
                 pred_poses, pred_w = geometry.action_to_pose(pred)
                 gt_poses, gt_w = geometry.action_to_pose(gt)
             except geometry.GeometryError as err:  # e.g. NaN predictions early in training: say so, keep going
-                self.rec.log(f"samples/{j}/error", rr.TextLog(f"step {step}: cannot draw sample: {err}",
-                                                              level=rr.TextLogLevel.WARN))
+                self.rec.log(
+                    f"samples/{j}/error",
+                    rr.TextLog(f"step {step}: cannot draw sample: {err}", level=rr.TextLogLevel.WARN),
+                )
                 continue
             labels = [f"+{i} w={w * 1000:.0f}mm" for i, w in enumerate(pred_w)]
             log_pose_path(self.rec, f"samples/{j}/pred", pred_poses, pred_w, PRED_COLOR, labels)
-            log_pose_path(self.rec, f"samples/{j}/gt", gt_poses, gt_w, GT_COLOR,
-                          [f"+{i} w={w * 1000:.0f}mm" for i, w in enumerate(gt_w)])
+            log_pose_path(
+                self.rec,
+                f"samples/{j}/gt",
+                gt_poses,
+                gt_w,
+                GT_COLOR,
+                [f"+{i} w={w * 1000:.0f}mm" for i, w in enumerate(gt_w)],
+            )
             if "ee" in sample:
                 try:
                     ee_pose, _ = geometry.action_to_pose(np.asarray(sample["ee"], dtype=np.float64))
                     p, q = geometry.pos_quat_from_pose(ee_pose)
-                    self.rec.log(f"samples/{j}/ee", rr.Transform3D(translation=p, quaternion=rr.Quaternion(xyzw=q)),
-                                 rr.TransformAxes3D(0.03))
+                    self.rec.log(
+                        f"samples/{j}/ee",
+                        rr.Transform3D(translation=p, quaternion=rr.Quaternion(xyzw=q)),
+                        rr.TransformAxes3D(0.03),
+                    )
                 except geometry.GeometryError:
                     pass  # the chunks are what matters here
-            self.rec.log(f"eval/samples/{j}/pos_err_mm",
-                         rr.Scalars(float(np.linalg.norm(pred[:, :3] - gt[:, :3], axis=-1).mean() * 1e3)))
-            self.rec.log(f"eval/samples/{j}/width_err_mm", rr.Scalars(float(np.abs(pred[:, 9] - gt[:, 9]).mean() * 1e3)))
+            self.rec.log(
+                f"eval/samples/{j}/pos_err_mm",
+                rr.Scalars(float(np.linalg.norm(pred[:, :3] - gt[:, :3], axis=-1).mean() * 1e3)),
+            )
+            self.rec.log(
+                f"eval/samples/{j}/width_err_mm", rr.Scalars(float(np.abs(pred[:, 9] - gt[:, 9]).mean() * 1e3))
+            )
         self.evals_logged += 1
 
     def on_end(self, result: Any) -> None:

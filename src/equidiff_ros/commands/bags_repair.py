@@ -35,6 +35,8 @@ def run(args) -> int:
             continue
         kept = f"; original kept at {report.original}" if report.original else ""
         counts = ", ".join(f"{t} {n}" for t, n in sorted(report.messages.items()))
-        print(f"repaired {report.path}: {report.total} messages in {report.chunks} chunks ({counts}); "
-              f"stopped at {report.reason}, {report.dropped_bytes} bytes lost{kept}")
+        print(
+            f"repaired {report.path}: {report.total} messages in {report.chunks} chunks ({counts}); "
+            f"stopped at {report.reason}, {report.dropped_bytes} bytes lost{kept}"
+        )
     return 1 if failed else 0

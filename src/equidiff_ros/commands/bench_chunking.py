@@ -41,12 +41,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--duration", type=float, default=20.0, help="sim seconds per episode")
     parser.add_argument("--latencies", type=float, nargs="+", default=(0.0, 100.0, 200.0, 400.0), metavar="MS")
     parser.add_argument("--modes", nargs="+", choices=MODES, default=MODES)
-    parser.add_argument("--execute-steps", type=int, default=0,
-                        help="k for horizon and rtc (0: n_action_steps, policy_node's default)")
+    parser.add_argument(
+        "--execute-steps", type=int, default=0, help="k for horizon and rtc (0: n_action_steps, policy_node's default)"
+    )
     parser.add_argument("--device", default="cpu", help="policy device: cpu | cuda | auto")
-    parser.add_argument("--threads", type=int, default=1,
-                        help="torch intra-op threads (default 1, policy_node's torch_threads: on a shared CPU more "
-                             "threads spin against each other; 0: torch's default)")
+    parser.add_argument(
+        "--threads",
+        type=int,
+        default=1,
+        help="torch intra-op threads (default 1, policy_node's torch_threads: on a shared CPU more "
+        "threads spin against each other; 0: torch's default)",
+    )
     parser.add_argument("--lab-config", type=Path, default=None)
     parser.add_argument("--twin-config", type=Path, default=None)
 
@@ -91,12 +96,24 @@ def run(args: argparse.Namespace) -> int:
                 if mode == "replace":
                     schedule = {"execute_steps": 1, "publish_steps": 0, "rtc": False}
                 else:
-                    schedule = {"execute_steps": k, "rtc": mode == "rtc",
-                                "publish_steps": steps_to_publish(k, latency_ms / 1000, preset.dt, available)}
+                    schedule = {
+                        "execute_steps": k,
+                        "rtc": mode == "rtc",
+                        "publish_steps": steps_to_publish(k, latency_ms / 1000, preset.dt, available),
+                    }
                 probe = ChunkingProbe()
-                episodes = evaluate_policy(policy, cfg, lab, seeds, args.duration, recorder=rec,
-                                           latency_s=latency_ms / 1000, probe=probe,
-                                           log=lambda s, w=label: print(f"[{w}] {s}", flush=True), **schedule)
+                episodes = evaluate_policy(
+                    policy,
+                    cfg,
+                    lab,
+                    seeds,
+                    args.duration,
+                    recorder=rec,
+                    latency_s=latency_ms / 1000,
+                    probe=probe,
+                    log=lambda s, w=label: print(f"[{w}] {s}", flush=True),
+                    **schedule,
+                )
                 result[f"{label}_success"] = round(sum(e.success for e in episodes) / len(episodes), 3)
                 result[f"{label}_lifted"] = round(sum(e.lifted for e in episodes) / len(episodes), 3)
                 result.update({f"{label}_{key}": value for key, value in probe.summary().items()})
@@ -105,8 +122,17 @@ def run(args: argparse.Namespace) -> int:
         rec.close()
     from equidiff_core.machine import cpu_model
 
-    result.update({"execute_steps": k, "seeds": seeds, "episode_s": args.duration,
-                   "latencies_ms": list(args.latencies), "checkpoint": str(checkpoint), "preset": preset.name,
-                   "cpu": cpu_model(), "wall_s": round(time.monotonic() - t0, 1)})
+    result.update(
+        {
+            "execute_steps": k,
+            "seeds": seeds,
+            "episode_s": args.duration,
+            "latencies_ms": list(args.latencies),
+            "checkpoint": str(checkpoint),
+            "preset": preset.name,
+            "cpu": cpu_model(),
+            "wall_s": round(time.monotonic() - t0, 1),
+        }
+    )
     print(json.dumps(result), flush=True)
     return 0

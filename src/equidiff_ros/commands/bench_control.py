@@ -45,12 +45,24 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--radius", type=float, default=0.05, help="circle radius, m (default 0.05)")
     parser.add_argument("--duration", type=float, default=5.0, help="seconds of circle streaming (default 5)")
     parser.add_argument("--settle", type=float, default=1.0, help="seconds ignored at the start of the circle")
-    parser.add_argument("--obs-latency", type=float, default=0.1,
-                        help="chunks are stamped this long before they are sent (default 0.1 s)")
-    parser.add_argument("--interpolation", choices=["linear", "cubic"], default=None,
-                        help="override control.yaml's scheduler interpolation")
-    parser.add_argument("--policy-checkpoint", type=Path, default=None,
-                        help="exported policy for the latency phase (default: untrained compact export)")
+    parser.add_argument(
+        "--obs-latency",
+        type=float,
+        default=0.1,
+        help="chunks are stamped this long before they are sent (default 0.1 s)",
+    )
+    parser.add_argument(
+        "--interpolation",
+        choices=["linear", "cubic"],
+        default=None,
+        help="override control.yaml's scheduler interpolation",
+    )
+    parser.add_argument(
+        "--policy-checkpoint",
+        type=Path,
+        default=None,
+        help="exported policy for the latency phase (default: untrained compact export)",
+    )
     parser.add_argument("--policy-preset", default="compact", help="preset of the untrained export (default compact)")
     parser.add_argument("--precision", choices=["auto", "fp32", "bf16"], default="auto")
     parser.add_argument("--latency-duration", type=float, default=15.0, help="seconds of policy latency measurement")
@@ -59,6 +71,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 # --- the reference path ------------------------------------------------------------------
+
 
 @dataclass(frozen=True)
 class Circle:
@@ -104,8 +117,15 @@ def approach(client: ControlClient, target: np.ndarray, speed: float = 0.05, set
     client.stream(path, duration + settle, obs_latency=0.0)
 
 
-def run_track_and_hold(client: ControlClient, speed: float, radius: float, duration: float, settle: float,
-                       obs_latency: float, watchdog_s: float) -> dict:
+def run_track_and_hold(
+    client: ControlClient,
+    speed: float,
+    radius: float,
+    duration: float,
+    settle: float,
+    obs_latency: float,
+    watchdog_s: float,
+) -> dict:
     from equidiff_core.control import metrics
 
     circle = Circle(radius=radius, speed=speed)
@@ -157,13 +177,20 @@ def run_workspace(client: ControlClient, workspace, duration: float = 3.0) -> di
     last, _ = client.stream(path, duration, obs_latency=0.0)
     time.sleep(0.5)
     times, positions = client.samples("poses", t_start, last + 0.5)
-    outside = np.linalg.norm(np.maximum(workspace.lower - positions, 0) + np.maximum(positions - workspace.upper, 0), axis=1)
+    outside = np.linalg.norm(
+        np.maximum(workspace.lower - positions, 0) + np.maximum(positions - workspace.upper, 0), axis=1
+    )
     worst = int(np.argmax(outside))
-    return {"worst_outside_at": [round(float(v), 4) for v in positions[worst]],
-            "worst_outside_t": round(float(times[worst] - t_start), 2),"max_outside_workspace_mm": round(metrics.max_outside_box(positions, workspace.lower,
-                                                                      workspace.upper) * 1000, 2),
-            "workspace_requested_outside_mm": round(metrics.max_outside_box(
-                path(last)[None], workspace.lower, workspace.upper) * 1000, 1)}
+    return {
+        "worst_outside_at": [round(float(v), 4) for v in positions[worst]],
+        "worst_outside_t": round(float(times[worst] - t_start), 2),
+        "max_outside_workspace_mm": round(
+            metrics.max_outside_box(positions, workspace.lower, workspace.upper) * 1000, 2
+        ),
+        "workspace_requested_outside_mm": round(
+            metrics.max_outside_box(path(last)[None], workspace.lower, workspace.upper) * 1000, 1
+        ),
+    }
 
 
 def run_nan(client: ControlClient) -> dict:
@@ -172,20 +199,27 @@ def run_nan(client: ControlClient) -> dict:
     before = int(client.diag_value("franka_node", "nan_rejected", 0))
     now = time.time_ns()
     here = client.latest_position()
-    chunk = PoseChunk(now, now + np.arange(4, dtype=np.int64) * 200 * MS, np.stack([down_pose(here)] * 4), np.full(4, 0.08))
+    chunk = PoseChunk(
+        now, now + np.arange(4, dtype=np.int64) * 200 * MS, np.stack([down_pose(here)] * 4), np.full(4, 0.08)
+    )
     msg = chunk_to_msg(chunk, client.factory, client.lab.base_frame)
     msg.points[2].transforms[0].translation.x = float("nan")
     client.pub_chunk.publish(msg)
     t_sent = time.time()
     try:
-        client.wait_for(lambda: int(client.diag_value("franka_node", "nan_rejected", 0)) > before, 5.0,
-                        "the franka node's diagnostics to count the NaN chunk")
+        client.wait_for(
+            lambda: int(client.diag_value("franka_node", "nan_rejected", 0)) > before,
+            5.0,
+            "the franka node's diagnostics to count the NaN chunk",
+        )
     except TimeoutError:
         pass
     time.sleep(0.3)
     alive = any(t > t_sent + 0.1 for t, _ in list(client.data.poses)[-50:])
-    return {"nan_rejected": int(client.diag_value("franka_node", "nan_rejected", 0)) - before,
-            "alive_after_nan": bool(alive)}
+    return {
+        "nan_rejected": int(client.diag_value("franka_node", "nan_rejected", 0)) - before,
+        "alive_after_nan": bool(alive),
+    }
 
 
 def synthetic_grid(workspace) -> np.ndarray:
@@ -195,7 +229,7 @@ def synthetic_grid(workspace) -> np.ndarray:
     grid = np.zeros((4, r, r, r), np.uint8)
     grid[0, :, :, :2] = 255
     i, j = rng.integers(r // 4, 3 * r // 4 - 4, 2)
-    grid[0, i:i + 5, j:j + 5, 2:7] = 255
+    grid[0, i : i + 5, j : j + 5, 2:7] = 255
     grid[1:, grid[0] > 0] = 150
     return grid
 
@@ -217,15 +251,19 @@ def bare_predict_s(checkpoint: Path, precision: str, workspace, repeats: int = 5
     return times
 
 
-def run_latency(client: ControlClient, checkpoint: Path, precision: str, duration: float, log_dir: Path,
-                label: str) -> dict:
+def run_latency(
+    client: ControlClient, checkpoint: Path, precision: str, duration: float, log_dir: Path, label: str
+) -> dict:
     from equidiff_core.control import metrics
     from equidiff_core.pointcloud import grid_to_voxel_msg
 
     ws = client.lab.workspace
     grid = synthetic_grid(ws)
-    proc = start_node("policy_node", {"checkpoint": str(checkpoint), "precision": precision,
-                                      "lab_config": client.lab_path}, log_dir / "policy_node.log")
+    proc = start_node(
+        "policy_node",
+        {"checkpoint": str(checkpoint), "precision": precision, "lab_config": client.lab_path},
+        log_dir / "policy_node.log",
+    )
     try:
         n_before = len(client.data.chunks)
         stamps = set()
@@ -236,8 +274,9 @@ def run_latency(client: ControlClient, checkpoint: Path, precision: str, duratio
             while not stop.is_set():
                 stamp = time.time_ns()
                 stamps.add(stamp / 1e9)
-                client.pub_voxels.publish(grid_to_voxel_msg(grid, ws.lower, ws.voxel_size, stamp,
-                                                            client.lab.base_frame, client.factory))
+                client.pub_voxels.publish(
+                    grid_to_voxel_msg(grid, ws.lower, ws.voxel_size, stamp, client.lab.base_frame, client.factory)
+                )
                 stop.wait(period)
 
         feeder = threading.Thread(target=publish_voxels, daemon=True)
@@ -252,14 +291,20 @@ def run_latency(client: ControlClient, checkpoint: Path, precision: str, duratio
         rows = [(r, s) for r, s in list(client.data.chunks)[n_before:] if r > t_first and s in stamps]
         lat = [r - s for r, s in rows]
         p50, p95 = metrics.percentiles_ms(lat)
-        return {"obs_to_cmd_p50_ms": p50, "obs_to_cmd_p95_ms": p95, "policy": label, "policy_precision": precision,
-                "policy_chunks_per_s": round(len(rows) / duration, 2),
-                "policy_diagnostics": client.data.diagnostics.get("policy_node", {})}
+        return {
+            "obs_to_cmd_p50_ms": p50,
+            "obs_to_cmd_p95_ms": p95,
+            "policy": label,
+            "policy_precision": precision,
+            "policy_chunks_per_s": round(len(rows) / duration, 2),
+            "policy_diagnostics": client.data.diagnostics.get("policy_node", {}),
+        }
     finally:
         stop_process(proc)
 
 
 # --- entry point ---------------------------------------------------------------------------
+
 
 def run(args: argparse.Namespace) -> int:
     import dataclasses
@@ -279,8 +324,9 @@ def run(args: argparse.Namespace) -> int:
     with tempfile.TemporaryDirectory(prefix="bench_control_") as tmp:
         tmp = Path(tmp)
         if args.interpolation:
-            control = dataclasses.replace(control, scheduler=dataclasses.replace(control.scheduler,
-                                                                                 interpolation=args.interpolation))
+            control = dataclasses.replace(
+                control, scheduler=dataclasses.replace(control.scheduler, interpolation=args.interpolation)
+            )
             import yaml
 
             from equidiff_core.config import to_dict
@@ -297,20 +343,38 @@ def run(args: argparse.Namespace) -> int:
             from equidiff_core.control import metrics
 
             result["baseline_bare_predict_p50_ms"] = metrics.percentiles_ms(
-                bare_predict_s(checkpoint, args.precision, lab.workspace))[0]
+                bare_predict_s(checkpoint, args.precision, lab.workspace)
+            )[0]
         franka = client = None
         with SimServer() as sim:
             try:
-                franka = start_node("franka_node", {"robot_ip": sim.host, "realtime": False,
-                                                    "control_config": str(control_path),
-                                                    "lab_config": str(lab_path)}, tmp / "franka_node.log",
-                                    priority=True)
+                franka = start_node(
+                    "franka_node",
+                    {
+                        "robot_ip": sim.host,
+                        "realtime": False,
+                        "control_config": str(control_path),
+                        "lab_config": str(lab_path),
+                    },
+                    tmp / "franka_node.log",
+                    priority=True,
+                )
                 client = ControlClient(lab, str(lab_path))
-                client.wait_for(lambda: len(client.data.poses) > 10, 90.0, "/franka/ee_pose from the franka node",
-                                franka)
+                client.wait_for(
+                    lambda: len(client.data.poses) > 10, 90.0, "/franka/ee_pose from the franka node", franka
+                )
                 t_track = time.monotonic()
-                result.update(run_track_and_hold(client, args.speed, args.radius, args.duration, args.settle,
-                                                 args.obs_latency, control.safety.watchdog_timeout_s))
+                result.update(
+                    run_track_and_hold(
+                        client,
+                        args.speed,
+                        args.radius,
+                        args.duration,
+                        args.settle,
+                        args.obs_latency,
+                        control.safety.watchdog_timeout_s,
+                    )
+                )
                 rtf = sim.realtime_factor(since=t_track)
                 result["sim_realtime_factor"] = None if rtf is None else round(rtf, 3)
                 result.update(run_workspace(client, lab.workspace))
@@ -322,10 +386,12 @@ def run(args: argparse.Namespace) -> int:
                     result.update(run_latency(client, checkpoint, args.precision, args.latency_duration, tmp, label))
                 result["franka_diagnostics"] = client.data.diagnostics.get("franka_node", {})
             except Exception as err:  # noqa: BLE001 - report any failure with the node's log
-                log = (tmp / "franka_node.log")
+                log = tmp / "franka_node.log"
                 tail = log.read_text()[-2000:] if log.exists() else ""
-                print(f"bench control failed: {type(err).__name__}: {err}\n--- franka_node log ---\n{tail}",
-                      file=sys.stderr)
+                print(
+                    f"bench control failed: {type(err).__name__}: {err}\n--- franka_node log ---\n{tail}",
+                    file=sys.stderr,
+                )
                 return 1
             finally:
                 if client is not None:

@@ -46,30 +46,63 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--demos", type=int, default=40)
     parser.add_argument("--train-steps", type=int, default=4000)
     parser.add_argument("--batch-size", type=int, default=16)
-    parser.add_argument("--lr", type=float, default=5e-4,
-                        help="peak learning rate (default 5e-4: the shipped twin checkpoint's recipe for a few "
-                             "thousand steps of batch 16; equidiff train's 1e-4 suits long runs)")
+    parser.add_argument(
+        "--lr",
+        type=float,
+        default=5e-4,
+        help="peak learning rate (default 5e-4: the shipped twin checkpoint's recipe for a few "
+        "thousand steps of batch 16; equidiff train's 1e-4 suits long runs)",
+    )
     parser.add_argument("--eval-episodes", type=int, default=10)
-    parser.add_argument("--in-range-episodes", type=int, default=5,
-                        help="control episodes with block yaw inside the training range (0: none)")
-    parser.add_argument("--train-yaw", type=float, nargs=2, default=(-15.0, 15.0), metavar=("LO", "HI"),
-                        help="object yaw range of the demos, degrees")
+    parser.add_argument(
+        "--in-range-episodes",
+        type=int,
+        default=5,
+        help="control episodes with block yaw inside the training range (0: none)",
+    )
+    parser.add_argument(
+        "--train-yaw",
+        type=float,
+        nargs=2,
+        default=(-15.0, 15.0),
+        metavar=("LO", "HI"),
+        help="object yaw range of the demos, degrees",
+    )
     parser.add_argument("--preset", default="compact")
-    parser.add_argument("--rotation-aug", choices=ROTATION_AUGS, default="none",
-                        help="training rotation augmentation for both policies (default none: the claim is "
-                             "equivariance by construction; with continuous the baseline sees every yaw too)")
+    parser.add_argument(
+        "--rotation-aug",
+        choices=ROTATION_AUGS,
+        default="none",
+        help="training rotation augmentation for both policies (default none: the claim is "
+        "equivariance by construction; with continuous the baseline sees every yaw too)",
+    )
     parser.add_argument("--device", default="auto", help="auto | cpu | cuda")
-    parser.add_argument("--out", type=Path, default=None, help="work directory (default runs/bench_generalization_<time>)")
+    parser.add_argument(
+        "--out", type=Path, default=None, help="work directory (default runs/bench_generalization_<time>)"
+    )
     parser.add_argument("--demos-dir", type=Path, default=None, help="reuse demos recorded earlier (narrow yaw)")
-    parser.add_argument("--trained", type=Path, default=None, metavar="DIR",
-                        help="evaluate DIR/equidiff and DIR/baseline (policy.pt + history.json, e.g. trained on a "
-                             "GPU machine from `equidiff dataset pack`ed demos) instead of recording and training")
+    parser.add_argument(
+        "--trained",
+        type=Path,
+        default=None,
+        metavar="DIR",
+        help="evaluate DIR/equidiff and DIR/baseline (policy.pt + history.json, e.g. trained on a "
+        "GPU machine from `equidiff dataset pack`ed demos) instead of recording and training",
+    )
     parser.add_argument("--max-duration", type=float, default=30.0, help="sim seconds per evaluation episode")
-    parser.add_argument("--latency-ms", type=float, default=100.0,
-                        help="latency budget: each chunk takes effect this long after its observation, as in "
-                             "`equidiff twin run --latency-ms`")
-    parser.add_argument("--max-minutes", type=float, default=None,
-                        help="training time budget per policy (equidiff train --max-minutes: stops and exports)")
+    parser.add_argument(
+        "--latency-ms",
+        type=float,
+        default=100.0,
+        help="latency budget: each chunk takes effect this long after its observation, as in "
+        "`equidiff twin run --latency-ms`",
+    )
+    parser.add_argument(
+        "--max-minutes",
+        type=float,
+        default=None,
+        help="training time budget per policy (equidiff train --max-minutes: stops and exports)",
+    )
     parser.add_argument("--quick", action="store_true", help="4 demos, 30 steps, 2 episodes, tiny preset")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--lab-config", type=Path, default=None)
@@ -82,12 +115,40 @@ class TrainRunError(RuntimeError):
 
 def _start_training(policy: str, bags: Path, out: Path, args, steps: int, threads: int) -> subprocess.Popen:
     """``equidiff train`` for one policy in the background, its output in ``out/train.log``."""
-    cmd = [sys.executable, "-m", "equidiff_ros.cli", "train", str(bags), "--out", str(out), "--policy", policy,
-           "--preset", args.preset, "--rotation-aug", args.rotation_aug, "--steps", str(steps),
-           "--batch-size", str(args.batch_size), "--lr", str(args.lr),
-           "--seed", str(args.seed), "--device", args.device, "--val-fraction", "0", "--eval-every", str(10 ** 9),
-           "--checkpoint-every", str(max(10, steps // 4)), "--warmup-steps", str(min(500, max(1, steps // 10))),
-           "--no-progress"]
+    cmd = [
+        sys.executable,
+        "-m",
+        "equidiff_ros.cli",
+        "train",
+        str(bags),
+        "--out",
+        str(out),
+        "--policy",
+        policy,
+        "--preset",
+        args.preset,
+        "--rotation-aug",
+        args.rotation_aug,
+        "--steps",
+        str(steps),
+        "--batch-size",
+        str(args.batch_size),
+        "--lr",
+        str(args.lr),
+        "--seed",
+        str(args.seed),
+        "--device",
+        args.device,
+        "--val-fraction",
+        "0",
+        "--eval-every",
+        str(10**9),
+        "--checkpoint-every",
+        str(max(10, steps // 4)),
+        "--warmup-steps",
+        str(min(500, max(1, steps // 10))),
+        "--no-progress",
+    ]
     if args.lab_config:
         cmd += ["--lab-config", str(args.lab_config)]
     if args.max_minutes is not None:
@@ -95,8 +156,13 @@ def _start_training(policy: str, bags: Path, out: Path, args, steps: int, thread
     print(f"[bench] training {policy}: {' '.join(cmd[3:])}", flush=True)
     out.mkdir(parents=True, exist_ok=True)
     with open(out / "train.log", "wb") as log:
-        return subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-                                env={**os.environ, "OMP_NUM_THREADS": str(threads), "MKL_NUM_THREADS": str(threads)})
+        return subprocess.Popen(
+            cmd,
+            stdout=log,
+            stderr=subprocess.STDOUT,
+            stdin=subprocess.DEVNULL,
+            env={**os.environ, "OMP_NUM_THREADS": str(threads), "MKL_NUM_THREADS": str(threads)},
+        )
 
 
 def _train_both(demos_dir: Path, out: Path, args) -> dict[str, Path]:
@@ -109,8 +175,10 @@ def _train_both(demos_dir: Path, out: Path, args) -> dict[str, Path]:
     threads = max(1, (os.cpu_count() or 2) // 2)
     # train stops itself at --max-minutes and exports; this deadline is only a backstop
     deadline = None if args.max_minutes is None else time.monotonic() + args.max_minutes * 60 + 600
-    runs = {name: _start_training(name, demos_dir, out / name, args, args.train_steps, threads)
-            for name in ("equidiff", "baseline")}
+    runs = {
+        name: _start_training(name, demos_dir, out / name, args, args.train_steps, threads)
+        for name in ("equidiff", "baseline")
+    }
     stopped = set()  # runs this function terminated: not failures of their own
 
     def failures() -> TrainRunError | None:
@@ -194,8 +262,14 @@ def run(args: argparse.Namespace) -> int:
         return _evaluate(args, cfg, lab, out, policies, steps_done, n_demos, {})
     demos_dir = args.demos_dir or out / "demos"
     if args.demos_dir is None:
-        results = collect_direct(train_cfg, lab, demos_dir, range(args.seed, args.seed + 10 * args.demos),
-                                 log=lambda s: print(s, flush=True), stop_after=args.demos)
+        results = collect_direct(
+            train_cfg,
+            lab,
+            demos_dir,
+            range(args.seed, args.seed + 10 * args.demos),
+            log=lambda s: print(s, flush=True),
+            stop_after=args.demos,
+        )
         n_demos = sum(1 for _, ok, _ in results if ok)
     else:
         n_demos = _count_demos(demos_dir)
@@ -204,13 +278,23 @@ def run(args: argparse.Namespace) -> int:
     try:
         policies = _train_both(demos_dir, out, args)
     except TrainRunError as err:  # the demos stay: a rerun need not record them again
-        print(f"equidiff bench generalization: {err}\nthe demos are kept: rerun with --demos-dir {demos_dir}",
-              file=sys.stderr)
+        print(
+            f"equidiff bench generalization: {err}\nthe demos are kept: rerun with --demos-dir {demos_dir}",
+            file=sys.stderr,
+        )
         return 1
     steps_done = {name: _trained_steps(out / name) or args.train_steps for name in policies}
     t_train = time.monotonic()
-    return _evaluate(args, cfg, lab, out, policies, steps_done, n_demos,
-                     {"demos": round((t_demos - t_start) / 60, 1), "train": round((t_train - t_demos) / 60, 1)})
+    return _evaluate(
+        args,
+        cfg,
+        lab,
+        out,
+        policies,
+        steps_done,
+        n_demos,
+        {"demos": round((t_demos - t_start) / 60, 1), "train": round((t_train - t_demos) / 60, 1)},
+    )
 
 
 def _trained_policies(folder: Path) -> tuple[dict, dict]:
@@ -269,14 +353,23 @@ def _evaluate(args, cfg, lab, out: Path, policies: dict, steps_done: dict, n_dem
             presets.add(policy.preset.name)
             augs.add(policy.preset.rotation_aug)
             for label, scene_seeds, rates in (("unseen", seeds, success), ("in_range", in_range, in_range_success)):
-                episodes = evaluate_policy(policy, cfg, lab, scene_seeds, args.max_duration, recorder=rec,
-                                           latency_s=args.latency_ms / 1000,
-                                           log=lambda s, n=name, w=label: print(f"[{n}, {w}] {s}", flush=True))
+                episodes = evaluate_policy(
+                    policy,
+                    cfg,
+                    lab,
+                    scene_seeds,
+                    args.max_duration,
+                    recorder=rec,
+                    latency_s=args.latency_ms / 1000,
+                    log=lambda s, n=name, w=label: print(f"[{n}, {w}] {s}", flush=True),
+                )
                 rates[name] = _fraction(episodes, "success")
                 stages.setdefault(name, {})[label] = {
                     **{k: _fraction(episodes, k) for k in ("reached", "lifted")},
                     "median_closest_to_block_m": round(statistics.median(e.closest_to_block_m for e in episodes), 3)
-                    if episodes else None}
+                    if episodes
+                    else None,
+                }
     finally:
         rec.close()
     t_end = time.monotonic()

@@ -20,15 +20,26 @@ def add_arguments(parser) -> None:
     parser.add_argument("--policy", default="equidiff", choices=["equidiff", "baseline"])
     parser.add_argument("--checkpoint", default=None, help="time this exported policy.pt instead of random weights")
     parser.add_argument("--device", default="auto", help="auto | cpu | cuda")
-    parser.add_argument("--precision", default="auto", choices=["auto", "fp32", "bf16"],
-                        help="auto: bf16 on CUDA and on CPUs with native bf16, else fp32")
+    parser.add_argument(
+        "--precision",
+        default="auto",
+        choices=["auto", "fp32", "bf16"],
+        help="auto: bf16 on CUDA and on CPUs with native bf16, else fp32",
+    )
     parser.add_argument("--no-jit", action="store_true", help="skip torch.jit.trace of encoder and denoiser")
-    parser.add_argument("--compile", action="store_true",
-                        help="torch.compile the denoising step (~45 s the first time, then cached on disk)")
+    parser.add_argument(
+        "--compile",
+        action="store_true",
+        help="torch.compile the denoising step (~45 s the first time, then cached on disk)",
+    )
     parser.add_argument("--iters", type=int, default=30, help="timed DDIM-16 runs of the exported policy")
     parser.add_argument("--eager-iters", type=int, default=3, help="timed runs of the eager escnn model")
-    parser.add_argument("--threads", type=int, default=1,
-                        help="torch intra-op threads (default 1: on a shared 2-core machine more threads oversubscribe; 0: torch default)")
+    parser.add_argument(
+        "--threads",
+        type=int,
+        default=1,
+        help="torch intra-op threads (default 1: on a shared 2-core machine more threads oversubscribe; 0: torch default)",
+    )
 
 
 def _device_name(device) -> str:
@@ -72,8 +83,11 @@ def run(args) -> int:
 
     if args.threads:
         torch.set_num_threads(args.threads)
-    device = torch.device("cuda" if args.device == "auto" and torch.cuda.is_available() else
-                          ("cpu" if args.device == "auto" else args.device))
+    device = torch.device(
+        "cuda"
+        if args.device == "auto" and torch.cuda.is_available()
+        else ("cpu" if args.device == "auto" else args.device)
+    )
     try:
         check_device(str(device))
     except ValueError as err:
@@ -88,8 +102,9 @@ def run(args) -> int:
 
     ws = Workspace()
     torch.manual_seed(0)
-    load = lambda path: load_inference_policy(path, device=str(device), precision=precision,
-                                              jit=not args.no_jit, compile=args.compile)
+    load = lambda path: load_inference_policy(
+        path, device=str(device), precision=precision, jit=not args.no_jit, compile=args.compile
+    )
     if args.checkpoint:
         try:  # one read: load_inference_policy validates the file and its config (CheckpointError)
             fast = load(args.checkpoint)
@@ -116,14 +131,23 @@ def run(args) -> int:
     step = _timed(lambda: fast.denoise(x, t, cond), max(10, args.iters), sync)
     ddim = _timed(lambda: fast.predict(vox, ee, seed=0), args.iters, sync)
 
-    result = {"preset": fast.preset.name, "policy": policy_name, "params": params,
-              # escnn's trainable count; an exported file only holds the expanded (larger) plain weights
-              "params_kind": "trainable" if eager is not None else "exported",
-              "encoder_ms": round(float(np.median(enc)), 2), "step_ms": round(float(np.median(step)), 2),
-              "ddim16_median_ms": round(float(np.median(ddim)), 2),
-              "ddim16_p99_ms": round(float(np.percentile(ddim, 99)), 2),
-              "eager_ddim16_median_ms": None, "device": _device_name(device), "precision": precision,
-              "jit": not args.no_jit, "compiled": fast.compiled, "iters": args.iters}
+    result = {
+        "preset": fast.preset.name,
+        "policy": policy_name,
+        "params": params,
+        # escnn's trainable count; an exported file only holds the expanded (larger) plain weights
+        "params_kind": "trainable" if eager is not None else "exported",
+        "encoder_ms": round(float(np.median(enc)), 2),
+        "step_ms": round(float(np.median(step)), 2),
+        "ddim16_median_ms": round(float(np.median(ddim)), 2),
+        "ddim16_p99_ms": round(float(np.percentile(ddim, 99)), 2),
+        "eager_ddim16_median_ms": None,
+        "device": _device_name(device),
+        "precision": precision,
+        "jit": not args.no_jit,
+        "compiled": fast.compiled,
+        "iters": args.iters,
+    }
     if eager is not None and args.eager_iters > 0:
         obs = {"voxels": vox_t.to(device), "ee": ee_t.to(device)}
         eager.predict_action(obs)  # warm-up (escnn filter expansion, allocator)

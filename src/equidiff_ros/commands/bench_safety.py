@@ -62,23 +62,43 @@ import numpy as np
 
 from equidiff_ros.control_client import MS, ControlClient, down_pose
 
-FAULTS = ("nan", "jump", "stale_chunk", "out_of_box", "out_of_cone", "camera_stall", "policy_node_killed",
-          "recorder_sigkill", "gripper_stuck", "franka_node_killed")
+FAULTS = (
+    "nan",
+    "jump",
+    "stale_chunk",
+    "out_of_box",
+    "out_of_cone",
+    "camera_stall",
+    "policy_node_killed",
+    "recorder_sigkill",
+    "gripper_stuck",
+    "franka_node_killed",
+)
 POLICY_FAULTS = ("camera_stall", "policy_node_killed")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.epilog = __doc__.split("\n", 1)[1]
     parser.formatter_class = argparse.RawDescriptionHelpFormatter
-    parser.add_argument("--faults", default=",".join(FAULTS),
-                        help=f"comma-separated subset of {', '.join(FAULTS)} (default: all)")
-    parser.add_argument("--still-mm", type=float, default=3.0,
-                        help="the arm 'held still' when it moved less than this (default 3 mm)")
-    parser.add_argument("--box-tol-mm", type=float, default=None,
-                        help="out_of_box survives within this distance outside the safety box "
-                             "(default: its floor margin, lab.yaml safety_box.floor_margin_m)")
-    parser.add_argument("--policy", choices=["shipped", "standin"], default="shipped",
-                        help="policy_node's checkpoint for the policy faults (default: the shipped one if present)")
+    parser.add_argument(
+        "--faults", default=",".join(FAULTS), help=f"comma-separated subset of {', '.join(FAULTS)} (default: all)"
+    )
+    parser.add_argument(
+        "--still-mm", type=float, default=3.0, help="the arm 'held still' when it moved less than this (default 3 mm)"
+    )
+    parser.add_argument(
+        "--box-tol-mm",
+        type=float,
+        default=None,
+        help="out_of_box survives within this distance outside the safety box "
+        "(default: its floor margin, lab.yaml safety_box.floor_margin_m)",
+    )
+    parser.add_argument(
+        "--policy",
+        choices=["shipped", "standin"],
+        default="shipped",
+        help="policy_node's checkpoint for the policy faults (default: the shipped one if present)",
+    )
     parser.add_argument("--domain-id", type=int, default=None, help="ROS_DOMAIN_ID (default: a random private one)")
     parser.add_argument("--keep", type=Path, default=None, help="keep logs and episodes here (default: a temp dir)")
 
@@ -142,8 +162,12 @@ class Campaign:
 
         now = time.time_ns()
         p = self.here() if position is None else position
-        return PoseChunk(now, now + np.arange(steps, dtype=np.int64) * 200 * MS, np.stack([down_pose(p)] * steps),
-                         np.full(steps, width))
+        return PoseChunk(
+            now,
+            now + np.arange(steps, dtype=np.int64) * 200 * MS,
+            np.stack([down_pose(p)] * steps),
+            np.full(steps, width),
+        )
 
     def home(self) -> None:
         """Back to the home pose (and its orientation: the policy may have yawed the hand) through
@@ -153,7 +177,9 @@ class Campaign:
 
         with LabClient() as lab:
             lab.call("std_srvs/srv/Trigger", SERVICE_FRANKA_HOME)
-        self.client.wait_for(lambda: np.linalg.norm(self.here() - self.home_position) < 0.002, 60.0, "the arm home", self.franka)
+        self.client.wait_for(
+            lambda: np.linalg.norm(self.here() - self.home_position) < 0.002, 60.0, "the arm home", self.franka
+        )
         time.sleep(0.3)
 
     def follow_me(self, seconds: float, direction=(0.0, 1.0, 0.0), speed: float = 0.03) -> float:
@@ -175,13 +201,17 @@ class Campaign:
 
 # --- the faults ------------------------------------------------------------------------------
 
+
 def rejected_and_still(c: Campaign, counter: str, publish: Callable[[], None]) -> dict:
     before, t0 = c.diag(counter), time.time()
     publish()
     counted = c.wait_diag(counter, before)
     moved = c.moved_m(t0, time.time())
-    return {"survived": counted and c.alive() and moved < c.still_m, "rejected": counted,
-            "moved_mm": round(moved * 1000, 2)}
+    return {
+        "survived": counted and c.alive() and moved < c.still_m,
+        "rejected": counted,
+        "moved_mm": round(moved * 1000, 2),
+    }
 
 
 def fault_nan(c: Campaign) -> dict:
@@ -196,8 +226,9 @@ def fault_nan(c: Campaign) -> dict:
 
 
 def fault_jump(c: Campaign) -> dict:
-    return rejected_and_still(c, "jump_rejected",
-                              lambda: c.client.publish_chunk(c.hold_chunk(c.here() + [0.0, 0.15, 0.0])))
+    return rejected_and_still(
+        c, "jump_rejected", lambda: c.client.publish_chunk(c.hold_chunk(c.here() + [0.0, 0.15, 0.0]))
+    )
 
 
 def fault_stale_chunk(c: Campaign) -> dict:
@@ -206,8 +237,11 @@ def fault_stale_chunk(c: Campaign) -> dict:
     def publish():
         old = time.time_ns() - 2_000_000_000
         here = c.here() + [0.0, 0.03, 0.0]  # a valid target, only too old
-        c.client.publish_chunk(PoseChunk(old, old + np.arange(4, dtype=np.int64) * 200 * MS,
-                                         np.stack([down_pose(here)] * 4), np.full(4, 0.08)))
+        c.client.publish_chunk(
+            PoseChunk(
+                old, old + np.arange(4, dtype=np.int64) * 200 * MS, np.stack([down_pose(here)] * 4), np.full(4, 0.08)
+            )
+        )
 
     return rejected_and_still(c, "stale_rejected", publish)
 
@@ -225,8 +259,9 @@ def fault_out_of_cone(c: Campaign) -> dict:
         for tilt in np.radians([20.0, 40.0, 60.0]):  # the policy tipping the hand over
             R = Rotation.from_rotvec([0.0, tilt, 0.0]).as_matrix() @ down_pose(here)[:3, :3]
             poses.append(geometry.make_pose(R, here))
-        c.client.publish_chunk(PoseChunk(now, now + np.arange(4, dtype=np.int64) * 200 * MS, np.stack(poses),
-                                         np.full(4, 0.08)))
+        c.client.publish_chunk(
+            PoseChunk(now, now + np.arange(4, dtype=np.int64) * 200 * MS, np.stack(poses), np.full(4, 0.08))
+        )
 
     return rejected_and_still(c, "cone_rejected", publish)
 
@@ -246,8 +281,11 @@ def fault_out_of_box(c: Campaign) -> dict:
     outside = c.note_excursion(t0)
     requested = metrics.max_outside_box(path(last)[None], c.box.min_corner, c.box.max_corner)
     c.home()
-    return {"survived": c.alive() and outside <= c.box_tol_m, "outside_mm": round(outside * 1000, 2),
-            "requested_outside_mm": round(requested * 1000, 1)}
+    return {
+        "survived": c.alive() and outside <= c.box_tol_m,
+        "outside_mm": round(outside * 1000, 2),
+        "requested_outside_mm": round(requested * 1000, 1),
+    }
 
 
 @dataclass
@@ -264,8 +302,16 @@ class PolicyFeed:
     def start(self, checkpoint: Path, log: Path) -> None:
         from equidiff_core.twin.processes import start_node
 
-        self.proc = start_node("policy_node", {"checkpoint": str(checkpoint), "precision": "fp32",
-                                               "lab_config": self.client.lab_path, "start_paused": False}, log)
+        self.proc = start_node(
+            "policy_node",
+            {
+                "checkpoint": str(checkpoint),
+                "precision": "fp32",
+                "lab_config": self.client.lab_path,
+                "start_paused": False,
+            },
+            log,
+        )
         self.thread = threading.Thread(target=self._feed, daemon=True)
         self.thread.start()
         n0 = len(self.client.data.chunks)
@@ -279,8 +325,11 @@ class PolicyFeed:
         grid = synthetic_grid(ws)
         while not self.stop.is_set():
             if not self.stalled.is_set():
-                self.client.pub_voxels.publish(grid_to_voxel_msg(grid, ws.lower, ws.voxel_size, time.time_ns(),
-                                                                 lab.base_frame, self.client.factory))
+                self.client.pub_voxels.publish(
+                    grid_to_voxel_msg(
+                        grid, ws.lower, ws.voxel_size, time.time_ns(), lab.base_frame, self.client.factory
+                    )
+                )
             self.stop.wait(1.0 / lab.observation_hz)
 
     def chunks_between(self, t0: float, t1: float) -> int:
@@ -310,9 +359,13 @@ def fault_camera_stall(c: Campaign, feed: PolicyFeed) -> dict:
     except (TimeoutError, RuntimeError):
         again = False
     c.note_excursion(t_stall)
-    return {"survived": during == 0 and held < c.still_m and again and c.alive(),
-            "policy_chunks_accepted": accepted, "chunks_during_stall": during,
-            "moved_while_stalled_mm": round(held * 1000, 2), "chunks_after_stall": again}
+    return {
+        "survived": during == 0 and held < c.still_m and again and c.alive(),
+        "policy_chunks_accepted": accepted,
+        "chunks_during_stall": during,
+        "moved_while_stalled_mm": round(held * 1000, 2),
+        "chunks_after_stall": again,
+    }
 
 
 def fault_policy_node_killed(c: Campaign, feed: PolicyFeed) -> dict:
@@ -326,8 +379,12 @@ def fault_policy_node_killed(c: Campaign, feed: PolicyFeed) -> dict:
     held = c.moved_m(t_end - 1.0, t_end)
     watchdog = c.wait_diag("watchdog_holds", holds, timeout=3.0)
     c.note_excursion(t_kill)
-    return {"survived": after == 0 and held < c.still_m and c.alive(), "chunks_after_kill": after,
-            "watchdog_fired_after_kill": watchdog, "moved_after_kill_mm": round(held * 1000, 2)}
+    return {
+        "survived": after == 0 and held < c.still_m and c.alive(),
+        "chunks_after_kill": after,
+        "watchdog_fired_after_kill": watchdog,
+        "moved_after_kill_mm": round(held * 1000, 2),
+    }
 
 
 def fault_recorder_sigkill(c: Campaign) -> dict:
@@ -385,18 +442,22 @@ def fault_gripper_stuck(c: Campaign) -> dict:
     c.sim.jam_gripper(False)
     send_width(0.05, 0.2)  # a new width after the jam cleared
     try:
-        c.client.wait_for(lambda: (send_width(0.05, 0.2), abs(width() - 0.05) < 0.004)[1], 30.0,
-                          "the fingers to follow again")
+        c.client.wait_for(
+            lambda: (send_width(0.05, 0.2), abs(width() - 0.05) < 0.004)[1], 30.0, "the fingers to follow again"
+        )
         followed = True
     except TimeoutError:
         followed = False
     send_width(0.08, 0.2)
     faulted = c.client.diag_value("franka_node", "faulted") == "True"
-    return {"survived": change < 0.004 and reached < 0.005 and gap < JAM_S / 2 and followed and c.alive()
-            and not faulted,
-            "jammed_width_change_mm": round(change * 1000, 1), "arm_error_mm": round(reached * 1000, 2),
-            "largest_state_gap_s": round(gap, 3), "fingers_followed_after": followed,
-            "pending_command_warned": "has not finished" in franka_log(c)}
+    return {
+        "survived": change < 0.004 and reached < 0.005 and gap < JAM_S / 2 and followed and c.alive() and not faulted,
+        "jammed_width_change_mm": round(change * 1000, 1),
+        "arm_error_mm": round(reached * 1000, 2),
+        "largest_state_gap_s": round(gap, 3),
+        "fingers_followed_after": followed,
+        "pending_command_warned": "has not finished" in franka_log(c),
+    }
 
 
 def fault_franka_node_killed(c: Campaign) -> dict:
@@ -419,10 +480,15 @@ def fault_franka_node_killed(c: Campaign) -> dict:
         t_killed = time.time()
         c.client.data.diagnostics.pop("franka_node", None)  # the dead node's
         restarted = start_franka(c)
-        c.client.wait_for(lambda: c.client.data.poses and c.client.data.poses[-1][0] > t_killed + 0.5, 90.0,
-                          "/franka/ee_pose again", c.franka)
-        c.client.wait_for(lambda: c.client.diag_value("franka_node", "awaiting_ack") is not None, 10.0,
-                          "franka_node's diagnostics")
+        c.client.wait_for(
+            lambda: c.client.data.poses and c.client.data.poses[-1][0] > t_killed + 0.5,
+            90.0,
+            "/franka/ee_pose again",
+            c.franka,
+        )
+        c.client.wait_for(
+            lambda: c.client.diag_value("franka_node", "awaiting_ack") is not None, 10.0, "franka_node's diagnostics"
+        )
         at_restart = c.here()
         awaiting = str(c.client.diag_value("franka_node", "awaiting_ack", ""))
         accepted, t_held = c.diag("accepted_chunks"), time.time()
@@ -447,12 +513,18 @@ def fault_franka_node_killed(c: Campaign) -> dict:
     c.note_excursion(c.t_start)
     drift = float(np.linalg.norm(at_restart - at_kill))
     c.home()
-    return {"survived": restarted and "uncleanly" in awaiting and refused and held < c.still_m and acked and resumed,
-            "drift_while_down_mm": round(drift * 1000, 1), "held_after_restart_mm": round(held * 1000, 2),
-            "awaiting_ack": awaiting[:80], "refused_until_ack": refused, "resumed_after_ack": resumed}
+    return {
+        "survived": restarted and "uncleanly" in awaiting and refused and held < c.still_m and acked and resumed,
+        "drift_while_down_mm": round(drift * 1000, 1),
+        "held_after_restart_mm": round(held * 1000, 2),
+        "awaiting_ack": awaiting[:80],
+        "refused_until_ack": refused,
+        "resumed_after_ack": resumed,
+    }
 
 
 # --- set-up ----------------------------------------------------------------------------------
+
 
 def franka_log(c: Campaign) -> str:
     logs = sorted(c.tmp.glob("franka_node*.log"), key=lambda p: p.stat().st_mtime)
@@ -497,8 +569,14 @@ def episodes_lost(paths: list[Path]) -> int:
     return lost
 
 
-def run_campaign(faults: list[str], tmp: Path, still_mm: float = 3.0, box_tol_mm: float | None = None,
-                 log: Callable[[str], None] = lambda _m: None, policy: str = "shipped") -> dict:
+def run_campaign(
+    faults: list[str],
+    tmp: Path,
+    still_mm: float = 3.0,
+    box_tol_mm: float | None = None,
+    log: Callable[[str], None] = lambda _m: None,
+    policy: str = "shipped",
+) -> dict:
     """Run ``faults`` (in FAULTS' order) and return the result dict (the JSON line's content)."""
     from equidiff_core.config import default_config_dir, load_lab_config
     from equidiff_core.control import load_control_config
@@ -521,15 +599,28 @@ def run_campaign(faults: list[str], tmp: Path, still_mm: float = 3.0, box_tol_mm
     run_dir.mkdir(exist_ok=True)
     with SimServer() as sim:
         client = feed = None
-        c = Campaign(None, sim, lab.safety_box, tmp,
-                     {"robot_ip": sim.host, "realtime": False, "lab_config": str(lab_path), "run_dir": str(run_dir)},
-                     still_mm / 1000, box_tol_mm / 1000)
+        c = Campaign(
+            None,
+            sim,
+            lab.safety_box,
+            tmp,
+            {"robot_ip": sim.host, "realtime": False, "lab_config": str(lab_path), "run_dir": str(run_dir)},
+            still_mm / 1000,
+            box_tol_mm / 1000,
+        )
         c.home_position = np.asarray(load_control_config(default_config_dir() / "control.yaml").home_position)
         try:
             start_franka(c)
-            c.recorder = start_node("recorder_node", {"output_dir": str(tmp / "episodes"), "task": "safety",
-                                                      "min_free_gib": 0.0, "lab_config": str(lab_path)},
-                                    tmp / "recorder_node.log")
+            c.recorder = start_node(
+                "recorder_node",
+                {
+                    "output_dir": str(tmp / "episodes"),
+                    "task": "safety",
+                    "min_free_gib": 0.0,
+                    "lab_config": str(lab_path),
+                },
+                tmp / "recorder_node.log",
+            )
             client = c.client = ControlClient(lab, str(lab_path))
             client.wait_for(lambda: len(client.data.poses) > 10, 90.0, "/franka/ee_pose", c.franka)
             time.sleep(1.0)
@@ -573,11 +664,20 @@ def run_campaign(faults: list[str], tmp: Path, still_mm: float = 3.0, box_tol_mm
             result["franka_node_exit_code"] = stop_process(c.franka)
             result["sim_realtime_factor"] = sim.realtime_factor()
     survived = sum(bool(v.get("survived")) for v in per_fault.values())
-    result.update({"faults_tried": len(per_fault), "faults_survived": survived,
-                   "max_excursion_mm": round(c.excursion_m * 1000, 2), "auto_resumes": c.auto_resumes,
-                   "episodes_recorded": len(c.episodes), "episodes_lost": episodes_lost(c.episodes),
-                   "still_mm": still_mm, "box_tol_mm": box_tol_mm,
-                   "wall_s": round(time.monotonic() - wall0, 1), "faults": per_fault})
+    result.update(
+        {
+            "faults_tried": len(per_fault),
+            "faults_survived": survived,
+            "max_excursion_mm": round(c.excursion_m * 1000, 2),
+            "auto_resumes": c.auto_resumes,
+            "episodes_recorded": len(c.episodes),
+            "episodes_lost": episodes_lost(c.episodes),
+            "still_mm": still_mm,
+            "box_tol_mm": box_tol_mm,
+            "wall_s": round(time.monotonic() - wall0, 1),
+            "faults": per_fault,
+        }
+    )
     return result
 
 
@@ -603,8 +703,14 @@ def run(args: argparse.Namespace) -> int:
         out = args.keep or Path(tmp)
         out.mkdir(parents=True, exist_ok=True)
         try:
-            result = run_campaign(faults, out, args.still_mm, args.box_tol_mm,
-                                  log=lambda m: print(m, file=sys.stderr, flush=True), policy=args.policy)
+            result = run_campaign(
+                faults,
+                out,
+                args.still_mm,
+                args.box_tol_mm,
+                log=lambda m: print(m, file=sys.stderr, flush=True),
+                policy=args.policy,
+            )
         except ValueError as err:
             print(f"equidiff bench safety: {err}", file=sys.stderr)
             return 2

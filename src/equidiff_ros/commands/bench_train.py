@@ -25,8 +25,12 @@ def add_arguments(parser) -> None:
     parser.add_argument("--steps", type=int, default=4, help="timed optimiser steps per device")
     parser.add_argument("--warmup", type=int, default=2, help="untimed steps first (allocator, escnn, cuDNN)")
     parser.add_argument("--samples", type=int, default=64, help="synthetic training samples (held in memory)")
-    parser.add_argument("--cpu-precision", choices=["fp32", "bf16"], default="fp32",
-                        help="fp32 (training's CPU default) or bf16 autocast (fast only with AVX512-BF16/AMX)")
+    parser.add_argument(
+        "--cpu-precision",
+        choices=["fp32", "bf16"],
+        default="fp32",
+        help="fp32 (training's CPU default) or bf16 autocast (fast only with AVX512-BF16/AMX)",
+    )
     parser.add_argument("--threads", type=int, default=0, help="torch intra-op threads on the CPU (0: torch default)")
     parser.add_argument("--no-cpu", action="store_true", help="measure CUDA only")
 
@@ -65,8 +69,17 @@ class _StepClock:
         self.times[step] = time.perf_counter()
 
 
-def measure(preset, policy_name: str, workspace, data, device: str, batch_size: int, steps: int, warmup: int,
-            precision: str = "auto") -> dict:
+def measure(
+    preset,
+    policy_name: str,
+    workspace,
+    data,
+    device: str,
+    batch_size: int,
+    steps: int,
+    warmup: int,
+    precision: str = "auto",
+) -> dict:
     import tempfile
 
     import torch
@@ -82,14 +95,28 @@ def measure(preset, policy_name: str, workspace, data, device: str, batch_size: 
     policy.set_normalizer(Normalizer.from_workspace(workspace))
     sync = torch.cuda.synchronize if device == "cuda" else (lambda: None)
     clock = _StepClock(sync)
-    cfg = TrainConfig(steps=warmup + steps, batch_size=batch_size, warmup_steps=1, device=device, eval_every=0,
-                      checkpoint_every=0, log_every=1, precision=precision)
+    cfg = TrainConfig(
+        steps=warmup + steps,
+        batch_size=batch_size,
+        warmup_steps=1,
+        device=device,
+        eval_every=0,
+        checkpoint_every=0,
+        log_every=1,
+        precision=precision,
+    )
     with tempfile.TemporaryDirectory(prefix="bench_train_") as tmp:
         result = train(policy, data, None, cfg, tmp, callbacks=[clock])
     seconds = clock.times[warmup + steps] - clock.times[warmup]
-    out = {"device": _device_name(torch.device(device)), "batch_size": batch_size, "precision": result.precision,
-           "data": result.data, "steps": steps, "sec_per_step": float(f"{seconds / steps:.4g}"),
-           "samples_per_s": float(f"{batch_size * steps / seconds:.4g}")}
+    out = {
+        "device": _device_name(torch.device(device)),
+        "batch_size": batch_size,
+        "precision": result.precision,
+        "data": result.data,
+        "steps": steps,
+        "sec_per_step": float(f"{seconds / steps:.4g}"),
+        "samples_per_s": float(f"{batch_size * steps / seconds:.4g}"),
+    }
     if device == "cpu":
         from equidiff_core.machine import cpu_description
 
@@ -113,13 +140,19 @@ def run(args) -> int:
     cuda = torch.cuda.is_available()
     batch_sizes = ([] if args.no_cpu else [args.batch_size]) + ([args.cuda_batch_size] if cuda else [])
     data = _SyntheticSet(preset, ws, max(args.samples, *batch_sizes))
-    result = {"bench": "train", "preset": preset.name, "policy": args.policy,
-              "params": count_parameters(make_policy(args.policy, preset, ws).model),
-              "rotation_aug": preset.rotation_aug, "samples": len(data),
-              "load_avg_1min": round(os.getloadavg()[0], 2)}  # a shared machine's load shows in CPU figures
+    result = {
+        "bench": "train",
+        "preset": preset.name,
+        "policy": args.policy,
+        "params": count_parameters(make_policy(args.policy, preset, ws).model),
+        "rotation_aug": preset.rotation_aug,
+        "samples": len(data),
+        "load_avg_1min": round(os.getloadavg()[0], 2),
+    }  # a shared machine's load shows in CPU figures
     if not args.no_cpu:
-        result["cpu"] = measure(preset, args.policy, ws, data, "cpu", args.batch_size, args.steps, args.warmup,
-                                args.cpu_precision)
+        result["cpu"] = measure(
+            preset, args.policy, ws, data, "cpu", args.batch_size, args.steps, args.warmup, args.cpu_precision
+        )
     if cuda:
         result["cuda"] = measure(preset, args.policy, ws, data, "cuda", args.cuda_batch_size, args.steps, args.warmup)
     else:

@@ -31,14 +31,21 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--checkpoint", type=Path, default=None, help="policy (default: the shipped one)")
     parser.add_argument("--standin", action="store_true", help="an untrained tiny stand-in policy")
     parser.add_argument("--latency-ms", type=float, default=100.0)
-    parser.add_argument("--max-speed", type=float, default=1.0,
-                        help="at most this many sim seconds per wall second (0: unbounded)")
-    parser.add_argument("--torch-threads", type=int, default=None,
-                        help="policy_node's torch threads (default: all cores on simulated time)")
+    parser.add_argument(
+        "--max-speed", type=float, default=1.0, help="at most this many sim seconds per wall second (0: unbounded)"
+    )
+    parser.add_argument(
+        "--torch-threads",
+        type=int,
+        default=None,
+        help="policy_node's torch threads (default: all cores on simulated time)",
+    )
     parser.add_argument("--out", type=Path, default=None, help="output directory (default: a temporary one)")
-    parser.add_argument("--composed", action="store_true",
-                        help="every node but twin_node in one process (equidiff_ros.composed): its CPU share is "
-                             "reported as 'pipeline'")
+    parser.add_argument(
+        "--composed",
+        action="store_true",
+        help="every node but twin_node in one process (equidiff_ros.composed): its CPU share is reported as 'pipeline'",
+    )
 
 
 def run(args: argparse.Namespace) -> int:
@@ -60,15 +67,23 @@ def run(args: argparse.Namespace) -> int:
     args.smoke, args.attach = False, False
     policy_path, label = resolve_policy(args, out, configs.lab.workspace, configs.twin)
     try:
-        with TwinStack(out, configs.lab_path, configs.twin_path, policy=str(policy_path), task="bench_twin",
-                       seed=args.seed, latency_s=args.latency_ms / 1000, max_speed=args.max_speed,
-                       torch_threads=args.torch_threads, composed=args.composed) as stack:
+        with TwinStack(
+            out,
+            configs.lab_path,
+            configs.twin_path,
+            policy=str(policy_path),
+            task="bench_twin",
+            seed=args.seed,
+            latency_s=args.latency_ms / 1000,
+            max_speed=args.max_speed,
+            torch_threads=args.torch_threads,
+            composed=args.composed,
+        ) as stack:
             procs = {n.name: n.popen.pid for n in stack.group.nodes}
             cpu0 = {name: cpu_seconds(pid) for name, pid in procs.items()}
             me0, wall0, sim0 = time.process_time(), time.monotonic(), stack.sup.now_ns() / 1e9
             waits0 = dict(stack.sup.twin().get("wait_s", {}))
-            records = [run_policy_episode(stack, args.seed + i, args.max_duration)
-                       for i in range(args.episodes)]
+            records = [run_policy_episode(stack, args.seed + i, args.max_duration) for i in range(args.episodes)]
             wall, sim = time.monotonic() - wall0, stack.sup.now_ns() / 1e9 - sim0
             shares = {name: round((cpu_seconds(pid) - cpu0[name]) / wall, 3) for name, pid in procs.items()}
             shares["supervisor"] = round((time.process_time() - me0) / wall, 3)
@@ -82,13 +97,18 @@ def run(args: argparse.Namespace) -> int:
         "cpu_share_total": round(sum(shares.values()), 2),
         "sim_factor": round(sim / wall, 3),
         "wall_s_per_sim_s": round(wall / sim, 2) if sim > 0 else None,
-        "sim_s": round(sim, 1), "wall_s": round(wall, 1),
+        "sim_s": round(sim, 1),
+        "wall_s": round(wall, 1),
         "twin_wait_s": waits,  # wall seconds the sim stood still waiting for each
         "inference_p50_ms": inference[len(inference) // 2] if inference else None,
-        "episodes": len(records), "chunks": sum(r.chunks for r in records),
+        "episodes": len(records),
+        "chunks": sum(r.chunks for r in records),
         "dropped_cycles": sum(r.dropped_cycles for r in records),
-        "latency_budget_ms": args.latency_ms, "max_speed": args.max_speed, "torch_threads": stack.torch_threads,
-        "policy": label, "composed": args.composed,
+        "latency_budget_ms": args.latency_ms,
+        "max_speed": args.max_speed,
+        "torch_threads": stack.torch_threads,
+        "policy": label,
+        "composed": args.composed,
         **cpu_description(),
     }
     print(json.dumps(result))

@@ -85,7 +85,7 @@ def _raycast(T, n_points: int, ws, rng):
             hit = (t_near <= t_far) & (t_near > 0) & (t_near < depth)
             depth = np.where(hit, t_near, depth)
             colors = np.where(hit[:, None], np.array(col), colors)
-    depth = depth + rng.normal(0.0, 1.0, depth.shape) * 0.001 * depth ** 2  # ~1 mm at 1 m
+    depth = depth + rng.normal(0.0, 1.0, depth.shape) * 0.001 * depth**2  # ~1 mm at 1 m
     points = origin + rays * depth[:, None]
     colors = np.clip(colors + rng.normal(0, 6, colors.shape), 0, 255).astype(np.uint8)
     return points[:n_points], colors[:n_points]

@@ -32,10 +32,17 @@ def add_board_arguments(parser: argparse.ArgumentParser) -> None:
     from equidiff_core.calibration.board import BoardSpec
 
     d = BoardSpec()
-    parser.add_argument("--squares", type=int, nargs=2, default=(d.squares_x, d.squares_y), metavar=("X", "Y"),
-                        help="board squares across and down")
-    parser.add_argument("--square-mm", type=float, default=d.square_length * 1000,
-                        help="square side as printed (measure it)")
+    parser.add_argument(
+        "--squares",
+        type=int,
+        nargs=2,
+        default=(d.squares_x, d.squares_y),
+        metavar=("X", "Y"),
+        help="board squares across and down",
+    )
+    parser.add_argument(
+        "--square-mm", type=float, default=d.square_length * 1000, help="square side as printed (measure it)"
+    )
     parser.add_argument("--marker-mm", type=float, default=d.marker_length * 1000)
     parser.add_argument("--dictionary", default=d.dictionary)
 
@@ -49,21 +56,37 @@ def board_spec(args: argparse.Namespace):
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.epilog = __doc__.split("\n", 1)[1]
     parser.formatter_class = argparse.RawDescriptionHelpFormatter
-    parser.add_argument("--lab", type=Path, default=None,
-                        help="current lab file: the cameras' rough extrinsics (twin: the ground truth)")
+    parser.add_argument(
+        "--lab",
+        type=Path,
+        default=None,
+        help="current lab file: the cameras' rough extrinsics (twin: the ground truth)",
+    )
     parser.add_argument("--output", type=Path, default=None, help="new lab file with the calibrated extrinsics")
     parser.add_argument("--force", action="store_true", help="replace --output if it exists (the old one is backed up)")
-    parser.add_argument("--write-board", type=Path, default=None, metavar="FILE",
-                        help="write the printable board (.pdf or .png) and exit")
-    parser.add_argument("--dpi", type=int, default=508,
-                        help="print resolution; 508 dpi = 20 px/mm, so whole-mm squares are whole pixels")
+    parser.add_argument(
+        "--write-board",
+        type=Path,
+        default=None,
+        metavar="FILE",
+        help="write the printable board (.pdf or .png) and exit",
+    )
+    parser.add_argument(
+        "--dpi",
+        type=int,
+        default=508,
+        help="print resolution; 508 dpi = 20 px/mm, so whole-mm squares are whole pixels",
+    )
     add_board_arguments(parser)
     parser.add_argument("--poses", type=int, default=20, help="planned poses")
     parser.add_argument("--max-tilt", type=float, default=20.0, help="deg, board tilt from horizontal")
     parser.add_argument("--max-yaw", type=float, default=45.0, help="deg, turn about the vertical")
     parser.add_argument("--seed", type=int, default=0, help="pose plan (and twin perturbation) seed")
-    parser.add_argument("--operator", action="store_true",
-                        help="drive the arm with the SpaceMouse; left button captures, right button finishes")
+    parser.add_argument(
+        "--operator",
+        action="store_true",
+        help="drive the arm with the SpaceMouse; left button captures, right button finishes",
+    )
     parser.add_argument("--yes", action="store_true", help="do not ask before moving the arm")
     parser.add_argument("--twin", action="store_true", help="calibrate the digital twin's cameras and report errors")
     parser.add_argument("--twin-config", type=Path, default=None)
@@ -85,10 +108,19 @@ def run(args: argparse.Namespace) -> int:
         if args.write_board is not None:
             printed = write_printable(spec, args.write_board, dpi=args.dpi)
             _log(printed.instructions())
-            print(json.dumps({"board": str(printed.path), "page_mm": [round(v, 2) for v in printed.page_mm],
-                              "board_mm": [round(v, 2) for v in printed.board_mm],
-                              "square_mm": printed.square_mm, "marker_mm": printed.marker_mm,
-                              "squares": [spec.squares_x, spec.squares_y], "dictionary": spec.dictionary}))
+            print(
+                json.dumps(
+                    {
+                        "board": str(printed.path),
+                        "page_mm": [round(v, 2) for v in printed.page_mm],
+                        "board_mm": [round(v, 2) for v in printed.board_mm],
+                        "square_mm": printed.square_mm,
+                        "marker_mm": printed.marker_mm,
+                        "squares": [spec.squares_x, spec.squares_y],
+                        "dictionary": spec.dictionary,
+                    }
+                )
+            )
             return 0
         lab_path = args.lab or default_config_dir() / "lab.yaml"
         lab = load_lab_config(lab_path)
@@ -98,8 +130,10 @@ def run(args: argparse.Namespace) -> int:
             _log("equidiff calibrate cameras: --output is required (the calibrated lab file to write)")
             return 2
         if args.output.exists() and not args.force:  # fail before the arm moves, not after
-            raise CalibrationError(f"{args.output} exists and is left as it is: choose a new --output, "
-                                   "or pass --force to replace it (the old file is then kept as a .bak copy)")
+            raise CalibrationError(
+                f"{args.output} exists and is left as it is: choose a new --output, "
+                "or pass --force to replace it (the old file is then kept as a .bak copy)"
+            )
         return _run_lab(args, spec, lab, lab_path)
     except (CalibrationError, ConfigError, ValueError) as err:
         _log(f"equidiff calibrate cameras: {err}")
@@ -117,20 +151,35 @@ def _run_twin(args, spec, lab, lab_path) -> int:
     from equidiff_core.calibration.twin import calibrate_twin
     from equidiff_core.twin.config import load_twin_config
 
-    report, result, _ = calibrate_twin(lab, load_twin_config(args.twin_config), spec, _plan_config(args),
-                                       arm="direct" if args.direct else "franky",
-                                       perturb_m=args.perturb_mm / 1000, perturb_deg=args.perturb_deg, log=_log)
+    report, result, _ = calibrate_twin(
+        lab,
+        load_twin_config(args.twin_config),
+        spec,
+        _plan_config(args),
+        arm="direct" if args.direct else "franky",
+        perturb_m=args.perturb_mm / 1000,
+        perturb_deg=args.perturb_deg,
+        log=_log,
+    )
     if args.output is not None:
-        write_calibrated_lab(lab_path, {n: c.T_base_cam for n, c in result.cameras.items()}, args.output,
-                             force=args.force, notes=_notes(result))
+        write_calibrated_lab(
+            lab_path,
+            {n: c.T_base_cam for n, c in result.cameras.items()},
+            args.output,
+            force=args.force,
+            notes=_notes(result),
+        )
         report["output"] = str(args.output)
     print(json.dumps(report))
     return 0
 
 
 def _notes(result) -> list[str]:
-    return [f"{name}: reprojection RMS {c.rms_px:.3f} px ({c.rms_mm:.3f} mm at the board), "
-            f"{c.detections} poses, {c.corners} corners" for name, c in result.cameras.items()]
+    return [
+        f"{name}: reprojection RMS {c.rms_px:.3f} px ({c.rms_mm:.3f} mm at the board), "
+        f"{c.detections} poses, {c.corners} corners"
+        for name, c in result.cameras.items()
+    ]
 
 
 def _run_lab(args, spec, lab, lab_path) -> int:
@@ -162,8 +211,10 @@ def _run_lab(args, spec, lab, lab_path) -> int:
         else:
             poses = plan_poses(lab, models, spec, nominal_mount(spec), _plan_config(args), start=arm.tcp_pose())
             if not args.yes:
-                _log(f"The arm will visit {len(poses)} poses around the workspace at reduced speed with the "
-                     "board on its hand. Keep the area clear; press Enter to start, Ctrl-C to abort.")
+                _log(
+                    f"The arm will visit {len(poses)} poses around the workspace at reduced speed with the "
+                    "board on its hand. Keep the area clear; press Enter to start, Ctrl-C to abort."
+                )
                 input()
             samples = capture_samples(arm, poses, grab, spec, log=_log)
     finally:
@@ -172,9 +223,21 @@ def _run_lab(args, spec, lab, lab_path) -> int:
         for c in cams:
             c.close()
     result = calibrate(spec, models, samples)
-    write_calibrated_lab(lab_path, {n: c.T_base_cam for n, c in result.cameras.items()}, args.output,
-                         force=args.force, notes=_notes(result))
+    write_calibrated_lab(
+        lab_path,
+        {n: c.T_base_cam for n, c in result.cameras.items()},
+        args.output,
+        force=args.force,
+        notes=_notes(result),
+    )
     _log(f"wrote {args.output}")
-    print(json.dumps({"output": str(args.output), "poses": len(samples),
-                      "cameras": {n: c.summary() for n, c in result.cameras.items()}}))
+    print(
+        json.dumps(
+            {
+                "output": str(args.output),
+                "poses": len(samples),
+                "cameras": {n: c.summary() for n, c in result.cameras.items()},
+            }
+        )
+    )
     return 0

@@ -37,8 +37,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--truth", type=Path, default=None, help="twin: where its cameras really are")
     parser.add_argument("--twin-config", type=Path, default=None)
     parser.add_argument("--direct", action="store_true", help="twin: in-process sim instead of franky + franky-sim")
-    parser.add_argument("--tcp", type=float, nargs=3, default=(0.45, 0.0, 0.25), metavar=("X", "Y", "Z"),
-                        help="twin: TCP position for the check (gripper pointing down)")
+    parser.add_argument(
+        "--tcp",
+        type=float,
+        nargs=3,
+        default=(0.45, 0.0, 0.25),
+        metavar=("X", "Y", "Z"),
+        help="twin: TCP position for the check (gripper pointing down)",
+    )
     parser.add_argument("--width", type=float, default=0.04, help="twin: gripper opening, m")
 
 
@@ -68,8 +74,12 @@ def _twin_capture(args, lab):
         measured, qpos = arm.move_to(T)
     try:
         model = arm.sim.model if args.direct else arm.twin.model
-        width = float(sum(qpos[model.jnt_qposadr[mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT, j)]]
-                          for j in ("robot0_finger_joint1", "robot0_finger_joint2")))
+        width = float(
+            sum(
+                qpos[model.jnt_qposadr[mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT, j)]]
+                for j in ("robot0_finger_joint1", "robot0_finger_joint2")
+            )
+        )
     finally:
         arm.close()
     clouds = {}
@@ -122,13 +132,23 @@ def run(args: argparse.Namespace) -> int:
         log_check(rec, lab, clouds, results, tcp, width)
         rec.flush()
         rec.disconnect()
-    worst = {key: max((getattr(r, key) for r in results.values() if getattr(r, key) is not None), default=None)
-             for key in ("cloud_to_cloud_mm", "fingertips_mm")}
-    print(json.dumps({"lab": str(lab_path), "max_cloud_to_cloud_mm": worst["cloud_to_cloud_mm"],
-                      "max_fingertips_mm": worst["fingertips_mm"],
-                      "cameras": {n: r.summary() for n, r in results.items()},
-                      "tcp_xyz": [round(float(v), 4) for v in tcp[:3, 3]],
-                      "gripper_width": None if width is None or not np.isfinite(width) else round(float(width), 4),
-                      "tolerance_mm": args.tolerance_mm, **({"rrd": str(args.rrd)} if args.rrd else {})}))
+    worst = {
+        key: max((getattr(r, key) for r in results.values() if getattr(r, key) is not None), default=None)
+        for key in ("cloud_to_cloud_mm", "fingertips_mm")
+    }
+    print(
+        json.dumps(
+            {
+                "lab": str(lab_path),
+                "max_cloud_to_cloud_mm": worst["cloud_to_cloud_mm"],
+                "max_fingertips_mm": worst["fingertips_mm"],
+                "cameras": {n: r.summary() for n, r in results.items()},
+                "tcp_xyz": [round(float(v), 4) for v in tcp[:3, 3]],
+                "gripper_width": None if width is None or not np.isfinite(width) else round(float(width), 4),
+                "tolerance_mm": args.tolerance_mm,
+                **({"rrd": str(args.rrd)} if args.rrd else {}),
+            }
+        )
+    )
     beyond = [v for v in worst.values() if v is not None and v > args.tolerance_mm]
     return 3 if beyond else 0

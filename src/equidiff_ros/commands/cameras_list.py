@@ -34,8 +34,11 @@ def lab_report(lab_cameras, devices) -> tuple[list[dict], list[str], list[str]]:
         if line:
             warnings.append(f"{names[device.serial]}: {line}" if device.serial in names else line)
     connected = ", ".join(sorted(by_serial)) or "none"
-    errors = [f"{c['name']}: serial {c['serial']} from lab.yaml is not connected; connected RealSense serials: "
-              f"{connected}" for c in cameras if not c["connected"]]
+    errors = [
+        f"{c['name']}: serial {c['serial']} from lab.yaml is not connected; connected RealSense serials: {connected}"
+        for c in cameras
+        if not c["connected"]
+    ]
     return cameras, warnings, errors
 
 
@@ -47,21 +50,34 @@ def run(args) -> int:
     try:
         import pyrealsense2 as rs
     except ImportError as err:
-        print(f"equidiff cameras list: pyrealsense2 is not installed (pip install pyrealsense2): {err}",
-              file=sys.stderr)
+        print(
+            f"equidiff cameras list: pyrealsense2 is not installed (pip install pyrealsense2): {err}", file=sys.stderr
+        )
         return 1
     devices = [info for info, _ in connected_devices(rs, rs.context())]
     cameras, warnings, errors = lab_report(lab.cameras, devices)
     if args.json:
-        print(json.dumps({"devices": [{"serial": d.serial, "name": d.name, "firmware": d.firmware,
-                                       "usb_type": d.usb_type} for d in devices],
-                          "lab_cameras": cameras, "warnings": warnings, "errors": errors}))
+        print(
+            json.dumps(
+                {
+                    "devices": [
+                        {"serial": d.serial, "name": d.name, "firmware": d.firmware, "usb_type": d.usb_type}
+                        for d in devices
+                    ],
+                    "lab_cameras": cameras,
+                    "warnings": warnings,
+                    "errors": errors,
+                }
+            )
+        )
     else:
         lab_names = {c["serial"]: c["name"] for c in cameras}
         print(f"RealSense devices connected: {len(devices)}")
         for d in devices:
-            print(f"  {d.serial}  {d.name}  firmware {d.firmware}  USB {d.usb_type}  "
-                  f"({lab_names.get(d.serial, 'not in lab.yaml')})")
+            print(
+                f"  {d.serial}  {d.name}  firmware {d.firmware}  USB {d.usb_type}  "
+                f"({lab_names.get(d.serial, 'not in lab.yaml')})"
+            )
         print(f"lab.yaml cameras ({args.lab_config or 'installed lab.yaml'}):")
         for c in cameras:
             print(f"  {c['name']}  {c['serial']}  {'connected' if c['connected'] else 'NOT CONNECTED'}")

@@ -28,8 +28,9 @@ import sys
 
 def add_arguments(parser) -> None:
     parser.add_argument("--preset", default="compact", help="paper | compact | tiny (ignored with --checkpoint)")
-    parser.add_argument("--policy", default="equidiff", choices=["equidiff", "baseline"],
-                        help="ignored with --checkpoint")
+    parser.add_argument(
+        "--policy", default="equidiff", choices=["equidiff", "baseline"], help="ignored with --checkpoint"
+    )
     parser.add_argument("--control", default="absolute", choices=["absolute", "relative"])
     parser.add_argument("--checkpoint", default=None, help="a training checkpoint (last.ckpt) or exported policy.pt")
     parser.add_argument("--scenes", type=int, default=2, help="twin-like scenes per group element")
@@ -87,11 +88,17 @@ def run(args) -> int:
     def measure(subject):
         return equivariance.measure(subject, voxels, ee, timestep=args.timestep, seed=args.seed)
 
-    out = {"preset": preset.name, "policy": fp32.name, "control": preset.control,
-           "weights": args.checkpoint or "random", "scenes": args.scenes, "timestep": args.timestep,
-           "escnn": measure(equivariance.TrainingModel(policy)) if policy is not None else None,
-           "exported_fp32": measure(equivariance.ExportedModel(fp32)),
-           "exported_bf16": measure(equivariance.ExportedModel(bf16))}
+    out = {
+        "preset": preset.name,
+        "policy": fp32.name,
+        "control": preset.control,
+        "weights": args.checkpoint or "random",
+        "scenes": args.scenes,
+        "timestep": args.timestep,
+        "escnn": measure(equivariance.TrainingModel(policy)) if policy is not None else None,
+        "exported_fp32": measure(equivariance.ExportedModel(fp32)),
+        "exported_bf16": measure(equivariance.ExportedModel(bf16)),
+    }
     if fp32.name != "baseline":
         torch.manual_seed(args.seed)
         baseline = make_policy("baseline", preset, workspace)

@@ -35,6 +35,9 @@ def run(args) -> int:
     for path, reason in skipped:
         print(f"SKIPPED {path}: {reason}")
     size = sum(f.stat().st_size for f in written)
-    print(json.dumps({"packed": len(written), "skipped": len(skipped), "out": str(args.out),
-                      "megabytes": round(size / 1e6, 2)}))
+    print(
+        json.dumps(
+            {"packed": len(written), "skipped": len(skipped), "out": str(args.out), "megabytes": round(size / 1e6, 2)}
+        )
+    )
     return 1 if skipped else 0

@@ -17,8 +17,9 @@ def add_arguments(parser) -> None:
     parser.add_argument("bags", nargs="+", help="bag directories, or folders holding bag directories")
     parser.add_argument("--lab", type=Path, required=True, help="the lab YAML with the new extrinsics")
     parser.add_argument("--out", type=Path, required=True, help="directory for the re-voxelised bags")
-    parser.add_argument("--slop", type=float, default=0.1, help="max stamp spread of a set of clouds, s "
-                        "(voxel_node's slop_s)")
+    parser.add_argument(
+        "--slop", type=float, default=0.1, help="max stamp spread of a set of clouds, s (voxel_node's slop_s)"
+    )
 
 
 def run(args) -> int:

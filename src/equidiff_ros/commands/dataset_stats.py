@@ -14,8 +14,12 @@ def add_arguments(parser) -> None:
     parser.add_argument("--horizon", type=int, default=16)
     parser.add_argument("--n-obs-steps", type=int, default=1)
     parser.add_argument("--n-action-steps", type=int, default=8)
-    parser.add_argument("--tolerance", type=float, default=0.05,
-                        help="max |ee pose / joint state stamp - voxel stamp| in seconds (default 0.05)")
+    parser.add_argument(
+        "--tolerance",
+        type=float,
+        default=0.05,
+        help="max |ee pose / joint state stamp - voxel stamp| in seconds (default 0.05)",
+    )
     parser.add_argument("--resolution", type=int, default=64)
     parser.add_argument("--json", action="store_true", help="print one JSON object instead of a table")
 
@@ -32,8 +36,13 @@ def _fmt_range(lo, hi) -> str:
 def run(args) -> int:
     from equidiff_core.dataset import DatasetConfig, dataset_stats
 
-    cfg = DatasetConfig(horizon=args.horizon, n_obs_steps=args.n_obs_steps, n_action_steps=args.n_action_steps,
-                        state_tolerance_s=args.tolerance, resolution=args.resolution)
+    cfg = DatasetConfig(
+        horizon=args.horizon,
+        n_obs_steps=args.n_obs_steps,
+        n_action_steps=args.n_action_steps,
+        state_tolerance_s=args.tolerance,
+        resolution=args.resolution,
+    )
     stats = dataset_stats(args.bags, cfg)
     if args.json:
         print(json.dumps(stats))
@@ -42,8 +51,10 @@ def run(args) -> int:
         for r in stats["episodes"]:
             name = r["path"].rstrip("/").split("/")[-1]
             ok = "-" if r["success"] is None else ("yes" if r["success"] else "no")
-            print(f"{name:<32} {r['task'][:16]:<16} {ok:<5} {r['duration_s']:>7.1f} {r['steps']:>6} "
-                  f"{r['samples']:>8} {r['dropped_steps']:>8}")
+            print(
+                f"{name:<32} {r['task'][:16]:<16} {ok:<5} {r['duration_s']:>7.1f} {r['steps']:>6} "
+                f"{r['samples']:>8} {r['dropped_steps']:>8}"
+            )
         t = stats["total"]
         print(f"{'total':<32} {'':<16} {'':<5} {t['duration_s']:>7.1f} {t['steps']:>6} {t['samples']:>8}")
         print(f"{t['episodes']} episodes; action range: {_fmt_range(t['action_min'], t['action_max'])}")

@@ -43,8 +43,13 @@ def _stats(x) -> dict:
     import numpy as np
 
     x = np.asarray(x, dtype=np.float64)
-    return {"min": x.min(0).tolist(), "max": x.max(0).tolist(), "mean": x.mean(0).tolist(),
-            "std": x.std(0).tolist(), "count": [len(x)]}
+    return {
+        "min": x.min(0).tolist(),
+        "max": x.max(0).tolist(),
+        "mean": x.mean(0).tolist(),
+        "std": x.std(0).tolist(),
+        "count": [len(x)],
+    }
 
 
 def _voxel_stats(grids) -> dict:
@@ -56,8 +61,14 @@ def _voxel_stats(grids) -> dict:
 
     def shaped(v):
         return np.asarray(v).reshape(4, 1, 1, 1).tolist()
-    return {"min": shaped(g.min(axes)), "max": shaped(g.max(axes)), "mean": shaped(g.mean(axes)),
-            "std": shaped(g.std(axes)), "count": [len(g)]}
+
+    return {
+        "min": shaped(g.min(axes)),
+        "max": shaped(g.max(axes)),
+        "mean": shaped(g.mean(axes)),
+        "std": shaped(g.std(axes)),
+        "count": [len(g)],
+    }
 
 
 def _merge_stats(all_stats: list[dict]) -> dict:
@@ -72,10 +83,14 @@ def _merge_stats(all_stats: list[dict]) -> dict:
         stds = np.stack([np.asarray(p["std"]) for p in parts])
         w = (n / n.sum()).reshape(-1, *([1] * (means.ndim - 1)))
         mean = (w * means).sum(0)
-        var = (w * (stds ** 2 + (means - mean) ** 2)).sum(0)
-        out[key] = {"min": np.min(np.stack([np.asarray(p["min"]) for p in parts]), 0).tolist(),
-                    "max": np.max(np.stack([np.asarray(p["max"]) for p in parts]), 0).tolist(),
-                    "mean": mean.tolist(), "std": np.sqrt(var).tolist(), "count": [int(n.sum())]}
+        var = (w * (stds**2 + (means - mean) ** 2)).sum(0)
+        out[key] = {
+            "min": np.min(np.stack([np.asarray(p["min"]) for p in parts]), 0).tolist(),
+            "max": np.max(np.stack([np.asarray(p["max"]) for p in parts]), 0).tolist(),
+            "mean": mean.tolist(),
+            "std": np.sqrt(var).tolist(),
+            "count": [int(n.sum())],
+        }
     return out
 
 
@@ -92,8 +107,9 @@ def run(args) -> int:
         print(f"equidiff export lerobot: {out} exists; not overwriting", file=sys.stderr)
         return 2
     cfg = DatasetConfig(resolution=args.resolution, state_tolerance_s=args.tolerance)
-    episodes, skipped = load_episodes(args.bags, cfg, log=lambda m: print(f"equidiff export lerobot: {m}",
-                                                                            file=sys.stderr))
+    episodes, skipped = load_episodes(
+        args.bags, cfg, log=lambda m: print(f"equidiff export lerobot: {m}", file=sys.stderr)
+    )
     if args.only_successful:
         episodes = [ep for ep in episodes if ep.meta.success]
     if not episodes:
@@ -102,8 +118,11 @@ def run(args) -> int:
     rates = {round(NS_PER_S / ep.obs_period_ns, 3) for ep in episodes}
     fps = round(next(iter(rates)))
     if any(abs(r - fps) > 0.05 * fps for r in rates):
-        print(f"equidiff export lerobot: episodes have different observation rates {sorted(rates)}; "
-              "LeRobot datasets have one fps", file=sys.stderr)
+        print(
+            f"equidiff export lerobot: episodes have different observation rates {sorted(rates)}; "
+            "LeRobot datasets have one fps",
+            file=sys.stderr,
+        )
         return 1
 
     R = args.resolution
@@ -112,10 +131,14 @@ def run(args) -> int:
         "action": {"dtype": "float32", "shape": [10], "names": {"axes": ACTION_NAMES}},
     }
     if not args.no_voxels:
-        features["observation.voxels"] = {"dtype": "uint8", "shape": [4, R, R, R],
-                                          "names": ["channel", "x", "y", "z"]}
-    for name, dtype in (("timestamp", "float32"), ("frame_index", "int64"), ("episode_index", "int64"),
-                        ("index", "int64"), ("task_index", "int64")):
+        features["observation.voxels"] = {"dtype": "uint8", "shape": [4, R, R, R], "names": ["channel", "x", "y", "z"]}
+    for name, dtype in (
+        ("timestamp", "float32"),
+        ("frame_index", "int64"),
+        ("episode_index", "int64"),
+        ("index", "int64"),
+        ("task_index", "int64"),
+    ):
         features[name] = {"dtype": dtype, "shape": [1], "names": None}
 
     tasks: dict[str, int] = {}
@@ -144,33 +167,65 @@ def run(args) -> int:
             columns["observation.voxels"] = nested.cast(vox_type)
             ep_stats["observation.voxels"] = _voxel_stats(grids)
         timestamps = ((ep.stamps_ns - ep.stamps_ns[0]) / NS_PER_S).astype(np.float32)
-        scalars = {"timestamp": timestamps, "frame_index": np.arange(n, dtype=np.int64),
-                   "episode_index": np.full(n, e, np.int64), "index": np.arange(index, index + n, dtype=np.int64),
-                   "task_index": np.full(n, task_index, np.int64)}
+        scalars = {
+            "timestamp": timestamps,
+            "frame_index": np.arange(n, dtype=np.int64),
+            "episode_index": np.full(n, e, np.int64),
+            "index": np.arange(index, index + n, dtype=np.int64),
+            "task_index": np.full(n, task_index, np.int64),
+        }
         for name, values in scalars.items():
             columns[name] = pa.array(values)
             ep_stats[name] = _stats(values.reshape(-1, 1))
         path = out / "data" / f"chunk-{e // CHUNKS_SIZE:03d}" / f"episode_{e:06d}.parquet"
         path.parent.mkdir(parents=True, exist_ok=True)
         pq.write_table(pa.table(columns), path, compression="zstd")
-        episode_rows.append({"episode_index": e, "tasks": [task], "length": n,
-                             "source_bag": str(ep.path), "success": ep.meta.success, "operator": ep.meta.operator})
+        episode_rows.append(
+            {
+                "episode_index": e,
+                "tasks": [task],
+                "length": n,
+                "source_bag": str(ep.path),
+                "success": ep.meta.success,
+                "operator": ep.meta.operator,
+            }
+        )
         stats_rows.append({"episode_index": e, "stats": ep_stats})
         index += n
 
-    info = {"codebase_version": CODEBASE_VERSION, "robot_type": args.robot_type, "total_episodes": len(episodes),
-            "total_frames": index, "total_tasks": len(tasks), "total_videos": 0,
-            "total_chunks": (len(episodes) - 1) // CHUNKS_SIZE + 1, "chunks_size": CHUNKS_SIZE, "fps": fps,
-            "splits": {"train": f"0:{len(episodes)}"},
-            "data_path": "data/chunk-{episode_chunk:03d}/episode_{episode_index:06d}.parquet",
-            "video_path": None, "features": features}
+    info = {
+        "codebase_version": CODEBASE_VERSION,
+        "robot_type": args.robot_type,
+        "total_episodes": len(episodes),
+        "total_frames": index,
+        "total_tasks": len(tasks),
+        "total_videos": 0,
+        "total_chunks": (len(episodes) - 1) // CHUNKS_SIZE + 1,
+        "chunks_size": CHUNKS_SIZE,
+        "fps": fps,
+        "splits": {"train": f"0:{len(episodes)}"},
+        "data_path": "data/chunk-{episode_chunk:03d}/episode_{episode_index:06d}.parquet",
+        "video_path": None,
+        "features": features,
+    }
     meta = out / "meta"
     (meta / "info.json").write_text(json.dumps(info, indent=4))
     (meta / "episodes.jsonl").write_text("".join(json.dumps(r) + "\n" for r in episode_rows))
-    (meta / "tasks.jsonl").write_text("".join(json.dumps({"task_index": i, "task": t}) + "\n"
-                                              for t, i in tasks.items()))
+    (meta / "tasks.jsonl").write_text(
+        "".join(json.dumps({"task_index": i, "task": t}) + "\n" for t, i in tasks.items())
+    )
     (meta / "episodes_stats.jsonl").write_text("".join(json.dumps(r) + "\n" for r in stats_rows))
     (meta / "stats.json").write_text(json.dumps(_merge_stats([r["stats"] for r in stats_rows]), indent=1))
-    print(json.dumps({"out": str(out), "episodes": len(episodes), "frames": index, "fps": fps,
-                      "tasks": sorted(tasks), "skipped": len(skipped)}))
+    print(
+        json.dumps(
+            {
+                "out": str(out),
+                "episodes": len(episodes),
+                "frames": index,
+                "fps": fps,
+                "tasks": sorted(tasks),
+                "skipped": len(skipped),
+            }
+        )
+    )
     return 1 if skipped else 0

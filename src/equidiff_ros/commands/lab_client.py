@@ -51,8 +51,10 @@ class LabClient:
         client = self.node.create_client(cls, name)
         try:
             if not client.wait_for_service(timeout_sec=SERVICE_WAIT_S):
-                raise LabError(f"no {name} service after {SERVICE_WAIT_S:.0f} s: is its node running on "
-                               f"ROS_DOMAIN_ID={os.environ.get('ROS_DOMAIN_ID', '0')}?")
+                raise LabError(
+                    f"no {name} service after {SERVICE_WAIT_S:.0f} s: is its node running on "
+                    f"ROS_DOMAIN_ID={os.environ.get('ROS_DOMAIN_ID', '0')}?"
+                )
             future = client.call_async(cls.Request(**request))
             self.executor.spin_until_future_complete(future, timeout_sec=CALL_TIMEOUT_S)
             if not future.done():

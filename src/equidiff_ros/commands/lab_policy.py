@@ -17,5 +17,10 @@ def run(args) -> int:
     from equidiff_core.topics import SERVICE_POLICY_ENABLE
     from equidiff_ros.commands.lab_client import call_service
 
-    return call_service(f"policy {args.action}", "std_srvs/srv/SetBool", SERVICE_POLICY_ENABLE, prefix="policy ",
-                        data=ENABLE[args.action])
+    return call_service(
+        f"policy {args.action}",
+        "std_srvs/srv/SetBool",
+        SERVICE_POLICY_ENABLE,
+        prefix="policy ",
+        data=ENABLE[args.action],
+    )

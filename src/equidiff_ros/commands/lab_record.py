@@ -12,9 +12,13 @@ from __future__ import annotations
 
 from equidiff_core import topics
 
-SERVICES = {"start": topics.SERVICE_RECORDER_START, "stop": topics.SERVICE_RECORDER_STOP,
-            "success": topics.SERVICE_RECORDER_STOP, "failure": topics.SERVICE_RECORDER_STOP_FAILURE,
-            "discard": topics.SERVICE_RECORDER_DISCARD}
+SERVICES = {
+    "start": topics.SERVICE_RECORDER_START,
+    "stop": topics.SERVICE_RECORDER_STOP,
+    "success": topics.SERVICE_RECORDER_STOP,
+    "failure": topics.SERVICE_RECORDER_STOP_FAILURE,
+    "discard": topics.SERVICE_RECORDER_DISCARD,
+}
 
 
 def add_arguments(parser) -> None:

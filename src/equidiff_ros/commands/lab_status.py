@@ -16,9 +16,11 @@ def run(args) -> int:
     from equidiff_ros.common import TOPIC_POLICY_STATE, TOPIC_TELEOP_ACTIVE
 
     with LabClient() as lab:
-        state = {"recorder": lab.latched(topics.TOPIC_RECORDER_STATUS, "std_msgs/msg/String"),
-                 "policy": lab.latched(TOPIC_POLICY_STATE, "std_msgs/msg/String"),
-                 "teleop_active": lab.latched(TOPIC_TELEOP_ACTIVE, "std_msgs/msg/Bool")}
+        state = {
+            "recorder": lab.latched(topics.TOPIC_RECORDER_STATUS, "std_msgs/msg/String"),
+            "policy": lab.latched(TOPIC_POLICY_STATE, "std_msgs/msg/String"),
+            "teleop_active": lab.latched(TOPIC_TELEOP_ACTIVE, "std_msgs/msg/Bool"),
+        }
     if args.json:
         print(json.dumps(state))
     else:

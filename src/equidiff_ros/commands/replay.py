@@ -30,12 +30,21 @@ def add_arguments(parser) -> None:
     parser.add_argument("--exclude", nargs="+", default=[], help="skip these topics")
     parser.add_argument("--start", type=float, default=0.0, help="skip the first S seconds")
     parser.add_argument("--loop", action="store_true", help="replay until interrupted")
-    parser.add_argument("--wait-subscribers", type=float, default=2.0,
-                        help="wait up to S seconds for subscribers before starting (default 2)")
-    parser.add_argument("--robot", action="store_true",
-                        help="re-execute the recorded commanded targets through the franka node")
-    parser.add_argument("--max-start-distance", type=float, default=0.05,
-                        help="--robot: refuse if the TCP is farther than this (m) from the first target")
+    parser.add_argument(
+        "--wait-subscribers",
+        type=float,
+        default=2.0,
+        help="wait up to S seconds for subscribers before starting (default 2)",
+    )
+    parser.add_argument(
+        "--robot", action="store_true", help="re-execute the recorded commanded targets through the franka node"
+    )
+    parser.add_argument(
+        "--max-start-distance",
+        type=float,
+        default=0.05,
+        help="--robot: refuse if the TCP is farther than this (m) from the first target",
+    )
 
 
 def shift_stamps(msg, offset_ns: int) -> None:
@@ -66,8 +75,7 @@ def _load(bag, topics, exclude, start_s):
 
     try:
         with Reader(bag) as reader:
-            conns = [c for c in reader.connections
-                     if (topics is None or c.topic in topics) and c.topic not in exclude]
+            conns = [c for c in reader.connections if (topics is None or c.topic in topics) and c.topic not in exclude]
             types = {c.topic: c.msgtype for c in conns}
             start = reader.start_time
             msgs = [(ts, c.topic, bytes(raw)) for c, ts, raw in reader.messages(connections=conns)] if conns else []
@@ -75,8 +83,11 @@ def _load(bag, topics, exclude, start_s):
         raise BagError(f"{bag}: unreadable bag ({type(err).__name__}: {err})") from err
     cut = start + int(start_s * 1e9)
     # /tf_static is always sent, first: it describes the whole episode
-    msgs = [(max(ts, cut), t, raw) if t == TOPIC_TF_STATIC else (ts, t, raw) for ts, t, raw in msgs if ts >= cut
-            or t == TOPIC_TF_STATIC]
+    msgs = [
+        (max(ts, cut), t, raw) if t == TOPIC_TF_STATIC else (ts, t, raw)
+        for ts, t, raw in msgs
+        if ts >= cut or t == TOPIC_TF_STATIC
+    ]
     msgs.sort(key=lambda m: (m[0], m[1] != TOPIC_TF_STATIC))
     return types, msgs
 
@@ -92,8 +103,9 @@ def _check_robot_start(node, executor, first_chunk_raw, max_dist: float, wait_s:
 
     f = RclpyFactory()
     poses = []
-    sub = node.create_subscription(f.cls("geometry_msgs/msg/PoseStamped"), TOPIC_EE_POSE,
-                                   lambda m: poses.append(m), SENSOR_QOS)
+    sub = node.create_subscription(
+        f.cls("geometry_msgs/msg/PoseStamped"), TOPIC_EE_POSE, lambda m: poses.append(m), SENSOR_QOS
+    )
     end = time.monotonic() + wait_s
     while not poses and time.monotonic() < end:
         executor.spin_once(timeout_sec=0.05)
@@ -104,8 +116,10 @@ def _check_robot_start(node, executor, first_chunk_raw, max_dist: float, wait_s:
     p = poses[-1].pose.position
     dist = float(np.linalg.norm(chunk.poses[0, :3, 3] - np.array([p.x, p.y, p.z])))
     if dist > max_dist:
-        return (f"the TCP is {dist * 100:.1f} cm from the episode's first target (limit "
-                f"{max_dist * 100:.1f} cm): move it to the start pose first")
+        return (
+            f"the TCP is {dist * 100:.1f} cm from the episode's first target (limit "
+            f"{max_dist * 100:.1f} cm): move it to the start pose first"
+        )
     return None
 
 
@@ -153,18 +167,25 @@ def run(args) -> int:
         counts = {t: 0 for t in types}
         # Reliable with a deep history: a replay publishes in bursts (4x speed, 100 Hz topics) and
         # a keep-last-10 writer would overwrite samples a busy subscriber has not acknowledged.
-        replay_qos = QoSProfile(depth=200, reliability=ReliabilityPolicy.RELIABLE,
-                                durability=DurabilityPolicy.VOLATILE, history=HistoryPolicy.KEEP_LAST)
-        pubs = {t: node.create_publisher(classes[t], t, LATCHED_QOS if t == TOPIC_TF_STATIC else replay_qos)
-                for t in types}
+        replay_qos = QoSProfile(
+            depth=200,
+            reliability=ReliabilityPolicy.RELIABLE,
+            durability=DurabilityPolicy.VOLATILE,
+            history=HistoryPolicy.KEEP_LAST,
+        )
+        pubs = {
+            t: node.create_publisher(classes[t], t, LATCHED_QOS if t == TOPIC_TF_STATIC else replay_qos) for t in types
+        }
         if args.robot:
             pub = pubs[COMMAND_TOPIC]
             end = time.monotonic() + max(args.wait_subscribers, 5.0)
             while pub.get_subscription_count() == 0 and time.monotonic() < end:
                 executor.spin_once(timeout_sec=0.05)
             if pub.get_subscription_count() == 0:
-                print(f"equidiff replay --robot: nobody subscribes to {COMMAND_TOPIC}: is franka_node running?",
-                      file=sys.stderr)
+                print(
+                    f"equidiff replay --robot: nobody subscribes to {COMMAND_TOPIC}: is franka_node running?",
+                    file=sys.stderr,
+                )
                 return 1
             reason = _check_robot_start(node, executor, msgs[0][2], args.max_start_distance, 5.0)
             if reason:
@@ -200,9 +221,19 @@ def run(args) -> int:
         end = time.monotonic() + 0.5
         while time.monotonic() < end:
             executor.spin_once(timeout_sec=0.05)
-        print(json.dumps({"bag": str(args.bag), "published": counts, "messages": sum(counts.values()),
-                          "duration_s": round((msgs[-1][0] - first_log) / 1e9 / args.rate, 3), "rate": args.rate,
-                          "restamped": restamp, "max_late_ms": round(max(lateness, default=0.0) * 1e3, 2)}))
+        print(
+            json.dumps(
+                {
+                    "bag": str(args.bag),
+                    "published": counts,
+                    "messages": sum(counts.values()),
+                    "duration_s": round((msgs[-1][0] - first_log) / 1e9 / args.rate, 3),
+                    "rate": args.rate,
+                    "restamped": restamp,
+                    "max_late_ms": round(max(lateness, default=0.0) * 1e3, 2),
+                }
+            )
+        )
         return 0
     except KeyboardInterrupt:
         print(json.dumps({"bag": str(args.bag), "published": counts, "interrupted": True}))

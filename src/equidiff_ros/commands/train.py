@@ -28,28 +28,49 @@ def add_arguments(parser) -> None:
     parser.add_argument("--out", required=True, help="output directory (checkpoints, policy.pt, plots)")
     parser.add_argument("--policy", choices=("equidiff", "baseline"), default="equidiff")
     parser.add_argument("--preset", default="compact", help="model preset: paper, compact or tiny (default compact)")
-    parser.add_argument("--rotation-aug", choices=ROTATION_AUGS, default=None,
-                        help="random yaw rotation of voxels, state and actions while training (default: the preset's)")
+    parser.add_argument(
+        "--rotation-aug",
+        choices=ROTATION_AUGS,
+        default=None,
+        help="random yaw rotation of voxels, state and actions while training (default: the preset's)",
+    )
     parser.add_argument("--steps", type=int, default=20000)
     parser.add_argument("--batch-size", type=int, default=64)
     parser.add_argument("--lr", type=float, default=1e-4)
     parser.add_argument("--warmup-steps", type=int, default=500)
-    parser.add_argument("--ema", action="store_true", help="keep an EMA of the weights (the paper's real-robot runs do not)")
+    parser.add_argument(
+        "--ema", action="store_true", help="keep an EMA of the weights (the paper's real-robot runs do not)"
+    )
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--device", default="auto", help="auto, cpu, cuda or cuda:N")
     parser.add_argument("--val-fraction", type=float, default=0.1, help="fraction of episodes held out (default 0.1)")
     parser.add_argument("--eval-every", type=int, default=1000)
-    parser.add_argument("--eval-max-samples", type=int, default=64,
-                        help="held-out samples scored by action MSE at each evaluation (DDIM sampling)")
+    parser.add_argument(
+        "--eval-max-samples",
+        type=int,
+        default=64,
+        help="held-out samples scored by action MSE at each evaluation (DDIM sampling)",
+    )
     parser.add_argument("--checkpoint-every", type=int, default=1000)
-    parser.add_argument("--max-minutes", type=float, default=None,
-                        help="stop after this much training time, then checkpoint and export as at the end")
+    parser.add_argument(
+        "--max-minutes",
+        type=float,
+        default=None,
+        help="stop after this much training time, then checkpoint and export as at the end",
+    )
     parser.add_argument("--num-workers", type=int, default=0)
-    parser.add_argument("--precision", choices=("auto", "fp32", "bf16"), default="auto",
-                        help="auto: bf16 autocast on CUDA, fp32 on the CPU")
-    parser.add_argument("--data", choices=("auto", "device", "loader"), default="auto",
-                        help="auto: the whole training set on the GPU when it fits in half its free memory, "
-                             "a DataLoader on the CPU")
+    parser.add_argument(
+        "--precision",
+        choices=("auto", "fp32", "bf16"),
+        default="auto",
+        help="auto: bf16 autocast on CUDA, fp32 on the CPU",
+    )
+    parser.add_argument(
+        "--data",
+        choices=("auto", "device", "loader"),
+        default="auto",
+        help="auto: the whole training set on the GPU when it fits in half its free memory, a DataLoader on the CPU",
+    )
     parser.add_argument("--resume", action="store_true", help="continue from OUT/last.ckpt")
     parser.add_argument("--lab-config", help="lab.yaml (workspace); default: the installed one")
     parser.add_argument("--cache-dir", help="decoded-episode cache (default OUT/dataset_cache)")
@@ -83,11 +104,13 @@ class ActionMseEvaluator:
         sq, pos, width = [], [], []
         with torch.no_grad():
             for a in range(0, len(idx), self.batch_size):
-                items = [self.val_set[int(i)] for i in idx[a:a + self.batch_size]]
+                items = [self.val_set[int(i)] for i in idx[a : a + self.batch_size]]
                 batch = {k: torch.stack([it[k] for it in items]) for k in ("voxels", "ee", "action")}
                 noise = torch.randn((len(items), self.policy.preset.horizon, self.policy.codec.dim), generator=gen)
-                out = self.policy.predict_action({"voxels": batch["voxels"], "ee": batch["ee"]},
-                                                 noise=noise.to(next(self.policy.parameters()).device))
+                out = self.policy.predict_action(
+                    {"voxels": batch["voxels"], "ee": batch["ee"]},
+                    noise=noise.to(next(self.policy.parameters()).device),
+                )
                 pred = out["action_pred"].detach().cpu().double()
                 gt = batch["action"].double()
                 sq.append(((pred - gt) ** 2).mean(dim=(1, 2)))
@@ -118,8 +141,7 @@ class ProgressBar:
     def on_eval(self, step, metrics, samples):
         mse = metrics.get("val_action_mse", metrics.get("train_action_mse"))
         self.last_eval = f" val_mse {mse:.5f}" if mse is not None else f" val_loss {metrics.get('val_loss', 0):.4f}"
-        line = f"step {step}: " + ", ".join(f"{k} {v:.5g}" for k, v in metrics.items()
-                                           if isinstance(v, float))
+        line = f"step {step}: " + ", ".join(f"{k} {v:.5g}" for k, v in metrics.items() if isinstance(v, float))
         (self.bar.write if self.bar is not None else print)(line)
 
     def on_end(self, result):
@@ -144,7 +166,7 @@ def plot_history(history: list[dict], path: Path) -> Path:
         ax.plot(s, l, lw=0.8, alpha=0.5, label="train loss")
         k = max(1, len(l) // 20)
         if k > 1 and len(l) > k:
-            ax.plot(s[k - 1:], np.convolve(l, np.ones(k) / k, mode="valid"), lw=1.5, label=f"mean of {k}")
+            ax.plot(s[k - 1 :], np.convolve(l, np.ones(k) / k, mode="valid"), lw=1.5, label=f"mean of {k}")
     if evals:
         ax.plot([h["step"] for h in evals], [h["val_loss"] for h in evals], "o-", label="val loss")
     ax.set_xlabel("step")
@@ -203,9 +225,17 @@ def _load_split(out: Path, episodes, val_fraction: float, seed: int, resume: boo
     if not write:  # another rank writes the same split
         return train, val
     out.mkdir(parents=True, exist_ok=True)
-    split_file.write_text(json.dumps({"seed": seed, "val_fraction": val_fraction,
-                                      "train": [str(e.path.resolve()) for e in train],
-                                      "val": [str(e.path.resolve()) for e in val]}, indent=1))
+    split_file.write_text(
+        json.dumps(
+            {
+                "seed": seed,
+                "val_fraction": val_fraction,
+                "train": [str(e.path.resolve()) for e in train],
+                "val": [str(e.path.resolve()) for e in val],
+            },
+            indent=1,
+        )
+    )
     return train, val
 
 
@@ -241,14 +271,19 @@ def _run(args, dist_info) -> int:
     say = (lambda m: print(f"equidiff train: {m}", file=sys.stderr)) if main else (lambda m: None)
     if (out / "last.ckpt").exists() and not args.resume:
         # every rank sees the same: rank 0 writes the first checkpoint only after all ranks joined DDP
-        print(f"equidiff train: {out}/last.ckpt exists; pass --resume to continue it or choose a new --out",
-              file=sys.stderr)
+        print(
+            f"equidiff train: {out}/last.ckpt exists; pass --resume to continue it or choose a new --out",
+            file=sys.stderr,
+        )
         return 2
     lab = load_lab_config(args.lab_config or default_config_dir() / "lab.yaml")
     preset = get_preset(args.preset, **({"rotation_aug": args.rotation_aug} if args.rotation_aug else {}))
-    data_cfg = DatasetConfig.from_preset(preset, resolution=lab.workspace.resolution,
-                                         state_tolerance_s=args.tolerance,
-                                         cache_dir=str(args.cache_dir or out / "dataset_cache"))
+    data_cfg = DatasetConfig.from_preset(
+        preset,
+        resolution=lab.workspace.resolution,
+        state_tolerance_s=args.tolerance,
+        cache_dir=str(args.cache_dir or out / "dataset_cache"),
+    )
     episodes, skipped = load_episodes(args.bags, data_cfg, log=say)
     if not episodes:
         print("equidiff train: no usable episodes", file=sys.stderr)
@@ -256,18 +291,34 @@ def _run(args, dist_info) -> int:
     train_eps, val_eps = _load_split(out, episodes, args.val_fraction, args.seed, args.resume, write=main)
     train_set, val_set = DemoDataset(train_eps, data_cfg), DemoDataset(val_eps, data_cfg) if val_eps else None
     if len(train_set) == 0:
-        print("equidiff train: the training episodes are too short for one window "
-              f"(need >= {preset.horizon - preset.n_action_steps + 1} observations)", file=sys.stderr)
+        print(
+            "equidiff train: the training episodes are too short for one window "
+            f"(need >= {preset.horizon - preset.n_action_steps + 1} observations)",
+            file=sys.stderr,
+        )
         return 1
-    say(f"{len(train_eps)} train episodes ({len(train_set)} samples), "
+    say(
+        f"{len(train_eps)} train episodes ({len(train_set)} samples), "
         f"{len(val_eps)} held out ({len(val_set) if val_set else 0} samples), {len(skipped)} skipped; "
-        f"{args.policy} / {preset.name}" + (f"; {dist_info.world_size} data-parallel ranks ({dist_info.backend})"
-                                            if dist_info.distributed else ""))
+        f"{args.policy} / {preset.name}"
+        + (f"; {dist_info.world_size} data-parallel ranks ({dist_info.backend})" if dist_info.distributed else "")
+    )
 
-    cfg = TrainConfig(steps=args.steps, batch_size=args.batch_size, lr=args.lr, warmup_steps=args.warmup_steps,
-                      ema=args.ema, seed=args.seed, device=args.device, eval_every=args.eval_every,
-                      checkpoint_every=args.checkpoint_every, num_workers=args.num_workers,
-                      max_minutes=args.max_minutes, precision=args.precision, data=args.data)
+    cfg = TrainConfig(
+        steps=args.steps,
+        batch_size=args.batch_size,
+        lr=args.lr,
+        warmup_steps=args.warmup_steps,
+        ema=args.ema,
+        seed=args.seed,
+        device=args.device,
+        eval_every=args.eval_every,
+        checkpoint_every=args.checkpoint_every,
+        num_workers=args.num_workers,
+        max_minutes=args.max_minutes,
+        precision=args.precision,
+        data=args.data,
+    )
     seed_everything(args.seed)  # the initial weights come from the global RNG: seed before building
     policy = make_policy(args.policy, preset, lab.workspace)
     start_step = 0
@@ -275,9 +326,18 @@ def _run(args, dist_info) -> int:
         from equidiff_core.training import load_training_checkpoint
 
         start_step = int(load_training_checkpoint(out / "last.ckpt")["step"])
-    callbacks = [ActionMseEvaluator(policy, val_set if val_set is not None else train_set, args.eval_max_samples,
-                                    min(args.batch_size, 32), args.seed, "val" if val_set is not None else "train"),
-                 ProgressBar(args.steps, start_step, main and not args.no_progress), PlotWriter(out / "training.png", [])]
+    callbacks = [
+        ActionMseEvaluator(
+            policy,
+            val_set if val_set is not None else train_set,
+            args.eval_max_samples,
+            min(args.batch_size, 32),
+            args.seed,
+            "val" if val_set is not None else "train",
+        ),
+        ProgressBar(args.steps, start_step, main and not args.no_progress),
+        PlotWriter(out / "training.png", []),
+    ]
     if args.rerun and main:
         try:
             from equidiff_core.viz.training import RerunTrainingCallback
@@ -294,18 +354,34 @@ def _run(args, dist_info) -> int:
         return 0
     evals = [h for h in result.history if "val_loss" in h]
     losses = [h["loss"] for h in result.history if "loss" in h]
-    summary = {"checkpoint": str(result.checkpoint), "policy": str(result.exported), "plot": str(out / "training.png"),
-               "steps": result.steps, "final_loss": losses[-1] if losses else None,
-               "val_action_mse": evals[-1].get("val_action_mse") if evals else None,
-               "train_action_mse": evals[-1].get("train_action_mse") if evals else None,
-               "train_episodes": len(train_eps), "val_episodes": len(val_eps), "skipped": len(skipped)}
+    summary = {
+        "checkpoint": str(result.checkpoint),
+        "policy": str(result.exported),
+        "plot": str(out / "training.png"),
+        "steps": result.steps,
+        "final_loss": losses[-1] if losses else None,
+        "val_action_mse": evals[-1].get("val_action_mse") if evals else None,
+        "train_action_mse": evals[-1].get("train_action_mse") if evals else None,
+        "train_episodes": len(train_eps),
+        "val_episodes": len(val_eps),
+        "skipped": len(skipped),
+    }
     if result.stopped:
         summary["stopped"] = result.stopped
     # what trained this policy, for whoever evaluates it elsewhere (bench generalization --trained)
-    recipe = {"device": str(next(policy.parameters()).device), "preset": preset.name,
-              "rotation_aug": preset.rotation_aug, "batch_size": args.batch_size, "lr": args.lr,
-              "warmup_steps": args.warmup_steps, "seed": args.seed, "max_minutes": args.max_minutes,
-              "world_size": result.world_size, "precision": result.precision, "data": result.data}
+    recipe = {
+        "device": str(next(policy.parameters()).device),
+        "preset": preset.name,
+        "rotation_aug": preset.rotation_aug,
+        "batch_size": args.batch_size,
+        "lr": args.lr,
+        "warmup_steps": args.warmup_steps,
+        "seed": args.seed,
+        "max_minutes": args.max_minutes,
+        "world_size": result.world_size,
+        "precision": result.precision,
+        "data": result.data,
+    }
     (out / "run.json").write_text(json.dumps({**summary, "recipe": recipe}, indent=1) + "\n")
     print(json.dumps(summary))
     return 0

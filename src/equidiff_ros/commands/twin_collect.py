@@ -29,8 +29,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", type=Path, required=True, help="directory for the episode bags")
     parser.add_argument("--seed", type=int, default=0, help="first scene seed (then +1 per episode)")
     parser.add_argument("--direct", action="store_true", help="in-process, sim clock (no ROS nodes)")
-    parser.add_argument("--yaw-range", type=float, nargs=2, default=None, metavar=("LO", "HI"),
-                        help="object yaw range in degrees (default: twin.yaml's, the full circle)")
+    parser.add_argument(
+        "--yaw-range",
+        type=float,
+        nargs=2,
+        default=None,
+        metavar=("LO", "HI"),
+        help="object yaw range in degrees (default: twin.yaml's, the full circle)",
+    )
     parser.add_argument("--keep-failures", action="store_true", help="keep failed episodes (success=false)")
     parser.add_argument("--task", default="twin_block_in_bowl")
     parser.add_argument("--domain", type=int, default=None)
@@ -51,16 +57,27 @@ def _collect_ros(args, lab_path: Path, twin_path: Path, cfg_override) -> list[tu
 
         twin_cfg_path = args.out / "twin_collect.yaml"
         twin_cfg_path.write_text(yaml.safe_dump(to_dict(cfg_override), sort_keys=False))
-    with TwinStack(args.out, lab_path, twin_cfg_path, policy=None, domain_id=args.domain, task=args.task,
-                   seed=args.seed) as stack:
+    with TwinStack(
+        args.out, lab_path, twin_cfg_path, policy=None, domain_id=args.domain, task=args.task, seed=args.seed
+    ) as stack:
         world = LiveTwin(stack)
         for i in range(args.episodes):
             seed = args.seed + i
-            result = run_episode(world, LiveExpert(stack), seed, float("inf"), stack.cfg.success.hold_s,
-                                 keep=lambda ok: ok or args.keep_failures, note="scripted expert")
+            result = run_episode(
+                world,
+                LiveExpert(stack),
+                seed,
+                float("inf"),
+                stack.cfg.success.hold_s,
+                keep=lambda ok: ok or args.keep_failures,
+                note="scripted expert",
+            )
             results.append((seed, result.success, result.bag))
-            print(f"[collect] {i + 1}/{args.episodes} seed {seed}: {'success' if result.success else 'failure'} "
-                  f"{result.bag or '(discarded)'}", flush=True)
+            print(
+                f"[collect] {i + 1}/{args.episodes} seed {seed}: {'success' if result.success else 'failure'} "
+                f"{result.bag or '(discarded)'}",
+                flush=True,
+            )
     return results
 
 
@@ -81,9 +98,15 @@ def run(args: argparse.Namespace) -> int:
         if args.direct:
             from equidiff_core.twin.demos import collect_direct
 
-            results = collect_direct(override or cfg, lab, args.out, range(args.seed, args.seed + args.episodes),
-                                     task=args.task, keep_failures=args.keep_failures,
-                                     log=lambda s: print(s, flush=True))
+            results = collect_direct(
+                override or cfg,
+                lab,
+                args.out,
+                range(args.seed, args.seed + args.episodes),
+                task=args.task,
+                keep_failures=args.keep_failures,
+                log=lambda s: print(s, flush=True),
+            )
         else:
             results = _collect_ros(args, lab_path, twin_path, override)
     except KeyboardInterrupt:
@@ -100,7 +123,16 @@ def run(args: argparse.Namespace) -> int:
     ok = sum(1 for _, s, _ in results if s)
     import json
 
-    print(json.dumps({"episodes": len(results), "successes": ok, "kept": sum(1 for *_, b in results if b),
-                      "out": str(args.out), "seconds": round(time.monotonic() - t0, 1),
-                      "mode": "direct" if args.direct else "ros"}))
+    print(
+        json.dumps(
+            {
+                "episodes": len(results),
+                "successes": ok,
+                "kept": sum(1 for *_, b in results if b),
+                "out": str(args.out),
+                "seconds": round(time.monotonic() - t0, 1),
+                "mode": "direct" if args.direct else "ros",
+            }
+        )
+    )
     return 0

@@ -28,10 +28,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed", type=int, default=100_000, help="first episode's scene seed (then +1 each)")
     parser.add_argument("--checkpoint", type=Path, default=None, help="policy.pt (default: the shipped checkpoint)")
     parser.add_argument("--max-duration", type=float, default=None, help="seconds per episode (twin.yaml's default)")
-    parser.add_argument("--latency-ms", type=float, default=100.0,
-                        help="each chunk reaches franka_node this long after its observation (twin run's budget)")
-    parser.add_argument("--execute-steps", type=int, default=0,
-                        help="answer every N-th observation (0: one per chunk, policy_node's default)")
+    parser.add_argument(
+        "--latency-ms",
+        type=float,
+        default=100.0,
+        help="each chunk reaches franka_node this long after its observation (twin run's budget)",
+    )
+    parser.add_argument(
+        "--execute-steps",
+        type=int,
+        default=0,
+        help="answer every N-th observation (0: one per chunk, policy_node's default)",
+    )
     parser.add_argument("--device", default="cpu", help="policy device: cpu | cuda | auto")
     parser.add_argument("--lab-config", type=Path, default=None)
     parser.add_argument("--twin-config", type=Path, default=None)
@@ -59,22 +67,35 @@ def run(args: argparse.Namespace) -> int:
     try:
         policy.warmup()  # first-call costs (seconds of compilation) out of the wall time
         t0 = time.monotonic()
-        episodes = evaluate_policy(policy, cfg, lab, seeds, max_duration, recorder=rec,
-                                   latency_s=args.latency_ms / 1000, execute_steps=args.execute_steps,
-                                   log=lambda s: print(s, flush=True))
+        episodes = evaluate_policy(
+            policy,
+            cfg,
+            lab,
+            seeds,
+            max_duration,
+            recorder=rec,
+            latency_s=args.latency_ms / 1000,
+            execute_steps=args.execute_steps,
+            log=lambda s: print(s, flush=True),
+        )
         wall_s = time.monotonic() - t0
     finally:
         rec.close()
-    print(json.dumps({
-        "episodes": len(episodes),
-        "success": sum(e.success for e in episodes),
-        "reached": sum(e.reached for e in episodes),
-        "lifted": sum(e.lifted for e in episodes),
-        "successful_seeds": [e.seed for e in episodes if e.success],
-        "checkpoint": str(checkpoint),
-        "latency_budget_ms": args.latency_ms,
-        "max_duration_s": max_duration,
-        "execute_steps": args.execute_steps,
-        "wall_s": round(wall_s, 1),
-    }), flush=True)
+    print(
+        json.dumps(
+            {
+                "episodes": len(episodes),
+                "success": sum(e.success for e in episodes),
+                "reached": sum(e.reached for e in episodes),
+                "lifted": sum(e.lifted for e in episodes),
+                "successful_seeds": [e.seed for e in episodes if e.success],
+                "checkpoint": str(checkpoint),
+                "latency_budget_ms": args.latency_ms,
+                "max_duration_s": max_duration,
+                "execute_steps": args.execute_steps,
+                "wall_s": round(wall_s, 1),
+            }
+        ),
+        flush=True,
+    )
     return 0

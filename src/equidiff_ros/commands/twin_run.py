@@ -45,10 +45,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.formatter_class = argparse.RawDescriptionHelpFormatter
     parser.add_argument("--episodes", type=int, default=5)
     parser.add_argument("--seed", type=int, default=100_000, help="first episode's scene seed (then +1 each)")
-    parser.add_argument("--checkpoint", type=Path, default=None,
-                        help=f"exported policy file (default: the shipped {SHIPPED_CHECKPOINT.parent.name})")
-    parser.add_argument("--standin", action="store_true",
-                        help="use an untrained stand-in policy (plumbing test; success is meaningless)")
+    parser.add_argument(
+        "--checkpoint",
+        type=Path,
+        default=None,
+        help=f"exported policy file (default: the shipped {SHIPPED_CHECKPOINT.parent.name})",
+    )
+    parser.add_argument(
+        "--standin",
+        action="store_true",
+        help="use an untrained stand-in policy (plumbing test; success is meaningless)",
+    )
     parser.add_argument("--out", type=Path, default=None, help="output directory (default: runs/twin_run_<time>)")
     parser.add_argument("--max-duration", type=float, default=None, help="seconds per episode (twin.yaml's default)")
     parser.add_argument("--smoke", action="store_true", help="1 episode of a few seconds (CI)")
@@ -58,21 +65,44 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--twin-config", type=Path, default=None)
     parser.add_argument("--record-clouds", action="store_true", help="also record the three camera clouds")
     parser.add_argument("--no-rrd", action="store_true", help="skip the rerun recording")
-    parser.add_argument("--attach", action="store_true",
-                        help="run the episodes against nodes already running (launch/twin.launch.py)")
-    parser.add_argument("--lenient", action="store_true",
-                        help="with --realtime: accept observations up to 4 s old (overloaded machines)")
-    parser.add_argument("--clock", choices=("sim", "realtime"), default="sim",
-                        help="sim: simulated time, in lockstep with the pipeline (default); realtime: the wall clock")
-    parser.add_argument("--realtime", dest="clock", action="store_const", const="realtime",
-                        help="the same as --clock realtime (machines that hold real time)")
-    parser.add_argument("--latency-ms", type=float, default=100.0,
-                        help="simulated time: the latency budget L; a chunk takes effect at its observation + L")
-    parser.add_argument("--stall-timeout", type=float, default=30.0,
-                        help="simulated time: wall seconds the sim waits for a camera or the policy before the "
-                             "episode ends as stalled")
-    parser.add_argument("--composed", action="store_true",
-                        help="run every node but twin_node in one process (one MultiThreadedExecutor)")
+    parser.add_argument(
+        "--attach", action="store_true", help="run the episodes against nodes already running (launch/twin.launch.py)"
+    )
+    parser.add_argument(
+        "--lenient",
+        action="store_true",
+        help="with --realtime: accept observations up to 4 s old (overloaded machines)",
+    )
+    parser.add_argument(
+        "--clock",
+        choices=("sim", "realtime"),
+        default="sim",
+        help="sim: simulated time, in lockstep with the pipeline (default); realtime: the wall clock",
+    )
+    parser.add_argument(
+        "--realtime",
+        dest="clock",
+        action="store_const",
+        const="realtime",
+        help="the same as --clock realtime (machines that hold real time)",
+    )
+    parser.add_argument(
+        "--latency-ms",
+        type=float,
+        default=100.0,
+        help="simulated time: the latency budget L; a chunk takes effect at its observation + L",
+    )
+    parser.add_argument(
+        "--stall-timeout",
+        type=float,
+        default=30.0,
+        help="simulated time: wall seconds the sim waits for a camera or the policy before the episode ends as stalled",
+    )
+    parser.add_argument(
+        "--composed",
+        action="store_true",
+        help="run every node but twin_node in one process (one MultiThreadedExecutor)",
+    )
 
 
 def resolve_policy(args, out: Path, workspace, cfg) -> tuple[Path, str]:
@@ -86,8 +116,9 @@ def resolve_policy(args, out: Path, workspace, cfg) -> tuple[Path, str]:
         return SHIPPED_CHECKPOINT, f"shipped {SHIPPED_NAME}"
     if not args.standin and not args.smoke:
         raise FileNotFoundError(f"no shipped checkpoint at {SHIPPED_CHECKPOINT}; pass --checkpoint or --standin")
-    path = make_standin_policy(out / "standin_policy.pt", workspace, preset="tiny" if args.smoke else "compact",
-                               cfg=cfg)
+    path = make_standin_policy(
+        out / "standin_policy.pt", workspace, preset="tiny" if args.smoke else "compact", cfg=cfg
+    )
     return path, STANDIN_LABEL
 
 
@@ -119,17 +150,31 @@ def run(args: argparse.Namespace) -> int:
         return 2
     clock = args.clock
     args.realtime = clock == "realtime"
-    print(f"[twin] policy: {policy_label}; {episodes} episode(s) of at most {max_duration:.0f} s; output {out}; "
-          + ("real time" if args.realtime else f"simulated time, latency budget {args.latency_ms:.0f} ms"))
+    print(
+        f"[twin] policy: {policy_label}; {episodes} episode(s) of at most {max_duration:.0f} s; output {out}; "
+        + ("real time" if args.realtime else f"simulated time, latency budget {args.latency_ms:.0f} ms")
+    )
     records = []
     sim_rates = []
     wall_start = time.monotonic()
     try:
-        with TwinStack(out, lab_path, twin_path, policy=str(policy_path), domain_id=args.domain, task="twin_eval",
-                       device=args.device, seed=args.seed, record_clouds=args.record_clouds,
-                       lenient=args.lenient or (args.smoke and args.realtime), attach=args.attach,
-                       realtime=args.realtime, latency_s=args.latency_ms / 1000.0,
-                       stall_timeout_s=args.stall_timeout, composed=args.composed) as stack:
+        with TwinStack(
+            out,
+            lab_path,
+            twin_path,
+            policy=str(policy_path),
+            domain_id=args.domain,
+            task="twin_eval",
+            device=args.device,
+            seed=args.seed,
+            record_clouds=args.record_clouds,
+            lenient=args.lenient or (args.smoke and args.realtime),
+            attach=args.attach,
+            realtime=args.realtime,
+            latency_s=args.latency_ms / 1000.0,
+            stall_timeout_s=args.stall_timeout,
+            composed=args.composed,
+        ) as stack:
             for i in range(episodes):
                 missed = stack.sup.twin().get("missed_commands", 0)
                 rec = run_policy_episode(stack, args.seed + i, max_duration)
@@ -137,10 +182,12 @@ def run(args: argparse.Namespace) -> int:
                 sim_rates.append(state.get("steps_per_s", 0.0) / 1000.0)
                 records.append(rec)
                 outcome = "stalled" if rec.stalled else "success" if rec.success else "failure"
-                print(f"[twin] episode {i + 1}/{episodes} seed {rec.seed}: "
-                      f"{outcome} in {rec.duration_s:.1f} s, {rec.chunks} chunks, "
-                      f"{state.get('missed_commands', 0) - missed} ms of stale robot commands"
-                      + (f" ({rec.stalled})" if rec.stalled else ""))
+                print(
+                    f"[twin] episode {i + 1}/{episodes} seed {rec.seed}: "
+                    f"{outcome} in {rec.duration_s:.1f} s, {rec.chunks} chunks, "
+                    f"{state.get('missed_commands', 0) - missed} ms of stale robot commands"
+                    + (f" ({rec.stalled})" if rec.stalled else "")
+                )
     except KeyboardInterrupt:
         print("[twin] interrupted: all nodes stopped", file=sys.stderr)
         if not records:
@@ -148,10 +195,14 @@ def run(args: argparse.Namespace) -> int:
     except (NodeProcessError, SupervisorError) as err:
         print(f"equidiff twin run: {err}", file=sys.stderr)
         return 1
-    summary = RunSummary(records, sim_rate=sum(sim_rates) / len(sim_rates) if sim_rates else None,
-                         policy=policy_label, clock=clock,
-                         latency_budget_ms=None if args.realtime else args.latency_ms,
-                         wall_s=time.monotonic() - wall_start)
+    summary = RunSummary(
+        records,
+        sim_rate=sum(sim_rates) / len(sim_rates) if sim_rates else None,
+        policy=policy_label,
+        clock=clock,
+        latency_budget_ms=None if args.realtime else args.latency_ms,
+        wall_s=time.monotonic() - wall_start,
+    )
     if not args.no_rrd and records:
         summary.rrd = write_rrd([r.bag for r in records if r.bag], out / "twin_run.rrd", lab)
     print(summary.human())

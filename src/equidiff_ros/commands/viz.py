@@ -1,11 +1,11 @@
 """`equidiff viz`: rerun view of the live graph, or recorded bags converted to .rrd.
 
-    equidiff viz                         # live, spawns a local viewer
-    equidiff viz --connect 10.0.0.5:9876 # live, streams to a viewer on another machine
-    equidiff viz -o eval.rrd             # live, headless: writes a file (open it later with `rerun eval.rrd`)
-    equidiff viz bags/ -o all.rrd        # every bag in bags/ as one recording with an `episode` timeline
-    equidiff viz bags/ -o rrd/ --per-episode   # one <bag>.rrd per episode
-    equidiff viz bags/episode_0003 --spawn     # look at a bag right away
+equidiff viz                         # live, spawns a local viewer
+equidiff viz --connect 10.0.0.5:9876 # live, streams to a viewer on another machine
+equidiff viz -o eval.rrd             # live, headless: writes a file (open it later with `rerun eval.rrd`)
+equidiff viz bags/ -o all.rrd        # every bag in bags/ as one recording with an `episode` timeline
+equidiff viz bags/ -o rrd/ --per-episode   # one <bag>.rrd per episode
+equidiff viz bags/episode_0003 --spawn     # look at a bag right away
 """
 
 from __future__ import annotations
@@ -19,13 +19,22 @@ from pathlib import Path
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.epilog = __doc__.split("\n", 1)[1]
     parser.formatter_class = argparse.RawDescriptionHelpFormatter
-    parser.add_argument("bags", nargs="*", metavar="BAG",
-                        help="bag directories (or folders of bags) to convert; none: visualise the live graph")
+    parser.add_argument(
+        "bags",
+        nargs="*",
+        metavar="BAG",
+        help="bag directories (or folders of bags) to convert; none: visualise the live graph",
+    )
     sink = parser.add_mutually_exclusive_group()
     sink.add_argument("--spawn", action="store_true", help="spawn a local rerun viewer (live default with a display)")
     sink.add_argument("--connect", metavar="ADDR", help="stream to a running viewer (host:port or rerun+http URL)")
-    sink.add_argument("-o", "--output", metavar="OUT", type=Path,
-                      help="FILE.rrd to write (live headless, or bag conversion); a directory with --per-episode")
+    sink.add_argument(
+        "-o",
+        "--output",
+        metavar="OUT",
+        type=Path,
+        help="FILE.rrd to write (live headless, or bag conversion); a directory with --per-episode",
+    )
     parser.add_argument("--per-episode", action="store_true", help="bags: one .rrd per episode in the OUT directory")
     parser.add_argument("--clouds", action="store_true", help="also show the raw camera clouds (throttled, strided)")
     parser.add_argument("--lab-config", type=Path, default=None, help="lab.yaml (default: the installed one)")
@@ -66,8 +75,11 @@ def _convert(args: argparse.Namespace, lab, config) -> int:
 
     to_viewer = args.spawn or args.connect is not None
     if args.output is None and not to_viewer:
-        print("equidiff viz: converting bags needs -o OUT.rrd (or -o DIR --per-episode), "
-              "or --spawn / --connect ADDR to send them to a viewer", file=sys.stderr)
+        print(
+            "equidiff viz: converting bags needs -o OUT.rrd (or -o DIR --per-episode), "
+            "or --spawn / --connect ADDR to send them to a viewer",
+            file=sys.stderr,
+        )
         return 2
     if to_viewer and args.per_episode:
         print("equidiff viz: --per-episode writes files: use -o DIR", file=sys.stderr)
@@ -76,8 +88,9 @@ def _convert(args: argparse.Namespace, lab, config) -> int:
         print("equidiff viz: no display to spawn a viewer on; use -o FILE.rrd or --connect HOST:PORT", file=sys.stderr)
         return 2
     try:
-        report = convert_bags(args.bags, args.output, lab, config, per_episode=args.per_episode,
-                              spawn=args.spawn, connect=args.connect)
+        report = convert_bags(
+            args.bags, args.output, lab, config, per_episode=args.per_episode, spawn=args.spawn, connect=args.connect
+        )
     except BagConversionError as err:
         print(f"equidiff viz: {err}", file=sys.stderr)
         return 2
@@ -91,8 +104,10 @@ def _convert(args: argparse.Namespace, lab, config) -> int:
         for warning in ep.warnings:
             print(f"  warning: {warning}", file=sys.stderr)
     if report.outputs:
-        print(f"wrote {', '.join(map(str, report.outputs))} in {report.seconds:.1f} s; "
-              f"open with: rerun {report.outputs[0]}")
+        print(
+            f"wrote {', '.join(map(str, report.outputs))} in {report.seconds:.1f} s; "
+            f"open with: rerun {report.outputs[0]}"
+        )
     elif not to_viewer:
         print("nothing converted", file=sys.stderr)
     return 0 if report.ok else 1
@@ -104,8 +119,11 @@ def _live(args: argparse.Namespace, lab, config) -> int:
         return 2
     spawn = args.spawn or (args.connect is None and args.output is None)
     if spawn and not _has_display():
-        print("equidiff viz: no display to spawn a viewer on; write a file with -o FILE.rrd "
-              "or stream to a viewer elsewhere with --connect HOST:PORT", file=sys.stderr)
+        print(
+            "equidiff viz: no display to spawn a viewer on; write a file with -o FILE.rrd "
+            "or stream to a viewer elsewhere with --connect HOST:PORT",
+            file=sys.stderr,
+        )
         return 2
     if args.output is not None and args.output.suffix != ".rrd":
         print(f"equidiff viz: -o must name a .rrd file, got {args.output}", file=sys.stderr)
@@ -113,8 +131,10 @@ def _live(args: argparse.Namespace, lab, config) -> int:
     try:
         from equidiff_ros.viz_node import run_live
     except ImportError as err:
-        print(f"equidiff viz: live mode needs rclpy ({err}); install ROS 2 Jazzy or "
-              "pip install 'equidiff_ros[ros]'", file=sys.stderr)
+        print(
+            f"equidiff viz: live mode needs rclpy ({err}); install ROS 2 Jazzy or pip install 'equidiff_ros[ros]'",
+            file=sys.stderr,
+        )
         return 2
     from equidiff_core.viz.logger import RerunLogger, open_recording
 

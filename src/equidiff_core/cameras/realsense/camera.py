@@ -26,8 +26,15 @@ from .config import RealSenseOptions
 from .devices import connected_devices, device_info, find_device, usb2_warning
 
 
-def pixel_rays(width: int, height: int, fx: float, fy: float, ppx: float, ppy: float,
-               deproject: Callable[[float, float], tuple[float, float]] | None = None) -> np.ndarray:
+def pixel_rays(
+    width: int,
+    height: int,
+    fx: float,
+    fy: float,
+    ppx: float,
+    ppy: float,
+    deproject: Callable[[float, float], tuple[float, float]] | None = None,
+) -> np.ndarray:
     """(H, W, 2) float32: x/z and y/z of each pixel centre's viewing ray (optical frame).
 
     Pixel (u, v) covers [u, u+1) x [v, v+1) in librealsense's convention, whose principal
@@ -49,8 +56,9 @@ def pixel_rays(width: int, height: int, fx: float, fy: float, ppx: float, ppy: f
     return rays
 
 
-def depth_to_cloud(depth: np.ndarray, depth_scale: float, color: np.ndarray, rays: np.ndarray,
-                   min_depth: float, max_depth: float) -> tuple[np.ndarray, np.ndarray]:
+def depth_to_cloud(
+    depth: np.ndarray, depth_scale: float, color: np.ndarray, rays: np.ndarray, min_depth: float, max_depth: float
+) -> tuple[np.ndarray, np.ndarray]:
     """Depth image (H, W) uint16 + colour (H, W, 3) uint8 aligned to it -> points, colours.
 
     Zero depth (no measurement) and depths outside [min_depth, max_depth] are dropped.
@@ -98,12 +106,19 @@ class RealSenseCamera(Camera):
     ``monotonic`` and ``sleep`` time the recovery (tests pass a fake clock).
     """
 
-    def __init__(self, camera: CameraConfig, clock: Callable[[], int] = time.time_ns, pace_hz: float | None = None,
-                 monotonic: Callable[[], float] = time.monotonic, sleep: Callable[[float], None] = time.sleep,
-                 **overrides):
+    def __init__(
+        self,
+        camera: CameraConfig,
+        clock: Callable[[], int] = time.time_ns,
+        pace_hz: float | None = None,
+        monotonic: Callable[[], float] = time.monotonic,
+        sleep: Callable[[float], None] = time.sleep,
+        **overrides,
+    ):
         try:
-            self.options = from_dict(RealSenseOptions, {**camera.options, **overrides},
-                                     where=f"cameras[{camera.name}].options")
+            self.options = from_dict(
+                RealSenseOptions, {**camera.options, **overrides}, where=f"cameras[{camera.name}].options"
+            )
         except ConfigError as err:
             raise CameraError(str(err)) from err
         self.camera = camera
@@ -132,8 +147,12 @@ class RealSenseCamera(Camera):
         return self._pipeline is not None
 
     def health(self) -> CameraHealth:
-        return CameraHealth(resets=self._resets, reconnects=self._reconnects, recovering=self._recovery is not None,
-                            last_recovery_reason=self._last_reason)
+        return CameraHealth(
+            resets=self._resets,
+            reconnects=self._reconnects,
+            recovering=self._recovery is not None,
+            last_recovery_reason=self._last_reason,
+        )
 
     def _where(self) -> str:
         return f"RealSense camera {self.camera.name!r} ({self.camera.serial})"
@@ -144,14 +163,18 @@ class RealSenseCamera(Camera):
         try:
             import pyrealsense2 as rs
         except ImportError as err:
-            raise CameraError(f"RealSense camera {self.camera.name!r}: pyrealsense2 is not installed "
-                              f"(pip install pyrealsense2): {err}") from err
+            raise CameraError(
+                f"RealSense camera {self.camera.name!r}: pyrealsense2 is not installed "
+                f"(pip install pyrealsense2): {err}"
+            ) from err
         cam = self.camera
         self._rs, self._ctx = rs, rs.context()
         found = self._connected_serials()
         if cam.serial not in found:
-            raise CameraError(f"RealSense camera {cam.name!r} with serial {cam.serial} not found; "
-                              f"connected RealSense serials: {found or 'none'}")
+            raise CameraError(
+                f"RealSense camera {cam.name!r} with serial {cam.serial} not found; "
+                f"connected RealSense serials: {found or 'none'}"
+            )
         self._open()
         self._opened = True
 
@@ -172,8 +195,9 @@ class RealSenseCamera(Camera):
         rs, cam, opt = self._rs, self.camera, self.options
         cfg = rs.config()
         cfg.enable_device(cam.serial)
-        cfg.enable_stream(rs.stream.depth, opt.depth_width or cam.width, opt.depth_height or cam.height,
-                          rs.format.z16, cam.fps)
+        cfg.enable_stream(
+            rs.stream.depth, opt.depth_width or cam.width, opt.depth_height or cam.height, rs.format.z16, cam.fps
+        )
         cfg.enable_stream(rs.stream.color, cam.width, cam.height, rs.format.rgb8, cam.fps)
         pipeline = rs.pipeline(self._ctx)
         try:
@@ -181,8 +205,10 @@ class RealSenseCamera(Camera):
         except RuntimeError as err:
             device = self._device()
             usb2 = device is not None and usb2_warning(device_info(rs, device), f"{cam.width}x{cam.height}@{cam.fps}")
-            raise CameraError(f"{self._where()}: cannot start {cam.width}x{cam.height}@{cam.fps}: {err}"
-                              + (f"; {usb2}" if usb2 else "")) from err
+            raise CameraError(
+                f"{self._where()}: cannot start {cam.width}x{cam.height}@{cam.fps}: {err}"
+                + (f"; {usb2}" if usb2 else "")
+            ) from err
         try:
             device = profile.get_device()
             depth_sensor = device.first_depth_sensor()
@@ -277,10 +303,11 @@ class RealSenseCamera(Camera):
             raise CameraError(f"{self._where()}: frame processing failed: {err}") from err
         if depth.shape != color.shape[:2]:  # decimated: sample the colour at each depth pixel's centre
             sy, sx = color.shape[0] // depth.shape[0], color.shape[1] // depth.shape[1]
-            color = color[sy // 2::sy, sx // 2::sx][: depth.shape[0], : depth.shape[1]]
+            color = color[sy // 2 :: sy, sx // 2 :: sx][: depth.shape[0], : depth.shape[1]]
         intr = depth_frame.profile.as_video_stream_profile().get_intrinsics()
-        points, colors = depth_to_cloud(depth, self._depth_scale, color, self._rays_for(intr),
-                                        self.camera.min_depth, self.camera.max_depth)
+        points, colors = depth_to_cloud(
+            depth, self._depth_scale, color, self._rays_for(intr), self.camera.min_depth, self.camera.max_depth
+        )
         if frames.get_frame_timestamp_domain() == rs.timestamp_domain.global_time:
             stamp_ns = round(frames.get_timestamp() * 1e3) * 1000  # ms with us resolution -> ns
         else:
@@ -297,8 +324,9 @@ class RealSenseCamera(Camera):
                 x, y, _ = rs.rs2_deproject_pixel_to_point(intr, [float(u), float(v)], 1.0)
                 return x, y
 
-            self._rays[key] = pixel_rays(intr.width, intr.height, intr.fx, intr.fy, intr.ppx, intr.ppy,
-                                         deproject if distorted else None)
+            self._rays[key] = pixel_rays(
+                intr.width, intr.height, intr.fx, intr.fy, intr.ppx, intr.ppy, deproject if distorted else None
+            )
         return self._rays[key]
 
     # --- recovery from a stalled or unplugged device -------------------------------------
@@ -362,7 +390,8 @@ class RealSenseCamera(Camera):
                         f"{self._where()} has not come back: no frame after {self._recoveries_without_frame - 1} "
                         f"recovery attempt(s) (it stalled: {self._last_reason}); next attempt in "
                         f"{rec.retry_at - now:.1f} s; connected RealSense serials: {self._connected_serials() or 'none'}"
-                        + (f"; last error: {rec.last_error}" if rec.last_error else ""))
+                        + (f"; last error: {rec.last_error}" if rec.last_error else "")
+                    )
                 self._sleep(min(rec.retry_at, deadline) - now)
                 continue
             if self._device() is None:
@@ -381,10 +410,11 @@ class RealSenseCamera(Camera):
                 rec.retry_at = now + self._backoff_s()
                 continue
             if now >= deadline:
-                raise CameraError(f"{self._where()}: recovering after {self._last_reason}: {rec.note}, "
-                                  f"waiting for the serial to re-enumerate ({now - rec.reset_at:.1f} s of "
-                                  f"{opt.reenumerate_timeout_s} s)"
-                                  + (f"; last error: {rec.last_error}" if rec.last_error else ""))
+                raise CameraError(
+                    f"{self._where()}: recovering after {self._last_reason}: {rec.note}, "
+                    f"waiting for the serial to re-enumerate ({now - rec.reset_at:.1f} s of "
+                    f"{opt.reenumerate_timeout_s} s)" + (f"; last error: {rec.last_error}" if rec.last_error else "")
+                )
             self._sleep(min(_POLL_S, deadline - now))
 
     def _close_pipeline(self) -> None:

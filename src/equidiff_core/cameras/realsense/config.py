@@ -34,8 +34,12 @@ class RealSenseOptions:
     depth_exposure_us: float | None = None  # depth sensor exposure; None = auto
     laser_power: float | None = None  # emitter power in mW; None = device default
     visual_preset: str | None = None  # one of VISUAL_PRESETS; None = device default
-    reset_after_timeouts: int = 3  # consecutive frame timeouts (each the reader's timeout, 1 s in camera_node) before a reset
-    reenumerate_timeout_s: float = 10.0  # wait this long for the serial to come back after a reset (a D4xx takes a few s)
+    reset_after_timeouts: int = (
+        3  # consecutive frame timeouts (each the reader's timeout, 1 s in camera_node) before a reset
+    )
+    reenumerate_timeout_s: float = (
+        10.0  # wait this long for the serial to come back after a reset (a D4xx takes a few s)
+    )
     reconnect_backoff_s: float = 1.0  # pause before the next reset after a failed one; doubles each time...
     reconnect_backoff_max_s: float = 30.0  # ...up to this
 
@@ -47,10 +51,18 @@ class RealSenseOptions:
         if self.reset_after_timeouts < 1:
             raise ValueError(f"reset_after_timeouts must be >= 1, got {self.reset_after_timeouts}")
         if self.reconnect_backoff_max_s < self.reconnect_backoff_s:
-            raise ValueError(f"reconnect_backoff_max_s ({self.reconnect_backoff_max_s}) must be >= "
-                             f"reconnect_backoff_s ({self.reconnect_backoff_s})")
-        for name in ("exposure_us", "white_balance_k", "depth_exposure_us", "laser_power",
-                     "reenumerate_timeout_s", "reconnect_backoff_s"):
+            raise ValueError(
+                f"reconnect_backoff_max_s ({self.reconnect_backoff_max_s}) must be >= "
+                f"reconnect_backoff_s ({self.reconnect_backoff_s})"
+            )
+        for name in (
+            "exposure_us",
+            "white_balance_k",
+            "depth_exposure_us",
+            "laser_power",
+            "reenumerate_timeout_s",
+            "reconnect_backoff_s",
+        ):
             value = getattr(self, name)
             if value is not None and value <= 0:
                 raise ValueError(f"{name} must be positive, got {value}")

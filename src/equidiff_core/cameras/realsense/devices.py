@@ -30,9 +30,12 @@ def _info(rs, device, field: str) -> str:
 
 
 def device_info(rs, device) -> DeviceInfo:
-    return DeviceInfo(serial=_info(rs, device, "serial_number"), name=_info(rs, device, "name"),
-                      firmware=_info(rs, device, "firmware_version"),
-                      usb_type=_info(rs, device, "usb_type_descriptor"))
+    return DeviceInfo(
+        serial=_info(rs, device, "serial_number"),
+        name=_info(rs, device, "name"),
+        firmware=_info(rs, device, "firmware_version"),
+        usb_type=_info(rs, device, "usb_type_descriptor"),
+    )
 
 
 def connected_devices(rs, ctx) -> list[tuple[DeviceInfo, object]]:
@@ -52,5 +55,7 @@ def usb2_warning(info: DeviceInfo, stream: str = "depth + colour at 848x480@30")
     """One line when the device runs over USB 2, which cannot carry a D4xx's depth at our rate."""
     if not info.is_usb2:
         return None
-    return (f"RealSense {info.serial} ({info.name}) is on a USB {info.usb_type} link: a D4xx needs USB 3 "
-            f"for {stream}; plug it into a USB 3 port with a USB 3 cable")
+    return (
+        f"RealSense {info.serial} ({info.name}) is on a USB {info.usb_type} link: a D4xx needs USB 3 "
+        f"for {stream}; plug it into a USB 3 port with a USB 3 cable"
+    )

@@ -30,9 +30,16 @@ class ReplayFinished(CameraError):
 class ReplayCamera(Camera):
     """Camera ``camera.name`` played back from ``bag`` (topic default: ``camera.topic``)."""
 
-    def __init__(self, camera: CameraConfig, bag: str | Path | None = None, topic: str | None = None,
-                 loop: bool = True, rate: float = 1.0, restamp: bool = True,
-                 clock: Callable[[], int] = time.time_ns):
+    def __init__(
+        self,
+        camera: CameraConfig,
+        bag: str | Path | None = None,
+        topic: str | None = None,
+        loop: bool = True,
+        rate: float = 1.0,
+        restamp: bool = True,
+        clock: Callable[[], int] = time.time_ns,
+    ):
         if bag is None or str(bag) == "":
             raise CameraError(f"replay camera {camera.name!r}: no bag given (set the 'bag' parameter)")
         if rate <= 0:
@@ -61,8 +68,9 @@ class ReplayCamera(Camera):
         from ...rosmsg import rosbags_factory
 
         if not (self.bag / "metadata.yaml").is_file():
-            raise CameraError(f"replay camera {self.camera.name!r}: {self.bag} is not a rosbag2 directory "
-                              f"(no metadata.yaml)")
+            raise CameraError(
+                f"replay camera {self.camera.name!r}: {self.bag} is not a rosbag2 directory (no metadata.yaml)"
+            )
         try:
             reader = Reader(self.bag)
             reader.open()
@@ -72,8 +80,10 @@ class ReplayCamera(Camera):
         if not self._connections or reader.message_count == 0:
             clouds = sorted({c.topic for c in reader.connections if c.msgtype == POINTCLOUD2})
             reader.close()
-            raise CameraError(f"replay camera {self.camera.name!r}: {self.bag} has no messages on {self.topic}; "
-                              f"its PointCloud2 topics: {clouds or 'none'}")
+            raise CameraError(
+                f"replay camera {self.camera.name!r}: {self.bag} has no messages on {self.topic}; "
+                f"its PointCloud2 topics: {clouds or 'none'}"
+            )
         if any(c.msgtype != POINTCLOUD2 for c in self._connections):
             reader.close()
             raise CameraError(f"replay camera {self.camera.name!r}: {self.topic} in {self.bag} is not {POINTCLOUD2}")
@@ -107,8 +117,9 @@ class ReplayCamera(Camera):
             self._pending = next(self._messages)
         except StopIteration:
             if not self.loop:
-                raise ReplayFinished(f"replay camera {self.camera.name!r}: {self.bag} finished "
-                                     f"after {self.frames_read} frames") from None
+                raise ReplayFinished(
+                    f"replay camera {self.camera.name!r}: {self.bag} finished after {self.frames_read} frames"
+                ) from None
             self._origin += self._loop_ns
             self._messages = self._reader.messages(connections=self._connections)
             self._pending = next(self._messages)
@@ -130,8 +141,9 @@ class ReplayCamera(Camera):
             msg = self._typestore.deserialize_cdr(raw, conn.msgtype)
             cloud = msg_to_cloud(msg, drop_invalid=True)
         except (CloudError, Exception) as err:
-            raise CameraError(f"replay camera {self.camera.name!r}: unusable message at "
-                              f"{logtime} ns in {self.bag}: {err}") from err
+            raise CameraError(
+                f"replay camera {self.camera.name!r}: unusable message at {logtime} ns in {self.bag}: {err}"
+            ) from err
         self.frames_read += 1
         stamp = self._clock() if self.restamp else cloud.stamp_ns
         return CloudFrame(cloud.points, cloud.colors, stamp)

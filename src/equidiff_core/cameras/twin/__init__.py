@@ -64,8 +64,9 @@ def depth_to_points(depth: np.ndarray, intr: Intrinsics) -> np.ndarray:
     return np.stack([x, y, depth], axis=-1)
 
 
-def degrade_depth(depth: np.ndarray, rng: np.random.Generator, base: float, quadratic: float,
-                  dropout: float, edge_dropout: bool) -> np.ndarray:
+def degrade_depth(
+    depth: np.ndarray, rng: np.random.Generator, base: float, quadratic: float, dropout: float, edge_dropout: bool
+) -> np.ndarray:
     """D455-like depth: axial noise growing with z^2, random dropout and lost pixels at depth edges.
 
     Lost pixels become 0 (as in a RealSense depth image) and are removed with the invalid range.
@@ -110,18 +111,23 @@ class TwinCamera(Camera):
 
         unknown = set(options) - set(TwinCameraOptions.__dataclass_fields__)
         if unknown:
-            raise CameraError(f"twin camera {camera.name}: unknown option(s) {sorted(unknown)}; "
-                              f"allowed: {sorted(TwinCameraOptions.__dataclass_fields__)}")
+            raise CameraError(
+                f"twin camera {camera.name}: unknown option(s) {sorted(unknown)}; "
+                f"allowed: {sorted(TwinCameraOptions.__dataclass_fields__)}"
+            )
         self.options = TwinCameraOptions(**options)
         self.camera = camera
         cfg = options.get("twin_config")
         self.twin_cfg = cfg if not isinstance(cfg, (str, os.PathLike, type(None))) else load_twin_config(cfg)
         render = self.twin_cfg.render
         o = self.options
-        render = replace(render,
-                         width=o.width or render.width, height=o.height or render.height,
-                         depth_noise=render.depth_noise if o.depth_noise is None else o.depth_noise,
-                         dropout=render.dropout if o.dropout is None else o.dropout)
+        render = replace(
+            render,
+            width=o.width or render.width,
+            height=o.height or render.height,
+            depth_noise=render.depth_noise if o.depth_noise is None else o.depth_noise,
+            dropout=render.dropout if o.dropout is None else o.dropout,
+        )
         self.render_cfg = render
         self.intrinsics = Intrinsics.from_fovy(render.width, render.height, render.fovy_deg)
         self._state_source = state_source
@@ -196,8 +202,10 @@ class TwinCamera(Camera):
         rgb, depth = self.render(qpos)
         points, colors = self.to_cloud(rgb, depth)
         if len(points) == 0:
-            raise CameraError(f"twin camera {self.camera.name}: no valid depth in range "
-                              f"[{self.camera.min_depth}, {self.camera.max_depth}] m")
+            raise CameraError(
+                f"twin camera {self.camera.name}: no valid depth in range "
+                f"[{self.camera.min_depth}, {self.camera.max_depth}] m"
+            )
         return CloudFrame(points, colors, int(stamp_ns))
 
     def _take_frame(self, timeout_s: float) -> tuple[np.ndarray, int]:
@@ -240,8 +248,11 @@ class TwinCamera(Camera):
             r = self.render_cfg
             self._renderer = mujoco.Renderer(self._model, height=r.height, width=r.width)
             flags = self._renderer.scene.flags
-            for flag in (mujoco.mjtRndFlag.mjRND_SHADOW, mujoco.mjtRndFlag.mjRND_REFLECTION,
-                         mujoco.mjtRndFlag.mjRND_SKYBOX):
+            for flag in (
+                mujoco.mjtRndFlag.mjRND_SHADOW,
+                mujoco.mjtRndFlag.mjRND_REFLECTION,
+                mujoco.mjtRndFlag.mjRND_SKYBOX,
+            ):
                 flags[flag] = 0
         return self._renderer
 

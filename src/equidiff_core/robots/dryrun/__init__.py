@@ -57,8 +57,9 @@ class DryRunRobot(Robot):
         return self._connected
 
     def read_state(self) -> RobotState:
-        return RobotState(time.time_ns(), self._pose.copy(), np.array(self.config.joint_positions), np.zeros(7),
-                          self._width)
+        return RobotState(
+            time.time_ns(), self._pose.copy(), np.array(self.config.joint_positions), np.zeros(7), self._width
+        )
 
     def move_to(self, pose: np.ndarray) -> None:
         self._record("move_to", pose)
@@ -100,5 +101,7 @@ class DryRunRobot(Robot):
                 self.log.info(f"dry run: would move the gripper to {float(value) * 1000:.1f} mm")
             else:
                 p, q = geometry.pos_quat_from_pose(value)
-                self.log.info(f"dry run: would send {kind} xyz={np.round(p, 4).tolist()} "
-                              f"quat_xyzw={np.round(q, 4).tolist()} ({len(self.sent)} commands so far)")
+                self.log.info(
+                    f"dry run: would send {kind} xyz={np.round(p, 4).tolist()} "
+                    f"quat_xyzw={np.round(q, 4).tolist()} ({len(self.sent)} commands so far)"
+                )

@@ -38,8 +38,15 @@ log = logging.getLogger("equidiff.robot.franky")
 
 
 class FrankyRobot(Robot):
-    def __init__(self, ip: str, config=None, realtime: bool = True, gripper: bool = True,
-                 logger: logging.Logger | None = None, safety=None):
+    def __init__(
+        self,
+        ip: str,
+        config=None,
+        realtime: bool = True,
+        gripper: bool = True,
+        logger: logging.Logger | None = None,
+        safety=None,
+    ):
         from ...control.config import FrankyConfig, SafetyConfig
 
         self.ip = ip
@@ -103,7 +110,9 @@ class FrankyRobot(Robot):
     def _apply_limits(self) -> None:
         cfg, robot = self.config, self._robot
         try:
-            robot.set_collision_behavior(list(cfg.collision_torque_thresholds_nm), list(cfg.collision_force_thresholds_n))
+            robot.set_collision_behavior(
+                list(cfg.collision_torque_thresholds_nm), list(cfg.collision_force_thresholds_n)
+            )
             limit = robot.joint_velocity_limit
             speeds = np.minimum(self.safety.max_joint_speeds_rad_s, limit.max)
             limit.set(speeds)
@@ -114,7 +123,8 @@ class FrankyRobot(Robot):
             "collision_force_thresholds_n": list(cfg.collision_force_thresholds_n),
             "move_joint_velocity_limit_rad_s": [float(v) for v in limit.get()],
             "joint_position_min_rad": list(self.safety.joint_position_min_rad),
-            "joint_position_max_rad": list(self.safety.joint_position_max_rad)}
+            "joint_position_max_rad": list(self.safety.joint_position_max_rad),
+        }
         self.log.info(f"limits set: {self.applied_limits}")
 
     def _require(self):
@@ -125,9 +135,14 @@ class FrankyRobot(Robot):
     # --- state ---------------------------------------------------------------------------
     def read_state(self) -> RobotState:
         state = self._require().state
-        return RobotState(time.time_ns(), np.array(state.O_T_EE.matrix, dtype=np.float64),
-                          np.array(state.q, dtype=np.float64), np.array(state.dq, dtype=np.float64),
-                          self._width, state.time.to_sec())
+        return RobotState(
+            time.time_ns(),
+            np.array(state.O_T_EE.matrix, dtype=np.float64),
+            np.array(state.q, dtype=np.float64),
+            np.array(state.dq, dtype=np.float64),
+            self._width,
+            state.time.to_sec(),
+        )
 
     def _poll_gripper(self) -> None:
         """The gripper's own thread: once the last command has finished, sends the newest requested
@@ -136,8 +151,10 @@ class FrankyRobot(Robot):
         while not self._gripper_stop.wait(0.05):
             if running is not None and not _finished(running):
                 if not warned and time.monotonic() - sent_at > self.config.gripper_command_timeout_s:
-                    self.log.warning(f"the gripper command sent {self.config.gripper_command_timeout_s:.0f} s "
-                                     f"ago has not finished; newer widths wait for it")
+                    self.log.warning(
+                        f"the gripper command sent {self.config.gripper_command_timeout_s:.0f} s "
+                        f"ago has not finished; newer widths wait for it"
+                    )
                     warned = True
                 width = None
             else:
@@ -184,19 +201,28 @@ class FrankyRobot(Robot):
         robot = self._require()
         cfg = self.config
         friction = franky.FrictionCompensationParams(
-            coulomb=list(cfg.friction_coulomb), viscous=list(cfg.friction_viscous),
-            max_torque=[cfg.friction_max_torque] * 7)
+            coulomb=list(cfg.friction_coulomb),
+            viscous=list(cfg.friction_viscous),
+            max_torque=[cfg.friction_max_torque] * 7,
+        )
         if self._posture_q is None:  # where streaming first starts: the home pose; kept across recoveries
             self._posture_q = np.array(robot.state.q, dtype=np.float64)
-        posture = (franky.PostureTask(self._posture_q, cfg.posture_stiffness, max_torque=cfg.posture_max_torque)
-                   if cfg.posture_stiffness > 0 else None)
+        posture = (
+            franky.PostureTask(self._posture_q, cfg.posture_stiffness, max_torque=cfg.posture_max_torque)
+            if cfg.posture_stiffness > 0
+            else None
+        )
         try:
             self._tracker = franky.CartesianImpedanceTracker(
-                robot, translational_stiffness=cfg.translational_stiffness,
-                rotational_stiffness=cfg.rotational_stiffness, friction=friction, posture_task=posture,
+                robot,
+                translational_stiffness=cfg.translational_stiffness,
+                rotational_stiffness=cfg.rotational_stiffness,
+                friction=friction,
+                posture_task=posture,
                 lower_joint_limits=np.asarray(self.safety.joint_position_min_rad, dtype=np.float64),
                 upper_joint_limits=np.asarray(self.safety.joint_position_max_rad, dtype=np.float64),
-                joint_limit_activation_distance=cfg.joint_limit_activation_rad)
+                joint_limit_activation_distance=cfg.joint_limit_activation_rad,
+            )
         except Exception as err:
             self._tracker = None
             raise RobotError(f"cannot start the impedance tracker: {err}") from err
@@ -209,9 +235,10 @@ class FrankyRobot(Robot):
             raise RobotError("stream_target before start_streaming")
         if not robot.is_in_control:
             raise RobotError(f"the controller stopped: {self._motion_error()}")
-        self._tracker.set_target(franky.Affine(np.asarray(pose, dtype=np.float64)),
-                                 franky.Twist(np.asarray(linear_velocity, dtype=np.float64),
-                                              np.asarray(angular_velocity, dtype=np.float64)))
+        self._tracker.set_target(
+            franky.Affine(np.asarray(pose, dtype=np.float64)),
+            franky.Twist(np.asarray(linear_velocity, dtype=np.float64), np.asarray(angular_velocity, dtype=np.float64)),
+        )
 
     def stop_streaming(self) -> None:
         tracker, self._tracker = self._tracker, None
@@ -254,8 +281,13 @@ class FrankyRobot(Robot):
         if np.isfinite(self._width) and width < self._width:
             # Closing is a grasp with a wide outer epsilon: closing on an object then counts as
             # success and keeps squeezing it (on franky-sim a plain move to the object's width does not hold it).
-            return self._gripper.grasp_async(float(width), cfg.gripper_speed_m_s, cfg.gripper_force_n,
-                                             epsilon_inner=0.08, epsilon_outer=cfg.gripper_epsilon_outer_m)
+            return self._gripper.grasp_async(
+                float(width),
+                cfg.gripper_speed_m_s,
+                cfg.gripper_force_n,
+                epsilon_inner=0.08,
+                epsilon_outer=cfg.gripper_epsilon_outer_m,
+            )
         return self._gripper.move_async(float(width), cfg.gripper_speed_m_s)
 
     def recover(self) -> str:

@@ -192,7 +192,11 @@ class SimServer:
         env = dict(os.environ, OMP_NUM_THREADS="1")
         self.process = subprocess.Popen(
             [sys.executable, "-u", "-m", "equidiff_core.robots.franky.sim", "--host", self.host],
-            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            text=True,
+            env=env,
+        )
         deadline = time.monotonic() + self.startup_timeout_s
         lines = []
         while time.monotonic() < deadline:
@@ -269,8 +273,10 @@ def _check_port_free(host: str, port: int = 1337) -> None:
         try:
             s.bind((host, port))
         except OSError as err:
-            raise RuntimeError(f"{host}:{port} is taken: another franky-sim (or robot) is already "
-                               f"serving there; pick another 127.x.y.z address") from err
+            raise RuntimeError(
+                f"{host}:{port} is taken: another franky-sim (or robot) is already "
+                f"serving there; pick another 127.x.y.z address"
+            ) from err
 
 
 def main(argv: list[str] | None = None) -> None:
