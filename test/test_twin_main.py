@@ -460,9 +460,11 @@ def test_bench_generalization_reports_a_failed_training_run_and_keeps_the_demos(
 
 
 @pytest.mark.slow
-def test_bench_generalization_evaluates_policies_trained_elsewhere(tmp_path, capsys):
+def test_bench_generalization_evaluates_policies_trained_elsewhere_in_range_first(tmp_path, capsys):
     """--trained DIR: policies trained on another machine (a GPU box) are rolled out here, no
-    demos recorded and nothing trained; the steps they trained come from their history."""
+    demos recorded and nothing trained; the steps they trained come from their history. Every
+    policy is rolled out in range first; one that fails there (1 s episodes solve nothing) is
+    named, the budget called too small, and nothing is rolled out at unseen yaw (exit 3)."""
     import json
     import shutil
 
@@ -471,43 +473,41 @@ def test_bench_generalization_evaluates_policies_trained_elsewhere(tmp_path, cap
 
     trained = tmp_path / "trained"
     assert main(["bench", "generalization", "--trained", str(trained), "--out", str(tmp_path / "a")]) == 2
-    assert "--trained needs DIR/equidiff/policy.pt" in capsys.readouterr().err
-    for name, steps in (("equidiff", 120), ("baseline", 150)):  # the shipped policy stands in for both
+    assert "--trained needs DIR/equidiff/policy.pt, DIR/baseline/policy.pt, DIR/baseline_aug/policy.pt" in (
+        capsys.readouterr().err
+    )
+    steps = {"equidiff": 120, "baseline": 150, "baseline_aug": 140}
+    for name, n in steps.items():  # the shipped policy stands in for all three
         (trained / name).mkdir(parents=True)
         shutil.copy(SHIPPED_CHECKPOINT, trained / name / "policy.pt")
-        (trained / name / "history.json").write_text(json.dumps([{"step": steps, "loss": 0.1}]))
-    assert (
-        main(
-            [
-                "bench",
-                "generalization",
-                "--trained",
-                str(trained),
-                "--out",
-                str(tmp_path / "b"),
-                "--eval-episodes",
-                "1",
-                "--in-range-episodes",
-                "1",
-                "--max-duration",
-                "1",
-                "--device",
-                "cpu",
-            ]
-        )
-        == 0
-    )
-    out = capsys.readouterr().out
-    result = json.loads(out.strip().splitlines()[-1])
-    assert out.count("[equidiff, unseen] [eval]") == 1 and out.count("[baseline, in_range] [eval]") == 1
-    assert result["in_range_episodes"] == 1 and 0.0 <= result["baseline_in_range_success"] <= 1.0
-    assert result["stages"]["equidiff"].keys() == {"unseen", "in_range"}
-    assert result["stages"]["equidiff"]["unseen"].keys() == {"reached", "lifted", "median_closest_to_block_m"}
-    assert result["train_steps_by_policy"] == {"equidiff": 120, "baseline": 150} and result["train_steps"] == 120
-    assert result["eval_episodes"] == 1 and 0.0 <= result["equidiff_success"] <= 1.0
+        (trained / name / "history.json").write_text(json.dumps([{"step": n, "loss": 0.1}]))
+    argv = ["bench", "generalization", "--trained", str(trained), "--out", str(tmp_path / "b")]
+    argv += ["--eval-episodes", "1", "--in-range-episodes", "1", "--max-duration", "1", "--device", "cpu"]
+    assert main(argv) == 3
+    captured = capsys.readouterr()
+    result = json.loads(captured.out.strip().splitlines()[-1])
+    for name in steps:
+        assert captured.out.count(f"[{name}, in_range] [eval]") == 1
+        assert result[f"{name}_in_range_success"] == 0.0 and result[f"{name}_success"] is None
+    assert "unseen] [eval]" not in captured.out
+    assert result["failed_in_range"] == ["equidiff", "baseline", "baseline_aug"] and result["min_in_range"] == 0.6
+    assert "training budget is too small" in result["verdict"] and result["verdict"] in captured.err
+    assert result["goal_met"] is None and result["equidiff_minus_baseline_points"] is None
+    assert result["stages"]["equidiff"].keys() == {"in_range"}
+    assert result["stages"]["baseline"]["in_range"].keys() == {"reached", "lifted", "median_closest_to_block_m"}
+    assert result["train_steps_by_policy"] == steps and result["train_steps"] == 120
     assert result["minutes"].keys() == {"eval"}  # nothing recorded or trained here
-    assert result["rotation_aug"] == "continuous"  # as the shipped policy was trained
-    assert result["training_recipes"] == {"equidiff": None, "baseline": None}  # no run.json next to them
+    assert result["rotation_aug"] == dict.fromkeys(steps, "continuous")  # as the shipped policy was trained
+    assert result["training_recipes"] == dict.fromkeys(steps)  # no run.json next to them
+
+
+def test_in_range_gate_names_the_policies_below_it():
+    from equidiff_ros.commands.bench_generalization import in_range_failures
+
+    rates = {"equidiff": 0.7, "baseline": 0.5, "baseline_aug": 0.6}
+    assert in_range_failures(rates, 0.6) == ["baseline"]
+    assert in_range_failures(rates, 0.0) == []
+    assert in_range_failures({"equidiff": None, "baseline": None}, 0.6) == []  # no in-range scenes: no gate
 
 
 def test_shipped_checkpoint_loads_and_its_training_is_recorded():
@@ -529,7 +529,7 @@ def test_shipped_checkpoint_loads_and_its_training_is_recorded():
 
 
 @pytest.mark.slow
-def test_bench_generalization_trains_both_policies_side_by_side_on_half_the_cores(tmp_path, monkeypatch):
+def test_bench_generalization_trains_its_policies_side_by_side_sharing_the_cores(tmp_path, monkeypatch):
     import argparse
     import os
     import subprocess
@@ -545,7 +545,7 @@ def test_bench_generalization_trains_both_policies_side_by_side_on_half_the_core
         "import pathlib, sys, time; time.sleep(float(sys.argv[2])); "
         "pathlib.Path(sys.argv[1]).write_text(str(time.time())); sys.exit(int(sys.argv[3]))"
     )
-    behaviour = {"equidiff": (0.3, 0), "baseline": (0.3, 0)}  # seconds, exit code
+    behaviour = {"equidiff": (0.3, 0), "baseline": (0.3, 0), "baseline_aug": (0.3, 0)}  # seconds, exit code
 
     def fake_start(policy, bags, out, args, steps, threads):
         out.mkdir(parents=True, exist_ok=True)
@@ -556,32 +556,30 @@ def test_bench_generalization_trains_both_policies_side_by_side_on_half_the_core
 
     monkeypatch.setattr(bench, "_start_training", fake_start)
     args = argparse.Namespace(train_steps=7, max_minutes=None)
-    policies = bench._train_both(tmp_path / "demos", tmp_path, args)
-    assert policies == {
-        "equidiff": tmp_path / "equidiff" / "policy.pt",
-        "baseline": tmp_path / "baseline" / "policy.pt",
-    }
-    (a0, threads_a, steps_a), (b0, threads_b, _) = runs["equidiff"], runs["baseline"]
-    a1, b1 = (float(policies[n].read_text()) for n in ("equidiff", "baseline"))
-    assert a0 < b1 and b0 < a1  # the two runs overlapped
-    assert threads_a == threads_b == max(1, (os.cpu_count() or 2) // 2) and steps_a == 7
+    policies = bench._train_all(tmp_path / "demos", tmp_path, args)
+    assert policies == {name: tmp_path / name / "policy.pt" for name in ("equidiff", "baseline", "baseline_aug")}
+    started = {name: runs[name][0] for name in policies}
+    ended = {name: float(policies[name].read_text()) for name in policies}
+    assert max(started.values()) < min(ended.values())  # the three runs overlapped
+    assert {runs[name][1] for name in policies} == {max(1, (os.cpu_count() or 2) // 3)}
+    assert runs["equidiff"][2] == 7
 
     # one run failing stops the other at once and is reported with its log; nothing waits 60 s
-    behaviour.update(equidiff=(0.0, 3), baseline=(60.0, 0))
+    behaviour.update(equidiff=(0.0, 3), baseline=(60.0, 0), baseline_aug=(60.0, 0))
     t0 = time.monotonic()
     with pytest.raises(bench.TrainRunError) as err:
-        bench._train_both(tmp_path / "demos", tmp_path / "second", args)
+        bench._train_all(tmp_path / "demos", tmp_path / "second", args)
     assert time.monotonic() - t0 < 20
     message = str(err.value)
     assert "equidiff train equidiff failed (exit 3" in message and "equidiff log line" in message
-    assert "equidiff train baseline" not in message  # stopped by the bench, not a failure of its own
+    assert "equidiff train baseline" not in message  # stopped by the bench, not failures of their own
 
 
 @pytest.mark.slow
 @pytest.mark.sim
 def test_bench_generalization_quick_runs_end_to_end_on_the_cpu(tmp_path, capsys):
-    """Issue 7's promise that the benchmark runs on this CPU: one narrow-yaw demo recorded, both
-    policies trained side by side from it (tiny preset), both rolled out; one JSON line."""
+    """Issue 7's promise that the benchmark runs on this CPU: one narrow-yaw demo recorded, the
+    three policies trained side by side from it (tiny preset), all rolled out; one JSON line."""
     import json
 
     from equidiff_core.config import default_config_dir, load_lab_config
@@ -611,8 +609,14 @@ def test_bench_generalization_quick_runs_end_to_end_on_the_cpu(tmp_path, capsys)
     result = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     for key in ("equidiff_success", "baseline_success", "demos", "train_steps", "eval_episodes", "train_yaw_range_deg"):
         assert key in result, key
-    assert result["demos"] == 1 and result["train_steps_by_policy"] == {"equidiff": 30, "baseline": 30}
-    assert result["rotation_aug"] == "none" and result["preset"] == "tiny"
+    assert result["demos"] == 1 and result["train_steps_by_policy"] == {
+        "equidiff": 30,
+        "baseline": 30,
+        "baseline_aug": 30,
+    }
+    assert result["rotation_aug"] == {"equidiff": "none", "baseline": "none", "baseline_aug": "continuous"}
+    assert result["preset"] == "tiny" and result["min_in_range"] == 0.0 and result["failed_in_range"] == []
+    assert 0.0 <= result["baseline_aug_success"] <= 1.0 and isinstance(result["goal_met"], bool)
     assert {r["device"] for r in result["training_recipes"].values()} == {"cpu"}
     assert json.loads((tmp_path / "run" / "result.json").read_text()) == result
 

@@ -27,7 +27,10 @@ COMMANDS: dict[tuple[str, ...], tuple[str, str]] = {
     ("bench", "policy"): ("bench_policy", "time the encoder, one denoising step and DDIM-16"),
     ("bench", "train"): ("bench_train", "training samples/s on the CPU and on CUDA, same run"),
     ("bench", "control"): ("bench_control", "tracking, safety and latency of the franka node on franky-sim"),
-    ("bench", "generalization"): ("bench_generalization", "EquiDiff vs baseline on unseen object yaw in the twin"),
+    ("bench", "generalization"): (
+        "bench_generalization",
+        "EquiDiff vs the baseline with and without rotation augmentation on unseen object yaw",
+    ),
     ("bench", "safety"): ("bench_safety", "fault campaign against franky-sim through franka_node (one JSON line)"),
     ("bench", "chunking"): (
         "bench_chunking",
