@@ -66,8 +66,8 @@ VOXEL_QOS = QoSProfile(
 # while one reliable reader did not acknowledge: a SIGSTOPped policy_node did that in the twin,
 # and sometimes (when the pause outlived the participant lease) the writer never delivered
 # again, so the next episode stalled at "voxel_node: no /voxels". A best-effort reader costs
-# the writer nothing; on one host (shared memory) it loses a grid only when it falls five behind,
-# and the lockstep twin sends the next grid only once this one is answered or skipped.
+# the writer nothing; it loses a grid when it falls behind its queue, which the lockstep twin
+# never lets it do: the next grid exists only once this one is answered or skipped.
 VOXEL_POLICY_QOS = QoSProfile(
     depth=5,
     reliability=ReliabilityPolicy.BEST_EFFORT,
