@@ -1,11 +1,12 @@
 """policy_node: voxels + robot state -> DDIM policy at 5 Hz -> /franka/command_chunk.
 
 Wiring:
-  /voxels (PointCloud2 of occupied voxels, best effort: a paused policy must not hold the grids back
-           from voxel_node's other readers, common.VOXEL_POLICY_QOS) -> newest observation (kept raw; decoded in the worker);
+  /voxels (PointCloud2 of occupied voxels)       -> newest observation (kept raw; decoded in the worker);
                                                     a new one starts a cycle at once if the worker is idle
                                                     and the inputs are fresh, else waits for the worker
-                                                    (newer observations replace it meanwhile)
+                                                    (newer observations replace it meanwhile); read best
+                                                    effort (``common.VOXEL_POLICY_QOS``): a paused policy
+                                                    must not hold the grids back from the other readers
   /franka/ee_pose, /franka/joint_states          -> short history; the pose/width nearest the voxel stamp
   worker: ``InferencePolicy.predict`` -> first ``n_action_steps`` (8) of ``horizon`` (16) steps
           -> ``chunk.chunk_from_actions`` (step i at observation stamp + i·dt) -> /franka/command_chunk
