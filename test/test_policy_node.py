@@ -94,7 +94,10 @@ def block_grid(ws) -> np.ndarray:
 @pytest.mark.ros
 @pytest.mark.slow
 def test_policy_closes_the_loop_and_skips_stale_observations(ros_domain, checkpoint, tmp_path):
+    from rclpy.qos import ReliabilityPolicy
+
     from equidiff_core.pointcloud import grid_to_voxel_msg
+    from equidiff_core.topics import TOPIC_VOXELS
     from equidiff_core.twin.processes import start_node, stop_process
     from equidiff_ros.control_client import ControlClient
 
@@ -132,6 +135,13 @@ def test_policy_closes_the_loop_and_skips_stale_observations(ros_domain, checkpo
         feeder = threading.Thread(target=publish_voxels, daemon=True)
         feeder.start()
         client.wait_for(lambda: client.data.last_chunk is not None, 90.0, "a chunk from the policy node", policy)
+        # policy_node must not be in /voxels' acknowledgement set: a reliable reader that stopped
+        # (SIGSTOP in the twin's hung-policy test) held the grids back from twin_node too
+        readers = client.node.get_subscriptions_info_by_topic(TOPIC_VOXELS)
+        policy_readers = [r for r in readers if r.node_name == "policy_node"]
+        assert policy_readers and all(
+            r.qos_profile.reliability == ReliabilityPolicy.BEST_EFFORT for r in policy_readers
+        ), [(r.node_name, r.qos_profile.reliability) for r in readers]
 
         def answered() -> list:  # chunks answering observations this test sent (stamps as float seconds)
             sent = {st / 1e9 for st in stamps}

@@ -61,6 +61,19 @@ VOXEL_QOS = QoSProfile(
     durability=DurabilityPolicy.VOLATILE,
     history=HistoryPolicy.KEEP_LAST,
 )
+# policy_node reads /voxels best effort. A reliable reader is in its writer's acknowledgement
+# set, and Fast DDS held back voxel_node's grids from *every* reader (twin_node, the recorder)
+# while one reliable reader did not acknowledge: a SIGSTOPped policy_node did that in the twin,
+# and sometimes (when the pause outlived the participant lease) the writer never delivered
+# again, so the next episode stalled at "voxel_node: no /voxels". A best-effort reader costs
+# the writer nothing; it loses a grid when it falls behind its queue, which the lockstep twin
+# never lets it do: the next grid exists only once this one is answered or skipped.
+VOXEL_POLICY_QOS = QoSProfile(
+    depth=5,
+    reliability=ReliabilityPolicy.BEST_EFFORT,
+    durability=DurabilityPolicy.VOLATILE,
+    history=HistoryPolicy.KEEP_LAST,
+)
 # The twin on simulated time owes every camera frame a chunk: a frame whose cloud is lost in
 # transport (best effort drops a large sample when a queue overflows) would hold the sim until
 # its stall timeout. So there both ends of the cloud topics are reliable (``reliable_clouds``);
