@@ -43,7 +43,8 @@ from trajectory_msgs.msg import MultiDOFJointTrajectory
 
 from equidiff_core import geometry
 from equidiff_core.chunk import PoseChunk, chunk_to_msg
-from equidiff_core.config import load_lab_config
+from equidiff_core.config import default_config_dir, load_lab_config
+from equidiff_core.control import load_control_config
 from equidiff_core.episode import run_episode
 from equidiff_core.robots.franky.sim import free_loopback_host
 from equidiff_core.rosmsg import RclpyFactory, stamp_to_ns
@@ -608,12 +609,14 @@ class TwinStack:
                 ages = {"max_observation_age_s": max(0.5, self.latency_s + 0.2)}
             else:
                 ages = {"max_observation_age_s": 4.0, "max_state_offset_s": 0.5} if self.lenient else {}
+            control = load_control_config(default_config_dir() / "control.yaml")  # franka_node's, as started here
             specs["policy_node"] = (
                 {
                     **common,
                     "checkpoint": str(self.policy),
                     "device": self.device,
                     "torch_threads": self.torch_threads,
+                    "rtc_max_gap_m": control.safety.max_first_step_jump_m,
                     **ages,
                 },
                 {TOPIC_COMMAND_CHUNK: TOPIC_TWIN_POLICY_CHUNK},

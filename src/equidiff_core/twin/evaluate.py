@@ -329,7 +329,9 @@ def _run(
     controller = Controller(
         arm, lab.safety_box, control, clock=clock, logger=_QUIET, on_command=None if probe is None else probe.command
     )
-    chunking = RealTimeChunking(RealTimeChunking.delay_for(latency_s, dt_ms / 1000), dt_ms * 1_000_000) if rtc else None
+    # policy_node's rtc: a previous chunk farther from the TCP than franka_node's jump limit was rejected
+    delay = RealTimeChunking.delay_for(latency_s, dt_ms / 1000)
+    chunking = RealTimeChunking(delay, dt_ms * 1_000_000, control.safety.max_first_step_jump_m) if rtc else None
     controller.start(home=False, thread=False)  # the arm is at the ready pose: hold it, as franka_node does
     pending: deque = deque()  # (ms at which it arrives, PoseChunk), in order
     answers = AnswerSchedule(execute_steps, n_exec, dt_ms * 1_000_000)  # policy_node's rule
