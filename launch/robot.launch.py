@@ -22,6 +22,8 @@ from launch.conditions import LaunchConfigurationEquals
 from launch.substitutions import LaunchConfiguration
 from launch_ros.actions import Node
 
+from equidiff_core.control import load_control_config
+
 try:
     from ament_index_python.packages import get_package_share_directory
 
@@ -32,6 +34,8 @@ except (ImportError, LookupError):  # a source checkout (PackageNotFoundError is
 
 def generate_launch_description():
     lab = LaunchConfiguration("lab_config")
+    # policy_node's rtc_max_gap_m is franka_node's first-step jump limit, from the control.yaml it reads
+    jump_limit_m = load_control_config(SHARE / "config" / "control.yaml").safety.max_first_step_jump_m
     common = {"lab_config": lab}
     return LaunchDescription(
         [
@@ -83,6 +87,7 @@ def generate_launch_description():
                         "device": LaunchConfiguration("device"),
                         "precision": LaunchConfiguration("precision"),
                         "start_paused": True,
+                        "rtc_max_gap_m": jump_limit_m,
                     }
                 ],
             ),

@@ -35,6 +35,8 @@ from launch.substitutions import (
 )
 from launch_ros.actions import Node
 
+from equidiff_core.control import load_control_config
+
 try:
     from ament_index_python.packages import get_package_share_directory
 
@@ -47,6 +49,8 @@ CAMERAS = ("cam_front", "cam_left", "cam_right")  # the names in lab.yaml
 
 def generate_launch_description():
     lab = LaunchConfiguration("lab_config")
+    # policy_node's rtc_max_gap_m is franka_node's first-step jump limit, from the control.yaml it reads
+    jump_limit_m = load_control_config(SHARE / "config" / "control.yaml").safety.max_first_step_jump_m
     twin = LaunchConfiguration("twin_config")
     host = LaunchConfiguration("host")
     out = LaunchConfiguration("out")
@@ -100,7 +104,12 @@ def generate_launch_description():
             executable="policy_node",
             output="screen",
             parameters=[
-                {**common, "checkpoint": LaunchConfiguration("checkpoint"), "device": LaunchConfiguration("device")}
+                {
+                    **common,
+                    "checkpoint": LaunchConfiguration("checkpoint"),
+                    "device": LaunchConfiguration("device"),
+                    "rtc_max_gap_m": jump_limit_m,
+                }
             ],
             remappings=[("/franka/command_chunk", "/twin/policy_chunk")],
         ),

@@ -260,6 +260,46 @@ def test_replayed_bag_through_camera_node_and_voxel_node(tester, scene, tmp_path
 
 
 @pytest.mark.ros
+@pytest.mark.slow
+def test_composed_process_runs_one_camera_node_per_camera_each_with_its_name_and_parameters(tester, scene, tmp_path):
+    """``equidiff_composed`` with two camera_nodes (``NAME=camera_node``): each is a node of its
+    own name and reads its own parameters (its camera) from the parameter file, keyed by that name."""
+    import os
+    import signal
+
+    from test_cameras import write_cloud_bag
+
+    from equidiff_core.twin.processes import composed_command, stop_process
+
+    lab, clouds, _expected = scene
+    bag = tmp_path / "episode"
+    write_cloud_bag(bag, {c.topic: [cl] * 6 for c, cl in zip(lab.cameras, clouds)}, period_ns=200_000_000)
+    front, left = lab.cameras[0].name, lab.cameras[1].name
+    params = {"lab_config": LAB_YAML, "backend": "replay", "bag": str(bag), "loop": True}
+    cmd = composed_command(
+        {"camera_a": {**params, "camera": front}, "camera_b": {**params, "camera": left}},
+        tmp_path / "params.yaml",
+        kinds={"camera_a": "camera_node", "camera_b": "camera_node"},
+    )
+    proc = subprocess.Popen(
+        cmd, env=dict(os.environ, OMP_NUM_THREADS="1"), stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True
+    )
+
+    def cameras_reported() -> set[str]:
+        return {s.name for msg in tester.diagnostics for s in msg.status if s.name.startswith("camera_node/")}
+
+    try:
+        wanted = {f"camera_node/{front}", f"camera_node/{left}"}
+        assert tester.wait_for(lambda: cameras_reported() >= wanted, 60.0), cameras_reported()
+        assert {"camera_a", "camera_b"} <= set(tester.node.get_node_names())
+        assert cameras_reported() == wanted  # each node its own camera, none all of them
+        assert tester.clouds  # the front camera's clouds flow
+    finally:
+        stop_process(proc, timeout=10.0, sig=signal.SIGINT)
+    assert proc.returncode == 0, proc.stdout.read()
+
+
+@pytest.mark.ros
 def test_camera_node_without_realsense_fails_fast_naming_the_serial(ros_domain):
     proc = _spawn("camera_node", "backend:=realsense", "camera:=cam_left")
     try:

@@ -84,6 +84,27 @@ def test_bad_checkpoint_is_a_clear_error_at_start(ros_domain, tmp_path, checkpoi
     assert expected in capsys.readouterr().err
 
 
+@pytest.mark.ros
+def test_rtc_max_gap_reaches_the_real_time_chunking(ros_domain, checkpoint):
+    """The launchers pass franka_node's first-step jump limit as ``rtc_max_gap_m``; the node hands it to
+    ``RealTimeChunking``, which forgets a previous chunk farther than that from the TCP."""
+    import rclpy
+
+    from equidiff_ros.policy_node import PolicyNode
+
+    params = ["-p", f"checkpoint:={checkpoint}", "-p", "rtc:=true", "-p", "rtc_max_gap_m:=0.05"]
+    rclpy.init(args=["--ros-args", *params])
+    try:
+        node = PolicyNode()
+        try:
+            assert node.chunking.max_gap_m == 0.05
+        finally:
+            node.shutdown()
+            node.destroy_node()
+    finally:
+        rclpy.try_shutdown()
+
+
 def block_grid(ws) -> np.ndarray:
     """A voxel grid with one block in it, what the tests feed policy_node as /voxels."""
     grid = np.zeros((4, ws.resolution, ws.resolution, ws.resolution), np.uint8)

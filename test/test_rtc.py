@@ -45,7 +45,7 @@ def test_steps_to_publish_cover_the_execution_horizon_and_the_latency():
 
 
 def test_the_previous_chunk_is_aligned_in_time_hard_over_the_delay_then_decaying():
-    rtc = RealTimeChunking(delay_steps=2, dt_ns=DT_NS)
+    rtc = RealTimeChunking(delay_steps=2, dt_ns=DT_NS, max_gap_m=0.08)
     assert rtc.guide(0) is None
     prev = np.arange(16, dtype=float)[:, None] * np.ones(10)
     rtc.remember(1_000 * DT_NS, prev)
@@ -58,9 +58,11 @@ def test_the_previous_chunk_is_aligned_in_time_hard_over_the_delay_then_decaying
     # a previous chunk far from where the arm is was not executed (rejected): forgotten, not pinned
     ee = prev[4].copy()
     assert rtc.guide(1_004 * DT_NS, ee) is not None
-    ee[0] += 0.1
+    ee[0] += 0.07  # within the 80 mm given
+    assert rtc.guide(1_004 * DT_NS, ee) is not None
+    ee[0] += 0.02
     assert rtc.guide(1_004 * DT_NS, ee) is None and rtc.guide(1_004 * DT_NS) is None
-    assert RealTimeChunking(2, DT_NS, max_age_ns=3 * DT_NS).guide(0) is None
+    assert RealTimeChunking(2, DT_NS, 0.08, max_age_ns=3 * DT_NS).guide(0) is None
 
 
 def _reference_ddim(denoise, cond, scheduler, noise):
@@ -96,7 +98,7 @@ def test_rtc_is_c4_equivariant_rotated_scene_and_previous_chunk_give_the_rotated
     voxels, ee = scene
     noise = torch.randn(16, fast.codec.dim, generator=torch.Generator().manual_seed(7))
     previous = torch.from_numpy(fast.predict(voxels.numpy(), ee.numpy(), seed=11))
-    rtc = RealTimeChunking(delay_steps=2, dt_ns=DT_NS)
+    rtc = RealTimeChunking(delay_steps=2, dt_ns=DT_NS, max_gap_m=0.08)
     rtc.remember(0, previous.numpy())
     target, weights = rtc.guide(3 * DT_NS)
     guided = torch.from_numpy(fast.predict(voxels.numpy(), ee.numpy(), noise=noise.numpy(), guide=(target, weights)))

@@ -235,8 +235,6 @@ def test_a_chunk_takes_effect_only_after_the_latency_budget(execute_steps, laten
     """The second answered observation's chunk jumps the target 5 cm sideways: neither the
     command nor the TCP moves toward it before that observation's time + L (the previous chunk,
     a hold, keeps running meanwhile), and both have moved within 0.3 s after."""
-    from types import SimpleNamespace
-
     from equidiff_core.config import default_config_dir, load_lab_config
     from equidiff_core.twin.demos import DirectRecorder
     from equidiff_core.twin.evaluate import evaluate_policy
@@ -254,7 +252,7 @@ def test_a_chunk_takes_effect_only_after_the_latency_budget(execute_steps, laten
 
     lab = load_lab_config(default_config_dir() / "lab.yaml")
     rec = DirectRecorder(CFG, lab)
-    spy = _SpySim(rec.sim)
+    spy = rec.sim = _SpySim(rec.sim)
     policy = JumpPolicy(spy)
     policy.times, policy.times_ee = [], []
     try:
@@ -265,7 +263,7 @@ def test_a_chunk_takes_effect_only_after_the_latency_budget(execute_steps, laten
             [3],
             1.2 if execute_steps == 1 else 2.4,
             log=lambda s: None,
-            recorder=SimpleNamespace(sim=spy, voxel_grid=rec.voxel_grid),
+            recorder=rec,
             latency_s=latency_s,
             execute_steps=execute_steps,
         )
@@ -293,8 +291,6 @@ def test_the_evaluation_executes_chunks_through_franka_nodes_controller():
     """A chunk asking for 7 cm in the 0.1 s before its next step (0.7 m/s) is executed at
     franka_node's speed limit, as the live twin executes it: the in-process evaluation runs
     franka_node's own Controller (safety filter, watchdog), not just its scheduler."""
-    from types import SimpleNamespace
-
     from equidiff_core.config import default_config_dir, load_lab_config
     from equidiff_core.control import load_control_config
     from equidiff_core.twin.demos import DirectRecorder
@@ -311,7 +307,7 @@ def test_the_evaluation_executes_chunks_through_franka_nodes_controller():
     limit = load_control_config(default_config_dir() / "control.yaml").safety.max_linear_speed_m_s
     lab = load_lab_config(default_config_dir() / "lab.yaml")
     rec = DirectRecorder(CFG, lab)
-    spy = _SpySim(rec.sim)
+    spy = rec.sim = _SpySim(rec.sim)
     policy = FarPolicy(spy)
     policy.start = None
     try:
@@ -322,7 +318,7 @@ def test_the_evaluation_executes_chunks_through_franka_nodes_controller():
             [3],
             1.6,
             log=lambda s: None,
-            recorder=SimpleNamespace(sim=spy, voxel_grid=rec.voxel_grid),
+            recorder=rec,
             latency_s=0.1,
         )
     finally:

@@ -89,12 +89,13 @@ def test_composed_command_writes_each_nodes_parameters_under_its_name(tmp_path):
     from equidiff_ros.composed import parse_nodes
 
     cmd = composed_command(
-        {"voxel_node": {"slop_s": 0.15, "use_sim_time": True}, "policy_node": {"seed": 3}},
+        {"voxel_node": {"slop_s": 0.15, "use_sim_time": True}, "policy_node": {"seed": 3}, "cam_a": {"camera": "a"}},
         tmp_path / "p.yaml",
         {"policy_node": {"/franka/command_chunk": "/twin/policy_chunk"}},
+        kinds={"voxel_node": "voxel_node", "cam_a": "camera_node"},
     )
     i = cmd.index("--nodes")
-    assert cmd[i + 1] == "voxel_node,policy_node"
+    assert cmd[i + 1] == "voxel_node,policy_node,cam_a=camera_node"
     assert cmd[i + 2 :] == [
         "--ros-args",
         "--params-file",
@@ -105,10 +106,19 @@ def test_composed_command_writes_each_nodes_parameters_under_its_name(tmp_path):
     assert yaml.safe_load((tmp_path / "p.yaml").read_text()) == {
         "voxel_node": {"ros__parameters": {"slop_s": 0.15, "use_sim_time": True}},
         "policy_node": {"ros__parameters": {"seed": 3}},
+        "cam_a": {"ros__parameters": {"camera": "a"}},
     }
-    names, rest = parse_nodes(cmd[i:])
-    assert names == ["voxel_node", "policy_node"] and rest[0] == "--ros-args"
-    for bad in (["--nodes", "voxel_node,twin_node"], ["--nodes", "voxel_node,voxel_node"], ["--ros-args"]):
+    nodes, rest = parse_nodes(cmd[i:])
+    assert nodes == [("voxel_node", "voxel_node"), ("policy_node", "policy_node"), ("cam_a", "camera_node")]
+    assert rest[0] == "--ros-args"
+    for bad in (
+        ["--nodes", "voxel_node,twin_node"],
+        ["--nodes", "voxel_node,voxel_node"],
+        ["--nodes", "a=camera_node,a=voxel_node"],
+        ["--nodes", "=camera_node"],
+        ["--nodes", "a=twin_node"],
+        ["--ros-args"],
+    ):
         with pytest.raises(ValueError):
             parse_nodes(bad)
 

@@ -94,15 +94,17 @@ class RealTimeChunking:
     ``models.sampling.ddim_sample``'s ``guide``; ``InferencePolicy.predict`` encodes the target
     relative to the current gripper state as the actions themselves are."""
 
-    # A previous chunk whose step for the new observation's instant lies farther than this from the
-    # TCP observed then is not what the arm is executing (franka_node rejected it: its first-step
-    # limit is 80 mm; or the arm was stopped): pinning the new chunk to it would repeat the
-    # rejection for ever (measured in the twin before this check: 13 of 13 chunks rejected).
-    MAX_GAP_M = 0.08
-
-    def __init__(self, delay_steps: int, dt_ns: int, max_age_ns: int | None = None, max_gap_m: float = MAX_GAP_M):
+    def __init__(self, delay_steps: int, dt_ns: int, max_gap_m: float, max_age_ns: int | None = None):
+        """``max_gap_m``: a previous chunk whose step for the new observation's instant lies
+        farther than this from the TCP observed then is not what the arm is executing (franka_node
+        rejected it, or the arm was stopped); pinning the new chunk to it would repeat the
+        rejection for ever (measured in the twin before this check: 13 of 13 chunks rejected).
+        So it is franka_node's first-step jump limit (control.yaml ``safety.max_first_step_jump_m``),
+        passed in by whoever runs the policy."""
         if delay_steps < 0:
             raise ValueError(f"delay_steps must be >= 0, got {delay_steps}")
+        if not max_gap_m > 0:
+            raise ValueError(f"max_gap_m must be positive, got {max_gap_m}")
         self.delay_steps = int(delay_steps)
         self.dt_ns = int(dt_ns)
         self.max_age_ns = max_age_ns  # a previous chunk older than this is forgotten (a pause, a new episode)

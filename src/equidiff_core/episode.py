@@ -4,8 +4,10 @@
 
 ``run_episode`` is that sequence. *Where* it runs is an ``EpisodeWorld``: the live twin over
 ROS (``equidiff_ros.twin_supervisor``) or the in-process twin (``twin.demos``). *Who* acts is an
-``Actor``: the policy through the live graph, or the scripted expert streaming its plan. So
-``equidiff twin run``, ``twin collect`` (both paths) and ``bench twin`` share one answer to
+``Actor``: the policy through the live graph or in-process (``twin.evaluate.DirectPolicy``), or
+the scripted expert streaming its plan. So ``equidiff twin run``, ``twin collect`` (both paths),
+``bench twin`` and the in-process evaluation (``twin evaluate``, ``bench generalization``,
+``bench chunking``) share one answer to
 "home first", "success must hold for hold_s without a break" (``SuccessHold``), "a stalled
 episode ends at once and keeps its bag" and "a failure is kept or discarded".
 """

@@ -77,8 +77,8 @@ NODE_NAME = "franka_node"
 
 
 class FrankaNode(Node):
-    def __init__(self):
-        super().__init__(NODE_NAME)
+    def __init__(self, node_name: str = NODE_NAME):
+        super().__init__(node_name)
         wait_for_clock(self)  # simulated time (the twin): nothing is timed before /clock
         self.lab = declare_lab_config(self)
         control_path = self.declare_parameter("control_config", str(default_config_dir() / "control.yaml")).value

@@ -48,7 +48,10 @@ carry ``n_action_steps``; >= 0: they carry k + ceil(L/dt) + 1 steps, so the next
 there before this one runs out), ``rtc`` (default false: real-time chunking, each chunk
 denoised towards the previous one, hard on the steps due before it arrives (from
 ``latency_s``), decaying over the rest of the overlap; ``chunk.RealTimeChunking``,
-docs/control.md),
+docs/control.md), ``rtc_max_gap_m`` (with ``rtc``, a previous chunk whose step for the new
+observation lies farther than this from the observed TCP was rejected by franka_node and is not
+joined: franka_node's first-step jump limit, control.yaml ``safety.max_first_step_jump_m``, which
+the launchers pass in; default that key's default),
 ``torch_threads`` (default 1: on a shared CPU more threads are slower; 0: torch's default),
 ``start_paused``, ``lab_config``.
 """
@@ -81,6 +84,7 @@ from equidiff_core.chunk import (
     chunk_to_msg,
     steps_to_publish,
 )
+from equidiff_core.control import SafetyConfig
 from equidiff_core.control import messages as cm
 from equidiff_core.control.metrics import percentiles_ms
 from equidiff_core.inference import CheckpointError, load_inference_policy
@@ -111,7 +115,7 @@ USAGE = (
     + """
 usage: policy_node --ros-args -p checkpoint:=/path/policy.pt [-p device:=cpu -p precision:=auto|fp32|bf16
                    -p rate_hz:=5.0 -p max_observation_age_s:=0.5 -p execute_steps:=0 -p latency_s:=-1.0
-                   -p rtc:=false]
+                   -p rtc:=false -p rtc_max_gap_m:=0.08]
 """
 )
 
@@ -119,8 +123,8 @@ NODE_NAME = "policy_node"
 
 
 class PolicyNode(Node):
-    def __init__(self):
-        super().__init__(NODE_NAME)
+    def __init__(self, node_name: str = NODE_NAME):
+        super().__init__(node_name)
         wait_for_clock(self)  # simulated time (the twin): nothing is timed before /clock
         self.lab = declare_lab_config(self)
         checkpoint = self.declare_parameter("checkpoint", "").value
@@ -143,6 +147,7 @@ class PolicyNode(Node):
             raise ValueError(f"parameter latency_s must be -1 (not set) or 0..10 s, got {latency_s!r}")
         latency_s = float(latency_s)
         rtc = self.declare_parameter("rtc", False).value
+        rtc_max_gap_m = declare_number(self, "rtc_max_gap_m", SafetyConfig.max_first_step_jump_m)
         threads = self.declare_parameter("torch_threads", 1).value
         self._paused = (
             "waiting for an enable (start_paused)" if self.declare_parameter("start_paused", False).value else ""
@@ -178,7 +183,9 @@ class PolicyNode(Node):
             )
         # real-time chunking: each chunk denoised towards the previous one (None: plain DDIM, as without it)
         self.chunking = (
-            RealTimeChunking(RealTimeChunking.delay_for(max(latency_s, 0.0), preset.dt), self.dt_ns) if rtc else None
+            RealTimeChunking(RealTimeChunking.delay_for(max(latency_s, 0.0), preset.dt), self.dt_ns, rtc_max_gap_m)
+            if rtc
+            else None
         )
         self.rng = np.random.default_rng(None if seed < 0 else int(seed))
         self.get_logger().info(

@@ -120,8 +120,8 @@ def parse_command(text: str) -> tuple[str, dict]:
 
 
 class RecorderNode(Node):
-    def __init__(self):
-        super().__init__("recorder_node")
+    def __init__(self, node_name: str = "recorder_node"):
+        super().__init__(node_name)
         wait_for_clock(self)  # simulated time (the twin): nothing is timed before /clock
         self.lab = declare_lab_config(self)
         self.cfg = declare_config(self, RecordingConfig)

@@ -66,8 +66,8 @@ usage: teleop_node [--ros-args -p source:=joy|spacemouse -p gripper_mode:=button
 
 
 class TeleopNode(Node):
-    def __init__(self):
-        super().__init__("teleop_node")
+    def __init__(self, node_name: str = "teleop_node"):
+        super().__init__(node_name)
         wait_for_clock(self)  # simulated time (the twin): nothing is timed before /clock
         self.lab = declare_lab_config(self)
         self.cfg = declare_config(self, TeleopConfig)

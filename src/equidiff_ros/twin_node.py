@@ -75,8 +75,8 @@ CLOCKS = ("sim", "realtime")
 
 
 class TwinNode(Node):
-    def __init__(self):
-        super().__init__(NODE_NAME)
+    def __init__(self, node_name: str = NODE_NAME):
+        super().__init__(node_name)
         self.lab = declare_lab_config(self)
         cfg_path = self.declare_parameter("twin_config", str(default_config_dir() / "twin.yaml")).value
         host = self.declare_parameter("host", "").value

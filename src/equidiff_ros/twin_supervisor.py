@@ -43,7 +43,8 @@ from trajectory_msgs.msg import MultiDOFJointTrajectory
 
 from equidiff_core import geometry
 from equidiff_core.chunk import PoseChunk, chunk_to_msg
-from equidiff_core.config import load_lab_config
+from equidiff_core.config import default_config_dir, load_lab_config
+from equidiff_core.control import load_control_config
 from equidiff_core.episode import run_episode
 from equidiff_core.robots.franky.sim import free_loopback_host
 from equidiff_core.rosmsg import RclpyFactory, stamp_to_ns
@@ -542,21 +543,22 @@ class TwinStack:
             lambda: self.sup.twin_state is not None, self.start_timeout_s, "twin_node's /twin/state", g.check
         )
         specs = self._pipeline_specs()
-        if self.composed:  # one node per camera would need one name each: one camera_node serves them all
-            nodes = {"camera_node": {**specs.pop(f"camera_{self.lab.cameras[0].name}")[0], "camera": ""}}
-            for name in [n for n in specs if n.startswith("camera_")]:
-                del specs[name]
-            nodes.update({name: params for name, (params, _remaps) in specs.items()})
-            remaps = {name: r for name, (_params, r) in specs.items() if r}
+        if self.composed:
             g.start(
                 "pipeline",
-                composed_command(nodes, self.out_dir / "logs" / "pipeline_params.yaml", remaps),
+                composed_command(
+                    {name: params for name, (_kind, params, _remaps) in specs.items()},
+                    self.out_dir / "logs" / "pipeline_params.yaml",
+                    {name: remaps for name, (_kind, _params, remaps) in specs.items() if remaps},
+                    kinds={name: kind for name, (kind, _params, _remaps) in specs.items()},
+                ),
                 priority=True,
             )  # franka_node is in it
         else:
-            for name, (params, remaps) in specs.items():
-                executable = "camera_node" if name.startswith("camera_") else name
-                g.start(name, node_command(executable, params, remaps), priority=name == "franka_node")
+            for name, (kind, params, remaps) in specs.items():
+                if name != kind:  # its node name, as in the composed process and twin.launch.py
+                    remaps = {**remaps, "__node": name}
+                g.start(name, node_command(kind, params, remaps), priority=name == "franka_node")
         self.sup.wait_ready(self.start_timeout_s, g.check)
         self.sup.wait_for(
             lambda: self.sup.recorder_status.startswith("idle"), self.start_timeout_s, "recorder_node", g.check
@@ -570,14 +572,16 @@ class TwinStack:
             )
         self.log("[twin] all nodes up")
 
-    def _pipeline_specs(self) -> dict[str, tuple[dict, dict]]:
-        """Every node but twin_node: name -> (parameters, remaps), in start order."""
+    def _pipeline_specs(self) -> dict[str, tuple[str, dict, dict]]:
+        """Every node but twin_node: name -> (executable, parameters, remaps), in start order; one
+        camera_node per camera, named ``camera_<camera>``."""
         sim = not self.realtime
         common = {"lab_config": str(self.lab_path), "use_sim_time": sim}  # twin_node owns the clock
         clouds = {"reliable_clouds": True} if sim else {}  # the lockstep owes every frame a chunk
         specs = {}
         for cam in self.lab.cameras:
             specs[f"camera_{cam.name}"] = (
+                "camera_node",
                 {
                     **common,
                     **clouds,
@@ -588,13 +592,15 @@ class TwinStack:
                 {},
             )
         voxel = {"stale_after_s": 3.0, "slop_s": 0.15} if self.lenient and not sim else {}
-        specs["voxel_node"] = ({**common, **clouds, **voxel}, {})
+        specs["voxel_node"] = ("voxel_node", {**common, **clouds, **voxel}, {})
         # run_dir: its unclean-exit marker lives with this job's logs, not in the machine's tmp
         specs["franka_node"] = (
+            "franka_node",
             {**common, "robot_ip": self.host, "realtime": False, "run_dir": str(self.out_dir / "logs")},
             {},
         )
         specs["recorder_node"] = (
+            "recorder_node",
             {
                 **common,
                 "output_dir": str(self.out_dir / "bags"),
@@ -608,12 +614,15 @@ class TwinStack:
                 ages = {"max_observation_age_s": max(0.5, self.latency_s + 0.2)}
             else:
                 ages = {"max_observation_age_s": 4.0, "max_state_offset_s": 0.5} if self.lenient else {}
+            control = load_control_config(default_config_dir() / "control.yaml")  # franka_node's, as started here
             specs["policy_node"] = (
+                "policy_node",
                 {
                     **common,
                     "checkpoint": str(self.policy),
                     "device": self.device,
                     "torch_threads": self.torch_threads,
+                    "rtc_max_gap_m": control.safety.max_first_step_jump_m,
                     **ages,
                 },
                 {TOPIC_COMMAND_CHUNK: TOPIC_TWIN_POLICY_CHUNK},

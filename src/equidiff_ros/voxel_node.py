@@ -61,8 +61,8 @@ NODE_NAME = "voxel_node"
 
 
 class VoxelNode(Node):
-    def __init__(self):
-        super().__init__(NODE_NAME)
+    def __init__(self, node_name: str = NODE_NAME):
+        super().__init__(node_name)
         wait_for_clock(self)  # simulated time (the twin): nothing is timed before /clock
         self.lab = declare_lab_config(self)
         param = lambda name, default: self.declare_parameter(name, default).value

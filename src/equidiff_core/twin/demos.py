@@ -81,12 +81,16 @@ class DirectWorld:
 
     While recording, ``step`` writes /franka/ee_pose and /franka/joint_states at the robot's
     state rate and /voxels at the observation rate; ``command`` sends a teleop-style target and
-    writes it as /franka/command_chunk. Stamps are ``epoch_ns`` + sim time since the start."""
+    writes it as /franka/command_chunk. Stamps are ``epoch_ns`` + sim time since the start.
+    Without ``out`` it records nothing (the in-process evaluation, ``twin.evaluate``)."""
 
-    def __init__(self, rec: DirectRecorder, out: Path, task: str, epoch_ns: int, operator: str):
+    def __init__(
+        self, rec: DirectRecorder, out: Path | None = None, task: str = "", epoch_ns: int = 0, operator: str = ""
+    ):
         self.rec, self.sim, self.lab = rec, rec.sim, rec.lab
         self.out, self.task, self.epoch_ns, self.operator = out, task, epoch_ns, operator
         self.seed: int | None = None
+        self.scene = None  # the seed's ScenePoses
         self.writer = None
         self.path: Path | None = None
         self.ms = 0  # sim ms since the recording started
@@ -100,12 +104,13 @@ class DirectWorld:
     def reset_scene(self, seed: int) -> None:
         ex = self.rec.cfg.expert
         self.seed = seed
-        self.sim.reset(seed)  # puts the arm back at its initial posture ...
+        self.scene = self.sim.reset(seed)  # puts the arm back at its initial posture ...
         self.sim.command(tcp_pose(ex.ready_position, 0.0), ex.open_width)
         self.sim.step(1500)  # ... from which it reaches the ready pose, where the live twin's homing leaves it
 
     def settle(self, seconds: float) -> None:
-        self.sim.step(round(seconds * 1000))
+        if steps := round(seconds * 1000):  # DirectSim.step sets the hand's goal even for 0 steps
+            self.sim.step(steps)
 
     def now_s(self) -> float:
         return self.sim.time
@@ -114,6 +119,8 @@ class DirectWorld:
         return bool(self.sim.success()["success"])
 
     def start_recording(self) -> str:
+        if self.out is None:
+            return ""
         self.path = next_episode_path(self.out, self.task)
         self.writer = EpisodeWriter(
             self.path, EpisodeMeta(task=self.task, operator=self.operator, seed=self.seed)
@@ -126,6 +133,8 @@ class DirectWorld:
 
     def stop_recording(self, keep: bool, success: bool, note: str) -> None:
         writer, self.writer = self.writer, None
+        if writer is None:
+            return
         if keep:
             writer.close(success=success, notes=note)
         else:

@@ -1,8 +1,10 @@
 """Closed-loop evaluation of a policy in the twin, in-process on the sim clock.
 
-Used by ``equidiff bench generalization``: the same scene, cameras (rendered from the sim
-state), voxeliser and inference code as the live stack, but stepped synchronously, so the
-result does not depend on how fast this machine is.
+Used by ``equidiff twin evaluate``, ``bench generalization`` and ``bench chunking``: the same
+scene, cameras (rendered from the sim state), voxeliser and inference code as the live stack,
+but stepped synchronously, so the result does not depend on how fast this machine is. Each
+episode is ``episode.run_episode`` (the sequence ``twin run`` and ``twin collect`` run) in a
+``demos.DirectWorld`` that records nothing, with ``DirectPolicy`` acting.
 
 Chunks execute exactly as the live stack executes them on simulated time (policy_node +
 franka_node, docs/evaluation_scheme.md): an observation is due every ``dt`` (the preset's,
@@ -29,9 +31,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..chunk import AnswerSchedule
+from ..chunk import AnswerSchedule, RealTimeChunking, chunk_from_actions
 from ..config import LabConfig
-from ..episode import SuccessHold
+from ..control import Controller
+from ..episode import run_episode
 from ..observation import ee_input
 from ..robots.base import Robot, RobotError, RobotState
 from .config import TwinConfig
@@ -88,40 +91,6 @@ class _Progress:
         self.closest_to_block_m = min(self.closest_to_block_m, float(np.linalg.norm(tcp - block)))
 
 
-class _Episode:
-    """One roll-out's bookkeeping: observations, stage progress, and success held for ``hold_s``."""
-
-    def __init__(self, policy, rec, seed: int, hold_s: float):
-        self.policy, self.rec, self.sim, self.seed = policy, rec, rec.sim, seed
-        self.t0 = self.sim.time
-        self.progress = _Progress(self.sim)
-        self.observations, self.ok = 0, False
-        self.hold = SuccessHold(hold_s)
-        self.stats = None  # franka_node's Controller's stats once the episode has run
-
-    def observe(self, stamp_ns: int, chunking=None) -> np.ndarray:
-        """The policy's actions for an observation at ``stamp_ns`` (the current sim state);
-        ``chunking``: real-time chunking's state (``chunk.RealTimeChunking``), or None."""
-        sim = self.sim
-        grid = self.rec.voxel_grid(stamp_ns)
-        ee = ee_input(sim.tcp_pose(), sim.gripper_width())  # the state at the stamp itself: no matching needed
-        guide = None if chunking is None else chunking.guide(stamp_ns, ee)
-        seed = self.seed * 1000 + self.observations
-        actions = (
-            self.policy.predict(grid, ee, seed=seed)
-            if guide is None
-            else self.policy.predict(grid, ee, seed=seed, guide=guide)
-        )
-        self.observations += 1
-        return actions
-
-    def check(self) -> bool:
-        """Update the stages and the success hold; True once the task has been solved for hold_s."""
-        self.progress.update()
-        self.ok = self.hold.update(self.sim.success()["success"], self.sim.time)
-        return self.ok
-
-
 def evaluate_policy(
     policy,
     cfg: TwinConfig,
@@ -146,8 +115,7 @@ def evaluate_policy(
     module doc. The policy's sampling seed is ``seed * 1000 + observation index``. ``probe``
     (e.g. ``twin.chunking.ChunkingProbe``) sees each episode's chunks as franka_node's
     Controller receives them and its every command."""
-    from .demos import DirectRecorder
-    from .expert import tcp_pose
+    from .demos import DirectRecorder, DirectWorld
 
     preset = policy.preset
     execute_steps = AnswerSchedule(execute_steps, int(preset.n_action_steps), 1).steps  # checked up front
@@ -160,46 +128,32 @@ def evaluate_policy(
         raise ValueError(f"latency_s must be finite and >= 0, got {latency_s}")
     control = _control_config()
     rec = recorder or DirectRecorder(cfg, lab)
-    sim, ex = rec.sim, cfg.expert
+    world = DirectWorld(rec)  # records nothing
     results = []
     try:
         for seed in seeds:
-            poses = sim.reset(seed)
-            sim.command(tcp_pose(ex.ready_position, 0.0), ex.open_width)
-            sim.step(1500)
-            episode = _Episode(policy, rec, seed, cfg.success.hold_s)
-            if probe is not None:
-                probe.start_episode(seed)
-            _run(
-                episode,
-                policy,
-                lab,
-                control,
-                max_duration_s,
-                latency_s,
-                execute_steps,
-                ex.open_width,
-                publish_steps,
-                rtc,
-                probe,
+            actor = DirectPolicy(
+                world, policy, seed, control, max_duration_s, latency_s, execute_steps, publish_steps, rtc, probe
             )
-            if probe is not None:
-                probe.end_episode()
-            progress, t = episode.progress, sim.time - episode.t0
+            # settle_s 0: the cameras render the sim state itself, no pipeline to flush; the actor
+            # ends the episode at the time limit's observation instant, after it has been judged
+            episode = run_episode(world, actor, seed, float("inf"), cfg.success.hold_s, settle_s=0.0)
+            progress, t = actor.progress, world.now_s() - actor.t0
+            block_yaw = world.scene.block_yaw
             results.append(
                 EvalEpisode(
                     seed,
-                    episode.ok,
+                    episode.success,
                     round(t, 2),
-                    episode.observations,
-                    round(float(np.degrees(poses.block_yaw)), 1),
+                    actor.observations,
+                    round(float(np.degrees(block_yaw)), 1),
                     progress.reached,
                     progress.lifted,
                     round(progress.closest_to_bowl_m, 3),
                     round(progress.closest_to_block_m, 3),
                 )
             )
-            stats = episode.stats
+            stats = actor.controller.stats
             control_note = "".join(
                 [
                     f"; {stats.rejected_chunks} chunks rejected ({stats.last_rejection})"
@@ -210,9 +164,9 @@ def evaluate_policy(
                 ]
             )
             log(
-                f"[eval] seed {seed} (block yaw {np.degrees(poses.block_yaw):+.0f} deg): "
-                f"{'success' if episode.ok else 'failure'} after {t:.1f} s sim, {episode.observations} observations; "
-                f"TCP within {progress.closest_to_block_m * 1000:.0f} mm of the block, "
+                f"[eval] seed {seed} (block yaw {np.degrees(block_yaw):+.0f} deg): "
+                f"{'success' if episode.success else 'failure'} after {t:.1f} s sim, {actor.observations} "
+                f"observations; TCP within {progress.closest_to_block_m * 1000:.0f} mm of the block, "
                 f"reached it: {'yes' if progress.reached else 'no'}, lifted it: "
                 f"{'yes' if progress.lifted else 'no'}, block came within {progress.closest_to_bowl_m * 1000:.0f} mm "
                 f"of the bowl's centre{control_note}"
@@ -295,74 +249,122 @@ class _DirectArm(Robot):
             self.sim.command(self.target, self.width)
 
 
-def _run(
-    episode: _Episode,
-    policy,
-    lab: LabConfig,
-    control,
-    max_duration_s: float,
-    latency_s: float,
-    execute_steps: int,
-    open_width: float,
-    publish_steps: int,
-    rtc: bool,
-    probe,
-) -> None:
-    """One episode as policy_node + franka_node run it on simulated time (1 ms sim ticks).
+class DirectPolicy:
+    """The policy as an ``episode.Actor`` in a ``demos.DirectWorld``: policy_node's answering rule
+    and franka_node's own ``Controller`` over DirectSim, on simulated time (1 ms sim ticks).
 
     Four event streams on one integer-millisecond clock from the episode's start: observations
-    every dt (success is judged at each, as the supervisor does; every ``execute_steps``-th is
-    answered); each answered observation's chunk reaching franka_node's ``Controller`` latency_s
-    later (several can be in flight when latency_s > the answering period); the controller's
-    ticks at control_hz; and its newest target sent to the sim at COMMAND_HZ."""
-    from ..chunk import RealTimeChunking, chunk_from_actions
-    from ..control import Controller
+    every dt (success is judged at each but the first, as the supervisor does; every
+    ``execute_steps``-th is answered); each answered observation's chunk reaching the Controller
+    ``latency_s`` later (several can be in flight when latency_s > the answering period); the
+    controller's ticks at control_hz; and its newest target sent to the sim at COMMAND_HZ. The
+    episode ends at the first observation instant at or past ``max_duration_s`` (judged first).
+    The sampling seed is ``seed * 1000 + observation index``."""
 
-    sim = episode.sim
-    dt_ms = round(float(policy.preset.dt) * 1000)
-    n_exec = int(policy.preset.n_action_steps)
-    latency_ms = round(latency_s * 1000)
-    tick_ms = max(1, round(1000 / control.control_hz))
-    cmd_ms = max(tick_ms, round(1000 / COMMAND_HZ))
-    max_ms = round(max_duration_s * 1000)
-    clock, arm = _SimClock(), _DirectArm(sim, open_width)
-    controller = Controller(
-        arm, lab.safety_box, control, clock=clock, logger=_QUIET, on_command=None if probe is None else probe.command
-    )
-    chunking = RealTimeChunking(RealTimeChunking.delay_for(latency_s, dt_ms / 1000), dt_ms * 1_000_000) if rtc else None
-    controller.start(home=False, thread=False)  # the arm is at the ready pose: hold it, as franka_node does
-    pending: deque = deque()  # (ms at which it arrives, PoseChunk), in order
-    answers = AnswerSchedule(execute_steps, n_exec, dt_ms * 1_000_000)  # policy_node's rule
-    now = next_obs = next_tick = next_cmd = 0
-    while True:
-        clock.ms = now
-        if now >= next_obs:  # an observation instant: score the state, then answer it if it is due
-            if (now > 0 and episode.check()) or now >= max_ms:
-                break
-            if answers.due(now * 1_000_000):
-                stamp = now * 1_000_000
-                answers.answer(stamp)
-                actions = episode.observe(stamp, chunking)
-                if chunking is not None:
-                    chunking.remember(stamp, actions)
-                chunk = chunk_from_actions(actions[:publish_steps], stamp, dt_ms * 1_000_000)
-                pending.append((now + latency_ms, chunk))
-            next_obs += dt_ms
-        while pending and pending[0][0] <= now:  # a chunk arrives: franka_node's subscription callback
-            chunk = pending.popleft()[1]
-            accepted = controller.submit(chunk)
-            if probe is not None:
-                probe.chunk(clock.now_ns(), chunk, accepted)
-        if now >= next_tick:
-            controller.tick()
-            next_tick += tick_ms
-        if now >= next_cmd:
-            arm.send()
-            next_cmd += cmd_ms
-        upcoming = min(next_obs, next_tick, next_cmd, pending[0][0] if pending else next_obs)
-        sim.step(upcoming - now)
-        now = upcoming
-    episode.stats = controller.stats
+    def __init__(
+        self,
+        world,
+        policy,
+        seed: int,
+        control,
+        max_duration_s: float,
+        latency_s: float,
+        execute_steps: int,
+        publish_steps: int,
+        rtc: bool,
+        probe=None,
+    ):
+        self.world, self.sim, self.policy, self.seed, self.control = world, world.sim, policy, seed, control
+        self.dt_ms = round(float(policy.preset.dt) * 1000)
+        self.latency_ms = round(latency_s * 1000)
+        self.tick_ms = max(1, round(1000 / control.control_hz))
+        self.cmd_ms = max(self.tick_ms, round(1000 / COMMAND_HZ))
+        self.max_ms = round(max_duration_s * 1000)
+        self.delay_steps = RealTimeChunking.delay_for(latency_s, self.dt_ms / 1000)
+        self.execute_steps, self.publish_steps, self.rtc, self.probe = execute_steps, publish_steps, rtc, probe
+        self.observations = 0
+        self.finished = False
+
+    def begin(self) -> float:
+        sim, dt_ns = self.sim, self.dt_ms * 1_000_000
+        if self.probe is not None:
+            self.probe.start_episode(self.seed)
+        self.t0 = sim.time
+        self.progress = _Progress(sim)
+        self.clock, self.arm = _SimClock(), _DirectArm(sim, self.world.rec.cfg.expert.open_width)
+        self.controller = Controller(
+            self.arm,
+            self.world.lab.safety_box,
+            self.control,
+            clock=self.clock,
+            logger=_QUIET,
+            on_command=None if self.probe is None else self.probe.command,
+        )
+        # policy_node's rtc: a previous chunk farther from the TCP than franka_node's jump limit was rejected
+        max_gap_m = self.control.safety.max_first_step_jump_m
+        self.chunking = RealTimeChunking(self.delay_steps, dt_ns, max_gap_m) if self.rtc else None
+        self.controller.start(home=False, thread=False)  # the arm is at the ready pose: hold it, as franka_node does
+        self.pending: deque = deque()  # (ms at which it arrives, PoseChunk), in order
+        self.answers = AnswerSchedule(self.execute_steps, int(self.policy.preset.n_action_steps), dt_ns)
+        self.now = self.next_obs = self.next_tick = self.next_cmd = 0
+        return self.t0
+
+    def observe(self, stamp_ns: int) -> None:
+        """Answer the observation at ``stamp_ns`` (the current sim state): its chunk is due ``latency_s`` later."""
+        sim = self.sim
+        grid = self.world.rec.voxel_grid(stamp_ns)
+        ee = ee_input(sim.tcp_pose(), sim.gripper_width())  # the state at the stamp itself: no matching needed
+        seed = self.seed * 1000 + self.observations
+        if self.chunking is None:
+            actions = self.policy.predict(grid, ee, seed=seed)
+        else:
+            actions = self.policy.predict(grid, ee, seed=seed, guide=self.chunking.guide(stamp_ns, ee))
+            self.chunking.remember(stamp_ns, actions)
+        self.observations += 1
+        chunk = chunk_from_actions(actions[: self.publish_steps], stamp_ns, self.dt_ms * 1_000_000)
+        self.pending.append((self.now + self.latency_ms, chunk))
+
+    def advance(self) -> None:
+        if self.now >= self.max_ms:
+            self.finished = True
+            return
+        stamp = self.now * 1_000_000
+        if self.answers.due(stamp):
+            self.answers.answer(stamp)
+            self.observe(stamp)
+        self.next_obs += self.dt_ms
+        pending, now = self.pending, self.now
+        while now < self.next_obs:
+            self.clock.ms = now
+            while pending and pending[0][0] <= now:  # a chunk arrives: franka_node's subscription callback
+                chunk = pending.popleft()[1]
+                accepted = self.controller.submit(chunk)
+                if self.probe is not None:
+                    self.probe.chunk(self.clock.now_ns(), chunk, accepted)
+            if now >= self.next_tick:
+                self.controller.tick()
+                self.next_tick += self.tick_ms
+            if now >= self.next_cmd:
+                self.arm.send()
+                self.next_cmd += self.cmd_ms
+            upcoming = min(self.next_obs, self.next_tick, self.next_cmd, pending[0][0] if pending else self.next_obs)
+            self.sim.step(upcoming - now)
+            now = upcoming
+        self.now = self.clock.ms = now
+        self.progress.update()
+
+    def judging(self) -> bool:
+        return self.now > 0
+
+    def done(self) -> bool:
+        return self.finished
+
+    def stalled(self) -> str:
+        return ""  # one process, one clock: nothing can fail to deliver
+
+    def end(self) -> None:
+        if self.probe is not None:
+            self.probe.end_episode()
 
 
 def unseen_yaw_seeds(

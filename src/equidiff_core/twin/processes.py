@@ -100,10 +100,16 @@ def _param_text(value) -> str:
     return str(value)
 
 
-def composed_command(nodes: dict[str, dict], params_file: Path, remaps: dict[str, dict] | None = None) -> list[str]:
+def composed_command(
+    nodes: dict[str, dict],
+    params_file: Path,
+    remaps: dict[str, dict] | None = None,
+    kinds: dict[str, str] | None = None,
+) -> list[str]:
     """One process running several nodes (``equidiff_ros.composed``): each node's parameters
     written under its name to ``params_file`` (ROS 2's parameter-file format), each remap
-    prefixed with the node it is meant for."""
+    prefixed with the node it is meant for. ``kinds``: name -> executable for a node not named
+    after its executable (one camera_node per camera)."""
     import yaml
 
     params_file = Path(params_file)
@@ -111,7 +117,9 @@ def composed_command(nodes: dict[str, dict], params_file: Path, remaps: dict[str
     params_file.write_text(yaml.safe_dump({name: {"ros__parameters": p} for name, p in nodes.items()}, sort_keys=False))
     exe = shutil.which("equidiff_composed")
     cmd = [exe] if exe else [sys.executable, "-m", "equidiff_ros.composed"]
-    cmd += ["--nodes", ",".join(nodes), "--ros-args", "--params-file", str(params_file)]
+    kinds = kinds or {}
+    spec = [f"{name}={kinds[name]}" if kinds.get(name, name) != name else name for name in nodes]
+    cmd += ["--nodes", ",".join(spec), "--ros-args", "--params-file", str(params_file)]
     for node, node_remaps in (remaps or {}).items():
         for a, b in node_remaps.items():
             cmd += ["-r", f"{node}:{a}:={b}"]
