@@ -10,6 +10,7 @@ from equidiff_core import augment, geometry
 from equidiff_core.config import ConfigError, Workspace
 from equidiff_core.models import action_space
 from equidiff_core.models.baseline import matched_channels
+from equidiff_core.models.equivariance import random_observation
 from equidiff_core.models.plain import build_plain_encoder
 from equidiff_core.models.sampling import (
     ActionCodec,
@@ -18,7 +19,7 @@ from equidiff_core.models.sampling import (
 )
 from equidiff_core.normalizer import Normalizer, NormalizerError
 from equidiff_core.policies import PolicyInputError, count_parameters, make_policy
-from equidiff_core.presets import PRESETS, get_preset, preset_from_dict
+from equidiff_core.presets import PRESETS, encoder_sizes, get_preset, preset_from_dict
 
 WS = Workspace()
 
@@ -36,6 +37,40 @@ def test_presets_round_trip_and_validate():
         get_preset("tiny", control="velocity")
     with pytest.raises(ConfigError, match="preset.horizon"):
         preset_from_dict({**paper.to_dict(), "horizon": "16"})
+
+
+def test_encoder_layouts_follow_the_official_code_and_keep_the_legacy_one():
+    assert all(p.encoder_layout == "official" for p in PRESETS.values())
+    # EquivariantVoxelEncoder58Cyclic: conv (no padding), pool, 2 convs, pool, conv (no padding), conv, pool,
+    # 2 convs, pool, a learned 3^3 conv (no padding) down to 1
+    assert encoder_sizes(58, "official") == [56, 28, 28, 28, 14, 12, 12, 6, 6, 6, 3, 1]
+    assert encoder_sizes(58, "legacy") == [58, 29, 29, 27, 9, 9, 9, 3, 3, 3, 1, 1]
+    assert encoder_sizes(64, "official")[-1] == -1
+    for preset in PRESETS.values():
+        for layout in ("official", "legacy"):
+            p = preset.replace(encoder_layout=layout)
+            enc = build_plain_encoder(p, [4, *p.encoder_channels])
+            assert enc(torch.zeros(1, 4, 58, 58, 58)).shape == (1, p.encoder_channels[-1], 1, 1, 1)
+    # a preset saved before the field existed (the shipped checkpoint's) was trained with the legacy layout
+    old = {k: v for k, v in get_preset("compact").to_dict().items() if k != "encoder_layout"}
+    assert preset_from_dict(old).encoder_layout == "legacy"
+    assert preset_from_dict(get_preset("compact").to_dict()).encoder_layout == "official"
+    with pytest.raises(ConfigError, match="encoder_layout"):
+        get_preset("tiny", encoder_layout="resnet")
+
+
+def test_observation_embedding_ends_in_a_relu_only_in_the_legacy_layout():
+    # the official enc_out is a bare equivariant Linear: the U-Net's condition can be negative
+    for layout, relu in (("official", False), ("legacy", True)):
+        torch.manual_seed(0)
+        policy = make_policy("equidiff", get_preset("tiny", encoder_layout=layout), WS)
+        policy.set_normalizer(Normalizer.from_workspace(WS))
+        plain = policy.model.export_plain()
+        vox, ee = random_observation(policy, batch=2, seed=0)
+        v, e = policy._prepare(vox, ee, "center")
+        for model in (policy.model, plain):
+            cond = model.encode_obs(v, e)
+            assert bool((cond >= 0).all()) == relu
 
 
 def test_parameter_counts_and_matched_baseline():
@@ -110,6 +145,15 @@ def test_crops():
     assert r.shape == (4, 1, 58, 58, 58)
     with pytest.raises(ValueError):
         augment.center_crop(vox[..., :40, :40, :40], 58)
+    # the one input builder of training (random) and evaluation/deployment (centre): crop, then [0, 1]
+    grids = torch.randint(0, 256, (3, 1, 4, 64, 64, 64), dtype=torch.uint8)
+    torch.testing.assert_close(augment.voxel_input(grids, 58, "center"), augment.center_crop(grids, 58).float() / 255)
+    crops = augment.voxel_input(grids, 58, "random", torch.Generator().manual_seed(1))
+    assert crops.shape == (3, 1, 4, 58, 58, 58) and crops.dtype == torch.float32
+    assert not torch.equal(crops, augment.voxel_input(grids, 58, "random", torch.Generator().manual_seed(2)))
+    assert augment.voxel_input(grids, 58, "center", dtype=torch.bfloat16).dtype == torch.bfloat16
+    with pytest.raises(ValueError, match="crop mode"):
+        augment.voxel_input(grids, 58, "centre")
 
 
 def test_rotation_augmentation_moves_voxels_and_actions_together():

@@ -1,4 +1,5 @@
-"""Training augmentation: random crops and rotations about the workspace's vertical axis.
+"""Training augmentation: random crops and rotations about the workspace's vertical axis, and the
+voxel input builder (``voxel_input``) that training, evaluation and deployment share.
 
 A rotation acts on the whole sample at once: the voxel grid (geometry.rotate_voxel_grid, exact
 for multiples of 90 deg, nearest-neighbour otherwise), every gripper state and the whole action
@@ -34,6 +35,31 @@ def random_crop(voxels: torch.Tensor, size: int, generator: torch.Generator | No
     return torch.stack(
         [voxels[b, ..., i : i + size, j : j + size, k : k + size] for b, (i, j, k) in enumerate(offs.tolist())]
     )
+
+
+CROP_MODES = ("random", "center")
+
+
+def voxel_input(
+    voxels: torch.Tensor,
+    size: int,
+    mode: str,
+    generator: torch.Generator | None = None,
+    device: torch.device | str | None = None,
+    dtype: torch.dtype = torch.float32,
+) -> torch.Tensor:
+    """uint8 grids (B, ..., R, R, R) -> the network's input (B, ..., size, size, size) in [0, 1].
+
+    ``mode`` 'random': one random crop per sample, the training augmentation (the official code's
+    VoxelCropRandomizer, 64³ -> 58³); 'center': the centred crop, for evaluation and deployment (it
+    commutes with rot90, so C4 stays exact). Cropped before converting: a quarter less to convert."""
+    if mode == "random":
+        vox = random_crop(voxels, size, generator)
+    elif mode == "center":
+        vox = center_crop(voxels, size)
+    else:
+        raise ValueError(f"crop mode must be one of {CROP_MODES}, got {mode!r}")
+    return vox.to(device=device, dtype=dtype).div_(255.0)
 
 
 def sample_angles(batch: int, mode: str, generator: torch.Generator | None = None) -> list[float]:

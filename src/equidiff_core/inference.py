@@ -26,6 +26,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from .augment import voxel_input
 from .config import Workspace, from_dict
 from .machine import cpu_has_native_bf16
 from .models import action_space
@@ -285,13 +286,11 @@ class InferencePolicy:
         """Observation -> what every denoising step of it needs: the encoder's condition, through
         the condition's part of the U-Net's FiLM terms (once per observation, not once per step)."""
         self.check_inputs(voxels, ee)
-        from .augment import center_crop
-
-        vox = torch.from_numpy(np.ascontiguousarray(voxels)).to(self.device)
-        vox = center_crop(vox, self.preset.crop).to(self.dtype).div_(255.0)
+        vox = torch.from_numpy(np.ascontiguousarray(voxels)).to(self.device)[None, None]
+        vox = voxel_input(vox, self.preset.crop, "center", dtype=self.dtype)  # as the training policy's evaluation
         if self.pad_channels:
-            vox = torch.cat([vox, vox.new_zeros((self.pad_channels, *vox.shape[1:]))])
-        vox = vox[None, None].expand(1, self.preset.n_obs_steps, *vox.shape)  # single-step history repeated
+            vox = torch.cat([vox, vox.new_zeros((1, 1, self.pad_channels, *vox.shape[3:]))], dim=2)
+        vox = vox.expand(1, self.preset.n_obs_steps, *vox.shape[2:])  # single-step history repeated
         ee_t = torch.as_tensor(np.asarray(ee, dtype=np.float32), device=self.device)
         ee_n = self.normalizer.normalize(ee_t)[None, None].expand(1, self.preset.n_obs_steps, 10).to(self.dtype)
         return self.net.unet.global_films(self._encode(self._layout(vox), ee_n))

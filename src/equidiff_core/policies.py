@@ -82,13 +82,8 @@ class DiffusionPolicy(nn.Module):
 
     # --- shared pre-processing --------------------------------------------------------
     def _prepare(self, voxels: torch.Tensor, ee: torch.Tensor, crop: str, generator=None):
-        vox = (
-            augment.random_crop(voxels, self.preset.crop, generator)
-            if crop == "random"
-            else augment.center_crop(voxels, self.preset.crop)
-        )
         device = next(self.model.parameters()).device
-        vox = vox.to(device).float().div_(255.0)
+        vox = augment.voxel_input(voxels, self.preset.crop, crop, generator, device)
         return vox, self.normalizer.normalize(ee.to(device).float())
 
     def compute_loss(

@@ -1,11 +1,22 @@
 """Typed model presets: the network sizes and diffusion settings saved inside every checkpoint.
 
-* ``paper``: the sizes of the paper's real-robot EquiDiff (Vo): C8, encoder regular fields
-  8→16→16→32→32→64→64→128 over a 58³ crop of the 64³ grid, U-Net down_dims 256/512/1024,
-  horizon 16, one observation step, 8 executed steps. Needs a GPU for 5 Hz.
-* ``compact``: same structure, fewer channels early in the encoder (they dominate the cost at
-  58³) and a narrower U-Net, so DDIM-16 runs at 5 Hz with margin on a 2-core CPU.
+* ``paper``: the official EquiDiff code's voxel policy (pointW/equidiff,
+  ``train_equi_diffusion_unet_voxel_abs.yaml``): C8, its 58³ voxel encoder
+  (``EquivariantVoxelEncoder58Cyclic``: regular fields 8→16→16→32→32→64→64→128, layout
+  ``ENCODER_LAYOUTS["official"]``), an observation embedding of 128 regular fields, action
+  embedding 64, U-Net down_dims 256/512/1024 kernel 5, horizon 16, one observation step, 8
+  executed steps. Differences from it: no wrist camera (the official policy adds a ResNet-18 on
+  the in-hand image), the gripper state is one width instead of two finger positions, and a
+  256-wide diffusion-step embedding (the official config uses 128); docs/model.md counts both.
+  Needs a GPU for 5 Hz.
+* ``compact``: the same stages with fewer channels (the early ones dominate the cost at 58³) and
+  a narrower U-Net, so DDIM-16 runs at 5 Hz with margin on a 2-core CPU.
 * ``tiny``: for other areas' fast tests (one training step well under a second on a CPU).
+
+``encoder_layout`` picks the encoder's stages: ``official`` (above) or ``legacy`` (this project's
+first layout: max-pools 29 → 27 → 9 → 3 → 1, a 1³ last layer, and a ReLU after the observation
+embedding). Checkpoints saved before the field existed were trained with ``legacy``, so
+``preset_from_dict`` reads a missing field as ``legacy``.
 
 Presets are frozen dataclasses built with ``config.from_dict``, so a checkpoint's saved preset
 is validated the same way as a hand-written one.
@@ -20,6 +31,43 @@ from .config import ConfigError, from_dict, to_dict
 
 CONTROL_MODES = ("absolute", "relative")
 ROTATION_AUGS = ("none", "c4", "c8", "continuous")
+
+# The encoder's stages, numbered 0..7 into encoder_channels: ('conv', i) a 3³ conv with padding 1
+# (same size), ('conv0', i) a 3³ conv without padding (shrinks by 2), ('conv1x1', i) a 1³ conv, each
+# followed by a ReLU; ('pool', k) a k³ max-pool. Shared with the plain-torch inference model and the
+# baseline so that they cannot drift apart.
+ENCODER_LAYOUTS = {
+    # EquivariantVoxelEncoder58Cyclic of the official code; the last 3³ conv sees the whole 3³ grid
+    "official": (
+        ("conv0", 0),  # 58 -> 56
+        ("pool", 2),  # 28
+        ("conv", 1),
+        ("conv", 2),
+        ("pool", 2),  # 14
+        ("conv0", 3),  # 12
+        ("conv", 4),
+        ("pool", 2),  # 6
+        ("conv", 5),
+        ("conv", 6),
+        ("pool", 2),  # 3
+        ("conv0", 7),  # 1
+    ),
+    # this project's first layout; kept so that checkpoints trained with it load as they were trained
+    "legacy": (
+        ("conv", 0),
+        ("pool", 2),  # 58 -> 29
+        ("conv", 1),
+        ("conv0", 2),  # 27
+        ("pool", 3),  # 9
+        ("conv", 3),
+        ("conv", 4),
+        ("pool", 3),  # 3
+        ("conv", 5),
+        ("conv", 6),
+        ("pool", 3),  # 1
+        ("conv1x1", 7),  # a 3³ kernel with padding 1 would only ever use its centre tap at 1³
+    ),
+}
 
 
 @dataclass(frozen=True)
@@ -48,6 +96,7 @@ class PolicyPreset:
     beta_schedule: str = "squaredcos_cap_v2"
     control: str = "absolute"
     rotation_aug: str = "continuous"  # rotate voxels + gripper state + actions together while training
+    encoder_layout: str = "official"  # key of ENCODER_LAYOUTS; 'legacy' adds a ReLU after the observation embedding
 
     def __post_init__(self):
         if len(self.encoder_channels) != 8:
@@ -70,7 +119,9 @@ class PolicyPreset:
             )
         if not 1 <= self.num_inference_steps <= self.num_train_timesteps:
             raise ValueError("num_inference_steps must be in 1..num_train_timesteps")
-        if encoder_output_size(self.crop) != 1:
+        if self.encoder_layout not in ENCODER_LAYOUTS:
+            raise ValueError(f"encoder_layout must be one of {tuple(ENCODER_LAYOUTS)}, got {self.encoder_layout!r}")
+        if encoder_output_size(self.crop, self.encoder_layout) != 1:
             raise ValueError(f"crop {self.crop} does not reduce to 1 voxel through the encoder (use 58)")
         for d in self.down_dims:
             if d % self.n_groups:
@@ -83,45 +134,32 @@ class PolicyPreset:
         return dataclasses.replace(self, **changes)
 
 
-# The encoder's layers: (kind, index or size). Conv layers are numbered 0..7 into encoder_channels;
-# 'conv' pads by 1 (same size), 'conv0' pads by 0 (shrinks by 2), 'conv1x1' is the last layer at 1³
-# (a 3³ kernel with padding 1 there only ever uses its centre tap). Shared with the plain-torch
-# inference model so the two cannot drift apart.
-ENCODER_LAYOUT = (
-    ("conv", 0),
-    ("pool", 2),  # 58 -> 29
-    ("conv", 1),
-    ("conv0", 2),
-    ("pool", 3),  # 29 -> 27 -> 9
-    ("conv", 3),
-    ("conv", 4),
-    ("pool", 3),  # 9 -> 3
-    ("conv", 5),
-    ("conv", 6),
-    ("pool", 3),  # 3 -> 1
-    ("conv1x1", 7),
-)
-
-
-def encoder_output_size(crop: int) -> int:
-    size = crop
-    for kind, arg in ENCODER_LAYOUT:
+def encoder_sizes(crop: int, layout: str) -> list[int]:
+    """The grid's edge after each stage of ``ENCODER_LAYOUTS[layout]`` (-1 from a stage that cannot apply on)."""
+    sizes, size = [], crop
+    for kind, arg in ENCODER_LAYOUTS[layout]:
         if kind == "conv0":
-            size -= 2
+            size = size - 2 if size > 2 else -1
         elif kind == "pool":
-            if size % arg:
-                return -1
-            size //= arg
-    return size
+            size = size // arg if size > 0 and size % arg == 0 else -1
+        sizes.append(size)
+    return sizes
+
+
+def encoder_output_size(crop: int, layout: str) -> int:
+    return encoder_sizes(crop, layout)[-1]
 
 
 PRESETS: dict[str, PolicyPreset] = {
     "paper": PolicyPreset(name="paper"),
-    # Measured cost on the 2-core CPU (see docs/model.md): the 58^3 and 27^3 convolutions
-    # dominate, so the first fields are cut hardest; the U-Net runs once per group element (8 rows).
+    # Measured cost on the 2-core CPU (see docs/model.md): the 56^3 and 28^3 convolutions
+    # dominate, so the first fields are cut hardest; the 12^3 and 6^3 stages of the official layout
+    # cost more than the legacy 9^3 and 3^3 ones, so they are halved against the legacy compact
+    # (16, 32, 32): a training step then costs what the legacy compact's did. The U-Net runs once
+    # per group element (8 rows).
     "compact": PolicyPreset(
         name="compact",
-        encoder_channels=(1, 2, 4, 8, 16, 32, 32, 64),
+        encoder_channels=(1, 2, 4, 8, 8, 16, 16, 64),
         obs_hidden=32,
         action_hidden=16,
         down_dims=(32, 64, 128),
@@ -154,4 +192,7 @@ def get_preset(name: str, **overrides) -> PolicyPreset:
 
 
 def preset_from_dict(data: dict) -> PolicyPreset:
+    """A saved preset; one saved before ``encoder_layout`` existed was trained with the legacy layout."""
+    if isinstance(data, dict) and "encoder_layout" not in data:
+        data = {**data, "encoder_layout": "legacy"}
     return from_dict(PolicyPreset, data, where="preset")

@@ -15,14 +15,17 @@ from .plain import build_plain_encoder
 from .unet1d import ConditionalUnet1D
 
 # Plain channels = round(scale * regular fields) gives the equivariant C8 encoder's parameter
-# count within ~4 % for all presets (measured: paper 709k vs 711k, compact 173k vs 173k).
-MATCH_SCALE = 1.77
+# count within ~3 % for all presets (measured, official layout: paper 1.3006 M vs 1.3012 M, compact
+# 124.0k vs 121.3k, tiny 5.5k vs 5.4k). The legacy layout keeps its scale, so that baseline
+# checkpoints saved with it rebuild the network they were trained with.
+MATCH_SCALE = {"official": 1.72, "legacy": 1.77}
 
 
 def matched_channels(preset: PolicyPreset) -> tuple[int, ...]:
     if preset.baseline_channels is not None:
         return tuple(preset.baseline_channels)
-    return tuple(max(1, round(MATCH_SCALE * f)) for f in preset.encoder_channels)
+    scale = MATCH_SCALE[preset.encoder_layout]
+    return tuple(max(1, round(scale * f)) for f in preset.encoder_channels)
 
 
 class BaselineNoisePredictor(nn.Module):

@@ -1,7 +1,8 @@
 """EquiDiff (Vo) noise predictor in escnn: C_N-equivariant in observation and action.
 
     voxels (4 trivial fields) --8 x R3Conv + ReLU, 4 max-pools--> F regular fields at 1^3
-    [voxel fields, gripper state (rho1^4 + rho0^2)] --equivariant Linear + ReLU--> H regular fields
+    [voxel fields, gripper state (rho1^4 + rho0^2)] --equivariant Linear--> H regular fields
+        (the official code's enc_out; the legacy layout adds a ReLU)
     noisy action step (action irreps) --equivariant Linear + ReLU--> A regular fields
     U-Net(A channels, cond H) applied with shared weights to each of the N group elements
     --equivariant Linear--> epsilon (action irreps)
@@ -20,7 +21,7 @@ from escnn import nn as enn
 
 from ..presets import PolicyPreset
 from . import action_space
-from .plain import EquiNoiseCore, PlainEquiNoisePredictor, encoder_layer_specs
+from .plain import EquiNoiseCore, PlainEquiNoisePredictor, encoder_layer_specs, obs_embedding_relu
 
 
 def irreps_type(gspace, freqs: tuple[int, ...], repeat: int = 1) -> list:
@@ -62,7 +63,10 @@ class EquiNoisePredictor(EquiNoiseCore):
         obs_reps = To * preset.encoder_channels[-1] * [gp.regular_repr] + irreps_type(gp, action_space.EE_FREQS, To)
         self.obs_type = enn.FieldType(gp, obs_reps)
         hidden = enn.FieldType(gp, preset.obs_hidden * [gp.regular_repr])
-        self.obs_linear = enn.SequentialModule(enn.Linear(self.obs_type, hidden), enn.ReLU(hidden, inplace=True))
+        obs_layers = [enn.Linear(self.obs_type, hidden)] + (
+            [enn.ReLU(hidden, inplace=True)] if obs_embedding_relu(preset) else []
+        )
+        self.obs_linear = enn.SequentialModule(*obs_layers)
 
         # --- action embedding and decoder
         self.action_type = enn.FieldType(gp, irreps_type(gp, self.action_freqs))

@@ -1,7 +1,7 @@
 """The EquiDiff noise predictor as plain torch modules: what an exported policy runs.
 
 Its layers and their order mirror ``models.equivariant.EquiNoisePredictor`` exactly (both are
-built from ``presets.ENCODER_LAYOUT``), so the escnn model's exported weights load into it
+built from ``presets.ENCODER_LAYOUTS`` and ``obs_embedding_relu``), so the escnn model's exported weights load into it
 with ``load_state_dict(strict=True)``. Nothing here imports escnn.
 """
 
@@ -10,7 +10,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from ..presets import ENCODER_LAYOUT, PolicyPreset
+from ..presets import ENCODER_LAYOUTS, PolicyPreset
 from . import action_space
 from .unet1d import ConditionalUnet1D
 
@@ -19,7 +19,7 @@ def encoder_layer_specs(preset: PolicyPreset, channels: list[int]) -> list[tuple
     """[(kind, in_ch, out_ch, kernel, padding) | ('relu',) | ('pool', k)] for channels[0..8]."""
     specs = []
     c_in = channels[0]
-    for kind, arg in ENCODER_LAYOUT:
+    for kind, arg in ENCODER_LAYOUTS[preset.encoder_layout]:
         if kind == "pool":
             specs.append(("pool", arg))
             continue
@@ -28,6 +28,12 @@ def encoder_layer_specs(preset: PolicyPreset, channels: list[int]) -> list[tuple
         specs += [("conv", c_in, c_out, kernel, pad), ("relu",)]
         c_in = c_out
     return specs
+
+
+def obs_embedding_relu(preset: PolicyPreset) -> bool:
+    """Whether a ReLU follows the observation embedding: only in the legacy layout (the official
+    code's ``enc_out`` is a bare equivariant Linear)."""
+    return preset.encoder_layout == "legacy"
 
 
 def build_plain_encoder(preset: PolicyPreset, channels: list[int]) -> nn.Sequential:
@@ -107,7 +113,8 @@ class PlainEquiNoisePredictor(EquiNoiseCore):
         channels = [preset.voxel_channels] + [f * N for f in preset.encoder_channels]
         self.encoder = build_plain_encoder(preset, channels)
         obs_in = preset.n_obs_steps * (preset.encoder_channels[-1] * N + action_space.dim_of(action_space.EE_FREQS))
-        self.obs_linear = nn.Sequential(nn.Linear(obs_in, preset.obs_hidden * N), nn.ReLU())
+        obs_layers = [nn.Linear(obs_in, preset.obs_hidden * N)] + ([nn.ReLU()] if obs_embedding_relu(preset) else [])
+        self.obs_linear = nn.Sequential(*obs_layers)
         self.action_enc = nn.Sequential(nn.Linear(self.action_dim, preset.action_hidden * N), nn.ReLU())
         self.action_dec = nn.Linear(preset.action_hidden * N, self.action_dim)
 
