@@ -286,8 +286,9 @@ class InferencePolicy:
         """Observation -> what every denoising step of it needs: the encoder's condition, through
         the condition's part of the U-Net's FiLM terms (once per observation, not once per step)."""
         self.check_inputs(voxels, ee)
-        vox = torch.from_numpy(np.ascontiguousarray(voxels)).to(self.device)[None, None]
-        vox = voxel_input(vox, self.preset.crop, "center", dtype=self.dtype)  # as the training policy's evaluation
+        vox = torch.from_numpy(np.ascontiguousarray(voxels))[None, None]
+        # cropped before the copy to the device (a quarter less to move), as the training policy's evaluation
+        vox = voxel_input(vox, self.preset.crop, "center", device=self.device, dtype=self.dtype)
         if self.pad_channels:
             vox = torch.cat([vox, vox.new_zeros((1, 1, self.pad_channels, *vox.shape[3:]))], dim=2)
         vox = vox.expand(1, self.preset.n_obs_steps, *vox.shape[2:])  # single-step history repeated

@@ -109,8 +109,7 @@ class DirectWorld:
         self.sim.step(1500)  # ... from which it reaches the ready pose, where the live twin's homing leaves it
 
     def settle(self, seconds: float) -> None:
-        if steps := round(seconds * 1000):  # DirectSim.step sets the hand's goal even for 0 steps
-            self.sim.step(steps)
+        self.sim.step(round(seconds * 1000))
 
     def now_s(self) -> float:
         return self.sim.time
