@@ -155,8 +155,8 @@ PRESETS: dict[str, PolicyPreset] = {
     # Measured cost on the 2-core CPU (see docs/model.md): the 56^3 and 28^3 convolutions
     # dominate, so the first fields are cut hardest; the 12^3 and 6^3 stages of the official layout
     # cost more than the legacy 9^3 and 3^3 ones, so they are halved against the legacy compact
-    # (16, 32, 32): a training step then costs what the legacy compact's did. The U-Net runs once
-    # per group element (8 rows).
+    # (16, 32, 32): a training step then costs 6-19 % more than the legacy compact's (docs/model.md).
+    # The U-Net runs once per group element (8 rows).
     "compact": PolicyPreset(
         name="compact",
         encoder_channels=(1, 2, 4, 8, 8, 16, 16, 64),
