@@ -108,6 +108,7 @@ def generate_launch_description():
                     **common,
                     "checkpoint": LaunchConfiguration("checkpoint"),
                     "device": LaunchConfiguration("device"),
+                    "precision": LaunchConfiguration("precision"),
                     "rtc_max_gap_m": jump_limit_m,
                 }
             ],
@@ -156,6 +157,7 @@ def generate_launch_description():
                 "checkpoint", default_value=str(SHARE / "checkpoints" / "twin_compact" / "policy.pt")
             ),
             DeclareLaunchArgument("device", default_value="cpu"),
+            DeclareLaunchArgument("precision", default_value="fp32"),
             DeclareLaunchArgument("clock", default_value="sim", description="sim (lockstep, /clock) or realtime"),
             DeclareLaunchArgument("latency_ms", default_value="100", description="latency budget L (clock:=sim)"),
             DeclareLaunchArgument("out", default_value="runs/twin_launch"),

@@ -758,6 +758,22 @@ def test_answer_schedule_answers_one_observation_per_executed_chunk_despite_stam
         assert not every.due(k * dt + dt // 4)  # the same frame, a little later: already answered
     with pytest.raises(ValueError, match="execute_steps must be within 1..8"):
         AnswerSchedule(9, 8, dt)
+    answers.restart()  # an episode begins: its first observation is answered at once
+    assert answers.due(16 * dt + dt)
+
+
+def test_sampling_seeds_follow_the_episode_and_repeat_with_it():
+    """The rule policy_node and the in-process evaluation share: k-th answered observation of
+    episode s gets s * 1000 + k; outside an episode, draws from the node's own seed."""
+    from equidiff_core.chunk import SamplingSeeds
+
+    seeds = SamplingSeeds(0)
+    outside = [seeds.next() for _ in range(3)]
+    assert outside[0] == SamplingSeeds(0).next() and len(set(outside)) == 3  # the node's seed repeats them
+    seeds.start_episode(100_004)
+    assert [seeds.next() for _ in range(3)] == [100_004_000, 100_004_001, 100_004_002]
+    seeds.start_episode(100_004)  # the same scene again: the same noise again
+    assert seeds.next() == 100_004_000
 
 
 def test_tf_message_carries_the_tcp_pose_in_the_base_frame():

@@ -7,6 +7,7 @@ treats every exported policy alike, and this one loads and predicts in a fractio
 from __future__ import annotations
 
 import itertools
+import json
 import os
 import signal
 import subprocess
@@ -309,3 +310,97 @@ def test_execution_horizon_covers_the_latency_and_rtc_joins_the_previous_chunk(r
     assert all(len(chunks[s]) == 5 for s in stamps)
     assert all(round((new - old) / 200_000_000) >= 2 for old, new in itertools.pairwise(stamps))
     assert "real-time chunking" in (tmp_path / "policy.log").read_text()
+
+
+@pytest.mark.ros
+@pytest.mark.slow
+def test_an_announced_episode_samples_like_the_in_process_evaluation(ros_domain, checkpoint, tmp_path):
+    """/policy/episode {seed, start_ns}: the first observation from start_ns on is answered at once
+    with ``SamplingSeeds``' noise for that seed (seed * 1000 + 0), the next answered one with the
+    next seed; announcing the same episode again repeats the chunk, another seed changes it. The
+    chunk equals ``InferencePolicy.predict`` with that seed, as the in-process evaluation calls it."""
+    from geometry_msgs.msg import PoseStamped
+    from std_msgs.msg import String
+
+    from equidiff_core.chunk import chunk_from_actions
+    from equidiff_core.control import messages as cm
+    from equidiff_core.inference import load_inference_policy
+    from equidiff_core.observation import ee_input
+    from equidiff_core.pointcloud import grid_to_voxel_msg, voxel_msg_to_grid
+    from equidiff_core.topics import TOPIC_COMMAND_CHUNK, TOPIC_EE_POSE, TOPIC_POLICY_EPISODE
+    from equidiff_core.twin.processes import start_node, stop_process
+    from equidiff_ros.common import LATCHED_QOS, RELIABLE_QOS
+    from equidiff_ros.control_client import ControlClient
+
+    lab = load_lab_config(LAB_PATH)
+    ws = lab.workspace
+    grid = block_grid(ws)
+    franka = policy = client = None
+    try:
+        # the dry-run arm must hold still (same observation each time): it does not get the chunks
+        franka = start_node(
+            "franka_node",
+            {"backend": "dryrun", "lab_config": str(LAB_PATH)},
+            tmp_path / "franka.log",
+            remaps={TOPIC_COMMAND_CHUNK: "/unused/command_chunk"},
+        )
+        policy = start_node(
+            "policy_node",
+            {"checkpoint": str(checkpoint), "lab_config": str(LAB_PATH), "precision": "fp32", "jit": False},
+            tmp_path / "policy.log",
+        )
+        client = ControlClient(lab, str(LAB_PATH))
+        poses = []
+        client.node.create_subscription(PoseStamped, TOPIC_EE_POSE, poses.append, RELIABLE_QOS)
+        pub_episode = client.node.create_publisher(String, TOPIC_POLICY_EPISODE, LATCHED_QOS)
+        client.wait_for(lambda: len(poses) > 10, 60.0, "/franka/ee_pose from the dry-run arm", franka)
+        client.wait_for(lambda: pub_episode.get_subscription_count() > 0, 60.0, "policy_node on /policy/episode")
+
+        def answer(episode_seed: int | None = None):
+            """Announce an episode starting now (or not), then observations until one is answered
+            (one can be skipped: no arm state near its stamp yet on a busy machine); that chunk."""
+            if episode_seed is not None:
+                pub_episode.publish(String(data=json.dumps({"seed": episode_seed, "start_ns": time.time_ns()})))
+                time.sleep(0.3)  # delivered before the grid
+            sent = {}
+            deadline = time.monotonic() + 90.0
+            while time.monotonic() < deadline:
+                stamp = time.time_ns()
+                sent[stamp] = grid_to_voxel_msg(grid, ws.lower, ws.voxel_size, stamp, lab.base_frame, client.factory)
+                client.pub_voxels.publish(sent[stamp])
+                try:
+                    client.wait_for(
+                        lambda: (
+                            client.data.last_chunk is not None
+                            and stamp_to_ns(client.data.last_chunk.header.stamp) in sent
+                        ),
+                        0.5,
+                        "the chunk answering an observation",
+                        policy,
+                    )
+                except TimeoutError:
+                    continue
+                msg = client.data.last_chunk
+                return chunk_from_msg(msg), sent[stamp_to_ns(msg.header.stamp)]
+            raise TimeoutError("no observation was answered in 90 s")
+
+        first, msg = answer(7)
+        time.sleep(1.7)  # the whole chunk (8 x 0.2 s) has run: the next observation is due
+        second, _ = answer()
+        again, _ = answer(7)
+        other, _ = answer(8)
+        width = cm.gripper_width_from_joint_state(client.data.last_joint_state)
+        pose = cm.pose_from_msg(poses[-1])
+    finally:
+        if client is not None:
+            client.close()
+        codes = [stop_process(policy, sig=signal.SIGINT, timeout=30), stop_process(franka, sig=signal.SIGTERM)]
+    assert codes == [0, 0], (tmp_path / "policy.log").read_text()[-3000:]
+    np.testing.assert_allclose(again.actions, first.actions, atol=1e-6)
+    assert not np.allclose(second.actions, first.actions, atol=1e-3)
+    assert not np.allclose(other.actions, first.actions, atol=1e-3)
+    in_process = load_inference_policy(checkpoint, precision="fp32")
+    actions = in_process.predict(voxel_msg_to_grid(msg, ws.resolution), ee_input(pose, width), seed=7 * 1000)
+    expected = chunk_from_actions(actions[: len(first)], first.stamp_ns, 200_000_000)
+    np.testing.assert_allclose(first.poses, expected.poses, atol=1e-4)
+    np.testing.assert_allclose(first.widths, expected.widths, atol=1e-4)

@@ -72,6 +72,35 @@ class AnswerSchedule:
     def answer(self, stamp_ns: int) -> None:
         self.answered_ns = int(stamp_ns)
 
+    def restart(self) -> None:
+        """Answer the next observation at once (an episode begins)."""
+        self.answered_ns = None
+
+
+class SamplingSeeds:
+    """The DDIM noise seed of each answered observation.
+
+    Inside an episode the k-th answered observation (k = 0, 1, ...) gets ``episode_seed * 1000 + k``;
+    outside one, a draw from ``rng_seed``'s generator (None: fresh entropy). policy_node (told
+    each twin episode's seed on /policy/episode) and the in-process evaluation both take their
+    seeds here, so a scene gets the same noise in both: their outcomes then differ only where
+    their observations do, not by the luck of the draw."""
+
+    def __init__(self, rng_seed: int | None = None):
+        self.rng = np.random.default_rng(rng_seed)
+        self.episode_seed: int | None = None
+        self.index = 0
+
+    def start_episode(self, episode_seed: int) -> None:
+        self.episode_seed, self.index = int(episode_seed), 0
+
+    def next(self) -> int:
+        if self.episode_seed is None:
+            return int(self.rng.integers(2**31))
+        seed = self.episode_seed * 1000 + self.index
+        self.index += 1
+        return seed
+
 
 def steps_to_publish(execute_steps: int, latency_s: float, dt_s: float, available: int) -> int:
     """Steps a chunk must carry so it lasts until the next one arrives: the ``execute_steps`` run

@@ -18,6 +18,7 @@ TOPIC_JOY = "/spacenav/joy"
 TOPIC_RECORDER_COMMAND = "/recorder/command"
 TOPIC_POLICY_SKIPPED = "/policy/skipped"
 TOPIC_POLICY_STATE = "/policy/state"  # running / paused <reason>, latched
+TOPIC_POLICY_EPISODE = "/policy/episode"  # {"seed", "start_ns"}: the sampling seeds of an episode, latched
 TOPIC_TELEOP_ACTIVE = "/teleop/active"  # an operator's takeover (intervention), latched
 TOPIC_RECORDER_STATUS = "/recorder/status"  # idle / recording <path> / ..., latched
 TOPIC_CLOCK = "/clock"

@@ -19,6 +19,10 @@ Wiring:
   /teleop/active (std_msgs/Bool, latched)        -> true (the operator took over with the SpaceMouse) pauses it;
                    it stays paused until the operator enables it again
   /policy/state (std_msgs/String, latched)       <- ``running`` or ``paused <reason>``
+  /policy/episode (std_msgs/String JSON {seed, start_ns}, latched) -> an episode begins (the twin's
+                   supervisor): the first observation stamped at or after start_ns is answered at once,
+                   and the episode's answered observations get ``chunk.SamplingSeeds``' noise for its
+                   seed, the in-process evaluation's, so both sample a scene alike
 
 While paused no chunk is published: each observation is announced on /policy/skipped as
 ``paused`` (an inference already running is finished and dropped), and /diagnostics says
@@ -37,7 +41,7 @@ Parameters: ``checkpoint`` (exported policy file, required), ``device`` (cpu | c
 ``precision`` (auto | fp32 | bf16; auto = bf16 where the CPU has native bf16), ``jit``
 (default true: jit.trace), ``rate_hz`` (the rate at which a missing observation is reported),
 ``max_observation_age_s``, ``max_state_offset_s``,
-``seed`` (-1: random), ``n_action_steps`` (steps published per chunk; 0: the preset's, or
+``seed`` (the noise outside an announced episode; -1: random), ``n_action_steps`` (steps published per chunk; 0: the preset's, or
 with ``latency_s`` enough to last until the next chunk arrives), ``execute_steps`` (k: how many
 steps of a chunk run before the next observation is answered; 0: all ``n_action_steps``, the
 default, chosen by measurement: in the twin's closed-loop evaluation whole chunks solved 4 of
@@ -80,6 +84,7 @@ from equidiff_core import geometry
 from equidiff_core.chunk import (
     AnswerSchedule,
     RealTimeChunking,
+    SamplingSeeds,
     chunk_from_actions,
     chunk_to_msg,
     steps_to_publish,
@@ -91,7 +96,7 @@ from equidiff_core.inference import CheckpointError, load_inference_policy
 from equidiff_core.observation import STATE_TOLERANCE_S, StateHistory, ee_input
 from equidiff_core.pointcloud import voxel_msg_to_grid
 from equidiff_core.rosmsg import RclpyFactory, stamp_to_ns
-from equidiff_core.topics import SERVICE_POLICY_ENABLE
+from equidiff_core.topics import SERVICE_POLICY_ENABLE, TOPIC_POLICY_EPISODE
 from equidiff_ros.common import (
     LATCHED_QOS,
     RELIABLE_QOS,
@@ -187,7 +192,8 @@ class PolicyNode(Node):
             if rtc
             else None
         )
-        self.rng = np.random.default_rng(None if seed < 0 else int(seed))
+        self.seeds = SamplingSeeds(None if seed < 0 else int(seed))
+        self._episode: dict | None = None  # announced on /policy/episode, begins at its start_ns
         self.get_logger().info(
             f"loaded {self.policy.name} policy '{preset.name}' from {checkpoint} on {device} ({precision}) "
             f"and warmed up in {time.perf_counter() - t0:.1f} s; publishing {self.n_action_steps} of "
@@ -220,6 +226,7 @@ class PolicyNode(Node):
         self.create_subscription(DiagnosticArray, TOPIC_DIAGNOSTICS, self.on_diagnostics, RELIABLE_QOS)
         self.pub_state = self.create_publisher(String, TOPIC_POLICY_STATE, LATCHED_QOS)
         self.create_subscription(Bool, TOPIC_TELEOP_ACTIVE, self.on_teleop_active, LATCHED_QOS)
+        self.create_subscription(String, TOPIC_POLICY_EPISODE, self.on_episode, LATCHED_QOS)
         self.create_service(SetBool, SERVICE_POLICY_ENABLE, self.on_enable)
         self.publish_state()
         self.worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="policy")
@@ -259,6 +266,16 @@ class PolicyNode(Node):
             if status.name.startswith("voxel"):
                 level = status.level[0] if isinstance(status.level, bytes) else int(status.level)
                 self._voxel_error = status.message if level >= cm.ERROR else ""
+
+    def on_episode(self, msg) -> None:
+        try:
+            episode = json.loads(msg.data)
+            episode = {"seed": int(episode["seed"]), "start_ns": int(episode["start_ns"])}
+        except (ValueError, TypeError, KeyError) as err:
+            self.get_logger().warning(f"ignoring a malformed {TOPIC_POLICY_EPISODE} message {msg.data!r}: {err}")
+            return
+        with self._cycle_lock:
+            self._episode = episode
 
     # --- the operator's gate -------------------------------------------------------------
     def set_paused(self, reason: str) -> None:
@@ -311,6 +328,12 @@ class PolicyNode(Node):
             if stamp == self._last_obs_stamp:
                 return  # answered already
             self._last_obs_stamp = stamp  # whatever happens next, this observation is used up
+            if self._episode is not None and stamp >= self._episode["start_ns"]:  # the episode's first
+                self.answers.restart()
+                self.seeds.start_episode(self._episode["seed"])
+                if self.chunking is not None:
+                    self.chunking.reset()
+                self._episode = None
             if self._paused:
                 self.skipped["paused"] += 1
                 self.pub_skipped.publish(String(data=json.dumps({"stamp_ns": int(stamp), "reason": "paused"})))
@@ -342,14 +365,13 @@ class PolicyNode(Node):
             self._busy = True
             self.answers.answer(stamp)
             self.obs_age_s.append(age / 1e9)
-            self.worker.submit(self.infer, msg, stamp, pose, float(width))
+            self.worker.submit(self.infer, msg, stamp, pose, float(width), self.seeds.next())
 
-    def infer(self, msg, stamp: int, pose, width: float) -> None:
+    def infer(self, msg, stamp: int, pose, width: float, seed: int) -> None:
         try:
             t0 = time.perf_counter()
             grid = voxel_msg_to_grid(msg, self.policy.workspace.resolution)
             ee = ee_input(pose, width)
-            seed = int(self.rng.integers(2**31))
             if self.chunking is None:
                 actions = self.policy.predict(grid, ee, seed=seed)
             else:

@@ -10,6 +10,8 @@ Wiring:
       takes effect when it would on a lab machine with that latency
   /clock -> (simulated time) releases held chunks; the node's own clock follows it
   /twin/await_policy <- true while the gate is open: twin_node then waits for each frame's chunk
+  /policy/episode <- {"seed", "start_ns"} as the gate opens: policy_node samples the episode's
+      observations with ``chunk.SamplingSeeds`` for its seed, as the in-process evaluation does
   /franka/command_chunk <- one-point targets at 20 Hz, stamped now, reached 50 ms later: the
       same messages teleop_node publishes (homing and the scripted expert)
   /twin/reset <- seed; /twin/scene, /twin/state -> episode set-up and success
@@ -52,6 +54,7 @@ from equidiff_core.topics import (
     SERVICE_FRANKA_ACKNOWLEDGE,
     TOPIC_CLOCK,
     TOPIC_COMMAND_CHUNK,
+    TOPIC_POLICY_EPISODE,
     TOPIC_RECORDER_STATUS,
     TOPIC_TWIN_AWAIT_POLICY,
     TOPIC_TWIN_POLICY_CHUNK,
@@ -129,6 +132,7 @@ class Supervisor:
         self.pub_reset = n.create_publisher(Int64, TOPIC_TWIN_RESET, RELIABLE_QOS)
         self.pub_recorder = n.create_publisher(String, TOPIC_RECORDER_COMMAND, RELIABLE_QOS)
         self.pub_await = n.create_publisher(Bool, TOPIC_TWIN_AWAIT_POLICY, LATCHED_QOS)
+        self.pub_episode = n.create_publisher(String, TOPIC_POLICY_EPISODE, LATCHED_QOS)
         self._Bool = Bool
         if self.sim_time:  # best effort: the publisher's QoS (a reliable subscription would not match it)
             n.create_subscription(
@@ -398,14 +402,19 @@ class Supervisor:
             check,
         )
 
-    def open_gate(self) -> None:
+    def open_gate(self, episode_seed: int | None = None) -> None:
         """Start forwarding policy chunks answering observations from now on (and, on simulated
-        time, have twin_node wait for each frame's chunk)."""
+        time, have twin_node wait for each frame's chunk). With ``episode_seed``, policy_node
+        answers the first observation from now on at once and samples the episode's observations
+        with that seed's noise (``chunk.SamplingSeeds``)."""
         with self.lock:
             self.chunk_arrivals, self.end_to_end_ms, self.inference_ms = [], [], []
             self.dropped = []
             self._held = []
             self._gate_open_ns = self.now_ns()
+            if episode_seed is not None:
+                episode = {"seed": int(episode_seed), "start_ns": self._gate_open_ns}
+                self.pub_episode.publish(self._String(data=json.dumps(episode)))
             self.gate_open = True
         if self.sim_time:
             self.pub_await.publish(self._Bool(data=True))
@@ -446,6 +455,7 @@ class TwinStack:
         domain_id: int | None = None,
         task: str = "twin",
         device: str = "cpu",
+        precision: str = "fp32",
         seed: int = 0,
         record_clouds: bool = False,
         start_timeout_s: float = 120.0,
@@ -464,6 +474,7 @@ class TwinStack:
         self.lab = load_lab_config(self.lab_path)
         self.cfg = load_twin_config(self.twin_path)
         self.policy, self.domain_id, self.task, self.device = policy, domain_id, task, device
+        self.precision = precision  # policy_node's; pinned (not "auto", which follows the CPU) to be comparable
         self.seed, self.record_clouds, self.start_timeout_s = seed, record_clouds, start_timeout_s
         # On simulated time the sim waits while the policy infers, so inference has the machine to
         # itself: all cores. On real time everything runs at once, and one thread was faster.
@@ -621,6 +632,7 @@ class TwinStack:
                     **common,
                     "checkpoint": str(self.policy),
                     "device": self.device,
+                    "precision": self.precision,
                     "torch_threads": self.torch_threads,
                     "rtc_max_gap_m": control.safety.max_first_step_jump_m,
                     **ages,
@@ -712,8 +724,8 @@ class GatedPolicy:
     The episode's duration counts from the first chunk; a stall twin_node reports (a stage that
     did not deliver within its stall timeout, simulated time) ends the episode at once."""
 
-    def __init__(self, stack: TwinStack, poll_s: float = 0.05):
-        self.stack, self.sup, self.poll_s = stack, stack.sup, poll_s
+    def __init__(self, stack: TwinStack, seed: int | None = None, poll_s: float = 0.05):
+        self.stack, self.sup, self.seed, self.poll_s = stack, stack.sup, seed, poll_s
         self.stalls0 = 0
         self.arrivals: list[float] = []
         self.dropped: list[str] = []
@@ -723,7 +735,7 @@ class GatedPolicy:
     def begin(self) -> float:
         sup = self.sup
         self.stalls0 = sup.twin().get("stalls", 0)
-        sup.open_gate()
+        sup.open_gate(self.seed)
         gate_t = sup.now_ns() / NS
         sup.wait_for(
             lambda: sup.chunk_arrivals or sup.twin().get("stalls", 0) > self.stalls0,
@@ -827,7 +839,7 @@ def run_policy_episode(stack: TwinStack, seed: int, max_duration_s: float) -> Ep
     An episode in which twin_node reports a stall (a camera or the policy did not deliver within
     its stall timeout) ends at once as ``stalled``, naming the stage; its bag is kept."""
 
-    policy = GatedPolicy(stack)
+    policy = GatedPolicy(stack, seed)
     result = run_episode(LiveTwin(stack), policy, seed, max_duration_s, stack.cfg.success.hold_s)
     return EpisodeRecord(
         seed=seed,

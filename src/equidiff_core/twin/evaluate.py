@@ -31,7 +31,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..chunk import AnswerSchedule, RealTimeChunking, chunk_from_actions
+from ..chunk import AnswerSchedule, RealTimeChunking, SamplingSeeds, chunk_from_actions
 from ..config import LabConfig
 from ..control import Controller
 from ..episode import run_episode
@@ -112,7 +112,7 @@ def evaluate_policy(
     ``n_action_steps``-th, policy_node's default) and publishes ``publish_steps`` steps of each
     chunk (0: ``n_action_steps``); with ``rtc`` each chunk is denoised towards the previous one
     (``chunk.RealTimeChunking``, its delay from ``latency_s``), as policy_node's ``rtc``; see the
-    module doc. The policy's sampling seed is ``seed * 1000 + observation index``. ``probe``
+    module doc. The policy's sampling seeds are ``chunk.SamplingSeeds``' for the episode's seed. ``probe``
     (e.g. ``twin.chunking.ChunkingProbe``) sees each episode's chunks as franka_node's
     Controller receives them and its every command."""
     from .demos import DirectRecorder, DirectWorld
@@ -259,7 +259,8 @@ class DirectPolicy:
     ``latency_s`` later (several can be in flight when latency_s > the answering period); the
     controller's ticks at control_hz; and its newest target sent to the sim at COMMAND_HZ. The
     episode ends at the first observation instant at or past ``max_duration_s`` (judged first).
-    The sampling seed is ``seed * 1000 + observation index``."""
+    The sampling seeds are ``chunk.SamplingSeeds``' for the episode's seed, as policy_node's in the
+    live twin."""
 
     def __init__(
         self,
@@ -283,6 +284,8 @@ class DirectPolicy:
         self.delay_steps = RealTimeChunking.delay_for(latency_s, self.dt_ms / 1000)
         self.execute_steps, self.publish_steps, self.rtc, self.probe = execute_steps, publish_steps, rtc, probe
         self.observations = 0
+        self.seeds = SamplingSeeds()
+        self.seeds.start_episode(seed)
         self.finished = False
 
     def begin(self) -> float:
@@ -314,7 +317,7 @@ class DirectPolicy:
         sim = self.sim
         grid = self.world.rec.voxel_grid(stamp_ns)
         ee = ee_input(sim.tcp_pose(), sim.gripper_width())  # the state at the stamp itself: no matching needed
-        seed = self.seed * 1000 + self.observations
+        seed = self.seeds.next()
         if self.chunking is None:
             actions = self.policy.predict(grid, ee, seed=seed)
         else:

@@ -8,7 +8,9 @@ The same scenes, seeds, episode length, latency budget and execution scheme as
 synchronously in one process (``twin.evaluate.evaluate_policy``): what the main job should
 score, without its processes. The arm is the one thing not the same: DirectSim's IK + joint PD
 instead of franky's impedance tracker in franky-sim (docs/evaluation_scheme.md). The policy's
-noise is seeded per scene and observation, so a run is repeatable. Prints one line per episode
+noise is seeded per scene and answered observation (``chunk.SamplingSeeds``), as policy_node's in
+`twin run`, and both default to fp32: a run is repeatable, and a scene gets the same noise in
+both. Prints one line per episode
 and, last, one JSON line: episodes, success, reached, lifted, successful_seeds, latency_budget_ms,
 max_duration_s, wall_s.
 """
@@ -19,6 +21,8 @@ import argparse
 import json
 import time
 from pathlib import Path
+
+from equidiff_ros.commands.twin_run import add_precision_argument
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -41,6 +45,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="answer every N-th observation (0: one per chunk, policy_node's default)",
     )
     parser.add_argument("--device", default="cpu", help="policy device: cpu | cuda | auto")
+    add_precision_argument(parser)
     parser.add_argument("--lab-config", type=Path, default=None)
     parser.add_argument("--twin-config", type=Path, default=None)
 
@@ -61,7 +66,7 @@ def run(args: argparse.Namespace) -> int:
     lab = load_lab_config(args.lab_config or default_config_dir() / "lab.yaml")
     cfg = load_twin_config(args.twin_config)
     max_duration = args.max_duration or cfg.episode.max_duration_s
-    policy = load_inference_policy(checkpoint, device=args.device)
+    policy = load_inference_policy(checkpoint, device=args.device, precision=args.precision)
     seeds = range(args.seed, args.seed + args.episodes)
     rec = DirectRecorder(cfg, lab)
     try:

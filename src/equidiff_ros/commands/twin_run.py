@@ -29,6 +29,17 @@ from pathlib import Path
 SHIPPED_NAME = Path("checkpoints") / "twin_compact" / "policy.pt"
 
 
+def add_precision_argument(parser: argparse.ArgumentParser) -> None:
+    """The policy's arithmetic in the twin: pinned, so a result does not depend on the CPU."""
+    parser.add_argument(
+        "--precision",
+        choices=("fp32", "bf16", "auto"),
+        default="fp32",
+        help="policy arithmetic (default fp32 on every machine; auto: bf16 where the CPU has native bf16, "
+        "so results would depend on the CPU)",
+    )
+
+
 def shipped_checkpoint() -> Path:
     """The checkpoint shipped in the repository (source checkout, or share/equidiff_ros when installed)."""
     from equidiff_core.config import default_config_dir
@@ -61,6 +72,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--smoke", action="store_true", help="1 episode of a few seconds (CI)")
     parser.add_argument("--domain", type=int, default=None, help="ROS_DOMAIN_ID (default: a random private one)")
     parser.add_argument("--device", default="cpu", help="policy device: cpu | cuda | auto")
+    add_precision_argument(parser)
     parser.add_argument("--lab-config", type=Path, default=None)
     parser.add_argument("--twin-config", type=Path, default=None)
     parser.add_argument("--record-clouds", action="store_true", help="also record the three camera clouds")
@@ -166,6 +178,7 @@ def run(args: argparse.Namespace) -> int:
             domain_id=args.domain,
             task="twin_eval",
             device=args.device,
+            precision=args.precision,
             seed=args.seed,
             record_clouds=args.record_clouds,
             lenient=args.lenient or (args.smoke and args.realtime),
