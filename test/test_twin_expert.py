@@ -330,3 +330,65 @@ def test_the_evaluation_executes_chunks_through_franka_nodes_controller():
     assert speeds.max() <= limit * 1.01, speeds.max()
     assert speeds.max() >= limit * 0.9  # it did move, at the limit
     assert abs(positions[-1][0] - (policy.start[0] + 0.07)) < 2e-3  # and got there
+
+
+class _ChunkTap:
+    """An evaluation probe that keeps the chunks the Controller receives."""
+
+    def __init__(self):
+        self.chunks = []
+
+    def start_episode(self, seed):
+        self.chunks = []
+
+    def chunk(self, now_ns, chunk, accepted):
+        self.chunks.append(chunk)
+
+    def command(self, command):
+        pass
+
+    def end_episode(self):
+        pass
+
+
+@pytest.mark.slow
+@pytest.mark.sim
+def test_replaying_recorded_chunks_executes_them_from_the_bags_scene(tmp_path):
+    """`twin replay-chunks`' core: a bag of chunks that solved seed 3 (the expert as the policy,
+    stamped on a live run's clock, far from 0) replays as a success; the same chunks 6 cm higher
+    grasp above the block and fail. The outcome is the replay's, not the bag's."""
+    from equidiff_core.bags import EpisodeMeta
+    from equidiff_core.chunk import PoseChunk, chunk_to_msg
+    from equidiff_core.config import default_config_dir, load_lab_config
+    from equidiff_core.recording import EpisodeWriter
+    from equidiff_core.rosmsg import rosbags_factory
+    from equidiff_core.topics import RECORDED_TOPICS, TOPIC_COMMAND_CHUNK
+    from equidiff_core.twin.demos import DirectRecorder
+    from equidiff_core.twin.evaluate import evaluate_policy, replay_chunks
+
+    lab = load_lab_config(default_config_dir() / "lab.yaml")
+    rec, tap = DirectRecorder(CFG, lab), _ChunkTap()
+    try:
+        (solved,) = evaluate_policy(
+            _ExpertAsPolicy(rec.sim), CFG, lab, [3], 30.0, log=lambda s: None, recorder=rec, probe=tap
+        )
+    finally:
+        rec.close()
+    assert solved.success and len(tap.chunks) >= 3
+    factory, t0 = rosbags_factory(), 123_456_000_000  # sim time since twin_node started, in a live bag
+
+    def bag(name: str, lift_m: float):
+        writer = EpisodeWriter(tmp_path / name, EpisodeMeta(task="twin_eval", seed=3)).open()
+        writer.add_topic(TOPIC_COMMAND_CHUNK, RECORDED_TOPICS[TOPIC_COMMAND_CHUNK])
+        for c in tap.chunks:
+            poses = c.poses.copy()
+            poses[:, 2, 3] += lift_m
+            moved = PoseChunk(c.stamp_ns + t0, c.times_ns + t0, poses, c.widths)
+            writer.write(TOPIC_COMMAND_CHUNK, chunk_to_msg(moved, factory, lab.base_frame), moved.stamp_ns)
+        return writer.close(success=True)
+
+    same, higher = replay_chunks([bag("same", 0.0), bag("higher", 0.06)], CFG, lab, log=lambda s: None)
+    assert (same.seed, same.recorded_success, same.chunks) == (3, True, len(tap.chunks))
+    assert same.success and same.reached and same.lifted
+    assert not (higher.success or higher.lifted) and higher.recorded_success
+    assert np.isnan(same.tcp_gap_mean_mm)  # the bags hold no /franka/ee_pose to compare with

@@ -40,6 +40,10 @@ COMMANDS: dict[tuple[str, ...], tuple[str, str]] = {
     ("twin", "collect"): ("twin_collect", "record scripted-expert demonstrations in the digital twin"),
     ("twin", "run"): ("twin_run", "the main job: evaluate a policy end to end in the digital twin"),
     ("twin", "evaluate"): ("twin_evaluate", "the main job's episodes in-process on the sim clock (no ROS)"),
+    ("twin", "replay-chunks"): (
+        "twin_replay_chunks",
+        "a live twin run's policy chunks replayed open loop in-process: does the arm end the same way?",
+    ),
     ("export", "lerobot"): ("export_lerobot", "export bags to a LeRobot dataset"),
     ("calibrate", "cameras"): (
         "calibrate",

@@ -61,14 +61,16 @@ VOXEL_QOS = QoSProfile(
     durability=DurabilityPolicy.VOLATILE,
     history=HistoryPolicy.KEEP_LAST,
 )
-# policy_node reads /voxels best effort. A reliable reader is in its writer's acknowledgement
+# policy_node and viz_node read /voxels best effort. A reliable reader is in its writer's acknowledgement
 # set, and Fast DDS held back voxel_node's grids from *every* reader (twin_node, the recorder)
 # while one reliable reader did not acknowledge: a SIGSTOPped policy_node did that in the twin,
 # and sometimes (when the pause outlived the participant lease) the writer never delivered
-# again, so the next episode stalled at "voxel_node: no /voxels". A best-effort reader costs
-# the writer nothing; it loses a grid when it falls behind its queue, which the lockstep twin
-# never lets it do: the next grid exists only once this one is answered or skipped.
-VOXEL_POLICY_QOS = QoSProfile(
+# again, so the next episode stalled at "voxel_node: no /voxels". A frozen viewer would do the
+# same. A best-effort reader costs the writer nothing; it loses a grid when it falls behind its
+# queue, which the lockstep twin never lets the policy do (the next grid exists only once this
+# one is answered or skipped) and which a viewer can afford. The recorder stays reliable: a bag
+# must not lose grids.
+VOXEL_READER_QOS = QoSProfile(
     depth=5,
     reliability=ReliabilityPolicy.BEST_EFFORT,
     durability=DurabilityPolicy.VOLATILE,

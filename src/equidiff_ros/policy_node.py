@@ -5,7 +5,7 @@ Wiring:
                                                     a new one starts a cycle at once if the worker is idle
                                                     and the inputs are fresh, else waits for the worker
                                                     (newer observations replace it meanwhile); read best
-                                                    effort (``common.VOXEL_POLICY_QOS``): a paused policy
+                                                    effort (``common.VOXEL_READER_QOS``): a paused policy
                                                     must not hold the grids back from the other readers
   /franka/ee_pose, /franka/joint_states          -> short history; the pose/width nearest the voxel stamp
   worker: ``InferencePolicy.predict`` -> first ``n_action_steps`` (8) of ``horizon`` (16) steps
@@ -108,7 +108,7 @@ from equidiff_ros.common import (
     TOPIC_POLICY_STATE,
     TOPIC_TELEOP_ACTIVE,
     TOPIC_VOXELS,
-    VOXEL_POLICY_QOS,
+    VOXEL_READER_QOS,
     declare_lab_config,
     now_ns,
     wait_for_clock,
@@ -220,7 +220,7 @@ class PolicyNode(Node):
         self.pub_chunk = self.create_publisher(MultiDOFJointTrajectory, TOPIC_COMMAND_CHUNK, RELIABLE_QOS)
         self.pub_diag = self.create_publisher(DiagnosticArray, TOPIC_DIAGNOSTICS, RELIABLE_QOS)
         self.pub_skipped = self.create_publisher(String, TOPIC_POLICY_SKIPPED, RELIABLE_QOS)
-        self.create_subscription(PointCloud2, TOPIC_VOXELS, self.on_voxels, VOXEL_POLICY_QOS)
+        self.create_subscription(PointCloud2, TOPIC_VOXELS, self.on_voxels, VOXEL_READER_QOS)
         self.create_subscription(PoseStamped, TOPIC_EE_POSE, self.on_pose, RELIABLE_QOS)
         self.create_subscription(JointState, TOPIC_JOINT_STATES, self.on_joints, RELIABLE_QOS)
         self.create_subscription(DiagnosticArray, TOPIC_DIAGNOSTICS, self.on_diagnostics, RELIABLE_QOS)

@@ -32,7 +32,7 @@ from equidiff_ros.common import (
     TOPIC_EXECUTED_TARGET,
     TOPIC_JOINT_STATES,
     TOPIC_VOXELS,
-    VOXEL_QOS,
+    VOXEL_READER_QOS,
     now_ns,
     wait_for_clock,
 )
@@ -53,7 +53,7 @@ class VizNode(Node):
         # set-time + log must stay one step should this node ever be spun by a multi-threaded executor
         self._lock = threading.Lock()
         topics = [
-            (TOPIC_VOXELS, PointCloud2, VOXEL_QOS),
+            (TOPIC_VOXELS, PointCloud2, VOXEL_READER_QOS),  # a frozen viewer must not hold the grids back
             (TOPIC_EE_POSE, PoseStamped, SENSOR_QOS),
             (TOPIC_JOINT_STATES, JointState, SENSOR_QOS),
             (TOPIC_COMMAND_CHUNK, MultiDOFJointTrajectory, RELIABLE_QOS),

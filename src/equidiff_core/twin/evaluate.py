@@ -31,12 +31,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..chunk import AnswerSchedule, RealTimeChunking, SamplingSeeds, chunk_from_actions
+from ..chunk import AnswerSchedule, PoseChunk, RealTimeChunking, SamplingSeeds, chunk_from_actions
 from ..config import LabConfig
 from ..control import Controller
 from ..episode import run_episode
 from ..observation import ee_input
 from ..robots.base import Robot, RobotError, RobotState
+from ..topics import TOPIC_COMMAND_CHUNK, TOPIC_EE_POSE
 from .config import TwinConfig
 from .scene import BLOCK, BOWL, body_pose, sample_scene
 
@@ -249,47 +250,43 @@ class _DirectArm(Robot):
             self.sim.command(self.target, self.width)
 
 
-class DirectPolicy:
-    """The policy as an ``episode.Actor`` in a ``demos.DirectWorld``: policy_node's answering rule
-    and franka_node's own ``Controller`` over DirectSim, on simulated time (1 ms sim ticks).
+class _DirectExecution:
+    """franka_node's own ``Controller`` over DirectSim as an ``episode.Actor`` in a
+    ``demos.DirectWorld``, on simulated time (1 ms sim ticks), executing the chunks ``observe``
+    queues; ``DirectPolicy`` answers observations with the policy, ``RecordedChunks`` replays a
+    recorded episode's chunks.
 
     Four event streams on one integer-millisecond clock from the episode's start: observations
     every dt (success is judged at each but the first, as the supervisor does; every
     ``execute_steps``-th is answered); each answered observation's chunk reaching the Controller
     ``latency_s`` later (several can be in flight when latency_s > the answering period); the
     controller's ticks at control_hz; and its newest target sent to the sim at COMMAND_HZ. The
-    episode ends at the first observation instant at or past ``max_duration_s`` (judged first).
-    The sampling seeds are ``chunk.SamplingSeeds``' for the episode's seed, as policy_node's in the
-    live twin."""
+    episode ends at the first observation instant at or past ``max_duration_s`` (judged first)."""
 
     def __init__(
         self,
         world,
-        policy,
         seed: int,
         control,
         max_duration_s: float,
         latency_s: float,
+        dt_s: float,
+        n_action_steps: int,
         execute_steps: int,
-        publish_steps: int,
-        rtc: bool,
         probe=None,
     ):
-        self.world, self.sim, self.policy, self.seed, self.control = world, world.sim, policy, seed, control
-        self.dt_ms = round(float(policy.preset.dt) * 1000)
+        self.world, self.sim, self.seed, self.control = world, world.sim, seed, control
+        self.dt_ms = round(float(dt_s) * 1000)
         self.latency_ms = round(latency_s * 1000)
         self.tick_ms = max(1, round(1000 / control.control_hz))
         self.cmd_ms = max(self.tick_ms, round(1000 / COMMAND_HZ))
         self.max_ms = round(max_duration_s * 1000)
-        self.delay_steps = RealTimeChunking.delay_for(latency_s, self.dt_ms / 1000)
-        self.execute_steps, self.publish_steps, self.rtc, self.probe = execute_steps, publish_steps, rtc, probe
+        self.n_action_steps, self.execute_steps, self.probe = int(n_action_steps), execute_steps, probe
         self.observations = 0
-        self.seeds = SamplingSeeds()
-        self.seeds.start_episode(seed)
         self.finished = False
 
     def begin(self) -> float:
-        sim, dt_ns = self.sim, self.dt_ms * 1_000_000
+        sim = self.sim
         if self.probe is not None:
             self.probe.start_episode(self.seed)
         self.t0 = sim.time
@@ -303,29 +300,15 @@ class DirectPolicy:
             logger=_QUIET,
             on_command=None if self.probe is None else self.probe.command,
         )
-        # policy_node's rtc: a previous chunk farther from the TCP than franka_node's jump limit was rejected
-        max_gap_m = self.control.safety.max_first_step_jump_m
-        self.chunking = RealTimeChunking(self.delay_steps, dt_ns, max_gap_m) if self.rtc else None
         self.controller.start(home=False, thread=False)  # the arm is at the ready pose: hold it, as franka_node does
         self.pending: deque = deque()  # (ms at which it arrives, PoseChunk), in order
-        self.answers = AnswerSchedule(self.execute_steps, int(self.policy.preset.n_action_steps), dt_ns)
+        self.answers = AnswerSchedule(self.execute_steps, self.n_action_steps, self.dt_ms * 1_000_000)
         self.now = self.next_obs = self.next_tick = self.next_cmd = 0
         return self.t0
 
     def observe(self, stamp_ns: int) -> None:
-        """Answer the observation at ``stamp_ns`` (the current sim state): its chunk is due ``latency_s`` later."""
-        sim = self.sim
-        grid = self.world.rec.voxel_grid(stamp_ns)
-        ee = ee_input(sim.tcp_pose(), sim.gripper_width())  # the state at the stamp itself: no matching needed
-        seed = self.seeds.next()
-        if self.chunking is None:
-            actions = self.policy.predict(grid, ee, seed=seed)
-        else:
-            actions = self.policy.predict(grid, ee, seed=seed, guide=self.chunking.guide(stamp_ns, ee))
-            self.chunking.remember(stamp_ns, actions)
-        self.observations += 1
-        chunk = chunk_from_actions(actions[: self.publish_steps], stamp_ns, self.dt_ms * 1_000_000)
-        self.pending.append((self.now + self.latency_ms, chunk))
+        """Answer the observation at ``stamp_ns`` (the current sim state): queue its chunk in ``pending``."""
+        raise NotImplementedError
 
     def advance(self) -> None:
         if self.now >= self.max_ms:
@@ -368,6 +351,174 @@ class DirectPolicy:
     def end(self) -> None:
         if self.probe is not None:
             self.probe.end_episode()
+
+
+class DirectPolicy(_DirectExecution):
+    """The policy as an ``episode.Actor`` in a ``demos.DirectWorld``: policy_node's answering rule
+    and sampling seeds (``chunk.SamplingSeeds`` for the episode's seed, as policy_node's in the
+    live twin) and franka_node's own ``Controller`` over DirectSim (``_DirectExecution``)."""
+
+    def __init__(
+        self,
+        world,
+        policy,
+        seed: int,
+        control,
+        max_duration_s: float,
+        latency_s: float,
+        execute_steps: int,
+        publish_steps: int,
+        rtc: bool,
+        probe=None,
+    ):
+        preset = policy.preset
+        super().__init__(
+            world, seed, control, max_duration_s, latency_s, preset.dt, preset.n_action_steps, execute_steps, probe
+        )
+        self.policy, self.publish_steps, self.rtc = policy, publish_steps, rtc
+        self.delay_steps = RealTimeChunking.delay_for(latency_s, self.dt_ms / 1000)
+        self.seeds = SamplingSeeds()
+        self.seeds.start_episode(seed)
+
+    def begin(self) -> float:
+        t0 = super().begin()
+        # policy_node's rtc: a previous chunk farther from the TCP than franka_node's jump limit was rejected
+        max_gap_m = self.control.safety.max_first_step_jump_m
+        self.chunking = RealTimeChunking(self.delay_steps, self.dt_ms * 1_000_000, max_gap_m) if self.rtc else None
+        return t0
+
+    def observe(self, stamp_ns: int) -> None:
+        """Answer the observation at ``stamp_ns`` (the current sim state): its chunk is due ``latency_s`` later."""
+        sim = self.sim
+        grid = self.world.rec.voxel_grid(stamp_ns)
+        ee = ee_input(sim.tcp_pose(), sim.gripper_width())  # the state at the stamp itself: no matching needed
+        seed = self.seeds.next()
+        if self.chunking is None:
+            actions = self.policy.predict(grid, ee, seed=seed)
+        else:
+            actions = self.policy.predict(grid, ee, seed=seed, guide=self.chunking.guide(stamp_ns, ee))
+            self.chunking.remember(stamp_ns, actions)
+        self.observations += 1
+        chunk = chunk_from_actions(actions[: self.publish_steps], stamp_ns, self.dt_ms * 1_000_000)
+        self.pending.append((self.now + self.latency_ms, chunk))
+
+
+class RecordedChunks(_DirectExecution):
+    """A recorded episode's policy chunks, replayed open loop through franka_node's own
+    ``Controller`` over DirectSim: each reaches the Controller at its observation's time +
+    ``latency_s``, on the episode clock that starts at the first chunk's observation. So the same
+    commands drive the in-process arm that drove the recorded one (``replay_chunks``)."""
+
+    def __init__(self, world, chunks: list[PoseChunk], seed: int, control, max_duration_s: float, latency_s: float):
+        if not chunks:
+            raise ValueError("no chunks to replay")
+        steps = chunks[0].times_ns
+        dt_s = (steps[1] - steps[0]) / 1e9 if len(steps) > 1 else 0.2
+        # answer every observation: the recorded chunks are queued up front, nothing is inferred
+        super().__init__(world, seed, control, max_duration_s, latency_s, dt_s, 1, 1)
+        self.recorded = chunks
+        self.path_ms: list[int] = []  # episode ms of each observation instant
+        self.path: list[np.ndarray] = []  # the TCP position there
+
+    def begin(self) -> float:
+        t0 = super().begin()
+        origin = self.recorded[0].stamp_ns
+        for chunk in self.recorded:
+            moved = PoseChunk(chunk.stamp_ns - origin, chunk.times_ns - origin, chunk.poses, chunk.widths)
+            self.pending.append((round(moved.stamp_ns / 1e6) + self.latency_ms, moved))
+        return t0
+
+    def observe(self, stamp_ns: int) -> None:
+        self.path_ms.append(self.now)
+        self.path.append(self.sim.tcp_pose()[:3, 3].copy())
+
+
+def _tcp_gaps(actor: RecordedChunks, poses, origin_ns: int) -> list[float]:
+    """mm between the replayed TCP and the recorded /franka/ee_pose (within 5 ms) at each observation instant."""
+    from ..rosmsg import stamp_to_ns
+
+    stamps = np.array([stamp_to_ns(m.header.stamp) for m in poses.messages]) - origin_ns
+    positions = np.array([[m.pose.position.x, m.pose.position.y, m.pose.position.z] for m in poses.messages])
+    gaps = []
+    for ms, tcp in zip(actor.path_ms, actor.path, strict=True):
+        i = int(np.argmin(np.abs(stamps - ms * 1_000_000)))
+        if abs(stamps[i] - ms * 1_000_000) <= 5_000_000:
+            gaps.append(1000 * float(np.linalg.norm(tcp - positions[i])))
+    return gaps
+
+
+@dataclass(frozen=True)
+class ReplayedEpisode:
+    bag: str
+    seed: int
+    recorded_success: bool | None  # the bag's outcome (None: not judged)
+    success: bool  # the replay's
+    reached: bool
+    lifted: bool
+    chunks: int
+    tcp_gap_mean_mm: float  # the replayed TCP against the recorded /franka/ee_pose, same episode time (nan: none)
+    tcp_gap_p95_mm: float
+
+
+def replay_chunks(
+    bags: Iterable,
+    cfg: TwinConfig,
+    lab: LabConfig,
+    latency_s: float = 0.1,
+    max_duration_s: float | None = None,
+    log: Callable[[str], None] = print,
+) -> list[ReplayedEpisode]:
+    """Replay each twin bag's policy chunks open loop in the in-process twin (``RecordedChunks``) from
+    the bag's scene seed, and judge the outcome as the in-process evaluation does.
+
+    Given the very commands the live arm (franky's impedance tracker in franky-sim) got, does the
+    in-process arm (DirectSim's IK + joint PD) end the same way? Policy chunks are the bag's
+    /franka/command_chunk messages with more than one step (the supervisor's one-point hold
+    targets after an episode are not the policy's). The TCP gap compares the replayed TCP with
+    the bag's /franka/ee_pose at each observation instant (within 5 ms)."""
+    from ..bags import BagError, read_episode
+    from ..chunk import chunk_from_msg
+    from .demos import DirectRecorder, DirectWorld
+
+    control = _control_config()
+    max_duration_s = max_duration_s or cfg.episode.max_duration_s
+    rec = DirectRecorder(cfg, lab)
+    world = DirectWorld(rec)
+    results = []
+    try:
+        for bag in bags:
+            episode = read_episode(bag, [TOPIC_COMMAND_CHUNK, TOPIC_EE_POSE])
+            if episode.meta.seed is None:
+                raise BagError(f"{bag}: no scene seed in its metadata (only twin episodes can be replayed)")
+            chunks = [c for c in map(chunk_from_msg, episode[TOPIC_COMMAND_CHUNK].messages) if len(c) > 1]
+            if not chunks:
+                raise BagError(f"{bag}: no policy chunks on {TOPIC_COMMAND_CHUNK}")
+            actor = RecordedChunks(world, chunks, episode.meta.seed, control, max_duration_s, latency_s)
+            result = run_episode(world, actor, episode.meta.seed, float("inf"), cfg.success.hold_s, settle_s=0.0)
+            gaps = _tcp_gaps(actor, episode[TOPIC_EE_POSE], chunks[0].stamp_ns) if TOPIC_EE_POSE in episode else []
+            gaps = np.array(gaps) if gaps else np.array([np.nan])
+            row = ReplayedEpisode(
+                str(bag),
+                int(episode.meta.seed),
+                episode.meta.success,
+                result.success,
+                actor.progress.reached,
+                actor.progress.lifted,
+                len(chunks),
+                round(float(np.mean(gaps)), 1),
+                round(float(np.percentile(gaps, 95)), 1),
+            )
+            results.append(row)
+            recorded = {True: "success", False: "failure", None: "not judged"}[row.recorded_success]
+            log(
+                f"[replay] {bag} (seed {row.seed}): recorded {recorded}, replayed "
+                f"{'success' if row.success else 'failure'} (reached {'yes' if row.reached else 'no'}, lifted "
+                f"{'yes' if row.lifted else 'no'}); {row.chunks} chunks; TCP {row.tcp_gap_mean_mm} mm from the "
+                f"recorded one on average, p95 {row.tcp_gap_p95_mm} mm"
+            )
+    finally:
+        rec.close()
+    return results
 
 
 def unseen_yaw_seeds(

@@ -7,7 +7,8 @@ The same scenes, seeds, episode length, latency budget and execution scheme as
 `equidiff twin run` (policy_node's answering rule, franka_node's own Controller), stepped
 synchronously in one process (``twin.evaluate.evaluate_policy``): what the main job should
 score, without its processes. The arm is the one thing not the same: DirectSim's IK + joint PD
-instead of franky's impedance tracker in franky-sim (docs/evaluation_scheme.md). The policy's
+instead of franky's impedance tracker in franky-sim (docs/evaluation_scheme.md); `twin
+replay-chunks` replays a live run's chunks on it to measure what that changes. The policy's
 noise is seeded per scene and answered observation (``chunk.SamplingSeeds``), as policy_node's in
 `twin run`, and both default to fp32: a run is repeatable, and a scene gets the same noise in
 both. Prints one line per episode
