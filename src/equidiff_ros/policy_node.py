@@ -40,8 +40,8 @@ matched sets, so it shows up as a stale grid), when the voxel node reports ERROR
 Parameters: ``checkpoint`` (exported policy file, required), ``device`` (cpu | cuda | auto),
 ``precision`` (auto | fp32 | bf16; auto = bf16 where the CPU has native bf16), ``jit``
 (default true: jit.trace), ``rate_hz`` (the rate at which a missing observation is reported),
-``max_observation_age_s``, ``max_state_offset_s``,
-``seed`` (the noise outside an announced episode; -1: random), ``n_action_steps`` (steps published per chunk; 0: the preset's, or
+``max_observation_age_s``, ``max_state_offset_s``, ``seed`` (the noise outside an announced
+episode; -1: random), ``n_action_steps`` (steps published per chunk; 0: the preset's, or
 with ``latency_s`` enough to last until the next chunk arrives), ``execute_steps`` (k: how many
 steps of a chunk run before the next observation is answered; 0: all ``n_action_steps``, the
 default, chosen by measurement: in the twin's closed-loop evaluation whole chunks solved 4 of
