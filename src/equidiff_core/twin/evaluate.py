@@ -17,8 +17,10 @@ until then the previous chunk keeps running. franka_node's own ``control.Control
 does what it does in the lab: the jump and staleness checks, dropping the steps already due
 and replacing the rest of the trajectory from the current setpoint, the watchdog, the
 workspace clip and speed limits, the gripper deadband. Its streamed target reaches the sim's
-arm at ``COMMAND_HZ``. What still differs from the live twin is the arm itself: DirectSim's IK
-and joint PD instead of franky's Cartesian impedance tracker in franky-sim.
+arm at ``COMMAND_HZ``. The policy samples each scene's observations with ``chunk.SamplingSeeds``,
+as policy_node does in the live twin. What still differs from the live twin is the arm itself:
+DirectSim's IK and joint PD instead of franky's Cartesian impedance tracker in franky-sim;
+``replay_chunks`` replays a live run's chunks on this arm to measure what that changes.
 """
 
 from __future__ import annotations
