@@ -220,13 +220,15 @@ class PolicyNode(Node):
         self.pub_chunk = self.create_publisher(MultiDOFJointTrajectory, TOPIC_COMMAND_CHUNK, RELIABLE_QOS)
         self.pub_diag = self.create_publisher(DiagnosticArray, TOPIC_DIAGNOSTICS, RELIABLE_QOS)
         self.pub_skipped = self.create_publisher(String, TOPIC_POLICY_SKIPPED, RELIABLE_QOS)
+        # before /voxels: the executor serves ready subscriptions in creation order, so an episode
+        # announced just before a grid is applied before that grid is answered
+        self.create_subscription(String, TOPIC_POLICY_EPISODE, self.on_episode, LATCHED_QOS)
         self.create_subscription(PointCloud2, TOPIC_VOXELS, self.on_voxels, VOXEL_READER_QOS)
         self.create_subscription(PoseStamped, TOPIC_EE_POSE, self.on_pose, RELIABLE_QOS)
         self.create_subscription(JointState, TOPIC_JOINT_STATES, self.on_joints, RELIABLE_QOS)
         self.create_subscription(DiagnosticArray, TOPIC_DIAGNOSTICS, self.on_diagnostics, RELIABLE_QOS)
         self.pub_state = self.create_publisher(String, TOPIC_POLICY_STATE, LATCHED_QOS)
         self.create_subscription(Bool, TOPIC_TELEOP_ACTIVE, self.on_teleop_active, LATCHED_QOS)
-        self.create_subscription(String, TOPIC_POLICY_EPISODE, self.on_episode, LATCHED_QOS)
         self.create_service(SetBool, SERVICE_POLICY_ENABLE, self.on_enable)
         self.publish_state()
         self.worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="policy")
