@@ -21,6 +21,8 @@ import sys
 import time
 from pathlib import Path
 
+from equidiff_ros.commands.twin_run import add_precision_argument
+
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.epilog = __doc__.split("\n", 1)[1]
@@ -31,6 +33,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--checkpoint", type=Path, default=None, help="policy (default: the shipped one)")
     parser.add_argument("--standin", action="store_true", help="an untrained tiny stand-in policy")
     parser.add_argument("--latency-ms", type=float, default=100.0)
+    add_precision_argument(parser)
     parser.add_argument(
         "--max-speed", type=float, default=1.0, help="at most this many sim seconds per wall second (0: unbounded)"
     )
@@ -74,6 +77,7 @@ def run(args: argparse.Namespace) -> int:
             policy=str(policy_path),
             task="bench_twin",
             seed=args.seed,
+            precision=args.precision,
             latency_s=args.latency_ms / 1000,
             max_speed=args.max_speed,
             torch_threads=args.torch_threads,
@@ -107,6 +111,7 @@ def run(args: argparse.Namespace) -> int:
         "latency_budget_ms": args.latency_ms,
         "max_speed": args.max_speed,
         "torch_threads": stack.torch_threads,
+        "precision": args.precision,
         "policy": label,
         "composed": args.composed,
         **cpu_description(),
