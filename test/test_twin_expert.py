@@ -357,7 +357,7 @@ def test_replaying_recorded_chunks_executes_them_from_the_bags_scene(tmp_path):
     """`twin replay-chunks`' core: a bag of chunks that solved seed 3 (the expert as the policy,
     stamped on a live run's clock, far from 0) replays as a success; the same chunks 6 cm higher
     grasp above the block and fail. The outcome is the replay's, not the bag's."""
-    from equidiff_core.bags import EpisodeMeta
+    from equidiff_core.bags import BagError, EpisodeMeta
     from equidiff_core.chunk import PoseChunk, chunk_to_msg
     from equidiff_core.config import default_config_dir, load_lab_config
     from equidiff_core.recording import EpisodeWriter
@@ -388,6 +388,8 @@ def test_replaying_recorded_chunks_executes_them_from_the_bags_scene(tmp_path):
         return writer.close(success=True)
 
     same, higher = replay_chunks([bag("same", 0.0), bag("higher", 0.06)], CFG, lab, log=lambda s: None)
+    with pytest.raises(BagError, match="no such bag directory"):  # a clear error, not a traceback
+        replay_chunks([tmp_path / "nope"], CFG, lab, log=lambda s: None)
     assert (same.seed, same.recorded_success, same.chunks) == (3, True, len(tap.chunks))
     assert same.success and same.reached and same.lifted
     assert not (higher.success or higher.lifted) and higher.recorded_success

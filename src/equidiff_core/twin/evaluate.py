@@ -479,7 +479,7 @@ def replay_chunks(
     targets after an episode are not the policy's). The TCP gap compares the replayed TCP with
     the bag's /franka/ee_pose at each observation instant (within 5 ms)."""
     from ..bags import BagError, read_episode
-    from ..chunk import chunk_from_msg
+    from ..chunk import ChunkError, chunk_from_msg
     from .demos import DirectRecorder, DirectWorld
 
     control = _control_config()
@@ -492,7 +492,10 @@ def replay_chunks(
             episode = read_episode(bag, [TOPIC_COMMAND_CHUNK, TOPIC_EE_POSE])
             if episode.meta.seed is None:
                 raise BagError(f"{bag}: no scene seed in its metadata (only twin episodes can be replayed)")
-            chunks = [c for c in map(chunk_from_msg, episode[TOPIC_COMMAND_CHUNK].messages) if len(c) > 1]
+            try:
+                chunks = [c for c in map(chunk_from_msg, episode[TOPIC_COMMAND_CHUNK].messages) if len(c) > 1]
+            except ChunkError as err:
+                raise BagError(f"{bag}: a malformed chunk on {TOPIC_COMMAND_CHUNK}: {err}") from err
             if not chunks:
                 raise BagError(f"{bag}: no policy chunks on {TOPIC_COMMAND_CHUNK}")
             actor = RecordedChunks(world, chunks, episode.meta.seed, control, max_duration_s, latency_s)
