@@ -157,7 +157,11 @@ def generate_launch_description():
                 "checkpoint", default_value=str(SHARE / "checkpoints" / "twin_compact" / "policy.pt")
             ),
             DeclareLaunchArgument("device", default_value="cpu"),
-            DeclareLaunchArgument("precision", default_value="fp32"),
+            DeclareLaunchArgument(
+                "precision",
+                default_value="fp32",
+                description="policy arithmetic: fp32 on every CPU (auto: bf16 where native)",
+            ),
             DeclareLaunchArgument("clock", default_value="sim", description="sim (lockstep, /clock) or realtime"),
             DeclareLaunchArgument("latency_ms", default_value="100", description="latency budget L (clock:=sim)"),
             DeclareLaunchArgument("out", default_value="runs/twin_launch"),
