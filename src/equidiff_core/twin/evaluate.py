@@ -437,9 +437,7 @@ class RecordedChunks(_DirectExecution):
 
 def _tcp_gaps(actor: RecordedChunks, poses, origin_ns: int) -> list[float]:
     """mm between the replayed TCP and the recorded /franka/ee_pose (within 5 ms) at each observation instant."""
-    from ..rosmsg import stamp_to_ns
-
-    stamps = np.array([stamp_to_ns(m.header.stamp) for m in poses.messages]) - origin_ns
+    stamps = poses.header_ns() - origin_ns
     positions = np.array([[m.pose.position.x, m.pose.position.y, m.pose.position.z] for m in poses.messages])
     gaps = []
     for ms, tcp in zip(actor.path_ms, actor.path, strict=True):
