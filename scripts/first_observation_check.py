@@ -66,6 +66,9 @@ def main() -> None:
             live_chunk = next(c for c in map(chunk_from_msg, episode[TOPIC_COMMAND_CHUNK].messages) if len(c) > 1)
             grids = {stamp_to_ns(m.header.stamp): m for m in episode[TOPIC_VOXELS].messages}
             stamps = sorted(grids)
+            if live_chunk.stamp_ns not in grids:  # e.g. a bag recorded without /voxels
+                print(json.dumps({"bag": str(bag), "error": "no /voxels grid with the first chunk's stamp"}))
+                continue
             first = stamps.index(live_chunk.stamp_ns)
             live = [voxel_msg_to_grid(grids[s], resolution) for s in stamps[first : first + 2]]
             world.reset_scene(episode.meta.seed)
