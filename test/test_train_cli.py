@@ -96,6 +96,12 @@ def test_train_writes_a_loadable_policy_and_plot(bags, tmp_path, capsys):
     assert train(bags, again) == 0
     losses = lambda p: [h["loss"] for h in json.loads((p / "history.json").read_text()) if "loss" in h]
     assert losses(out) == losses(again)
+    # --noise-repeats reaches the loss: four (noise, step) draws per observation give other losses
+    repeats = tmp_path / "repeats"
+    assert train(bags, repeats, "--noise-repeats", "4") == 0
+    assert len(losses(repeats)) == len(losses(out)) and losses(repeats) != losses(out)
+    assert train(bags, tmp_path / "none", "--noise-repeats", "0") == 2
+    assert "noise_repeats must be >= 1" in capsys.readouterr().err
 
     # an existing run is never silently restarted; --resume continues it from its checkpoint and split
     assert train(bags, out) == 2

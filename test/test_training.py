@@ -112,6 +112,8 @@ def test_config_and_device_errors():
     with pytest.raises(ConfigError, match="unknown key"):
         from_dict(TrainConfig, {"stepz": 3})
     assert from_dict(TrainConfig, {"steps": 5, "ema": True}).steps == 5
+    with pytest.raises(ValueError, match="noise_repeats"):
+        TrainConfig(noise_repeats=0)
     assert resolve_device("cpu").type == "cpu"
     if not torch.cuda.is_available():
         with pytest.raises(TrainingError, match="CUDA"):

@@ -41,6 +41,12 @@ def add_arguments(parser) -> None:
     parser.add_argument(
         "--ema", action="store_true", help="keep an EMA of the weights (the paper's real-robot runs do not)"
     )
+    parser.add_argument(
+        "--noise-repeats",
+        type=int,
+        default=1,
+        help="(noise, step) draws per observation per step, one encoder pass for all (default 1, the paper's)",
+    )
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--device", default="auto", help="auto, cpu, cuda or cuda:N")
     parser.add_argument("--val-fraction", type=float, default=0.1, help="fraction of episodes held out (default 0.1)")
@@ -304,21 +310,26 @@ def _run(args, dist_info) -> int:
         + (f"; {dist_info.world_size} data-parallel ranks ({dist_info.backend})" if dist_info.distributed else "")
     )
 
-    cfg = TrainConfig(
-        steps=args.steps,
-        batch_size=args.batch_size,
-        lr=args.lr,
-        warmup_steps=args.warmup_steps,
-        ema=args.ema,
-        seed=args.seed,
-        device=args.device,
-        eval_every=args.eval_every,
-        checkpoint_every=args.checkpoint_every,
-        num_workers=args.num_workers,
-        max_minutes=args.max_minutes,
-        precision=args.precision,
-        data=args.data,
-    )
+    try:
+        cfg = TrainConfig(
+            steps=args.steps,
+            batch_size=args.batch_size,
+            lr=args.lr,
+            warmup_steps=args.warmup_steps,
+            ema=args.ema,
+            noise_repeats=args.noise_repeats,
+            seed=args.seed,
+            device=args.device,
+            eval_every=args.eval_every,
+            checkpoint_every=args.checkpoint_every,
+            num_workers=args.num_workers,
+            max_minutes=args.max_minutes,
+            precision=args.precision,
+            data=args.data,
+        )
+    except ValueError as err:  # a setting out of range, e.g. --noise-repeats 0
+        print(f"equidiff train: {err}", file=sys.stderr)
+        return 2
     seed_everything(args.seed)  # the initial weights come from the global RNG: seed before building
     policy = make_policy(args.policy, preset, lab.workspace)
     start_step = 0
