@@ -151,6 +151,7 @@ def test_train_writes_a_loadable_policy_and_plot(bags, tmp_path, capsys):
     # --rotation-aug replaces the preset's and is saved with the policy; run.json keeps the recipe
     recipe = json.loads((tmp_path / "budget" / "run.json").read_text())["recipe"]
     assert recipe["device"] == "cpu" and recipe["batch_size"] == 4 and recipe["rotation_aug"] == "none"
+    assert recipe["noise_repeats"] == 1 and recipe["ema"] is False
     assert load_inference_policy(tmp_path / "budget" / "policy.pt").preset.rotation_aug == "none"
 
 

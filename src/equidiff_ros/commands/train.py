@@ -387,6 +387,8 @@ def _run(args, dist_info) -> int:
         "batch_size": args.batch_size,
         "lr": args.lr,
         "warmup_steps": args.warmup_steps,
+        "noise_repeats": args.noise_repeats,
+        "ema": args.ema,
         "seed": args.seed,
         "max_minutes": args.max_minutes,
         "world_size": result.world_size,
