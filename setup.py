@@ -25,7 +25,11 @@ setup(
         (f"share/{PACKAGE}", ["package.xml"]),
         (f"share/{PACKAGE}/config", glob("config/*.yaml")),
         (f"share/{PACKAGE}/launch", glob("launch/*.py")),
-        (f"share/{PACKAGE}/checkpoints/twin_compact", glob("checkpoints/twin_compact/*")),
+        # the policy and its record; its resumable training state (*.ckpt) stays in the source tree
+        (
+            f"share/{PACKAGE}/checkpoints/twin_compact",
+            [p for p in glob("checkpoints/twin_compact/*") if not p.endswith(".ckpt")],
+        ),
     ],
     # Installed by apt on a ROS machine, by scripts/setup.sh (PyPI ros-jazzy-* wheels) elsewhere.
     install_requires=[

@@ -23,10 +23,11 @@ from equidiff_core.policies import PolicyInputError, make_policy
 from equidiff_core.presets import get_preset
 
 WS = Workspace()
-SHIPPED = Path(__file__).resolve().parents[1] / "checkpoints" / "twin_compact" / "policy.pt"
-# The shipped checkpoint's DDIM-16 actions (steps 0, 7, 15) on twin scene seed 7 with seed 0, fp32,
-# computed at 9845433, before the official encoder layout: old files must predict exactly as before.
-SHIPPED_ACTIONS = [
+# The twin checkpoint shipped until the official encoder layout was trained (legacy layout)
+LEGACY = Path(__file__).resolve().parents[1] / "checkpoints" / "twin_compact_legacy" / "policy.pt"
+# Its DDIM-16 actions (steps 0, 7, 15) on twin scene seed 7 with seed 0, fp32, computed at 9845433,
+# before the official encoder layout: old files must predict exactly as before.
+LEGACY_ACTIONS = [
     [
         0.39222419,
         -0.02841101,
@@ -114,13 +115,13 @@ def test_exported_policy_predicts_like_the_training_policy(exported):
     assert np.abs(b - a)[:, :3].max() < 0.05
 
 
-@pytest.mark.skipif(not SHIPPED.is_file(), reason="the shipped checkpoint is not in this checkout")
-def test_shipped_checkpoint_keeps_its_legacy_encoder_and_predicts_as_before():
-    inf = load_inference_policy(SHIPPED)
+@pytest.mark.skipif(not LEGACY.is_file(), reason="the legacy checkpoint is not in this checkout")
+def test_legacy_checkpoint_keeps_its_legacy_encoder_and_predicts_as_before():
+    inf = load_inference_policy(LEGACY)
     assert inf.preset.encoder_layout == "legacy"  # saved before the field existed
     vox, ee = twin_scenes(inf.preset, inf.workspace, count=1, seed=7)
     a = inf.predict(vox[0, 0].numpy(), ee[0, 0].numpy(), seed=0)
-    np.testing.assert_allclose(a[[0, 7, 15]], SHIPPED_ACTIONS, atol=1e-5)
+    np.testing.assert_allclose(a[[0, 7, 15]], LEGACY_ACTIONS, atol=1e-5)
 
 
 @pytest.mark.slow

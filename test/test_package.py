@@ -57,7 +57,9 @@ def test_colcon_registers_the_package_and_installs_share_files(colcon_install):
     assert (prefix / "share/equidiff_ros/config/lab.yaml").is_file()
     launch_files = sorted(p.name for p in (prefix / "share/equidiff_ros/launch").glob("*.py"))
     assert {"twin.launch.py", "robot.launch.py"} <= set(launch_files)
-    assert (prefix / "share/equidiff_ros/checkpoints/twin_compact/policy.pt").is_file()
+    shipped = prefix / "share/equidiff_ros/checkpoints/twin_compact"
+    assert (shipped / "policy.pt").is_file() and (shipped / "README.md").is_file()
+    assert not list(shipped.glob("*.ckpt"))  # the resumable training state is not installed
 
 
 @pytest.mark.parametrize("node", NODES)

@@ -537,6 +537,15 @@ def test_shipped_checkpoint_loads_and_its_training_is_recorded():
     actions = policy.predict(grid, ee, seed=0)
     assert actions.shape == (policy.preset.horizon, 10) and np.isfinite(actions).all()
 
+    # its resumable training state is kept beside it (`equidiff train --resume`), at the step its history ends
+    from equidiff_core.presets import preset_from_dict
+    from equidiff_core.training import load_training_checkpoint
+
+    state = load_training_checkpoint(SHIPPED_CHECKPOINT.parent / "last.ckpt")
+    history = json.loads((SHIPPED_CHECKPOINT.parent / "history.json").read_text())
+    assert state["step"] == max(row["step"] for row in history)
+    assert preset_from_dict(state["config"]["preset"]) == policy.preset
+
 
 @pytest.mark.slow
 def test_bench_generalization_trains_its_policies_side_by_side_sharing_the_cores(tmp_path, monkeypatch):
