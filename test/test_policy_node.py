@@ -356,12 +356,21 @@ def test_an_announced_episode_samples_like_the_in_process_evaluation(ros_domain,
         client.wait_for(lambda: len(poses) > 10, 60.0, "/franka/ee_pose from the dry-run arm", franka)
         client.wait_for(lambda: pub_episode.get_subscription_count() > 0, 60.0, "policy_node on /policy/episode")
 
+        announced = []
+
         def answer(episode_seed: int | None = None):
             """Announce an episode starting now (or not), then observations until one is answered
             (one can be skipped: no arm state near its stamp yet on a busy machine); that chunk."""
             if episode_seed is not None:
                 pub_episode.publish(String(data=json.dumps({"seed": episode_seed, "start_ns": time.time_ns()})))
-                time.sleep(0.3)  # delivered before the grid
+                announced.append(episode_seed)
+                # taken before the first grid: a late announcement would leave that grid on the old schedule
+                client.wait_for(
+                    lambda: (tmp_path / "policy.log").read_text().count(" announced: ") >= len(announced),
+                    60.0,
+                    "policy_node taking the episode",
+                    policy,
+                )
             sent = {}
             deadline = time.monotonic() + 90.0
             while time.monotonic() < deadline:

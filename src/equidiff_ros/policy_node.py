@@ -278,6 +278,9 @@ class PolicyNode(Node):
             return
         with self._cycle_lock:
             self._episode = episode
+        self.get_logger().info(
+            f"episode {episode['seed']} announced: it begins at the first observation from {episode['start_ns']}"
+        )
 
     # --- the operator's gate -------------------------------------------------------------
     def set_paused(self, reason: str) -> None:
