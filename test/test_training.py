@@ -8,7 +8,7 @@ import torch
 from helpers_model import CubeDataset
 
 from equidiff_core.config import ConfigError, Workspace, from_dict
-from equidiff_core.inference import load_inference_policy
+from equidiff_core.inference import CheckpointError, load_inference_policy
 from equidiff_core.policies import make_policy
 from equidiff_core.presets import get_preset
 from equidiff_core.training import (
@@ -83,6 +83,49 @@ def test_train_resume_callbacks_and_files(tmp_path):
     # resuming into a different preset is refused rather than silently mixed
     with pytest.raises(TrainingError, match="different policy/preset"):
         train(make_policy("baseline", get_preset("tiny"), WS), ds, None, _quick_cfg(steps=4), tmp_path)
+
+
+def test_checkpoints_hold_the_learned_state_whichever_mode_the_model_was_in(tmp_path):
+    # escnn caches expanded filters as buffers in eval mode only. A save between validations (train
+    # mode) and one right after validation (eval mode) must write the same keys, without the caches,
+    # and both must resume into a freshly built model.
+    ds = CubeDataset(3, seed=5)
+    learned_keys = set(make_policy("equidiff", get_preset("tiny"), WS).train().model.state_dict())
+    saved_keys = []
+    for steps, eval_every in ((1, 0), (2, 2)):  # step 1 saved in train mode, step 2 after validation
+        train(
+            make_policy("equidiff", get_preset("tiny"), WS),
+            ds,
+            None,
+            _quick_cfg(steps=steps, eval_every=eval_every, checkpoint_every=0),
+            tmp_path,
+        )
+        saved_keys.append(set(load_training_checkpoint(tmp_path / "last.ckpt")["model"]))
+    assert saved_keys[0] == saved_keys[1] == learned_keys
+    assert not any(k.endswith((".filter", ".expanded_bias")) for k in learned_keys)
+
+    # a checkpoint written before this fix carries the caches: it still loads, to the same weights
+    path = tmp_path / "last.ckpt"
+    restored = load_policy_from_checkpoint(path)
+    state = load_training_checkpoint(path)
+    state["model"] = restored.eval().model.state_dict()
+    assert any(k.endswith(".filter") for k in state["model"])
+    torch.save(state, tmp_path / "old.ckpt")
+    old = load_policy_from_checkpoint(tmp_path / "old.ckpt")
+    for a, b in zip(old.model.parameters(), restored.model.parameters(), strict=True):
+        torch.testing.assert_close(a, b)
+    vox, ee = ds[0]["voxels"][None], ds[0]["ee"][None]
+    g = lambda: torch.Generator().manual_seed(0)
+    torch.testing.assert_close(
+        old.predict_action({"voxels": vox, "ee": ee}, generator=g())["action"],
+        restored.predict_action({"voxels": vox, "ee": ee}, generator=g())["action"],
+    )
+
+    # any other stray key is still refused
+    state["model"]["encoder.0.weights_typo"] = torch.zeros(1)
+    torch.save(state, tmp_path / "bad.ckpt")
+    with pytest.raises(CheckpointError, match="weights_typo"):
+        load_policy_from_checkpoint(tmp_path / "bad.ckpt")
 
 
 def test_ema_weights_are_exported_and_training_weights_kept(tmp_path):

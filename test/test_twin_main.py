@@ -539,12 +539,15 @@ def test_shipped_checkpoint_loads_and_its_training_is_recorded():
 
     # its resumable training state is kept beside it (`equidiff train --resume`), at the step its history ends
     from equidiff_core.presets import preset_from_dict
-    from equidiff_core.training import load_training_checkpoint
+    from equidiff_core.training import load_policy_from_checkpoint, load_training_checkpoint
 
     state = load_training_checkpoint(SHIPPED_CHECKPOINT.parent / "last.ckpt")
     history = json.loads((SHIPPED_CHECKPOINT.parent / "history.json").read_text())
     assert state["step"] == max(row["step"] for row in history)
     assert preset_from_dict(state["config"]["preset"]) == policy.preset
+    # the learned state only, without escnn's eval-mode caches; it loads strictly into a fresh model
+    assert not any(k.endswith((".filter", ".expanded_bias")) for k in state["model"])
+    assert load_policy_from_checkpoint(SHIPPED_CHECKPOINT.parent / "last.ckpt").preset == policy.preset
 
 
 @pytest.mark.slow

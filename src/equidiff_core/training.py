@@ -40,6 +40,7 @@ from torch.utils.data import DataLoader, Dataset
 from . import distributed
 from .batches import DeviceBatchSource, estimate_nbytes, loader_batches, make_sampler
 from .config import to_dict
+from .models.state import learned_state_dict, load_learned_state, refresh_escnn_caches
 from .normalizer import Normalizer
 from .policies import DiffusionPolicy
 
@@ -173,25 +174,18 @@ class _Ema:
     def swapped_in(self):
         self.ema.store(self.params)
         self.ema.copy_to(self.params)
-        _refresh(self.model)
+        refresh_escnn_caches(self.model)
         try:
             yield
         finally:
             self.ema.restore(self.params)
-            _refresh(self.model)
+            refresh_escnn_caches(self.model)
 
     def state_dict(self):
         return self.ema.state_dict()
 
     def load_state_dict(self, state):
         self.ema.load_state_dict(state)
-
-
-def _refresh(model: torch.nn.Module):
-    # escnn caches expanded filters when switched to eval: re-expand after weights change.
-    mode = model.training
-    model.train(True)
-    model.train(mode)
 
 
 def _to_numpy(x):
@@ -256,7 +250,7 @@ def train(
     if state is not None:
         if state["config"]["policy"] != policy.name or state["config"]["preset"] != policy.preset.to_dict():
             raise TrainingError(f"{ckpt_path} was written for a different policy/preset; use a new out_dir")
-        policy.model.load_state_dict(state["model"])
+        load_learned_state(policy.model, state["model"])
         optimizer.load_state_dict(state["optimizer"])
         scheduler.load_state_dict(state["lr_scheduler"])
         if ema is not None and state.get("ema") is not None:
@@ -275,7 +269,7 @@ def train(
             "step": step,
             "config": policy.config_dict(),
             "train_config": to_dict(cfg),
-            "model": policy.model.state_dict(),
+            "model": learned_state_dict(policy.model),
             "optimizer": optimizer.state_dict(),
             "lr_scheduler": scheduler.state_dict(),
             "ema": ema.state_dict() if ema else None,
@@ -465,7 +459,7 @@ def load_policy_from_checkpoint(path: str | Path, device: str = "cpu") -> Diffus
         )
         if config.get("normalizer") is not None:
             policy.set_normalizer(Normalizer.from_dict(config["normalizer"]))
-        policy.model.load_state_dict(weights)
+        load_learned_state(policy.model, weights)
     except (KeyError, ValueError, RuntimeError) as err:
         raise CheckpointError(f"{path}: incompatible checkpoint: {str(err).splitlines()[0]}") from err
     return policy.to(resolve_device(device)).eval()

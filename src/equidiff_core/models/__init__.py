@@ -6,6 +6,7 @@
 * ``plain``: the same noise predictor as plain torch modules (inference without escnn).
 * ``baseline``: DiffPo-C (Vo), a non-equivariant 3D conv encoder with the same U-Net.
 * ``action_space``: the irreps the denoised vectors carry.
+* ``state``: a network's learned state for checkpoints, independent of escnn's train/eval caches.
 
 Importing this package imports no escnn; ``models.equivariant`` does.
 """
