@@ -577,7 +577,7 @@ def test_bench_generalization_trains_its_policies_side_by_side_sharing_the_cores
         return subprocess.Popen([sys.executable, "-c", script, str(out / "policy.pt"), str(seconds), str(code)])
 
     monkeypatch.setattr(bench, "_start_training", fake_start)
-    args = argparse.Namespace(train_steps=7, max_minutes=None)
+    args = argparse.Namespace(train_steps=7, max_minutes=None, policies=list(bench.POLICIES))
     policies = bench._train_all(tmp_path / "demos", tmp_path, args)
     assert policies == {name: tmp_path / name / "policy.pt" for name in ("equidiff", "baseline", "baseline_aug")}
     started = {name: runs[name][0] for name in policies}
@@ -595,6 +595,86 @@ def test_bench_generalization_trains_its_policies_side_by_side_sharing_the_cores
     message = str(err.value)
     assert "equidiff train equidiff failed (exit 3" in message and "equidiff log line" in message
     assert "equidiff train baseline" not in message  # stopped by the bench, not failures of their own
+
+    # --policies: only those train now, and they get the cores the others would have had
+    runs.clear()
+    behaviour.update(equidiff=(0.0, 0), baseline=(0.0, 0))
+    args.policies = ["baseline"]
+    assert bench._train_all(tmp_path / "demos", tmp_path / "third", args) == {
+        "baseline": tmp_path / "third" / "baseline" / "policy.pt"
+    }
+    assert runs.keys() == {"baseline"} and runs["baseline"][1] == max(1, os.cpu_count() or 2)
+
+
+def test_the_bench_names_the_recipe_settings_its_policies_were_trained_with_differently():
+    from equidiff_ros.commands.bench_generalization import recipe_differences
+
+    base = {"preset": "compact", "batch_size": 8, "lr": 5e-4, "ema": True, "rotation_aug": "none", "device": "cpu"}
+    recipes = {
+        "equidiff": base,
+        "baseline": {**base, "device": "cuda", "max_minutes": 60.0},  # how fast, not what: allowed
+        "baseline_aug": {**base, "rotation_aug": "continuous", "lr": 1e-4},  # the augmentation is the point
+    }
+    assert recipe_differences(recipes) == ["lr: equidiff 0.0005, baseline 0.0005, baseline_aug 0.0001"]
+    assert recipe_differences({**recipes, "baseline_aug": None}) == []  # no run.json: nothing to compare
+    assert recipe_differences({**recipes, "baseline": {**base, "noise_repeats": 4}}) == [
+        "lr: equidiff 0.0005, baseline 0.0005, baseline_aug 0.0001",
+        "noise_repeats: equidiff None, baseline 4, baseline_aug None",
+    ]
+
+
+@pytest.mark.slow
+@pytest.mark.sim
+def test_bench_generalization_trains_in_parts_and_rolls_out_once_all_three_share_a_recipe(
+    tmp_path, capsys, monkeypatch
+):
+    """On a small CPU one policy fills a working session: --policies trains a subset into --out and
+    says what is pending; the call that completes the set rolls all three out, and policies trained
+    with different recipes are refused rather than compared."""
+    import json
+
+    from helpers_model import export_tiny_baseline
+
+    from equidiff_ros.cli import main
+    from equidiff_ros.commands import bench_generalization as bench
+
+    started = []
+
+    def fake_start(name, bags, out, args, steps, threads):  # an instant `equidiff train`
+        started.append(name)
+        out.mkdir(parents=True, exist_ok=True)
+        export_tiny_baseline(out / "policy.pt")
+        (out / "history.json").write_text(json.dumps([{"step": steps, "loss": 0.1}]))
+        recipe = {"preset": "tiny", "batch_size": args.batch_size, "lr": args.lr, "ema": args.ema}
+        (out / "run.json").write_text(json.dumps({"recipe": {**recipe, "rotation_aug": bench._recipe(name, args)[1]}}))
+        return subprocess.Popen([sys.executable, "-c", "pass"])
+
+    monkeypatch.setattr(bench, "_start_training", fake_start)
+    demos, out = tmp_path / "demos", tmp_path / "gen"
+    demos.mkdir()
+    argv = ["bench", "generalization", "--demos-dir", str(demos), "--out", str(out), "--train-steps", "5"]
+    argv += ["--ema", "--eval-episodes", "1", "--in-range-episodes", "1", "--max-duration", "1", "--device", "cpu"]
+
+    assert main([*argv, "--policies", "equidiff"]) == 0
+    first = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert started == ["equidiff"] and first["trained"] == ["equidiff"]
+    assert first["pending"] == ["baseline", "baseline_aug"] and "--policies baseline baseline_aug" in first["next"]
+
+    # a second session trains the other two with another learning rate: refused, nothing rolled out
+    assert main([*argv, "--policies", "baseline", "baseline_aug", "--lr", "1e-4"]) == 2
+    captured = capsys.readouterr()
+    assert "not trained with the same recipe (lr: equidiff 0.0005, baseline 0.0001, baseline_aug 0.0001)" in (
+        captured.err
+    )
+    assert "[eval]" not in captured.out
+
+    # the same recipe: all three are rolled out (in range first; untrained, they fail the gate)
+    assert main([*argv, "--policies", "baseline", "baseline_aug"]) == 3
+    result = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert started == ["equidiff", "baseline", "baseline_aug", "baseline", "baseline_aug"]
+    assert result["failed_in_range"] == ["equidiff", "baseline", "baseline_aug"]
+    assert result["train_steps_by_policy"] == {"equidiff": 5, "baseline": 5, "baseline_aug": 5}
+    assert result["training_recipes"]["baseline_aug"]["rotation_aug"] == "continuous"
 
 
 @pytest.mark.slow

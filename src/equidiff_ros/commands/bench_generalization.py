@@ -4,6 +4,7 @@
     equidiff bench generalization --train-steps 20000 --batch-size 64 --lr 1e-4 --device cuda
     equidiff bench generalization --quick               # minutes-scale plumbing check (tiny preset)
     equidiff bench generalization --trained gpu_run/ --demos-dir packed/   # policies trained elsewhere
+    equidiff bench generalization --out gen --policies equidiff --ema --noise-repeats 4   # in parts
 
 The paper's central claim on our twin, measured the way its appendix compares equivariance by
 construction with equivariance by data augmentation: (1) record ``--demos`` scripted-expert
@@ -21,6 +22,13 @@ the box's half-turn symmetry (the round bowl's yaw does not matter). Prints one 
 equidiff_success, baseline_success, baseline_aug_success, their *_in_range_success,
 failed_in_range, verdict, equidiff_minus_baseline_points, goal_met (EquiDiff >= 80 % at unseen
 yaw and >= 30 points above the non-augmented baseline), demos, train_steps, ...
+
+The three must share one recipe (preset, steps, batch, lr, warm-up, seed, noise repeats, EMA,
+precision; rotation augmentation differs by design): the bench compares their ``equidiff
+train`` run.json recipes and refuses to roll out policies trained differently. On a small CPU
+one policy can take a whole working session, so ``--policies`` trains a subset into ``--out``
+(demos recorded there by the first call are reused) and prints a ``pending`` line; once
+``--out`` holds all three, the next call rolls them out.
 
 Time on this 2-core CPU (compact preset, quiet machine): demos ~14 s each (40: 9 min); training
 ~1.0 s (EquiDiff) and ~0.6 s (baselines) per step of batch 16 without rotation augmentation when
@@ -93,6 +101,22 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=0.6,
         help="fraction of the in-range scenes every policy must solve before any is rolled out at "
         "unseen yaw (0: no gate)",
+    )
+    parser.add_argument(
+        "--noise-repeats",
+        type=int,
+        default=1,
+        help="(noise, step) draws per observation and encoder pass (equidiff train --noise-repeats)",
+    )
+    parser.add_argument("--ema", action="store_true", help="train with an EMA of the weights (equidiff train --ema)")
+    parser.add_argument(
+        "--policies",
+        nargs="+",
+        choices=POLICIES,
+        default=list(POLICIES),
+        metavar="NAME",
+        help="train only these now, into --out/NAME (default all three); the others must be in --out "
+        "from an earlier call with the same recipe before anything is rolled out",
     )
     parser.add_argument("--device", default="auto", help="auto | cpu | cuda")
     parser.add_argument(
@@ -182,6 +206,10 @@ def _start_training(name: str, bags: Path, out: Path, args, steps: int, threads:
         str(min(500, max(1, steps // 10))),
         "--no-progress",
     ]
+    if args.noise_repeats != 1:
+        cmd += ["--noise-repeats", str(args.noise_repeats)]
+    if args.ema:
+        cmd += ["--ema"]
     if args.lab_config:
         cmd += ["--lab-config", str(args.lab_config)]
     if args.max_minutes is not None:
@@ -205,10 +233,11 @@ def _train_all(demos_dir: Path, out: Path, args) -> dict[str, Path]:
 
     A failing run stops the others within 10 s (their checkpoints and ``train.log`` stay), so an
     error is not held back until the longest run ends; every run that failed is reported."""
-    threads = max(1, (os.cpu_count() or 2) // len(POLICIES))
+    names = [name for name in POLICIES if name in args.policies]
+    threads = max(1, (os.cpu_count() or 2) // len(names))
     # train stops itself at --max-minutes and exports; this deadline is only a backstop
     deadline = None if args.max_minutes is None else time.monotonic() + args.max_minutes * 60 + 600
-    runs = {name: _start_training(name, demos_dir, out / name, args, args.train_steps, threads) for name in POLICIES}
+    runs = {name: _start_training(name, demos_dir, out / name, args, args.train_steps, threads) for name in names}
     stopped = set()  # runs this function terminated: not failures of their own
 
     def failures() -> TrainRunError | None:
@@ -295,7 +324,9 @@ def run(args: argparse.Namespace) -> int:
         n_demos = _count_demos(args.demos_dir) if args.demos_dir else _trained_demos(args.trained / "equidiff")
         return _evaluate(args, cfg, lab, out, policies, steps_done, n_demos, {})
     demos_dir = args.demos_dir or out / "demos"
-    if args.demos_dir is None:
+    if args.demos_dir is None and demos_dir.is_dir() and _count_demos(demos_dir) >= args.demos:
+        n_demos = _count_demos(demos_dir)  # recorded by an earlier call with this --out
+    elif args.demos_dir is None:
         results = collect_direct(
             train_cfg,
             lab,
@@ -310,15 +341,31 @@ def run(args: argparse.Namespace) -> int:
     t_demos = time.monotonic()
 
     try:
-        policies = _train_all(demos_dir, out, args)
+        trained_now = _train_all(demos_dir, out, args)
     except TrainRunError as err:  # the demos stay: a rerun need not record them again
         print(
             f"equidiff bench generalization: {err}\nthe demos are kept: rerun with --demos-dir {demos_dir}",
             file=sys.stderr,
         )
         return 1
-    steps_done = {name: _trained_steps(out / name) or args.train_steps for name in policies}
     t_train = time.monotonic()
+    minutes = {"demos": round((t_demos - t_start) / 60, 1), "train": round((t_train - t_demos) / 60, 1)}
+    pending = [name for name in POLICIES if not (out / name / "policy.pt").is_file()]
+    if pending:  # trained in parts (one machine-session each on a small CPU): roll out once all are in --out
+        result = {
+            "trained": list(trained_now),
+            "pending": pending,
+            "train_steps_by_policy": {name: _trained_steps(out / name) for name in trained_now},
+            "demos": n_demos,
+            "out": str(out),
+            "next": f"equidiff bench generalization --out {out} --demos-dir {demos_dir} --policies "
+            f"{' '.join(pending)} with this call's recipe flags",
+            "minutes": minutes,
+        }
+        print(json.dumps(result))
+        return 0
+    policies = {name: out / name / "policy.pt" for name in POLICIES}
+    steps_done = {name: _trained_steps(out / name) or args.train_steps for name in policies}
     return _evaluate(
         args,
         cfg,
@@ -327,7 +374,7 @@ def run(args: argparse.Namespace) -> int:
         policies,
         steps_done,
         n_demos,
-        {"demos": round((t_demos - t_start) / 60, 1), "train": round((t_train - t_demos) / 60, 1)},
+        minutes,
     )
 
 
@@ -368,6 +415,23 @@ def _trained_demos(run_dir: Path) -> int | None:
         return None
 
 
+# Settings that may differ between the three runs: rotation augmentation by design, and what
+# only changes how fast the same recipe ran (device, data path, time budget).
+_RECIPE_FREE = ("rotation_aug", "device", "data", "max_minutes")
+
+
+def recipe_differences(recipes: dict[str, dict | None]) -> list[str]:
+    """The recipe settings the policies were trained with differently (``equidiff train``'s
+    run.json; runs without one are not compared): the comparison needs the same budget for all."""
+    known = {name: recipe for name, recipe in recipes.items() if recipe is not None}
+    keys = sorted({key for recipe in known.values() for key in recipe} - set(_RECIPE_FREE))
+    return [
+        f"{key}: " + ", ".join(f"{name} {recipe.get(key)}" for name, recipe in known.items())
+        for key in keys
+        if len({json.dumps(recipe.get(key)) for recipe in known.values()}) > 1
+    ]
+
+
 def in_range_failures(in_range_success: dict[str, float | None], min_in_range: float) -> list[str]:
     """The policies that solved fewer than ``min_in_range`` of the in-range scenes (none rolled out: none)."""
     return [name for name, rate in in_range_success.items() if rate is not None and rate < min_in_range]
@@ -394,6 +458,16 @@ def _evaluate(args, cfg, lab, out: Path, policies: dict, steps_done: dict, n_dem
     from equidiff_core.twin.demos import DirectRecorder
     from equidiff_core.twin.evaluate import evaluate_policy, in_range_yaw_seeds, unseen_yaw_seeds
 
+    recipes = {name: _training_recipe(path.parent) for name, path in policies.items()}
+    differences = recipe_differences(recipes)
+    if differences:
+        print(
+            "equidiff bench generalization: the policies were not trained with the same recipe ("
+            + "; ".join(differences)
+            + "): retrain the odd ones out",
+            file=sys.stderr,
+        )
+        return 2
     t_eval = time.monotonic()
     seeds = unseen_yaw_seeds(cfg, tuple(args.train_yaw), args.eval_episodes)
     in_range = in_range_yaw_seeds(cfg, tuple(args.train_yaw), args.in_range_episodes)
@@ -449,7 +523,7 @@ def _evaluate(args, cfg, lab, out: Path, policies: dict, steps_done: dict, n_dem
         "preset": "/".join(sorted({p.preset.name for p in loaded.values()})),  # as the policies were trained
         "rotation_aug": {name: p.preset.rotation_aug for name, p in loaded.items()},
         "device": args.device,  # of the evaluation; the training's is in training_recipes
-        "training_recipes": {name: _training_recipe(path.parent) for name, path in policies.items()},
+        "training_recipes": recipes,
         "minutes": {**minutes, "eval": round((t_end - t_eval) / 60, 1)},
     }
     (out / "result.json").write_text(json.dumps(result) + "\n")
