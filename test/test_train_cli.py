@@ -152,6 +152,7 @@ def test_train_writes_a_loadable_policy_and_plot(bags, tmp_path, capsys):
     recipe = json.loads((tmp_path / "budget" / "run.json").read_text())["recipe"]
     assert recipe["device"] == "cpu" and recipe["batch_size"] == 4 and recipe["rotation_aug"] == "none"
     assert recipe["noise_repeats"] == 1 and recipe["ema"] is False
+    assert recipe["schedule_steps"] == 3 and summary["steps"] == 1  # planned against trained
     assert load_inference_policy(tmp_path / "budget" / "policy.pt").preset.rotation_aug == "none"
 
 

@@ -384,6 +384,7 @@ def _run(args, dist_info) -> int:
         "device": str(next(policy.parameters()).device),
         "preset": preset.name,
         "rotation_aug": preset.rotation_aug,
+        "schedule_steps": args.steps,  # the cosine schedule's length; "steps" above is how many ran
         "batch_size": args.batch_size,
         "lr": args.lr,
         "warmup_steps": args.warmup_steps,
