@@ -3,7 +3,7 @@
 escnn layers cache the filter they expand from their weights as buffers (``filter``,
 ``expanded_bias``, ``matrix``) while in eval mode and drop them in train mode, so a plain
 ``state_dict()`` depends on the mode the model happened to be in: a checkpoint saved right after
-validation carried the caches (the compact EquiDiff's grew from 6.6 to 17 MB), and one saved
+validation carried the caches (the compact EquiDiff's weights grew from 6 to 17 MB), and one saved
 between validations lacked keys that a freshly built model has, so a strict load refused it.
 Saving in train mode and loading with the caches skipped makes the file independent of the mode.
 """
