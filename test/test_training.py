@@ -18,6 +18,7 @@ from equidiff_core.training import (
     load_training_checkpoint,
     resolve_device,
     train,
+    without_optimizer_state,
 )
 
 WS = Workspace()
@@ -126,6 +127,53 @@ def test_checkpoints_hold_the_learned_state_whichever_mode_the_model_was_in(tmp_
     torch.save(state, tmp_path / "bad.ckpt")
     with pytest.raises(CheckpointError, match="weights_typo"):
         load_policy_from_checkpoint(tmp_path / "bad.ckpt")
+
+
+def test_a_checkpoint_shared_without_the_optimiser_still_loads_and_resumes_on_schedule(tmp_path):
+    import shutil
+
+    ds = CubeDataset(2, seed=4)
+    cfg = _quick_cfg(steps=4, warmup_steps=1, ema=True, eval_every=0, checkpoint_every=2)
+
+    class KeepStep2:  # last.ckpt as written after step 2 of the 4, before the run goes on
+        def on_step(self, step, metrics):
+            if step == 3:
+                shutil.copy(tmp_path / "full" / "last.ckpt", tmp_path / "step2.ckpt")
+
+    full = Recorder()
+    train(make_policy("baseline", get_preset("tiny"), WS), ds, None, cfg, tmp_path / "full", [full, KeepStep2()])
+    (tmp_path / "cut").mkdir()
+    without_optimizer_state(tmp_path / "step2.ckpt", tmp_path / "cut" / "last.ckpt")
+
+    shared, original = (load_training_checkpoint(tmp_path / f) for f in ("cut/last.ckpt", "step2.ckpt"))
+    assert shared["optimizer"] is None and original["optimizer"]["state"]
+    assert (tmp_path / "cut" / "last.ckpt").stat().st_size < 0.8 * (tmp_path / "step2.ckpt").stat().st_size
+    assert shared["step"] == 2 and shared["ema"] is not None
+    for a, b in zip(
+        load_policy_from_checkpoint(tmp_path / "cut/last.ckpt").model.parameters(),
+        load_policy_from_checkpoint(tmp_path / "step2.ckpt").model.parameters(),
+        strict=True,
+    ):
+        torch.testing.assert_close(a, b)
+
+    # resumed: steps 3 and 4 on the same schedule as the uninterrupted run, with moments of its own
+    resumed = Recorder()
+    policy = make_policy("baseline", get_preset("tiny"), WS)
+    name = "unet.final_conv.1.weight"
+    after_step = {}
+
+    class Weights:
+        def on_step(self, step, metrics):
+            after_step[step] = policy.model.state_dict()[name].clone()
+
+    train(policy, ds, None, cfg, tmp_path / "cut", [resumed, Weights()])
+    assert [s for s, _ in resumed.steps] == [3, 4]
+    assert [m["lr"] for _, m in resumed.steps] == [m["lr"] for s, m in full.steps if s > 2]
+    history = json.loads((tmp_path / "cut" / "history.json").read_text())
+    assert {"step": 2, "resumed": "without optimiser state: fresh AdamW moments"} in history
+    assert load_training_checkpoint(tmp_path / "cut" / "last.ckpt")["optimizer"]["state"]  # saved whole again
+    # step 3 already moved the weights: its learning rate is the schedule's, not a fresh optimiser's 0
+    assert not torch.equal(after_step[3], shared["model"][name])
 
 
 def test_ema_weights_are_exported_and_training_weights_kept(tmp_path):

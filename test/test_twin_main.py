@@ -537,7 +537,8 @@ def test_shipped_checkpoint_loads_and_its_training_is_recorded():
     actions = policy.predict(grid, ee, seed=0)
     assert actions.shape == (policy.preset.horizon, 10) and np.isfinite(actions).all()
 
-    # its resumable training state is kept beside it (`equidiff train --resume`), at the step its history ends
+    # its training state is kept beside it (`equidiff train --resume`), at the step its history ends, without
+    # AdamW's moments (a resume starts fresh ones): the file stays small enough to keep in git
     from equidiff_core.presets import preset_from_dict
     from equidiff_core.training import load_policy_from_checkpoint, load_training_checkpoint
 
@@ -545,6 +546,8 @@ def test_shipped_checkpoint_loads_and_its_training_is_recorded():
     history = json.loads((SHIPPED_CHECKPOINT.parent / "history.json").read_text())
     assert state["step"] == max(row["step"] for row in history)
     assert preset_from_dict(state["config"]["preset"]) == policy.preset
+    assert state["optimizer"] is None and state["ema"] is not None
+    assert (SHIPPED_CHECKPOINT.parent / "last.ckpt").stat().st_size < 20 * 2**20
     # the learned state only, without escnn's eval-mode caches; it loads strictly into a fresh model
     assert not any(k.endswith((".filter", ".expanded_bias")) for k in state["model"])
     assert load_policy_from_checkpoint(SHIPPED_CHECKPOINT.parent / "last.ckpt").preset == policy.preset

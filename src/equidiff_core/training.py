@@ -18,7 +18,8 @@ tensors and swap the averaged weights in for evaluation and export.
 
 Files in ``out_dir``: ``last.ckpt`` (resumable: weights, optimiser, schedule, EMA, step,
 history, config; loads with ``torch.load(weights_only=True)``), ``history.json`` and
-``policy.pt`` (the exported inference policy, see ``inference.py``).
+``policy.pt`` (the exported inference policy, see ``inference.py``). ``without_optimizer_state``
+writes a checkpoint to share without the optimiser's moments; it still resumes, with fresh moments.
 """
 
 from __future__ import annotations
@@ -251,13 +252,20 @@ def train(
         if state["config"]["policy"] != policy.name or state["config"]["preset"] != policy.preset.to_dict():
             raise TrainingError(f"{ckpt_path} was written for a different policy/preset; use a new out_dir")
         load_learned_state(policy.model, state["model"])
-        optimizer.load_state_dict(state["optimizer"])
+        if state["optimizer"] is not None:
+            optimizer.load_state_dict(state["optimizer"])
+        # else a checkpoint shared without the optimiser (without_optimizer_state): AdamW re-estimates
+        # its moments from the next gradients, and the learning rate comes from the schedule below
         scheduler.load_state_dict(state["lr_scheduler"])
+        for group, base_lr, factor in zip(optimizer.param_groups, scheduler.base_lrs, scheduler.lr_lambdas):
+            group["lr"] = base_lr * factor(scheduler.last_epoch)
         if ema is not None and state.get("ema") is not None:
             ema.load_state_dict(state["ema"])
         policy.set_normalizer(Normalizer.from_dict(state["config"]["normalizer"]))
         step = int(state["step"])
         history = json.loads(state["history_json"])
+        if state["optimizer"] is None:
+            history.append({"step": step, "resumed": "without optimiser state: fresh AdamW moments"})
     del state
 
     def save_checkpoint():
@@ -424,6 +432,21 @@ def load_training_checkpoint(path: str | Path) -> dict:
     if state.get("version") != CKPT_VERSION:
         raise CheckpointError(f"{path}: checkpoint version {state.get('version')} != supported {CKPT_VERSION}")
     return state
+
+
+def without_optimizer_state(path: str | Path, out: str | Path) -> Path:
+    """Write ``path``'s training checkpoint to ``out`` without AdamW's moments, for sharing.
+
+    The moments are as large as the weights and the EMA together; the rest (weights, EMA,
+    schedule, step, history, recipe) is kept, so the file still loads as a policy and resumes:
+    ``train`` then continues the schedule with fresh moments and notes it in the history."""
+    state = load_training_checkpoint(path)
+    state["optimizer"] = None
+    out = Path(out)
+    tmp = out.with_suffix(".tmp")
+    torch.save(state, tmp)
+    tmp.replace(out)
+    return out
 
 
 def load_policy_from_checkpoint(path: str | Path, device: str = "cpu") -> DiffusionPolicy:
