@@ -236,6 +236,10 @@ def test_recorder_command_parsing():
         {"success": False, "seed": 7, "operator": "ana", "notes": "slipped off"},
     )
     assert parse_command("stop success fine") == ("stop", {"success": True, "notes": "fine"})
+    assert parse_command("stop seed=2 extra.block_yaw_deg=-12.5 extra.range=-15,15 extra.=x") == (
+        "stop",
+        {"success": True, "seed": 2, "extra": {"block_yaw_deg": "-12.5", "range": "-15,15"}, "notes": "extra.=x"},
+    )
     assert parse_command(" discard ") == ("discard", {})
     with pytest.raises(ValueError, match="unknown recorder command"):
         parse_command("halt")

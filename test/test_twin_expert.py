@@ -126,6 +126,7 @@ def test_direct_collection_writes_a_trainable_demo_bag(tmp_path):
     from equidiff_core.config import default_config_dir, load_lab_config
     from equidiff_core.dataset import DatasetConfig, load_episode_arrays
     from equidiff_core.twin.demos import collect_direct
+    from equidiff_core.twin.scene import recorded_block_yaw_range
 
     lab = load_lab_config(default_config_dir() / "lab.yaml")
     cfg = CFG.with_yaw_range((-10.0, 10.0))
@@ -134,6 +135,9 @@ def test_direct_collection_writes_a_trainable_demo_bag(tmp_path):
     bag = tmp_path / results[0][2].split("/")[-1]
     meta = read_meta(bag)
     assert meta.success is True and meta.seed == 4 and meta.task == "twin_block_in_bowl"
+    # the scene's yaw and the range it was drawn from travel with the demo
+    assert recorded_block_yaw_range(meta.extra) == (-10.0, 10.0) and meta.extra["bowl_yaw_range_deg"] == "-10,10"
+    assert abs(float(meta.extra["block_yaw_deg"])) <= 10.0
     arrays = load_episode_arrays(bag, DatasetConfig())
     assert len(arrays) >= 40 and arrays.dropped_steps == 0  # ~5 Hz over a ~12 s episode
     # the commanded targets go down to the block, close, and end open over the bowl

@@ -362,6 +362,7 @@ def test_twin_collect_over_ros_records_the_experts_demo_with_its_seed(ros_domain
     assert len(bags) == 1
     meta = read_meta(bags[0])
     assert meta.success is True and meta.seed == 4 and "scripted expert" in (meta.notes or "")
+    assert meta.extra["block_yaw_range_deg"] == "-10,10" and abs(float(meta.extra["block_yaw_deg"])) <= 10.0
 
 
 def test_generalisation_eval_scenes_have_unseen_block_yaw_modulo_its_half_turn_symmetry():
@@ -695,6 +696,11 @@ def test_bench_generalization_quick_runs_end_to_end_on_the_cpu(tmp_path, capsys)
     demos = tmp_path / "demos"
     lab = load_lab_config(default_config_dir() / "lab.yaml")
     assert collect_direct(TwinConfig().with_yaw_range((-15.0, 15.0)), lab, demos, [0], log=lambda s: None)[0][1]
+    # demos drawn from another yaw range than the bench's are refused before any training
+    other = ["--demos-dir", str(demos), "--train-yaw", "-30", "30", "--out", str(tmp_path / "other")]
+    assert main(["bench", "generalization", "--quick", *other]) == 2
+    assert "another block yaw range than --train-yaw -30 30" in capsys.readouterr().err
+    assert not (tmp_path / "other" / "equidiff").exists()
     assert (
         main(
             [

@@ -7,7 +7,7 @@ episode starts and stops on
 * services (std_srvs/Trigger): /recorder/start, /recorder/stop (keep, success),
   /recorder/stop_failure (keep, success=false), /recorder/discard;
 * the /recorder/command topic (std_msgs/String): ``start [task]``,
-  ``stop [success|failure] [seed=N] [operator=NAME] [notes...]``, ``discard``;
+  ``stop [success|failure] [seed=N] [operator=NAME] [extra.KEY=VALUE...] [notes...]``, ``discard``;
 * the keyboard when ``keyboard:=true`` and stdin is a terminal: s = start, k = keep
   (success), f = keep (failure), d = discard, then Enter.
 
@@ -109,6 +109,8 @@ def parse_command(text: str) -> tuple[str, dict]:
                 updates["seed"] = int(value)
             elif sep and key in ("operator", "task"):
                 updates[key] = value
+            elif sep and key.startswith("extra.") and len(key) > len("extra."):
+                updates.setdefault("extra", {})[key.removeprefix("extra.")] = value
             else:
                 notes.append(word)
         if notes:

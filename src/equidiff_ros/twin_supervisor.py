@@ -71,6 +71,7 @@ from equidiff_core.twin.processes import (
     node_command,
     private_ros_env,
 )
+from equidiff_core.twin.scene import ScenePoses, scene_record
 from equidiff_ros.common import (
     LATCHED_QOS,
     RELIABLE_QOS,
@@ -693,12 +694,13 @@ class LiveTwin:
 
     def __init__(self, stack: TwinStack):
         self.stack, self.sup = stack, stack.sup
+        self.scene: ScenePoses | None = None
 
     def home(self) -> None:
         self.stack.home()
 
     def reset_scene(self, seed: int) -> None:
-        self.sup.reset_scene(seed, check=self.stack.check)
+        self.scene = ScenePoses.from_dict(self.sup.reset_scene(seed, check=self.stack.check))  # recorded with the bag
 
     def settle(self, seconds: float) -> None:
         self.sup.sim_sleep(seconds, self.stack.check)
@@ -714,7 +716,9 @@ class LiveTwin:
         return status.split(" ", 1)[1] if " " in status else ""
 
     def stop_recording(self, keep: bool, success: bool, note: str) -> None:
-        command = f"stop {'success' if success else 'failure'} {note}" if keep else "discard"
+        scene = scene_record(self.stack.cfg.scene, self.scene) if self.scene is not None else {}
+        words = " ".join(f"extra.{key}={value}" for key, value in scene.items())
+        command = f"stop {'success' if success else 'failure'} {words} {note}" if keep else "discard"
         self.sup.recorder(command, "idle", check=self.stack.check)
 
 

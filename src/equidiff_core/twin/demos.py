@@ -37,7 +37,7 @@ from ..topics import (
 from ..voxels import Voxelizer
 from .config import TwinConfig
 from .expert import plan_pick_place, tcp_pose
-from .scene import BLOCK, BOWL, body_pose
+from .scene import BLOCK, BOWL, body_pose, scene_record
 from .sim import DirectSim
 
 NS = 1_000_000_000
@@ -121,9 +121,10 @@ class DirectWorld:
         if self.out is None:
             return ""
         self.path = next_episode_path(self.out, self.task)
-        self.writer = EpisodeWriter(
-            self.path, EpisodeMeta(task=self.task, operator=self.operator, seed=self.seed)
-        ).open()
+        meta = EpisodeMeta(
+            task=self.task, operator=self.operator, seed=self.seed, extra=scene_record(self.rec.cfg.scene, self.scene)
+        )
+        self.writer = EpisodeWriter(self.path, meta).open()
         for topic, msgtype in TRAINING_TOPICS.items():
             self.writer.add_topic(topic, msgtype)
         self.writer.write_tf_static(self.lab, self.epoch_ns)

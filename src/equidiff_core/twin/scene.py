@@ -288,6 +288,30 @@ def sample_scene(cfg: SceneConfig, seed: int, max_tries: int = 1000) -> ScenePos
     raise SceneError(f"no object placement {cfg.min_separation} m apart fits region x {cfg.region_x}, y {cfg.region_y}")
 
 
+def scene_record(cfg: SceneConfig, poses: ScenePoses) -> dict[str, str]:
+    """What an episode's metadata keeps of its scene (``EpisodeMeta.extra``): the block yaw drawn
+    and the yaw ranges it was drawn from, so demos of a narrow yaw range (``bench
+    generalization``'s) can be told from full-circle ones after the fact."""
+    return {
+        "block_yaw_deg": f"{math.degrees(poses.block_yaw):.1f}",
+        "block_yaw_range_deg": _range_text(cfg.block_yaw_deg),
+        "bowl_yaw_range_deg": _range_text(cfg.bowl_yaw_deg),
+    }
+
+
+def recorded_block_yaw_range(extra: dict[str, str]) -> tuple[float, float] | None:
+    """The block yaw range ``scene_record`` wrote into an episode's metadata (None: not recorded)."""
+    text = extra.get("block_yaw_range_deg")
+    if not text:
+        return None
+    lo, hi = (float(v) for v in text.split(","))
+    return lo, hi
+
+
+def _range_text(bounds: tuple[float, float]) -> str:
+    return f"{bounds[0]:g},{bounds[1]:g}"  # no spaces: it travels as one word of a recorder command
+
+
 def _wrap(angle: float) -> float:
     return float((angle + math.pi) % (2 * math.pi) - math.pi)
 

@@ -28,7 +28,8 @@ precision; rotation augmentation differs by design): the bench compares their ``
 train`` run.json recipes and refuses to roll out policies trained differently. On a small CPU
 one policy can take a whole working session, so ``--policies`` trains a subset into ``--out``
 (demos recorded there by the first call are reused) and prints a ``pending`` line; once
-``--out`` holds all three, the next call rolls them out.
+``--out`` holds all three, the next call rolls them out. Reused demos (``--demos-dir`` or an
+earlier call's) whose metadata records another block yaw range than ``--train-yaw`` are refused.
 
 Time on this 2-core CPU (compact preset, quiet machine): demos ~14 s each (40: 9 min); training
 ~1.0 s (EquiDiff) and ~0.6 s (baselines) per step of batch 16 without rotation augmentation when
@@ -338,6 +339,20 @@ def run(args: argparse.Namespace) -> int:
         n_demos = sum(1 for _, ok, _ in results if ok)
     else:
         n_demos = _count_demos(demos_dir)
+    wrong, unrecorded = _demos_off_range(demos_dir, tuple(args.train_yaw))
+    if wrong:  # demos of another yaw range would measure something else: refuse before any training
+        print(
+            f"equidiff bench generalization: {len(wrong)} demos in {demos_dir} were drawn from another block "
+            f"yaw range than --train-yaw {args.train_yaw[0]:g} {args.train_yaw[1]:g}, e.g. {wrong[0]}",
+            file=sys.stderr,
+        )
+        return 2
+    if unrecorded:
+        print(
+            f"[bench] {unrecorded} demos in {demos_dir} do not record the yaw range they were drawn from "
+            "(recorded before episodes kept it): make sure it is --train-yaw",
+            flush=True,
+        )
     t_demos = time.monotonic()
 
     try:
@@ -404,6 +419,22 @@ def _count_demos(folder: Path) -> int:
     from equidiff_core.dataset import find_episodes
 
     return len(find_episodes([folder]))
+
+
+def _demos_off_range(folder: Path, train_yaw: tuple[float, float]) -> tuple[list[str], int]:
+    """Bags in ``folder`` whose metadata records another block yaw range than ``train_yaw``
+    ("bag: range"), and how many bags record none (recorded before episodes kept it)."""
+    from equidiff_core.bags import find_bags, read_meta
+    from equidiff_core.twin.scene import recorded_block_yaw_range
+
+    wrong, unrecorded = [], 0
+    for bag in find_bags([folder]):
+        recorded = recorded_block_yaw_range(read_meta(bag).extra)
+        if recorded is None:
+            unrecorded += 1
+        elif recorded != tuple(map(float, train_yaw)):
+            wrong.append(f"{bag.name}: {recorded[0]:g} to {recorded[1]:g} deg")
+    return wrong, unrecorded
 
 
 def _trained_demos(run_dir: Path) -> int | None:
