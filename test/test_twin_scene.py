@@ -41,6 +41,19 @@ def test_narrow_yaw_range_is_respected():
     assert np.all(np.abs(yaws) <= 15.0 + 1e-9)
 
 
+def test_an_episodes_record_names_the_yaw_range_it_was_drawn_from():
+    cfg = TwinConfig().with_yaw_range((-15.0, 15.0)).scene
+    poses = scene.sample_scene(cfg, 7)
+    record = scene.scene_record(cfg, poses)
+    assert record["block_yaw_deg"] == f"{math.degrees(poses.block_yaw):.1f}"
+    assert all(" " not in value for value in record.values())  # each travels as one recorder-command word
+    assert scene.recorded_block_yaw_range(record) == (-15.0, 15.0)
+    full = scene.scene_record(TwinConfig().scene, poses)
+    assert scene.recorded_block_yaw_range(full) == (0.0, 360.0)
+    for unreadable in ({}, {"block_yaw_range_deg": "wide"}, {"block_yaw_range_deg": "1,2,3"}):
+        assert scene.recorded_block_yaw_range(unreadable) is None
+
+
 def test_impossible_region_is_a_clear_error():
     from dataclasses import replace
 

@@ -300,11 +300,12 @@ def scene_record(cfg: SceneConfig, poses: ScenePoses) -> dict[str, str]:
 
 
 def recorded_block_yaw_range(extra: dict[str, str]) -> tuple[float, float] | None:
-    """The block yaw range ``scene_record`` wrote into an episode's metadata (None: not recorded)."""
-    text = extra.get("block_yaw_range_deg")
-    if not text:
+    """The block yaw range ``scene_record`` wrote into an episode's metadata (None: not recorded,
+    or not readable as ``lo,hi``)."""
+    try:
+        lo, hi = (float(v) for v in extra.get("block_yaw_range_deg", "").split(","))
+    except ValueError:
         return None
-    lo, hi = (float(v) for v in text.split(","))
     return lo, hi
 
 
