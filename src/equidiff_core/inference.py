@@ -22,6 +22,7 @@ from __future__ import annotations
 import json
 import warnings
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -61,8 +62,13 @@ def export_policy(policy, path: str | Path) -> Path:
         "config_json": json.dumps(policy.config_dict()),
         "state_dict": state,
     }
+    return save_atomically(payload, path)
+
+
+def save_atomically(obj: Any, path: Path) -> Path:
+    """``torch.save`` through a temporary file: a killed writer never leaves a half-written ``path``."""
     tmp = path.with_name(path.name + ".tmp")
-    torch.save(payload, tmp)
+    torch.save(obj, tmp)
     tmp.replace(path)
     return path
 

@@ -216,7 +216,7 @@ def train(
     """Train ``policy`` for ``cfg.steps`` in all (resuming ``out_dir/last.ckpt`` when it exists).
 
     Under torchrun every rank calls this with the same arguments; callbacks run on rank 0 only."""
-    from .inference import export_policy  # late: inference imports policies
+    from .inference import export_policy, save_atomically  # late: inference imports policies
 
     out_dir = Path(out_dir)
     device = resolve_device(cfg.device)
@@ -252,20 +252,19 @@ def train(
         if state["config"]["policy"] != policy.name or state["config"]["preset"] != policy.preset.to_dict():
             raise TrainingError(f"{ckpt_path} was written for a different policy/preset; use a new out_dir")
         load_learned_state(policy.model, state["model"])
+        step = int(state["step"])
+        history = json.loads(state["history_json"])
         if state["optimizer"] is not None:
             optimizer.load_state_dict(state["optimizer"])
-        # else a checkpoint shared without the optimiser (without_optimizer_state): AdamW re-estimates
-        # its moments from the next gradients, and the learning rate comes from the schedule below
+        else:  # shared without it (without_optimizer_state): AdamW re-estimates its moments from here
+            history.append({"step": step, "resumed": "without optimiser state: fresh AdamW moments"})
+        # the learning rate is the schedule's at this step (a longer --steps stretches the schedule)
         scheduler.load_state_dict(state["lr_scheduler"])
         for group, base_lr, factor in zip(optimizer.param_groups, scheduler.base_lrs, scheduler.lr_lambdas):
             group["lr"] = base_lr * factor(scheduler.last_epoch)
         if ema is not None and state.get("ema") is not None:
             ema.load_state_dict(state["ema"])
         policy.set_normalizer(Normalizer.from_dict(state["config"]["normalizer"]))
-        step = int(state["step"])
-        history = json.loads(state["history_json"])
-        if state["optimizer"] is None:
-            history.append({"step": step, "resumed": "without optimiser state: fresh AdamW moments"})
     del state
 
     def save_checkpoint():
@@ -283,9 +282,7 @@ def train(
             "ema": ema.state_dict() if ema else None,
             "history_json": json.dumps(history),
         }
-        tmp = ckpt_path.with_suffix(".tmp")
-        torch.save(state, tmp)
-        tmp.replace(ckpt_path)  # atomic: a killed run never leaves a half-written last.ckpt
+        save_atomically(state, ckpt_path)
         (out_dir / "history.json").write_text(json.dumps(history, indent=1))
 
     loss_fn: torch.nn.Module = _PolicyLoss(policy)
@@ -440,13 +437,11 @@ def without_optimizer_state(path: str | Path, out: str | Path) -> Path:
     The moments are as large as the weights and the EMA together; the rest (weights, EMA,
     schedule, step, history, recipe) is kept, so the file still loads as a policy and resumes:
     ``train`` then continues the schedule with fresh moments and notes it in the history."""
+    from .inference import save_atomically
+
     state = load_training_checkpoint(path)
     state["optimizer"] = None
-    out = Path(out)
-    tmp = out.with_suffix(".tmp")
-    torch.save(state, tmp)
-    tmp.replace(out)
-    return out
+    return save_atomically(state, Path(out))
 
 
 def load_policy_from_checkpoint(path: str | Path, device: str = "cpu") -> DiffusionPolicy:
