@@ -50,6 +50,10 @@ def test_an_episodes_record_names_the_yaw_range_it_was_drawn_from():
     assert scene.recorded_block_yaw_range(record) == (-15.0, 15.0)
     full = scene.scene_record(TwinConfig().scene, poses)
     assert scene.recorded_block_yaw_range(full) == (0.0, 360.0)
+    # a range that is not round survives the record's 6 digits as the same range, and only as that
+    odd = (-12.3456789, 17.0000001)
+    kept = scene.recorded_block_yaw_range(scene.scene_record(TwinConfig().with_yaw_range(odd).scene, poses))
+    assert kept != odd and scene.same_yaw_range(kept, odd) and not scene.same_yaw_range(kept, (-12.35, 17.0))
     for unreadable in ({}, {"block_yaw_range_deg": "wide"}, {"block_yaw_range_deg": "1,2,3"}):
         assert scene.recorded_block_yaw_range(unreadable) is None
 

@@ -309,6 +309,11 @@ def recorded_block_yaw_range(extra: dict[str, str]) -> tuple[float, float] | Non
     return lo, hi
 
 
+def same_yaw_range(a: tuple[float, float], b: tuple[float, float]) -> bool:
+    """Whether two yaw ranges (degrees) agree to what ``scene_record`` keeps (6 significant digits)."""
+    return all(math.isclose(x, y, rel_tol=1e-5, abs_tol=1e-6) for x, y in zip(a, b, strict=True))
+
+
 def _range_text(bounds: tuple[float, float]) -> str:
     return f"{bounds[0]:g},{bounds[1]:g}"  # no spaces: it travels as one word of a recorder command
 

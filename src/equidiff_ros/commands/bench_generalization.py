@@ -425,14 +425,14 @@ def _demos_off_range(folder: Path, train_yaw: tuple[float, float]) -> tuple[list
     """Bags in ``folder`` whose metadata records another block yaw range than ``train_yaw``
     ("bag: range"), and how many bags record none (recorded before episodes kept it)."""
     from equidiff_core.bags import find_bags, read_meta
-    from equidiff_core.twin.scene import recorded_block_yaw_range
+    from equidiff_core.twin.scene import recorded_block_yaw_range, same_yaw_range
 
     wrong, unrecorded = [], 0
     for bag in find_bags([folder]):
         recorded = recorded_block_yaw_range(read_meta(bag).extra)
         if recorded is None:
             unrecorded += 1
-        elif recorded != tuple(map(float, train_yaw)):
+        elif not same_yaw_range(recorded, train_yaw):
             wrong.append(f"{bag.name}: {recorded[0]:g} to {recorded[1]:g} deg")
     return wrong, unrecorded
 
