@@ -12,10 +12,43 @@ from collections.abc import Callable
 
 import numpy as np
 
+from ..robots.base import RobotState
 from .board import BoardDetector, BoardSpec, CalibrationError
 from .solve import CameraModel, Sample
 
 Grab = Callable[[np.ndarray | None], dict[str, np.ndarray]]
+
+
+def wait_at_rest(
+    read_state: Callable[[], RobotState],
+    settle_s: float,
+    max_joint_step: float,
+    timeout_s: float = 10.0,
+    wall_timeout_s: float = 120.0,
+) -> np.ndarray:
+    """The TCP pose once no joint moved more than ``max_joint_step`` rad in ``settle_s``.
+
+    Images and pose must show the same instant. Judged from joint positions, not the reported
+    velocities: franky-sim reports a spurious joint-7 velocity (~0.08 rad/s) at rest.
+    ``settle_s`` and ``timeout_s`` are the robot's own time (libfranka's state time): on the FR3
+    that is the wall clock, while franky-sim on a loaded machine runs slower than real time, and
+    a wall-clock timeout failed an arm that was still settling (CI). A robot whose clock stops
+    (a lost connection) fails after ``wall_timeout_s`` of wall time.
+    """
+    wall_deadline = time.monotonic() + wall_timeout_s
+    window = start = read_state()
+    while True:
+        time.sleep(settle_s / 5)
+        state = read_state()
+        if state.robot_time_s - window.robot_time_s >= settle_s:
+            if np.abs(state.joint_positions - window.joint_positions).max() < max_joint_step:
+                return state.ee_pose
+            window = state
+        if state.robot_time_s - start.robot_time_s > timeout_s or time.monotonic() > wall_deadline:
+            raise CalibrationError(
+                f"the arm did not come to rest within {timeout_s:.0f} s of robot time "
+                f"({state.robot_time_s - start.robot_time_s:.1f} s passed)"
+            )
 
 
 class FrankyArm:
@@ -39,21 +72,7 @@ class FrankyArm:
         return self.robot.read_state().ee_pose
 
     def wait_at_rest(self, timeout_s: float = 10.0) -> np.ndarray:
-        """The TCP pose once no joint moved more than ``max_joint_step`` rad in ``settle_s``.
-
-        Images and pose must show the same instant. Judged from joint positions, not the reported
-        velocities: franky-sim reports a spurious joint-7 velocity (~0.08 rad/s) at rest.
-        """
-        deadline = time.monotonic() + timeout_s
-        previous = self.robot.read_state().joint_positions
-        while True:
-            time.sleep(self.settle_s)
-            state = self.robot.read_state()
-            if np.abs(state.joint_positions - previous).max() < self.max_joint_step:
-                return state.ee_pose
-            if time.monotonic() > deadline:
-                raise CalibrationError(f"the arm did not come to rest within {timeout_s:.0f} s")
-            previous = state.joint_positions
+        return wait_at_rest(self.robot.read_state, self.settle_s, self.max_joint_step, timeout_s)
 
     def move_to(self, T: np.ndarray) -> tuple[np.ndarray, None]:
         self.robot.move_to(T)
