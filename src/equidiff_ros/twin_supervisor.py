@@ -62,7 +62,7 @@ from equidiff_core.topics import (
     TOPIC_TWIN_SCENE,
     TOPIC_TWIN_STATE,
 )
-from equidiff_core.twin.config import load_twin_config
+from equidiff_core.twin.config import TWIN_PRECISION, load_twin_config
 from equidiff_core.twin.expert import LinePath, plan_pick_place, tcp_pose
 from equidiff_core.twin.metrics import EpisodeRecord
 from equidiff_core.twin.processes import (
@@ -456,7 +456,7 @@ class TwinStack:
         domain_id: int | None = None,
         task: str = "twin",
         device: str = "cpu",
-        precision: str = "fp32",
+        precision: str = TWIN_PRECISION,
         seed: int = 0,
         record_clouds: bool = False,
         start_timeout_s: float = 120.0,
@@ -475,7 +475,7 @@ class TwinStack:
         self.lab = load_lab_config(self.lab_path)
         self.cfg = load_twin_config(self.twin_path)
         self.policy, self.domain_id, self.task, self.device = policy, domain_id, task, device
-        self.precision = precision  # policy_node's; pinned (not "auto", which follows the CPU) to be comparable
+        self.precision = precision  # policy_node's
         self.seed, self.record_clouds, self.start_timeout_s = seed, record_clouds, start_timeout_s
         # On simulated time the sim waits while the policy infers, so inference has the machine to
         # itself: all cores. On real time everything runs at once, and one thread was faster.

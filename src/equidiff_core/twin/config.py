@@ -11,6 +11,10 @@ from pathlib import Path
 
 from ..config import ConfigError, LabConfig, default_config_dir, from_dict, load_yaml
 
+# The policy's arithmetic in the twin: pinned, not "auto" (bf16 where the CPU has it natively),
+# so an episode's result does not depend on which machine ran it.
+TWIN_PRECISION = "fp32"
+
 
 @dataclass(frozen=True)
 class BoardMountConfig:

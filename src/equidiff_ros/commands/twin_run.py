@@ -30,13 +30,15 @@ SHIPPED_NAME = Path("checkpoints") / "twin_compact" / "policy.pt"
 
 
 def add_precision_argument(parser: argparse.ArgumentParser) -> None:
-    """The policy's arithmetic in the twin: pinned, so a result does not depend on the CPU."""
+    """The policy's arithmetic in the twin (``twin.config.TWIN_PRECISION`` unless asked otherwise)."""
+    from equidiff_core.twin.config import TWIN_PRECISION
+
     parser.add_argument(
         "--precision",
         choices=("fp32", "bf16", "auto"),
-        default="fp32",
-        help="policy arithmetic (default fp32 on every machine; auto: bf16 where the CPU has native bf16, "
-        "so results would depend on the CPU)",
+        default=TWIN_PRECISION,
+        help=f"policy arithmetic (default {TWIN_PRECISION} on every machine; auto: bf16 where the CPU has "
+        "native bf16, so results would depend on the CPU)",
     )
 
 
