@@ -77,13 +77,34 @@ def test_train_resume_callbacks_and_files(tmp_path):
     train(again, ds, None, _quick_cfg(steps=3, ema=True), tmp_path, [rec2])
     assert [s for s, _ in rec2.steps] == [3]
     assert again.normalizer == policy.normalizer
-    restored = load_policy_from_checkpoint(tmp_path / "last.ckpt")
+    restored = load_policy_from_checkpoint(tmp_path / "last.ckpt", ema=False)  # the weights training goes on from
     for a, b in zip(restored.model.parameters(), again.model.parameters()):
         torch.testing.assert_close(a, b)
 
     # resuming into a different preset is refused rather than silently mixed
     with pytest.raises(TrainingError, match="different policy/preset"):
         train(make_policy("baseline", get_preset("tiny"), WS), ds, None, _quick_cfg(steps=4), tmp_path)
+
+
+def test_a_checkpoint_loads_with_the_ema_weights_that_training_exported(tmp_path):
+    """A run with an EMA exports the averaged weights to policy.pt; ``load_policy_from_checkpoint``
+    on its last.ckpt must give that same policy (it gave the raw training weights, so
+    ``equidiff check-equivariance --checkpoint last.ckpt`` measured weights no robot runs)."""
+    from equidiff_core.inference import read_policy_file
+
+    ds = CubeDataset(3, seed=6)
+    trained = make_policy("baseline", get_preset("tiny"), WS)
+    train(trained, ds, None, _quick_cfg(steps=3, ema=True, eval_every=0), tmp_path)
+    _, exported = read_policy_file(tmp_path / "policy.pt")  # the baseline exports its own layout
+
+    averaged = load_policy_from_checkpoint(tmp_path / "last.ckpt").model.state_dict()
+    raw = load_policy_from_checkpoint(tmp_path / "last.ckpt", ema=False).model.state_dict()
+    assert averaged.keys() == exported.keys()
+    for key, value in exported.items():
+        torch.testing.assert_close(averaged[key], value)
+    for key, value in trained.model.state_dict().items():
+        torch.testing.assert_close(raw[key], value)
+    assert any(not torch.equal(averaged[k], raw[k]) for k in raw)  # 3 steps: the average still lags
 
 
 def test_checkpoints_hold_the_learned_state_whichever_mode_the_model_was_in(tmp_path):

@@ -171,11 +171,15 @@ class _Ema:
     def step(self):
         self.ema.step(self.params)
 
+    def copy_to_model(self):
+        """Leave the averaged weights in the model (a policy loaded to run, not to train on)."""
+        self.ema.copy_to(self.params)
+        refresh_escnn_caches(self.model)
+
     @contextlib.contextmanager
     def swapped_in(self):
         self.ema.store(self.params)
-        self.ema.copy_to(self.params)
-        refresh_escnn_caches(self.model)
+        self.copy_to_model()
         try:
             yield
         finally:
@@ -444,9 +448,12 @@ def without_optimizer_state(path: str | Path, out: str | Path) -> Path:
     return save_atomically(state, Path(out))
 
 
-def load_policy_from_checkpoint(path: str | Path, device: str = "cpu") -> DiffusionPolicy:
+def load_policy_from_checkpoint(path: str | Path, device: str = "cpu", ema: bool = True) -> DiffusionPolicy:
     """Rebuild the training-time policy (escnn for EquiDiff) from ``last.ckpt`` or an exported ``policy.pt``.
 
+    From a run that kept an EMA (``TrainConfig.ema``), ``last.ckpt`` gives the EMA weights: the
+    ones training exports to ``policy.pt`` and a robot runs. ``ema=False`` gives the raw
+    training weights instead (where training resumes from).
     An exported file holds plain-torch weights: for the baseline they load as-is; for EquiDiff
     use ``inference.load_inference_policy`` instead (the escnn parameters are not recoverable
     from expanded filters)."""
@@ -456,9 +463,11 @@ def load_policy_from_checkpoint(path: str | Path, device: str = "cpu") -> Diffus
     from .presets import preset_from_dict
 
     path = Path(path)
+    ema_state = None
     try:
         state = load_training_checkpoint(path)
         config, weights = state["config"], state["model"]
+        ema_state = state.get("ema") if ema else None
     except CheckpointError as train_err:
         try:
             config, weights = read_policy_file(path)
@@ -478,6 +487,10 @@ def load_policy_from_checkpoint(path: str | Path, device: str = "cpu") -> Diffus
         if config.get("normalizer") is not None:
             policy.set_normalizer(Normalizer.from_dict(config["normalizer"]))
         load_learned_state(policy.model, weights)
+        if ema_state is not None:
+            averaged = _Ema(policy, TrainConfig.ema_decay)  # the saved state brings its own decay
+            averaged.load_state_dict(ema_state)
+            averaged.copy_to_model()
     except (KeyError, ValueError, RuntimeError) as err:
         raise CheckpointError(f"{path}: incompatible checkpoint: {str(err).splitlines()[0]}") from err
     return policy.to(resolve_device(device)).eval()
