@@ -8,7 +8,7 @@ same code as on hardware.
 Two ways to move the arm, one solver:
 
 * ``FrankyTwinArm`` (``equidiff calibrate cameras --twin``): the lab's path. franky connects to
-  franky-sim (``twin.sim.TwinSim``, real-time loop) and makes blocking Cartesian moves; the
+  franky-sim (``twin.sim.TwinSim``, real-time loop, in a process of its own) and makes blocking Cartesian moves; the
   TCP pose is what libfranka reports (O_T_EE); the cameras render the state the sim shares.
 * ``DirectSimArm`` (the CI test): the same scene stepped in-process (``twin.sim.DirectSim``),
   TCP read from MuJoCo; no server, no real-time clock, so it fits a test's time budget.
@@ -16,6 +16,7 @@ Two ways to move the arm, one solver:
 
 from __future__ import annotations
 
+import functools
 import math
 import tempfile
 import time
@@ -23,15 +24,18 @@ from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
+import yaml
 from PIL import Image
 from scipy.spatial.transform import Rotation
 
 from ..cameras.twin import Intrinsics, TwinCamera
-from ..config import Extrinsics, LabConfig
+from ..config import Extrinsics, LabConfig, to_dict
 from ..geometry import make_pose
+from ..robots.franky.sim import SimServer
 from ..twin.config import BoardMountConfig
+from ..twin.scene import build_model
 from ..twin.shared_state import StateReader
-from ..twin.sim import DirectSim, TwinSim
+from ..twin.sim import DirectSim
 from .board import BoardSpec, CalibrationError
 from .capture import FrankyArm, capture_samples
 from .plan import PlanConfig, plan_poses
@@ -107,6 +111,11 @@ class DirectSimArm:
         self.settle_ms = settle_ms
         self.tolerance_m = tolerance_m
 
+    @property
+    def model(self):
+        """The scene's MuJoCo model (for reading ``qpos``)."""
+        return self.sim.model
+
     def tcp_pose(self) -> np.ndarray:
         return self.sim.tcp_pose()
 
@@ -131,19 +140,37 @@ class DirectSimArm:
 
 
 class FrankyTwinArm:
-    """franky against franky-sim (the twin's libfranka server, real-time loop), as on the lab's FR3."""
+    """franky against franky-sim (the twin's libfranka server, real-time loop), as on the lab's FR3.
+
+    The sim runs in a process of its own (``python -m equidiff_core.twin.sim``), as an FR3's
+    controller does: a sim thread in this process waited for its GIL behind rendering and
+    detection, and on a loaded machine fell silent past libfranka's 1 s receive timeout.
+    """
 
     def __init__(self, twin_cfg):
-        self.twin = TwinSim(twin_cfg, host="auto", shm_name=f"equidiff_calib_{time.time_ns()}").start(seed=0)
+        self.twin_cfg = twin_cfg
+        self._dir = tempfile.TemporaryDirectory(prefix="equidiff_calib_twin_")
+        config = Path(self._dir.name) / "twin.yaml"
+        config.write_text(yaml.safe_dump(to_dict(twin_cfg)))
+        shm_name = f"equidiff_calib_{time.time_ns()}"
+        self.twin = SimServer(module="equidiff_core.twin.sim", args=("--config", str(config), "--shm", shm_name))
         self.reader = None
         try:
-            self.reader = StateReader(self.twin.shm_name, nq=self.twin.model.nq)
+            self.twin.start()
+            shared, nq = self.twin.ready  # READY <host> <shm name> <nq>
+            self.reader = StateReader(shared, nq=int(nq))
             self.arm = FrankyArm(self.twin.host, realtime=False)
         except Exception:
             if self.reader is not None:
                 self.reader.close()
             self.twin.stop()
+            self._dir.cleanup()
             raise
+
+    @functools.cached_property
+    def model(self):
+        """The scene's MuJoCo model (the server's own layout of ``qpos``), built here on demand."""
+        return build_model(self.twin_cfg)
 
     def tcp_pose(self) -> np.ndarray:
         return self.arm.tcp_pose()
@@ -159,6 +186,7 @@ class FrankyTwinArm:
         finally:
             self.reader.close()
             self.twin.stop()
+            self._dir.cleanup()
 
 
 class TwinCameras:

@@ -21,10 +21,18 @@ Two clocks:
 ``DirectSim`` is the same scene with no server and no clock: franky-sim's own Cartesian
 controller is driven in-process and stepped as fast as the CPU allows (tests, fast expert
 roll-outs).
+
+``python -m equidiff_core.twin.sim --host H --config twin.yaml`` serves a real-time TwinSim in a
+process of its own (``robots.franky.sim.SimServer(module="equidiff_core.twin.sim", ...)``),
+sharing its state for cameras under ``--shm``: a sim thread inside a busy Python process
+waits for that process's GIL, and on a loaded machine it went silent past libfranka's 1 s
+receive timeout (the calibration twin, CI).
 """
 
 from __future__ import annotations
 
+import argparse
+import signal
 import threading
 import time
 from collections.abc import Callable
@@ -405,3 +413,26 @@ class DirectSim:
 
     def close(self) -> None:
         self._sim.cleanup()
+
+
+def main(argv: list[str] | None = None) -> None:
+    """Serve a real-time TwinSim until SIGTERM; prints ``READY <host> <shm name> <nq>``."""
+    from .config import load_twin_config
+
+    parser = argparse.ArgumentParser(description="serve the twin's scene on franky-sim, real time")
+    parser.add_argument("--host", required=True, help="loopback address to serve on")
+    parser.add_argument("--config", required=True, help="twin.yaml")
+    parser.add_argument("--shm", default=None, help="shared-memory name for the cameras' state")
+    parser.add_argument("--seed", type=int, default=0, help="scene seed")
+    args = parser.parse_args(argv)
+    stop = threading.Event()
+    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    signal.signal(signal.SIGINT, lambda *_: stop.set())
+    with TwinSim(load_twin_config(args.config), host=args.host, shm_name=args.shm).start(seed=args.seed) as sim:
+        print(f"READY {sim.host} {sim.shm_name} {sim.model.nq}", flush=True)
+        while not stop.wait(0.2):
+            pass
+
+
+if __name__ == "__main__":
+    main()

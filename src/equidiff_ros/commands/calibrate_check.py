@@ -73,7 +73,7 @@ def _twin_capture(args, lab):
         arm = FrankyTwinArm(cfg)
         measured, qpos = arm.move_to(T)
     try:
-        model = arm.sim.model if args.direct else arm.twin.model
+        model = arm.model
         width = float(
             sum(
                 qpos[model.jnt_qposadr[mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT, j)]]

@@ -178,20 +178,33 @@ def raise_priority(niceness: int = -10) -> bool:
 
 
 class SimServer:
-    """franky-sim in a subprocess: ``with SimServer() as sim: franky.Robot(sim.host, ...)``."""
+    """franky-sim in a subprocess: ``with SimServer() as sim: franky.Robot(sim.host, ...)``.
 
-    def __init__(self, host: str | None = None, startup_timeout_s: float = 60.0):
+    ``module`` serves it (``--host`` plus ``args``) and prints ``READY <host> [words...]`` once
+    it listens; the words are kept in ``ready``. The default is this module's bare robot;
+    ``twin.sim`` serves the twin's scene the same way.
+    """
+
+    def __init__(
+        self,
+        host: str | None = None,
+        startup_timeout_s: float = 60.0,
+        module: str = "equidiff_core.robots.franky.sim",
+        args: tuple[str, ...] = (),
+    ):
         # A random 127.x.y.z by default: parallel tests / twins each get their own robot.
         self.host = host or free_loopback_host()
         self.startup_timeout_s = startup_timeout_s
+        self.module, self.args = module, tuple(args)
         self.process: subprocess.Popen | None = None
+        self.ready: list[str] = []  # the words after READY <host>
         self.stats: list[tuple[float, int, float]] = []  # (monotonic, steps, server wall s), once a second
 
     def start(self) -> SimServer:
         _check_port_free(self.host)
         env = dict(os.environ, OMP_NUM_THREADS="1")
         self.process = subprocess.Popen(
-            [sys.executable, "-u", "-m", "equidiff_core.robots.franky.sim", "--host", self.host],
+            [sys.executable, "-u", "-m", self.module, "--host", self.host, *self.args],
             stdout=subprocess.PIPE,
             stderr=subprocess.STDOUT,
             text=True,
@@ -205,6 +218,7 @@ class SimServer:
                 break
             lines.append(line)
             if line.startswith("READY"):
+                self.ready = line.split()[2:]
                 # Keep reading its output (a full pipe would block the server), noting its speed.
                 import threading
 
