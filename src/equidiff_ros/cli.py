@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import faulthandler
 import importlib
+import os
 import signal
 import sys
 
@@ -99,6 +100,9 @@ def main(argv: list[str] | None = None) -> int:
         faulthandler.register(signal.SIGUSR1, file=sys.__stderr__, all_threads=True)
     except (AttributeError, ValueError, OSError):  # no real stderr (embedded, closed): no dumps then
         pass
+    # The twin's cameras render headless (EGL); MuJoCo reads this once, when first imported, and
+    # some commands import it before the cameras' module could set it (calibrate check --twin).
+    os.environ.setdefault("MUJOCO_GL", "egl")
     args = build_parser(argv).parse_args(argv)
     if getattr(args, "_missing", False):
         print(f"equidiff: '{' '.join(argv[:2])}' is not available in this build", file=sys.stderr)
