@@ -8,8 +8,9 @@ same code as on hardware.
 Two ways to move the arm, one solver:
 
 * ``FrankyTwinArm`` (``equidiff calibrate cameras --twin``): the lab's path. franky connects to
-  franky-sim (``twin.sim.TwinSim``, real-time loop, in a process of its own) and makes blocking Cartesian moves; the
-  TCP pose is what libfranka reports (O_T_EE); the cameras render the state the sim shares.
+  franky-sim (``twin.sim.TwinSim``, real-time loop, in a process of its own) and makes blocking
+  Cartesian moves; the TCP pose is what libfranka reports (O_T_EE); the cameras render the
+  state the sim shares.
 * ``DirectSimArm`` (the CI test): the same scene stepped in-process (``twin.sim.DirectSim``),
   TCP read from MuJoCo; no server, no real-time clock, so it fits a test's time budget.
 """

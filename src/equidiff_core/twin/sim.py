@@ -51,7 +51,7 @@ from ..robots.franky.sim import (
     raise_priority,
     step_server,
 )
-from .config import TwinConfig
+from .config import TwinConfig, load_twin_config
 from .lockstep import NS_PER_TICK, Lockstep, LockstepConfig
 from .scene import (
     ScenePoses,
@@ -417,8 +417,6 @@ class DirectSim:
 
 def main(argv: list[str] | None = None) -> None:
     """Serve a real-time TwinSim until SIGTERM; prints ``READY <host> <shm name> <nq>``."""
-    from .config import load_twin_config
-
     parser = argparse.ArgumentParser(description="serve the twin's scene on franky-sim, real time")
     parser.add_argument("--host", required=True, help="loopback address to serve on")
     parser.add_argument("--config", required=True, help="twin.yaml")
