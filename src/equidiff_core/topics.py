@@ -21,6 +21,9 @@ TOPIC_POLICY_STATE = "/policy/state"  # running / paused <reason>, latched
 TOPIC_POLICY_EPISODE = "/policy/episode"  # {"seed", "start_ns"}: the sampling seeds of an episode, latched
 TOPIC_TELEOP_ACTIVE = "/teleop/active"  # an operator's takeover (intervention), latched
 TOPIC_RECORDER_STATUS = "/recorder/status"  # idle / recording <path> / ..., latched
+# franka_node's state for operators, latched JSON: {"state": moving | holding | homing | awaiting_ack | faulted,
+# "reason": why it holds or faulted ("" otherwise), "last_fault": the newest fault's text, "last_fault_ns"}
+TOPIC_FRANKA_STATUS = "/franka/status"
 TOPIC_CLOCK = "/clock"
 TOPIC_TF = "/tf"  # franka_node: base -> TCP, where tf2_msgs is installed
 TOPIC_TF_STATIC = "/tf_static"
