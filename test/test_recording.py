@@ -300,3 +300,16 @@ def test_low_disk_while_recording_is_flagged(tmp_path, monkeypatch):
     assert w.low_disk  # recorder_node stops and keeps the episode on its next tick
     w.close()
     assert read_episode(tmp_path / "ep").message_counts["/voxels"] == 2
+
+
+def test_recorded_topics_hold_each_cameras_colour_image_by_default():
+    from equidiff_core.recording import recorded_topics
+    from equidiff_core.topics import camera_color_topic
+
+    lab = load_lab_config(default_config_dir() / "lab.yaml")
+    images = {camera_color_topic(c.name) for c in lab.cameras}
+    assert images == {f"/cameras/{c.name}/color/image_raw/compressed" for c in lab.cameras}
+    default = recorded_topics(lab, record_clouds=False)
+    assert {t: default[t] for t in images} == dict.fromkeys(images, "sensor_msgs/msg/CompressedImage")
+    assert not images & set(recorded_topics(lab, record_clouds=False, record_images=False))
+    assert RecordingConfig().record_images is True and RecordingConfig().record_clouds is False

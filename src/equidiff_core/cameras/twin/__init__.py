@@ -1,4 +1,4 @@
-"""Simulated RealSense D455 for the digital twin: MuJoCo offscreen RGB + depth -> coloured cloud.
+"""Simulated RealSense D455 for the digital twin: MuJoCo offscreen RGB + depth -> coloured cloud (+ the RGB image).
 
 The camera runs in its own process (camera_node with backend ``twin``), apart from the sim
 server (twin_node). It compiles the very same scene MJCF (``equidiff_core.twin.scene``),
@@ -206,7 +206,7 @@ class TwinCamera(Camera):
                 f"twin camera {self.camera.name}: no valid depth in range "
                 f"[{self.camera.min_depth}, {self.camera.max_depth}] m"
             )
-        return CloudFrame(points, colors, int(stamp_ns))
+        return CloudFrame(points, colors, int(stamp_ns), rgb)
 
     def _take_frame(self, timeout_s: float) -> tuple[np.ndarray, int]:
         """The next frame the sim requests (simulated time): its state and its instant."""
