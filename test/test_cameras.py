@@ -385,3 +385,22 @@ def test_limit_depth_keeps_the_colour_image():
     image = np.full((2, 2, 3), 7, np.uint8)
     frame = CloudFrame(np.array([[0, 0, 0.5], [0, 0, 9.0]], np.float32), np.zeros((2, 3), np.uint8), 5, image)
     assert limit_depth(frame, 0.1, 2.0).image is image
+
+
+@pytest.mark.sim
+def test_image_cost_bench_measures_each_size_against_its_baselines():
+    from equidiff_core.cameras.color_cost import measure
+    from equidiff_core.config import default_config_dir, load_lab_config
+    from equidiff_core.twin.config import TwinConfig
+
+    twin = TwinConfig()
+    result = measure(load_lab_config(default_config_dir() / "lab.yaml"), twin, repeats=2)
+    cases = result["cases"]
+    twin_size = f"twin_{twin.render.width}x{twin.render.height}"
+    assert set(cases) == {twin_size, "lab_848x480", "lab_848x480_noise2_estimate"}
+    for case in cases.values():
+        assert 0 < case["jpeg_kb_per_frame"] < case["raw_rgb_kb_per_frame"] / 4  # JPEG, not raw pixels
+        assert case["camera_node_jpeg_cpu_ms"] > 0 and case["recorder_write_image_cpu_ms"] > 0
+        assert case["images_mb_per_min"] == pytest.approx(case["jpeg_kb_per_frame"] * 3 * 5 * 60 / 1e3, rel=0.01)
+    assert cases["lab_848x480"]["width"] == 848 and cases["lab_848x480"]["height"] == 480  # beyond MuJoCo's 640 default
+    assert cases["lab_848x480_noise2_estimate"]["jpeg_kb_per_frame"] > cases["lab_848x480"]["jpeg_kb_per_frame"]

@@ -152,6 +152,12 @@ class TwinCamera(Camera):
         except Exception as err:  # a broken scene config must name the camera that needed it
             raise CameraError(f"twin camera {self.camera.name}: cannot build the twin scene: {err}") from err
         self._model.vis.quality.offsamples = 0
+        # the offscreen buffer must hold the frame (MuJoCo's default is 640x480; a D455 is 848x480)
+        glob = self._model.vis.global_
+        glob.offwidth, glob.offheight = (
+            max(glob.offwidth, self.render_cfg.width),
+            max(glob.offheight, self.render_cfg.height),
+        )
         self._data = mujoco.MjData(self._model)
         if self._state_source is None:
             from ...twin.shared_state import SharedStateError, StateReader
