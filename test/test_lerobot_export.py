@@ -16,11 +16,12 @@ import pyarrow.parquet as pq
 import pytest
 from helpers_data import LAB, SyntheticEpisode, write_synthetic_episode
 from helpers_lerobot import LeRobotUnavailable, lerobot_python
+from rosbags.rosbag2 import Reader
 
 from equidiff_core.bags import read_episode
 from equidiff_core.cameras.color import image_from_msg
 from equidiff_core.dataset import DatasetConfig, load_episode_arrays
-from equidiff_core.recording import RecordingConfig
+from equidiff_core.recording import EpisodeWriter, RecordingConfig
 from equidiff_core.topics import camera_color_topic
 from equidiff_ros.cli import main as cli
 
@@ -99,8 +100,9 @@ def test_export_writes_the_v3_layout(exported, bags):
         assert len(decoded) == sum(LENGTHS)  # one video frame per dataset frame, episodes back to back
 
 
-def test_export_options_and_refusals(bags, tmp_path):
+def test_export_options_and_refusals(bags, tmp_path, capsys):
     out = tmp_path / "lean"
+    capsys.readouterr()
     assert cli(["export", "lerobot", str(bags[1]), "--out", str(out), "--no-voxels", "--no-images"]) == 0
     info = json.loads((out / "meta" / "info.json").read_text())
     assert "observation.voxels" not in info["features"] and info["video_path"] is None
@@ -113,6 +115,18 @@ def test_export_options_and_refusals(bags, tmp_path):
     )
     assert cli(["export", "lerobot", str(bags[1]), str(plain), "--out", str(tmp_path / "mixed")]) == 2
     assert not (tmp_path / "mixed").exists()
+    # a camera that stopped sending images mid-episode: that episode is skipped and named, the others exported
+    gap = tmp_path / "gap_0000"
+    with Reader(bags[1]) as reader, EpisodeWriter(gap, config=CFG) as writer:
+        cut = reader.start_time + 2 * 10**9
+        for conn, t, raw in reader.messages():
+            if not (conn.topic == camera_color_topic("cam_right") and t > cut):
+                writer.write_raw(conn.topic, t, raw, conn.msgtype)
+    assert cli(["export", "lerobot", str(gap), str(bags[1]), "--out", str(tmp_path / "gap"), "--no-voxels"]) == 1
+    info = json.loads((tmp_path / "gap" / "meta" / "info.json").read_text())
+    assert info["total_episodes"] == 1 and info["total_frames"] == 15  # bags[1] only
+    err = capsys.readouterr().err
+    assert "gap_0000" in err and "camera 'cam_right' has no image within 100 ms" in err, err
     # bags without images at all: exported without image features
     assert cli(["export", "lerobot", str(plain), "--out", str(tmp_path / "old"), "--no-voxels"]) == 0
     assert json.loads((tmp_path / "old" / "meta" / "info.json").read_text())["video_path"] is None

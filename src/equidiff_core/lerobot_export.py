@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import time
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
@@ -252,6 +253,7 @@ class _VideoFiles:
         self.container = self.stream = self.path = None
         self.frames_in_file = 0
         self.info: dict[str, Any] | None = None
+        self.shape: tuple[int, int, int] | None = None
 
     def _open(self, width: int, height: int) -> None:
         self.path = self.root / VIDEO_PATH.format(video_key=self.key, chunk_index=self.chunk, file_index=self.file)
@@ -266,6 +268,7 @@ class _VideoFiles:
         self.frames_in_file = 0
         if self.info is None:
             self.info = self.encoding.info(self.stream)
+            self.shape = (height, width, 3)
 
     def add_episode(self, frames: Iterable[np.ndarray]) -> dict[str, Any]:
         """Append one episode's RGB frames (H, W, 3); returns its LeRobot episode-metadata columns."""
@@ -358,18 +361,13 @@ def _decoded(messages: list, where: str) -> Iterable[np.ndarray]:
 # --- the schema ---------------------------------------------------------------------------------
 
 
-def _features(voxel_resolution: int | None, image_shapes: dict[str, tuple[int, int, int]]) -> dict[str, dict]:
+def _features(voxel_resolution: int | None) -> dict[str, dict]:
+    """The frame table's features (the cameras' video features join once their first frame is known)."""
     axes = {"axes": ACTION_NAMES}
     features: dict[str, dict] = {
         "observation.state": {"dtype": "float32", "shape": [ACTION_DIM], "names": axes},
         "action": {"dtype": "float32", "shape": [ACTION_DIM], "names": axes},
     }
-    for cam, shape in image_shapes.items():
-        features[IMAGE_KEY.format(camera=cam)] = {
-            "dtype": "video",
-            "shape": list(shape),
-            "names": ["height", "width", "channels"],
-        }
     if voxel_resolution is not None:
         R = voxel_resolution
         features["observation.voxels"] = {"dtype": "uint8", "shape": [4, R, R, R], "names": ["channel", "x", "y", "z"]}
@@ -485,23 +483,8 @@ def export_lerobot(
         if not cameras:
             log("no colour images in these bags (recorded before record_images existed?): exporting without images")
 
-    # first pass: which episodes have every camera's images for every frame
-    matched: list[tuple[EpisodeArrays, dict[str, list]]] = []
-    for ep in episodes:
-        try:
-            matched.append((ep, matched_images(ep, cameras, tolerance_ns) if cameras else {}))
-        except (ExportError, BagError) as err:
-            skipped.append((str(ep.path), str(err)))
-            log(f"skipped: {err}")
-    if not matched:
-        raise ExportError("no usable episodes")
-
-    shapes = {}
-    for cam in cameras:
-        first = image_from_msg(matched[0][1][cam][0])[0]
-        shapes[cam] = tuple(first.shape)
     R = dataset_config.resolution
-    features = _features(R if options.voxels else None, shapes)
+    features = _features(R if options.voxels else None)
     schema = _arrow_schema(features)
 
     out.mkdir(parents=True)
@@ -522,7 +505,14 @@ def export_lerobot(
     all_stats: list[dict] = []
     index = 0
     try:
-        for e, (ep, images) in enumerate(matched):
+        for ep in episodes:  # one episode's images in memory at a time
+            try:
+                images = matched_images(ep, cameras, tolerance_ns) if cameras else {}
+            except (ExportError, BagError) as err:
+                skipped.append((str(ep.path), str(err)))
+                log(f"skipped: {err}")
+                continue
+            e = len(rows)
             task = ep.meta.task or "unknown"
             task_index = tasks.setdefault(task, len(tasks))
             n = len(ep)
@@ -570,8 +560,19 @@ def export_lerobot(
         for v in videos.values():
             v.close()
 
-    for cam, v in videos.items():
-        features[IMAGE_KEY.format(camera=cam)]["info"] = v.info
+    if not rows:
+        shutil.rmtree(out)  # nothing written that looks like a dataset
+        raise ExportError("no usable episodes")
+    for cam, v in videos.items():  # after the state and action, as LeRobot lists them
+        key = IMAGE_KEY.format(camera=cam)
+        features[key] = {
+            "dtype": "video",
+            "shape": list(v.shape),
+            "names": ["height", "width", "channels"],
+            "info": v.info,
+        }
+    order = ["observation.state", "action", *(IMAGE_KEY.format(camera=c) for c in cameras)]
+    features = {k: features[k] for k in order} | {k: v for k, v in features.items() if k not in order}
     info = {
         "codebase_version": CODEBASE_VERSION,
         "fps": fps,
