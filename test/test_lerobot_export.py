@@ -133,6 +133,7 @@ def test_export_options_and_refusals(bags, tmp_path, capsys):
 
 
 @pytest.mark.slow
+@pytest.mark.timeout(2400)  # the first run on a machine builds LeRobot's venv (~3 min quiet, far longer under load)
 def test_lerobot_itself_loads_the_export(exported, bags, tmp_path):
     try:
         python = lerobot_python()
