@@ -3,7 +3,8 @@
 LeRobot 0.5+ needs Python >= 3.12 and torch < 2.12, so it cannot live in the project's venv
 (Python 3.11, torch 2.13). The venv is built once, the way LeRobot's docs install it, and
 cached outside the repository under a name made of the pinned versions, so only the first run
-on a machine pays (measured: ~3 min and 5.4 GB on the 2-core Xeon, 2026-11-27; the registry's
+on a machine pays (measured: 3 min and 5.4 GB on the 2-core Xeon, 2026-11-27, ~10 min when
+other work loads the machine; the registry's
 x86_64 torch is the CUDA build, whose NVIDIA libraries torch needs to import even on a CPU:
 without them ``import torch`` fails on libcudnn.so.9). Later runs reuse it in seconds.
 
