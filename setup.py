@@ -44,6 +44,9 @@ setup(
         "tqdm",
         "matplotlib",
         "safetensors",
+        # camera_node's JPEG colour images, their decoding in viz and export (also ChArUco detection)
+        "opencv-contrib-python-headless==5.0.0.93",
+        "pyarrow",  # export lerobot: parquet
     ],
     extras_require={
         "ros": ["ros-jazzy-rclpy[fastrtps]", "ros-jazzy-common-interfaces"],
@@ -54,6 +57,8 @@ setup(
         "spacemouse": ["pyspacemouse", "hidapi"],
         "open3d": ["open3d-cpu==0.20.0"],
         "calib": ["opencv-contrib-python-headless==5.0.0.93"],  # ChArUco detection for camera calibration
+        # export lerobot: AV1 mp4 as LeRobot encodes it (PyAV's wheel bundles FFmpeg with libsvtav1 and dav1d)
+        "export": ["av==18.1.0"],
         "dev": ["pytest", "pytest-timeout", "hypothesis", "colcon-core==0.21.3", "colcon-ros==0.5.0",
                 "colcon-python-setup-py", "mcap-ros2-support", "ruff"],
     },

@@ -39,7 +39,7 @@ echo "[setup] python packages into $VENV"
 WHEEL="$("$VENV/bin/python" "$ROOT/scripts/build_lie_learn.py" "$VENV/wheel-cache")"
 "${PIP[@]}" "$WHEEL"
 "${PIP[@]}" py3nj
-"${PIP[@]}" -e "$ROOT[ros,viz,twin,robot,realsense,spacemouse,open3d,calib,dev]" "torch==2.13.0"
+"${PIP[@]}" -e "$ROOT[ros,viz,twin,robot,realsense,spacemouse,open3d,calib,export,dev]" "torch==2.13.0"
 "$VENV/bin/python" -m pip check
 echo "$KEY" > "$STAMP"
 echo "[setup] done: $VENV"

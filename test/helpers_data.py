@@ -10,7 +10,10 @@ descends, closes the gripper, and lifts the cube. The voxel grid shows the table
 (moving with the gripper once grasped) and two finger blobs. /franka/ee_pose and
 /franka/joint_states at ``state_hz``, one-point teleop chunks on /franka/command_chunk at
 ``command_hz`` leading the measured pose by ``lag_s`` (the arm lags its targets), /voxels at
-``obs_hz``, /spacenav/joy with the operator's input, /tf_static from the lab config.
+``obs_hz``, each lab camera's JPEG colour image on /cameras/<name>/color/image_raw/compressed
+at the same instants (the grid's occupied voxels splatted through a pinhole at the camera's
+configured pose: a picture of the same scene, small enough for the sample bag),
+/spacenav/joy with the operator's input, /tf_static from the lab config.
 """
 
 from __future__ import annotations
@@ -29,11 +32,13 @@ if str(ROOT / "src") not in sys.path:
 
 from equidiff_core import geometry
 from equidiff_core.bags import EpisodeMeta
+from equidiff_core.cameras.color import color_image_msg
 from equidiff_core.chunk import PoseChunk, chunk_to_msg
 from equidiff_core.config import Workspace, load_lab_config
 from equidiff_core.pointcloud import grid_to_voxel_msg
 from equidiff_core.recording import EpisodeWriter, RecordingConfig
 from equidiff_core.rosmsg import NS_PER_S, rosbags_factory
+from equidiff_core.topics import COMPRESSED_IMAGE_TYPE, camera_color_topic
 
 LAB = load_lab_config(ROOT / "config" / "lab.yaml")
 T0_NS = 1_700_000_000 * NS_PER_S  # a fixed wall-clock start: deterministic bags
@@ -51,6 +56,8 @@ class SyntheticEpisode:
     cube_xy: tuple[float, float] = (0.47, 0.03)
     yaw: float = 0.3  # cube (and grasp) yaw, rad
     t0_ns: int = T0_NS
+    image_size: tuple[int, int] | None = (212, 120)  # colour images (width, height); None: none recorded
+    image_hfov_deg: float = 90.0  # a D455's colour field of view
 
 
 def command_at(ep: SyntheticEpisode, t: float) -> tuple[np.ndarray, float]:
@@ -115,6 +122,36 @@ def voxel_grid(ep: SyntheticEpisode, ws: Workspace, t: float) -> np.ndarray:
     return grid
 
 
+def camera_image(grid: np.ndarray, ws: Workspace, T_base_optical: np.ndarray, size, hfov_deg: float) -> np.ndarray:
+    """RGB (H, W, 3) of the grid's occupied voxels seen by a pinhole camera at ``T_base_optical``
+    (far voxels drawn first, each a square as wide as the voxel), over a plain backdrop."""
+    w, h = size
+    f = (w / 2) / math.tan(math.radians(hfov_deg) / 2)
+    image = np.empty((h, w, 3), np.uint8)
+    image[:] = np.linspace(90, 160, h, dtype=np.uint8)[:, None, None]  # a backdrop brighter towards the floor
+    idx = np.argwhere(grid[0] > 0)
+    if len(idx) == 0:
+        return image
+    centres = ws.lower + (idx + 0.5) * ws.voxel_size
+    colours = grid[1:, idx[:, 0], idx[:, 1], idx[:, 2]].T
+    T = np.linalg.inv(T_base_optical)
+    p = centres @ T[:3, :3].T + T[:3, 3]
+    ahead = p[:, 2] > 0.05
+    p, colours = p[ahead], colours[ahead]
+    order = np.argsort(-p[:, 2])  # painter's order: far first, near last wins
+    p, colours = p[order], colours[order]
+    u = f * p[:, 0] / p[:, 2] + w / 2
+    v = f * p[:, 1] / p[:, 2] + h / 2
+    half = np.maximum(1, np.ceil(f * ws.voxel_size / p[:, 2] / 2)).astype(int)
+    for dv in range(-half.max(), half.max() + 1):
+        for du in range(-half.max(), half.max() + 1):
+            sel = (abs(du) <= half) & (abs(dv) <= half)
+            uu, vv = (u[sel] + du).astype(int), (v[sel] + dv).astype(int)
+            inside = (uu >= 0) & (uu < w) & (vv >= 0) & (vv < h)
+            image[vv[inside], uu[inside]] = colours[sel][inside]
+    return image
+
+
 def write_synthetic_episode(
     path: str | Path,
     ep: SyntheticEpisode = SyntheticEpisode(),
@@ -173,13 +210,18 @@ def write_synthetic_episode(
     n_obs = int(ep.duration_s * ep.obs_hz)
     for i in range(n_obs):
         t = i / ep.obs_hz
-        msg = grid_to_voxel_msg(voxel_grid(ep, ws, t), ws.lower, ws.voxel_size, ns(t), frame, f)
+        grid = voxel_grid(ep, ws, t)
+        msg = grid_to_voxel_msg(grid, ws.lower, ws.voxel_size, ns(t), frame, f)
         events.append((ns(t) + 40_000_000, "/voxels", msg))  # voxelising takes ~40 ms
+        for cam in LAB.cameras if ep.image_size else ():
+            rgb = camera_image(grid, ws, cam.extrinsics.matrix(), ep.image_size, ep.image_hfov_deg)
+            image = color_image_msg(rgb, ns(t), cam.frame_id, f)
+            events.append((ns(t) + 10_000_000, camera_color_topic(cam.name), image))  # published with the cloud
     events.sort(key=lambda e: e[0])
     with EpisodeWriter(path, meta, config) as writer:
         writer.write_tf_static(LAB, ep.t0_ns)
         for stamp, topic, msg in events:
-            writer.write(topic, msg, stamp)
+            writer.write(topic, msg, stamp, COMPRESSED_IMAGE_TYPE if topic.endswith("/compressed") else None)
     return Path(path)
 
 

@@ -295,6 +295,8 @@ def test_realsense_read_deprojects_stamps_and_samples_colour_after_decimation():
     frame = cam.read()
     np.testing.assert_allclose(frame.points, [[(3 - 3.5) / 4 * 0.5, (2 - 2.5) / 4 * 0.5, 0.5]], atol=1e-6)
     np.testing.assert_array_equal(frame.colors, [[1, 2, 3]])
+    np.testing.assert_array_equal(frame.image, color)  # the whole colour image travels with the cloud
+    assert frame.image is not color  # a copy: librealsense reuses the frame's buffer
     assert frame.stamp_ns == 1_700_000_000_123_500_000  # global time: the capture time on the host clock
     fake.global_time = False
     assert cam.read().stamp_ns == 42  # other domains: arrival time on the node's clock
@@ -309,6 +311,7 @@ def test_realsense_read_deprojects_stamps_and_samples_colour_after_decimation():
     frame = cam.read()
     np.testing.assert_allclose(frame.points, [[(1 - 1.75) / 2, (1 - 1.25) / 2, 1.0]], atol=1e-6)
     np.testing.assert_array_equal(frame.colors, [[9, 8, 7]])
+    assert frame.image.shape == (6, 8, 3)  # full resolution, not decimated like the depth
 
     fake.fail = True
     with pytest.raises(CameraError, match="serial 000000000042|000000000042.*no frame within"):
@@ -332,3 +335,72 @@ def test_realsense_processes_only_the_frames_it_will_publish():
     assert 0.34 < elapsed < 2.0
     assert fake.processed == 4  # only the published frames are aligned and deprojected...
     assert fake.served - served >= 6  # ...while the device's other frames are fetched and dropped
+
+
+def test_colour_image_travels_as_image_transport_jpeg_and_bad_ones_are_refused():
+    from equidiff_core.cameras.color import (
+        JPEG_FORMAT,
+        ImageError,
+        color_image_msg,
+        compressed_format,
+        encode_jpeg,
+        image_from_msg,
+    )
+    from equidiff_core.rosmsg import rosbags_factory
+
+    f = rosbags_factory()
+    v, u = np.mgrid[0:120, 0:212]
+    rgb = np.stack([u, v * 2, 255 - u], axis=-1).astype(np.uint8)  # smooth: JPEG keeps it within a few levels
+    rgb[40:80, 90:130] = (200, 30, 30)  # and a flat block with edges
+    msg = color_image_msg(rgb, 1_700_000_000_123_456_789, "cam_front_color_optical_frame", f, quality=90)
+    assert msg.format == JPEG_FORMAT == "rgb8; jpeg compressed bgr8"  # compressed_image_transport's string
+    assert msg.header.frame_id == "cam_front_color_optical_frame"
+    raw = f.typestore.serialize_cdr(msg, "sensor_msgs/msg/CompressedImage")
+    back, stamp = image_from_msg(f.typestore.deserialize_cdr(raw, "sensor_msgs/msg/CompressedImage"))
+    assert stamp == 1_700_000_000_123_456_789 and back.shape == rgb.shape
+    assert np.abs(back.astype(int) - rgb).mean() < 2.0
+    np.testing.assert_array_equal(back[60, 110], rgb[60, 110])  # colour order kept (RGB in, RGB out)
+    assert len(raw) < rgb.nbytes / 10
+
+    for fmt, kind in (("jpeg", "jpeg"), ("bgr8; png compressed bgr8", "png"), ("JPG", "jpeg")):
+        assert (
+            compressed_format(f.make("sensor_msgs/msg/CompressedImage", header=msg.header, format=fmt, data=msg.data))
+            == kind
+        )
+    for bad in (np.zeros((4, 4), np.uint8), np.zeros((4, 4, 3), np.float32), np.zeros((0, 4, 3), np.uint8)):
+        with pytest.raises(ImageError, match="RGB uint8"):
+            encode_jpeg(bad)
+    with pytest.raises(ImageError, match="quality"):
+        encode_jpeg(rgb, quality=0)
+    garbage = f.make(
+        "sensor_msgs/msg/CompressedImage", header=msg.header, format=JPEG_FORMAT, data=np.arange(50, dtype=np.uint8)
+    )
+    with pytest.raises(ImageError, match="undecodable"):
+        image_from_msg(garbage)
+    with pytest.raises(ImageError, match="unsupported"):
+        image_from_msg(f.make("sensor_msgs/msg/CompressedImage", header=msg.header, format="theora", data=msg.data))
+
+
+def test_limit_depth_keeps_the_colour_image():
+    image = np.full((2, 2, 3), 7, np.uint8)
+    frame = CloudFrame(np.array([[0, 0, 0.5], [0, 0, 9.0]], np.float32), np.zeros((2, 3), np.uint8), 5, image)
+    assert limit_depth(frame, 0.1, 2.0).image is image
+
+
+@pytest.mark.sim
+def test_image_cost_bench_measures_each_size_against_its_baselines():
+    from equidiff_core.cameras.color_cost import measure
+    from equidiff_core.config import default_config_dir, load_lab_config
+    from equidiff_core.twin.config import TwinConfig
+
+    twin = TwinConfig()
+    result = measure(load_lab_config(default_config_dir() / "lab.yaml"), twin, repeats=2)
+    cases = result["cases"]
+    twin_size = f"twin_{twin.render.width}x{twin.render.height}"
+    assert set(cases) == {twin_size, "lab_848x480", "lab_848x480_noise2_estimate"}
+    for case in cases.values():
+        assert 0 < case["jpeg_kb_per_frame"] < case["raw_rgb_kb_per_frame"] / 4  # JPEG, not raw pixels
+        assert case["camera_node_jpeg_cpu_ms"] > 0 and case["recorder_write_image_cpu_ms"] > 0
+        assert case["images_mb_per_min"] == pytest.approx(case["jpeg_kb_per_frame"] * 3 * 5 * 60 / 1e3, rel=0.01)
+    assert cases["lab_848x480"]["width"] == 848 and cases["lab_848x480"]["height"] == 480  # beyond MuJoCo's 640 default
+    assert cases["lab_848x480_noise2_estimate"]["jpeg_kb_per_frame"] > cases["lab_848x480"]["jpeg_kb_per_frame"]

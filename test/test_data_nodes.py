@@ -18,13 +18,16 @@ from helpers_ros import spawn_node, stop_node
 
 from equidiff_core import geometry
 from equidiff_core.bags import BagError, read_episode, repair_bag
+from equidiff_core.cameras.color import color_image_msg
 from equidiff_core.chunk import PoseChunk, chunk_from_msg, chunk_to_msg
 from equidiff_core.config import default_config_dir, load_lab_config
 from equidiff_core.pointcloud import grid_to_voxel_msg
+from equidiff_core.topics import camera_color_topic
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow]
 
 LAB = load_lab_config(default_config_dir() / "lab.yaml")
+IMAGE_TOPIC = camera_color_topic(LAB.cameras[0].name)
 
 
 @pytest.fixture
@@ -74,6 +77,9 @@ def make_messages(f, n: int, t0_ns: int):
         )
         chunk = PoseChunk(t, np.array([t + 100_000_000]), pose[None], np.array([0.08]))
         out.append(("/franka/command_chunk", chunk_to_msg(chunk, f, LAB.base_frame)))
+        rgb = np.zeros((48, 64, 3), np.uint8)
+        rgb[:, : 4 * i] = (200, 30 + i, 30)  # each image distinct
+        out.append((IMAGE_TOPIC, color_image_msg(rgb, t, LAB.cameras[0].frame_id, f)))
     return out
 
 
@@ -98,6 +104,7 @@ def publishers(ros: RosHarness):
         "/franka/ee_pose": "geometry_msgs/msg/PoseStamped",
         "/franka/joint_states": "sensor_msgs/msg/JointState",
         "/franka/command_chunk": "trajectory_msgs/msg/MultiDOFJointTrajectory",
+        IMAGE_TOPIC: "sensor_msgs/msg/CompressedImage",  # recorded by default (record_images)
     }
     pubs = {t: ros.node.create_publisher(ros.f.cls(m), t, RELIABLE_QOS) for t, m in types.items()}
     cmd = ros.node.create_publisher(ros.f.cls("std_msgs/msg/String"), TOPIC_RECORDER_COMMAND, RELIABLE_QOS)

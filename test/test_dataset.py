@@ -241,34 +241,3 @@ def test_dataset_stats_cli(bag, tmp_path):
     )
     assert table.returncode == 0, table.stderr
     assert "ep_0000" in table.stdout and "30" in table.stdout and "total" in table.stdout
-
-
-def test_export_lerobot_v21(bag, tmp_path):
-    import pyarrow.parquet as pq
-
-    from equidiff_ros.cli import main as cli
-
-    second = write_synthetic_episode(
-        tmp_path / "ep_0001", SyntheticEpisode(duration_s=3.0, yaw=-0.2), meta=None, config=CFG
-    )
-    out = tmp_path / "lerobot"
-    assert cli(["export", "lerobot", str(bag), str(second), "--out", str(out)]) == 0
-    info = json.loads((out / "meta" / "info.json").read_text())
-    assert info["codebase_version"] == "v2.1" and info["fps"] == 5
-    assert info["total_episodes"] == 2 and info["total_frames"] == 30 + 15 and info["total_tasks"] == 1
-    assert info["features"]["observation.voxels"]["shape"] == [4, 64, 64, 64]
-    episodes = [json.loads(line) for line in (out / "meta" / "episodes.jsonl").read_text().splitlines()]
-    assert [e["length"] for e in episodes] == [30, 15] and episodes[0]["tasks"] == ["pick_cube"]
-    ep = load_episode_arrays(second, DatasetConfig())
-    table = pq.read_table(out / "data" / "chunk-000" / "episode_000001.parquet")
-    assert table.num_rows == 15
-    np.testing.assert_allclose(np.array(table["observation.state"].to_pylist()), ep.ee, atol=1e-6)
-    np.testing.assert_allclose(np.array(table["action"].to_pylist()), ep.actions, atol=1e-6)
-    assert table["index"].to_pylist() == list(range(30, 45)) and set(table["episode_index"].to_pylist()) == {1}
-    np.testing.assert_allclose(table["timestamp"].to_numpy(), np.arange(15) * 0.2, atol=1e-6)
-    vox = np.array(table["observation.voxels"][7].as_py(), dtype=np.uint8)
-    np.testing.assert_array_equal(vox, ep.grid(7, 64))
-    stats = json.loads((out / "meta" / "stats.json").read_text())
-    assert stats["action"]["count"] == [45] and np.array(stats["observation.voxels"]["mean"]).shape == (4, 1, 1, 1)
-    # never overwrites
-    assert cli(["export", "lerobot", str(bag), "--out", str(out)]) == 2

@@ -27,6 +27,7 @@ from equidiff_core.recording import (
     next_episode_path,
 )
 from equidiff_core.rosmsg import rosbags_factory
+from equidiff_core.topics import camera_color_topic
 
 ROOT = Path(__file__).resolve().parents[1]
 LAB = load_lab_config(default_config_dir() / "lab.yaml")
@@ -216,6 +217,10 @@ def test_sample_bag_ships_and_reads():
     for topic in ("/voxels", "/franka/ee_pose", "/franka/joint_states", "/franka/command_chunk", "/tf_static"):
         assert topic in ep, topic
     assert ep.meta.task
+    images = read_episode(bags[0], topics=[camera_color_topic(c.name) for c in LAB.cameras])
+    for cam in LAB.cameras:  # every camera's colour image, one per voxel grid, stamped like it
+        stamps = images[camera_color_topic(cam.name)].header_ns()
+        np.testing.assert_array_equal(stamps, ep["/voxels"].header_ns())
 
 
 def test_copied_bag_dir_is_still_readable(tmp_path):
@@ -300,3 +305,14 @@ def test_low_disk_while_recording_is_flagged(tmp_path, monkeypatch):
     assert w.low_disk  # recorder_node stops and keeps the episode on its next tick
     w.close()
     assert read_episode(tmp_path / "ep").message_counts["/voxels"] == 2
+
+
+def test_recorded_topics_hold_each_cameras_colour_image_by_default():
+    from equidiff_core.recording import recorded_topics
+
+    images = {camera_color_topic(c.name) for c in LAB.cameras}
+    assert images == {f"/cameras/{c.name}/color/image_raw/compressed" for c in LAB.cameras}
+    default = recorded_topics(LAB, record_clouds=False)
+    assert {t: default[t] for t in images} == dict.fromkeys(images, "sensor_msgs/msg/CompressedImage")
+    assert not images & set(recorded_topics(LAB, record_clouds=False, record_images=False))
+    assert RecordingConfig().record_images is True and RecordingConfig().record_clouds is False

@@ -140,6 +140,16 @@ def test_direct_collection_writes_a_trainable_demo_bag(tmp_path):
     assert abs(float(meta.extra["block_yaw_deg"])) <= 10.0
     arrays = load_episode_arrays(bag, DatasetConfig())
     assert len(arrays) >= 40 and arrays.dropped_steps == 0  # ~5 Hz over a ~12 s episode
+    # each camera's colour image of every grid, stamped like it, as camera_node and the recorder write them
+    from equidiff_core.bags import read_episode
+    from equidiff_core.cameras.color import image_from_msg
+    from equidiff_core.topics import camera_color_topic
+
+    images = read_episode(bag, topics=[camera_color_topic(c.name) for c in lab.cameras])
+    for cam in lab.cameras:
+        np.testing.assert_array_equal(images[camera_color_topic(cam.name)].header_ns(), arrays.stamps_ns)
+        rgb, _ = image_from_msg(images[camera_color_topic(cam.name)].messages[0])
+        assert rgb.shape == (CFG.render.height, CFG.render.width, 3) and rgb.std() > 5
     # the commanded targets go down to the block, close, and end open over the bowl
     targets = arrays.schedule[1:]
     assert targets[:, 2].min() < 0.03 and targets[:, 9].min() < 0.01 and targets[-1, 9] > 0.07

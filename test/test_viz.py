@@ -649,3 +649,55 @@ def test_voxel_box_size_follows_the_message_not_a_mismatched_lab_config(tmp_path
     ]
     sizes = sorted(float(h[0, 0]) for h in half_sizes)
     np.testing.assert_allclose(sizes, [LAB.workspace.voxel_size / 2, other_size / 2], rtol=1e-5)
+
+
+def test_recorded_camera_images_are_logged_as_the_jpegs_they_are(tmp_path):
+    sys.path.insert(0, str(ROOT / "test"))
+    from helpers_data import SyntheticEpisode, write_synthetic_episode
+
+    from equidiff_core.bags import read_episode
+    from equidiff_core.recording import RecordingConfig
+    from equidiff_core.topics import camera_color_topic
+
+    bag = write_synthetic_episode(
+        tmp_path / "ep_0000", SyntheticEpisode(duration_s=2.0), config=RecordingConfig(min_free_gib=0)
+    )
+    out = tmp_path / "images.rrd"
+    report = convert_bags([bag], out, LAB)
+    assert report.ok and report.episodes[0].logged["images"] == 3 * 10
+    s = summarize_rrd(out)
+    topic = camera_color_topic("cam_left")
+    recorded = read_episode(bag, topics=[topic])[topic]
+    for cam in LAB.cameras:
+        images = s[f"images/{cam.name}"]
+        assert images.rows == 10
+        assert images.time_range_ns("ros_time") == (int(recorded.header_ns()[0]), int(recorded.header_ns()[-1]))
+    # the blob is the recorded JPEG itself, not a re-encoding
+    from rerun.chunk import RrdReader
+
+    blobs = [
+        bytes(row[0])
+        for chunk in RrdReader(out).stream()
+        if chunk.entity_path == "/images/cam_left" and not chunk.is_static
+        for row in chunk.to_record_batch().column("EncodedImage:blob").to_pylist()
+    ]
+    assert sorted(blobs) == sorted(bytes(m.data) for m in recorded.messages)
+    # images off: none logged
+    off = convert_bags([bag], tmp_path / "off.rrd", LAB, VizConfig(images=False))
+    assert "images" not in off.episodes[0].logged
+
+    # a corrupt or mislabelled image is dropped and counted, never logged
+    f = rosbags_factory()
+    rec = open_recording("bad", save=tmp_path / "bad.rrd")
+    logger = RerunLogger(rec, LAB, VizConfig())
+    good = recorded.messages[0]
+    assert logger.log_message(topic, good, 1)
+    not_jpeg = f.make(
+        "sensor_msgs/msg/CompressedImage", header=good.header, format=good.format, data=np.arange(40, dtype=np.uint8)
+    )
+    assert not logger.log_message(topic, not_jpeg, 2)
+    unknown = f.make("sensor_msgs/msg/CompressedImage", header=good.header, format="theora", data=good.data)
+    assert not logger.log_message(topic, unknown, 3)
+    assert dict(logger.errors) == {"images": 2} and logger.logged["images"] == 1
+    rec.flush()
+    rec.disconnect()

@@ -35,7 +35,7 @@ from .bags import META_SIDECAR, EpisodeMeta
 from .config import LabConfig
 from .mcap_writer import MiB, open_bag_writer
 from .rosmsg import RosbagsFactory, rosbags_factory
-from .topics import CLOUD_TYPE, RECORDED_TOPICS, TF_TYPE, TOPIC_TF_STATIC
+from .topics import CLOUD_TYPE, COMPRESSED_IMAGE_TYPE, RECORDED_TOPICS, TF_TYPE, TOPIC_TF_STATIC, camera_color_topic
 
 
 class RecordingError(RuntimeError):
@@ -75,6 +75,7 @@ class RecordingConfig:
 
     output_dir: str = "episodes"
     record_clouds: bool = False  # the three camera clouds (docs/data.md: 5x the bag in the twin, ~100x with D455s)
+    record_images: bool = True  # each camera's JPEG colour image (docs/data.md: what it costs)
     chunk_size_mib: float = 8.0  # > the largest message (a dense voxel grid is ~1 MiB)
     chunk_max_age_s: float = 2.0  # a SIGKILL loses at most this much
     min_free_gib: float = 2.0  # refuse to start (or stop) below this much free disk
@@ -282,9 +283,11 @@ class EpisodeWriter:
         self.write(TOPIC_TF_STATIC, mk(TF_TYPE, transforms=transforms), stamp_ns, TF_TYPE)
 
 
-def recorded_topics(lab: LabConfig, record_clouds: bool) -> dict[str, str]:
+def recorded_topics(lab: LabConfig, record_clouds: bool, record_images: bool = True) -> dict[str, str]:
     """Topic -> type of everything the recorder subscribes to."""
     topics = dict(RECORDED_TOPICS)
+    if record_images:
+        topics.update({camera_color_topic(cam.name): COMPRESSED_IMAGE_TYPE for cam in lab.cameras})
     if record_clouds:
         topics.update({cam.topic: CLOUD_TYPE for cam in lab.cameras})
     return topics

@@ -28,6 +28,8 @@ TOPIC_CLOCK = "/clock"
 TOPIC_TF = "/tf"  # franka_node: base -> TCP, where tf2_msgs is installed
 TOPIC_TF_STATIC = "/tf_static"
 CAMERA_TOPIC_PREFIX = "/cameras/"
+# Each camera's colour image: image_transport's compressed transport of the base topic .../color/image_raw
+CAMERA_COLOR_SUFFIX = "/color/image_raw/compressed"
 # The twin's own (twin_node and its supervisor)
 TOPIC_TWIN_RESET = "/twin/reset"
 TOPIC_TWIN_SCENE = "/twin/scene"
@@ -47,6 +49,7 @@ SERVICE_FRANKA_HOME = "/franka/home"  # Trigger: glide slowly to the configured 
 CLOUD_TYPE = "sensor_msgs/msg/PointCloud2"
 POSE_TYPE = "geometry_msgs/msg/PoseStamped"
 TF_TYPE = "tf2_msgs/msg/TFMessage"
+COMPRESSED_IMAGE_TYPE = "sensor_msgs/msg/CompressedImage"
 
 # What an episode bag holds (the recorder's default topics; camera clouds are optional extras).
 RECORDED_TOPICS: dict[str, str] = {
@@ -64,3 +67,16 @@ RECORDED_TOPICS: dict[str, str] = {
 TRAINING_TOPICS: dict[str, str] = {
     t: RECORDED_TOPICS[t] for t in (TOPIC_VOXELS, TOPIC_EE_POSE, TOPIC_JOINT_STATES, TOPIC_COMMAND_CHUNK)
 }
+
+
+def camera_color_topic(camera: str) -> str:
+    """``/cameras/<camera>/color/image_raw/compressed``: the camera's JPEG colour image (sensor_msgs/CompressedImage)."""
+    return f"{CAMERA_TOPIC_PREFIX}{camera}{CAMERA_COLOR_SUFFIX}"
+
+
+def camera_of_color_topic(topic: str) -> str | None:
+    """The camera name of a colour-image topic, None for any other topic."""
+    if topic.startswith(CAMERA_TOPIC_PREFIX) and topic.endswith(CAMERA_COLOR_SUFFIX):
+        name = topic[len(CAMERA_TOPIC_PREFIX) : -len(CAMERA_COLOR_SUFFIX)]
+        return name if name and "/" not in name else None
+    return None

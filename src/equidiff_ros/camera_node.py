@@ -4,11 +4,15 @@ Wiring:
   backend (``realsense`` | ``replay`` | ``twin``, built by ``cameras.make_camera``)
       -> one reader thread per camera: ``Camera.read`` -> depth limits (``cameras.limit_depth``)
       -> ``pointcloud.cloud_to_msg`` -> /cameras/<name>/points (sensor-data QoS) at ``publish_hz``
+      -> with ``publish_color``: the same frame's colour image as JPEG (``cameras.color``)
+         -> /cameras/<name>/color/image_raw/compressed (sensor_msgs/CompressedImage, same stamp,
+         frame and QoS as the cloud)
   once at start -> /tf_static (``tf2_msgs/TFMessage``, transient local): base -> each optical
       frame from the configured extrinsics, when tf2_msgs is installed (not on a PyPI-only
       machine: logged once; bags get /tf_static from the recorder)
   timer at 1 Hz -> /diagnostics (``camera_node/<name>``: frames published, read errors, age,
-      the backend's hardware resets / reconnects and why the last recovery began)
+      the backend's hardware resets / reconnects and why the last recovery began, colour images
+      published and the mean JPEG encoding time)
 
 A RealSense that stalls (``reset_after_timeouts`` read timeouts in a row) is hardware-reset
 and reopened with its options by the backend itself (``RealSenseCamera.read``); meanwhile
@@ -23,7 +27,9 @@ Parameters: ``lab_config`` (lab.yaml), ``camera`` (a camera name; empty = all co
 ``backend`` (realsense | replay | twin), ``bag`` / ``loop`` / ``rate`` / ``restamp``
 (replay), ``backend_options`` (a YAML mapping passed to the backend, e.g. "{width: 424}"),
 ``reliable_clouds`` (publish reliably instead of sensor-data QoS, false; the lockstep twin sets
-it, with voxel_node's, so no frame it owes a chunk is lost in transport).
+it, with voxel_node's, so no frame it owes a chunk is lost in transport; the colour images follow
+it), ``publish_color`` (true: the colour image beside each cloud; the replay backend has none),
+``jpeg_quality`` (90).
 A RealSense that is not connected stops the node at once with the missing serial named.
 """
 
@@ -43,12 +49,14 @@ from equidiff_core.cameras import (
     limit_depth,
     make_camera,
 )
+from equidiff_core.cameras.color import DEFAULT_JPEG_QUALITY, ImageError, color_image_msg
 from equidiff_core.cameras.replay import ReplayFinished
 from equidiff_core.config import ConfigError
 from equidiff_core.control import messages as cm
 from equidiff_core.pointcloud import cloud_to_msg
 from equidiff_core.rosmsg import RclpyFactory
 from equidiff_core.sync import PublishPacer
+from equidiff_core.topics import COMPRESSED_IMAGE_TYPE, camera_color_topic
 from equidiff_ros.common import (
     LATCHED_QOS,
     RELIABLE_QOS,
@@ -85,6 +93,10 @@ class CameraNode(Node):
         restamp = self.declare_parameter("restamp", True).value
         options_text = self.declare_parameter("backend_options", "").value
         reliable = self.declare_parameter("reliable_clouds", False).value
+        self.publish_color = bool(self.declare_parameter("publish_color", True).value)
+        self.jpeg_quality = int(self.declare_parameter("jpeg_quality", DEFAULT_JPEG_QUALITY).value)
+        if not 1 <= self.jpeg_quality <= 100:
+            raise ConfigError(f"jpeg_quality must be in 1..100, got {self.jpeg_quality}")
         self.configs = [self.lab.camera(name)] if name else list(self.lab.cameras)
         self.factory = RclpyFactory()
         try:
@@ -121,7 +133,17 @@ class CameraNode(Node):
         self.pubs = {
             c.name: self.create_publisher(self._cloud_type(), c.topic, cloud_qos(reliable)) for c in self.configs
         }
-        self.stats = {c.name: {"published": 0, "read_errors": 0, "last_stamp_ns": None} for c in self.configs}
+        self.color_pubs = {}
+        if self.publish_color:
+            image_type = self.factory.cls(COMPRESSED_IMAGE_TYPE)
+            self.color_pubs = {
+                c.name: self.create_publisher(image_type, camera_color_topic(c.name), cloud_qos(reliable))
+                for c in self.configs
+            }
+        self.stats = {
+            c.name: {"published": 0, "read_errors": 0, "last_stamp_ns": None, "color_published": 0, "jpeg_s": 0.0}
+            for c in self.configs
+        }
         self._publish_tf_static()
         self.diag_pub = self.create_publisher(
             self.factory.cls("diagnostic_msgs/msg/DiagnosticArray"), TOPIC_DIAGNOSTICS, RELIABLE_QOS
@@ -134,7 +156,10 @@ class CameraNode(Node):
         ]
         for t in self.threads:
             t.start()
-        self.get_logger().info(f"{self.backend} backend: publishing {[c.topic for c in self.configs]}")
+        published = [c.topic for c in self.configs] + [
+            camera_color_topic(c.name) for c in self.configs if self.color_pubs
+        ]
+        self.get_logger().info(f"{self.backend} backend: publishing {published}")
 
     def _cloud_type(self):
         return self.factory.cls("sensor_msgs/msg/PointCloud2")
@@ -179,17 +204,34 @@ class CameraNode(Node):
                 )
                 continue
             msg = cloud_to_msg(frame.points, frame.colors, frame.stamp_ns, cfg.frame_id, self.factory)
+            image_msg = self._color_msg(cfg, frame, log)
             if self._stop.is_set() or not self.context.ok():
                 return  # Ctrl-C/SIGTERM shut the context down while this frame was read
             try:
                 pub.publish(msg)
+                if image_msg is not None:
+                    self.color_pubs[cfg.name].publish(image_msg)
             except Exception as err:  # rclpy raises RCLError once the context is gone
                 if self.context.ok():
                     raise
                 log.debug(f"{cfg.name}: not published, shutting down ({err})")
                 return
             stats["published"] += 1
+            stats["color_published"] += image_msg is not None
             stats["last_stamp_ns"] = frame.stamp_ns
+
+    def _color_msg(self, cfg, frame, log):
+        """The frame's colour image as a JPEG CompressedImage (None when off or the backend has no image)."""
+        if not self.color_pubs or frame.image is None:
+            return None
+        t0 = time.thread_time()  # this thread's CPU: what the encoding costs the machine, not the wait
+        try:
+            msg = color_image_msg(frame.image, frame.stamp_ns, cfg.frame_id, self.factory, self.jpeg_quality)
+        except ImageError as err:
+            log.warning(f"{cfg.name}: colour image not published: {err}", throttle_duration_sec=2.0)
+            return None
+        self.stats[cfg.name]["jpeg_s"] += time.thread_time() - t0
+        return msg
 
     def _publish_diagnostics(self):
         now = now_ns(self)
@@ -217,6 +259,10 @@ class CameraNode(Node):
                         "resets": health.resets,
                         "reconnects": health.reconnects,
                         "last_recovery_reason": health.last_recovery_reason or "none",
+                        "color_published": s["color_published"],
+                        "jpeg_cpu_ms": round(1e3 * s["jpeg_s"] / s["color_published"], 2)
+                        if s["color_published"]
+                        else "none",
                     },
                 )
             )

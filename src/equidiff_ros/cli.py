@@ -38,6 +38,7 @@ COMMANDS: dict[tuple[str, ...], tuple[str, str]] = {
         "replace vs execution horizon vs real-time chunking by latency, in the twin",
     ),
     ("bench", "twin"): ("bench_twin", "where the twin's CPU goes: each process's share and wall s per sim s"),
+    ("bench", "images"): ("bench_images", "what recording the cameras' colour images costs: bytes and CPU per frame"),
     ("twin", "collect"): ("twin_collect", "record scripted-expert demonstrations in the digital twin"),
     ("twin", "run"): ("twin_run", "the main job: evaluate a policy end to end in the digital twin"),
     ("twin", "evaluate"): ("twin_evaluate", "the main job's episodes in-process on the sim clock (no ROS)"),

@@ -20,8 +20,8 @@ State is published latched on /recorder/status (std_msgs/String: ``idle`` or ``r
 checked before each start and while recording (stop-and-keep when low). A killed recorder's
 bag is recovered with ``equidiff bags repair``.
 
-Parameters: ``lab_config``, ``output_dir``, ``record_clouds`` (the three camera clouds, off by
-default), ``chunk_size_mib``, ``chunk_max_age_s``, ``min_free_gib``, ``task``, ``operator``,
+Parameters: ``lab_config``, ``output_dir``, ``record_images`` (each camera's JPEG colour image,
+on by default), ``record_clouds`` (the three camera clouds, off by default), ``chunk_size_mib``, ``chunk_max_age_s``, ``min_free_gib``, ``task``, ``operator``,
 ``notes``, ``keyboard``, ``autostart``; defaults in config/data.yaml.
 """
 
@@ -76,11 +76,20 @@ RECORD_CLOUD_QOS = QoSProfile(
     durability=DurabilityPolicy.VOLATILE,
     history=HistoryPolicy.KEEP_LAST,
 )
+# Colour images come from camera_node with the clouds' QoS (sensor data, or reliable in the
+# lockstep twin): best effort matches both; tens of kB each, so a deeper queue is cheap.
+RECORD_IMAGE_QOS = QoSProfile(
+    depth=30,
+    reliability=ReliabilityPolicy.BEST_EFFORT,
+    durability=DurabilityPolicy.VOLATILE,
+    history=HistoryPolicy.KEEP_LAST,
+)
 
 USAGE = (
     __doc__
     + """
-usage: recorder_node [--ros-args -p output_dir:=DIR -p task:=NAME -p operator:=NAME -p record_clouds:=false ...]
+usage: recorder_node [--ros-args -p output_dir:=DIR -p task:=NAME -p operator:=NAME -p record_images:=true
+                      -p record_clouds:=false ...]
 """
 )
 
@@ -137,9 +146,11 @@ class RecorderNode(Node):
         self.writer: EpisodeWriter | None = None
         self.interventions: InterventionLog | None = None  # of the episode being recorded
         self.teleop_active = False
-        self.topics = recorded_topics(self.lab, self.cfg.record_clouds)
+        self.topics = recorded_topics(self.lab, self.cfg.record_clouds, self.cfg.record_images)
         for topic, msgtype in self.topics.items():
-            if topic.startswith("/cameras/"):
+            if topics.camera_of_color_topic(topic) is not None:
+                qos = RECORD_IMAGE_QOS
+            elif topic.startswith(topics.CAMERA_TOPIC_PREFIX):
                 qos = RECORD_CLOUD_QOS
             else:
                 qos = RECORD_SENSOR_QOS if topic in BEST_EFFORT_TOPICS else RECORD_RELIABLE_QOS

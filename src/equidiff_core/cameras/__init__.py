@@ -49,7 +49,7 @@ def limit_depth(frame: CloudFrame, min_depth: float, max_depth: float) -> CloudF
     keep = (z >= min_depth) & (z <= max_depth)  # NaN compares False: dropped too
     if keep.all():
         return frame
-    return CloudFrame(frame.points[keep], frame.colors[keep], frame.stamp_ns)
+    return CloudFrame(frame.points[keep], frame.colors[keep], frame.stamp_ns, frame.image)
 
 
 def extrinsics_tf_message(cameras, base_frame: str, stamp_ns: int, factory):

@@ -3,7 +3,7 @@
 Shape borrowed from LeRobot's ``cameras/``: an abstract context manager with
 ``connect`` / ``read`` / ``disconnect``, one small folder per backend with its own config
 dataclass. A backend yields coloured point clouds in its *optical* frame, stamped with the
-capture time; the camera node publishes them, the voxel node transforms them to the base
+capture time, with the colour image they were made from; the camera node publishes them, the voxel node transforms them to the base
 frame with the configured extrinsics.
 """
 
@@ -29,6 +29,9 @@ class CloudFrame:
     points: np.ndarray  # (N, 3) float32, metres, optical frame (x right, y down, z forward)
     colors: np.ndarray  # (N, 3) uint8 RGB
     stamp_ns: int  # capture time on the ROS clock (wall time on hardware, sim time in the twin)
+    # the colour image the cloud's colours came from, RGB uint8 (H, W, 3), same instant; None where the
+    # backend has none (replay of a bag)
+    image: np.ndarray | None = None
 
 
 @dataclass(frozen=True)

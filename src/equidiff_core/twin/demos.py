@@ -4,8 +4,10 @@ Sim (``DirectSim``), the three simulated cameras, the voxeliser and the expert r
 process on the *sim* clock, faster than real time, and the episode is written with the same
 ``EpisodeWriter`` and the same topics and message layouts the recorder node writes:
 ``/voxels`` (5 Hz), ``/franka/ee_pose`` and ``/franka/joint_states`` (100 Hz),
-``/franka/command_chunk`` (the expert's one-point teleop-style targets, 20 Hz), ``/tf_static``.
-So ``equidiff train`` reads these bags exactly like recorded ones. Stamps are
+``/franka/command_chunk`` (the expert's one-point teleop-style targets, 20 Hz), ``/tf_static``,
+and each camera's JPEG colour image on ``/cameras/<name>/color/image_raw/compressed`` at the
+observation instants (the frames the grid was fused from, as camera_node publishes them).
+So ``equidiff train`` and ``equidiff export lerobot`` read these bags exactly like recorded ones. Stamps are
 ``epoch + sim time``.
 """
 
@@ -19,6 +21,7 @@ import numpy as np
 
 from ..bags import EpisodeMeta
 from ..cameras import limit_depth
+from ..cameras.color import color_image_msg
 from ..cameras.twin import TwinCamera
 from ..chunk import PoseChunk, chunk_to_msg
 from ..config import LabConfig
@@ -28,11 +31,13 @@ from ..pointcloud import grid_to_voxel_msg
 from ..recording import EpisodeWriter, next_episode_path
 from ..rosmsg import rosbags_factory
 from ..topics import (
+    COMPRESSED_IMAGE_TYPE,
     TOPIC_COMMAND_CHUNK,
     TOPIC_EE_POSE,
     TOPIC_JOINT_STATES,
     TOPIC_VOXELS,
     TRAINING_TOPICS,
+    camera_color_topic,
 )
 from ..voxels import Voxelizer
 from .config import TwinConfig
@@ -59,6 +64,7 @@ class DirectRecorder:
         self.voxelizer = Voxelizer(lab.workspace, [c.extrinsics.matrix() for c in lab.cameras])
         self.factory = rosbags_factory()
         self._stamp = 0
+        self.images: list[np.ndarray | None] = []  # each camera's colour image of the latest grid
 
     def close(self) -> None:
         for c in self.cameras:
@@ -72,6 +78,7 @@ class DirectRecorder:
         frames = []
         for cam, cfg in zip(self.cameras, self.lab.cameras):
             frames.append(limit_depth(cam.read(), cfg.min_depth, cfg.max_depth))
+        self.images = [f.image for f in frames]
         return self.voxelizer(frames)
 
 
@@ -80,14 +87,21 @@ class DirectWorld:
     ``EpisodeWriter`` on the sim clock, writing what recorder_node would record.
 
     While recording, ``step`` writes /franka/ee_pose and /franka/joint_states at the robot's
-    state rate and /voxels at the observation rate; ``command`` sends a teleop-style target and
-    writes it as /franka/command_chunk. Stamps are ``epoch_ns`` + sim time since the start.
+    state rate, /voxels and (``record_images``) each camera's colour image at the observation rate;
+    ``command`` sends a teleop-style target and writes it as /franka/command_chunk. Stamps are ``epoch_ns`` + sim time since the start.
     Without ``out`` it records nothing (the in-process evaluation, ``twin.evaluate``)."""
 
     def __init__(
-        self, rec: DirectRecorder, out: Path | None = None, task: str = "", epoch_ns: int = 0, operator: str = ""
+        self,
+        rec: DirectRecorder,
+        out: Path | None = None,
+        task: str = "",
+        epoch_ns: int = 0,
+        operator: str = "",
+        record_images: bool = True,
     ):
         self.rec, self.sim, self.lab = rec, rec.sim, rec.lab
+        self.record_images = record_images
         self.out, self.task, self.epoch_ns, self.operator = out, task, epoch_ns, operator
         self.seed: int | None = None
         self.scene = None  # the seed's ScenePoses
@@ -127,6 +141,9 @@ class DirectWorld:
         self.writer = EpisodeWriter(self.path, meta).open()
         for topic, msgtype in TRAINING_TOPICS.items():
             self.writer.add_topic(topic, msgtype)
+        if self.record_images:
+            for cam in self.lab.cameras:
+                self.writer.add_topic(camera_color_topic(cam.name), COMPRESSED_IMAGE_TYPE)
         self.writer.write_tf_static(self.lab, self.epoch_ns)
         self.ms, self.t0 = 0, self.sim.time
         return str(self.path)
@@ -163,6 +180,10 @@ class DirectWorld:
             ws = self.lab.workspace
             grid = self.rec.voxel_grid(t_ns)
             self.writer.write(TOPIC_VOXELS, grid_to_voxel_msg(grid, ws.lower, ws.voxel_size, t_ns, frame, f), t_ns)
+            if self.record_images:
+                for cam, image in zip(self.lab.cameras, self.rec.images):
+                    msg = color_image_msg(image, t_ns, cam.frame_id, f)
+                    self.writer.write(camera_color_topic(cam.name), msg, t_ns, COMPRESSED_IMAGE_TYPE)
         sim.step(1)
         self.ms += 1
 

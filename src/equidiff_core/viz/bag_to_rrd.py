@@ -27,6 +27,7 @@ import yaml
 
 from ..config import LabConfig
 from ..rosmsg import rosbags_factory
+from ..topics import camera_of_color_topic
 from .logger import (
     APPLICATION_ID,
     TOPICS_HANDLED,
@@ -91,6 +92,8 @@ def episode_info(bag: Path) -> dict[str, str]:
 def _wanted(topic: str, config: VizConfig) -> bool:
     if topic in TOPICS_HANDLED:
         return True
+    if camera_of_color_topic(topic) is not None:
+        return config.images
     return config.clouds and topic.startswith("/cameras/") and topic.endswith("/points")
 
 
@@ -151,7 +154,10 @@ def convert_bags(
             target = out / f"{bag.name}.rrd"
             result = EpisodeResult(bag, target)
             rec = open_recording(
-                recording_id=bag.name, save=target, application_id=APPLICATION_ID, blueprint=default_blueprint()
+                recording_id=bag.name,
+                save=target,
+                application_id=APPLICATION_ID,
+                blueprint=default_blueprint([c.name for c in lab.cameras] if config.images else ()),
             )
             logger = RerunLogger(rec, lab, config)
             logger.log_static_scene(static_cameras=False)
@@ -177,7 +183,7 @@ def convert_bags(
         spawn=spawn,
         connect=connect,
         application_id=APPLICATION_ID,
-        blueprint=default_blueprint(),
+        blueprint=default_blueprint([c.name for c in lab.cameras] if config.images else ()),
     )
     logger = RerunLogger(rec, lab, config)
     logger.log_static_scene(static_cameras=False)

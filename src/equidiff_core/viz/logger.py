@@ -8,6 +8,7 @@ Entity layout (the same live and from bags; the base frame is the world):
 | ``world/workspace`` | wireframe box of the voxel workspace | lab.yaml |
 | ``world/cameras/<name>`` | ``Transform3D`` T_base_optical + axes | lab.yaml (live: static); bags: lab.yaml at the episode start, then the bag's ``/tf_static`` |
 | ``world/cameras/<name>/points`` | ``Points3D`` in the optical frame (throttled) | ``/cameras/<name>/points`` |
+| ``images/<name>`` | ``EncodedImage``: the camera's JPEG as recorded, decoded by the viewer | ``/cameras/<name>/color/image_raw/compressed`` |
 | ``world/voxels`` | ``Boxes3D``: half-sizes once (static), centres + colours per frame | ``/voxels`` |
 | ``world/ee`` + ``world/ee_trail`` | TCP ``Transform3D`` + axes; ``LineStrips3D`` of the last ``trail_s`` | ``/franka/ee_pose`` |
 | ``world/chunk/{path,steps,gripper}`` | predicted poses as a path; steps labelled with the gripper width; one segment per step as wide as the commanded gripper opening | ``/franka/command_chunk`` |
@@ -38,12 +39,13 @@ from typing import Any
 import numpy as np
 
 from .. import geometry, topics
+from ..cameras.color import ImageError, compressed_format
 from ..chunk import ChunkError, chunk_from_msg
 from ..config import ConfigError, LabConfig, default_config_dir, from_dict, load_yaml
 from ..control.messages import gripper_width_from_joint_state
 from ..pointcloud import CloudError, _structured, msg_to_cloud
 from ..robots.base import FINGER_JOINT_NAMES
-from ..rosmsg import stamp_to_ns
+from ..rosmsg import stamp_to_ns, uint8_buffer
 from . import require_rerun
 
 APPLICATION_ID = "equidiff_ros"
@@ -63,6 +65,9 @@ OBS_AGE = "metrics/observation_age"
 GRIPPER_WIDTH = "metrics/gripper_width"
 DIAGNOSTICS = "diagnostics"
 EPISODE_INFO = "episode/info"
+IMAGES = "images"
+# the first bytes of each compressed format rerun's EncodedImage decodes
+_MAGIC = {"jpeg": (b"\xff\xd8\xff", "image/jpeg"), "png": (b"\x89PNG", "image/png")}
 
 # Diagnostic keys with a place of their own in the blueprint; every other number goes to diagnostics/.
 _DIAGNOSTIC_ENTITIES = {
@@ -84,6 +89,7 @@ class VizConfig:
     ee_hz: float = 20.0  # TCP pose, executed target and their trails (state arrives at >= 100 Hz)
     trail_s: float = 5.0  # length of the TCP / executed-target trails
     clouds: bool = False  # also show the raw camera clouds (costs bandwidth: ~5 MB per cloud)
+    images: bool = True  # the cameras' colour images (JPEG, logged as recorded: tens of kB each)
     cloud_hz: float = 1.0  # per camera
     max_cloud_points: int = 50_000  # clouds are strided down to at most this many points
     solid_voxels: bool = True  # filled boxes (False: wireframe)
@@ -109,14 +115,19 @@ def load_viz_config(path: str | Path | None = None) -> VizConfig:
     return from_dict(VizConfig, data, where=Path(path).name)
 
 
-def default_blueprint() -> Any:
-    """3D scene on the left; latency, observation age, gripper width and other diagnostics on the right."""
+def default_blueprint(cameras: tuple[str, ...] | list[str] = ()) -> Any:
+    """3D scene on the left (with a row of camera images below it, one per name in ``cameras``);
+    latency, observation age, gripper width and other diagnostics on the right."""
     require_rerun()
     import rerun.blueprint as rrb
 
+    scene = rrb.Spatial3DView(name="scene (base frame)", origin=f"/{WORLD}")
+    if cameras:
+        images = rrb.Horizontal(*[rrb.Spatial2DView(name=c, origin=f"/{IMAGES}/{c}") for c in cameras])
+        scene = rrb.Vertical(scene, images, row_shares=[3, 1])
     return rrb.Blueprint(
         rrb.Horizontal(
-            rrb.Spatial3DView(name="scene (base frame)", origin=f"/{WORLD}"),
+            scene,
             rrb.Vertical(
                 rrb.TimeSeriesView(name="latency (ms)", origin=f"/{LATENCY}"),
                 rrb.TimeSeriesView(name="observation age (ms)", origin=f"/{OBS_AGE}"),
@@ -419,6 +430,21 @@ class RerunLogger:
         self.logged["clouds"] += 1
         return True
 
+    def log_image(self, camera: str, msg: Any, receive_ns: int | None = None) -> bool:
+        """CompressedImage (JPEG/PNG) -> ``EncodedImage`` under images/<camera>: the bytes as recorded, no re-encoding."""
+        try:
+            kind = compressed_format(msg)
+            data = uint8_buffer(msg.data).tobytes()
+            magic, media_type = _MAGIC[kind]
+            if not data.startswith(magic):
+                raise ImageError(f"{msg.format!r} image whose {len(data)} bytes are not {kind}")
+        except ImageError as err:
+            return self._drop("images", err)
+        self._at(_stamp(msg, receive_ns))
+        self.rec.log(f"{IMAGES}/{camera}", self.rr.EncodedImage(contents=data, media_type=media_type))
+        self.logged["images"] += 1
+        return True
+
     def log_ee_pose(self, msg: Any, receive_ns: int | None = None) -> bool:
         """PoseStamped TCP pose -> transform + axes and a trail, at most ``ee_hz``."""
         stamp = _stamp(msg, receive_ns)
@@ -513,6 +539,9 @@ class RerunLogger:
         handler = self._handlers().get(topic)
         if handler is not None:
             return handler(msg, receive_ns)
+        camera = topics.camera_of_color_topic(topic)
+        if camera is not None:
+            return self.log_image(camera, msg, receive_ns) if self.config.images else False
         if topic.startswith(topics.CAMERA_TOPIC_PREFIX) and topic.endswith("/points"):
             if not self.config.clouds:
                 return False

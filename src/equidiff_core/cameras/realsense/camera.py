@@ -7,6 +7,8 @@ temporal -> disparity-to-depth -> hole filling (librealsense's recommended order
 deproject with a per-pixel ray table built once from the stream intrinsics (exact for the
 distortion model too, and a multiply per frame instead of a deprojection).
 
+The frame also carries the full-resolution colour image (rgb8), before any decimation.
+
 Stamps: with ``global_time_enabled`` the frame timestamp is the capture time on the host
 clock (what the ROS clock is on hardware); otherwise the arrival time is used.
 """
@@ -298,7 +300,9 @@ class RealSenseCamera(Camera):
             for f in self._filters:
                 depth_frame = f.process(depth_frame)
             depth = np.asanyarray(depth_frame.get_data())
-            color = np.asanyarray(color_frame.get_data())
+            # a copy: the frame's buffer goes back to librealsense once the frameset is released
+            image = np.array(color_frame.get_data(), dtype=np.uint8, copy=True)
+            color = image
         except RuntimeError as err:
             raise CameraError(f"{self._where()}: frame processing failed: {err}") from err
         if depth.shape != color.shape[:2]:  # decimated: sample the colour at each depth pixel's centre
@@ -312,7 +316,7 @@ class RealSenseCamera(Camera):
             stamp_ns = round(frames.get_timestamp() * 1e3) * 1000  # ms with us resolution -> ns
         else:
             stamp_ns = arrival_ns
-        return CloudFrame(points, colors, stamp_ns)
+        return CloudFrame(points, colors, stamp_ns, image)
 
     def _rays_for(self, intr) -> np.ndarray:
         key = (intr.width, intr.height, intr.fx, intr.fy, intr.ppx, intr.ppy, tuple(intr.coeffs))

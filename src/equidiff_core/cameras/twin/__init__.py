@@ -1,4 +1,4 @@
-"""Simulated RealSense D455 for the digital twin: MuJoCo offscreen RGB + depth -> coloured cloud.
+"""Simulated RealSense D455 for the digital twin: MuJoCo offscreen RGB + depth -> coloured cloud (+ the RGB image).
 
 The camera runs in its own process (camera_node with backend ``twin``), apart from the sim
 server (twin_node). It compiles the very same scene MJCF (``equidiff_core.twin.scene``),
@@ -152,6 +152,12 @@ class TwinCamera(Camera):
         except Exception as err:  # a broken scene config must name the camera that needed it
             raise CameraError(f"twin camera {self.camera.name}: cannot build the twin scene: {err}") from err
         self._model.vis.quality.offsamples = 0
+        # the offscreen buffer must hold the frame (MuJoCo's default is 640x480; a D455 is 848x480)
+        glob = self._model.vis.global_
+        glob.offwidth, glob.offheight = (
+            max(glob.offwidth, self.render_cfg.width),
+            max(glob.offheight, self.render_cfg.height),
+        )
         self._data = mujoco.MjData(self._model)
         if self._state_source is None:
             from ...twin.shared_state import SharedStateError, StateReader
@@ -206,7 +212,7 @@ class TwinCamera(Camera):
                 f"twin camera {self.camera.name}: no valid depth in range "
                 f"[{self.camera.min_depth}, {self.camera.max_depth}] m"
             )
-        return CloudFrame(points, colors, int(stamp_ns))
+        return CloudFrame(points, colors, int(stamp_ns), rgb)
 
     def _take_frame(self, timeout_s: float) -> tuple[np.ndarray, int]:
         """The next frame the sim requests (simulated time): its state and its instant."""
