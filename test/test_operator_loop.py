@@ -256,3 +256,19 @@ def test_equidiff_lab_alone_opens_the_screen_and_the_five_commands_stay():
     for sub in ("ack", "home", "status"):
         assert parse("lab", sub)._module == f"lab_{sub}"
     assert parse("lab", "policy", "pause")._module == "lab_policy"
+
+
+def test_without_a_terminal_the_screen_says_to_use_the_commands():
+    import os
+    import subprocess
+    import sys
+
+    got = subprocess.run(
+        [sys.executable, "-m", "equidiff_ros.cli", "lab"],
+        stdin=subprocess.DEVNULL,
+        capture_output=True,
+        text=True,
+        timeout=60,
+        env=dict(os.environ, OMP_NUM_THREADS="1"),
+    )
+    assert got.returncode == 2 and "needs a terminal" in got.stderr and "lab record" in got.stderr

@@ -133,9 +133,12 @@ class LabClient:
             RELIABLE_QOS,
         )
 
+        unpublished = dict.fromkeys(WATCHED_TOPICS, 0)  # seconds in a row without a publisher
+
         def forget_the_gone():  # a latched value outlives its node in our cache: a dead node shows as none
             for name, (topic, _type) in WATCHED_TOPICS.items():
-                if self.node.count_publishers(topic) == 0:
+                unpublished[name] = unpublished[name] + 1 if self.node.count_publishers(topic) == 0 else 0
+                if unpublished[name] >= 2:  # twice: not a value that arrived just before its publisher's discovery
                     on_value(name, None)
 
         self.node.create_timer(1.0, forget_the_gone)

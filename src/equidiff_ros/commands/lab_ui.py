@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import os
 import queue
+import sys
 import threading
 import time
 from pathlib import Path
@@ -112,6 +113,17 @@ class Screen:
 
 
 def run(args) -> int:
+    if not (sys.stdin.isatty() and sys.stdout.isatty()):
+        print(
+            "equidiff lab: the screen needs a terminal; scripts use equidiff lab record|policy|home|ack|status",
+            file=sys.stderr,
+        )
+        return 2
+    try:
+        import prompt_toolkit  # noqa: F401
+    except ImportError:
+        print("equidiff lab: the screen needs prompt_toolkit (the package's `ros` extra)", file=sys.stderr)
+        return 2
     from prompt_toolkit import Application
     from prompt_toolkit.key_binding import KeyBindings
     from prompt_toolkit.keys import Keys
