@@ -462,7 +462,9 @@ def test_the_operator_screen_drives_the_nodes(ros_domain, checkpoint, tmp_path):
             screen_when(lambda s: "not started: the arm holds until acknowledged" in s, "start refused before the ack")
             ui.press("a")
             screen_when(lambda s: "HOLDING" in row(s, "ROBOT"), "the arm holding after the ack")
-            assert client.diag_value("franka_node", "awaiting_ack", "?") in ("", "?")
+            client.wait_for(  # franka_node's own word, on its 1 Hz /diagnostics
+                lambda: client.diag_value("franka_node", "awaiting_ack") == "", 10.0, "the ack", nodes["franka_node"]
+            )
 
             assert not at_home()
             ui.press("h")

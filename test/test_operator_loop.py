@@ -126,10 +126,12 @@ def test_an_episode_is_kept_then_the_arm_homes_and_the_countdown_runs():
     loop.observe("recorder", "recording /data/bags/pick_0003", T0 + 0.1)
     assert "RECORDING" in loop.screen_text(T0 + 65) and "1:04" in loop.screen_text(T0 + 65)
 
+    assert kinds(loop.press("t", T0 + 69)) == ["pause"] and loop.takeover  # the SpaceMouse takes over
     keep = loop.press("k", T0 + 70)
     assert kinds(keep) == ["pause", "success"]  # the policy stops acting before the episode ends
     follow = answer(loop, keep, T0 + 71)
     assert kinds(follow) == ["home"]
+    assert not loop.takeover  # the next episode starts with the policy paused: no takeover to show
     loop.observe("recorder", "idle", T0 + 71)
     loop.observe("policy", "paused by the operator", T0 + 71)
     assert (loop.counts.success, loop.counts.failure) == (1, 0)
@@ -226,9 +228,12 @@ def test_the_folder_count_is_the_kept_bags_without_the_one_being_recorded(tmp_pa
     for i in range(2):
         write_synthetic_episode(out / f"pick_{i:04d}", SyntheticEpisode(duration_s=0.4))
     loop = loop_with()
-    loop.observe("recorder", f"recording {out / 'pick_0002'}", T0)  # learned from the recorder's path
+    start = loop.press("s", T0)
     write_synthetic_episode(out / "pick_0002", SyntheticEpisode(duration_s=0.4))  # its bag, not yet kept
-    assert loop.output_dir == out
+    answer(loop, start, T0, message=str(out / "pick_0002"))  # the answer, before the recorder's status
+    assert loop.output_dir == out  # learned from the recorder's path
+    loop.tick(T0 + 6)
+    assert loop.dataset_count == 2
     loop.observe("recorder", f"recording {out / 'pick_0002'}", T0 + 10)
     assert loop.dataset_count == 2 and f"in {out}: 2" in loop.screen_text(T0 + 10)
     answer(loop, loop.press("k", T0 + 11), T0 + 11)

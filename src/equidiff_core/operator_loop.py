@@ -248,6 +248,7 @@ class OperatorLoop:
         self.confirming: tuple[str, str, float] | None = None  # (action, question, asked at)
         self.in_flight: list[str] = []  # labels of requests sent and not answered yet
         self.takeover = False  # the operator said the SpaceMouse drives (until the policy runs again)
+        self.started: Path | None = None  # the episode the recorder said it started, until it ends
         self.waiting_for_arm = False  # the countdown ran out, auto start waits for the arm to hold
         self.quit = False
         self.output_dir: Path | None = Path(self.config.output_dir) if self.config.output_dir else None
@@ -269,6 +270,7 @@ class OperatorLoop:
                 self.output_dir = self.output_dir or path.parent
             elif path is None:
                 self.recording_since = None
+                self.started = None  # ended (here or from another terminal)
             self._recount(now, force=True)  # an episode began or was kept
         if name == "policy" and self.view.policy_running:
             self.takeover = False
@@ -300,9 +302,12 @@ class OperatorLoop:
         if request.kind == "start":
             self.countdown.cancel()
             self.waiting_for_arm = False
-            if self.output_dir is None and message.strip():
-                self.output_dir = Path(message.strip()).parent
+            if message.strip():
+                self.started = Path(message.strip())
+                self.output_dir = self.output_dir or self.started.parent
         elif request.kind in ("success", "failure", "discard"):
+            self.started = None
+            self.takeover = False  # the next episode begins with the policy paused anyway
             if request.kind == "discard":
                 self.counts.discarded += 1
             else:
@@ -443,8 +448,8 @@ class OperatorLoop:
         if not self.output_dir.is_dir():
             self.dataset_count = None  # the recorder runs on another machine: unknown here
             return
-        recording = self.view.recording
-        self.dataset_count = sum(1 for p in find_bags([self.output_dir]) if p != recording)
+        unfinished = {self.view.recording, self.started}  # the recorder's answer may come before its status
+        self.dataset_count = sum(1 for p in find_bags([self.output_dir]) if p not in unfinished)
 
     # -- output --------------------------------------------------------------------------------
     def render(self, now: float) -> list[tuple[str, str]]:
