@@ -25,6 +25,7 @@ import time
 from pathlib import Path
 
 from equidiff_core.operator_loop import LoopConfig, OperatorLoop, Request
+from equidiff_ros.commands.lab_client import LabClient, LabError
 
 REDRAW_S = 0.25
 STYLE = {
@@ -92,13 +93,13 @@ class Screen:
             self.requests.put(request)
 
     def _work(self) -> None:
-        from equidiff_ros.commands.lab_client import LabError
-
         while (request := self.requests.get()) is not None:
             try:
                 ok, message = True, self.lab.call(request.srv_type, request.service, **request.fields)
             except LabError as err:
                 ok, message = False, str(err)
+            except Exception as err:  # noqa: BLE001 - the screen outlives any failed call, and says what failed
+                ok, message = False, f"{type(err).__name__}: {err}"
             with self.lock:
                 self._send(self.loop.done(request, ok, message, time.monotonic()))
             self.redraw()
@@ -129,8 +130,6 @@ def run(args) -> int:
     from prompt_toolkit.keys import Keys
     from prompt_toolkit.layout import FormattedTextControl, Layout, Window
     from prompt_toolkit.styles import Style
-
-    from equidiff_ros.commands.lab_client import LabClient
 
     config = LoopConfig(
         reset_s=args.reset_s,
