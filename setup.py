@@ -49,7 +49,8 @@ setup(
         "pyarrow",  # export lerobot: parquet
     ],
     extras_require={
-        "ros": ["ros-jazzy-rclpy[fastrtps]", "ros-jazzy-common-interfaces"],
+        # prompt_toolkit: `equidiff lab`, the operator's terminal screen
+        "ros": ["ros-jazzy-rclpy[fastrtps]", "ros-jazzy-common-interfaces", "prompt_toolkit>=3.0.36"],
         "viz": ["rerun-sdk>=0.41"],
         "robot": ["franky-control>=2.0"],
         "twin": ["franky-sim>=1.0.4", "franky-control>=2.0", "mujoco"],

@@ -3,7 +3,9 @@ marked in the episode, and the policy's enable/pause gate."""
 
 from __future__ import annotations
 
+import json
 import os
+import shlex
 import subprocess
 import sys
 import time
@@ -136,7 +138,6 @@ def checkpoint(tmp_path_factory):
 @pytest.mark.ros
 @pytest.mark.slow
 def test_policy_publishes_nothing_until_enabled_and_a_takeover_pauses_it(ros_domain, checkpoint, tmp_path):
-    import json
     import signal
     import threading
 
@@ -226,8 +227,6 @@ def test_the_operator_flow_drives_the_twin_the_same_way(ros_domain, tmp_path):
     """Issue 16 item 3 in the twin, on simulated time: `equidiff lab` homes the arm, records an
     episode, pauses and resumes the policy; a SpaceMouse takeover pauses it and is marked in the
     bag; the episode is kept as a success. The same commands and nodes as in the lab."""
-    import json
-
     from equidiff_core.bags import read_episode
     from equidiff_core.control import load_control_config
     from equidiff_core.twin.config import TwinConfig
@@ -311,3 +310,254 @@ def test_the_operator_flow_drives_the_twin_the_same_way(ros_domain, tmp_path):
     assert ep.meta.extra["intervention_count"] == "1", ep.meta.extra
     assert ep.message_counts.get("/franka/command_chunk", 0) > 0  # the arm's commands were recorded
     assert ep.message_counts.get("/teleop/active", 0) >= 2  # the takeover's start and end
+
+
+class Tmux:
+    """A terminal the test types into and reads back: a tmux server of its own (private socket),
+    so the program runs on a real tty exactly as an operator's terminal runs it."""
+
+    def __init__(self, socket: Path, command: list[str], stderr: Path, width: int = 200, height: int = 50):
+        self.base = ["tmux", "-S", str(socket)]
+        self.stderr = stderr
+        # the server starts with this process's environment (ROS_DOMAIN_ID, PYTHONPATH): the UI gets it
+        shell = f"exec {shlex.join(command)} 2>{shlex.quote(str(stderr))}"
+        subprocess.run(
+            [*self.base, "new-session", "-d", "-s", "lab", "-x", str(width), "-y", str(height), "sh", "-c", shell],
+            check=True,
+            env=dict(os.environ, OMP_NUM_THREADS="1"),
+        )
+
+    def screen(self) -> str:
+        got = subprocess.run([*self.base, "capture-pane", "-p", "-t", "lab"], capture_output=True, text=True)
+        return got.stdout
+
+    def press(self, key: str) -> None:
+        subprocess.run([*self.base, "send-keys", "-t", "lab", "-l", key], check=True)
+
+    def alive(self) -> bool:
+        return subprocess.run([*self.base, "has-session", "-t", "lab"], capture_output=True).returncode == 0
+
+    def wait(self, predicate, what: str, timeout: float = 30.0, check=lambda: None) -> str:
+        """The screen once ``predicate(screen)`` holds (``check()`` raises if waiting is pointless);
+        AssertionError with the screen and the UI's stderr."""
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            check()
+            screen = self.screen()
+            if predicate(screen):
+                return screen
+            if not self.alive():
+                break
+            time.sleep(0.2)
+        err = self.stderr.read_text(errors="replace")[-3000:] if self.stderr.exists() else ""
+        raise AssertionError(f"the screen never showed {what}:\n{self.screen()}\nstderr:\n{err}")
+
+    def close(self) -> None:
+        subprocess.run([*self.base, "kill-server"], capture_output=True)
+
+
+def row(screen: str, label: str) -> str:
+    """The screen line of one state row (ROBOT, RECORDER, EPISODES, POLICY, TELEOP, RESET)."""
+    return next((line for line in screen.splitlines() if line.startswith(f"{label} ")), "")
+
+
+@pytest.mark.ros
+@pytest.mark.slow
+@pytest.mark.sim
+def test_the_operator_screen_drives_the_nodes(ros_domain, checkpoint, tmp_path):
+    """Issue 27 item 4: `equidiff lab` in a real terminal (tmux) beside real nodes (franky-sim's arm
+    under franka_node, recorder, policy, teleop): keys sent, the screen read back, the effects checked
+    on the nodes. franka_node starts after an "unclean exit" (a stale marker), so it holds for an
+    acknowledgement where franky-sim put the arm: the acknowledge and the homing are real ones."""
+    import shutil
+    import signal
+
+    import yaml
+    from std_msgs.msg import String
+
+    from equidiff_core.bags import read_episode
+    from equidiff_core.control import load_control_config
+    from equidiff_core.robots.franky.sim import SimServer
+    from equidiff_core.topics import TOPIC_FRANKA_STATUS, TOPIC_POLICY_STATE
+    from equidiff_core.twin.processes import start_node, stop_process
+    from equidiff_ros.common import LATCHED_QOS, SENSOR_QOS
+    from equidiff_ros.control_client import ControlClient
+
+    if shutil.which("tmux") is None:
+        pytest.skip("tmux is not installed")
+    # The lab's config, with a safety box tall enough for franky-sim's start pose (TCP at z 0.52 m):
+    # franka_node refuses to stream from outside its box, and this one must start without homing.
+    lab_yaml = yaml.safe_load((default_config_dir() / "lab.yaml").read_text())
+    lab_yaml["safety_box"]["upper"][2] = 0.6
+    lab_path = str(tmp_path / "lab.yaml")
+    Path(lab_path).write_text(yaml.safe_dump(lab_yaml))
+    home = np.array(load_control_config(default_config_dir() / "control.yaml").home_position)
+    out, run_dir = tmp_path / "bags", tmp_path / "run"
+    run_dir.mkdir()
+    gone = subprocess.Popen(["true"])
+    gone.wait()  # its pid: the "previous franka_node", which died without cleaning up
+    nodes: dict[str, subprocess.Popen] = {}
+    client = ui = None
+    with SimServer() as sim:
+        # its marker: this franka_node holds where the arm is until acknowledged
+        (run_dir / f"franka_node_{sim.host}.pid").write_text(str(gone.pid))
+        try:
+            ui = Tmux(  # the operator opens the screen while the nodes come up
+                tmp_path / "tmux.sock",
+                [sys.executable, "-m", "equidiff_ros.cli", "lab", "--reset-s", "600", "--output-dir", str(out)],
+                tmp_path / "ui.stderr",
+            )
+            for name, params in {
+                "franka_node": {
+                    "robot_ip": sim.host,
+                    "realtime": False,
+                    "lab_config": lab_path,
+                    "run_dir": str(run_dir),
+                },
+                "recorder_node": {"output_dir": str(out), "task": "lab", "min_free_gib": 0.0, "lab_config": lab_path},
+                "policy_node": {  # no jit trace: its warm-up is the slowest start-up here, and it never infers
+                    "checkpoint": str(checkpoint),
+                    "lab_config": lab_path,
+                    "start_paused": True,
+                    "jit": False,
+                    "precision": "fp32",
+                },
+                "teleop_node": {"lab_config": lab_path, "source": "joy", "resync_after_s": 0.5},
+            }.items():
+                nodes[name] = start_node(name, params, tmp_path / f"{name}.log", priority=name == "franka_node")
+            client = ControlClient(LAB, lab_path)
+
+            def at_home() -> bool:
+                return bool(client.data.poses) and np.linalg.norm(client.latest_position() - home) < 0.01
+
+            policy_state: list[str] = []
+            client.node.create_subscription(
+                String, TOPIC_POLICY_STATE, lambda m: policy_state.append(m.data), LATCHED_QOS
+            )
+            joy_pub = client.node.create_publisher(
+                client.factory.cls("sensor_msgs/msg/Joy"), "/spacenav/joy", SENSOR_QOS
+            )
+
+            def nodes_alive() -> None:
+                for name, proc in nodes.items():
+                    assert proc.poll() is None, f"{name} exited: {(tmp_path / f'{name}.log').read_text()[-2000:]}"
+
+            def screen_when(predicate, what, timeout=30.0) -> str:
+                return ui.wait(predicate, what, timeout, check=nodes_alive)
+
+            # Every node up: the arm holds for an acknowledgement, nothing records, the policy waits
+            screen = screen_when(
+                lambda s: (
+                    "AWAITING ACK" in row(s, "ROBOT")
+                    and "IDLE" in row(s, "RECORDER")
+                    and "PAUSED" in row(s, "POLICY")
+                    and "idle" in row(s, "TELEOP")
+                ),
+                "every node's state",
+                timeout=120.0,
+            )
+            if client.node.count_publishers(TOPIC_FRANKA_STATUS) == 0:  # franka_node without the topic
+                assert "(no status)" in row(screen, "ROBOT") and "/diagnostics" in row(screen, "ROBOT")
+            ui.press("s")
+            screen_when(lambda s: "not started: the arm holds until acknowledged" in s, "start refused before the ack")
+            ui.press("a")
+            screen_when(lambda s: "HOLDING" in row(s, "ROBOT"), "the arm holding after the ack")
+            client.wait_for(  # franka_node's own word, on its 1 Hz /diagnostics
+                lambda: client.diag_value("franka_node", "awaiting_ack") == "", 10.0, "the ack", nodes["franka_node"]
+            )
+
+            assert not at_home()
+            ui.press("h")
+            screen_when(lambda s: "home the arm: homing to" in s, "the home request answered")
+            client.wait_for(at_home, 90.0, "the arm at home", nodes["franka_node"])
+            screen_when(lambda s: "HOLDING" in row(s, "ROBOT"), "the arm holding at home")
+
+            ui.press("p")
+            screen_when(lambda s: "ON" in row(s, "POLICY"), "the policy on")
+            assert policy_state[-1] == "running"
+            ui.press("s")
+            screen = screen_when(lambda s: "RECORDING" in row(s, "RECORDER"), "an episode recording")
+            episode = out / "lab_0000"
+            assert str(episode) in row(screen, "RECORDER")
+
+            ui.press("t")  # the SpaceMouse takes over: the policy pauses first
+            screen_when(lambda s: "PAUSED" in row(s, "POLICY") and "SpaceMouse has the arm" in s, "the takeover")
+            assert policy_state[-1] == "paused by the operator"
+
+            def drive(axes, seconds):
+                end = time.monotonic() + seconds
+                while time.monotonic() < end:
+                    header = client.factory.header(time.time_ns(), "")
+                    axes_ = [float(a) for a in axes]
+                    joy_pub.publish(
+                        client.factory.make("sensor_msgs/msg/Joy", header=header, axes=axes_, buttons=[0, 0])
+                    )
+                    time.sleep(0.02)
+
+            drive([0.5, 0, 0, 0, 0, 0], 1.0)
+            screen_when(lambda s: "SPACEMOUSE DRIVING" in row(s, "TELEOP"), "the SpaceMouse driving")
+            drive([0.0] * 6, 0.2)
+            client.wait_for(lambda: not at_home(), 30.0, "the SpaceMouse moving the arm away from home")
+            screen_when(lambda s: "idle" in row(s, "TELEOP"), "the SpaceMouse let go")
+
+            ui.press("k")
+            screen = screen_when(
+                lambda s: (
+                    "1 kept (1 success" in row(s, "EPISODES")
+                    and f"in {out}: 1" in row(s, "EPISODES")  # the folder's count
+                    and "reset the scene" in row(s, "RESET")
+                    and "IDLE" in row(s, "RECORDER")
+                ),
+                "the episode kept and the reset countdown",
+            )
+            client.wait_for(at_home, 90.0, "the arm home again after the episode", nodes["franka_node"])
+            screen_when(lambda s: "HOLDING" in row(s, "ROBOT"), "the arm holding after the episode")
+
+            ui.press("s")  # ready before the countdown ends: start now
+            screen = screen_when(lambda s: str(out / "lab_0001") in row(s, "RECORDER"), "the second episode")
+            assert "-" in row(screen, "RESET") and "reset the scene" not in screen
+            ui.press("x")
+            screen_when(lambda s: f"delete {out / 'lab_0001'}?" in s, "the discard question")
+            ui.press("n")
+            screen_when(lambda s: "discard: cancelled" in s, "the discard cancelled")
+            assert (out / "lab_0001").is_dir()
+            ui.press("x")
+            screen_when(lambda s: "delete " in s and "y: yes" in s, "the discard question again")
+            ui.press("y")
+            screen_when(
+                lambda s: "1 discarded" in row(s, "EPISODES") and "reset the scene" in row(s, "RESET"), "discarded"
+            )
+            assert not (out / "lab_0001").exists()
+            ui.press("c")
+            screen_when(lambda s: "countdown cancelled" in s and "reset the scene" not in row(s, "RESET"), "cancelled")
+            screen_when(lambda s: "HOLDING" in row(s, "ROBOT"), "the arm holding at the end")
+            status = subprocess.Popen(  # the scripts' view, from a second client, while the screen quits
+                [sys.executable, "-m", "equidiff_ros.cli", "lab", "status", "--json"],
+                stdout=subprocess.PIPE,
+                stderr=subprocess.PIPE,
+                text=True,
+                env=dict(os.environ, OMP_NUM_THREADS="1"),
+            )
+            ui.press("q")
+            deadline = time.monotonic() + 30.0
+            while ui.alive() and time.monotonic() < deadline:
+                time.sleep(0.2)
+            assert not ui.alive(), ui.screen()
+            assert "Traceback" not in (tmp_path / "ui.stderr").read_text()
+            stdout, stderr = status.communicate(timeout=120)
+            assert status.returncode == 0 and json.loads(stdout)["robot"]["state"] == "holding", stdout + stderr
+        finally:
+            if ui is not None:
+                ui.close()
+            if client is not None:
+                client.close()
+            for proc in nodes.values():  # all at once, so they shut down in parallel (once: a second SIGINT kills)
+                if proc.poll() is None:
+                    proc.send_signal(signal.SIGINT)
+            for proc in nodes.values():
+                stop_process(proc, timeout=30.0, sig=0)  # 0: wait (and kill after the timeout) only
+    ep = read_episode(episode)  # the kept episode, read back
+    assert ep.meta.success is True and ep.meta.task == "lab"
+    assert ep.message_counts.get("/franka/ee_pose", 0) > 10  # the real arm's state was recorded
+    assert ep.meta.extra["intervention_count"] == "1", ep.meta.extra  # the SpaceMouse takeover
+    assert "paused by the operator" in [m.data for m in ep["/policy/state"].messages]  # the pause, in the bag

@@ -51,6 +51,7 @@ COMMANDS: dict[tuple[str, ...], tuple[str, str]] = {
         "calibrate",
         "camera extrinsics from a ChArUco board on the hand (hand-eye + joint refinement)",
     ),
+    ("lab",): ("lab_ui", "the operator loop: one screen and single keys for episodes, policy, homing and stops"),
     ("lab", "record"): ("lab_record", "start / keep as success or failure / discard the recorder's episode"),
     ("lab", "ack"): (
         "lab_ack",
@@ -58,7 +59,7 @@ COMMANDS: dict[tuple[str, ...], tuple[str, str]] = {
     ),
     ("lab", "home"): ("lab_home", "glide the arm slowly to the home pose (refused while a stop awaits ack)"),
     ("lab", "policy"): ("lab_policy", "enable, pause or resume the policy"),
-    ("lab", "status"): ("lab_status", "episode, policy state and teleop takeover, from the live graph"),
+    ("lab", "status"): ("lab_status", "robot state, episode, policy state and teleop takeover, from the live graph"),
     ("cameras", "list"): ("cameras_list", "connected RealSense serials, firmware and USB links vs lab.yaml"),
     ("calibrate", "check"): (
         "calibrate_check",
@@ -74,16 +75,22 @@ def _load(module: str):
 def build_parser(argv: list[str]) -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="equidiff", description=__doc__.splitlines()[0])
     root = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
-    groups: dict[str, argparse._SubParsersAction] = {}
+    groups: dict[str, tuple[argparse.ArgumentParser, argparse._SubParsersAction]] = {}
     for path, (module, help_text) in COMMANDS.items():
-        if len(path) == 1:
+        has_own = (path[0],) in COMMANDS  # a group with a command of its own (`equidiff lab`)
+        if len(path) == 1 and not has_own:
             leaf = root.add_parser(path[0], help=help_text, description=help_text)
         else:
             if path[0] not in groups:
-                group = root.add_parser(path[0], help=f"{path[0]} commands")
-                groups[path[0]] = group.add_subparsers(dest="subcommand", metavar="SUBCOMMAND", required=True)
-            leaf = groups[path[0]].add_parser(path[1], help=help_text, description=help_text)
+                own = COMMANDS[(path[0],)][1] if has_own else f"{path[0]} commands"
+                group = root.add_parser(path[0], help=own, description=own)
+                subs = group.add_subparsers(dest="subcommand", metavar="SUBCOMMAND", required=not has_own)
+                groups[path[0]] = (group, subs)
+            group, subs = groups[path[0]]
+            leaf = group if len(path) == 1 else subs.add_parser(path[1], help=help_text, description=help_text)
         leaf.set_defaults(_module=module)
+        if len(path) == 1 and has_own and argv[1:2] and not argv[1].startswith("-"):
+            continue  # one of the group's subcommands runs, not the group's own command
         if list(path) == argv[: len(path)]:
             try:
                 _load(module).add_arguments(leaf)

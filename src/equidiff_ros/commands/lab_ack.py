@@ -13,7 +13,7 @@ def add_arguments(parser) -> None:
 
 
 def run(args) -> int:
-    from equidiff_core.topics import SERVICE_FRANKA_ACKNOWLEDGE
-    from equidiff_ros.commands.lab_client import call_service
+    from equidiff_core.operator_loop import Request
+    from equidiff_ros.commands.lab_client import call_request
 
-    return call_service("ack", "std_srvs/srv/Trigger", SERVICE_FRANKA_ACKNOWLEDGE, prefix="franka_node ")
+    return call_request("ack", Request("ack"), prefix="franka_node ")

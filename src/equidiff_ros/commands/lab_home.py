@@ -13,7 +13,7 @@ def add_arguments(parser) -> None:
 
 
 def run(args) -> int:
-    from equidiff_core.topics import SERVICE_FRANKA_HOME
-    from equidiff_ros.commands.lab_client import call_service
+    from equidiff_core.operator_loop import Request
+    from equidiff_ros.commands.lab_client import call_request
 
-    return call_service("home", "std_srvs/srv/Trigger", SERVICE_FRANKA_HOME, prefix="franka_node ")
+    return call_request("home", Request("home"), prefix="franka_node ")

@@ -6,6 +6,8 @@ still drives it). A teleop takeover pauses it as well; it never resumes on its o
 
 from __future__ import annotations
 
+from equidiff_core.operator_loop import Request
+
 ENABLE = {"enable": True, "resume": True, "pause": False}
 
 
@@ -14,13 +16,7 @@ def add_arguments(parser) -> None:
 
 
 def run(args) -> int:
-    from equidiff_core.topics import SERVICE_POLICY_ENABLE
-    from equidiff_ros.commands.lab_client import call_service
+    from equidiff_ros.commands.lab_client import call_request
 
-    return call_service(
-        f"policy {args.action}",
-        "std_srvs/srv/SetBool",
-        SERVICE_POLICY_ENABLE,
-        prefix="policy ",
-        data=ENABLE[args.action],
-    )
+    request = Request("enable" if ENABLE[args.action] else "pause")  # the screen's p and space
+    return call_request(f"policy {args.action}", request, prefix="policy ")

@@ -10,22 +10,23 @@ Calls recorder_node's services (std_srvs/Trigger), so it works under ``ros2 laun
 
 from __future__ import annotations
 
-from equidiff_core import topics
+from equidiff_core.operator_loop import Request
 
-SERVICES = {
-    "start": topics.SERVICE_RECORDER_START,
-    "stop": topics.SERVICE_RECORDER_STOP,
-    "success": topics.SERVICE_RECORDER_STOP,
-    "failure": topics.SERVICE_RECORDER_STOP_FAILURE,
-    "discard": topics.SERVICE_RECORDER_DISCARD,
+# action -> the operator loop's request (the service the screen's keys s, k, f and x call)
+REQUESTS = {
+    "start": Request("start"),
+    "stop": Request("success"),
+    "success": Request("success"),
+    "failure": Request("failure"),
+    "discard": Request("discard"),
 }
 
 
 def add_arguments(parser) -> None:
-    parser.add_argument("action", choices=list(SERVICES), help="start | stop = success | failure | discard")
+    parser.add_argument("action", choices=list(REQUESTS), help="start | stop = success | failure | discard")
 
 
 def run(args) -> int:
-    from equidiff_ros.commands.lab_client import call_service
+    from equidiff_ros.commands.lab_client import call_request
 
-    return call_service(f"record {args.action}", "std_srvs/srv/Trigger", SERVICES[args.action])
+    return call_request(f"record {args.action}", REQUESTS[args.action])
