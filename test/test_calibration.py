@@ -263,13 +263,14 @@ def test_calibration_moves_go_through_franka_nodes_control_loop():
     limits = arm.limits.control.safety
     try:
         goal = _tool_pose([0.45, 0.15, 0.20], tilt_deg=20.0, tilt_axis_deg=30.0, yaw_deg=25.0)
-        arm.record = True
+        commands = []
+        arm.controller.on_command = commands.append  # what the control loop sends, tick by tick
         measured, _ = arm.move_to(goal)
         assert arm.started and robot.sent[0][0] == "move_to"  # homed first, as franka_node does
         assert {kind for kind, _, _ in list(robot.sent)[1:]} <= {"target", "gripper"}  # then streamed, tick by tick
         assert robot.read_state().gripper_width == 0.08  # the gripper left as it was
         np.testing.assert_allclose(measured, goal, atol=1e-6)
-        poses = np.stack([c.target.pose for c in arm.commands if not c.holding])
+        poses = np.stack([c.target.pose for c in commands if not c.holding])
         assert all(arm.controller.safety.inside(T[:3, 3]) for T in poses)
         assert max(geometry.tilt_angle(T[:3, :3]) for T in poses) <= limits.max_tilt_rad + 1e-9
         # the glide asked for 50 mm per 5 ms tick; the filter allows max_linear_speed x its longest

@@ -16,8 +16,9 @@ from scipy.spatial.transform import Rotation, Slerp
 
 from .. import geometry
 from ..chunk import PoseChunk
-from ..control.controller import Command, Controller
+from ..control.controller import Controller
 from ..robots.base import Robot, RobotError, RobotState
+from ..robots.franky import FrankyRobot
 from .board import BoardDetector, BoardSpec, CalibrationError
 from .limits import MotionLimits
 from .solve import CameraModel, Sample
@@ -115,13 +116,6 @@ class ControlledArm:
         self.settle_s, self.max_joint_step, self.move_timeout_s = settle_s, max_joint_step, move_timeout_s
         self.controller = Controller(robot, limits.box, limits.control)
         self.started = False
-        self.commands: list[Command] = []  # what the control loop sent, newest last (kept while ``record``)
-        self.record = False
-        self.controller.on_command = self._on_command
-
-    def _on_command(self, command: Command) -> None:
-        if self.record:
-            self.commands.append(command)
 
     def start(self) -> None:
         """Start the control loop (homing first if control.yaml says so); idempotent."""
@@ -214,8 +208,6 @@ class FrankyArm(ControlledArm):
     settings and limits, moved by franka_node's control loop (no gripper: the board is on the hand)."""
 
     def __init__(self, ip: str, limits: MotionLimits, realtime: bool = True, **kwargs):
-        from ..robots.franky import FrankyRobot
-
         robot = FrankyRobot(
             ip, config=limits.control.franky, safety=limits.control.safety, realtime=realtime, gripper=False
         )
