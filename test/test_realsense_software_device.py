@@ -1,6 +1,6 @@
 """camera_node's RealSense backend through librealsense's own ``software_device``: real frames, real library.
 
-A synthetic scene of known geometry (a table plane seen at 30 degrees, a box standing on it)
+A synthetic scene of known geometry (a table plane seen at 30 degrees, a box in front of it)
 is ray-cast into a depth image (as a D455's depth module would see it) and a colour image (from
 the colour module, 59 mm to the side and turned slightly), pushed through pyrealsense2 as
 software-device frames, and read by ``RealSenseCamera`` with lab.yaml's options: the real
@@ -91,16 +91,11 @@ def _expected(points: np.ndarray):
     return z_depth, on_box, np.tan(np.arccos(np.clip(cos, 0.0, 1.0)))
 
 
-def _rig(frames=None):
+def _rig():
+    """The software D455 showing the still scene in every frame."""
     depth, color = _scene_frames()
     return SoftwareRealSense(
-        FRONT.serial,
-        (W, H),
-        FRONT.fps,
-        DEPTH_INTR,
-        COLOR_INTR,
-        T_COLOR_DEPTH,
-        frames or (lambda k: (depth, color)),
+        FRONT.serial, (W, H), FRONT.fps, DEPTH_INTR, COLOR_INTR, T_COLOR_DEPTH, lambda k: (depth, color)
     )
 
 
