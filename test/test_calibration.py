@@ -291,11 +291,13 @@ def test_calibration_moves_go_through_franka_nodes_control_loop():
 # --- lab file ---------------------------------------------------------------------------------
 
 
-def test_rest_is_judged_on_the_robots_clock_so_a_slow_sim_still_settles_and_a_dead_one_fails():
+def test_rest_is_judged_on_the_robots_clock_and_the_tcp_so_a_slow_sim_still_settles_and_a_dead_one_fails():
     """franky-sim on a loaded machine runs slower than real time; a wall-clock settle window
     failed an arm that was still settling ("did not come to rest within 10 s", CI). Here the
-    robot's clock runs at about a quarter of the wall clock: the arm settles after 0.34 s of its
-    own time, well inside 0.5 s of robot time but not inside 0.5 s of wall time."""
+    robot's clock runs at about a quarter of the wall clock: the TCP settles after ~0.26 s of its
+    own time, well inside 0.5 s of robot time but not inside 0.5 s of wall time. Its elbow keeps
+    drifting in the null space (joints 1 and 3 at 0.6 mrad/s, as franky-sim's under Cartesian
+    impedance): the hand, and so the board, is still, and that is rest."""
     from equidiff_core.calibration.capture import wait_at_rest
     from equidiff_core.robots.base import RobotState
 
@@ -304,17 +306,19 @@ def test_rest_is_judged_on_the_robots_clock_so_a_slow_sim_still_settles_and_a_de
     def slow_robot() -> RobotState:  # 1 ms of robot time per read, a read every 4 ms of wall time
         t = 0.001 * len(reads)
         reads.append(t)
-        q = np.full(7, 0.5 * math.exp(-t / 0.05))  # settles with a 50 ms time constant
-        return RobotState(0, make_pose(np.eye(3), [0.4, 0.0, t]), q, np.zeros(7), 0.08, t)
+        z = 0.3 + 0.05 * math.exp(-t / 0.05)  # settles with a 50 ms time constant
+        q = np.array([0.6e-3 * t, 0.0, -0.6e-3 * t, -2.0, 0.0, 2.0, 0.8])  # the elbow never stops
+        return RobotState(0, make_pose(np.eye(3), [0.4, 0.0, z]), q, np.zeros(7), 0.08, t)
 
-    pose = wait_at_rest(slow_robot, settle_s=0.02, max_joint_step=2e-4, timeout_s=0.5)
-    assert 0.3 < pose[2, 3] < 0.5  # the pose read when it came to rest, at ~0.34-0.36 s of robot time
+    pose = wait_at_rest(slow_robot, settle_s=0.02, max_step_m=1e-4, timeout_s=0.5)
+    assert 0.25 < reads[-1] < 0.35  # at rest after ~0.26-0.28 s of robot time (> 1 s of wall time)
+    assert pose[2, 3] - 0.3 < 2e-4  # the pose read then, where it settled
 
     def dead_robot() -> RobotState:  # the connection is gone: the state (and its clock) never changes
         return RobotState(0, np.eye(4), np.ones(7), np.zeros(7), 0.08, 1.0)
 
     with pytest.raises(CalibrationError, match=r"only 0\.0 s of robot time passed in 0\.3 s .*lost connection"):
-        wait_at_rest(dead_robot, settle_s=0.02, max_joint_step=2e-4, wall_timeout_s=0.3)
+        wait_at_rest(dead_robot, settle_s=0.02, wall_timeout_s=0.3)
 
 
 def test_calibrated_lab_file_loads_and_is_never_overwritten_silently(tmp_path):

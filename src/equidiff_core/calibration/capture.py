@@ -29,19 +29,23 @@ Grab = Callable[[np.ndarray | None], dict[str, np.ndarray]]
 def wait_at_rest(
     read_state: Callable[[], RobotState],
     settle_s: float,
-    max_joint_step: float,
+    max_step_m: float = 1e-4,
+    max_step_rad: float = 2e-4,
     timeout_s: float = 10.0,
     wall_timeout_s: float = 120.0,
 ) -> np.ndarray:
-    """The TCP pose once no joint moved more than ``max_joint_step`` rad in ``settle_s``.
+    """The TCP pose once it moved less than ``max_step_m`` and turned less than ``max_step_rad`` in ``settle_s``.
 
-    Images and pose must show the same instant. Judged from joint positions, not the reported
-    velocities: franky-sim reports a spurious joint-7 velocity (~0.08 rad/s) at rest.
-    ``settle_s`` and ``timeout_s`` are the robot's own time (libfranka's state time): on the FR3
-    that is the wall clock, while franky-sim on a loaded machine runs slower than real time, and
-    a wall-clock timeout failed an arm that was still settling (CI). A robot whose clock stops
-    (a lost connection) fails after ``wall_timeout_s`` of wall time. A backend without a clock
-    of its own (the dry run) is judged on the states' read times.
+    Images and pose must show the same instant, and the board is on the hand: the TCP is what
+    must stand still. Not the joints: under franka_node's Cartesian impedance control the elbow
+    keeps drifting in the null space with the hand still (franky-sim: joints 1 and 3 turning
+    ~0.6 mrad/s in opposite directions, on and on), and franky-sim reports a spurious joint-7
+    velocity (~0.08 rad/s) at rest. ``settle_s`` and ``timeout_s`` are the robot's own time
+    (libfranka's state time): on the FR3 that is the wall clock, while franky-sim on a loaded
+    machine runs slower than real time, and a wall-clock timeout failed an arm that was still
+    settling (CI). A robot whose clock stops (a lost connection) fails after ``wall_timeout_s``
+    of wall time. A backend without a clock of its own (the dry run) is judged on the states'
+    read times.
     """
 
     def clock(state: RobotState) -> float:
@@ -53,8 +57,12 @@ def wait_at_rest(
         time.sleep(settle_s / 5)
         state = read_state()
         if clock(state) - clock(window) >= settle_s:
-            if np.abs(state.joint_positions - window.joint_positions).max() < max_joint_step:
-                return state.ee_pose
+            a, b = window.ee_pose, state.ee_pose
+            if (
+                np.linalg.norm(b[:3, 3] - a[:3, 3]) < max_step_m
+                and geometry.rotation_angle(a[:3, :3], b[:3, :3]) < max_step_rad
+            ):
+                return b
             window = state
         if clock(state) - clock(start) > timeout_s:
             raise CalibrationError(f"the arm did not come to rest within {timeout_s:.0f} s of robot time")
@@ -108,12 +116,11 @@ class ControlledArm:
         speed_m_s: float = 0.1,
         angular_speed_rad_s: float = 0.4,
         settle_s: float = 0.5,
-        max_joint_step: float = 2e-4,
         move_timeout_s: float = 120.0,
     ):
         self.robot, self.limits = robot, limits
         self.speed_m_s, self.angular_speed_rad_s = speed_m_s, angular_speed_rad_s
-        self.settle_s, self.max_joint_step, self.move_timeout_s = settle_s, max_joint_step, move_timeout_s
+        self.settle_s, self.move_timeout_s = settle_s, move_timeout_s
         self.controller = Controller(robot, limits.box, limits.control)
         self.started = False
 
@@ -191,7 +198,7 @@ class ControlledArm:
 
     def wait_at_rest(self, timeout_s: float = 10.0) -> np.ndarray:
         self._raise_if_stopped()
-        pose = wait_at_rest(self.read_state, self.settle_s, self.max_joint_step, timeout_s)
+        pose = wait_at_rest(self.read_state, self.settle_s, timeout_s=timeout_s)
         self._raise_if_stopped()
         return pose
 
