@@ -175,7 +175,9 @@ class ControlledArm:
         now = self.controller.clock.now_ns()
         width = self.read_state().gripper_width  # left as it is (NaN without a gripper: the hand's open width)
         width = width if np.isfinite(width) else self.limits.control.safety.max_gripper_width_m
-        self.submit(glide_chunk(here, T, now, self.speed_m_s, self.angular_speed_rad_s, 30.0, width))
+        # The goal is held for 5 min (until the next move replaces it): after a chunk's last step the
+        # watchdog holds wherever the arm is, and on a busy machine a glide plus a capture took > 30 s.
+        self.submit(glide_chunk(here, T, now, self.speed_m_s, self.angular_speed_rad_s, 300.0, width))
         # Arrived when the loop's own command has reached the goal (on a sim slower than real time
         # the speed limits, applied in robot time, make that later than the chunk says).
         deadline = time.monotonic() + self.move_timeout_s
