@@ -276,3 +276,178 @@ class FakeRealSense:
         ):
             setattr(module, kind, make_filter(kind))
         return module
+
+
+class SoftwareRealSense:
+    """A RealSense made of librealsense's own ``software_device``: the real library, frames we make.
+
+    Pass it as ``RealSenseCamera(..., device_source=rig)``: the backend's context lists this
+    device, and its pipeline delivers the depth and colour frames that ``frames(k)`` returns
+    (uint16 depth in ``depth_units``, RGB) as real librealsense frames, stamped in the global
+    time domain at ``t0_ms + k / fps``. Everything after that is the backend's code on the real
+    library: stream and sensor options (software sensors carry the D455's option set),
+    ``rs.align`` with the depth-to-colour extrinsics registered here, the filters, the
+    deprojection.
+
+    Two pieces stand in for what a software_device cannot do in pyrealsense2 2.59:
+
+    * ``rs.pipeline`` cannot open it: ``software_device.add_to(context)`` registers a device-info
+      that the context holds only weakly and that nothing else holds, so ``query_devices`` never
+      lists it (librealsense src/rs.cpp, ``rs2_context_add_software_device``). The pipeline here
+      opens the two sensors into an ``rs.syncer``, as a pipeline does, and pushes one frame per
+      stream on each ``wait_for_frames``.
+    * A software sensor can become a depth sensor (given ``depth_units``) but never a colour
+      sensor, so ``first_color_sensor`` is answered with the sensor that streams colour.
+
+    What stays with ``FakeRealSense`` above: devices leaving and rejoining the bus,
+    ``hardware_reset``, stalls and timeouts on a fake clock, USB link types.
+    """
+
+    def __init__(
+        self,
+        serial: str,
+        size: tuple[int, int],
+        fps: int,
+        depth_intrinsics: dict,
+        color_intrinsics: dict,
+        T_color_depth: np.ndarray,
+        frames,
+        depth_units: float = 0.001,
+        t0_ms: float = 1.7e12,
+    ):
+        import pyrealsense2 as rs
+
+        self.rs, self.size, self.fps, self.frames_of = rs, size, fps, frames
+        self.depth_units, self.t0_ms = depth_units, t0_ms
+        self.sent = 0  # frame pairs pushed into the library
+        device = rs.software_device()
+        for key, value in {
+            "serial_number": serial,
+            "name": "Intel RealSense D455 (software_device)",
+            "firmware_version": "5.16.0.1",
+            "usb_type_descriptor": "3.2",
+        }.items():
+            device.register_info(getattr(rs.camera_info, key), value)
+        self.depth_sensor = device.add_sensor("Stereo Module")
+        self.color_sensor = device.add_sensor("RGB Camera")
+        self.depth_profile = self._add_stream(self.depth_sensor, rs.stream.depth, rs.format.z16, 2, depth_intrinsics, 0)
+        self.color_profile = self._add_stream(
+            self.color_sensor, rs.stream.color, rs.format.rgb8, 3, color_intrinsics, 1
+        )
+        extrinsics = rs.extrinsics()
+        extrinsics.rotation = [float(v) for v in T_color_depth[:3, :3].T.ravel()]  # librealsense: column-major
+        extrinsics.translation = [float(v) for v in T_color_depth[:3, 3]]
+        self.depth_profile.register_extrinsics_to(self.color_profile, extrinsics)
+        # depth units make it a depth sensor; a stereo baseline (mm, a D455's) a stereo one, without
+        # which the disparity transform passes depth through and the spatial filter smooths depth
+        self.depth_sensor.add_read_only_option(rs.option.depth_units, depth_units)
+        self.depth_sensor.add_read_only_option(rs.option.stereo_baseline, 95.0)
+        # the options a D455 has and RealSenseCamera sets (ranges wide enough for lab.yaml's values)
+        for sensor, options in (
+            (
+                self.depth_sensor,
+                ("global_time_enabled", "visual_preset", "laser_power", "enable_auto_exposure", "exposure"),
+            ),
+            (
+                self.color_sensor,
+                (
+                    "global_time_enabled",
+                    "enable_auto_exposure",
+                    "exposure",
+                    "enable_auto_white_balance",
+                    "white_balance",
+                ),
+            ),
+        ):
+            for name in options:
+                sensor.add_option(getattr(rs.option, name), rs.option_range(0, 200000, 1, 1), True)
+        device.create_matcher(rs.matchers.default)
+        self.device = device
+        self.handle = _SoftwareDeviceHandle(device, self.color_sensor)
+        self._keep: list = []  # the numpy buffers of the frames in flight
+
+    def _add_stream(self, sensor, stream, fmt, bpp, intrinsics, uid):
+        rs = self.rs
+        intr = rs.intrinsics()
+        intr.width, intr.height = self.size
+        intr.fx, intr.fy, intr.ppx, intr.ppy = (intrinsics[k] for k in ("fx", "fy", "ppx", "ppy"))
+        intr.model, intr.coeffs = rs.distortion.brown_conrady, [0.0] * 5
+        video = rs.video_stream()
+        video.type, video.index, video.uid = stream, 0, uid
+        video.width, video.height, video.fps, video.bpp, video.fmt = *self.size, self.fps, bpp, fmt
+        video.intrinsics = intr
+        return sensor.add_video_stream(video, True)
+
+    # --- what RealSenseCamera asks of ``device_source`` -------------------------------------
+    def context(self):
+        return NS(query_devices=lambda: [self.handle])
+
+    def pipeline(self, ctx):
+        return _SoftwarePipeline(self)
+
+    # --- frames -------------------------------------------------------------------------
+    def stamp_ms(self, k: int) -> float:
+        return self.t0_ms + k * 1000.0 / self.fps
+
+    def push(self) -> None:
+        """The device's next frame pair, into the library."""
+        rs, k = self.rs, self.sent
+        depth, color = self.frames_of(k)
+        w, h = self.size
+        assert depth.shape == (h, w) and depth.dtype == np.uint16 and color.shape == (h, w, 3)
+        for sensor, profile, data, bpp in (
+            (self.depth_sensor, self.depth_profile, np.ascontiguousarray(depth), 2),
+            (self.color_sensor, self.color_profile, np.ascontiguousarray(color, dtype=np.uint8), 3),
+        ):
+            frame = rs.software_video_frame()
+            frame.pixels, frame.bpp, frame.stride = data, bpp, w * bpp
+            frame.timestamp, frame.domain, frame.frame_number = self.stamp_ms(k), rs.timestamp_domain.global_time, k + 1
+            frame.profile = profile.as_video_stream_profile()
+            if sensor is self.depth_sensor:
+                frame.depth_units = self.depth_units
+            self._keep = [*self._keep[-7:], data]
+            sensor.on_video_frame(frame)
+        self.sent += 1
+
+
+class _SoftwareDeviceHandle:
+    """The software_device, with the colour sensor found by its stream (see SoftwareRealSense)."""
+
+    def __init__(self, device, color_sensor):
+        self._device, self._color_sensor = device, color_sensor
+
+    def first_color_sensor(self):
+        return self._color_sensor
+
+    def __getattr__(self, name):
+        return getattr(self._device, name)
+
+
+class _SoftwarePipeline:
+    """start / wait_for_frames / stop over the software device's sensors and a real ``rs.syncer``."""
+
+    def __init__(self, rig: SoftwareRealSense):
+        self.rig, self.syncer = rig, None
+
+    def start(self, cfg):
+        rig = self.rig
+        self.syncer = rig.rs.syncer()
+        for sensor, profile in ((rig.depth_sensor, rig.depth_profile), (rig.color_sensor, rig.color_profile)):
+            sensor.open(profile)
+            sensor.start(self.syncer)
+        return NS(get_device=lambda: rig.handle)
+
+    def wait_for_frames(self, timeout_ms: int):
+        # The syncer hands out the very first frame alone (it has not seen the other stream yet);
+        # a pipeline's first framesets can be incomplete the same way. Push until a pair comes out.
+        for _ in range(3):
+            self.rig.push()
+            frames = self.syncer.wait_for_frames(timeout_ms).as_frameset()
+            if frames.size() == 2:
+                return frames
+        raise RuntimeError("software device: no complete frameset")
+
+    def stop(self):
+        for sensor in (self.rig.depth_sensor, self.rig.color_sensor):
+            sensor.stop()
+            sensor.close()

@@ -329,11 +329,16 @@ def _needs_repair(path: Path) -> str | None:
     return None
 
 
-def close_derived_bag(writer, source: Path, target: Path, note: str) -> EpisodeMeta:
+def close_derived_bag(
+    writer, source: Path, target: Path, note: str, extra: dict[str, str] | None = None
+) -> EpisodeMeta:
     """Close ``writer`` (the new bag at ``target``, made from the bag at ``source``) with the
-    source's episode metadata plus ``note`` (what was done to it), in metadata.yaml and the sidecar."""
+    source's episode metadata plus ``note`` (what was done to it) and ``extra`` entries (replacing
+    the source's of the same key), in metadata.yaml and the sidecar."""
     meta = read_meta(source)
-    meta = meta.replace(notes=(meta.notes + " | " + note) if meta.notes else note)
+    meta = meta.replace(
+        notes=(meta.notes + " | " + note) if meta.notes else note, extra={**meta.extra, **(extra or {})}
+    )
     for key, value in meta.to_custom_data().items():
         writer.set_custom_data(key, value)
     writer.close()

@@ -3,7 +3,9 @@
 ``CloudFusion`` takes each camera's clouds as they arrive and hands out one grid per new
 complete set (stamps within ``slop``), at most one per observation period; voxel_node runs it
 live, ``revoxelize_bag`` runs it over a recorded bag's clouds with new extrinsics, so a
-re-voxelised demo is what the live node would have published with those extrinsics.
+re-voxelised demo is what the live node would have published with those extrinsics. The new
+bag also carries those extrinsics: in ``/tf_static`` (each camera's transform replaced) and in
+its metadata (``extrinsics_metadata``), so nothing in it still describes the old calibration.
 """
 
 from __future__ import annotations
@@ -13,15 +15,18 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import yaml
 from rosbags.rosbag2 import Reader
 
 from .bags import BagError, close_derived_bag
+from .cameras import extrinsics_tf_message
 from .config import LabConfig
 from .mcap_writer import open_bag_writer
 from .pointcloud import CloudError, grid_to_voxel_msg, msg_to_cloud
-from .rosmsg import rosbags_factory
+from .recording import _qos as recorder_qos
+from .rosmsg import rosbags_factory, stamp_to_ns
 from .sync import ApproximateTimeMatcher, Match
-from .topics import CLOUD_TYPE, TOPIC_VOXELS
+from .topics import CLOUD_TYPE, TF_TYPE, TOPIC_TF_STATIC, TOPIC_VOXELS
 from .voxels import Voxelizer, VoxelizerConfig
 
 # A set newer than the last grid by less than this share of the period is not due yet
@@ -54,6 +59,41 @@ class CloudFusion:
         return match.newest_ns, self.voxelizer([match.items[n] for n in self.names])
 
 
+def extrinsics_metadata(lab: LabConfig) -> dict[str, str]:
+    """Episode-metadata ``extra`` entries naming each camera's extrinsics (T_base_optical in
+    ``lab.base_frame``): ``extrinsics.<camera>`` = a lab.yaml ``extrinsics`` mapping in YAML flow style."""
+    out = {"extrinsics_base_frame": lab.base_frame}
+    for cam in lab.cameras:
+        e = cam.extrinsics
+        out[f"extrinsics.{cam.name}"] = yaml.safe_dump(
+            {"translation": list(e.translation), "quaternion_xyzw": list(e.quaternion_xyzw)},
+            default_flow_style=True,
+            sort_keys=False,
+            width=1000,
+        ).strip()
+    return out
+
+
+def replace_camera_transforms(msg, lab: LabConfig, factory):
+    """A copy of the TFMessage ``msg`` in which every camera of ``lab`` has its extrinsics: a
+    transform to a camera's optical frame is replaced (its stamp kept), one missing is added
+    (stamped like the message's first transform); transforms to other frames are kept as they are."""
+    stamps = [stamp_to_ns(t.header.stamp) for t in msg.transforms]
+    default_stamp = stamps[0] if stamps else 0
+    by_frame = {cam.frame_id: cam for cam in lab.cameras}
+    out, done = [], set()
+    for t, stamp in zip(msg.transforms, stamps):
+        cam = by_frame.get(t.child_frame_id)
+        if cam is None:
+            out.append(t)
+            continue
+        out.extend(extrinsics_tf_message([cam], lab.base_frame, stamp, factory).transforms)
+        done.add(cam.frame_id)
+    missing = [cam for cam in lab.cameras if cam.frame_id not in done]
+    out.extend(extrinsics_tf_message(missing, lab.base_frame, default_stamp, factory).transforms)
+    return factory.make(TF_TYPE, transforms=out)
+
+
 @dataclass(frozen=True)
 class RevoxelizeReport:
     path: Path
@@ -66,7 +106,10 @@ def revoxelize_bag(
     source: str | Path, output: str | Path, lab: LabConfig, slop_s: float = 0.1, cleanup: VoxelizerConfig | None = None
 ) -> RevoxelizeReport:
     """A copy of the bag at ``source`` whose /voxels are rebuilt from its recorded camera clouds
-    with ``lab``'s cameras and extrinsics (every other topic and the metadata copied as is).
+    with ``lab``'s cameras and extrinsics, and whose ``/tf_static`` and metadata carry those
+    extrinsics (``replace_camera_transforms``, ``extrinsics_metadata``; a bag without
+    ``/tf_static`` gets one, logged with its first message). Every other topic and metadata
+    entry is copied as is.
 
     A grid is written at the log time of the cloud that completed its set (as voxel_node
     publishes it). Raises ``BagError`` for a bag without the clouds of every camera in ``lab``
@@ -103,10 +146,25 @@ def revoxelize_bag(
                         offered_qos_profiles=conn.ext.offered_qos_profiles,
                     )
             voxels_conn = writer.add_connection(TOPIC_VOXELS, CLOUD_TYPE, typestore=factory.typestore)
+            tf_conn = None
+            if TOPIC_TF_STATIC not in reader.topics:  # the recorder always writes one; older bags may lack it
+                tf_conn = writer.add_connection(
+                    TOPIC_TF_STATIC,
+                    TF_TYPE,
+                    typestore=factory.typestore,
+                    offered_qos_profiles=[recorder_qos(transient_local=True)],
+                )
             for conn, log_ns, raw in reader.messages():
+                if tf_conn is not None:
+                    tf = extrinsics_tf_message(lab.cameras, lab.base_frame, log_ns, factory)
+                    writer.write(tf_conn, log_ns, factory.typestore.serialize_cdr(tf, TF_TYPE))
+                    tf_conn = None
                 if conn.topic == TOPIC_VOXELS:
                     replaced += 1
                     continue
+                if conn.topic == TOPIC_TF_STATIC:
+                    tf = replace_camera_transforms(factory.typestore.deserialize_cdr(raw, conn.msgtype), lab, factory)
+                    raw = factory.typestore.serialize_cdr(tf, conn.msgtype)
                 writer.write(out_conns[conn.id], log_ns, raw)
                 name = camera_of.get(conn.topic)
                 if name is None:
@@ -126,7 +184,9 @@ def revoxelize_bag(
                 writer,
                 source,
                 output,
-                f"re-voxelised by equidiff dataset revoxelize from {source.name} ({grids} grids)",
+                f"re-voxelised by equidiff dataset revoxelize from {source.name} ({grids} grids; "
+                "/tf_static and extrinsics.* carry the extrinsics used)",
+                extra=extrinsics_metadata(lab),
             )
         except BaseException:
             writer.abort()

@@ -1,16 +1,15 @@
 """Operator-driven calibration poses: the SpaceMouse moves the arm, a button takes a sample.
 
 The same teleoperation as data collection (``teleop.TeleopIntegrator``: deadzone, speed
-scaling, target kept in the workspace box and at most 5 cm ahead of the measured TCP),
-streamed straight to the franky backend's impedance tracker at ``rate_hz``. Left button: hold
-still, wait for the arm to rest, capture every camera. Right button: finish.
+scaling, target kept in the workspace box and at most 5 cm ahead of the measured TCP), sent at
+``rate_hz`` as one-step chunks to franka_node's control loop (``capture.ControlledArm``), as
+teleop_node sends them to franka_node: the safety box, cone and speed limits apply. Left
+button: hold still, wait for the arm to rest, capture every camera. Right button: finish.
 """
 
 from __future__ import annotations
 
 import time
-
-import numpy as np
 
 from ..config import Workspace
 from ..teleop import (
@@ -21,7 +20,7 @@ from ..teleop import (
     is_fresh,
 )
 from .board import BoardDetector, BoardSpec, CalibrationError
-from .capture import Grab
+from .capture import ControlledArm, Grab
 from .solve import Sample
 
 CAPTURE_BUTTON = 0
@@ -29,7 +28,7 @@ FINISH_BUTTON = 1
 
 
 def capture_operator(
-    arm,
+    arm: ControlledArm,
     grab: Grab,
     spec: BoardSpec,
     workspace: Workspace,
@@ -38,16 +37,27 @@ def capture_operator(
     rate_hz: float = 100.0,
     min_samples: int = 8,
 ) -> list[Sample]:
-    """Stream SpaceMouse motion to ``arm.robot`` until the finish button; a sample per capture press."""
+    """Send SpaceMouse motion to ``arm``'s control loop until the finish button; a sample per capture press."""
     source = source or SpaceMouseSource()
     integrator = TeleopIntegrator(TeleopConfig(source="spacemouse", rate_hz=max(rate_hz, 100.0)), workspace)
     detector = BoardDetector(spec)
-    robot = arm.robot
     samples: list[Sample] = []
+    # chunks go out at teleop_node's rate (20 Hz); the loop integrates the device at rate_hz
+    send_every, tick = max(1, round(rate_hz / integrator.config.publish_hz)), 0
+    last_warning = -float("inf")
+
+    def offer(chunk) -> None:
+        """Like teleop_node's chunks, one the loop refuses (late, tilted past the cone) is dropped:
+        the arm holds, the operator is told; a stop (error, divergence) ends the calibration."""
+        nonlocal last_warning
+        if not arm.offer(chunk) and time.monotonic() - last_warning > 2.0:
+            last_warning = time.monotonic()
+            log(f"the control loop refused the SpaceMouse target ({arm.controller.stats.last_rejection}); holding")
+
+    arm.start()
     source.connect()
-    robot.start_streaming()
     try:
-        integrator.reset(robot.read_state().ee_pose)
+        integrator.reset(arm.tcp_pose())
         log("SpaceMouse: move the board into view of every camera; left button = capture, right = finish")
         previous: tuple[int, ...] = ()
         dt = 1.0 / rate_hz
@@ -63,6 +73,7 @@ def capture_operator(
             if CAPTURE_BUTTON in pressed:
                 hold = TeleopInput((0.0,) * 6, (), now)
                 integrator.step(hold, dt)
+                offer(integrator.chunk(arm.controller.clock.now_ns()))  # the newest target, then rest there
                 measured = arm.wait_at_rest()
                 frames = grab(None)
                 dets = {n: d for n, d in ((n, detector.detect(img)) for n, img in frames.items()) if d is not None}
@@ -71,17 +82,17 @@ def capture_operator(
                     f"sample {len(samples)}: board corners "
                     + ", ".join(f"{n} {len(dets[n]) if n in dets else 0}" for n in frames)
                 )
-                integrator.reset(robot.read_state().ee_pose)
+                integrator.reset(arm.tcp_pose())
                 continue
-            state = robot.read_state()
-            integrator.observe(state.ee_pose)
+            integrator.observe(arm.tcp_pose())
             fresh = is_fresh(inp, now, integrator.config.input_timeout_s)  # a silent device: hold
-            target, _ = integrator.step(inp if fresh else None, dt)
-            robot.stream_target(target, np.zeros(3), np.zeros(3))
+            integrator.step(inp if fresh else None, dt)
+            tick += 1
+            if tick % send_every == 0:
+                offer(integrator.chunk(arm.controller.clock.now_ns()))
             time.sleep(max(0.0, dt - (time.monotonic_ns() - now) / 1e9))
     except KeyboardInterrupt as err:
         raise CalibrationError("calibration aborted by the operator") from err
     finally:
-        robot.stop_streaming()
         source.disconnect()
     return samples

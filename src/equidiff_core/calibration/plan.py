@@ -1,11 +1,12 @@
-"""Where the arm takes the board: TCP poses inside the workspace where every camera sees all of it.
+"""Where the arm takes the board: TCP poses inside the workspace and the safety box where every camera sees all of it.
 
 Visibility is judged with the *current* (hand-typed or previous) extrinsics and the board's
 nominal mount, so rough guesses suffice: a camera sees a pose if every inner corner lands at
 least ``margin_px`` inside its image, no more obliquely than ``max_view_angle_deg``, and no line
 of sight passes through capsules standing in for the hand, wrist and forearm. A pose is kept if
 ``cameras_per_pose`` cameras see it. From many random candidates (position in the workspace
-box, yaw about the vertical, tilt about a horizontal axis) a greedy farthest-point pick keeps
+box where it overlaps lab.yaml's ``safety_box``, yaw about the vertical, tilt about a horizontal
+axis, within control.yaml's orientation cone) a greedy farthest-point pick keeps
 the most varied ``poses``, each time among the poses that the camera with the fewest views so
 far can see, and orders them so that consecutive moves are short.
 """
@@ -21,6 +22,7 @@ from scipy.spatial.transform import Rotation
 from ..config import LabConfig
 from ..geometry import invert_pose
 from .board import BoardSpec, CalibrationError
+from .limits import MotionLimits
 from .solve import CameraModel, project_points
 
 # TCP pointing straight down, its x along the base's x (the FR3's usual grasping orientation).
@@ -118,15 +120,26 @@ def plan_poses(
     T_tcp_board: np.ndarray,
     cfg: PlanConfig = PlanConfig(),
     start: np.ndarray | None = None,
+    limits: MotionLimits | None = None,
 ) -> list[np.ndarray]:
-    """``cfg.poses`` TCP poses (4x4, base frame) that every camera should see the board from."""
+    """``cfg.poses`` TCP poses (4x4, base frame) that every camera should see the board from,
+    inside ``limits`` (default: lab.yaml's safety box and the project's control.yaml) and checked
+    against them."""
+    limits = limits or MotionLimits.load(lab)
     rng = np.random.default_rng(cfg.seed)
     ws = lab.workspace
-    lo = np.maximum(ws.lower, [-np.inf, -np.inf, cfg.min_tcp_height])
-    hi = ws.upper
+    lo = np.maximum(np.maximum(ws.lower, limits.lower), [-np.inf, -np.inf, cfg.min_tcp_height])
+    hi = np.minimum(ws.upper, limits.upper)
     if np.any(hi <= lo):
         raise CalibrationError(
-            f"the workspace {ws.lower}..{ws.upper} has no room above min_tcp_height {cfg.min_tcp_height} m"
+            f"the workspace {ws.lower}..{ws.upper} and the safety box {limits.lower}..{limits.upper} "
+            f"have no room in common above min_tcp_height {cfg.min_tcp_height} m"
+        )
+    cone_deg = math.degrees(limits.max_tilt_rad)
+    if cfg.max_tilt_deg > cone_deg:
+        raise CalibrationError(
+            f"a tilt of up to {cfg.max_tilt_deg:.0f} deg (--max-tilt) leaves franka_node's orientation cone "
+            f"of {cone_deg:.0f} deg (control.yaml safety.max_tilt_rad): choose --max-tilt {cone_deg:.0f} or less"
         )
     guesses = {c.name: c.extrinsics.matrix() for c in lab.cameras}
     need = len(cameras) if cfg.cameras_per_pose is None else min(cfg.cameras_per_pose, len(cameras))
@@ -188,4 +201,6 @@ def plan_poses(
         order.append(k)
         left.remove(k)
         here = features[k]
-    return [accepted[k] for k in order]
+    poses = [accepted[k] for k in order]
+    limits.check(poses)  # the sampling above keeps them inside; this guards that promise
+    return poses

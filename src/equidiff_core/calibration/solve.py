@@ -9,7 +9,7 @@ board, its pose ``C_i = T_cam_board`` (PnP), with X C_i = H_i Y.
    rotation axes (Kabsch), the translation from linear least squares. OpenCV's
    ``calibrateHandEye`` would do this step, but the Python bindings of opencv-contrib 5.0.0.93
    export only its CALIB_HAND_EYE_* constants, not the function (checked), so we keep the
-   ~30 lines here.
+   ~30 lines here; test_hand_eye_opencv.py checks them against OpenCV 4.x's solvers.
 2. ``refine``: all cameras and the one board-in-hand transform together, minimising the
    corners' reprojection error in pixels over every detection (scipy ``least_squares``,
    soft-L1 loss so a bad detection cannot drag the result).

@@ -8,11 +8,13 @@ same code as on hardware.
 Two ways to move the arm, one solver:
 
 * ``FrankyTwinArm`` (``equidiff calibrate cameras --twin``): the lab's path. franky connects to
-  franky-sim (``twin.sim.TwinSim``, real-time loop, in a process of its own) and makes blocking
-  Cartesian moves; the TCP pose is what libfranka reports (O_T_EE); the cameras render the
-  state the sim shares.
+  franky-sim (``twin.sim.TwinSim``, real-time loop, in a process of its own) and franka_node's
+  control loop moves it (``capture.FrankyArm``: safety box, cone, speed limits); the TCP pose is
+  what libfranka reports (O_T_EE); the cameras render the state the sim shares.
 * ``DirectSimArm`` (the CI test): the same scene stepped in-process (``twin.sim.DirectSim``),
-  TCP read from MuJoCo; no server, no real-time clock, so it fits a test's time budget.
+  TCP read from MuJoCo; no server, no real-time clock, so it fits a test's time budget. It
+  drives the arm by DirectSim's IK, not by franka_node's control loop; the poses it visits are
+  checked against the same limits (``capture_samples``).
 """
 
 from __future__ import annotations
@@ -39,6 +41,7 @@ from ..twin.shared_state import StateReader
 from ..twin.sim import DirectSim
 from .board import BoardSpec, CalibrationError
 from .capture import FrankyArm, capture_samples
+from .limits import MotionLimits
 from .plan import PlanConfig, plan_poses
 from .solve import Calibration, CameraModel, calibrate, pose_error
 
@@ -148,7 +151,7 @@ class FrankyTwinArm:
     detection, and on a loaded machine fell silent past libfranka's 1 s receive timeout.
     """
 
-    def __init__(self, twin_cfg):
+    def __init__(self, twin_cfg, limits: MotionLimits):
         self.twin_cfg = twin_cfg
         self._dir = tempfile.TemporaryDirectory(prefix="equidiff_calib_twin_")
         config = Path(self._dir.name) / "twin.yaml"
@@ -160,7 +163,7 @@ class FrankyTwinArm:
             self.twin.start()
             shared, nq = self.twin.ready  # READY <host> <shm name> <nq>
             self.reader = StateReader(shared, nq=int(nq))
-            self.arm = FrankyArm(self.twin.host, realtime=False)
+            self.arm = FrankyArm(self.twin.host, limits, realtime=False)
         except Exception:
             if self.reader is not None:
                 self.reader.close()
@@ -228,11 +231,14 @@ def calibrate_twin(
     perturb_deg: float = 3.0,
     texture_dir: str | Path | None = None,
     log=print,
+    limits: MotionLimits | None = None,
 ) -> tuple[dict, Calibration, LabConfig]:
     """The whole calibration in the twin from perturbed guesses; (report, calibration, the guessed lab).
 
     ``arm``: "franky" (franky against franky-sim, the lab's path) or "direct" (in-process sim).
+    ``limits``: default lab.yaml's safety box and the project's control.yaml.
     """
+    limits = limits or MotionLimits.load(lab_truth)
 
     guess = perturb_lab(lab_truth, perturb_m, perturb_deg, plan.seed)
     mount = nominal_mount(spec)
@@ -242,10 +248,10 @@ def calibrate_twin(
         start = time.monotonic()
         cams = TwinCameras(lab_truth, cfg)
         try:
-            mover = FrankyTwinArm(cfg) if arm == "franky" else DirectSimArm(cfg)
+            mover = FrankyTwinArm(cfg, limits) if arm == "franky" else DirectSimArm(cfg)
             try:
-                poses = plan_poses(guess, models, spec, mount, plan, start=mover.tcp_pose())
-                samples = capture_samples(mover, poses, cams.grab, spec, log=log)
+                poses = plan_poses(guess, models, spec, mount, plan, start=mover.tcp_pose(), limits=limits)
+                samples = capture_samples(mover, poses, cams.grab, spec, limits, log=log)
             finally:
                 mover.close()
         finally:

@@ -6,9 +6,13 @@
     equidiff calibrate cameras --twin                         # verify in the digital twin (one JSON line)
 
 The board is fixed to the hand, printed side facing back up the fingers, beside the hand
-(see docs/perception.md). Planned poses stay in the workspace box, move at the franky
-backend's ``relative_dynamics_factor`` and are chosen so that every camera should see the
-whole board, judged with the extrinsics in ``--lab`` (rough hand-typed numbers suffice).
+(see docs/perception.md). Planned poses stay in the workspace box where it overlaps lab.yaml's
+``safety_box``, within control.yaml's orientation cone, and are chosen so that every camera
+should see the whole board, judged with the extrinsics in ``--lab`` (rough hand-typed numbers
+suffice). A pose outside those limits is an error before anything moves. The arm is moved by
+franka_node's own control loop (stop franka_node first): it homes as franka_node does, then
+glides between poses with the safety box, cone and speed limits of ``--control-config``; a
+robot error or a divergence stop aborts the calibration.
 Each camera is solved by closed-form eye-to-hand calibration, then all cameras and the
 board's place on the hand are refined together by minimising the corners' reprojection
 error. The result goes to a new lab file (an existing one is kept unless ``--force``; it is
@@ -63,6 +67,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="current lab file: the cameras' rough extrinsics (twin: the ground truth)",
     )
     parser.add_argument("--output", type=Path, default=None, help="new lab file with the calibrated extrinsics")
+    parser.add_argument(
+        "--control-config",
+        type=Path,
+        default=None,
+        help="franka_node's control.yaml: limits, home pose and franky settings for the moves (default: the project's)",
+    )
     parser.add_argument("--force", action="store_true", help="replace --output if it exists (the old one is backed up)")
     parser.add_argument(
         "--write-board",
@@ -102,6 +112,7 @@ def _log(message: str) -> None:
 def run(args: argparse.Namespace) -> int:
     from equidiff_core.calibration.board import CalibrationError, write_printable
     from equidiff_core.config import ConfigError, default_config_dir, load_lab_config
+    from equidiff_core.robots.base import RobotError
 
     try:
         spec = board_spec(args)
@@ -135,7 +146,7 @@ def run(args: argparse.Namespace) -> int:
                 "or pass --force to replace it (the old file is then kept as a .bak copy)"
             )
         return _run_lab(args, spec, lab, lab_path)
-    except (CalibrationError, ConfigError, ValueError) as err:
+    except (CalibrationError, ConfigError, RobotError, ValueError) as err:
         _log(f"equidiff calibrate cameras: {err}")
         return 1
 
@@ -148,6 +159,7 @@ def _plan_config(args):
 
 def _run_twin(args, spec, lab, lab_path) -> int:
     from equidiff_core.calibration.labfile import write_calibrated_lab
+    from equidiff_core.calibration.limits import MotionLimits
     from equidiff_core.calibration.twin import calibrate_twin
     from equidiff_core.twin.config import load_twin_config
 
@@ -160,6 +172,7 @@ def _run_twin(args, spec, lab, lab_path) -> int:
         perturb_m=args.perturb_mm / 1000,
         perturb_deg=args.perturb_deg,
         log=_log,
+        limits=MotionLimits.load(lab, args.control_config),
     )
     if args.output is not None:
         write_calibrated_lab(
@@ -189,10 +202,12 @@ def _run_lab(args, spec, lab, lab_path) -> int:
         capture_samples,
     )
     from equidiff_core.calibration.labfile import write_calibrated_lab
+    from equidiff_core.calibration.limits import MotionLimits
     from equidiff_core.calibration.plan import plan_poses
     from equidiff_core.calibration.solve import calibrate
     from equidiff_core.calibration.twin import nominal_mount
 
+    limits = MotionLimits.load(lab, args.control_config)
     cams = []
     arm = None
     try:
@@ -203,20 +218,24 @@ def _run_lab(args, spec, lab, lab_path) -> int:
         def grab(_state):
             return {c.name: c.grab() for c in cams}
 
-        arm = FrankyArm(lab.robot.ip)
+        arm = FrankyArm(lab.robot.ip, limits)
         if args.operator:
             from equidiff_core.calibration.operator import capture_operator
 
             samples = capture_operator(arm, grab, spec, lab.workspace, log=_log)
         else:
-            poses = plan_poses(lab, models, spec, nominal_mount(spec), _plan_config(args), start=arm.tcp_pose())
+            poses = plan_poses(
+                lab, models, spec, nominal_mount(spec), _plan_config(args), start=arm.tcp_pose(), limits=limits
+            )
             if not args.yes:
+                home = " first to control.yaml's home pose, then" if limits.control.home_on_start else ""
                 _log(
-                    f"The arm will visit {len(poses)} poses around the workspace at reduced speed with the "
-                    "board on its hand. Keep the area clear; press Enter to start, Ctrl-C to abort."
+                    f"The arm will move{home} to {len(poses)} poses around the workspace at up to "
+                    f"{arm.speed_m_s * 100:.0f} cm/s with the board on its hand. Keep the area clear; press "
+                    "Enter to start, Ctrl-C to abort."
                 )
                 input()
-            samples = capture_samples(arm, poses, grab, spec, log=_log)
+            samples = capture_samples(arm, poses, grab, spec, limits, log=_log)
     finally:
         if arm is not None:
             arm.close()

@@ -13,7 +13,8 @@ beyond ``--tolerance-mm``.
 On the robot: nothing moves. Put the open gripper where every camera sees it, stop the
 camera and franka nodes (this command opens the devices itself) and run it.
 ``--twin``: the twin's cameras stand at the poses of ``--truth`` (default config/lab.yaml); the
-arm is taken to ``--tcp`` by franky against franky-sim (``--direct``: in-process sim).
+arm is taken to ``--tcp`` by franka_node's control loop with franky against franky-sim
+(``--direct``: in-process sim).
 """
 
 from __future__ import annotations
@@ -38,6 +39,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--twin-config", type=Path, default=None)
     parser.add_argument("--direct", action="store_true", help="twin: in-process sim instead of franky + franky-sim")
     parser.add_argument(
+        "--control-config",
+        type=Path,
+        default=None,
+        help="twin: franka_node's control.yaml for the move to --tcp (default: the project's)",
+    )
+    parser.add_argument(
         "--tcp",
         type=float,
         nargs=3,
@@ -56,6 +63,7 @@ def _twin_capture(args, lab):
     """(clouds with colours, measured TCP, gripper width) from the twin's cameras at their true poses."""
     import mujoco
 
+    from equidiff_core.calibration.limits import MotionLimits
     from equidiff_core.calibration.twin import DirectSimArm, FrankyTwinArm
     from equidiff_core.cameras.twin import TwinCamera
     from equidiff_core.config import default_config_dir, load_lab_config
@@ -70,7 +78,7 @@ def _twin_capture(args, lab):
         arm = DirectSimArm(cfg, gripper_width=args.width)
         measured, qpos = arm.move_to(T)
     else:
-        arm = FrankyTwinArm(cfg)
+        arm = FrankyTwinArm(cfg, MotionLimits.load(truth, args.control_config))
         measured, qpos = arm.move_to(T)
     try:
         model = arm.model
@@ -93,15 +101,16 @@ def _twin_capture(args, lab):
 
 
 def _lab_capture(lab):
-    from equidiff_core.calibration.capture import FrankyArm
     from equidiff_core.cameras import make_camera
+    from equidiff_core.robots.franky import FrankyRobot
 
-    arm = FrankyArm(lab.robot.ip, gripper=True)
+    robot = FrankyRobot(lab.robot.ip, gripper=True)  # read only: nothing moves
+    robot.connect()
     try:
-        state = arm.robot.read_state()
+        state = robot.read_state()
         tcp, width = state.ee_pose, state.gripper_width
     finally:
-        arm.close()
+        robot.disconnect()
     clouds = {}
     for cam in lab.cameras:
         with make_camera("realsense", cam) as c:

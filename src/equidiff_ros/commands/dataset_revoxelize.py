@@ -2,9 +2,11 @@
 
 Each bag's /voxels are rebuilt from its recorded camera clouds (recorder ``record_clouds``,
 on by default) with the cameras and extrinsics of ``--lab``, exactly as voxel_node would have
-fused them (``fusion.CloudFusion``); every other topic and the episode's metadata are copied.
-One new bag per input under ``--out`` (same name); existing bags are never overwritten. A bag
-without clouds of every camera is reported and skipped (exit 1).
+fused them (``fusion.CloudFusion``). The new extrinsics replace the cameras' transforms in
+``/tf_static`` and are written into the episode's metadata (``extra.extrinsics.<camera>``);
+every other topic and metadata entry is copied. One new bag per input under ``--out`` (same
+name); existing bags are never overwritten. A bag without clouds of every camera is reported
+and skipped (exit 1).
 """
 
 from __future__ import annotations

@@ -106,6 +106,11 @@ class RealSenseCamera(Camera):
     bring the device back within ``reenumerate_timeout_s`` is retried with a doubling back-off;
     until then every read raises a CameraError saying which state the camera is in.
     ``monotonic`` and ``sleep`` time the recovery (tests pass a fake clock).
+
+    ``device_source`` is where the ``context()`` and ``pipeline(context)`` come from: None means
+    pyrealsense2 itself (a device on USB); a test passes librealsense ``software_device`` frames
+    through it (test/helpers_realsense.py), and everything else (streams, options, alignment,
+    filters, deprojection) is this same code on the real library.
     """
 
     def __init__(
@@ -115,6 +120,7 @@ class RealSenseCamera(Camera):
         pace_hz: float | None = None,
         monotonic: Callable[[], float] = time.monotonic,
         sleep: Callable[[float], None] = time.sleep,
+        device_source=None,
         **overrides,
     ):
         try:
@@ -126,6 +132,7 @@ class RealSenseCamera(Camera):
         self.camera = camera
         self._clock = clock
         self._monotonic, self._sleep = monotonic, sleep
+        self._device_source = device_source
         # Process (align, filter, deproject) only the frames that will be published: at 30 fps
         # in and 5 Hz out, the others are fetched from the device and dropped unprocessed.
         self._pacer = PublishPacer(pace_hz) if pace_hz else None
@@ -170,7 +177,7 @@ class RealSenseCamera(Camera):
                 f"(pip install pyrealsense2): {err}"
             ) from err
         cam = self.camera
-        self._rs, self._ctx = rs, rs.context()
+        self._rs, self._ctx = rs, (self._device_source or rs).context()
         found = self._connected_serials()
         if cam.serial not in found:
             raise CameraError(
@@ -201,7 +208,7 @@ class RealSenseCamera(Camera):
             rs.stream.depth, opt.depth_width or cam.width, opt.depth_height or cam.height, rs.format.z16, cam.fps
         )
         cfg.enable_stream(rs.stream.color, cam.width, cam.height, rs.format.rgb8, cam.fps)
-        pipeline = rs.pipeline(self._ctx)
+        pipeline = (self._device_source or rs).pipeline(self._ctx)
         try:
             profile = pipeline.start(cfg)
         except RuntimeError as err:
