@@ -87,6 +87,30 @@ def test_single_process_helpers_and_a_torchrun_environment_missing_variables(mon
         distributed.init_from_env("cpu")
 
 
+def test_torchrun_with_one_process_joins_a_group_of_one(monkeypatch):
+    """`torchrun --nproc-per-node 1` (how one GPU checks the N-GPU path, issue 28) forms a real
+    process group: collectives and DDP run as with N ranks, not the single-process shortcuts."""
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    for key, value in {"WORLD_SIZE": "1", "RANK": "0", "LOCAL_RANK": "0", "MASTER_ADDR": "127.0.0.1"}.items():
+        monkeypatch.setenv(key, value)
+    monkeypatch.setenv("MASTER_PORT", str(port))
+    try:
+        info = distributed.init_from_env("cpu")
+        assert info == distributed.DistInfo(rank=0, world_size=1, local_rank=0, backend="gloo") and info.distributed
+        assert torch.distributed.is_initialized()
+        assert distributed.all_reduce_mean([3.0, 5.0]) == [3.0, 5.0] and distributed.all_gather_object("x") == ["x"]
+        distributed.barrier()
+    finally:
+        distributed.shutdown()
+    assert not distributed.info().distributed
+    monkeypatch.delenv("MASTER_PORT")  # WORLD_SIZE 1 without torchrun's rendezvous: one process, no group
+    assert distributed.init_from_env("cpu") == distributed.DistInfo() and not torch.distributed.is_initialized()
+
+
 def test_training_from_the_device_source_and_in_bf16_on_the_cpu(tmp_path):
     ds = CubeDataset(4, seed=1)
     cfg = {"steps": 2, "batch_size": 2, "warmup_steps": 1, "eval_every": 0, "log_every": 1, "checkpoint_every": 0}
@@ -226,7 +250,25 @@ def test_bench_train_prints_one_json_line_naming_preset_batch_and_devices(capsys
     assert cpu["device"].startswith("cpu: ") and cpu["batch_size"] == 2 and cpu["precision"] == "fp32"
     assert cpu["samples_per_s"] > 0 and cpu["samples_per_s"] == pytest.approx(2 / cpu["sec_per_step"], rel=0.01)
     assert {"avx512", "native_bf16", "cores"} <= cpu.keys()
+    assert 0 <= cpu["data_wait_share"] < 1  # the loop's wait for its next batch, over the step time
     if torch.cuda.is_available():
         assert out["cuda"]["precision"] == "bf16" and out["cuda"]["data"] == "device"
     else:
         assert out["cuda"] is None and "not available" in out["cuda_note"]
+
+
+def test_bench_train_measures_each_precision_and_data_source_asked_for(capsys):
+    from equidiff_ros.cli import main
+
+    args = ["bench", "train", "--device", "cpu", "--preset", "tiny", "--policy", "baseline", "--batch-size", "2"]
+    assert main([*args, "--steps", "1", "--warmup", "1", "--samples", "2", "--runs", "bf16,fp32:device"]) == 0
+    out = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    runs = out["cpu_runs"]
+    assert [(r["precision"], r["data"]) for r in runs] == [("bf16", "loader"), ("fp32", "device")]
+    assert out["cpu"] == runs[0] and out["cuda"] is None and "--device cpu" in out["cuda_note"]
+    assert all(r["samples_per_s"] > 0 and 0 <= r["data_wait_share"] < 1 for r in runs)
+    assert main([*args, "--runs", "fp16"]) == 2
+    assert "PRECISION[:DATA]" in capsys.readouterr().err
+    if not torch.cuda.is_available():
+        assert main([*args, "--device", "cuda"]) == 2
+        assert "CUDA is not available" in capsys.readouterr().err

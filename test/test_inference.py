@@ -154,6 +154,54 @@ def test_a_failed_compile_warns_and_keeps_the_traced_step(exported, monkeypatch)
     assert policy.predict(*policy._blank_observation(), seed=0).shape == (policy.preset.horizon, 10)
 
 
+@pytest.mark.parametrize("precision, jit", [("fp32", False), ("bf16", True)])
+def test_the_sampling_a_cuda_graph_captures_predicts_exactly_like_the_plain_path(exported, precision, jit):
+    """The CUDA-graph path (issue 28) samples on fixed buffers with its own loop; run eagerly on the
+    CPU it must give the plain path's actions to the bit, plain and RTC-guided (on CUDA the
+    graph replays exactly this code; the GPU check records the difference there)."""
+    policy, path = exported
+    vox, ee = random_observation(policy, batch=1, seed=5, fill=0.05)
+    vox, ee = vox[0, 0].numpy(), ee[0, 0].numpy()
+    plain = load_inference_policy(path, precision=precision, jit=jit)
+    static = load_inference_policy(path, precision=precision, jit=jit)
+    static._use_static_buffers(capture=False)
+    a = plain.predict(vox, ee, seed=3)
+    np.testing.assert_array_equal(static.predict(vox, ee, seed=3), a)
+    guide = (a + 0.02, np.linspace(1.0, 0.0, policy.preset.horizon))
+    guided = plain.predict(vox, ee, seed=4, guide=guide)
+    np.testing.assert_array_equal(static.predict(vox, ee, seed=4, guide=guide), guided)
+    assert np.abs(guided - plain.predict(vox, ee, seed=4)).max() > 1e-3  # the guide does pull
+    # the buffers are refilled per call: another observation, another noise give other actions
+    other = static.predict(vox, ee + np.float32(0.01) * (np.arange(10) < 3), seed=5)
+    np.testing.assert_array_equal(other, plain.predict(vox, ee + np.float32(0.01) * (np.arange(10) < 3), seed=5))
+    with pytest.raises(PolicyInputError, match="noise"):
+        static.predict(vox, ee, noise=np.zeros((8, 10), np.float32))
+
+
+def test_cuda_graph_asks_for_a_cuda_device(exported, capsys):
+    from equidiff_ros.cli import main
+
+    with pytest.raises(ValueError, match="cuda_graph needs a CUDA device"):
+        load_inference_policy(exported[1], device="cpu", cuda_graph=True)
+    assert main(["bench", "policy", "--preset", "tiny", "--device", "cpu", "--graph"]) == 2
+    assert "--graph needs --device cuda" in capsys.readouterr().err
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="CUDA graphs need a GPU")
+def test_cuda_graph_replays_the_traced_policys_actions(exported):
+    policy, path = exported
+    vox, ee = random_observation(policy, batch=1, seed=5, fill=0.05)
+    vox, ee = vox[0, 0].numpy(), ee[0, 0].numpy()
+    traced = load_inference_policy(path, device="cuda", precision="bf16", jit=True)
+    graphed = load_inference_policy(path, device="cuda", precision="bf16", jit=True, cuda_graph=True)
+    assert graphed.graphed and not traced.graphed
+    a, b = traced.predict(vox, ee, seed=3), graphed.predict(vox, ee, seed=3)
+    assert np.abs(b - a)[:, :3].max() < 0.03  # the same kernels; at most another bf16 rounding (cuBLAS workspace)
+    other = vox.copy()
+    other[:, ::2] = 0  # new inputs reach the graph: its buffers are refilled, not replayed stale
+    assert np.abs(graphed.predict(other, ee, seed=3) - traced.predict(other, ee, seed=3))[:, :3].max() < 0.03
+
+
 @pytest.mark.parametrize("kernel, stride, padding, bias", [(5, 1, 2, True), (3, 2, 1, True), (1, 1, 0, False)])
 def test_matmul_conv1d_equals_conv1d(kernel, stride, padding, bias):
     from equidiff_core.inference import MatmulConv1d
@@ -287,6 +335,27 @@ def test_bench_policy_command_prints_one_json_line(capsys):
         assert key in out
     assert out["preset"] == "tiny" and out["params"] > 0
     assert 0 < out["encoder_ms"] < out["ddim16_median_ms"] <= out["ddim16_p99_ms"]
+
+
+def test_bench_policy_times_several_modes_and_rtc_in_one_run(capsys):
+    from equidiff_ros.cli import main
+
+    modes = "fp32-eager,bf16-traced-graph,bf16-traced"
+    args = ["bench", "policy", "--preset", "tiny", "--iters", "2", "--eager-iters", "0", "--rtc", "--modes", modes]
+    assert main(args) == 0
+    out = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert list(out["modes"]) == modes.split(",")
+    eager, graph, traced = (out["modes"][m] for m in modes.split(","))
+    assert graph == {"skipped": "CUDA graphs need a CUDA device"}  # on this CPU; the GPU check runs it
+    assert (eager["precision"], eager["jit"], traced["precision"], traced["jit"]) == ("fp32", False, "bf16", True)
+    for mode in (eager, traced):
+        assert mode["ddim16_median_ms"] <= mode["ddim16_p99_ms"] and mode["rtc_median_ms"] > 0
+        assert mode["rtc_vs_plain"] == pytest.approx(mode["rtc_median_ms"] / mode["ddim16_median_ms"], rel=0.01)
+    assert out["mode"] == "fp32-eager" and out["ddim16_median_ms"] == eager["ddim16_median_ms"]
+    assert out["best_mode"] in ("fp32-eager", "bf16-traced")
+    assert out["best_ddim16_p99_ms"] == min(eager["ddim16_p99_ms"], traced["ddim16_p99_ms"])
+    assert main([*args[:-1], "fp32-warp"]) == 2
+    assert "PRECISION-EXECUTION" in capsys.readouterr().err
 
 
 @pytest.mark.skipif(torch.cuda.is_available(), reason="checks the message of a machine without CUDA")

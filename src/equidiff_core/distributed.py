@@ -5,9 +5,11 @@ Launch with torchrun, one process per GPU (or per CPU socket), e.g.::
     torchrun --nproc-per-node 4 -m equidiff_ros.cli train bags/ --out runs/ddp --device cuda
 
 torchrun sets ``RANK``, ``WORLD_SIZE``, ``LOCAL_RANK``, ``MASTER_ADDR`` and ``MASTER_PORT``;
-:func:`init_from_env` joins the process group from them (NCCL on GPUs, gloo on the CPU). Without
-those variables (``WORLD_SIZE`` unset or 1) every helper here answers for a single process and
-does nothing, so the same code runs alone or in a group.
+:func:`init_from_env` joins the process group from them (NCCL on GPUs, gloo on the CPU), also
+when torchrun started a single process (``--nproc-per-node 1``): a group of one runs the same
+collectives and DDP wrapper as N GPUs, which is how one GPU checks the N-GPU path. Without
+torchrun (``WORLD_SIZE`` unset or 1 and its rendezvous variables absent) every helper here
+answers for a single process and does nothing, so the same code runs alone or in a group.
 """
 
 from __future__ import annotations
@@ -36,7 +38,8 @@ class DistInfo:
 
     @property
     def distributed(self) -> bool:
-        return self.world_size > 1
+        """In a process group (of one or more ranks): collectives and DDP run."""
+        return self.backend is not None
 
 
 def env_world_size() -> int:
@@ -45,6 +48,14 @@ def env_world_size() -> int:
         return int(os.environ.get("WORLD_SIZE", "1"))
     except ValueError as err:
         raise DistributedError(f"WORLD_SIZE={os.environ['WORLD_SIZE']!r} is not an integer") from err
+
+
+TORCHRUN_VARIABLES = ("RANK", "LOCAL_RANK", "MASTER_ADDR", "MASTER_PORT")
+
+
+def launched_by_torchrun() -> bool:
+    """torchrun set this process's rendezvous (any world size, one included)."""
+    return env_world_size() > 1 or all(k in os.environ for k in ("WORLD_SIZE", *TORCHRUN_VARIABLES))
 
 
 def env_local_rank() -> int:
@@ -63,11 +74,11 @@ def init_from_env(device_type: str | None = None) -> DistInfo:
     CUDA each process then uses ``cuda:LOCAL_RANK``."""
     if dist.is_available() and dist.is_initialized():
         return info()
-    if env_world_size() <= 1:
+    if not launched_by_torchrun():
         return DistInfo()
     if not dist.is_available():
-        raise DistributedError("WORLD_SIZE > 1 but this torch build has no torch.distributed")
-    missing = [k for k in ("RANK", "LOCAL_RANK", "MASTER_ADDR", "MASTER_PORT") if k not in os.environ]
+        raise DistributedError("launched by torchrun but this torch build has no torch.distributed")
+    missing = [k for k in TORCHRUN_VARIABLES if k not in os.environ]
     if missing:
         raise DistributedError(f"WORLD_SIZE > 1 but {', '.join(missing)} unset: launch with torchrun")
     if device_type is None:

@@ -7,11 +7,14 @@ rebuilds that network from the saved preset without importing escnn, so the robo
 process stays light (and starts fast). Missing, corrupt or incompatible files raise
 ``CheckpointError`` with the reason.
 
-Speed switches (``load_inference_policy(..., precision="bf16", jit=True, compile=False)``): bf16
-weights and activations (the DDIM arithmetic stays fp32), channels_last_3d for the 3D
-convolutions, ``torch.jit.trace`` + freeze of the encoder and of one denoising step, and
-optionally ``torch.compile`` of the step. Always: the U-Net's FiLM terms split into an
-observation part (once per ``encode``) and a step part (cached per diffusion step); on CPU a
+Speed switches (``load_inference_policy(..., precision="bf16", jit=True, compile=False,
+cuda_graph=False)``): bf16 weights and activations (the DDIM arithmetic stays fp32),
+channels_last_3d for the 3D convolutions, ``torch.jit.trace`` + freeze of the encoder and of one
+denoising step, optionally ``torch.compile`` of the step, and on CUDA optionally ``cuda_graph``:
+the encoder, the 16 denoising steps and their DDIM updates captured once as CUDA graphs (plain and
+RTC-guided) and replayed per call, so a ``predict`` launches one graph instead of hundreds of
+small kernels. Always: the U-Net's FiLM terms split into an observation part (once per
+``encode``) and a step part (cached per diffusion step); on CPU a
 faster Mish, and in bf16 on CPU the U-Net's Conv1d and ConvTranspose1d run as GEMMs. ``precision="auto"``
 picks bf16 on CUDA and on CPUs with native bf16 (AVX512-BF16/AMX), fp32 elsewhere. Measured on
 the 2-core EPYC: docs/model.md (compact, 1 thread, traced: 63-89 ms per DDIM-16 call).
@@ -31,7 +34,7 @@ from .augment import voxel_input
 from .config import Workspace, from_dict
 from .machine import cpu_has_native_bf16
 from .models import action_space
-from .models.sampling import ActionCodec, ddim_sample, make_inference_scheduler
+from .models.sampling import ActionCodec, _guided_noise, ddim_sample, make_inference_scheduler
 from .normalizer import Normalizer, NormalizerError
 from .policies import PolicyInputError
 from .presets import PolicyPreset, preset_from_dict
@@ -130,6 +133,7 @@ def load_inference_policy(
     jit: bool = False,
     channels_last: bool | None = None,
     compile: bool = False,
+    cuda_graph: bool = False,
 ) -> InferencePolicy:
     if precision not in PRECISIONS:
         raise ValueError(f"precision must be one of {PRECISIONS}, got {precision!r}")
@@ -164,6 +168,7 @@ def load_inference_policy(
         jit,
         channels_last if channels_last is not None else precision == "bf16",
         compile,
+        cuda_graph,
     )
 
 
@@ -182,7 +187,10 @@ class InferencePolicy:
         jit: bool = False,
         channels_last: bool = False,
         compile: bool = False,
+        cuda_graph: bool = False,
     ):
+        if cuda_graph and device.type != "cuda":
+            raise ValueError(f"cuda_graph needs a CUDA device, got {device}")
         self.name = name
         self.preset = preset
         self.workspace = workspace
@@ -213,6 +221,11 @@ class InferencePolicy:
         self.compiled = False
         if compile:
             self._compile()
+        self._timesteps = [int(t) for t in self.scheduler.timesteps]
+        self._static: _StaticSampler | None = None  # set by _use_static_buffers (the CUDA-graph path)
+        self.graphed = False
+        if cuda_graph:
+            self._use_static_buffers(capture=True)
 
     @property
     def n_action_steps(self) -> int:
@@ -291,6 +304,11 @@ class InferencePolicy:
     def encode(self, voxels: np.ndarray, ee: np.ndarray) -> torch.Tensor:
         """Observation -> what every denoising step of it needs: the encoder's condition, through
         the condition's part of the U-Net's FiLM terms (once per observation, not once per step)."""
+        return self.net.unet.global_films(self._encode(*self._obs_inputs(voxels, ee)))
+
+    def _obs_inputs(self, voxels: np.ndarray, ee: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
+        """The encoder's inputs on the device: the centred crop in [0, 1] (1, To, C, S, S, S) in the
+        encoder's memory layout, and the normalised gripper state (1, To, 10)."""
         self.check_inputs(voxels, ee)
         vox = torch.from_numpy(np.ascontiguousarray(voxels))[None, None]
         # cropped before the copy to the device (a quarter less to move), as the training policy's evaluation
@@ -300,18 +318,20 @@ class InferencePolicy:
         vox = vox.expand(1, self.preset.n_obs_steps, *vox.shape[2:])  # single-step history repeated
         ee_t = torch.as_tensor(np.asarray(ee, dtype=np.float32), device=self.device)
         ee_n = self.normalizer.normalize(ee_t)[None, None].expand(1, self.preset.n_obs_steps, 10).to(self.dtype)
-        return self.net.unet.global_films(self._encode(self._layout(vox), ee_n))
+        return self._layout(vox), ee_n
 
     @torch.no_grad()
     def denoise(self, x: torch.Tensor, t: torch.Tensor, obs_films: torch.Tensor) -> torch.Tensor:
         """One denoising step of the batch-1 sample ``x`` at diffusion step ``t``; ``obs_films`` from encode()."""
-        step = int(t.reshape(-1)[0])
+        return self._denoise_films(x, obs_films + self._films_for_step(int(t.reshape(-1)[0])))
+
+    def _films_for_step(self, step: int) -> torch.Tensor:
         films = self._step_films.get(step)
         if films is None:  # at most num_train_timesteps entries; DDIM-16 uses 16
             films = self._step_films[step] = self.net.unet.step_films(torch.tensor([step], device=self.device)).to(
                 self.dtype
             )
-        return self._denoise_films(x, obs_films + films)
+        return films
 
     @torch.no_grad()
     def predict(
@@ -325,8 +345,9 @@ class InferencePolicy:
         """Absolute actions (horizon, 10) for one observation; ``seed`` makes the DDIM noise reproducible.
 
         ``guide = (target (horizon, 10) absolute actions, weights (horizon,))``: real-time chunking,
-        the sample is inpainted towards ``target`` (``chunk.RealTimeChunking``); None: plain DDIM."""
-        obs_films = self.encode(voxels, ee)
+        the sample is inpainted towards ``target`` (``chunk.RealTimeChunking``); None: plain DDIM.
+        With ``cuda_graph`` both run as one graph replay; the actions are the same as without it."""
+        obs = self._obs_inputs(voxels, ee)
         gen = None
         if seed is not None:
             gen = torch.Generator(device=self.device).manual_seed(int(seed))
@@ -349,16 +370,19 @@ class InferencePolicy:
                 self.codec.encode(torch.from_numpy(target).to(self.device)[None], ee_t),
                 torch.from_numpy(weights),
             )
-        x = ddim_sample(
-            self.denoise,
-            obs_films,
-            (1, self.preset.horizon, self.codec.dim),
-            self.scheduler,
-            generator=gen,
-            noise=noise_t,
-            device=self.device,
-            guide=guide_t,
-        )
+        if self._static is not None:
+            x = self._sample_static(obs, noise_t, gen, guide_t)
+        else:
+            x = ddim_sample(
+                self.denoise,
+                self.net.unet.global_films(self._encode(*obs)),
+                (1, self.preset.horizon, self.codec.dim),
+                self.scheduler,
+                generator=gen,
+                noise=noise_t,
+                device=self.device,
+                guide=guide_t,
+            )
         actions = self.codec.decode(x, ee_t)[0]
         out = actions.double().cpu().numpy()
         if not np.isfinite(out).all():
@@ -369,6 +393,89 @@ class InferencePolicy:
         vox, ee = self._blank_observation()
         for _ in range(iterations):
             self.predict(vox, ee, seed=0)
+
+    @torch.no_grad()
+    def _use_static_buffers(self, capture: bool) -> None:
+        """Sample from fixed input and output tensors from now on; ``capture``: record that sampling
+        (the encoder, every denoising step and DDIM update, plain and RTC-guided) as two CUDA graphs
+        that ``predict`` replays.
+
+        A graph replays fixed kernels on fixed addresses, so everything that varies per call lives in
+        the buffers (copied in before a replay) and nothing inside may synchronise with the host or
+        copy from it: the diffusion steps are Python ints, their FiLM terms are computed beforehand,
+        and the schedule's coefficients are CPU scalars. Without ``capture`` (any device) the same
+        code runs eagerly: tests compare it with the plain path on the CPU."""
+        horizon, dim = self.preset.horizon, self.codec.dim
+        vox, ee_n = self._obs_inputs(*self._blank_observation())
+        zeros = lambda *shape: torch.zeros(shape, device=self.device)
+        self._static = s = _StaticSampler(
+            vox=vox.clone(),  # keeps the encoder's channels_last_3d strides
+            ee=ee_n.clone(),
+            noise=zeros(1, horizon, dim),
+            target=zeros(1, horizon, dim),
+            weights=zeros(1, horizon, 1),
+        )
+        for step in self._timesteps:
+            self._films_for_step(step)
+        if not capture:
+            return
+        side = torch.cuda.Stream(self.device)
+        side.wait_stream(torch.cuda.current_stream(self.device))
+        with torch.cuda.stream(side):  # warm-up off the default stream, as torch's CUDA-graph recipe does
+            for _ in range(3):  # cuBLAS/cuDNN handles, TorchScript's profiling runs
+                for guided in (False, True):
+                    self._sample_on_buffers(guided)
+        torch.cuda.current_stream(self.device).wait_stream(side)
+        for guided in (False, True):
+            graph = torch.cuda.CUDAGraph()
+            with torch.cuda.graph(graph):
+                s.out[guided] = self._sample_on_buffers(guided)
+            s.graphs[guided] = graph
+        self.graphed = True
+
+    def _sample_on_buffers(self, guided: bool) -> torch.Tensor:
+        """``predict``'s sampling (``models.sampling.ddim_sample``, same operations in the same
+        order) on the static buffers."""
+        s = self._static
+        obs_films = self.net.unet.global_films(self._encode(s.vox, s.ee))
+        x = s.noise
+        for step in self._timesteps:
+            eps = self._denoise_films(x, obs_films + self._films_for_step(step)).float()
+            if guided:
+                eps = _guided_noise(self.scheduler, step, x, eps, s.target, s.weights)
+            x = self.scheduler.step(eps, step, x).prev_sample
+        return x
+
+    def _sample_static(self, obs, noise_t, gen, guide_t) -> torch.Tensor:
+        s = self._static
+        s.vox.copy_(obs[0])
+        s.ee.copy_(obs[1])
+        shape = (1, self.preset.horizon, self.codec.dim)
+        noise = (
+            noise_t.to(device=self.device, dtype=torch.float32)
+            if noise_t is not None
+            else torch.randn(shape, generator=gen, device=self.device, dtype=torch.float32)
+        )
+        if noise.shape != shape:
+            raise PolicyInputError(f"noise must be {shape[1:]}, got {tuple(noise.shape[1:])}")
+        s.noise.copy_(noise)
+        guided = guide_t is not None
+        if guided:
+            s.target.copy_(guide_t[0])
+            s.weights.copy_(guide_t[1].to(device=self.device, dtype=torch.float32)[None, :, None])
+        if guided in s.graphs:
+            s.graphs[guided].replay()
+            return s.out[guided]
+        return self._sample_on_buffers(guided)
+
+
+class _StaticSampler:
+    """The CUDA-graph path's fixed tensors: inputs copied in per call, outputs the graphs write."""
+
+    def __init__(self, vox, ee, noise, target, weights):
+        self.vox, self.ee, self.noise, self.target, self.weights = vox, ee, noise, target, weights
+        self.out: dict[bool, torch.Tensor] = {}  # guided -> the graph's output sample
+        self.graphs: dict[bool, torch.cuda.CUDAGraph] = {}  # guided -> captured graph (CUDA only)
 
 
 def _pad_first_conv(encoder: torch.nn.Sequential, multiple: int) -> int:

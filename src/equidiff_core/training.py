@@ -118,7 +118,7 @@ def resolve_device(device: str) -> torch.device:
         device = "cuda" if torch.cuda.is_available() else "cpu"
     if device.startswith("cuda") and not torch.cuda.is_available():
         raise TrainingError(f"device {device!r} requested but CUDA is not available")
-    if device == "cuda" and distributed.env_world_size() > 1:
+    if device == "cuda" and distributed.launched_by_torchrun():
         return torch.device("cuda", distributed.env_local_rank())
     return torch.device(device)
 
@@ -324,7 +324,9 @@ def train(
             history.append({"step": step, "stopped": stopped})
             break
         policy.train()
+        t_data = time.perf_counter()
         batch = next(batches)
+        data_s = time.perf_counter() - t_data  # the loader's share of the step (bench train reports it)
         with autocast():
             loss = loss_fn(batch, aug_gen, cfg.noise_repeats)
         # one collective a step: the mean loss (a NaN anywhere stops every rank together) and whether
@@ -346,7 +348,7 @@ def train(
         if ema is not None:
             ema.step()
         step += 1
-        metrics = {"step": step, "loss": mean_loss, "lr": scheduler.get_last_lr()[0]}
+        metrics = {"step": step, "loss": mean_loss, "lr": scheduler.get_last_lr()[0], "data_s": data_s}
         if step % cfg.log_every == 0 or step == 1 or step == cfg.steps:
             now = time.perf_counter()
             metrics["sec_per_step"] = (now - t_last) / (cfg.log_every if step > 1 else 1)
@@ -372,7 +374,9 @@ def train(
         digests = distributed.all_gather_object(distributed.parameter_digest(policy.model))
         if len(set(digests)) > 1:
             raise TrainingError(f"data-parallel ranks diverged: parameter digests {digests}")
-        history.append({"step": step, "world_size": dist_info.world_size, "param_digests": digests})
+        history.append(
+            {"step": step, "world_size": dist_info.world_size, "backend": dist_info.backend, "param_digests": digests}
+        )
     save_checkpoint()
     exported = out_dir / "policy.pt"
     if main:

@@ -82,7 +82,8 @@ def _guided_noise(
     scheduler: DDIMScheduler, t, x: torch.Tensor, eps: torch.Tensor, target: torch.Tensor, weights: torch.Tensor
 ) -> torch.Tensor:
     """The noise that makes epsilon-DDIM's clean estimate at ``t`` the guided one (x0 + w (target - x0))."""
-    alpha = scheduler.alphas_cumprod[int(t)].to(x.device, torch.float32)
+    # a 0-dim CPU tensor multiplies device tensors as a scalar: no copy to the GPU, so a CUDA graph can capture this
+    alpha = scheduler.alphas_cumprod[int(t)].to(torch.float32)
     a, b = alpha.sqrt(), (1 - alpha).sqrt()
     x0 = (x - b * eps) / a
     x0 = x0 + weights * (target - x0)

@@ -6,13 +6,17 @@ for the exported plain-torch policy with the chosen switches, ``eager_ddim16_med
 training-time model (escnn for EquiDiff) in fp32 eager mode, and ``device``. Random weights by
 default (timing does not depend on them); ``--checkpoint policy.pt`` times a trained file.
 Targets on a 2-core CPU: compact <= 100 ms p99, paper <= 400 ms median.
+
+``--modes bf16-traced,bf16-traced-graph,fp32-traced`` times several ways of running the same
+export in one run (``benchmarks.InferenceMode``): the top-level figures are the first measured
+mode's, ``modes`` holds each one's (or its error), ``best_mode`` / ``best_ddim16_p99_ms`` the
+smallest p99. ``--rtc`` adds RTC-guided sampling (``rtc_median_ms``, ``rtc_vs_plain``).
 """
 
 from __future__ import annotations
 
 import json
 import sys
-import time
 
 
 def add_arguments(parser) -> None:
@@ -32,6 +36,16 @@ def add_arguments(parser) -> None:
         action="store_true",
         help="torch.compile the denoising step (~45 s the first time, then cached on disk)",
     )
+    parser.add_argument(
+        "--graph", action="store_true", help="CUDA only: replay encoder + DDIM-16 as one captured CUDA graph"
+    )
+    parser.add_argument(
+        "--modes",
+        default=None,
+        help="comma-separated PRECISION-EXECUTION[-graph] modes timed in one run, e.g. "
+        "bf16-traced,bf16-traced-graph,fp32-traced (EXECUTION: eager | traced | compiled); overrides the switches above",
+    )
+    parser.add_argument("--rtc", action="store_true", help="also time RTC-guided sampling against plain DDIM")
     parser.add_argument("--iters", type=int, default=30, help="timed DDIM-16 runs of the exported policy")
     parser.add_argument("--eager-iters", type=int, default=3, help="timed runs of the eager escnn model")
     parser.add_argument(
@@ -42,26 +56,6 @@ def add_arguments(parser) -> None:
     )
 
 
-def _device_name(device) -> str:
-    import torch
-
-    if device.type == "cuda":
-        return f"cuda: {torch.cuda.get_device_name(device)}"
-    from equidiff_core.machine import cpu_model
-
-    return f"cpu: {cpu_model()}, {torch.get_num_threads()} threads"
-
-
-def _timed(fn, iters, sync):
-    times = []
-    for _ in range(iters):
-        t0 = time.perf_counter()
-        fn()
-        sync()
-        times.append((time.perf_counter() - t0) * 1000)
-    return times
-
-
 def run(args) -> int:
     import tempfile
     from pathlib import Path
@@ -69,16 +63,20 @@ def run(args) -> int:
     import numpy as np
     import torch
 
-    from equidiff_core.config import Workspace
-    from equidiff_core.inference import (
-        CheckpointError,
-        check_device,
-        export_policy,
-        load_inference_policy,
+    from equidiff_core.benchmarks import (
+        InferenceMode,
+        best_mode,
+        device_name,
+        fresh_policy,
+        synchronizer,
+        time_inference_mode,
+        time_inference_modes,
+        timed_ms,
     )
+    from equidiff_core.config import Workspace
+    from equidiff_core.inference import CheckpointError, check_device, export_policy, load_inference_policy
     from equidiff_core.models.equivariance import random_observation
-    from equidiff_core.normalizer import Normalizer
-    from equidiff_core.policies import count_parameters, make_policy
+    from equidiff_core.policies import count_parameters
     from equidiff_core.presets import get_preset
 
     if args.threads:
@@ -90,76 +88,69 @@ def run(args) -> int:
     )
     try:
         check_device(str(device))
+        modes = (
+            [InferenceMode.parse(m) for m in args.modes.split(",")]
+            if args.modes
+            else [InferenceMode(args.precision, _execution(args), args.graph)]
+        )
     except ValueError as err:
         print(f"equidiff bench policy: {err}", file=sys.stderr)
         return 2
-    precision = args.precision
-    if precision == "auto":
-        from equidiff_core.machine import cpu_has_native_bf16
+    if any(m.graph for m in modes) and device.type != "cuda" and not args.modes:
+        print("equidiff bench policy: --graph needs --device cuda", file=sys.stderr)
+        return 2
 
-        precision = "bf16" if device.type == "cuda" or cpu_has_native_bf16() else "fp32"
-    sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
-
-    ws = Workspace()
-    torch.manual_seed(0)
-    load = lambda path: load_inference_policy(
-        path, device=str(device), precision=precision, jit=not args.no_jit, compile=args.compile
-    )
-    if args.checkpoint:
-        try:  # one read: load_inference_policy validates the file and its config (CheckpointError)
-            fast = load(args.checkpoint)
-        except CheckpointError as err:
-            print(f"equidiff bench policy: {err}", file=sys.stderr)
-            return 2
-        policy_name, eager = fast.name, None
-    else:
-        policy_name = args.policy
-        eager = make_policy(policy_name, get_preset(args.preset), ws)
-        eager.set_normalizer(Normalizer.from_workspace(ws))
-        eager.eval().to(device)
-        with tempfile.TemporaryDirectory(prefix="bench_policy_") as tmp:
-            fast = load(export_policy(eager, Path(tmp) / "policy.pt"))
-    params = count_parameters(eager.model) if eager is not None else count_parameters(fast.net)
-
-    vox_t, ee_t = random_observation(_Probe(fast.preset, fast.workspace), batch=1, seed=0, fill=0.05)
-    vox, ee = vox_t[0, 0].numpy(), ee_t[0, 0].numpy()
-    fast.warmup(3)
-    enc = _timed(lambda: fast.encode(vox, ee), max(5, args.iters // 3), sync)
-    cond = fast.encode(vox, ee)
-    x = torch.zeros(1, fast.preset.horizon, fast.codec.dim, device=device)
-    t = torch.tensor([50], device=device)
-    step = _timed(lambda: fast.denoise(x, t, cond), max(10, args.iters), sync)
-    ddim = _timed(lambda: fast.predict(vox, ee, seed=0), args.iters, sync)
-
+    with tempfile.TemporaryDirectory(prefix="bench_policy_") as tmp:
+        if args.checkpoint:
+            try:  # validates the file and its config before anything is timed
+                plain = load_inference_policy(args.checkpoint)
+            except CheckpointError as err:
+                print(f"equidiff bench policy: {err}", file=sys.stderr)
+                return 2
+            path, policy_name, eager = Path(args.checkpoint), plain.name, None
+        else:
+            policy_name = args.policy
+            eager = fresh_policy(policy_name, get_preset(args.preset), Workspace()).eval().to(device)
+            path = export_policy(eager, Path(tmp) / "policy.pt")
+        if args.modes:
+            per_mode = time_inference_modes(path, device, modes, args.iters, args.rtc)
+        else:  # one mode: its errors are the command's
+            per_mode = {modes[0].name: time_inference_mode(path, device, modes[0], args.iters, args.rtc)[0]}
+        first = next((name for name, r in per_mode.items() if "ddim16_median_ms" in r), None)
+        if first is None:
+            print(f"equidiff bench policy: no mode ran: {json.dumps(per_mode)}", file=sys.stderr)
+            return 1
+    # escnn's trainable count; an exported file only holds the expanded (larger) plain weights
+    params = count_parameters(eager.model if eager is not None else plain.net)
     result = {
-        "preset": fast.preset.name,
+        "preset": (eager if eager is not None else plain).preset.name,
         "policy": policy_name,
         "params": params,
-        # escnn's trainable count; an exported file only holds the expanded (larger) plain weights
         "params_kind": "trainable" if eager is not None else "exported",
-        "encoder_ms": round(float(np.median(enc)), 2),
-        "step_ms": round(float(np.median(step)), 2),
-        "ddim16_median_ms": round(float(np.median(ddim)), 2),
-        "ddim16_p99_ms": round(float(np.percentile(ddim, 99)), 2),
+        **per_mode[first],
         "eager_ddim16_median_ms": None,
-        "device": _device_name(device),
-        "precision": precision,
-        "jit": not args.no_jit,
-        "compiled": fast.compiled,
+        "device": device_name(device),
+        "mode": first,
         "iters": args.iters,
+        "torch": torch.__version__,
     }
+    if args.modes:
+        result["modes"] = per_mode
+        result["best_mode"] = best_mode(per_mode)
+        result["best_ddim16_p99_ms"] = per_mode[result["best_mode"]]["ddim16_p99_ms"]
     if eager is not None and args.eager_iters > 0:
-        obs = {"voxels": vox_t.to(device), "ee": ee_t.to(device)}
+        vox, ee = random_observation(eager, batch=1, seed=0, fill=0.05)
+        obs = {"voxels": vox.to(device), "ee": ee.to(device)}
+        sync = synchronizer(device)
         eager.predict_action(obs)  # warm-up (escnn filter expansion, allocator)
-        times = _timed(lambda: eager.predict_action(obs), args.eager_iters, sync)
+        times = timed_ms(lambda: eager.predict_action(obs), args.eager_iters, sync)
         result["eager_ddim16_median_ms"] = round(float(np.median(times)), 2)
         result["speedup_vs_eager"] = round(result["eager_ddim16_median_ms"] / result["ddim16_median_ms"], 2)
     print(json.dumps(result), flush=True)
     return 0
 
 
-class _Probe:
-    """Just enough of a policy for equivariance.random_observation."""
-
-    def __init__(self, preset, workspace):
-        self.preset, self.workspace = preset, workspace
+def _execution(args) -> str:
+    if args.compile:
+        return "compiled"
+    return "eager" if args.no_jit else "traced"

@@ -1,0 +1,339 @@
+"""The measurements behind ``equidiff bench policy`` and ``equidiff bench train``, on the CPU or CUDA.
+
+Inference: an exported policy is loaded once per *mode* (``InferenceMode``: precision, eager /
+traced / compiled, with or without a CUDA graph) and timed on one observation: the encoder, one
+denoising step, the whole DDIM-16 ``predict`` (median and p99, host wall clock after the device
+finished: what the control loop waits for), and optionally RTC-guided ``predict`` against plain
+DDIM. A graph mode also reports how far its actions lie from the same mode without the graph
+(same seed): on CUDA the graph must compute the same function.
+
+Training: the real ``training.train`` loop on synthetic observations (their content does not change
+the cost), timed over ``steps`` optimiser steps after ``warmup`` untimed ones, with the time the
+loop waited for its next batch (``data_s``, training's per-step metric) as a share of the step
+time. The loss is read back every step (``loss.item()``), so the device's queue is empty while the
+host fetches a batch: that wait is time the GPU idles. On CUDA, NVML's utilisation (the share of
+time a kernel was running) is sampled over the timed steps when ``pynvml`` is installed.
+"""
+
+from __future__ import annotations
+
+import tempfile
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from .chunk import RealTimeChunking
+from .inference import load_inference_policy
+from .machine import cpu_description, cpu_model
+from .models.equivariance import random_observation
+from .normalizer import Normalizer
+from .policies import make_policy
+from .training import DATA_SOURCES, PRECISIONS, TrainConfig, train
+
+MODE_PRECISIONS = ("auto", "fp32", "bf16")
+MODE_EXECUTIONS = ("eager", "traced", "compiled")
+
+
+@dataclass(frozen=True)
+class InferenceMode:
+    """How an exported policy runs: ``precision-execution[-graph]``, e.g. ``bf16-traced-graph``."""
+
+    precision: str = "auto"
+    execution: str = "traced"  # eager | traced (jit.trace + freeze) | compiled (traced + torch.compile)
+    graph: bool = False  # CUDA graph replay of the whole sampling
+
+    @property
+    def name(self) -> str:
+        return f"{self.precision}-{self.execution}" + ("-graph" if self.graph else "")
+
+    @classmethod
+    def parse(cls, text: str) -> InferenceMode:
+        parts = text.strip().split("-")
+        graph = parts[-1] == "graph"
+        if graph:
+            parts = parts[:-1]
+        if len(parts) != 2 or parts[0] not in MODE_PRECISIONS or parts[1] not in MODE_EXECUTIONS:
+            raise ValueError(
+                f"inference mode {text!r}: expected PRECISION-EXECUTION[-graph] with PRECISION in "
+                f"{MODE_PRECISIONS} and EXECUTION in {MODE_EXECUTIONS}, e.g. bf16-traced-graph"
+            )
+        return cls(parts[0], parts[1], graph)
+
+    def load(self, path: str | Path, device: torch.device):
+        return load_inference_policy(
+            path,
+            device=str(device),
+            precision=self.precision,
+            jit=self.execution != "eager",
+            compile=self.execution == "compiled",
+            cuda_graph=self.graph,
+        )
+
+
+def device_name(device: torch.device | str) -> str:
+    device = torch.device(device)
+    if device.type == "cuda":
+        return f"cuda: {torch.cuda.get_device_name(device)}"
+    return f"cpu: {cpu_model()}, {torch.get_num_threads()} threads"
+
+
+def synchronizer(device: torch.device | str):
+    """What makes a host clock read after the device's work: CUDA's synchronize, nothing on the CPU."""
+    return torch.cuda.synchronize if torch.device(device).type == "cuda" else (lambda: None)
+
+
+def timed_ms(fn, iters: int, sync) -> list[float]:
+    times = []
+    for _ in range(iters):
+        t0 = time.perf_counter()
+        fn()
+        sync()
+        times.append((time.perf_counter() - t0) * 1000)
+    return times
+
+
+def _ms(value: float) -> float:
+    return round(float(value), 3)
+
+
+class ObservationProbe:
+    """Just enough of a policy for ``models.equivariance.random_observation``."""
+
+    def __init__(self, preset, workspace):
+        self.preset, self.workspace = preset, workspace
+
+
+def probe_observation(preset, workspace, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """One random observation (voxels (4, R, R, R) uint8, ee (10,)) as the policy node passes it."""
+    vox, ee = random_observation(ObservationProbe(preset, workspace), batch=1, seed=seed, fill=0.05)
+    return vox[0, 0].numpy(), ee[0, 0].numpy()
+
+
+def rtc_guide(policy, voxels: np.ndarray, ee: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """A real-time-chunking guide as the policy node builds one: the previous chunk (predicted for
+    this observation two periods ago), latency one period."""
+    previous = policy.predict(voxels, ee, seed=1)
+    dt_ns = round(policy.dt * 1e9)
+    rtc = RealTimeChunking(RealTimeChunking.delay_for(policy.dt, policy.dt), dt_ns, max_gap_m=10.0)
+    rtc.remember(0, previous)
+    return rtc.guide(2 * dt_ns)
+
+
+def time_inference_mode(
+    path: str | Path, device: torch.device, mode: InferenceMode, iters: int, rtc: bool = False
+) -> tuple[dict, dict]:
+    """(figures, actions) of one mode; actions: ``plain`` and ``guided`` (seeded) for comparisons."""
+    sync = synchronizer(device)
+    t0 = time.perf_counter()
+    policy = mode.load(path, device)
+    vox, ee = probe_observation(policy.preset, policy.workspace)
+    policy.warmup(3)
+    sync()
+    load_s = time.perf_counter() - t0
+    enc = timed_ms(lambda: policy.encode(vox, ee), max(5, iters // 3), sync)
+    cond = policy.encode(vox, ee)
+    x = torch.zeros(1, policy.preset.horizon, policy.codec.dim, device=device)
+    t = torch.tensor([50], device=device)
+    step = timed_ms(lambda: policy.denoise(x, t, cond), max(10, iters), sync)
+    ddim = timed_ms(lambda: policy.predict(vox, ee, seed=0), iters, sync)
+    guide = rtc_guide(policy, vox, ee)
+    figures = {
+        "precision": policy.precision,
+        "jit": policy.jit,
+        "compiled": policy.compiled,
+        "graph": policy.graphed,
+        "load_s": round(load_s, 2),
+        "encoder_ms": _ms(np.median(enc)),
+        "step_ms": _ms(np.median(step)),
+        "ddim16_median_ms": _ms(np.median(ddim)),
+        "ddim16_p99_ms": _ms(np.percentile(ddim, 99)),
+    }
+    if rtc:
+        guided = timed_ms(lambda: policy.predict(vox, ee, seed=0, guide=guide), iters, sync)
+        figures["rtc_median_ms"] = _ms(np.median(guided))
+        figures["rtc_p99_ms"] = _ms(np.percentile(guided, 99))
+        figures["rtc_vs_plain"] = round(float(np.median(guided) / np.median(ddim)), 3)
+    actions = {
+        "plain": policy.predict(vox, ee, seed=0),
+        "guided": policy.predict(vox, ee, seed=0, guide=guide),
+    }
+    return figures, actions
+
+
+def time_inference_modes(
+    path: str | Path, device: torch.device, modes: list[InferenceMode], iters: int, rtc: bool = False
+) -> dict[str, dict]:
+    """Each mode's figures, or ``{"error": ...}`` / ``{"skipped": ...}``: one failing mode (a graph that
+    will not capture, a compiler missing) leaves the others measured. Graph modes add
+    ``max_abs_diff_vs_ungraphed`` (plain) and ``rtc_max_abs_diff_vs_ungraphed`` (guided)."""
+    results: dict[str, dict] = {}
+    actions: dict[str, dict] = {}
+    for mode in modes:
+        if mode.graph and torch.device(device).type != "cuda":
+            results[mode.name] = {"skipped": "CUDA graphs need a CUDA device"}
+            continue
+        try:
+            results[mode.name], actions[mode.name] = time_inference_mode(path, device, mode, iters, rtc)
+            if mode.graph:
+                plain = InferenceMode(mode.precision, mode.execution, graph=False)
+                if plain.name not in actions:
+                    actions[plain.name] = time_inference_mode(path, device, plain, 1)[1]
+                for kind, key in (("plain", "max_abs_diff_vs_ungraphed"), ("guided", "rtc_max_abs_diff_vs_ungraphed")):
+                    diff = np.abs(actions[mode.name][kind] - actions[plain.name][kind]).max()
+                    results[mode.name][key] = float(f"{diff:.3g}")
+        except Exception as err:  # noqa: BLE001 - recorded per mode; the other modes still run
+            results[mode.name] = {"error": f"{type(err).__name__}: {(str(err).splitlines() or [''])[0]}"}
+        if torch.device(device).type == "cuda":
+            torch.cuda.empty_cache()
+    return results
+
+
+def best_mode(results: dict[str, dict], key: str = "ddim16_p99_ms") -> str | None:
+    """The measured mode with the smallest ``key``."""
+    measured = {name: r[key] for name, r in results.items() if key in r}
+    return min(measured, key=measured.get) if measured else None
+
+
+class SyntheticTrainingSet:
+    """Random observations with actions around the gripper state (map-style dataset)."""
+
+    def __init__(self, preset, workspace, n: int, seed: int = 0):
+        probe = ObservationProbe(preset, workspace)
+        parts = [random_observation(probe, batch=min(8, n - a), seed=seed + a, fill=0.05) for a in range(0, n, 8)]
+        self.voxels = torch.cat([v for v, _ in parts])
+        self.ee = torch.cat([e for _, e in parts])
+        gen = torch.Generator().manual_seed(seed)
+        self.action = self.ee[:, -1:].repeat(1, preset.horizon, 1)
+        self.action[..., :3] += 0.02 * torch.randn((n, preset.horizon, 3), generator=gen).cumsum(1)
+
+    def __len__(self):
+        return len(self.voxels)
+
+    def __getitem__(self, i):
+        return {"voxels": self.voxels[i], "ee": self.ee[i], "action": self.action[i]}
+
+
+class GpuBusySampler:
+    """Mean NVML utilisation of one GPU while running: the share of time a kernel was executing
+    (NVML's own sampling period is 1/6 to 1 s). ``mean()`` is None without pynvml."""
+
+    def __init__(self, device: torch.device, period_s: float = 0.05):
+        self.device, self.period_s = device, period_s
+        self.samples: list[float] = []
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    def start(self) -> None:
+        try:
+            torch.cuda.utilization(self.device)
+        except Exception:  # noqa: BLE001 - pynvml missing or NVML unusable: no figure, no failure
+            return
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while not self._stop.wait(self.period_s):
+            self.samples.append(float(torch.cuda.utilization(self.device)))
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join()
+
+    def mean(self) -> float | None:
+        return round(float(np.mean(self.samples)), 1) if self.samples else None
+
+
+class _StepClock:
+    """on_step: the host clock after the device finished each step, and the step's wait for data."""
+
+    def __init__(self, device: torch.device, warmup: int, steps: int):
+        self.sync = synchronizer(device)
+        self.warmup, self.last = warmup, warmup + steps
+        self.times: dict[int, float] = {}
+        self.data_s: dict[int, float] = {}
+        self.busy = GpuBusySampler(device) if device.type == "cuda" else None
+
+    def on_step(self, step, metrics):
+        self.sync()
+        self.times[step] = time.perf_counter()
+        self.data_s[step] = float(metrics.get("data_s", 0.0))
+        if self.busy is not None and step == self.warmup:
+            self.busy.start()
+        if self.busy is not None and step == self.last:
+            self.busy.stop()
+
+
+def measure_training(
+    policy,
+    data,
+    device: str,
+    batch_size: int,
+    steps: int,
+    warmup: int,
+    precision: str = "auto",
+    data_source: str = "auto",
+) -> dict:
+    """Samples/s of ``training.train`` on ``device`` (``policy`` trains on: its weights change)."""
+    device_t = torch.device(device)
+    if device_t.type == "cuda":
+        torch.cuda.reset_peak_memory_stats(device_t)
+    clock = _StepClock(device_t, warmup, steps)
+    cfg = TrainConfig(
+        steps=warmup + steps,
+        batch_size=batch_size,
+        warmup_steps=1,
+        device=device,
+        eval_every=0,
+        checkpoint_every=0,
+        log_every=1,
+        precision=precision,
+        data=data_source,
+    )
+    with tempfile.TemporaryDirectory(prefix="bench_train_") as tmp:
+        result = train(policy, data, None, cfg, tmp, callbacks=[clock])
+    seconds = clock.times[warmup + steps] - clock.times[warmup]
+    waited = sum(clock.data_s[s] for s in range(warmup + 1, warmup + steps + 1))
+    out = {
+        "device": device_name(device_t),
+        "batch_size": batch_size,
+        "precision": result.precision,
+        "data": result.data,
+        "steps": steps,
+        "sec_per_step": float(f"{seconds / steps:.4g}"),
+        "samples_per_s": float(f"{batch_size * steps / seconds:.4g}"),
+        "data_wait_share": float(f"{waited / seconds:.3g}"),
+    }
+    if clock.busy is not None:
+        out["gpu_busy_pct"] = clock.busy.mean()
+        out["peak_memory_gb"] = round(torch.cuda.max_memory_allocated(device_t) / 1e9, 2)
+    if device_t.type == "cpu":
+        d = cpu_description()
+        out.update(cores=d["cores"], avx512=d["avx512"], native_bf16=d["bf16"])
+    return out
+
+
+def parse_training_runs(text: str) -> list[tuple[str, str]]:
+    """``"bf16,fp32,bf16:loader"`` -> [(precision, data source), ...] for ``measure_training``."""
+    runs = []
+    for item in text.split(","):
+        precision, _, data_source = item.strip().partition(":")
+        data_source = data_source or "auto"
+        if precision not in PRECISIONS or data_source not in DATA_SOURCES:
+            raise ValueError(
+                f"training run {item!r}: expected PRECISION[:DATA] with PRECISION in {PRECISIONS} "
+                f"and DATA in {DATA_SOURCES}, e.g. bf16:loader"
+            )
+        runs.append((precision, data_source))
+    return runs
+
+
+def fresh_policy(policy_name: str, preset, workspace, seed: int = 0):
+    torch.manual_seed(seed)
+    policy = make_policy(policy_name, preset, workspace)
+    policy.set_normalizer(Normalizer.from_workspace(workspace))
+    return policy
