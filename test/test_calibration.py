@@ -248,6 +248,13 @@ def test_a_plan_outside_the_safety_box_or_the_cone_is_refused_before_anything_mo
     with pytest.raises(CalibrationError, match=r"the turn from pose 1 to pose 2 swings the tool 56\.\d deg"):
         arm.limits.check(turn)
     arm.limits.check(turn[:1] + [_tool_pose([0.45, 0.0, 0.25], 40.0, 0.0, yaw_deg=20.0)])  # a gentler turn is fine
+    # a SpaceMouse target (not a plan) is put where the control loop's filter would keep it
+    wild = plan[2] @ make_pose(np.eye(3), [0.0, 0.0, -0.3])  # 50 deg tilted, 30 cm back along the tool: up and out
+    assert not arm.controller.safety.inside(wild[:3, 3])
+    clamped = arm.limits.clamp(wild)
+    np.testing.assert_allclose(clamped[:3, 3], np.clip(wild[:3, 3], box.min_corner, box.max_corner))
+    assert geometry.tilt_angle(clamped[:3, :3]) == pytest.approx(arm.limits.max_tilt_rad)
+    arm.limits.check([arm.limits.clamp(plan[1]), clamped])
 
     # the planner: never asked to tilt past the cone, and what it plans passes the check
     models = [twin_camera_model(c, replace(TwinConfig().render, width=1280, height=720)) for c in LAB.cameras]

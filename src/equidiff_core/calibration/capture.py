@@ -166,18 +166,25 @@ class ControlledArm:
         if not self.offer(chunk):
             raise CalibrationError(f"the control loop refused the motion: {self.controller.stats.last_rejection}")
 
-    def move_to(self, T: np.ndarray) -> tuple[np.ndarray, None]:
-        """Glide to ``T`` through the control loop; the measured TCP once the arm rests there."""
-        self.start()
+    def glide(self, T: np.ndarray) -> PoseChunk:
+        """The glide from the current command to ``T`` (checked against ``limits``), ``T`` then held
+        for 5 min, until the next move replaces it: after a chunk's last step franka_node's watchdog
+        holds wherever the arm *is*, which a still settling arm would carry into the capture, and on
+        a busy machine a glide plus a capture took over 30 s."""
         command = self.controller.last_command
         here = command.target.pose if command is not None else self.tcp_pose()
         self.limits.check([T], start=here)
-        now = self.controller.clock.now_ns()
         width = self.read_state().gripper_width  # left as it is (NaN without a gripper: the hand's open width)
         width = width if np.isfinite(width) else self.limits.control.safety.max_gripper_width_m
-        # The goal is held for 5 min (until the next move replaces it): after a chunk's last step the
-        # watchdog holds wherever the arm is, and on a busy machine a glide plus a capture took > 30 s.
-        self.submit(glide_chunk(here, T, now, self.speed_m_s, self.angular_speed_rad_s, 300.0, width))
+        now = self.controller.clock.now_ns()
+        return glide_chunk(here, T, now, self.speed_m_s, self.angular_speed_rad_s, 300.0, width)
+
+    def move_to(self, T: np.ndarray) -> tuple[np.ndarray, None]:
+        """Glide to ``T`` through the control loop; the measured TCP once the arm rests there."""
+        self.start()
+        chunk = self.glide(T)
+        now = chunk.stamp_ns
+        self.submit(chunk)
         # Arrived when the loop's own command has reached the goal (on a sim slower than real time
         # the speed limits, applied in robot time, make that later than the chunk says).
         deadline = time.monotonic() + self.move_timeout_s

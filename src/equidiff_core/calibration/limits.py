@@ -49,6 +49,13 @@ class MotionLimits:
     def max_tilt_rad(self) -> float:
         return self.control.safety.max_tilt_rad
 
+    def clamp(self, T: np.ndarray) -> np.ndarray:
+        """``T`` moved into the box and tilted back into the cone, as the control loop's filter
+        would (for a target that is not a plan: the SpaceMouse's, at a capture)."""
+        safety = SafetyFilter(self.box, self.control.safety)
+        R = geometry.limit_tilt(np.asarray(T[:3, :3], dtype=np.float64), self.max_tilt_rad)
+        return geometry.make_pose(R, safety.clip_position(T[:3, 3]))
+
     def check(self, poses: list[np.ndarray], start: np.ndarray | None = None) -> None:
         """Raise CalibrationError naming every pose (and every move between them, from ``start``
         when given) that leaves the safety box or the orientation cone."""

@@ -73,7 +73,8 @@ def capture_operator(
             if CAPTURE_BUTTON in pressed:
                 hold = TeleopInput((0.0,) * 6, (), now)
                 integrator.step(hold, dt)
-                offer(integrator.chunk(arm.controller.clock.now_ns()))  # the newest target, then rest there
+                # the newest target (where the filter keeps it), held there while the arm settles
+                offer(arm.glide(arm.limits.clamp(integrator.target)))
                 measured = arm.wait_at_rest()
                 frames = grab(None)
                 dets = {n: d for n, d in ((n, detector.detect(img)) for n, img in frames.items()) if d is not None}
