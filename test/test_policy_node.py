@@ -452,18 +452,20 @@ def test_an_announced_episode_samples_like_the_in_process_evaluation(ros_domain,
 @pytest.mark.ros
 @pytest.mark.slow
 def test_latency_auto_measures_on_the_sim_clock_converges_and_bridges(ros_domain, checkpoint):
-    """``latency_s`` auto (the default) on simulated time: the test owns /clock and holds it at
-    each observation's stamp + 0.3 s (then + 0.5 s) while the policy answers, so every chunk is
-    published exactly that long after its observation on the node's clock. The estimate in
-    /diagnostics converges to it plus the 10 ms transport allowance, each chunk carries
-    k + ceil(L/dt) + 1 steps (k = 1 here), so its last step lies past the next chunk's arrival,
-    and real-time chunking's delay follows L."""
+    """Defaults (``latency_s`` auto, ``execute_steps`` 0) on simulated time: the test owns /clock
+    and holds it at each observation's stamp + 0.3 s (later + 1.9 s) while the policy answers, so
+    every chunk is published exactly that long after its observation on the node's clock. The
+    estimate in /diagnostics converges to it plus the 10 ms transport allowance; each chunk
+    carries k + ceil(L/dt) + 1 steps (at most 16), k = 8 while that bridges L and fewer once it
+    does not (5 at 1.9 s), so every chunk lasts until the next one arrives except where the
+    latency jumped unforeseen; real-time chunking's delay follows L."""
     import rclpy
     from diagnostic_msgs.msg import DiagnosticArray
     from geometry_msgs.msg import PoseStamped
     from rclpy.executors import MultiThreadedExecutor
     from rosgraph_msgs.msg import Clock
     from sensor_msgs.msg import JointState, PointCloud2
+    from std_msgs.msg import String
     from trajectory_msgs.msg import MultiDOFJointTrajectory
 
     from equidiff_core import geometry
@@ -477,6 +479,7 @@ def test_latency_auto_measures_on_the_sim_clock_converges_and_bridges(ros_domain
         TOPIC_DIAGNOSTICS,
         TOPIC_EE_POSE,
         TOPIC_JOINT_STATES,
+        TOPIC_POLICY_SKIPPED,
         TOPIC_VOXELS,
     )
     from equidiff_ros.policy_node import PolicyNode
@@ -488,16 +491,15 @@ def test_latency_auto_measures_on_the_sim_clock_converges_and_bridges(ros_domain
         "checkpoint": str(checkpoint),
         "lab_config": str(LAB_PATH),
         "use_sim_time": True,
-        "execute_steps": 1,
         "rtc": True,
         "seed": 0,
-        "max_observation_age_s": 2.0,
+        "max_observation_age_s": 5.0,
     }
     args = [a for k, v in params.items() for a in ("-p", f"{k}:={str(v).lower() if isinstance(v, bool) else v}")]
     rclpy.init(args=["--ros-args", *args])
     sim_ns = [1_000_000_000]  # the clock the test node publishes (every 10 ms, so none is lost for long)
     stop = threading.Event()
-    chunks, diagnostics = {}, []
+    chunks, skipped, diagnostics = {}, set(), []
     executor = policy = None
     try:
         io = rclpy.create_node("latency_test_io")
@@ -518,6 +520,9 @@ def test_latency_auto_measures_on_the_sim_clock_converges_and_bridges(ros_domain
             TOPIC_COMMAND_CHUNK,
             lambda m: chunks.setdefault(stamp_to_ns(m.header.stamp), chunk_from_msg(m)),
             RELIABLE_QOS,
+        )
+        io.create_subscription(
+            String, TOPIC_POLICY_SKIPPED, lambda m: skipped.add(json.loads(m.data)["stamp_ns"]), RELIABLE_QOS
         )
 
         def on_diagnostics(msg):
@@ -540,21 +545,21 @@ def test_latency_auto_measures_on_the_sim_clock_converges_and_bridges(ros_domain
         grid = block_grid(ws)
         latencies = {}  # observation stamp -> its chunk's latency on the sim clock
         stamp = 10_000_000_000
-        for i in range(10):
-            latency_ns = 300_000_000 if i < 4 else 500_000_000
+        while len(chunks) < 7:
+            latency_ns = 300_000_000 if len(chunks) < 3 else 1_900_000_000
             for _ in range(3):  # the state at the observation's stamp, before the observation
                 pub_pose.publish(cm.pose_stamped(factory, pose, stamp, lab.base_frame))
                 pub_joints.publish(cm.joint_state(factory, state, stamp))
             time.sleep(0.1)
-            sim_ns[0] = stamp + latency_ns  # held there until the chunk is out
+            sim_ns[0] = stamp + latency_ns  # held there until the observation is answered or skipped
             deadline = time.monotonic() + 10.0
             while policy.get_clock().now().nanoseconds != sim_ns[0] and time.monotonic() < deadline:
                 time.sleep(0.01)
             pub_voxels.publish(grid_to_voxel_msg(grid, ws.lower, ws.voxel_size, stamp, lab.base_frame, factory))
             deadline = time.monotonic() + 60.0
-            while stamp not in chunks and time.monotonic() < deadline:
-                time.sleep(0.02)
-            assert stamp in chunks, f"no chunk for observation {i}"
+            while stamp not in chunks and stamp not in skipped and time.monotonic() < deadline:
+                time.sleep(0.01)
+            assert stamp in chunks or stamp in skipped, f"observation {stamp} neither answered nor skipped"
             latencies[stamp] = latency_ns
             stamp += 200_000_000
         deadline = time.monotonic() + 30.0  # the 1 Hz diagnostics after the last chunk (sim time is held)
@@ -572,12 +577,15 @@ def test_latency_auto_measures_on_the_sim_clock_converges_and_bridges(ros_domain
             policy.destroy_node()
         rclpy.try_shutdown()
     stamps = sorted(chunks)
-    # k + ceil((L + 10 ms) / dt) + 1: 1 + 2 + 1 at 0.3 s; at 0.5 s, 1 + 3 + 1 (p95 of the window reacts at once)
-    assert [len(chunks[s]) for s in stamps] == [4] * 4 + [5] * 6
-    assert diagnostics[-1]["latency_s"] == "auto"
-    assert float(diagnostics[-1]["latency_estimate_ms"]) == pytest.approx(510.0)
-    assert int(diagnostics[-1]["publish_steps"]) == 5
-    assert delay_steps == 3  # RTC: floor(0.51 / 0.2) + 1 steps are due before a chunk arrives
+    periods = [round((new - old) / 200_000_000) for old, new in itertools.pairwise(stamps)]
+    # 0.3 s: k = 8, 8 + ceil(0.31 / 0.2) + 1 = 11 steps; 1.9 s: the 16 predicted, k down to 16 - 10 - 1 = 5
+    assert [len(chunks[s]) for s in stamps] == [11] * 3 + [16] * 4
+    assert periods[:3] == [8, 8, 8] and periods[-1] == 5
+    last = diagnostics[-1]
+    assert last["latency_s"] == "auto" and float(last["latency_estimate_ms"]) == pytest.approx(1910.0)
+    assert int(last["execute_steps"]) == 5 and int(last["publish_steps"]) == 16
+    assert float(last["latency_bridged_max_ms"]) == pytest.approx(2800.0)
+    assert delay_steps == 10  # RTC: floor(1.91 / 0.2) + 1 steps are due before a chunk arrives
     # every chunk lasts until the next one arrives, except where the latency jumped unforeseen
     for old, new in itertools.pairwise(stamps):
         bridged = chunks[old].times_ns[-1] >= new + latencies[new]

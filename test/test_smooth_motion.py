@@ -11,6 +11,7 @@ import pytest
 from equidiff_core.chunk import (
     DEFAULT_TRANSPORT_S,
     LatencyEstimate,
+    bridging_execute_steps,
     max_bridged_latency_s,
     steps_to_publish,
 )
@@ -38,12 +39,15 @@ def test_latency_estimate_fixed_off_and_bad_settings():
 def test_latency_auto_converges_to_a_high_percentile_of_the_recent_measurements():
     est = LatencyEstimate("auto", initial_s=1.4)
     assert est.source == "auto (initial)" and est.value_s == 1.4
+    for value in (0.3, 0.3, 0.3, 0.5):  # few measurements: the largest
+        est.add(value)
+    assert est.value_s == pytest.approx(0.5 + DEFAULT_TRANSPORT_S)
     rng = np.random.default_rng(0)
     for value in 0.30 + 0.02 * rng.standard_normal(200):
         est.add(value)
     recent = list(est.measured)
     assert len(recent) == LatencyEstimate.WINDOW and est.source == "auto"
-    assert est.value_s == pytest.approx(np.percentile(recent, 95) + DEFAULT_TRANSPORT_S)
+    assert est.value_s == pytest.approx(sorted(recent)[18] + DEFAULT_TRANSPORT_S)  # p95 of 20: the 19th
     assert 0.30 + DEFAULT_TRANSPORT_S < est.value_s < 0.30 + 0.06 + DEFAULT_TRANSPORT_S
     est.add(0.9)  # one slow cycle in the window is an outlier...
     assert est.value_s < 0.4
@@ -59,33 +63,52 @@ def test_latency_auto_converges_to_a_high_percentile_of_the_recent_measurements(
 def plan_gaps(latencies_s, execute_steps: int, latency_setting="auto") -> list[float]:
     """Seconds each chunk boundary would stand still when policy_node sizes its chunks from
     ``LatencyEstimate`` (as it does: this chunk's own latency counts before it is sized): the
-    observation answered every ``execute_steps`` periods, its chunk arriving ``latency`` later,
-    and the previous chunk's last step at its stamp + (steps - 1) dt."""
-    est = LatencyEstimate(latency_setting, initial_s=max_bridged_latency_s(execute_steps, DT, AVAILABLE))
-    gaps, previous_end = [], None
-    for i, latency in enumerate(latencies_s):
-        stamp = i * execute_steps * DT
+    observation answered every k periods (``execute_steps``; 0: policy_node's default, 8 or fewer
+    when L needs it), its chunk arriving ``latency`` later, and the previous chunk's last step at
+    its stamp + (steps - 1) dt."""
+    est = LatencyEstimate(latency_setting)
+    gaps, previous_end, stamp, k = [], None, 0.0, execute_steps or 8
+    for latency in latencies_s:
         arrival = stamp + latency
         if previous_end is not None:
             gaps.append(max(0.0, arrival - previous_end))
         est.add(latency)
-        steps = 8 if est.off else steps_to_publish(execute_steps, est.value_s, DT, AVAILABLE)
+        steps = 8 if est.off else steps_to_publish(k, est.value_s, DT, AVAILABLE)
         previous_end = stamp + (steps - 1) * DT
+        if not execute_steps and not est.off:  # the next answer comes after k' periods, sized by L
+            k = bridging_execute_steps(8, est.value_s, DT, AVAILABLE)
+        stamp += k * DT
     return gaps
 
 
-@pytest.mark.parametrize("execute_steps", [1, 4, 8])
+@pytest.mark.parametrize("execute_steps", [1, 4, 8, 0])
 def test_chunks_sized_by_the_estimate_bridge_the_measured_latency(execute_steps):
     rng = np.random.default_rng(execute_steps)
     latencies = list(0.35 + 0.05 * rng.random(40))  # a jittery 350-400 ms
-    gaps = plan_gaps(latencies, execute_steps)
-    assert max(gaps) == 0.0  # the arm never stands at a boundary
+    assert max(plan_gaps(latencies, execute_steps)) == 0.0  # the arm never stands at a boundary
     # without the estimate (the former default: whole chunks of 8, latency off) it stands dt + L each time
     if execute_steps == 8:
         assert min(plan_gaps(latencies, 8, -1)) == pytest.approx(DT + 0.35, abs=1e-9 + 0.05)
-    # a latency beyond what the horizon can bridge cannot be hidden: the gap is the excess
-    too_long = max_bridged_latency_s(execute_steps, DT, AVAILABLE) + 0.3
-    assert plan_gaps([too_long] * 5, execute_steps)[-1] == pytest.approx(0.3)
+    # a latency beyond what k's chunks can bridge: with k fixed the gap is the excess; the default
+    # k (0) answers sooner and bridges it, up to (16 - 1 - 1) dt with k = 1
+    k_max = max_bridged_latency_s(execute_steps or 1, DT, AVAILABLE)
+    if execute_steps:
+        assert plan_gaps([k_max + 0.3] * 5, execute_steps)[-1] == pytest.approx(0.3)
+    else:
+        assert plan_gaps([1.9] * 10, 0) == [0.0] * 9  # k = 5: 5 + 10 + 1 = 16 steps
+        assert plan_gaps([k_max + 0.3] * 5, 0)[-1] == pytest.approx(0.3)
+
+
+def test_the_default_execution_horizon_shortens_only_when_the_latency_needs_it():
+    assert [bridging_execute_steps(8, L, DT, AVAILABLE) for L in (0.0, 0.1, 1.4, 1.41, 1.9, 2.8, 5.0)] == [
+        8,
+        8,
+        8,
+        7,
+        5,
+        1,
+        1,
+    ]
 
 
 def test_max_bridged_latency_is_the_inverse_of_steps_to_publish():

@@ -111,6 +111,14 @@ def steps_to_publish(execute_steps: int, latency_s: float, dt_s: float, availabl
     return min(int(available), int(execute_steps) + math.ceil(round(latency_s / dt_s, 6)) + 1)
 
 
+def bridging_execute_steps(n_action_steps: int, latency_s: float, dt_s: float, available: int) -> int:
+    """policy_node's default k (``execute_steps`` 0) while it bridges a latency: all ``n_action_steps``,
+    or fewer when L is too long for them (the largest k with k + ceil(L/dt) + 1 <= ``available``:
+    the next observation is answered sooner, so its chunk still comes before this one runs out),
+    at least 1."""
+    return max(1, min(int(n_action_steps), int(available) - math.ceil(round(latency_s / dt_s, 6)) - 1))
+
+
 def max_bridged_latency_s(execute_steps: int, dt_s: float, available: int) -> float:
     """The longest latency that chunks of at most ``available`` steps still bridge (``steps_to_publish``'s
     inverse): beyond it the arm stands at each chunk's last step until the next chunk arrives."""
@@ -132,10 +140,12 @@ class LatencyEstimate:
 
     ``auto`` measures what policy_node can see: its observation's stamp to the chunk's
     publication, on the node's clock (the sim clock on simulated time), plus ``transport_s`` for
-    what it cannot see (DDS delivery to franka_node and the control tick that applies the chunk:
-    milliseconds on one host). The estimate is the ``percentile`` (95) of the last ``window`` (20)
-    measurements plus ``transport_s``: a high percentile because an underestimate leaves the arm
-    standing at each boundary while an overestimate only publishes a step the next chunk replaces.
+    what it cannot see (DDS delivery to franka_node and the control tick that applies the chunk).
+    The estimate is the ``PERCENTILE`` (95) of the last ``WINDOW`` (20) measurements, taken as the
+    nearest measurement (the largest while fewer than 10 are in, the second largest of 20: one
+    outlier is ignored, two count at once), plus ``transport_s``: a high percentile because an
+    underestimate leaves the arm standing at each boundary while an overestimate only publishes
+    a step the next chunk replaces.
     Before the first measurement it is ``initial_s``, which the node sets to the most its chunks
     can bridge, for the same reason."""
 
@@ -173,7 +183,7 @@ class LatencyEstimate:
             return None if self.off else self.fixed_s
         if not self.measured:
             return self.initial_s
-        return float(np.percentile(self.measured, self.PERCENTILE)) + self.transport_s
+        return float(np.percentile(self.measured, self.PERCENTILE, method="nearest")) + self.transport_s
 
     @property
     def source(self) -> str:

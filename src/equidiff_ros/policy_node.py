@@ -45,7 +45,8 @@ Parameters: ``checkpoint`` (exported policy file, required), ``device`` (cpu | c
 ``max_observation_age_s``, ``max_state_offset_s``, ``seed`` (the noise outside an announced
 episode; -1: random), ``n_action_steps`` (steps published per chunk; 0, the default: enough to
 bridge the latency below, or the preset's with ``latency_s`` -1), ``execute_steps`` (k: how many
-steps of a chunk run before the next observation is answered; 0: all ``n_action_steps``, the
+steps of a chunk run before the next observation is answered; 0: all ``n_action_steps``, or fewer
+when the latency is too long for them to bridge (``chunk.bridging_execute_steps``), the
 default, chosen by measurement: in the twin's closed-loop evaluation whole chunks solved 4 of
 10 scenes where a new chunk every observation solved 1, docs/evaluation_scheme.md; 1: answer
 every observation; the others are announced on /policy/skipped as ``executing``),
@@ -100,6 +101,7 @@ from equidiff_core.chunk import (
     LatencyEstimate,
     RealTimeChunking,
     SamplingSeeds,
+    bridging_execute_steps,
     chunk_from_actions,
     chunk_to_msg,
     max_bridged_latency_s,
@@ -197,10 +199,14 @@ class PolicyNode(Node):
         self.dt_ns = round(preset.dt * 1e9)
         self.answers = AnswerSchedule(execute_steps, self.n_action_steps, self.dt_ns)
         self.available_steps = preset.horizon - preset.n_obs_steps + 1  # predicted from the observation on
-        self.max_bridged_s = max_bridged_latency_s(self.answers.steps, preset.dt, self.available_steps)
-        # L: fixed, off, or measured online; until measured, the most the chunks can bridge
-        self.latency = LatencyEstimate(latency_s, transport_s, initial_s=self.max_bridged_s)
+        self.latency = LatencyEstimate(latency_s, transport_s)  # L: fixed, off, or measured online
         self.fixed_steps = bool(n_steps) or self.latency.off  # n_action_steps per chunk, whatever L
+        # execute_steps 0 while bridging: all n_action_steps, fewer when L is too long for them
+        self.adaptive_steps = not execute_steps and not self.fixed_steps
+        self.max_bridged_s = max_bridged_latency_s(
+            1 if self.adaptive_steps else self.answers.steps, preset.dt, self.available_steps
+        )
+        self.latency.initial_s = self.max_bridged_s  # until measured: the most the chunks can bridge
         self.last_publish_steps = 0
         # real-time chunking: each chunk denoised towards the previous one (None: plain DDIM, as without it);
         # its delay (the steps due before a chunk arrives) follows L, set before each inference
@@ -214,7 +220,8 @@ class PolicyNode(Node):
         self.get_logger().info(
             f"loaded {self.policy.name} policy '{preset.name}' from {checkpoint} on {device} ({precision}) "
             f"and warmed up in {time.perf_counter() - t0:.1f} s; executing {self.answers.steps} steps of dt "
-            f"{preset.dt} s before the next answer; publishing {self.describe_steps()}"
+            f"{preset.dt} s before the next answer{' (fewer if the latency needs it)' if self.adaptive_steps else ''}; "
+            f"publishing {self.describe_steps()}"
             f"{'; real-time chunking' if self.chunking is not None else ''}"
         )
 
@@ -262,6 +269,13 @@ class PolicyNode(Node):
         if self.fixed_steps:
             return self.n_action_steps
         return steps_to_publish(self.answers.steps, self.latency_s(), self.dt_ns / 1e9, self.available_steps)
+
+    def follow_latency(self) -> None:
+        """With ``execute_steps`` 0 while bridging: k for the current L (call with ``self._lock`` held)."""
+        if self.adaptive_steps:
+            self.answers.steps = bridging_execute_steps(
+                self.n_action_steps, self.latency_s(), self.dt_ns / 1e9, self.available_steps
+            )
 
     def describe_steps(self) -> str:
         if self.fixed_steps:
@@ -382,6 +396,8 @@ class PolicyNode(Node):
                 self.skipped["paused"] += 1
                 self.pub_skipped.publish(String(data=json.dumps({"stamp_ns": int(stamp), "reason": "paused"})))
                 return
+            with self._lock:
+                self.follow_latency()
             if not self.answers.due(stamp):
                 # the last chunk is still being executed: no warning, this is the schedule
                 self.skipped["executing"] += 1
@@ -425,6 +441,7 @@ class PolicyNode(Node):
             inference = time.perf_counter() - t0
             with self._lock:  # this chunk's own latency (it is published next) sizes it for the next one
                 self.latency.add((now_ns(self) - stamp) / 1e9)
+                self.follow_latency()  # the next answer's k, which this chunk must outlast
                 steps = self.publish_steps()
             chunk = chunk_from_actions(actions[:steps], stamp, self.dt_ns)
             if self._paused:  # paused while it ran: the operator has the arm now
@@ -473,6 +490,7 @@ class PolicyNode(Node):
                 "latency_estimate_ms": -1.0 if latency is None else round(latency * 1000, 1),
                 "latency_bridged_max_ms": round(self.max_bridged_s * 1000, 1),
                 "publish_steps": self.last_publish_steps,
+                "execute_steps": self.answers.steps,
             }
         )
         stale = self.skipped["stale_observation"] + self.skipped["no_observation"]
@@ -483,6 +501,7 @@ class PolicyNode(Node):
             message += (
                 f"; latency {latency * 1000:.0f} ms exceeds the {self.max_bridged_s * 1000:.0f} ms the chunks can "
                 f"bridge (execute_steps {self.answers.steps}): the arm stands still at each chunk boundary"
+                + ("" if self.adaptive_steps else "; a lower execute_steps (or 0) bridges more")
             )
         if self._paused:
             message = f"paused ({self._paused}), no chunks; {message}"

@@ -41,6 +41,7 @@ from ..chunk import (
     PoseChunk,
     RealTimeChunking,
     SamplingSeeds,
+    bridging_execute_steps,
     chunk_from_actions,
     steps_to_publish,
 )
@@ -124,7 +125,8 @@ def evaluate_policy(
     twin's default budget); the policy answers every ``execute_steps``-th observation (0: every
     ``n_action_steps``-th, policy_node's default) and publishes ``publish_steps`` steps of each
     chunk (None, the default: enough to bridge ``latency_s``, as policy_node given that latency, which
-    the live twin passes it; 0: ``n_action_steps``); with ``rtc`` (default policy_node's) each chunk is
+    the live twin passes it, with ``execute_steps`` 0 lowered as policy_node lowers it when L is too
+    long for n_action_steps; 0: ``n_action_steps``); with ``rtc`` (default policy_node's) each chunk is
     denoised towards the previous one (``chunk.RealTimeChunking``, its delay from ``latency_s``); see the
     module doc. The policy's sampling seeds are ``chunk.SamplingSeeds``' for the episode's seed. ``probe``
     (e.g. ``twin.chunking.ChunkingProbe``) sees each episode's chunks as franka_node's
@@ -132,10 +134,12 @@ def evaluate_policy(
     from .demos import DirectRecorder, DirectWorld
 
     preset = policy.preset
-    execute_steps = AnswerSchedule(execute_steps, int(preset.n_action_steps), 1).steps  # checked up front
     if not (math.isfinite(latency_s) and latency_s >= 0):
         raise ValueError(f"latency_s must be finite and >= 0, got {latency_s}")
     available = preset.horizon - preset.n_obs_steps + 1  # the predicted steps from the observation on
+    if publish_steps is None and not execute_steps:  # policy_node's default k while it bridges L
+        execute_steps = bridging_execute_steps(preset.n_action_steps, latency_s, preset.dt, available)
+    execute_steps = AnswerSchedule(execute_steps, int(preset.n_action_steps), 1).steps  # checked up front
     if publish_steps is None:
         publish_steps = steps_to_publish(execute_steps, latency_s, preset.dt, available)
     if publish_steps and not 1 <= publish_steps <= available:
