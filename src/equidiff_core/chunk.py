@@ -142,7 +142,7 @@ class LatencyEstimate:
     publication, on the node's clock (the sim clock on simulated time), plus ``transport_s`` for
     what it cannot see (DDS delivery to franka_node and the control tick that applies the chunk).
     The estimate is the ``PERCENTILE`` (95) of the last ``WINDOW`` (20) measurements, taken as the
-    nearest measurement (the largest while fewer than 10 are in, the second largest of 20: one
+    nearest measurement (the largest while 11 or fewer are in, the second largest of 20: one
     outlier is ignored, two count at once), plus ``transport_s``: a high percentile because an
     underestimate leaves the arm standing at each boundary while an overestimate only publishes
     a step the next chunk replaces.
