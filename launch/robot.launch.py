@@ -11,7 +11,10 @@ teleop_node (SpaceMouse via the spacenav driver's /spacenav/joy, or
 start|success|failure|discard`` from any terminal (its keyboard needs a terminal, which nodes
 under ros2 launch do not have). With ``teleop_source:=joy`` (the default) the spacenav driver
 (``spacenav`` package, ``spacenav_node``; it needs spacenavd running) is started too. Everything
-reads config/lab.yaml (cameras, extrinsics, robot IP).
+reads config/lab.yaml (cameras, extrinsics, robot IP). The policy's chunk execution
+(``execute_steps``, ``latency_s``, ``latency_transport_s``, ``rtc``, ``n_action_steps``) are launch
+arguments with policy_node's defaults: by default each chunk bridges the measured latency, so the
+arm does not stand still between chunks.
 """
 
 from pathlib import Path
@@ -30,6 +33,31 @@ try:
     SHARE = Path(get_package_share_directory("equidiff_ros"))
 except (ImportError, LookupError):  # a source checkout (PackageNotFoundError is a KeyError)
     SHARE = Path(__file__).resolve().parents[1]
+
+
+# How policy_node executes chunks (docs/control.md, "Chunk execution"), with the node's own
+# defaults (equidiff_core.chunk.DEFAULT_*; test_launch_files.py checks they agree).
+EXECUTION_PARAMETERS = ("execute_steps", "latency_s", "latency_transport_s", "rtc", "n_action_steps")
+
+
+def execution_arguments() -> list:
+    return [
+        DeclareLaunchArgument(
+            "execute_steps", default_value="0", description="steps of a chunk run before the next answer (0: all 8)"
+        ),
+        DeclareLaunchArgument(
+            "latency_s",
+            default_value="auto",
+            description="observation-to-arrival latency each chunk bridges: auto (measured), seconds, or -1 (off)",
+        ),
+        DeclareLaunchArgument(
+            "latency_transport_s", default_value="0.01", description="added to the measured latency (auto)"
+        ),
+        DeclareLaunchArgument("rtc", default_value="false", description="real-time chunking"),
+        DeclareLaunchArgument(
+            "n_action_steps", default_value="0", description="steps published per chunk (0: enough to bridge L)"
+        ),
+    ]
 
 
 def generate_launch_description():
@@ -55,6 +83,7 @@ def generate_launch_description():
             DeclareLaunchArgument("operator", default_value=""),
             DeclareLaunchArgument("output_dir", default_value="bags"),
             DeclareLaunchArgument("lab_config", default_value=str(SHARE / "config" / "lab.yaml")),
+            *execution_arguments(),
             Node(
                 package="equidiff_ros",
                 executable="camera_node",
@@ -88,6 +117,7 @@ def generate_launch_description():
                         "precision": LaunchConfiguration("precision"),
                         "start_paused": True,
                         "rtc_max_gap_m": jump_limit_m,
+                        **{name: LaunchConfiguration(name) for name in EXECUTION_PARAMETERS},
                     }
                 ],
             ),

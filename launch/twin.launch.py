@@ -13,7 +13,10 @@ and the JSON line; when it exits, the whole launch shuts down. Use a private ROS
 
 ``clock:=sim`` (default): twin_node publishes /clock and steps in lockstep with the pipeline;
 every other node gets use_sim_time and the cameras take the frames the sim requests
-(docs/twin.md). ``latency_ms`` is the latency budget L.
+(docs/twin.md). ``latency_ms`` is the latency budget L. The policy's chunk execution
+(``execute_steps``, ``latency_s``, ``latency_transport_s``, ``rtc``, ``n_action_steps``) are launch
+arguments with policy_node's defaults; on ``clock:=sim`` ``latency_s:=auto`` is the budget L, which
+the twin imposes exactly.
 """
 
 from pathlib import Path
@@ -46,6 +49,30 @@ except (ImportError, LookupError):  # a source checkout (PackageNotFoundError is
 
 CAMERAS = ("cam_front", "cam_left", "cam_right")  # the names in lab.yaml
 
+# How policy_node executes chunks (docs/control.md, "Chunk execution"), with the node's own
+# defaults (equidiff_core.chunk.DEFAULT_*; test_launch_files.py checks they agree).
+EXECUTION_PARAMETERS = ("execute_steps", "latency_s", "latency_transport_s", "rtc", "n_action_steps")
+
+
+def execution_arguments() -> list:
+    return [
+        DeclareLaunchArgument(
+            "execute_steps", default_value="0", description="steps of a chunk run before the next answer (0: all 8)"
+        ),
+        DeclareLaunchArgument(
+            "latency_s",
+            default_value="auto",
+            description="observation-to-arrival latency each chunk bridges: auto (measured), seconds, or -1 (off)",
+        ),
+        DeclareLaunchArgument(
+            "latency_transport_s", default_value="0.01", description="added to the measured latency (auto)"
+        ),
+        DeclareLaunchArgument("rtc", default_value="false", description="real-time chunking"),
+        DeclareLaunchArgument(
+            "n_action_steps", default_value="0", description="steps published per chunk (0: enough to bridge L)"
+        ),
+    ]
+
 
 def generate_launch_description():
     lab = LaunchConfiguration("lab_config")
@@ -58,6 +85,7 @@ def generate_launch_description():
     sim = PythonExpression(["'", clock, "' == 'sim'"])
     common = {"lab_config": lab, "use_sim_time": sim}
     clouds = {"reliable_clouds": sim}  # lockstep: no frame owed a chunk may be lost in transport
+    latency, budget_ms = LaunchConfiguration("latency_s"), LaunchConfiguration("latency_ms")
     nodes = [
         Node(
             package="equidiff_ros",
@@ -110,6 +138,12 @@ def generate_launch_description():
                     "device": LaunchConfiguration("device"),
                     "precision": LaunchConfiguration("precision"),
                     "rtc_max_gap_m": jump_limit_m,
+                    **{name: LaunchConfiguration(name) for name in EXECUTION_PARAMETERS},
+                    # on simulated time the twin holds each chunk until its stamp + latency_ms exactly
+                    # (as `equidiff twin run` does): auto then means that budget, known, not measured
+                    "latency_s": PythonExpression(
+                        ["'", latency, "' if '", latency, "' != 'auto' or not ", sim, " else ", budget_ms, " / 1000.0"]
+                    ),
                 }
             ],
             remappings=[("/franka/command_chunk", "/twin/policy_chunk")],
@@ -164,6 +198,7 @@ def generate_launch_description():
             ),
             DeclareLaunchArgument("clock", default_value="sim", description="sim (lockstep, /clock) or realtime"),
             DeclareLaunchArgument("latency_ms", default_value="100", description="latency budget L (clock:=sim)"),
+            *execution_arguments(),
             DeclareLaunchArgument("out", default_value="runs/twin_launch"),
             DeclareLaunchArgument("lab_config", default_value=str(SHARE / "config" / "lab.yaml")),
             DeclareLaunchArgument("twin_config", default_value=str(SHARE / "config" / "twin.yaml")),

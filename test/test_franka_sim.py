@@ -119,6 +119,7 @@ def test_curve_is_tracked_smoothly_and_held_when_commands_stop(franka):
     assert r["tracking_rms_mm"] <= 5.0, r
     assert r["velocity_reversals"] == 0, r
     assert r["command_velocity_reversals"] == 0, r
+    assert r["track_chunk_switches"] > 0 and r["track_standstill_total_s"] == 0.0, r  # no stop at a switch
     assert r["hold_drift_mm"] <= 10.0, r
     assert proc.poll() is None
 

@@ -89,3 +89,51 @@ def test_robot_launch_policy_mode_starts_paused():
 def test_robot_launch_policy_only_in_policy_mode():
     assert ("equidiff_ros", "policy_node") not in started_nodes("robot.launch.py", mode="teleop")
     assert ("equidiff_ros", "policy_node") in started_nodes("robot.launch.py", mode="policy")
+
+
+def node_parameter_keys(name: str, executable: str) -> set[str]:
+    """The parameter names the launch file gives ``executable`` (keys of the dicts in its
+    ``parameters``, with ``**{name: ... for name in TUPLE}`` expanded from the module's tuple)."""
+    tree = ast.parse((LAUNCH / name).read_text())
+    tuples = {
+        t.id: _literal(node.value)
+        for node in tree.body
+        if isinstance(node, ast.Assign)
+        for t in node.targets
+        if isinstance(t, ast.Name) and isinstance(node.value, ast.Tuple)
+    }
+    keys: set[str] = set()
+    for call in ast.walk(tree):
+        if isinstance(call, ast.Call) and _name(call) == "Node" and _literal(_kwargs(call)["executable"]) == executable:
+            for d in ast.walk(_kwargs(call)["parameters"]):
+                if not isinstance(d, ast.Dict):
+                    continue
+                for key, value in zip(d.keys, d.values, strict=True):
+                    if key is not None:
+                        keys.add(_literal(key))
+                    elif isinstance(value, ast.DictComp):  # **{name: ... for name in EXECUTION_PARAMETERS}
+                        keys.update(tuples[value.generators[0].iter.id])
+    return keys
+
+
+@pytest.mark.parametrize("launch_file", ["robot.launch.py", "twin.launch.py"])
+def test_launchers_expose_chunk_execution_with_the_nodes_defaults(launch_file):
+    """Each launcher declares policy_node's execution parameters as launch arguments whose defaults are
+    the node's own (launch_ros reads a substituted parameter as YAML, as this test does), and passes
+    every one of them to policy_node. (test_policy_node.py checks that a started policy_node's
+    parameters are these constants.)"""
+    import yaml
+
+    from equidiff_core import chunk
+
+    node_defaults = {
+        "execute_steps": chunk.DEFAULT_EXECUTE_STEPS,
+        "latency_s": chunk.DEFAULT_LATENCY_S,
+        "latency_transport_s": chunk.DEFAULT_TRANSPORT_S,
+        "rtc": chunk.DEFAULT_RTC,
+        "n_action_steps": chunk.DEFAULT_N_ACTION_STEPS,
+    }
+    declared = launch_arguments(LAUNCH / launch_file)
+    launch_defaults = {name: yaml.safe_load(declared[name]) for name in node_defaults if name in declared}
+    assert launch_defaults == node_defaults
+    assert set(node_defaults) <= node_parameter_keys(launch_file, "policy_node")

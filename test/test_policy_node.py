@@ -106,6 +106,37 @@ def test_rtc_max_gap_reaches_the_real_time_chunking(ros_domain, checkpoint):
         rclpy.try_shutdown()
 
 
+@pytest.mark.ros
+def test_policy_node_defaults_are_the_launchers_execution_defaults(ros_domain, checkpoint):
+    """A policy_node started with no execution parameters has the values robot.launch.py and
+    twin.launch.py declare as their launch arguments' defaults (test_launch_files.py: those are
+    ``chunk.DEFAULT_*``): latency_s auto, so it bridges its measured latency by default."""
+    import rclpy
+    import yaml
+    from test_launch_files import LAUNCH, launch_arguments
+
+    from equidiff_ros.policy_node import PolicyNode
+
+    rclpy.init(args=["--ros-args", "-p", f"checkpoint:={checkpoint}"])
+    try:
+        node = PolicyNode()
+        try:
+            values = {
+                name: node.get_parameter(name).value
+                for name in ("execute_steps", "latency_s", "latency_transport_s", "rtc", "n_action_steps")
+            }
+            assert node.latency.auto and not node.fixed_steps
+        finally:
+            node.shutdown()
+            node.destroy_node()
+    finally:
+        rclpy.try_shutdown()
+    assert values["latency_s"] == "auto"
+    for launch_file in ("robot.launch.py", "twin.launch.py"):
+        declared = launch_arguments(LAUNCH / launch_file)
+        assert {name: yaml.safe_load(declared[name]) for name in values} == values, launch_file
+
+
 def block_grid(ws) -> np.ndarray:
     """A voxel grid with one block in it, what the tests feed policy_node as /voxels."""
     grid = np.zeros((4, ws.resolution, ws.resolution, ws.resolution), np.uint8)
@@ -139,6 +170,7 @@ def test_policy_closes_the_loop_and_skips_stale_observations(ros_domain, checkpo
                 "seed": 0,
                 "max_observation_age_s": 0.5,
                 "execute_steps": 1,
+                "latency_s": -1.0,  # off: chunks of n_action_steps (auto sizes them: see the sim-time test)
             },
             tmp_path / "policy.log",
         )
@@ -405,11 +437,156 @@ def test_an_announced_episode_samples_like_the_in_process_evaluation(ros_domain,
             client.close()
         codes = [stop_process(policy, sig=signal.SIGINT, timeout=30), stop_process(franka, sig=signal.SIGTERM)]
     assert codes == [0, 0], (tmp_path / "policy.log").read_text()[-3000:]
-    np.testing.assert_allclose(again.actions, first.actions, atol=1e-6)
-    assert not np.allclose(second.actions, first.actions, atol=1e-3)
-    assert not np.allclose(other.actions, first.actions, atol=1e-3)
+    # latency_s auto sizes each chunk by the latency measured so far: compare the steps all of them have
+    n = min(len(c) for c in (first, second, again, other))
+    np.testing.assert_allclose(again.actions[:n], first.actions[:n], atol=1e-6)
+    assert not np.allclose(second.actions[:n], first.actions[:n], atol=1e-3)
+    assert not np.allclose(other.actions[:n], first.actions[:n], atol=1e-3)
     in_process = load_inference_policy(checkpoint, precision="fp32")
     actions = in_process.predict(voxel_msg_to_grid(msg, ws.resolution), ee_input(pose, width), seed=7 * 1000)
     expected = chunk_from_actions(actions[: len(first)], first.stamp_ns, 200_000_000)
     np.testing.assert_allclose(first.poses, expected.poses, atol=1e-4)
     np.testing.assert_allclose(first.widths, expected.widths, atol=1e-4)
+
+
+@pytest.mark.ros
+@pytest.mark.slow
+def test_latency_auto_measures_on_the_sim_clock_converges_and_bridges(ros_domain, checkpoint):
+    """Defaults (``latency_s`` auto, ``execute_steps`` 0) on simulated time: the test owns /clock
+    and holds it at each observation's stamp + 0.3 s (later + 1.9 s) while the policy answers, so
+    every chunk is published exactly that long after its observation on the node's clock. The
+    estimate in /diagnostics converges to it plus the 10 ms transport allowance; each chunk
+    carries k + ceil(L/dt) + 1 steps (at most 16), k = 8 while that bridges L and fewer once it
+    does not (5 at 1.9 s), so every chunk lasts until the next one arrives except where the
+    latency jumped unforeseen; real-time chunking's delay follows L."""
+    import rclpy
+    from diagnostic_msgs.msg import DiagnosticArray
+    from geometry_msgs.msg import PoseStamped
+    from rclpy.executors import MultiThreadedExecutor
+    from rosgraph_msgs.msg import Clock
+    from sensor_msgs.msg import JointState, PointCloud2
+    from std_msgs.msg import String
+    from trajectory_msgs.msg import MultiDOFJointTrajectory
+
+    from equidiff_core import geometry
+    from equidiff_core.control import messages as cm
+    from equidiff_core.pointcloud import grid_to_voxel_msg
+    from equidiff_core.robots.base import RobotState
+    from equidiff_core.rosmsg import RclpyFactory
+    from equidiff_ros.common import (
+        RELIABLE_QOS,
+        TOPIC_COMMAND_CHUNK,
+        TOPIC_DIAGNOSTICS,
+        TOPIC_EE_POSE,
+        TOPIC_JOINT_STATES,
+        TOPIC_POLICY_SKIPPED,
+        TOPIC_VOXELS,
+    )
+    from equidiff_ros.policy_node import PolicyNode
+
+    lab = load_lab_config(LAB_PATH)
+    ws = lab.workspace
+    factory = RclpyFactory()
+    params = {
+        "checkpoint": str(checkpoint),
+        "lab_config": str(LAB_PATH),
+        "use_sim_time": True,
+        "rtc": True,
+        "seed": 0,
+        "max_observation_age_s": 5.0,
+    }
+    args = [a for k, v in params.items() for a in ("-p", f"{k}:={str(v).lower() if isinstance(v, bool) else v}")]
+    rclpy.init(args=["--ros-args", *args])
+    sim_ns = [1_000_000_000]  # the clock the test node publishes (every 10 ms, so none is lost for long)
+    stop = threading.Event()
+    chunks, skipped, diagnostics = {}, set(), []
+    executor = policy = None
+    try:
+        io = rclpy.create_node("latency_test_io")
+        pub_clock = io.create_publisher(Clock, "/clock", RELIABLE_QOS)
+
+        def tick_clock():
+            while not stop.is_set():
+                pub_clock.publish(Clock(clock=factory.time(sim_ns[0])))
+                stop.wait(0.01)
+
+        clock_thread = threading.Thread(target=tick_clock, daemon=True)
+        clock_thread.start()
+        pub_pose = io.create_publisher(PoseStamped, TOPIC_EE_POSE, RELIABLE_QOS)
+        pub_joints = io.create_publisher(JointState, TOPIC_JOINT_STATES, RELIABLE_QOS)
+        pub_voxels = io.create_publisher(PointCloud2, TOPIC_VOXELS, RELIABLE_QOS)
+        io.create_subscription(
+            MultiDOFJointTrajectory,
+            TOPIC_COMMAND_CHUNK,
+            lambda m: chunks.setdefault(stamp_to_ns(m.header.stamp), chunk_from_msg(m)),
+            RELIABLE_QOS,
+        )
+        io.create_subscription(
+            String, TOPIC_POLICY_SKIPPED, lambda m: skipped.add(json.loads(m.data)["stamp_ns"]), RELIABLE_QOS
+        )
+
+        def on_diagnostics(msg):
+            for status in msg.status:
+                if status.name == "policy_node":
+                    diagnostics.append({kv.key: kv.value for kv in status.values})
+
+        io.create_subscription(DiagnosticArray, TOPIC_DIAGNOSTICS, on_diagnostics, RELIABLE_QOS)
+        policy = PolicyNode()
+        assert policy.latency.source == "auto (initial)"
+        assert policy.latency.value_s == pytest.approx((16 - 1 - 1) * 0.2)  # until measured: the most it bridges
+        executor = MultiThreadedExecutor(num_threads=2)
+        executor.add_node(io)
+        executor.add_node(policy)
+        spinner = threading.Thread(target=executor.spin, daemon=True)
+        spinner.start()
+
+        pose = geometry.make_pose(np.diag([1.0, -1.0, -1.0]), np.asarray(ws.center) + [0, 0, 0.1])
+        state = RobotState(0, pose, np.zeros(7), np.zeros(7), 0.08)
+        grid = block_grid(ws)
+        latencies = {}  # observation stamp -> its chunk's latency on the sim clock
+        stamp = 10_000_000_000
+        while len(chunks) < 7:
+            latency_ns = 300_000_000 if len(chunks) < 3 else 1_900_000_000
+            for _ in range(3):  # the state at the observation's stamp, before the observation
+                pub_pose.publish(cm.pose_stamped(factory, pose, stamp, lab.base_frame))
+                pub_joints.publish(cm.joint_state(factory, state, stamp))
+            time.sleep(0.1)
+            sim_ns[0] = stamp + latency_ns  # held there until the observation is answered or skipped
+            deadline = time.monotonic() + 10.0
+            while policy.get_clock().now().nanoseconds != sim_ns[0] and time.monotonic() < deadline:
+                time.sleep(0.01)
+            pub_voxels.publish(grid_to_voxel_msg(grid, ws.lower, ws.voxel_size, stamp, lab.base_frame, factory))
+            deadline = time.monotonic() + 60.0
+            while stamp not in chunks and stamp not in skipped and time.monotonic() < deadline:
+                time.sleep(0.01)
+            assert stamp in chunks or stamp in skipped, f"observation {stamp} neither answered nor skipped"
+            latencies[stamp] = latency_ns
+            stamp += 200_000_000
+        deadline = time.monotonic() + 30.0  # the 1 Hz diagnostics after the last chunk (sim time is held)
+        n = len(diagnostics)
+        sim_ns[0] += 2_000_000_000
+        while len(diagnostics) <= n and time.monotonic() < deadline:
+            time.sleep(0.05)
+        delay_steps = policy.chunking.delay_steps
+    finally:
+        stop.set()
+        if executor is not None:
+            executor.shutdown(timeout_sec=5.0)
+        if policy is not None:
+            policy.shutdown()
+            policy.destroy_node()
+        rclpy.try_shutdown()
+    stamps = sorted(chunks)
+    periods = [round((new - old) / 200_000_000) for old, new in itertools.pairwise(stamps)]
+    # 0.3 s: k = 8, 8 + ceil(0.31 / 0.2) + 1 = 11 steps; 1.9 s: the 16 predicted, k down to 16 - 10 - 1 = 5
+    assert [len(chunks[s]) for s in stamps] == [11] * 3 + [16] * 4
+    assert periods[:3] == [8, 8, 8] and periods[-1] == 5
+    last = diagnostics[-1]
+    assert last["latency_s"] == "auto" and float(last["latency_estimate_ms"]) == pytest.approx(1910.0)
+    assert int(last["execute_steps"]) == 5 and int(last["publish_steps"]) == 16
+    assert float(last["latency_bridged_max_ms"]) == pytest.approx(2800.0)
+    assert delay_steps == 10  # RTC: floor(1.91 / 0.2) + 1 steps are due before a chunk arrives
+    # every chunk lasts until the next one arrives, except where the latency jumped unforeseen
+    for old, new in itertools.pairwise(stamps):
+        bridged = chunks[old].times_ns[-1] >= new + latencies[new]
+        assert bridged == (latencies[new] <= latencies[old]), (old, new)

@@ -135,6 +135,7 @@ def test_chunking_probe_measures_boundary_velocity_changes_jerk_and_mode_switche
             SimpleNamespace(
                 stamp_ns=i * 5_000_000,
                 target=SimpleNamespace(pose=geometry.make_pose(np.eye(3), np.array([x, 0.0, 0.0]))),
+                holding=False,
             )
         )
     assert probe.chunk(0, chunk(0, 0.0), True) is None  # the first chunk starts from rest: not a switch
@@ -148,6 +149,9 @@ def test_chunking_probe_measures_boundary_velocity_changes_jerk_and_mode_switche
     summary = probe.summary()
     assert summary["mode_switches"] == 1 and summary["mode_switch_rate"] == 0.5
     assert summary["jerk_p95_mps3"] > 0 and summary["chunk_switches"] == 2
+    # the 5 ms stand-still sits right before the first switch; the second switch is mid-motion
+    assert probe.standstill == pytest.approx([0.005, 0.0])
+    assert summary["standstill_mean_ms"] == pytest.approx(2.5) and summary["standstill_total_s"] == 0.005
 
 
 class _DriftingPolicy:
@@ -222,6 +226,10 @@ def test_bench_chunking_prints_one_json_line_with_every_mode_and_latency(tmp_pat
         assert out[f"{label}_chunk_switches"] >= 2
         assert 0 <= out[f"{label}_boundary_dv_p95_mps"] <= 2 * 0.25 + 1e-6  # within the 0.25 m/s speed limit
         assert out[f"{label}_jerk_p95_mps3"] >= 0
+        assert out[f"{label}_standstill_total_s"] >= 0 and out[f"{label}_standstill_p95_ms"] is not None
+    for label in (f"{mode}_{ms}ms" for mode in ("horizon", "rtc") for ms in (0, 400)):
+        assert out[f"{label}_standstill_total_s"] == 0.0  # each chunk lasts until the next one is there
+    assert out["whole_400ms_publish_steps"] == 8  # n_action_steps whatever L: the former default
     assert out["replace_400ms_publish_steps"] == 8 and out["horizon_400ms_publish_steps"] == 2 + 2 + 1
     assert out["horizon_0ms_publish_steps"] == 2 + 0 + 1 and out["execute_steps"] == 2 and out["seeds"] == [100000]
     # replace flips direction every chunk (> 3 cm apart within its 8 steps); RTC pins the overlap

@@ -168,7 +168,7 @@ class _ExpertAsPolicy:
         from types import SimpleNamespace
 
         self.sim, self.plan, self.t0 = sim, None, 0.0
-        self.preset = SimpleNamespace(dt=0.2, n_action_steps=8)
+        self.preset = SimpleNamespace(dt=0.2, n_action_steps=8, horizon=16, n_obs_steps=1)
 
     def predict(self, grid, ee, seed=0):
         from equidiff_core.twin.scene import BLOCK, BOWL, body_pose

@@ -10,6 +10,7 @@ the two functions here.
 
 from __future__ import annotations
 
+import collections
 import math
 from dataclasses import dataclass
 
@@ -108,6 +109,88 @@ def steps_to_publish(execute_steps: int, latency_s: float, dt_s: float, availabl
     and one step beyond it to interpolate towards (``execute_steps + ceil(L / dt) + 1``, at most
     the ``available`` predicted steps)."""
     return min(int(available), int(execute_steps) + math.ceil(round(latency_s / dt_s, 6)) + 1)
+
+
+def bridging_execute_steps(n_action_steps: int, latency_s: float, dt_s: float, available: int) -> int:
+    """policy_node's default k (``execute_steps`` 0) while it bridges a latency: all ``n_action_steps``,
+    or fewer when L is too long for them (the largest k with k + ceil(L/dt) + 1 <= ``available``:
+    the next observation is answered sooner, so its chunk still comes before this one runs out),
+    at least 1."""
+    return max(1, min(int(n_action_steps), int(available) - math.ceil(round(latency_s / dt_s, 6)) - 1))
+
+
+def max_bridged_latency_s(execute_steps: int, dt_s: float, available: int) -> float:
+    """The longest latency that chunks of at most ``available`` steps still bridge (``steps_to_publish``'s
+    inverse): beyond it the arm stands at each chunk's last step until the next chunk arrives."""
+    return max(0, int(available) - int(execute_steps) - 1) * float(dt_s)
+
+
+# policy_node's chunk-execution defaults. The launch files declare the same values as their
+# arguments' defaults (test_launch_files.py checks), so a lab launch runs what the node runs.
+DEFAULT_EXECUTE_STEPS = 0  # answer one observation per chunk of n_action_steps
+DEFAULT_LATENCY_S = "auto"  # measure the observation-to-arrival latency and bridge it
+DEFAULT_RTC = False  # real-time chunking
+DEFAULT_TRANSPORT_S = 0.01  # publication -> the chunk takes effect at franka_node (LatencyEstimate)
+DEFAULT_N_ACTION_STEPS = 0  # steps published: 0 = enough to bridge the latency (or the preset's, latency off)
+
+
+class LatencyEstimate:
+    """The observation-to-arrival latency L that a chunk must bridge: ``latency_s`` fixed (>= 0),
+    off (-1: chunks carry ``n_action_steps``, nothing is bridged), or ``"auto"``, measured online.
+
+    ``auto`` measures what policy_node can see: its observation's stamp to the chunk's
+    publication, on the node's clock (the sim clock on simulated time), plus ``transport_s`` for
+    what it cannot see (DDS delivery to franka_node and the control tick that applies the chunk).
+    The estimate is the ``PERCENTILE`` (95) of the last ``WINDOW`` (20) measurements, taken as the
+    nearest measurement (the largest while 11 or fewer are in, the second largest of 20: one
+    outlier is ignored, two count at once), plus ``transport_s``: a high percentile because an
+    underestimate leaves the arm standing at each boundary while an overestimate only publishes
+    a step the next chunk replaces.
+    Before the first measurement it is ``initial_s``, which the node sets to the most its chunks
+    can bridge, for the same reason."""
+
+    WINDOW = 20
+    PERCENTILE = 95.0
+
+    def __init__(self, latency_s, transport_s: float = DEFAULT_TRANSPORT_S, initial_s: float = 0.0):
+        self.auto = latency_s == "auto"
+        if not self.auto and (
+            isinstance(latency_s, bool)
+            or not isinstance(latency_s, (int, float))
+            or not (latency_s == -1 or 0 <= latency_s < 10)
+        ):
+            raise ValueError(f"latency_s must be 'auto', -1 (off) or 0..10 s, got {latency_s!r}")
+        if isinstance(transport_s, bool) or not (isinstance(transport_s, (int, float)) and 0 <= transport_s < 1):
+            raise ValueError(f"the transport allowance must be within 0..1 s, got {transport_s!r}")
+        self.fixed_s = None if self.auto else float(latency_s)
+        self.transport_s = float(transport_s)
+        self.initial_s = float(initial_s)
+        self.measured: collections.deque[float] = collections.deque(maxlen=self.WINDOW)
+
+    @property
+    def off(self) -> bool:
+        return self.fixed_s == -1
+
+    def add(self, observation_to_publication_s: float) -> None:
+        """One chunk's observation stamp -> publication, seconds on the node's clock."""
+        if math.isfinite(observation_to_publication_s):
+            self.measured.append(max(0.0, float(observation_to_publication_s)))
+
+    @property
+    def value_s(self) -> float | None:
+        """L in seconds (None when off)."""
+        if not self.auto:
+            return None if self.off else self.fixed_s
+        if not self.measured:
+            return self.initial_s
+        return float(np.percentile(self.measured, self.PERCENTILE, method="nearest")) + self.transport_s
+
+    @property
+    def source(self) -> str:
+        """How ``value_s`` came about: fixed, off, auto (measured) or auto (initial)."""
+        if not self.auto:
+            return "off" if self.off else "fixed"
+        return "auto" if self.measured else "auto (initial)"
 
 
 class RealTimeChunking:

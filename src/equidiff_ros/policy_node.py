@@ -12,7 +12,9 @@ Wiring:
           -> ``chunk.chunk_from_actions`` (step i at observation stamp + i·dt) -> /franka/command_chunk
   timer at ``rate_hz`` (5 Hz) -> warns when no fresh observation has come (a camera or the voxel node is down)
   timer at 1 Hz -> /diagnostics (``policy_node``: inference_ms, observation_age_ms, skipped_cycles,
-                   obs_to_cmd_ms and its p50/p95)
+                   obs_to_cmd_ms and its p50/p95, latency_s (auto | auto (initial) | fixed | off),
+                   latency_estimate_ms, latency_bridged_max_ms, publish_steps; WARN when L exceeds
+                   what the chunks can bridge)
   /policy/skipped (std_msgs/String JSON {stamp_ns, reason}) <- each observation that will get no chunk
                    (the twin's sim then stops waiting for it; a recorder or operator sees why)
   /policy/enable (std_srvs/SetBool service)      -> true runs, false pauses the policy (``equidiff lab policy``)
@@ -41,17 +43,25 @@ Parameters: ``checkpoint`` (exported policy file, required), ``device`` (cpu | c
 ``precision`` (auto | fp32 | bf16; auto = bf16 where the CPU has native bf16), ``jit``
 (default true: jit.trace), ``rate_hz`` (the rate at which a missing observation is reported),
 ``max_observation_age_s``, ``max_state_offset_s``, ``seed`` (the noise outside an announced
-episode; -1: random), ``n_action_steps`` (steps published per chunk; 0: the preset's, or
-with ``latency_s`` enough to last until the next chunk arrives), ``execute_steps`` (k: how many
-steps of a chunk run before the next observation is answered; 0: all ``n_action_steps``, the
+episode; -1: random), ``n_action_steps`` (steps published per chunk; 0, the default: enough to
+bridge the latency below, or the preset's with ``latency_s`` -1), ``execute_steps`` (k: how many
+steps of a chunk run before the next observation is answered; 0: all ``n_action_steps``, or fewer
+when the latency is too long for them to bridge (``chunk.bridging_execute_steps``), the
 default, chosen by measurement: in the twin's closed-loop evaluation whole chunks solved 4 of
 10 scenes where a new chunk every observation solved 1, docs/evaluation_scheme.md; 1: answer
 every observation; the others are announced on /policy/skipped as ``executing``),
-``latency_s`` (the expected observation-to-arrival latency L; -1, the default: not set, chunks
-carry ``n_action_steps``; >= 0: they carry k + ceil(L/dt) + 1 steps, so the next chunk is
-there before this one runs out), ``rtc`` (default false: real-time chunking, each chunk
-denoised towards the previous one, hard on the steps due before it arrives (from
-``latency_s``), decaying over the rest of the overlap; ``chunk.RealTimeChunking``,
+``latency_s`` (the observation-to-arrival latency L that each chunk bridges: it carries
+k + ceil(L/dt) + 1 steps, at most the horizon's, so the next chunk is there before this one runs
+out and the arm never stands still at a chunk boundary. ``auto``, the default: measured online,
+``chunk.LatencyEstimate``: the observation's stamp to the chunk's publication on this node's
+clock (the sim clock on simulated time), p95 of the last 20, plus ``latency_transport_s``
+(default 0.01 s: DDS delivery to franka_node and the control tick that applies the chunk, which
+this node cannot see); until the first measurement, the most the horizon can bridge. A number
+>= 0: that L, fixed (the twin passes its latency budget, which it imposes exactly). -1: off,
+chunks carry ``n_action_steps`` and the arm stands still for about dt + L at each boundary),
+``rtc`` (default false: real-time chunking, each chunk
+denoised towards the previous one, hard on the steps due before it arrives (from L),
+decaying over the rest of the overlap; ``chunk.RealTimeChunking``,
 docs/control.md), ``rtc_max_gap_m`` (with ``rtc``, a previous chunk whose step for the new
 observation lies farther than this from the observed TCP was rejected by franka_node and is not
 joined: franka_node's first-step jump limit, control.yaml ``safety.max_first_step_jump_m``, which
@@ -82,11 +92,19 @@ from trajectory_msgs.msg import MultiDOFJointTrajectory
 
 from equidiff_core import geometry
 from equidiff_core.chunk import (
+    DEFAULT_EXECUTE_STEPS,
+    DEFAULT_LATENCY_S,
+    DEFAULT_N_ACTION_STEPS,
+    DEFAULT_RTC,
+    DEFAULT_TRANSPORT_S,
     AnswerSchedule,
+    LatencyEstimate,
     RealTimeChunking,
     SamplingSeeds,
+    bridging_execute_steps,
     chunk_from_actions,
     chunk_to_msg,
+    max_bridged_latency_s,
     steps_to_publish,
 )
 from equidiff_core.control import SafetyConfig
@@ -119,8 +137,8 @@ USAGE = (
     __doc__
     + """
 usage: policy_node --ros-args -p checkpoint:=/path/policy.pt [-p device:=cpu -p precision:=auto|fp32|bf16
-                   -p rate_hz:=5.0 -p max_observation_age_s:=0.5 -p execute_steps:=0 -p latency_s:=-1.0
-                   -p rtc:=false -p rtc_max_gap_m:=0.08]
+                   -p rate_hz:=5.0 -p max_observation_age_s:=0.5 -p execute_steps:=0 -p latency_s:=auto
+                   -p latency_transport_s:=0.01 -p rtc:=false -p rtc_max_gap_m:=0.08]
 """
 )
 
@@ -141,17 +159,15 @@ class PolicyNode(Node):
         self.max_obs_age_ns = int(declare_number(self, "max_observation_age_s", 0.5) * 1e9)
         self.max_state_offset_ns = int(declare_number(self, "max_state_offset_s", STATE_TOLERANCE_S) * 1e9)
         seed = self.declare_parameter("seed", -1).value
-        n_steps = self.declare_parameter("n_action_steps", 0).value
-        execute_steps = self.declare_parameter("execute_steps", 0).value
-        latency_s = self.declare_parameter("latency_s", -1.0, ParameterDescriptor(dynamic_typing=True)).value
-        if (
-            isinstance(latency_s, bool)
-            or not isinstance(latency_s, (int, float))
-            or not (latency_s == -1 or 0 <= latency_s < 10)
-        ):
-            raise ValueError(f"parameter latency_s must be -1 (not set) or 0..10 s, got {latency_s!r}")
-        latency_s = float(latency_s)
-        rtc = self.declare_parameter("rtc", False).value
+        n_steps = self.declare_parameter("n_action_steps", DEFAULT_N_ACTION_STEPS).value
+        execute_steps = self.declare_parameter("execute_steps", DEFAULT_EXECUTE_STEPS).value
+        latency_s = self.declare_parameter(
+            "latency_s", DEFAULT_LATENCY_S, ParameterDescriptor(dynamic_typing=True)
+        ).value
+        transport_s = self.declare_parameter(
+            "latency_transport_s", DEFAULT_TRANSPORT_S, ParameterDescriptor(dynamic_typing=True)
+        ).value  # 0 allowed: checked by LatencyEstimate
+        rtc = self.declare_parameter("rtc", DEFAULT_RTC).value
         rtc_max_gap_m = declare_number(self, "rtc_max_gap_m", SafetyConfig.max_first_step_jump_m)
         threads = self.declare_parameter("torch_threads", 1).value
         self._paused = (
@@ -182,13 +198,20 @@ class PolicyNode(Node):
             raise ValueError(f"n_action_steps must be within 1..{preset.horizon}, got {self.n_action_steps}")
         self.dt_ns = round(preset.dt * 1e9)
         self.answers = AnswerSchedule(execute_steps, self.n_action_steps, self.dt_ns)
-        if latency_s >= 0 and not n_steps:  # enough steps to last until the next chunk arrives
-            self.n_action_steps = steps_to_publish(
-                self.answers.steps, latency_s, preset.dt, preset.horizon - preset.n_obs_steps + 1
-            )
-        # real-time chunking: each chunk denoised towards the previous one (None: plain DDIM, as without it)
+        self.available_steps = preset.horizon - preset.n_obs_steps + 1  # predicted from the observation on
+        self.latency = LatencyEstimate(latency_s, transport_s)  # L: fixed, off, or measured online
+        self.fixed_steps = bool(n_steps) or self.latency.off  # n_action_steps per chunk, whatever L
+        # execute_steps 0 while bridging: all n_action_steps, fewer when L is too long for them
+        self.adaptive_steps = not execute_steps and not self.fixed_steps
+        self.max_bridged_s = max_bridged_latency_s(
+            1 if self.adaptive_steps else self.answers.steps, preset.dt, self.available_steps
+        )
+        self.latency.initial_s = self.max_bridged_s  # until measured: the most the chunks can bridge
+        self.last_publish_steps = 0
+        # real-time chunking: each chunk denoised towards the previous one (None: plain DDIM, as without it);
+        # its delay (the steps due before a chunk arrives) follows L, set before each inference
         self.chunking = (
-            RealTimeChunking(RealTimeChunking.delay_for(max(latency_s, 0.0), preset.dt), self.dt_ns, rtc_max_gap_m)
+            RealTimeChunking(RealTimeChunking.delay_for(self.latency_s(), preset.dt), self.dt_ns, rtc_max_gap_m)
             if rtc
             else None
         )
@@ -196,8 +219,9 @@ class PolicyNode(Node):
         self._episode: dict | None = None  # announced on /policy/episode, begins at its start_ns
         self.get_logger().info(
             f"loaded {self.policy.name} policy '{preset.name}' from {checkpoint} on {device} ({precision}) "
-            f"and warmed up in {time.perf_counter() - t0:.1f} s; publishing {self.n_action_steps} of "
-            f"{preset.horizon} steps, dt {preset.dt} s, executing {self.answers.steps} before the next"
+            f"and warmed up in {time.perf_counter() - t0:.1f} s; executing {self.answers.steps} steps of dt "
+            f"{preset.dt} s before the next answer{' (fewer if the latency needs it)' if self.adaptive_steps else ''}; "
+            f"publishing {self.describe_steps()}"
             f"{'; real-time chunking' if self.chunking is not None else ''}"
         )
 
@@ -234,6 +258,35 @@ class PolicyNode(Node):
         self.worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="policy")
         self.create_timer(1.0 / rate_hz, self.watch_observations)
         self.create_timer(1.0, self.publish_diagnostics)
+
+    # --- how many steps a chunk carries -----------------------------------------------------
+    def latency_s(self) -> float:
+        """The latency L chunks are sized for (0 when off: nothing is bridged)."""
+        value = self.latency.value_s
+        return 0.0 if value is None else value
+
+    def publish_steps(self) -> int:
+        if self.fixed_steps:
+            return self.n_action_steps
+        return steps_to_publish(self.answers.steps, self.latency_s(), self.dt_ns / 1e9, self.available_steps)
+
+    def follow_latency(self) -> None:
+        """With ``execute_steps`` 0 while bridging: k for the current L (call with ``self._lock`` held)."""
+        if self.adaptive_steps:
+            self.answers.steps = bridging_execute_steps(
+                self.n_action_steps, self.latency_s(), self.dt_ns / 1e9, self.available_steps
+            )
+
+    def describe_steps(self) -> str:
+        if self.fixed_steps:
+            return f"{self.n_action_steps} steps per chunk (latency_s off or n_action_steps set)"
+        if self.latency.auto:
+            return (
+                f"enough steps to bridge the measured observation-to-arrival latency (latency_s auto, "
+                f"{self.latency.transport_s * 1000:.0f} ms transport allowance; until measured, "
+                f"{self.publish_steps()} steps, the most the horizon allows)"
+            )
+        return f"{self.publish_steps()} steps per chunk (latency_s {self.latency_s()} s)"
 
     # --- inputs (cheap: callbacks never wait for inference) ---------------------------
     def on_voxels(self, msg) -> None:
@@ -343,6 +396,8 @@ class PolicyNode(Node):
                 self.skipped["paused"] += 1
                 self.pub_skipped.publish(String(data=json.dumps({"stamp_ns": int(stamp), "reason": "paused"})))
                 return
+            with self._lock:
+                self.follow_latency()
             if not self.answers.due(stamp):
                 # the last chunk is still being executed: no warning, this is the schedule
                 self.skipped["executing"] += 1
@@ -380,10 +435,15 @@ class PolicyNode(Node):
             if self.chunking is None:
                 actions = self.policy.predict(grid, ee, seed=seed)
             else:
+                self.chunking.delay_steps = RealTimeChunking.delay_for(self.latency_s(), self.dt_ns / 1e9)
                 actions = self.policy.predict(grid, ee, seed=seed, guide=self.chunking.guide(stamp, ee))
                 self.chunking.remember(stamp, actions)
             inference = time.perf_counter() - t0
-            chunk = chunk_from_actions(actions[: self.n_action_steps], stamp, self.dt_ns)
+            with self._lock:  # this chunk's own latency (it is published next) sizes it for the next one
+                self.latency.add((now_ns(self) - stamp) / 1e9)
+                self.follow_latency()  # the next answer's k, which this chunk must outlast
+                steps = self.publish_steps()
+            chunk = chunk_from_actions(actions[:steps], stamp, self.dt_ns)
             if self._paused:  # paused while it ran: the operator has the arm now
                 self.skipped["paused"] += 1
                 self.pub_skipped.publish(String(data=json.dumps({"stamp_ns": int(stamp), "reason": "paused"})))
@@ -393,6 +453,7 @@ class PolicyNode(Node):
                 self.inference_s.append(inference)
                 self.obs_to_cmd_s.append((now_ns(self) - stamp) / 1e9)
                 self.published += 1
+                self.last_publish_steps = steps
         except Exception as err:  # noqa: BLE001 - bad input or a bad prediction: skip it, say why, keep serving
             self.failures += 1
             self.get_logger().error(f"inference failed: {type(err).__name__}: {err}", throttle_duration_sec=2.0)
@@ -409,6 +470,8 @@ class PolicyNode(Node):
         with self._lock:
             inference, obs_to_cmd = last_ms(self.inference_s), last_ms(self.obs_to_cmd_s)
             p50, p95 = percentiles_ms(self.obs_to_cmd_s)
+            latency = self.latency.value_s
+            source = self.latency.source
         values = {
             "inference_ms": inference,
             "observation_age_ms": last_ms(self.obs_age_s),
@@ -421,9 +484,25 @@ class PolicyNode(Node):
             "state": f"paused {self._paused}" if self._paused else "running",
             **{f"skipped_{k}": v for k, v in self.skipped.items()},
         }
+        values.update(
+            {
+                "latency_s": source,
+                "latency_estimate_ms": -1.0 if latency is None else round(latency * 1000, 1),
+                "latency_bridged_max_ms": round(self.max_bridged_s * 1000, 1),
+                "publish_steps": self.last_publish_steps,
+                "execute_steps": self.answers.steps,
+            }
+        )
         stale = self.skipped["stale_observation"] + self.skipped["no_observation"]
         level = cm.WARN if (self.failures or stale) and not self.obs_to_cmd_s else cm.OK
         message = f"{self.published} chunks published"
+        if not self.fixed_steps and latency is not None and latency > self.max_bridged_s + 1e-9:
+            level = max(level, cm.WARN)
+            message += (
+                f"; latency {latency * 1000:.0f} ms exceeds the {self.max_bridged_s * 1000:.0f} ms the chunks can "
+                f"bridge (execute_steps {self.answers.steps}): the arm stands still at each chunk boundary"
+                + ("" if self.adaptive_steps else "; a lower execute_steps (or 0) bridges more")
+            )
         if self._paused:
             message = f"paused ({self._paused}), no chunks; {message}"
         self.pub_diag.publish(

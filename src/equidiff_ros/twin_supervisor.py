@@ -623,9 +623,11 @@ class TwinStack:
         )
         if self.policy:
             if sim:  # an observation is at most L old in sim time when its chunk is due
-                ages = {"max_observation_age_s": max(0.5, self.latency_s + 0.2)}
+                # the twin holds each chunk until its stamp + L exactly: the policy bridges that L
+                # (its latency_s auto would see only the publication, not the hold)
+                timing = {"max_observation_age_s": max(0.5, self.latency_s + 0.2), "latency_s": float(self.latency_s)}
             else:
-                ages = {"max_observation_age_s": 4.0, "max_state_offset_s": 0.5} if self.lenient else {}
+                timing = {"max_observation_age_s": 4.0, "max_state_offset_s": 0.5} if self.lenient else {}
             control = load_control_config(default_config_dir() / "control.yaml")  # franka_node's, as started here
             specs["policy_node"] = (
                 "policy_node",
@@ -636,7 +638,7 @@ class TwinStack:
                     "precision": self.precision,
                     "torch_threads": self.torch_threads,
                     "rtc_max_gap_m": control.safety.max_first_step_jump_m,
-                    **ages,
+                    **timing,
                 },
                 {TOPIC_COMMAND_CHUNK: TOPIC_TWIN_POLICY_CHUNK},
             )

@@ -108,3 +108,78 @@ def percentiles_ms(values_s, qs=(50, 95)) -> list[float | None]:
     if values.size == 0:
         return [None for _ in qs]
     return [round(float(np.percentile(values, q)) * 1000, 2) for q in qs]
+
+
+# The commanded TCP "stands still" below these speeds. A plan that has run out holds its last
+# pose exactly (speed 0); a policy moving through its own plan commands millimetres per 0.2 s step.
+STILL_SPEED_M_S = 0.001
+STILL_ANGULAR_SPEED_RAD_S = 0.005
+
+
+def standstill_at_switches(
+    times: np.ndarray,
+    positions: np.ndarray,
+    switch_times: np.ndarray,
+    rotations: np.ndarray | None = None,
+    holding: np.ndarray | None = None,
+    still_speed_m_s: float = STILL_SPEED_M_S,
+    still_angular_speed_rad_s: float = STILL_ANGULAR_SPEED_RAD_S,
+) -> list[float]:
+    """Seconds the TCP stands still at each chunk switch (docs/control.md, "Standstill at chunk boundaries").
+
+    ``times`` (N,) s and ``positions`` (N, 3) m are the TCP samples (optionally ``rotations``
+    (N, 3, 3)), ``switch_times`` the instants new chunks took over. Between consecutive samples
+    the TCP stands still when its speed is below ``still_speed_m_s`` and (with rotations) its
+    angular speed below ``still_angular_speed_rad_s``, or when the later sample is ``holding``
+    (N,) (franka_node's watchdog hold: it moves the command once, to the measured pose, and holds). A switch's standstill is the unbroken still
+    stretch around it: back from the switch over the still intervals before it (with the time
+    from the last sample to the switch when that interval was still), and forward over the still
+    intervals from the one the switch falls in (counted from the switch). 0 when the motion goes
+    on through the switch; a plan that ran out before the next chunk came shows as the time the
+    command sat at its last step. Switches outside the samples are left out."""
+    t = np.asarray(times, dtype=np.float64)
+    keep = np.concatenate([[True], np.diff(t) > 0])  # a repeated stamp adds nothing
+    if not np.all(np.diff(t[keep]) > 0):
+        raise ValueError("sample times must not go backwards")
+    t, p = t[keep], np.asarray(positions, dtype=np.float64)[keep]
+    if len(t) < 2:
+        return []
+    dt = np.diff(t)
+    still = np.linalg.norm(np.diff(p, axis=0), axis=1) / dt < still_speed_m_s
+    if rotations is not None:
+        r = np.asarray(rotations, dtype=np.float64)[keep]
+        relative = np.einsum("nji,njk->nik", r[:-1], r[1:])  # R_k^T R_{k+1}
+        angle = np.arccos(np.clip((np.trace(relative, axis1=1, axis2=2) - 1) / 2, -1.0, 1.0))
+        still &= angle / dt < still_angular_speed_rad_s
+    if holding is not None:
+        still |= np.asarray(holding, dtype=bool)[keep][1:]
+    out = []
+    for s in np.asarray(switch_times, dtype=np.float64):
+        if not t[0] < s <= t[-1]:
+            continue
+        j = int(np.searchsorted(t, s, side="right")) - 1  # the last sample at or before the switch
+        duration = 0.0
+        k = j - 1  # intervals k = [t_k, t_k+1], back from the one ending at sample j
+        if k >= 0 and still[k]:
+            duration += s - t[j]
+            while k >= 0 and still[k]:
+                duration += dt[k]
+                k -= 1
+        k = j  # forward from the interval the switch falls in
+        while k < len(still) and still[k]:
+            duration += t[k + 1] - max(t[k], s)
+            k += 1
+        out.append(float(duration))
+    return out
+
+
+def standstill_summary(standstill_s: list[float], episode_s: float) -> dict:
+    """``bench chunking``'s and ``bench control``'s fields for the standstills at chunk switches (s) over
+    ``episode_s`` seconds of commanded motion: mean and p95 per switch, their sum and its share of the time."""
+    values = np.asarray(standstill_s, dtype=np.float64)
+    return {
+        "standstill_mean_ms": round(float(values.mean()) * 1000, 1) if values.size else None,
+        "standstill_p95_ms": round(float(np.percentile(values, 95)) * 1000, 1) if values.size else None,
+        "standstill_total_s": round(float(values.sum()), 3),
+        "standstill_fraction": round(float(values.sum()) / episode_s, 4) if episode_s > 0 else None,
+    }

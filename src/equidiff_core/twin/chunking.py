@@ -16,6 +16,12 @@ chunk as it arrives and every command it streams (after the safety filter), on t
   another approach), not a small correction. The overlap is what both published: 7 steps for
   replace, ceil(L/dt) + 1 around the switch for the horizon (the steps due before the new chunk
   arrives, which RTC pins to the previous chunk by construction).
+* **Standstill at chunk boundaries** (s): at each accepted chunk switch, how long the commanded
+  TCP stands still around it (``control.metrics.standstill_at_switches``: position below 1 mm/s
+  and orientation below 0.005 rad/s between control ticks, or franka_node's watchdog holding).
+  A chunk that runs out before the next one arrives leaves the command at its last step until
+  then: the stop-and-go the execution horizon exists to remove. The episode ends once the task
+  is judged done, so every switch counted is one while the task is not finished.
 """
 
 from __future__ import annotations
@@ -23,6 +29,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..chunk import PoseChunk
+from ..control.metrics import standstill_at_switches, standstill_summary
 
 JERK_HZ = 50.0
 MODE_SWITCH_M = 0.03
@@ -33,6 +40,8 @@ class ChunkingProbe:
         self.mode_switch_m = float(mode_switch_m)
         self.boundary_dv: list[float] = []  # m/s, every episode's
         self.jerk: list[float] = []  # m/s^3
+        self.standstill: list[float] = []  # s, at every chunk switch of every episode
+        self.episode_s = 0.0  # commanded time over all episodes
         self.pairs = 0  # consecutive accepted chunks that overlap in time
         self.mode_switches = 0
         self.start_episode(None)
@@ -40,6 +49,8 @@ class ChunkingProbe:
     def start_episode(self, seed) -> None:
         self._times: list[int] = []
         self._positions: list[np.ndarray] = []
+        self._rotations: list[np.ndarray] = []
+        self._holding: list[bool] = []
         self._switch_ns: list[int] = []
         self._previous: PoseChunk | None = None
 
@@ -61,6 +72,8 @@ class ChunkingProbe:
         """franka_node's Controller streamed ``command`` (``control.controller.Command``)."""
         self._times.append(int(command.stamp_ns))
         self._positions.append(np.array(command.target.pose[:3, 3]))
+        self._rotations.append(np.array(command.target.pose[:3, :3]))
+        self._holding.append(bool(command.holding))
 
     def end_episode(self) -> None:
         if len(self._times) < 4:
@@ -68,6 +81,12 @@ class ChunkingProbe:
         t = np.asarray(self._times, dtype=np.int64)
         p = np.asarray(self._positions)
         period_s = float(np.median(np.diff(t))) / 1e9
+        self.episode_s += (t[-1] - t[0]) / 1e9
+        self.standstill.extend(
+            standstill_at_switches(
+                t / 1e9, p, np.asarray(self._switch_ns) / 1e9, np.asarray(self._rotations), np.asarray(self._holding)
+            )
+        )
         velocity = np.diff(p, axis=0) / period_s  # velocity[j]: from tick j to tick j + 1
         for switch in self._switch_ns:
             i = int(np.searchsorted(t, switch, side="left"))  # the first tick that follows the new chunk
@@ -93,4 +112,5 @@ class ChunkingProbe:
             "mode_switches": self.mode_switches,
             "mode_switch_rate": round(self.mode_switches / self.pairs, 3) if self.pairs else None,
             "chunk_switches": len(self.boundary_dv),
+            **standstill_summary(self.standstill, self.episode_s),
         }

@@ -10,8 +10,9 @@ Chunks execute exactly as the live stack executes them on simulated time (policy
 franka_node, docs/evaluation_scheme.md): an observation is due every ``dt`` (the preset's,
 0.2 s: the cameras' frame rate); the policy answers one every ``execute_steps`` of them (0:
 ``n_action_steps``, policy_node's default). The answer to the observation at t_k (its first
-``n_action_steps`` actions, step i stamped t_k + i*dt by ``chunk.chunk_from_actions`` as
-policy_node does) reaches franka_node at t_k + ``latency_s`` (the twin's latency budget L);
+k + ceil(L/dt) + 1 actions, enough to last until the next answer arrives, as policy_node sizes
+them; step i stamped t_k + i*dt by ``chunk.chunk_from_actions`` as policy_node does) reaches
+franka_node at t_k + ``latency_s`` (the twin's latency budget L);
 until then the previous chunk keeps running. franka_node's own ``control.Controller``
 (configured by ``config/control.yaml``, ticked at its ``control_hz`` on the sim clock) then
 does what it does in the lab: the jump and staleness checks, dropping the steps already due
@@ -33,7 +34,17 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..chunk import AnswerSchedule, PoseChunk, RealTimeChunking, SamplingSeeds, chunk_from_actions
+from ..chunk import (
+    DEFAULT_EXECUTE_STEPS,
+    DEFAULT_RTC,
+    AnswerSchedule,
+    PoseChunk,
+    RealTimeChunking,
+    SamplingSeeds,
+    bridging_execute_steps,
+    chunk_from_actions,
+    steps_to_publish,
+)
 from ..config import LabConfig
 from ..control import Controller
 from ..episode import run_episode
@@ -103,9 +114,9 @@ def evaluate_policy(
     log: Callable[[str], None] = print,
     recorder=None,
     latency_s: float = 0.1,
-    execute_steps: int = 0,
-    publish_steps: int = 0,
-    rtc: bool = False,
+    execute_steps: int = DEFAULT_EXECUTE_STEPS,
+    publish_steps: int | None = None,
+    rtc: bool = DEFAULT_RTC,
     probe=None,
 ) -> list[EvalEpisode]:
     """Roll ``policy`` (an ``inference.InferencePolicy``) out from each seed's scene; returns per-episode results.
@@ -113,22 +124,27 @@ def evaluate_policy(
     Each answered observation's chunk takes effect ``latency_s`` after it (default 0.1 s, the
     twin's default budget); the policy answers every ``execute_steps``-th observation (0: every
     ``n_action_steps``-th, policy_node's default) and publishes ``publish_steps`` steps of each
-    chunk (0: ``n_action_steps``); with ``rtc`` each chunk is denoised towards the previous one
-    (``chunk.RealTimeChunking``, its delay from ``latency_s``), as policy_node's ``rtc``; see the
+    chunk (None, the default: enough to bridge ``latency_s``, as policy_node given that latency, which
+    the live twin passes it, with ``execute_steps`` 0 lowered as policy_node lowers it when L is too
+    long for n_action_steps; 0: ``n_action_steps``); with ``rtc`` (default policy_node's) each chunk is
+    denoised towards the previous one (``chunk.RealTimeChunking``, its delay from ``latency_s``); see the
     module doc. The policy's sampling seeds are ``chunk.SamplingSeeds``' for the episode's seed. ``probe``
     (e.g. ``twin.chunking.ChunkingProbe``) sees each episode's chunks as franka_node's
     Controller receives them and its every command."""
     from .demos import DirectRecorder, DirectWorld
 
     preset = policy.preset
-    execute_steps = AnswerSchedule(execute_steps, int(preset.n_action_steps), 1).steps  # checked up front
-    if publish_steps:
-        available = preset.horizon - preset.n_obs_steps + 1  # the predicted steps from the observation on
-        if not 1 <= publish_steps <= available:
-            raise ValueError(f"publish_steps must be within 1..{available}, got {publish_steps}")
-    publish_steps = int(publish_steps) or int(preset.n_action_steps)
     if not (math.isfinite(latency_s) and latency_s >= 0):
         raise ValueError(f"latency_s must be finite and >= 0, got {latency_s}")
+    available = preset.horizon - preset.n_obs_steps + 1  # the predicted steps from the observation on
+    if publish_steps is None and not execute_steps:  # policy_node's default k while it bridges L
+        execute_steps = bridging_execute_steps(preset.n_action_steps, latency_s, preset.dt, available)
+    execute_steps = AnswerSchedule(execute_steps, int(preset.n_action_steps), 1).steps  # checked up front
+    if publish_steps is None:
+        publish_steps = steps_to_publish(execute_steps, latency_s, preset.dt, available)
+    if publish_steps and not 1 <= publish_steps <= available:
+        raise ValueError(f"publish_steps must be within 1..{available}, got {publish_steps}")
+    publish_steps = int(publish_steps) or int(preset.n_action_steps)
     control = _control_config()
     rec = recorder or DirectRecorder(cfg, lab)
     world = DirectWorld(rec)  # records nothing

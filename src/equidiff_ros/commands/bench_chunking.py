@@ -1,4 +1,4 @@
-"""`equidiff bench chunking`: replace vs execution horizon vs real-time chunking, by latency, in the twin.
+"""`equidiff bench chunking`: whole chunks vs replace vs execution horizon vs real-time chunking, by latency, in the twin.
 
     equidiff bench chunking                                  # shipped checkpoint, 4 seeds, 20 s episodes
     equidiff bench chunking --seeds 1 --duration 2 --latencies 0 400 --checkpoint stand-in.pt
@@ -7,6 +7,10 @@ The in-process evaluation (``twin.evaluate.evaluate_policy``: the twin's scenes,
 voxeliser, franka_node's own Controller, on simulated time, latency a parameter) rolls the same
 seeds out under each execution mode and latency L:
 
+* ``whole``: ``--execute-steps`` k steps of each chunk run before the next observation is
+  answered, and each chunk carries only ``n_action_steps`` (8) steps, whatever L (policy_node
+  ``latency_s:=-1``, its default before ``auto``): the command stands at each chunk's last step
+  until the next chunk arrives, the stop-and-go baseline;
 * ``replace``: a chunk for every observation (policy_node ``execute_steps:=1``), each replacing
   the rest of the previous one;
 * ``horizon``: ``--execute-steps`` k steps of each chunk run before the next observation is
@@ -17,7 +21,9 @@ seeds out under each execution mode and latency L:
 
 Prints one JSON line with ``<mode>_<L>ms_success`` (fraction of episodes),
 ``_boundary_dv_p95_mps`` (velocity change of the command at chunk switches, p95),
-``_jerk_p95_mps3`` (commanded jerk, p95), ``_mode_switch_rate`` (consecutive chunks whose
+``_jerk_p95_mps3`` (commanded jerk, p95), ``_standstill_mean_ms`` / ``_standstill_p95_ms`` /
+``_standstill_total_s`` / ``_standstill_fraction`` (how long the commanded TCP stands still at
+each chunk switch, and the sum over the run and its share of the time), ``_mode_switch_rate`` (consecutive chunks whose
 remaining steps lie more than 3 cm apart) and ``_mode_switches`` for every mode and latency
 (definitions: ``twin.chunking``), with the seeds, episode length, k and wall time.
 """
@@ -29,7 +35,7 @@ import json
 import time
 from pathlib import Path
 
-MODES = ("replace", "horizon", "rtc")
+MODES = ("whole", "replace", "horizon", "rtc")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -95,6 +101,8 @@ def run(args: argparse.Namespace) -> int:
                 label = f"{mode}_{latency_ms:g}ms"
                 if mode == "replace":
                     schedule = {"execute_steps": 1, "publish_steps": 0, "rtc": False}
+                elif mode == "whole":
+                    schedule = {"execute_steps": k, "publish_steps": 0, "rtc": False}
                 else:
                     schedule = {
                         "execute_steps": k,

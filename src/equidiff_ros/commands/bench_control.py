@@ -19,12 +19,21 @@ then drives the node from this process exactly as the policy would, over /franka
    ``obs_to_cmd_p95_ms``), with the bare ``InferencePolicy.predict`` time measured in this
    process before anything else starts as the baseline (``baseline_bare_predict_p50_ms``).
 
+**Standstill at chunk boundaries** (docs/control.md): ``track_standstill_*`` is how long the
+commanded TCP (/franka/executed_target) stands still at each chunk switch of the circle (target
+0: franka_node continues the motion through a switch); ``policy_standstill_*`` is the same for
+the policy node with its default parameters (``latency_s`` auto), read off its chunks' timing
+(each switch: how long after the previous chunk's last step the next chunk arrived), with
+``baseline_whole_chunks_policy_standstill_*`` for ``latency_s:=-1`` (whole chunks, the former
+default) in the same run.
+
 Prints one JSON line.
 """
 
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import os
 import sys
@@ -150,7 +159,14 @@ def run_track_and_hold(
         hold_start = last_step + watchdog_s
     _h_times, h_positions = client.samples("poses", hold_start, hold_start + 2.0)
     lag, lag_rms = metrics.tracking_lag(times, positions, circle.position)
+    # the commanded TCP at each chunk switch (this process receives its own chunks as franka_node does),
+    # on a 50 Hz grid: a state message that repeats a command would otherwise read as a standstill
+    switches = [r for r, _ in list(client.data.chunks) if t_from <= r <= t_to]
+    grid_t, grid_p = metrics.resample(t_times, t_positions, hz=50.0)
+    standstill = metrics.standstill_at_switches(grid_t, grid_p, switches)
     return {
+        **{f"track_{k}": v for k, v in metrics.standstill_summary(standstill, t_to - t_from).items()},
+        "track_chunk_switches": len(standstill),
         "tracking_rms_mm": round(metrics.tracking_rms(times, positions, circle.position) * 1000, 2),
         "tracking_lag_ms": round(lag * 1000, 1),
         "tracking_rms_after_lag_mm": round(lag_rms * 1000, 2),
@@ -252,17 +268,36 @@ def bare_predict_s(checkpoint: Path, precision: str, workspace, repeats: int = 5
 
 
 def run_latency(
-    client: ControlClient, checkpoint: Path, precision: str, duration: float, log_dir: Path, label: str
+    client: ControlClient,
+    checkpoint: Path,
+    precision: str,
+    duration: float,
+    log_dir: Path,
+    label: str,
+    params: dict | None = None,
 ) -> dict:
+    from trajectory_msgs.msg import MultiDOFJointTrajectory
+
+    from equidiff_core.chunk import chunk_from_msg
     from equidiff_core.control import metrics
     from equidiff_core.pointcloud import grid_to_voxel_msg
+    from equidiff_core.topics import TOPIC_COMMAND_CHUNK
+    from equidiff_ros.common import RELIABLE_QOS
 
     ws = client.lab.workspace
     grid = synthetic_grid(ws)
+    received = []  # (receive s, stamp s, last step s, steps) of every chunk
+
+    def on_chunk(msg):
+        chunk = chunk_from_msg(msg)
+        received.append((time.time(), chunk.stamp_ns / 1e9, chunk.times_ns[-1] / 1e9, len(chunk)))
+
+    subscription = client.node.create_subscription(MultiDOFJointTrajectory, TOPIC_COMMAND_CHUNK, on_chunk, RELIABLE_QOS)
+    log_name = "policy_node.log" if not params else "policy_node_baseline.log"
     proc = start_node(
         "policy_node",
-        {"checkpoint": str(checkpoint), "precision": precision, "lab_config": client.lab_path},
-        log_dir / "policy_node.log",
+        {"checkpoint": str(checkpoint), "precision": precision, "lab_config": client.lab_path, **(params or {})},
+        log_dir / log_name,
     )
     try:
         n_before = len(client.data.chunks)
@@ -291,7 +326,15 @@ def run_latency(
         rows = [(r, s) for r, s in list(client.data.chunks)[n_before:] if r > t_first and s in stamps]
         lat = [r - s for r, s in rows]
         p50, p95 = metrics.percentiles_ms(lat)
+        # The untrained policy's poses are not executable (franka_node rejects them), so the
+        # standstill at its chunk switches is read off the chunks' timing: with the linear
+        # scheduler a chunk's command stands at its last step until the next chunk arrives.
+        ours = [row for row in received if row[0] > t_first and row[1] in stamps]
+        gaps = [max(0.0, new[0] - old[2]) for old, new in itertools.pairwise(ours)]
         return {
+            **{f"policy_{k}": v for k, v in metrics.standstill_summary(gaps, duration).items()},
+            "policy_chunk_switches": len(gaps),
+            "policy_publish_steps": sorted({row[3] for row in ours}),
             "obs_to_cmd_p50_ms": p50,
             "obs_to_cmd_p95_ms": p95,
             "policy": label,
@@ -301,6 +344,7 @@ def run_latency(
         }
     finally:
         stop_process(proc)
+        client.node.destroy_subscription(subscription)
 
 
 # --- entry point ---------------------------------------------------------------------------
@@ -384,6 +428,13 @@ def run(args: argparse.Namespace) -> int:
                 else:
                     approach(client, np.asarray(control.home_position))
                     result.update(run_latency(client, checkpoint, args.precision, args.latency_duration, tmp, label))
+                    # baseline in the same run: policy_node as it ran before latency_s auto (whole chunks)
+                    baseline = run_latency(
+                        client, checkpoint, args.precision, args.latency_duration, tmp, label, {"latency_s": -1.0}
+                    )
+                    result.update(
+                        {f"baseline_whole_chunks_{k}": v for k, v in baseline.items() if k.startswith("policy_")}
+                    )
                 result["franka_diagnostics"] = client.data.diagnostics.get("franka_node", {})
             except Exception as err:  # noqa: BLE001 - report any failure with the node's log
                 log = tmp / "franka_node.log"
