@@ -108,7 +108,6 @@ class FrankyConfig:
     gripper_force_n: float = 20.0
     gripper_epsilon_outer_m: float = 0.03  # wide, so a grasp commanded below the object holds
     gripper_command_timeout_s: float = 5.0  # warn when one gripper command runs longer (0.08 m takes 1.6 s)
-    max_recoveries: int = 3  # consecutive automatic error recoveries before giving up
     # The FR3's collision reflex (Robot.set_collision_behavior, set once on connect): a joint torque
     # (Nm) or TCP force (N, x y z; Nm about x y z) beyond these stops the arm. libfranka's example
     # defaults (examples_common.cpp setDefaultBehavior); franky-sim acknowledges and ignores them.
