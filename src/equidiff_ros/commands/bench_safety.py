@@ -54,6 +54,7 @@ import sys
 import tempfile
 import threading
 import time
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -197,6 +198,46 @@ class Campaign:
             self.client.publish_chunk(PoseChunk(now, times, poses, np.full(8, 0.08)))
             time.sleep(0.2)
         return t0
+
+
+class StatusWatch:
+    """franka_node's /franka/status (latched JSON) as it arrives, to wait on its state."""
+
+    def __init__(self, client: ControlClient):
+        from std_msgs.msg import String
+
+        from equidiff_core.topics import TOPIC_FRANKA_STATUS
+        from equidiff_ros.common import LATCHED_QOS
+
+        self.client = client
+        self.history: deque = deque(maxlen=2000)  # (receive wall s, status dict)
+        client.node.create_subscription(
+            String, TOPIC_FRANKA_STATUS, lambda m: self.history.append((time.time(), json.loads(m.data))), LATCHED_QOS
+        )
+
+    @property
+    def latest(self) -> dict:
+        return self.history[-1][1] if self.history else {}
+
+    def wait(self, predicate: Callable[[dict], bool], timeout: float, what: str, proc=None) -> dict:
+        """The first status (from now on, or the latest) for which ``predicate`` holds."""
+        self.client.wait_for(lambda: bool(self.history) and predicate(self.latest), timeout, what, proc)
+        return self.latest
+
+    def states_since(self, t: float) -> list[str]:
+        return [status["state"] for when, status in list(self.history) if when >= t]
+
+
+def acknowledge() -> tuple[bool, str]:
+    """Call franka_node's /franka/acknowledge as `equidiff lab ack` does: (granted, its message)."""
+    from equidiff_core.topics import SERVICE_FRANKA_ACKNOWLEDGE
+    from equidiff_ros.commands.lab_client import LabClient, LabError
+
+    with LabClient() as lab:
+        try:
+            return True, lab.call("std_srvs/srv/Trigger", SERVICE_FRANKA_ACKNOWLEDGE)
+        except LabError as err:
+            return False, str(err)
 
 
 # --- the faults ------------------------------------------------------------------------------
