@@ -27,6 +27,10 @@ process of its own (``robots.franky.sim.SimServer(module="equidiff_core.twin.sim
 sharing its state for cameras under ``--shm``: a sim thread inside a busy Python process
 waits for that process's GIL, and on a loaded machine it went silent past libfranka's 1 s
 receive timeout (the calibration twin, CI).
+
+Both clocks take franky-sim faults at the libfranka protocol level (``robots.franky.faults``:
+a user stop, a reflex, an error recovery cannot clear, an aborted motion, a dropped
+connection, a jammed gripper) on the sim's fault channel, ``FAULT_PORT`` at ``host``.
 """
 
 from __future__ import annotations
@@ -45,6 +49,7 @@ from franky_sim.mujoco_simulator import MUJOCO_DEFAULT_KP, MUJOCO_DEFAULT_KV
 from scipy.spatial.transform import Rotation
 
 from ..robots.base import RobotState
+from ..robots.franky.faults import SimFaults
 from ..robots.franky.sim import (
     free_loopback_host,
     keep_alive,
@@ -105,6 +110,7 @@ class TwinSim:
         self.stats = LoopStats()
         self.poses: ScenePoses | None = None
         self._sim = self._robot = self._server = self._writer = None
+        self.faults: SimFaults | None = None  # protocol-level fault injection (robots.franky.faults)
         self._thread: threading.Thread | None = None
         self._running = False
         self._frame_tick = 0
@@ -115,6 +121,7 @@ class TwinSim:
         self._sim.init()
         self._server = SimulationServer(self._sim, hostname_candidates=[self.host])
         self._server.init()  # binds host:1337 and starts the simulation
+        self.faults = SimFaults(self._server, self.host, log=lambda m: print(f"[twin sim] {m}", flush=True))
         self._writer = StateWriter(self.model.nq, self.shm_name)
         self.shm_name = self._writer.name
         self.reset(seed)
@@ -128,6 +135,9 @@ class TwinSim:
         if self._thread is not None:
             self._thread.join(timeout=2.0)
             self._thread = None
+        if self.faults is not None:
+            self.faults.close()
+            self.faults = None
         if self._server is not None:
             self._server.cleanup()
             self._server = None
@@ -160,7 +170,7 @@ class TwinSim:
 
     def _step(self, command_timeout_s: float) -> None:
         with self.lock:
-            self.stats.missed_commands += step_server(self._server, command_timeout_s)
+            self.stats.missed_commands += step_server(self._server, command_timeout_s, self.faults)
             self.stats.steps += 1
             self.tick += 1
             if self.stats.steps % self.state_every == 0:
@@ -237,7 +247,9 @@ class TwinSim:
                 break
             if now - last_keepalive > cfg.keepalive_s:
                 with self.lock:
-                    keep_alive(self._server)
+                    self.faults.poll()  # a fault requested while the sim waits
+                    if not self.faults.dropped:  # a dropped connection stays silent
+                        keep_alive(self._server)
                 self._publish_clock()  # again: /clock is best effort, and a lost one could hold up the waited-for
                 last_keepalive = now
             time.sleep(0.0005)
