@@ -22,6 +22,12 @@ class SafetyConfig:
     # is free). A chunk with any step outside is rejected; every command is also kept inside.
     max_tilt_rad: float = 0.785
     watchdog_timeout_s: float = 0.5  # hold the measured pose this long after the last chunk's final step
+    # Commands keep this far inside the safety box (lab.yaml), so the arm's overshoot past a
+    # command stopped at a wall stays inside it; measured (docs/control.md, control.yaml's comment).
+    box_margin_m: float = 0.0
+    # Commands heading for a wall brake at this deceleration so they arrive there at rest:
+    # v <= sqrt(2 a d) at distance d (bounds the overshoot of an impedance-tracked arm stopping at the wall).
+    wall_deceleration_m_s2: float = 2.0
     # The arm diverging from its command (the FR3's own reflexes stop this; franky-sim has none):
     # stop the motion, restart it where the arm is and hold.
     max_tracking_error_m: float = 0.1  # measured TCP this far from the last command
@@ -54,6 +60,10 @@ class SafetyConfig:
                 raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
         if len(self.max_joint_speeds_rad_s) != 7 or min(self.max_joint_speeds_rad_s) <= 0:
             raise ValueError(f"max_joint_speeds_rad_s must be 7 positive speeds, got {self.max_joint_speeds_rad_s}")
+        if self.box_margin_m < 0:
+            raise ValueError(f"box_margin_m must be >= 0, got {self.box_margin_m}")
+        if self.wall_deceleration_m_s2 <= 0:
+            raise ValueError(f"wall_deceleration_m_s2 must be positive, got {self.wall_deceleration_m_s2}")
         if self.max_tilt_rad >= 3.14159:
             raise ValueError(f"max_tilt_rad must be below pi, got {self.max_tilt_rad}")
         lo, hi = self.joint_position_min_rad, self.joint_position_max_rad

@@ -336,8 +336,8 @@ class Controller:
                 return " (the user stop is still pressed: release it, then acknowledge)"
             if self._robot_mode and self._robot_mode != "unreachable":
                 return " (the user stop is released: acknowledge to go on)"
-        if self._stopped == "connection_lost":
-            return " (the acknowledgement connects again)"
+        if self._stopped == "connection_lost" or self._robot_mode == "unreachable":
+            return " (the robot cannot be read: the acknowledgement connects again)"
         return ""
 
     def record_fault(self, text: str) -> None:

@@ -440,8 +440,9 @@ def main(argv: list[str] | None = None) -> None:
     signal.signal(signal.SIGINT, lambda *_: stop.set())
     with TwinSim(load_twin_config(args.config), host=args.host, shm_name=args.shm).start(seed=args.seed) as sim:
         print(f"READY {sim.host} {sim.shm_name} {sim.model.nq}", flush=True)
-        while not stop.wait(0.2):
-            pass
+        start = time.perf_counter()
+        while not stop.wait(1.0):  # as the bare server: SimServer.realtime_factor reads these
+            print(f"STATS {sim.stats.steps} {time.perf_counter() - start:.3f}", flush=True)
 
 
 if __name__ == "__main__":
