@@ -104,7 +104,8 @@ def test_control_config_errors_name_the_key():
 
 def test_filter_clips_targets_to_the_safety_box_and_its_floor_margin():
     box = SafetyBox(lower=(0.3, -0.1, 0.0), upper=(0.6, 0.1, 0.3), floor_margin_m=0.02)
-    safety = SafetyFilter(box, SafetyConfig(max_linear_speed_m_s=100.0))
+    # no box_margin_m (its own test: test_commands_brake_towards_a_wall_and_stop_the_margin_inside)
+    safety = SafetyFilter(box, SafetyConfig(max_linear_speed_m_s=100.0, box_margin_m=0.0))
     out = safety.filter(pose_at(CENTER), pose_at(np.array(box.upper) + 0.3), dt=1.0)
     assert out.clipped
     np.testing.assert_allclose(out.pose[:3, 3], box.upper)
@@ -113,6 +114,34 @@ def test_filter_clips_targets_to_the_safety_box_and_its_floor_margin():
     np.testing.assert_allclose(out.pose[:3, 3], (0.45, 0.0, 0.02))  # held the floor margin above it
     with pytest.raises(ConfigError, match="safety box is empty"):
         from_dict(SafetyBox, {"lower": [0.3, -0.1, 0.0], "upper": [0.6, 0.1, 0.01], "floor_margin_m": 0.02})
+
+
+def test_commands_brake_towards_a_wall_and_stop_the_margin_inside():
+    """Issue 27: a command stopped dead at a wall at the speed limit let the impedance-tracked arm
+    overshoot it (2.6 mm outside the box on franky-sim). Commands now stop ``box_margin_m`` inside
+    and brake on the way (v <= sqrt(2 a d)), arriving at rest; far from a wall the speed limit
+    alone governs."""
+    limits = SafetyConfig(box_margin_m=0.004, wall_deceleration_m_s2=2.0)
+    safety = SafetyFilter(BOX, limits)
+    floor = BOX.min_corner[2] + limits.box_margin_m
+    dt, p = 0.005, pose_at((0.45, 0.0, 0.20))
+    zs = [p[2, 3]]
+    for _ in range(400):  # straight down through the table, asked for at 0.3 m/s
+        p = safety.filter(p, pose_at((0.45, 0.0, p[2, 3] - 0.3 * dt)), dt).pose
+        zs.append(p[2, 3])
+    zs, speeds = np.array(zs), -np.diff(zs) / dt
+    assert zs.min() == pytest.approx(floor, abs=1e-4) and zs.min() >= floor - 1e-12  # the margin above the floor
+    assert speeds.max() == pytest.approx(limits.max_linear_speed_m_s)  # the speed limit far from it
+    gap = zs[:-1] - floor
+    assert np.all(speeds <= np.sqrt(2 * limits.wall_deceleration_m_s2 * gap) + 1e-9)  # braked near it
+    assert speeds[-50:].max() < 0.01  # at rest when it gets there
+    away = safety.filter(p, pose_at((0.45, 0.0, 0.3)), dt)  # leaving a wall is not braked
+    assert away.pose[2, 3] - p[2, 3] == pytest.approx(limits.max_linear_speed_m_s * dt)
+    assert safety.inside(pose_at((0.45, 0.0, BOX.min_corner[2] + 0.001))[:3, 3])  # the box itself, not the margin
+    with pytest.raises(ConfigError, match="box_margin_m must be >= 0"):
+        from_dict(ControlConfig, {"safety": {"box_margin_m": -0.001}})
+    with pytest.raises(ValueError, match="leaves nothing of the safety box"):
+        SafetyFilter(BOX, SafetyConfig(box_margin_m=0.5))
 
 
 def test_filter_limits_linear_and_angular_speed():
@@ -358,7 +387,7 @@ def test_arm_running_away_from_its_command_is_stopped_and_held_where_it_is():
 def test_chunk_outside_the_workspace_never_moves_the_command_outside():
     ctl, robot, clock = make_controller(start=(0.45, 0.0, 0.30))
     period = int(1e9 / ctl.config.control_hz)
-    upper = BOX.max_corner
+    upper = BOX.max_corner - ctl.config.safety.box_margin_m  # commands stop this far inside the box
     zs = []
     for tick in range(int(2.0 * ctl.config.control_hz)):
         if tick % 40 == 0:  # a sender that keeps asking for 2 cm per step upwards, through the lid

@@ -23,8 +23,10 @@ class SafetyConfig:
     max_tilt_rad: float = 0.785
     watchdog_timeout_s: float = 0.5  # hold the measured pose this long after the last chunk's final step
     # Commands keep this far inside the safety box (lab.yaml), so the arm's overshoot past a
-    # command stopped at a wall stays inside it; measured (docs/control.md, control.yaml's comment).
-    box_margin_m: float = 0.0
+    # command stopped at a wall stays inside it: the largest overshoot `equidiff bench safety
+    # --faults out_of_box --box-margin-mm 0` measured at the speed limit on franky-sim, 6.99 mm
+    # (five runs, 2026-11-27; docs/control.md), rounded up. Measure it again on a real FR3.
+    box_margin_m: float = 0.007
     # Commands heading for a wall brake at this deceleration so they arrive there at rest:
     # v <= sqrt(2 a d) at distance d (bounds the overshoot of an impedance-tracked arm stopping at the wall).
     wall_deceleration_m_s2: float = 2.0

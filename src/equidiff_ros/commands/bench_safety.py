@@ -16,10 +16,10 @@ for what "survived" means for it:
   15 cm from the arm / stamped 2 s ago / tilted 60 deg from tool-down. Survived: counted as
   rejected in franka_node's /diagnostics, the node alive, the arm still (< ``--still-mm``).
 * ``out_of_box``: at the speed limit (chunks asking for 0.3 m/s, the filter allows 0.25) into
-  the floor, the -y and -x walls and a corner, each from a start 10-20 cm away. Reports each
+  the floor, the -y and +x walls and their corner, each from a start 9-21 cm away. Reports each
   approach's ``overshoot_mm`` (the measured TCP past the plane commands stop at: the box shrunk
   by control.yaml's ``safety.box_margin_m``), its ``outside_mm`` (past the safety box itself,
-  lab.yaml) and ``peak_speed_m_s``. Survived: 0 mm outside. With ``--box-margin-mm 0`` the
+  lab.yaml), ``travel_mm`` and ``speed_limited`` (franka_node's speed limit cut the command). Survived: 0 mm outside. With ``--box-margin-mm 0`` the
   overshoot is the raw one the margin is set from (docs/control.md).
 * ``user_stop``: pressed while the arm follows a policy's chunks (the sender goes on throughout),
   held 2 s, an acknowledgement tried while pressed, released, then acknowledged. ``reflex``:
@@ -100,15 +100,16 @@ FAULTS = (
     "franka_node_killed",
 )
 POLICY_FAULTS = ("camera_stall", "policy_node_killed")
-# The arm's approaches in out_of_box start here and head for the floor, the -y and -x walls and
-# their corner; SCENE_SEED puts the twin's block and bowl >= 0.3 m from this corner's column.
-APPROACH_START = np.array([0.36, -0.10, 0.22])
+# The arm's approaches in out_of_box start here and head for the floor, the -y and +x walls and
+# their corner (the box's near corner, x 0.26 at the floor, bends the FR3's elbow into its joint
+# limit); SCENE_SEED puts the twin's block and bowl at y > 0.09 m, clear of all of them.
+APPROACH_START = np.array([0.50, -0.10, 0.22])
 SCENE_SEED = 82
 APPROACHES = {
     "floor": (0.0, 0.0, -1.0),
     "wall_y": (0.0, -1.0, 0.0),
-    "wall_x": (-1.0, 0.0, 0.0),
-    "corner": (-1.0, -1.0, -1.0),
+    "wall_x": (1.0, 0.0, 0.0),
+    "corner": (1.0, -1.0, -1.0),
 }
 APPROACH_SPEED_M_S = 0.30  # asked for; the filter's speed limit (0.25) governs
 
@@ -121,6 +122,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--still-mm", type=float, default=3.0, help="the arm 'held still' when it moved less than this (default 3 mm)"
+    )
+    parser.add_argument(
+        "--control-config",
+        type=Path,
+        default=None,
+        help="franka_node's control.yaml for this run (default: config/control.yaml)",
     )
     parser.add_argument(
         "--box-margin-mm",
@@ -392,6 +399,7 @@ def fault_out_of_cone(c: Campaign) -> dict:
 
 def fault_out_of_box(c: Campaign) -> dict:
     """At the speed limit into the floor, two walls and their corner (see the module docstring)."""
+    from equidiff_core.chunk import PoseChunk
     from equidiff_core.control import metrics
     from equidiff_ros.commands.bench_control import approach
 
@@ -400,19 +408,23 @@ def fault_out_of_box(c: Campaign) -> dict:
     for name, direction in APPROACHES.items():
         approach(c.client, APPROACH_START, speed=0.1, settle=0.5)
         d = np.asarray(direction) / np.linalg.norm(direction)
-        start, t0 = c.here(), time.time()
-
-        def path(t, start=start, t0=t0, d=d):
-            return start + d * APPROACH_SPEED_M_S * max(t - t0, 0.0)
-
-        c.client.stream(path, 2.0, obs_latency=0.0)
+        limited, t0 = c.diag("speed_limited_ticks"), time.time()
+        end = time.monotonic() + 3.0
+        while time.monotonic() < end:
+            # ahead of where franka_node's command is (its executed target), at 0.3 m/s: the speed
+            # limit governs whatever the sim's pace (the command itself never runs ahead of the arm's time)
+            now, start = time.time_ns(), c.client.data.targets[-1][1]
+            times = now + np.arange(1, 9, dtype=np.int64) * 100 * MS
+            poses = np.stack([down_pose(start + d * APPROACH_SPEED_M_S * 0.1 * i) for i in range(1, 9)])
+            c.client.publish_chunk(PoseChunk(now, times, poses, np.full(8, 0.08)))
+            time.sleep(0.1)
         time.sleep(1.0)
-        t, p = c.client.samples("poses", t0, time.time())
-        speeds = np.linalg.norm(np.diff(p, axis=0), axis=1) / np.maximum(np.diff(t), 1e-6) if len(t) > 1 else [0.0]
+        _, p = c.client.samples("poses", t0, time.time())
         per[name] = {
             "overshoot_mm": round(metrics.max_outside_box(p, clip_lo, clip_hi) * 1000, 2),
             "outside_mm": round(metrics.max_outside_box(p, c.box.min_corner, c.box.max_corner) * 1000, 2),
-            "peak_speed_m_s": round(float(np.percentile(speeds, 98)), 3),
+            "travel_mm": round(float(np.linalg.norm(p[-1] - p[0])) * 1000, 1) if len(p) else 0.0,
+            "speed_limited": c.wait_diag("speed_limited_ticks", limited, timeout=3.0),
         }
         c.note_excursion(t0)
     c.home()
@@ -823,10 +835,16 @@ def start_franka(c: Campaign) -> bool:
 
 def start_episode(c: Campaign) -> Path:
     from equidiff_core.topics import SERVICE_RECORDER_START
-    from equidiff_ros.commands.lab_client import LabClient
+    from equidiff_ros.commands.lab_client import LabClient, LabError
 
-    with LabClient() as lab:
-        path = Path(lab.call("std_srvs/srv/Trigger", SERVICE_RECORDER_START))
+    for attempt in range(6):  # a recorder_node starting on a loaded machine takes a while to offer it
+        try:
+            with LabClient() as lab:
+                path = Path(lab.call("std_srvs/srv/Trigger", SERVICE_RECORDER_START))
+            break
+        except LabError:
+            if attempt == 5 or (c.recorder is not None and c.recorder.poll() is not None):
+                raise
     c.episodes.append(path)
     return path
 
@@ -851,14 +869,14 @@ def episodes_lost(paths: list[Path]) -> int:
     return lost
 
 
-def control_config_with_margin(tmp: Path, margin_mm: float | None) -> tuple[Path, object]:
-    """control.yaml, or a copy of it with ``safety.box_margin_m`` set (``--box-margin-mm``)."""
+def control_config_with_margin(tmp: Path, margin_mm: float | None, path: Path | None = None) -> tuple[Path, object]:
+    """``path`` (default control.yaml), or a copy of it with ``safety.box_margin_m`` set (``--box-margin-mm``)."""
     import yaml
 
     from equidiff_core.config import default_config_dir
     from equidiff_core.control import load_control_config
 
-    path = default_config_dir() / "control.yaml"
+    path = Path(path) if path is not None else default_config_dir() / "control.yaml"
     if margin_mm is not None:
         data = yaml.safe_load(path.read_text()) or {}
         data.setdefault("safety", {})["box_margin_m"] = float(margin_mm) / 1000
@@ -874,6 +892,7 @@ def run_campaign(
     box_margin_mm: float | None = None,
     log: Callable[[str], None] = lambda _m: None,
     policy: str = "shipped",
+    control_config: Path | None = None,
 ) -> dict:
     """Run ``faults`` (in FAULTS' order) and return the result dict (the JSON line's content)."""
     from equidiff_core.config import default_config_dir, load_lab_config
@@ -887,7 +906,7 @@ def run_campaign(
     faults = [f for f in FAULTS if f in faults]
     lab_path = default_config_dir() / "lab.yaml"
     lab = load_lab_config(lab_path)
-    control_path, control = control_config_with_margin(tmp, box_margin_mm)
+    control_path, control = control_config_with_margin(tmp, box_margin_mm, control_config)
     wall0 = time.monotonic()
     result: dict = {"machine": cpu_description(), "ros_domain_id": int(os.environ["ROS_DOMAIN_ID"])}
     per_fault: dict = {}
@@ -988,6 +1007,7 @@ def run_campaign(
             "episodes_lost": episodes_lost(c.episodes),
             "still_mm": still_mm,
             "box_margin_mm": round(c.box_margin_m * 1000, 2),
+            "wall_deceleration_m_s2": control.safety.wall_deceleration_m_s2,
             "wall_s": round(time.monotonic() - wall0, 1),
             "faults": per_fault,
         }
@@ -1024,6 +1044,7 @@ def run(args: argparse.Namespace) -> int:
                 args.box_margin_mm,
                 log=lambda m: print(m, file=sys.stderr, flush=True),
                 policy=args.policy,
+                control_config=args.control_config,
             )
         except ValueError as err:
             print(f"equidiff bench safety: {err}", file=sys.stderr)
