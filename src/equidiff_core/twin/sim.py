@@ -91,6 +91,7 @@ class TwinSim:
         host: str | None = None,
         shm_name: str | None = None,
         max_lag_s: float = 0.05,
+        command_wait_s: float = 0.02,
         lockstep: LockstepConfig | None = None,
         on_clock: Callable[[int], None] | None = None,
         camera_names: tuple[str, ...] = (),
@@ -101,6 +102,11 @@ class TwinSim:
             self.host = free_loopback_host()
         self.shm_name = shm_name
         self.max_lag_s = max_lag_s
+        # real time: how long a tick waits for franky's command answering the newest state before
+        # physics runs on with the last one (a starved client's stale torque, which an FR3 would
+        # answer with a reflex). Longer keeps the closed loop what it is on the robot, slower
+        # than real time on a busy machine (equidiff bench safety passes 0.5, as simulated time does).
+        self.command_wait_s = command_wait_s
         self.lockstep = Lockstep(lockstep) if lockstep is not None else None
         self.on_clock = on_clock  # called with the sim time in ns (simulated time only)
         self.camera_names = tuple(camera_names)  # lab.yaml order = the cameras' shared-memory slots
@@ -180,7 +186,7 @@ class TwinSim:
         period = 0.001
         deadline = time.monotonic()
         while self._running:
-            self._step(0.02)
+            self._step(self.command_wait_s)
             deadline += period
             lag = time.monotonic() - deadline
             if lag < 0:
@@ -434,11 +440,20 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--config", required=True, help="twin.yaml")
     parser.add_argument("--shm", default=None, help="shared-memory name for the cameras' state")
     parser.add_argument("--seed", type=int, default=0, help="scene seed")
+    parser.add_argument(
+        "--command-wait-s",
+        type=float,
+        default=0.02,
+        help="how long a tick waits for franky's command before reusing the last (0.5: the loop stays closed under load)",
+    )
     args = parser.parse_args(argv)
     stop = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
     signal.signal(signal.SIGINT, lambda *_: stop.set())
-    with TwinSim(load_twin_config(args.config), host=args.host, shm_name=args.shm).start(seed=args.seed) as sim:
+    cfg = load_twin_config(args.config)
+    with TwinSim(cfg, host=args.host, shm_name=args.shm, command_wait_s=args.command_wait_s).start(
+        seed=args.seed
+    ) as sim:
         print(f"READY {sim.host} {sim.shm_name} {sim.model.nq}", flush=True)
         start = time.perf_counter()
         while not stop.wait(1.0):  # as the bare server: SimServer.realtime_factor reads these

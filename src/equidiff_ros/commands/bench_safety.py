@@ -16,7 +16,8 @@ for what "survived" means for it:
   15 cm from the arm / stamped 2 s ago / tilted 60 deg from tool-down. Survived: counted as
   rejected in franka_node's /diagnostics, the node alive, the arm still (< ``--still-mm``).
 * ``out_of_box``: at the speed limit (chunks asking for 0.3 m/s, the filter allows 0.25) into
-  the floor, the -y and +x walls and their corner, each from a start 9-21 cm away. Reports each
+  the floor, the -y and +x walls and the corner of the -y wall and the floor, each from a start
+  9-21 cm away. Reports each
   approach's ``overshoot_mm`` (the measured TCP past the plane commands stop at: the box shrunk
   by control.yaml's ``safety.box_margin_m``), its ``outside_mm`` (past the safety box itself,
   lab.yaml), ``travel_mm`` and ``speed_limited`` (franka_node's speed limit cut the command). Survived: 0 mm outside. With ``--box-margin-mm 0`` the
@@ -34,7 +35,7 @@ for what "survived" means for it:
 * ``camera_stall``: the twin's cameras (three camera_nodes, backend twin, rendering the sim's
   own state) -> voxel_node -> policy_node (``--policy``: ``shipped``, the twin's trained
   checkpoint, the default; or ``standin``, an untrained tiny one that starts in seconds) drive
-  the arm; one camera_node is frozen (SIGSTOP) for 3.5 s, so voxel_node's sets stop.
+  the arm; one camera_node is frozen (SIGSTOP) for 5 s, so voxel_node's sets stop.
   ``policy_chunks_accepted`` says how many of the policy's chunks franka_node executed.
   Survived: no chunk answers an observation taken during the stall, the arm held, chunks again
   once the camera is back.
@@ -100,16 +101,20 @@ FAULTS = (
     "franka_node_killed",
 )
 POLICY_FAULTS = ("camera_stall", "policy_node_killed")
+STALL_S = 5.0  # how long camera_stall freezes a camera_node
 # The arm's approaches in out_of_box start here and head for the floor, the -y and +x walls and
-# their corner (the box's near corner, x 0.26 at the floor, bends the FR3's elbow into its joint
-# limit); SCENE_SEED puts the twin's block and bowl at y > 0.09 m, clear of all of them.
+# the corner of the -y wall and the floor. The box's corners at the floor nearest to and farthest
+# from the base are out of the FR3's comfortable reach pointing down: towards x 0.26 the elbow ran
+# into its joint limit, towards x 0.64 the arm oscillated until franka_node's joint-speed stop
+# caught it (joint 4 at 2.5 rad/s; docs/control.md). SCENE_SEED puts the twin's block and bowl at
+# y > 0.09 m, clear of every approach.
 APPROACH_START = np.array([0.50, -0.10, 0.22])
 SCENE_SEED = 82
 APPROACHES = {
     "floor": (0.0, 0.0, -1.0),
     "wall_y": (0.0, -1.0, 0.0),
     "wall_x": (1.0, 0.0, 0.0),
-    "corner": (1.0, -1.0, -1.0),
+    "corner": (0.0, -1.0, -1.0),
 }
 APPROACH_SPEED_M_S = 0.30  # asked for; the filter's speed limit (0.25) governs
 
@@ -605,8 +610,10 @@ class CameraPipeline:
                 c.tmp / f"camera_{cam.name}.log",
             )
         # the twin supervisor's lenient matching on real time (its cameras share 2 loaded cores)
+        # lenient on a loaded machine (clouds came 2-5 s apart at load 20); a frozen camera still
+        # stops the sets: its newest cloud is then never within slop_s of the others'
         self.voxel = start_node(
-            "voxel_node", {"lab_config": lab_path, "slop_s": 0.15, "stale_after_s": 1.5}, c.tmp / "voxel_node.log"
+            "voxel_node", {"lab_config": lab_path, "slop_s": 0.15, "stale_after_s": 10.0}, c.tmp / "voxel_node.log"
         )
         self.accepted_before = c.diag("accepted_chunks")
         self.policy = start_node(
@@ -616,13 +623,13 @@ class CameraPipeline:
                 "precision": "fp32",
                 "lab_config": lab_path,
                 "start_paused": False,
-                "max_observation_age_s": 4.0,
+                "max_observation_age_s": 8.0,
                 "max_state_offset_s": 0.5,
             },
             c.tmp / "policy_node.log",
         )
         n0 = len(c.client.data.chunks)
-        c.client.wait_for(lambda: len(c.client.data.chunks) > n0, 240.0, "policy_node's first chunk", self.policy)
+        c.client.wait_for(lambda: len(c.client.data.chunks) > n0, 600.0, "policy_node's first chunk", self.policy)
 
     def chunks_observed_after(self, t0: float) -> int:
         """Chunks answering an observation (their stamp) later than ``t0``."""
@@ -642,13 +649,13 @@ class CameraPipeline:
 
 
 def fault_camera_stall(c: Campaign, pipe: CameraPipeline) -> dict:
-    time.sleep(3.0)  # the policy acting for a while first
+    time.sleep(5.0)  # the policy acting for a while first
     accepted = c.diag("accepted_chunks") - pipe.accepted_before
     name, camera = next(iter(pipe.cameras.items()))
     os.kill(camera.pid, signal.SIGSTOP)  # the camera freezes: no more clouds from it
     t_stall = time.time() + 0.3  # a cloud already sent may still complete one set
     try:
-        time.sleep(3.5)
+        time.sleep(STALL_S)
     finally:
         t_end = time.time()
         os.kill(camera.pid, signal.SIGCONT)
@@ -913,7 +920,11 @@ def run_campaign(
     run_dir = tmp / "run"
     run_dir.mkdir(exist_ok=True)
     shm = f"equidiff_bench_safety_{os.getpid()}"
+    # the sim waits up to 0.5 s for franky's command each tick, as the twin on simulated time does: an
+    # FR3 never runs on a starved client's stale torque (it stops with a reflex), and the figures
+    # here are franka_node's, not the machine's load (which made the overshoot 2-15 mm at 20 ms)
     twin_args = ("--config", str(default_config_dir() / "twin.yaml"), "--shm", shm, "--seed", str(SCENE_SEED))
+    twin_args += ("--command-wait-s", "0.5")
     with SimServer(module="equidiff_core.twin.sim", args=twin_args) as sim:
         client = pipe = None
         c = Campaign(
