@@ -624,6 +624,9 @@ class CameraPipeline:
                 "lab_config": lab_path,
                 "start_paused": False,
                 "max_observation_age_s": 8.0,
+                # the execution horizon's latency budget: a chunk carries up to all 16 steps, so one
+                # answering a seconds-old observation on a loaded CPU still has live steps
+                "latency_s": 2.0,
                 "max_state_offset_s": 0.5,
             },
             c.tmp / "policy_node.log",
