@@ -25,9 +25,9 @@ class SafetyConfig:
     # Commands keep this far inside the safety box (lab.yaml), so the arm's overshoot past a
     # command stopped at a wall stays inside it: the largest overshoot `equidiff bench safety
     # --faults out_of_box` measured at the speed limit on franky-sim with the braking below,
-    # 3.85 mm (six runs, 2.61-3.85 mm, 2026-11-27; docs/control.md), rounded up. Measure it again
-    # on a real FR3.
-    box_margin_m: float = 0.004
+    # 4.11 mm (eight runs, 2.60-4.11 mm, 2026-11-27; docs/control.md), rounded up. Measure it
+    # again on a real FR3.
+    box_margin_m: float = 0.005
     # Commands heading for a wall brake at this deceleration so they arrive there at rest:
     # v <= sqrt(2 a d) at distance d. 0.5 m/s^2 took the overshoot from 2-10 mm (2 m/s^2, the
     # arm's ~30 ms response could not follow) to 0.6-2.8 mm; the braking zone is v^2 / 2a
