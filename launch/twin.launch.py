@@ -125,7 +125,8 @@ def generate_launch_description():
             package="equidiff_ros",
             executable="franka_node",
             output="screen",
-            parameters=[{**common, "robot_ip": host, "realtime": False}],
+            # the twin's supervisor is its operator: no start-up acknowledgement (docs/control.md)
+            parameters=[{**common, "robot_ip": host, "realtime": False, "require_ack_on_start": False}],
         ),
         Node(
             package="equidiff_ros",

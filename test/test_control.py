@@ -19,9 +19,11 @@ from equidiff_core.config import (
     from_dict,
 )
 from equidiff_core.control import (
+    AcknowledgeRefused,
     ChunkScheduler,
     ControlConfig,
     Controller,
+    ControllerStatus,
     SafetyConfig,
     SafetyFilter,
     SafetyRejection,
@@ -30,7 +32,7 @@ from equidiff_core.control import (
     check_chunk,
     load_control_config,
 )
-from equidiff_core.robots import RobotError, make_robot
+from equidiff_core.robots import RobotError, RobotStopped, UserStopPressed, make_robot
 from equidiff_core.robots.dryrun import DryRunConfig, DryRunRobot
 from equidiff_core.rosmsg import rosbags_factory
 
@@ -102,7 +104,8 @@ def test_control_config_errors_name_the_key():
 
 def test_filter_clips_targets_to_the_safety_box_and_its_floor_margin():
     box = SafetyBox(lower=(0.3, -0.1, 0.0), upper=(0.6, 0.1, 0.3), floor_margin_m=0.02)
-    safety = SafetyFilter(box, SafetyConfig(max_linear_speed_m_s=100.0))
+    # no box_margin_m (its own test: test_commands_brake_towards_a_wall_and_stop_the_margin_inside)
+    safety = SafetyFilter(box, SafetyConfig(max_linear_speed_m_s=100.0, box_margin_m=0.0))
     out = safety.filter(pose_at(CENTER), pose_at(np.array(box.upper) + 0.3), dt=1.0)
     assert out.clipped
     np.testing.assert_allclose(out.pose[:3, 3], box.upper)
@@ -111,6 +114,34 @@ def test_filter_clips_targets_to_the_safety_box_and_its_floor_margin():
     np.testing.assert_allclose(out.pose[:3, 3], (0.45, 0.0, 0.02))  # held the floor margin above it
     with pytest.raises(ConfigError, match="safety box is empty"):
         from_dict(SafetyBox, {"lower": [0.3, -0.1, 0.0], "upper": [0.6, 0.1, 0.01], "floor_margin_m": 0.02})
+
+
+def test_commands_brake_towards_a_wall_and_stop_the_margin_inside():
+    """Issue 27: a command stopped dead at a wall at the speed limit let the impedance-tracked arm
+    overshoot it (2.6 mm outside the box on franky-sim). Commands now stop ``box_margin_m`` inside
+    and brake on the way (v <= sqrt(2 a d)), arriving at rest; far from a wall the speed limit
+    alone governs."""
+    limits = SafetyConfig(box_margin_m=0.004, wall_deceleration_m_s2=2.0)
+    safety = SafetyFilter(BOX, limits)
+    floor = BOX.min_corner[2] + limits.box_margin_m
+    dt, p = 0.005, pose_at((0.45, 0.0, 0.20))
+    zs = [p[2, 3]]
+    for _ in range(400):  # straight down through the table, asked for at 0.3 m/s
+        p = safety.filter(p, pose_at((0.45, 0.0, p[2, 3] - 0.3 * dt)), dt).pose
+        zs.append(p[2, 3])
+    zs, speeds = np.array(zs), -np.diff(zs) / dt
+    assert zs.min() == pytest.approx(floor, abs=1e-4) and zs.min() >= floor - 1e-12  # the margin above the floor
+    assert speeds.max() == pytest.approx(limits.max_linear_speed_m_s)  # the speed limit far from it
+    gap = zs[:-1] - floor
+    assert np.all(speeds <= np.sqrt(2 * limits.wall_deceleration_m_s2 * gap) + 1e-9)  # braked near it
+    assert speeds[-50:].max() < 0.01  # at rest when it gets there
+    away = safety.filter(p, pose_at((0.45, 0.0, 0.3)), dt)  # leaving a wall is not braked
+    assert away.pose[2, 3] - p[2, 3] == pytest.approx(limits.max_linear_speed_m_s * dt)
+    assert safety.inside(pose_at((0.45, 0.0, BOX.min_corner[2] + 0.001))[:3, 3])  # the box itself, not the margin
+    with pytest.raises(ConfigError, match="box_margin_m must be >= 0"):
+        from_dict(ControlConfig, {"safety": {"box_margin_m": -0.001}})
+    with pytest.raises(ValueError, match="leaves nothing of the safety box"):
+        SafetyFilter(BOX, SafetyConfig(box_margin_m=0.5))
 
 
 def test_filter_limits_linear_and_angular_speed():
@@ -288,7 +319,8 @@ def test_speed_limits_hold_in_the_robots_own_time(robot_clock_rate):
 def test_arm_running_away_from_its_command_is_stopped_and_held_where_it_is():
     """The FR3 stops itself with a reflex; franky-sim never does (the twin's arm once flailed out of
     the workspace at 25 rad/s). The controller stops the motion, restarts it where the arm is
-    and holds; repeated run-aways fault the node instead of fighting the arm forever."""
+    and holds; running away again while it holds stops streaming altogether (nothing is
+    counted, nothing resumes) until an operator acknowledges."""
 
     class RunawayRobot(DryRunRobot):
         offset, joint_speed, restarts = np.zeros(3), np.zeros(7), 0
@@ -337,18 +369,25 @@ def test_arm_running_away_from_its_command_is_stopped_and_held_where_it_is():
     assert "divergence stop" in ctl.acknowledge() and not ctl.stats.awaiting_ack and ctl.acknowledge() == ""
     go_on = PoseChunk(clock.t, np.array([clock.t + 200 * MS]), pose_at(runaway + 0.01)[None], np.ones(1))
     assert ctl.submit(go_on) and not ctl.holding  # after the operator's go-ahead
-    robot.joint_speed = np.full(7, 3.0)  # keeps whipping: stopped again after each grace, then faulted
+    robot.joint_speed = np.full(7, 3.0)  # keeps whipping: stopped and held, then streaming stopped
+    restarts = robot.restarts
     for _ in range(int(5 * ctl.config.control_hz)):
         clock.t += period
         ctl.tick()
     assert "joint 1 at 3.0 rad/s (limit 2.5 rad/s)" in ctl.stats.last_divergence
-    assert ctl.stats.faulted and ctl.stats.divergence_stops == 1 + ctl.config.franky.max_recoveries + 1
+    assert ctl.stats.divergence_stops == 3 and robot.restarts == restarts + 1  # restarted once, then left stopped
+    assert not ctl.stats.faulted and ctl.status().state == "awaiting_ack" and "streaming stopped" in ctl.status().reason
+    assert not ctl.submit(go_on)
+    robot.joint_speed = np.zeros(7)
+    assert "again while holding" in ctl.acknowledge() and robot.restarts == restarts + 2
+    clock.t += period
+    assert ctl.tick() is not None and ctl.status().state == "holding"
 
 
 def test_chunk_outside_the_workspace_never_moves_the_command_outside():
     ctl, robot, clock = make_controller(start=(0.45, 0.0, 0.30))
     period = int(1e9 / ctl.config.control_hz)
-    upper = BOX.max_corner
+    upper = BOX.max_corner - ctl.config.safety.box_margin_m  # commands stop this far inside the box
     zs = []
     for tick in range(int(2.0 * ctl.config.control_hz)):
         if tick % 40 == 0:  # a sender that keeps asking for 2 cm per step upwards, through the lid
@@ -419,45 +458,155 @@ def test_teleop_one_point_chunks_are_followed_smoothly():
     assert xs[-1] == pytest.approx(target[0], abs=0.003)  # within one teleop step of the operator
 
 
-class FlakyRobot(DryRunRobot):
-    """Fails ``failures`` times in a row (like a reflex), then works."""
+class StoppingRobot(DryRunRobot):
+    """The dry-run arm with an FR3's own stops, behind our Robot interface: a user stop (pressed
+    until released), a reflex, a lost connection (unreadable until reconnected), and a fault
+    automatic recovery cannot clear. Counts reads and recoveries."""
 
-    def __init__(self, failures):
-        super().__init__(DryRunConfig(initial_position=tuple(circle(0.0))))
-        self.failures = failures
-        self.recovered = 0
+    def __init__(self, position=None):
+        super().__init__(DryRunConfig(initial_position=tuple(circle(0.0) if position is None else position)))
+        self.stopped = ""  # a RobotStopped kind: the motion ended
+        self.pressed = self.lost = self.manual = False
+        self.reads = self.recoveries = 0
+
+    def press(self):
+        self.pressed, self.stopped = True, "user_stop"
+
+    def read_state(self):
+        if self.lost:
+            raise RobotStopped("connection_lost", "libfranka: UDP receive: Timeout")
+        self.reads += 1
+        mode = "user_stopped" if self.pressed else ("reflex" if self.stopped == "reflex" else "idle")
+        return dataclasses.replace(super().read_state(), mode=mode)
 
     def stream_target(self, pose, v, w):
-        if self.failures > 0:
-            self.failures -= 1
-            raise RobotError("cartesian_reflex")
+        if self.stopped:
+            raise RobotStopped(self.stopped, f"libfranka: Move command aborted ({self.stopped})")
         super().stream_target(pose, v, w)
 
     def recover(self):
-        self.recovered += 1
-        return "cartesian_reflex"
+        self.recoveries += 1
+        if self.pressed:
+            raise UserStopPressed("the user stop is still pressed")
+        if self.manual:
+            raise RobotError("recover_from_errors failed: manual error recovery required")
+        done = "reconnected, errors cleared" if self.lost else "errors cleared"
+        self.lost, self.stopped = False, ""
+        return done
 
 
-def test_errors_are_recovered_a_bounded_number_of_times():
-    ctl, robot, clock = make_controller(robot=FlakyRobot(failures=2))
-    for _ in range(5):
-        ctl.tick()
-        clock.t += 5 * MS
-    assert robot.recovered == 2 and ctl.stats.recoveries == 2 and not ctl.stats.faulted
-    assert ctl.stats.last_recovery_reason == "cartesian_reflex"
-    # recovered, but holding until acknowledged: a reflex never resumes the policy by itself
-    assert ctl.stats.awaiting_ack == "robot error: cartesian_reflex" and ctl.holding
-    assert not ctl.submit(circle_chunk(clock.t, clock.t)) and ctl.holding
-    assert ctl.acknowledge() == "robot error: cartesian_reflex"
-    assert ctl.submit(circle_chunk(clock.t, clock.t)) and not ctl.holding
+def run_ticks(ctl, clock, seconds):
+    period = int(1e9 / ctl.config.control_hz)
+    commands = []
+    for _ in range(int(seconds * ctl.config.control_hz)):
+        clock.t += period
+        commands.append(ctl.tick())
+    return commands
 
-    ctl, robot, clock = make_controller(robot=FlakyRobot(failures=100))
-    for _ in range(10):
-        ctl.tick()
-        clock.t += 5 * MS
-    limit = ctl.config.franky.max_recoveries
-    assert robot.recovered == limit and ctl.stats.faulted
-    assert ctl.tick() is None  # faulted: sends nothing more
+
+def test_a_user_stop_holds_once_until_released_and_acknowledged():
+    """Issue 27: a user stop makes every streamed target fail. One held state, entered once (no
+    failing tick counted, no recovery hammered, the stopped robot polled at a low rate); an
+    acknowledgement while it is pressed is refused; after release + acknowledgement the arm
+    holds and accepts chunks; a fault after that holds again."""
+    robot = StoppingRobot()
+    ctl, _, clock = make_controller(robot=robot)
+    t0 = clock.t
+    assert ctl.submit(circle_chunk(t0, t0)) and ctl.status().state == "moving"
+    run_ticks(ctl, clock, 0.2)
+    robot.press()
+    reads = robot.reads
+    commands = run_ticks(ctl, clock, 3.0)
+    assert all(c is None for c in commands)  # nothing streamed to a stopped robot
+    status = ctl.status()
+    assert status.state == "awaiting_ack" and status.reason.startswith("user stop: libfranka")
+    assert "still pressed" in status.reason and status.last_fault.startswith("user stop")
+    assert status.last_fault_ns > t0 and ctl.stats.robot_stops == 1 and robot.recoveries == 0
+    assert robot.reads - reads <= 3.0 * 10 + 2  # polled at 10 Hz, not at the 200 Hz control rate
+    assert not ctl.submit(circle_chunk(clock.t, clock.t)) and ctl.stats.ack_rejected == 1
+    with pytest.raises(ChunkError, match="awaiting"):
+        ctl.go_home()
+    with pytest.raises(AcknowledgeRefused, match="still pressed"):
+        ctl.acknowledge()
+    assert ctl.status().state == "awaiting_ack" and robot.recoveries == 0 and ctl.stats.ack_refused == 1
+    robot.pressed = False  # released: the mode reads idle, the motion is still ended
+    run_ticks(ctl, clock, 0.3)
+    assert "released: acknowledge to go on" in ctl.status().reason
+    assert ctl.acknowledge().startswith("user stop") and robot.recoveries == 1
+    assert ctl.status().state == "holding" and ctl.status().last_fault.startswith("user stop")
+    assert all(c is not None and c.holding for c in run_ticks(ctl, clock, 0.5))
+    assert ctl.submit(circle_chunk(clock.t, clock.t)) and ctl.status().state == "moving"
+    run_ticks(ctl, clock, 0.2)
+
+    robot.stopped = "reflex"  # a repeated fault after the acknowledgement: held again, never resumed
+    run_ticks(ctl, clock, 1.0)
+    assert ctl.status().state == "awaiting_ack" and ctl.status().reason.startswith("reflex")
+    assert ctl.stats.robot_stops == 2 and robot.recoveries == 1
+    assert not ctl.submit(circle_chunk(clock.t, clock.t))
+    assert ctl.acknowledge().startswith("reflex") and ctl.submit(circle_chunk(clock.t, clock.t))
+
+
+def test_a_lost_connection_holds_and_the_acknowledgement_connects_again():
+    robot = StoppingRobot()
+    ctl, _, clock = make_controller(robot=robot)
+    assert ctl.submit(circle_chunk(clock.t, clock.t))
+    run_ticks(ctl, clock, 0.2)
+    robot.lost = True
+    assert all(c is None for c in run_ticks(ctl, clock, 2.0))
+    status = ctl.status()
+    assert status.state == "awaiting_ack" and status.reason.startswith("connection to the robot lost")
+    assert "connects again" in status.reason and ctl.stats.robot_stops == 1 and robot.recoveries == 0
+    assert not ctl.submit(circle_chunk(clock.t, clock.t))
+    assert "reconnected" in ctl.acknowledge() and ctl.status().state == "holding"
+    assert ctl.submit(circle_chunk(clock.t, clock.t)) and run_ticks(ctl, clock, 0.1)[-1] is not None
+
+
+def test_a_recovery_the_robot_refuses_faults_until_an_acknowledgement_succeeds():
+    robot = StoppingRobot()
+    ctl, _, clock = make_controller(robot=robot)
+    robot.stopped, robot.manual = "reflex", True  # e.g. a joint past its limit: guided out in Desk
+    run_ticks(ctl, clock, 0.5)
+    with pytest.raises(AcknowledgeRefused, match="manual error recovery required"):
+        ctl.acknowledge()
+    status = ctl.status()
+    assert status.state == "faulted" and "manual error recovery" in status.reason and ctl.stats.faulted
+    assert "manual error recovery" in status.last_fault
+    assert all(c is None for c in run_ticks(ctl, clock, 1.0)) and not ctl.submit(circle_chunk(clock.t, clock.t))
+    with pytest.raises(ChunkError):
+        ctl.go_home()
+    robot.manual = False  # fixed at the robot: acknowledged again
+    assert ctl.acknowledge().startswith("reflex") and not ctl.stats.faulted
+    assert ctl.status().state == "holding" and ctl.submit(circle_chunk(clock.t, clock.t))
+
+
+def test_a_held_start_moves_nothing_until_acknowledged():
+    """franka_node after any restart: no home move, chunks refused; with the TCP outside the box
+    the acknowledgement moves it home (the robot's planned move) before streaming starts."""
+    robot = DryRunRobot(DryRunConfig(initial_position=tuple(circle(0.0))))
+    robot.connect()
+    clock = FakeClock()
+    ctl = Controller(robot, BOX, ControlConfig(), clock=clock)
+    ctl.start(home=True, thread=False, hold="franka_node started")
+    assert ctl.status() == ControllerStatus("awaiting_ack", "franka_node started", "", 0)
+    assert [k for k, _, _ in robot.sent] == []  # no home move
+    assert not ctl.submit(circle_chunk(clock.t, clock.t))
+    assert all(c.holding for c in run_ticks(ctl, clock, 0.2))
+    assert ctl.acknowledge() == "franka_node started" and ctl.submit(circle_chunk(clock.t, clock.t))
+
+    outside = (0.55, 0.0, 0.52)  # franky-sim's start pose, above the box
+    robot = DryRunRobot(DryRunConfig(initial_position=outside))
+    robot.connect()
+    ctl = Controller(robot, BOX, ControlConfig(), clock=clock)
+    with pytest.raises(RobotError, match="outside the safety box"):
+        ctl.start(home=False, thread=False, hold="franka_node started")
+    ctl.start(home=True, thread=False, hold="franka_node started")
+    assert "moves it home first" in ctl.status().reason and list(robot.sent) == []
+    assert all(c is None for c in run_ticks(ctl, clock, 0.5)) and list(robot.sent) == []
+    assert "moving home first" in ctl.acknowledge() and ctl.status().state == "homing"
+    assert not ctl.submit(circle_chunk(clock.t, clock.t))
+    run_ticks(ctl, clock, 0.1)
+    assert robot.sent[0][0] == "move_to" and ctl.status().state == "holding"
+    np.testing.assert_allclose(ctl.state.ee_pose[:3, 3], ctl.config.home_position)
 
 
 def test_streaming_does_not_start_with_the_tcp_outside_the_box():

@@ -23,6 +23,7 @@ from equidiff_core.control import load_control_config
 from equidiff_core.robots.franky.sim import SimServer
 from equidiff_core.twin.processes import start_node, stop_process
 from equidiff_ros.commands import bench_control as bench
+from equidiff_ros.commands.bench_safety import acknowledge
 from equidiff_ros.control_client import ControlClient, down_pose
 
 pytestmark = [pytest.mark.sim, pytest.mark.ros, pytest.mark.slow]
@@ -51,6 +52,12 @@ def franka(tmp_path_factory):
             client = ControlClient(lab, str(LAB_PATH))
             client.record_pose_stamps()  # every state's stamp, none dropped while the test runner is starved
             client.wait_for(lambda: len(client.data.poses) > 10, 90.0, "/franka/ee_pose", proc)
+            # it holds until acknowledged, as in the lab; franky-sim's arm starts above the box, so
+            # the acknowledgement moves it home (test_franka_stops.py tests that start in detail)
+            granted, message = acknowledge()
+            assert granted and "moving home first" in message, message
+            home = np.asarray(CONTROL.home_position)
+            client.wait_for(lambda: np.linalg.norm(client.latest_position() - home) < 0.02, 60.0, "home", proc)
             yield client, proc, lab, sim
         finally:
             if client is not None:
@@ -92,7 +99,7 @@ def test_state_is_published_at_100_hz_from_the_home_pose(franka):
     assert list(msg.name)[-2:] == ["fr3_finger_joint1", "fr3_finger_joint2"] and len(msg.name) == 9
     assert msg.position[7] == pytest.approx(msg.position[8]) and 0.0 < msg.position[7] <= 0.041
     home = np.asarray(CONTROL.home_position)
-    assert np.linalg.norm(client.latest_position() - home) < 0.01  # it moved home on start
+    assert np.linalg.norm(client.latest_position() - home) < 0.02  # it moved home once acknowledged
 
 
 def test_curve_is_tracked_smoothly_and_held_when_commands_stop(franka):

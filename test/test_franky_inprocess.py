@@ -29,10 +29,10 @@ LAB_PATH = default_config_dir() / "lab.yaml"
 CONTROL = load_control_config(default_config_dir() / "control.yaml")
 
 
-def test_controller_recovers_when_the_franky_motion_stops():
+def test_controller_holds_once_when_the_franky_motion_stops_and_recovers_when_acknowledged():
     """In-process Controller + FrankyRobot on their own franky-sim: the streaming motion is
-    stopped under it (what a reflex does on a real FR3; franky-sim never raises one itself);
-    the next tick notices, recovers with a logged reason, and holds the arm where it was."""
+    stopped under it (preempted by another client). The next tick notices, holds once (nothing retried),
+    and only the acknowledgement restarts streaming, holding where the arm is."""
     from equidiff_core.control import Controller
     from equidiff_core.robots import RobotError, make_robot
 
@@ -48,24 +48,50 @@ def test_controller_recovers_when_the_franky_motion_stops():
                 before = ctl.state.ee_pose[:3, 3].copy()
                 robot._robot.stop()
                 time.sleep(1.0)
-                # one recovery for the stop; a loaded franky-sim occasionally ends the fresh motion once more
-                assert 1 <= ctl.stats.recoveries <= 2 and not ctl.stats.faulted
-                assert "without a robot error" in ctl.stats.last_recovery_reason
-                assert robot._robot.is_in_control  # streaming again
+                status = ctl.status()
+                assert status.state == "awaiting_ack" and "Move command preempted" in status.reason, status
+                assert ctl.stats.robot_stops == 1 and ctl.stats.recoveries == 0 and not robot._robot.is_in_control
                 assert np.linalg.norm(ctl.state.ee_pose[:3, 3] - before) < 0.002
-                # ... and it stays held: the policy's chunks are refused until an operator acknowledges
-                assert "without a robot error" in ctl.stats.awaiting_ack and ctl.holding
                 here = ctl.state.ee_pose.copy()
                 now = ctl.clock.now_ns()
                 nudge = here.copy()
                 nudge[0, 3] += 0.01
                 chunk = PoseChunk(now, np.array([now + 300_000_000]), nudge[None], np.array([0.08]))
                 assert not ctl.submit(chunk) and ctl.stats.ack_rejected == 1
+                assert "Move command preempted" in ctl.acknowledge()
+                assert robot._robot.is_in_control and ctl.status().state == "holding"  # streaming again
                 time.sleep(0.5)
-                assert np.linalg.norm(ctl.state.ee_pose[:3, 3] - here[:3, 3]) < 0.002  # did not move
-                assert "without a robot error" in ctl.acknowledge()
+                assert np.linalg.norm(ctl.state.ee_pose[:3, 3] - here[:3, 3]) < 0.002  # held where it was
                 now = ctl.clock.now_ns()
                 assert ctl.submit(PoseChunk(now, np.array([now + 300_000_000]), nudge[None], np.array([0.08])))
+            finally:
+                ctl.stop()
+
+
+def test_a_fault_automatic_recovery_cannot_clear_faults_until_it_is_cleared_at_the_robot():
+    """franky-sim's ``error`` fault (a joint past its limit: "manual error recovery required"),
+    through the real franky client: held, the acknowledgement's recovery is refused by the
+    robot (faulted), and once cleared at the robot another acknowledgement goes on."""
+    from equidiff_core.control import AcknowledgeRefused, Controller
+    from equidiff_core.robots import make_robot
+
+    with SimServer() as sim:
+        robot = make_robot("franky", ip=sim.host, config=CONTROL.franky, realtime=False, gripper=False)
+        with robot:
+            ctl = Controller(robot, load_lab_config(LAB_PATH).safety_box, CONTROL)
+            ctl.start(home=True)
+            try:
+                time.sleep(0.3)
+                sim.inject("error")
+                time.sleep(0.5)
+                status = ctl.status()
+                assert status.state == "awaiting_ack" and "joint_position_limits_violation" in status.reason, status
+                with pytest.raises(AcknowledgeRefused, match="manual error recovery required"):
+                    ctl.acknowledge()
+                assert ctl.status().state == "faulted" and ctl.stats.faulted and not robot._robot.is_in_control
+                sim.inject("clear")  # the operator's manual recovery at the arm
+                assert "joint_position_limits_violation" in ctl.acknowledge()
+                assert ctl.status().state == "holding" and not ctl.stats.faulted and robot._robot.is_in_control
             finally:
                 ctl.stop()
 

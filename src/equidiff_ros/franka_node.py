@@ -7,30 +7,36 @@ Wiring:
       or the dry run) ; watchdog, workspace clip, speed limits, error recovery live there
   timer at ``state_hz`` (>= 100 Hz) -> /franka/ee_pose, /franka/joint_states, /franka/executed_target,
       /tf (base -> fr3_hand_tcp, where tf2_msgs is installed: RViz, easy_handeye2)
-  timer at 1 Hz -> /diagnostics (``franka_node``: rejected chunks, recoveries, watchdog holds, ...)
-  service /franka/acknowledge (Trigger) -> ``Controller.acknowledge``: after a robot error, a
-      divergence stop (joint speed, joint limit, tracking error) or an unclean exit of a previous
-      franka_node the arm holds and chunks are refused until an operator calls it
+  timer at 1 Hz -> /diagnostics (``franka_node``: rejected chunks, stops, watchdog holds, ...)
+  timer at 20 Hz -> /franka/status (latched JSON ``Controller.status()``, published on change:
+      moving | holding | homing | awaiting_ack | faulted, with the reason and the last fault)
+  service /franka/acknowledge (Trigger) -> ``Controller.acknowledge``: after a user stop, a reflex,
+      a lost connection, a divergence stop or a restart the arm holds and chunks are refused
+      until an operator calls it; refused while the user stop is pressed or if recovery fails
   service /franka/home (Trigger) -> ``Controller.go_home``: glide slowly to the configured home pose
       (chunks refused until it arrives); refused while a stop awaits acknowledgement
 
-An unclean exit (killed, crashed) leaves its marker file ``<run_dir>/franka_node_<robot_ip>.pid``
-behind; the next franka_node for the same robot then skips the home move and starts holding,
-awaiting acknowledgement: the policy may still be publishing, and the arm must not resume on
-its own. (Not for the dry run, which moves nothing.)
+Every start holds until acknowledged (``require_ack_on_start``, default true; false only where
+nothing else could move the arm unexpectedly: the twin's launchers, the dry run): the node does
+not move home on its own and refuses chunks, since the policy may still be publishing. An unclean
+exit (killed, crashed) leaves its marker file ``<run_dir>/franka_node_<robot_ip>.pid`` behind;
+the next franka_node for the same robot names it in its reason, and holds even with the waiver.
 
 Policy and teleop publish the same chunk topic, so both go through the same checks.
 
 Parameters: ``lab_config`` (lab.yaml: workspace box, robot IP, state rate), ``control_config``
 (control.yaml: limits, scheduling, gains), ``backend`` (franky | dryrun), ``robot_ip`` (overrides
 lab.yaml), ``realtime`` (false for franky-sim or a machine without an RT kernel),
-``home_on_start`` (overrides control.yaml), ``gripper`` (false: arm only), ``run_dir`` (where
-the unclean-exit marker lives; default $XDG_RUNTIME_DIR, else the temp dir).
+``home_on_start`` (overrides control.yaml; with the start hold it only applies when the TCP is
+outside the safety box: the acknowledgement then moves it home), ``require_ack_on_start``,
+``gripper`` (false: arm only), ``run_dir`` (where the unclean-exit marker lives; default
+$XDG_RUNTIME_DIR, else the temp dir).
 """
 
 from __future__ import annotations
 
 import dataclasses
+import json
 import logging
 import os
 import sys
@@ -40,17 +46,19 @@ from pathlib import Path
 from typing import ClassVar
 
 from rclpy.node import Node
+from std_msgs.msg import String
 from std_srvs.srv import Trigger
 from trajectory_msgs.msg import MultiDOFJointTrajectory
 
 from equidiff_core.chunk import ChunkError, chunk_from_msg
 from equidiff_core.config import default_config_dir
-from equidiff_core.control import Controller, load_control_config
+from equidiff_core.control import AcknowledgeRefused, Controller, load_control_config
 from equidiff_core.control import messages as cm
 from equidiff_core.robots import BACKENDS, make_robot
 from equidiff_core.rosmsg import RclpyFactory
-from equidiff_core.topics import SERVICE_FRANKA_ACKNOWLEDGE, SERVICE_FRANKA_HOME
+from equidiff_core.topics import SERVICE_FRANKA_ACKNOWLEDGE, SERVICE_FRANKA_HOME, TOPIC_FRANKA_STATUS
 from equidiff_ros.common import (
+    LATCHED_QOS,
     RELIABLE_QOS,
     TOPIC_COMMAND_CHUNK,
     TOPIC_DIAGNOSTICS,
@@ -69,7 +77,8 @@ USAGE = (
     __doc__
     + """
 usage: franka_node [--ros-args -p backend:=franky|dryrun -p robot_ip:=172.16.0.2 -p realtime:=true
-                    -p control_config:=config/control.yaml -p lab_config:=config/lab.yaml]
+                    -p control_config:=config/control.yaml -p lab_config:=config/lab.yaml
+                    -p require_ack_on_start:=true]
 """
 )
 
@@ -91,6 +100,8 @@ class FrankaNode(Node):
         )
         self.config = load_control_config(Path(control_path))
         home = self.declare_parameter("home_on_start", self.config.home_on_start).value
+        # the dry run moves nothing, so nothing can resume on its own there
+        require_ack = self.declare_parameter("require_ack_on_start", backend != "dryrun").value
         state_hz = declare_number(self, "state_hz", self.lab.robot.state_hz)
         if backend not in BACKENDS:
             raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
@@ -113,8 +124,9 @@ class FrankaNode(Node):
         # a dry run moves nothing: no marker (and parallel dry runs on one machine never hold each other)
         self.marker = None if backend == "dryrun" else Path(run_dir) / f"franka_node_{self.hardware_id}.pid"
         unclean = "" if self.marker is None else previous_exit_was_unclean(self.marker)
-        if unclean:
-            home = False  # no motion of its own: hold where the arm is until acknowledged
+        hold = unclean or (
+            "franka_node started: acknowledge (`equidiff lab ack`) before it accepts chunks" if require_ack else ""
+        )
         self.robot = make_robot(backend, logger=log, **kwargs)
         self.get_logger().info(f"connecting to the robot ({backend}, {self.hardware_id})")
         self.robot.connect()
@@ -143,13 +155,15 @@ class FrankaNode(Node):
             self.get_logger().info(
                 "tf2_msgs is not installed: base -> TCP is not published on /tf (/franka/ee_pose carries the same pose)"
             )
+        self.pub_status = self.create_publisher(String, TOPIC_FRANKA_STATUS, LATCHED_QOS)
+        self._status_sent = None
         try:
-            self.controller.start()
+            self.controller.start(hold=hold)
         except Exception:
             self.robot.disconnect()
             raise
         if unclean:
-            self.controller.require_acknowledgement(unclean)
+            self.controller.record_fault(unclean)
         if self.marker is not None:
             self.marker.write_text(str(os.getpid()))
         self.create_subscription(MultiDOFJointTrajectory, TOPIC_COMMAND_CHUNK, self.on_chunk, RELIABLE_QOS)
@@ -158,7 +172,9 @@ class FrankaNode(Node):
         self.create_service(Trigger, SERVICE_FRANKA_HOME, self.on_home)
         self.create_timer(1.0 / state_hz, self.publish_state)
         self.create_timer(1.0, self.publish_diagnostics)
-        self._last_target_stamp = None
+        self.create_timer(0.05, self.publish_status)
+        self._last_target_stamp = self._last_state_stamp = None
+        self.publish_status()
         self.get_logger().info(
             f"streaming at {self.config.control_hz:.0f} Hz, state at {state_hz:.0f} Hz; "
             f"safety box {self.controller.safety.lower.round(3).tolist()} .. "
@@ -174,12 +190,13 @@ class FrankaNode(Node):
         self.controller.submit(chunk)
 
     def on_acknowledge(self, _request, response):
-        reason = self.controller.acknowledge()
-        if self.controller.stats.faulted:
-            response.success, response.message = False, "faulted: restart franka_node once the cause is fixed"
-        else:
+        try:
+            reason = self.controller.acknowledge()
             response.success = True
             response.message = f"acknowledged: {reason}" if reason else "nothing to acknowledge"
+        except AcknowledgeRefused as err:
+            response.success, response.message = False, f"refused: {err}"
+        self.publish_status()
         return response
 
     def on_home(self, _request, response):
@@ -189,12 +206,21 @@ class FrankaNode(Node):
             response.message = f"homing to {list(self.config.home_position)} in {seconds:.1f} s"
         except ChunkError as err:
             response.success, response.message = False, f"refused: {err}"
+        self.publish_status()
         return response
+
+    def publish_status(self) -> None:
+        """/franka/status, latched, whenever it changed (checked at 20 Hz and after each service call)."""
+        status = self.controller.status().as_dict()
+        if status != self._status_sent:
+            self._status_sent = status
+            self.pub_status.publish(String(data=json.dumps(status)))
 
     def publish_state(self) -> None:
         state = self.controller.state
-        if state is None:
-            return
+        if state is None or state.stamp_ns == self._last_state_stamp:
+            return  # a stopped robot is read at 10 Hz, an unreachable one not at all: no stale repeats
+        self._last_state_stamp = state.stamp_ns
         self.pub_pose.publish(cm.pose_stamped(self.factory, state.ee_pose, state.stamp_ns, self.frame))
         self.pub_joints.publish(cm.joint_state(self.factory, state, state.stamp_ns))
         if self.pub_tf is not None:
@@ -207,18 +233,17 @@ class FrankaNode(Node):
             self.pub_target.publish(cm.pose_stamped(self.factory, command.target.pose, command.stamp_ns, self.frame))
 
     def publish_diagnostics(self) -> None:
-        stats = self.controller.stats
-        if stats.faulted:
-            level, text = cm.ERROR, "faulted: too many robot errors in a row, restart the node"
-        elif stats.awaiting_ack:
-            level, text = cm.ERROR, f"holding until acknowledged (/franka/acknowledge): {stats.awaiting_ack}"
-        elif self.controller.holding:
-            level, text = cm.OK, "holding"
+        stats, status = self.controller.stats, self.controller.status()
+        if status.state == "faulted":
+            level, text = cm.ERROR, f"faulted (acknowledge again once fixed): {status.reason}"
+        elif status.state == "awaiting_ack":
+            level, text = cm.ERROR, f"holding until acknowledged (/franka/acknowledge): {status.reason}"
         else:
-            level, text = cm.OK, "executing"
+            level, text = cm.OK, status.state + (f": {status.reason}" if status.reason else "")
         if stats.last_rejection and level == cm.OK:
             level, text = cm.WARN, f"{text}; last rejected chunk: {stats.last_rejection}"
         values = {k: v for k, v in stats.as_dict().items() if k not in ("last_rejection",)}
+        values.update(state=status.state, last_fault=status.last_fault)
         self.pub_diag.publish(
             cm.diagnostic_array(self.factory, now_ns(self), NODE_NAME, self.hardware_id, level, text, values)
         )

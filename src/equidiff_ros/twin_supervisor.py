@@ -608,7 +608,14 @@ class TwinStack:
         # run_dir: its unclean-exit marker lives with this job's logs, not in the machine's tmp
         specs["franka_node"] = (
             "franka_node",
-            {**common, "robot_ip": self.host, "realtime": False, "run_dir": str(self.out_dir / "logs")},
+            # require_ack_on_start: the supervisor is the twin's operator (it acknowledges stops before homing)
+            {
+                **common,
+                "robot_ip": self.host,
+                "realtime": False,
+                "run_dir": str(self.out_dir / "logs"),
+                "require_ack_on_start": False,
+            },
             {},
         )
         specs["recorder_node"] = (

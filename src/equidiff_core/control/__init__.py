@@ -10,7 +10,7 @@ from .config import (
     SchedulerConfig,
     load_control_config,
 )
-from .controller import Command, Controller, ControllerStats
+from .controller import AcknowledgeRefused, Command, Controller, ControllerStats, ControllerStatus
 from .safety import (
     FilteredTarget,
     SafetyFilter,
@@ -20,11 +20,13 @@ from .safety import (
 from .scheduler import ChunkScheduler, Setpoint
 
 __all__ = [
+    "AcknowledgeRefused",
     "ChunkScheduler",
     "Command",
     "ControlConfig",
     "Controller",
     "ControllerStats",
+    "ControllerStatus",
     "FilteredTarget",
     "FrankyConfig",
     "SafetyConfig",

@@ -22,6 +22,17 @@ class SafetyConfig:
     # is free). A chunk with any step outside is rejected; every command is also kept inside.
     max_tilt_rad: float = 0.785
     watchdog_timeout_s: float = 0.5  # hold the measured pose this long after the last chunk's final step
+    # Commands keep this far inside the safety box (lab.yaml), so the arm's overshoot past a
+    # command stopped at a wall stays inside it: the largest overshoot `equidiff bench safety
+    # --faults out_of_box` measured at the speed limit on franky-sim with the braking below,
+    # 4.11 mm (eight runs, 2.60-4.11 mm, 2026-11-27; docs/control.md), rounded up. Measure it
+    # again on a real FR3.
+    box_margin_m: float = 0.005
+    # Commands heading for a wall brake at this deceleration so they arrive there at rest:
+    # v <= sqrt(2 a d) at distance d. 0.5 m/s^2 took the overshoot from 2-10 mm (2 m/s^2, the
+    # arm's ~30 ms response could not follow) to 0.6-2.8 mm; the braking zone is v^2 / 2a
+    # (62 mm at the 0.25 m/s limit, 2.5 mm at 0.05 m/s).
+    wall_deceleration_m_s2: float = 0.5
     # The arm diverging from its command (the FR3's own reflexes stop this; franky-sim has none):
     # stop the motion, restart it where the arm is and hold.
     max_tracking_error_m: float = 0.1  # measured TCP this far from the last command
@@ -54,6 +65,10 @@ class SafetyConfig:
                 raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
         if len(self.max_joint_speeds_rad_s) != 7 or min(self.max_joint_speeds_rad_s) <= 0:
             raise ValueError(f"max_joint_speeds_rad_s must be 7 positive speeds, got {self.max_joint_speeds_rad_s}")
+        if self.box_margin_m < 0:
+            raise ValueError(f"box_margin_m must be >= 0, got {self.box_margin_m}")
+        if self.wall_deceleration_m_s2 <= 0:
+            raise ValueError(f"wall_deceleration_m_s2 must be positive, got {self.wall_deceleration_m_s2}")
         if self.max_tilt_rad >= 3.14159:
             raise ValueError(f"max_tilt_rad must be below pi, got {self.max_tilt_rad}")
         lo, hi = self.joint_position_min_rad, self.joint_position_max_rad
@@ -108,7 +123,6 @@ class FrankyConfig:
     gripper_force_n: float = 20.0
     gripper_epsilon_outer_m: float = 0.03  # wide, so a grasp commanded below the object holds
     gripper_command_timeout_s: float = 5.0  # warn when one gripper command runs longer (0.08 m takes 1.6 s)
-    max_recoveries: int = 3  # consecutive automatic error recoveries before giving up
     # The FR3's collision reflex (Robot.set_collision_behavior, set once on connect): a joint torque
     # (Nm) or TCP force (N, x y z; Nm about x y z) beyond these stops the arm. libfranka's example
     # defaults (examples_common.cpp setDefaultBehavior); franky-sim acknowledges and ignores them.

@@ -5,16 +5,28 @@ lab, simulated time in the twin): read the robot state, sample the
 chunk scheduler at *now*, apply the watchdog and the safety filter, stream the target to the
 robot, move the gripper when its target changes. ``submit`` (called from a ROS callback)
 checks a chunk and swaps the scheduler's trajectory under a lock, so callbacks never wait for
-the robot. Errors reported by the robot trigger ``recover`` with a logged reason, at most
-``max_recoveries`` times in a row; after that the controller stays faulted and holds nothing
-(the robot's own brakes/reflexes take over) until restarted.
+the robot.
 
-It never resumes on its own: after a recovered robot error, a divergence stop (tracking error,
-joint speed, a joint moving into its position limit) or ``require_acknowledgement`` (franka_node
-after an unclean exit of its predecessor) the arm holds where it is and every chunk is refused
-("awaiting acknowledgement") until an operator calls ``acknowledge`` (franka_node's
-``/franka/acknowledge`` service, ``equidiff lab ack``). ``go_home`` glides to the home pose
-through the same filter (``/franka/home``).
+**One held state for every stop.** A user stop, a reflex, a lost connection or any other
+robot error (``RobotStopped`` from the backend), a divergence stop (tracking error, joint
+speed, a joint moving into its position limit) and a held start (``start(hold=...)``: franka_node
+after any restart) all lead to the same place: the arm holds (the robot holds itself while it
+is stopped), every chunk is refused and ``status()`` says ``awaiting_ack`` with the reason. No
+failing tick is counted and nothing is retried: while the robot is stopped the loop only polls
+its state at ``STOPPED_POLL_HZ`` (is the user stop still pressed?). ``acknowledge`` (franka_node's
+``/franka/acknowledge``, ``equidiff lab ack``) is the only way on: it is refused while the user
+stop is pressed; otherwise it recovers the robot (reconnecting after a lost connection),
+restarts streaming where the arm is and holds; chunks are accepted again. A fault after that
+holds again. If the arm is outside the safety box or cone at that moment, streaming cannot
+start there (every command is clipped into the box): the acknowledgement then moves it home
+with the robot's own planned move first (``homing``).
+
+``faulted`` means an acknowledged recovery failed: the robot refused it (e.g. "manual error
+recovery required": a joint past its limit, to be guided out in Desk), could not be reached,
+or would not start streaming. Nothing is sent; once the cause is fixed at the robot, another
+acknowledgement retries. A restart of franka_node is never needed.
+
+``go_home`` glides to the home pose through the same filter (``/franka/home``).
 """
 
 from __future__ import annotations
@@ -26,18 +38,26 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial.transform import Rotation
+from scipy.spatial.transform import Rotation, Slerp
 
 from .. import geometry
 from ..chunk import ChunkError, PoseChunk
 from ..clock import Clock, WallClock
 from ..config import SafetyBox
-from ..robots.base import Robot, RobotError, RobotState
+from ..robots.base import STOP_KINDS, Robot, RobotError, RobotState, RobotStopped, UserStopPressed
 from .config import ControlConfig
 from .safety import FilteredTarget, SafetyFilter, SafetyRejection, check_chunk
 from .scheduler import ChunkScheduler, Setpoint
 
 log = logging.getLogger("equidiff.control")
+
+# How often a stopped robot's state is read (the user stop released? the arm's pose for the
+# topics): often enough for an operator, rare enough to leave the robot's link alone.
+STOPPED_POLL_HZ = 10.0
+# After a divergence stop or a recovery the arm may still move while it brakes: no new divergence stop meanwhile.
+DIVERGENCE_GRACE_S = 1.0
+
+STATES = ("moving", "holding", "homing", "awaiting_ack", "faulted")
 
 
 @dataclass
@@ -51,21 +71,40 @@ class ControllerStats:
     cone_rejected: int = 0  # a step tilted past the orientation cone
     stale_rejected: int = 0
     watchdog_holds: int = 0
-    recoveries: int = 0
+    robot_stops: int = 0  # the robot stopped on its own: user stop, reflex, lost connection, robot error
+    recoveries: int = 0  # acknowledged recoveries of a stopped robot
     divergence_stops: int = 0  # the arm ran away from its command: motion restarted where it was
     clipped_ticks: int = 0
     speed_limited_ticks: int = 0
     gripper_commands: int = 0
-    faulted: bool = False
+    faulted: bool = False  # an acknowledged recovery failed (see the module docstring)
     awaiting_ack: str = ""  # why the arm holds until an operator acknowledges ("" when it does not)
-    ack_rejected: int = 0  # chunks refused while awaiting acknowledgement (subset of rejected_chunks)
+    ack_rejected: int = 0  # chunks refused while a stop awaits acknowledgement (subset of rejected_chunks)
     acknowledged: int = 0
+    ack_refused: int = 0  # acknowledgements refused (user stop still pressed, recovery failed)
     last_rejection: str = ""
-    last_recovery_reason: str = ""
+    last_recovery_reason: str = ""  # the robot's own text for its last stop
     last_divergence: str = ""
 
     def as_dict(self) -> dict:
         return dict(self.__dict__)
+
+
+@dataclass(frozen=True)
+class ControllerStatus:
+    """What franka_node publishes on /franka/status (``topics.TOPIC_FRANKA_STATUS``)."""
+
+    state: str  # one of STATES
+    reason: str  # why it holds, homes or faulted ("" while moving)
+    last_fault: str  # the newest fault's text ("" before the first)
+    last_fault_ns: int  # when, on the controller's clock (0 before the first)
+
+    def as_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+
+class AcknowledgeRefused(RuntimeError):
+    """The acknowledgement could not be granted (the user stop is pressed, or recovery failed)."""
 
 
 @dataclass(frozen=True)
@@ -93,11 +132,14 @@ class Controller:
         self.safety = SafetyFilter(box, config.safety)
         self.scheduler = ChunkScheduler(config.scheduler)
         self.stats = ControllerStats()
-        self._lock = threading.Lock()
+        self._lock = threading.Lock()  # the trajectory (scheduler, hold, homing), shared with submit()
+        # the robot: one tick, a stopped robot's poll or an acknowledgement's recovery at a time
+        self._robot_lock = threading.RLock()
         self._state: RobotState | None = None
         self._setpoint: FilteredTarget | None = None  # the last command sent
         self.last_command: Command | None = None
         self._hold_pose: np.ndarray | None = None  # watchdog target (None: hold the last command)
+        self._hold_reason = "no chunk yet"
         # The last instant the current command is valid: its trajectory's last step, or its arrival
         # for a one-step chunk already due. The watchdog counts from here, not from the arrival:
         # a chunk is a plan for its whole span (policy_node answers once per 1.6 s with 1.4 s of
@@ -107,10 +149,18 @@ class Controller:
         self._last_tick_ns: int | None = None
         self._last_robot_time_s: float | None = None
         self._gripper_sent = float("nan")
-        self._failures_in_row = 0  # failures since the last acknowledgement
         self._divergence_grace_until_ns = 0
         self._homing_until_ns = 0  # go_home's trajectory runs until then: chunks are refused
         self._homing = False  # the trajectory is go_home's (until the next chunk): the gripper is left alone
+        # The robot is not streaming: "user_stop" | "reflex" | "connection_lost" | "error" (RobotStopped.kind),
+        # "divergence" (it ran away again while holding), "outside" (the TCP outside the box or cone:
+        # streaming may only start after the planned home move); "" while streaming.
+        self._stopped = ""
+        self._robot_mode = ""  # a stopped robot's mode at the last poll ("unreachable" when it could not be read)
+        self._next_poll_ns = 0
+        self._move_home = False  # acknowledged with the TCP outside: the loop moves it home, then streams
+        self._fault = ""  # why an acknowledged recovery failed ("" when not faulted)
+        self._last_fault, self._last_fault_ns = "", 0
         self._thread: threading.Thread | None = None
         self._stop = threading.Event()
 
@@ -119,39 +169,63 @@ class Controller:
     def home_pose(self) -> np.ndarray:
         return geometry.pose_from_pos_quat(self.config.home_position, self.config.home_quaternion_xyzw)
 
-    def start(self, home: bool | None = None, thread: bool = True) -> None:
-        """Move home (if configured), start streaming seeded at the current pose, start ticking."""
-        if home if home is not None else self.config.home_on_start:
-            home_pose = self.home_pose
-            if not self.safety.inside(home_pose[:3, 3]):
-                raise ValueError(f"home position {self.config.home_position} is outside the safety box")
-            if geometry.tilt_angle(home_pose[:3, :3]) > self.config.safety.max_tilt_rad:
-                raise ValueError(f"home orientation {self.config.home_quaternion_xyzw} is outside the orientation cone")
+    def start(self, home: bool | None = None, thread: bool = True, hold: str = "") -> None:
+        """Start streaming seeded at the current pose and start ticking.
+
+        Without ``hold``: move home first (``home``, default control.yaml's ``home_on_start``);
+        the TCP must then be inside the safety box and cone (else RobotError). With ``hold`` (why
+        an operator must look first: franka_node after any restart) nothing moves: the arm holds
+        where it is and every chunk is refused until ``acknowledge``; if the TCP is outside the box
+        or cone it is not streamed to at all, and (with ``home``) the acknowledgement moves it home
+        first."""
+        home = home if home is not None else self.config.home_on_start
+        if home:
+            self._check_home_pose()
+        if home and not hold:
             self.log.info(f"moving to the home pose {self.config.home_position}")
-            self.robot.move_to(home_pose)
+            self.robot.move_to(self.home_pose)
         pose = self.robot.read_state().ee_pose
-        position = pose[:3, 3]
-        if not self.safety.inside(position, tol=1e-3):
+        outside = self._outside(pose)
+        if outside and not (hold and home):
             # Every command is clipped into the box, so streaming from outside would pull the
             # arm in at full speed: refuse instead of moving unexpectedly.
-            raise RobotError(
-                f"the TCP is at {np.round(position, 3).tolist()}, outside the safety box "
-                f"{np.round(self.safety.lower, 3).tolist()} .. {np.round(self.safety.upper, 3).tolist()}; "
-                f"move it inside (or enable home_on_start) before streaming"
-            )
-        tilt = geometry.tilt_angle(pose[:3, :3])
-        if tilt > self.config.safety.max_tilt_rad + 1e-3:  # the same: every command is swung into the cone
-            raise RobotError(
-                f"the tool is tilted {np.degrees(tilt):.0f} deg from straight down, outside the "
-                f"{np.degrees(self.config.safety.max_tilt_rad):.0f} deg cone; point it down "
-                f"(or enable home_on_start) before streaming"
-            )
-        self.robot.start_streaming()
-        self._reset_to_measured()
+            raise RobotError(f"{outside}; move it inside (or enable home_on_start) before streaming")
+        if outside:
+            self._state = self._read_state()
+            self._stopped = "outside"
+            self.require_acknowledgement(f"{hold}; {outside}: the acknowledgement moves it home first")
+        else:
+            self.robot.start_streaming()
+            self._reset_to_measured()
+            if hold:
+                self.require_acknowledgement(hold)
         if thread:
             self._stop.clear()
             self._thread = threading.Thread(target=self._run, name="control-loop", daemon=True)
             self._thread.start()
+
+    def _check_home_pose(self) -> None:
+        home_pose = self.home_pose
+        if not self.safety.inside(home_pose[:3, 3]):
+            raise ValueError(f"home position {self.config.home_position} is outside the safety box")
+        if geometry.tilt_angle(home_pose[:3, :3]) > self.config.safety.max_tilt_rad:
+            raise ValueError(f"home orientation {self.config.home_quaternion_xyzw} is outside the orientation cone")
+
+    def _outside(self, pose: np.ndarray) -> str:
+        """Why streaming must not start at ``pose`` ('' if it may)."""
+        position = pose[:3, 3]
+        if not self.safety.inside(position, tol=1e-3):
+            return (
+                f"the TCP is at {np.round(position, 3).tolist()}, outside the safety box "
+                f"{np.round(self.safety.lower, 3).tolist()} .. {np.round(self.safety.upper, 3).tolist()}"
+            )
+        tilt = geometry.tilt_angle(pose[:3, :3])
+        if tilt > self.config.safety.max_tilt_rad + 1e-3:  # the same: every command is swung into the cone
+            return (
+                f"the tool is tilted {np.degrees(tilt):.0f} deg from straight down, outside the "
+                f"{np.degrees(self.config.safety.max_tilt_rad):.0f} deg cone"
+            )
+        return ""
 
     def stop(self) -> None:
         self._stop.set()
@@ -193,10 +267,13 @@ class Controller:
         now = self.clock.now_ns()
         try:
             with self._lock:
-                if self.stats.awaiting_ack:
+                held = (
+                    self.stats.awaiting_ack or self._fault or (self._stopped and f"the robot stopped ({self._stopped})")
+                )
+                if held:
                     self.stats.ack_rejected += 1
                     raise ChunkError(
-                        f"awaiting an operator's acknowledgement after: {self.stats.awaiting_ack} "
+                        f"awaiting an operator's acknowledgement after: {held} "
                         f"(franka_node's /franka/acknowledge, `equidiff lab ack`)"
                     )
                 if now < self._homing_until_ns:
@@ -232,6 +309,41 @@ class Controller:
         self.stats.last_rejection = text
         self.log.warning(f"rejected chunk: {text}; holding the current trajectory")
 
+    # --- what an operator sees -------------------------------------------------------------
+    def status(self) -> ControllerStatus:
+        """The operator's view (franka_node's /franka/status): moving, holding, homing, awaiting_ack, faulted."""
+        now = self.clock.now_ns()
+        if self._fault:
+            state, reason = "faulted", self._fault
+        elif self.stats.awaiting_ack:
+            state, reason = "awaiting_ack", self.stats.awaiting_ack + self._stopped_detail()
+        elif self._move_home:
+            state, reason = "homing", "moving home (the robot's planned move) before streaming: the TCP was outside"
+        elif self._homing:  # go_home's trajectory, until the next chunk
+            if now < self._homing_until_ns:
+                state, reason = "homing", f"gliding home, {(self._homing_until_ns - now) / 1e9:.1f} s to go"
+            else:
+                state, reason = "holding", "at home"
+        elif self._holding:
+            state, reason = "holding", self._hold_reason
+        else:
+            state, reason = "moving", ""
+        return ControllerStatus(state, reason, self._last_fault, self._last_fault_ns)
+
+    def _stopped_detail(self) -> str:
+        if self._stopped == "user_stop":
+            if self._robot_mode == "user_stopped":
+                return " (the user stop is still pressed: release it, then acknowledge)"
+            if self._robot_mode and self._robot_mode != "unreachable":
+                return " (the user stop is released: acknowledge to go on)"
+        if self._stopped == "connection_lost" or self._robot_mode == "unreachable":
+            return " (the robot cannot be read: the acknowledgement connects again)"
+        return ""
+
+    def record_fault(self, text: str) -> None:
+        """Note ``text`` as the newest fault (``status().last_fault``), e.g. an unclean exit found at start."""
+        self._last_fault, self._last_fault_ns = text, self.clock.now_ns()
+
     # --- the tick ------------------------------------------------------------------------
     def _current_setpoint(self, now_ns: int) -> Setpoint:
         """Where the command is at ``now_ns``: the last one sent, moved on by its twist for the
@@ -250,24 +362,36 @@ class Controller:
             )
         return Setpoint(pose, sp.linear_velocity, sp.angular_velocity, float("nan"), not self._holding)
 
-    def _reset_to_measured(self) -> None:
+    def _reset_to_measured(self, reason: str = "") -> None:
         state = self._read_state()
         self._state = state
         with self._lock:
             self.scheduler.clear()
             self._holding = True
             self._hold_pose = None
+            self._homing, self._homing_until_ns = False, 0
+            self._hold_reason = reason or self._hold_reason
             self._setpoint = FilteredTarget(state.ee_pose, np.zeros(3), np.zeros(3), False, False)
+        self._last_robot_time_s = None  # the robot's clock may have restarted (a new connection)
 
     def _read_state(self) -> RobotState:
         """The robot's state stamped on the controller's clock (simulated time in the twin)."""
         return dataclasses.replace(self.robot.read_state(), stamp_ns=self.clock.now_ns())
 
     def tick(self) -> Command | None:
+        with self._robot_lock:
+            return self._tick()
+
+    def _tick(self) -> Command | None:
         now = self.clock.now_ns()
-        if self.stats.faulted:
+        if self._stopped:
+            self._while_stopped(now)
             return None
-        self._state = self._read_state()
+        try:
+            self._state = self._read_state()
+        except RobotError as err:
+            self._robot_stopped(err)
+            return None
         diverged = self._divergence(now)
         if diverged:
             self._stop_diverged(now, diverged)
@@ -284,6 +408,7 @@ class Controller:
                 self.scheduler.clear()
                 self._holding = True
                 self._hold_pose = self._state.ee_pose.copy()
+                self._hold_reason = f"watchdog: no new chunk within {self.config.safety.watchdog_timeout_s} s of the last one's final step"
                 self.stats.watchdog_holds += 1
                 self.log.warning(
                     f"no new command for {self.config.safety.watchdog_timeout_s} s after the last "
@@ -299,7 +424,7 @@ class Controller:
         try:
             self.robot.stream_target(filtered.pose, filtered.linear_velocity, filtered.angular_velocity)
         except RobotError as err:
-            self._handle_failure(now, err)
+            self._robot_stopped(err)
             return None
         self._setpoint = filtered
         self.stats.ticks += 1
@@ -333,6 +458,41 @@ class Controller:
         self._last_tick_ns, self._last_robot_time_s = now, robot_now if np.isfinite(robot_now) else None
         return float(np.clip(dt, low, 3 * period))
 
+    # --- stops -----------------------------------------------------------------------------
+    def _robot_stopped(self, err: RobotError) -> None:
+        """The robot ended the motion on its own: hold (it holds itself) and wait for an operator.
+        Nothing is retried: the loop only polls the robot's state from now on."""
+        kind = err.kind if isinstance(err, RobotStopped) else "error"
+        reason = err.reason if isinstance(err, RobotStopped) else str(err)
+        text = f"{STOP_KINDS[kind]}: {reason}"
+        self._stopped, self._robot_mode = kind, ""
+        self._next_poll_ns = 0
+        self.stats.robot_stops += 1
+        self.stats.last_recovery_reason = reason
+        self.record_fault(text)
+        with self._lock:
+            self.scheduler.clear()
+            self._holding = True
+            self._hold_pose = None
+            self._homing, self._homing_until_ns = False, 0
+            self.stats.awaiting_ack = text
+        self.log.error(f"{text}: the robot stopped; holding until an operator acknowledges (`equidiff lab ack`)")
+
+    def _while_stopped(self, now: int) -> None:
+        """A stopped robot: read its state now and then (for the topics, and whether the user stop
+        is still pressed); after an acknowledgement with the TCP outside, move it home."""
+        if self._move_home:
+            self._home_then_stream()
+            return
+        if now < self._next_poll_ns or self._stopped == "connection_lost":
+            return  # a dead connection has nothing to read: the acknowledgement connects again
+        self._next_poll_ns = now + int(1e9 / STOPPED_POLL_HZ)
+        try:
+            self._state = self._read_state()
+            self._robot_mode = self._state.mode
+        except RobotError:
+            self._robot_mode = "unreachable"
+
     def _divergence(self, now: int) -> str:
         """Why the arm is running away from its command ('' when it is not, or while it brakes after a stop)."""
         if self._setpoint is None or now < self._divergence_grace_until_ns:
@@ -364,70 +524,49 @@ class Controller:
         return ""
 
     def _stop_diverged(self, now: int, reason: str) -> None:
-        """Stop the motion, restart it seeded where the arm is and hold there (the arm brakes meanwhile)."""
+        """Stop the motion, restart it seeded where the arm is and hold there (the arm brakes
+        meanwhile). If it runs away again while already holding for an operator, streaming stays
+        stopped (the robot holds itself) until the acknowledgement restarts it."""
         self.stats.divergence_stops += 1
         self.stats.last_divergence = reason
-        self._divergence_grace_until_ns = now + int(1e9)
-        if not self._count_failure(f"the arm diverged from its command again ({reason})"):
+        self._divergence_grace_until_ns = now + int(DIVERGENCE_GRACE_S * 1e9)
+        again = bool(self.stats.awaiting_ack)
+        text = f"divergence stop: {reason}"
+        self.record_fault(text)
+        try:
+            self.robot.stop_streaming()
+            if not again:
+                self.robot.start_streaming()
+        except RobotError as err:
+            self._robot_stopped(err)
+            return
+        if again:
+            self._stopped, self._robot_mode = "divergence", ""
+            with self._lock:
+                self.scheduler.clear()
+                self._holding = True
+                self.stats.awaiting_ack = f"{text} (again while holding: streaming stopped)"
+            self.log.error(f"the arm diverged from its command again while holding ({reason}): streaming stopped")
             return
         self.log.error(
             f"the arm diverged from its command ({reason}): stopping the motion and holding where it "
             f"is until an operator acknowledges"
         )
-        try:
-            self.robot.stop_streaming()
-            self.robot.start_streaming()
-        except RobotError as err:
-            self._handle_failure(now, err)
-            return
         self._reset_to_measured()
-        self.stats.awaiting_ack = f"divergence stop: {reason}"
+        self.stats.awaiting_ack = text
 
-    def _count_failure(self, what: str) -> bool:
-        """Count a failure; past ``max_recoveries`` since the last acknowledgement the node faults
-        (False): nothing more is sent."""
-        self._failures_in_row += 1
-        limit = self.config.franky.max_recoveries
-        if self._failures_in_row > limit:
-            self.stats.faulted = True
-            self.log.error(
-                f"{what} after {limit} recoveries in a row: giving up; restart the node once the cause is fixed"
-            )
-            return False
-        return True
-
-    def _handle_failure(self, now: int, err: Exception) -> None:
-        if not self._count_failure(f"robot error '{err}'"):
-            return
-        limit = self.config.franky.max_recoveries
-        try:
-            reason = self.robot.recover()
-        except RobotError as rec_err:
-            self.log.error(f"recovery {self._failures_in_row}/{limit} failed: {rec_err}")
-            return
-        self.stats.recoveries += 1
-        self.stats.last_recovery_reason = reason
-        self.log.warning(
-            f"robot error ({reason}); recovered ({self._failures_in_row}/{limit}), holding until "
-            f"an operator acknowledges"
-        )
-        self._reset_to_measured()
-        self.stats.awaiting_ack = f"robot error: {reason}"
-
+    # --- operator actions ------------------------------------------------------------------
     def go_home(self) -> float:
         """Glide to the configured home pose at ``home_speed_m_s`` / ``home_angular_speed_rad_s``
         through the ordinary safety filter (box, cone, speed limits, watchdog), the gripper left as
         it is; chunks are refused until it arrives. Returns the glide's duration (s). Raises
         ChunkError while a stop awaits acknowledgement or the controller is faulted: an operator
         looks at the arm first."""
-        from scipy.spatial.transform import Rotation, Slerp
-
-        if self.stats.faulted:
-            raise ChunkError("faulted: restart franka_node once the cause is fixed")
         now = self.clock.now_ns()
         with self._lock:
-            if self.stats.awaiting_ack:
-                raise ChunkError(f"awaiting an operator's acknowledgement after: {self.stats.awaiting_ack}")
+            held = self._fault or self.stats.awaiting_ack or (self._stopped and f"the robot stopped ({self._stopped})")
+            if held:
+                raise ChunkError(f"awaiting an operator's acknowledgement after: {held}")
             start = (self._state or self._read_state()).ee_pose
             goal, cfg = self.home_pose, self.config
             distance = float(np.linalg.norm(goal[:3, 3] - start[:3, 3]))
@@ -446,6 +585,7 @@ class Controller:
             self._homing = True
             self._holding = False
             self._hold_pose = None
+            self._hold_reason = "at home"
         self.log.info(
             f"homing: {distance * 1000:.0f} mm and {np.degrees(angle):.0f} deg to {cfg.home_position} "
             f"in {duration:.1f} s"
@@ -453,24 +593,95 @@ class Controller:
         return duration
 
     def require_acknowledgement(self, reason: str) -> None:
-        """Hold and refuse every chunk until an operator acknowledges ``reason`` (franka_node calls
-        it when it starts after an unclean exit: the policy may still be publishing)."""
+        """Hold and refuse every chunk until an operator acknowledges ``reason``."""
         with self._lock:
             self.stats.awaiting_ack = reason
             self.scheduler.clear()
             self._holding = True
+            self._hold_pose = None
         self.log.warning(f"holding until an operator acknowledges: {reason}")
 
     def acknowledge(self) -> str:
-        """An operator's go-ahead after a stop: chunks are accepted again (the arm keeps holding
-        until the next one) and the count of failures in a row starts over. Returns what was
-        acknowledged ("" when nothing was awaiting acknowledgement); a faulted controller stays
-        faulted (restart the node)."""
-        with self._lock:
-            reason, self.stats.awaiting_ack = self.stats.awaiting_ack, ""
-            if reason:
-                self._failures_in_row = 0
-                self.stats.acknowledged += 1
-        if reason:
-            self.log.warning(f"acknowledged: {reason}; accepting chunks again")
-        return reason
+        """An operator's go-ahead after a stop. Returns what was acknowledged ("" when nothing
+        awaited it). A stopped robot is recovered first (see the module docstring); raises
+        AcknowledgeRefused while its user stop is pressed or when recovery fails (``faulted``).
+        The arm holds afterwards, until the next chunk (or moves home first if it is outside)."""
+        with self._robot_lock:
+            reason = self.stats.awaiting_ack or self._fault
+            if not reason:
+                return ""
+            try:
+                done = self._recover() if self._stopped else ""
+            except AcknowledgeRefused:
+                self.stats.ack_refused += 1
+                raise
+            with self._lock:
+                self.stats.awaiting_ack = ""
+            self.stats.acknowledged += 1
+        self.log.warning(f"acknowledged: {reason}{f' ({done})' if done else ''}; accepting chunks again")
+        return reason + (f" ({done})" if done else "")
+
+    def _recover(self) -> str:
+        """Bring a stopped robot back to streaming, holding where it is (called with the robot lock)."""
+        now = self.clock.now_ns()
+        if self._stopped != "connection_lost":
+            try:
+                mode = self._read_state().mode
+            except RobotError:
+                mode = "unreachable"  # the backend reconnects in recover()
+            if mode == "user_stopped":
+                self._robot_mode = mode
+                raise AcknowledgeRefused("the user stop is still pressed: release it, then acknowledge")
+        try:
+            done = self.robot.recover()
+        except UserStopPressed as err:
+            self._robot_mode = "user_stopped"
+            raise AcknowledgeRefused(f"{err}: release it, then acknowledge") from err
+        except RobotError as err:
+            self._faulted(f"recovery after '{self.stats.awaiting_ack or self._fault}' failed: {err}")
+        try:
+            pose = self._read_state().ee_pose
+        except RobotError as err:
+            self._faulted(f"the robot cannot be read after recovery: {err}")
+        if self._outside(pose):
+            self._move_home, self._stopped = True, "outside"
+            self._fault, self.stats.faulted = "", False
+            return f"{done + '; ' if done else ''}{self._outside(pose)}: moving home first"
+        try:
+            self.robot.start_streaming()
+        except RobotError as err:
+            self._faulted(f"streaming would not start again: {err}")
+        self._streaming_again(now)
+        return done
+
+    def _streaming_again(self, now: int) -> None:
+        self._stopped, self._robot_mode, self._move_home = "", "", False
+        self._fault, self.stats.faulted = "", False
+        self.stats.recoveries += 1
+        self._divergence_grace_until_ns = now + int(DIVERGENCE_GRACE_S * 1e9)
+        self._reset_to_measured("acknowledged: waiting for a chunk")
+
+    def _home_then_stream(self) -> None:
+        """Acknowledged with the TCP outside the box or cone: the robot's own planned move home,
+        then streaming (the control thread, with the robot lock; chunks are refused meanwhile)."""
+        self.log.info(f"moving to the home pose {self.config.home_position} (the TCP was outside), then holding")
+        try:
+            self.robot.move_to(self.home_pose)
+            self.robot.start_streaming()
+        except RobotError as err:
+            self._move_home = False
+            if isinstance(err, RobotStopped):
+                self._robot_stopped(err)
+            else:
+                self._fault = f"the move home failed: {err}"
+                self.stats.faulted = True
+                self.record_fault(self._fault)
+                self.log.error(f"{self._fault}; holding until an operator acknowledges again")
+            return
+        self._streaming_again(self.clock.now_ns())
+
+    def _faulted(self, text: str) -> None:
+        self._fault, self.stats.faulted = text, True
+        self.record_fault(text)
+        self.log.error(f"faulted: {text}; nothing is sent until an acknowledgement succeeds")
+        raise AcknowledgeRefused(text)

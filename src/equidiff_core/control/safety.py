@@ -7,11 +7,14 @@ Two layers, both pure functions of poses and limits:
   current pose and the chunk's first live step. A failing chunk raises ``SafetyRejection`` (a
   ``ChunkError``) and nothing of it is executed: the arm keeps its trajectory or holds.
 * ``SafetyFilter.filter`` at every control tick: clip the position to the safety box (lab.yaml
-  ``safety_box``, its floor raised by the floor margin), swing the orientation back into the
-  cone (only interpolation between two accepted steps can leave it, by a little), then limit
-  the linear and angular speed relative to the previous command. The previous command is
-  inside the box and the box is convex, so every command stays inside. Widths are clipped to
-  the hand's range.
+  ``safety_box``, its floor raised by the floor margin) shrunk by ``box_margin_m``, swing the
+  orientation back into the cone (only interpolation between two accepted steps can leave it,
+  by a little), then limit the linear and angular speed relative to the previous command, and
+  brake towards each wall (at most sqrt(2 a d) at distance d, ``wall_deceleration_m_s2``). The
+  previous command is inside the box and the box is convex, so every command stays inside; the
+  braking and the margin keep the *measured* TCP inside too: a command that stopped dead at a
+  wall at the speed limit let the impedance-tracked arm overshoot it (2.7 mm on franky-sim).
+  Widths are clipped to the hand's range.
 """
 
 from __future__ import annotations
@@ -88,11 +91,17 @@ class SafetyFilter:
     def __init__(self, box: SafetyBox, limits: SafetyConfig):
         self.limits = limits
         self.box = box
-        self.lower = box.min_corner  # the floor margin included
-        self.upper = box.max_corner
+        margin = limits.box_margin_m
+        if np.any(box.max_corner - box.min_corner <= 2 * margin):
+            raise ValueError(
+                f"box_margin_m {margin} leaves nothing of the safety box {box.min_corner}..{box.max_corner}"
+            )
+        self.lower = box.min_corner + margin  # where commands may go: the floor margin and box_margin_m included
+        self.upper = box.max_corner - margin
 
     def inside(self, position: np.ndarray, tol: float = 1e-9) -> bool:
-        return bool(np.all(position >= self.lower - tol) and np.all(position <= self.upper + tol))
+        """Whether ``position`` is inside the safety box itself (not only where commands may go)."""
+        return bool(np.all(position >= self.box.min_corner - tol) and np.all(position <= self.box.max_corner + tol))
 
     def clip_position(self, position: np.ndarray) -> np.ndarray:
         return np.clip(position, self.lower, self.upper)
@@ -121,6 +130,9 @@ class SafetyFilter:
         max_dist = self.limits.max_linear_speed_m_s * dt
         lin_limited = dist > max_dist
         new_p = prev_p + step * (max_dist / dist) if lin_limited else goal_p
+        braked = self._brake(prev_p, new_p, dt)
+        lin_limited = lin_limited or braked is not new_p
+        new_p = braked
 
         R_prev = Rotation.from_matrix(previous[:3, :3])
         delta = Rotation.from_matrix(goal_R) * R_prev.inv()  # world-frame rotation
@@ -147,3 +159,13 @@ class SafetyFilter:
         if wn > self.limits.max_angular_speed_rad_s:
             w = w * (self.limits.max_angular_speed_rad_s / wn)
         return FilteredTarget(geometry.make_pose(new_R, new_p), v, w, clipped, lin_limited or ang_limited)
+
+    def _brake(self, prev_p: np.ndarray, new_p: np.ndarray, dt: float) -> np.ndarray:
+        """``new_p`` with each axis's step towards a wall cut to sqrt(2 a d) dt, d the previous
+        command's distance to that wall (``new_p`` itself when nothing was cut)."""
+        step = new_p - prev_p
+        gap = np.where(step > 0, self.upper - prev_p, prev_p - self.lower)  # to the wall it heads for
+        allowed = np.sqrt(2.0 * self.limits.wall_deceleration_m_s2 * np.maximum(gap, 0.0)) * dt
+        if np.all(np.abs(step) <= allowed):
+            return new_p
+        return prev_p + np.clip(step, -allowed, allowed)

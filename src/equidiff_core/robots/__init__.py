@@ -5,7 +5,16 @@ Backends are imported lazily so the dry run needs neither franky nor a robot.
 
 from __future__ import annotations
 
-from .base import ARM_JOINT_NAMES, FINGER_JOINT_NAMES, Robot, RobotError, RobotState
+from .base import (
+    ARM_JOINT_NAMES,
+    FINGER_JOINT_NAMES,
+    STOP_KINDS,
+    Robot,
+    RobotError,
+    RobotState,
+    RobotStopped,
+    UserStopPressed,
+)
 
 BACKENDS = ("franky", "dryrun")
 
@@ -24,4 +33,15 @@ def make_robot(backend: str, **kwargs) -> Robot:
     raise ValueError(f"unknown robot backend {backend!r}; choose one of {BACKENDS}")
 
 
-__all__ = ["ARM_JOINT_NAMES", "BACKENDS", "FINGER_JOINT_NAMES", "Robot", "RobotError", "RobotState", "make_robot"]
+__all__ = [
+    "ARM_JOINT_NAMES",
+    "BACKENDS",
+    "FINGER_JOINT_NAMES",
+    "STOP_KINDS",
+    "Robot",
+    "RobotError",
+    "RobotState",
+    "RobotStopped",
+    "UserStopPressed",
+    "make_robot",
+]

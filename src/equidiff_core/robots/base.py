@@ -5,6 +5,11 @@ Shaped like the camera interface (LeRobot style): an abstract context manager wi
 state, stream a target pose with a feed-forward twist, move the gripper without blocking,
 and recover from errors. Safety is not the backend's job: ``control.Controller`` filters
 every target before it reaches ``stream_target``.
+
+When the robot stops on its own (its user stop, a reflex, a lost connection) ``stream_target``
+or ``read_state`` raise ``RobotStopped`` saying which; ``recover`` clears it (reconnecting
+when the connection was lost) but refuses with ``UserStopPressed`` while the user stop is
+pressed. Nothing here decides whether to go on: the controller holds until an operator does.
 """
 
 from __future__ import annotations
@@ -23,6 +28,32 @@ class RobotError(RuntimeError):
     """The robot refused or aborted a command (reflex, connection loss, motion failure)."""
 
 
+# RobotStopped.kind: what stopped the robot, and how an operator reads it
+STOP_KINDS = {
+    "user_stop": "user stop",
+    "reflex": "reflex",
+    "connection_lost": "connection to the robot lost",
+    "error": "robot error",
+}
+
+
+class RobotStopped(RobotError):
+    """The robot ended the motion on its own. ``kind`` (``STOP_KINDS``): ``user_stop`` (its user
+    stop was pressed), ``reflex`` (a collision or limit reflex), ``connection_lost`` (no state
+    within the client's timeout: only a new connection recovers), ``error`` (anything else, e.g.
+    an aborted motion); ``reason`` is the robot's own text."""
+
+    def __init__(self, kind: str, reason: str):
+        if kind not in STOP_KINDS:
+            raise ValueError(f"kind must be one of {sorted(STOP_KINDS)}, got {kind!r}")
+        super().__init__(f"{STOP_KINDS[kind]}: {reason}")
+        self.kind, self.reason = kind, reason
+
+
+class UserStopPressed(RobotError):
+    """Recovery refused: the user stop is still pressed (release it first)."""
+
+
 @dataclass(frozen=True)
 class RobotState:
     stamp_ns: int  # when the state was read (the backend's wall clock; control.Controller re-stamps on its own)
@@ -31,6 +62,9 @@ class RobotState:
     joint_velocities: np.ndarray  # (7,) rad/s
     gripper_width: float  # m (NaN if unknown)
     robot_time_s: float = float("nan")  # the robot's own clock (libfranka's state time); NaN if it has none
+    # the robot's own mode: "idle", "move", "user_stopped", "reflex", "guiding", "error_recovery",
+    # "other"; "" for a backend without one
+    mode: str = ""
 
 
 class Robot(abc.ABC):
@@ -50,7 +84,8 @@ class Robot(abc.ABC):
 
     @abc.abstractmethod
     def read_state(self) -> RobotState:
-        """The newest state (non-blocking apart from the transport)."""
+        """The newest state (non-blocking apart from the transport); RobotStopped
+        ("connection_lost") when the robot cannot be read."""
 
     @abc.abstractmethod
     def move_to(self, pose: np.ndarray) -> None:
@@ -62,7 +97,7 @@ class Robot(abc.ABC):
 
     @abc.abstractmethod
     def stream_target(self, pose: np.ndarray, linear_velocity: np.ndarray, angular_velocity: np.ndarray) -> None:
-        """Set the streaming controller's target (any rate); raise RobotError if it stopped."""
+        """Set the streaming controller's target (any rate); raise RobotStopped (or RobotError) if it stopped."""
 
     @abc.abstractmethod
     def stop_streaming(self) -> None:
@@ -74,9 +109,11 @@ class Robot(abc.ABC):
 
     @abc.abstractmethod
     def recover(self) -> str:
-        """Clear errors and restart streaming; return the reason the robot stopped.
+        """Clear the robot's errors, reconnecting first when the connection was lost, so that
+        ``start_streaming`` can follow (it does not start streaming itself: the caller checks
+        where the arm is first); return what was done.
 
-        Raise RobotError if recovery failed."""
+        Raise UserStopPressed while the user stop is pressed, RobotError if recovery failed."""
 
     @property
     @abc.abstractmethod

@@ -27,6 +27,10 @@ process of its own (``robots.franky.sim.SimServer(module="equidiff_core.twin.sim
 sharing its state for cameras under ``--shm``: a sim thread inside a busy Python process
 waits for that process's GIL, and on a loaded machine it went silent past libfranka's 1 s
 receive timeout (the calibration twin, CI).
+
+Both clocks take franky-sim faults at the libfranka protocol level (``robots.franky.faults``:
+a user stop, a reflex, an error recovery cannot clear, an aborted motion, a dropped
+connection, a jammed gripper) on the sim's fault channel, ``FAULT_PORT`` at ``host``.
 """
 
 from __future__ import annotations
@@ -45,6 +49,7 @@ from franky_sim.mujoco_simulator import MUJOCO_DEFAULT_KP, MUJOCO_DEFAULT_KV
 from scipy.spatial.transform import Rotation
 
 from ..robots.base import RobotState
+from ..robots.franky.faults import SimFaults
 from ..robots.franky.sim import (
     free_loopback_host,
     keep_alive,
@@ -86,6 +91,7 @@ class TwinSim:
         host: str | None = None,
         shm_name: str | None = None,
         max_lag_s: float = 0.05,
+        command_wait_s: float = 0.02,
         lockstep: LockstepConfig | None = None,
         on_clock: Callable[[int], None] | None = None,
         camera_names: tuple[str, ...] = (),
@@ -96,6 +102,11 @@ class TwinSim:
             self.host = free_loopback_host()
         self.shm_name = shm_name
         self.max_lag_s = max_lag_s
+        # real time: how long a tick waits for franky's command answering the newest state before
+        # physics runs on with the last one (a starved client's stale torque, which an FR3 would
+        # answer with a reflex). Longer keeps the closed loop what it is on the robot, slower
+        # than real time on a busy machine (equidiff bench safety passes 0.5, as simulated time does).
+        self.command_wait_s = command_wait_s
         self.lockstep = Lockstep(lockstep) if lockstep is not None else None
         self.on_clock = on_clock  # called with the sim time in ns (simulated time only)
         self.camera_names = tuple(camera_names)  # lab.yaml order = the cameras' shared-memory slots
@@ -105,6 +116,7 @@ class TwinSim:
         self.stats = LoopStats()
         self.poses: ScenePoses | None = None
         self._sim = self._robot = self._server = self._writer = None
+        self.faults: SimFaults | None = None  # protocol-level fault injection (robots.franky.faults)
         self._thread: threading.Thread | None = None
         self._running = False
         self._frame_tick = 0
@@ -115,6 +127,7 @@ class TwinSim:
         self._sim.init()
         self._server = SimulationServer(self._sim, hostname_candidates=[self.host])
         self._server.init()  # binds host:1337 and starts the simulation
+        self.faults = SimFaults(self._server, self.host, log=lambda m: print(f"[twin sim] {m}", flush=True))
         self._writer = StateWriter(self.model.nq, self.shm_name)
         self.shm_name = self._writer.name
         self.reset(seed)
@@ -128,6 +141,9 @@ class TwinSim:
         if self._thread is not None:
             self._thread.join(timeout=2.0)
             self._thread = None
+        if self.faults is not None:
+            self.faults.close()
+            self.faults = None
         if self._server is not None:
             self._server.cleanup()
             self._server = None
@@ -160,7 +176,7 @@ class TwinSim:
 
     def _step(self, command_timeout_s: float) -> None:
         with self.lock:
-            self.stats.missed_commands += step_server(self._server, command_timeout_s)
+            self.stats.missed_commands += step_server(self._server, command_timeout_s, self.faults)
             self.stats.steps += 1
             self.tick += 1
             if self.stats.steps % self.state_every == 0:
@@ -170,7 +186,7 @@ class TwinSim:
         period = 0.001
         deadline = time.monotonic()
         while self._running:
-            self._step(0.02)
+            self._step(self.command_wait_s)
             deadline += period
             lag = time.monotonic() - deadline
             if lag < 0:
@@ -237,7 +253,9 @@ class TwinSim:
                 break
             if now - last_keepalive > cfg.keepalive_s:
                 with self.lock:
-                    keep_alive(self._server)
+                    self.faults.poll()  # a fault requested while the sim waits
+                    if not self.faults.dropped:  # a dropped connection stays silent
+                        keep_alive(self._server)
                 self._publish_clock()  # again: /clock is best effort, and a lost one could hold up the waited-for
                 last_keepalive = now
             time.sleep(0.0005)
@@ -422,14 +440,24 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--config", required=True, help="twin.yaml")
     parser.add_argument("--shm", default=None, help="shared-memory name for the cameras' state")
     parser.add_argument("--seed", type=int, default=0, help="scene seed")
+    parser.add_argument(
+        "--command-wait-s",
+        type=float,
+        default=0.02,
+        help="how long a tick waits for franky's command before reusing the last (0.5: the loop stays closed under load)",
+    )
     args = parser.parse_args(argv)
     stop = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
     signal.signal(signal.SIGINT, lambda *_: stop.set())
-    with TwinSim(load_twin_config(args.config), host=args.host, shm_name=args.shm).start(seed=args.seed) as sim:
+    cfg = load_twin_config(args.config)
+    with TwinSim(cfg, host=args.host, shm_name=args.shm, command_wait_s=args.command_wait_s).start(
+        seed=args.seed
+    ) as sim:
         print(f"READY {sim.host} {sim.shm_name} {sim.model.nq}", flush=True)
-        while not stop.wait(0.2):
-            pass
+        start = time.perf_counter()
+        while not stop.wait(1.0):  # as the bare server: SimServer.realtime_factor reads these
+            print(f"STATS {sim.stats.steps} {time.perf_counter() - start:.3f}", flush=True)
 
 
 if __name__ == "__main__":

@@ -399,6 +399,7 @@ def run(args: argparse.Namespace) -> int:
                         "realtime": False,
                         "control_config": str(control_path),
                         "lab_config": str(lab_path),
+                        "require_ack_on_start": False,  # the bench homes and drives it at once
                     },
                     tmp / "franka_node.log",
                     priority=True,

@@ -1,39 +1,59 @@
-"""`equidiff bench safety`: a fault campaign against franky-sim through franka_node (issue 16 item 2).
+"""`equidiff bench safety`: a fault campaign against franky-sim through franka_node (issues 16 and 27).
 
-    equidiff bench safety                          # all ten faults, ~3 min on 2 cores
-    equidiff bench safety --faults nan,out_of_box,franka_node_killed
+    equidiff bench safety                          # all fourteen faults, ~6 min on 2 cores
+    equidiff bench safety --faults nan,out_of_box,user_stop,franka_node_killed
+    equidiff bench safety --faults out_of_box --box-margin-mm 0   # the raw overshoot the margin is set from
 
-Starts franky-sim, franka_node (real franky client, real rclpy, separate processes) and
-recorder_node, then drives franka_node over /franka/command_chunk the way the policy does and
-injects one fault at a time, each checked for what "survived" means for it:
+Starts the twin's franky-sim (its scene, scene seed chosen so no object lies near the arm's
+approaches; the robot faults are injected at the libfranka protocol level, so the real franky
+client raises the real exceptions: ``robots.franky.faults``), franka_node (real franky client,
+real rclpy, separate processes, the lab's defaults: it holds at start until acknowledged, which
+the bench does as the operator) and recorder_node, then drives franka_node over
+/franka/command_chunk the way the policy does and injects one fault at a time, each checked
+for what "survived" means for it:
 
 * ``nan``, ``jump``, ``stale_chunk``, ``out_of_cone``: a chunk with a NaN pose / a first step
   15 cm from the arm / stamped 2 s ago / tilted 60 deg from tool-down. Survived: counted as
   rejected in franka_node's /diagnostics, the node alive, the arm still (< ``--still-mm``).
-* ``out_of_box``: 4 s of chunks heading down through the table and out past the safety box.
-  Survived: the TCP never left the box (lab.yaml ``safety_box``) by more than ``--box-tol-mm``
-  (default: the box's floor margin, 10 mm, which is there to absorb the arm's overshoot: the
-  hand never touched the table).
-* ``camera_stall``: a policy_node (``--policy``: ``shipped``, the twin's trained checkpoint,
-  the default; or ``standin``, an untrained tiny one that starts in seconds) on synthetic 5 Hz
-  voxel grids (a table and a block); the grids stop for 3.5 s, as voxel_node's do when a
-  camera stalls. ``policy_chunks_accepted`` says how many of its chunks franka_node executed.
-  Survived: no chunk during the stall, the arm held, chunks again once the grids come back.
+* ``out_of_box``: at the speed limit (chunks asking for 0.3 m/s, the filter allows 0.25) into
+  the floor, the -y and +x walls and the corner of the -y wall and the floor, each from a start
+  9-21 cm away. Reports each
+  approach's ``overshoot_mm`` (the measured TCP past the plane commands stop at: the box shrunk
+  by control.yaml's ``safety.box_margin_m``), its ``outside_mm`` (past the safety box itself,
+  lab.yaml), ``travel_mm`` and ``speed_limited`` (franka_node's speed limit cut the command). Survived: 0 mm outside. With ``--box-margin-mm 0`` the
+  overshoot is the raw one the margin is set from (docs/control.md).
+* ``user_stop``: pressed while the arm follows a policy's chunks (the sender goes on throughout),
+  held 2 s, an acknowledgement tried while pressed, released, then acknowledged. ``reflex``:
+  a collision reflex mid-motion, then acknowledged. ``connection_lost``: the robot stops
+  answering for 1.5 s (libfranka's 1 s receive timeout kills its connection), then
+  acknowledged (franka_node connects again). ``divergence``: the sender yaws the hand on and on
+  until joint 7 runs into its position limit (franka_node's divergence stop), then acknowledged.
+  Survived, each: franka_node (the same process) held (/franka/status ``awaiting_ack`` with the
+  fault's reason), the arm still and every chunk refused until the acknowledgement (an
+  acknowledgement while the user stop is pressed is refused), and after it the arm follows the
+  chunks again.
+* ``camera_stall``: the twin's cameras (three camera_nodes, backend twin, rendering the sim's
+  own state) -> voxel_node -> policy_node (``--policy``: ``shipped``, the twin's trained
+  checkpoint, the default; or ``standin``, an untrained tiny one that starts in seconds) drive
+  the arm; one camera_node is frozen (SIGSTOP) for 5 s, so voxel_node's sets stop.
+  ``policy_chunks_accepted`` says how many of the policy's chunks franka_node executed.
+  Survived: no chunk answers an observation taken during the stall, the arm held, chunks again
+  once the camera is back.
 * ``policy_node_killed``: that policy_node is SIGKILLed. Survived: the arm held (watchdog).
 * ``recorder_sigkill``: recorder_node is SIGKILLed mid-episode. Survived: the episode is
   readable after ``equidiff bags repair`` and franka_node did not notice.
-* ``gripper_stuck``: franky-sim's hand is jammed (``SimServer.jam_gripper``: the fingers stay
-  and the gripper command never finishes) while a new width is sent and the arm moves 3 cm.
-  Survived: the fingers did not move (the fault took), the arm reached its target (< 5 mm) and
-  its state kept coming (no gap longer than half the 6 s jam: a control loop waiting on the
-  gripper would stall until the jam clears; a loaded 2-core machine starves it for ~1.4 s at
-  times), and after the jam clears a new width is reached.
+* ``gripper_stuck``: franky-sim's hand is jammed (the fingers stay and the gripper command
+  never finishes) while a new width is sent and the arm moves 3 cm. Survived: the fingers did
+  not move (the fault took), the arm reached its target (< 5 mm) and its state kept coming (no
+  gap longer than half the 6 s jam: a control loop waiting on the gripper would stall until the
+  jam clears; a loaded 2-core machine starves it for ~1.4 s at times), and after the jam clears
+  a new width is reached.
 * between faults the arm goes back home through franka_node's ``/franka/home`` (refused, and
   the campaign's next fault then fails, if a stop still awaited acknowledgement).
 * ``franka_node_killed``: SIGKILL while the arm runs a chunk; the sender keeps publishing
   chunks that start where the arm is. franka_node is started again (same ``run_dir``): it
-  must find the unclean exit, skip its home move and hold; chunks are refused until
-  /franka/acknowledge, after which the arm follows them again. Survived: all of that.
+  must find the unclean exit, not move and hold; chunks are refused until /franka/acknowledge,
+  after which the arm follows them again. Survived: all of that.
 
 Across the campaign: ``max_excursion_mm`` (largest distance of the measured TCP outside the
 safety box), ``auto_resumes`` (times the arm moved or a chunk was accepted while franka_node
@@ -54,9 +74,11 @@ import sys
 import tempfile
 import threading
 import time
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Self
 
 import numpy as np
 
@@ -68,6 +90,10 @@ FAULTS = (
     "stale_chunk",
     "out_of_box",
     "out_of_cone",
+    "user_stop",
+    "reflex",
+    "connection_lost",
+    "divergence",
     "camera_stall",
     "policy_node_killed",
     "recorder_sigkill",
@@ -75,6 +101,22 @@ FAULTS = (
     "franka_node_killed",
 )
 POLICY_FAULTS = ("camera_stall", "policy_node_killed")
+STALL_S = 5.0  # how long camera_stall freezes a camera_node
+# The arm's approaches in out_of_box start here and head for the floor, the -y and +x walls and
+# the corner of the -y wall and the floor. The box's corners at the floor nearest to and farthest
+# from the base are out of the FR3's comfortable reach pointing down: towards x 0.26 the elbow ran
+# into its joint limit, towards x 0.64 the arm oscillated until franka_node's joint-speed stop
+# caught it (joint 4 at 2.5 rad/s; docs/control.md). SCENE_SEED puts the twin's block and bowl at
+# y > 0.09 m, clear of every approach.
+APPROACH_START = np.array([0.50, -0.10, 0.22])
+SCENE_SEED = 82
+APPROACHES = {
+    "floor": (0.0, 0.0, -1.0),
+    "wall_y": (0.0, -1.0, 0.0),
+    "wall_x": (1.0, 0.0, 0.0),
+    "corner": (0.0, -1.0, -1.0),
+}
+APPROACH_SPEED_M_S = 0.30  # asked for; the filter's speed limit (0.25) governs
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -87,11 +129,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--still-mm", type=float, default=3.0, help="the arm 'held still' when it moved less than this (default 3 mm)"
     )
     parser.add_argument(
-        "--box-tol-mm",
+        "--control-config",
+        type=Path,
+        default=None,
+        help="franka_node's control.yaml for this run (default: config/control.yaml)",
+    )
+    parser.add_argument(
+        "--box-margin-mm",
         type=float,
         default=None,
-        help="out_of_box survives within this distance outside the safety box "
-        "(default: its floor margin, lab.yaml safety_box.floor_margin_m)",
+        help="franka_node's safety.box_margin_m for this run, in mm (default: control.yaml's); "
+        "0 measures the raw overshoot past the box",
     )
     parser.add_argument(
         "--policy",
@@ -103,6 +151,56 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--keep", type=Path, default=None, help="keep logs and episodes here (default: a temp dir)")
 
 
+class StatusWatch:
+    """franka_node's /franka/status (latched JSON) as it arrives, to wait on its state; and the
+    newest measured TCP pose, orientation included (``ee_pose``, 4x4)."""
+
+    def __init__(self, client: ControlClient):
+        from geometry_msgs.msg import PoseStamped
+        from std_msgs.msg import String
+
+        from equidiff_core.topics import TOPIC_EE_POSE, TOPIC_FRANKA_STATUS
+        from equidiff_ros.common import LATCHED_QOS, RELIABLE_QOS
+
+        self.client = client
+        self.history: deque = deque(maxlen=2000)  # (receive wall s, status dict)
+        self.ee_pose: np.ndarray | None = None
+        client.node.create_subscription(
+            String, TOPIC_FRANKA_STATUS, lambda m: self.history.append((time.time(), json.loads(m.data))), LATCHED_QOS
+        )
+        client.node.create_subscription(PoseStamped, TOPIC_EE_POSE, self._on_pose, RELIABLE_QOS)
+
+    def _on_pose(self, msg) -> None:
+        from equidiff_core import geometry
+
+        p, q = msg.pose.position, msg.pose.orientation
+        self.ee_pose = geometry.pose_from_pos_quat((p.x, p.y, p.z), (q.x, q.y, q.z, q.w))
+
+    @property
+    def latest(self) -> dict:
+        return self.history[-1][1] if self.history else {}
+
+    def wait(self, predicate: Callable[[dict], bool], timeout: float, what: str, proc=None) -> dict:
+        """The first status (from now on, or the latest) for which ``predicate`` holds."""
+        self.client.wait_for(lambda: bool(self.history) and predicate(self.latest), timeout, what, proc)
+        return self.latest
+
+    def states_since(self, t: float) -> list[str]:
+        return [status["state"] for when, status in list(self.history) if when >= t]
+
+
+def acknowledge() -> tuple[bool, str]:
+    """Call franka_node's /franka/acknowledge as `equidiff lab ack` does: (granted, its message)."""
+    from equidiff_core.topics import SERVICE_FRANKA_ACKNOWLEDGE
+    from equidiff_ros.commands.lab_client import LabClient, LabError
+
+    with LabClient() as lab:
+        try:
+            return True, lab.call("std_srvs/srv/Trigger", SERVICE_FRANKA_ACKNOWLEDGE)
+        except LabError as err:
+            return False, str(err)
+
+
 @dataclass
 class Campaign:
     client: ControlClient
@@ -111,7 +209,9 @@ class Campaign:
     tmp: Path
     franka_params: dict
     still_m: float
-    box_tol_m: float
+    box_margin_m: float
+    shm: str = ""  # the twin sim's shared state, for its cameras
+    status: StatusWatch | None = None
     franka: object = None  # its Popen
     recorder: object = None
     episodes: list = field(default_factory=list)
@@ -119,6 +219,7 @@ class Campaign:
     excursion_m: float = 0.0
     t_start: float = field(default_factory=time.time)
     home_position: np.ndarray = field(default_factory=lambda: np.array([0.45, 0.0, 0.30]))  # control.yaml's
+    joint_limits: tuple = ((), ())  # control.yaml's joint_position_min_rad / _max_rad
 
     # --- observations --------------------------------------------------------------------
     def diag(self, key: str) -> int:
@@ -175,28 +276,63 @@ class Campaign:
         from equidiff_core.topics import SERVICE_FRANKA_HOME
         from equidiff_ros.commands.lab_client import LabClient
 
-        with LabClient() as lab:
-            lab.call("std_srvs/srv/Trigger", SERVICE_FRANKA_HOME)
-        self.client.wait_for(
-            lambda: np.linalg.norm(self.here() - self.home_position) < 0.002, 60.0, "the arm home", self.franka
-        )
+        for attempt in range(3):
+            with LabClient() as lab:
+                message = lab.call("std_srvs/srv/Trigger", SERVICE_FRANKA_HOME)
+            seconds = float(message.rsplit(" in ", 1)[-1].split()[0])  # "homing to [...] in N s"
+            try:  # a sim far below real time runs the glide late; the watchdog then holds it short of home: again
+                self.client.wait_for(
+                    lambda: np.linalg.norm(self.here() - self.home_position) < 0.002,
+                    seconds + 10.0,
+                    "the arm home",
+                    self.franka,
+                )
+                break
+            except TimeoutError:
+                if attempt == 2:
+                    raise
         time.sleep(0.3)
 
     def follow_me(self, seconds: float, direction=(0.0, 1.0, 0.0), speed: float = 0.03) -> float:
         """What a policy sends: chunks that start where the arm is and move slowly on; returns the send start."""
+        from equidiff_core import geometry
         from equidiff_core.chunk import PoseChunk
 
         d = np.asarray(direction, dtype=float)
         t0 = time.time()
         end = time.monotonic() + seconds
-        while time.monotonic() < end:
+        while True:
             now = time.time_ns()
-            start = self.here()
+            here = self.status.ee_pose if self.status is not None and self.status.ee_pose is not None else None
+            start = self.here() if here is None else here[:3, 3]
+            R = down_pose(start)[:3, :3] if here is None else here[:3, :3]  # keeps the measured orientation
             times = now + np.arange(8, dtype=np.int64) * 200 * MS
-            poses = np.stack([down_pose(start + d * speed * 0.2 * i) for i in range(8)])
+            poses = np.stack([geometry.make_pose(R, start + d * speed * 0.2 * i) for i in range(8)])
             self.client.publish_chunk(PoseChunk(now, times, poses, np.full(8, 0.08)))
+            if time.monotonic() >= end:  # one chunk at least (``seconds`` 0: exactly one)
+                return t0
             time.sleep(0.2)
-        return t0
+
+
+class Sender:
+    """A policy that goes on publishing whatever happens to franka_node (``publish`` once per 0.2 s)."""
+
+    def __init__(self, publish: Callable[[], None]):
+        self.publish, self.stop = publish, threading.Event()
+        self.thread = threading.Thread(target=self._run, daemon=True)
+
+    def _run(self) -> None:
+        while not self.stop.is_set():
+            self.publish()
+            self.stop.wait(0.2)
+
+    def __enter__(self) -> Self:
+        self.thread.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.stop.set()
+        self.thread.join(timeout=5)
 
 
 # --- the faults ------------------------------------------------------------------------------
@@ -267,100 +403,278 @@ def fault_out_of_cone(c: Campaign) -> dict:
 
 
 def fault_out_of_box(c: Campaign) -> dict:
+    """At the speed limit into the floor, two walls and their corner (see the module docstring)."""
+    from equidiff_core.chunk import PoseChunk
     from equidiff_core.control import metrics
+    from equidiff_ros.commands.bench_control import approach
 
-    start = c.here()
-    t0 = time.time()
-    direction = np.array([0.5, 0.3, -1.0]) / np.linalg.norm([0.5, 0.3, -1.0])
-
-    def path(t):  # 0.12 m/s down through the table and out past the box's x and floor faces
-        return start + direction * 0.12 * max(t - t0, 0.0)
-
-    last, _ = c.client.stream(path, 4.0, obs_latency=0.0)
-    time.sleep(1.0)
-    outside = c.note_excursion(t0)
-    requested = metrics.max_outside_box(path(last)[None], c.box.min_corner, c.box.max_corner)
+    clip_lo, clip_hi = c.box.min_corner + c.box_margin_m, c.box.max_corner - c.box_margin_m
+    per = {}
+    for name, direction in APPROACHES.items():
+        approach(c.client, APPROACH_START, speed=0.1, settle=0.5)
+        d = np.asarray(direction) / np.linalg.norm(direction)
+        limited, t0 = c.diag("speed_limited_ticks"), time.time()
+        end = time.monotonic() + 3.0
+        while time.monotonic() < end:
+            # ahead of where franka_node's command is (its executed target), at 0.3 m/s: the speed
+            # limit governs whatever the sim's pace (the command itself never runs ahead of the arm's time)
+            now, start = time.time_ns(), c.client.data.targets[-1][1]
+            times = now + np.arange(1, 9, dtype=np.int64) * 100 * MS
+            poses = np.stack([down_pose(start + d * APPROACH_SPEED_M_S * 0.1 * i) for i in range(1, 9)])
+            c.client.publish_chunk(PoseChunk(now, times, poses, np.full(8, 0.08)))
+            time.sleep(0.1)
+        time.sleep(1.0)
+        _, p = c.client.samples("poses", t0, time.time())
+        per[name] = {
+            "overshoot_mm": round(metrics.max_outside_box(p, clip_lo, clip_hi) * 1000, 2),
+            "outside_mm": round(metrics.max_outside_box(p, c.box.min_corner, c.box.max_corner) * 1000, 2),
+            "travel_mm": round(float(np.linalg.norm(p[-1] - p[0])) * 1000, 1) if len(p) else 0.0,
+            "speed_limited": c.wait_diag("speed_limited_ticks", limited, timeout=3.0),
+        }
+        c.note_excursion(t0)
     c.home()
+    outside = max(a["outside_mm"] for a in per.values())
     return {
-        "survived": c.alive() and outside <= c.box_tol_m,
-        "outside_mm": round(outside * 1000, 2),
-        "requested_outside_mm": round(requested * 1000, 1),
+        "survived": c.alive() and outside == 0.0,
+        "outside_mm": outside,
+        "max_overshoot_mm": max(a["overshoot_mm"] for a in per.values()),
+        "box_margin_mm": round(c.box_margin_m * 1000, 2),
+        "approaches": per,
     }
 
 
-@dataclass
-class PolicyFeed:
-    """policy_node on synthetic voxel grids at the observation rate; ``stalled`` stops the grids."""
+def held_until_acknowledged(
+    c: Campaign,
+    sender: Callable[[], None],
+    inject: Callable[[], None],
+    reason_starts: str,
+    pressed: bool = False,
+    after_fault_s: float = 0.0,
+    resume: Callable[[], None] | None = None,
+) -> dict:
+    """The common course of a robot stop: ``inject`` it while ``sender`` publishes chunks (it goes
+    on throughout), check that franka_node holds (the same process, /franka/status
+    ``awaiting_ack`` with a reason starting ``reason_starts``, the arm still, every chunk
+    refused); with ``pressed`` (the user stop) an acknowledgement is tried first and must be
+    refused, then the stop is released; then acknowledge and check the arm follows again (the
+    chunks of ``resume``, if given, from then on)."""
+    pid, out = c.franka.pid, {}
+    with Sender(sender) as policy:
+        time.sleep(0.8)  # the arm follows the sender
+        t_fault = time.time()
+        inject()
+        try:
+            status = c.status.wait(lambda s: s.get("state") == "awaiting_ack", 15.0, "the held state", c.franka)
+        except (TimeoutError, RuntimeError) as err:
+            return {"survived": False, "error": str(err), "status": c.status.latest}
+        out["reason"] = status["reason"][:120]
+        out["held_after_s"] = round(time.time() - t_fault, 2)
+        time.sleep(max(0.0, t_fault + after_fault_s - time.time()))  # e.g. until a dropped link answers again
+        time.sleep(0.5)  # the arm brakes
+        c.client.wait_for(  # the 1 Hz diagnostics have caught up with the stop: a baseline for the count
+            lambda: c.client.diag_value("franka_node", "state") == "awaiting_ack", 5.0, "diagnostics of the stop"
+        )
+        accepted, rejected, t_held = c.diag("accepted_chunks"), c.diag("ack_rejected"), time.time()
+        time.sleep(2.0)
+        refused = c.wait_diag("ack_rejected", rejected, timeout=3.0)
+        if pressed:
+            granted, message = acknowledge()
+            out["ack_while_pressed_refused"] = not granted and "still pressed" in message
+            c.sim.inject("release")
+            time.sleep(1.0)
+        policy.publish = resume or sender  # refused until the acknowledgement anyway
+        time.sleep(0.3)
+        accepted_while_held = c.diag("accepted_chunks") > accepted
+        t_ack = time.time()
+        granted, message = acknowledge()
+        out["acknowledged"] = message[:120]
+        # the arm from the stop until the acknowledgement, and the state read as it recovered (the
+        # first after it: a lost connection has no state in between, so this shows its drift)
+        c.wait_past(t_ack + 0.5)
+        t, p = c.client.samples("poses", t_held, time.time())
+        p = np.concatenate([p[t <= t_ack], p[t > t_ack][:1]]) if len(t) else p
+        held = float(np.max(np.linalg.norm(p - p[0], axis=1))) if len(p) else float("nan")
+        resumed_alone = not held < c.still_m or accepted_while_held
+        c.auto_resumes += int(resumed_alone)
+        accepted = c.diag("accepted_chunks")
+        time.sleep(2.5)
+        follows = c.wait_diag("accepted_chunks", accepted, timeout=3.0) and (
+            c.moved_m(t_ack, time.time()) > 0.01 or resume is not None  # a turn of the hand moves the TCP little
+        )
+    c.note_excursion(t_fault)
+    out.update(
+        held_moved_mm=round(held * 1000, 2),
+        refused_until_ack=refused,
+        follows_after_ack=follows,
+        same_process=c.franka.pid == pid and c.alive(),
+    )
+    out["survived"] = bool(
+        out["reason"].startswith(reason_starts)
+        and held < c.still_m
+        and refused
+        and not resumed_alone
+        and granted
+        and follows
+        and out["same_process"]
+        and out.get("ack_while_pressed_refused", True)
+    )
+    c.home()
+    return out
 
-    client: ControlClient
-    stalled: threading.Event = field(default_factory=threading.Event)
-    stop: threading.Event = field(default_factory=threading.Event)
-    proc: object = None
-    thread: threading.Thread | None = None
+
+def fault_user_stop(c: Campaign) -> dict:
+    return held_until_acknowledged(
+        c, lambda: c.follow_me(0.0), lambda: c.sim.inject("user_stop"), "user stop: ", pressed=True
+    )
+
+
+def fault_reflex(c: Campaign) -> dict:
+    return held_until_acknowledged(c, lambda: c.follow_me(0.0), lambda: c.sim.inject("reflex"), "reflex: ")
+
+
+def fault_connection_lost(c: Campaign) -> dict:
+    return held_until_acknowledged(
+        c,
+        lambda: c.follow_me(0.0),
+        lambda: c.sim.inject("drop", 1.5),
+        "connection to the robot lost",
+        after_fault_s=2.0,  # the robot answers again (to a new connection) before the operator acknowledges
+    )
+
+
+def fault_divergence(c: Campaign) -> dict:
+    """The sender yaws the hand on and on (0.5 rad/s, the speed limit is 0.6) until joint 7 runs
+    into its position limit: franka_node's divergence stop. Joint 7 turns against the yaw about
+    the base's z while the hand points down; the sender heads for the nearer of its limits."""
+    from equidiff_core import geometry
+    from equidiff_core.chunk import PoseChunk
+
+    q7 = float(c.client.data.last_joint_state.position[6])
+    lo, hi = c.joint_limits[0][6], c.joint_limits[1][6]
+    yaw_sign = -1.0 if hi - q7 < q7 - lo else 1.0
+    rate = 0.5
+
+    def yawing():  # from the measured pose on, as a policy answering observations would
+        now, here = time.time_ns(), c.status.ee_pose
+        times = now + np.arange(8, dtype=np.int64) * 200 * MS
+        poses = [
+            geometry.make_pose(geometry.rotz(yaw_sign * rate * 0.2 * (i + 1)) @ here[:3, :3], here[:3, 3])
+            for i in range(8)
+        ]
+        c.client.publish_chunk(PoseChunk(now, times, np.stack(poses), np.full(8, 0.08)))
+
+    stopped = {}
+
+    def inject():  # the yawing itself is the fault: wait for it to run into the limit
+        c.status.wait(lambda s: s.get("state") == "awaiting_ack", 20.0, "the divergence stop", c.franka)
+        stopped["q7"] = float(c.client.data.last_joint_state.position[6])
+
+    def unyawing():  # after the acknowledgement: back, away from the limit (towards it would stop again)
+        now, here = time.time_ns(), c.status.ee_pose
+        times = now + np.arange(8, dtype=np.int64) * 200 * MS
+        poses = [
+            geometry.make_pose(geometry.rotz(-yaw_sign * 0.3 * 0.2 * (i + 1)) @ here[:3, :3], here[:3, 3])
+            for i in range(8)
+        ]
+        c.client.publish_chunk(PoseChunk(now, times, np.stack(poses), np.full(8, 0.08)))
+
+    result = held_until_acknowledged(c, yawing, inject, "divergence stop: joint 7", resume=unyawing)
+    result["q7_start_rad"], result["q7_at_stop_rad"] = round(q7, 3), round(stopped.get("q7", float("nan")), 3)
+    return result
+
+
+@dataclass
+class CameraPipeline:
+    """The twin's cameras (one camera_node each, backend twin, rendering the sim's state) ->
+    voxel_node -> policy_node -> franka_node: what the policy faults act on."""
+
+    c: Campaign
+    cameras: dict = field(default_factory=dict)  # name -> Popen
+    voxel: object = None
+    policy: object = None
     accepted_before: int = 0  # franka_node's accepted_chunks when the policy started
 
-    def start(self, checkpoint: Path, log: Path) -> None:
+    def start(self, checkpoint: Path) -> None:
         from equidiff_core.twin.processes import start_node
 
-        self.proc = start_node(
+        c, lab_path = self.c, self.c.client.lab_path
+        for cam in c.client.lab.cameras:
+            self.cameras[cam.name] = start_node(
+                "camera_node",
+                {
+                    "lab_config": lab_path,
+                    "backend": "twin",
+                    "camera": cam.name,
+                    "backend_options": json.dumps({"shm_name": c.shm}),
+                },
+                c.tmp / f"camera_{cam.name}.log",
+            )
+        # the twin supervisor's lenient matching on real time (its cameras share 2 loaded cores)
+        # lenient on a loaded machine (clouds came 2-5 s apart at load 20); a frozen camera still
+        # stops the sets: its newest cloud is then never within slop_s of the others'
+        self.voxel = start_node(
+            "voxel_node", {"lab_config": lab_path, "slop_s": 0.15, "stale_after_s": 10.0}, c.tmp / "voxel_node.log"
+        )
+        self.accepted_before = c.diag("accepted_chunks")
+        self.policy = start_node(
             "policy_node",
             {
                 "checkpoint": str(checkpoint),
                 "precision": "fp32",
-                "lab_config": self.client.lab_path,
+                "lab_config": lab_path,
                 "start_paused": False,
+                "max_observation_age_s": 8.0,
+                # the execution horizon's latency budget: a chunk carries up to all 16 steps, so one
+                # answering a seconds-old observation on a loaded CPU still has live steps
+                "latency_s": 2.0,
+                "max_state_offset_s": 0.5,
             },
-            log,
+            c.tmp / "policy_node.log",
         )
-        self.thread = threading.Thread(target=self._feed, daemon=True)
-        self.thread.start()
-        n0 = len(self.client.data.chunks)
-        self.client.wait_for(lambda: len(self.client.data.chunks) > n0, 180.0, "policy_node's first chunk", self.proc)
-
-    def _feed(self) -> None:
-        from equidiff_core.pointcloud import grid_to_voxel_msg
-        from equidiff_ros.commands.bench_control import synthetic_grid
-
-        ws, lab = self.client.lab.workspace, self.client.lab
-        grid = synthetic_grid(ws)
-        while not self.stop.is_set():
-            if not self.stalled.is_set():
-                self.client.pub_voxels.publish(
-                    grid_to_voxel_msg(
-                        grid, ws.lower, ws.voxel_size, time.time_ns(), lab.base_frame, self.client.factory
-                    )
-                )
-            self.stop.wait(1.0 / lab.observation_hz)
-
-    def chunks_between(self, t0: float, t1: float) -> int:
-        """Chunks received in [t0, t1] (wall clock, s)."""
-        return sum(t0 <= r <= t1 for r, _ in list(self.client.data.chunks))
+        n0 = len(c.client.data.chunks)
+        c.client.wait_for(lambda: len(c.client.data.chunks) > n0, 600.0, "policy_node's first chunk", self.policy)
 
     def chunks_observed_after(self, t0: float) -> int:
         """Chunks answering an observation (their stamp) later than ``t0``."""
-        return sum(stamp > t0 for _, stamp in list(self.client.data.chunks))
+        return sum(stamp > t0 for _, stamp in list(self.c.client.data.chunks))
+
+    def chunks_between(self, t0: float, t1: float) -> int:
+        """Chunks received in [t0, t1] (wall clock, s)."""
+        return sum(t0 <= r <= t1 for r, _ in list(self.c.client.data.chunks))
+
+    def stop(self) -> None:
+        from equidiff_core.twin.processes import stop_process
+
+        for proc in [self.policy, self.voxel, *self.cameras.values()]:
+            if proc is not None and proc.poll() is None:
+                os.kill(proc.pid, signal.SIGCONT)  # a frozen one must be able to exit
+            stop_process(proc)
 
 
-def fault_camera_stall(c: Campaign, feed: PolicyFeed) -> dict:
-    time.sleep(3.0)  # the policy acting for a while first
-    accepted = c.diag("accepted_chunks") - feed.accepted_before
-    feed.stalled.set()
-    t_stall = time.time() + 0.05  # a grid being published as the stall began is stamped before this
-    time.sleep(3.5)
-    t_end = time.time()
-    # an inference already running may still answer a grid from before the stall: only chunks for
-    # grids stamped during the stall count (there are none to answer)
-    during = feed.chunks_observed_after(t_stall)
-    held = c.moved_m(t_end - 1.0, t_end)  # the last chunk's plan has run out by then: the watchdog holds
-    feed.stalled.clear()
+def fault_camera_stall(c: Campaign, pipe: CameraPipeline) -> dict:
+    time.sleep(5.0)  # the policy acting for a while first
+    accepted = c.diag("accepted_chunks") - pipe.accepted_before
+    name, camera = next(iter(pipe.cameras.items()))
+    os.kill(camera.pid, signal.SIGSTOP)  # the camera freezes: no more clouds from it
+    t_stall = time.time() + 0.3  # a cloud already sent may still complete one set
     try:
-        c.client.wait_for(lambda: feed.chunks_observed_after(t_end) > 0, 30.0, "policy chunks again", feed.proc)
+        time.sleep(STALL_S)
+    finally:
+        t_end = time.time()
+        os.kill(camera.pid, signal.SIGCONT)
+    held = c.moved_m(t_end - 1.0, t_end)  # the last chunk's plan has run out by then: the watchdog holds
+    try:
+        c.client.wait_for(lambda: pipe.chunks_observed_after(t_end) > 0, 60.0, "policy chunks again", pipe.policy)
         again = True
     except (TimeoutError, RuntimeError):
         again = False
+    # an inference already running may still answer a grid from before the stall: only chunks for
+    # grids stamped during the stall count (there are none to answer), counted once chunks came again
+    during = pipe.chunks_observed_after(t_stall) - pipe.chunks_observed_after(t_end)
     c.note_excursion(t_stall)
     return {
         "survived": during == 0 and held < c.still_m and again and c.alive(),
+        "stalled_camera": name,
         "policy_chunks_accepted": accepted,
         "chunks_during_stall": during,
         "moved_while_stalled_mm": round(held * 1000, 2),
@@ -368,14 +682,14 @@ def fault_camera_stall(c: Campaign, feed: PolicyFeed) -> dict:
     }
 
 
-def fault_policy_node_killed(c: Campaign, feed: PolicyFeed) -> dict:
+def fault_policy_node_killed(c: Campaign, pipe: CameraPipeline) -> dict:
     holds = c.diag("watchdog_holds")
     t_kill = time.time()
-    feed.proc.send_signal(signal.SIGKILL)
-    feed.proc.wait(timeout=10)
+    pipe.policy.send_signal(signal.SIGKILL)
+    pipe.policy.wait(timeout=10)
     time.sleep(3.5)
     t_end = time.time()
-    after = feed.chunks_between(t_kill + 0.5, t_end)
+    after = pipe.chunks_between(t_kill + 0.5, t_end)
     held = c.moved_m(t_end - 1.0, t_end)
     watchdog = c.wait_diag("watchdog_holds", holds, timeout=3.0)
     c.note_excursion(t_kill)
@@ -433,6 +747,10 @@ def fault_gripper_stuck(c: Campaign) -> dict:
     change = abs(width() - w0)
     target = start + [0.0, 0.03, 0.0]
     approach(c.client, target, speed=0.03, settle=0.5)  # the arm goes on meanwhile
+    try:  # a sim below real time gets there later (held on the target by the last chunk, then the watchdog)
+        c.client.wait_for(lambda: np.linalg.norm(c.here() - target) < 0.005, 3.0, "the arm at its target")
+    except TimeoutError:
+        pass
     reached = float(np.linalg.norm(c.here() - target))
     # past FrankyConfig.gripper_command_timeout_s (5 s): franka_node warns that the command has not finished
     time.sleep(max(0.0, t0 + JAM_S - time.time()))
@@ -461,9 +779,6 @@ def fault_gripper_stuck(c: Campaign) -> dict:
 
 
 def fault_franka_node_killed(c: Campaign) -> dict:
-    from equidiff_core.topics import SERVICE_FRANKA_ACKNOWLEDGE
-    from equidiff_ros.commands.lab_client import LabClient, LabError
-
     stop = threading.Event()
 
     def policy():  # the policy goes on publishing whatever happens to franka_node
@@ -486,11 +801,9 @@ def fault_franka_node_killed(c: Campaign) -> dict:
             "/franka/ee_pose again",
             c.franka,
         )
-        c.client.wait_for(
-            lambda: c.client.diag_value("franka_node", "awaiting_ack") is not None, 10.0, "franka_node's diagnostics"
-        )
+        status = c.status.wait(lambda s: s.get("state") == "awaiting_ack", 10.0, "the restarted node's hold", c.franka)
         at_restart = c.here()
-        awaiting = str(c.client.diag_value("franka_node", "awaiting_ack", ""))
+        awaiting = str(status.get("reason", ""))
         accepted, t_held = c.diag("accepted_chunks"), time.time()
         time.sleep(2.0)  # the policy's chunks keep coming, starting where the arm is
         held = c.moved_m(t_held, time.time())
@@ -498,12 +811,7 @@ def fault_franka_node_killed(c: Campaign) -> dict:
         refused = c.diag("ack_rejected") > 0
         if held >= c.still_m or c.diag("accepted_chunks") > accepted:
             c.auto_resumes += 1
-        try:
-            with LabClient() as lab:
-                lab.call("std_srvs/srv/Trigger", SERVICE_FRANKA_ACKNOWLEDGE)
-            acked = True
-        except LabError:
-            acked = False
+        acked, _ = acknowledge()
         t_ack = time.time()
         time.sleep(2.0)
         resumed = c.moved_m(t_ack, time.time()) > 0.01
@@ -541,10 +849,16 @@ def start_franka(c: Campaign) -> bool:
 
 def start_episode(c: Campaign) -> Path:
     from equidiff_core.topics import SERVICE_RECORDER_START
-    from equidiff_ros.commands.lab_client import LabClient
+    from equidiff_ros.commands.lab_client import LabClient, LabError
 
-    with LabClient() as lab:
-        path = Path(lab.call("std_srvs/srv/Trigger", SERVICE_RECORDER_START))
+    for attempt in range(6):  # a recorder_node starting on a loaded machine takes a while to offer it
+        try:
+            with LabClient() as lab:
+                path = Path(lab.call("std_srvs/srv/Trigger", SERVICE_RECORDER_START))
+            break
+        except LabError:
+            if attempt == 5 or (c.recorder is not None and c.recorder.poll() is not None):
+                raise
     c.episodes.append(path)
     return path
 
@@ -569,20 +883,37 @@ def episodes_lost(paths: list[Path]) -> int:
     return lost
 
 
+def control_config_with_margin(tmp: Path, margin_mm: float | None, path: Path | None = None) -> tuple[Path, object]:
+    """``path`` (default control.yaml), or a copy of it with ``safety.box_margin_m`` set (``--box-margin-mm``)."""
+    import yaml
+
+    from equidiff_core.config import default_config_dir
+    from equidiff_core.control import load_control_config
+
+    path = Path(path) if path is not None else default_config_dir() / "control.yaml"
+    if margin_mm is not None:
+        data = yaml.safe_load(path.read_text()) or {}
+        data.setdefault("safety", {})["box_margin_m"] = float(margin_mm) / 1000
+        path = tmp / "control.yaml"
+        path.write_text(yaml.safe_dump(data))
+    return path, load_control_config(path)
+
+
 def run_campaign(
     faults: list[str],
     tmp: Path,
     still_mm: float = 3.0,
-    box_tol_mm: float | None = None,
+    box_margin_mm: float | None = None,
     log: Callable[[str], None] = lambda _m: None,
     policy: str = "shipped",
+    control_config: Path | None = None,
 ) -> dict:
     """Run ``faults`` (in FAULTS' order) and return the result dict (the JSON line's content)."""
     from equidiff_core.config import default_config_dir, load_lab_config
-    from equidiff_core.control import load_control_config
     from equidiff_core.machine import cpu_description
     from equidiff_core.robots.franky.sim import SimServer
     from equidiff_core.twin.processes import start_node, stop_process
+    from equidiff_ros.commands.lab_client import LabError
 
     unknown = sorted(set(faults) - set(FAULTS))
     if unknown:
@@ -590,27 +921,39 @@ def run_campaign(
     faults = [f for f in FAULTS if f in faults]
     lab_path = default_config_dir() / "lab.yaml"
     lab = load_lab_config(lab_path)
-    if box_tol_mm is None:
-        box_tol_mm = lab.safety_box.floor_margin_m * 1000
+    control_path, control = control_config_with_margin(tmp, box_margin_mm, control_config)
     wall0 = time.monotonic()
     result: dict = {"machine": cpu_description(), "ros_domain_id": int(os.environ["ROS_DOMAIN_ID"])}
     per_fault: dict = {}
     run_dir = tmp / "run"
     run_dir.mkdir(exist_ok=True)
-    with SimServer() as sim:
-        client = feed = None
+    shm = f"equidiff_bench_safety_{os.getpid()}"
+    # the sim waits up to 0.5 s for franky's command each tick, as the twin on simulated time does: an
+    # FR3 never runs on a starved client's stale torque (it stops with a reflex), and the figures
+    # here are franka_node's, not the machine's load (which made the overshoot 2-15 mm at 20 ms)
+    twin_args = ("--config", str(default_config_dir() / "twin.yaml"), "--shm", shm, "--seed", str(SCENE_SEED))
+    twin_args += ("--command-wait-s", "0.5")
+    with SimServer(module="equidiff_core.twin.sim", args=twin_args) as sim:
+        client = pipe = None
         c = Campaign(
             None,
             sim,
             lab.safety_box,
             tmp,
-            {"robot_ip": sim.host, "realtime": False, "lab_config": str(lab_path), "run_dir": str(run_dir)},
+            {
+                "robot_ip": sim.host,
+                "realtime": False,
+                "lab_config": str(lab_path),
+                "control_config": str(control_path),
+                "run_dir": str(run_dir),
+            },
             still_mm / 1000,
-            box_tol_mm / 1000,
+            control.safety.box_margin_m,
+            shm=sim.ready[0] if sim.ready else shm,
         )
-        c.home_position = np.asarray(load_control_config(default_config_dir() / "control.yaml").home_position)
+        c.home_position = np.asarray(control.home_position)
+        c.joint_limits = (control.safety.joint_position_min_rad, control.safety.joint_position_max_rad)
         try:
-            start_franka(c)
             c.recorder = start_node(
                 "recorder_node",
                 {
@@ -622,25 +965,34 @@ def run_campaign(
                 tmp / "recorder_node.log",
             )
             client = c.client = ControlClient(lab, str(lab_path))
-            client.wait_for(lambda: len(client.data.poses) > 10, 90.0, "/franka/ee_pose", c.franka)
+            c.status = StatusWatch(client)
+            start_franka(c)  # the lab's defaults: it holds until the operator acknowledges
+            c.status.wait(lambda s: s.get("state") == "awaiting_ack", 90.0, "franka_node's start-up hold", c.franka)
+            result["start_hold"] = c.status.latest["reason"][:120]
+            granted, message = acknowledge()  # as the operator; above the box, it moves home first
+            if not granted:
+                raise RuntimeError(f"the start-up acknowledgement was refused: {message}")
+            c.status.wait(lambda s: s.get("state") == "holding", 60.0, "franka_node holding", c.franka)
+            c.home()
+            c.t_start = time.time()  # the campaign's excursions count from here: franky-sim starts above the box
             time.sleep(1.0)
             t0 = time.time()
             time.sleep(1.0)
             result["baseline_hold_drift_mm"] = round(c.moved_m(t0, time.time()) * 1000, 3)
             start_episode(c)
             for name in faults:
-                if name in POLICY_FAULTS and feed is None:
-                    feed = PolicyFeed(client, accepted_before=c.diag("accepted_chunks"))
+                if name in POLICY_FAULTS and pipe is None:
+                    pipe = CameraPipeline(c)
                     checkpoint, result["policy"] = policy_checkpoint(policy, tmp, lab.workspace)
-                    log(f"starting policy_node ({result['policy']})")
-                    feed.start(checkpoint, tmp / "policy_node.log")
+                    log(f"starting the twin's cameras, voxel_node and policy_node ({result['policy']})")
+                    pipe.start(checkpoint)
                 if name == "recorder_sigkill" and c.episodes and c.recorder is not None:
                     stop_episode(c)  # keep the first episode; the kill takes the next one
                 log(f"fault: {name}")
                 t_fault = time.time()
                 fn = globals()[f"fault_{name}"]
                 try:
-                    per_fault[name] = fn(c, feed) if name in POLICY_FAULTS else fn(c)
+                    per_fault[name] = fn(c, pipe) if name in POLICY_FAULTS else fn(c)
                 except Exception as err:  # noqa: BLE001 - a fault that breaks the campaign is not survived
                     per_fault[name] = {"survived": False, "error": f"{type(err).__name__}: {err}"}
                 c.note_excursion(t_fault)
@@ -648,16 +1000,20 @@ def run_campaign(
                     log("franka_node died: restarting it for the remaining faults")
                     start_franka(c)
                 elif name in POLICY_FAULTS:
+                    if name == POLICY_FAULTS[-1] or not set(POLICY_FAULTS[POLICY_FAULTS.index(name) + 1 :]) & set(
+                        faults
+                    ):
+                        pipe.stop()  # the cameras' rendering costs a core: not beside the remaining faults
                     c.home()  # the policy moved (and yawed) the arm
                 log(f"  {json.dumps(per_fault[name])}")
             if c.recorder is not None and c.episodes:
-                stop_episode(c)
+                try:
+                    stop_episode(c)
+                except LabError as err:  # a starved recorder: its SIGINT below still closes the bag
+                    log(f"stopping the last episode: {err}")
         finally:
-            if feed is not None:
-                feed.stop.set()
-                if feed.thread is not None:
-                    feed.thread.join(timeout=5)
-                stop_process(feed.proc)
+            if pipe is not None:
+                pipe.stop()
             if client is not None:
                 client.close()
             stop_process(c.recorder)
@@ -673,7 +1029,8 @@ def run_campaign(
             "episodes_recorded": len(c.episodes),
             "episodes_lost": episodes_lost(c.episodes),
             "still_mm": still_mm,
-            "box_tol_mm": box_tol_mm,
+            "box_margin_mm": round(c.box_margin_m * 1000, 2),
+            "wall_deceleration_m_s2": control.safety.wall_deceleration_m_s2,
             "wall_s": round(time.monotonic() - wall0, 1),
             "faults": per_fault,
         }
@@ -707,9 +1064,10 @@ def run(args: argparse.Namespace) -> int:
                 faults,
                 out,
                 args.still_mm,
-                args.box_tol_mm,
+                args.box_margin_mm,
                 log=lambda m: print(m, file=sys.stderr, flush=True),
                 policy=args.policy,
+                control_config=args.control_config,
             )
         except ValueError as err:
             print(f"equidiff bench safety: {err}", file=sys.stderr)

@@ -20,11 +20,19 @@ limit of blocking moves (``SafetyConfig.max_joint_speeds_rad_s``, capped at fran
 and the tracker's joint position limits (``SafetyConfig.joint_position_*``: franky pushes the
 joints back within ``FrankyConfig.joint_limit_activation_rad`` of them). ``applied_limits``
 holds what was set. franky-sim acknowledges the collision thresholds but simulates no reflex.
+
+Stops: when the motion ends on its own, ``stream_target`` raises ``RobotStopped`` with the kind
+read from the robot (``user_stop`` for libfranka's "User Stop pressed" or mode ``UserStopped``,
+``reflex``, ``connection_lost`` for a ``NetworkException`` or an unreadable state, else
+``error``). ``recover`` refuses while the user stop is pressed, and after a lost connection
+builds a new ``franky.Robot`` (and ``Gripper``): libfranka's ``Robot`` is dead for good once its
+1 s UDP receive timeout fired ("TCP send bytes: I/O error" on every later call).
 """
 
 from __future__ import annotations
 
 import contextlib
+import gc
 import logging
 import os
 import threading
@@ -32,7 +40,7 @@ import time
 
 import numpy as np
 
-from ..base import Robot, RobotError, RobotState
+from ..base import Robot, RobotError, RobotState, RobotStopped, UserStopPressed
 
 log = logging.getLogger("equidiff.robot.franky")
 
@@ -65,6 +73,7 @@ class FrankyRobot(Robot):
         self._gripper_lock = threading.Lock()
         self._gripper_request: float | None = None
         self._gripper_thread: threading.Thread | None = None
+        self._lost = False  # the connection died (libfranka timed out): only a new franky.Robot recovers
 
     # --- connection --------------------------------------------------------------------
     def connect(self) -> None:
@@ -76,8 +85,9 @@ class FrankyRobot(Robot):
                 self._robot = franky.Robot(self.ip, realtime_config=rt)
         except Exception as err:  # franky raises its own NetworkException etc.
             raise RobotError(f"cannot connect to the robot at {self.ip}: {err}") from err
+        self._lost = False
         self._robot.relative_dynamics_factor = self.config.relative_dynamics_factor
-        self._robot.recover_from_errors()
+        self._clear_errors()
         self._apply_limits()
         if self.use_gripper:
             try:
@@ -96,12 +106,33 @@ class FrankyRobot(Robot):
             self.stop_streaming()
         except Exception as err:  # noqa: BLE001 - never let shutdown hide the original problem
             self.log.warning(f"stopping the tracker on disconnect: {err}")
+        self._release()
+
+    def _release(self) -> None:
+        """Drop the franky objects (their sockets close with them) and the gripper thread."""
         self._gripper_stop.set()
         if self._gripper_thread is not None:
-            self._gripper_thread.join(timeout=2)
+            self._gripper_thread.join(timeout=3)
         self._gripper_thread = None
         self._gripper = None
+        self._tracker = None
         self._robot = None
+        gc.collect()  # libfranka closes its connection when the Robot goes: franky-sim serves one client
+
+    def _reconnect(self) -> None:
+        self.log.warning(f"the connection to the robot at {self.ip} was lost: connecting again")
+        self._release()
+        self.connect()
+
+    def _clear_errors(self) -> None:
+        """``recover_from_errors``: UserStopPressed while the user stop is pressed, RobotError on
+        any other refusal (e.g. "manual error recovery required")."""
+        try:
+            self._require().recover_from_errors()
+        except Exception as err:  # franky's CommandException / NetworkException
+            if "User Stop" in str(err):
+                raise UserStopPressed(f"the user stop is still pressed ({err})") from err
+            raise RobotError(f"recover_from_errors failed: {err}") from err
 
     @property
     def is_connected(self) -> bool:
@@ -134,7 +165,7 @@ class FrankyRobot(Robot):
 
     # --- state ---------------------------------------------------------------------------
     def read_state(self) -> RobotState:
-        state = self._require().state
+        state = self._fresh_state()
         return RobotState(
             time.time_ns(),
             np.array(state.O_T_EE.matrix, dtype=np.float64),
@@ -142,7 +173,23 @@ class FrankyRobot(Robot):
             np.array(state.dq, dtype=np.float64),
             self._width,
             state.time.to_sec(),
+            _MODES.get(str(state.robot_mode).rsplit(".", 1)[-1], "other"),
         )
+
+    def _fresh_state(self):
+        """franky's state: the control loop's while a motion runs, else read from the robot.
+        Read twice then: libfranka takes the newest state already queued on its socket, and
+        after a pause (a held arm polled at 10 Hz) the queue holds only old ones (the socket
+        buffer fills in ~0.1 s and drops what comes after); the second read waits for a new one."""
+        robot = self._require()
+        try:
+            state = robot.state
+            if not robot.is_in_control:
+                state = robot.state
+        except Exception as err:  # franky's NetworkException / RuntimeError("Net Exception"): the connection is dead
+            self._lost = True
+            raise RobotStopped("connection_lost", f"cannot read the robot state: {err}") from err
+        return state
 
     def _poll_gripper(self) -> None:
         """The gripper's own thread: once the last command has finished, sends the newest requested
@@ -192,7 +239,7 @@ class FrankyRobot(Robot):
                 if attempt == attempts:
                     raise RobotError(f"move to home failed after {attempts} attempts: {err}") from err
                 self.log.warning(f"move to home failed ({err}); recovering and retrying")
-                robot.recover_from_errors()
+                self._clear_errors()
                 time.sleep(0.5)
 
     def start_streaming(self) -> None:
@@ -234,7 +281,7 @@ class FrankyRobot(Robot):
         if self._tracker is None:
             raise RobotError("stream_target before start_streaming")
         if not robot.is_in_control:
-            raise RobotError(f"the controller stopped: {self._motion_error()}")
+            raise self._stopped()
         self._tracker.set_target(
             franky.Affine(np.asarray(pose, dtype=np.float64)),
             franky.Twist(np.asarray(linear_velocity, dtype=np.float64), np.asarray(angular_velocity, dtype=np.float64)),
@@ -249,21 +296,34 @@ class FrankyRobot(Robot):
         except Exception as err:  # franky's ControlException / ProtocolException: the motion has ended anyway
             raise RobotError(f"stopping the impedance tracker: {err}") from err
 
-    def _motion_error(self) -> str:
-        """Why the streaming motion ended: its exception, else the robot's error flags."""
+    def _stopped(self) -> RobotStopped:
+        """What ended the streaming motion: its exception and the robot's mode, as a RobotStopped."""
+        import franky
+
+        reason, exception = "the motion ended without a robot error (stopped or preempted by another client)", None
         try:
             self._robot.join_motion(timeout=0.0)
-        except Exception as err:  # noqa: BLE001 - franky's ControlException / ReflexException carry libfranka's reason
-            return str(err)
+        except Exception as err:  # noqa: BLE001 - franky's ControlException / NetworkException carry libfranka's reason
+            reason, exception = " ".join(str(err).split()), err
+        if isinstance(exception, franky.NetworkException):
+            self._lost = True
+            return RobotStopped("connection_lost", reason)
         try:
-            state = self._robot.state
+            state = self._fresh_state()
+        except RobotStopped as err:
+            return RobotStopped("connection_lost", f"{reason}; {err.reason}")
+        mode = _MODES.get(str(state.robot_mode).rsplit(".", 1)[-1], "other")
+        if exception is None:
             for attr in ("last_motion_errors", "current_errors"):
                 text = str(getattr(state, attr, ""))
                 if text not in ("", "[]", "None"):
-                    return f"{attr}: {text}"
-        except Exception as err:  # noqa: BLE001 - a reason is nice to have, recovery must go on
-            self.log.debug(f"reading the robot's error flags failed: {err}")
-        return "the motion ended without a robot error (stopped or preempted by another client)"
+                    reason = f"{attr}: {text}"
+                    break
+        if mode == "user_stopped" or "User Stop" in reason:
+            return RobotStopped("user_stop", reason)
+        if mode == "reflex" or "reflex" in reason:
+            return RobotStopped("reflex", reason)
+        return RobotStopped("error", reason)
 
     def move_gripper(self, width: float) -> None:
         """Hand the width to the gripper thread and return at once.
@@ -291,19 +351,33 @@ class FrankyRobot(Robot):
         return self._gripper.move_async(float(width), cfg.gripper_speed_m_s)
 
     def recover(self) -> str:
-        robot = self._require()
-        reason = self._motion_error()
-        self._tracker = None
-        try:
-            robot.recover_from_errors()
-        except Exception as err:
-            raise RobotError(f"recover_from_errors failed after '{reason}': {err}") from err
-        self.start_streaming()
-        return reason
+        done = []
+        if self._lost:
+            self._reconnect()  # connect() clears the errors (or refuses while the user stop is pressed)
+            done.append("reconnected")
+        else:
+            self._tracker = None
+            if self.read_state().mode == "user_stopped":
+                raise UserStopPressed("the user stop is still pressed")
+            self._clear_errors()
+        done.append("errors cleared")
+        return ", ".join(done)
 
     @property
     def has_errors(self) -> bool:
         return self._robot is not None and bool(self._robot.has_errors)
+
+
+# franky's RobotMode names -> RobotState.mode
+_MODES = {
+    "Idle": "idle",
+    "Move": "move",
+    "Guiding": "guiding",
+    "Reflex": "reflex",
+    "UserStopped": "user_stopped",
+    "AutomaticErrorRecovery": "error_recovery",
+    "Other": "other",
+}
 
 
 @contextlib.contextmanager

@@ -1,12 +1,12 @@
 """A bare franky-sim server (MuJoCo FR3 speaking libfranka's protocol) for tests and benchmarks.
 
 ``python -m equidiff_core.robots.franky.sim --host 127.0.0.1`` serves one robot until killed;
-``SimServer`` starts that in a subprocess and always kills it. For fault campaigns
-(``equidiff bench safety``) the server takes one injected fault: SIGUSR1 jams the gripper (its
-fingers ignore every new goal and stay where they are, and the command running never finishes:
-franky's gripper future stays pending), SIGUSR2 frees it (``SimServer.jam_gripper``): the
-fingers settle and the pending command is answered. The digital twin's full scene
-lives in ``equidiff_core.twin``; this is the smallest thing the franka node can talk to.
+``SimServer`` starts that in a subprocess and always kills it. Faults (a user stop, a reflex,
+an error recovery cannot clear, an aborted motion, a dropped connection, a jammed gripper) are
+injected at the libfranka protocol level through the sim's fault channel
+(``robots.franky.faults``: ``SimServer.inject``, or
+``python -m equidiff_core.robots.franky.sim --host H --inject reflex``). The digital twin's full
+scene lives in ``equidiff_core.twin``; this is the smallest thing the franka node can talk to.
 
 We step the server ourselves instead of ``SimulationServer.run_async()``: the stock loop
 sleeps "1 ms minus compute" and runs 8-16 % slower than real time (measured); sleeping to
@@ -24,6 +24,8 @@ import sys
 import time
 from typing import Self
 
+from .faults import SimFaults, inject_fault
+
 
 def serve(host: str, realtime: bool = True) -> None:
     import franky_sim
@@ -39,64 +41,45 @@ def serve(host: str, realtime: bool = True) -> None:
     signal.signal(signal.SIGINT, _stop)
     raise_priority()
     with MujocoSimulator() as sim:
-        robot = sim.add_robot()
+        sim.add_robot()
         with franky_sim.SimulationServer(sim, hostname_candidates=[host]) as server:
-            jam_gripper_on_signal(robot, getattr(server.robot_servers[0], "_FrankaRobotServer__gripper_server", None))
+            faults = SimFaults(server, host, log=lambda m: print(m, flush=True))
             print(f"READY {host}", flush=True)
             deadline = start = time.perf_counter()
             steps, next_report = 0, start + 1.0
-            while not stop:
-                step_server(server)
-                deadline += 0.001
-                steps += 1
-                now = time.perf_counter()
-                if now >= next_report:  # lets the parent report how close to real time the sim ran
-                    print(f"STATS {steps} {now - start:.3f}", flush=True)
-                    next_report += 1.0
-                delay = deadline - now
-                if delay > 0:
-                    time.sleep(delay)
-                elif delay < -0.05:  # far behind (machine overloaded): don't try to catch up in a burst
-                    deadline = time.perf_counter()
+            try:
+                while not stop:
+                    step_server(server, faults=faults)
+                    deadline += 0.001
+                    steps += 1
+                    now = time.perf_counter()
+                    if now >= next_report:  # lets the parent report how close to real time the sim ran
+                        print(f"STATS {steps} {now - start:.3f}", flush=True)
+                        next_report += 1.0
+                    delay = deadline - now
+                    if delay > 0:
+                        time.sleep(delay)
+                    elif delay < -0.05:  # far behind (machine overloaded): don't try to catch up in a burst
+                        deadline = time.perf_counter()
+            finally:
+                faults.close()
 
 
-def jam_gripper_on_signal(robot, gripper_server=None) -> None:
-    """SIGUSR1: the hand's fingers hold their width whatever goal arrives and the running command
-    is not answered; SIGUSR2: they follow again (franky-sim's gripper server, private layout:
-    without it only the goals are ignored)."""
-    jammed = {"on": False}
-    set_goal = robot.set_hand_goal
-
-    def guarded(width, max_velocity, max_force):
-        set_goal(robot.hand_width if jammed["on"] else width, max_velocity, max_force)
-
-    if gripper_server is not None and hasattr(gripper_server, "_check_motion_state"):
-        check_motion = gripper_server._check_motion_state
-
-        def unanswered():
-            if not jammed["on"]:
-                check_motion()
-
-        gripper_server._check_motion_state = unanswered
-
-    def toggle(on: bool):
-        jammed["on"] = on
-        if on:
-            set_goal(robot.hand_width, 0.05, 70.0)
-        print(f"GRIPPER {'jammed' if on else 'free'}", flush=True)
-
-    robot.set_hand_goal = guarded
-    signal.signal(signal.SIGUSR1, lambda *_: toggle(True))
-    signal.signal(signal.SIGUSR2, lambda *_: toggle(False))
-
-
-def step_server(server, command_timeout_s: float = 0.02) -> int:
+def step_server(server, command_timeout_s: float = 0.02, faults: SimFaults | None = None) -> int:
     """One 1 ms tick of a franky-sim ``SimulationServer``: the clients' commands, physics, state.
 
     Unlike the stock ``run_once``, each robot's tick waits for the command answering the last
     state (``await_command``), so the client's 1 kHz loop stays a 1 kHz loop on a loaded machine.
-    Returns how many robots' commands did not arrive in time (their last command was reused).
+    With ``faults``, requested faults are applied first, and while the robot's connection is
+    dropped it reads no command and sends no state (its joints held). Returns how many robots'
+    commands did not arrive in time (their last command was reused).
     """
+    if faults is not None:
+        faults.poll()
+        if faults.dropped:
+            faults.hold()
+            server.sim.step()
+            return 0
     missed = sum(not await_command(rs, command_timeout_s) for rs in server.robot_servers)
     server.sim.step()
     for rs in server.robot_servers:
@@ -233,11 +216,15 @@ class SimServer:
                 _, steps, wall = line.split()
                 self.stats.append((time.monotonic(), int(steps), float(wall)))
 
-    def jam_gripper(self, jammed: bool = True) -> None:
-        """Inject (or clear) a jammed gripper in the running server (see the module docstring)."""
+    def inject(self, fault: str, seconds: float | None = None) -> str:
+        """Inject ``fault`` into the running server (``robots.franky.faults``); its status once applied."""
         if self.process is None or self.process.poll() is not None:
             raise RuntimeError("franky-sim is not running")
-        self.process.send_signal(signal.SIGUSR1 if jammed else signal.SIGUSR2)
+        return inject_fault(self.host, fault, seconds)
+
+    def jam_gripper(self, jammed: bool = True) -> None:
+        """Jam (or free) the hand: the fingers stay and the running gripper command is never answered."""
+        self.inject("jam_gripper" if jammed else "free_gripper")
 
     def realtime_factor(self, since: float | None = None) -> float | None:
         """Simulated seconds per wall second (1.0 = real time) since monotonic time ``since``."""
@@ -295,8 +282,20 @@ def _check_port_free(host: str, port: int = 1337) -> None:
 
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--host", default="127.0.0.1", help="loopback address to serve on")
-    serve(parser.parse_args(argv).host)
+    parser.add_argument("--host", default="127.0.0.1", help="loopback address to serve on (or of the sim to fault)")
+    parser.add_argument(
+        "--inject",
+        metavar="FAULT",
+        default=None,
+        help="do not serve: inject FAULT into the sim serving on --host (user_stop, release, reflex, error, "
+        "abort, drop, clear, jam_gripper, free_gripper, status) and print its status",
+    )
+    parser.add_argument("--seconds", type=float, default=None, help="with --inject drop: how long")
+    args = parser.parse_args(argv)
+    if args.inject is None:
+        serve(args.host)
+        return
+    print(inject_fault(args.host, args.inject, args.seconds))
 
 
 if __name__ == "__main__":
