@@ -168,7 +168,7 @@ def test_discard_asks_first_and_any_other_key_or_silence_says_no():
 
 
 def test_no_start_while_the_arm_homes_holds_for_an_ack_or_is_faulted():
-    for state, says in (("homing", "homing"), ("awaiting_ack", "acknowledged"), ("faulted", "restart")):
+    for state, says in (("homing", "homing"), ("awaiting_ack", "acknowledged"), ("faulted", "could not recover")):
         loop = loop_with(robot=state)
         assert loop.press("s", T0) == [] and says in loop.messages[-1], state
     loop = loop_with(robot="awaiting_ack")

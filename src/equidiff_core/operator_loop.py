@@ -33,7 +33,7 @@ ROBOT_STATES = ("moving", "holding", "homing", "awaiting_ack", "faulted")
 ROBOT_BLOCKS_START = {
     "homing": "the arm is homing: start once it holds",
     "awaiting_ack": "the arm holds until acknowledged: look at it, then a",
-    "faulted": "franka_node is faulted: restart it once the cause is fixed",
+    "faulted": "franka_node could not recover: fix the cause (see the last fault), then a to try again",
 }
 FRANKA_DIAGNOSTICS_NAME = "franka_node"  # the name of franka_node's status on /diagnostics
 DIAGNOSTICS_STALE_S = 5.0  # franka_node publishes them at 1 Hz: older than this, it is gone or stuck
