@@ -8,6 +8,8 @@ from pathlib import Path
 
 import pytest
 
+from equidiff_ros.cli import COMMANDS, build_parser
+
 ROOT = Path(__file__).resolve().parents[1]
 NODES = ["camera_node", "voxel_node", "policy_node", "franka_node", "teleop_node", "recorder_node", "twin_node"]
 BIN = Path(sys.executable).parent
@@ -92,6 +94,25 @@ def test_pip_editable_install_exposes_nodes_and_cli():
     bench = subprocess.run([str(BIN / "equidiff"), "bench", "--help"], capture_output=True, text=True, timeout=60)
     for sub in ["voxelize", "policy", "train", "control", "generalization"]:
         assert sub in bench.stdout
+
+
+@pytest.mark.parametrize("path", [list(p) for p in COMMANDS], ids=" ".join)
+def test_every_command_parses_its_own_arguments(path, capsys):
+    """Each command's --help is its own parser: a leaf takes its options, not a group's SUBCOMMAND."""
+    argv = [*path, "--help"]
+    with pytest.raises(SystemExit) as done:
+        build_parser(argv).parse_args(argv)
+    assert done.value.code == 0
+    usage = capsys.readouterr().out
+    assert usage.startswith(f"usage: equidiff {' '.join(path)} ")
+    has_subcommands = any(len(p) > len(path) and list(p[: len(path)]) == path for p in COMMANDS)
+    assert ("SUBCOMMAND" in usage) == has_subcommands, usage
+
+
+def test_a_leaf_command_takes_a_positional_bag():
+    argv = ["viz", "-o", "out.rrd", "bags/sample_pick_0000"]
+    args = build_parser(argv).parse_args(argv)
+    assert args._module == "viz" and [str(b) for b in args.bags] == ["bags/sample_pick_0000"]
 
 
 def test_package_xml_declares_runtime_dependencies():

@@ -76,9 +76,10 @@ def build_parser(argv: list[str]) -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="equidiff", description=__doc__.splitlines()[0])
     root = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     groups: dict[str, tuple[argparse.ArgumentParser, argparse._SubParsersAction]] = {}
+    group_names = {path[0] for path in COMMANDS if len(path) > 1}
     for path, (module, help_text) in COMMANDS.items():
-        has_own = (path[0],) in COMMANDS  # a group with a command of its own (`equidiff lab`)
-        if len(path) == 1 and not has_own:
+        has_own = path[0] in group_names and (path[0],) in COMMANDS  # `equidiff lab` and `lab record`
+        if path[0] not in group_names:
             leaf = root.add_parser(path[0], help=help_text, description=help_text)
         else:
             if path[0] not in groups:
@@ -89,7 +90,7 @@ def build_parser(argv: list[str]) -> argparse.ArgumentParser:
             group, subs = groups[path[0]]
             leaf = group if len(path) == 1 else subs.add_parser(path[1], help=help_text, description=help_text)
         leaf.set_defaults(_module=module)
-        if len(path) == 1 and has_own and argv[1:2] and not argv[1].startswith("-"):
+        if len(path) == 1 and has_own and argv[1:2] and (path[0], argv[1]) in COMMANDS:
             continue  # one of the group's subcommands runs, not the group's own command
         if list(path) == argv[: len(path)]:
             try:
