@@ -237,7 +237,8 @@ def test_a_plan_outside_the_safety_box_or_the_cone_is_refused_before_anything_mo
     text = str(err.value)
     assert "nothing was moved" in text and "2 problem(s)" in text
     assert (
-        "pose 2 puts the TCP at [0.45, 0.05, 0.375] m, outside the safety box [0.26, -0.19, 0.01] .. [0.64, 0.19, 0.37]"
+        "pose 2 puts the TCP at [0.45, 0.05, 0.375] m, outside where targets may go "
+        "[0.265, -0.185, 0.015] .. [0.635, 0.185, 0.365]"
         in text
     )
     assert "pose 3 tilts the tool 50.0 deg from straight down (cone 45 deg)" in text
@@ -252,7 +253,8 @@ def test_a_plan_outside_the_safety_box_or_the_cone_is_refused_before_anything_mo
     wild = plan[2] @ make_pose(np.eye(3), [0.0, 0.0, -0.3])  # 50 deg tilted, 30 cm back along the tool: up and out
     assert not arm.controller.safety.inside(wild[:3, 3])
     clamped = arm.limits.clamp(wild)
-    np.testing.assert_allclose(clamped[:3, 3], np.clip(wild[:3, 3], box.min_corner, box.max_corner))
+    margin = arm.limits.control.safety.box_margin_m  # the filter keeps commands this far inside the box
+    np.testing.assert_allclose(clamped[:3, 3], np.clip(wild[:3, 3], box.min_corner + margin, box.max_corner - margin))
     assert geometry.tilt_angle(clamped[:3, :3]) == pytest.approx(arm.limits.max_tilt_rad)
     arm.limits.check([arm.limits.clamp(plan[1]), clamped])
 

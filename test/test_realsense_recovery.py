@@ -269,7 +269,9 @@ def test_camera_node_diagnostics_carry_the_recovery_counters(bus, monkeypatch):
     node = NS(
         configs=[FRONT],
         cameras=[cam],
-        stats={FRONT.name: {"published": 5, "read_errors": 3, "last_stamp_ns": None}},
+        stats={
+            FRONT.name: {"published": 5, "read_errors": 3, "last_stamp_ns": None, "color_published": 0, "jpeg_s": 0.0}
+        },
         backend="realsense",
         factory=rosbags_factory(),
         diag_pub=NS(publish=published.append),

@@ -37,13 +37,17 @@ class MotionLimits:
         return cls(lab.safety_box, load_control_config(control_path or default_config_dir() / "control.yaml"))
 
     @property
+    def _filter(self) -> SafetyFilter:
+        return SafetyFilter(self.box, self.control.safety)
+
+    @property
     def lower(self) -> np.ndarray:
-        """The lowest corner the TCP may reach (the floor margin included)."""
-        return self.box.min_corner
+        """The lowest corner franka_node lets a target reach: the box shrunk by box_margin_m."""
+        return self._filter.lower
 
     @property
     def upper(self) -> np.ndarray:
-        return self.box.max_corner
+        return self._filter.upper
 
     @property
     def max_tilt_rad(self) -> float:
@@ -52,14 +56,13 @@ class MotionLimits:
     def clamp(self, T: np.ndarray) -> np.ndarray:
         """``T`` moved into the box and tilted back into the cone, as the control loop's filter
         would (for a target that is not a plan: the SpaceMouse's, at a capture)."""
-        safety = SafetyFilter(self.box, self.control.safety)
         R = geometry.limit_tilt(np.asarray(T[:3, :3], dtype=np.float64), self.max_tilt_rad)
-        return geometry.make_pose(R, safety.clip_position(T[:3, 3]))
+        return geometry.make_pose(R, self._filter.clip_position(T[:3, 3]))
 
     def check(self, poses: list[np.ndarray], start: np.ndarray | None = None) -> None:
         """Raise CalibrationError naming every pose (and every move between them, from ``start``
         when given) that leaves the safety box or the orientation cone."""
-        inside = SafetyFilter(self.box, self.control.safety).inside
+        lower, upper = self.lower, self.upper
         cone = math.degrees(self.max_tilt_rad)
         problems = []
         for k, T in enumerate(poses):
@@ -69,10 +72,10 @@ class MotionLimits:
                 problems.append(f"pose {k + 1} is not a valid pose: {err}")
                 continue
             p = T[:3, 3]
-            if not inside(p):
+            if np.any(p < lower) or np.any(p > upper):
                 problems.append(
-                    f"pose {k + 1} puts the TCP at {np.round(p, 3).tolist()} m, outside the safety box "
-                    f"{np.round(self.lower, 3).tolist()} .. {np.round(self.upper, 3).tolist()} m"
+                    f"pose {k + 1} puts the TCP at {np.round(p, 3).tolist()} m, outside where targets may go "
+                    f"{np.round(lower, 3).tolist()} .. {np.round(upper, 3).tolist()} m"
                 )
             tilt = math.degrees(geometry.tilt_angle(T[:3, :3]))
             if tilt > cone + 1e-6:
@@ -94,7 +97,8 @@ class MotionLimits:
             raise CalibrationError(
                 f"{len(problems)} problem(s) with the calibration poses; nothing was moved:\n  "
                 + "\n  ".join(problems)
-                + "\n(the safety box is lab.yaml's safety_box, its floor raised by floor_margin_m; the cone is "
+                + "\n(targets stay inside lab.yaml's safety_box, its floor raised by floor_margin_m, less control.yaml's "
+                "safety.box_margin_m; the cone is "
                 "control.yaml's safety.max_tilt_rad; franka_node's control loop would clip these poses, so the "
                 "images would not show them)"
             )
