@@ -2,6 +2,7 @@
 
     bash scripts/gpu_check.sh                       # on the GPU machine (H100/H200), <= 8 minutes
     bash scripts/gpu_check.sh --device cpu --tiny   # the rehearsal here: the same code paths, tiny sizes
+    bash scripts/gpu_check.sh --dry-run             # every part's command parsed by the CLI, nothing run
     python scripts/gpu_check.py verify DIR          # here, on what came back: the GPU-trained files load on the CPU
     python scripts/gpu_check.py size [--carry P...] # what a device call would send (the 64 MiB limit)
 
@@ -28,7 +29,9 @@ Only the standard library is imported at module level: ``size`` runs with any Py
 from __future__ import annotations
 
 import argparse
+import contextlib
 import datetime
+import io
 import json
 import os
 import platform
@@ -130,6 +133,7 @@ class Part:
     timeout_s: float
     min_s: float  # skipped when less of the budget is left
     after: object = None  # callable(stdout JSON or None, Check) -> dict merged into the part's result
+    fallback: Part | None = None  # run when this part's traced CUDA graph failed: TorchScript or the graph?
 
 
 class Check:
@@ -235,6 +239,9 @@ def run_part(check: Check, part: Part) -> dict:
             out.update(part.after(parsed, check))
         except Exception as err:  # noqa: BLE001 - a failed check is a result, not a crash of the whole run
             out.update(status="error", error=f"check after the run: {type(err).__name__}: {err}")
+    graph = (parsed or {}).get("modes", {}).get("bf16-traced-graph", {})
+    if part.fallback is not None and out["status"] == "ok" and "error" in graph:
+        out["fallback"] = run_part(check, part.fallback)
     return out
 
 
@@ -264,7 +271,12 @@ def plan(check: Check) -> list[Part]:
                 check.cli("bench", "policy", *policy_bench, "--modes", INFERENCE_MODES),
                 timeout_s=150,
                 min_s=30,
-                after=_fallback_graph_mode(check.cli("bench", "policy", *policy_bench, "--modes", FALLBACK_GRAPH_MODE)),
+                fallback=Part(
+                    f"policy_{role} {FALLBACK_GRAPH_MODE} fallback",
+                    check.cli("bench", "policy", *policy_bench, "--modes", FALLBACK_GRAPH_MODE),
+                    timeout_s=90,
+                    min_s=30,
+                ),
             )
         )
     train_options = options(
@@ -328,19 +340,6 @@ def _bench_train(check: Check, preset: str, policy: str, runs: str) -> Part:
         samples=s.bench_batch,
     )
     return Part(f"train_bench_{preset}_{policy}", check.cli("bench", "train", *bench), timeout_s=180, min_s=30)
-
-
-def _fallback_graph_mode(argv: list[str]):
-    """After a preset's policy bench: when the traced graph failed, time the graph of the eager
-    modules (is it TorchScript under capture, or the graph itself?)."""
-
-    def after(result, check):
-        graph = (result or {}).get("modes", {}).get("bf16-traced-graph", {})
-        if "error" not in graph:
-            return {}
-        return {"fallback": run_part(check, Part(f"{FALLBACK_GRAPH_MODE} fallback", argv, timeout_s=90, min_s=30))}
-
-    return after
 
 
 def collect_training(check: Check, run_dir: Path) -> dict:
@@ -467,8 +466,31 @@ def environment(check: Check) -> dict:
     return env
 
 
+def parse_plan(check: Check) -> dict[str, str]:
+    """Every part's ``equidiff`` arguments parsed by the CLI's own parser, nothing run: the typo
+    that would cost a GPU minute shows here in a second. Part name -> argparse's error ('' when fine)."""
+    from equidiff_ros.cli import build_parser  # the repository's own code: imported only where it runs
+
+    parts = [p for part in plan(check) for p in (part, part.fallback) if p is not None]
+    problems = {}
+    for part in parts:
+        args = part.argv[part.argv.index("equidiff_ros.cli") + 1 :]
+        stderr = io.StringIO()
+        try:
+            with contextlib.redirect_stderr(stderr):
+                build_parser(args).parse_args(args)
+            problems[part.name] = ""
+        except SystemExit:
+            problems[part.name] = stderr.getvalue().strip().splitlines()[-1]
+    return problems
+
+
 def cmd_run(args) -> int:
     check = Check(args)
+    if args.dry_run:
+        problems = parse_plan(check)
+        print(json.dumps({"device": check.device, "sizes": check.results["sizes"], "parts": problems}))
+        return 1 if any(problems.values()) else 0
     check.work.mkdir(parents=True, exist_ok=True)
     check.log_path.write_text("")
     for stale in ("ddp", "train", "returned"):  # a rerun on a warm machine starts clean
@@ -656,6 +678,9 @@ def main(argv: list[str] | None = None) -> int:
     )
     run.add_argument("--work", default="/tmp/equidiff_gpu_check", help="scratch directory (runs, caches, log)")
     run.add_argument("--packed", help="packed episodes to train on (default .gpu_carry/packed)")
+    run.add_argument(
+        "--dry-run", action="store_true", help="parse every part's equidiff command with the CLI's parser, run nothing"
+    )
     run.set_defaults(func=cmd_run)
     collect = sub.add_parser("collect", help="copy a training run's files under their returned names and verify them")
     collect.add_argument("run_dir")
