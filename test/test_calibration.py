@@ -238,8 +238,7 @@ def test_a_plan_outside_the_safety_box_or_the_cone_is_refused_before_anything_mo
     assert "nothing was moved" in text and "2 problem(s)" in text
     assert (
         "pose 2 puts the TCP at [0.45, 0.05, 0.375] m, outside where targets may go "
-        "[0.265, -0.185, 0.015] .. [0.635, 0.185, 0.365]"
-        in text
+        "[0.265, -0.185, 0.015] .. [0.635, 0.185, 0.365]" in text
     )
     assert "pose 3 tilts the tool 50.0 deg from straight down (cone 45 deg)" in text
     assert not arm.started and not robot.sent  # not even homed
