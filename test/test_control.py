@@ -930,12 +930,12 @@ def test_tf_message_carries_the_tcp_pose_in_the_base_frame():
     built here with the rosbags factory, which has the type."""
     from scipy.spatial.transform import Rotation
 
-    from equidiff_core.control import messages as cm
+    from equidiff_core import rosmsg
     from equidiff_core.rosmsg import rosbags_factory
 
     pose = pose_at(np.array([0.4, -0.1, 0.25]))
     pose[:3, :3] = Rotation.from_euler("xyz", [170, 5, 30], degrees=True).as_matrix()
-    msg = cm.tf_message(rosbags_factory(), [("fr3_link0", cm.TCP_FRAME, pose)], 1_500_000_123)
+    msg = rosmsg.tf_message(rosbags_factory(), [("fr3_link0", rosmsg.TCP_FRAME, pose)], 1_500_000_123)
     (tf,) = msg.transforms
     assert tf.header.frame_id == "fr3_link0" and tf.child_frame_id == "fr3_hand_tcp"
     assert tf.header.stamp.sec == 1 and tf.header.stamp.nanosec == 500_000_123

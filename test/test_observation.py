@@ -6,11 +6,10 @@ import numpy as np
 import pytest
 
 from equidiff_core.bags import read_episode
-from equidiff_core.control.messages import gripper_width_from_joint_state, pose_from_msg
 from equidiff_core.dataset import DatasetConfig, load_episode_arrays
 from equidiff_core.observation import STATE_TOLERANCE_S, StateHistory, ee_input, nearest
 from equidiff_core.pointcloud import voxel_msg_to_grid
-from equidiff_core.rosmsg import stamp_to_ns
+from equidiff_core.rosmsg import gripper_width_from_joint_state, pose_from_msg, stamp_to_ns
 
 BAG = Path(__file__).resolve().parents[1] / "bags" / "sample_pick_0000"
 

@@ -8,8 +8,7 @@ import json
 import pytest
 from helpers_data import SyntheticEpisode, write_synthetic_episode
 
-from equidiff_core import topics
-from equidiff_core.control import messages as cm
+from equidiff_core import rosmsg, topics
 from equidiff_core.control.controller import ControllerStats
 from equidiff_core.operator_loop import (
     DIAGNOSTICS_STALE_S,
@@ -37,7 +36,7 @@ def franka_diagnostics(message: str, **stats) -> tuple[str, dict]:
     """franka_node's /diagnostics status as the client reads it: built by the node's own message code
     from its controller's real statistics."""
     values = ControllerStats(**stats).as_dict()
-    array = cm.diagnostic_array(rosbags_factory(), 0, "franka_node", "dryrun", cm.OK, message, values)
+    array = rosmsg.diagnostic_array(rosbags_factory(), 0, "franka_node", "dryrun", rosmsg.OK, message, values)
     (s,) = array.status
     return s.message, {kv.key: kv.value for kv in s.values}
 

@@ -354,8 +354,8 @@ def test_an_announced_episode_samples_like_the_in_process_evaluation(ros_domain,
     from geometry_msgs.msg import PoseStamped
     from std_msgs.msg import String
 
+    from equidiff_core import rosmsg
     from equidiff_core.chunk import chunk_from_actions
-    from equidiff_core.control import messages as cm
     from equidiff_core.inference import load_inference_policy
     from equidiff_core.observation import ee_input
     from equidiff_core.pointcloud import grid_to_voxel_msg, voxel_msg_to_grid
@@ -430,8 +430,8 @@ def test_an_announced_episode_samples_like_the_in_process_evaluation(ros_domain,
         second, _ = answer()
         again, _ = answer(7)
         other, _ = answer(8)
-        width = cm.gripper_width_from_joint_state(client.data.last_joint_state)
-        pose = cm.pose_from_msg(poses[-1])
+        width = rosmsg.gripper_width_from_joint_state(client.data.last_joint_state)
+        pose = rosmsg.pose_from_msg(poses[-1])
     finally:
         if client is not None:
             client.close()
@@ -468,8 +468,7 @@ def test_latency_auto_measures_on_the_sim_clock_converges_and_bridges(ros_domain
     from std_msgs.msg import String
     from trajectory_msgs.msg import MultiDOFJointTrajectory
 
-    from equidiff_core import geometry
-    from equidiff_core.control import messages as cm
+    from equidiff_core import geometry, rosmsg
     from equidiff_core.pointcloud import grid_to_voxel_msg
     from equidiff_core.robots.base import RobotState
     from equidiff_core.rosmsg import RclpyFactory
@@ -548,8 +547,8 @@ def test_latency_auto_measures_on_the_sim_clock_converges_and_bridges(ros_domain
         while len(chunks) < 7:
             latency_ns = 300_000_000 if len(chunks) < 3 else 1_900_000_000
             for _ in range(3):  # the state at the observation's stamp, before the observation
-                pub_pose.publish(cm.pose_stamped(factory, pose, stamp, lab.base_frame))
-                pub_joints.publish(cm.joint_state(factory, state, stamp))
+                pub_pose.publish(rosmsg.pose_stamped(factory, pose, stamp, lab.base_frame))
+                pub_joints.publish(rosmsg.joint_state(factory, state, stamp))
             time.sleep(0.1)
             sim_ns[0] = stamp + latency_ns  # held there until the observation is answered or skipped
             deadline = time.monotonic() + 10.0

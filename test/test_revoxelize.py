@@ -11,9 +11,9 @@ from scipy.spatial.transform import Rotation
 
 from equidiff_core.bags import BagError, EpisodeMeta, read_episode, read_meta
 from equidiff_core.config import Extrinsics, default_config_dir, load_lab_config
-from equidiff_core.control.messages import tf_message
 from equidiff_core.pointcloud import cloud_to_msg, grid_to_voxel_msg, voxel_msg_to_grid
 from equidiff_core.recording import EpisodeWriter, RecordingConfig, recorded_topics
+from equidiff_core.rosmsg import tf_message
 from equidiff_core.topics import TOPIC_EE_POSE, TOPIC_VOXELS
 from equidiff_core.voxels import voxelize_reference
 from equidiff_ros.commands.bench_voxelize import synthetic_scene
@@ -27,7 +27,7 @@ def _record(path, lab, clouds, n_sets=6, with_clouds=True, with_tf=True):
     """An episode as recorder_node writes it with record_clouds: /tf_static from ``lab`` first,
     three clouds every 0.2 s (a few ms apart, in camera order), a stale /voxels grid after each
     set, and 100 Hz ee poses."""
-    from equidiff_core.control import messages as cm
+    from equidiff_core import rosmsg
 
     ws = lab.workspace
     wrong = np.zeros((4, ws.resolution, ws.resolution, ws.resolution), np.uint8)
@@ -53,7 +53,7 @@ def _record(path, lab, clouds, n_sets=6, with_clouds=True, with_tf=True):
             )
             for j in range(20):
                 t = stamp + j * NS // 100
-                writer.write(TOPIC_EE_POSE, cm.pose_stamped(writer.factory, np.eye(4), t, lab.base_frame), t)
+                writer.write(TOPIC_EE_POSE, rosmsg.pose_stamped(writer.factory, np.eye(4), t, lab.base_frame), t)
     return path
 
 

@@ -43,11 +43,10 @@ import numpy as np
 from . import geometry
 from .bags import BagError, EpisodeMeta, find_bags, is_bag_dir, read_episode
 from .chunk import ChunkError, chunk_from_msg
-from .control.messages import gripper_width_from_joint_state, pose_from_msg
 from .observation import STATE_TOLERANCE_S, ee_input, nearest
 from .pointcloud import CloudError, voxel_msg_to_grid
 from .robots.base import FINGER_JOINT_NAMES
-from .rosmsg import NS_PER_S
+from .rosmsg import NS_PER_S, gripper_width_from_joint_state, pose_from_msg
 from .topics import TOPIC_COMMAND_CHUNK, TOPIC_EE_POSE, TOPIC_JOINT_STATES, TOPIC_VOXELS
 
 CACHE_VERSION = 2  # 2: compressed, with the decoding settings inside (shared with packed episodes)

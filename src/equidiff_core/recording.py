@@ -34,7 +34,7 @@ import yaml
 from .bags import META_SIDECAR, EpisodeMeta
 from .config import LabConfig
 from .mcap_writer import MiB, open_bag_writer
-from .rosmsg import RosbagsFactory, rosbags_factory
+from .rosmsg import RosbagsFactory, rosbags_factory, transform_msg_from_pos_quat
 from .topics import CLOUD_TYPE, COMPRESSED_IMAGE_TYPE, RECORDED_TOPICS, TF_TYPE, TOPIC_TF_STATIC, camera_color_topic
 
 
@@ -256,31 +256,19 @@ class EpisodeWriter:
     def write_tf_static(self, lab: LabConfig, stamp_ns: int) -> None:
         """The configured camera extrinsics as one /tf_static TFMessage (base -> optical frames)."""
         self.add_topic(TOPIC_TF_STATIC, TF_TYPE, transient_local=True)
-        mk = self.factory.make
-        transforms = []
-        for cam in lab.cameras:
-            e = cam.extrinsics
-            transforms.append(
-                mk(
-                    "geometry_msgs/msg/TransformStamped",
-                    header=self.factory.header(stamp_ns, lab.base_frame),
-                    child_frame_id=cam.frame_id,
-                    transform=mk(
-                        "geometry_msgs/msg/Transform",
-                        translation=mk(
-                            "geometry_msgs/msg/Vector3", x=e.translation[0], y=e.translation[1], z=e.translation[2]
-                        ),
-                        rotation=mk(
-                            "geometry_msgs/msg/Quaternion",
-                            x=e.quaternion_xyzw[0],
-                            y=e.quaternion_xyzw[1],
-                            z=e.quaternion_xyzw[2],
-                            w=e.quaternion_xyzw[3],
-                        ),
-                    ),
-                )
+        transforms = [
+            self.factory.make(
+                "geometry_msgs/msg/TransformStamped",
+                header=self.factory.header(stamp_ns, lab.base_frame),
+                child_frame_id=cam.frame_id,
+                # the configured values as they are (not through a 4x4 pose): the bag says what lab.yaml says
+                transform=transform_msg_from_pos_quat(
+                    self.factory, cam.extrinsics.translation, cam.extrinsics.quaternion_xyzw
+                ),
             )
-        self.write(TOPIC_TF_STATIC, mk(TF_TYPE, transforms=transforms), stamp_ns, TF_TYPE)
+            for cam in lab.cameras
+        ]
+        self.write(TOPIC_TF_STATIC, self.factory.make(TF_TYPE, transforms=transforms), stamp_ns, TF_TYPE)
 
 
 def recorded_topics(lab: LabConfig, record_clouds: bool, record_images: bool = True) -> dict[str, str]:

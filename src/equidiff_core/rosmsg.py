@@ -1,5 +1,12 @@
 """One way to build and read ROS 2 messages, live (rclpy) or in bags (rosbags), without ROS in core.
 
+This module is the message codec: the factories, time stamps, and the robot-state messages
+(``/franka/ee_pose`` and ``/franka/executed_target`` PoseStamped, ``/franka/joint_states``
+JointState: 7 arm joints + two finger joints each at width/2, ``/tf_static`` TFMessage, the
+``/diagnostics`` entries). Nodes, commands and loggers read and write those only through it.
+The wire formats with a module of their own are the point clouds (``pointcloud``), the pose
+chunks (``chunk``) and the camera images (``cameras.color``).
+
 rclpy's generated classes and rosbags' typestore classes share field names, so every
 encoder in core is written once against a ``MsgFactory`` and works for both:
 
@@ -16,9 +23,14 @@ from __future__ import annotations
 import array
 import importlib
 import struct
+from collections.abc import Mapping
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+
+from . import geometry
+from .robots.base import ARM_JOINT_NAMES, FINGER_JOINT_NAMES, RobotState
 
 NS_PER_S = 1_000_000_000
 
@@ -34,7 +46,7 @@ def header_stamp_ns_from_cdr(data: bytes) -> int:
     that needs only the stamp of a 1 MiB voxel grid reads 8 bytes."""
     little = len(data) > 1 and data[1] & 1  # encapsulation id: 0x0001 = CDR little endian
     sec, nanosec = struct.unpack_from("<iI" if little else ">iI", data, 4)
-    return sec * 1_000_000_000 + nanosec
+    return sec * NS_PER_S + nanosec
 
 
 def split_ns(ns: int) -> tuple[int, int]:
@@ -130,3 +142,188 @@ def rosbags_factory() -> RosbagsFactory:
     if _DEFAULT_ROSBAGS is None:
         _DEFAULT_ROSBAGS = RosbagsFactory()
     return _DEFAULT_ROSBAGS
+
+
+# --- robot state, transforms and diagnostics ---------------------------------------------------
+
+TCP_FRAME = "fr3_hand_tcp"  # franka_ros2's name for the TCP frame (also the chunk's joint name)
+
+# diagnostic_msgs/DiagnosticStatus levels
+OK, WARN, ERROR, STALE = 0, 1, 2, 3
+
+
+def _point(factory: MsgFactory, type_name: str, p: np.ndarray) -> Any:
+    return factory.make(type_name, x=float(p[0]), y=float(p[1]), z=float(p[2]))
+
+
+def _quaternion(factory: MsgFactory, q: np.ndarray) -> Any:
+    return factory.make("geometry_msgs/msg/Quaternion", x=float(q[0]), y=float(q[1]), z=float(q[2]), w=float(q[3]))
+
+
+def transform_msg(factory: MsgFactory, pose: np.ndarray) -> Any:
+    """(4, 4) pose -> ``geometry_msgs/Transform``."""
+    p, q = geometry.pos_quat_from_pose(pose)
+    return transform_msg_from_pos_quat(factory, p, q)
+
+
+def transform_msg_from_pos_quat(factory: MsgFactory, position: Any, quat_xyzw: Any) -> Any:
+    """Position (3,) and scalar-last quaternion (4,) -> ``geometry_msgs/Transform``, values as given."""
+    return factory.make(
+        "geometry_msgs/msg/Transform",
+        translation=_point(factory, "geometry_msgs/msg/Vector3", position),
+        rotation=_quaternion(factory, quat_xyzw),
+    )
+
+
+def pose_stamped(factory: MsgFactory, pose: np.ndarray, stamp_ns: int, frame_id: str) -> Any:
+    p, q = geometry.pos_quat_from_pose(pose)
+    mk = factory.make
+    return mk(
+        "geometry_msgs/msg/PoseStamped",
+        header=factory.header(stamp_ns, frame_id),
+        pose=mk(
+            "geometry_msgs/msg/Pose",
+            position=_point(factory, "geometry_msgs/msg/Point", p),
+            orientation=_quaternion(factory, q),
+        ),
+    )
+
+
+def position_from_msg(msg: Any) -> np.ndarray:
+    """PoseStamped or Pose (either flavour) -> position (3,), unchecked."""
+    p = getattr(msg, "pose", msg).position
+    return np.array([p.x, p.y, p.z], dtype=np.float64)
+
+
+def _pos_quat(msg: Any) -> tuple[np.ndarray, np.ndarray]:
+    pose = getattr(msg, "pose", msg)
+    o = pose.orientation
+    return position_from_msg(pose), np.array([o.x, o.y, o.z, o.w], dtype=np.float64)
+
+
+def pose_from_msg(msg: Any) -> np.ndarray:
+    """PoseStamped or Pose (either flavour) -> (4, 4); raises GeometryError on NaN / non-unit quaternions."""
+    return geometry.pose_from_pos_quat(*_pos_quat(msg))
+
+
+def pos_quat_from_msg(msg: Any) -> tuple[np.ndarray, np.ndarray]:
+    """PoseStamped or Pose -> (position (3,), quaternion xyzw (4,)) as sent; raises GeometryError
+    on a NaN / inf position or a NaN / non-unit quaternion."""
+    pos, quat = _pos_quat(msg)
+    if not np.all(np.isfinite(pos)):
+        raise geometry.GeometryError("pose position contains NaN or inf")
+    geometry.pose_from_pos_quat(pos, quat)  # validates the quaternion
+    return pos, quat
+
+
+def pose_from_transform(msg: Any) -> np.ndarray:
+    """Transform or TransformStamped (either flavour) -> (4, 4); raises GeometryError on NaN / non-unit quaternions."""
+    transform = getattr(msg, "transform", msg)
+    t, r = transform.translation, transform.rotation
+    return geometry.pose_from_pos_quat([t.x, t.y, t.z], [r.x, r.y, r.z, r.w])
+
+
+def tf_message(factory: MsgFactory, transforms: list[tuple[str, str, np.ndarray]], stamp_ns: int) -> Any:
+    """``tf2_msgs/TFMessage`` of (parent frame, child frame, 4x4 pose of the child in the parent)."""
+    mk = factory.make
+    out = [
+        mk(
+            "geometry_msgs/msg/TransformStamped",
+            header=factory.header(stamp_ns, parent),
+            child_frame_id=child,
+            transform=transform_msg(factory, pose),
+        )
+        for parent, child, pose in transforms
+    ]
+    return mk("tf2_msgs/msg/TFMessage", transforms=out)
+
+
+def joint_state(factory: MsgFactory, state: RobotState, stamp_ns: int) -> Any:
+    width = float(state.gripper_width) if np.isfinite(state.gripper_width) else 0.0
+    positions = [*map(float, state.joint_positions), width / 2, width / 2]
+    velocities = [*map(float, state.joint_velocities), 0.0, 0.0]
+    return factory.make(
+        "sensor_msgs/msg/JointState",
+        header=factory.header(stamp_ns, ""),
+        name=[*ARM_JOINT_NAMES, *FINGER_JOINT_NAMES],
+        position=factory.float64_array(positions),
+        velocity=factory.float64_array(velocities),
+        effort=factory.float64_array([]),
+    )
+
+
+def _named_positions(msg: Any, names: tuple[str, ...]) -> list[float] | None:
+    order = list(msg.name)
+    try:
+        return [float(msg.position[order.index(n)]) for n in names]
+    except (ValueError, IndexError):
+        return None
+
+
+def has_gripper_joints(msg: Any) -> bool:
+    """Whether a JointState names both finger joints (an arm-only publisher does not)."""
+    names = list(msg.name)
+    return all(j in names for j in FINGER_JOINT_NAMES)
+
+
+def gripper_width_from_joint_state(msg: Any) -> float | None:
+    """Gripper width = sum of the two finger joints; None if the message carries no gripper state
+    (no finger joints, e.g. an arm-only publisher, or fewer positions than names: malformed).
+    The value may be NaN/inf if the publisher sent that: callers check ``isfinite``."""
+    fingers = _named_positions(msg, FINGER_JOINT_NAMES)
+    return None if fingers is None else float(sum(fingers))
+
+
+def arm_joint_positions(msg: Any) -> np.ndarray | None:
+    """The 7 arm joints' positions (rad, joint 1 first) of a JointState, by name; None if any is missing."""
+    positions = _named_positions(msg, ARM_JOINT_NAMES)
+    return None if positions is None else np.array(positions, dtype=np.float64)
+
+
+def diagnostic_array(
+    factory: MsgFactory, stamp_ns: int, name: str, hardware_id: str, level: int, message: str, values: Mapping[str, Any]
+) -> Any:
+    mk = factory.make
+    # DiagnosticStatus.level is a ROS `byte`: rclpy wants bytes (an int serialises as garbage),
+    # rosbags an int.
+    level = bytes([int(level)]) if isinstance(factory, RclpyFactory) else int(level)
+    status = mk(
+        "diagnostic_msgs/msg/DiagnosticStatus",
+        level=level,
+        name=name,
+        message=message,
+        hardware_id=hardware_id,
+        values=[mk("diagnostic_msgs/msg/KeyValue", key=str(k), value=_fmt(v)) for k, v in values.items()],
+    )
+    return mk("diagnostic_msgs/msg/DiagnosticArray", header=factory.header(stamp_ns, ""), status=[status])
+
+
+@dataclass(frozen=True)
+class DiagnosticEntry:
+    """One ``diagnostic_msgs/DiagnosticStatus`` as read back: the level as an int (OK .. STALE)."""
+
+    name: str
+    level: int
+    message: str
+    hardware_id: str
+    values: dict[str, str]
+
+
+def diagnostic_entries(msg: Any) -> list[DiagnosticEntry]:
+    """DiagnosticArray (either flavour) -> its entries, values as the strings they were sent as."""
+    return [
+        DiagnosticEntry(
+            str(status.name),
+            status.level[0] if isinstance(status.level, bytes) else int(status.level),
+            str(status.message),
+            str(status.hardware_id),
+            {str(kv.key): kv.value for kv in status.values},
+        )
+        for status in msg.status
+    ]
+
+
+def _fmt(v: Any) -> str:
+    if isinstance(v, float):
+        return f"{v:.3f}"
+    return str(v)

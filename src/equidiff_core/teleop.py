@@ -34,8 +34,7 @@ from scipy.spatial.transform import Rotation
 from . import geometry
 from .chunk import PoseChunk
 from .config import Workspace
-
-NS_PER_S = 1_000_000_000
+from .rosmsg import NS_PER_S, stamp_to_ns
 
 
 class TeleopError(RuntimeError):
@@ -116,8 +115,7 @@ class TeleopInput:
             raise TeleopError(f"Joy message has {len(axes)} axes; the spacenav layout has 6 (x y z roll pitch yaw)")
         if not np.all(np.isfinite(axes)):
             raise TeleopError("Joy axes contain NaN or inf")
-        stamp = int(msg.header.stamp.sec) * NS_PER_S + int(msg.header.stamp.nanosec)
-        return cls(tuple(axes[:6]), tuple(int(b) for b in msg.buttons), stamp)
+        return cls(tuple(axes[:6]), tuple(int(b) for b in msg.buttons), stamp_to_ns(msg.header.stamp))
 
 
 def apply_deadzone(axes: np.ndarray, deadzone: float) -> np.ndarray:

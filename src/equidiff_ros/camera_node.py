@@ -42,6 +42,7 @@ import time
 import yaml
 from rclpy.node import Node
 
+from equidiff_core import rosmsg
 from equidiff_core.cameras import (
     CameraError,
     NoFrameYet,
@@ -52,9 +53,7 @@ from equidiff_core.cameras import (
 from equidiff_core.cameras.color import DEFAULT_JPEG_QUALITY, ImageError, color_image_msg
 from equidiff_core.cameras.replay import ReplayFinished
 from equidiff_core.config import ConfigError
-from equidiff_core.control import messages as cm
 from equidiff_core.pointcloud import cloud_to_msg
-from equidiff_core.rosmsg import RclpyFactory
 from equidiff_core.sync import PublishPacer
 from equidiff_core.topics import COMPRESSED_IMAGE_TYPE, camera_color_topic
 from equidiff_ros.common import (
@@ -98,7 +97,7 @@ class CameraNode(Node):
         if not 1 <= self.jpeg_quality <= 100:
             raise ConfigError(f"jpeg_quality must be in 1..100, got {self.jpeg_quality}")
         self.configs = [self.lab.camera(name)] if name else list(self.lab.cameras)
-        self.factory = RclpyFactory()
+        self.factory = rosmsg.RclpyFactory()
         try:
             options = yaml.safe_load(options_text) if options_text else {}
         except yaml.YAMLError as err:
@@ -244,12 +243,12 @@ class CameraNode(Node):
             else:
                 message = "publishing" if ok else "no recent frames"
             self.diag_pub.publish(
-                cm.diagnostic_array(
+                rosmsg.diagnostic_array(
                     self.factory,
                     now,
                     f"{NODE_NAME}/{cfg.name}",
                     cfg.serial,
-                    cm.OK if ok and not health.recovering else cm.WARN,
+                    rosmsg.OK if ok and not health.recovering else rosmsg.WARN,
                     message,
                     {
                         "backend": self.backend,

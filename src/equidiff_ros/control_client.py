@@ -23,7 +23,7 @@ from trajectory_msgs.msg import MultiDOFJointTrajectory
 
 from equidiff_core import geometry
 from equidiff_core.chunk import PoseChunk, chunk_to_msg
-from equidiff_core.rosmsg import RclpyFactory, stamp_to_ns
+from equidiff_core.rosmsg import RclpyFactory, diagnostic_entries, position_from_msg, stamp_to_ns
 from equidiff_ros.common import (
     RELIABLE_QOS,
     TOPIC_COMMAND_CHUNK,
@@ -85,12 +85,10 @@ class ControlClient:
                 break
 
     def _on_pose(self, msg):
-        p = msg.pose.position
-        self.data.poses.append((stamp_to_ns(msg.header.stamp) / 1e9, np.array([p.x, p.y, p.z])))
+        self.data.poses.append((stamp_to_ns(msg.header.stamp) / 1e9, position_from_msg(msg)))
 
     def _on_target(self, msg):
-        p = msg.pose.position
-        self.data.targets.append((stamp_to_ns(msg.header.stamp) / 1e9, np.array([p.x, p.y, p.z])))
+        self.data.targets.append((stamp_to_ns(msg.header.stamp) / 1e9, position_from_msg(msg)))
 
     def _on_chunk(self, msg):
         self.data.chunks.append((time.time_ns() / 1e9, stamp_to_ns(msg.header.stamp) / 1e9))
@@ -101,8 +99,8 @@ class ControlClient:
         self.data.last_joint_state = msg
 
     def _on_diag(self, msg):
-        for status in msg.status:
-            self.data.diagnostics[status.name] = {kv.key: kv.value for kv in status.values}
+        for entry in diagnostic_entries(msg):
+            self.data.diagnostics[entry.name] = entry.values
 
     def close(self):
         self.executor.shutdown(timeout_sec=1.0)

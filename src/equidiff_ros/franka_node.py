@@ -50,12 +50,11 @@ from std_msgs.msg import String
 from std_srvs.srv import Trigger
 from trajectory_msgs.msg import MultiDOFJointTrajectory
 
+from equidiff_core import rosmsg
 from equidiff_core.chunk import ChunkError, chunk_from_msg
 from equidiff_core.config import default_config_dir
 from equidiff_core.control import AcknowledgeRefused, Controller, load_control_config
-from equidiff_core.control import messages as cm
 from equidiff_core.robots import BACKENDS, make_robot
-from equidiff_core.rosmsg import RclpyFactory
 from equidiff_core.topics import SERVICE_FRANKA_ACKNOWLEDGE, SERVICE_FRANKA_HOME, TOPIC_FRANKA_STATUS
 from equidiff_ros.common import (
     LATCHED_QOS,
@@ -106,7 +105,7 @@ class FrankaNode(Node):
         if backend not in BACKENDS:
             raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
         self.frame = self.lab.base_frame
-        self.factory = RclpyFactory()
+        self.factory = rosmsg.RclpyFactory()
         self.hardware_id = "dryrun" if backend == "dryrun" else robot_ip
 
         log = _ros_logger_adapter(self.get_logger())
@@ -221,31 +220,33 @@ class FrankaNode(Node):
         if state is None or state.stamp_ns == self._last_state_stamp:
             return  # a stopped robot is read at 10 Hz, an unreachable one not at all: no stale repeats
         self._last_state_stamp = state.stamp_ns
-        self.pub_pose.publish(cm.pose_stamped(self.factory, state.ee_pose, state.stamp_ns, self.frame))
-        self.pub_joints.publish(cm.joint_state(self.factory, state, state.stamp_ns))
+        self.pub_pose.publish(rosmsg.pose_stamped(self.factory, state.ee_pose, state.stamp_ns, self.frame))
+        self.pub_joints.publish(rosmsg.joint_state(self.factory, state, state.stamp_ns))
         if self.pub_tf is not None:
             self.pub_tf.publish(
-                cm.tf_message(self.factory, [(self.frame, cm.TCP_FRAME, state.ee_pose)], state.stamp_ns)
+                rosmsg.tf_message(self.factory, [(self.frame, rosmsg.TCP_FRAME, state.ee_pose)], state.stamp_ns)
             )
         command = self.controller.last_command
         if command is not None and command.stamp_ns != self._last_target_stamp:
             self._last_target_stamp = command.stamp_ns
-            self.pub_target.publish(cm.pose_stamped(self.factory, command.target.pose, command.stamp_ns, self.frame))
+            self.pub_target.publish(
+                rosmsg.pose_stamped(self.factory, command.target.pose, command.stamp_ns, self.frame)
+            )
 
     def publish_diagnostics(self) -> None:
         stats, status = self.controller.stats, self.controller.status()
         if status.state == "faulted":
-            level, text = cm.ERROR, f"faulted (acknowledge again once fixed): {status.reason}"
+            level, text = rosmsg.ERROR, f"faulted (acknowledge again once fixed): {status.reason}"
         elif status.state == "awaiting_ack":
-            level, text = cm.ERROR, f"holding until acknowledged (/franka/acknowledge): {status.reason}"
+            level, text = rosmsg.ERROR, f"holding until acknowledged (/franka/acknowledge): {status.reason}"
         else:
-            level, text = cm.OK, status.state + (f": {status.reason}" if status.reason else "")
-        if stats.last_rejection and level == cm.OK:
-            level, text = cm.WARN, f"{text}; last rejected chunk: {stats.last_rejection}"
+            level, text = rosmsg.OK, status.state + (f": {status.reason}" if status.reason else "")
+        if stats.last_rejection and level == rosmsg.OK:
+            level, text = rosmsg.WARN, f"{text}; last rejected chunk: {stats.last_rejection}"
         values = {k: v for k, v in stats.as_dict().items() if k not in ("last_rejection",)}
         values.update(state=status.state, last_fault=status.last_fault)
         self.pub_diag.publish(
-            cm.diagnostic_array(self.factory, now_ns(self), NODE_NAME, self.hardware_id, level, text, values)
+            rosmsg.diagnostic_array(self.factory, now_ns(self), NODE_NAME, self.hardware_id, level, text, values)
         )
 
     def shutdown(self) -> None:

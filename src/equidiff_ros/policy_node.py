@@ -90,7 +90,7 @@ from std_msgs.msg import Bool, String
 from std_srvs.srv import SetBool
 from trajectory_msgs.msg import MultiDOFJointTrajectory
 
-from equidiff_core import geometry
+from equidiff_core import geometry, rosmsg
 from equidiff_core.chunk import (
     DEFAULT_EXECUTE_STEPS,
     DEFAULT_LATENCY_S,
@@ -108,7 +108,6 @@ from equidiff_core.chunk import (
     steps_to_publish,
 )
 from equidiff_core.control import SafetyConfig
-from equidiff_core.control import messages as cm
 from equidiff_core.control.metrics import percentiles_ms
 from equidiff_core.inference import CheckpointError, load_inference_policy
 from equidiff_core.observation import STATE_TOLERANCE_S, StateHistory, ee_input
@@ -303,7 +302,7 @@ class PolicyNode(Node):
 
     def on_pose(self, msg) -> None:
         try:
-            pose = cm.pose_from_msg(msg)
+            pose = rosmsg.pose_from_msg(msg)
         except geometry.GeometryError as err:
             self.get_logger().warning(f"ignoring invalid ee pose: {err}", throttle_duration_sec=5.0)
             return
@@ -311,16 +310,15 @@ class PolicyNode(Node):
             self._poses.add(stamp_to_ns(msg.header.stamp), pose)
 
     def on_joints(self, msg) -> None:
-        width = cm.gripper_width_from_joint_state(msg)
+        width = rosmsg.gripper_width_from_joint_state(msg)
         if width is not None and np.isfinite(width):
             with self._lock:
                 self._widths.add(stamp_to_ns(msg.header.stamp), width)
 
     def on_diagnostics(self, msg) -> None:
-        for status in msg.status:
-            if status.name.startswith("voxel"):
-                level = status.level[0] if isinstance(status.level, bytes) else int(status.level)
-                self._voxel_error = status.message if level >= cm.ERROR else ""
+        for entry in rosmsg.diagnostic_entries(msg):
+            if entry.name.startswith("voxel"):
+                self._voxel_error = entry.message if entry.level >= rosmsg.ERROR else ""
 
     def on_episode(self, msg) -> None:
         try:
@@ -494,10 +492,10 @@ class PolicyNode(Node):
             }
         )
         stale = self.skipped["stale_observation"] + self.skipped["no_observation"]
-        level = cm.WARN if (self.failures or stale) and not self.obs_to_cmd_s else cm.OK
+        level = rosmsg.WARN if (self.failures or stale) and not self.obs_to_cmd_s else rosmsg.OK
         message = f"{self.published} chunks published"
         if not self.fixed_steps and latency is not None and latency > self.max_bridged_s + 1e-9:
-            level = max(level, cm.WARN)
+            level = max(level, rosmsg.WARN)
             message += (
                 f"; latency {latency * 1000:.0f} ms exceeds the {self.max_bridged_s * 1000:.0f} ms the chunks can "
                 f"bridge (execute_steps {self.answers.steps}): the arm stands still at each chunk boundary"
@@ -506,7 +504,7 @@ class PolicyNode(Node):
         if self._paused:
             message = f"paused ({self._paused}), no chunks; {message}"
         self.pub_diag.publish(
-            cm.diagnostic_array(self.factory, now_ns(self), NODE_NAME, self.policy.name, level, message, values)
+            rosmsg.diagnostic_array(self.factory, now_ns(self), NODE_NAME, self.policy.name, level, message, values)
         )
 
     def shutdown(self) -> None:

@@ -29,11 +29,9 @@ import sys
 from rclpy.node import Node
 
 from equidiff_core.chunk import chunk_to_msg
-from equidiff_core.control.messages import pose_from_msg
 from equidiff_core.geometry import GeometryError
-from equidiff_core.rosmsg import RclpyFactory
+from equidiff_core.rosmsg import NS_PER_S, RclpyFactory, gripper_width_from_joint_state, pose_from_msg
 from equidiff_core.teleop import (
-    NS_PER_S,
     SpaceMouseSource,
     TeleopConfig,
     TeleopError,
@@ -118,11 +116,9 @@ class TeleopNode(Node):
             self.teleop.observe(pose)
 
     def on_joints(self, msg):
-        names = list(msg.name)
-        if "fr3_finger_joint1" in names and "fr3_finger_joint2" in names:
-            self.width_measured = float(
-                msg.position[names.index("fr3_finger_joint1")] + msg.position[names.index("fr3_finger_joint2")]
-            )
+        width = gripper_width_from_joint_state(msg)
+        if width is not None:
+            self.width_measured = width
 
     def on_joy(self, msg):
         try:

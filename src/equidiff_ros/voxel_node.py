@@ -33,10 +33,9 @@ import time
 
 from rclpy.node import Node
 
-from equidiff_core.control import messages as cm
+from equidiff_core import rosmsg
 from equidiff_core.fusion import CloudFusion
 from equidiff_core.pointcloud import CloudError, grid_to_voxel_msg, msg_to_cloud
-from equidiff_core.rosmsg import RclpyFactory
 from equidiff_core.voxels import VoxelizerConfig
 from equidiff_ros.common import (
     RELIABLE_QOS,
@@ -86,7 +85,7 @@ class VoxelNode(Node):
         self.names = [c.name for c in self.cameras]
         self.fusion = CloudFusion(dataclasses.replace(self.lab, observation_hz=hz), self.slop_ns, queue_size, cleanup)
         self.matcher = self.fusion.matcher  # the camera queues: their ages say which camera is stale
-        self.factory = RclpyFactory()
+        self.factory = rosmsg.RclpyFactory()
         cloud_type = self.factory.cls("sensor_msgs/msg/PointCloud2")
         for cam in self.cameras:
             self.create_subscription(
@@ -179,8 +178,8 @@ class VoxelNode(Node):
         for n in self.names:
             values[f"{n}_age_ms"] = "none" if ages[n] is None else round(ages[n] / 1e6, 1)
             values[f"{n}_dropped"] = self.dropped[n]
-        level = cm.OK if self.state == "publishing" else cm.WARN
-        self.diag_pub.publish(cm.diagnostic_array(self.factory, now, NODE_NAME, "", level, self.state, values))
+        level = rosmsg.OK if self.state == "publishing" else rosmsg.WARN
+        self.diag_pub.publish(rosmsg.diagnostic_array(self.factory, now, NODE_NAME, "", level, self.state, values))
 
     def shutdown(self):
         pass

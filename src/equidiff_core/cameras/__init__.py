@@ -54,6 +54,6 @@ def limit_depth(frame: CloudFrame, min_depth: float, max_depth: float) -> CloudF
 
 def extrinsics_tf_message(cameras, base_frame: str, stamp_ns: int, factory):
     """``tf2_msgs/TFMessage`` with base_frame -> each camera's optical frame (the configured T_base_optical)."""
-    from ..control.messages import tf_message
+    from ..rosmsg import tf_message
 
     return tf_message(factory, [(base_frame, cam.frame_id, cam.extrinsics.matrix()) for cam in cameras], stamp_ns)

@@ -15,6 +15,10 @@ from ..config import ConfigError, LabConfig, default_config_dir, from_dict, load
 # so an episode's result does not depend on which machine ran it.
 TWIN_PRECISION = "fp32"
 
+# The first scene seed of evaluation episodes (then +1 each): far above the demo collection's
+# seeds (from 0), so a policy is judged on scenes it was not trained on.
+EVALUATION_FIRST_SEED = 100_000
+
 
 @dataclass(frozen=True)
 class BoardMountConfig:

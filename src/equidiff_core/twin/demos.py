@@ -19,17 +19,16 @@ from pathlib import Path
 
 import numpy as np
 
+from .. import rosmsg
 from ..bags import EpisodeMeta
 from ..cameras import limit_depth
 from ..cameras.color import color_image_msg
 from ..cameras.twin import TwinCamera
 from ..chunk import PoseChunk, chunk_to_msg
 from ..config import LabConfig
-from ..control import messages as cm
 from ..episode import run_episode
 from ..pointcloud import grid_to_voxel_msg
 from ..recording import EpisodeWriter, next_episode_path
-from ..rosmsg import rosbags_factory
 from ..topics import (
     COMPRESSED_IMAGE_TYPE,
     TOPIC_COMMAND_CHUNK,
@@ -44,8 +43,6 @@ from .config import TwinConfig
 from .expert import plan_pick_place, tcp_pose
 from .scene import BLOCK, BOWL, body_pose, scene_record
 from .sim import DirectSim
-
-NS = 1_000_000_000
 
 
 class DirectRecorder:
@@ -62,7 +59,7 @@ class DirectRecorder:
         for c in self.cameras:
             c.connect()
         self.voxelizer = Voxelizer(lab.workspace, [c.extrinsics.matrix() for c in lab.cameras])
-        self.factory = rosbags_factory()
+        self.factory = rosmsg.rosbags_factory()
         self._stamp = 0
         self.images: list[np.ndarray | None] = []  # each camera's colour image of the latest grid
 
@@ -158,7 +155,7 @@ class DirectWorld:
             writer.discard()
 
     def stamp_ns(self) -> int:
-        return self.epoch_ns + int((self.sim.time - self.t0) * NS)
+        return self.epoch_ns + int((self.sim.time - self.t0) * rosmsg.NS_PER_S)
 
     def command(self, pose: np.ndarray, width: float, lead_ns: int = 50_000_000) -> None:
         """Send a target reached ``lead_ns`` later (teleop's lead) and record it as a one-point chunk."""
@@ -174,8 +171,8 @@ class DirectWorld:
         sim, f, frame, t_ns = self.sim, self.rec.factory, self.lab.base_frame, self.stamp_ns()
         if self.ms % self.state_every == 0:  # the messages franka_node publishes
             state = sim.robot_state(t_ns)
-            self.writer.write(TOPIC_EE_POSE, cm.pose_stamped(f, state.ee_pose, t_ns, frame), t_ns)
-            self.writer.write(TOPIC_JOINT_STATES, cm.joint_state(f, state, t_ns), t_ns)
+            self.writer.write(TOPIC_EE_POSE, rosmsg.pose_stamped(f, state.ee_pose, t_ns, frame), t_ns)
+            self.writer.write(TOPIC_JOINT_STATES, rosmsg.joint_state(f, state, t_ns), t_ns)
         if self.ms % self.obs_every == 0:
             ws = self.lab.workspace
             grid = self.rec.voxel_grid(t_ns)

@@ -50,6 +50,7 @@ from ..control import Controller
 from ..episode import run_episode
 from ..observation import ee_input
 from ..robots.base import Robot, RobotError, RobotState
+from ..rosmsg import position_from_msg
 from ..topics import TOPIC_COMMAND_CHUNK, TOPIC_EE_POSE
 from .config import TwinConfig
 from .scene import BLOCK, BOWL, body_pose, sample_scene
@@ -454,7 +455,7 @@ class RecordedChunks(_DirectExecution):
 def _tcp_gaps(actor: RecordedChunks, poses, origin_ns: int) -> list[float]:
     """mm between the replayed TCP and the recorded /franka/ee_pose (within 5 ms) at each observation instant."""
     stamps = poses.header_ns() - origin_ns
-    positions = np.array([[m.pose.position.x, m.pose.position.y, m.pose.position.z] for m in poses.messages])
+    positions = np.array([position_from_msg(m) for m in poses.messages])
     gaps = []
     for ms, tcp in zip(actor.path_ms, actor.path, strict=True):
         i = int(np.argmin(np.abs(stamps - ms * 1_000_000)))

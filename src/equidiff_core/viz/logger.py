@@ -42,10 +42,16 @@ from .. import geometry, topics
 from ..cameras.color import ImageError, compressed_format
 from ..chunk import ChunkError, chunk_from_msg
 from ..config import ConfigError, LabConfig, default_config_dir, from_dict, load_yaml
-from ..control.messages import gripper_width_from_joint_state
 from ..pointcloud import CloudError, _structured, msg_to_cloud
-from ..robots.base import FINGER_JOINT_NAMES
-from ..rosmsg import stamp_to_ns, uint8_buffer
+from ..rosmsg import (
+    diagnostic_entries,
+    gripper_width_from_joint_state,
+    has_gripper_joints,
+    pos_quat_from_msg,
+    pose_from_transform,
+    stamp_to_ns,
+    uint8_buffer,
+)
 from . import require_rerun
 
 APPLICATION_ID = "equidiff_ros"
@@ -184,17 +190,6 @@ def _stamp(msg: Any, fallback_ns: int | None) -> int:
     if stamp > 0:
         return stamp
     return int(fallback_ns) if fallback_ns is not None else time.time_ns()
-
-
-def _pose_of(msg: Any) -> tuple[np.ndarray, np.ndarray]:
-    """PoseStamped -> (position (3,), quaternion xyzw (4,)); raises GeometryError on NaN / non-unit."""
-    p, q = msg.pose.position, msg.pose.orientation
-    pos = np.array([p.x, p.y, p.z], dtype=np.float64)
-    quat = np.array([q.x, q.y, q.z, q.w], dtype=np.float64)
-    if not np.all(np.isfinite(pos)):
-        raise geometry.GeometryError("pose position contains NaN or inf")
-    geometry.pose_from_pos_quat(pos, quat)  # validates the quaternion
-    return pos, quat
 
 
 class _Trail:
@@ -351,8 +346,7 @@ class RerunLogger:
         try:
             any_logged = False
             for tf in msg.transforms:
-                t, r = tf.transform.translation, tf.transform.rotation
-                T = geometry.pose_from_pos_quat([t.x, t.y, t.z], [r.x, r.y, r.z, r.w])
+                T = pose_from_transform(tf)
                 child = str(tf.child_frame_id)
                 self._at(_stamp(tf, receive_ns))
                 if child in self._camera_names or child.endswith(OPTICAL_SUFFIX):
@@ -451,7 +445,7 @@ class RerunLogger:
         if not self._pose_throttle.ready("ee", stamp):
             return False
         try:
-            pos, quat = _pose_of(msg)
+            pos, quat = pos_quat_from_msg(msg)
         except geometry.GeometryError as err:
             return self._drop("ee_pose", err)
         self._at(stamp)
@@ -463,15 +457,14 @@ class RerunLogger:
 
     def log_joint_states(self, msg: Any, receive_ns: int | None = None) -> bool:
         """JointState -> measured gripper width (sum of the two finger joints), at most ``ee_hz``."""
-        names = list(msg.name)
-        if not all(j in names for j in FINGER_JOINT_NAMES):
+        if not has_gripper_joints(msg):
             return False  # arm-only joint states carry no gripper
         stamp = _stamp(msg, receive_ns)
         if not self._pose_throttle.ready("joints", stamp):
             return False
         width = gripper_width_from_joint_state(msg)
         if width is None:
-            return self._drop("joint_states", ValueError(f"{len(names)} names but {len(msg.position)} positions"))
+            return self._drop("joint_states", ValueError(f"{len(msg.name)} names but {len(msg.position)} positions"))
         if not np.isfinite(width):
             return self._drop("joint_states", ValueError("gripper finger positions contain NaN or inf"))
         self._at(stamp)
@@ -501,7 +494,7 @@ class RerunLogger:
         if not self._pose_throttle.ready("executed", stamp):
             return False
         try:
-            pos, quat = _pose_of(msg)
+            pos, quat = pos_quat_from_msg(msg)
         except geometry.GeometryError as err:
             return self._drop("executed_target", err)
         self._at(stamp)
@@ -516,16 +509,15 @@ class RerunLogger:
         stamp = _stamp(msg, receive_ns)
         self._at(stamp)
         count = 0
-        for status in msg.status:
-            prefix = f"{DIAGNOSTICS}/{_entity_part(str(status.name) or 'unnamed')}"
-            for kv in status.values:
+        for entry in diagnostic_entries(msg):
+            prefix = f"{DIAGNOSTICS}/{_entity_part(entry.name or 'unnamed')}"
+            for key, text in entry.values.items():
                 try:
-                    value = float(kv.value)
+                    value = float(text)
                 except (TypeError, ValueError):
                     continue  # text values (e.g. "ok") have no time series
                 if not np.isfinite(value):
                     continue
-                key = str(kv.key)
                 entity = _DIAGNOSTIC_ENTITIES.get(key, f"{prefix}/{_entity_part(key)}")
                 self.rec.log(entity, self.rr.Scalars(value))
                 count += 1

@@ -35,6 +35,8 @@ import json
 import time
 from pathlib import Path
 
+from equidiff_core.twin.config import EVALUATION_FIRST_SEED
+
 MODES = ("whole", "replace", "horizon", "rtc")
 
 
@@ -43,7 +45,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.formatter_class = argparse.RawDescriptionHelpFormatter
     parser.add_argument("--checkpoint", type=Path, default=None, help="policy.pt (default: the shipped checkpoint)")
     parser.add_argument("--seeds", type=int, default=4, help="episodes per mode and latency (same scenes for all)")
-    parser.add_argument("--seed", type=int, default=100_000, help="first scene seed (twin run's)")
+    parser.add_argument("--seed", type=int, default=EVALUATION_FIRST_SEED, help="first scene seed (twin run's)")
     parser.add_argument("--duration", type=float, default=20.0, help="sim seconds per episode")
     parser.add_argument("--latencies", type=float, nargs="+", default=(0.0, 100.0, 200.0, 400.0), metavar="MS")
     parser.add_argument("--modes", nargs="+", choices=MODES, default=MODES)

@@ -82,6 +82,7 @@ from typing import Self
 
 import numpy as np
 
+from equidiff_core.rosmsg import arm_joint_positions, gripper_width_from_joint_state, pose_from_msg
 from equidiff_ros.control_client import MS, ControlClient, down_pose
 
 FAULTS = (
@@ -171,10 +172,7 @@ class StatusWatch:
         client.node.create_subscription(PoseStamped, TOPIC_EE_POSE, self._on_pose, RELIABLE_QOS)
 
     def _on_pose(self, msg) -> None:
-        from equidiff_core import geometry
-
-        p, q = msg.pose.position, msg.pose.orientation
-        self.ee_pose = geometry.pose_from_pos_quat((p.x, p.y, p.z), (q.x, q.y, q.z, q.w))
+        self.ee_pose = pose_from_msg(msg)
 
     @property
     def latest(self) -> dict:
@@ -549,7 +547,7 @@ def fault_divergence(c: Campaign) -> dict:
     from equidiff_core import geometry
     from equidiff_core.chunk import PoseChunk
 
-    q7 = float(c.client.data.last_joint_state.position[6])
+    q7 = float(arm_joint_positions(c.client.data.last_joint_state)[6])
     lo, hi = c.joint_limits[0][6], c.joint_limits[1][6]
     yaw_sign = -1.0 if hi - q7 < q7 - lo else 1.0
     rate = 0.5
@@ -567,7 +565,7 @@ def fault_divergence(c: Campaign) -> dict:
 
     def inject():  # the yawing itself is the fault: wait for it to run into the limit
         c.status.wait(lambda s: s.get("state") == "awaiting_ack", 20.0, "the divergence stop", c.franka)
-        stopped["q7"] = float(c.client.data.last_joint_state.position[6])
+        stopped["q7"] = float(arm_joint_positions(c.client.data.last_joint_state)[6])
 
     def unyawing():  # after the acknowledgement: back, away from the limit (towards it would stop again)
         now, here = time.time_ns(), c.status.ee_pose
@@ -731,7 +729,7 @@ def fault_gripper_stuck(c: Campaign) -> dict:
     from equidiff_ros.commands.bench_control import approach
 
     def width() -> float:
-        return 2 * float(c.client.data.last_joint_state.position[7])
+        return gripper_width_from_joint_state(c.client.data.last_joint_state)
 
     def send_width(target: float, seconds: float) -> None:
         end = time.monotonic() + seconds

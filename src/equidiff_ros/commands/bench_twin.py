@@ -21,6 +21,7 @@ import sys
 import time
 from pathlib import Path
 
+from equidiff_core.twin.config import EVALUATION_FIRST_SEED
 from equidiff_ros.commands.twin_run import add_precision_argument
 
 
@@ -29,7 +30,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.formatter_class = argparse.RawDescriptionHelpFormatter
     parser.add_argument("--episodes", type=int, default=1)
     parser.add_argument("--max-duration", type=float, default=20.0, help="sim seconds per episode")
-    parser.add_argument("--seed", type=int, default=100_000)
+    parser.add_argument("--seed", type=int, default=EVALUATION_FIRST_SEED)
     parser.add_argument("--checkpoint", type=Path, default=None, help="policy (default: the shipped one)")
     parser.add_argument("--standin", action="store_true", help="an untrained tiny stand-in policy")
     parser.add_argument("--latency-ms", type=float, default=100.0)

@@ -15,13 +15,17 @@ import argparse
 import json
 from pathlib import Path
 
+from equidiff_core.observation import STATE_TOLERANCE_S
+
 
 def add_arguments(parser) -> None:
     parser.epilog = __doc__.split("\n", 1)[1]
     parser.formatter_class = argparse.RawDescriptionHelpFormatter
     parser.add_argument("bags", nargs="+", help="bag directories, or folders holding bag directories")
     parser.add_argument("--out", type=Path, required=True, help="directory for the packed episodes")
-    parser.add_argument("--tolerance", type=float, default=0.05, help="state/voxel stamp tolerance, s (as train)")
+    parser.add_argument(
+        "--tolerance", type=float, default=STATE_TOLERANCE_S, help="state/voxel stamp tolerance, s (as train)"
+    )
     parser.add_argument("--lab-config", help="lab.yaml (its workspace resolution); default: the installed one")
 
 

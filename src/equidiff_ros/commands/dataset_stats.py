@@ -8,19 +8,22 @@ from __future__ import annotations
 
 import json
 
+from equidiff_core.dataset import DatasetConfig, dataset_stats
+from equidiff_core.observation import STATE_TOLERANCE_S
+
 
 def add_arguments(parser) -> None:
     parser.add_argument("bags", nargs="+", help="bag directories, or folders holding bag directories")
-    parser.add_argument("--horizon", type=int, default=16)
-    parser.add_argument("--n-obs-steps", type=int, default=1)
-    parser.add_argument("--n-action-steps", type=int, default=8)
+    parser.add_argument("--horizon", type=int, default=DatasetConfig.horizon)
+    parser.add_argument("--n-obs-steps", type=int, default=DatasetConfig.n_obs_steps)
+    parser.add_argument("--n-action-steps", type=int, default=DatasetConfig.n_action_steps)
     parser.add_argument(
         "--tolerance",
         type=float,
-        default=0.05,
-        help="max |ee pose / joint state stamp - voxel stamp| in seconds (default 0.05)",
+        default=STATE_TOLERANCE_S,
+        help=f"max |ee pose / joint state stamp - voxel stamp| in seconds (default {STATE_TOLERANCE_S})",
     )
-    parser.add_argument("--resolution", type=int, default=64)
+    parser.add_argument("--resolution", type=int, default=DatasetConfig.resolution)
     parser.add_argument("--json", action="store_true", help="print one JSON object instead of a table")
 
 
@@ -34,8 +37,6 @@ def _fmt_range(lo, hi) -> str:
 
 
 def run(args) -> int:
-    from equidiff_core.dataset import DatasetConfig, dataset_stats
-
     cfg = DatasetConfig(
         horizon=args.horizon,
         n_obs_steps=args.n_obs_steps,

@@ -14,6 +14,7 @@ import sys
 
 from equidiff_core.dataset import DatasetConfig
 from equidiff_core.lerobot_export import ExportError, ExportOptions, export_lerobot
+from equidiff_core.observation import STATE_TOLERANCE_S
 
 
 def add_arguments(parser) -> None:
@@ -22,11 +23,11 @@ def add_arguments(parser) -> None:
     parser.add_argument("--no-voxels", action="store_true", help="leave the voxel grids out")
     parser.add_argument("--no-images", action="store_true", help="leave the camera images out")
     parser.add_argument("--robot-type", default="franka_fr3")
-    parser.add_argument("--tolerance", type=float, default=0.05, help="state/voxel stamp tolerance, s")
+    parser.add_argument("--tolerance", type=float, default=STATE_TOLERANCE_S, help="state/voxel stamp tolerance, s")
     parser.add_argument(
         "--image-tolerance", type=float, default=None, help="image/voxel stamp tolerance, s (half a frame period)"
     )
-    parser.add_argument("--resolution", type=int, default=64)
+    parser.add_argument("--resolution", type=int, default=DatasetConfig.resolution)
     parser.add_argument("--only-successful", action="store_true", help="skip episodes not marked success")
 
 

@@ -16,6 +16,7 @@ from collections.abc import Callable
 
 from equidiff_core import topics
 from equidiff_core.operator_loop import FRANKA_DIAGNOSTICS_NAME, Request
+from equidiff_core.rosmsg import RclpyFactory, diagnostic_entries
 
 SERVICE_WAIT_S = 5.0
 CALL_TIMEOUT_S = 15.0
@@ -55,8 +56,6 @@ class LabClient:
     def __init__(self):
         import rclpy
         from rclpy.executors import SingleThreadedExecutor
-
-        from equidiff_core.rosmsg import RclpyFactory
 
         self.rclpy = rclpy
         self.factory = RclpyFactory()
@@ -122,9 +121,9 @@ class LabClient:
             )
 
         def on_diagnostics(msg):
-            for status in msg.status:
-                if status.name == FRANKA_DIAGNOSTICS_NAME:
-                    on_value("franka_diagnostics", (status.message, {kv.key: kv.value for kv in status.values}))
+            for entry in diagnostic_entries(msg):
+                if entry.name == FRANKA_DIAGNOSTICS_NAME:
+                    on_value("franka_diagnostics", (entry.message, entry.values))
 
         self.node.create_subscription(
             self.factory.cls("diagnostic_msgs/msg/DiagnosticArray"),

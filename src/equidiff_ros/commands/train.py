@@ -20,6 +20,8 @@ import json
 import sys
 from pathlib import Path
 
+from equidiff_core.observation import STATE_TOLERANCE_S
+
 
 def add_arguments(parser) -> None:
     from equidiff_core.presets import ROTATION_AUGS
@@ -80,7 +82,7 @@ def add_arguments(parser) -> None:
     parser.add_argument("--resume", action="store_true", help="continue from OUT/last.ckpt")
     parser.add_argument("--lab-config", help="lab.yaml (workspace); default: the installed one")
     parser.add_argument("--cache-dir", help="decoded-episode cache (default OUT/dataset_cache)")
-    parser.add_argument("--tolerance", type=float, default=0.05, help="state/voxel stamp tolerance, s")
+    parser.add_argument("--tolerance", type=float, default=STATE_TOLERANCE_S, help="state/voxel stamp tolerance, s")
     parser.add_argument("--rerun", metavar="FILE.rrd|spawn|HOST:PORT", help="also log training to rerun")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar (logs every eval instead)")
 

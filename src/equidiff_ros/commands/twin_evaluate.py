@@ -23,6 +23,7 @@ import json
 import time
 from pathlib import Path
 
+from equidiff_core.twin.config import EVALUATION_FIRST_SEED
 from equidiff_ros.commands.twin_run import add_precision_argument
 
 
@@ -30,7 +31,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.epilog = __doc__.split("\n", 1)[1]
     parser.formatter_class = argparse.RawDescriptionHelpFormatter
     parser.add_argument("--episodes", type=int, default=5)
-    parser.add_argument("--seed", type=int, default=100_000, help="first episode's scene seed (then +1 each)")
+    parser.add_argument(
+        "--seed", type=int, default=EVALUATION_FIRST_SEED, help="first episode's scene seed (then +1 each)"
+    )
     parser.add_argument("--checkpoint", type=Path, default=None, help="policy.pt (default: the shipped checkpoint)")
     parser.add_argument("--max-duration", type=float, default=None, help="seconds per episode (twin.yaml's default)")
     parser.add_argument(

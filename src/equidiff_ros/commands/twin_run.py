@@ -26,6 +26,8 @@ import sys
 import time
 from pathlib import Path
 
+from equidiff_core.twin.config import EVALUATION_FIRST_SEED
+
 SHIPPED_NAME = Path("checkpoints") / "twin_compact" / "policy.pt"
 
 
@@ -57,7 +59,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.epilog = __doc__.split("\n", 1)[1]
     parser.formatter_class = argparse.RawDescriptionHelpFormatter
     parser.add_argument("--episodes", type=int, default=5)
-    parser.add_argument("--seed", type=int, default=100_000, help="first episode's scene seed (then +1 each)")
+    parser.add_argument(
+        "--seed", type=int, default=EVALUATION_FIRST_SEED, help="first episode's scene seed (then +1 each)"
+    )
     parser.add_argument(
         "--checkpoint",
         type=Path,
