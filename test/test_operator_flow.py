@@ -233,7 +233,7 @@ def test_the_operator_flow_drives_the_twin_the_same_way(ros_domain, tmp_path):
     from equidiff_core.twin.processes import node_command
     from equidiff_core.twin.standin import make_standin_policy
     from equidiff_ros.common import SENSOR_QOS
-    from equidiff_ros.twin_supervisor import TwinStack
+    from equidiff_ros.twin import TwinStack
 
     cfg_dir = default_config_dir()
     policy = make_standin_policy(tmp_path / "standin.pt", LAB.workspace, preset="tiny", cfg=TwinConfig())

@@ -209,7 +209,7 @@ def test_a_hung_policy_ends_its_episode_as_stalled_naming_it_and_the_job_goes_on
     from equidiff_core.config import default_config_dir, load_lab_config
     from equidiff_core.twin.config import TwinConfig
     from equidiff_core.twin.standin import make_standin_policy
-    from equidiff_ros.twin_supervisor import TwinStack, run_policy_episode
+    from equidiff_ros.twin import TwinStack, run_policy_episode
 
     cfg_dir = default_config_dir()
     lab = load_lab_config(cfg_dir / "lab.yaml")

@@ -8,6 +8,8 @@
 * ``lockstep``: when the sim may step on simulated time (camera frames, policy chunks, stalls)
 * ``demos`` / ``evaluate``: in-process demonstrations and closed-loop evaluation on the sim clock
 * ``metrics``: what the main job reports; ``processes``: starting and stopping node processes
+* ``node_specs``: the twin stack's nodes and their parameters; ``gate``: which policy chunks
+  the supervisor (``equidiff_ros.twin``) lets through, and when
 """
 
 from .config import TwinConfig, load_twin_config

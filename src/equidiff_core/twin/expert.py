@@ -188,6 +188,15 @@ def plan_pick_place(
     return ExpertPlan(frames)
 
 
+def object_poses_from_state(state: dict) -> tuple[np.ndarray, np.ndarray]:
+    """4x4 block and bowl poses from twin_node's /twin/state (its ``objects``), to plan from."""
+    out = []
+    for body in ("block", "bowl"):
+        obj = state["objects"][body]
+        out.append(geometry.make_pose(geometry.rotz(obj["yaw"]), np.asarray(obj["xyz"], dtype=float)))
+    return out[0], out[1]
+
+
 @dataclass(frozen=True)
 class ExpertResult:
     seed: int

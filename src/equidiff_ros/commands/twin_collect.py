@@ -46,7 +46,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def _collect_ros(args, lab_path: Path, twin_path: Path, cfg_override) -> list[tuple[int, bool, str]]:
     from equidiff_core.episode import run_episode
-    from equidiff_ros.twin_supervisor import LiveExpert, LiveTwin, TwinStack
+    from equidiff_ros.twin import LiveExpert, LiveTwin, TwinStack
 
     results = []
     twin_cfg_path = twin_path
@@ -114,7 +114,7 @@ def run(args: argparse.Namespace) -> int:
         return 130
     except Exception as err:
         from equidiff_core.twin.processes import NodeProcessError
-        from equidiff_ros.twin_supervisor import SupervisorError
+        from equidiff_ros.twin import SupervisorError
 
         if isinstance(err, (NodeProcessError, SupervisorError)):
             print(f"equidiff twin collect: {err}", file=sys.stderr)

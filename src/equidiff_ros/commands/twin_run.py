@@ -145,7 +145,7 @@ def run(args: argparse.Namespace) -> int:
     from equidiff_core.twin.config import load_twin_job_configs
     from equidiff_core.twin.metrics import RunSummary
     from equidiff_core.twin.processes import NodeProcessError
-    from equidiff_ros.twin_supervisor import (
+    from equidiff_ros.twin import (
         SupervisorError,
         TwinStack,
         run_policy_episode,
