@@ -80,7 +80,9 @@ def patch_source(text: str) -> str:
             lines.insert(0, f"{indent}from scipy.special import {', '.join(rest)}")
         return "\n".join(lines)
 
-    return re.sub(r"^([ \t]*)from scipy\.special import ([^\n]*\bsph_harm\b[^\n]*)$", fix_import, text, flags=re.M)
+    return re.sub(
+        r"^([ \t]*)from scipy\.special import ([^\n]*\bsph_harm\b[^\n]*)$", fix_import, text, flags=re.MULTILINE
+    )
 
 
 def build(cache: Path) -> Path:

@@ -1,8 +1,6 @@
 """The twin jobs' in-process ROS node: episode gate, homing, scripted expert, recorder control, metrics.
 
-Used by ``equidiff twin run`` and ``equidiff twin collect`` (not a standalone executable).
-
-Wiring:
+Used by ``equidiff twin run`` and ``equidiff twin collect`` (not a standalone executable). Wiring:
   /twin/policy_chunk (policy_node's /franka/command_chunk, remapped) -> forwarded to
       /franka/command_chunk only while an episode is running (the gate, ``twin.gate.PolicyGate``),
       so the policy stays loaded and warm between episodes while the arm is homed and the scene
@@ -41,8 +39,14 @@ from std_srvs.srv import Trigger
 from trajectory_msgs.msg import MultiDOFJointTrajectory
 
 from equidiff_core.chunk import PoseChunk, chunk_to_msg
-from equidiff_core.control.messages import gripper_width_from_joint_state, pose_from_msg
-from equidiff_core.rosmsg import NS_PER_S, RclpyFactory, stamp_to_ns
+from equidiff_core.rosmsg import (
+    NS_PER_S,
+    RclpyFactory,
+    diagnostic_entries,
+    gripper_width_from_joint_state,
+    pose_from_msg,
+    stamp_to_ns,
+)
 from equidiff_core.topics import (
     SERVICE_FRANKA_ACKNOWLEDGE,
     TOPIC_CLOCK,
@@ -233,18 +237,16 @@ class Supervisor:
             self.recorder_status = msg.data
 
     def _on_diag(self, msg):
-        for status in msg.status:
-            if status.name != "policy_node":
+        for entry in diagnostic_entries(msg):
+            if entry.name != "policy_node":
                 continue
-            for kv in status.values:
-                if kv.key == "inference_ms":
-                    try:
-                        v = float(kv.value)
-                    except ValueError:
-                        continue
-                    if v >= 0:
-                        with self.lock:
-                            self.gate.inference(v)
+            try:
+                v = float(entry.values.get("inference_ms", "nan"))
+            except ValueError:
+                continue
+            if v >= 0:  # NaN compares false: no figure yet
+                with self.lock:
+                    self.gate.inference(v)
 
     # -- waiting ---------------------------------------------------------------------------------
     def wait_for(self, predicate, timeout_s: float, what: str, check=None):
