@@ -59,7 +59,7 @@ def run(args: argparse.Namespace) -> int:
     from equidiff_core.twin.config import load_twin_job_configs
     from equidiff_core.twin.processes import NodeProcessError, cpu_seconds
     from equidiff_ros.commands.twin_run import resolve_policy
-    from equidiff_ros.twin_supervisor import (
+    from equidiff_ros.twin import (
         SupervisorError,
         TwinStack,
         run_policy_episode,
