@@ -19,6 +19,7 @@ from pathlib import Path
 from ...config import CameraConfig
 from ...pointcloud import CloudError, msg_to_cloud
 from ..base import Camera, CameraError, CloudFrame
+from .config import ReplayOptions
 
 POINTCLOUD2 = "sensor_msgs/msg/PointCloud2"
 
@@ -30,26 +31,25 @@ class ReplayFinished(CameraError):
 class ReplayCamera(Camera):
     """Camera ``camera.name`` played back from ``bag`` (topic default: ``camera.topic``)."""
 
-    def __init__(
-        self,
-        camera: CameraConfig,
-        bag: str | Path | None = None,
-        topic: str | None = None,
-        loop: bool = True,
-        rate: float = 1.0,
-        restamp: bool = True,
-        clock: Callable[[], int] = time.time_ns,
-    ):
-        if bag is None or str(bag) == "":
+    def __init__(self, camera: CameraConfig, clock: Callable[[], int] = time.time_ns, **options):
+        """``options``: ``ReplayOptions``' fields; ``clock``: the restamping clock (ns)."""
+        unknown = set(options) - set(ReplayOptions.__dataclass_fields__)
+        if unknown:
+            raise CameraError(
+                f"replay camera {camera.name!r}: unknown option(s) {sorted(unknown)}; "
+                f"allowed: {sorted(ReplayOptions.__dataclass_fields__)}"
+            )
+        self.options = o = ReplayOptions(**options)
+        if o.bag is None or str(o.bag) == "":
             raise CameraError(f"replay camera {camera.name!r}: no bag given (set the 'bag' parameter)")
-        if rate <= 0:
-            raise CameraError(f"replay camera {camera.name!r}: rate must be positive, got {rate}")
+        if o.rate <= 0:
+            raise CameraError(f"replay camera {camera.name!r}: rate must be positive, got {o.rate}")
         self.camera = camera
-        self.bag = Path(bag)
-        self.topic = topic or camera.topic
-        self.loop = loop
-        self.rate = float(rate)
-        self.restamp = restamp
+        self.bag = Path(o.bag)
+        self.topic = o.topic or camera.topic
+        self.loop = o.loop
+        self.rate = float(o.rate)
+        self.restamp = o.restamp
         self._clock = clock
         self._reader = None
         self._messages = None

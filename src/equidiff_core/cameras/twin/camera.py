@@ -34,6 +34,7 @@ import numpy as np
 
 from ...config import CameraConfig
 from ..base import Camera, CameraError, CloudFrame, NoFrameYet
+from .config import TwinCameraOptions
 
 os.environ.setdefault("MUJOCO_GL", "egl")
 
@@ -86,21 +87,6 @@ def degrade_depth(
         lost |= jump & (rng.random(out.shape) < 0.5)
     out[lost] = 0.0
     return out
-
-
-@dataclass(frozen=True)
-class TwinCameraOptions:
-    """Backend options (``make_camera("twin", cam, **options)``); None = take it from config/twin.yaml."""
-
-    width: int | None = None
-    height: int | None = None
-    depth_noise: bool | None = None
-    dropout: float | None = None
-    shm_name: str | None = None  # twin state block (default: from ROS_DOMAIN_ID)
-    twin_config: object = None  # path of twin.yaml, or a TwinConfig (in-process users)
-    paced: bool = True  # read() waits for the next 1/publish_hz wall-clock tick, as a camera waits for frames
-    lockstep: bool = False  # simulated time: read() takes the frames the sim requests (overrides paced)
-    slot: int = 0  # lockstep: this camera's registration slot in the shared state (its index in lab.yaml)
 
 
 class TwinCamera(Camera):
