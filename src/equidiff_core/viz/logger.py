@@ -46,7 +46,7 @@ from ..control.messages import gripper_width_from_joint_state
 from ..pointcloud import CloudError, _structured, msg_to_cloud
 from ..robots.base import FINGER_JOINT_NAMES
 from ..rosmsg import stamp_to_ns, uint8_buffer
-from . import require_rerun
+from .rerun_sdk import require_rerun
 
 APPLICATION_ID = "equidiff_ros"
 
