@@ -8,6 +8,7 @@
 * ``lockstep``: when the sim may step on simulated time (camera frames, policy chunks, stalls)
 * ``demos`` / ``evaluate``: in-process demonstrations and closed-loop evaluation on the sim clock
 * ``metrics``: what the main job reports; ``processes``: starting and stopping node processes
+* ``calibration``: camera calibration in the twin, against its ground truth (``equidiff calibrate cameras --twin``)
 """
 
 from .config import TwinConfig, load_twin_config
