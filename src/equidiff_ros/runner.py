@@ -14,6 +14,8 @@ import sys
 import threading
 from collections.abc import Callable, Sequence
 
+from equidiff_core.parent_job import job_gone
+
 
 def run_node(
     name: str,
@@ -73,8 +75,6 @@ def spin_until_signal(nodes, multithreaded: bool = False) -> None:
     """Spin ``nodes`` (one node or a list) until SIGINT/SIGTERM or until the job that started
     them died (then return, leaving the context up)."""
     from rclpy.executors import MultiThreadedExecutor, SingleThreadedExecutor
-
-    from equidiff_core.twin.processes import job_gone
 
     nodes = list(nodes) if isinstance(nodes, (list, tuple)) else [nodes]
     stop = threading.Event()
