@@ -21,11 +21,12 @@ def run_node(
     name: str,
     usage: str,
     build_node: Callable[[], object],
-    startup_errors: Callable[[], tuple[type[BaseException], ...]],
+    startup_errors: tuple[type[BaseException], ...],
     args: Sequence[str] | None = None,
 ) -> int:
     """Build (``build_node()``: usually the node class) and spin a node; exit 1 with a one-line
-    message on an expected start-up error (``startup_errors()``: the exception types)."""
+    message on an expected start-up error (``startup_errors``: the node's ``STARTUP_ERRORS``), a
+    traceback on any other."""
     return run_nodes(name, usage, [build_node], startup_errors, args)
 
 
@@ -33,7 +34,7 @@ def run_nodes(
     name: str,
     usage: str,
     builders: Sequence[Callable[[], object]],
-    startup_errors: Callable[[], tuple[type[BaseException], ...]],
+    startup_errors: tuple[type[BaseException], ...],
     args: Sequence[str] | None = None,
     multithreaded: bool = False,
 ) -> int:
@@ -50,11 +51,10 @@ def run_nodes(
     rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     nodes = []
     try:
-        expected = startup_errors()
         try:
             for build in builders:
                 nodes.append(build())
-        except expected as err:
+        except startup_errors as err:
             print(f"{name}: {err}", file=sys.stderr)
             return 1
         spin_until_signal(nodes, multithreaded)
