@@ -33,9 +33,9 @@ from equidiff_core.calibration.solve import (
     project_points,
     solve_hand_eye,
 )
-from equidiff_core.calibration.twin import nominal_mount, perturb_lab, twin_camera_model
 from equidiff_core.config import default_config_dir, load_lab_config
 from equidiff_core.geometry import invert_pose, make_pose
+from equidiff_core.twin.calibration import nominal_mount, perturb_lab, twin_camera_model
 from equidiff_core.twin.config import TwinConfig
 
 LAB_PATH = default_config_dir() / "lab.yaml"
@@ -356,8 +356,8 @@ def test_calibrated_lab_file_loads_and_is_never_overwritten_silently(tmp_path):
 
 
 def test_twin_board_is_off_by_default_and_leaves_the_state_layout_alone(tmp_path):
-    from equidiff_core.calibration.twin import twin_config_with_board
     from equidiff_core.twin import scene
+    from equidiff_core.twin.calibration import twin_config_with_board
 
     assert TwinConfig().scene.calibration_board is None
     plain = scene.scene_xml(TwinConfig(), LAB.cameras)
@@ -372,7 +372,7 @@ def test_twin_board_is_off_by_default_and_leaves_the_state_layout_alone(tmp_path
 def test_twin_cameras_calibrated_from_perturbed_guesses_within_2mm_and_0_2deg(tmp_path):
     """The CI-size twin run: 10 poses (each side camera sees ~5), in-process sim, the same planner, capture loop and solver."""
     from equidiff_core.calibration.check import check_alignment
-    from equidiff_core.calibration.twin import calibrate_twin
+    from equidiff_core.twin.calibration import calibrate_twin
 
     report, result, guess = calibrate_twin(
         LAB, TwinConfig(), SPEC, PlanConfig(poses=10), arm="direct", perturb_m=0.03, perturb_deg=3.0, log=lambda m: None
@@ -399,8 +399,8 @@ def test_twin_cameras_calibrated_from_perturbed_guesses_within_2mm_and_0_2deg(tm
 
 
 def _twin_clouds():
-    from equidiff_core.calibration.twin import DirectSimArm
     from equidiff_core.cameras.twin import TwinCamera
+    from equidiff_core.twin.calibration import DirectSimArm
 
     arm = DirectSimArm(TwinConfig(), gripper_width=0.04)
     try:
@@ -494,7 +494,7 @@ class ScriptedSpaceMouse:
 def test_operator_mode_streams_spacemouse_motion_to_franky_and_captures_at_rest(tmp_path):
     from equidiff_core.calibration.limits import MotionLimits
     from equidiff_core.calibration.operator import capture_operator
-    from equidiff_core.calibration.twin import (
+    from equidiff_core.twin.calibration import (
         FrankyTwinArm,
         TwinCameras,
         twin_config_with_board,

@@ -15,8 +15,10 @@ from equidiff_core.models import equivariance
 from equidiff_core.normalizer import Normalizer
 from equidiff_core.policies import make_policy
 from equidiff_core.presets import get_preset
+from equidiff_core.twin.config import load_twin_config
 
 WS = Workspace()
+SCENE = load_twin_config().scene
 C4_DEG = (90, 180, 270)
 FP32_EXACT = 1e-5  # rot90 permutes voxels and the C4 part of every filter: only float rounding is left
 SHIPPED = Path(__file__).resolve().parents[1] / "checkpoints" / "twin_compact" / "policy.pt"
@@ -31,7 +33,7 @@ def _policy(name, control="absolute", preset="tiny", seed=0):
 
 @pytest.fixture(scope="module")
 def scenes():
-    return equivariance.twin_scenes(get_preset("tiny"), WS, count=2, seed=1)
+    return equivariance.twin_scenes(get_preset("tiny"), WS, count=2, seed=1, scene=SCENE)
 
 
 @pytest.fixture(scope="module")
@@ -69,7 +71,7 @@ def test_twin_scenes_hold_the_twins_objects_inside_the_rotation_safe_cylinder(sc
             assert (np.abs(rgb - np.asarray(rgba[:3]) * 255).max(1) < 20).any()
         above_table = occ[b, :, :, 4:].sum()  # the block (3 cm) and the bowl's walls (4.1 cm) stand up
         assert above_table > 100
-    again, _ = equivariance.twin_scenes(preset, WS, count=2, seed=1)
+    again, _ = equivariance.twin_scenes(preset, WS, count=2, seed=1, scene=SCENE)
     assert torch.equal(again, voxels)
 
 
@@ -88,7 +90,9 @@ def test_escnn_denoiser_is_exactly_c4_and_approximately_c8(equidiff_tiny, baseli
 def test_relative_control_denoiser_is_exactly_c4():
     policy = _policy("equidiff", control="relative", seed=3)
     for angle in (90, -90, 180):
-        assert equivariance.noise_predictor_error(policy, math.radians(angle), batch=1, seed=2) <= FP32_EXACT
+        assert (
+            equivariance.noise_predictor_error(policy, math.radians(angle), batch=1, seed=2, scene=SCENE) <= FP32_EXACT
+        )
 
 
 def test_escnn_ddim_sampling_is_exactly_c4_for_equidiff_not_baseline(equidiff_tiny, baseline_tiny, scenes):
@@ -118,7 +122,7 @@ def test_exported_bf16_path_is_c4_to_bf16_precision(exported_tiny, scenes):
 @pytest.mark.skipif(not SHIPPED.is_file(), reason="the shipped checkpoint is not in this checkout")
 def test_shipped_checkpoint_is_exactly_c4_and_beats_a_baseline_at_45_degrees():
     fast = load_inference_policy(SHIPPED, precision="fp32", jit=True)
-    voxels, ee = equivariance.twin_scenes(fast.preset, fast.workspace, count=1, seed=7)
+    voxels, ee = equivariance.twin_scenes(fast.preset, fast.workspace, count=1, seed=7, scene=SCENE)
     report = equivariance.measure(equivariance.ExportedModel(fast), voxels, ee, angles_deg=(45, 90, 180, 270))
     assert report["denoiser"]["c4_max_rel_err"] <= FP32_EXACT
     assert report["sampling"]["c4_max_rel_err"] <= FP32_EXACT

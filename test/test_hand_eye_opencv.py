@@ -22,9 +22,9 @@ from scipy.spatial.transform import Rotation
 from equidiff_core.calibration.board import BoardSpec
 from equidiff_core.calibration.plan import PlanConfig, plan_poses
 from equidiff_core.calibration.solve import pose_error, solve_hand_eye
-from equidiff_core.calibration.twin import nominal_mount, twin_camera_model
 from equidiff_core.config import default_config_dir, load_lab_config
 from equidiff_core.geometry import invert_pose, make_pose
+from equidiff_core.twin.calibration import nominal_mount, twin_camera_model
 from equidiff_core.twin.config import TwinConfig
 
 LAB = load_lab_config(default_config_dir() / "lab.yaml")

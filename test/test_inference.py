@@ -21,6 +21,7 @@ from equidiff_core.models.equivariance import random_observation, twin_scenes
 from equidiff_core.normalizer import Normalizer
 from equidiff_core.policies import PolicyInputError, make_policy
 from equidiff_core.presets import get_preset
+from equidiff_core.twin.config import load_twin_config
 
 WS = Workspace()
 # The twin checkpoint shipped until the official encoder layout was trained (legacy layout)
@@ -119,7 +120,7 @@ def test_exported_policy_predicts_like_the_training_policy(exported):
 def test_legacy_checkpoint_keeps_its_legacy_encoder_and_predicts_as_before():
     inf = load_inference_policy(LEGACY)
     assert inf.preset.encoder_layout == "legacy"  # saved before the field existed
-    vox, ee = twin_scenes(inf.preset, inf.workspace, count=1, seed=7)
+    vox, ee = twin_scenes(inf.preset, inf.workspace, count=1, seed=7, scene=load_twin_config().scene)
     a = inf.predict(vox[0, 0].numpy(), ee[0, 0].numpy(), seed=0)
     np.testing.assert_allclose(a[[0, 7, 15]], LEGACY_ACTIONS, atol=1e-5)
 

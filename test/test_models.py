@@ -20,6 +20,7 @@ from equidiff_core.models.sampling import (
 from equidiff_core.normalizer import Normalizer, NormalizerError
 from equidiff_core.policies import PolicyInputError, count_parameters, make_policy
 from equidiff_core.presets import PRESETS, encoder_sizes, get_preset, preset_from_dict
+from equidiff_core.twin.config import load_twin_config
 
 WS = Workspace()
 
@@ -206,7 +207,7 @@ def test_two_observation_steps_train_and_stay_equivariant():
     policy.eval()
     out = policy.predict_action({"voxels": vox, "ee": ee})
     assert out["action"].shape == (2, 8, 10) and out["action_pred"].shape == (2, 16, 10)
-    assert equivariance.noise_predictor_error(policy, math.pi / 2, batch=1) < 1e-4
+    assert equivariance.noise_predictor_error(policy, math.pi / 2, batch=1, scene=load_twin_config().scene) < 1e-4
 
 
 def test_unet_film_split_equals_its_film_linear():

@@ -16,6 +16,7 @@ from equidiff_core.models.sampling import ddim_sample
 from equidiff_core.normalizer import Normalizer
 from equidiff_core.policies import PolicyInputError, make_policy
 from equidiff_core.presets import get_preset
+from equidiff_core.twin.config import load_twin_config
 
 WS = Workspace()
 DT_NS = 200_000_000
@@ -32,7 +33,7 @@ def fast(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def scene():
-    voxels, ee = equivariance.twin_scenes(get_preset("tiny"), WS, count=1, seed=1)
+    voxels, ee = equivariance.twin_scenes(get_preset("tiny"), WS, count=1, seed=1, scene=load_twin_config().scene)
     return voxels[0, 0], ee[0, 0]
 
 

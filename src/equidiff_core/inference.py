@@ -89,25 +89,30 @@ def build_plain_network(policy_name: str, preset: PolicyPreset) -> torch.nn.Modu
     raise CheckpointError(f"unknown policy kind {policy_name!r} in checkpoint")
 
 
-def read_policy_file(path: str | Path) -> tuple[dict, dict]:
-    """(config, state_dict) of an exported policy file, validated."""
+def load_checked(path: str | Path, file_format: str, version: int, kind: str, what: str) -> dict:
+    """The dict saved at ``path``, checked to be a ``kind`` ("policy file", "checkpoint") of ``file_format``
+    and ``version``; else a ``CheckpointError`` naming the path and what is wrong (``what``: what the file
+    should have been, e.g. "an exported equidiff policy"). Policy files and training checkpoints both."""
     path = Path(path)
     if not path.is_file():
-        raise CheckpointError(f"{path}: no such policy file")
+        raise CheckpointError(f"{path}: no such {kind}")
     try:
         payload = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as err:
         raise CheckpointError(
-            f"{path}: not a readable policy file ({type(err).__name__}: {(str(err).splitlines() or [''])[0]})"
+            f"{path}: not a readable {kind} ({type(err).__name__}: {(str(err).splitlines() or [''])[0]})"
         ) from err
-    if not isinstance(payload, dict) or payload.get("format") != FORMAT:
-        raise CheckpointError(
-            f"{path}: not an exported equidiff policy (format {payload.get('format') if isinstance(payload, dict) else type(payload).__name__!r})"
-        )
-    if payload.get("version") != VERSION:
-        raise CheckpointError(
-            f"{path}: policy file version {payload.get('version')} is not supported (expected {VERSION})"
-        )
+    if not isinstance(payload, dict) or payload.get("format") != file_format:
+        found = payload.get("format") if isinstance(payload, dict) else type(payload).__name__
+        raise CheckpointError(f"{path}: not {what} (format {found!r})")
+    if payload.get("version") != version:
+        raise CheckpointError(f"{path}: {kind} version {payload.get('version')} is not supported (expected {version})")
+    return payload
+
+
+def read_policy_file(path: str | Path) -> tuple[dict, dict]:
+    """(config, state_dict) of an exported policy file, validated."""
+    payload = load_checked(path, FORMAT, VERSION, "policy file", "an exported equidiff policy")
     try:
         config = json.loads(payload["config_json"])
         state = payload["state_dict"]

@@ -421,22 +421,9 @@ def evaluate(policy: DiffusionPolicy, dataset: Dataset, cfg: TrainConfig, device
 
 
 def load_training_checkpoint(path: str | Path) -> dict:
-    from .inference import CheckpointError
+    from .inference import load_checked
 
-    path = Path(path)
-    if not path.is_file():
-        raise CheckpointError(f"{path}: no such checkpoint")
-    try:
-        state = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as err:
-        raise CheckpointError(
-            f"{path}: not a readable checkpoint ({type(err).__name__}: {(str(err).splitlines() or [''])[0]})"
-        ) from err
-    if not isinstance(state, dict) or state.get("format") != CKPT_FORMAT:
-        raise CheckpointError(f"{path}: not an equidiff training checkpoint")
-    if state.get("version") != CKPT_VERSION:
-        raise CheckpointError(f"{path}: checkpoint version {state.get('version')} != supported {CKPT_VERSION}")
-    return state
+    return load_checked(path, CKPT_FORMAT, CKPT_VERSION, "checkpoint", "an equidiff training checkpoint")
 
 
 def without_optimizer_state(path: str | Path, out: str | Path) -> Path:

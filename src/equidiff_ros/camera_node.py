@@ -278,16 +278,12 @@ class CameraNode(Node):
         self._disconnect_all()
 
 
-def startup_errors() -> tuple[type[BaseException], ...]:
-    """The errors that end a start-up with a one-line message (exit 1), not a traceback."""
-    from equidiff_core.cameras import CameraError
-    from equidiff_core.config import ConfigError
-
-    return (CameraError, ConfigError)
+# the errors that end a start-up with a one-line message (exit 1), not a traceback
+STARTUP_ERRORS = (CameraError, ConfigError)
 
 
 def main(args=None) -> int:
-    return run_node(NODE_NAME, USAGE, CameraNode, startup_errors, args)
+    return run_node(NODE_NAME, USAGE, CameraNode, STARTUP_ERRORS, args)
 
 
 if __name__ == "__main__":

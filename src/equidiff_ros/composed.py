@@ -70,10 +70,7 @@ def main(args=None) -> int:
         return 2
     modules = {kind: importlib.import_module(COMPOSABLE[kind][0]) for _name, kind in nodes}
     builders = [functools.partial(getattr(modules[kind], COMPOSABLE[kind][1]), node_name=name) for name, kind in nodes]
-
-    def startup_errors() -> tuple[type[BaseException], ...]:
-        return tuple({err for m in modules.values() for err in m.startup_errors()})
-
+    startup_errors = tuple({err for m in modules.values() for err in m.STARTUP_ERRORS})
     return run_nodes("equidiff_composed", USAGE, builders, startup_errors, [sys.argv[0], *rest], multithreaded=True)
 
 

@@ -52,9 +52,9 @@ from trajectory_msgs.msg import MultiDOFJointTrajectory
 
 from equidiff_core import rosmsg
 from equidiff_core.chunk import ChunkError, chunk_from_msg
-from equidiff_core.config import default_config_dir
+from equidiff_core.config import ConfigError, default_config_dir
 from equidiff_core.control import AcknowledgeRefused, Controller, load_control_config
-from equidiff_core.robots import BACKENDS, make_robot
+from equidiff_core.robots import BACKENDS, RobotError, make_robot
 from equidiff_core.topics import SERVICE_FRANKA_ACKNOWLEDGE, SERVICE_FRANKA_HOME, TOPIC_FRANKA_STATUS
 from equidiff_ros.common import (
     LATCHED_QOS,
@@ -302,16 +302,12 @@ def _ros_logger_adapter(ros_logger):
     return logger
 
 
-def startup_errors() -> tuple[type[BaseException], ...]:
-    """The errors that end a start-up with a one-line message (exit 1), not a traceback."""
-    from equidiff_core.config import ConfigError
-    from equidiff_core.robots import RobotError
-
-    return (ConfigError, RobotError, ValueError)
+# the errors that end a start-up with a one-line message (exit 1), not a traceback
+STARTUP_ERRORS = (ConfigError, RobotError, ValueError)
 
 
 def main(args=None) -> int:
-    return run_node(NODE_NAME, USAGE, FrankaNode, startup_errors, args)
+    return run_node(NODE_NAME, USAGE, FrankaNode, STARTUP_ERRORS, args)
 
 
 if __name__ == "__main__":

@@ -107,6 +107,7 @@ from equidiff_core.chunk import (
     max_bridged_latency_s,
     steps_to_publish,
 )
+from equidiff_core.config import ConfigError
 from equidiff_core.control import SafetyConfig
 from equidiff_core.control.metrics import percentiles_ms
 from equidiff_core.inference import CheckpointError, load_inference_policy
@@ -511,16 +512,12 @@ class PolicyNode(Node):
         self.worker.shutdown(wait=True, cancel_futures=True)
 
 
-def startup_errors() -> tuple[type[BaseException], ...]:
-    """The errors that end a start-up with a one-line message (exit 1), not a traceback."""
-    from equidiff_core.config import ConfigError
-    from equidiff_core.inference import CheckpointError
-
-    return (CheckpointError, ConfigError, ValueError)
+# the errors that end a start-up with a one-line message (exit 1), not a traceback
+STARTUP_ERRORS = (CheckpointError, ConfigError, ValueError)
 
 
 def main(args=None) -> int:
-    return run_node(NODE_NAME, USAGE, PolicyNode, startup_errors, args)
+    return run_node(NODE_NAME, USAGE, PolicyNode, STARTUP_ERRORS, args)
 
 
 if __name__ == "__main__":

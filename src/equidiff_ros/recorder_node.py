@@ -311,15 +311,12 @@ class RecorderNode(Node):
             self.get_logger().info(f"episode kept on shutdown: {writer.path}")
 
 
-def startup_errors() -> tuple[type[BaseException], ...]:
-    """The errors that end a start-up with a one-line message (exit 1), not a traceback."""
-    from equidiff_core.recording import RecordingError
-
-    return (RecordingError,)
+# the errors that end a start-up with a one-line message (exit 1), not a traceback
+STARTUP_ERRORS = (RecordingError,)
 
 
 def main(args=None) -> int:
-    return run_node("recorder_node", USAGE, RecorderNode, startup_errors, args)
+    return run_node("recorder_node", USAGE, RecorderNode, STARTUP_ERRORS, args)
 
 
 if __name__ == "__main__":

@@ -14,16 +14,19 @@ import sys
 import threading
 from collections.abc import Callable, Sequence
 
+from equidiff_core.parent_job import job_gone
+
 
 def run_node(
     name: str,
     usage: str,
     build_node: Callable[[], object],
-    startup_errors: Callable[[], tuple[type[BaseException], ...]],
+    startup_errors: tuple[type[BaseException], ...],
     args: Sequence[str] | None = None,
 ) -> int:
     """Build (``build_node()``: usually the node class) and spin a node; exit 1 with a one-line
-    message on an expected start-up error (``startup_errors()``: the exception types)."""
+    message on an expected start-up error (``startup_errors``: the node's ``STARTUP_ERRORS``), a
+    traceback on any other."""
     return run_nodes(name, usage, [build_node], startup_errors, args)
 
 
@@ -31,7 +34,7 @@ def run_nodes(
     name: str,
     usage: str,
     builders: Sequence[Callable[[], object]],
-    startup_errors: Callable[[], tuple[type[BaseException], ...]],
+    startup_errors: tuple[type[BaseException], ...],
     args: Sequence[str] | None = None,
     multithreaded: bool = False,
 ) -> int:
@@ -48,11 +51,10 @@ def run_nodes(
     rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     nodes = []
     try:
-        expected = startup_errors()
         try:
             for build in builders:
                 nodes.append(build())
-        except expected as err:
+        except startup_errors as err:
             print(f"{name}: {err}", file=sys.stderr)
             return 1
         spin_until_signal(nodes, multithreaded)
@@ -73,8 +75,6 @@ def spin_until_signal(nodes, multithreaded: bool = False) -> None:
     """Spin ``nodes`` (one node or a list) until SIGINT/SIGTERM or until the job that started
     them died (then return, leaving the context up)."""
     from rclpy.executors import MultiThreadedExecutor, SingleThreadedExecutor
-
-    from equidiff_core.twin.processes import job_gone
 
     nodes = list(nodes) if isinstance(nodes, (list, tuple)) else [nodes]
     stop = threading.Event()

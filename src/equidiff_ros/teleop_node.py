@@ -196,15 +196,12 @@ class TeleopNode(Node):
         return super().destroy_node()
 
 
-def startup_errors() -> tuple[type[BaseException], ...]:
-    """The errors that end a start-up with a one-line message (exit 1), not a traceback."""
-    from equidiff_core.teleop import TeleopError
-
-    return (TeleopError,)
+# the errors that end a start-up with a one-line message (exit 1), not a traceback
+STARTUP_ERRORS = (TeleopError,)
 
 
 def main(args=None) -> int:
-    return run_node("teleop_node", USAGE, TeleopNode, startup_errors, args)
+    return run_node("teleop_node", USAGE, TeleopNode, STARTUP_ERRORS, args)
 
 
 if __name__ == "__main__":

@@ -42,10 +42,11 @@ from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import Bool, Int64, String
 from trajectory_msgs.msg import MultiDOFJointTrajectory
 
-from equidiff_core.config import default_config_dir
+from equidiff_core.config import ConfigError, default_config_dir
 from equidiff_core.rosmsg import header_stamp_ns_from_cdr
 from equidiff_core.twin.config import load_twin_config
 from equidiff_core.twin.lockstep import LockstepConfig
+from equidiff_core.twin.scene import SceneError
 from equidiff_core.twin.sim import TwinSim
 from equidiff_ros.common import (
     LATCHED_QOS,
@@ -167,16 +168,12 @@ class TwinNode(Node):
         self.twin.stop()
 
 
-def startup_errors() -> tuple[type[BaseException], ...]:
-    """The errors that end a start-up with a one-line message (exit 1), not a traceback."""
-    from equidiff_core.config import ConfigError
-    from equidiff_core.twin.scene import SceneError
-
-    return (ConfigError, SceneError, OSError, RuntimeError, ValueError)  # OSError: the libfranka port is taken
+# the errors that end a start-up with a one-line message (exit 1), not a traceback
+STARTUP_ERRORS = (ConfigError, SceneError, OSError, RuntimeError, ValueError)  # OSError: the libfranka port is taken
 
 
 def main(args=None) -> int:
-    return run_node(NODE_NAME, USAGE, TwinNode, startup_errors, args)
+    return run_node(NODE_NAME, USAGE, TwinNode, STARTUP_ERRORS, args)
 
 
 if __name__ == "__main__":

@@ -34,9 +34,10 @@ import time
 from rclpy.node import Node
 
 from equidiff_core import rosmsg
+from equidiff_core.config import ConfigError
 from equidiff_core.fusion import CloudFusion
 from equidiff_core.pointcloud import CloudError, grid_to_voxel_msg, msg_to_cloud
-from equidiff_core.voxels import VoxelizerConfig
+from equidiff_core.voxels import VoxelError, VoxelizerConfig
 from equidiff_ros.common import (
     RELIABLE_QOS,
     TOPIC_DIAGNOSTICS,
@@ -185,16 +186,12 @@ class VoxelNode(Node):
         pass
 
 
-def startup_errors() -> tuple[type[BaseException], ...]:
-    """The errors that end a start-up with a one-line message (exit 1), not a traceback."""
-    from equidiff_core.config import ConfigError
-    from equidiff_core.voxels import VoxelError
-
-    return (ConfigError, VoxelError, ValueError)
+# the errors that end a start-up with a one-line message (exit 1), not a traceback
+STARTUP_ERRORS = (ConfigError, VoxelError, ValueError)
 
 
 def main(args=None) -> int:
-    return run_node(NODE_NAME, USAGE, VoxelNode, startup_errors, args)
+    return run_node(NODE_NAME, USAGE, VoxelNode, STARTUP_ERRORS, args)
 
 
 if __name__ == "__main__":

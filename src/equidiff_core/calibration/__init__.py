@@ -7,7 +7,7 @@
 * ``solve``: closed-form eye-to-hand per camera, then joint reprojection refinement
 * ``labfile``: the calibrated lab YAML (never overwritten silently)
 * ``check``: each camera's misalignment in mm against the other clouds and the fingertips
-* ``twin``: all of it in the digital twin, against its ground truth
 
+In the digital twin, against its ground truth: ``twin.calibration``.
 Commands: ``equidiff calibrate cameras`` and ``equidiff calibrate check`` (docs/perception.md).
 """

@@ -73,3 +73,12 @@ class Camera(abc.ABC):
 
     def __exit__(self, *exc) -> None:
         self.disconnect()
+
+
+def limit_depth(frame: CloudFrame, min_depth: float, max_depth: float) -> CloudFrame:
+    """Drop points whose optical-frame depth (z) is outside [min_depth, max_depth] or not finite."""
+    z = frame.points[:, 2]
+    keep = (z >= min_depth) & (z <= max_depth)  # NaN compares False: dropped too
+    if keep.all():
+        return frame
+    return CloudFrame(frame.points[keep], frame.colors[keep], frame.stamp_ns, frame.image)

@@ -36,6 +36,7 @@ import numpy as np
 import torch
 
 from .. import geometry
+from ..voxels import voxelize
 from . import action_space
 
 # The non-identity elements of C8, in degrees: 90, 180, 270 form C4 (exact), the rest are 45 deg off the grid.
@@ -160,14 +161,11 @@ def _in_disc(rng, radius: float) -> np.ndarray:
     return np.array([r * math.cos(a), r * math.sin(a)])
 
 
-def twin_scenes(preset, workspace, count: int = 2, seed: int = 0, scene_cfg=None) -> tuple[torch.Tensor, torch.Tensor]:
-    """(voxels uint8 (B, To, 4, R, R, R), ee float32 (B, To, 10)): ``count`` twin-like scenes
-    voxelised by ``voxels.voxelize`` (the points given in the base frame), a static history, and a
-    downward gripper above the table at a random yaw."""
-    from ..twin.config import load_twin_config
-    from ..voxels import voxelize
-
-    scene_cfg = scene_cfg or load_twin_config().scene
+def twin_scenes(preset, workspace, count: int = 2, seed: int = 0, *, scene) -> tuple[torch.Tensor, torch.Tensor]:
+    """(voxels uint8 (B, To, 4, R, R, R), ee float32 (B, To, 10)): ``count`` scenes of ``scene``'s objects
+    (``twin.config.SceneConfig``, e.g. ``load_twin_config().scene``) voxelised by ``voxels.voxelize`` (the
+    points given in the base frame), a static history, and a downward gripper above the table at a random yaw."""
+    scene_cfg = scene
     rng = np.random.default_rng(seed)
     radius = rotation_safe_radius(preset, workspace)
     grids = [
@@ -303,8 +301,8 @@ def measure(
     return {"denoiser": den, "sampling": samp}
 
 
-def noise_predictor_error(policy, theta: float, batch: int = 2, seed: int = 0, timestep: int = 10) -> float:
-    """The denoiser's relative error at one rotation ``theta`` (rad) on ``batch`` twin scenes."""
-    voxels, ee = twin_scenes(policy.preset, policy.workspace, batch, seed)
+def noise_predictor_error(policy, theta: float, batch: int = 2, seed: int = 0, timestep: int = 10, *, scene) -> float:
+    """The denoiser's relative error at one rotation ``theta`` (rad) on ``batch`` scenes of ``scene``'s objects."""
+    voxels, ee = twin_scenes(policy.preset, policy.workspace, batch, seed, scene=scene)
     angle = math.degrees(theta)
     return denoiser_errors(TrainingModel(policy), voxels, ee, (angle,), timestep, seed)[angle]

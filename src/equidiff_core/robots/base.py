@@ -24,6 +24,20 @@ ARM_JOINT_NAMES = tuple(f"fr3_joint{i}" for i in range(1, 8))
 FINGER_JOINT_NAMES = ("fr3_finger_joint1", "fr3_finger_joint2")
 
 
+@dataclass(frozen=True)
+class JointLimits:
+    """The FR3's joint limits a backend sets on the arm itself on connect (franky: the velocity limit of
+    blocking moves, the tracker's position limits). ``control.SafetyConfig`` has the same fields, from
+    control.yaml, with these as defaults."""
+
+    # per joint: 95 % of the FR3's limits (2.62 rad/s for joints 1-4, 5.26 / 4.18 / 5.26 for the wrist;
+    # franky-sim's fr3.urdf). One 2.5 for all had stopped fast but legal wrist turns.
+    max_joint_speeds_rad_s: tuple[float, ...] = (2.5, 2.5, 2.5, 2.5, 5.0, 4.0, 5.0)
+    # The FR3's joint position limits (datasheet; franky-sim's fr3.xml)
+    joint_position_min_rad: tuple[float, ...] = (-2.7437, -1.7837, -2.9007, -3.0421, -2.8065, 0.5445, -3.0159)
+    joint_position_max_rad: tuple[float, ...] = (2.7437, 1.7837, 2.9007, -0.1518, 2.8065, 4.5169, 3.0159)
+
+
 class RobotError(RuntimeError):
     """The robot refused or aborted a command (reflex, connection loss, motion failure)."""
 

@@ -10,6 +10,7 @@
 * ``metrics``: what the main job reports; ``processes``: starting and stopping node processes
 * ``node_specs``: the twin stack's nodes and their parameters; ``gate``: which policy chunks
   the supervisor (``equidiff_ros.twin``) lets through, and when
+* ``calibration``: camera calibration in the twin, against its ground truth (``equidiff calibrate cameras --twin``)
 """
 
 from .config import TwinConfig, load_twin_config

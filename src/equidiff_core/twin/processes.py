@@ -19,8 +19,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Self
 
-# A ProcessGroup's pid, given to each node it starts (see job_gone)
-PARENT_PID_ENV = "EQUIDIFF_PARENT_PID"
+from ..parent_job import PARENT_PID_ENV
 
 
 class NodeProcessError(RuntimeError):
@@ -61,17 +60,6 @@ def join_private_domain(domain_id: int | None = None) -> int:
         os.environ["ROS_DOMAIN_ID"] = str(random_domain_id())
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     return int(os.environ["ROS_DOMAIN_ID"])
-
-
-def job_gone() -> bool:
-    """In a node started by a ProcessGroup: whether that job's process has died (we were re-parented).
-
-    The nodes run in sessions of their own, so a job killed with SIGKILL can neither stop them
-    nor pass on a terminal's Ctrl-C: without this check they ran on for ever (a twin_node
-    stepping the sim, cameras rendering) on the user's machine. Always False outside a job.
-    """
-    parent = int(os.environ.get(PARENT_PID_ENV, "0") or 0)
-    return parent > 0 and os.getppid() != parent
 
 
 def node_command(executable: str, params: dict | None = None, remaps: dict | None = None) -> list[str]:

@@ -9,43 +9,38 @@ missing rerun raises ``VizUnavailable`` naming the extra to install.
 
 from __future__ import annotations
 
+import importlib
 from typing import Any
 
-INSTALL_HINT = "pip install 'equidiff_ros[viz]'  (installs rerun-sdk>=0.41)"
+from .rerun_sdk import INSTALL_HINT, VizUnavailable, require_rerun
 
+# Exported lazily (name -> submodule), so `import equidiff_core.viz` stays cheap and never imports rerun.
+_LAZY_EXPORTS = {
+    **dict.fromkeys(("RerunLogger", "VizConfig", "default_blueprint", "open_recording", "load_viz_config"), "logger"),
+    **dict.fromkeys(("convert_bags", "ConversionReport"), "bag_to_rrd"),
+    **dict.fromkeys(("summarize_rrd", "RrdSummary", "EntitySummary"), "rrd"),
+    "RerunTrainingCallback": "training",
+}
 
-class VizUnavailable(ImportError):
-    """rerun-sdk is not installed (or too old)."""
-
-
-def require_rerun() -> Any:
-    """Import rerun or raise ``VizUnavailable`` with the install command."""
-    try:
-        import rerun
-    except ImportError as err:
-        raise VizUnavailable(f"rerun visualisation needs rerun-sdk, which is not installed: {INSTALL_HINT}") from err
-    major_minor = tuple(int(p) for p in rerun.__version__.split(".")[:2])
-    if major_minor < (0, 41):
-        raise VizUnavailable(f"rerun-sdk {rerun.__version__} is too old (need >= 0.41): {INSTALL_HINT}")
-    return rerun
+__all__ = [
+    "INSTALL_HINT",
+    "ConversionReport",
+    "EntitySummary",
+    "RerunLogger",
+    "RerunTrainingCallback",
+    "RrdSummary",
+    "VizConfig",
+    "VizUnavailable",
+    "convert_bags",
+    "default_blueprint",
+    "load_viz_config",
+    "open_recording",
+    "require_rerun",
+    "summarize_rrd",
+]
 
 
 def __getattr__(name: str) -> Any:
-    # Lazy re-exports so `import equidiff_core.viz` stays cheap and never imports rerun.
-    if name in ("RerunLogger", "VizConfig", "default_blueprint", "open_recording", "load_viz_config"):
-        from . import logger
-
-        return getattr(logger, name)
-    if name in ("convert_bags", "ConversionReport"):
-        from . import bag_to_rrd
-
-        return getattr(bag_to_rrd, name)
-    if name in ("summarize_rrd", "RrdSummary", "EntitySummary"):
-        from . import rrd
-
-        return getattr(rrd, name)
-    if name == "RerunTrainingCallback":
-        from .training import RerunTrainingCallback
-
-        return RerunTrainingCallback
-    raise AttributeError(f"module 'equidiff_core.viz' has no attribute {name!r}")
+    if name not in _LAZY_EXPORTS:
+        raise AttributeError(f"module 'equidiff_core.viz' has no attribute {name!r}")
+    return getattr(importlib.import_module(f".{_LAZY_EXPORTS[name]}", __name__), name)

@@ -52,7 +52,7 @@ from ..rosmsg import (
     stamp_to_ns,
     uint8_buffer,
 )
-from . import require_rerun
+from .rerun_sdk import require_rerun
 
 APPLICATION_ID = "equidiff_ros"
 

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from . import require_rerun
+from .rerun_sdk import require_rerun
 
 
 @dataclass

@@ -22,8 +22,8 @@ from typing import Any
 import numpy as np
 
 from .. import geometry
-from . import require_rerun
 from .logger import APPLICATION_ID, log_pose_path, open_recording
+from .rerun_sdk import require_rerun
 
 # Importing this module is asking for rerun (e.g. `equidiff train --rerun`): fail here, as an
 # ImportError naming the install extra, rather than midway through a training run.

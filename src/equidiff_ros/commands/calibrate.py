@@ -160,7 +160,7 @@ def _plan_config(args):
 def _run_twin(args, spec, lab, lab_path) -> int:
     from equidiff_core.calibration.labfile import write_calibrated_lab
     from equidiff_core.calibration.limits import MotionLimits
-    from equidiff_core.calibration.twin import calibrate_twin
+    from equidiff_core.twin.calibration import calibrate_twin
     from equidiff_core.twin.config import load_twin_config
 
     report, result, _ = calibrate_twin(
@@ -205,7 +205,7 @@ def _run_lab(args, spec, lab, lab_path) -> int:
     from equidiff_core.calibration.limits import MotionLimits
     from equidiff_core.calibration.plan import plan_poses
     from equidiff_core.calibration.solve import calibrate
-    from equidiff_core.calibration.twin import nominal_mount
+    from equidiff_core.twin.calibration import nominal_mount
 
     limits = MotionLimits.load(lab, args.control_config)
     cams = []

@@ -64,9 +64,9 @@ def _twin_capture(args, lab):
     import mujoco
 
     from equidiff_core.calibration.limits import MotionLimits
-    from equidiff_core.calibration.twin import DirectSimArm, FrankyTwinArm
     from equidiff_core.cameras.twin import TwinCamera
     from equidiff_core.config import default_config_dir, load_lab_config
+    from equidiff_core.twin.calibration import DirectSimArm, FrankyTwinArm
     from equidiff_core.twin.config import load_twin_config
 
     truth = load_lab_config(args.truth or default_config_dir() / "lab.yaml")

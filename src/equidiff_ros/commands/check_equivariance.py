@@ -72,6 +72,7 @@ def run(args) -> int:
     from equidiff_core.machine import cpu_description
     from equidiff_core.models import equivariance
     from equidiff_core.policies import make_policy
+    from equidiff_core.twin.config import load_twin_config
 
     torch.manual_seed(args.seed)
     with tempfile.TemporaryDirectory(prefix="check_equivariance_") as tmp:
@@ -83,7 +84,7 @@ def run(args) -> int:
             print(f"equidiff check equivariance: {err}", file=sys.stderr, flush=True)
             return 2
     preset, workspace = fp32.preset, fp32.workspace
-    voxels, ee = equivariance.twin_scenes(preset, workspace, args.scenes, args.seed)
+    voxels, ee = equivariance.twin_scenes(preset, workspace, args.scenes, args.seed, scene=load_twin_config().scene)
 
     def measure(subject):
         return equivariance.measure(subject, voxels, ee, timestep=args.timestep, seed=args.seed)

@@ -31,19 +31,19 @@ import yaml
 from PIL import Image
 from scipy.spatial.transform import Rotation
 
+from ..calibration.board import BoardSpec, CalibrationError
+from ..calibration.capture import FrankyArm, capture_samples
+from ..calibration.limits import MotionLimits
+from ..calibration.plan import PlanConfig, plan_poses
+from ..calibration.solve import Calibration, CameraModel, calibrate, pose_error
 from ..cameras.twin import Intrinsics, TwinCamera
 from ..config import Extrinsics, LabConfig, to_dict
 from ..geometry import make_pose
 from ..robots.franky.sim import SimServer
-from ..twin.config import BoardMountConfig
-from ..twin.scene import build_model
-from ..twin.shared_state import StateReader
-from ..twin.sim import DirectSim
-from .board import BoardSpec, CalibrationError
-from .capture import FrankyArm, capture_samples
-from .limits import MotionLimits
-from .plan import PlanConfig, plan_poses
-from .solve import Calibration, CameraModel, calibrate, pose_error
+from .config import BoardMountConfig
+from .scene import build_model
+from .shared_state import StateReader
+from .sim import DirectSim
 
 
 def nominal_mount(spec: BoardSpec, offset_x: float = 0.06, height: float = 0.0434) -> np.ndarray:
