@@ -155,8 +155,8 @@ def test_three_clouds_become_the_expected_grid_and_a_missing_camera_stops_output
         message, values = tester.voxel_status()
         assert message.startswith("stale") and "cam_right (last cloud" in message
         assert float(values["voxelize_ms"]) > 0 and int(values["published"]) >= 1
-        # 3. it comes back -> output resumes
-        assert tester.wait_for(lambda: len(tester.voxels) > count, 5.0, publish)
+        # 3. it comes back -> output resumes (as generous as the first grid: a loaded machine only delays it)
+        assert tester.wait_for(lambda: len(tester.voxels) > count, 25.0, publish)
         assert proc.poll() is None
     finally:
         out = stop_node(proc)
