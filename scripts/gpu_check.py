@@ -186,8 +186,8 @@ class Check:
 
 
 def last_json_line(text: str) -> dict | None:
-    for line in reversed(text.splitlines()):
-        line = line.strip()
+    for raw in reversed(text.splitlines()):
+        line = raw.strip()
         if line.startswith("{"):
             try:
                 return json.loads(line)

@@ -52,7 +52,7 @@ class Stack:
             self.log_dir / f"franka_node{self.starts}.log",
             priority=True,
         )
-        return self.status.wait(lambda s: bool(s), 90.0, "franka_node's first /franka/status", self.proc)
+        return self.status.wait(bool, 90.0, "franka_node's first /franka/status", self.proc)
 
     def log(self) -> str:
         path = self.log_dir / f"franka_node{self.starts}.log"

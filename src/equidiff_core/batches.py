@@ -157,8 +157,8 @@ class DeviceBatchSource:
         """Endless batches in ``sampler``'s order, drop-last as :func:`loader_batches`."""
         if len(sampler.dataset) != len(self):
             raise BatchSourceError(f"sampler over {len(sampler.dataset)} samples, source holds {len(self)}")
-        for order in _epochs(sampler):
-            order = torch.as_tensor(order, dtype=torch.long, device=self.device)
+        for epoch in _epochs(sampler):
+            order = torch.as_tensor(epoch, dtype=torch.long, device=self.device)
             stop = len(order) - len(order) % batch_size if len(order) >= batch_size else len(order)
             for a in range(0, stop, batch_size):
                 yield self.batch(order[a : a + batch_size])

@@ -164,7 +164,8 @@ def revoxelize_bag(
                     continue
                 if conn.topic == TOPIC_TF_STATIC:
                     tf = replace_camera_transforms(factory.typestore.deserialize_cdr(raw, conn.msgtype), lab, factory)
-                    raw = factory.typestore.serialize_cdr(tf, conn.msgtype)
+                    writer.write(out_conns[conn.id], log_ns, factory.typestore.serialize_cdr(tf, conn.msgtype))
+                    continue  # not a camera's cloud
                 writer.write(out_conns[conn.id], log_ns, raw)
                 name = camera_of.get(conn.topic)
                 if name is None:

@@ -21,6 +21,7 @@ which ``uint8_array`` / ``float64_array`` hide.
 from __future__ import annotations
 
 import array
+import functools
 import importlib
 import struct
 from collections.abc import Mapping
@@ -133,15 +134,10 @@ def jazzy_typestore():
     return get_typestore(Stores.ROS2_JAZZY)
 
 
-_DEFAULT_ROSBAGS: RosbagsFactory | None = None
-
-
+@functools.cache
 def rosbags_factory() -> RosbagsFactory:
     """A shared RosbagsFactory (building the typestore takes ~0.1 s)."""
-    global _DEFAULT_ROSBAGS
-    if _DEFAULT_ROSBAGS is None:
-        _DEFAULT_ROSBAGS = RosbagsFactory()
-    return _DEFAULT_ROSBAGS
+    return RosbagsFactory()
 
 
 # --- robot state, transforms and diagnostics ---------------------------------------------------

@@ -185,7 +185,7 @@ class Voxelizer:
         R = self.workspace.resolution
         clouds = _check_inputs(clouds, len(self._affine))
         sizes = [len(p) for p, _ in clouds]
-        self._reserve(max(sum(sizes), 1), max(max(sizes), 1))
+        self._reserve(max(sum(sizes), 1), max(*sizes, 1))
         # 1. Per camera: the exact transform of every point, the exact in-grid test (plus the
         #    optional depth and table limits), then keep only the points that land.
         off = 0
@@ -354,12 +354,12 @@ def voxelize_reference(
     clouds = _check_inputs(clouds, len(extrinsics))
     cells, colors_kept, positions = [], [], []
     for (points, colors), T in zip(clouds, extrinsics):
-        if cfg.min_depth is not None:
-            keep = points[:, 2] >= np.float32(cfg.min_depth)
-            points, colors = points[keep], colors[keep]
-        if cfg.max_depth is not None:
-            keep = points[:, 2] <= np.float32(cfg.max_depth)
-            points, colors = points[keep], colors[keep]
+        if cfg.min_depth is not None or cfg.max_depth is not None:
+            z = points[:, 2]
+            low = -np.inf if cfg.min_depth is None else cfg.min_depth
+            high = np.inf if cfg.max_depth is None else cfg.max_depth
+            keep = (z >= np.float32(low)) & (z <= np.float32(high))  # NaN compares False: dropped too
+            points, colors = points[keep], colors[keep]  # noqa: PLW2901 - the camera's cloud, depth-limited
         A, c = voxel_affine(T, workspace)
         with np.errstate(invalid="ignore", over="ignore"):
             u = ((points[:, 0:1] * A[:, 0] + points[:, 1:2] * A[:, 1]) + points[:, 2:3] * A[:, 2]) + c

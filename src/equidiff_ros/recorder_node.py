@@ -162,7 +162,7 @@ class RecorderNode(Node):
             self.factory.cls("std_msgs/msg/Bool"), TOPIC_TELEOP_ACTIVE, self.on_teleop_active, LATCHED_QOS
         )
         self.create_subscription(String, TOPIC_RECORDER_COMMAND, self.on_command, RELIABLE_QOS)
-        self.create_service(Trigger, topics.SERVICE_RECORDER_START, self._service(lambda: self.start()))
+        self.create_service(Trigger, topics.SERVICE_RECORDER_START, self._service(self.start))
         self.create_service(Trigger, topics.SERVICE_RECORDER_STOP, self._service(lambda: self.stop(success=True)))
         self.create_service(
             Trigger, topics.SERVICE_RECORDER_STOP_FAILURE, self._service(lambda: self.stop(success=False))

@@ -129,7 +129,7 @@ class ExpertPlan:
         return self.keyframes[-1].t
 
     def phase_at(self, t: float) -> str:
-        for a, b in zip(self.keyframes, self.keyframes[1:]):
+        for b in self.keyframes[1:]:
             if t < b.t:
                 return b.phase
         return "done"

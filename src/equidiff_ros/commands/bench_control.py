@@ -365,8 +365,8 @@ def run(args: argparse.Namespace) -> int:
     control_path = default_config_dir() / "control.yaml"
     control = load_control_config(control_path)
     result: dict = {"machine": f"{os.cpu_count()} CPU cores", "ros_domain_id": int(os.environ["ROS_DOMAIN_ID"])}
-    with tempfile.TemporaryDirectory(prefix="bench_control_") as tmp:
-        tmp = Path(tmp)
+    with tempfile.TemporaryDirectory(prefix="bench_control_") as tmp_name:
+        tmp = Path(tmp_name)
         if args.interpolation:
             control = dataclasses.replace(
                 control, scheduler=dataclasses.replace(control.scheduler, interpolation=args.interpolation)

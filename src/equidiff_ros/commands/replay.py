@@ -103,9 +103,7 @@ def _check_robot_start(node, executor, first_chunk_raw, max_dist: float, wait_s:
 
     f = RclpyFactory()
     poses = []
-    sub = node.create_subscription(
-        f.cls("geometry_msgs/msg/PoseStamped"), TOPIC_EE_POSE, lambda m: poses.append(m), SENSOR_QOS
-    )
+    sub = node.create_subscription(f.cls("geometry_msgs/msg/PoseStamped"), TOPIC_EE_POSE, poses.append, SENSOR_QOS)
     end = time.monotonic() + wait_s
     while not poses and time.monotonic() < end:
         executor.spin_once(timeout_sec=0.05)

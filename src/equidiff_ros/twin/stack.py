@@ -168,9 +168,9 @@ class TwinStack:
             )  # franka_node is in it
         else:
             for name, (kind, params, remaps) in specs.items():
-                if name != kind:  # its node name, as in the composed process and twin.launch.py
-                    remaps = {**remaps, "__node": name}
-                g.start(name, node_command(kind, params, remaps), priority=name == "franka_node")
+                # its node name, as in the composed process and twin.launch.py
+                named = remaps if name == kind else {**remaps, "__node": name}
+                g.start(name, node_command(kind, params, named), priority=name == "franka_node")
         self.sup.wait_ready(self.start_timeout_s, g.check)
         self.sup.wait_for(
             lambda: self.sup.recorder_status.startswith("idle"), self.start_timeout_s, "recorder_node", g.check
