@@ -15,13 +15,22 @@ from . import action_space
 from .unet1d import ConditionalUnet1D
 
 
-def encoder_layer_specs(preset: PolicyPreset, channels: list[int]) -> list[tuple]:
-    """[(kind, in_ch, out_ch, kernel, padding) | ('relu',) | ('pool', k)] for channels[0..8]."""
+def encoder_layer_specs(preset: PolicyPreset, channels: list[int], pool_before_relu: bool = True) -> list[tuple]:
+    """[(kind, in_ch, out_ch, kernel, padding) | ('relu',) | ('pool', k)] for channels[0..8].
+
+    A max-pool that follows a conv's ReLU runs before it (``pool_before_relu``): ReLU is monotone, so
+    relu(maxpool(x)) == maxpool(relu(x)), and the ReLU then touches k³ times fewer values. At the first
+    stage (56³, the largest tensors) that removed most of a compact training step's ReLU and its
+    backward (docs/model.md, ``equidiff bench train --variants``). The modules hold no weights, so the
+    order changes no state-dict key and every checkpoint loads either way."""
     specs = []
     c_in = channels[0]
     for kind, arg in ENCODER_LAYOUTS[preset.encoder_layout]:
         if kind == "pool":
-            specs.append(("pool", arg))
+            if pool_before_relu and specs and specs[-1] == ("relu",):
+                specs.insert(len(specs) - 1, ("pool", arg))
+            else:
+                specs.append(("pool", arg))
             continue
         c_out = channels[arg + 1]
         kernel, pad = {"conv": (3, 1), "conv0": (3, 0), "conv1x1": (1, 0)}[kind]
