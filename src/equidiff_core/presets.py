@@ -13,6 +13,9 @@
   a narrower U-Net, so DDIM-16 runs at 5 Hz with margin on a 2-core CPU.
 * ``tiny``: for other areas' fast tests (one training step well under a second on a CPU).
 
+Each also sets the baseline's (DiffPo-C, Vo) encoder: the official ``CNNVoxelEncoder58`` layout at
+width ``baseline_width``, He-initialised (``models.baseline``).
+
 ``encoder_layout`` picks the encoder's stages: ``official`` (above) or ``legacy`` (this project's
 first layout: max-pools 29 → 27 → 9 → 3 → 1, a 1³ last layer, and a ReLU after the observation
 embedding). Checkpoints saved before the field existed were trained with ``legacy``, so
@@ -165,8 +168,13 @@ def encoder_output_size(crop: int, layout: str) -> int:
     return encoder_sizes(crop, layout)[-1]
 
 
+# DiffPo-C (Vo)'s width per preset: paper the official voxel config's enc_n_hidden (256); compact 128,
+# whose first layer has EquiDiff compact's 8 channels at 56³ (one C8 regular field) and whose training
+# step costs about EquiDiff's (docs/model.md); tiny the smallest with 2 first-layer channels. All start
+# He-initialised, as escnn starts EquiDiff's convolutions (docs/model.md: with PyTorch's default the
+# baseline's features did not respond to the block).
 PRESETS: dict[str, PolicyPreset] = {
-    "paper": PolicyPreset(name="paper"),
+    "paper": PolicyPreset(name="paper", baseline_width=256, baseline_init="he"),
     # Measured cost on the 2-core CPU (see docs/model.md): the 56^3 and 28^3 convolutions
     # dominate, so the first fields are cut hardest; the 12^3 and 6^3 stages of the official layout
     # cost more than the legacy 9^3 and 3^3 ones, so they are halved against the legacy compact
@@ -180,6 +188,8 @@ PRESETS: dict[str, PolicyPreset] = {
         down_dims=(32, 64, 128),
         kernel_size=5,
         diffusion_step_embed_dim=64,
+        baseline_width=128,
+        baseline_init="he",
     ),
     "tiny": PolicyPreset(
         name="tiny",
@@ -189,6 +199,8 @@ PRESETS: dict[str, PolicyPreset] = {
         down_dims=(32, 64),
         kernel_size=3,
         diffusion_step_embed_dim=32,
+        baseline_width=32,
+        baseline_init="he",
     ),
 }
 

@@ -36,6 +36,10 @@ COMMANDS: dict[tuple[str, ...], tuple[str, str]] = {
         "bench_generalization",
         "EquiDiff vs the baseline with and without rotation augmentation on unseen object yaw",
     ),
+    ("bench", "demos"): (
+        "bench_demos",
+        "sample efficiency: EquiDiff vs the baseline trained on 10, 20 and 40 demos (success per count, PNG)",
+    ),
     ("bench", "safety"): ("bench_safety", "fault campaign against franky-sim through franka_node (one JSON line)"),
     ("bench", "chunking"): (
         "bench_chunking",

@@ -39,6 +39,19 @@ def encoder_layer_specs(preset: PolicyPreset, channels: list[int], pool_before_r
     return specs
 
 
+def relu_before_pool_(encoder: nn.Module) -> nn.Module:
+    """Put each ReLU back before the max-pool that follows it (the order before ``encoder_layer_specs``
+    swapped them), in place, for ``equidiff bench train --variants relu_before_pool``: same function,
+    the old cost. Works on torch's and escnn's sequential containers (both run ``_modules`` in order)."""
+    names, modules = list(encoder._modules), list(encoder._modules.values())
+    for i in range(len(modules) - 1):
+        if "Pool" in type(modules[i]).__name__ and "ReLU" in type(modules[i + 1]).__name__:
+            modules[i], modules[i + 1] = modules[i + 1], modules[i]
+    encoder._modules.clear()
+    encoder._modules.update(zip(names, modules))
+    return encoder
+
+
 def obs_embedding_relu(preset: PolicyPreset) -> bool:
     """Whether a ReLU follows the observation embedding: only in the legacy layout (the official
     code's ``enc_out`` is a bare equivariant Linear)."""

@@ -43,13 +43,29 @@ live there only, so this text cannot go stale). On CUDA thousands of steps fit i
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
-import statistics
 import subprocess
 import sys
 import time
 from pathlib import Path
+
+from equidiff_core.benches.demo_sets import count_demos, demos_off_range, ensure_demos
+from equidiff_core.benches.rollouts import summarize
+from equidiff_core.benches.training_runs import (
+    MAX_FIT_RATIO,
+    Recipe,
+    TrainRunError,
+    fit_ratios,
+    recipe_differences,
+    start_run,
+    trained_steps,
+    training_fit,
+    training_recipe,
+    under_fit,
+    wait_for_runs,
+)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -102,6 +118,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=0.6,
         help="fraction of the in-range scenes every policy must solve before any is rolled out at "
         "unseen yaw (0: no gate)",
+    )
+    parser.add_argument(
+        "--max-fit-ratio",
+        type=float,
+        default=MAX_FIT_RATIO,
+        help="before any roll-out, every policy's DDIM action error on its training samples must be within "
+        "this factor of EquiDiff's, else the bench reports it under-fit and exits 4 (0: no gate; runs that "
+        "recorded no such error are not judged)",
     )
     parser.add_argument(
         "--noise-repeats",
@@ -166,65 +190,28 @@ def _recipe(name: str, args) -> tuple[str, str]:
     return name, args.rotation_aug
 
 
-class TrainRunError(RuntimeError):
-    """`equidiff train` failed, did not stop or wrote no policy."""
+def recipe_of(args) -> Recipe:
+    """The recipe every policy of this call trains with (``equidiff train``'s flags)."""
+    return Recipe(
+        preset=args.preset,
+        steps=args.train_steps,
+        batch_size=args.batch_size,
+        lr=args.lr,
+        seed=args.seed,
+        device=args.device,
+        noise_repeats=args.noise_repeats,
+        ema=args.ema,
+        max_minutes=args.max_minutes,
+        lab_config=args.lab_config,
+    )
 
 
 def _start_training(name: str, bags: Path, out: Path, args, steps: int, threads: int) -> subprocess.Popen:
     """``equidiff train`` for one of POLICIES in the background, its output in ``out/train.log``."""
     policy, rotation_aug = _recipe(name, args)
-    cmd = [
-        sys.executable,
-        "-m",
-        "equidiff_ros.cli",
-        "train",
-        str(bags),
-        "--out",
-        str(out),
-        "--policy",
-        policy,
-        "--preset",
-        args.preset,
-        "--rotation-aug",
-        rotation_aug,
-        "--steps",
-        str(steps),
-        "--batch-size",
-        str(args.batch_size),
-        "--lr",
-        str(args.lr),
-        "--seed",
-        str(args.seed),
-        "--device",
-        args.device,
-        "--val-fraction",
-        "0",
-        "--eval-every",
-        str(10**9),
-        "--checkpoint-every",
-        str(max(10, steps // 4)),
-        "--warmup-steps",
-        str(min(500, max(1, steps // 10))),
-        "--no-progress",
-    ]
-    if args.noise_repeats != 1:
-        cmd += ["--noise-repeats", str(args.noise_repeats)]
-    if args.ema:
-        cmd += ["--ema"]
-    if args.lab_config:
-        cmd += ["--lab-config", str(args.lab_config)]
-    if args.max_minutes is not None:
-        cmd += ["--max-minutes", str(args.max_minutes)]
+    cmd = dataclasses.replace(recipe_of(args), steps=steps).train_command(policy, rotation_aug, [bags], out)
     print(f"[bench] training {name}: {' '.join(cmd[3:])}", flush=True)
-    out.mkdir(parents=True, exist_ok=True)
-    with open(out / "train.log", "wb") as log:
-        return subprocess.Popen(
-            cmd,
-            stdout=log,
-            stderr=subprocess.STDOUT,
-            stdin=subprocess.DEVNULL,
-            env={**os.environ, "OMP_NUM_THREADS": str(threads), "MKL_NUM_THREADS": str(threads)},
-        )
+    return start_run(cmd, out, threads)
 
 
 def _train_all(demos_dir: Path, out: Path, args) -> dict[str, Path]:
@@ -239,63 +226,16 @@ def _train_all(demos_dir: Path, out: Path, args) -> dict[str, Path]:
     # train stops itself at --max-minutes and exports; this deadline is only a backstop
     deadline = None if args.max_minutes is None else time.monotonic() + args.max_minutes * 60 + 600
     runs = {name: _start_training(name, demos_dir, out / name, args, args.train_steps, threads) for name in names}
-    stopped = set()  # runs this function terminated: not failures of their own
-
-    def failures() -> TrainRunError | None:
-        """Every run that failed by itself (bad demos usually fail both within seconds)."""
-        lines = []
-        for name, run in runs.items():
-            if run.returncode not in (None, 0) and name not in stopped:
-                log = out / name / "train.log"
-                tail = log.read_text(errors="replace")[-2000:] if log.is_file() else ""
-                lines.append(f"equidiff train {name} failed (exit {run.returncode}; log {log}):\n{tail}")
-        return TrainRunError("\n".join(lines)) if lines else None
-
-    try:
-        while any(run.poll() is None for run in runs.values()):
-            if any(run.returncode not in (None, 0) for run in runs.values()):
-                _wait_all(runs.values(), grace_s=10.0)  # the others may be failing too: report them all
-                raise failures()
-            if deadline is not None and time.monotonic() > deadline:
-                raise TrainRunError(f"equidiff train did not stop within {args.max_minutes + 10:.0f} min")
-            time.sleep(0.5)
-    finally:
-        for name, run in runs.items():
-            if run.poll() is None:
-                stopped.add(name)
-                run.terminate()
-                run.wait()
-    error = failures()
-    if error is not None:
-        raise error
-    policies = {name: out / name / "policy.pt" for name in runs}
-    for name, path in policies.items():
-        if not path.is_file():
-            raise TrainRunError(f"equidiff train {name} wrote no {path}")
-    return policies
-
-
-def _wait_all(runs, grace_s: float) -> None:
-    end = time.monotonic() + grace_s
-    while any(run.poll() is None for run in runs) and time.monotonic() < end:
-        time.sleep(0.2)
-
-
-def _trained_steps(out: Path) -> int | None:
-    try:
-        history = json.loads((out / "history.json").read_text())
-        steps = [h.get("step") for h in history if isinstance(h, dict) and "step" in h]
-        return int(max(steps)) if steps else None  # history steps count from 1
-    except (OSError, ValueError):
-        return None
+    wait_for_runs(runs, {name: out / name for name in names}, deadline)
+    return {name: out / name / "policy.pt" for name in runs}
 
 
 def run(args: argparse.Namespace) -> int:
     from equidiff_core.twin.config import load_twin_job_configs
-    from equidiff_core.twin.demos import collect_direct
 
     if args.quick:  # no policy acts after 30 steps: the gate would stop every quick run
         args.demos, args.train_steps, args.eval_episodes, args.preset, args.min_in_range = 4, 30, 2, "tiny", 0.0
+        args.max_fit_ratio = 0.0
         args.in_range_episodes = min(args.in_range_episodes, 1)
         args.max_duration = min(args.max_duration, 10.0)
     if args.eval_episodes < 1 or args.in_range_episodes < 0 or not 0.0 <= args.min_in_range <= 1.0:
@@ -322,24 +262,12 @@ def run(args: argparse.Namespace) -> int:
         except FileNotFoundError as err:
             print(f"equidiff bench generalization: {err}", file=sys.stderr)
             return 2
-        n_demos = _count_demos(args.demos_dir) if args.demos_dir else _trained_demos(args.trained / "equidiff")
+        n_demos = count_demos(args.demos_dir) if args.demos_dir else _trained_demos(args.trained / "equidiff")
         return _evaluate(args, cfg, lab, out, policies, steps_done, n_demos, {})
-    demos_dir = args.demos_dir or out / "demos"
-    if args.demos_dir is None and demos_dir.is_dir() and _count_demos(demos_dir) >= args.demos:
-        n_demos = _count_demos(demos_dir)  # recorded by an earlier call with this --out
-    elif args.demos_dir is None:
-        results = collect_direct(
-            train_cfg,
-            lab,
-            demos_dir,
-            range(args.seed, args.seed + 10 * args.demos),
-            log=lambda s: print(s, flush=True),
-            stop_after=args.demos,
-        )
-        n_demos = sum(1 for _, ok, _ in results if ok)
-    else:
-        n_demos = _count_demos(demos_dir)
-    wrong, unrecorded = _demos_off_range(demos_dir, tuple(args.train_yaw))
+    demos_dir, n_demos = ensure_demos(
+        args.demos_dir, out, args.demos, train_cfg, lab, args.seed, log=lambda s: print(s, flush=True)
+    )
+    wrong, unrecorded = demos_off_range(demos_dir, tuple(args.train_yaw))
     if wrong:  # demos of another yaw range would measure something else: refuse before any training
         print(
             f"equidiff bench generalization: {len(wrong)} demos in {demos_dir} were drawn from another block "
@@ -370,7 +298,7 @@ def run(args: argparse.Namespace) -> int:
         result = {
             "trained": list(trained_now),
             "pending": pending,
-            "train_steps_by_policy": {name: _trained_steps(out / name) for name in trained_now},
+            "train_steps_by_policy": {name: trained_steps(out / name) for name in trained_now},
             "demos": n_demos,
             "out": str(out),
             "next": f"equidiff bench generalization --out {out} --demos-dir {demos_dir} --policies "
@@ -380,7 +308,7 @@ def run(args: argparse.Namespace) -> int:
         print(json.dumps(result))
         return 0
     policies = {name: out / name / "policy.pt" for name in POLICIES}
-    steps_done = {name: _trained_steps(out / name) or args.train_steps for name in policies}
+    steps_done = {name: trained_steps(out / name) or args.train_steps for name in policies}
     return _evaluate(
         args,
         cfg,
@@ -400,41 +328,7 @@ def _trained_policies(folder: Path) -> tuple[dict, dict]:
         if not path.is_file():
             needed = ", ".join(f"DIR/{name}/policy.pt" for name in POLICIES)
             raise FileNotFoundError(f"no {path}: --trained needs {needed}")
-    return policies, {name: _trained_steps(folder / name) for name in policies}
-
-
-def _fraction(episodes: list, field: str) -> float | None:
-    return round(sum(bool(getattr(e, field)) for e in episodes) / len(episodes), 3) if episodes else None
-
-
-def _training_recipe(run_dir: Path) -> dict | None:
-    """How ``equidiff train`` trained the policy in ``run_dir`` (device, batch, lr, ...; None if not recorded)."""
-    try:
-        return json.loads((run_dir / "run.json").read_text())["recipe"]
-    except (OSError, ValueError, KeyError, TypeError):
-        return None
-
-
-def _count_demos(folder: Path) -> int:
-    from equidiff_core.dataset import find_episodes
-
-    return len(find_episodes([folder]))
-
-
-def _demos_off_range(folder: Path, train_yaw: tuple[float, float]) -> tuple[list[str], int]:
-    """Bags in ``folder`` whose metadata records another block yaw range than ``train_yaw``
-    ("bag: range"), and how many bags record none (recorded before episodes kept it)."""
-    from equidiff_core.bags import find_bags, read_meta
-    from equidiff_core.twin.scene import recorded_block_yaw_range, same_yaw_range
-
-    wrong, unrecorded = [], 0
-    for bag in find_bags([folder]):
-        recorded = recorded_block_yaw_range(read_meta(bag).extra)
-        if recorded is None:
-            unrecorded += 1
-        elif not same_yaw_range(recorded, train_yaw):
-            wrong.append(f"{bag.name}: {recorded[0]:g} to {recorded[1]:g} deg")
-    return wrong, unrecorded
+    return policies, {name: trained_steps(folder / name) for name in policies}
 
 
 def _trained_demos(run_dir: Path) -> int | None:
@@ -444,23 +338,6 @@ def _trained_demos(run_dir: Path) -> int | None:
         return len(split["train"]) + len(split.get("val", []))
     except (OSError, ValueError, KeyError, TypeError):
         return None
-
-
-# Settings that may differ between the three runs: rotation augmentation by design, and what
-# only changes how fast the same recipe ran (device, data path, time budget).
-_RECIPE_FREE = ("rotation_aug", "device", "data", "max_minutes")
-
-
-def recipe_differences(recipes: dict[str, dict | None]) -> list[str]:
-    """The recipe settings the policies were trained with differently (``equidiff train``'s
-    run.json; runs without one are not compared): the comparison needs the same budget for all."""
-    known = {name: recipe for name, recipe in recipes.items() if recipe is not None}
-    keys = sorted({key for recipe in known.values() for key in recipe} - set(_RECIPE_FREE))
-    return [
-        f"{key}: " + ", ".join(f"{name} {recipe.get(key)}" for name, recipe in known.items())
-        for key in keys
-        if len({json.dumps(recipe.get(key)) for recipe in known.values()}) > 1
-    ]
 
 
 def in_range_failures(in_range_success: dict[str, float | None], min_in_range: float) -> list[str]:
@@ -481,15 +358,49 @@ def _verdict(failed: list[str], success: dict, args) -> str:
     )
 
 
-def _evaluate(args, cfg, lab, out: Path, policies: dict, steps_done: dict, n_demos, minutes: dict) -> int:
-    """In-range rollouts of every policy, the gate, then (if it passed) the unseen-yaw rollouts.
+def _report_under_fit(args, out: Path, underfit: list, fits: dict, recipes: dict, steps_done: dict, n_demos, minutes):
+    """The JSON line of a bench stopped at the training-fit gate (nothing rolled out); exit status 4."""
+    ratios = fit_ratios(fits, "equidiff")
+    verdict = (
+        "under-fit: "
+        + ", ".join(f"{name} ({ratios[name]}x)" for name in underfit)
+        + f" DDIM action error on its training samples is more than {args.max_fit_ratio:g}x EquiDiff's "
+        f"({fits['equidiff']['pos_err_m'] * 100:.1f} cm): it has not fit its own demos, so its roll-outs would "
+        "measure the network or the budget, not generalisation; not rolled out"
+    )
+    result = {
+        **{f"{name}_success": None for name in POLICIES},
+        **{f"{name}_in_range_success": None for name in POLICIES},
+        "failed_in_range": [],
+        "under_fit": underfit,
+        "verdict": verdict,
+        "equidiff_minus_baseline_points": None,
+        "goal_met": None,
+        "train_fit": fits,
+        "train_fit_vs_equidiff": ratios,
+        "max_fit_ratio": args.max_fit_ratio,
+        "demos": n_demos,
+        "train_steps_by_policy": steps_done,
+        "training_recipes": recipes,
+        "minutes": minutes,
+    }
+    (out / "result.json").write_text(json.dumps(result) + "\n")
+    print(json.dumps(result))
+    print(f"equidiff bench generalization: {verdict}", file=sys.stderr)
+    return 4
 
-    Returns 0, or 3 when a policy failed the in-range gate (the JSON line says which)."""
+
+def _evaluate(args, cfg, lab, out: Path, policies: dict, steps_done: dict, n_demos, minutes: dict) -> int:
+    """The training-fit gate, in-range rollouts of every policy, the in-range gate, then (if both passed)
+    the unseen-yaw rollouts.
+
+    Returns 0, 4 when a policy is under-fit (nothing rolled out) or 3 when a policy failed the in-range
+    gate (the JSON line says which)."""
     from equidiff_core.inference import load_inference_policy
     from equidiff_core.twin.demos import DirectRecorder
-    from equidiff_core.twin.evaluate import evaluate_policy, in_range_yaw_seeds, unseen_yaw_seeds
+    from equidiff_core.twin.evaluate import evaluate_policy, in_range_yaw_seeds, unseen_yaw_seeds, yaw_breakdown
 
-    recipes = {name: _training_recipe(path.parent) for name, path in policies.items()}
+    recipes = {name: training_recipe(path.parent) for name, path in policies.items()}
     differences = recipe_differences(recipes)
     if differences:
         print(
@@ -499,11 +410,17 @@ def _evaluate(args, cfg, lab, out: Path, policies: dict, steps_done: dict, n_dem
             file=sys.stderr,
         )
         return 2
+    # the second gate, before any roll-out: a policy that has not fit its own demos is under-fit
+    fits = {name: training_fit(path.parent) for name, path in policies.items()}
+    underfit = under_fit(fits, "equidiff", args.max_fit_ratio)
+    if underfit:
+        return _report_under_fit(args, out, underfit, fits, recipes, steps_done, n_demos, minutes)
     t_eval = time.monotonic()
     seeds = unseen_yaw_seeds(cfg, tuple(args.train_yaw), args.eval_episodes)
     in_range = in_range_yaw_seeds(cfg, tuple(args.train_yaw), args.in_range_episodes)
     loaded = {name: load_inference_policy(path, device=args.device) for name, path in policies.items()}
     stages: dict[str, dict] = {name: {} for name in policies}
+    by_yaw: dict[str, dict] = {}
     rec = DirectRecorder(cfg, lab)
 
     def roll_out(name: str, label: str, scene_seeds: list[int]) -> float | None:
@@ -519,11 +436,11 @@ def _evaluate(args, cfg, lab, out: Path, policies: dict, steps_done: dict, n_dem
             latency_s=args.latency_ms / 1000,
             log=lambda s: print(f"[{name}, {label}] {s}", flush=True),
         )
-        stages[name][label] = {  # how far failures got: reached the block, lifted it, closest TCP
-            **{k: _fraction(episodes, k) for k in ("reached", "lifted")},
-            "median_closest_to_block_m": round(statistics.median(e.closest_to_block_m for e in episodes), 3),
-        }
-        return _fraction(episodes, "success")
+        summary = summarize(episodes)  # how far failures got: reached the block, lifted it, closest TCP
+        stages[name][label] = {k: summary[k] for k in ("reached", "lifted", "median_closest_to_block_m")}
+        if label == "unseen":
+            by_yaw[name] = yaw_breakdown(episodes, tuple(args.train_yaw))
+        return summary["success"]
 
     try:
         in_range_success = {name: roll_out(name, "in_range", in_range) for name in policies}
@@ -545,6 +462,12 @@ def _evaluate(args, cfg, lab, out: Path, policies: dict, steps_done: dict, n_dem
         "in_range_episodes": args.in_range_episodes,
         "latency_budget_ms": args.latency_ms,
         "stages": stages,
+        # unseen-yaw success by what C4 (offset modulo 90 deg) and C8 (modulo 45 deg) map into the range
+        "unseen_by_yaw": by_yaw,
+        "train_fit": fits,
+        "train_fit_vs_equidiff": fit_ratios(fits, "equidiff"),
+        "under_fit": [],
+        "max_fit_ratio": args.max_fit_ratio,
         "demos": n_demos,
         "train_steps": min((v for v in steps_done.values() if v is not None), default=None),
         "train_steps_by_policy": steps_done,  # differ when --max-minutes stopped the slower ones first

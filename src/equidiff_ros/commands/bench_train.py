@@ -4,10 +4,13 @@ Each device runs the real ``training.train`` loop with its defaults there (CPU: 
 CUDA: bf16 autocast, the whole set resident on the GPU) on synthetic observations (random
 coloured voxels, gripper states near the workspace centre: the cost does not depend on their
 content), with the preset's rotation augmentation, and times ``--steps`` optimiser steps after
-``--warmup`` untimed ones. Prints one JSON line: ``preset``, ``policy``, ``params``, then per
+``--warmup`` untimed ones. Prints one JSON line: ``preset``, ``policy``, ``params``, ``cost`` (parameters
+and FLOPs per sample: encoder, denoising step, DDIM-16, training step; ``benches.cost``), then per
 device (``cpu``, ``cuda``) ``device`` (the CPU's name and instruction sets or the GPU's name),
 ``batch_size``, ``precision``, ``data``, ``steps``, ``sec_per_step`` and ``samples_per_s``;
-``"cuda": null`` with ``cuda_note`` when there is no GPU.
+``"cuda": null`` with ``cuda_note`` when there is no GPU. ``--variants A B ...`` (CPU) times training-step
+variants in alternating rounds of one run instead: ``cpu_variants`` with each one's ``sec_per_step`` and
+``vs_first``, the first variant being the reference (``CPU_VARIANTS``).
 """
 
 from __future__ import annotations
@@ -32,7 +35,53 @@ def add_arguments(parser) -> None:
         help="fp32 (training's CPU default) or bf16 autocast (fast only with AVX512-BF16/AMX)",
     )
     parser.add_argument("--threads", type=int, default=0, help="torch intra-op threads on the CPU (0: torch default)")
+    parser.add_argument(
+        "--rotation-aug",
+        default=None,
+        help="none | c4 | c8 | continuous (default: the preset's; the benches train with none)",
+    )
+    parser.add_argument("--noise-repeats", type=int, default=1, help="(noise, step) draws per encoder pass")
+    parser.add_argument(
+        "--variants",
+        nargs="+",
+        choices=tuple(CPU_VARIANTS),
+        default=None,
+        metavar="NAME",
+        help="CPU only: time these training-step variants in the same run, in alternating rounds, the first "
+        f"as the reference ({', '.join(CPU_VARIANTS)})",
+    )
+    parser.add_argument("--rounds", type=int, default=3, help="alternating rounds of --variants")
     parser.add_argument("--no-cpu", action="store_true", help="measure CUDA only")
+
+
+# What a CPU training step can be made of, for --variants: each the training's CPU default but for one thing.
+CPU_VARIANTS = {
+    "default": "fp32, the encoder's max-pools before their ReLUs (training's CPU default)",
+    "relu_before_pool": "each ReLU before the max-pool after it, the order before (the 56^3 ReLU and its backward)",
+    "bf16": "bf16 autocast (the CPU's AVX512-BF16 / AMX, if any)",
+    "channels_last": "the voxel input in channels_last_3d memory format (oneDNN's preferred layout)",
+}
+
+
+def _apply_variant(policy, variant: str) -> str:
+    """Shape ``policy`` as ``variant`` needs; returns the training precision for it."""
+    import torch
+
+    from equidiff_core.models.plain import relu_before_pool_
+
+    encoder = policy.model.encoder
+    if variant == "relu_before_pool":
+        relu_before_pool_(encoder)
+    elif variant == "channels_last":
+
+        def to_channels_last(module, inputs):
+            x = inputs[0]
+            if isinstance(x, torch.Tensor):
+                return (x.contiguous(memory_format=torch.channels_last_3d),)
+            return (type(x)(x.tensor.contiguous(memory_format=torch.channels_last_3d), x.type),)  # escnn
+
+        encoder.register_forward_pre_hook(to_channels_last)
+    return "bf16" if variant == "bf16" else "fp32"
 
 
 class _SyntheticSet:
@@ -79,6 +128,8 @@ def measure(
     steps: int,
     warmup: int,
     precision: str = "auto",
+    noise_repeats: int = 1,
+    variant: str = "default",
 ) -> dict:
     import tempfile
 
@@ -93,6 +144,8 @@ def measure(
     torch.manual_seed(0)
     policy = make_policy(policy_name, preset, workspace)
     policy.set_normalizer(Normalizer.from_workspace(workspace))
+    if variant != "default":
+        precision = _apply_variant(policy, variant)
     sync = torch.cuda.synchronize if device == "cuda" else (lambda: None)
     clock = _StepClock(sync)
     cfg = TrainConfig(
@@ -104,6 +157,7 @@ def measure(
         checkpoint_every=0,
         log_every=1,
         precision=precision,
+        noise_repeats=noise_repeats,
     )
     with tempfile.TemporaryDirectory(prefix="bench_train_") as tmp:
         result = train(policy, data, None, cfg, tmp, callbacks=[clock])
@@ -136,25 +190,52 @@ def run(args) -> int:
         raise SystemExit("equidiff bench train: --steps and --warmup must be >= 1")
     if args.threads:
         torch.set_num_threads(args.threads)
-    preset, ws = get_preset(args.preset), Workspace()
+    preset, ws = (
+        get_preset(args.preset, **({"rotation_aug": args.rotation_aug} if args.rotation_aug else {})),
+        Workspace(),
+    )
     cuda = torch.cuda.is_available()
     batch_sizes = ([] if args.no_cpu else [args.batch_size]) + ([args.cuda_batch_size] if cuda else [])
-    data = _SyntheticSet(preset, ws, max(args.samples, *batch_sizes))
+    data = _SyntheticSet(preset, ws, max([args.samples, *batch_sizes]))
     result = {
         "bench": "train",
         "preset": preset.name,
         "policy": args.policy,
         "params": count_parameters(make_policy(args.policy, preset, ws).model),
+        "cost": _cost(preset, args, ws),
         "rotation_aug": preset.rotation_aug,
         "samples": len(data),
+        "noise_repeats": args.noise_repeats,
         "load_avg_1min": round(os.getloadavg()[0], 2),
     }  # a shared machine's load shows in CPU figures
-    if not args.no_cpu:
+    if args.variants:
+        result["cpu_variants"] = measure_variants(preset, args, ws, data)
+    elif not args.no_cpu:
         result["cpu"] = measure(
-            preset, args.policy, ws, data, "cpu", args.batch_size, args.steps, args.warmup, args.cpu_precision
+            preset,
+            args.policy,
+            ws,
+            data,
+            "cpu",
+            args.batch_size,
+            args.steps,
+            args.warmup,
+            args.cpu_precision,
+            args.noise_repeats,
         )
     if cuda:
-        result["cuda"] = measure(preset, args.policy, ws, data, "cuda", args.cuda_batch_size, args.steps, args.warmup)
+        result["cuda"] = measure(
+            preset,
+            args.policy,
+            ws,
+            data,
+            "cuda",
+            args.cuda_batch_size,
+            args.steps,
+            args.warmup,
+            "auto",
+            args.noise_repeats,
+        )
     else:
         result["cuda"] = None
         result["cuda_note"] = "CUDA not available: not measured"
@@ -162,3 +243,56 @@ def run(args) -> int:
         result["cuda_vs_cpu"] = round(result["cuda"]["samples_per_s"] / result["cpu"]["samples_per_s"], 1)
     print(json.dumps(result), flush=True)
     return 0
+
+
+def measure_variants(preset, args, workspace, data) -> dict:
+    """Each of ``args.variants`` timed on the CPU in ``args.rounds`` alternating rounds (a shared machine's
+    load then weighs on all alike): the CPU, and per variant the median round's ``sec_per_step`` and
+    ``samples_per_s``, every round's ``sec_per_step`` and ``vs_first`` (the first variant's median over
+    this one's: above 1 is faster)."""
+    import statistics
+
+    rounds = {name: [] for name in args.variants}
+    m = {}
+    for _ in range(max(1, args.rounds)):
+        for name in args.variants:
+            m = measure(
+                preset,
+                args.policy,
+                workspace,
+                data,
+                "cpu",
+                args.batch_size,
+                args.steps,
+                args.warmup,
+                noise_repeats=args.noise_repeats,
+                variant=name,
+            )
+            rounds[name].append(m["sec_per_step"])
+    first = statistics.median(rounds[args.variants[0]])
+    out = {}
+    for name, secs in rounds.items():
+        med = statistics.median(secs)
+        out[name] = {
+            "sec_per_step": float(f"{med:.4g}"),
+            "samples_per_s": float(f"{args.batch_size / med:.4g}"),
+            "rounds": secs,
+            "vs_first": round(first / med, 3),
+            "what": CPU_VARIANTS[name],
+        }
+    machine = {k: m[k] for k in ("device", "cores", "avx512", "native_bf16") if k in m}
+    return {**machine, "batch_size": args.batch_size, "steps": args.steps, "variants": out}
+
+
+def _cost(preset, args, workspace) -> dict:
+    """Parameters and FLOPs per sample (``benches.cost.policy_cost``) of a freshly built ``args.policy``."""
+    import torch
+
+    from equidiff_core.benches.cost import policy_cost
+    from equidiff_core.normalizer import Normalizer
+    from equidiff_core.policies import make_policy
+
+    torch.manual_seed(0)
+    policy = make_policy(args.policy, preset, workspace)
+    policy.set_normalizer(Normalizer.from_workspace(workspace))
+    return policy_cost(policy, batch=2, noise_repeats=args.noise_repeats)
