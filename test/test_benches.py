@@ -1,6 +1,7 @@
 """The paper's benches (issue 31): the baseline diagnosis, the two gates, the yaw breakdown, `bench demos`,
 and `bench train --variants`."""
 
+import contextlib
 import json
 import subprocess
 import sys
@@ -97,23 +98,24 @@ def test_baseline_width_follows_the_official_encoder_and_old_presets_keep_their_
 
 @pytest.mark.slow
 def test_pooling_before_the_relu_changes_nothing_but_the_cost():
-    from equidiff_core.models.plain import relu_before_pool_
+    from equidiff_core.models.plain import relu_before_pool_order
 
     preset = get_preset("tiny")
     x = torch.rand(2, 4, 58, 58, 58) * (torch.rand(2, 1, 58, 58, 58) < 0.05)
     for name in ("baseline", "equidiff"):
-        torch.manual_seed(0)
-        model = make_policy(name, preset, WS).model.eval()
-        net = model.export_plain() if name == "equidiff" else model
-        kinds = [type(m).__name__ for m in net.encoder]
-        assert kinds[:3] == ["Conv3d", "MaxPool3d", "ReLU"]  # pool first
-        keys = list(net.state_dict())
+        nets = []
+        for order in (contextlib.nullcontext(), relu_before_pool_order()):
+            torch.manual_seed(0)
+            with order:  # the export builds its plain network too
+                model = make_policy(name, preset, WS).model.eval()
+                nets.append(model.export_plain() if name == "equidiff" else model)
+        new, old = nets
+        assert [type(m).__name__ for m in new.encoder][:3] == ["Conv3d", "MaxPool3d", "ReLU"]  # pool first
+        assert [type(m).__name__ for m in old.encoder][:3] == ["Conv3d", "ReLU", "MaxPool3d"]
+        assert list(new.state_dict()) == list(old.state_dict())  # same keys: every checkpoint loads either way
+        old.load_state_dict(new.state_dict())
         with torch.no_grad():
-            y = net.encoder(x)
-            relu_before_pool_(net.encoder)
-            assert [type(m).__name__ for m in net.encoder][:3] == ["Conv3d", "ReLU", "MaxPool3d"]
-            torch.testing.assert_close(net.encoder(x), y, rtol=0, atol=0)
-        assert list(net.state_dict()) == keys
+            torch.testing.assert_close(old.encoder(x), new.encoder(x), rtol=0, atol=0)
 
 
 def _history(path, pos_err):
@@ -319,3 +321,31 @@ def test_bench_train_times_its_variants_in_one_run():
     assert all(v["sec_per_step"] > 0 for v in variants.values()) and result["noise_repeats"] == 2
     assert result["rotation_aug"] == "none" and result["cost"]["train_step_flops_per_sample"] > 0
     assert result["cost"]["ddim16_flops"] == result["cost"]["encoder_flops"] + 16 * result["cost"]["denoise_step_flops"]
+
+
+@pytest.mark.slow
+def test_bench_policy_times_the_old_relu_order_in_the_same_run():
+    out = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "equidiff_ros.cli",
+            "bench",
+            "policy",
+            "--preset",
+            "tiny",
+            "--threads",
+            "1",
+            "--iters",
+            "2",
+            "--eager-iters",
+            "0",
+            "--compare-relu-order",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        check=True,
+    )
+    result = json.loads(out.stdout.strip().splitlines()[-1])
+    assert result["relu_before_pool"]["encoder_ms"] > 0 and result["relu_before_pool"]["ddim16_median_ms"] > 0

@@ -7,6 +7,8 @@ with ``load_state_dict(strict=True)``. Nothing here imports escnn.
 
 from __future__ import annotations
 
+import contextlib
+
 import torch
 from torch import nn
 
@@ -14,20 +16,35 @@ from ..presets import ENCODER_LAYOUTS, PolicyPreset
 from . import action_space
 from .unet1d import ConditionalUnet1D
 
+_pool_before_relu = True  # encoder_layer_specs' order; relu_before_pool_order() builds the old one
 
-def encoder_layer_specs(preset: PolicyPreset, channels: list[int], pool_before_relu: bool = True) -> list[tuple]:
+
+@contextlib.contextmanager
+def relu_before_pool_order():
+    """Encoders built inside have each ReLU before the max-pool after it, the order before
+    ``encoder_layer_specs`` swapped them: the same function at the old cost, for the benches
+    (``equidiff bench train --variants relu_before_pool``, ``equidiff bench policy --compare-relu-order``)."""
+    global _pool_before_relu
+    _pool_before_relu = False
+    try:
+        yield
+    finally:
+        _pool_before_relu = True
+
+
+def encoder_layer_specs(preset: PolicyPreset, channels: list[int]) -> list[tuple]:
     """[(kind, in_ch, out_ch, kernel, padding) | ('relu',) | ('pool', k)] for channels[0..8].
 
-    A max-pool that follows a conv's ReLU runs before it (``pool_before_relu``): ReLU is monotone, so
-    relu(maxpool(x)) == maxpool(relu(x)), and the ReLU then touches k³ times fewer values. At the first
-    stage (56³, the largest tensors) that removed most of a compact training step's ReLU and its
-    backward (docs/model.md, ``equidiff bench train --variants``). The modules hold no weights, so the
-    order changes no state-dict key and every checkpoint loads either way."""
+    A max-pool that follows a conv's ReLU runs before it: ReLU is monotone, so relu(maxpool(x)) ==
+    maxpool(relu(x)), and the ReLU then touches k³ times fewer values. At the first stage (56³, the
+    largest tensors) that removed most of a compact training step's ReLU and its backward
+    (docs/model.md, ``equidiff bench train --variants``). The modules hold no weights, so the order
+    changes no state-dict key and every checkpoint loads either way."""
     specs = []
     c_in = channels[0]
     for kind, arg in ENCODER_LAYOUTS[preset.encoder_layout]:
         if kind == "pool":
-            if pool_before_relu and specs and specs[-1] == ("relu",):
+            if _pool_before_relu and specs and specs[-1] == ("relu",):
                 specs.insert(len(specs) - 1, ("pool", arg))
             else:
                 specs.append(("pool", arg))
@@ -37,19 +54,6 @@ def encoder_layer_specs(preset: PolicyPreset, channels: list[int], pool_before_r
         specs += [("conv", c_in, c_out, kernel, pad), ("relu",)]
         c_in = c_out
     return specs
-
-
-def relu_before_pool_(encoder: nn.Module) -> nn.Module:
-    """Put each ReLU back before the max-pool that follows it (the order before ``encoder_layer_specs``
-    swapped them), in place, for ``equidiff bench train --variants relu_before_pool``: same function,
-    the old cost. Works on torch's and escnn's sequential containers (both run ``_modules`` in order)."""
-    names, modules = list(encoder._modules), list(encoder._modules.values())
-    for i in range(len(modules) - 1):
-        if "Pool" in type(modules[i]).__name__ and "ReLU" in type(modules[i + 1]).__name__:
-            modules[i], modules[i + 1] = modules[i + 1], modules[i]
-    encoder._modules.clear()
-    encoder._modules.update(zip(names, modules))
-    return encoder
 
 
 def obs_embedding_relu(preset: PolicyPreset) -> bool:

@@ -32,6 +32,12 @@ def add_arguments(parser) -> None:
         action="store_true",
         help="torch.compile the denoising step (~45 s the first time, then cached on disk)",
     )
+    parser.add_argument(
+        "--compare-relu-order",
+        action="store_true",
+        help="also time the same weights with each ReLU before its max-pool (the encoder order before; "
+        "adds relu_before_pool: encoder_ms, ddim16_median_ms)",
+    )
     parser.add_argument("--iters", type=int, default=30, help="timed DDIM-16 runs of the exported policy")
     parser.add_argument("--eager-iters", type=int, default=3, help="timed runs of the eager escnn model")
     parser.add_argument(
@@ -148,6 +154,20 @@ def run(args) -> int:
         "compiled": fast.compiled,
         "iters": args.iters,
     }
+    if args.compare_relu_order:  # the same file with the old encoder order, timed alike in this run
+        from equidiff_core.models.plain import relu_before_pool_order
+
+        with tempfile.TemporaryDirectory(prefix="bench_policy_") as tmp:
+            path = args.checkpoint or export_policy(eager, Path(tmp) / "policy.pt")
+            with relu_before_pool_order():
+                old = load(path)
+        old.warmup(3)
+        old_enc = _timed(lambda: old.encode(vox, ee), max(5, args.iters // 3), sync)
+        old_ddim = _timed(lambda: old.predict(vox, ee, seed=0), args.iters, sync)
+        result["relu_before_pool"] = {
+            "encoder_ms": round(float(np.median(old_enc)), 2),
+            "ddim16_median_ms": round(float(np.median(old_ddim)), 2),
+        }
     if eager is not None and args.eager_iters > 0:
         obs = {"voxels": vox_t.to(device), "ee": ee_t.to(device)}
         eager.predict_action(obs)  # warm-up (escnn filter expansion, allocator)

@@ -15,6 +15,7 @@ variants in alternating rounds of one run instead: ``cpu_variants`` with each on
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import time
@@ -64,15 +65,12 @@ CPU_VARIANTS = {
 
 
 def _apply_variant(policy, variant: str) -> str:
-    """Shape ``policy`` as ``variant`` needs; returns the training precision for it."""
+    """Shape ``policy`` as ``variant`` needs (``relu_before_pool`` is built so, see ``measure``); returns the
+    training precision for it."""
     import torch
 
-    from equidiff_core.models.plain import relu_before_pool_
-
     encoder = policy.model.encoder
-    if variant == "relu_before_pool":
-        relu_before_pool_(encoder)
-    elif variant == "channels_last":
+    if variant == "channels_last":
 
         def to_channels_last(module, inputs):
             x = inputs[0]
@@ -135,6 +133,7 @@ def measure(
 
     import torch
 
+    from equidiff_core.models.plain import relu_before_pool_order
     from equidiff_core.normalizer import Normalizer
     from equidiff_core.policies import make_policy
     from equidiff_core.training import TrainConfig, train
@@ -142,7 +141,8 @@ def measure(
     from .bench_policy import _device_name
 
     torch.manual_seed(0)
-    policy = make_policy(policy_name, preset, workspace)
+    with relu_before_pool_order() if variant == "relu_before_pool" else contextlib.nullcontext():
+        policy = make_policy(policy_name, preset, workspace)
     policy.set_normalizer(Normalizer.from_workspace(workspace))
     if variant != "default":
         precision = _apply_variant(policy, variant)
