@@ -5,8 +5,8 @@ the demos. Two measurements tell it apart from one that looks:
 
 * **features when the block moves**: the block's voxels (found by the twin block's colour) are moved
   by ``shift_vox`` voxels along +x, -x, +y and -y; the relative change of the voxel encoder's output
-  ``||f(moved) - f(orig)|| / ||f(orig)||``, beside how much that output varies across the scenes of
-  different demos (``feature_spread``);
+  ``||f(moved) - f(orig)|| / ||f(orig)||`` (and of each layer's, ``feature_change_by_layer``), beside
+  how much that output varies across the scenes of different demos (``feature_spread``);
 * **actions when the block moves**: the DDIM chunk from the same noise for both observations; how far
   the chunk's last step moves along the block's displacement, as a fraction of it (``action_follow``:
   1 for a chunk that ends where the moved block now is, 0 for one that does not look).
@@ -56,16 +56,31 @@ def move_block(grid: np.ndarray, shift: tuple[int, int, int]) -> np.ndarray | No
 
 
 @torch.no_grad()
-def voxel_features(policy, grid: np.ndarray) -> np.ndarray:
-    """The voxel encoder's output for one uint8 grid (4, R, R, R) of an ``inference.InferencePolicy`` (fp32):
-    the features the observation embedding (EquiDiff) or the U-Net's condition (baseline) gets."""
+def layer_features(policy, grid: np.ndarray) -> list[np.ndarray]:
+    """The voxel encoder's activations after each ReLU for one uint8 grid (4, R, R, R), of an
+    ``inference.InferencePolicy`` (fp32); the last is what the observation embedding (EquiDiff) or the
+    U-Net's condition (baseline) gets."""
     vox = voxel_input(torch.from_numpy(np.ascontiguousarray(grid))[None], policy.preset.crop, "center")
     vox = vox.to(device=policy.device, dtype=policy.dtype)
     if policy.pad_channels:  # the fp32 CPU path pads the first convolution's input channels
         vox = torch.cat([vox, vox.new_zeros((1, policy.pad_channels, *vox.shape[2:]))], dim=1)
     net = policy.net
     x = to_escnn_layout(vox) if isinstance(net, EquiNoiseCore) else vox
-    return net.encoder(x).flatten().float().cpu().numpy()
+    layers = []
+    for module in net.encoder:
+        x = module(x)
+        if isinstance(module, torch.nn.ReLU):
+            layers.append(x.flatten().float().cpu().numpy())
+    return layers
+
+
+def voxel_features(policy, grid: np.ndarray) -> np.ndarray:
+    """The voxel encoder's output (``layer_features``' last)."""
+    return layer_features(policy, grid)[-1]
+
+
+def _relative_change(a: np.ndarray, b: np.ndarray) -> float:
+    return float(np.linalg.norm(b - a) / max(np.linalg.norm(a), 1e-12))
 
 
 @dataclass(frozen=True)
@@ -87,19 +102,21 @@ def conditioning_response(policy, frames: list[Frame], shift_vox: int = 8, seed:
     if not frames:
         raise ValueError("no frames to measure on")
     voxel_m = policy.workspace.voxel_size
-    feats = [voxel_features(policy, f.grid) for f in frames]
+    per_frame = [layer_features(policy, f.grid) for f in frames]
+    feats = [layers[-1] for layers in per_frame]
     mean = np.mean(feats, axis=0)
     spread = float(np.mean([np.linalg.norm(f - mean) for f in feats]) / max(np.linalg.norm(mean), 1e-12))
-    changes, follows, shifts_m, skipped = [], [], [], 0
-    for frame, f0 in zip(frames, feats):
+    changes, by_layer, follows, shifts_m, skipped = [], [], [], [], 0
+    for frame, layers0 in zip(frames, per_frame):
         a0 = policy.predict(frame.grid, frame.ee, seed=seed)
         for dx, dy in SHIFT_DIRECTIONS:
             moved = move_block(frame.grid, (dx * shift_vox, dy * shift_vox, 0))
             if moved is None:
                 skipped += 1
                 continue
-            f1 = voxel_features(policy, moved)
-            changes.append(float(np.linalg.norm(f1 - f0) / max(np.linalg.norm(f0), 1e-12)))
+            layers1 = layer_features(policy, moved)
+            by_layer.append([_relative_change(a, b) for a, b in zip(layers0, layers1)])
+            changes.append(by_layer[-1][-1])
             a1 = policy.predict(moved, frame.ee, seed=seed)
             d = np.array([dx, dy], float) * shift_vox * voxel_m
             end_shift = a1[-1, :2] - a0[-1, :2]
@@ -114,6 +131,8 @@ def conditioning_response(policy, frames: list[Frame], shift_vox: int = 8, seed:
         "shift_m": round(shift_vox * voxel_m, 4),
         "feature_norm": round(float(np.mean([np.linalg.norm(f) for f in feats])), 5),
         "feature_change_block_moved": round(float(np.mean(changes)), 5),
+        # the same after each conv's ReLU, first to last: where the block's signal fades
+        "feature_change_by_layer": [float(f"{v:.2g}") for v in np.mean(by_layer, axis=0)],
         "feature_spread_across_scenes": round(spread, 5),
         "action_follow": round(float(np.mean(follows)), 3),
         "action_end_shift_m": round(float(np.mean(shifts_m)), 4),

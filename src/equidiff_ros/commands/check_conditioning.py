@@ -1,7 +1,7 @@
 """`equidiff check conditioning`: does a policy look at its observation? Features and actions when the block moves.
 
     equidiff check conditioning gen/equidiff/policy.pt gen/baseline/policy.pt --demos gen/demos --episodes 10
-    equidiff check conditioning --fresh equidiff baseline --demos gen/demos      # random weights, same frames
+    equidiff check conditioning --fresh equidiff baseline baseline:matched:torch --demos gen/demos   # at init
 
 The first observation of each of ``--episodes`` demos, the block's voxels moved by ``--shift-vox``
 voxels along +-x and +-y; per policy: the voxel encoder's relative feature change, the feature
@@ -24,16 +24,12 @@ def add_arguments(parser) -> None:
         "--fresh",
         nargs="+",
         default=[],
-        choices=["equidiff", "baseline"],
-        help="also measure freshly initialised policies (seeded, --preset)",
+        metavar="NAME[:WIDTH[:INIT]]",
+        help="also measure freshly initialised policies (seeded, --preset): equidiff, baseline, or a baseline of "
+        "another encoder width and init, e.g. baseline:128:torch; baseline:matched:torch is the baseline of the "
+        "checkpoints trained before baseline_width existed",
     )
     parser.add_argument("--preset", default="compact", help="preset of --fresh policies")
-    parser.add_argument(
-        "--baseline-width",
-        type=int,
-        default=None,
-        help="--fresh baseline's encoder width (n_hidden); default: the preset's",
-    )
     parser.add_argument("--demos", type=Path, required=True, help="demo bags (their first frames are measured)")
     parser.add_argument("--episodes", type=int, default=10, help="how many of the demos")
     parser.add_argument("--shift-vox", type=int, default=8, help="block displacement in voxels (8 = 5 cm)")
@@ -44,7 +40,7 @@ def run(args) -> int:
     import torch
 
     from equidiff_core.benches.conditioning import conditioning_response, first_frames
-    from equidiff_core.config import Workspace
+    from equidiff_core.config import ConfigError, Workspace
     from equidiff_core.dataset import find_episodes
     from equidiff_core.inference import CheckpointError, export_policy, load_inference_policy
     from equidiff_core.normalizer import Normalizer
@@ -61,13 +57,18 @@ def run(args) -> int:
     results = {}
     with tempfile.TemporaryDirectory(prefix="conditioning_") as tmp:
         subjects = {str(path): path for path in args.policies}
-        for name in args.fresh:
-            overrides = {"baseline_width": args.baseline_width} if name == "baseline" and args.baseline_width else {}
+        for spec in args.fresh:
+            try:
+                name, overrides = _fresh_spec(spec)
+                preset = get_preset(args.preset, **overrides)
+            except (ValueError, ConfigError) as err:
+                print(f"equidiff check conditioning: --fresh {spec}: {err}", file=sys.stderr)
+                return 2
             torch.manual_seed(args.seed)
             ws = Workspace()
-            policy = make_policy(name, get_preset(args.preset, **overrides), ws)
+            policy = make_policy(name, preset, ws)
             policy.set_normalizer(Normalizer.from_workspace(ws))
-            subjects[f"fresh {name}"] = export_policy(policy, Path(tmp) / f"{name}.pt")
+            subjects[f"fresh {spec}"] = export_policy(policy, Path(tmp) / f"{len(subjects)}.pt")
         frames = None
         for label, path in subjects.items():
             try:
@@ -79,3 +80,16 @@ def run(args) -> int:
             results[label] = conditioning_response(policy, frames, args.shift_vox, args.seed)
     print(json.dumps({"policies": results, "demos": len(bags), "shift_vox": args.shift_vox, "seed": args.seed}))
     return 0
+
+
+def _fresh_spec(spec: str) -> tuple[str, dict]:
+    """ "baseline:128:he" -> ("baseline", preset overrides); width "matched": the parameter-matched channels."""
+    name, *rest = spec.split(":")
+    if name not in ("equidiff", "baseline") or len(rest) > 2 or (rest and name != "baseline"):
+        raise ValueError("expected equidiff, baseline or baseline:WIDTH[:INIT]")
+    overrides = {}
+    if rest:
+        overrides["baseline_width"] = None if rest[0] == "matched" else int(rest[0])
+    if len(rest) == 2:
+        overrides["baseline_init"] = rest[1]
+    return name, overrides
