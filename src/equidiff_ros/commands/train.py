@@ -38,7 +38,8 @@ def add_arguments(parser) -> None:
         "--baseline-width",
         type=int,
         default=None,
-        help="the baseline encoder's n_hidden (official channels n/16 ... n; default: the preset's)",
+        help="the baseline encoder's n_hidden (official channels n/16 ... n; default: the preset's; 0: channels "
+        "matched to EquiDiff's parameter count, the baselines trained before the width existed)",
     )
     parser.add_argument(
         "--baseline-init",
@@ -300,8 +301,11 @@ def _run(args, dist_info) -> int:
         "baseline_width": args.baseline_width,
         "baseline_init": args.baseline_init,
     }
+    overrides = {key: value for key, value in overrides.items() if value is not None}
+    if overrides.get("baseline_width") == 0:
+        overrides["baseline_width"] = None
     try:
-        preset = get_preset(args.preset, **{key: value for key, value in overrides.items() if value is not None})
+        preset = get_preset(args.preset, **overrides)
     except ConfigError as err:  # an unknown preset or an override out of range
         print(f"equidiff train: {err}", file=sys.stderr)
         return 2
