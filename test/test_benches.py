@@ -318,6 +318,7 @@ def test_bench_train_times_its_variants_in_one_run():
     result = json.loads(out.stdout.strip().splitlines()[-1])
     variants = result["cpu_variants"]["variants"]
     assert list(variants) == ["default", "relu_before_pool"] and variants["default"]["vs_first"] == 1.0
+    assert variants["default"]["cpu_vs_first"] == 1.0 and all(v["cpu_sec_per_step"] > 0 for v in variants.values())
     assert all(v["sec_per_step"] > 0 for v in variants.values()) and result["noise_repeats"] == 2
     assert result["rotation_aug"] == "none" and result["cost"]["train_step_flops_per_sample"] > 0
     assert result["cost"]["ddim16_flops"] == result["cost"]["encoder_flops"] + 16 * result["cost"]["denoise_step_flops"]
@@ -349,3 +350,14 @@ def test_bench_policy_times_the_old_relu_order_in_the_same_run():
     )
     result = json.loads(out.stdout.strip().splitlines()[-1])
     assert result["relu_before_pool"]["encoder_ms"] > 0 and result["relu_before_pool"]["ddim16_median_ms"] > 0
+
+
+def test_train_refuses_a_baseline_width_the_official_pattern_cannot_take(tmp_path, capsys):
+    from equidiff_ros.cli import main
+
+    assert (
+        main(["train", str(tmp_path), "--out", str(tmp_path / "run"), "--policy", "baseline", "--baseline-width", "40"])
+        == 2
+    )
+    assert "baseline_width must be a multiple of 16" in capsys.readouterr().err
+    assert not (tmp_path / "run").exists()

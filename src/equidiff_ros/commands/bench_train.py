@@ -61,7 +61,10 @@ CPU_VARIANTS = {
     "relu_before_pool": "each ReLU before the max-pool after it, the order before (the 56^3 ReLU and its backward)",
     "bf16": "bf16 autocast (the CPU's AVX512-BF16 / AMX, if any)",
     "channels_last": "the voxel input in channels_last_3d memory format (oneDNN's preferred layout)",
+    "one_noise_draw": "1 (noise, step) draw per encoder pass instead of --noise-repeats",
+    "eight_noise_draws": "8 (noise, step) draws per encoder pass instead of --noise-repeats",
 }
+VARIANT_NOISE_REPEATS = {"one_noise_draw": 1, "eight_noise_draws": 8}
 
 
 def _apply_variant(policy, variant: str) -> str:
@@ -109,11 +112,13 @@ class _SyntheticSet:
 
 class _StepClock:
     def __init__(self, sync):
-        self.sync, self.times = sync, {}
+        self.sync, self.times, self.cpu_times = sync, {}, {}
 
     def on_step(self, step, metrics):
         self.sync()
         self.times[step] = time.perf_counter()
+        # the process's CPU time: on a loaded machine it still measures the work, not the waiting
+        self.cpu_times[step] = time.process_time()
 
 
 def measure(
@@ -172,6 +177,8 @@ def measure(
         "samples_per_s": float(f"{batch_size * steps / seconds:.4g}"),
     }
     if device == "cpu":
+        cpu_seconds = clock.cpu_times[warmup + steps] - clock.cpu_times[warmup]
+        out["cpu_sec_per_step"] = float(f"{cpu_seconds / steps:.4g}")
         from equidiff_core.machine import cpu_description
 
         d = cpu_description()
@@ -253,6 +260,7 @@ def measure_variants(preset, args, workspace, data) -> dict:
     import statistics
 
     rounds = {name: [] for name in args.variants}
+    cpu_rounds = {name: [] for name in args.variants}
     m = {}
     for _ in range(max(1, args.rounds)):
         for name in args.variants:
@@ -265,11 +273,13 @@ def measure_variants(preset, args, workspace, data) -> dict:
                 args.batch_size,
                 args.steps,
                 args.warmup,
-                noise_repeats=args.noise_repeats,
+                noise_repeats=VARIANT_NOISE_REPEATS.get(name, args.noise_repeats),
                 variant=name,
             )
             rounds[name].append(m["sec_per_step"])
+            cpu_rounds[name].append(m["cpu_sec_per_step"])
     first = statistics.median(rounds[args.variants[0]])
+    cpu_first = statistics.median(cpu_rounds[args.variants[0]])
     out = {}
     for name, secs in rounds.items():
         med = statistics.median(secs)
@@ -278,6 +288,10 @@ def measure_variants(preset, args, workspace, data) -> dict:
             "samples_per_s": float(f"{args.batch_size / med:.4g}"),
             "rounds": secs,
             "vs_first": round(first / med, 3),
+            # CPU seconds of this process per step (one torch thread: the work itself, whatever the load)
+            "cpu_sec_per_step": float(f"{statistics.median(cpu_rounds[name]):.4g}"),
+            "cpu_rounds": cpu_rounds[name],
+            "cpu_vs_first": round(cpu_first / statistics.median(cpu_rounds[name]), 3),
             "what": CPU_VARIANTS[name],
         }
     machine = {k: m[k] for k in ("device", "cores", "avx512", "native_bf16") if k in m}
