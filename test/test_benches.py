@@ -230,7 +230,7 @@ def test_each_gate_stops_bench_generalization_before_the_roll_outs_it_guards(tmp
     out = capsys.readouterr()
     result = json.loads(out.out.strip().splitlines()[-1])
     assert "[eval]" not in out.out and result["under_fit"] == ["baseline"]
-    assert result["verdict"].startswith("under-fit: baseline (4.19x)") and "too small" not in result["verdict"]
+    assert result["verdict"].startswith("under-fit: baseline (4.19x EquiDiff's)") and "too small" not in result["verdict"]
     assert result["baseline_in_range_success"] is None and result["train_fit_vs_equidiff"]["baseline_aug"] == 1.25
     # all fit: the in-range roll-outs run, and the in-range gate stops the unseen ones (1 s solves nothing)
     trained = _trained_dir(tmp_path / "b", names, {"equidiff": 0.016, "baseline": 0.02, "baseline_aug": 0.02})

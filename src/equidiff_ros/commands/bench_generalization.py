@@ -374,10 +374,10 @@ def _report_under_fit(args, out: Path, underfit: list, fits: dict, recipes: dict
     ratios = fit_ratios(fits, "equidiff")
     verdict = (
         "under-fit: "
-        + ", ".join(f"{name} ({ratios[name]}x)" for name in underfit)
-        + f" DDIM action error on its training samples is more than {args.max_fit_ratio:g}x EquiDiff's "
-        f"({fits['equidiff']['pos_err_m'] * 100:.1f} cm): it has not fit its own demos, so its roll-outs would "
-        "measure the network or the budget, not generalisation; not rolled out"
+        + ", ".join(f"{name} ({ratios[name]}x EquiDiff's)" for name in underfit)
+        + f": the DDIM action error on a policy's own training samples is more than {args.max_fit_ratio:g}x "
+        f"EquiDiff's ({fits['equidiff']['pos_err_m'] * 100:.1f} cm), so it has not fit its demos and its "
+        "roll-outs would measure its network or training, not generalisation; nothing rolled out"
     )
     result = {
         **{f"{name}_success": None for name in POLICIES},
