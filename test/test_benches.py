@@ -271,6 +271,7 @@ def test_bench_demos_trains_in_parts_then_rolls_out_once_and_plots(tmp_path, cap
     assert [name for name, _ in started] == ["equidiff_1", "equidiff_2", "baseline_1", "baseline_2"]
     assert result["success"] == {"equidiff": {"1": 0.0, "2": 0.0}, "baseline": {"1": 0.0, "2": 0.0}}
     assert result["stages"]["baseline_2"]["episodes"] == 1 and result["under_fit"] == []
+    assert result["encoders"]["baseline_1"].startswith("plain Conv3d, width 32")  # tiny's baseline
     assert (out / "success_vs_demos.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     # a third call trains nothing and rolls nothing out again
     assert main(argv) == 0

@@ -79,18 +79,29 @@ def evaluate_runs(
     device: str = "cpu",
     log=print,
 ) -> dict:
-    """Roll out every run ``runs_dir/<policy>_<count>/policy.pt`` on the same ``episodes`` in-range scenes and
+    """Roll out every run ``runs_dir/<policy>_<count>/policy.pt`` (or its committed ``weights.ckpt``,
+    ``training_runs.run_policy``) on the same ``episodes`` in-range scenes and
     return the bench's result (see the module doc); ValueError when the runs' recipes differ.
 
     Roll-outs are saved in ``out/<run>/rollouts.json`` and reused by a later call with the same scenes,
     settings and policy file."""
     import time
 
-    from ..inference import load_inference_policy
+    from ..inference import load_inference_policy, read_policy_file
+    from ..presets import preset_from_dict
     from ..twin.demos import DirectRecorder
     from ..twin.evaluate import evaluate_policy, in_range_yaw_seeds
     from .rollouts import load_rollouts, save_rollouts, summarize
-    from .training_runs import fit_ratios, recipe_differences, trained_steps, training_fit, training_recipe, under_fit
+    from .training_runs import (
+        encoder_summary,
+        fit_ratios,
+        recipe_differences,
+        run_policy,
+        trained_steps,
+        training_fit,
+        training_recipe,
+        under_fit,
+    )
 
     names = [run_name(p, n) for p in POLICIES for n in counts]
     recipes = {name: training_recipe(runs_dir / name) for name in names}
@@ -107,10 +118,10 @@ def evaluate_runs(
         underfit += [run_name(p, n) for p in under_fit(at_n, "equidiff", max_fit_ratio)]
     seeds = in_range_yaw_seeds(cfg, train_yaw, episodes)
     t0 = time.monotonic()
-    summaries, rec = {}, None
+    summaries, encoders, rec = {}, {}, None
     try:
         for name in names:
-            policy_file = runs_dir / name / "policy.pt"
+            policy_file = run_policy(runs_dir / name, out / name)
             settings = {
                 "seeds": seeds,
                 "max_duration_s": max_duration_s,
@@ -136,6 +147,8 @@ def evaluate_runs(
             else:
                 log(f"[{name}] {len(done)} roll-outs reused from {cache}")
             summaries[name] = summarize(done)
+            config, _ = read_policy_file(policy_file)
+            encoders[name] = encoder_summary(config["policy"], preset_from_dict(config["preset"]))
     finally:
         if rec is not None:
             rec.close()
@@ -152,6 +165,7 @@ def evaluate_runs(
         "eval_episodes": episodes,
         "eval_scenes": f"block yaw inside the demos' range {list(train_yaw)} (modulo 180 deg), seeds {seeds[0]}..",
         "stages": summaries,
+        "encoders": encoders,
         "train_fit": fits,
         "train_fit_vs_equidiff": ratios,
         "under_fit": underfit,

@@ -195,3 +195,37 @@ def fit_ratios(fits: dict[str, dict | None], reference: str) -> dict[str, float 
         else round(fit["pos_err_m"] / ref["pos_err_m"], 2)
         for name, fit in fits.items()
     }
+
+
+# a finished run's committed weights when its policy.pt is not kept (training.slim_checkpoint)
+SLIM_CHECKPOINT = "weights.ckpt"
+
+
+def run_policy(run_dir: Path, cache_dir: Path) -> Path:
+    """The exported policy of the finished run in ``run_dir``: its ``policy.pt``, else its ``weights.ckpt``
+    (``training.slim_checkpoint``) exported once into ``cache_dir/policy.pt``; FileNotFoundError if neither."""
+    policy = run_dir / "policy.pt"
+    if policy.is_file():
+        return policy
+    slim = run_dir / SLIM_CHECKPOINT
+    if not slim.is_file():
+        raise FileNotFoundError(f"no {policy} or {slim}")
+    cached = cache_dir / "policy.pt"
+    if not cached.is_file() or cached.stat().st_mtime < slim.stat().st_mtime:
+        from ..inference import export_policy
+        from ..training import load_policy_from_checkpoint
+
+        cache_dir.mkdir(parents=True, exist_ok=True)
+        export_policy(load_policy_from_checkpoint(slim), cached)
+    return cached
+
+
+def encoder_summary(policy_name: str, preset) -> str:
+    """What a policy's voxel encoder is, for a bench's JSON: EquiDiff's escnn fields or the baseline's width."""
+    if policy_name == "equidiff":
+        return f"escnn C{preset.group_order}, regular fields {'/'.join(map(str, preset.encoder_channels))}"
+    from ..models.baseline import baseline_encoder_channels
+
+    width = f"width {preset.baseline_width}" if preset.baseline_width else "parameter-matched"
+    channels = "/".join(map(str, baseline_encoder_channels(preset)))
+    return f"plain Conv3d, {width} (channels {channels}), {preset.baseline_init} init"

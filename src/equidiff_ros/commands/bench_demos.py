@@ -32,7 +32,14 @@ from pathlib import Path
 
 from equidiff_core.benches.demo_sets import demos_off_range, ensure_demos, nested_subsets
 from equidiff_core.benches.demos import DEMO_COUNTS, POLICIES, run_name
-from equidiff_core.benches.training_runs import MAX_FIT_RATIO, Recipe, TrainRunError, start_run, wait_for_runs
+from equidiff_core.benches.training_runs import (
+    MAX_FIT_RATIO,
+    SLIM_CHECKPOINT,
+    Recipe,
+    TrainRunError,
+    start_run,
+    wait_for_runs,
+)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -152,9 +159,14 @@ def run(args: argparse.Namespace) -> int:
                 )
             )
             return 0
-    missing = [name for name in all_runs if not (runs_dir / name / "policy.pt").is_file()]
+    missing = [
+        name for name in all_runs if not any((runs_dir / name / f).is_file() for f in ("policy.pt", SLIM_CHECKPOINT))
+    ]
     if missing:
-        print(f"equidiff bench demos: no policy.pt for {', '.join(missing)} in {runs_dir}", file=sys.stderr)
+        print(
+            f"equidiff bench demos: no policy.pt or {SLIM_CHECKPOINT} for {', '.join(missing)} in {runs_dir}",
+            file=sys.stderr,
+        )
         return 2
     from equidiff_core.benches.demos import evaluate_runs
 

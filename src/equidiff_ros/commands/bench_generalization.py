@@ -64,8 +64,10 @@ from equidiff_core.benches.training_runs import (
     MAX_FIT_RATIO,
     Recipe,
     TrainRunError,
+    encoder_summary,
     fit_ratios,
     recipe_differences,
+    run_policy,
     start_run,
     trained_steps,
     training_fit,
@@ -269,12 +271,13 @@ def run(args: argparse.Namespace) -> int:
 
     if args.trained is not None:
         try:
-            policies, steps_done = _trained_policies(args.trained)
+            policies, steps_done = _trained_policies(args.trained, out)
         except FileNotFoundError as err:
             print(f"equidiff bench generalization: {err}", file=sys.stderr)
             return 2
         n_demos = count_demos(args.demos_dir) if args.demos_dir else _trained_demos(args.trained / "equidiff")
-        return _evaluate(args, cfg, lab, out, policies, steps_done, n_demos, {})
+        run_dirs = {name: args.trained / name for name in POLICIES}
+        return _evaluate(args, cfg, lab, out, policies, steps_done, n_demos, {}, run_dirs)
     demos_dir, n_demos = ensure_demos(
         args.demos_dir, out, args.demos, train_cfg, lab, args.seed, log=lambda s: print(s, flush=True)
     )
@@ -332,13 +335,16 @@ def run(args: argparse.Namespace) -> int:
     )
 
 
-def _trained_policies(folder: Path) -> tuple[dict, dict]:
-    """Policies and steps trained of a finished run laid out like this bench's own (DIR/<policy>/policy.pt)."""
-    policies = {name: folder / name / "policy.pt" for name in POLICIES}
-    for path in policies.values():
-        if not path.is_file():
+def _trained_policies(folder: Path, out: Path) -> tuple[dict, dict]:
+    """Policies and steps trained of a finished run laid out like this bench's own (DIR/<policy>/policy.pt,
+    or a committed DIR/<policy>/weights.ckpt exported into OUT/<policy>/)."""
+    policies = {}
+    for name in POLICIES:
+        try:
+            policies[name] = run_policy(folder / name, out / name)
+        except FileNotFoundError as err:
             needed = ", ".join(f"DIR/{name}/policy.pt" for name in POLICIES)
-            raise FileNotFoundError(f"no {path}: --trained needs {needed}")
+            raise FileNotFoundError(f"{err}: --trained needs {needed} (or weights.ckpt)") from None
     return policies, {name: trained_steps(folder / name) for name in policies}
 
 
@@ -401,7 +407,9 @@ def _report_under_fit(args, out: Path, underfit: list, fits: dict, recipes: dict
     return 4
 
 
-def _evaluate(args, cfg, lab, out: Path, policies: dict, steps_done: dict, n_demos, minutes: dict) -> int:
+def _evaluate(
+    args, cfg, lab, out: Path, policies: dict, steps_done: dict, n_demos, minutes: dict, run_dirs: dict | None = None
+) -> int:
     """The training-fit gate, in-range rollouts of every policy, the in-range gate, then (if both passed)
     the unseen-yaw rollouts.
 
@@ -411,7 +419,8 @@ def _evaluate(args, cfg, lab, out: Path, policies: dict, steps_done: dict, n_dem
     from equidiff_core.twin.demos import DirectRecorder
     from equidiff_core.twin.evaluate import evaluate_policy, in_range_yaw_seeds, unseen_yaw_seeds, yaw_breakdown
 
-    recipes = {name: training_recipe(path.parent) for name, path in policies.items()}
+    run_dirs = run_dirs or {name: path.parent for name, path in policies.items()}
+    recipes = {name: training_recipe(run_dirs[name]) for name in policies}
     differences = recipe_differences(recipes)
     if differences:
         print(
@@ -422,7 +431,7 @@ def _evaluate(args, cfg, lab, out: Path, policies: dict, steps_done: dict, n_dem
         )
         return 2
     # the second gate, before any roll-out: a policy that has not fit its own demos is under-fit
-    fits = {name: training_fit(path.parent) for name, path in policies.items()}
+    fits = {name: training_fit(run_dirs[name]) for name in policies}
     underfit = under_fit(fits, "equidiff", args.max_fit_ratio)
     if underfit:
         return _report_under_fit(args, out, underfit, fits, recipes, steps_done, n_demos, minutes)
@@ -487,6 +496,7 @@ def _evaluate(args, cfg, lab, out: Path, policies: dict, steps_done: dict, n_dem
         "eval_yaw": f"block yaw >= 15 deg outside the training range, modulo 180 deg (seeds {seeds[0]}..)",
         "preset": "/".join(sorted({p.preset.name for p in loaded.values()})),  # as the policies were trained
         "rotation_aug": {name: p.preset.rotation_aug for name, p in loaded.items()},
+        "encoders": {name: encoder_summary(p.name, p.preset) for name, p in loaded.items()},
         "device": args.device,  # of the evaluation; the training's is in training_recipes
         "training_recipes": recipes,
         "minutes": {**minutes, "eval": round((t_end - t_eval) / 60, 1)},
