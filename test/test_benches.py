@@ -351,6 +351,7 @@ def test_bench_policy_times_the_old_relu_order_in_the_same_run():
     )
     result = json.loads(out.stdout.strip().splitlines()[-1])
     assert result["relu_before_pool"]["encoder_ms"] > 0 and result["relu_before_pool"]["ddim16_median_ms"] > 0
+    assert result["relu_order_cpu_ms"].keys() == {"pool_before_relu", "relu_before_pool"}
 
 
 def test_train_refuses_a_baseline_width_the_official_pattern_cannot_take(tmp_path, capsys):

@@ -164,9 +164,26 @@ def run(args) -> int:
         old.warmup(3)
         old_enc = _timed(lambda: old.encode(vox, ee), max(5, args.iters // 3), sync)
         old_ddim = _timed(lambda: old.predict(vox, ee, seed=0), args.iters, sync)
+        # and both orders alternately in this process's CPU time, which a loaded machine's waiting leaves out
+        cpu = {"pool_before_relu": ([], []), "relu_before_pool": ([], [])}
+        for _ in range(args.iters):
+            for label, policy in (("pool_before_relu", fast), ("relu_before_pool", old)):
+                encoder_times, ddim_times = cpu[label]
+                t0 = time.process_time()
+                policy.encode(vox, ee)
+                sync()
+                t1 = time.process_time()
+                policy.predict(vox, ee, seed=0)
+                sync()
+                encoder_times.append((t1 - t0) * 1000)
+                ddim_times.append((time.process_time() - t1) * 1000)
         result["relu_before_pool"] = {
             "encoder_ms": round(float(np.median(old_enc)), 2),
             "ddim16_median_ms": round(float(np.median(old_ddim)), 2),
+        }
+        result["relu_order_cpu_ms"] = {
+            label: {"encoder": round(float(np.median(e)), 2), "ddim16": round(float(np.median(d)), 2)}
+            for label, (e, d) in cpu.items()
         }
     if eager is not None and args.eager_iters > 0:
         obs = {"voxels": vox_t.to(device), "ee": ee_t.to(device)}
