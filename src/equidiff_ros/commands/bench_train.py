@@ -60,7 +60,8 @@ CPU_VARIANTS = {
     "default": "fp32, the encoder's max-pools before their ReLUs (training's CPU default)",
     "relu_before_pool": "each ReLU before the max-pool after it, the order before (the 56^3 ReLU and its backward)",
     "bf16": "bf16 autocast (the CPU's AVX512-BF16 / AMX, if any)",
-    "channels_last": "the voxel input in channels_last_3d memory format (oneDNN's preferred layout)",
+    "channels_last": "the voxel input in channels_last_3d memory format (the baseline's default already)",
+    "contiguous_input": "the voxel input in the contiguous (N, C, D, H, W) format (the baseline's before)",
     "one_noise_draw": "1 (noise, step) draw per encoder pass instead of --noise-repeats",
     "eight_noise_draws": "8 (noise, step) draws per encoder pass instead of --noise-repeats",
 }
@@ -73,15 +74,16 @@ def _apply_variant(policy, variant: str) -> str:
     import torch
 
     encoder = policy.model.encoder
-    if variant == "channels_last":
+    if variant in ("channels_last", "contiguous_input"):
+        layout = torch.channels_last_3d if variant == "channels_last" else torch.contiguous_format
 
-        def to_channels_last(module, inputs):
+        def to_layout(module, inputs):
             x = inputs[0]
             if isinstance(x, torch.Tensor):
-                return (x.contiguous(memory_format=torch.channels_last_3d),)
-            return (type(x)(x.tensor.contiguous(memory_format=torch.channels_last_3d), x.type),)  # escnn
+                return (x.contiguous(memory_format=layout),)
+            return (type(x)(x.tensor.contiguous(memory_format=layout), x.type),)  # escnn
 
-        encoder.register_forward_pre_hook(to_channels_last)
+        encoder.register_forward_pre_hook(to_layout)
     return "bf16" if variant == "bf16" else "fp32"
 
 
