@@ -230,7 +230,9 @@ def test_each_gate_stops_bench_generalization_before_the_roll_outs_it_guards(tmp
     out = capsys.readouterr()
     result = json.loads(out.out.strip().splitlines()[-1])
     assert "[eval]" not in out.out and result["under_fit"] == ["baseline"]
-    assert result["verdict"].startswith("under-fit: baseline (4.19x EquiDiff's)") and "too small" not in result["verdict"]
+    assert (
+        result["verdict"].startswith("under-fit: baseline (4.19x EquiDiff's)") and "too small" not in result["verdict"]
+    )
     assert result["baseline_in_range_success"] is None and result["train_fit_vs_equidiff"]["baseline_aug"] == 1.25
     # all fit: the in-range roll-outs run, and the in-range gate stops the unseen ones (1 s solves nothing)
     trained = _trained_dir(tmp_path / "b", names, {"equidiff": 0.016, "baseline": 0.02, "baseline_aug": 0.02})
@@ -363,3 +365,16 @@ def test_train_refuses_a_baseline_width_the_official_pattern_cannot_take(tmp_pat
     )
     assert "baseline_width must be a multiple of 16" in capsys.readouterr().err
     assert not (tmp_path / "run").exists()
+
+
+def test_a_run_folder_can_name_another_benchs_run_instead_of_a_copy(tmp_path):
+    from equidiff_core.benches.training_runs import resolve_run, run_policy, training_fit
+
+    _trained_dir(tmp_path / "generalization", ["equidiff"], {"equidiff": 0.016})
+    (tmp_path / "demos" / "equidiff_40").mkdir(parents=True)
+    (tmp_path / "demos" / "equidiff_40" / "same_as").write_text("../../generalization/equidiff\n")
+    run = resolve_run(tmp_path / "demos" / "equidiff_40")
+    assert run == (tmp_path / "generalization" / "equidiff").resolve()
+    assert run_policy(tmp_path / "demos" / "equidiff_40", tmp_path / "cache") == run / "policy.pt"
+    assert training_fit(run)["pos_err_m"] == 0.016
+    assert resolve_run(tmp_path / "generalization" / "equidiff") == tmp_path / "generalization" / "equidiff"

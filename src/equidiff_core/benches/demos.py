@@ -96,6 +96,7 @@ def evaluate_runs(
         encoder_summary,
         fit_ratios,
         recipe_differences,
+        resolve_run,
         run_policy,
         trained_steps,
         training_fit,
@@ -104,13 +105,14 @@ def evaluate_runs(
     )
 
     names = [run_name(p, n) for p in POLICIES for n in counts]
-    recipes = {name: training_recipe(runs_dir / name) for name in names}
+    run_dirs = {name: resolve_run(runs_dir / name) for name in names}
+    recipes = {name: training_recipe(run_dirs[name]) for name in names}
     differences = recipe_differences(recipes)
     if differences:
         raise ValueError(
             "the runs were not trained with the same recipe (" + "; ".join(differences) + "): retrain the odd ones out"
         )
-    fits = {name: training_fit(runs_dir / name) for name in names}
+    fits = {name: training_fit(run_dirs[name]) for name in names}
     ratios, underfit = {}, []
     for n in counts:
         at_n = {p: fits[run_name(p, n)] for p in POLICIES}
@@ -170,7 +172,7 @@ def evaluate_runs(
         "train_fit_vs_equidiff": ratios,
         "under_fit": underfit,
         "max_fit_ratio": max_fit_ratio,
-        "train_steps": {name: trained_steps(runs_dir / name) for name in names},
+        "train_steps": {name: trained_steps(run_dirs[name]) for name in names},
         "recipe": recipe,
         "max_duration_s": max_duration_s,
         "latency_budget_ms": round(latency_s * 1000, 1),

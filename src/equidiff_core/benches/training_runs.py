@@ -201,9 +201,24 @@ def fit_ratios(fits: dict[str, dict | None], reference: str) -> dict[str, float 
 SLIM_CHECKPOINT = "weights.ckpt"
 
 
+# a run folder holding only this file is another bench's run (its relative path inside): one EquiDiff
+# trained on the 40 demos serves bench generalization and bench demos without a second copy
+SAME_AS = "same_as"
+
+
+def resolve_run(run_dir: Path) -> Path:
+    """``run_dir``, or the run its ``same_as`` file names (relative to ``run_dir``)."""
+    pointer = run_dir / SAME_AS
+    if pointer.is_file():
+        return (run_dir / pointer.read_text().strip()).resolve()
+    return run_dir
+
+
 def run_policy(run_dir: Path, cache_dir: Path) -> Path:
-    """The exported policy of the finished run in ``run_dir``: its ``policy.pt``, else its ``weights.ckpt``
-    (``training.slim_checkpoint``) exported once into ``cache_dir/policy.pt``; FileNotFoundError if neither."""
+    """The exported policy of the finished run in ``run_dir`` (``resolve_run``): its ``policy.pt``, else its
+    ``weights.ckpt`` (``training.slim_checkpoint``) exported once into ``cache_dir/policy.pt``;
+    FileNotFoundError if neither."""
+    run_dir = resolve_run(run_dir)
     policy = run_dir / "policy.pt"
     if policy.is_file():
         return policy

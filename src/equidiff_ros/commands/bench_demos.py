@@ -37,6 +37,7 @@ from equidiff_core.benches.training_runs import (
     SLIM_CHECKPOINT,
     Recipe,
     TrainRunError,
+    resolve_run,
     start_run,
     wait_for_runs,
 )
@@ -143,7 +144,7 @@ def run(args: argparse.Namespace) -> int:
             print(f"equidiff bench demos: {err}\nrerun the same command to resume", file=sys.stderr)
             return 1
         minutes["train"] = round((time.monotonic() - t_train) / 60, 1)
-        pending = [name for name in all_runs if not (out / name / "policy.pt").is_file()]
+        pending = [name for name in all_runs if not (resolve_run(out / name) / "policy.pt").is_file()]
         if pending:
             print(
                 json.dumps(
@@ -160,7 +161,9 @@ def run(args: argparse.Namespace) -> int:
             )
             return 0
     missing = [
-        name for name in all_runs if not any((runs_dir / name / f).is_file() for f in ("policy.pt", SLIM_CHECKPOINT))
+        name
+        for name in all_runs
+        if not any((resolve_run(runs_dir / name) / f).is_file() for f in ("policy.pt", SLIM_CHECKPOINT))
     ]
     if missing:
         print(
@@ -219,7 +222,7 @@ def _train(args, out: Path, subsets: dict[int, list[Path]]) -> list[str]:
         for policy in POLICIES
         if policy in args.policies
         for n in counts
-        if n in subsets and not (out / run_name(policy, n) / "policy.pt").is_file()
+        if n in subsets and not (resolve_run(out / run_name(policy, n)) / "policy.pt").is_file()
     ]
     if not todo:
         return []
