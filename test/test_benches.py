@@ -267,6 +267,7 @@ def test_bench_demos_trains_in_parts_then_rolls_out_once_and_plots(tmp_path, cap
     assert main([*argv, "--policies", "equidiff", "--train-counts", "1", "2"]) == 0
     first = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert first["trained"] == ["equidiff_1", "equidiff_2"] and first["pending"] == ["baseline_1", "baseline_2"]
+    assert "--policies baseline --train-counts 1 2 with" in first["next"]
     assert [len(bags) for _, bags in started] == [1, 2]  # nested subsets: the first 1, the first 2
     assert main([*argv, "--policies", "baseline"]) == 0
     result = json.loads(capsys.readouterr().out.strip().splitlines()[-1])

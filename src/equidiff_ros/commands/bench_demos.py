@@ -88,7 +88,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         type=Path,
         default=None,
         metavar="DIR",
-        help="roll out DIR/<policy>_<count>/policy.pt; train nothing",
+        help="roll out DIR/<policy>_<count>/policy.pt (or weights.ckpt; a folder with only same_as names another "
+        "bench's run); train nothing",
     )
     parser.add_argument("--plot", type=Path, default=None, help="also write the PNG here")
     parser.add_argument("--lab-config", type=Path, default=None)
@@ -153,8 +154,11 @@ def run(args: argparse.Namespace) -> int:
                         "trained": trained_now,
                         "pending": pending,
                         "out": str(out),
-                        "next": f"equidiff bench demos --out {out} --demos-dir {demos_dir} --policies ... --train-counts ... "
-                        "with this call's recipe flags (pending: " + ", ".join(pending) + ")",
+                        "next": f"equidiff bench demos --out {out} --demos-dir {demos_dir} --policies "
+                        + " ".join(p for p in POLICIES if any(name.startswith(p + "_") for name in pending))
+                        + " --train-counts "
+                        + " ".join(str(n) for n in args.counts if any(name.endswith(f"_{n}") for name in pending))
+                        + " with this call's recipe flags",
                         "minutes": minutes,
                     }
                 )
