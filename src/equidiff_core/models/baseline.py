@@ -80,8 +80,8 @@ class BaselineNoisePredictor(nn.Module):
     def encode_obs(self, voxels: torch.Tensor, ee: torch.Tensor) -> torch.Tensor:
         B = voxels.shape[0]
         # channels-last 3D: oneDNN's fast layout for these few-channel convolutions (a compact training
-        # step's encoder took 0.28 CPU s instead of 0.48, `equidiff bench train --variants`; EquiDiff's
-        # escnn convolutions gained nothing from it)
+        # step took 0.37 CPU s instead of 0.60, `equidiff bench train --variants`, docs/model.md;
+        # EquiDiff's escnn convolutions gained nothing from it)
         x = voxels.flatten(0, 1).contiguous(memory_format=torch.channels_last_3d)
         feats = self.encoder(x).reshape(B, -1)
         return torch.cat([feats, ee.reshape(B, -1).to(feats.dtype)], dim=1)
