@@ -576,7 +576,7 @@ def verify(directory: Path) -> dict:
     import numpy as np
     import torch
 
-    from equidiff_core.benchmarks import probe_observation
+    from equidiff_core.benches.timing import probe_observation
     from equidiff_core.inference import load_inference_policy
     from equidiff_core.training import load_policy_from_checkpoint, load_training_checkpoint
 
@@ -610,7 +610,7 @@ def check_ddp(run_dir: Path) -> dict:
     import numpy as np
 
     from equidiff_core import distributed
-    from equidiff_core.benchmarks import probe_observation
+    from equidiff_core.benches.timing import probe_observation
     from equidiff_core.inference import load_inference_policy
     from equidiff_core.training import load_policy_from_checkpoint
 

@@ -13,7 +13,7 @@ from types import SimpleNamespace
 
 import pytest
 
-from equidiff_core.benchmarks import InferenceMode, best_mode, parse_training_runs
+from equidiff_core.benches.timing import InferenceMode, best_mode, parse_training_runs
 
 ROOT = Path(__file__).resolve().parents[1]
 SAMPLE_BAG = ROOT / "bags" / "sample_pick_0000"

@@ -277,3 +277,30 @@ def test_overfits_tiny_dataset(tmp_path):
     for own, other, width_err in errors:
         assert own < 0.015 and own < other / 3, errors
         assert width_err < 0.03, errors
+
+
+def test_a_slim_checkpoint_is_the_smallest_file_that_reproduces_the_exported_policy(tmp_path):
+    """What gets committed of a finished run: the exported (EMA) escnn weights only, a third of the
+    expanded policy.pt and of last.ckpt; exported again on load it predicts exactly as policy.pt."""
+    from equidiff_core.benches.training_runs import run_policy
+    from equidiff_core.training import slim_checkpoint
+
+    ds = CubeDataset(3, seed=6)
+    torch.manual_seed(0)
+    policy = make_policy("equidiff", get_preset("tiny"), WS)
+    train(policy, ds, None, _quick_cfg(steps=3, ema=True, eval_every=0), tmp_path / "run")
+    (tmp_path / "run" / "policy.pt").rename(tmp_path / "exported.pt")
+    slim = slim_checkpoint(tmp_path / "run" / "last.ckpt", tmp_path / "run" / "weights.ckpt")
+    assert slim.stat().st_size < 0.5 * (tmp_path / "run" / "last.ckpt").stat().st_size
+    assert slim.stat().st_size < 0.7 * (tmp_path / "exported.pt").stat().st_size  # compact: 5 MB against 16
+    state = load_training_checkpoint(slim)
+    assert state["optimizer"] is None and state["ema"] is None and state["step"] == 3
+    (tmp_path / "run" / "last.ckpt").unlink()
+    exported_again = run_policy(tmp_path / "run", tmp_path / "cache")
+    assert exported_again == tmp_path / "cache" / "policy.pt"
+    sample = ds[0]
+    a, b = (load_inference_policy(p) for p in (tmp_path / "exported.pt", exported_again))
+    vox, ee = sample["voxels"][0].numpy(), sample["ee"][0].numpy()
+    np.testing.assert_array_equal(a.predict(vox, ee, seed=1), b.predict(vox, ee, seed=1))
+    with pytest.raises(FileNotFoundError, match="weights.ckpt"):
+        run_policy(tmp_path / "nothing", tmp_path / "cache2")

@@ -13,6 +13,9 @@
   a narrower U-Net, so DDIM-16 runs at 5 Hz with margin on a 2-core CPU.
 * ``tiny``: for other areas' fast tests (one training step well under a second on a CPU).
 
+Each also sets the baseline's (DiffPo-C, Vo) encoder: the official ``CNNVoxelEncoder58`` layout at
+width ``baseline_width``, He-initialised (``models.baseline``).
+
 ``encoder_layout`` picks the encoder's stages: ``official`` (above) or ``legacy`` (this project's
 first layout: max-pools 29 → 27 → 9 → 3 → 1, a 1³ last layer, and a ReLU after the observation
 embedding). Checkpoints saved before the field existed were trained with ``legacy``, so
@@ -31,6 +34,7 @@ from .config import ConfigError, from_dict, to_dict
 
 CONTROL_MODES = ("absolute", "relative")
 ROTATION_AUGS = ("none", "c4", "c8", "continuous")
+BASELINE_INITS = ("torch", "he")
 
 # The encoder's stages, numbered 0..7 into encoder_channels: ('conv', i) a 3³ conv with padding 1
 # (same size), ('conv0', i) a 3³ conv without padding (shrinks by 2), ('conv1x1', i) a 1³ conv, each
@@ -76,9 +80,17 @@ class PolicyPreset:
     # Equivariant voxel encoder: regular fields of the 8 conv layers (channels = fields * group order).
     encoder_channels: tuple[int, ...] = (8, 16, 16, 32, 32, 64, 64, 128)
     group_order: int = 8  # C_N about the vertical axis
-    # Non-equivariant baseline encoder: plain channels per layer (None: chosen to match the
-    # equivariant encoder's parameter count, see models.baseline.matched_channels).
+    # Non-equivariant baseline (DiffPo-C, Vo) encoder. baseline_width: the official CNNVoxelEncoder58's
+    # n_hidden, channels n/16, n/8, n/8, n/4, n/4, n/2, n/2, n (pointW/equidiff's voxel config uses 256).
+    # Without it, baseline_channels gives the 8 convolutions' channels, and without those they are matched
+    # to the equivariant encoder's parameter count (the baselines trained before baseline_width existed;
+    # see models.baseline.baseline_encoder_channels).
+    baseline_width: int | None = None
     baseline_channels: tuple[int, ...] | None = None
+    # How the baseline's convolutions start: "torch" (PyTorch's default, as the official code leaves them)
+    # or "he" (He-normal weights, zero biases: what escnn gives EquiDiff's convolutions). docs/model.md
+    # measures why it matters: with "torch" the block's signal fades ~2.5x per layer.
+    baseline_init: str = "torch"
     obs_hidden: int = 128  # regular fields of the observation embedding (U-Net cond per group element)
     action_hidden: int = 64  # regular fields of the action embedding (U-Net input channels)
     down_dims: tuple[int, ...] = (256, 512, 1024)
@@ -105,6 +117,12 @@ class PolicyPreset:
             )
         if self.baseline_channels is not None and len(self.baseline_channels) != 8:
             raise ValueError(f"baseline_channels must have 8 entries, got {len(self.baseline_channels)}")
+        if self.baseline_width is not None and (self.baseline_width < 16 or self.baseline_width % 16):
+            raise ValueError(
+                f"baseline_width must be a multiple of 16 (its first layer has n/16), got {self.baseline_width}"
+            )
+        if self.baseline_init not in BASELINE_INITS:
+            raise ValueError(f"baseline_init must be one of {BASELINE_INITS}, got {self.baseline_init!r}")
         if self.control not in CONTROL_MODES:
             raise ValueError(f"control must be one of {CONTROL_MODES}, got {self.control!r}")
         if self.rotation_aug not in ROTATION_AUGS:
@@ -150,8 +168,13 @@ def encoder_output_size(crop: int, layout: str) -> int:
     return encoder_sizes(crop, layout)[-1]
 
 
+# DiffPo-C (Vo)'s width per preset: paper the official voxel config's enc_n_hidden (256); compact 128,
+# whose first layer has EquiDiff compact's 8 channels at 56³ (one C8 regular field) and whose training
+# step costs about EquiDiff's (docs/model.md); tiny the smallest with 2 first-layer channels. All start
+# He-initialised, as escnn starts EquiDiff's convolutions (docs/model.md: with PyTorch's default the
+# baseline's features did not respond to the block).
 PRESETS: dict[str, PolicyPreset] = {
-    "paper": PolicyPreset(name="paper"),
+    "paper": PolicyPreset(name="paper", baseline_width=256, baseline_init="he"),
     # Measured cost on the 2-core CPU (see docs/model.md): the 56^3 and 28^3 convolutions
     # dominate, so the first fields are cut hardest; the 12^3 and 6^3 stages of the official layout
     # cost more than the legacy 9^3 and 3^3 ones, so they are halved against the legacy compact
@@ -165,6 +188,8 @@ PRESETS: dict[str, PolicyPreset] = {
         down_dims=(32, 64, 128),
         kernel_size=5,
         diffusion_step_embed_dim=64,
+        baseline_width=128,
+        baseline_init="he",
     ),
     "tiny": PolicyPreset(
         name="tiny",
@@ -174,6 +199,8 @@ PRESETS: dict[str, PolicyPreset] = {
         down_dims=(32, 64),
         kernel_size=3,
         diffusion_step_embed_dim=32,
+        baseline_width=32,
+        baseline_init="he",
     ),
 }
 

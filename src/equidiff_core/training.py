@@ -41,7 +41,7 @@ from torch.utils.data import DataLoader, Dataset
 from . import distributed
 from .batches import DeviceBatchSource, estimate_nbytes, loader_batches, make_sampler
 from .config import to_dict
-from .models.state import learned_state_dict, load_learned_state, refresh_escnn_caches
+from .models.state import learned_state_dict, load_learned_state, parameters_only, refresh_escnn_caches
 from .normalizer import Normalizer
 from .policies import DiffusionPolicy
 
@@ -436,6 +436,26 @@ def without_optimizer_state(path: str | Path, out: str | Path) -> Path:
 
     state = load_training_checkpoint(path)
     state["optimizer"] = None
+    return save_atomically(state, Path(out))
+
+
+def slim_checkpoint(path: str | Path, out: str | Path) -> Path:
+    """The smallest file that reproduces a finished run's policy, for committing: ``path``'s training
+    checkpoint with the weights the run exports (the EMA when it kept one) as its only weights, and only
+    the parameters (escnn's sampled bases are rebuilt with the model), no raw weights, EMA or optimiser
+    moments; history, schedule and config stay. For the compact EquiDiff it holds the 1.3 M escnn
+    parameters (~5 MB) where the exported ``policy.pt`` holds the expanded plain filters (~16 MB). ``load_policy_from_checkpoint`` and ``export_policy`` rebuild the exported policy
+    from it exactly; a resume from it would start from the averaged weights with fresh moments."""
+    from .inference import save_atomically
+
+    state = load_training_checkpoint(path)
+    policy = load_policy_from_checkpoint(path, ema=True)
+    state["model"] = parameters_only(policy.model)
+    state["ema"] = None
+    state["optimizer"] = None
+    history = json.loads(state["history_json"])
+    history.append({"step": int(state["step"]), "slimmed": "weights are the exported (EMA) ones; no optimiser state"})
+    state["history_json"] = json.dumps(history)
     return save_atomically(state, Path(out))
 
 

@@ -24,6 +24,10 @@ COMMANDS: dict[tuple[str, ...], tuple[str, str]] = {
     ("replay",): ("replay", "publish a recorded bag into the live ROS graph"),
     ("viz",): ("viz", "rerun visualisation of the live graph, or convert bags to .rrd"),
     ("check", "equivariance"): ("check_equivariance", "measure the noise predictor's C4/C8 equivariance error"),
+    ("check", "conditioning"): (
+        "check_conditioning",
+        "does a policy look at its observation? its features and actions when the block moves",
+    ),
     ("bench", "voxelize"): ("bench_voxelize", "time voxelising 3 x 300k points against open3d"),
     ("bench", "policy"): ("bench_policy", "time the encoder, one denoising step and DDIM-16"),
     ("bench", "train"): ("bench_train", "training samples/s on the CPU and on CUDA, same run"),
@@ -31,6 +35,10 @@ COMMANDS: dict[tuple[str, ...], tuple[str, str]] = {
     ("bench", "generalization"): (
         "bench_generalization",
         "EquiDiff vs the baseline with and without rotation augmentation on unseen object yaw",
+    ),
+    ("bench", "demos"): (
+        "bench_demos",
+        "sample efficiency: EquiDiff vs the baseline trained on 10, 20 and 40 demos (success per count, PNG)",
     ),
     ("bench", "safety"): ("bench_safety", "fault campaign against franky-sim through franka_node (one JSON line)"),
     ("bench", "chunking"): (

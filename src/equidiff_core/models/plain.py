@@ -7,6 +7,8 @@ with ``load_state_dict(strict=True)``. Nothing here imports escnn.
 
 from __future__ import annotations
 
+import contextlib
+
 import torch
 from torch import nn
 
@@ -14,14 +16,38 @@ from ..presets import ENCODER_LAYOUTS, PolicyPreset
 from . import action_space
 from .unet1d import ConditionalUnet1D
 
+_pool_before_relu = True  # encoder_layer_specs' order; relu_before_pool_order() builds the old one
+
+
+@contextlib.contextmanager
+def relu_before_pool_order():
+    """Encoders built inside have each ReLU before the max-pool after it, the order before
+    ``encoder_layer_specs`` swapped them: the same function at the old cost, for the benches
+    (``equidiff bench train --variants relu_before_pool``, ``equidiff bench policy --compare-relu-order``)."""
+    global _pool_before_relu
+    _pool_before_relu = False
+    try:
+        yield
+    finally:
+        _pool_before_relu = True
+
 
 def encoder_layer_specs(preset: PolicyPreset, channels: list[int]) -> list[tuple]:
-    """[(kind, in_ch, out_ch, kernel, padding) | ('relu',) | ('pool', k)] for channels[0..8]."""
+    """[(kind, in_ch, out_ch, kernel, padding) | ('relu',) | ('pool', k)] for channels[0..8].
+
+    A max-pool that follows a conv's ReLU runs before it: ReLU is monotone, so relu(maxpool(x)) ==
+    maxpool(relu(x)), and the ReLU then touches k³ times fewer values. At the first stage (56³, the
+    largest tensors) that removed most of a compact training step's ReLU and its backward
+    (docs/model.md, ``equidiff bench train --variants``). The modules hold no weights, so the order
+    changes no state-dict key and every checkpoint loads either way."""
     specs = []
     c_in = channels[0]
     for kind, arg in ENCODER_LAYOUTS[preset.encoder_layout]:
         if kind == "pool":
-            specs.append(("pool", arg))
+            if _pool_before_relu and specs and specs[-1] == ("relu",):
+                specs.insert(len(specs) - 1, ("pool", arg))
+            else:
+                specs.append(("pool", arg))
             continue
         c_out = channels[arg + 1]
         kernel, pad = {"conv": (3, 1), "conv0": (3, 0), "conv1x1": (1, 0)}[kind]

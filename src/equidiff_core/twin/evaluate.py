@@ -586,3 +586,47 @@ def _seeds_where(cfg: TwinConfig, n: int, start: int, keep: Callable[[float], bo
 def block_yaw_offset_deg(yaw_rad: float, centre_deg: float = 0.0) -> float:
     """Block yaw minus ``centre_deg``, wrapped to [-90, 90): the box's half-turn symmetry."""
     return float((np.degrees(yaw_rad) - centre_deg + 90.0) % 180.0 - 90.0)
+
+
+def _distance_to_multiple(x_deg: float, period_deg: float) -> float:
+    """|x| to the nearest multiple of ``period_deg`` (degrees)."""
+    r = x_deg % period_deg
+    return min(r, period_deg - r)
+
+
+# offset bins (degrees from the training range's centre, modulo the box's half turn) of yaw_breakdown
+OFFSET_BINS_DEG = ((0, 15), (15, 30), (30, 45), (45, 60), (60, 75), (75, 90))
+
+
+def yaw_breakdown(episodes: list[EvalEpisode], train_yaw_deg: tuple[float, float]) -> dict:
+    """Success by what EquiDiff's symmetry covers, from each episode's block yaw offset to the training
+    range's centre (modulo 180 deg: the box's half turn):
+
+    * ``mod90``: ``within`` where the offset lies within the range's half-width of a multiple of 90 deg
+      (C4, exact on the voxel grid, maps the block into the training range), ``outside`` the rest;
+    * ``mod45``: the same about multiples of 45 deg (C8's other elements, only approximate on the grid);
+    * ``by_offset_deg``: |offset| in 15-degree bins.
+
+    Each entry: ``{"episodes", "solved"}``. The scene's other parts (block position, bowl, the arm's
+    start) are not rotated with the block, so a covered yaw is not the same scene as a trained one."""
+    lo, hi = train_yaw_deg
+    centre, half = (lo + hi) / 2, (hi - lo) / 2
+
+    def tally(keep) -> dict:
+        chosen = [e for e in episodes if keep(e)]
+        return {"episodes": len(chosen), "solved": sum(e.success for e in chosen)}
+
+    def offset(e: EvalEpisode) -> float:
+        return abs((e.block_yaw_deg - centre + 90.0) % 180.0 - 90.0)
+
+    result = {}
+    for label, period in (("mod90", 90.0), ("mod45", 45.0)):
+        result[label] = {
+            "within": tally(lambda e, p=period: _distance_to_multiple(offset(e), p) <= half),
+            "outside": tally(lambda e, p=period: _distance_to_multiple(offset(e), p) > half),
+        }
+    result["by_offset_deg"] = {
+        f"{a}-{b}": tally(lambda e, a=a, b=b: a <= offset(e) < b or (b == 90 and offset(e) == 90))
+        for a, b in OFFSET_BINS_DEG
+    }
+    return result

@@ -1,10 +1,10 @@
 """`equidiff bench generalization`: EquiDiff against two non-equivariant baselines on unseen object yaw.
 
-    equidiff bench generalization                       # 40 demos, yaw in [-15, 15] deg, compact, 4000 steps
+    equidiff bench generalization                       # 40 demos, yaw in [-15, 15] deg, compact, 6000 steps
     equidiff bench generalization --train-steps 20000 --batch-size 64 --lr 1e-4 --device cuda
     equidiff bench generalization --quick               # minutes-scale plumbing check (tiny preset)
     equidiff bench generalization --trained gpu_run/ --demos-dir packed/   # policies trained elsewhere
-    equidiff bench generalization --out gen --policies equidiff --ema --noise-repeats 4   # in parts
+    equidiff bench generalization --out gen --policies equidiff      # in parts, one policy per session
 
 The paper's central claim on our twin, measured the way its appendix compares equivariance by
 construction with equivariance by data augmentation: (1) record ``--demos`` scripted-expert
@@ -13,15 +13,22 @@ demos whose block and bowl yaw are drawn from the narrow ``--train-yaw`` range (
 steps, batch and seed: ``equidiff`` (EquiDiff, Vo) and ``baseline`` (DiffPo-C, Vo) with
 ``--rotation-aug`` (default none), and ``baseline_aug`` (DiffPo-C with ``--baseline-aug``,
 default continuous rotation about z: the paper's "CNN + Aug"); (3) roll each out in closed loop
-(in-process, sim clock, same seeds), first on ``--in-range-episodes`` scenes inside the training
-range. A policy that solves fewer than ``--min-in-range`` of those has not learned the task at
-this budget, and its unseen-yaw score would say nothing: then the bench names it, says the
-budget is too small, skips the unseen-yaw rollouts and exits 3. Otherwise (4) all three are
-rolled out on scenes whose block yaw lies at least 15 deg outside the training range, modulo
-the box's half-turn symmetry (the round bowl's yaw does not matter). Prints one JSON line:
-equidiff_success, baseline_success, baseline_aug_success, their *_in_range_success,
-failed_in_range, verdict, equidiff_minus_baseline_points, goal_met (EquiDiff >= 80 % at unseen
-yaw and >= 30 points above the non-augmented baseline), demos, train_steps, ...
+(in-process, sim clock, same seeds). Two gates come before the claim is measured. First, before
+any roll-out, every policy's DDIM action error on its training samples (what ``equidiff train``
+records at its end) must be within ``--max-fit-ratio`` (1.5) times EquiDiff's: a policy above it
+has not fit its own demos, and the bench reports it *under-fit* and exits 4 (a verdict of the
+network or its training, not of the budget for generalisation). Then each is rolled out on
+``--in-range-episodes`` scenes inside the training range; a policy that solves fewer than
+``--min-in-range`` of those has not learned the task at this budget, and its unseen-yaw score
+would say nothing: the bench names it, says the budget is too small, skips the unseen-yaw
+rollouts and exits 3. Otherwise (4) all three are rolled out on scenes whose block yaw lies at
+least 15 deg outside the training range, modulo the box's half-turn symmetry (the round bowl's
+yaw does not matter). Prints one JSON line: equidiff_success, baseline_success,
+baseline_aug_success, their *_in_range_success, under_fit, failed_in_range, verdict,
+equidiff_minus_baseline_points, goal_met (EquiDiff >= 80 % at unseen yaw and >= 30 points above
+the non-augmented baseline), unseen_by_yaw (each policy's unseen-yaw episodes by whether C4 --
+offset modulo 90 deg -- or C8 -- modulo 45 deg -- maps the block into the training range),
+train_fit, demos, train_steps, ...
 
 The three must share one recipe (preset, steps, batch, lr, warm-up, seed, noise repeats, EMA,
 precision; rotation augmentation differs by design): the bench compares their ``equidiff
@@ -31,10 +38,10 @@ one policy can take a whole working session, so ``--policies`` trains a subset i
 ``--out`` holds all three, the next call rolls them out. Reused demos (``--demos-dir`` or an
 earlier call's) whose metadata records another block yaw range than ``--train-yaw`` are refused.
 
-Time on this 2-core CPU (compact preset, quiet machine): demos ~14 s each (40: 9 min); training
-~1.0 s (EquiDiff) and ~0.6 s (baselines) per step of batch 16 without rotation augmentation when
-two ran side by side with one thread each (4000 steps: ~75 min; three on two cores take longer);
-evaluation ~6 s per 30 s episode. ``--max-minutes`` gives each policy a training budget
+The default recipe (compact, 6000 steps of batch 8 with 4 noise draws per encoder pass, EMA, lr
+5e-4) is the one ``bench demos`` uses too, so one EquiDiff run on the 40 demos serves both. Time
+on this 2-core CPU (quiet machine): demos ~14 s each (40: 9-12 min); EquiDiff ~0.6 s a step
+(6000: ~67 min beside another training); evaluation ~6 s per 30 s episode. ``--max-minutes`` gives each policy a training budget
 (``equidiff train`` stops, checkpoints and exports; the steps each trained are reported).
 The measured results, with the commands that produced them, are in docs/twin.md (numbers
 live there only, so this text cannot go stale). On CUDA thousands of steps fit in minutes.
@@ -43,13 +50,31 @@ live there only, so this text cannot go stale). On CUDA thousands of steps fit i
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
-import statistics
 import subprocess
 import sys
 import time
 from pathlib import Path
+
+from equidiff_core.benches.demo_sets import count_demos, demos_off_range, ensure_demos
+from equidiff_core.benches.rollouts import summarize
+from equidiff_core.benches.training_runs import (
+    MAX_FIT_RATIO,
+    Recipe,
+    TrainRunError,
+    encoder_summary,
+    fit_ratios,
+    recipe_differences,
+    run_policy,
+    start_run,
+    trained_steps,
+    training_fit,
+    training_recipe,
+    under_fit,
+    wait_for_runs,
+)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -58,14 +83,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.epilog = __doc__.split("\n", 1)[1]
     parser.formatter_class = argparse.RawDescriptionHelpFormatter
     parser.add_argument("--demos", type=int, default=40)
-    parser.add_argument("--train-steps", type=int, default=4000)
-    parser.add_argument("--batch-size", type=int, default=16)
+    parser.add_argument("--train-steps", type=int, default=6000)
+    parser.add_argument("--batch-size", type=int, default=8)
     parser.add_argument(
         "--lr",
         type=float,
         default=5e-4,
         help="peak learning rate (default 5e-4: the shipped twin checkpoint's recipe for a few "
-        "thousand steps of batch 16; equidiff train's 1e-4 suits long runs)",
+        "thousand steps of batch 8; equidiff train's 1e-4 suits long runs)",
     )
     parser.add_argument("--eval-episodes", type=int, default=20, help="unseen-yaw episodes per policy")
     parser.add_argument(
@@ -104,12 +129,25 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "unseen yaw (0: no gate)",
     )
     parser.add_argument(
+        "--max-fit-ratio",
+        type=float,
+        default=MAX_FIT_RATIO,
+        help="before any roll-out, every policy's DDIM action error on its training samples must be within "
+        "this factor of EquiDiff's, else the bench reports it under-fit and exits 4 (0: no gate; runs that "
+        "recorded no such error are not judged)",
+    )
+    parser.add_argument(
         "--noise-repeats",
         type=int,
-        default=1,
+        default=4,
         help="(noise, step) draws per observation and encoder pass (equidiff train --noise-repeats)",
     )
-    parser.add_argument("--ema", action="store_true", help="train with an EMA of the weights (equidiff train --ema)")
+    parser.add_argument(
+        "--ema",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="train with an EMA of the weights (equidiff train --ema; default on)",
+    )
     parser.add_argument(
         "--policies",
         nargs="+",
@@ -166,71 +204,33 @@ def _recipe(name: str, args) -> tuple[str, str]:
     return name, args.rotation_aug
 
 
-class TrainRunError(RuntimeError):
-    """`equidiff train` failed, did not stop or wrote no policy."""
+def recipe_of(args) -> Recipe:
+    """The recipe every policy of this call trains with (``equidiff train``'s flags)."""
+    return Recipe(
+        preset=args.preset,
+        steps=args.train_steps,
+        batch_size=args.batch_size,
+        lr=args.lr,
+        seed=args.seed,
+        device=args.device,
+        noise_repeats=args.noise_repeats,
+        ema=args.ema,
+        max_minutes=args.max_minutes,
+        lab_config=args.lab_config,
+    )
 
 
 def _start_training(name: str, bags: Path, out: Path, args, steps: int, threads: int) -> subprocess.Popen:
     """``equidiff train`` for one of POLICIES in the background, its output in ``out/train.log``."""
     policy, rotation_aug = _recipe(name, args)
-    cmd = [
-        sys.executable,
-        "-m",
-        "equidiff_ros.cli",
-        "train",
-        str(bags),
-        "--out",
-        str(out),
-        "--policy",
-        policy,
-        "--preset",
-        args.preset,
-        "--rotation-aug",
-        rotation_aug,
-        "--steps",
-        str(steps),
-        "--batch-size",
-        str(args.batch_size),
-        "--lr",
-        str(args.lr),
-        "--seed",
-        str(args.seed),
-        "--device",
-        args.device,
-        "--val-fraction",
-        "0",
-        "--eval-every",
-        str(10**9),
-        "--checkpoint-every",
-        str(max(10, steps // 4)),
-        "--warmup-steps",
-        str(min(500, max(1, steps // 10))),
-        "--no-progress",
-    ]
-    if args.noise_repeats != 1:
-        cmd += ["--noise-repeats", str(args.noise_repeats)]
-    if args.ema:
-        cmd += ["--ema"]
-    if args.lab_config:
-        cmd += ["--lab-config", str(args.lab_config)]
-    if args.max_minutes is not None:
-        cmd += ["--max-minutes", str(args.max_minutes)]
+    cmd = dataclasses.replace(recipe_of(args), steps=steps).train_command(policy, rotation_aug, [bags], out)
     print(f"[bench] training {name}: {' '.join(cmd[3:])}", flush=True)
-    out.mkdir(parents=True, exist_ok=True)
-    with open(out / "train.log", "wb") as log:
-        return subprocess.Popen(
-            cmd,
-            stdout=log,
-            stderr=subprocess.STDOUT,
-            stdin=subprocess.DEVNULL,
-            env={**os.environ, "OMP_NUM_THREADS": str(threads), "MKL_NUM_THREADS": str(threads)},
-        )
+    return start_run(cmd, out, threads)
 
 
 def _train_all(demos_dir: Path, out: Path, args) -> dict[str, Path]:
     """The policies at the same time, the CPU cores shared out (torch's intra-op threads scale
-    poorly on few cores): two runs of 4000 steps took 75 min side by side on the 2-core CPU, the
-    baseline done after 48 (one after the other was not measured). On CUDA they share the GPU.
+    poorly on few cores). On CUDA they share the GPU.
 
     A failing run stops the others within 10 s (their checkpoints and ``train.log`` stay), so an
     error is not held back until the longest run ends; every run that failed is reported."""
@@ -239,63 +239,16 @@ def _train_all(demos_dir: Path, out: Path, args) -> dict[str, Path]:
     # train stops itself at --max-minutes and exports; this deadline is only a backstop
     deadline = None if args.max_minutes is None else time.monotonic() + args.max_minutes * 60 + 600
     runs = {name: _start_training(name, demos_dir, out / name, args, args.train_steps, threads) for name in names}
-    stopped = set()  # runs this function terminated: not failures of their own
-
-    def failures() -> TrainRunError | None:
-        """Every run that failed by itself (bad demos usually fail both within seconds)."""
-        lines = []
-        for name, run in runs.items():
-            if run.returncode not in (None, 0) and name not in stopped:
-                log = out / name / "train.log"
-                tail = log.read_text(errors="replace")[-2000:] if log.is_file() else ""
-                lines.append(f"equidiff train {name} failed (exit {run.returncode}; log {log}):\n{tail}")
-        return TrainRunError("\n".join(lines)) if lines else None
-
-    try:
-        while any(run.poll() is None for run in runs.values()):
-            if any(run.returncode not in (None, 0) for run in runs.values()):
-                _wait_all(runs.values(), grace_s=10.0)  # the others may be failing too: report them all
-                raise failures()
-            if deadline is not None and time.monotonic() > deadline:
-                raise TrainRunError(f"equidiff train did not stop within {args.max_minutes + 10:.0f} min")
-            time.sleep(0.5)
-    finally:
-        for name, run in runs.items():
-            if run.poll() is None:
-                stopped.add(name)
-                run.terminate()
-                run.wait()
-    error = failures()
-    if error is not None:
-        raise error
-    policies = {name: out / name / "policy.pt" for name in runs}
-    for name, path in policies.items():
-        if not path.is_file():
-            raise TrainRunError(f"equidiff train {name} wrote no {path}")
-    return policies
-
-
-def _wait_all(runs, grace_s: float) -> None:
-    end = time.monotonic() + grace_s
-    while any(run.poll() is None for run in runs) and time.monotonic() < end:
-        time.sleep(0.2)
-
-
-def _trained_steps(out: Path) -> int | None:
-    try:
-        history = json.loads((out / "history.json").read_text())
-        steps = [h.get("step") for h in history if isinstance(h, dict) and "step" in h]
-        return int(max(steps)) if steps else None  # history steps count from 1
-    except (OSError, ValueError):
-        return None
+    wait_for_runs(runs, {name: out / name for name in names}, deadline)
+    return {name: out / name / "policy.pt" for name in runs}
 
 
 def run(args: argparse.Namespace) -> int:
     from equidiff_core.twin.config import load_twin_job_configs
-    from equidiff_core.twin.demos import collect_direct
 
     if args.quick:  # no policy acts after 30 steps: the gate would stop every quick run
         args.demos, args.train_steps, args.eval_episodes, args.preset, args.min_in_range = 4, 30, 2, "tiny", 0.0
+        args.max_fit_ratio = 0.0
         args.in_range_episodes = min(args.in_range_episodes, 1)
         args.max_duration = min(args.max_duration, 10.0)
     if args.eval_episodes < 1 or args.in_range_episodes < 0 or not 0.0 <= args.min_in_range <= 1.0:
@@ -318,28 +271,17 @@ def run(args: argparse.Namespace) -> int:
 
     if args.trained is not None:
         try:
-            policies, steps_done = _trained_policies(args.trained)
+            policies, steps_done = _trained_policies(args.trained, out)
         except FileNotFoundError as err:
             print(f"equidiff bench generalization: {err}", file=sys.stderr)
             return 2
-        n_demos = _count_demos(args.demos_dir) if args.demos_dir else _trained_demos(args.trained / "equidiff")
-        return _evaluate(args, cfg, lab, out, policies, steps_done, n_demos, {})
-    demos_dir = args.demos_dir or out / "demos"
-    if args.demos_dir is None and demos_dir.is_dir() and _count_demos(demos_dir) >= args.demos:
-        n_demos = _count_demos(demos_dir)  # recorded by an earlier call with this --out
-    elif args.demos_dir is None:
-        results = collect_direct(
-            train_cfg,
-            lab,
-            demos_dir,
-            range(args.seed, args.seed + 10 * args.demos),
-            log=lambda s: print(s, flush=True),
-            stop_after=args.demos,
-        )
-        n_demos = sum(1 for _, ok, _ in results if ok)
-    else:
-        n_demos = _count_demos(demos_dir)
-    wrong, unrecorded = _demos_off_range(demos_dir, tuple(args.train_yaw))
+        n_demos = count_demos(args.demos_dir) if args.demos_dir else _trained_demos(args.trained / "equidiff")
+        run_dirs = {name: args.trained / name for name in POLICIES}
+        return _evaluate(args, cfg, lab, out, policies, steps_done, n_demos, {}, run_dirs)
+    demos_dir, n_demos = ensure_demos(
+        args.demos_dir, out, args.demos, train_cfg, lab, args.seed, log=lambda s: print(s, flush=True)
+    )
+    wrong, unrecorded = demos_off_range(demos_dir, tuple(args.train_yaw))
     if wrong:  # demos of another yaw range would measure something else: refuse before any training
         print(
             f"equidiff bench generalization: {len(wrong)} demos in {demos_dir} were drawn from another block "
@@ -370,7 +312,7 @@ def run(args: argparse.Namespace) -> int:
         result = {
             "trained": list(trained_now),
             "pending": pending,
-            "train_steps_by_policy": {name: _trained_steps(out / name) for name in trained_now},
+            "train_steps_by_policy": {name: trained_steps(out / name) for name in trained_now},
             "demos": n_demos,
             "out": str(out),
             "next": f"equidiff bench generalization --out {out} --demos-dir {demos_dir} --policies "
@@ -380,7 +322,7 @@ def run(args: argparse.Namespace) -> int:
         print(json.dumps(result))
         return 0
     policies = {name: out / name / "policy.pt" for name in POLICIES}
-    steps_done = {name: _trained_steps(out / name) or args.train_steps for name in policies}
+    steps_done = {name: trained_steps(out / name) or args.train_steps for name in policies}
     return _evaluate(
         args,
         cfg,
@@ -393,48 +335,17 @@ def run(args: argparse.Namespace) -> int:
     )
 
 
-def _trained_policies(folder: Path) -> tuple[dict, dict]:
-    """Policies and steps trained of a finished run laid out like this bench's own (DIR/<policy>/policy.pt)."""
-    policies = {name: folder / name / "policy.pt" for name in POLICIES}
-    for path in policies.values():
-        if not path.is_file():
+def _trained_policies(folder: Path, out: Path) -> tuple[dict, dict]:
+    """Policies and steps trained of a finished run laid out like this bench's own (DIR/<policy>/policy.pt,
+    or a committed DIR/<policy>/weights.ckpt exported into OUT/<policy>/)."""
+    policies = {}
+    for name in POLICIES:
+        try:
+            policies[name] = run_policy(folder / name, out / name)
+        except FileNotFoundError as err:
             needed = ", ".join(f"DIR/{name}/policy.pt" for name in POLICIES)
-            raise FileNotFoundError(f"no {path}: --trained needs {needed}")
-    return policies, {name: _trained_steps(folder / name) for name in policies}
-
-
-def _fraction(episodes: list, field: str) -> float | None:
-    return round(sum(bool(getattr(e, field)) for e in episodes) / len(episodes), 3) if episodes else None
-
-
-def _training_recipe(run_dir: Path) -> dict | None:
-    """How ``equidiff train`` trained the policy in ``run_dir`` (device, batch, lr, ...; None if not recorded)."""
-    try:
-        return json.loads((run_dir / "run.json").read_text())["recipe"]
-    except (OSError, ValueError, KeyError, TypeError):
-        return None
-
-
-def _count_demos(folder: Path) -> int:
-    from equidiff_core.dataset import find_episodes
-
-    return len(find_episodes([folder]))
-
-
-def _demos_off_range(folder: Path, train_yaw: tuple[float, float]) -> tuple[list[str], int]:
-    """Bags in ``folder`` whose metadata records another block yaw range than ``train_yaw``
-    ("bag: range"), and how many bags record none (recorded before episodes kept it)."""
-    from equidiff_core.bags import find_bags, read_meta
-    from equidiff_core.twin.scene import recorded_block_yaw_range, same_yaw_range
-
-    wrong, unrecorded = [], 0
-    for bag in find_bags([folder]):
-        recorded = recorded_block_yaw_range(read_meta(bag).extra)
-        if recorded is None:
-            unrecorded += 1
-        elif not same_yaw_range(recorded, train_yaw):
-            wrong.append(f"{bag.name}: {recorded[0]:g} to {recorded[1]:g} deg")
-    return wrong, unrecorded
+            raise FileNotFoundError(f"{err}: --trained needs {needed} (or weights.ckpt)") from None
+    return policies, {name: trained_steps(folder / name) for name in policies}
 
 
 def _trained_demos(run_dir: Path) -> int | None:
@@ -444,23 +355,6 @@ def _trained_demos(run_dir: Path) -> int | None:
         return len(split["train"]) + len(split.get("val", []))
     except (OSError, ValueError, KeyError, TypeError):
         return None
-
-
-# Settings that may differ between the three runs: rotation augmentation by design, and what
-# only changes how fast the same recipe ran (device, data path, time budget).
-_RECIPE_FREE = ("rotation_aug", "device", "data", "max_minutes")
-
-
-def recipe_differences(recipes: dict[str, dict | None]) -> list[str]:
-    """The recipe settings the policies were trained with differently (``equidiff train``'s
-    run.json; runs without one are not compared): the comparison needs the same budget for all."""
-    known = {name: recipe for name, recipe in recipes.items() if recipe is not None}
-    keys = sorted({key for recipe in known.values() for key in recipe} - set(_RECIPE_FREE))
-    return [
-        f"{key}: " + ", ".join(f"{name} {recipe.get(key)}" for name, recipe in known.items())
-        for key in keys
-        if len({json.dumps(recipe.get(key)) for recipe in known.values()}) > 1
-    ]
 
 
 def in_range_failures(in_range_success: dict[str, float | None], min_in_range: float) -> list[str]:
@@ -481,15 +375,52 @@ def _verdict(failed: list[str], success: dict, args) -> str:
     )
 
 
-def _evaluate(args, cfg, lab, out: Path, policies: dict, steps_done: dict, n_demos, minutes: dict) -> int:
-    """In-range rollouts of every policy, the gate, then (if it passed) the unseen-yaw rollouts.
+def _report_under_fit(args, out: Path, underfit: list, fits: dict, recipes: dict, steps_done: dict, n_demos, minutes):
+    """The JSON line of a bench stopped at the training-fit gate (nothing rolled out); exit status 4."""
+    ratios = fit_ratios(fits, "equidiff")
+    verdict = (
+        "under-fit: "
+        + ", ".join(f"{name} ({ratios[name]}x EquiDiff's)" for name in underfit)
+        + f": the DDIM action error on a policy's own training samples is more than {args.max_fit_ratio:g}x "
+        f"EquiDiff's ({fits['equidiff']['pos_err_m'] * 100:.1f} cm), so it has not fit its demos and its "
+        "roll-outs would measure its network or training, not generalisation; nothing rolled out"
+    )
+    result = {
+        **{f"{name}_success": None for name in POLICIES},
+        **{f"{name}_in_range_success": None for name in POLICIES},
+        "failed_in_range": [],
+        "under_fit": underfit,
+        "verdict": verdict,
+        "equidiff_minus_baseline_points": None,
+        "goal_met": None,
+        "train_fit": fits,
+        "train_fit_vs_equidiff": ratios,
+        "max_fit_ratio": args.max_fit_ratio,
+        "demos": n_demos,
+        "train_steps_by_policy": steps_done,
+        "training_recipes": recipes,
+        "minutes": minutes,
+    }
+    (out / "result.json").write_text(json.dumps(result) + "\n")
+    print(json.dumps(result))
+    print(f"equidiff bench generalization: {verdict}", file=sys.stderr)
+    return 4
 
-    Returns 0, or 3 when a policy failed the in-range gate (the JSON line says which)."""
+
+def _evaluate(
+    args, cfg, lab, out: Path, policies: dict, steps_done: dict, n_demos, minutes: dict, run_dirs: dict | None = None
+) -> int:
+    """The training-fit gate, in-range rollouts of every policy, the in-range gate, then (if both passed)
+    the unseen-yaw rollouts.
+
+    Returns 0, 4 when a policy is under-fit (nothing rolled out) or 3 when a policy failed the in-range
+    gate (the JSON line says which)."""
     from equidiff_core.inference import load_inference_policy
     from equidiff_core.twin.demos import DirectRecorder
-    from equidiff_core.twin.evaluate import evaluate_policy, in_range_yaw_seeds, unseen_yaw_seeds
+    from equidiff_core.twin.evaluate import evaluate_policy, in_range_yaw_seeds, unseen_yaw_seeds, yaw_breakdown
 
-    recipes = {name: _training_recipe(path.parent) for name, path in policies.items()}
+    run_dirs = run_dirs or {name: path.parent for name, path in policies.items()}
+    recipes = {name: training_recipe(run_dirs[name]) for name in policies}
     differences = recipe_differences(recipes)
     if differences:
         print(
@@ -499,11 +430,17 @@ def _evaluate(args, cfg, lab, out: Path, policies: dict, steps_done: dict, n_dem
             file=sys.stderr,
         )
         return 2
+    # the second gate, before any roll-out: a policy that has not fit its own demos is under-fit
+    fits = {name: training_fit(run_dirs[name]) for name in policies}
+    underfit = under_fit(fits, "equidiff", args.max_fit_ratio)
+    if underfit:
+        return _report_under_fit(args, out, underfit, fits, recipes, steps_done, n_demos, minutes)
     t_eval = time.monotonic()
     seeds = unseen_yaw_seeds(cfg, tuple(args.train_yaw), args.eval_episodes)
     in_range = in_range_yaw_seeds(cfg, tuple(args.train_yaw), args.in_range_episodes)
     loaded = {name: load_inference_policy(path, device=args.device) for name, path in policies.items()}
     stages: dict[str, dict] = {name: {} for name in policies}
+    by_yaw: dict[str, dict] = {}
     rec = DirectRecorder(cfg, lab)
 
     def roll_out(name: str, label: str, scene_seeds: list[int]) -> float | None:
@@ -519,11 +456,11 @@ def _evaluate(args, cfg, lab, out: Path, policies: dict, steps_done: dict, n_dem
             latency_s=args.latency_ms / 1000,
             log=lambda s: print(f"[{name}, {label}] {s}", flush=True),
         )
-        stages[name][label] = {  # how far failures got: reached the block, lifted it, closest TCP
-            **{k: _fraction(episodes, k) for k in ("reached", "lifted")},
-            "median_closest_to_block_m": round(statistics.median(e.closest_to_block_m for e in episodes), 3),
-        }
-        return _fraction(episodes, "success")
+        summary = summarize(episodes)  # how far failures got: reached the block, lifted it, closest TCP
+        stages[name][label] = {k: summary[k] for k in ("reached", "lifted", "median_closest_to_block_m")}
+        if label == "unseen":
+            by_yaw[name] = yaw_breakdown(episodes, tuple(args.train_yaw))
+        return summary["success"]
 
     try:
         in_range_success = {name: roll_out(name, "in_range", in_range) for name in policies}
@@ -545,6 +482,12 @@ def _evaluate(args, cfg, lab, out: Path, policies: dict, steps_done: dict, n_dem
         "in_range_episodes": args.in_range_episodes,
         "latency_budget_ms": args.latency_ms,
         "stages": stages,
+        # unseen-yaw success by what C4 (offset modulo 90 deg) and C8 (modulo 45 deg) map into the range
+        "unseen_by_yaw": by_yaw,
+        "train_fit": fits,
+        "train_fit_vs_equidiff": fit_ratios(fits, "equidiff"),
+        "under_fit": [],
+        "max_fit_ratio": args.max_fit_ratio,
         "demos": n_demos,
         "train_steps": min((v for v in steps_done.values() if v is not None), default=None),
         "train_steps_by_policy": steps_done,  # differ when --max-minutes stopped the slower ones first
@@ -553,6 +496,7 @@ def _evaluate(args, cfg, lab, out: Path, policies: dict, steps_done: dict, n_dem
         "eval_yaw": f"block yaw >= 15 deg outside the training range, modulo 180 deg (seeds {seeds[0]}..)",
         "preset": "/".join(sorted({p.preset.name for p in loaded.values()})),  # as the policies were trained
         "rotation_aug": {name: p.preset.rotation_aug for name, p in loaded.items()},
+        "encoders": {name: encoder_summary(p.name, p.preset) for name, p in loaded.items()},
         "device": args.device,  # of the evaluation; the training's is in training_recipes
         "training_recipes": recipes,
         "minutes": {**minutes, "eval": round((t_end - t_eval) / 60, 1)},

@@ -8,9 +8,11 @@ default (timing does not depend on them); ``--checkpoint policy.pt`` times a tra
 Targets on a 2-core CPU: compact <= 100 ms p99, paper <= 400 ms median.
 
 ``--modes bf16-traced,bf16-traced-graph,fp32-traced`` times several ways of running the same
-export in one run (``benchmarks.InferenceMode``): the top-level figures are the first measured
+export in one run (``benches.timing.InferenceMode``): the top-level figures are the first measured
 mode's, ``modes`` holds each one's (or its error), ``best_mode`` / ``best_ddim16_p99_ms`` the
 smallest p99. ``--rtc`` adds RTC-guided sampling (``rtc_median_ms``, ``rtc_vs_plain``).
+``--compare-relu-order`` adds the same export with the encoder's old order, each ReLU before its
+max-pool (``relu_before_pool``; ``relu_order_cpu_ms``: both orders alternately in CPU time).
 """
 
 from __future__ import annotations
@@ -46,6 +48,12 @@ def add_arguments(parser) -> None:
         "bf16-traced,bf16-traced-graph,fp32-traced (EXECUTION: eager | traced | compiled); overrides the switches above",
     )
     parser.add_argument("--rtc", action="store_true", help="also time RTC-guided sampling against plain DDIM")
+    parser.add_argument(
+        "--compare-relu-order",
+        action="store_true",
+        help="also time the same weights with each ReLU before its max-pool (the encoder order before), in the "
+        "first measured mode (adds relu_before_pool: encoder_ms, ddim16_median_ms; relu_order_cpu_ms)",
+    )
     parser.add_argument("--iters", type=int, default=30, help="timed DDIM-16 runs of the exported policy")
     parser.add_argument("--eager-iters", type=int, default=3, help="timed runs of the eager escnn model")
     parser.add_argument(
@@ -63,7 +71,7 @@ def run(args) -> int:
     import numpy as np
     import torch
 
-    from equidiff_core.benchmarks import (
+    from equidiff_core.benches.timing import (
         InferenceMode,
         best_mode,
         device_name,
@@ -71,6 +79,7 @@ def run(args) -> int:
         synchronizer,
         time_inference_mode,
         time_inference_modes,
+        time_relu_orders,
         timed_ms,
     )
     from equidiff_core.config import Workspace
@@ -120,6 +129,10 @@ def run(args) -> int:
         if first is None:
             print(f"equidiff bench policy: no mode ran: {json.dumps(per_mode)}", file=sys.stderr)
             return 1
+        # the same file with the old encoder order, timed alike in this run
+        relu_orders = (
+            time_relu_orders(path, device, InferenceMode.parse(first), args.iters) if args.compare_relu_order else {}
+        )
     # escnn's trainable count; an exported file only holds the expanded (larger) plain weights
     params = count_parameters(eager.model if eager is not None else plain.net)
     result = {
@@ -133,6 +146,7 @@ def run(args) -> int:
         "mode": first,
         "iters": args.iters,
         "torch": torch.__version__,
+        **relu_orders,
     }
     if args.modes:
         result["modes"] = per_mode

@@ -4,14 +4,18 @@ Each device runs the real ``training.train`` loop with its defaults there (CPU: 
 CUDA: bf16 autocast, the whole set resident on the GPU) on synthetic observations (random
 coloured voxels, gripper states near the workspace centre: the cost does not depend on their
 content), with the preset's rotation augmentation, and times ``--steps`` optimiser steps after
-``--warmup`` untimed ones (``benchmarks.measure_training``). Prints one JSON line: ``preset``,
-``policy``, ``params``, then per device (``cpu``, ``cuda``) ``device`` (the CPU's name and
+``--warmup`` untimed ones (``benches.timing.measure_training``). Prints one JSON line: ``preset``,
+``policy``, ``params``, ``cost`` (parameters and FLOPs per sample: encoder, denoising step, DDIM-16,
+training step; ``benches.cost``), then per device (``cpu``, ``cuda``) ``device`` (the CPU's name and
 instruction sets or the GPU's name), ``batch_size``, ``precision``, ``data``, ``steps``,
 ``sec_per_step``, ``samples_per_s`` and ``data_wait_share`` (the loop's wait for its next batch
-over the step time; on CUDA also ``gpu_busy_pct`` from NVML and ``peak_memory_gb``);
-``"cuda": null`` with ``cuda_note`` when there is no GPU. ``--runs bf16,fp32,bf16:loader``
-measures several precision / data-source settings per device: ``cpu_runs`` / ``cuda_runs`` list
-them all, ``cpu`` / ``cuda`` is the first.
+over the step time; on the CPU also ``cpu_sec_per_step``, the process's CPU seconds; on CUDA
+``gpu_busy_pct`` from NVML and ``peak_memory_gb``); ``"cuda": null`` with ``cuda_note`` when there
+is no GPU. ``--runs bf16,fp32,bf16:loader`` measures several precision / data-source settings per
+device: ``cpu_runs`` / ``cuda_runs`` list them all, ``cpu`` / ``cuda`` is the first.
+``--variants A B ...`` (CPU) times training-step variants in alternating rounds of one run instead of
+``cpu``: ``cpu_variants`` with each one's ``sec_per_step`` and ``vs_first``, the first variant being
+the reference (``benches.timing.CPU_VARIANTS``).
 """
 
 from __future__ import annotations
@@ -19,6 +23,8 @@ from __future__ import annotations
 import json
 import os
 import sys
+
+from equidiff_core.benches.timing import CPU_VARIANTS
 
 
 def add_arguments(parser) -> None:
@@ -45,22 +51,45 @@ def add_arguments(parser) -> None:
         "(PRECISION auto | fp32 | bf16, DATA auto | device | loader); default: --cpu-precision on the CPU, auto on CUDA",
     )
     parser.add_argument("--threads", type=int, default=0, help="torch intra-op threads on the CPU (0: torch default)")
+    parser.add_argument(
+        "--rotation-aug",
+        default=None,
+        help="none | c4 | c8 | continuous (default: the preset's; the benches train with none)",
+    )
+    parser.add_argument("--noise-repeats", type=int, default=1, help="(noise, step) draws per encoder pass")
+    parser.add_argument(
+        "--variants",
+        nargs="+",
+        choices=tuple(CPU_VARIANTS),
+        default=None,
+        metavar="NAME",
+        help="CPU only: time these training-step variants in the same run, in alternating rounds, the first "
+        f"as the reference ({', '.join(CPU_VARIANTS)})",
+    )
+    parser.add_argument("--rounds", type=int, default=3, help="alternating rounds of --variants")
     parser.add_argument("--no-cpu", action="store_true", help="measure CUDA only (as --device cuda)")
 
 
 def run(args) -> int:
     import torch
 
-    from equidiff_core.benchmarks import SyntheticTrainingSet, fresh_policy, measure_training, parse_training_runs
-    from equidiff_core.config import Workspace
-    from equidiff_core.policies import count_parameters
+    from equidiff_core.benches.cost import policy_cost
+    from equidiff_core.benches.timing import (
+        SyntheticTrainingSet,
+        fresh_policy,
+        measure_training,
+        measure_training_variants,
+        parse_training_runs,
+    )
+    from equidiff_core.config import ConfigError, Workspace
     from equidiff_core.presets import get_preset
 
-    if args.steps < 1 or args.warmup < 1:
-        raise SystemExit("equidiff bench train: --steps and --warmup must be >= 1")
+    if args.steps < 1 or args.warmup < 1 or args.noise_repeats < 1:
+        raise SystemExit("equidiff bench train: --steps, --warmup and --noise-repeats must be >= 1")
     try:
         runs = parse_training_runs(args.runs) if args.runs else None
-    except ValueError as err:
+        preset = get_preset(args.preset, **({"rotation_aug": args.rotation_aug} if args.rotation_aug else {}))
+    except (ValueError, ConfigError) as err:
         print(f"equidiff bench train: {err}", file=sys.stderr)
         return 2
     cuda = torch.cuda.is_available()
@@ -75,18 +104,36 @@ def run(args) -> int:
     }
     batch_sizes = {"cpu": args.batch_size, "cuda": args.cuda_batch_size}
     default_runs = {"cpu": [(args.cpu_precision, "auto")], "cuda": [("auto", "auto")]}
-    preset, ws = get_preset(args.preset), Workspace()
-    data = SyntheticTrainingSet(preset, ws, max(args.samples, *(batch_sizes[d] for d, on in devices.items() if on)))
+    ws = Workspace()
+    batches = [batch_sizes[d] for d, on in devices.items() if on] + ([args.batch_size] if args.variants else [])
+    data = SyntheticTrainingSet(preset, ws, max([args.samples, *batches]))
+    cost = policy_cost(fresh_policy(args.policy, preset, ws), batch=2, noise_repeats=args.noise_repeats)
     policy = fresh_policy(args.policy, preset, ws)  # trained by every run in turn: the timing does not care
     result = {
         "bench": "train",
         "preset": preset.name,
         "policy": args.policy,
-        "params": count_parameters(policy.model),
+        "params": cost["params"],
+        "cost": cost,
         "rotation_aug": preset.rotation_aug,
         "samples": len(data),
+        "noise_repeats": args.noise_repeats,
         "load_avg_1min": round(os.getloadavg()[0], 2),  # a shared machine's load shows in CPU figures
     }
+    if args.variants:  # instead of the CPU's plain measurement
+        result["cpu_variants"] = measure_training_variants(
+            args.policy,
+            preset,
+            ws,
+            data,
+            args.variants,
+            args.batch_size,
+            args.steps,
+            args.warmup,
+            args.rounds,
+            args.noise_repeats,
+        )
+        devices["cpu"] = False
     for device, on in devices.items():
         if not on:
             continue
@@ -95,7 +142,15 @@ def run(args) -> int:
             try:
                 measured.append(
                     measure_training(
-                        policy, data, device, batch_sizes[device], args.steps, args.warmup, precision, source
+                        policy,
+                        data,
+                        device,
+                        batch_sizes[device],
+                        args.steps,
+                        args.warmup,
+                        precision,
+                        source,
+                        args.noise_repeats,
                     )
                 )
             except (RuntimeError, MemoryError) as err:  # e.g. CUDA out of memory in fp32: the other runs still count

@@ -24,7 +24,7 @@ from equidiff_core.observation import STATE_TOLERANCE_S
 
 
 def add_arguments(parser) -> None:
-    from equidiff_core.presets import ROTATION_AUGS
+    from equidiff_core.presets import BASELINE_INITS, ROTATION_AUGS
 
     parser.add_argument("bags", nargs="+", help="bag directories, or folders holding bag directories")
     parser.add_argument("--out", required=True, help="output directory (checkpoints, policy.pt, plots)")
@@ -35,6 +35,19 @@ def add_arguments(parser) -> None:
         choices=ROTATION_AUGS,
         default=None,
         help="random yaw rotation of voxels, state and actions while training (default: the preset's)",
+    )
+    parser.add_argument(
+        "--baseline-width",
+        type=int,
+        default=None,
+        help="the baseline encoder's n_hidden (official channels n/16 ... n; default: the preset's; 0: channels "
+        "matched to EquiDiff's parameter count, the baselines trained before the width existed)",
+    )
+    parser.add_argument(
+        "--baseline-init",
+        choices=BASELINE_INITS,
+        default=None,
+        help="the baseline encoder's initialisation: torch (PyTorch's default) or he (default: the preset's)",
     )
     parser.add_argument("--steps", type=int, default=20000)
     parser.add_argument("--batch-size", type=int, default=64)
@@ -263,7 +276,7 @@ def run(args) -> int:
 
 
 def _run(args, dist_info) -> int:
-    from equidiff_core.config import default_config_dir, load_lab_config
+    from equidiff_core.config import ConfigError, default_config_dir, load_lab_config
     from equidiff_core.dataset import DatasetConfig, DemoDataset, load_episodes
     from equidiff_core.policies import make_policy
     from equidiff_core.presets import get_preset
@@ -285,7 +298,19 @@ def _run(args, dist_info) -> int:
         )
         return 2
     lab = load_lab_config(args.lab_config or default_config_dir() / "lab.yaml")
-    preset = get_preset(args.preset, **({"rotation_aug": args.rotation_aug} if args.rotation_aug else {}))
+    overrides = {
+        "rotation_aug": args.rotation_aug,
+        "baseline_width": args.baseline_width,
+        "baseline_init": args.baseline_init,
+    }
+    overrides = {key: value for key, value in overrides.items() if value is not None}
+    if overrides.get("baseline_width") == 0:
+        overrides["baseline_width"] = None
+    try:
+        preset = get_preset(args.preset, **overrides)
+    except ConfigError as err:  # an unknown preset or an override out of range
+        print(f"equidiff train: {err}", file=sys.stderr)
+        return 2
     data_cfg = DatasetConfig.from_preset(
         preset,
         resolution=lab.workspace.resolution,

@@ -5,18 +5,24 @@ traced / compiled, with or without a CUDA graph) and timed on one observation: t
 denoising step, the whole DDIM-16 ``predict`` (median and p99, host wall clock after the device
 finished: what the control loop waits for), and optionally RTC-guided ``predict`` against plain
 DDIM. A graph mode also reports how far its actions lie from the same mode without the graph
-(same seed): on CUDA the graph must compute the same function.
+(same seed): on CUDA the graph must compute the same function. ``time_relu_orders`` times the same
+export with the encoder's old order (each ReLU before its max-pool) beside the current one.
 
 Training: the real ``training.train`` loop on synthetic observations (their content does not change
 the cost), timed over ``steps`` optimiser steps after ``warmup`` untimed ones, with the time the
 loop waited for its next batch (``data_s``, training's per-step metric) as a share of the step
 time. The loss is read back every step (``loss.item()``), so the device's queue is empty while the
 host fetches a batch: that wait is time the GPU idles. On CUDA, NVML's utilisation (the share of
-time a kernel was running) is sampled over the timed steps when ``pynvml`` is installed.
+time a kernel was running) is sampled over the timed steps when ``pynvml`` is installed. On the CPU
+the process's CPU seconds per step stand beside the wall seconds: on a loaded machine they still
+measure the work, not the waiting. ``measure_training_variants`` times CPU training-step variants
+(``CPU_VARIANTS``) in alternating rounds of one run, so that a shared machine's load weighs on all alike.
 """
 
 from __future__ import annotations
 
+import contextlib
+import statistics
 import tempfile
 import threading
 import time
@@ -26,13 +32,14 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from .chunk import RealTimeChunking
-from .inference import load_inference_policy
-from .machine import cpu_description, cpu_model
-from .models.equivariance import random_observation
-from .normalizer import Normalizer
-from .policies import make_policy
-from .training import DATA_SOURCES, PRECISIONS, TrainConfig, train
+from ..chunk import RealTimeChunking
+from ..inference import load_inference_policy
+from ..machine import cpu_description, cpu_model
+from ..models.equivariance import random_observation
+from ..models.plain import relu_before_pool_order
+from ..normalizer import Normalizer
+from ..policies import make_policy
+from ..training import DATA_SOURCES, PRECISIONS, TrainConfig, train
 
 MODE_PRECISIONS = ("auto", "fp32", "bf16")
 MODE_EXECUTIONS = ("eager", "traced", "compiled")
@@ -192,6 +199,40 @@ def time_inference_modes(
     return results
 
 
+def time_relu_orders(path: str | Path, device: torch.device, mode: InferenceMode, iters: int) -> dict:
+    """The same export loaded twice in ``mode``, the encoder's current order (max-pool before ReLU) and the
+    old one (``models.plain.relu_before_pool_order``): ``relu_before_pool`` (the old order's encoder and
+    DDIM-16 median wall ms) and ``relu_order_cpu_ms`` (both orders timed alternately in this process's CPU
+    time, which a loaded machine's waiting leaves out)."""
+    sync = synchronizer(device)
+    current = mode.load(path, device)
+    with relu_before_pool_order():
+        old = mode.load(path, device)
+    vox, ee = probe_observation(current.preset, current.workspace)
+    current.warmup(3)
+    old.warmup(3)
+    old_enc = timed_ms(lambda: old.encode(vox, ee), max(5, iters // 3), sync)
+    old_ddim = timed_ms(lambda: old.predict(vox, ee, seed=0), iters, sync)
+    cpu = {"pool_before_relu": ([], []), "relu_before_pool": ([], [])}
+    for _ in range(iters):
+        for label, policy in (("pool_before_relu", current), ("relu_before_pool", old)):
+            encoder_times, ddim_times = cpu[label]
+            t0 = time.process_time()
+            policy.encode(vox, ee)
+            sync()
+            t1 = time.process_time()
+            policy.predict(vox, ee, seed=0)
+            sync()
+            encoder_times.append((t1 - t0) * 1000)
+            ddim_times.append((time.process_time() - t1) * 1000)
+    return {
+        "relu_before_pool": {"encoder_ms": _ms(np.median(old_enc)), "ddim16_median_ms": _ms(np.median(old_ddim))},
+        "relu_order_cpu_ms": {
+            label: {"encoder": _ms(np.median(e)), "ddim16": _ms(np.median(d))} for label, (e, d) in cpu.items()
+        },
+    }
+
+
 def best_mode(results: dict[str, dict], key: str = "ddim16_p99_ms") -> str | None:
     """The measured mode with the smallest ``key``."""
     measured = {name: r[key] for name, r in results.items() if key in r}
@@ -255,12 +296,14 @@ class _StepClock:
         self.sync = synchronizer(device)
         self.warmup, self.last = warmup, warmup + steps
         self.times: dict[int, float] = {}
+        self.cpu_times: dict[int, float] = {}
         self.data_s: dict[int, float] = {}
         self.busy = GpuBusySampler(device) if device.type == "cuda" else None
 
     def on_step(self, step, metrics):
         self.sync()
         self.times[step] = time.perf_counter()
+        self.cpu_times[step] = time.process_time()
         self.data_s[step] = float(metrics.get("data_s", 0.0))
         if self.busy is not None and step == self.warmup:
             self.busy.start()
@@ -277,8 +320,10 @@ def measure_training(
     warmup: int,
     precision: str = "auto",
     data_source: str = "auto",
+    noise_repeats: int = 1,
 ) -> dict:
-    """Samples/s of ``training.train`` on ``device`` (``policy`` trains on: its weights change)."""
+    """Samples/s of ``training.train`` on ``device`` (``policy`` trains on: its weights change), with
+    ``noise_repeats`` (noise, step) draws per encoder pass."""
     device_t = torch.device(device)
     if device_t.type == "cuda":
         torch.cuda.reset_peak_memory_stats(device_t)
@@ -293,6 +338,7 @@ def measure_training(
         log_every=1,
         precision=precision,
         data=data_source,
+        noise_repeats=noise_repeats,
     )
     with tempfile.TemporaryDirectory(prefix="bench_train_") as tmp:
         result = train(policy, data, None, cfg, tmp, callbacks=[clock])
@@ -312,9 +358,88 @@ def measure_training(
         out["gpu_busy_pct"] = clock.busy.mean()
         out["peak_memory_gb"] = round(torch.cuda.max_memory_allocated(device_t) / 1e9, 2)
     if device_t.type == "cpu":
+        cpu_seconds = clock.cpu_times[warmup + steps] - clock.cpu_times[warmup]
+        out["cpu_sec_per_step"] = float(f"{cpu_seconds / steps:.4g}")
         d = cpu_description()
         out.update(cores=d["cores"], avx512=d["avx512"], native_bf16=d["bf16"])
     return out
+
+
+# What a CPU training step can be made of, for ``measure_training_variants``: each one training's CPU default
+# but for one thing.
+CPU_VARIANTS = {
+    "default": "fp32, the encoder's max-pools before their ReLUs (training's CPU default)",
+    "relu_before_pool": "each ReLU before the max-pool after it, the order before (the 56^3 ReLU and its backward)",
+    "bf16": "bf16 autocast (the CPU's AVX512-BF16 / AMX, if any)",
+    "channels_last": "the voxel input in channels_last_3d memory format (the baseline's default already)",
+    "contiguous_input": "the voxel input in the contiguous (N, C, D, H, W) format (the baseline's before)",
+    "one_noise_draw": "1 (noise, step) draw per encoder pass instead of noise_repeats",
+    "eight_noise_draws": "8 (noise, step) draws per encoder pass instead of noise_repeats",
+}
+VARIANT_NOISE_REPEATS = {"one_noise_draw": 1, "eight_noise_draws": 8}
+
+
+def variant_policy(policy_name: str, preset, workspace, variant: str):
+    """(a fresh policy shaped as ``variant``, the training precision it needs)."""
+    if variant not in CPU_VARIANTS:
+        raise ValueError(f"training variant {variant!r}: expected one of {tuple(CPU_VARIANTS)}")
+    with relu_before_pool_order() if variant == "relu_before_pool" else contextlib.nullcontext():
+        policy = fresh_policy(policy_name, preset, workspace)
+    if variant in ("channels_last", "contiguous_input"):
+        layout = torch.channels_last_3d if variant == "channels_last" else torch.contiguous_format
+
+        def to_layout(module, inputs):
+            x = inputs[0]
+            if isinstance(x, torch.Tensor):
+                return (x.contiguous(memory_format=layout),)
+            return (type(x)(x.tensor.contiguous(memory_format=layout), x.type),)  # escnn's GeometricTensor
+
+        policy.model.encoder.register_forward_pre_hook(to_layout)
+    return policy, ("bf16" if variant == "bf16" else "fp32")
+
+
+def measure_training_variants(
+    policy_name: str,
+    preset,
+    workspace,
+    data,
+    variants: list[str],
+    batch_size: int,
+    steps: int,
+    warmup: int,
+    rounds: int = 3,
+    noise_repeats: int = 1,
+) -> dict:
+    """Each of ``variants`` timed on the CPU in ``rounds`` alternating rounds: the CPU, and per variant the
+    median round's ``sec_per_step`` and ``samples_per_s``, every round's, ``vs_first`` (the first variant's
+    median over this one's: above 1 is faster), and the same in CPU seconds (``cpu_sec_per_step``,
+    ``cpu_vs_first``)."""
+    wall = {name: [] for name in variants}
+    cpu = {name: [] for name in variants}
+    m = {}
+    for _ in range(max(1, rounds)):
+        for name in variants:
+            policy, precision = variant_policy(policy_name, preset, workspace, name)
+            repeats = VARIANT_NOISE_REPEATS.get(name, noise_repeats)
+            m = measure_training(policy, data, "cpu", batch_size, steps, warmup, precision, "auto", repeats)
+            wall[name].append(m["sec_per_step"])
+            cpu[name].append(m["cpu_sec_per_step"])
+    first, cpu_first = statistics.median(wall[variants[0]]), statistics.median(cpu[variants[0]])
+    out = {}
+    for name, secs in wall.items():
+        med, cpu_med = statistics.median(secs), statistics.median(cpu[name])
+        out[name] = {
+            "sec_per_step": float(f"{med:.4g}"),
+            "samples_per_s": float(f"{batch_size / med:.4g}"),
+            "rounds": secs,
+            "vs_first": round(first / med, 3),
+            "cpu_sec_per_step": float(f"{cpu_med:.4g}"),
+            "cpu_rounds": cpu[name],
+            "cpu_vs_first": round(cpu_first / cpu_med, 3),
+            "what": CPU_VARIANTS[name],
+        }
+    machine = {k: m[k] for k in ("device", "cores", "avx512", "native_bf16") if k in m}
+    return {**machine, "batch_size": batch_size, "steps": steps, "variants": out}
 
 
 def parse_training_runs(text: str) -> list[tuple[str, str]]:

@@ -1,0 +1,9 @@
+"""Bench logic shared by the ``equidiff bench`` / ``equidiff check`` commands (each command is argument
+parsing plus one call into here).
+
+* ``conditioning``: does a policy look at its observation? Its features and its actions when the block moves.
+* ``training_runs``: ``equidiff train`` runs side by side, their recipes and the training-fit gate.
+* ``demos``: the sample-efficiency bench (success against the number of demos) and its plot.
+* ``timing``: what ``bench policy`` / ``bench train`` measure, on the CPU or CUDA (inference modes, training
+  steps and their CPU variants); ``cost``: parameters and FLOPs per sample.
+"""
