@@ -8,6 +8,7 @@ with ``load_state_dict(strict=True)``. Nothing here imports escnn.
 from __future__ import annotations
 
 import contextlib
+from contextvars import ContextVar
 
 import torch
 from torch import nn
@@ -16,7 +17,8 @@ from ..presets import ENCODER_LAYOUTS, PolicyPreset
 from . import action_space
 from .unet1d import ConditionalUnet1D
 
-_pool_before_relu = True  # encoder_layer_specs' order; relu_before_pool_order() builds the old one
+# encoder_layer_specs' order; relu_before_pool_order() builds the old one (a context variable: scoped, thread-safe)
+_POOL_BEFORE_RELU: ContextVar[bool] = ContextVar("pool_before_relu", default=True)
 
 
 @contextlib.contextmanager
@@ -24,12 +26,11 @@ def relu_before_pool_order():
     """Encoders built inside have each ReLU before the max-pool after it, the order before
     ``encoder_layer_specs`` swapped them: the same function at the old cost, for the benches
     (``equidiff bench train --variants relu_before_pool``, ``equidiff bench policy --compare-relu-order``)."""
-    global _pool_before_relu
-    _pool_before_relu = False
+    token = _POOL_BEFORE_RELU.set(False)
     try:
         yield
     finally:
-        _pool_before_relu = True
+        _POOL_BEFORE_RELU.reset(token)
 
 
 def encoder_layer_specs(preset: PolicyPreset, channels: list[int]) -> list[tuple]:
@@ -44,7 +45,7 @@ def encoder_layer_specs(preset: PolicyPreset, channels: list[int]) -> list[tuple
     c_in = channels[0]
     for kind, arg in ENCODER_LAYOUTS[preset.encoder_layout]:
         if kind == "pool":
-            if _pool_before_relu and specs and specs[-1] == ("relu",):
+            if _POOL_BEFORE_RELU.get() and specs and specs[-1] == ("relu",):
                 specs.insert(len(specs) - 1, ("pool", arg))
             else:
                 specs.append(("pool", arg))
