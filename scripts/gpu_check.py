@@ -1,4 +1,4 @@
-"""The GPU check (issue 28): inference, training and DDP on CUDA measured in one command, one JSON file.
+"""The GPU check: inference, training and DDP on CUDA measured in one command, one JSON file.
 
     bash scripts/gpu_check.sh                       # on the GPU machine (H100/H200), <= 8 minutes
     bash scripts/gpu_check.sh --device cpu --tiny   # the rehearsal here: the same code paths, tiny sizes
@@ -49,7 +49,7 @@ ROOT = Path(__file__).resolve().parents[1]
 CARRY = ROOT / ".gpu_carry"
 DEVICE_TREE_LIMIT = 64 * 1024 * 1024  # what one device call may send: the tree plus the carried paths
 OUT_FILE_LIMIT = 16 * 1024 * 1024  # one file back from $OUT
-PAPER_P99_GOAL_MS = 15.0  # issue 28: paper preset p99 on an H100
+PAPER_P99_GOAL_MS = 15.0  # the goal: paper preset p99 on an H100
 RTC_GOAL = 1.2  # RTC-guided sampling at most 1.2x plain DDIM
 GPU_BUSY_GOAL_PCT = 90.0
 INFERENCE_MODES = "bf16-traced,bf16-traced-graph,fp32-traced,fp32-traced-graph"

@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# The GPU check (issue 28) in one command: inference, training and DDP on CUDA, one JSON file.
+# The GPU check in one command: inference, training and DDP on CUDA, one JSON file.
 #
 #   bash scripts/gpu_check.sh                       # on the GPU machine: <= 8 min, writes
 #                                                   # docs/results/gpu_check.json (and $OUT/...)

@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Prepare the GPU check (issue 28) here, before a session that has a GPU machine spends its minutes:
+# Prepare the GPU check here, before a session that has a GPU machine spends its minutes:
 #
 #   bash scripts/gpu_prepare.sh [BAGS...]     (default BAGS: bags/)
 #

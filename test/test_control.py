@@ -633,7 +633,7 @@ def test_dryrun_logs_what_would_be_sent(caplog):
         make_robot("ur5")
 
 
-# --- explicit limits (issue 16 item 1): cone, joint limits, gripper range, robot limits -----------
+# --- explicit limits: cone, joint limits, gripper range, robot limits -----------
 
 
 def tilted(position, tilt, yaw=0.0, axis=(0.0, 1.0, 0.0)):

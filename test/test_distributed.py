@@ -1,4 +1,4 @@
-"""Training that scales past one process (issue 14 item 3): the device-resident batch source, the
+"""Training that scales past one process: the device-resident batch source, the
 shared shard sampler, the torch.distributed helpers, and two gloo ranks trained with torchrun."""
 
 from __future__ import annotations
@@ -88,7 +88,7 @@ def test_single_process_helpers_and_a_torchrun_environment_missing_variables(mon
 
 
 def test_torchrun_with_one_process_joins_a_group_of_one(monkeypatch):
-    """`torchrun --nproc-per-node 1` (how one GPU checks the N-GPU path, issue 28) forms a real
+    """`torchrun --nproc-per-node 1` (how one GPU checks the N-GPU path) forms a real
     process group: collectives and DDP run as with N ranks, not the single-process shortcuts."""
     import socket
 

@@ -1,4 +1,4 @@
-"""The franka node on franky-sim: real franky client, real rclpy, separate processes (issue 6, items 2-4).
+"""The franka node on franky-sim: real franky client, real rclpy, separate processes.
 
 One franky-sim server and one franka_node serve the whole module (starting them costs ~10 s);
 the scenarios are the ones ``equidiff bench control`` measures, asserted at the issue's limits.

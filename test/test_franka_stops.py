@@ -1,4 +1,4 @@
-"""Stops that a lab survives (issue 27): franka_node (real franky) against franky-sim, whose
+"""Stops that a lab survives: franka_node (real franky) against franky-sim, whose
 server injects the faults at the libfranka protocol level (``robots.franky.faults``), so the
 real franky client raises the real exceptions. One sim and one franka_node at a time serve the
 module; the node is restarted by the last test.

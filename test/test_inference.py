@@ -1,4 +1,4 @@
-"""Exported inference policies (issue 4, item 8): plain torch, equal outputs, clear checkpoint errors."""
+"""Exported inference policies: plain torch, equal outputs, clear checkpoint errors."""
 
 import json
 import subprocess
@@ -127,7 +127,7 @@ def test_legacy_checkpoint_keeps_its_legacy_encoder_and_predicts_as_before():
 
 @pytest.mark.slow
 def test_compiled_denoising_step_predicts_like_the_traced_one(exported):
-    """torch.compile (issue 4, item 8's optional switch): same actions as the traced bf16 policy."""
+    """torch.compile (an optional switch): same actions as the traced bf16 policy."""
     policy, path = exported
     vox, ee = random_observation(policy, batch=1, seed=5, fill=0.05)
     vox, ee = vox[0, 0].numpy(), ee[0, 0].numpy()
@@ -157,7 +157,7 @@ def test_a_failed_compile_warns_and_keeps_the_traced_step(exported, monkeypatch)
 
 @pytest.mark.parametrize("precision, jit", [("fp32", False), ("bf16", True)])
 def test_the_sampling_a_cuda_graph_captures_predicts_exactly_like_the_plain_path(exported, precision, jit):
-    """The CUDA-graph path (issue 28) samples on fixed buffers with its own loop; run eagerly on the
+    """The CUDA-graph path samples on fixed buffers with its own loop; run eagerly on the
     CPU it must give the plain path's actions to the bit, plain and RTC-guided (on CUDA the
     graph replays exactly this code; the GPU check records the difference there)."""
     policy, path = exported

@@ -1,4 +1,4 @@
-"""Presets, networks, normaliser, augmentation and action codec (issue 4, items 1-5)."""
+"""Presets, networks, normaliser, augmentation and action codec."""
 
 import math
 

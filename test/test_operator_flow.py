@@ -1,4 +1,4 @@
-"""The operator flow (issue 16 item 3): `equidiff lab` against live nodes, teleop takeover
+"""The operator flow: `equidiff lab` against live nodes, teleop takeover
 marked in the episode, and the policy's enable/pause gate."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""The operator loop's logic (issue 27 item 4), ROS-free: franka_node's state and its fallback,
+"""The operator loop's logic, ROS-free: franka_node's state and its fallback,
 the keys, the confirmations and the reset countdown, on a clock the test owns."""
 
 from __future__ import annotations

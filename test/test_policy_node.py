@@ -1,4 +1,4 @@
-"""policy_node (issue 6, items 1 and 5): start-up errors, the 5 Hz loop with the dry-run arm, skipping.
+"""policy_node: start-up errors, the 5 Hz loop with the dry-run arm, skipping.
 
 The checkpoint is an untrained export of the ``baseline`` policy at the ``tiny`` preset: the node
 treats every exported policy alike, and this one loads and predicts in a fraction of a second.

@@ -1,4 +1,4 @@
-"""Real-time chunking for the DDIM policy (issue 17): guided inpainting towards the previous chunk,
+"""Real-time chunking for the DDIM policy: guided inpainting towards the previous chunk,
 time-aligned; off = plain DDIM bit for bit; C4-equivariant with the equivariant policy."""
 
 import math

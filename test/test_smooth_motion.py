@@ -1,4 +1,4 @@
-"""Smooth motion by default (issue 27, item 3): the online latency estimate that sizes policy_node's
+"""Smooth motion by default: the online latency estimate that sizes policy_node's
 chunks, and the standstill-at-chunk-boundaries metric of ``bench chunking`` and ``bench control``."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Training loop (issue 4, item 7): overfitting, resume, EMA with escnn, callbacks, checkpoints."""
+"""Training loop: overfitting, resume, EMA with escnn, callbacks, checkpoints."""
 
 import json
 
