@@ -1,4 +1,4 @@
-"""`equidiff bench safety` (issues 16 and 27): the fault campaign against the twin's franky-sim
+"""`equidiff bench safety`: the fault campaign against the twin's franky-sim
 through franka_node: a rejected chunk, a robot stop through the libfranka protocol and a killed
 franka_node that must hold when restarted (the campaign's machinery end to end); `equidiff bench
 safety` runs all fourteen (docs/control.md), test_franka_stops.py the stops in detail. Not

@@ -117,7 +117,7 @@ def test_filter_clips_targets_to_the_safety_box_and_its_floor_margin():
 
 
 def test_commands_brake_towards_a_wall_and_stop_the_margin_inside():
-    """Issue 27: a command stopped dead at a wall at the speed limit let the impedance-tracked arm
+    """A command stopped dead at a wall at the speed limit let the impedance-tracked arm
     overshoot it (2.6 mm outside the box on franky-sim). Commands now stop ``box_margin_m`` inside
     and brake on the way (v <= sqrt(2 a d)), arriving at rest; far from a wall the speed limit
     alone governs."""
@@ -505,7 +505,7 @@ def run_ticks(ctl, clock, seconds):
 
 
 def test_a_user_stop_holds_once_until_released_and_acknowledged():
-    """Issue 27: a user stop makes every streamed target fail. One held state, entered once (no
+    """A user stop makes every streamed target fail. One held state, entered once (no
     failing tick counted, no recovery hammered, the stopped robot polled at a low rate); an
     acknowledgement while it is pressed is refused; after release + acknowledgement the arm
     holds and accepts chunks; a fault after that holds again."""

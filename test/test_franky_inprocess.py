@@ -1,5 +1,5 @@
 """The franky backend in-process (Controller + FrankyRobot) on franky-sim: recovery, gripper,
-posture, limits (issues 6 and 16).
+posture, limits.
 
 Each test starts its own franky-sim. They live apart from test_franka_sim.py so that module's
 franky-sim and franka_node (a module fixture, alive until its last test) do not run beside
@@ -190,7 +190,7 @@ def test_arm_keeps_its_posture_while_the_tcp_wanders_and_yaws():
 
 
 def test_limits_are_set_explicitly_on_connect_and_a_joint_driven_into_its_limit_stops():
-    """Issue 16 item 1 on franky-sim: the collision thresholds and the blocking moves' joint
+    """On franky-sim: the collision thresholds and the blocking moves' joint
     velocity limit are set from control.yaml on connect (franky-sim acknowledges the thresholds
     but simulates no reflex, so only their delivery shows here), and yawing the hand until joint 7
     reaches a (tightened) position limit stops the motion and holds until acknowledged."""

@@ -224,7 +224,7 @@ def test_policy_publishes_nothing_until_enabled_and_a_takeover_pauses_it(ros_dom
 @pytest.mark.slow
 @pytest.mark.sim
 def test_the_operator_flow_drives_the_twin_the_same_way(ros_domain, tmp_path):
-    """Issue 16 item 3 in the twin, on simulated time: `equidiff lab` homes the arm, records an
+    """The operator flow in the twin, on simulated time: `equidiff lab` homes the arm, records an
     episode, pauses and resumes the policy; a SpaceMouse takeover pauses it and is marked in the
     bag; the episode is kept as a success. The same commands and nodes as in the lab."""
     from equidiff_core.bags import read_episode
@@ -365,7 +365,7 @@ def row(screen: str, label: str) -> str:
 @pytest.mark.slow
 @pytest.mark.sim
 def test_the_operator_screen_drives_the_nodes(ros_domain, checkpoint, tmp_path):
-    """Issue 27 item 4: `equidiff lab` in a real terminal (tmux) beside real nodes (franky-sim's arm
+    """`equidiff lab` in a real terminal (tmux) beside real nodes (franky-sim's arm
     under franka_node, recorder, policy, teleop): keys sent, the screen read back, the effects checked
     on the nodes. franka_node starts after an "unclean exit" (a stale marker), so it holds for an
     acknowledgement where franky-sim put the arm: the acknowledge and the homing are real ones."""

@@ -684,7 +684,7 @@ def test_bench_generalization_trains_in_parts_and_rolls_out_once_all_three_share
 @pytest.mark.slow
 @pytest.mark.sim
 def test_bench_generalization_quick_runs_end_to_end_on_the_cpu(tmp_path, capsys):
-    """Issue 7's promise that the benchmark runs on this CPU: one narrow-yaw demo recorded, the
+    """The benchmark runs on this CPU: one narrow-yaw demo recorded, the
     three policies trained side by side from it (tiny preset), all rolled out; one JSON line."""
     import json
 

@@ -563,7 +563,7 @@ def test_throttle_keeps_the_requested_rate_for_uneven_input():
 
 @pytest.mark.slow
 def test_equidiff_train_logs_to_rerun(tmp_path):
-    """Issue 8 item 3 end to end: `equidiff train --rerun FILE.rrd` on the sample bag (tiny preset, 4 steps)."""
+    """End to end: `equidiff train --rerun FILE.rrd` on the sample bag (tiny preset, 4 steps)."""
     bags = sorted(p for p in (ROOT / "bags").glob("*") if (p / "metadata.yaml").is_file())
     if not bags:
         pytest.skip("no sample bag under bags/ in this checkout")
