@@ -9,6 +9,7 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 pytest.importorskip("rerun")
@@ -25,7 +26,9 @@ from test_viz import (
     voxel_msg,
 )
 
+from equidiff_core.cameras.color import color_image_msg
 from equidiff_core.rosmsg import RclpyFactory
+from equidiff_core.topics import camera_color_topic
 from equidiff_core.viz.rrd import summarize_rrd
 
 N_FRAMES = 8
@@ -49,7 +52,7 @@ def _wait_for(predicate, timeout_s: float, what: str, proc: subprocess.Popen | N
 def test_live_viz_logs_real_topics_to_a_readable_rrd(ros_domain, tmp_path):
     from diagnostic_msgs.msg import DiagnosticArray
     from geometry_msgs.msg import PoseStamped
-    from sensor_msgs.msg import JointState, PointCloud2
+    from sensor_msgs.msg import CompressedImage, JointState, PointCloud2
     from trajectory_msgs.msg import MultiDOFJointTrajectory
 
     from equidiff_ros.common import (
@@ -85,7 +88,10 @@ def test_live_viz_logs_real_topics_to_a_readable_rrd(ros_domain, tmp_path):
             TOPIC_COMMAND_CHUNK: node.create_publisher(MultiDOFJointTrajectory, TOPIC_COMMAND_CHUNK, RELIABLE_QOS),
             TOPIC_EXECUTED_TARGET: node.create_publisher(PoseStamped, TOPIC_EXECUTED_TARGET, RELIABLE_QOS),
             TOPIC_DIAGNOSTICS: node.create_publisher(DiagnosticArray, TOPIC_DIAGNOSTICS, RELIABLE_QOS),
+            "image": node.create_publisher(CompressedImage, camera_color_topic(LAB.cameras[0].name), RELIABLE_QOS),
         }
+        rgb = np.zeros((48, 64, 3), np.uint8)
+        rgb[:, :32] = (200, 40, 40)
         _wait_for(lambda: all(p.get_subscription_count() > 0 for p in pubs.values()), 60, "viz subscriptions", proc)
         time.sleep(0.5)  # let discovery settle in both directions before the reliable topics count
         for i in range(N_FRAMES):
@@ -93,6 +99,7 @@ def test_live_viz_logs_real_topics_to_a_readable_rrd(ros_domain, tmp_path):
             pubs[TOPIC_VOXELS].publish(voxel_msg(500 + i, t, f, seed=i))
             pubs[TOPIC_COMMAND_CHUNK].publish(chunk_msg(i * 0.2, t, f))
             pubs[TOPIC_DIAGNOSTICS].publish(diagnostics_msg(100.0 + i, t, f))
+            pubs["image"].publish(color_image_msg(rgb, t, LAB.cameras[0].frame_id, f))
             for k in range(4):  # 20 Hz state: exactly the default ee_hz, so no throttling by message time
                 ts = t + k * 50_000_000
                 pubs[TOPIC_EE_POSE].publish(pose_msg(tcp_pose(ts / 1e9), ts, f))
@@ -126,6 +133,7 @@ def test_live_viz_logs_real_topics_to_a_readable_rrd(ros_domain, tmp_path):
     assert age.rows == N_FRAMES
     for cam in LAB.cameras:
         assert "Transform3D:translation" in s[f"world/cameras/{cam.name}"].static_components  # lab.yaml
+    assert 0 < s[f"images/{LAB.cameras[0].name}"].rows <= N_FRAMES  # the camera's JPEG, as published
 
 
 @pytest.mark.ros

@@ -23,6 +23,7 @@ from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
 
 from equidiff_core.config import LabConfig
+from equidiff_core.topics import camera_color_topic
 from equidiff_ros.common import (
     RELIABLE_QOS,
     SENSOR_QOS,
@@ -44,7 +45,7 @@ class VizNode(Node):
         wait_for_clock(self)  # simulated time (the twin): nothing is timed before /clock
         from diagnostic_msgs.msg import DiagnosticArray
         from geometry_msgs.msg import PoseStamped
-        from sensor_msgs.msg import JointState, PointCloud2
+        from sensor_msgs.msg import CompressedImage, JointState, PointCloud2
         from trajectory_msgs.msg import MultiDOFJointTrajectory
 
         self.viz = logger
@@ -62,6 +63,8 @@ class VizNode(Node):
         ]
         if clouds:
             topics += [(cam.topic, PointCloud2, SENSOR_QOS) for cam in lab.cameras]
+        if logger.config.images:  # viz.yaml's `images` (on by default): the cameras' JPEGs
+            topics += [(camera_color_topic(cam.name), CompressedImage, SENSOR_QOS) for cam in lab.cameras]
         # Camera frames come from the lab config, the same file camera_node publishes /tf_static from
         # (tf2_msgs is not even installable from PyPI, architecture.md note 1).
         for topic, msg_type, qos in topics:
