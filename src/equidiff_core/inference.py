@@ -2,7 +2,8 @@
 
 A policy file holds plain torch modules + a JSON config in one ``torch.load(weights_only=True)``
 file; its format, ``export_policy``, checked loading and ``CheckpointError`` live in ``policy_file``,
-the CPU kernels in ``models.cpu_kernels`` (both re-exported here). ``export_policy(policy, path)`` converts the escnn model with escnn's own per-layer ``export()``
+the CPU kernels in ``models.cpu_kernels`` (both re-exported here). ``export_policy(policy, path)``
+converts the escnn model with escnn's own per-layer ``export()``
 (R3Conv -> Conv3d, equivariant Linear -> Linear, same outputs to float rounding) into
 ``models.plain.PlainEquiNoisePredictor``; the baseline is plain already. ``load_inference_policy``
 rebuilds that network from the saved preset without importing escnn, so the robot-side
