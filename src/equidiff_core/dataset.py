@@ -23,102 +23,37 @@ Decoding happens once per bag: episodes are kept in memory as sparse voxel lists
 and mtime, so neither the second epoch nor the second run decodes bags again.
 
 Packed episodes (``equidiff dataset pack``): the same arrays, compressed, in one
-``<episode>.episode.npz`` per bag, about 7 % of the bag's size. Training accepts them wherever it
+``<episode>.episode.npz`` per bag, about 7 % of the bag's size (``episode_arrays``, with the cache). Training accepts them wherever it
 accepts bags, so a dataset can be copied to a GPU machine without its MCAP files.
 """
 
 from __future__ import annotations
 
-import hashlib
-import json
-import os
 import random
 from collections.abc import Iterable, Sequence
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from . import geometry
-from .bags import BagError, EpisodeMeta, find_bags, is_bag_dir, read_episode
+from .bags import BagError, find_bags, is_bag_dir, read_episode
 from .chunk import ChunkError, chunk_from_msg
-from .observation import STATE_TOLERANCE_S, ee_input, nearest
+from .episode_arrays import (
+    CACHE_VERSION,
+    PACKED_SUFFIX,
+    DatasetConfig,
+    EpisodeArrays,
+    cache_load,
+    cache_save,
+    read_packed,
+    write_packed,
+)
+from .observation import ee_input, nearest
 from .pointcloud import CloudError, voxel_msg_to_grid
 from .robots.base import FINGER_JOINT_NAMES
 from .rosmsg import NS_PER_S, gripper_width_from_joint_state, pose_from_msg
 from .topics import TOPIC_COMMAND_CHUNK, TOPIC_EE_POSE, TOPIC_JOINT_STATES, TOPIC_VOXELS
-
-CACHE_VERSION = 2  # 2: compressed, with the decoding settings inside (shared with packed episodes)
-PACKED_SUFFIX = ".episode.npz"
-
-
-@dataclass(frozen=True)
-class DatasetConfig:
-    horizon: int = 16
-    n_obs_steps: int = 1
-    n_action_steps: int = 8
-    resolution: int = 64
-    state_tolerance_s: float = STATE_TOLERANCE_S  # ee pose / joint state must be this close to the voxel stamp
-    obs_period_s: float | None = None  # None: the median interval of the bag's /voxels stamps
-    cache_dir: str | None = None
-
-    def __post_init__(self):
-        if self.horizon < 1 or self.n_obs_steps < 1 or not 1 <= self.n_action_steps <= self.horizon:
-            raise ValueError(f"need horizon >= n_action_steps >= 1 and n_obs_steps >= 1, got {self}")
-        if self.state_tolerance_s <= 0:
-            raise ValueError("state_tolerance_s must be positive")
-
-    @classmethod
-    def from_preset(cls, preset: Any, **overrides: Any) -> DatasetConfig:
-        """Horizon, observation steps and action steps from a model preset (``presets.PolicyPreset``)."""
-        kw = {"horizon": preset.horizon, "n_obs_steps": preset.n_obs_steps, "n_action_steps": preset.n_action_steps}
-        kw.update(overrides)
-        return cls(**kw)
-
-
-@dataclass
-class EpisodeArrays:
-    """One decoded episode, ready for sampling."""
-
-    path: Path
-    meta: EpisodeMeta
-    stamps_ns: np.ndarray  # (N,) observation (voxel header) stamps
-    voxel_offsets: np.ndarray  # (N + 1,) into voxel_idx / voxel_rgb
-    voxel_idx: np.ndarray  # (M, 3) uint16 occupied voxel indices
-    voxel_rgb: np.ndarray  # (M, 3) uint8
-    ee: np.ndarray  # (N, 10) float32 measured TCP pose + gripper width
-    schedule_ns: np.ndarray  # (K,) times of the effective command schedule (first = -inf sentinel)
-    schedule: np.ndarray  # (K, 10) float64 absolute targets
-    obs_period_ns: int
-    dropped_steps: int = 0
-    rejected_chunks: int = 0
-
-    def __len__(self) -> int:
-        return len(self.stamps_ns)
-
-    @property
-    def duration_s(self) -> float:
-        return float(self.stamps_ns[-1] - self.stamps_ns[0]) / NS_PER_S if len(self) else 0.0
-
-    def grid(self, i: int, resolution: int) -> np.ndarray:
-        a, b = self.voxel_offsets[i], self.voxel_offsets[i + 1]
-        idx, rgb = self.voxel_idx[a:b].astype(np.intp), self.voxel_rgb[a:b]
-        grid = np.zeros((4, resolution, resolution, resolution), dtype=np.uint8)
-        grid[0, idx[:, 0], idx[:, 1], idx[:, 2]] = 255
-        for c in range(3):
-            grid[1 + c, idx[:, 0], idx[:, 1], idx[:, 2]] = rgb[:, c]
-        return grid
-
-    def targets_at(self, times_ns: np.ndarray) -> np.ndarray:
-        """(T,) times -> (T, 10) the commanded target in effect at each (zero-order hold)."""
-        k = np.searchsorted(self.schedule_ns, np.asarray(times_ns, dtype=np.int64), side="right") - 1
-        return self.schedule[np.maximum(k, 0)]
-
-    @property
-    def actions(self) -> np.ndarray:
-        """(N, 10) the target in effect at each observation."""
-        return self.targets_at(self.stamps_ns)
 
 
 def command_schedule(chunks: Sequence[Any]) -> tuple[np.ndarray, np.ndarray]:
@@ -173,7 +108,7 @@ def load_episode_arrays(path: str | Path, config: DatasetConfig = DatasetConfig(
     path = Path(path)
     if path.name.endswith(PACKED_SUFFIX):
         return read_packed(path, config)
-    cached = _cache_load(path, config)
+    cached = cache_load(path, config)
     if cached is not None:
         return cached
     episode = read_episode(path, topics=(TOPIC_VOXELS, TOPIC_EE_POSE, TOPIC_JOINT_STATES, TOPIC_COMMAND_CHUNK))
@@ -237,79 +172,11 @@ def load_episode_arrays(path: str | Path, config: DatasetConfig = DatasetConfig(
     )
     if not np.all(np.isfinite(arrays.ee)) or not np.all(np.isfinite(arrays.schedule)):
         raise BagError(f"{path}: NaN/inf in poses or commands")
-    _cache_save(arrays, config)
+    cache_save(arrays, config)
     return arrays
 
 
-# --- disk cache and packed episodes --------------------------------------------------------
-
-_ARRAY_FIELDS = ("stamps_ns", "voxel_offsets", "voxel_idx", "voxel_rgb", "ee", "schedule_ns", "schedule")
-
-
-def _decoding(config: DatasetConfig) -> dict:
-    """The settings that change what a bag decodes to (the rest only change the sampling)."""
-    return {
-        "resolution": config.resolution,
-        "state_tolerance_s": config.state_tolerance_s,
-        "obs_period_s": config.obs_period_s,
-    }
-
-
-def write_packed(arrays: EpisodeArrays, file: Path, config: DatasetConfig) -> Path:
-    """Write ``arrays`` compressed to ``file`` (atomically: a killed writer leaves no partial file)."""
-    file.parent.mkdir(parents=True, exist_ok=True)
-    extra = json.dumps(
-        {
-            "version": CACHE_VERSION,
-            "source": str(arrays.path),
-            "decoding": _decoding(config),
-            "meta": arrays.meta.to_dict(),
-            "obs_period_ns": arrays.obs_period_ns,
-            "dropped_steps": arrays.dropped_steps,
-            "rejected_chunks": arrays.rejected_chunks,
-        }
-    )
-    fields = {k: getattr(arrays, k) for k in _ARRAY_FIELDS if k != "voxel_idx"}
-    # Occupied voxels come in C order, so their flat indices rise within a frame: stored as
-    # differences they compress 4x better than the (M, 3) indices.
-    res = config.resolution
-    flat = (
-        np.ravel_multi_index(arrays.voxel_idx.T.astype(np.intp), (res, res, res))
-        if len(arrays.voxel_idx)
-        else np.zeros(0, np.intp)
-    )
-    fields["voxel_flat_delta"] = np.diff(flat, prepend=0).astype(np.int32)
-    # per-process temporary name: data-parallel ranks decoding the same bag may cache it at once
-    tmp = file.with_name(f"{file.name}.{os.getpid()}.tmp.npz")
-    np.savez_compressed(tmp, extra=np.array(extra), **fields)
-    tmp.replace(file)
-    return file
-
-
-def read_packed(file: Path, config: DatasetConfig, path: Path | None = None) -> EpisodeArrays:
-    """EpisodeArrays from a packed file; BagError if it is unreadable or was decoded with other settings."""
-    try:
-        with np.load(file, allow_pickle=False) as z:
-            extra = json.loads(str(z["extra"]))
-            arrays = {k: z[k] for k in _ARRAY_FIELDS if k != "voxel_idx"}
-            flat = np.cumsum(z["voxel_flat_delta"].astype(np.int64))
-    except Exception as err:  # zipfile, ValueError, KeyError, JSON: all mean "not a usable packed episode"
-        raise BagError(f"{file}: not a readable packed episode ({type(err).__name__}: {err})") from err
-    if extra.get("version") != CACHE_VERSION or extra.get("decoding") != _decoding(config):
-        raise BagError(
-            f"{file}: packed with {extra.get('decoding')} (format {extra.get('version')}), but "
-            f"training asks for {_decoding(config)} (format {CACHE_VERSION}): pack the bags again"
-        )
-    res = config.resolution
-    arrays["voxel_idx"] = np.stack(np.unravel_index(flat, (res, res, res)), axis=1).astype(np.uint16)
-    return EpisodeArrays(
-        path=path or file,
-        meta=EpisodeMeta.from_dict(extra["meta"]),
-        obs_period_ns=extra["obs_period_ns"],
-        dropped_steps=extra["dropped_steps"],
-        rejected_chunks=extra["rejected_chunks"],
-        **arrays,
-    )
+# --- packed episodes -------------------------------------------------------------------------
 
 
 def find_episodes(paths: Iterable[str | Path]) -> list[Path]:
@@ -332,34 +199,6 @@ def pack_episodes(
         for ep in iter_episodes(paths, config, skipped, log, find=find_bags)
     ]
     return written, skipped
-
-
-# The disk cache is a packed episode keyed by the bag's absolute path, size and mtime.
-def _cache_key(path: Path, config: DatasetConfig) -> str | None:
-    mcaps = sorted(path.glob("*.mcap"))
-    meta = path / "metadata.yaml"
-    if not mcaps or not meta.is_file():
-        return None
-    st = [(m.name, m.stat().st_size, m.stat().st_mtime_ns) for m in mcaps] + [(meta.stat().st_mtime_ns,)]
-    blob = json.dumps([CACHE_VERSION, str(path.resolve()), st, _decoding(config)])
-    return hashlib.sha1(blob.encode()).hexdigest()[:20]
-
-
-def _cache_load(path: Path, config: DatasetConfig) -> EpisodeArrays | None:
-    key = _cache_key(path, config) if config.cache_dir else None
-    file = Path(config.cache_dir) / f"{key}.npz" if key else None
-    if file is None or not file.is_file():
-        return None
-    try:
-        return read_packed(file, config, path)
-    except BagError:  # a stale or partial cache file is rebuilt, never trusted
-        return None
-
-
-def _cache_save(arrays: EpisodeArrays, config: DatasetConfig) -> None:
-    key = _cache_key(arrays.path, config) if config.cache_dir else None
-    if key:
-        write_packed(arrays, Path(config.cache_dir) / f"{key}.npz", config)
 
 
 # --- sampling ---------------------------------------------------------------------------------
@@ -513,3 +352,24 @@ def dataset_stats(paths: Iterable[str | Path], config: DatasetConfig = DatasetCo
             "action_max": all_actions.max(0).round(4).tolist() if len(all_actions) else None,
         },
     }
+
+
+# The episode arrays, their settings and their packed form moved to episode_arrays; importable from here too.
+__all__ = [
+    "CACHE_VERSION",
+    "PACKED_SUFFIX",
+    "DatasetConfig",
+    "DemoDataset",
+    "EpisodeArrays",
+    "command_schedule",
+    "dataset_stats",
+    "find_episodes",
+    "iter_episodes",
+    "load_episode_arrays",
+    "load_episodes",
+    "pack_episodes",
+    "read_packed",
+    "sample_starts",
+    "split_episodes",
+    "write_packed",
+]

@@ -1,6 +1,9 @@
-"""Exported policies: plain torch modules + a JSON config in one ``torch.load(weights_only=True)`` file.
+"""Exported policies at inference: ``load_inference_policy`` and the sampling paths of ``InferencePolicy``.
 
-``export_policy(policy, path)`` converts the escnn model with escnn's own per-layer ``export()``
+A policy file holds plain torch modules + a JSON config in one ``torch.load(weights_only=True)``
+file; its format, ``export_policy``, checked loading and ``CheckpointError`` live in ``policy_file``,
+the CPU kernels in ``models.cpu_kernels`` (both re-exported here). ``export_policy(policy, path)``
+converts the escnn model with escnn's own per-layer ``export()``
 (R3Conv -> Conv3d, equivariant Linear -> Linear, same outputs to float rounding) into
 ``models.plain.PlainEquiNoisePredictor``; the baseline is plain already. ``load_inference_policy``
 rebuilds that network from the saved preset without importing escnn, so the robot-side
@@ -22,10 +25,8 @@ the 2-core EPYC: docs/model.md (compact, 1 thread, traced: 63-89 ms per DDIM-16 
 
 from __future__ import annotations
 
-import json
 import warnings
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 import torch
@@ -33,102 +34,32 @@ import torch
 from .augment import voxel_input
 from .config import Workspace, from_dict
 from .machine import cpu_has_native_bf16
-from .models import action_space
+from .models.cpu_kernels import (
+    FastMish,
+    MatmulConv1d,
+    MatmulConvTranspose1d,
+    Method,
+    convs_as_matmuls,
+    pad_first_conv,
+    swap_modules,
+)
 from .models.sampling import ActionCodec, _guided_noise, ddim_sample, make_inference_scheduler
 from .normalizer import Normalizer, NormalizerError
 from .policies import PolicyInputError
+from .policy_file import (
+    FORMAT,
+    VERSION,
+    CheckpointError,
+    build_plain_network,
+    check_device,
+    export_policy,
+    load_checked,
+    read_policy_file,
+    save_atomically,
+)
 from .presets import PolicyPreset, preset_from_dict
 
-FORMAT = "equidiff_policy"
-VERSION = 1
 PRECISIONS = ("fp32", "bf16", "auto")
-
-
-class CheckpointError(RuntimeError):
-    """A policy/checkpoint file that is missing, corrupt, or not loadable by this version."""
-
-
-def export_policy(policy, path: str | Path) -> Path:
-    """Write ``policy`` (a policies.DiffusionPolicy with its normaliser set) as a plain-torch inference file."""
-    if policy.normalizer is None:
-        raise CheckpointError("cannot export a policy without a normaliser")
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    plain = policy.model.export_plain()
-    state = {
-        k: v.detach().to("cpu", torch.float32).contiguous() if v.is_floating_point() else v.detach().cpu()
-        for k, v in plain.state_dict().items()
-    }
-    payload = {
-        "format": FORMAT,
-        "version": VERSION,
-        "config_json": json.dumps(policy.config_dict()),
-        "state_dict": state,
-    }
-    return save_atomically(payload, path)
-
-
-def save_atomically(obj: Any, path: Path) -> Path:
-    """``torch.save`` through a temporary file: a killed writer never leaves a half-written ``path``."""
-    tmp = path.with_name(path.name + ".tmp")
-    torch.save(obj, tmp)
-    tmp.replace(path)
-    return path
-
-
-def build_plain_network(policy_name: str, preset: PolicyPreset) -> torch.nn.Module:
-    freqs = action_space.freqs_for(preset.control)
-    if policy_name == "equidiff":
-        from .models.plain import PlainEquiNoisePredictor
-
-        return PlainEquiNoisePredictor(preset, freqs)
-    if policy_name == "baseline":
-        from .models.baseline import BaselineNoisePredictor
-
-        return BaselineNoisePredictor(preset, freqs)
-    raise CheckpointError(f"unknown policy kind {policy_name!r} in checkpoint")
-
-
-def load_checked(path: str | Path, file_format: str, version: int, kind: str, what: str) -> dict:
-    """The dict saved at ``path``, checked to be a ``kind`` ("policy file", "checkpoint") of ``file_format``
-    and ``version``; else a ``CheckpointError`` naming the path and what is wrong (``what``: what the file
-    should have been, e.g. "an exported equidiff policy"). Policy files and training checkpoints both."""
-    path = Path(path)
-    if not path.is_file():
-        raise CheckpointError(f"{path}: no such {kind}")
-    try:
-        payload = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as err:
-        raise CheckpointError(
-            f"{path}: not a readable {kind} ({type(err).__name__}: {(str(err).splitlines() or [''])[0]})"
-        ) from err
-    if not isinstance(payload, dict) or payload.get("format") != file_format:
-        found = payload.get("format") if isinstance(payload, dict) else type(payload).__name__
-        raise CheckpointError(f"{path}: not {what} (format {found!r})")
-    if payload.get("version") != version:
-        raise CheckpointError(f"{path}: {kind} version {payload.get('version')} is not supported (expected {version})")
-    return payload
-
-
-def read_policy_file(path: str | Path) -> tuple[dict, dict]:
-    """(config, state_dict) of an exported policy file, validated."""
-    payload = load_checked(path, FORMAT, VERSION, "policy file", "an exported equidiff policy")
-    try:
-        config = json.loads(payload["config_json"])
-        state = payload["state_dict"]
-    except (KeyError, TypeError, json.JSONDecodeError) as err:
-        raise CheckpointError(f"{path}: malformed policy file: {err}") from err
-    return config, state
-
-
-def check_device(device: str) -> None:
-    """A ValueError naming why ``device`` cannot run the policy here (CUDA missing), not torch's
-    assertion deep inside the first ``.to()``."""
-    if str(device).startswith("cuda") and not torch.cuda.is_available():
-        build = f"torch {torch.__version__}, " + (
-            "built without CUDA" if torch.version.cuda is None else f"CUDA {torch.version.cuda}, no GPU visible"
-        )
-        raise ValueError(f"device {device!r} requested but CUDA is not available ({build}); use --device cpu")
 
 
 def load_inference_policy(
@@ -208,15 +139,15 @@ class InferencePolicy:
         self.net = net.eval().to(device=device, dtype=self.dtype)
         self.pad_channels = 0
         if precision == "fp32" and device.type == "cpu":
-            self.pad_channels = _pad_first_conv(self.net.encoder, multiple=8)
+            self.pad_channels = pad_first_conv(self.net.encoder, multiple=8)
         self.channels_last = channels_last
         if channels_last:
             self.net.encoder.to(memory_format=torch.channels_last_3d)
         self.matmul_convs = 0
         if precision == "bf16" and device.type == "cpu":
-            self.matmul_convs = _convs_as_matmuls(self.net.unet)
+            self.matmul_convs = convs_as_matmuls(self.net.unet)
         if device.type == "cpu":  # a CPU-kernel workaround: on CUDA torch's Mish is one fused kernel
-            _swap_modules(self.net.unet, torch.nn.Mish, lambda _: FastMish())
+            swap_modules(self.net.unet, torch.nn.Mish, lambda _: FastMish())
         self._encode = self.net.encode_obs
         self._denoise_films = self.net.denoise_films
         self._step_films: dict[int, torch.Tensor] = {}  # diffusion step -> its part of the FiLM terms
@@ -246,10 +177,10 @@ class InferencePolicy:
         ee = torch.zeros(1, To, 10, device=self.device, dtype=self.dtype)
         with torch.no_grad(), warnings.catch_warnings():
             warnings.simplefilter("ignore")  # tracer notes about constant batch sizes; jit.freeze deprecation
-            enc = torch.jit.freeze(torch.jit.trace(_Method(self.net, "encode_obs").eval(), (self._layout(vox), ee)))
+            enc = torch.jit.freeze(torch.jit.trace(Method(self.net, "encode_obs").eval(), (self._layout(vox), ee)))
             films = self.net.unet.global_films(enc(self._layout(vox), ee))
             x = torch.zeros(1, self.preset.horizon, self.codec.dim, device=self.device)
-            den = torch.jit.freeze(torch.jit.trace(_Method(self.net, "denoise_films").eval(), (x, films)))
+            den = torch.jit.freeze(torch.jit.trace(Method(self.net, "denoise_films").eval(), (x, films)))
         self._encode, self._denoise_films, self.jit = enc, den, True
 
     def _compile(self):
@@ -483,133 +414,20 @@ class _StaticSampler:
         self.graphs: dict[bool, torch.cuda.CUDAGraph] = {}  # guided -> captured graph (CUDA only)
 
 
-def _pad_first_conv(encoder: torch.nn.Sequential, multiple: int) -> int:
-    """Give the first Conv3d zero weights for extra input channels up to ``multiple``; returns how many.
-
-    oneDNN's fp32 3D convolution on CPU takes a slow path for 4 input channels (measured on the
-    2-core EPYC: 91 ms for 4->8 channels at 58^3, 12 ms for 8->8); the padded channels are zeros,
-    so the output is unchanged."""
-    conv = encoder[0]
-    extra = -conv.in_channels % multiple
-    if not isinstance(conv, torch.nn.Conv3d) or extra == 0:
-        return 0
-    padded = torch.nn.Conv3d(
-        conv.in_channels + extra,
-        conv.out_channels,
-        conv.kernel_size,
-        conv.stride,
-        conv.padding,
-        bias=conv.bias is not None,
-    ).to(conv.weight.device, conv.weight.dtype)
-    with torch.no_grad():
-        padded.weight.zero_()
-        padded.weight[:, : conv.in_channels] = conv.weight
-        if conv.bias is not None:
-            padded.bias.copy_(conv.bias)
-    encoder[0] = padded.eval()
-    return extra
-
-
-class MatmulConv1d(torch.nn.Module):
-    """A Conv1d computed as one matrix product over unfolded windows (same weights, same output).
-
-    The U-Net's convolutions see 4-16 time steps and 8 group elements per call, where oneDNN's
-    bf16 Conv1d is ~1.7x slower than the equivalent GEMM (measured on the 2-core EPYC, 1024
-    channels, kernel 5: 3.5 ms vs 2.0 ms); in fp32 the GEMM is not faster, so only bf16 uses this."""
-
-    def __init__(self, conv: torch.nn.Conv1d):
-        super().__init__()
-        if conv.groups != 1 or conv.dilation[0] != 1 or conv.padding_mode != "zeros":
-            raise ValueError("MatmulConv1d handles plain convolutions only")
-        self.kernel, self.stride, self.padding = conv.kernel_size[0], conv.stride[0], conv.padding[0]
-        out_ch, in_ch, k = conv.weight.shape
-        # (out, in, k) -> (out, k*in), matching windows flattened as (k, in)
-        self.weight = torch.nn.Parameter(
-            conv.weight.detach().permute(0, 2, 1).reshape(out_ch, k * in_ch).contiguous(), requires_grad=False
-        )
-        self.bias = None if conv.bias is None else torch.nn.Parameter(conv.bias.detach().clone(), requires_grad=False)
-
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        if self.padding:
-            x = torch.nn.functional.pad(x, (self.padding, self.padding))
-        windows = x.unfold(2, self.kernel, self.stride)  # (B, C, T', k)
-        B, C, T, k = windows.shape
-        y = torch.nn.functional.linear(windows.permute(0, 2, 3, 1).reshape(B * T, k * C), self.weight, self.bias)
-        return y.reshape(B, T, -1).transpose(1, 2)
-
-
-class MatmulConvTranspose1d(torch.nn.Module):
-    """The U-Net's upsampling ConvTranspose1d (kernel 2*stride, padding stride/2) as one GEMM
-    plus an overlap-add of the two kernel halves (same weights, same output).
-
-    oneDNN's bf16 ConvTranspose1d took ~0.65 ms for 8 rows x 4-8 steps x 256-512 channels on
-    the 2-core EPYC, 10x the GEMM; torch has no cheaper col2im for 1D, hence the hand-written add."""
-
-    def __init__(self, conv: torch.nn.ConvTranspose1d):
-        super().__init__()
-        k, s, p = conv.kernel_size[0], conv.stride[0], conv.padding[0]
-        if conv.groups != 1 or conv.dilation[0] != 1 or conv.output_padding[0] != 0 or k != 2 * s or 2 * p != s:
-            raise ValueError("MatmulConvTranspose1d handles kernel = 2 * stride, padding = stride / 2 only")
-        self.stride, self.padding = s, p
-        in_ch, out_ch, _ = conv.weight.shape
-        # (in, out, k) -> (k*out, in): one product gives every input step's k output contributions
-        self.weight = torch.nn.Parameter(
-            conv.weight.detach().permute(2, 1, 0).reshape(k * out_ch, in_ch).contiguous(), requires_grad=False
-        )
-        self.bias = None if conv.bias is None else torch.nn.Parameter(conv.bias.detach().clone(), requires_grad=False)
-
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        B, C, T = x.shape
-        s = self.stride
-        z = torch.nn.functional.linear(x.transpose(1, 2).reshape(B * T, C), self.weight)
-        z = z.reshape(B, T, 2, s, -1)  # input step i writes output steps i*s + (0..2s-1) - padding
-        # overlap-add: output block j (steps j*s .. j*s+s-1, before cropping) = first half of input j + second half of j-1
-        full = torch.nn.functional.pad(z[:, :, 0], (0, 0, 0, 0, 0, 1)) + torch.nn.functional.pad(
-            z[:, :, 1], (0, 0, 0, 0, 1, 0)
-        )
-        y = full.reshape(B, (T + 1) * s, -1)[:, self.padding : self.padding + T * s]
-        if self.bias is not None:
-            y = y + self.bias
-        return y.transpose(1, 2)
-
-
-class FastMish(torch.nn.Module):
-    """Mish as x * n / (n + 2) with n = e^x (e^x + 2) (= x tanh(softplus(x))): ~2x faster than
-    torch's CPU kernel on the U-Net's small tensors (measured 60 vs 118 us for 32k bf16 values,
-    2-core EPYC). The exponent is clamped at 20, where the ratio is 1 to float precision."""
-
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        e = torch.clamp(x, max=20.0).exp_()
-        n = (e + 2).mul_(e)
-        return n.div_(n + 2).mul_(x)
-
-
-def _swap_modules(module: torch.nn.Module, kind: type, replacement) -> int:
-    """Replace every module of exactly type ``kind`` under ``module`` by ``replacement(old)``; returns how many."""
-    count = 0
-    for name, child in module.named_children():
-        if type(child) is kind:
-            setattr(module, name, replacement(child))
-            count += 1
-        else:
-            count += _swap_modules(child, kind, replacement)
-    return count
-
-
-def _convs_as_matmuls(module: torch.nn.Module) -> int:
-    """Replace every plain Conv1d and the upsampling ConvTranspose1d under ``module`` by GEMM modules."""
-    return _swap_modules(module, torch.nn.Conv1d, MatmulConv1d) + _swap_modules(
-        module, torch.nn.ConvTranspose1d, MatmulConvTranspose1d
-    )
-
-
-class _Method(torch.nn.Module):
-    """Wraps one method of a module so torch.jit.trace can trace it."""
-
-    def __init__(self, module: torch.nn.Module, method: str):
-        super().__init__()
-        self.module = module
-        self.method = method
-
-    def forward(self, *args):
-        return getattr(self.module, self.method)(*args)
+__all__ = [
+    "FORMAT",
+    "PRECISIONS",
+    "VERSION",
+    "CheckpointError",
+    "FastMish",
+    "InferencePolicy",
+    "MatmulConv1d",
+    "MatmulConvTranspose1d",
+    "build_plain_network",
+    "check_device",
+    "export_policy",
+    "load_checked",
+    "load_inference_policy",
+    "read_policy_file",
+    "save_atomically",
+]

@@ -3,7 +3,8 @@
 ROS-free. The terminal UI (``equidiff_ros.commands.lab_ui``) feeds an ``OperatorLoop`` what the
 nodes publish (``observe``), the keys the operator presses (``press``) and the answers of the
 service calls it made (``done``); each of these and the UI's periodic ``tick`` hands back the
-``Request``s (service calls, run in order) that follow. ``render`` is the screen.
+``Request``s (service calls, run in order) that follow. ``render`` is the screen. How the nodes'
+publications read (``NodeView``, franka_node's ``RobotStatus``) is ``node_view``.
 
 Rules a lab relies on (docs/lab.md, "The operator loop"):
 
@@ -19,24 +20,28 @@ Rules a lab relies on (docs/lab.md, "The operator loop"):
 
 from __future__ import annotations
 
-import json
 import time
 from collections import deque
-from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from . import topics
 from .bags import find_bags
+from .node_view import (
+    DIAGNOSTICS_STALE_S,
+    FRANKA_DIAGNOSTICS_NAME,
+    ROBOT_STATES,
+    NodeView,
+    RobotStatus,
+    parse_franka_status,
+    robot_status_from_diagnostics,
+)
 
-ROBOT_STATES = ("moving", "holding", "homing", "awaiting_ack", "faulted")
 ROBOT_BLOCKS_START = {
     "homing": "the arm is homing: start once it holds",
     "awaiting_ack": "the arm holds until acknowledged: look at it, then a",
     "faulted": "franka_node could not recover: fix the cause (see the last fault), then a to try again",
 }
-FRANKA_DIAGNOSTICS_NAME = "franka_node"  # the name of franka_node's status on /diagnostics
-DIAGNOSTICS_STALE_S = 5.0  # franka_node publishes them at 1 Hz: older than this, it is gone or stuck
 CONFIRM_TIMEOUT_S = 10.0
 DATASET_RECOUNT_S = 5.0
 MESSAGES_SHOWN = 6
@@ -94,103 +99,6 @@ KEYS: dict[str, tuple[str, str]] = {
 }
 KEY_NAMES = {" ": "space"}
 KEY_ROWS = (("episode", "skfx"), ("arm", "ha"), ("policy", "p t"), ("screen", "cq"))  # the key lines
-
-
-# --- what franka_node says --------------------------------------------------------------------
-
-
-@dataclass(frozen=True)
-class RobotStatus:
-    state: str  # one of ROBOT_STATES
-    reason: str = ""  # why it holds or faulted
-    last_fault: str = ""
-    last_fault_ns: int = 0
-    source: str = topics.TOPIC_FRANKA_STATUS  # or topics.TOPIC_DIAGNOSTICS: the fallback
-
-    def describe(self) -> str:
-        """One line: the state and why (``lab status`` prints it; the screen shows the same)."""
-        text = self.state.replace("_", " ")
-        return f"{text}: {self.reason}" if self.reason else text
-
-
-def parse_franka_status(text: str) -> RobotStatus:
-    """franka_node's ``/franka/status`` JSON; ValueError saying what is wrong with it."""
-    try:
-        data = json.loads(text)
-    except json.JSONDecodeError as err:
-        raise ValueError(f"{topics.TOPIC_FRANKA_STATUS} is not JSON ({err}): {text[:80]!r}") from None
-    if not isinstance(data, dict) or data.get("state") not in ROBOT_STATES:
-        raise ValueError(f"{topics.TOPIC_FRANKA_STATUS}: 'state' must be one of {ROBOT_STATES}: {text[:80]!r}")
-    try:
-        last_fault_ns = int(data.get("last_fault_ns") or 0)
-    except (TypeError, ValueError):
-        raise ValueError(f"{topics.TOPIC_FRANKA_STATUS}: 'last_fault_ns' is not an integer: {text[:80]!r}") from None
-    return RobotStatus(
-        state=data["state"],
-        reason=str(data.get("reason") or ""),
-        last_fault=str(data.get("last_fault") or ""),
-        last_fault_ns=last_fault_ns,
-    )
-
-
-def robot_status_from_diagnostics(message: str, values: Mapping[str, str]) -> RobotStatus:
-    """The fallback where franka_node publishes no ``/franka/status``: its ``/diagnostics``
-    (``faulted``, ``awaiting_ack``, the message ``holding`` / ``executing``). Homing shows as
-    moving there, and the time of the last fault is unknown."""
-    awaiting = values.get("awaiting_ack", "")
-    last_fault = awaiting or values.get("last_divergence", "") or values.get("last_recovery_reason", "")
-    if values.get("faulted") == "True":
-        state, reason = "faulted", message
-    elif awaiting:
-        state, reason = "awaiting_ack", awaiting
-    elif message.startswith("holding"):
-        state, reason = "holding", ""
-    else:
-        state, reason = "moving", ""
-    return RobotStatus(state, reason, last_fault, 0, source=topics.TOPIC_DIAGNOSTICS)
-
-
-@dataclass
-class NodeView:
-    """The newest of what the nodes publish (None: no node publishes it)."""
-
-    recorder: str | None = None  # /recorder/status: idle | recording <path>
-    policy: str | None = None  # /policy/state: running | paused <reason>
-    teleop_active: bool | None = None  # /teleop/active
-    franka_status: str | None = None  # /franka/status JSON
-    franka_diagnostics: tuple[str, dict] | None = None  # franka_node's newest /diagnostics: (message, values)
-    franka_diagnostics_at: float = 0.0  # when it arrived (the loop's clock)
-
-    def robot(self, now: float) -> tuple[RobotStatus | None, str]:
-        """franka_node's state (``/franka/status``, else its ``/diagnostics``) and a note on where it
-        came from or why it is missing."""
-        note = ""
-        if self.franka_status is not None:
-            try:
-                return parse_franka_status(self.franka_status), ""
-            except ValueError as err:
-                note = f"{err}; "
-        else:
-            note = f"(no status) no {topics.TOPIC_FRANKA_STATUS}; "
-        if self.franka_diagnostics is None:
-            return None, f"{note}no franka_node {topics.TOPIC_DIAGNOSTICS} either"
-        age = now - self.franka_diagnostics_at
-        if age > DIAGNOSTICS_STALE_S:
-            return None, f"{note}franka_node's {topics.TOPIC_DIAGNOSTICS} are {age:.0f} s old"
-        return robot_status_from_diagnostics(*self.franka_diagnostics), f"{note}from {topics.TOPIC_DIAGNOSTICS}"
-
-    @property
-    def recording(self) -> Path | None:
-        """The episode being recorded, if the recorder says so."""
-        if self.recorder and self.recorder.startswith("recording "):
-            return Path(self.recorder.removeprefix("recording ").strip())
-        return None
-
-    @property
-    def policy_running(self) -> bool:
-        return self.policy == "running"
-
-
 # --- the countdown ----------------------------------------------------------------------------
 
 
@@ -559,3 +467,24 @@ def _clock_text(stamp_ns: int) -> str:
     if stamp_ns > 10**18:  # after 2001: a wall-clock stamp
         return time.strftime("%H:%M:%S", time.localtime(stamp_ns / 1e9))
     return f"t={stamp_ns / 1e9:.1f} s"
+
+
+# What the nodes publish moved to node_view; its names stay importable from here.
+__all__ = [
+    "DIAGNOSTICS_STALE_S",
+    "FRANKA_DIAGNOSTICS_NAME",
+    "KEYS",
+    "KEY_NAMES",
+    "KEY_ROWS",
+    "ROBOT_STATES",
+    "SERVICES",
+    "Counts",
+    "LoopConfig",
+    "NodeView",
+    "OperatorLoop",
+    "Request",
+    "ResetCountdown",
+    "RobotStatus",
+    "parse_franka_status",
+    "robot_status_from_diagnostics",
+]

@@ -20,6 +20,8 @@ Files in ``out_dir``: ``last.ckpt`` (resumable: weights, optimiser, schedule, EM
 history, config; loads with ``torch.load(weights_only=True)``), ``history.json`` and
 ``policy.pt`` (the exported inference policy, see ``inference.py``). ``without_optimizer_state``
 writes a checkpoint to share without the optimiser's moments; it still resumes, with fresh moments.
+
+The run's configuration, its result and the resolution of ``auto`` settings are in ``train_config``.
 """
 
 from __future__ import annotations
@@ -30,7 +32,6 @@ import math
 import random
 import time
 from collections.abc import Iterable
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -39,105 +40,27 @@ import torch
 from torch.utils.data import DataLoader, Dataset
 
 from . import distributed
-from .batches import DeviceBatchSource, estimate_nbytes, loader_batches, make_sampler
-from .config import to_dict
+from .batches import DeviceBatchSource, loader_batches, make_sampler
+from .config import Workspace, from_dict, to_dict
 from .models.state import learned_state_dict, load_learned_state, parameters_only, refresh_escnn_caches
 from .normalizer import Normalizer
-from .policies import DiffusionPolicy
+from .policies import DiffusionPolicy, make_policy
+from .policy_file import CheckpointError, export_policy, load_checked, read_policy_file, save_atomically
+from .presets import preset_from_dict
+from .train_config import (
+    DATA_SOURCES,
+    DEVICE_DATA_SHARE,
+    PRECISIONS,
+    TrainConfig,
+    TrainingError,
+    TrainResult,
+    resolve_data,
+    resolve_device,
+    resolve_precision,
+)
 
 CKPT_FORMAT = "equidiff_train_ckpt"
 CKPT_VERSION = 1
-PRECISIONS = ("auto", "fp32", "bf16")
-DATA_SOURCES = ("auto", "device", "loader")
-# data "auto" keeps the training set on the GPU when it takes at most this share of the free memory
-DEVICE_DATA_SHARE = 0.5
-
-
-class TrainingError(RuntimeError):
-    pass
-
-
-@dataclass(frozen=True)
-class TrainConfig:
-    steps: int = 10000
-    batch_size: int = 64
-    lr: float = 1e-4
-    weight_decay: float = 1e-6
-    betas: tuple[float, float] = (0.95, 0.999)  # diffusion_policy's AdamW betas
-    warmup_steps: int = 500
-    ema: bool = False  # the paper's real-robot runs disable EMA
-    ema_decay: float = 0.9999  # upper bound of diffusers' warm-up decay schedule
-    seed: int = 0
-    device: str = "auto"  # "auto" (cuda if available), "cpu", "cuda", "cuda:1"
-    eval_every: int = 500  # 0: never
-    eval_samples: int = 4  # validation samples passed to on_eval callbacks (DDIM sampled)
-    val_batches: int = 4  # batches of the validation set averaged into val_loss
-    checkpoint_every: int = 1000  # 0: only at the end
-    log_every: int = 10
-    num_workers: int = 0
-    grad_clip: float = 0.0  # 0: off
-    noise_repeats: int = 1  # (noise, step) draws per observation per step, see DiffusionPolicy.compute_loss
-    # wall-clock budget: stop after the step that crosses it, then checkpoint and export as usual
-    # (the cosine schedule stays the one for ``steps``); None: no limit
-    max_minutes: float | None = None
-    precision: str = "auto"  # "auto": bf16 autocast on CUDA, fp32 on the CPU; "fp32"; "bf16" (autocast)
-    # "auto": the whole set on the device on CUDA (if it fits, see DEVICE_DATA_SHARE), a DataLoader on
-    # the CPU; "device"; "loader"
-    data: str = "auto"
-
-    def __post_init__(self):
-        if self.steps < 0 or self.batch_size < 1:
-            raise ValueError("steps must be >= 0 and batch_size >= 1")
-        if self.max_minutes is not None and not self.max_minutes > 0:
-            raise ValueError(f"max_minutes must be positive, got {self.max_minutes}")
-        if self.noise_repeats < 1:
-            raise ValueError(f"noise_repeats must be >= 1, got {self.noise_repeats}")
-        if not 0.0 < self.ema_decay < 1.0:
-            raise ValueError("ema_decay must be in (0, 1)")
-        if self.precision not in PRECISIONS:
-            raise ValueError(f"precision must be one of {PRECISIONS}, got {self.precision!r}")
-        if self.data not in DATA_SOURCES:
-            raise ValueError(f"data must be one of {DATA_SOURCES}, got {self.data!r}")
-
-
-@dataclass
-class TrainResult:
-    checkpoint: Path
-    exported: Path
-    history: list[dict] = field(default_factory=list)
-    steps: int = 0  # steps trained in all (fewer than asked when max_minutes stopped the run)
-    stopped: str | None = None  # why this run ended before cfg.steps (also kept in history)
-    world_size: int = 1  # data-parallel processes that trained it
-    precision: str = "fp32"  # what "auto" resolved to
-    data: str = "loader"
-
-
-def resolve_device(device: str) -> torch.device:
-    """ "auto": CUDA if available; under torchrun on CUDA "auto" and "cuda" mean this rank's ``cuda:LOCAL_RANK``."""
-    if device == "auto":
-        device = "cuda" if torch.cuda.is_available() else "cpu"
-    if device.startswith("cuda") and not torch.cuda.is_available():
-        raise TrainingError(f"device {device!r} requested but CUDA is not available")
-    if device == "cuda" and distributed.launched_by_torchrun():
-        return torch.device("cuda", distributed.env_local_rank())
-    return torch.device(device)
-
-
-def resolve_precision(precision: str, device: torch.device) -> str:
-    """ "auto": bf16 autocast on CUDA; fp32 on the CPU (bf16 autocast trained no faster there even on a CPU
-    with AVX512-BF16: ``equidiff bench train --cpu-precision bf16``, docs/model.md)."""
-    if precision != "auto":
-        return precision
-    return "bf16" if device.type == "cuda" else "fp32"
-
-
-def _resolve_data(cfg: TrainConfig, train_set: Dataset, device: torch.device) -> str:
-    if cfg.data != "auto":
-        return cfg.data
-    if device.type != "cuda":
-        return "loader"
-    free, _ = torch.cuda.mem_get_info(device)
-    return "device" if estimate_nbytes(train_set) <= DEVICE_DATA_SHARE * free else "loader"
 
 
 def seed_everything(seed: int) -> None:
@@ -220,7 +143,6 @@ def train(
     """Train ``policy`` for ``cfg.steps`` in all (resuming ``out_dir/last.ckpt`` when it exists).
 
     Under torchrun every rank calls this with the same arguments; callbacks run on rank 0 only."""
-    from .inference import export_policy, save_atomically  # late: inference imports policies
 
     out_dir = Path(out_dir)
     device = resolve_device(cfg.device)
@@ -233,7 +155,7 @@ def train(
         out_dir.mkdir(parents=True, exist_ok=True)
     callbacks = list(callbacks) if main else []
     precision = resolve_precision(cfg.precision, device)
-    data = _resolve_data(cfg, train_set, device)
+    data = resolve_data(cfg, train_set, device)
     seed_everything(cfg.seed)
     if len(train_set) == 0:
         raise TrainingError("training set is empty")
@@ -421,8 +343,6 @@ def evaluate(policy: DiffusionPolicy, dataset: Dataset, cfg: TrainConfig, device
 
 
 def load_training_checkpoint(path: str | Path) -> dict:
-    from .inference import load_checked
-
     return load_checked(path, CKPT_FORMAT, CKPT_VERSION, "checkpoint", "an equidiff training checkpoint")
 
 
@@ -432,8 +352,6 @@ def without_optimizer_state(path: str | Path, out: str | Path) -> Path:
     The moments are as large as the weights and the EMA together; the rest (weights, EMA,
     schedule, step, history, recipe) is kept, so the file still loads as a policy and resumes:
     ``train`` then continues the schedule with fresh moments and notes it in the history."""
-    from .inference import save_atomically
-
     state = load_training_checkpoint(path)
     state["optimizer"] = None
     return save_atomically(state, Path(out))
@@ -446,8 +364,6 @@ def slim_checkpoint(path: str | Path, out: str | Path) -> Path:
     moments; history, schedule and config stay. For the compact EquiDiff it holds the 1.3 M escnn
     parameters (~5 MB) where the exported ``policy.pt`` holds the expanded plain filters (~16 MB). ``load_policy_from_checkpoint`` and ``export_policy`` rebuild the exported policy
     from it exactly; a resume from it would start from the averaged weights with fresh moments."""
-    from .inference import save_atomically
-
     state = load_training_checkpoint(path)
     policy = load_policy_from_checkpoint(path, ema=True)
     state["model"] = parameters_only(policy.model)
@@ -468,11 +384,6 @@ def load_policy_from_checkpoint(path: str | Path, device: str = "cpu", ema: bool
     An exported file holds plain-torch weights: for the baseline they load as-is; for EquiDiff
     use ``inference.load_inference_policy`` instead (the escnn parameters are not recoverable
     from expanded filters)."""
-    from .config import Workspace, from_dict
-    from .inference import CheckpointError, read_policy_file
-    from .policies import make_policy
-    from .presets import preset_from_dict
-
     path = Path(path)
     ema_state = None
     try:
@@ -505,3 +416,26 @@ def load_policy_from_checkpoint(path: str | Path, device: str = "cpu", ema: bool
     except (KeyError, ValueError, RuntimeError) as err:
         raise CheckpointError(f"{path}: incompatible checkpoint: {str(err).splitlines()[0]}") from err
     return policy.to(resolve_device(device)).eval()
+
+
+# The run's configuration and result moved to train_config; importable from here too.
+__all__ = [
+    "CKPT_FORMAT",
+    "CKPT_VERSION",
+    "DATA_SOURCES",
+    "DEVICE_DATA_SHARE",
+    "PRECISIONS",
+    "TrainConfig",
+    "TrainResult",
+    "TrainingError",
+    "evaluate",
+    "fit_normalizer",
+    "load_policy_from_checkpoint",
+    "load_training_checkpoint",
+    "resolve_device",
+    "resolve_precision",
+    "seed_everything",
+    "slim_checkpoint",
+    "train",
+    "without_optimizer_state",
+]

@@ -97,16 +97,12 @@ from equidiff_core.chunk import (
     DEFAULT_N_ACTION_STEPS,
     DEFAULT_RTC,
     DEFAULT_TRANSPORT_S,
-    AnswerSchedule,
-    LatencyEstimate,
     RealTimeChunking,
     SamplingSeeds,
-    bridging_execute_steps,
     chunk_from_actions,
     chunk_to_msg,
-    max_bridged_latency_s,
-    steps_to_publish,
 )
+from equidiff_core.chunk_sizing import ChunkSizing
 from equidiff_core.config import ConfigError
 from equidiff_core.control import SafetyConfig
 from equidiff_core.control.metrics import percentiles_ms
@@ -193,25 +189,15 @@ class PolicyNode(Node):
             )
         self.policy.warmup()
         preset = self.policy.preset
-        self.n_action_steps = int(n_steps) or int(preset.n_action_steps)
-        if not 1 <= self.n_action_steps <= preset.horizon:
-            raise ValueError(f"n_action_steps must be within 1..{preset.horizon}, got {self.n_action_steps}")
-        self.dt_ns = round(preset.dt * 1e9)
-        self.answers = AnswerSchedule(execute_steps, self.n_action_steps, self.dt_ns)
-        self.available_steps = preset.horizon - preset.n_obs_steps + 1  # predicted from the observation on
-        self.latency = LatencyEstimate(latency_s, transport_s)  # L: fixed, off, or measured online
-        self.fixed_steps = bool(n_steps) or self.latency.off  # n_action_steps per chunk, whatever L
-        # execute_steps 0 while bridging: all n_action_steps, fewer when L is too long for them
-        self.adaptive_steps = not execute_steps and not self.fixed_steps
-        self.max_bridged_s = max_bridged_latency_s(
-            1 if self.adaptive_steps else self.answers.steps, preset.dt, self.available_steps
-        )
-        self.latency.initial_s = self.max_bridged_s  # until measured: the most the chunks can bridge
+        self.sizing = ChunkSizing(preset, n_steps, execute_steps, latency_s, transport_s)
+        self.latency, self.fixed_steps = self.sizing.latency, self.sizing.fixed_steps  # the node's view of L
         self.last_publish_steps = 0
         # real-time chunking: each chunk denoised towards the previous one (None: plain DDIM, as without it);
         # its delay (the steps due before a chunk arrives) follows L, set before each inference
         self.chunking = (
-            RealTimeChunking(RealTimeChunking.delay_for(self.latency_s(), preset.dt), self.dt_ns, rtc_max_gap_m)
+            RealTimeChunking(
+                RealTimeChunking.delay_for(self.sizing.latency_s(), preset.dt), self.sizing.dt_ns, rtc_max_gap_m
+            )
             if rtc
             else None
         )
@@ -219,9 +205,10 @@ class PolicyNode(Node):
         self._episode: dict | None = None  # announced on /policy/episode, begins at its start_ns
         self.get_logger().info(
             f"loaded {self.policy.name} policy '{preset.name}' from {checkpoint} on {device} ({precision}) "
-            f"and warmed up in {time.perf_counter() - t0:.1f} s; executing {self.answers.steps} steps of dt "
-            f"{preset.dt} s before the next answer{' (fewer if the latency needs it)' if self.adaptive_steps else ''}; "
-            f"publishing {self.describe_steps()}"
+            f"and warmed up in {time.perf_counter() - t0:.1f} s; executing {self.sizing.answers.steps} steps of dt "
+            f"{preset.dt} s before the next answer"
+            f"{' (fewer if the latency needs it)' if self.sizing.adaptive_steps else ''}; "
+            f"publishing {self.sizing.describe()}"
             f"{'; real-time chunking' if self.chunking is not None else ''}"
         )
 
@@ -258,35 +245,6 @@ class PolicyNode(Node):
         self.worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="policy")
         self.create_timer(1.0 / rate_hz, self.watch_observations)
         self.create_timer(1.0, self.publish_diagnostics)
-
-    # --- how many steps a chunk carries -----------------------------------------------------
-    def latency_s(self) -> float:
-        """The latency L chunks are sized for (0 when off: nothing is bridged)."""
-        value = self.latency.value_s
-        return 0.0 if value is None else value
-
-    def publish_steps(self) -> int:
-        if self.fixed_steps:
-            return self.n_action_steps
-        return steps_to_publish(self.answers.steps, self.latency_s(), self.dt_ns / 1e9, self.available_steps)
-
-    def follow_latency(self) -> None:
-        """With ``execute_steps`` 0 while bridging: k for the current L (call with ``self._lock`` held)."""
-        if self.adaptive_steps:
-            self.answers.steps = bridging_execute_steps(
-                self.n_action_steps, self.latency_s(), self.dt_ns / 1e9, self.available_steps
-            )
-
-    def describe_steps(self) -> str:
-        if self.fixed_steps:
-            return f"{self.n_action_steps} steps per chunk (latency_s off or n_action_steps set)"
-        if self.latency.auto:
-            return (
-                f"enough steps to bridge the measured observation-to-arrival latency (latency_s auto, "
-                f"{self.latency.transport_s * 1000:.0f} ms transport allowance; until measured, "
-                f"{self.publish_steps()} steps, the most the horizon allows)"
-            )
-        return f"{self.publish_steps()} steps per chunk (latency_s {self.latency_s()} s)"
 
     # --- inputs (cheap: callbacks never wait for inference) ---------------------------
     def on_voxels(self, msg) -> None:
@@ -386,7 +344,7 @@ class PolicyNode(Node):
                 return  # answered already
             self._last_obs_stamp = stamp  # whatever happens next, this observation is used up
             if self._episode is not None and stamp >= self._episode["start_ns"]:  # the episode's first
-                self.answers.restart()
+                self.sizing.answers.restart()
                 self.seeds.start_episode(self._episode["seed"])
                 if self.chunking is not None:
                     self.chunking.reset()
@@ -396,8 +354,8 @@ class PolicyNode(Node):
                 self.pub_skipped.publish(String(data=json.dumps({"stamp_ns": int(stamp), "reason": "paused"})))
                 return
             with self._lock:
-                self.follow_latency()
-            if not self.answers.due(stamp):
+                self.sizing.follow_latency()
+            if not self.sizing.answers.due(stamp):
                 # the last chunk is still being executed: no warning, this is the schedule
                 self.skipped["executing"] += 1
                 self.pub_skipped.publish(String(data=json.dumps({"stamp_ns": int(stamp), "reason": "executing"})))
@@ -422,7 +380,7 @@ class PolicyNode(Node):
                     stamp,
                 )
             self._busy = True
-            self.answers.answer(stamp)
+            self.sizing.answers.answer(stamp)
             self.obs_age_s.append(age / 1e9)
             self.worker.submit(self.infer, msg, stamp, pose, float(width), self.seeds.next())
 
@@ -434,15 +392,15 @@ class PolicyNode(Node):
             if self.chunking is None:
                 actions = self.policy.predict(grid, ee, seed=seed)
             else:
-                self.chunking.delay_steps = RealTimeChunking.delay_for(self.latency_s(), self.dt_ns / 1e9)
+                self.chunking.delay_steps = RealTimeChunking.delay_for(self.sizing.latency_s(), self.sizing.dt_ns / 1e9)
                 actions = self.policy.predict(grid, ee, seed=seed, guide=self.chunking.guide(stamp, ee))
                 self.chunking.remember(stamp, actions)
             inference = time.perf_counter() - t0
             with self._lock:  # this chunk's own latency (it is published next) sizes it for the next one
                 self.latency.add((now_ns(self) - stamp) / 1e9)
-                self.follow_latency()  # the next answer's k, which this chunk must outlast
-                steps = self.publish_steps()
-            chunk = chunk_from_actions(actions[:steps], stamp, self.dt_ns)
+                self.sizing.follow_latency()  # the next answer's k, which this chunk must outlast
+                steps = self.sizing.publish_steps()
+            chunk = chunk_from_actions(actions[:steps], stamp, self.sizing.dt_ns)
             if self._paused:  # paused while it ran: the operator has the arm now
                 self.skipped["paused"] += 1
                 self.pub_skipped.publish(String(data=json.dumps({"stamp_ns": int(stamp), "reason": "paused"})))
@@ -487,20 +445,20 @@ class PolicyNode(Node):
             {
                 "latency_s": source,
                 "latency_estimate_ms": -1.0 if latency is None else round(latency * 1000, 1),
-                "latency_bridged_max_ms": round(self.max_bridged_s * 1000, 1),
+                "latency_bridged_max_ms": round(self.sizing.max_bridged_s * 1000, 1),
                 "publish_steps": self.last_publish_steps,
-                "execute_steps": self.answers.steps,
+                "execute_steps": self.sizing.answers.steps,
             }
         )
         stale = self.skipped["stale_observation"] + self.skipped["no_observation"]
         level = rosmsg.WARN if (self.failures or stale) and not self.obs_to_cmd_s else rosmsg.OK
         message = f"{self.published} chunks published"
-        if not self.fixed_steps and latency is not None and latency > self.max_bridged_s + 1e-9:
+        if not self.fixed_steps and latency is not None and latency > self.sizing.max_bridged_s + 1e-9:
             level = max(level, rosmsg.WARN)
             message += (
-                f"; latency {latency * 1000:.0f} ms exceeds the {self.max_bridged_s * 1000:.0f} ms the chunks can "
-                f"bridge (execute_steps {self.answers.steps}): the arm stands still at each chunk boundary"
-                + ("" if self.adaptive_steps else "; a lower execute_steps (or 0) bridges more")
+                f"; latency {latency * 1000:.0f} ms exceeds the {self.sizing.max_bridged_s * 1000:.0f} ms the "
+                f"chunks can bridge (execute_steps {self.sizing.answers.steps}): the arm stands still at each "
+                "chunk boundary" + ("" if self.sizing.adaptive_steps else "; a lower execute_steps (or 0) bridges more")
             )
         if self._paused:
             message = f"paused ({self._paused}), no chunks; {message}"

@@ -7,26 +7,8 @@ robot, move the gripper when its target changes. ``submit`` (called from a ROS c
 checks a chunk and swaps the scheduler's trajectory under a lock, so callbacks never wait for
 the robot.
 
-**One held state for every stop.** A user stop, a reflex, a lost connection or any other
-robot error (``RobotStopped`` from the backend), a divergence stop (tracking error, joint
-speed, a joint moving into its position limit) and a held start (``start(hold=...)``: franka_node
-after any restart) all lead to the same place: the arm holds (the robot holds itself while it
-is stopped), every chunk is refused and ``status()`` says ``awaiting_ack`` with the reason. No
-failing tick is counted and nothing is retried: while the robot is stopped the loop only polls
-its state at ``STOPPED_POLL_HZ`` (is the user stop still pressed?). ``acknowledge`` (franka_node's
-``/franka/acknowledge``, ``equidiff lab ack``) is the only way on: it is refused while the user
-stop is pressed; otherwise it recovers the robot (reconnecting after a lost connection),
-restarts streaming where the arm is and holds; chunks are accepted again. A fault after that
-holds again. If the arm is outside the safety box or cone at that moment, streaming cannot
-start there (every command is clipped into the box): the acknowledgement then moves it home
-with the robot's own planned move first (``homing``).
-
-``faulted`` means an acknowledged recovery failed: the robot refused it (e.g. "manual error
-recovery required": a joint past its limit, to be guided out in Desk), could not be reached,
-or would not start streaming. Nothing is sent; once the cause is fixed at the robot, another
-acknowledgement retries. A restart of franka_node is never needed.
-
-``go_home`` glides to the home pose through the same filter (``/franka/home``).
+Stops (every one leads to the same held state until an operator acknowledges), the
+acknowledgement and ``go_home`` live in ``stops.HeldState``, which ``Controller`` inherits.
 """
 
 from __future__ import annotations
@@ -38,24 +20,19 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial.transform import Rotation, Slerp
+from scipy.spatial.transform import Rotation
 
 from .. import geometry
 from ..chunk import ChunkError, PoseChunk
 from ..clock import Clock, WallClock
 from ..config import SafetyBox
-from ..robots.base import STOP_KINDS, Robot, RobotError, RobotState, RobotStopped, UserStopPressed
+from ..robots.base import Robot, RobotError, RobotState
 from .config import ControlConfig
 from .safety import FilteredTarget, SafetyFilter, SafetyRejection, check_chunk
 from .scheduler import ChunkScheduler, Setpoint
+from .stops import DIVERGENCE_GRACE_S, STOPPED_POLL_HZ, AcknowledgeRefused, HeldState
 
 log = logging.getLogger("equidiff.control")
-
-# How often a stopped robot's state is read (the user stop released? the arm's pose for the
-# topics): often enough for an operator, rare enough to leave the robot's link alone.
-STOPPED_POLL_HZ = 10.0
-# After a divergence stop or a recovery the arm may still move while it brakes: no new divergence stop meanwhile.
-DIVERGENCE_GRACE_S = 1.0
 
 STATES = ("moving", "holding", "homing", "awaiting_ack", "faulted")
 
@@ -103,10 +80,6 @@ class ControllerStatus:
         return dataclasses.asdict(self)
 
 
-class AcknowledgeRefused(RuntimeError):
-    """The acknowledgement could not be granted (the user stop is pressed, or recovery failed)."""
-
-
 @dataclass(frozen=True)
 class Command:
     stamp_ns: int
@@ -114,7 +87,7 @@ class Command:
     holding: bool
 
 
-class Controller:
+class Controller(HeldState):
     def __init__(
         self,
         robot: Robot,
@@ -458,230 +431,14 @@ class Controller:
         self._last_tick_ns, self._last_robot_time_s = now, robot_now if np.isfinite(robot_now) else None
         return float(np.clip(dt, low, 3 * period))
 
-    # --- stops -----------------------------------------------------------------------------
-    def _robot_stopped(self, err: RobotError) -> None:
-        """The robot ended the motion on its own: hold (it holds itself) and wait for an operator.
-        Nothing is retried: the loop only polls the robot's state from now on."""
-        kind = err.kind if isinstance(err, RobotStopped) else "error"
-        reason = err.reason if isinstance(err, RobotStopped) else str(err)
-        text = f"{STOP_KINDS[kind]}: {reason}"
-        self._stopped, self._robot_mode = kind, ""
-        self._next_poll_ns = 0
-        self.stats.robot_stops += 1
-        self.stats.last_recovery_reason = reason
-        self.record_fault(text)
-        with self._lock:
-            self.scheduler.clear()
-            self._holding = True
-            self._hold_pose = None
-            self._homing, self._homing_until_ns = False, 0
-            self.stats.awaiting_ack = text
-        self.log.error(f"{text}: the robot stopped; holding until an operator acknowledges (`equidiff lab ack`)")
 
-    def _while_stopped(self, now: int) -> None:
-        """A stopped robot: read its state now and then (for the topics, and whether the user stop
-        is still pressed); after an acknowledgement with the TCP outside, move it home."""
-        if self._move_home:
-            self._home_then_stream()
-            return
-        if now < self._next_poll_ns or self._stopped == "connection_lost":
-            return  # a dead connection has nothing to read: the acknowledgement connects again
-        self._next_poll_ns = now + int(1e9 / STOPPED_POLL_HZ)
-        try:
-            self._state = self._read_state()
-            self._robot_mode = self._state.mode
-        except RobotError:
-            self._robot_mode = "unreachable"
-
-    def _divergence(self, now: int) -> str:
-        """Why the arm is running away from its command ('' when it is not, or while it brakes after a stop)."""
-        if self._setpoint is None or now < self._divergence_grace_until_ns:
-            return ""
-        limits = self.config.safety
-        error = float(np.linalg.norm(self._state.ee_pose[:3, 3] - self._setpoint.pose[:3, 3]))
-        if error > limits.max_tracking_error_m:
-            return f"TCP {error * 1000:.0f} mm from the command (limit {limits.max_tracking_error_m * 1000:.0f} mm)"
-        velocities = np.asarray(self._state.joint_velocities, dtype=float)
-        speeds = np.abs(velocities)
-        over = speeds - np.asarray(limits.max_joint_speeds_rad_s)[: len(speeds)]
-        if over.size and over.max() > 0:
-            j = int(np.argmax(over))
-            return f"joint {j + 1} at {speeds[j]:.1f} rad/s (limit {limits.max_joint_speeds_rad_s[j]:.1f} rad/s)"
-        return self._joint_limit_reached(np.asarray(self._state.joint_positions, dtype=float), velocities)
-
-    def _joint_limit_reached(self, q: np.ndarray, dq: np.ndarray) -> str:
-        """A joint within ``joint_limit_margin_rad`` of a position limit and still moving towards it
-        ('' otherwise). Moving away is allowed, so the arm can be brought back after the stop."""
-        limits, moving = self.config.safety, 0.05  # rad/s: slower is holding still (sensor noise, drift)
-        lo = np.asarray(limits.joint_position_min_rad)[: len(q)] + limits.joint_limit_margin_rad
-        hi = np.asarray(limits.joint_position_max_rad)[: len(q)] - limits.joint_limit_margin_rad
-        for j in range(len(q)):
-            if (q[j] < lo[j] and dq[j] < -moving) or (q[j] > hi[j] and dq[j] > moving):
-                return (
-                    f"joint {j + 1} at {q[j]:.2f} rad moving towards its limit "
-                    f"[{limits.joint_position_min_rad[j]:.2f}, {limits.joint_position_max_rad[j]:.2f}] rad"
-                )
-        return ""
-
-    def _stop_diverged(self, now: int, reason: str) -> None:
-        """Stop the motion, restart it seeded where the arm is and hold there (the arm brakes
-        meanwhile). If it runs away again while already holding for an operator, streaming stays
-        stopped (the robot holds itself) until the acknowledgement restarts it."""
-        self.stats.divergence_stops += 1
-        self.stats.last_divergence = reason
-        self._divergence_grace_until_ns = now + int(DIVERGENCE_GRACE_S * 1e9)
-        again = bool(self.stats.awaiting_ack)
-        text = f"divergence stop: {reason}"
-        self.record_fault(text)
-        try:
-            self.robot.stop_streaming()
-            if not again:
-                self.robot.start_streaming()
-        except RobotError as err:
-            self._robot_stopped(err)
-            return
-        if again:
-            self._stopped, self._robot_mode = "divergence", ""
-            with self._lock:
-                self.scheduler.clear()
-                self._holding = True
-                self.stats.awaiting_ack = f"{text} (again while holding: streaming stopped)"
-            self.log.error(f"the arm diverged from its command again while holding ({reason}): streaming stopped")
-            return
-        self.log.error(
-            f"the arm diverged from its command ({reason}): stopping the motion and holding where it "
-            f"is until an operator acknowledges"
-        )
-        self._reset_to_measured()
-        self.stats.awaiting_ack = text
-
-    # --- operator actions ------------------------------------------------------------------
-    def go_home(self) -> float:
-        """Glide to the configured home pose at ``home_speed_m_s`` / ``home_angular_speed_rad_s``
-        through the ordinary safety filter (box, cone, speed limits, watchdog), the gripper left as
-        it is; chunks are refused until it arrives. Returns the glide's duration (s). Raises
-        ChunkError while a stop awaits acknowledgement or the controller is faulted: an operator
-        looks at the arm first."""
-        now = self.clock.now_ns()
-        with self._lock:
-            held = self._fault or self.stats.awaiting_ack or (self._stopped and f"the robot stopped ({self._stopped})")
-            if held:
-                raise ChunkError(f"awaiting an operator's acknowledgement after: {held}")
-            start = (self._state or self._read_state()).ee_pose
-            goal, cfg = self.home_pose, self.config
-            distance = float(np.linalg.norm(goal[:3, 3] - start[:3, 3]))
-            angle = geometry.rotation_angle(start[:3, :3], goal[:3, :3])
-            duration = max(distance / cfg.home_speed_m_s, angle / cfg.home_angular_speed_rad_s, 0.5)
-            s = np.linspace(0.0, 1.0, int(np.ceil(duration / 0.1)) + 1)
-            rotations = Slerp([0.0, 1.0], Rotation.from_matrix([start[:3, :3], goal[:3, :3]]))(s).as_matrix()
-            poses = np.stack(
-                [geometry.make_pose(R, (1 - a) * start[:3, 3] + a * goal[:3, 3]) for a, R in zip(s, rotations)]
-            )
-            times = now + (s * duration * 1e9).astype(np.int64)
-            chunk = PoseChunk(now, times, poses, np.zeros(len(s)))  # widths unused: no gripper command while homing
-            self.scheduler.schedule(chunk, now, self._current_setpoint(now))
-            self._valid_until_ns = int(times[-1])
-            self._homing_until_ns = int(times[-1])
-            self._homing = True
-            self._holding = False
-            self._hold_pose = None
-            self._hold_reason = "at home"
-        self.log.info(
-            f"homing: {distance * 1000:.0f} mm and {np.degrees(angle):.0f} deg to {cfg.home_position} "
-            f"in {duration:.1f} s"
-        )
-        return duration
-
-    def require_acknowledgement(self, reason: str) -> None:
-        """Hold and refuse every chunk until an operator acknowledges ``reason``."""
-        with self._lock:
-            self.stats.awaiting_ack = reason
-            self.scheduler.clear()
-            self._holding = True
-            self._hold_pose = None
-        self.log.warning(f"holding until an operator acknowledges: {reason}")
-
-    def acknowledge(self) -> str:
-        """An operator's go-ahead after a stop. Returns what was acknowledged ("" when nothing
-        awaited it). A stopped robot is recovered first (see the module docstring); raises
-        AcknowledgeRefused while its user stop is pressed or when recovery fails (``faulted``).
-        The arm holds afterwards, until the next chunk (or moves home first if it is outside)."""
-        with self._robot_lock:
-            reason = self.stats.awaiting_ack or self._fault
-            if not reason:
-                return ""
-            try:
-                done = self._recover() if self._stopped else ""
-            except AcknowledgeRefused:
-                self.stats.ack_refused += 1
-                raise
-            with self._lock:
-                self.stats.awaiting_ack = ""
-            self.stats.acknowledged += 1
-        self.log.warning(f"acknowledged: {reason}{f' ({done})' if done else ''}; accepting chunks again")
-        return reason + (f" ({done})" if done else "")
-
-    def _recover(self) -> str:
-        """Bring a stopped robot back to streaming, holding where it is (called with the robot lock)."""
-        now = self.clock.now_ns()
-        if self._stopped != "connection_lost":
-            try:
-                mode = self._read_state().mode
-            except RobotError:
-                mode = "unreachable"  # the backend reconnects in recover()
-            if mode == "user_stopped":
-                self._robot_mode = mode
-                raise AcknowledgeRefused("the user stop is still pressed: release it, then acknowledge")
-        try:
-            done = self.robot.recover()
-        except UserStopPressed as err:
-            self._robot_mode = "user_stopped"
-            raise AcknowledgeRefused(f"{err}: release it, then acknowledge") from err
-        except RobotError as err:
-            self._faulted(f"recovery after '{self.stats.awaiting_ack or self._fault}' failed: {err}")
-        try:
-            pose = self._read_state().ee_pose
-        except RobotError as err:
-            self._faulted(f"the robot cannot be read after recovery: {err}")
-        if self._outside(pose):
-            self._move_home, self._stopped = True, "outside"
-            self._fault, self.stats.faulted = "", False
-            return f"{done + '; ' if done else ''}{self._outside(pose)}: moving home first"
-        try:
-            self.robot.start_streaming()
-        except RobotError as err:
-            self._faulted(f"streaming would not start again: {err}")
-        self._streaming_again(now)
-        return done
-
-    def _streaming_again(self, now: int) -> None:
-        self._stopped, self._robot_mode, self._move_home = "", "", False
-        self._fault, self.stats.faulted = "", False
-        self.stats.recoveries += 1
-        self._divergence_grace_until_ns = now + int(DIVERGENCE_GRACE_S * 1e9)
-        self._reset_to_measured("acknowledged: waiting for a chunk")
-
-    def _home_then_stream(self) -> None:
-        """Acknowledged with the TCP outside the box or cone: the robot's own planned move home,
-        then streaming (the control thread, with the robot lock; chunks are refused meanwhile)."""
-        self.log.info(f"moving to the home pose {self.config.home_position} (the TCP was outside), then holding")
-        try:
-            self.robot.move_to(self.home_pose)
-            self.robot.start_streaming()
-        except RobotError as err:
-            self._move_home = False
-            if isinstance(err, RobotStopped):
-                self._robot_stopped(err)
-            else:
-                self._fault = f"the move home failed: {err}"
-                self.stats.faulted = True
-                self.record_fault(self._fault)
-                self.log.error(f"{self._fault}; holding until an operator acknowledges again")
-            return
-        self._streaming_again(self.clock.now_ns())
-
-    def _faulted(self, text: str) -> None:
-        self._fault, self.stats.faulted = text, True
-        self.record_fault(text)
-        self.log.error(f"faulted: {text}; nothing is sent until an acknowledgement succeeds")
-        raise AcknowledgeRefused(text)
+__all__ = [
+    "DIVERGENCE_GRACE_S",
+    "STATES",
+    "STOPPED_POLL_HZ",
+    "AcknowledgeRefused",
+    "Command",
+    "Controller",
+    "ControllerStats",
+    "ControllerStatus",
+]

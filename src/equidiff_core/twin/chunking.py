@@ -10,7 +10,7 @@ chunk as it arrives and every command it streams (after the safety filter), on t
   velocity). A new chunk that continues the running motion changes it no more than a knot
   inside a chunk does; one that disagrees jerks the arm.
 * **Commanded jerk** (m/s^3): the third difference of the commanded TCP position sampled at
-  ``JERK_HZ`` (the rate at which the evaluation's arm receives targets, ``evaluate.COMMAND_HZ``).
+  ``JERK_HZ`` (the rate at which the evaluation's arm receives targets, ``direct_execution.COMMAND_HZ``).
 * **Mode switches**: consecutive accepted chunks whose published steps at the same times lie
   more than ``mode_switch_m`` apart somewhere: the new chunk plans another way (another grasp,
   another approach), not a small correction. The overlap is what both published: 7 steps for

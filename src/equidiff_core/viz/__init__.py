@@ -16,7 +16,8 @@ from .rerun_sdk import INSTALL_HINT, VizUnavailable, require_rerun
 
 # Exported lazily (name -> submodule), so `import equidiff_core.viz` stays cheap and never imports rerun.
 _LAZY_EXPORTS = {
-    **dict.fromkeys(("RerunLogger", "VizConfig", "default_blueprint", "open_recording", "load_viz_config"), "logger"),
+    "RerunLogger": "logger",
+    **dict.fromkeys(("VizConfig", "default_blueprint", "open_recording", "load_viz_config"), "recording_setup"),
     **dict.fromkeys(("convert_bags", "ConversionReport"), "bag_to_rrd"),
     **dict.fromkeys(("summarize_rrd", "RrdSummary", "EntitySummary"), "rrd"),
     "RerunTrainingCallback": "training",

@@ -28,14 +28,8 @@ import yaml
 from ..config import LabConfig
 from ..rosmsg import rosbags_factory
 from ..topics import camera_of_color_topic
-from .logger import (
-    APPLICATION_ID,
-    TOPICS_HANDLED,
-    RerunLogger,
-    VizConfig,
-    default_blueprint,
-    open_recording,
-)
+from .logger import TOPICS_HANDLED, RerunLogger
+from .recording_setup import APPLICATION_ID, VizConfig, default_blueprint, open_recording
 
 
 class BagConversionError(RuntimeError):

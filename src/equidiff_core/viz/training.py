@@ -22,7 +22,8 @@ from typing import Any
 import numpy as np
 
 from .. import geometry
-from .logger import APPLICATION_ID, log_pose_path, open_recording
+from .logger import log_pose_path
+from .recording_setup import APPLICATION_ID, open_recording
 from .rerun_sdk import require_rerun
 
 # Importing this module is asking for rerun (e.g. `equidiff train --rerun`): fail here, as an
