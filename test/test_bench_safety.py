@@ -15,7 +15,8 @@ pytest.importorskip("franky")
 pytest.importorskip("franky_sim")
 pytest.importorskip("rclpy")
 
-from equidiff_ros.commands.bench_safety import run_campaign
+from equidiff_core.benches.safety import run_campaign
+from equidiff_ros.benches.safety_probe import SafetyProbe
 
 pytestmark = [pytest.mark.sim, pytest.mark.ros, pytest.mark.slow]
 
@@ -23,7 +24,7 @@ FAULTS = ["nan", "user_stop", "franka_node_killed"]
 
 
 def test_fault_campaign_survives_every_fault_without_resuming_on_its_own(ros_domain, tmp_path):
-    r = run_campaign(FAULTS, tmp_path)
+    r = run_campaign(FAULTS, tmp_path, SafetyProbe())
     assert r["faults_tried"] == len(FAULTS), r
     assert r["faults_survived"] == r["faults_tried"], r["faults"]
     assert r["auto_resumes"] == 0, r

@@ -171,6 +171,11 @@ def rotation_angle(Ra: np.ndarray, Rb: np.ndarray) -> float:
 TOOL_DOWN = np.array([0.0, 0.0, -1.0])  # the tool axis (TCP z) of a gripper pointing straight down
 
 
+def down_pose(position) -> np.ndarray:
+    """The pose at ``position`` with the tool pointing straight down (the home orientation, no yaw)."""
+    return make_pose(np.diag([1.0, -1.0, -1.0]), np.asarray(position, dtype=np.float64))
+
+
 def tilt_angle(R: np.ndarray) -> float:
     """Angle (rad) between the tool axis of rotation ``R`` (its z column) and straight down.
 

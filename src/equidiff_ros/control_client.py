@@ -21,8 +21,8 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState, PointCloud2
 from trajectory_msgs.msg import MultiDOFJointTrajectory
 
-from equidiff_core import geometry
 from equidiff_core.chunk import PoseChunk, chunk_to_msg
+from equidiff_core.geometry import down_pose
 from equidiff_core.rosmsg import RclpyFactory, diagnostic_entries, position_from_msg, stamp_to_ns
 from equidiff_ros.common import (
     RELIABLE_QOS,
@@ -36,11 +36,6 @@ from equidiff_ros.common import (
 )
 
 MS = 1_000_000
-
-
-def down_pose(position) -> np.ndarray:
-
-    return geometry.make_pose(np.diag([1.0, -1.0, -1.0]), np.asarray(position, dtype=np.float64))
 
 
 @dataclass

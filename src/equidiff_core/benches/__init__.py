@@ -6,4 +6,5 @@ parsing plus one call into here).
 * ``demos``: the sample-efficiency bench (success against the number of demos) and its plot.
 * ``timing``: what ``bench policy`` / ``bench train`` measure, on the CPU or CUDA (inference modes, training
   steps and their CPU variants); ``cost``: parameters and FLOPs per sample.
+* ``safety``: the fault campaign of ``bench safety`` against franky-sim through franka_node (its ROS side passed in).
 """
