@@ -4,6 +4,7 @@ parsing plus one call into here).
 * ``conditioning``: does a policy look at its observation? Its features and its actions when the block moves.
 * ``training_runs``: ``equidiff train`` runs side by side, their recipes and the training-fit gate.
 * ``generalization``: EquiDiff against two baselines on unseen object yaw (train, gate, roll out).
+* ``chunking``: whole chunks, replace, execution horizon and real-time chunking by latency, in the twin.
 * ``demos``: the sample-efficiency bench (success against the number of demos) and its plot.
 * ``timing``: what ``bench policy`` / ``bench train`` measure, on the CPU or CUDA (inference modes, training
   steps and their CPU variants); ``cost``: parameters and FLOPs per sample.
