@@ -6,6 +6,7 @@ parsing plus one call into here).
 * ``generalization``: EquiDiff against two baselines on unseen object yaw (train, gate, roll out).
 * ``chunking``: whole chunks, replace, execution horizon and real-time chunking by latency, in the twin.
 * ``demos``: the sample-efficiency bench (success against the number of demos) and its plot.
+* ``voxelize``: fusing three clouds into the grid, timed against open3d, on a ray-cast synthetic scene.
 * ``timing``: what ``bench policy`` / ``bench train`` measure, on the CPU or CUDA (inference modes, training
   steps and their CPU variants); ``cost``: parameters and FLOPs per sample.
 """
