@@ -9,5 +9,6 @@ parsing plus one call into here).
 * ``demos``: the sample-efficiency bench (success against the number of demos) and its plot.
 * ``voxelize``: fusing three clouds into the grid, timed against open3d, on a ray-cast synthetic scene.
 * ``timing``: what ``bench policy`` / ``bench train`` measure, on the CPU or CUDA (inference modes, training
-  steps and their CPU variants); ``cost``: parameters and FLOPs per sample.
+  steps and their CPU variants); ``cost``: parameters and FLOPs per sample;
+  ``throughput``: the two benches' runs, those timings assembled into one JSON line each.
 """
