@@ -302,7 +302,6 @@ def run_control_bench(args) -> int:
             control = dataclasses.replace(
                 control, scheduler=dataclasses.replace(control.scheduler, interpolation=args.interpolation)
             )
-
             control_path = tmp / "control.yaml"
             control_path.write_text(yaml.safe_dump(to_dict(control)))
         result["interpolation"] = control.scheduler.interpolation
@@ -312,7 +311,6 @@ def run_control_bench(args) -> int:
             if checkpoint is None:
                 checkpoint = export_untrained(args.policy_preset, tmp / "untrained.pt", lab.workspace)
                 label = f"untrained-{args.policy_preset}"
-
             result["baseline_bare_predict_p50_ms"] = metrics.percentiles_ms(
                 bare_predict_s(checkpoint, args.precision, lab.workspace)
             )[0]
