@@ -479,8 +479,8 @@ def test_bench_generalization_evaluates_policies_trained_elsewhere_in_range_firs
     import json
     import shutil
 
+    from equidiff_core.twin.shipped import SHIPPED_CHECKPOINT
     from equidiff_ros.cli import main
-    from equidiff_ros.commands.twin_run import SHIPPED_CHECKPOINT
 
     trained = tmp_path / "trained"
     assert main(["bench", "generalization", "--trained", str(trained), "--out", str(tmp_path / "a")]) == 2
@@ -526,7 +526,7 @@ def test_shipped_checkpoint_loads_and_its_training_is_recorded():
     import numpy as np
 
     from equidiff_core.inference import load_inference_policy
-    from equidiff_ros.commands.twin_run import SHIPPED_CHECKPOINT
+    from equidiff_core.twin.shipped import SHIPPED_CHECKPOINT
 
     assert SHIPPED_CHECKPOINT.is_file(), SHIPPED_CHECKPOINT
     assert SHIPPED_CHECKPOINT.stat().st_size < 20 * 2**20  # small enough for the repository

@@ -26,8 +26,8 @@ from pathlib import Path
 
 from equidiff_core.twin.config import EVALUATION_FIRST_SEED, TWIN_PRECISION
 
-# bench twin, bench safety and twin evaluate take these from here too
-from equidiff_core.twin.shipped import SHIPPED_CHECKPOINT, SHIPPED_NAME, resolve_policy  # noqa: F401
+# SHIPPED_NAME: bench safety imports it from here until it moves out of commands/
+from equidiff_core.twin.shipped import SHIPPED_CHECKPOINT, SHIPPED_NAME  # noqa: F401
 from equidiff_ros.twin.main_job import run_main_job
 
 
