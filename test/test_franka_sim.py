@@ -22,8 +22,8 @@ from equidiff_core.config import default_config_dir, load_lab_config
 from equidiff_core.control import load_control_config
 from equidiff_core.robots.franky.sim import SimServer
 from equidiff_core.twin.processes import start_node, stop_process
+from equidiff_ros.benches import control as bench
 from equidiff_ros.benches.safety_probe import acknowledge
-from equidiff_ros.commands import bench_control as bench
 from equidiff_ros.control_client import ControlClient, down_pose
 
 pytestmark = [pytest.mark.sim, pytest.mark.ros, pytest.mark.slow]

@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 from helpers_ros import spawn_node, stop_node
 
+from equidiff_core.benches.voxelize import synthetic_scene
 from equidiff_core.config import default_config_dir, load_lab_config
 from equidiff_core.voxels import voxelize_reference
-from equidiff_ros.commands.bench_voxelize import synthetic_scene
 
 LAB_YAML = str(default_config_dir() / "lab.yaml")
 

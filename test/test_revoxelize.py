@@ -10,13 +10,13 @@ import yaml
 from scipy.spatial.transform import Rotation
 
 from equidiff_core.bags import BagError, EpisodeMeta, read_episode, read_meta
+from equidiff_core.benches.voxelize import synthetic_scene
 from equidiff_core.config import Extrinsics, default_config_dir, load_lab_config
 from equidiff_core.pointcloud import cloud_to_msg, grid_to_voxel_msg, voxel_msg_to_grid
 from equidiff_core.recording import EpisodeWriter, RecordingConfig, recorded_topics
 from equidiff_core.rosmsg import tf_message
 from equidiff_core.topics import TOPIC_EE_POSE, TOPIC_VOXELS
 from equidiff_core.voxels import voxelize_reference
-from equidiff_ros.commands.bench_voxelize import synthetic_scene
 
 LAB = load_lab_config(default_config_dir() / "lab.yaml")
 NS = 1_000_000_000

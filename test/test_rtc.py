@@ -184,11 +184,11 @@ class _DriftingPolicy:
 def test_bench_chunking_prints_one_json_line_with_every_mode_and_latency(tmp_path, capsys, monkeypatch):
     import json
 
-    import equidiff_core.inference
+    from equidiff_core.benches import chunking
     from equidiff_ros.cli import main
 
     policy = _DriftingPolicy()
-    monkeypatch.setattr(equidiff_core.inference, "load_inference_policy", lambda path, device: policy)
+    monkeypatch.setattr(chunking, "load_inference_policy", lambda path, device: policy)
     checkpoint = tmp_path / "policy.pt"
     checkpoint.write_bytes(b"stands in")
     assert (

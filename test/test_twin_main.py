@@ -479,8 +479,8 @@ def test_bench_generalization_evaluates_policies_trained_elsewhere_in_range_firs
     import json
     import shutil
 
+    from equidiff_core.twin.shipped import SHIPPED_CHECKPOINT
     from equidiff_ros.cli import main
-    from equidiff_ros.commands.twin_run import SHIPPED_CHECKPOINT
 
     trained = tmp_path / "trained"
     assert main(["bench", "generalization", "--trained", str(trained), "--out", str(tmp_path / "a")]) == 2
@@ -513,7 +513,7 @@ def test_bench_generalization_evaluates_policies_trained_elsewhere_in_range_firs
 
 
 def test_in_range_gate_names_the_policies_below_it():
-    from equidiff_ros.commands.bench_generalization import in_range_failures
+    from equidiff_core.benches.generalization import in_range_failures
 
     rates = {"equidiff": 0.7, "baseline": 0.5, "baseline_aug": 0.6}
     assert in_range_failures(rates, 0.6) == ["baseline"]
@@ -526,7 +526,7 @@ def test_shipped_checkpoint_loads_and_its_training_is_recorded():
     import numpy as np
 
     from equidiff_core.inference import load_inference_policy
-    from equidiff_ros.commands.twin_run import SHIPPED_CHECKPOINT
+    from equidiff_core.twin.shipped import SHIPPED_CHECKPOINT
 
     assert SHIPPED_CHECKPOINT.is_file(), SHIPPED_CHECKPOINT
     assert SHIPPED_CHECKPOINT.stat().st_size < 20 * 2**20  # small enough for the repository
@@ -564,7 +564,7 @@ def test_bench_generalization_trains_its_policies_side_by_side_sharing_the_cores
 
     import pytest
 
-    from equidiff_ros.commands import bench_generalization as bench
+    from equidiff_core.benches import generalization as bench
 
     runs = {}
     script = (
@@ -611,7 +611,7 @@ def test_bench_generalization_trains_its_policies_side_by_side_sharing_the_cores
 
 
 def test_the_bench_names_the_recipe_settings_its_policies_were_trained_with_differently():
-    from equidiff_ros.commands.bench_generalization import recipe_differences
+    from equidiff_core.benches.training_runs import recipe_differences
 
     base = {"preset": "compact", "batch_size": 8, "lr": 5e-4, "ema": True, "rotation_aug": "none", "device": "cpu"}
     recipes = {
@@ -639,8 +639,8 @@ def test_bench_generalization_trains_in_parts_and_rolls_out_once_all_three_share
 
     from helpers_model import export_tiny_baseline
 
+    from equidiff_core.benches import generalization as bench
     from equidiff_ros.cli import main
-    from equidiff_ros.commands import bench_generalization as bench
 
     started = []
 

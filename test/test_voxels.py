@@ -244,7 +244,7 @@ def test_bench_voxelize_prints_one_json_line(capsys):
 
 def test_dense_grid_path_equals_reference():
     """Over half the voxels occupied switches the aggregation to whole-array arithmetic."""
-    from equidiff_ros.commands.bench_voxelize import synthetic_scene
+    from equidiff_core.benches.voxelize import synthetic_scene
 
     lab = _lab()
     exts = [c.extrinsics.matrix() for c in lab.cameras]

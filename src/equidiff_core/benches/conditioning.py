@@ -17,13 +17,23 @@ region); the same frames, shifts and noise for every policy, so the numbers comp
 
 from __future__ import annotations
 
+import json
+import sys
+import tempfile
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 import torch
 
-from ..augment import voxel_input
-from ..models.plain import EquiNoiseCore, to_escnn_layout
+from equidiff_core.augment import voxel_input
+from equidiff_core.config import ConfigError, Workspace
+from equidiff_core.dataset import DatasetConfig, find_episodes, load_episodes
+from equidiff_core.inference import CheckpointError, export_policy, load_inference_policy
+from equidiff_core.models.plain import EquiNoiseCore, to_escnn_layout
+from equidiff_core.normalizer import Normalizer
+from equidiff_core.policies import make_policy
+from equidiff_core.presets import get_preset
 
 # the twin block's colour (twin.config.SceneConfig.block_rgba: 0.85, 0.12, 0.1) as the cameras see it,
 # shaded sides included: red at least 80 and twice green and blue; the bowl (blue), its mark (yellow:
@@ -91,8 +101,6 @@ class Frame:
 
 def first_frames(bags, resolution: int, log=None) -> list[Frame]:
     """The first observation of each episode in ``bags`` (bag folders or folders of them)."""
-    from ..dataset import DatasetConfig, load_episodes
-
     episodes, _ = load_episodes(bags, DatasetConfig(resolution=resolution), log)
     return [Frame(ep.grid(0, resolution), ep.ee[0].astype(np.float32)) for ep in episodes]
 
@@ -137,3 +145,53 @@ def conditioning_response(policy, frames: list[Frame], shift_vox: int = 8, seed:
         "action_follow": round(float(np.mean(follows)), 3),
         "action_end_shift_m": round(float(np.mean(shifts_m)), 4),
     }
+
+
+def run_conditioning_check(args) -> int:
+    """``equidiff check conditioning`` for its parsed arguments: one JSON line; 2 for bad input."""
+    if not args.policies and not args.fresh:
+        print("equidiff check conditioning: name policy files or --fresh policies", file=sys.stderr)
+        return 2
+    bags = find_episodes([args.demos])[: args.episodes]
+    if not bags:
+        print(f"equidiff check conditioning: no demos in {args.demos}", file=sys.stderr)
+        return 2
+    results = {}
+    with tempfile.TemporaryDirectory(prefix="conditioning_") as tmp:
+        subjects = {str(path): path for path in args.policies}
+        for spec in args.fresh:
+            try:
+                name, overrides = _fresh_spec(spec)
+                preset = get_preset(args.preset, **overrides)
+            except (ValueError, ConfigError) as err:
+                print(f"equidiff check conditioning: --fresh {spec}: {err}", file=sys.stderr)
+                return 2
+            torch.manual_seed(args.seed)
+            ws = Workspace()
+            policy = make_policy(name, preset, ws)
+            policy.set_normalizer(Normalizer.from_workspace(ws))
+            subjects[f"fresh {spec}"] = export_policy(policy, Path(tmp) / f"{len(subjects)}.pt")
+        frames = None
+        for label, path in subjects.items():
+            try:
+                policy = load_inference_policy(path, precision="fp32")
+            except CheckpointError as err:
+                print(f"equidiff check conditioning: {err}", file=sys.stderr)
+                return 2
+            frames = frames or first_frames(bags, policy.workspace.resolution)
+            results[label] = conditioning_response(policy, frames, args.shift_vox, args.seed)
+    print(json.dumps({"policies": results, "demos": len(bags), "shift_vox": args.shift_vox, "seed": args.seed}))
+    return 0
+
+
+def _fresh_spec(spec: str) -> tuple[str, dict]:
+    """ "baseline:128:he" -> ("baseline", preset overrides); width "matched": the parameter-matched channels."""
+    name, *rest = spec.split(":")
+    if name not in ("equidiff", "baseline") or len(rest) > 2 or (rest and name != "baseline"):
+        raise ValueError("expected equidiff, baseline or baseline:WIDTH[:INIT]")
+    overrides = {}
+    if rest:
+        overrides["baseline_width"] = None if rest[0] == "matched" else int(rest[0])
+    if len(rest) == 2:
+        overrides["baseline_init"] = rest[1]
+    return name, overrides

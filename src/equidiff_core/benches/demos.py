@@ -10,7 +10,39 @@ parts rolls nothing out twice).
 from __future__ import annotations
 
 import hashlib
+import json
+import os
+import shutil
+import sys
+import time
 from pathlib import Path
+
+import torch
+from matplotlib.figure import Figure
+
+from equidiff_core.benches.demo_sets import demos_off_range, ensure_demos, nested_subsets
+from equidiff_core.benches.rollouts import load_rollouts, save_rollouts, summarize
+from equidiff_core.benches.training_runs import (
+    SLIM_CHECKPOINT,
+    Recipe,
+    TrainRunError,
+    encoder_summary,
+    fit_ratios,
+    recipe_differences,
+    resolve_run,
+    run_policy,
+    start_run,
+    trained_steps,
+    training_fit,
+    training_recipe,
+    under_fit,
+    wait_for_runs,
+)
+from equidiff_core.inference import load_inference_policy, read_policy_file
+from equidiff_core.presets import preset_from_dict
+from equidiff_core.twin.config import load_twin_job_configs
+from equidiff_core.twin.demos import DirectRecorder
+from equidiff_core.twin.evaluate import evaluate_policy, in_range_yaw_seeds
 
 POLICIES = ("equidiff", "baseline")
 DEMO_COUNTS = (10, 20, 40)
@@ -35,14 +67,10 @@ def success_table(success: dict[str, float | None], counts: list[int]) -> dict[s
 
 
 def plot_success(table: dict[str, dict[str, float | None]], episodes: int, path: Path, note: str = "") -> Path:
-    """PNG of success (%) against demos, one line per policy (matplotlib, Agg: no display needed)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    """PNG of success (%) against demos, one line per policy (matplotlib's Figure, no pyplot: no display needed)."""
     labels = {"equidiff": "EquiDiff (Vo)", "baseline": "DiffPo-C (Vo)"}
-    fig, ax = plt.subplots(figsize=(5.0, 3.6), dpi=120)
+    fig = Figure(figsize=(5.0, 3.6), dpi=120)
+    ax = fig.subplots()
     for policy, row in table.items():
         points = [(int(n), 100 * rate) for n, rate in row.items() if rate is not None]
         if points:
@@ -61,7 +89,6 @@ def plot_success(table: dict[str, dict[str, float | None]], episodes: int, path:
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path)
-    plt.close(fig)
     return path
 
 
@@ -85,25 +112,6 @@ def evaluate_runs(
 
     Roll-outs are saved in ``out/<run>/rollouts.json`` and reused by a later call with the same scenes,
     settings and policy file."""
-    import time
-
-    from ..inference import load_inference_policy, read_policy_file
-    from ..presets import preset_from_dict
-    from ..twin.demos import DirectRecorder
-    from ..twin.evaluate import evaluate_policy, in_range_yaw_seeds
-    from .rollouts import load_rollouts, save_rollouts, summarize
-    from .training_runs import (
-        encoder_summary,
-        fit_ratios,
-        recipe_differences,
-        resolve_run,
-        run_policy,
-        trained_steps,
-        training_fit,
-        training_recipe,
-        under_fit,
-    )
-
     names = [run_name(p, n) for p in POLICIES for n in counts]
     run_dirs = {name: resolve_run(runs_dir / name) for name in names}
     recipes = {name: training_recipe(run_dirs[name]) for name in names}
@@ -180,3 +188,144 @@ def evaluate_runs(
         "plot": str(plot),
         "minutes": {"eval": round((time.monotonic() - t0) / 60, 1)},
     }
+
+
+def run_demos_bench(args) -> int:
+    """The whole bench for ``equidiff bench demos``'s parsed arguments (train what is asked, roll out once every
+    run is in OUT); prints one JSON line and returns the exit status."""
+    if args.eval_episodes < 1 or min(args.counts) < 1:
+        print("equidiff bench demos: need --eval-episodes >= 1 and positive --counts", file=sys.stderr)
+        return 2
+    if args.device == "auto":
+        args.device = "cuda" if torch.cuda.is_available() else "cpu"
+    t_start = time.monotonic()
+    configs = load_twin_job_configs(args.lab_config, args.twin_config)
+    lab, cfg = configs.lab, configs.twin
+    out = args.out or Path("runs") / time.strftime("bench_demos_%Y%m%d_%H%M%S")
+    out.mkdir(parents=True, exist_ok=True)
+    runs_dir = args.trained or out
+    all_runs = [run_name(p, n) for p in POLICIES for n in args.counts]
+    minutes = {}
+    if args.trained is None:
+        demos_dir, _ = ensure_demos(
+            args.demos_dir,
+            out,
+            max(args.counts),
+            cfg.with_yaw_range(tuple(args.train_yaw)),
+            lab,
+            args.seed,
+            log=lambda s: print(s, flush=True),
+        )
+        wrong, _ = demos_off_range(demos_dir, tuple(args.train_yaw))
+        if wrong:
+            print(
+                f"equidiff bench demos: {len(wrong)} demos in {demos_dir} were drawn from another block yaw "
+                f"range than --train-yaw, e.g. {wrong[0]}",
+                file=sys.stderr,
+            )
+            return 2
+        try:
+            subsets = nested_subsets(demos_dir, args.counts)
+        except ValueError as err:
+            print(f"equidiff bench demos: {err}", file=sys.stderr)
+            return 2
+        minutes["demos"] = round((time.monotonic() - t_start) / 60, 1)
+        t_train = time.monotonic()
+        try:
+            trained_now = train_runs(args, out, subsets)
+        except TrainRunError as err:
+            print(f"equidiff bench demos: {err}\nrerun the same command to resume", file=sys.stderr)
+            return 1
+        minutes["train"] = round((time.monotonic() - t_train) / 60, 1)
+        pending = [name for name in all_runs if not (resolve_run(out / name) / "policy.pt").is_file()]
+        if pending:
+            print(
+                json.dumps(
+                    {
+                        "bench": "demos",
+                        "trained": trained_now,
+                        "pending": pending,
+                        "out": str(out),
+                        "next": f"equidiff bench demos --out {out} --demos-dir {demos_dir} --policies "
+                        + " ".join(p for p in POLICIES if any(name.startswith(p + "_") for name in pending))
+                        + " --train-counts "
+                        + " ".join(str(n) for n in args.counts if any(name.endswith(f"_{n}") for name in pending))
+                        + " with this call's recipe flags",
+                        "minutes": minutes,
+                    }
+                )
+            )
+            return 0
+    missing = [
+        name
+        for name in all_runs
+        if not any((resolve_run(runs_dir / name) / f).is_file() for f in ("policy.pt", SLIM_CHECKPOINT))
+    ]
+    if missing:
+        print(
+            f"equidiff bench demos: no policy.pt or {SLIM_CHECKPOINT} for {', '.join(missing)} in {runs_dir}",
+            file=sys.stderr,
+        )
+        return 2
+    try:
+        result = evaluate_runs(
+            runs_dir,
+            out,
+            args.counts,
+            cfg,
+            lab,
+            args.eval_episodes,
+            tuple(args.train_yaw),
+            args.max_duration,
+            args.latency_ms / 1000,
+            args.max_fit_ratio,
+            args.device,
+            log=lambda s: print(s, flush=True),
+        )
+    except ValueError as err:  # the runs' recipes differ
+        print(f"equidiff bench demos: {err}", file=sys.stderr)
+        return 2
+    result["minutes"] = {**minutes, **result["minutes"]}
+    if args.plot is not None:
+        args.plot.parent.mkdir(parents=True, exist_ok=True)
+        shutil.copyfile(result["plot"], args.plot)
+    (out / "result.json").write_text(json.dumps(result) + "\n")
+    print(json.dumps(result))
+    return 0
+
+
+def train_runs(args, out: Path, subsets: dict[int, list[Path]]) -> list[str]:
+    """Train the requested runs not trained yet, side by side; their names."""
+    recipe = Recipe(
+        preset=args.preset,
+        steps=args.train_steps,
+        batch_size=args.batch_size,
+        lr=args.lr,
+        seed=args.seed,
+        device=args.device,
+        noise_repeats=args.noise_repeats,
+        ema=args.ema,
+        max_minutes=args.max_minutes,
+        lab_config=args.lab_config,
+    )
+    counts = args.train_counts or args.counts
+    todo = [
+        (policy, n)
+        for policy in POLICIES
+        if policy in args.policies
+        for n in counts
+        if n in subsets and not (resolve_run(out / run_name(policy, n)) / "policy.pt").is_file()
+    ]
+    if not todo:
+        return []
+    threads = max(1, (os.cpu_count() or 2) // len(todo))
+    runs, outs = {}, {}
+    for policy, n in todo:
+        name = run_name(policy, n)
+        outs[name] = out / name
+        cmd = recipe.train_command(policy, "none", subsets[n], outs[name])
+        print(f"[bench] training {name} on {n} demos: {' '.join(cmd[3:5])} ... {' '.join(cmd[3 + n :])}", flush=True)
+        runs[name] = start_run(cmd, outs[name], threads)
+    deadline = None if args.max_minutes is None else time.monotonic() + args.max_minutes * 60 + 600
+    wait_for_runs(runs, outs, deadline)
+    return list(runs)

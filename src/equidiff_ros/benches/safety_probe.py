@@ -18,11 +18,11 @@ from std_msgs.msg import String
 
 from equidiff_core.rosmsg import pose_from_msg
 from equidiff_core.topics import SERVICE_FRANKA_ACKNOWLEDGE, TOPIC_EE_POSE, TOPIC_FRANKA_STATUS
-from equidiff_ros.commands.bench_control import approach
-from equidiff_ros.commands.lab_client import LabClient, LabError
-from equidiff_ros.commands.twin_run import SHIPPED_CHECKPOINT, SHIPPED_NAME
+from equidiff_core.twin.shipped import SHIPPED_CHECKPOINT, SHIPPED_NAME
+from equidiff_ros.benches.control import approach
 from equidiff_ros.common import LATCHED_QOS, RELIABLE_QOS
 from equidiff_ros.control_client import ControlClient
+from equidiff_ros.lab_client import LabClient, LabError
 
 
 class StatusWatch:

@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import sys
 
+from equidiff_core.bags import BagError, repair_bag
+
 
 def add_arguments(parser) -> None:
     parser.add_argument("bags", nargs="+", help="bag directories (each holding one .mcap)")
@@ -17,8 +19,6 @@ def add_arguments(parser) -> None:
 
 
 def run(args) -> int:
-    from equidiff_core.bags import BagError, repair_bag
-
     if args.output and len(args.bags) != 1:
         print("equidiff bags repair: --output takes exactly one bag", file=sys.stderr)
         return 2

@@ -11,6 +11,11 @@ from __future__ import annotations
 
 import json
 
+from equidiff_core.cameras.color_cost import measure
+from equidiff_core.config import default_config_dir, load_lab_config
+from equidiff_core.machine import cpu_description
+from equidiff_core.twin.config import load_twin_config
+
 
 def add_arguments(parser) -> None:
     parser.add_argument("--repeats", type=int, default=20, help="timed calls per measurement")
@@ -20,11 +25,6 @@ def add_arguments(parser) -> None:
 
 
 def run(args) -> int:
-    from equidiff_core.cameras.color_cost import measure
-    from equidiff_core.config import default_config_dir, load_lab_config
-    from equidiff_core.machine import cpu_description
-    from equidiff_core.twin.config import load_twin_config
-
     lab = load_lab_config(args.lab_config or default_config_dir() / "lab.yaml")
     result = measure(lab, load_twin_config(args.twin_config), repeats=args.repeats, quality=args.quality)
     print(json.dumps({**result, "cpu": cpu_description()}))

@@ -20,10 +20,7 @@ the reference (``benches.timing.CPU_VARIANTS``).
 
 from __future__ import annotations
 
-import json
-import os
-import sys
-
+from equidiff_core.benches.throughput import run_train_bench
 from equidiff_core.benches.timing import CPU_VARIANTS
 
 
@@ -71,103 +68,4 @@ def add_arguments(parser) -> None:
 
 
 def run(args) -> int:
-    import torch
-
-    from equidiff_core.benches.cost import policy_cost
-    from equidiff_core.benches.timing import (
-        SyntheticTrainingSet,
-        fresh_policy,
-        measure_training,
-        measure_training_variants,
-        parse_training_runs,
-    )
-    from equidiff_core.config import ConfigError, Workspace
-    from equidiff_core.presets import get_preset
-
-    if args.steps < 1 or args.warmup < 1 or args.noise_repeats < 1:
-        raise SystemExit("equidiff bench train: --steps, --warmup and --noise-repeats must be >= 1")
-    try:
-        runs = parse_training_runs(args.runs) if args.runs else None
-        preset = get_preset(args.preset, **({"rotation_aug": args.rotation_aug} if args.rotation_aug else {}))
-    except (ValueError, ConfigError) as err:
-        print(f"equidiff bench train: {err}", file=sys.stderr)
-        return 2
-    cuda = torch.cuda.is_available()
-    if args.device == "cuda" and not cuda:
-        print("equidiff bench train: --device cuda but CUDA is not available", file=sys.stderr)
-        return 2
-    if args.threads:
-        torch.set_num_threads(args.threads)
-    devices = {
-        "cpu": args.device in ("auto", "cpu") and not args.no_cpu,
-        "cuda": cuda and args.device in ("auto", "cuda"),
-    }
-    batch_sizes = {"cpu": args.batch_size, "cuda": args.cuda_batch_size}
-    default_runs = {"cpu": [(args.cpu_precision, "auto")], "cuda": [("auto", "auto")]}
-    ws = Workspace()
-    batches = [batch_sizes[d] for d, on in devices.items() if on] + ([args.batch_size] if args.variants else [])
-    data = SyntheticTrainingSet(preset, ws, max([args.samples, *batches]))
-    cost = policy_cost(fresh_policy(args.policy, preset, ws), batch=2, noise_repeats=args.noise_repeats)
-    policy = fresh_policy(args.policy, preset, ws)  # trained by every run in turn: the timing does not care
-    result = {
-        "bench": "train",
-        "preset": preset.name,
-        "policy": args.policy,
-        "params": cost["params"],
-        "cost": cost,
-        "rotation_aug": preset.rotation_aug,
-        "samples": len(data),
-        "noise_repeats": args.noise_repeats,
-        "load_avg_1min": round(os.getloadavg()[0], 2),  # a shared machine's load shows in CPU figures
-    }
-    if args.variants:  # instead of the CPU's plain measurement
-        result["cpu_variants"] = measure_training_variants(
-            args.policy,
-            preset,
-            ws,
-            data,
-            args.variants,
-            args.batch_size,
-            args.steps,
-            args.warmup,
-            args.rounds,
-            args.noise_repeats,
-        )
-        devices["cpu"] = False
-    for device, on in devices.items():
-        if not on:
-            continue
-        measured = []
-        for precision, source in runs or default_runs[device]:
-            try:
-                measured.append(
-                    measure_training(
-                        policy,
-                        data,
-                        device,
-                        batch_sizes[device],
-                        args.steps,
-                        args.warmup,
-                        precision,
-                        source,
-                        args.noise_repeats,
-                    )
-                )
-            except (RuntimeError, MemoryError) as err:  # e.g. CUDA out of memory in fp32: the other runs still count
-                if not runs:
-                    raise
-                measured.append({"precision": precision, "data": source, "error": f"{type(err).__name__}: {err}"[:300]})
-                if device == "cuda":
-                    torch.cuda.empty_cache()
-        result[device] = measured[0]
-        if runs:
-            result[f"{device}_runs"] = measured
-    if not devices["cuda"]:
-        result["cuda"] = None
-        result["cuda_note"] = (
-            "not asked for (--device cpu)" if args.device == "cpu" else "CUDA not available: not measured"
-        )
-    if "samples_per_s" in (result.get("cpu") or {}) and "samples_per_s" in (result["cuda"] or {}):
-        result["cuda_vs_cpu"] = round(result["cuda"]["samples_per_s"] / result["cpu"]["samples_per_s"], 1)
-    print(json.dumps(result), flush=True)
-    return 0
+    return run_train_bench(args)

@@ -13,6 +13,9 @@ import json
 import sys
 from pathlib import Path
 
+from equidiff_core.cameras.realsense.devices import connected_devices, usb2_warning
+from equidiff_core.config import default_config_dir, load_lab_config
+
 
 def add_arguments(parser) -> None:
     parser.add_argument("--lab-config", type=Path, default=None, help="lab.yaml (default: the installed one)")
@@ -21,8 +24,6 @@ def add_arguments(parser) -> None:
 
 def lab_report(lab_cameras, devices) -> tuple[list[dict], list[str], list[str]]:
     """(per lab camera: name, serial, connected), warning lines, error lines."""
-    from equidiff_core.cameras.realsense.devices import usb2_warning
-
     by_serial = {d.serial: d for d in devices}
     cameras = [{"name": c.name, "serial": c.serial, "connected": c.serial in by_serial} for c in lab_cameras]
     names = {c.serial: c.name for c in lab_cameras}
@@ -43,11 +44,8 @@ def lab_report(lab_cameras, devices) -> tuple[list[dict], list[str], list[str]]:
 
 
 def run(args) -> int:
-    from equidiff_core.cameras.realsense.devices import connected_devices
-    from equidiff_core.config import default_config_dir, load_lab_config
-
     lab = load_lab_config(args.lab_config or default_config_dir() / "lab.yaml")
-    try:
+    try:  # the RealSense SDK is a lab machine's extra: named if missing
         import pyrealsense2 as rs
     except ImportError as err:
         print(

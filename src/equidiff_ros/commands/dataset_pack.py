@@ -15,6 +15,8 @@ import argparse
 import json
 from pathlib import Path
 
+from equidiff_core.config import default_config_dir, load_lab_config
+from equidiff_core.dataset import DatasetConfig, pack_episodes
 from equidiff_core.observation import STATE_TOLERANCE_S
 
 
@@ -30,9 +32,6 @@ def add_arguments(parser) -> None:
 
 
 def run(args) -> int:
-    from equidiff_core.config import default_config_dir, load_lab_config
-    from equidiff_core.dataset import DatasetConfig, pack_episodes
-
     lab = load_lab_config(args.lab_config or default_config_dir() / "lab.yaml")
     cfg = DatasetConfig(resolution=lab.workspace.resolution, state_tolerance_s=args.tolerance)
     written, skipped = pack_episodes(args.bags, args.out, cfg)

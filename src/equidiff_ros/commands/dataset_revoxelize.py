@@ -14,6 +14,10 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
+from equidiff_core.bags import BagError, find_bags
+from equidiff_core.config import load_lab_config
+from equidiff_core.fusion import revoxelize_bag
+
 
 def add_arguments(parser) -> None:
     parser.add_argument("bags", nargs="+", help="bag directories, or folders holding bag directories")
@@ -25,10 +29,6 @@ def add_arguments(parser) -> None:
 
 
 def run(args) -> int:
-    from equidiff_core.bags import BagError, find_bags
-    from equidiff_core.config import load_lab_config
-    from equidiff_core.fusion import revoxelize_bag
-
     lab = load_lab_config(args.lab)
     bags = find_bags(args.bags)
     if not bags:

@@ -7,13 +7,13 @@ after looking at the arm). Speed and pose: control.yaml `home_*`.
 
 from __future__ import annotations
 
+from equidiff_core.operator_loop import Request
+from equidiff_ros.lab_client import call_request
+
 
 def add_arguments(parser) -> None:
     parser.epilog = __doc__.split("\n", 1)[1]
 
 
 def run(args) -> int:
-    from equidiff_core.operator_loop import Request
-    from equidiff_ros.commands.lab_client import call_request
-
     return call_request("home", Request("home"), prefix="franka_node ")

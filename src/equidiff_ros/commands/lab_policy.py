@@ -7,6 +7,7 @@ still drives it). A teleop takeover pauses it as well; it never resumes on its o
 from __future__ import annotations
 
 from equidiff_core.operator_loop import Request
+from equidiff_ros.lab_client import call_request
 
 ENABLE = {"enable": True, "resume": True, "pause": False}
 
@@ -16,7 +17,5 @@ def add_arguments(parser) -> None:
 
 
 def run(args) -> int:
-    from equidiff_ros.commands.lab_client import call_request
-
     request = Request("enable" if ENABLE[args.action] else "pause")  # the screen's p and space
     return call_request(f"policy {args.action}", request, prefix="policy ")

@@ -11,6 +11,7 @@ Calls recorder_node's services (std_srvs/Trigger), so it works under ``ros2 laun
 from __future__ import annotations
 
 from equidiff_core.operator_loop import Request
+from equidiff_ros.lab_client import call_request
 
 # action -> the operator loop's request (the service the screen's keys s, k, f and x call)
 REQUESTS = {
@@ -27,6 +28,4 @@ def add_arguments(parser) -> None:
 
 
 def run(args) -> int:
-    from equidiff_ros.commands.lab_client import call_request
-
     return call_request(f"record {args.action}", REQUESTS[args.action])

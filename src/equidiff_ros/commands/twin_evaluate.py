@@ -19,11 +19,10 @@ max_duration_s, wall_s.
 from __future__ import annotations
 
 import argparse
-import json
-import time
 from pathlib import Path
 
 from equidiff_core.twin.config import EVALUATION_FIRST_SEED
+from equidiff_core.twin.inprocess_jobs import run_evaluation
 from equidiff_ros.commands.twin_run import add_precision_argument
 
 
@@ -55,56 +54,4 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from equidiff_core.config import default_config_dir, load_lab_config
-    from equidiff_core.inference import load_inference_policy
-    from equidiff_core.twin.config import load_twin_config
-    from equidiff_core.twin.demos import DirectRecorder
-    from equidiff_core.twin.evaluate import evaluate_policy
-    from equidiff_ros.commands.twin_run import SHIPPED_CHECKPOINT
-
-    if args.episodes < 1:
-        raise SystemExit("--episodes must be at least 1")
-    checkpoint = args.checkpoint or SHIPPED_CHECKPOINT
-    if not checkpoint.is_file():
-        raise SystemExit(f"no checkpoint at {checkpoint}")
-    lab = load_lab_config(args.lab_config or default_config_dir() / "lab.yaml")
-    cfg = load_twin_config(args.twin_config)
-    max_duration = args.max_duration or cfg.episode.max_duration_s
-    policy = load_inference_policy(checkpoint, device=args.device, precision=args.precision)
-    seeds = range(args.seed, args.seed + args.episodes)
-    rec = DirectRecorder(cfg, lab)
-    try:
-        policy.warmup()  # first-call costs (seconds of compilation) out of the wall time
-        t0 = time.monotonic()
-        episodes = evaluate_policy(
-            policy,
-            cfg,
-            lab,
-            seeds,
-            max_duration,
-            recorder=rec,
-            latency_s=args.latency_ms / 1000,
-            execute_steps=args.execute_steps,
-            log=lambda s: print(s, flush=True),
-        )
-        wall_s = time.monotonic() - t0
-    finally:
-        rec.close()
-    print(
-        json.dumps(
-            {
-                "episodes": len(episodes),
-                "success": sum(e.success for e in episodes),
-                "reached": sum(e.reached for e in episodes),
-                "lifted": sum(e.lifted for e in episodes),
-                "successful_seeds": [e.seed for e in episodes if e.success],
-                "checkpoint": str(checkpoint),
-                "latency_budget_ms": args.latency_ms,
-                "max_duration_s": max_duration,
-                "execute_steps": args.execute_steps,
-                "wall_s": round(wall_s, 1),
-            }
-        ),
-        flush=True,
-    )
-    return 0
+    return run_evaluation(args)

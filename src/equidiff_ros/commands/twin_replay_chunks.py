@@ -15,10 +15,9 @@ episodes), tcp_gap_p95_mm_worst (the worst episode's 95th percentile), wall_s.
 from __future__ import annotations
 
 import argparse
-import json
-import math
-import time
 from pathlib import Path
+
+from equidiff_core.twin.inprocess_jobs import run_chunk_replay
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -33,43 +32,5 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--twin-config", type=Path, default=None)
 
 
-def _finite_or_none(reduce, values: list[float]) -> float | None:
-    """``reduce`` over the episodes that had recorded TCP poses to compare with (None: none had)."""
-    finite = [v for v in values if math.isfinite(v)]
-    return round(float(reduce(finite)), 1) if finite else None
-
-
 def run(args: argparse.Namespace) -> int:
-    import numpy as np
-
-    from equidiff_core.bags import BagError, find_bags
-    from equidiff_core.config import default_config_dir, load_lab_config
-    from equidiff_core.twin.config import load_twin_config
-    from equidiff_core.twin.evaluate import replay_chunks
-
-    bags = find_bags(args.bags)
-    if not bags:
-        raise SystemExit(f"no bags in {', '.join(map(str, args.bags))}")
-    lab = load_lab_config(args.lab_config or default_config_dir() / "lab.yaml")
-    cfg = load_twin_config(args.twin_config)
-    t0 = time.monotonic()
-    try:
-        episodes = replay_chunks(
-            bags, cfg, lab, args.latency_ms / 1000, args.max_duration, log=lambda s: print(s, flush=True)
-        )
-    except BagError as err:
-        raise SystemExit(str(err)) from None
-    print(
-        json.dumps(
-            {
-                "episodes": len(episodes),
-                "recorded_success": sum(e.recorded_success is True for e in episodes),
-                "replayed_success": sum(e.success for e in episodes),
-                "same_outcome": sum(e.recorded_success == e.success for e in episodes),
-                "tcp_gap_mean_mm": _finite_or_none(np.mean, [e.tcp_gap_mean_mm for e in episodes]),
-                "tcp_gap_p95_mm_worst": _finite_or_none(np.max, [e.tcp_gap_p95_mm for e in episodes]),
-                "wall_s": round(time.monotonic() - t0, 1),
-            }
-        )
-    )
-    return 0
+    return run_chunk_replay(args)

@@ -5,6 +5,7 @@ ROS-free logic is ``equidiff_core.twin``, its robot and clock the ``twin_node`` 
 * ``stack``: ``TwinStack``, every node as a process on a private ROS domain, plus the supervisor
 * ``world``: ``LiveTwin`` (the episode world), ``GatedPolicy`` and ``LiveExpert`` (its actors),
   ``run_policy_episode``
+* ``main_job``: ``equidiff twin run``; ``collect``: ``equidiff twin collect`` (imported by their commands)
 
 Importing it imports rclpy.
 """

@@ -1,5 +1,8 @@
 """The ROS side of ``equidiff lab``: one node that calls the operator services and reads the latched state.
 
+Used by ``lab_screen`` (the terminal UI) and the one-shot ``equidiff lab`` commands (``print_status`` is
+``lab status``).
+
 Everything goes through services and latched topics, not a node's stdin, so it works the
 same under ``ros2 launch`` (where no node has a terminal), over ssh, and in the twin. The
 one-shot commands (``lab record``, ``lab status``...) spin it in the caller's thread; the
@@ -9,14 +12,21 @@ from its worker thread.
 
 from __future__ import annotations
 
+import json
 import os
+import sys
 import threading
 import time
 from collections.abc import Callable
+from dataclasses import asdict
+
+import rclpy
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 
 from equidiff_core import topics
-from equidiff_core.operator_loop import FRANKA_DIAGNOSTICS_NAME, Request
+from equidiff_core.operator_loop import FRANKA_DIAGNOSTICS_NAME, NodeView, Request
 from equidiff_core.rosmsg import RclpyFactory, diagnostic_entries
+from equidiff_ros.common import LATCHED_QOS, RELIABLE_QOS
 
 SERVICE_WAIT_S = 5.0
 CALL_TIMEOUT_S = 15.0
@@ -36,8 +46,6 @@ class LabError(RuntimeError):
 def call_service(command: str, srv_type: str, name: str, prefix: str = "", **request) -> int:
     """One ``equidiff lab`` action: call the service, print its answer (``prefix`` first), or
     print why it failed to stderr under ``command``'s name; the exit code."""
-    import sys
-
     with LabClient() as lab:
         try:
             print(f"{prefix}{lab.call(srv_type, name, **request)}")
@@ -54,9 +62,6 @@ def call_request(command: str, request: Request, prefix: str = "") -> int:
 
 class LabClient:
     def __init__(self):
-        import rclpy
-        from rclpy.executors import SingleThreadedExecutor
-
         self.rclpy = rclpy
         self.factory = RclpyFactory()
         self.context = rclpy.Context()
@@ -97,8 +102,6 @@ class LabClient:
     def latched(self, topic: str, msg_type: str, wait_s: float = 5.0):
         """The latched value on ``topic`` (None if nobody publishes it; ``wait_s`` covers discovery on a
         loaded machine, where 2 s once missed a running recorder)."""
-        from equidiff_ros.common import LATCHED_QOS
-
         got = []
         sub = self.node.create_subscription(self.factory.cls(msg_type), topic, got.append, LATCHED_QOS)
         try:
@@ -113,8 +116,6 @@ class LabClient:
         """Everything the operator loop shows (``operator_loop.NodeView``'s fields): ``on_value(field,
         value)`` for each latched value and each franka_node ``/diagnostics`` (message, values); and,
         once a second, ``on_value(field, None)`` for each latched topic that no node publishes any more."""
-        from equidiff_ros.common import LATCHED_QOS, RELIABLE_QOS
-
         for name, (topic, msg_type) in WATCHED_TOPICS.items():
             self.node.create_subscription(
                 self.factory.cls(msg_type), topic, lambda msg, name=name: on_value(name, msg.data), LATCHED_QOS
@@ -167,8 +168,6 @@ class LabClient:
         self._spinner.start()
 
     def _spin(self) -> None:
-        from rclpy.executors import ExternalShutdownException
-
         try:
             self.executor.spin()
         except ExternalShutdownException:
@@ -186,3 +185,33 @@ class LabClient:
 
     def __exit__(self, *exc):
         self.close()
+
+
+def print_status(as_json: bool) -> int:
+    """What ``equidiff lab status`` prints: one line per node's state, or one JSON line; the exit code."""
+    with LabClient() as lab:
+        got = lab.snapshot()
+    now = time.monotonic()
+    view = NodeView(
+        franka_status=got.get("franka_status"),
+        franka_diagnostics=got.get("franka_diagnostics"),
+        franka_diagnostics_at=now,
+    )
+    robot, note = view.robot(now)
+    state = {
+        "robot": None if robot is None else {**asdict(robot), "note": note},
+        "recorder": got.get("recorder"),
+        "policy": got.get("policy"),
+        "teleop_active": got.get("teleop_active"),
+    }
+    if as_json:
+        print(json.dumps(state))
+        return 0
+    if robot is None:
+        print(f"robot: (no status) {note}")
+    else:
+        fault = f"; last fault: {robot.last_fault}" if robot.last_fault else ""
+        print(f"robot: {robot.describe()}{fault} [{note or robot.source}]")
+    for key in ("recorder", "policy", "teleop_active"):
+        print(f"{key}: {'(no node)' if state[key] is None else state[key]}")
+    return 0
