@@ -16,7 +16,7 @@ from rosbags.rosbag2 import Reader
 
 from equidiff_core.bags import BagError
 from equidiff_core.chunk import chunk_from_msg
-from equidiff_core.rosmsg import RclpyFactory, split_ns, stamp_to_ns
+from equidiff_core.rosmsg import RclpyFactory, position_from_msg, split_ns, stamp_to_ns
 from equidiff_core.topics import TOPIC_COMMAND_CHUNK as COMMAND_TOPIC
 from equidiff_core.topics import TOPIC_TF_STATIC
 from equidiff_ros.common import LATCHED_QOS, SENSOR_QOS, TOPIC_EE_POSE
@@ -73,8 +73,7 @@ def _check_robot_start(node, executor, first_chunk_raw, max_dist: float, wait_s:
     if not poses:
         return f"no {TOPIC_EE_POSE} within {wait_s:.0f} s: is franka_node running?"
     chunk = chunk_from_msg(deserialize_message(first_chunk_raw, f.cls("trajectory_msgs/msg/MultiDOFJointTrajectory")))
-    p = poses[-1].pose.position
-    dist = float(np.linalg.norm(chunk.poses[0, :3, 3] - np.array([p.x, p.y, p.z])))
+    dist = float(np.linalg.norm(chunk.poses[0, :3, 3] - position_from_msg(poses[-1])))
     if dist > max_dist:
         return (
             f"the TCP is {dist * 100:.1f} cm from the episode's first target (limit "
