@@ -389,7 +389,7 @@ def test_limit_depth_keeps_the_colour_image():
 
 @pytest.mark.sim
 def test_image_cost_bench_measures_each_size_against_its_baselines():
-    from equidiff_core.cameras.color_cost import measure
+    from equidiff_core.benches.images import measure
     from equidiff_core.config import default_config_dir, load_lab_config
     from equidiff_core.twin.config import TwinConfig
 

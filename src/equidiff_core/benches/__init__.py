@@ -11,5 +11,6 @@ parsing plus one call into here).
 * ``timing``: what ``bench policy`` / ``bench train`` measure, on the CPU or CUDA (inference modes, training
   steps and their CPU variants); ``cost``: parameters and FLOPs per sample;
   ``throughput``: the two benches' runs, those timings assembled into one JSON line each.
+* ``images``: what recording the cameras' JPEG images costs (bytes and CPU per frame, the twin's renders).
 * ``safety``: the fault campaign of ``bench safety`` against franky-sim through franka_node (its ROS side passed in).
 """

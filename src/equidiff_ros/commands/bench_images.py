@@ -1,6 +1,6 @@
 """`equidiff bench images`: what recording each camera's colour image costs.
 
-Prints ONE JSON line (``equidiff_core.cameras.color_cost.measure``): per image size (the twin's
+Prints ONE JSON line (``equidiff_core.benches.images.measure``): per image size (the twin's
 render size, lab.yaml's camera size, and that size with sensor-like noise as an estimate for a
 real D455) the JPEG bytes per frame, camera_node's CPU per frame to encode it against the cloud
 message it already builds per frame, the recorder's CPU per image written against the /voxels
@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import json
 
-from equidiff_core.cameras.color_cost import measure
+from equidiff_core.benches.images import measure
 from equidiff_core.config import default_config_dir, load_lab_config
 from equidiff_core.machine import cpu_description
 from equidiff_core.twin.config import load_twin_config

@@ -20,15 +20,16 @@ from typing import Any
 import mujoco
 import numpy as np
 
+from ..cameras.base import limit_depth
+from ..cameras.color import DEFAULT_JPEG_QUALITY, color_image_msg
+from ..cameras.twin import TwinCamera
 from ..config import LabConfig
 from ..pointcloud import cloud_to_msg, grid_to_voxel_msg
 from ..recording import EpisodeWriter, RecordingConfig
 from ..rosmsg import rosbags_factory
 from ..topics import COMPRESSED_IMAGE_TYPE, TOPIC_VOXELS, camera_color_topic
+from ..twin import scene
 from ..voxels import Voxelizer
-from . import limit_depth
-from .color import DEFAULT_JPEG_QUALITY, color_image_msg
-from .twin import TwinCamera
 
 CLOUD_TYPE = "sensor_msgs/msg/PointCloud2"
 
@@ -44,8 +45,6 @@ def _cpu_ms(fn: Callable[[], Any], repeats: int) -> tuple[float, Any]:
 
 
 def _scene_qpos(twin_cfg, seed: int) -> np.ndarray:
-    from ..twin import scene
-
     model = scene.build_model(twin_cfg)
     data = mujoco.MjData(model)
     data.qpos[:7] = twin_cfg.sim.initial_q
