@@ -125,7 +125,7 @@ def test_policy_node_defaults_are_the_launchers_execution_defaults(ros_domain, c
                 name: node.get_parameter(name).value
                 for name in ("execute_steps", "latency_s", "latency_transport_s", "rtc", "n_action_steps")
             }
-            assert node.latency.auto and not node.fixed_steps
+            assert node.sizing.latency.auto and not node.sizing.fixed_steps
         finally:
             node.shutdown()
             node.destroy_node()
@@ -531,8 +531,8 @@ def test_latency_auto_measures_on_the_sim_clock_converges_and_bridges(ros_domain
 
         io.create_subscription(DiagnosticArray, TOPIC_DIAGNOSTICS, on_diagnostics, RELIABLE_QOS)
         policy = PolicyNode()
-        assert policy.latency.source == "auto (initial)"
-        assert policy.latency.value_s == pytest.approx((16 - 1 - 1) * 0.2)  # until measured: the most it bridges
+        assert policy.sizing.latency.source == "auto (initial)"
+        assert policy.sizing.latency.value_s == pytest.approx((16 - 1 - 1) * 0.2)  # until measured: the most it bridges
         executor = MultiThreadedExecutor(num_threads=2)
         executor.add_node(io)
         executor.add_node(policy)

@@ -98,16 +98,16 @@ def _run_twin(args, spec, lab, lab_path) -> int:
         limits=MotionLimits.load(lab, args.control_config),
     )
     if args.output is not None:
-        write_calibrated_lab(
-            lab_path,
-            {n: c.T_base_cam for n, c in result.cameras.items()},
-            args.output,
-            force=args.force,
-            notes=_notes(result),
-        )
+        _write_lab(lab_path, result, args)
         report["output"] = str(args.output)
     print(json.dumps(report))
     return 0
+
+
+def _write_lab(lab_path, result, args) -> None:
+    """lab.yaml with the solved extrinsics, to ``args.output`` (``--force`` to overwrite)."""
+    T = {n: c.T_base_cam for n, c in result.cameras.items()}
+    write_calibrated_lab(lab_path, T, args.output, force=args.force, notes=_notes(result))
 
 
 def _notes(result) -> list[str]:
@@ -152,13 +152,7 @@ def _run_lab(args, spec, lab, lab_path) -> int:
         for c in cams:
             c.close()
     result = calibrate(spec, models, samples)
-    write_calibrated_lab(
-        lab_path,
-        {n: c.T_base_cam for n, c in result.cameras.items()},
-        args.output,
-        force=args.force,
-        notes=_notes(result),
-    )
+    _write_lab(lab_path, result, args)
     _log(f"wrote {args.output}")
     print(
         json.dumps(

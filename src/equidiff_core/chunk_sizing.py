@@ -43,6 +43,11 @@ class ChunkSizing:
             return self.n_action_steps
         return steps_to_publish(self.answers.steps, self.latency_s(), self.dt_ns / 1e9, self.available_steps)
 
+    def record_latency(self, seconds: float) -> None:
+        """One observation's measured latency (auto), then k for the new estimate."""
+        self.latency.add(seconds)
+        self.follow_latency()
+
     def follow_latency(self) -> None:
         """With ``execute_steps`` 0 while bridging: k for the current L."""
         if self.adaptive_steps:

@@ -190,7 +190,6 @@ class PolicyNode(Node):
         self.policy.warmup()
         preset = self.policy.preset
         self.sizing = ChunkSizing(preset, n_steps, execute_steps, latency_s, transport_s)
-        self.latency, self.fixed_steps = self.sizing.latency, self.sizing.fixed_steps  # the node's view of L
         self.last_publish_steps = 0
         # real-time chunking: each chunk denoised towards the previous one (None: plain DDIM, as without it);
         # its delay (the steps due before a chunk arrives) follows L, set before each inference
@@ -397,8 +396,9 @@ class PolicyNode(Node):
                 self.chunking.remember(stamp, actions)
             inference = time.perf_counter() - t0
             with self._lock:  # this chunk's own latency (it is published next) sizes it for the next one
-                self.latency.add((now_ns(self) - stamp) / 1e9)
-                self.sizing.follow_latency()  # the next answer's k, which this chunk must outlast
+                self.sizing.record_latency(
+                    (now_ns(self) - stamp) / 1e9
+                )  # and the next answer's k, which this chunk must outlast
                 steps = self.sizing.publish_steps()
             chunk = chunk_from_actions(actions[:steps], stamp, self.sizing.dt_ns)
             if self._paused:  # paused while it ran: the operator has the arm now
@@ -427,8 +427,8 @@ class PolicyNode(Node):
         with self._lock:
             inference, obs_to_cmd = last_ms(self.inference_s), last_ms(self.obs_to_cmd_s)
             p50, p95 = percentiles_ms(self.obs_to_cmd_s)
-            latency = self.latency.value_s
-            source = self.latency.source
+            latency = self.sizing.latency.value_s
+            source = self.sizing.latency.source
         values = {
             "inference_ms": inference,
             "observation_age_ms": last_ms(self.obs_age_s),
@@ -453,7 +453,7 @@ class PolicyNode(Node):
         stale = self.skipped["stale_observation"] + self.skipped["no_observation"]
         level = rosmsg.WARN if (self.failures or stale) and not self.obs_to_cmd_s else rosmsg.OK
         message = f"{self.published} chunks published"
-        if not self.fixed_steps and latency is not None and latency > self.sizing.max_bridged_s + 1e-9:
+        if not self.sizing.fixed_steps and latency is not None and latency > self.sizing.max_bridged_s + 1e-9:
             level = max(level, rosmsg.WARN)
             message += (
                 f"; latency {latency * 1000:.0f} ms exceeds the {self.sizing.max_bridged_s * 1000:.0f} ms the "

@@ -296,18 +296,7 @@ def run_demos_bench(args) -> int:
 
 def train_runs(args, out: Path, subsets: dict[int, list[Path]]) -> list[str]:
     """Train the requested runs not trained yet, side by side; their names."""
-    recipe = Recipe(
-        preset=args.preset,
-        steps=args.train_steps,
-        batch_size=args.batch_size,
-        lr=args.lr,
-        seed=args.seed,
-        device=args.device,
-        noise_repeats=args.noise_repeats,
-        ema=args.ema,
-        max_minutes=args.max_minutes,
-        lab_config=args.lab_config,
-    )
+    recipe = Recipe.from_args(args)
     counts = args.train_counts or args.counts
     todo = [
         (policy, n)

@@ -52,26 +52,10 @@ def _recipe(name: str, args) -> tuple[str, str]:
     return name, args.rotation_aug
 
 
-def recipe_of(args) -> Recipe:
-    """The recipe every policy of this call trains with (``equidiff train``'s flags)."""
-    return Recipe(
-        preset=args.preset,
-        steps=args.train_steps,
-        batch_size=args.batch_size,
-        lr=args.lr,
-        seed=args.seed,
-        device=args.device,
-        noise_repeats=args.noise_repeats,
-        ema=args.ema,
-        max_minutes=args.max_minutes,
-        lab_config=args.lab_config,
-    )
-
-
 def _start_training(name: str, bags: Path, out: Path, args, steps: int, threads: int) -> subprocess.Popen:
     """``equidiff train`` for one of POLICIES in the background, its output in ``out/train.log``."""
     policy, rotation_aug = _recipe(name, args)
-    cmd = dataclasses.replace(recipe_of(args), steps=steps).train_command(policy, rotation_aug, [bags], out)
+    cmd = dataclasses.replace(Recipe.from_args(args), steps=steps).train_command(policy, rotation_aug, [bags], out)
     print(f"[bench] training {name}: {' '.join(cmd[3:])}", flush=True)
     return start_run(cmd, out, threads)
 

@@ -46,6 +46,22 @@ class Recipe:
     max_minutes: float | None = None
     lab_config: Path | None = None
 
+    @classmethod
+    def from_args(cls, args) -> Recipe:
+        """The recipe a bench's parsed flags name (the bench commands share ``equidiff train``'s flags)."""
+        return cls(
+            preset=args.preset,
+            steps=args.train_steps,
+            batch_size=args.batch_size,
+            lr=args.lr,
+            seed=args.seed,
+            device=args.device,
+            noise_repeats=args.noise_repeats,
+            ema=args.ema,
+            max_minutes=args.max_minutes,
+            lab_config=args.lab_config,
+        )
+
     def train_command(self, policy: str, rotation_aug: str, bags: list[Path], out: Path) -> list[str]:
         """``equidiff train`` for ``policy`` on ``bags`` into ``out``: no held-out episodes (the fit of the
         training samples is scored once, at the end), four checkpoints, warm-up min(500, steps / 10)."""
