@@ -156,3 +156,41 @@ def test_ruff_finds_nothing_in_the_sources_and_tests(command):
         [ruff, *command, "src", "test", "launch", "scripts"], cwd=ROOT, capture_output=True, text=True, timeout=120
     )
     assert result.returncode == 0, result.stdout + result.stderr
+
+
+# The twin is the test bed: the jobs, benches and commands that run it may import it; the libraries
+# a lab runs on its real robot (cameras, robots, calibration, control, models, training, viz, ...) may not.
+TWIN_USERS = ("twin/", "benches/", "commands/", "_job.py", "twin_node.py")
+
+
+def _imported_modules(path: Path, package: str) -> set[str]:
+    """Absolute names of the modules ``path`` (a module of ``package``, e.g. equidiff_core.viz.logger) imports."""
+    import ast
+
+    names = set()
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.Import):
+            names.update(alias.name for alias in node.names)
+        elif isinstance(node, ast.ImportFrom):
+            base = package.split(".")
+            base = base[: len(base) - node.level] if node.level else []
+            module = ".".join([*base, *(node.module.split(".") if node.module else [])])
+            names.add(module)
+            names.update(f"{module}.{alias.name}" for alias in node.names)
+    return names
+
+
+def test_no_general_module_imports_the_twin():
+    offenders = []
+    for path in sorted((ROOT / "src").rglob("*.py")):
+        relative = path.relative_to(ROOT / "src").as_posix()
+        if any(part in relative for part in TWIN_USERS):
+            continue
+        package = relative.removesuffix(".py").replace("/", ".")
+        package = package.removesuffix(".__init__") + (".__init__" if relative.endswith("__init__.py") else "")
+        twin = {
+            m for m in _imported_modules(path, package) if m.startswith(("equidiff_core.twin", "equidiff_ros.twin"))
+        }
+        if twin:
+            offenders.append(f"{relative}: {sorted(twin)}")
+    assert not offenders, offenders

@@ -10,7 +10,6 @@ from __future__ import annotations
 import json
 import sys
 
-import mujoco
 import numpy as np
 
 from equidiff_core.calibration.board import BoardSpec, CalibrationError, write_printable
@@ -27,6 +26,7 @@ from equidiff_core.cameras.twin import TwinCamera
 from equidiff_core.config import ConfigError, default_config_dir, load_lab_config
 from equidiff_core.robots.base import RobotError
 from equidiff_core.robots.franky import FrankyRobot
+from equidiff_core.robots.franky.hand import finger_width
 from equidiff_core.twin.calibration import DirectSimArm, FrankyTwinArm, calibrate_twin, nominal_mount
 from equidiff_core.twin.config import load_twin_config
 from equidiff_core.viz.logger import open_recording
@@ -180,13 +180,7 @@ def _twin_capture(args, lab):
         arm = FrankyTwinArm(cfg, MotionLimits.load(truth, args.control_config))
         measured, qpos = arm.move_to(T)
     try:
-        model = arm.model
-        width = float(
-            sum(
-                qpos[model.jnt_qposadr[mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT, j)]]
-                for j in ("robot0_finger_joint1", "robot0_finger_joint2")
-            )
-        )
+        width = finger_width(arm.model, qpos)
     finally:
         arm.close()
     clouds = {}

@@ -23,6 +23,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ..config import LabConfig
+from ..robots.franky.hand import finger_surface_tcp
 
 
 def to_base(points: np.ndarray, T_base_optical: np.ndarray) -> np.ndarray:
@@ -71,49 +72,6 @@ class CameraCheck:
             "finger_points": self.finger_points,
             "fingertips_mm": self.fingertips_mm,
         }
-
-
-def finger_surface_tcp(width: float, samples_per_m2: float = 2e7, seed: int = 0) -> np.ndarray:
-    """Surface points (m, TCP frame) of the FR3's fingers opened to ``width``, from franky-sim's meshes."""
-    import mujoco
-
-    from ..twin.config import TwinConfig
-    from ..twin.scene import FINGER_BODIES, HAND_BODY, body_pose, build_model
-    from ..twin.sim import DirectSim
-
-    model = build_model(TwinConfig())
-    data = mujoco.MjData(model)
-    for j in ("robot0_finger_joint1", "robot0_finger_joint2"):
-        data.qpos[model.jnt_qposadr[mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT, j)]] = width / 2
-    mujoco.mj_kinematics(model, data)
-    T_base_tcp = body_pose(model, data, HAND_BODY)
-    T_base_tcp[:3, 3] += T_base_tcp[:3, :3] @ DirectSim.TCP_OFFSET
-    rng = np.random.default_rng(seed)
-    finger_ids = {mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, b) for b in FINGER_BODIES}
-    out = []
-    for g in range(model.ngeom):
-        # the visual meshes (group 2): what a camera sees, not the collision boxes
-        if (
-            model.geom_bodyid[g] not in finger_ids
-            or model.geom_type[g] != mujoco.mjtGeom.mjGEOM_MESH
-            or model.geom_group[g] != 2
-        ):
-            continue
-        m = model.geom_dataid[g]
-        verts = model.mesh_vert[model.mesh_vertadr[m] : model.mesh_vertadr[m] + model.mesh_vertnum[m]]
-        faces = model.mesh_face[model.mesh_faceadr[m] : model.mesh_faceadr[m] + model.mesh_facenum[m]]
-        a, b, c = verts[faces[:, 0]], verts[faces[:, 1]], verts[faces[:, 2]]
-        area = 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1)
-        n = max(1, int(area.sum() * samples_per_m2))
-        tri = rng.choice(len(faces), size=n, p=area / area.sum())
-        u, v = rng.random((2, n))
-        flip = u + v > 1
-        u[flip], v[flip] = 1 - u[flip], 1 - v[flip]
-        pts = a[tri] + u[:, None] * (b[tri] - a[tri]) + v[:, None] * (c[tri] - a[tri])
-        out.append(pts @ data.geom_xmat[g].reshape(3, 3).T + data.geom_xpos[g])
-    pts = np.concatenate(out)
-    R, t = T_base_tcp[:3, :3], T_base_tcp[:3, 3]
-    return (pts - t) @ R
 
 
 def check_alignment(

@@ -39,6 +39,7 @@ from ..calibration.solve import Calibration, CameraModel, calibrate, pose_error
 from ..cameras.twin import Intrinsics, TwinCamera
 from ..config import Extrinsics, LabConfig, to_dict
 from ..geometry import make_pose
+from ..robots.franky.hand import TCP_OFFSET
 from ..robots.franky.sim import SimServer
 from .config import BoardMountConfig
 from .scene import build_model
@@ -77,7 +78,7 @@ def twin_config_with_board(
     texture.parent.mkdir(parents=True, exist_ok=True)
 
     Image.fromarray(spec.image(200)).save(texture)
-    T_hand_board = make_pose(np.eye(3), DirectSim.TCP_OFFSET) @ T_tcp_board
+    T_hand_board = make_pose(np.eye(3), TCP_OFFSET) @ T_tcp_board
     q = Rotation.from_matrix(T_hand_board[:3, :3]).as_quat()  # xyzw
     mount = BoardMountConfig(
         str(texture),

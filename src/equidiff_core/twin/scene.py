@@ -16,6 +16,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 from ..config import CameraConfig
+from ..robots.franky.hand import FINGER_BODIES, HAND_BODY
 from .config import (
     BoardMountConfig,
     RenderConfig,
@@ -27,8 +28,6 @@ from .config import (
 BLOCK = "block"
 BOWL = "bowl"
 TABLE = "table"
-FINGER_BODIES = ("robot0_left_finger", "robot0_right_finger")
-HAND_BODY = "robot0_hand"
 CALIBRATION_BOARD = "calibration_board"
 
 

@@ -50,6 +50,7 @@ from scipy.spatial.transform import Rotation
 
 from ..robots.base import RobotState
 from ..robots.franky.faults import SimFaults
+from ..robots.franky.hand import TCP_OFFSET
 from ..robots.franky.sim import (
     free_loopback_host,
     keep_alive,
@@ -322,8 +323,6 @@ class DirectSim:
     per-step pinocchio calls and state tracking, which made a 20-episode test 4x slower.
     """
 
-    TCP_OFFSET = np.array([0.0, 0.0, 0.1034])  # hand body -> TCP (franky's NE_T_EE)
-
     def __init__(self, cfg: TwinConfig):
         self.cfg = cfg
         self._sim, self.robot = build_simulator(cfg)
@@ -360,7 +359,7 @@ class DirectSim:
         R = data.xmat[self._hand].reshape(3, 3)
         T = np.eye(4)
         T[:3, :3] = R
-        T[:3, 3] = data.xpos[self._hand] + R @ self.TCP_OFFSET
+        T[:3, 3] = data.xpos[self._hand] + R @ TCP_OFFSET
         return T
 
     def tcp_pose(self) -> np.ndarray:
