@@ -39,6 +39,7 @@ from launch.substitutions import (
 from launch_ros.actions import Node
 
 from equidiff_core.control import load_control_config
+from equidiff_ros.launch_arguments import EXECUTION_PARAMETERS, execution_arguments
 
 try:
     from ament_index_python.packages import get_package_share_directory
@@ -48,30 +49,6 @@ except (ImportError, LookupError):  # a source checkout (PackageNotFoundError is
     SHARE = Path(__file__).resolve().parents[1]
 
 CAMERAS = ("cam_front", "cam_left", "cam_right")  # the names in lab.yaml
-
-# How policy_node executes chunks (docs/control.md, "Chunk execution"), with the node's own
-# defaults (equidiff_core.chunk.DEFAULT_*; test_launch_files.py checks they agree).
-EXECUTION_PARAMETERS = ("execute_steps", "latency_s", "latency_transport_s", "rtc", "n_action_steps")
-
-
-def execution_arguments() -> list:
-    return [
-        DeclareLaunchArgument(
-            "execute_steps", default_value="0", description="steps of a chunk run before the next answer (0: all 8)"
-        ),
-        DeclareLaunchArgument(
-            "latency_s",
-            default_value="auto",
-            description="observation-to-arrival latency each chunk bridges: auto (measured), seconds, or -1 (off)",
-        ),
-        DeclareLaunchArgument(
-            "latency_transport_s", default_value="0.01", description="added to the measured latency (auto)"
-        ),
-        DeclareLaunchArgument("rtc", default_value="false", description="real-time chunking"),
-        DeclareLaunchArgument(
-            "n_action_steps", default_value="0", description="steps published per chunk (0: enough to bridge L)"
-        ),
-    ]
 
 
 def generate_launch_description():

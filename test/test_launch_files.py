@@ -2,7 +2,8 @@
 
 ``launch`` / ``launch_ros`` are not in the test venv (rclpy comes from PyPI wheels), so the
 launch file is read with ``ast``: every ``Node(...)`` with its package, executable and condition.
-Conditions are evaluated for the given arguments; one this reader does not understand fails the
+The execution arguments both launchers share come from ``equidiff_ros.launch_arguments``, plain data
+this test imports. Conditions are evaluated for the given arguments; one this reader does not understand fails the
 test rather than being guessed at.
 """
 
@@ -12,6 +13,8 @@ import ast
 from pathlib import Path
 
 import pytest
+
+from equidiff_ros import launch_arguments as shared
 
 LAUNCH = Path(__file__).resolve().parents[1] / "launch"
 
@@ -29,9 +32,12 @@ def _name(call: ast.Call) -> str:
 
 
 def launch_arguments(path: Path) -> dict[str, str]:
-    """Each DeclareLaunchArgument's default (a non-literal default is left out)."""
+    """Each DeclareLaunchArgument's default (a non-literal default is left out), with the shared
+    execution arguments where the file declares them (``*execution_arguments()``)."""
     out = {}
     for call in ast.walk(ast.parse(path.read_text())):
+        if isinstance(call, ast.Call) and _name(call) == shared.execution_arguments.__name__:
+            out |= shared.execution_defaults()
         if isinstance(call, ast.Call) and _name(call) == "DeclareLaunchArgument":
             default = _kwargs(call).get("default_value")
             try:
@@ -93,7 +99,8 @@ def test_robot_launch_policy_only_in_policy_mode():
 
 def node_parameter_keys(name: str, executable: str) -> set[str]:
     """The parameter names the launch file gives ``executable`` (keys of the dicts in its
-    ``parameters``, with ``**{name: ... for name in TUPLE}`` expanded from the module's tuple)."""
+    ``parameters``, with ``**{name: ... for name in TUPLE}`` expanded from the tuple the file defines or
+    imports from ``equidiff_ros.launch_arguments``)."""
     tree = ast.parse((LAUNCH / name).read_text())
     tuples = {
         t.id: _literal(node.value)
@@ -102,6 +109,11 @@ def node_parameter_keys(name: str, executable: str) -> set[str]:
         for t in node.targets
         if isinstance(t, ast.Name) and isinstance(node.value, ast.Tuple)
     }
+    for node in tree.body:
+        if isinstance(node, ast.ImportFrom) and node.module == shared.__name__:
+            tuples |= {
+                a.name: getattr(shared, a.name) for a in node.names if isinstance(getattr(shared, a.name), tuple)
+            }
     keys: set[str] = set()
     for call in ast.walk(tree):
         if isinstance(call, ast.Call) and _name(call) == "Node" and _literal(_kwargs(call)["executable"]) == executable:
