@@ -32,13 +32,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..chunk import (
-    DEFAULT_EXECUTE_STEPS,
-    DEFAULT_RTC,
-    AnswerSchedule,
-    bridging_execute_steps,
-    steps_to_publish,
-)
+from ..chunk import DEFAULT_EXECUTE_STEPS, DEFAULT_RTC, DEFAULT_TRANSPORT_S, AnswerSchedule
+from ..chunk_sizing import ChunkSizing
 from ..config import LabConfig
 from ..episode import run_episode
 from ..rosmsg import position_from_msg
@@ -101,15 +96,16 @@ def evaluate_policy(
     preset = policy.preset
     if not (math.isfinite(latency_s) and latency_s >= 0):
         raise ValueError(f"latency_s must be finite and >= 0, got {latency_s}")
-    available = preset.horizon - preset.n_obs_steps + 1  # the predicted steps from the observation on
-    if publish_steps is None and not execute_steps:  # policy_node's default k while it bridges L
-        execute_steps = bridging_execute_steps(preset.n_action_steps, latency_s, preset.dt, available)
-    execute_steps = AnswerSchedule(execute_steps, int(preset.n_action_steps), 1).steps  # checked up front
-    if publish_steps is None:
-        publish_steps = steps_to_publish(execute_steps, latency_s, preset.dt, available)
-    if publish_steps and not 1 <= publish_steps <= available:
-        raise ValueError(f"publish_steps must be within 1..{available}, got {publish_steps}")
-    publish_steps = int(publish_steps) or int(preset.n_action_steps)
+    if publish_steps is None:  # policy_node's own sizing, given L as its latency_s parameter
+        sizing = ChunkSizing(preset, 0, execute_steps, latency_s, DEFAULT_TRANSPORT_S)
+        sizing.follow_latency()
+        execute_steps, publish_steps = sizing.answers.steps, sizing.publish_steps()
+    else:
+        execute_steps = AnswerSchedule(execute_steps, int(preset.n_action_steps), 1).steps  # checked up front
+        available = preset.horizon - preset.n_obs_steps + 1  # the predicted steps from the observation on
+        if publish_steps and not 1 <= publish_steps <= available:
+            raise ValueError(f"publish_steps must be within 1..{available}, got {publish_steps}")
+        publish_steps = int(publish_steps) or int(preset.n_action_steps)
     control = _control_config()
     rec = recorder or DirectRecorder(cfg, lab)
     world = DirectWorld(rec)  # records nothing
