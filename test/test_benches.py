@@ -284,10 +284,11 @@ def test_bench_train_times_its_variants_in_one_run(capsys):
 
     argv = ["bench", "train", "--preset", "tiny", "--policy", "baseline", "--device", "cpu", "--steps", "1"]
     argv += ["--warmup", "1", "--batch-size", "2", "--samples", "2", "--rotation-aug", "none", "--noise-repeats", "2"]
-    assert main([*argv, "--variants", "default", "relu_before_pool", "--rounds", "1"]) == 0
+    assert main([*argv, "--variants", "default", "relu_before_pool", "train_mode_every_step", "--rounds", "1"]) == 0
     result = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     variants = result["cpu_variants"]["variants"]
-    assert list(variants) == ["default", "relu_before_pool"] and variants["default"]["vs_first"] == 1.0
+    assert list(variants) == ["default", "relu_before_pool", "train_mode_every_step"]
+    assert variants["default"]["vs_first"] == 1.0
     assert variants["default"]["cpu_vs_first"] == 1.0 and all(v["cpu_sec_per_step"] > 0 for v in variants.values())
     assert all(v["sec_per_step"] > 0 for v in variants.values()) and result["noise_repeats"] == 2
     assert "cpu" not in result and result["cuda"] is None  # the variants replace the plain CPU measurement

@@ -86,6 +86,29 @@ def test_train_resume_callbacks_and_files(tmp_path):
         train(make_policy("baseline", get_preset("tiny"), WS), ds, None, _quick_cfg(steps=4), tmp_path)
 
 
+def test_every_step_trains_in_train_mode_without_resetting_it_each_step(tmp_path, monkeypatch):
+    """Each step's loss is computed in train mode, also right after an evaluation put the model in eval
+    mode; the mode is set again only then (escnn's ``train()`` hashes every basis expansion: a tenth of
+    a tiny step when it ran before every step)."""
+    ds = CubeDataset(3, seed=1)
+    torch.manual_seed(0)
+    policy = make_policy("equidiff", get_preset("tiny"), WS)
+    modes, calls = [], []
+    compute_loss, set_mode = policy.compute_loss, policy.train
+
+    def record_mode(*args, **kwargs):
+        if torch.is_grad_enabled():  # a training step, not the evaluation's validation loss
+            modes.append(policy.training)
+        return compute_loss(*args, **kwargs)
+
+    monkeypatch.setattr(policy, "compute_loss", record_mode)
+    monkeypatch.setattr(policy, "train", lambda mode=True: calls.append(mode) or set_mode(mode))
+    policy.eval()
+    train(policy, ds, ds, _quick_cfg(steps=6, eval_every=2, checkpoint_every=0), tmp_path)
+    assert modes == [True] * 6
+    assert calls.count(True) == 3  # at the start, after the evaluations at steps 2 and 4 (6 is the last)
+
+
 def test_a_checkpoint_loads_with_the_ema_weights_that_training_exported(tmp_path):
     """A run with an EMA exports the averaged weights to policy.pt; ``load_policy_from_checkpoint``
     on its last.ckpt must give that same policy (it gave the raw training weights, so

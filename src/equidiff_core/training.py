@@ -245,7 +245,10 @@ def train(
             stopped = f"time budget of {cfg.max_minutes:g} min reached"
             history.append({"step": step, "stopped": stopped})
             break
-        policy.train()
+        if (
+            not policy.training
+        ):  # back from an evaluation; escnn's train() walks and hashes every basis, so not every step
+            policy.train()
         t_data = time.perf_counter()
         batch = next(batches)
         data_s = time.perf_counter() - t_data  # the loader's share of the step (bench train reports it)

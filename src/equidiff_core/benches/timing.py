@@ -321,9 +321,11 @@ def measure_training(
     precision: str = "auto",
     data_source: str = "auto",
     noise_repeats: int = 1,
+    callbacks: tuple = (),
 ) -> dict:
     """Samples/s of ``training.train`` on ``device`` (``policy`` trains on: its weights change), with
-    ``noise_repeats`` (noise, step) draws per encoder pass."""
+    ``noise_repeats`` (noise, step) draws per encoder pass; ``callbacks`` run after each step, inside
+    the timed steps."""
     device_t = torch.device(device)
     if device_t.type == "cuda":
         torch.cuda.reset_peak_memory_stats(device_t)
@@ -341,7 +343,7 @@ def measure_training(
         noise_repeats=noise_repeats,
     )
     with tempfile.TemporaryDirectory(prefix="bench_train_") as tmp:
-        result = train(policy, data, None, cfg, tmp, callbacks=[clock])
+        result = train(policy, data, None, cfg, tmp, callbacks=[clock, *callbacks])
     seconds = clock.times[warmup + steps] - clock.times[warmup]
     waited = sum(clock.data_s[s] for s in range(warmup + 1, warmup + steps + 1))
     out = {
@@ -375,8 +377,20 @@ CPU_VARIANTS = {
     "contiguous_input": "the voxel input in the contiguous (N, C, D, H, W) format (the baseline's before)",
     "one_noise_draw": "1 (noise, step) draw per encoder pass instead of noise_repeats",
     "eight_noise_draws": "8 (noise, step) draws per encoder pass instead of noise_repeats",
+    "train_mode_every_step": "policy.train() before every step, as training did before (escnn's train() hashes "
+    "every basis expansion of the model)",
 }
 VARIANT_NOISE_REPEATS = {"one_noise_draw": 1, "eight_noise_draws": 8}
+
+
+class _TrainModeEveryStep:
+    """The variant ``train_mode_every_step``: ``policy.train()`` between every two steps."""
+
+    def __init__(self, policy):
+        self.policy = policy
+
+    def on_step(self, step, metrics):
+        self.policy.train()
 
 
 def variant_policy(policy_name: str, preset, workspace, variant: str):
@@ -421,7 +435,8 @@ def measure_training_variants(
         for name in variants:
             policy, precision = variant_policy(policy_name, preset, workspace, name)
             repeats = VARIANT_NOISE_REPEATS.get(name, noise_repeats)
-            m = measure_training(policy, data, "cpu", batch_size, steps, warmup, precision, "auto", repeats)
+            extra = (_TrainModeEveryStep(policy),) if name == "train_mode_every_step" else ()
+            m = measure_training(policy, data, "cpu", batch_size, steps, warmup, precision, "auto", repeats, extra)
             wall[name].append(m["sec_per_step"])
             cpu[name].append(m["cpu_sec_per_step"])
     first, cpu_first = statistics.median(wall[variants[0]]), statistics.median(cpu[variants[0]])
