@@ -98,6 +98,8 @@ class VoxelNode(Node):
         )
         self.dropped = {n: 0 for n in self.names}
         self._last_warned: dict[tuple[str, str], float] = {}
+        self._stale_said: tuple[str, ...] = ()  # the stale cameras last named in the log, and when
+        self._stale_said_at = -1e9
         self.published = 0
         self.skipped_stale = 0
         self.voxelize_ms = float("nan")
@@ -137,9 +139,13 @@ class VoxelNode(Node):
                 for n in stale
             )
             self.state = f"stale: {why}"
-            self.get_logger().warning(
-                f"not publishing {TOPIC_VOXELS}: stale camera(s) {why}", throttle_duration_sec=2.0
-            )
+            # a change in which cameras are stale is said at once, the same ones again at most every 2 s
+            t = time.monotonic()
+            if tuple(stale) != self._stale_said or t - self._stale_said_at >= 2.0:
+                self._stale_said, self._stale_said_at = tuple(stale), t
+                self.get_logger().warning(f"not publishing {TOPIC_VOXELS}: stale camera(s) {why}")
+        else:
+            self._stale_said = ()
         return bool(stale)
 
     def _on_tick(self):
