@@ -7,6 +7,7 @@ lerobot 0.6.1 and loads the export with ``LeRobotDataset(repo_id, root=...)``.
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 from pathlib import Path
 
@@ -98,6 +99,16 @@ def test_export_writes_the_v3_layout(exported, bags):
         with av.open(str(files[0])) as container:
             decoded = [f.to_ndarray(format="rgb24") for f in container.decode(video=0)]
         assert len(decoded) == sum(LENGTHS)  # one video frame per dataset frame, episodes back to back
+
+
+def test_exporting_videos_leaves_the_threads_scheduling_policy_alone(bags, tmp_path):
+    """SVT-AV1 moves the thread that runs it to SCHED_FIFO when it may (root): an export must not leave
+    the calling thread real-time, nor every thread it starts afterwards (a policy's inference thread in
+    the same process ran 10x slower beside busy ROS executor threads)."""
+    before = os.sched_getscheduler(0)
+    assert cli(["export", "lerobot", str(bags[1]), "--out", str(tmp_path / "videos"), "--no-voxels"]) == 0
+    assert (tmp_path / "videos" / "videos").is_dir()
+    assert os.sched_getscheduler(0) == before
 
 
 def test_export_options_and_refusals(bags, tmp_path, capsys):

@@ -71,7 +71,7 @@ def test_sim_waits_for_cameras_and_the_policy_and_keeps_franky_alive_through_a_l
     longer than libfranka's 1 s UDP timeout: the client must still be connected and able to
     move afterwards (keep_alive re-sends the last state under its id)."""
     franky = pytest.importorskip("franky")
-    from equidiff_core.robots.franky import keep_thread_scheduler
+    from equidiff_core.machine import keep_thread_scheduler
     from equidiff_core.robots.franky.sim import free_loopback_host
     from equidiff_core.twin import TwinConfig
     from equidiff_core.twin.shared_state import StateReader
@@ -89,7 +89,7 @@ def test_sim_waits_for_cameras_and_the_policy_and_keeps_franky_alive_through_a_l
     )
     sim.start(seed=1)
     try:
-        with keep_thread_scheduler():
+        with keep_thread_scheduler("libfranka"):
             robot = franky.Robot(sim.host, realtime_config=franky.RealtimeConfig.Ignore)
         robot.recover_from_errors()
         camera = StateReader(sim.shm_name)
@@ -119,7 +119,7 @@ def test_sim_waits_for_cameras_and_the_policy_and_keeps_franky_alive_through_a_l
         camera.unregister()  # nothing else holds it now
         assert ticks_after(1.0) > held
         # libfranka survived the pause: state reads and a motion work
-        with keep_thread_scheduler():
+        with keep_thread_scheduler("libfranka"):
             robot.move(franky.JointMotion(list(robot.state.q)))
         assert np.all(np.isfinite(robot.state.q))
         assert all(b >= a for a, b in itertools.pairwise(clock))  # /clock never goes back (it repeats while waiting)

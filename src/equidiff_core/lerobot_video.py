@@ -17,6 +17,7 @@ from .bags import read_episode
 from .cameras.color import ImageError, image_from_msg
 from .dataset import EpisodeArrays
 from .lerobot_layout import VIDEO_PATH, ExportError, MiB, next_chunk_file
+from .machine import keep_thread_scheduler
 from .topics import camera_color_topic, camera_of_color_topic
 
 # SVT-AV1 prints its whole configuration to stderr for each encoder it opens; errors only
@@ -110,8 +111,7 @@ class VideoFiles:
             frame = av.VideoFrame.from_ndarray(np.ascontiguousarray(rgb), format="rgb24")
             frame.pts = self.frames_in_file
             self.frames_in_file += 1
-            for packet in self.stream.encode(frame):
-                self.container.mux(packet)
+            self._encode(frame)
         start = self.frames_in_file if start is None else start
         prefix = f"videos/{self.key}/"
         return {
@@ -121,11 +121,18 @@ class VideoFiles:
             prefix + "to_timestamp": self.frames_in_file / self.fps,
         }
 
+    def _encode(self, frame: av.VideoFrame | None) -> None:
+        """One frame into the file (None: flush the encoder)."""
+        # SVT-AV1 moves the thread that opens or runs it to SCHED_FIFO when it may (root)
+        with keep_thread_scheduler(self.encoding.vcodec):
+            for packet in self.stream.encode(frame):
+                self.container.mux(packet)
+
     def close(self) -> None:
         if self.container is not None:
-            for packet in self.stream.encode():
-                self.container.mux(packet)
-            self.container.close()
+            self._encode(None)
+            with keep_thread_scheduler(self.encoding.vcodec):
+                self.container.close()
             self.container = None
 
 

@@ -1,10 +1,15 @@
 """What CPU this is: absolute timings depend on it (one development CPU has AVX-512 with bf16,
-another only AVX2), so every benchmark names it beside its figures."""
+another only AVX2), so every benchmark names it beside its figures. And the calling thread's
+scheduling policy, which native libraries change behind our back."""
 
 from __future__ import annotations
 
+import contextlib
+import logging
 import os
 import platform
+
+log = logging.getLogger("equidiff.machine")
 
 
 def _cpuinfo() -> str:
@@ -38,3 +43,32 @@ def cpu_description() -> dict:
     """The CPU's name, cores and the instruction sets absolute timings depend on (for a JSON line)."""
     flags = cpu_flags()
     return {"cpu": cpu_model(), "cores": os.cpu_count(), "avx512": "avx512f" in flags, "bf16": cpu_has_native_bf16()}
+
+
+@contextlib.contextmanager
+def keep_thread_scheduler(library: str):
+    """Give the calling thread its scheduling policy back after a call into ``library``.
+
+    Some native libraries move the thread that calls them to SCHED_FIFO whenever they may (root, or
+    an RT kernel): libfranka (priority 99, also with ``RealtimeConfig.Ignore`` and already in
+    ``Robot()``), and SVT-AV1, the AV1 encoder the LeRobot export uses (through PyAV). The calling
+    thread is a node's, a command's or a test runner's main thread: it stayed real-time, and every
+    thread and process started from it afterwards inherited SCHED_FIFO. Twin nodes that render or
+    voxelise flat out then starved the rest of the machine (CI's main-job smoke test hung with
+    franka_node stuck in its home move), and in a process that had exported videos a policy's
+    inference thread ran 10x slower beside busy ROS executor threads. The library's own threads
+    keep whatever it gave them.
+    """
+    try:
+        policy, param = os.sched_getscheduler(0), os.sched_getparam(0)
+    except (AttributeError, OSError):  # not Linux
+        yield
+        return
+    try:
+        yield
+    finally:
+        if os.sched_getscheduler(0) != policy:
+            try:
+                os.sched_setscheduler(0, policy, param)
+            except OSError as err:
+                log.warning(f"could not restore this thread's scheduling policy after {library}: {err}")

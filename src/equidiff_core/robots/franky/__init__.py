@@ -6,6 +6,6 @@
 """
 
 from .config import FrankyConfig
-from .robot import FrankyRobot, keep_thread_scheduler
+from .robot import FrankyRobot
 
-__all__ = ["FrankyConfig", "FrankyRobot", "keep_thread_scheduler"]
+__all__ = ["FrankyConfig", "FrankyRobot"]

@@ -31,15 +31,14 @@ builds a new ``franky.Robot`` (and ``Gripper``): libfranka's ``Robot`` is dead f
 
 from __future__ import annotations
 
-import contextlib
 import gc
 import logging
-import os
 import threading
 import time
 
 import numpy as np
 
+from ...machine import keep_thread_scheduler
 from ..base import JointLimits, Robot, RobotError, RobotState, RobotStopped, UserStopPressed
 from .config import FrankyConfig
 
@@ -82,7 +81,7 @@ class FrankyRobot(Robot):
 
         rt = franky.RealtimeConfig.Enforce if self.realtime else franky.RealtimeConfig.Ignore
         try:
-            with keep_thread_scheduler():
+            with keep_thread_scheduler("libfranka"):
                 self._robot = franky.Robot(self.ip, realtime_config=rt)
         except Exception as err:  # franky raises its own NetworkException etc.
             raise RobotError(f"cannot connect to the robot at {self.ip}: {err}") from err
@@ -233,7 +232,7 @@ class FrankyRobot(Robot):
         attempts = 3
         for attempt in range(1, attempts + 1):
             try:
-                with keep_thread_scheduler():  # a blocking move runs libfranka's loop in this thread
+                with keep_thread_scheduler("libfranka"):  # a blocking move runs libfranka's loop in this thread
                     robot.move(franky.CartesianMotion(target))
                 return
             except Exception as err:
@@ -379,32 +378,6 @@ _MODES = {
     "AutomaticErrorRecovery": "error_recovery",
     "Other": "other",
 }
-
-
-@contextlib.contextmanager
-def keep_thread_scheduler():
-    """Give the calling thread its scheduling policy back after a franky call.
-
-    libfranka moves the thread it runs in to SCHED_FIFO 99 whenever it may (root, or an RT
-    kernel), also with ``RealtimeConfig.Ignore`` and already in ``Robot()``. The calling thread
-    is a node's (or a test runner's) main thread: it stayed real-time, and every process started
-    from it afterwards inherited SCHED_FIFO 99. Twin nodes that render or voxelise flat out then
-    starved the rest of the machine, and CI's main-job smoke test hung with franka_node stuck in
-    its home move. franky's own control thread still runs real-time.
-    """
-    try:
-        policy, param = os.sched_getscheduler(0), os.sched_getparam(0)
-    except (AttributeError, OSError):  # not Linux
-        yield
-        return
-    try:
-        yield
-    finally:
-        if os.sched_getscheduler(0) != policy:
-            try:
-                os.sched_setscheduler(0, policy, param)
-            except OSError as err:
-                log.warning(f"could not restore this thread's scheduling policy after franky: {err}")
 
 
 def _finished(future) -> bool:
