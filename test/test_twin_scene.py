@@ -142,12 +142,14 @@ def test_missing_shared_state_is_a_clear_error():
 def test_sim_server_runs_in_real_time_and_shares_its_state():
     import franky
 
+    from equidiff_core.machine import keep_thread_scheduler
     from equidiff_core.twin.sim import TwinSim
 
     shm = f"equidiff_twin_test_{time.time_ns()}"
     with TwinSim(CFG, host="auto", shm_name=shm).start(seed=5) as twin:
         reader = StateReader(shm, nq=twin.model.nq)
-        robot = franky.Robot(twin.host, realtime_config=franky.RealtimeConfig.Ignore)
+        with keep_thread_scheduler("libfranka"):  # libfranka makes this thread real-time as root
+            robot = franky.Robot(twin.host, realtime_config=franky.RealtimeConfig.Ignore)
         q = np.asarray(robot.current_joint_state.position)
         np.testing.assert_allclose(q, CFG.sim.initial_q, atol=0.05)
         wall0, (_, sim0, _) = time.monotonic(), reader.read()
