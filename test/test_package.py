@@ -163,8 +163,9 @@ def test_ruff_finds_nothing_in_the_sources_and_tests(command):
 TWIN_USERS = ("twin/", "benches/", "commands/", "_job.py", "twin_node.py")
 
 
-def _imported_modules(path: Path, package: str) -> set[str]:
-    """Absolute names of the modules ``path`` (a module of ``package``, e.g. equidiff_core.viz.logger) imports."""
+def _imported_modules(path: Path, module: str) -> set[str]:
+    """Absolute names of what ``path``, the module ``module`` (e.g. equidiff_core.viz.logger, or
+    equidiff_core.viz.__init__ for a package), imports."""
     import ast
 
     names = set()
@@ -172,11 +173,11 @@ def _imported_modules(path: Path, package: str) -> set[str]:
         if isinstance(node, ast.Import):
             names.update(alias.name for alias in node.names)
         elif isinstance(node, ast.ImportFrom):
-            base = package.split(".")
-            base = base[: len(base) - node.level] if node.level else []
-            module = ".".join([*base, *(node.module.split(".") if node.module else [])])
-            names.add(module)
-            names.update(f"{module}.{alias.name}" for alias in node.names)
+            base = module.split(".")
+            base = base[: len(base) - node.level] if node.level else []  # level 1: the module's package
+            imported = ".".join([*base, *(node.module.split(".") if node.module else [])])
+            names.add(imported)
+            names.update(f"{imported}.{alias.name}" for alias in node.names)
     return names
 
 
@@ -186,11 +187,8 @@ def test_no_general_module_imports_the_twin():
         relative = path.relative_to(ROOT / "src").as_posix()
         if any(part in relative for part in TWIN_USERS):
             continue
-        package = relative.removesuffix(".py").replace("/", ".")
-        package = package.removesuffix(".__init__") + (".__init__" if relative.endswith("__init__.py") else "")
-        twin = {
-            m for m in _imported_modules(path, package) if m.startswith(("equidiff_core.twin", "equidiff_ros.twin"))
-        }
+        module = relative.removesuffix(".py").replace("/", ".")
+        twin = {m for m in _imported_modules(path, module) if m.startswith(("equidiff_core.twin", "equidiff_ros.twin"))}
         if twin:
             offenders.append(f"{relative}: {sorted(twin)}")
     assert not offenders, offenders
