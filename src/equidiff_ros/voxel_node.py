@@ -97,9 +97,7 @@ class VoxelNode(Node):
             self.factory.cls("diagnostic_msgs/msg/DiagnosticArray"), TOPIC_DIAGNOSTICS, RELIABLE_QOS
         )
         self.dropped = {n: 0 for n in self.names}
-        self._last_warned: dict[tuple[str, str], float] = {}
-        self._stale_said: tuple[str, ...] = ()  # the stale cameras last named in the log, and when
-        self._stale_said_at = -1e9
+        self._last_warned: dict[tuple[str, ...], float] = {}
         self.published = 0
         self.skipped_stale = 0
         self.voxelize_ms = float("nan")
@@ -118,11 +116,7 @@ class VoxelNode(Node):
         except CloudError as err:
             self.dropped[cam.name] += 1
             # throttled per camera and kind of problem (numbers removed), so each is seen
-            kind = (cam.name, re.sub(r"\d+", "#", str(err)))
-            t = time.monotonic()
-            if t - self._last_warned.get(kind, -1e9) >= 2.0:
-                self._last_warned[kind] = t
-                self.get_logger().warning(f"dropped a cloud on {cam.topic}: {err}")
+            self._warn((cam.name, re.sub(r"\d+", "#", str(err))), f"dropped a cloud on {cam.topic}: {err}")
             return
         self.fusion.add(cam.name, cloud.stamp_ns, cloud)
         self._publish_new_set()
@@ -139,14 +133,16 @@ class VoxelNode(Node):
                 for n in stale
             )
             self.state = f"stale: {why}"
-            # a change in which cameras are stale is said at once, the same ones again at most every 2 s
-            t = time.monotonic()
-            if tuple(stale) != self._stale_said or t - self._stale_said_at >= 2.0:
-                self._stale_said, self._stale_said_at = tuple(stale), t
-                self.get_logger().warning(f"not publishing {TOPIC_VOXELS}: stale camera(s) {why}")
-        else:
-            self._stale_said = ()
+            # keyed by which cameras are stale: a new set is said at once, not hidden behind the last
+            self._warn(("stale", *stale), f"not publishing {TOPIC_VOXELS}: stale camera(s) {why}")
         return bool(stale)
+
+    def _warn(self, key: tuple[str, ...], message: str) -> None:
+        """A warning at most every 2 s per ``key`` (a kind of problem), so one kind never hides another."""
+        t = time.monotonic()
+        if t - self._last_warned.get(key, -1e9) >= 2.0:
+            self._last_warned[key] = t
+            self.get_logger().warning(message)
 
     def _on_tick(self):
         if not self._stale_cameras() and self.matcher.peek() is None:
