@@ -273,7 +273,8 @@ def test_overfits_tiny_dataset(tmp_path):
     """Two demonstrations (different cubes and start poses): the diffusion loss falls more than 10x
     and DDIM-16 samples land on each demonstration's own trajectory (not the other's).
 
-    1200 steps, ~2-3 min on a quiet 2-core CPU (0.25 CPU s a step, 0.18 of it the encoder): with
+    1200 steps, ~3 min on a quiet 2-core CPU (172 s in the suite; 0.136 CPU s a step, `equidiff bench
+    train --preset tiny --policy equidiff --rotation-aug none --noise-repeats 16 --batch-size 2`): with
     epsilon prediction the observation dependence of x0 at high noise is learned last, so samples
     need ~1000+ steps to be exact (measured: 500 steps ~7 cm, 1500 steps ~3.5 mm mean position
     error; 600 steps at lr 5e-3 ~19 mm and 64 mm width error, so fewer steps do not pass)."""
