@@ -1,5 +1,8 @@
 """The twin supervisor's gate (``twin.gate.PolicyGate``): which policy chunks reach the robot, and when."""
 
+import numpy as np
+import pytest
+
 from equidiff_core.twin.gate import PolicyGate
 
 MS = 1_000_000
@@ -39,3 +42,33 @@ def test_the_gate_counts_skipped_observations_and_inference_only_during_its_epis
     assert record.inference_ms == [120.0]
     gate.open(3000 * MS)  # a new episode starts from an empty record
     assert gate.close().dropped == []
+
+
+@pytest.mark.ros
+def test_a_homing_that_times_out_says_what_franka_node_reported(ros_domain):
+    """The twin's homing error names the gripper, how old the joint states are and franka_node's own
+    counts (chunks accepted and refused, gripper commands): enough to tell a stale state from a
+    refused chunk from a gripper that never moved."""
+    from diagnostic_msgs.msg import DiagnosticArray
+
+    from equidiff_core.geometry import make_pose
+    from equidiff_core.rosmsg import RclpyFactory, diagnostic_array
+    from equidiff_core.topics import TOPIC_DIAGNOSTICS
+    from equidiff_ros.common import RELIABLE_QOS
+    from equidiff_ros.twin.supervisor import Supervisor, SupervisorError
+
+    sup = Supervisor()
+    try:
+        pub = sup.node.create_publisher(DiagnosticArray, TOPIC_DIAGNOSTICS, RELIABLE_QOS)
+        counts = {"state": "holding", "accepted_chunks": 7, "rejected_chunks": 2, "gripper_commands": 0}
+        msg = diagnostic_array(RclpyFactory(), 0, "franka_node", "sim", 1, "holding: chunk refused", counts)
+        sup.wait_for(lambda: pub.publish(msg) or sup.franka_diagnostics, 10.0, "the diagnostics")
+        with sup.lock:
+            sup.ee_pose, sup.width = make_pose(np.diag([1.0, -1.0, -1.0]), [0.45, 0.0, 0.3]), 0.04
+        with pytest.raises(SupervisorError) as raised:
+            sup.move_to(make_pose(np.diag([1.0, -1.0, -1.0]), [0.45, 0.0, 0.3]), 0.08, timeout_s=0.3)
+    finally:
+        sup.close()
+    text = str(raised.value)
+    assert "gripper 40 mm for 80 mm" in text and "joint states last received" in text
+    assert "'holding: chunk refused' (state holding, accepted_chunks 7, rejected_chunks 2, gripper_commands 0)" in text

@@ -212,10 +212,16 @@ class TwinStack:
                 f"[twin] franka_node held after '{stopped}'; acknowledged (as the operator) before homing", flush=True
             )
         ex = self.cfg.expert
-        self.sup.move_to(
-            tcp_pose(ex.ready_position, 0.0),
-            ex.open_width,
-            speed=ex.speed,
-            timeout_s=self.cfg.episode.home_timeout_s,
-            check=self.check,
-        )
+        try:
+            self.sup.move_to(
+                tcp_pose(ex.ready_position, 0.0),
+                ex.open_width,
+                speed=ex.speed,
+                timeout_s=self.cfg.episode.home_timeout_s,
+                check=self.check,
+            )
+        except SupervisorError as err:  # the arm or the gripper did not follow: franka_node's log says why
+            franka = next((n for n in self.group.nodes if n.name == "franka_node"), None)
+            if franka is None:
+                raise
+            raise SupervisorError(f"{err}\nlast lines of {franka.log}:\n{franka.log_tail()}") from err

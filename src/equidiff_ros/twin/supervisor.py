@@ -72,6 +72,9 @@ from equidiff_ros.common import (
 )
 
 NS = NS_PER_S
+# what a homing error quotes of franka_node's diagnostics (control.controller.ControllerStats):
+# whether the chunks arrived, were refused, and moved the gripper
+FRANKA_COUNTS_REPORTED = ("state", "accepted_chunks", "rejected_chunks", "gripper_commands")
 
 
 class SupervisorError(RuntimeError):
@@ -105,6 +108,8 @@ class Supervisor:
         self._clock_seen = (0, time.monotonic())  # (sim ns, wall s when it last advanced)
         self.ee_pose: np.ndarray | None = None
         self.width: float | None = None
+        self._state_wall_s = 0.0  # wall time of the newest /franka/joint_states, for error messages
+        self.franka_diagnostics = ""  # franka_node's newest diagnostics, for error messages
         self.twin_state: dict | None = None
         self.scene: dict | None = None
         self.recorder_status = ""
@@ -223,6 +228,7 @@ class Supervisor:
             return
         with self.lock:
             self.width = width
+            self._state_wall_s = time.monotonic()
 
     def _on_state(self, msg):
         with self.lock:
@@ -238,6 +244,10 @@ class Supervisor:
 
     def _on_diag(self, msg):
         for entry in diagnostic_entries(msg):
+            if entry.name == "franka_node":
+                counts = ", ".join(f"{k} {entry.values.get(k, '?')}" for k in FRANKA_COUNTS_REPORTED)
+                with self.lock:
+                    self.franka_diagnostics = f"'{entry.message}' ({counts})"
             if entry.name != "policy_node":
                 continue
             try:
@@ -331,7 +341,9 @@ class Supervisor:
             f"({timeout_s / rate:.0f} s of the node's clock at {rate:.2f}x; TCP at "
             f"{np.round(now[:3, 3], 3).tolist()}, {100 * path.s:.0f} % along the path "
             f"after {path.restarts} restart(s) from the arm, "
-            f"gripper {w * 1000:.0f} mm for {width * 1000:.0f} mm)"
+            f"gripper {w * 1000:.0f} mm for {width * 1000:.0f} mm; joint states last received "
+            f"{time.monotonic() - self._state_wall_s:.1f} s ago; franka_node's diagnostics: "
+            f"{self.franka_diagnostics or 'none yet'})"
         )
 
     def reset_scene(self, seed: int, timeout_s: float = 10.0, check=None) -> dict:
