@@ -462,7 +462,7 @@ def test_latency_auto_measures_on_the_sim_clock_converges_and_bridges(ros_domain
     import rclpy
     from diagnostic_msgs.msg import DiagnosticArray
     from geometry_msgs.msg import PoseStamped
-    from rclpy.executors import MultiThreadedExecutor
+    from rclpy.executors import SingleThreadedExecutor
     from rosgraph_msgs.msg import Clock
     from sensor_msgs.msg import JointState, PointCloud2
     from std_msgs.msg import String
@@ -533,7 +533,11 @@ def test_latency_auto_measures_on_the_sim_clock_converges_and_bridges(ros_domain
         policy = PolicyNode()
         assert policy.sizing.latency.source == "auto (initial)"
         assert policy.sizing.latency.value_s == pytest.approx((16 - 1 - 1) * 0.2)  # until measured: the most it bridges
-        executor = MultiThreadedExecutor(num_threads=2)
+        # one thread, as policy_node's own process spins it (runner.run_node). A MultiThreadedExecutor
+        # here, once another rclpy context had come and gone in this process (ControlClient's, as in
+        # test_franka_sim), kept one thread polling at 100 % CPU and starved the policy of the GIL:
+        # 60-110 s for this test instead of 7 (measured 2026-11-27, the 2-core Xeon)
+        executor = SingleThreadedExecutor()
         executor.add_node(io)
         executor.add_node(policy)
         spinner = threading.Thread(target=executor.spin, daemon=True)
