@@ -337,3 +337,17 @@ def test_a_run_folder_can_name_another_benchs_run_instead_of_a_copy(tmp_path):
     assert run_policy(tmp_path / "demos" / "equidiff_40", tmp_path / "cache") == run / "policy.pt"
     assert training_fit(run)["pos_err_m"] == 0.016
     assert resolve_run(tmp_path / "generalization" / "equidiff") == tmp_path / "generalization" / "equidiff"
+
+
+def test_bench_overfit_prints_one_json_line_and_says_what_failed(tmp_path, capsys):
+    """`equidiff bench overfit`: a run too short to fit exits 3, naming each failed check on stderr,
+    after its JSON line (the trained and the untrained policy's errors, the loss)."""
+    from equidiff_ros.cli import main
+
+    assert main(["bench", "overfit", "--steps", "4", "--out", str(tmp_path)]) == 3
+    out, err = capsys.readouterr()
+    result = json.loads(out.strip().splitlines()[-1])
+    assert result["steps"] == 4 and result["passed"] is False and result["policy"] == "equidiff"
+    assert len(result["errors"]) == len(result["untrained_errors"]) == 2
+    assert "the loss fell" in err and "from their own trajectory" in err
+    assert (tmp_path / "run" / "policy.pt").is_file() and (tmp_path / "untrained.pt").is_file()

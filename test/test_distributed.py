@@ -12,7 +12,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from helpers_model import CubeDataset
 
 from equidiff_core import distributed
 from equidiff_core.batches import (
@@ -26,6 +25,7 @@ from equidiff_core.config import Workspace
 from equidiff_core.dataset import DatasetConfig, DemoDataset
 from equidiff_core.policies import make_policy
 from equidiff_core.presets import get_preset
+from equidiff_core.synthetic import CubeDataset
 from equidiff_core.training import TrainConfig, resolve_precision, train
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -31,6 +31,7 @@ COMMANDS: dict[tuple[str, ...], tuple[str, str]] = {
     ("bench", "voxelize"): ("bench_voxelize", "time voxelising 3 x 300k points against open3d"),
     ("bench", "policy"): ("bench_policy", "time the encoder, one denoising step and DDIM-16"),
     ("bench", "train"): ("bench_train", "training samples/s on the CPU and on CUDA, same run"),
+    ("bench", "overfit"): ("bench_overfit", "can a policy fit two demos? its samples against each demo's trajectory"),
     ("bench", "control"): ("bench_control", "tracking, safety and latency of the franka node on franky-sim"),
     ("bench", "generalization"): (
         "bench_generalization",

@@ -3,6 +3,7 @@ parsing plus one call into here).
 
 * ``conditioning``: does a policy look at its observation? Its features and its actions when the block moves.
 * ``equivariance``: C4 and 45 deg equivariance errors of every inference path (``check equivariance``).
+* ``overfit``: can a policy fit two synthetic demos (``bench overfit``; the suite runs a short version)?
 * ``training_runs``: ``equidiff train`` runs side by side, their recipes and the training-fit gate.
 * ``generalization``: EquiDiff against two baselines on unseen object yaw (train, gate, roll out).
 * ``chunking``: whole chunks, replace, execution horizon and real-time chunking by latency, in the twin.
