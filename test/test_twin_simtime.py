@@ -116,8 +116,11 @@ def test_sim_waits_for_cameras_and_the_policy_and_keeps_franky_alive_through_a_l
         assert sim.status()["wait_s"]["policy"] > 2.0
         assert clock[-1] == held * MS  # /clock shows the instant the sim waits at
         sim.lockstep.on_chunk(owed * MS)
-        camera.unregister()  # nothing else holds it now
+        camera.unregister()
         assert ticks_after(1.0) > held
+        # the episode ends: nothing holds the sim now (awaiting, the next frame's chunk would hold
+        # the motion below until the 60 s stall timeout let the sim go on)
+        sim.lockstep.set_awaiting(False)
         # libfranka survived the pause: state reads and a motion work
         with keep_thread_scheduler("libfranka"):
             robot.move(franky.JointMotion(list(robot.state.q)))

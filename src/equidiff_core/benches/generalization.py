@@ -78,10 +78,10 @@ def _train_all(demos_dir: Path, out: Path, args) -> dict[str, Path]:
 def run_generalization(args) -> int:
     """The whole bench for ``equidiff bench generalization``'s parsed arguments; returns its exit status."""
     if args.quick:  # no policy acts after 30 steps: the gate would stop every quick run
-        args.demos, args.train_steps, args.eval_episodes, args.preset, args.min_in_range = 4, 30, 2, "tiny", 0.0
+        args.demos, args.train_steps, args.eval_episodes, args.preset, args.min_in_range = 4, 30, 1, "tiny", 0.0
         args.max_fit_ratio = 0.0
         args.in_range_episodes = min(args.in_range_episodes, 1)
-        args.max_duration = min(args.max_duration, 10.0)
+        args.max_duration = min(args.max_duration, 6.0)  # a few chunks each: enough to test the plumbing
     if args.eval_episodes < 1 or args.in_range_episodes < 0 or not 0.0 <= args.min_in_range <= 1.0:
         print(
             "equidiff bench generalization: need --eval-episodes >= 1, --in-range-episodes >= 0 and "
