@@ -163,7 +163,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="training time budget per policy (equidiff train --max-minutes: stops and exports)",
     )
     parser.add_argument(
-        "--quick", action="store_true", help="plumbing check: 4 demos, 30 steps, tiny preset, 1 + 1 episodes of 6 s, no gate"
+        "--quick",
+        action="store_true",
+        help="plumbing check: 4 demos, 30 steps, tiny preset, 1 + 1 episodes of 6 s, no gate",
     )
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--lab-config", type=Path, default=None)
