@@ -1,9 +1,9 @@
 """Shared fixtures. Area-specific helpers live in test/helpers_*.py, not here."""
 
 import os
-import random
 
 import pytest
+from helpers_ros import private_test_domain
 
 os.environ.setdefault("MUJOCO_GL", "egl")
 
@@ -11,7 +11,7 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 @pytest.fixture
 def ros_domain(monkeypatch) -> int:
     """A private ROS_DOMAIN_ID for this test, on loopback only, inherited by spawned nodes."""
-    domain = random.Random(os.getpid() * 1000 + id(monkeypatch)).randint(1, 100)
+    domain = private_test_domain(os.getpid() * 1000 + id(monkeypatch))
     monkeypatch.setenv("ROS_DOMAIN_ID", str(domain))
     monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     return domain

@@ -1,8 +1,16 @@
 """Spawning and stopping node processes in ROS tests (inherits the test's ROS_DOMAIN_ID)."""
 
 import os
+import random
 import signal
 import subprocess
+
+
+def private_test_domain(seed: int) -> int:
+    """A ROS_DOMAIN_ID for a test's nodes, drawn from 1-100: clear of the jobs' 101-215
+    (``processes.random_domain_id``: a twin running beside the suite) and of the test stacks' 221-232.
+    Two stacks in one domain would command each other's robot."""
+    return random.Random(seed).randint(1, 100)
 
 
 def spawn_node(module: str, *params: str) -> subprocess.Popen:

@@ -7,7 +7,6 @@ the scenarios are the ones ``equidiff bench control`` measures, asserted at the 
 from __future__ import annotations
 
 import os
-import random
 import time
 
 import numpy as np
@@ -16,6 +15,8 @@ import pytest
 pytest.importorskip("franky")
 pytest.importorskip("franky_sim")
 pytest.importorskip("rclpy")
+
+from helpers_ros import private_test_domain
 
 from equidiff_core.chunk import PoseChunk
 from equidiff_core.config import default_config_dir, load_lab_config
@@ -37,7 +38,7 @@ def franka(tmp_path_factory):
     """(client, node process, lab): franky-sim + franka_node on a private ROS domain."""
     log_dir = tmp_path_factory.mktemp("franka_sim")
     mp = pytest.MonkeyPatch()
-    mp.setenv("ROS_DOMAIN_ID", str(random.Random(os.getpid()).randint(101, 200)))
+    mp.setenv("ROS_DOMAIN_ID", str(private_test_domain(os.getpid())))
     mp.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     lab = load_lab_config(LAB_PATH)
     proc = client = None

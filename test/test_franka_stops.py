@@ -21,6 +21,8 @@ pytest.importorskip("franky")
 pytest.importorskip("franky_sim")
 pytest.importorskip("rclpy")
 
+from helpers_ros import private_test_domain
+
 from equidiff_core.chunk import PoseChunk
 from equidiff_core.config import default_config_dir, load_lab_config
 from equidiff_core.control import load_control_config
@@ -80,11 +82,10 @@ class Stack:
 @pytest.fixture(scope="module")
 def stack(tmp_path_factory):
     import os
-    import random
 
     log_dir = tmp_path_factory.mktemp("franka_stops")
     mp = pytest.MonkeyPatch()
-    mp.setenv("ROS_DOMAIN_ID", str(random.Random(os.getpid() + 7).randint(101, 200)))
+    mp.setenv("ROS_DOMAIN_ID", str(private_test_domain(os.getpid() + 7)))
     mp.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     with SimServer() as sim:
         s = Stack(sim, log_dir)
