@@ -67,3 +67,39 @@ def run_job(args: list[str], timeout_s: float, env: dict, log_dir) -> subprocess
     return subprocess.CompletedProcess(
         args, proc.returncode, out_path.read_text(errors="replace"), err_path.read_text(errors="replace")
     )
+
+
+class FrozenMainThread:
+    """Freeze one process's main thread (ptrace), leaving its other threads running: a node whose
+    Python hangs while its DDS threads live on, as a real hang does.
+
+    SIGSTOP stops every thread, DDS's included, and a stopped participant stalled its peers: a
+    reader of a reliable topic from it, and every writer to that reader, blocked for as long as it
+    stayed stopped (measured with three rclpy processes, 2026-11-27; Fast DDS 2.14, over shared
+    memory and UDP alike), so the twin stalled on voxel_node or franka_node, never on the hung node.
+    The tracer must stay in the thread that froze it."""
+
+    _SEIZE, _INTERRUPT, _DETACH, _WALL = 0x4206, 0x4207, 17, 0x40000000
+
+    def __init__(self, pid: int):
+        import ctypes
+
+        self.pid = pid
+        self._libc = ctypes.CDLL(None, use_errno=True)
+        self._libc.ptrace.argtypes = [ctypes.c_long, ctypes.c_long, ctypes.c_void_p, ctypes.c_void_p]
+
+    def _ptrace(self, request: int) -> None:
+        import ctypes
+
+        if self._libc.ptrace(request, self.pid, None, None) == -1:
+            errno = ctypes.get_errno()
+            raise OSError(errno, f"ptrace({request:#x}) on {self.pid}: {os.strerror(errno)}")
+
+    def __enter__(self):
+        self._ptrace(self._SEIZE)
+        self._ptrace(self._INTERRUPT)
+        os.waitpid(self.pid, self._WALL)  # until the thread is stopped
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._ptrace(self._DETACH)

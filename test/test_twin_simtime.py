@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers_ros import FrozenMainThread
 
 from equidiff_core.twin.lockstep import NS_PER_TICK, Lockstep, LockstepConfig
 
@@ -205,7 +206,7 @@ def test_polled_clock_sleeps_until_its_time_and_stops_on_request():
 @pytest.mark.ros
 @pytest.mark.sim
 def test_a_hung_policy_ends_its_episode_as_stalled_naming_it_and_the_job_goes_on(ros_domain, tmp_path):
-    """A policy_node that stops answering (SIGSTOP: alive, silent) must not hang the sim: after
+    """A policy_node that stops answering (its main thread frozen: alive, silent) must not hang the sim: after
     the stall timeout the episode ends as stalled, naming policy_node, its bag is kept, and the
     next episode runs once the policy answers again."""
     from equidiff_core.bags import read_episode
@@ -227,16 +228,13 @@ def test_a_hung_policy_ends_its_episode_as_stalled_naming_it_and_the_job_goes_on
         log=lambda s: None,
     ) as stack:
         pid = next(n.popen.pid for n in stack.group.nodes if n.name == "policy_node")
-        os.kill(pid, signal.SIGSTOP)
-        try:
+        with FrozenMainThread(pid):  # its executor and Python hang; its DDS threads answer on
             stalled = run_policy_episode(stack, 1, 10.0)
-        finally:
-            os.kill(pid, signal.SIGCONT)
         assert stalled.stalled.startswith("t=") and "policy_node: no chunk for the observation" in stalled.stalled
         assert not stalled.success
         episode = read_episode(Path(stalled.bag))
         assert episode.meta.success is False and "stalled" in (episode.meta.notes or "")
-        # "once the policy answers again": SIGCONT'ed, it first works off what queued up while it
+        # "once the policy answers again": thawed, it first works off what queued up while it
         # was stopped; the next episode starts once it answers (its chunks arrive, gate closed)
         seen = stack.sup.policy_chunks_seen
         stack.sup.wait_for(
