@@ -73,11 +73,9 @@ class FrozenMainThread:
     """Freeze one process's main thread (ptrace), leaving its other threads running: a node whose
     Python hangs while its DDS threads live on, as a real hang does.
 
-    SIGSTOP stops every thread, DDS's included, and a stopped participant stalled its peers: a
-    reader of a reliable topic from it, and every writer to that reader, blocked for as long as it
-    stayed stopped (measured with three rclpy processes, 2026-11-27; Fast DDS 2.14, over shared
-    memory and UDP alike), so the twin stalled on voxel_node or franka_node, never on the hung node.
-    The tracer must stay in the thread that froze it."""
+    SIGSTOP stops every thread, DDS's included, and a stopped participant can stall its peers' DDS
+    traffic (docs/architecture.md, topic note 6): the twin then stalled on voxel_node or franka_node,
+    not on the hung node. The tracer must stay in the thread that froze it."""
 
     _SEIZE, _INTERRUPT, _DETACH, _WALL = 0x4206, 0x4207, 17, 0x40000000
 
