@@ -14,7 +14,9 @@ from torch.utils.data import Dataset
 from . import geometry
 from .config import Workspace
 
-__all__ = ["CubeDataset", "cube_sample"]
+__all__ = ["OPEN_WIDTH_M", "CubeDataset", "cube_sample"]
+
+OPEN_WIDTH_M = 0.08  # the gripper stays open throughout a cube demo
 
 
 def cube_sample(
@@ -37,8 +39,8 @@ def cube_sample(
     s = np.linspace(0, 1, horizon + 1)[1:, None]
     pos = p0 + s * (target - p0)
     poses = geometry.make_pose(np.repeat(R_ee[None], horizon, 0), pos)
-    action = geometry.pose_to_action(poses, np.full(horizon, 0.08))
-    ee = geometry.pose_to_action(geometry.make_pose(R_ee, p0), np.array(0.08))
+    action = geometry.pose_to_action(poses, np.full(horizon, OPEN_WIDTH_M))
+    ee = geometry.pose_to_action(geometry.make_pose(R_ee, p0), np.array(OPEN_WIDTH_M))
     return {
         "voxels": torch.from_numpy(np.repeat(vox[None], n_obs_steps, 0)),
         "ee": torch.from_numpy(np.repeat(ee[None], n_obs_steps, 0).astype(np.float32)),

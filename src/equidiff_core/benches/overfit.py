@@ -32,12 +32,10 @@ from ..machine import cpu_description
 from ..policies import make_policy
 from ..policy_file import export_policy
 from ..presets import get_preset
-from ..synthetic import CubeDataset
+from ..synthetic import OPEN_WIDTH_M, CubeDataset
 from ..training import TrainConfig, fit_normalizer, train
 
 __all__ = ["OverfitGate", "OverfitResult", "run_overfit", "sample_errors"]
-
-OPEN_WIDTH_M = 0.08  # the cube demos' gripper width throughout
 
 
 @dataclass(frozen=True)
