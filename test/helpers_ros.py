@@ -95,8 +95,12 @@ class FrozenMainThread:
 
     def __enter__(self):
         self._ptrace(self._SEIZE)
-        self._ptrace(self._INTERRUPT)
-        os.waitpid(self.pid, self._WALL)  # until the thread is stopped
+        try:
+            self._ptrace(self._INTERRUPT)
+            os.waitpid(self.pid, self._WALL)  # until the thread is stopped
+        except BaseException:
+            self._ptrace(self._DETACH)  # never leave the node traced when the freeze failed
+            raise
         return self
 
     def __exit__(self, *exc) -> None:
