@@ -474,7 +474,8 @@ def test_the_operator_screen_drives_the_nodes(ros_domain, checkpoint, tmp_path):
 
             ui.press("p")
             screen_when(lambda s: "ON" in row(s, "POLICY"), "the policy on")
-            assert policy_state[-1] == "running"
+            # the screen and this client are two subscribers of the same latched topic: either may hear it first
+            client.wait_for(lambda: policy_state[-1:] == ["running"], 10.0, "policy_node's own word: running")
             ui.press("s")
             screen = screen_when(lambda s: "RECORDING" in row(s, "RECORDER"), "an episode recording")
             episode = out / "lab_0000"
@@ -482,7 +483,9 @@ def test_the_operator_screen_drives_the_nodes(ros_domain, checkpoint, tmp_path):
 
             ui.press("t")  # the SpaceMouse takes over: the policy pauses first
             screen_when(lambda s: "PAUSED" in row(s, "POLICY") and "SpaceMouse has the arm" in s, "the takeover")
-            assert policy_state[-1] == "paused by the operator"
+            client.wait_for(
+                lambda: policy_state[-1:] == ["paused by the operator"], 10.0, "policy_node's own word: paused"
+            )
 
             def drive(axes, seconds):
                 end = time.monotonic() + seconds
