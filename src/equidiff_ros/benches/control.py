@@ -58,6 +58,18 @@ class Circle:
         a = self.speed / self.radius * max(t - self.t0, 0.0)
         return np.array([-np.sin(a), np.cos(a), 0.0])
 
+    def distance(self, points: np.ndarray) -> np.ndarray:
+        """Each point's distance (m) from the circle as a curve, wherever along it: how far off the
+        path, not how late on it (a sim starved of CPU makes the TCP late, which this ignores)."""
+        offset = np.asarray(points, dtype=float) - np.asarray(self.center)
+        return np.hypot(np.hypot(offset[:, 0], offset[:, 1]) - self.radius, offset[:, 2])
+
+    def arc_length(self, points: np.ndarray) -> float:
+        """How far (m) along the circle the points went, counter-clockwise from the first to the last."""
+        offset = np.asarray(points, dtype=float) - np.asarray(self.center)
+        angle = np.unwrap(np.arctan2(offset[:, 1], offset[:, 0]))
+        return float((angle[-1] - angle[0]) * self.radius)
+
 
 def export_untrained(preset: str, path: Path, workspace) -> Path:
     """An untrained policy of ``preset`` with the workspace's default normaliser, for timing only."""
@@ -120,6 +132,8 @@ def run_track_and_hold(
         **{f"track_{k}": v for k, v in metrics.standstill_summary(standstill, t_to - t_from).items()},
         "track_chunk_switches": len(standstill),
         "tracking_rms_mm": round(metrics.tracking_rms(times, positions, circle.position) * 1000, 2),
+        "path_rms_mm": round(float(np.sqrt(np.mean(circle.distance(positions) ** 2))) * 1000, 2),
+        "arc_travelled_mm": round(circle.arc_length(positions) * 1000, 1),
         "tracking_lag_ms": round(lag * 1000, 1),
         "tracking_rms_after_lag_mm": round(lag_rms * 1000, 2),
         "velocity_reversals": metrics.velocity_reversals(times, positions, circle.tangent),

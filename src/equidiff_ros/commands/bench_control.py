@@ -7,7 +7,9 @@ then drives the node from this process exactly as the policy would, over /franka
    0.2 s and stamped ``--obs-latency`` in the past (like a policy's observation); RMS distance
    of the measured TCP from the circle after ``--settle`` s (``tracking_rms_mm``) and how often
    the TCP ran backwards along it (``velocity_reversals``). Baseline in the same run: the
-   commanded targets (``/franka/executed_target``) against the same circle.
+   commanded targets (``/franka/executed_target``) against the same circle. Without time:
+   ``path_rms_mm``, the TCP's distance from the circle as a curve (off the path, not late on
+   it), and ``arc_travelled_mm``, how far along it went.
 2. **hold**: commands stop; the watchdog holds; largest drift over the next 2 s (``hold_drift_mm``).
 3. **workspace**: chunks that keep asking to go up and out, past the workspace box; largest distance
    of the measured TCP outside the (unshrunk) box (``max_outside_workspace_mm``).
