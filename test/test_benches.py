@@ -351,3 +351,21 @@ def test_bench_overfit_prints_one_json_line_and_says_what_failed(tmp_path, capsy
     assert len(result["errors"]) == len(result["untrained_errors"]) == 2
     assert "the loss fell" in err and "from their own trajectory" in err
     assert (tmp_path / "run" / "policy.pt").is_file() and (tmp_path / "untrained.pt").is_file()
+
+
+@pytest.mark.parametrize(
+    "bad, said",
+    [
+        (["--steps", "0"], "steps must be >= 1"),
+        (["--lr", "nan"], "lr must be positive"),
+        (["--noise-repeats", "0"], "noise_repeats must be >= 1"),
+        (["--preset", "huge"], "unknown preset 'huge'"),
+    ],
+)
+def test_bench_overfit_refuses_a_bad_setting_before_training(bad, said, tmp_path, capsys):
+    from equidiff_ros.cli import main
+
+    assert main(["bench", "overfit", *bad, "--out", str(tmp_path)]) == 2
+    out, err = capsys.readouterr()
+    assert out == "" and err.startswith("equidiff bench overfit: ") and said in err and err.count("\n") == 1  # one line
+    assert not any(tmp_path.iterdir())  # nothing was built or trained

@@ -250,6 +250,9 @@ def test_config_and_device_errors():
     assert from_dict(TrainConfig, {"steps": 5, "ema": True}).steps == 5
     with pytest.raises(ValueError, match="noise_repeats"):
         TrainConfig(noise_repeats=0)
+    for lr in (0.0, -1e-4, float("nan")):
+        with pytest.raises(ValueError, match="lr must be positive"):
+            TrainConfig(lr=lr)
     assert resolve_device("cpu").type == "cpu"
     if not torch.cuda.is_available():
         with pytest.raises(TrainingError, match="CUDA"):

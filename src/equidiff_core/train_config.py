@@ -57,6 +57,8 @@ class TrainConfig:
             raise ValueError(f"max_minutes must be positive, got {self.max_minutes}")
         if self.noise_repeats < 1:
             raise ValueError(f"noise_repeats must be >= 1, got {self.noise_repeats}")
+        if not self.lr > 0:  # NaN included
+            raise ValueError(f"lr must be positive, got {self.lr}")
         if not 0.0 < self.ema_decay < 1.0:
             raise ValueError("ema_decay must be in (0, 1)")
         if self.precision not in PRECISIONS:

@@ -99,25 +99,12 @@ def sample_errors(inference_policy, ds: CubeDataset, seeds: int = 4) -> list[dic
     return out
 
 
-def run_overfit(
-    out: Path,
-    steps: int = 1200,
-    policy: str = "equidiff",
-    preset: str = "tiny",
-    lr: float = 2e-3,
-    noise_repeats: int = 16,
-    seed: int = 0,
-) -> OverfitResult:
-    """Train ``policy`` on two cube demos for ``steps`` (batch 2 x ``noise_repeats`` draws, EMA, no
-    rotation augmentation: both demos point the gripper the same way) and measure its samples."""
-    out = Path(out)
-    ws = Workspace()
-    torch.manual_seed(seed)
-    ds = CubeDataset(2, ws, seed=seed, random_yaw=False)
-    model = make_policy(policy, get_preset(preset, rotation_aug="none"), ws)
-    model.set_normalizer(fit_normalizer(ds, ws))  # what train() fits: the untrained export needs it
-    untrained = export_policy(model, out / "untrained.pt")
-    cfg = TrainConfig(
+def overfit_train_config(steps: int, lr: float, noise_repeats: int) -> TrainConfig:
+    """The over-fit recipe: batch 2 (both demos) x ``noise_repeats`` draws, EMA, no evaluation;
+    ValueError for a setting out of range."""
+    if steps < 1:  # TrainConfig allows 0 (a resume with nothing left): here there would be no loss to read
+        raise ValueError(f"steps must be >= 1, got {steps}")
+    return TrainConfig(
         steps=steps,
         batch_size=2,
         lr=lr,
@@ -129,6 +116,28 @@ def run_overfit(
         ema=True,
         device="cpu",
     )
+
+
+def run_overfit(
+    out: Path,
+    steps: int = 1200,
+    policy: str = "equidiff",
+    preset: str = "tiny",
+    lr: float = 2e-3,
+    noise_repeats: int = 16,
+    seed: int = 0,
+) -> OverfitResult:
+    """Train ``policy`` on two cube demos for ``steps`` (batch 2 x ``noise_repeats`` draws, EMA, no
+    rotation augmentation: both demos point the gripper the same way) and measure its samples."""
+    cfg = overfit_train_config(steps, lr, noise_repeats)  # a bad setting fails here, before any work
+    preset_config = get_preset(preset, rotation_aug="none")
+    out = Path(out)
+    ws = Workspace()
+    torch.manual_seed(seed)
+    ds = CubeDataset(2, ws, seed=seed, random_yaw=False)
+    model = make_policy(policy, preset_config, ws)
+    model.set_normalizer(fit_normalizer(ds, ws))  # what train() fits: the untrained export needs it
+    untrained = export_policy(model, out / "untrained.pt")
     wall, cpu = time.monotonic(), time.process_time()
     result = train(model, ds, None, cfg, out / "run")
     wall, cpu = time.monotonic() - wall, time.process_time() - cpu
@@ -146,7 +155,14 @@ def run_overfit(
 
 
 def run_overfit_bench(args) -> int:
-    """``equidiff bench overfit``: one JSON line; exit 0 when the gate holds, else 3 (what failed on stderr)."""
+    """``equidiff bench overfit``: one JSON line; exit 0 when the gate holds, else 3 (what failed on
+    stderr); 2 for a setting out of range or an unknown preset, before anything is trained."""
+    try:
+        overfit_train_config(args.steps, args.lr, args.noise_repeats)
+        get_preset(args.preset)
+    except ValueError as err:  # ConfigError included
+        print(f"equidiff bench overfit: {err}", file=sys.stderr)
+        return 2
     with tempfile.TemporaryDirectory() as tmp:
         result = run_overfit(
             Path(args.out) if args.out else Path(tmp),
