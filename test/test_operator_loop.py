@@ -276,3 +276,15 @@ def test_without_a_terminal_the_screen_says_to_use_the_commands():
         env=dict(os.environ, OMP_NUM_THREADS="1"),
     )
     assert got.returncode == 2 and "needs a terminal" in got.stderr and "lab record" in got.stderr
+
+
+def test_a_diagnostics_entry_reads_its_numbers_and_quotes_its_counts():
+    """The one reader of /diagnostics values: numbers only when finite, text and NaN as None."""
+    values = {"inference_ms": 212.5, "state": "holding", "latency_ms": float("nan"), "accepted_chunks": 7}
+    array = rosmsg.diagnostic_array(rosbags_factory(), 0, "policy_node", "cpu", rosmsg.OK, "running", values)
+    (entry,) = rosmsg.diagnostic_entries(array)
+    assert entry.number("inference_ms") == 212.5 and entry.number("accepted_chunks") == 7.0
+    assert entry.number("state") is None and entry.number("latency_ms") is None and entry.number("absent") is None
+    assert (
+        entry.quote(("state", "accepted_chunks", "absent")) == "'running' (state holding, accepted_chunks 7, absent ?)"
+    )

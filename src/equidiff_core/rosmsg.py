@@ -23,6 +23,7 @@ from __future__ import annotations
 import array
 import functools
 import importlib
+import math
 import struct
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -303,6 +304,19 @@ class DiagnosticEntry:
     message: str
     hardware_id: str
     values: dict[str, str]
+
+    def quote(self, keys: tuple[str, ...]) -> str:
+        """The message and the values under ``keys``, for an error message: "'holding' (state holding, …)"."""
+        counts = ", ".join(f"{k} {self.values.get(k, '?')}" for k in keys)
+        return f"'{self.message}' ({counts})"
+
+    def number(self, key: str) -> float | None:
+        """The value under ``key`` as a finite float; None when absent, text ("ok") or NaN (no figure yet)."""
+        try:
+            value = float(self.values[key])
+        except (KeyError, TypeError, ValueError):
+            return None
+        return value if math.isfinite(value) else None
 
 
 def diagnostic_entries(msg: Any) -> list[DiagnosticEntry]:

@@ -404,12 +404,9 @@ class RerunLogger:
         count = 0
         for entry in diagnostic_entries(msg):
             prefix = f"{DIAGNOSTICS}/{_entity_part(entry.name or 'unnamed')}"
-            for key, text in entry.values.items():
-                try:
-                    value = float(text)
-                except (TypeError, ValueError):
-                    continue  # text values (e.g. "ok") have no time series
-                if not np.isfinite(value):
+            for key in entry.values:
+                value = entry.number(key)
+                if value is None:  # text values (e.g. "ok") and NaN have no time series
                     continue
                 entity = _DIAGNOSTIC_ENTITIES.get(key, f"{prefix}/{_entity_part(key)}")
                 self.rec.log(entity, self.rr.Scalars(value))

@@ -51,7 +51,12 @@ from equidiff_core.topics import (
     SERVICE_FRANKA_ACKNOWLEDGE,
     TOPIC_CLOCK,
     TOPIC_COMMAND_CHUNK,
+    TOPIC_DIAGNOSTICS,
+    TOPIC_EE_POSE,
+    TOPIC_JOINT_STATES,
     TOPIC_POLICY_EPISODE,
+    TOPIC_POLICY_SKIPPED,
+    TOPIC_RECORDER_COMMAND,
     TOPIC_RECORDER_STATUS,
     TOPIC_TWIN_AWAIT_POLICY,
     TOPIC_TWIN_POLICY_CHUNK,
@@ -61,15 +66,7 @@ from equidiff_core.topics import (
 )
 from equidiff_core.twin.expert import LinePath
 from equidiff_core.twin.gate import GateRecord, PolicyGate
-from equidiff_ros.common import (
-    LATCHED_QOS,
-    RELIABLE_QOS,
-    TOPIC_DIAGNOSTICS,
-    TOPIC_EE_POSE,
-    TOPIC_JOINT_STATES,
-    TOPIC_POLICY_SKIPPED,
-    TOPIC_RECORDER_COMMAND,
-)
+from equidiff_ros.common import LATCHED_QOS, RELIABLE_QOS
 
 NS = NS_PER_S
 # what a homing error quotes of franka_node's diagnostics (control.controller.ControllerStats):
@@ -108,7 +105,7 @@ class Supervisor:
         self._clock_seen = (0, time.monotonic())  # (sim ns, wall s when it last advanced)
         self.ee_pose: np.ndarray | None = None
         self.width: float | None = None
-        self._state_wall_s = 0.0  # wall time of the newest /franka/joint_states, for error messages
+        self._state_wall_s: float | None = None  # monotonic time of the newest /franka/joint_states, for errors
         self.franka_diagnostics = ""  # franka_node's newest diagnostics, for error messages
         self.twin_state: dict | None = None
         self.scene: dict | None = None
@@ -174,8 +171,9 @@ class Supervisor:
         return self.node.get_clock().now().nanoseconds
 
     def time_scale(self) -> float:
-        """Arm-speed seconds per clock second: 1 on simulated time; on real time, how fast the sim runs."""
-        return 1.0 if self.sim_time else self.sim_rate()
+        """Arm-speed seconds per clock second: 1 on simulated time; on real time, how fast the sim runs
+        against the wall clock (0.05-1): timeouts and plan clocks scale by it."""
+        return 1.0 if self.sim_time else min(1.0, max(0.05, self.twin().get("steps_per_s", 1000.0) / 1000.0))
 
     def check_clock(self) -> None:
         """Raise if simulated time has stood still for longer than any lockstep wait may last."""
@@ -244,19 +242,12 @@ class Supervisor:
 
     def _on_diag(self, msg):
         for entry in diagnostic_entries(msg):
-            if entry.name == "franka_node":
-                counts = ", ".join(f"{k} {entry.values.get(k, '?')}" for k in FRANKA_COUNTS_REPORTED)
-                with self.lock:
-                    self.franka_diagnostics = f"'{entry.message}' ({counts})"
-            if entry.name != "policy_node":
-                continue
-            try:
-                v = float(entry.values.get("inference_ms", "nan"))
-            except ValueError:
-                continue
-            if v >= 0:  # NaN compares false: no figure yet
-                with self.lock:
-                    self.gate.inference(v)
+            inference_ms = entry.number("inference_ms") if entry.name == "policy_node" else None
+            with self.lock:
+                if entry.name == "franka_node":
+                    self.franka_diagnostics = entry.quote(FRANKA_COUNTS_REPORTED)
+                elif inference_ms is not None and inference_ms >= 0:
+                    self.gate.inference(inference_ms)
 
     # -- waiting ---------------------------------------------------------------------------------
     def wait_for(self, predicate, timeout_s: float, what: str, check=None):
@@ -336,13 +327,14 @@ class Supervisor:
                     return
             time.sleep(1.0 / hz)
         now, w = self.current()
+        seen = self._state_wall_s
+        age = "none yet" if seen is None else f"{time.monotonic() - seen:.1f} s ago"
         raise SupervisorError(
             f"the arm did not reach {np.round(p1, 3).tolist()} within {timeout_s:.0f} s of sim time "
             f"({timeout_s / rate:.0f} s of the node's clock at {rate:.2f}x; TCP at "
             f"{np.round(now[:3, 3], 3).tolist()}, {100 * path.s:.0f} % along the path "
             f"after {path.restarts} restart(s) from the arm, "
-            f"gripper {w * 1000:.0f} mm for {width * 1000:.0f} mm; joint states last received "
-            f"{time.monotonic() - self._state_wall_s:.1f} s ago; franka_node's diagnostics: "
+            f"gripper {w * 1000:.0f} mm for {width * 1000:.0f} mm; joint states: {age}; franka_node's diagnostics: "
             f"{self.franka_diagnostics or 'none yet'})"
         )
 
@@ -354,10 +346,6 @@ class Supervisor:
             f"{TOPIC_TWIN_SCENE} for seed {seed}",
             check,
         )
-
-    def sim_rate(self) -> float:
-        """How fast the twin runs against the wall clock (0.05-1): timeouts and plan clocks scale by it."""
-        return min(1.0, max(0.05, self.twin().get("steps_per_s", 1000.0) / 1000.0))
 
     def twin(self) -> dict:
         with self.lock:
