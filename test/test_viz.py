@@ -517,7 +517,6 @@ def test_training_callback_with_the_real_trainer(tmp_path):
     from equidiff_core.presets import get_preset
     from equidiff_core.viz.training import RerunTrainingCallback
 
-    torch.set_num_threads(1)
     preset = get_preset("tiny")
     policy = make_policy("baseline", preset, LAB.workspace)
     rng = np.random.default_rng(0)
