@@ -1,11 +1,12 @@
 """Shared fixtures. Area-specific helpers live in test/helpers_*.py, not here."""
 
 import os
-import time
 
 import pytest
 import torch
 from helpers_ros import private_test_domain
+
+from equidiff_core.machine import idle_cores
 
 os.environ.setdefault("MUJOCO_GL", "egl")
 
@@ -30,26 +31,12 @@ def _runner_stays_time_shared():
         assert os.sched_getscheduler(0) == before, "this test left the test runner's thread real-time"
 
 
-def idle_cores(samples: int = 10, interval_s: float = 0.002) -> int:
-    """Cores no other task is running on right now: the cores less the mean count of runnable tasks
-    besides this one (/proc/loadavg's fourth field, sampled ``samples`` times); the core count where
-    /proc is missing."""
-    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
-    try:
-        runnable = []
-        for _ in range(samples):
-            with open("/proc/loadavg") as f:
-                runnable.append(int(f.read().split()[3].split("/")[0]) - 1)  # less this process
-            time.sleep(interval_s)
-    except (OSError, ValueError, IndexError):
-        return cores
-    return cores - int(sum(runnable) / len(runnable) + 0.5)
-
-
 @pytest.fixture(autouse=True)
-def _torch_threads_on_idle_cores():
-    """In-process torch gets one thread per idle core, at least one. Its OpenMP threads spin while
-    they wait for each other, so on a busy machine two threads on two cores ran a test 2.6x slower
-    than one (`check equivariance` beside a running twin: 84 s against 32 s), while on a quiet
-    machine two were 1.5x faster than one (the two-demo over-fit: 64 s against 97 s)."""
-    torch.set_num_threads(max(1, idle_cores()))
+def _torch_threads_on_idle_cores(monkeypatch):
+    """Each test gets torch threads for the cores idle when it starts, as each `equidiff` command
+    does (equidiff_core.machine.default_threads_to_idle_cores): in process, and through
+    OMP_NUM_THREADS in the commands and nodes it starts. The suite runs for many minutes and the load
+    beside it changes, so the choice is made again for every test, not once."""
+    threads = idle_cores()
+    torch.set_num_threads(threads)
+    monkeypatch.setenv("OMP_NUM_THREADS", str(threads))

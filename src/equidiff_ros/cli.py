@@ -14,6 +14,8 @@ import os
 import signal
 import sys
 
+from equidiff_core.machine import default_threads_to_idle_cores
+
 # (command path) -> (module, one-line help)
 COMMANDS: dict[tuple[str, ...], tuple[str, str]] = {
     ("train",): ("train", "train EquiDiff or the baseline from recorded bags"),
@@ -121,6 +123,7 @@ def main(argv: list[str] | None = None) -> int:
     # The twin's cameras render headless (EGL); MuJoCo reads this once, when first imported, and
     # some commands import it before the cameras' module could set it (calibrate check --twin).
     os.environ.setdefault("MUJOCO_GL", "egl")
+    default_threads_to_idle_cores()  # before any command imports torch
     args = build_parser(argv).parse_args(argv)
     if getattr(args, "_missing", False):
         print(f"equidiff: '{' '.join(argv[:2])}' is not available in this build", file=sys.stderr)

@@ -105,7 +105,7 @@ class Supervisor:
         self._clock_seen = (0, time.monotonic())  # (sim ns, wall s when it last advanced)
         self.ee_pose: np.ndarray | None = None
         self.width: float | None = None
-        self._state_wall_s: float | None = None  # monotonic time of the newest /franka/joint_states, for errors
+        self._last_state_monotonic_s: float | None = None  # when the newest /franka/joint_states came, for errors
         self.franka_diagnostics = ""  # franka_node's newest diagnostics, for error messages
         self.twin_state: dict | None = None
         self.scene: dict | None = None
@@ -226,7 +226,7 @@ class Supervisor:
             return
         with self.lock:
             self.width = width
-            self._state_wall_s = time.monotonic()
+            self._last_state_monotonic_s = time.monotonic()
 
     def _on_state(self, msg):
         with self.lock:
@@ -327,7 +327,7 @@ class Supervisor:
                     return
             time.sleep(1.0 / hz)
         now, w = self.current()
-        seen = self._state_wall_s
+        seen = self._last_state_monotonic_s
         age = "none yet" if seen is None else f"{time.monotonic() - seen:.1f} s ago"
         raise SupervisorError(
             f"the arm did not reach {np.round(p1, 3).tolist()} within {timeout_s:.0f} s of sim time "
