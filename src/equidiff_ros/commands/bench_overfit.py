@@ -1,7 +1,7 @@
 """`equidiff bench overfit`: can a policy fit two demonstrations? Training and conditioning, checked.
 
     equidiff bench overfit                          # EquiDiff, tiny preset, 1200 steps (~2 min on 2 cores)
-    equidiff bench overfit --policy baseline --steps 2400
+    equidiff bench overfit --policy baseline        # 4800 steps: the baseline starts to read its voxels later
 
 Two synthetic cube demos, trained on for ``--steps``; DDIM-16 samples for each demo's observation
 must land within 1.5 cm of its own trajectory, 3x closer than to the other demo's, the width within
@@ -14,13 +14,20 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from equidiff_core.benches.overfit import run_overfit_bench
+from equidiff_core.benches.overfit import STEPS, run_overfit_bench
 
 
 def add_arguments(parser) -> None:
     parser.add_argument("--policy", default="equidiff", choices=["equidiff", "baseline"])
     parser.add_argument("--preset", default="tiny", help="paper | compact | tiny")
-    parser.add_argument("--steps", type=int, default=1200, help="optimiser steps (batch 2 x --noise-repeats draws)")
+    parser.add_argument(
+        "--steps",
+        type=int,
+        default=None,
+        help="optimiser steps (batch 2 x --noise-repeats draws; default the policy's own: "
+        + ", ".join(f"{policy} {steps}" for policy, steps in STEPS.items())
+        + ")",
+    )
     parser.add_argument("--lr", type=float, default=2e-3)
     parser.add_argument("--noise-repeats", type=int, default=16, help="(noise, step) draws per encoder pass")
     parser.add_argument("--seed", type=int, default=0, help="the demos, the weights and the training's noise")
