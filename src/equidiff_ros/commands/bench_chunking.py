@@ -55,7 +55,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         type=int,
         default=1,
         help="torch intra-op threads (default 1, policy_node's torch_threads: on a shared CPU more "
-        "threads spin against each other; 0: torch's default)",
+        "threads spin against each other; 0: one per core idle at the start, as every equidiff command)",
     )
     parser.add_argument("--lab-config", type=Path, default=None)
     parser.add_argument("--twin-config", type=Path, default=None)

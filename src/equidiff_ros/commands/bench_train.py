@@ -47,7 +47,12 @@ def add_arguments(parser) -> None:
         help="comma-separated PRECISION[:DATA] settings measured on each device, e.g. bf16,fp32,bf16:loader "
         "(PRECISION auto | fp32 | bf16, DATA auto | device | loader); default: --cpu-precision on the CPU, auto on CUDA",
     )
-    parser.add_argument("--threads", type=int, default=0, help="torch intra-op threads on the CPU (0: torch default)")
+    parser.add_argument(
+        "--threads",
+        type=int,
+        default=0,
+        help="torch intra-op threads on the CPU (0: one per core idle at the start, as every equidiff command)",
+    )
     parser.add_argument(
         "--rotation-aug",
         default=None,
