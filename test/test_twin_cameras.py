@@ -156,6 +156,23 @@ def test_bad_options_missing_twin_and_nan_state_are_clear_errors():
 
 
 @pytest.mark.sim
+def test_a_stalled_camera_times_out_like_a_stalled_usb_link_and_comes_back(tmp_path):
+    """The safety bench's camera fault: while the flag exists, reads wait out their timeout and fail
+    as a RealSense's do; once it is gone, frames come again."""
+    cam, flag = LAB.cameras[0], tmp_path / "stall"
+    qpos, _ = _state(1)
+    with TwinCamera(cam, state_source=lambda t: (qpos, 1.0, 42), paced=False, stall_flag=str(flag)) as c:
+        assert len(c.read().points) > 0
+        flag.touch()
+        t0 = time.monotonic()
+        with pytest.raises(CameraError, match="no frame within 0.2 s"):
+            c.read(timeout_s=0.2)
+        assert time.monotonic() - t0 >= 0.2
+        flag.unlink()
+        assert len(c.read().points) > 0
+
+
+@pytest.mark.sim
 def test_reads_the_twin_state_from_shared_memory_and_paces_to_publish_hz():
     qpos, _poses = _state(8)
     name = f"equidiff_twin_camtest_{time.time_ns()}"

@@ -35,7 +35,7 @@ for what "survived" means for it:
 * ``camera_stall``: the twin's cameras (three camera_nodes, backend twin, rendering the sim's
   own state) -> voxel_node -> policy_node (``--policy``: ``shipped``, the twin's trained
   checkpoint, the default; or ``standin``, an untrained tiny one that starts in seconds) drive
-  the arm; one camera_node is frozen (SIGSTOP) for 5 s, so voxel_node's sets stop.
+  the arm; one camera stalls for 5 s (its reads time out), so voxel_node's sets stop.
   ``policy_chunks_accepted`` says how many of the policy's chunks franka_node executed.
   Survived: no chunk answers an observation taken during the stall, the arm held, chunks again
   once the camera is back.

@@ -1,12 +1,11 @@
 """The faults around franka_node (``equidiff bench safety``): the twin's cameras -> voxel_node ->
-policy_node driving the arm, with a camera frozen and the policy killed; recorder_node killed
+policy_node driving the arm, with a camera stalled and the policy killed; recorder_node killed
 mid-episode (the episode readable after repair); and franky-sim's gripper jammed while the arm moves.
 """
 
 from __future__ import annotations
 
 import json
-import os
 import signal
 import time
 from dataclasses import dataclass, field
@@ -19,7 +18,7 @@ from equidiff_core.benches.safety.campaign import Campaign, franka_log, start_ep
 from equidiff_core.rosmsg import gripper_width_from_joint_state
 from equidiff_core.twin.processes import start_node, stop_process
 
-STALL_S = 5.0  # how long camera_stall freezes a camera_node
+STALL_S = 5.0  # how long camera_stall stalls a camera
 
 
 @dataclass
@@ -42,12 +41,12 @@ class CameraPipeline:
                     "lab_config": lab_path,
                     "backend": "twin",
                     "camera": cam.name,
-                    "backend_options": json.dumps({"shm_name": c.shm}),
+                    "backend_options": json.dumps({"shm_name": c.shm, "stall_flag": str(self.stall_flag(cam.name))}),
                 },
                 c.tmp / f"camera_{cam.name}.log",
             )
         # the twin supervisor's lenient matching on real time (its cameras share 2 loaded cores)
-        # lenient on a loaded machine (clouds came 2-5 s apart at load 20); a frozen camera still
+        # lenient on a loaded machine (clouds came 2-5 s apart at load 20); a stalled camera still
         # stops the sets: its newest cloud is then never within slop_s of the others'
         self.voxel = start_node(
             "voxel_node", {"lab_config": lab_path, "slop_s": 0.15, "stale_after_s": 10.0}, c.tmp / "voxel_node.log"
@@ -71,6 +70,10 @@ class CameraPipeline:
         n0 = len(c.client.data.chunks)
         c.client.wait_for(lambda: len(c.client.data.chunks) > n0, 600.0, "policy_node's first chunk", self.policy)
 
+    def stall_flag(self, camera: str) -> Path:
+        """While this file exists, ``camera`` delivers no frames (the twin backend's ``stall_flag``)."""
+        return self.c.tmp / f"stall_{camera}"
+
     def chunks_observed_after(self, t0: float) -> int:
         """Chunks answering an observation (their stamp) later than ``t0``."""
         return sum(stamp > t0 for _, stamp in list(self.c.client.data.chunks))
@@ -81,22 +84,25 @@ class CameraPipeline:
 
     def stop(self) -> None:
         for proc in [self.policy, self.voxel, *self.cameras.values()]:
-            if proc is not None and proc.poll() is None:
-                os.kill(proc.pid, signal.SIGCONT)  # a frozen one must be able to exit
             stop_process(proc)
 
 
 def fault_camera_stall(c: Campaign, pipe: CameraPipeline) -> dict:
     time.sleep(5.0)  # the policy acting for a while first
     accepted = c.diag("accepted_chunks") - pipe.accepted_before
-    name, camera = next(iter(pipe.cameras.items()))
-    os.kill(camera.pid, signal.SIGSTOP)  # the camera freezes: no more clouds from it
-    t_stall = time.time() + 0.3  # a cloud already sent may still complete one set
+    name = next(iter(pipe.cameras))
+    # The camera's reads time out, as over a stalled USB link, while its node and DDS live on: a
+    # SIGSTOPped node would stall its peers' DDS traffic too (docs/architecture.md, topic note 6).
+    flag = pipe.stall_flag(name)
+    flag.touch()
+    # a frame whose read began just before is stamped at most one period (5 Hz) later and may
+    # still complete one set
+    t_stall = time.time() + 0.3
     try:
         time.sleep(STALL_S)
     finally:
         t_end = time.time()
-        os.kill(camera.pid, signal.SIGCONT)
+        flag.unlink()
     held = c.moved_m(t_end - 1.0, t_end)  # the last chunk's plan has run out by then: the watchdog holds
     try:
         c.client.wait_for(lambda: pipe.chunks_observed_after(t_end) > 0, 60.0, "policy chunks again", pipe.policy)

@@ -6,6 +6,7 @@ own, and following the chunks again after the acknowledgement.
 
 from __future__ import annotations
 
+import contextlib
 import signal
 import threading
 import time
@@ -43,8 +44,16 @@ def held_until_acknowledged(
             status = c.status.wait(lambda s: s.get("state") == "awaiting_ack", 15.0, "the held state", c.franka)
         except (TimeoutError, RuntimeError) as err:
             return {"survived": False, "error": str(err), "status": c.status.latest}
-        out["reason"] = status["reason"][:120]
         out["held_after_s"] = round(time.time() - t_fault, 2)
+        if pressed:  # franka_node names the pressed stop once it has polled the robot's mode (a few Hz)
+            with contextlib.suppress(TimeoutError, RuntimeError):
+                status = c.status.wait(
+                    lambda s: s.get("state") == "awaiting_ack" and "still pressed" in s.get("reason", ""),
+                    5.0,
+                    "the held state naming the pressed user stop",
+                    c.franka,
+                )
+        out["reason"] = status["reason"][:120]
         time.sleep(max(0.0, t_fault + after_fault_s - time.time()))  # e.g. until a dropped link answers again
         time.sleep(0.5)  # the arm brakes
         c.client.wait_for(  # the 1 Hz diagnostics have caught up with the stop: a baseline for the count

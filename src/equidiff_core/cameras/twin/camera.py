@@ -181,6 +181,9 @@ class TwinCamera(Camera):
     def read(self, timeout_s: float = 1.0) -> CloudFrame:
         if not self._connected:
             raise CameraError(f"twin camera {self.camera.name} is not connected")
+        if self.options.stall_flag and os.path.exists(self.options.stall_flag):
+            time.sleep(timeout_s)
+            raise CameraError(f"twin camera {self.camera.name}: no frame within {timeout_s} s (stalled)")
         if self.options.lockstep:
             qpos, stamp_ns = self._take_frame(timeout_s)
         else:

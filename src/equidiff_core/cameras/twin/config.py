@@ -18,3 +18,6 @@ class TwinCameraOptions:
     paced: bool = True  # read() waits for the next 1/publish_hz wall-clock tick, as a camera waits for frames
     lockstep: bool = False  # simulated time: read() takes the frames the sim requests (overrides paced)
     slot: int = 0  # lockstep: this camera's registration slot in the shared state (its index in lab.yaml)
+    # while a file at this path exists, read() delivers no frame and times out, as a RealSense whose
+    # USB link stalled does: the safety bench's camera fault, through camera_node's own error path
+    stall_flag: str | None = None
