@@ -105,6 +105,11 @@ def sample_errors(inference_policy, ds: CubeDataset, seeds: int = 4) -> list[dic
     return out
 
 
+def policy_steps(policy: str, steps: int | None) -> int:
+    """``steps``, or the policy's own (``STEPS``) where it is None."""
+    return STEPS[policy] if steps is None else steps
+
+
 def overfit_train_config(steps: int, lr: float, noise_repeats: int) -> TrainConfig:
     """The over-fit recipe: batch 2 (both demos) x ``noise_repeats`` draws, EMA, no evaluation;
     ValueError for a setting out of range."""
@@ -136,9 +141,8 @@ def run_overfit(
     """Train ``policy`` on two cube demos for ``steps`` (None: the policy's own, ``STEPS``; batch 2 x
     ``noise_repeats`` draws, EMA, no rotation augmentation: both demos point the gripper the same
     way) and measure its samples."""
-    cfg = overfit_train_config(
-        STEPS[policy] if steps is None else steps, lr, noise_repeats
-    )  # a bad setting fails here, before any work
+    # a bad setting fails here, before any work
+    cfg = overfit_train_config(policy_steps(policy, steps), lr, noise_repeats)
     preset_config = get_preset(preset, rotation_aug="none")
     out = Path(out)
     ws = Workspace()
@@ -167,7 +171,7 @@ def run_overfit_bench(args) -> int:
     """``equidiff bench overfit``: one JSON line; exit 0 when the gate holds, else 3 (what failed on
     stderr); 2 for a setting out of range or an unknown preset, before anything is trained."""
     try:
-        overfit_train_config(STEPS[args.policy] if args.steps is None else args.steps, args.lr, args.noise_repeats)
+        overfit_train_config(policy_steps(args.policy, args.steps), args.lr, args.noise_repeats)
         get_preset(args.preset)
     except ValueError as err:  # ConfigError included
         print(f"equidiff bench overfit: {err}", file=sys.stderr)
