@@ -66,11 +66,11 @@ def idle_cores(samples: int = 10, interval_s: float = 0.002) -> int:
 def default_threads_to_idle_cores(environ=os.environ) -> int | None:
     """Set ``OMP_NUM_THREADS`` to the idle cores, unless the user set it; call before torch is imported.
 
-    torch starts one OpenMP thread per core, and those threads spin while they wait for each other.
-    On a machine that is busy with something else (a running twin) two threads on two cores then ran
-    `check equivariance` 2.6x slower than one thread; on a quiet machine two were 1.5x faster. The
-    choice is made once, at start: a job that starts on a quiet machine keeps all its cores. Returns
-    the count set, or None where the user's value stands.
+    torch starts one OpenMP thread per core, and those threads spin while they wait for each other:
+    on a machine busy with something else (a running twin) they fight it for the same cores, and a
+    thread per idle core is faster; on a quiet machine all cores are (measured in docs/model.md,
+    "CPU threads"). The choice is made once, at start: a job that starts on a quiet machine keeps
+    all its cores. Returns the count set, or None where the user's value stands.
     """
     if environ.get("OMP_NUM_THREADS"):
         return None
