@@ -45,7 +45,7 @@ def held_until_acknowledged(
         except (TimeoutError, RuntimeError) as err:
             return {"survived": False, "error": str(err), "status": c.status.latest}
         out["held_after_s"] = round(time.time() - t_fault, 2)
-        if pressed:  # franka_node names the pressed stop once it has polled the robot's mode (a few Hz)
+        if pressed:  # franka_node names the pressed stop once it has polled the robot's mode (stops.STOPPED_POLL_HZ)
             with contextlib.suppress(TimeoutError, RuntimeError):
                 status = c.status.wait(
                     lambda s: s.get("state") == "awaiting_ack" and "still pressed" in s.get("reason", ""),
