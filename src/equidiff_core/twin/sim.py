@@ -456,7 +456,7 @@ def main(argv: list[str] | None = None) -> None:
         print(f"READY {sim.host} {sim.shm_name} {sim.model.nq}", flush=True)
         start = time.perf_counter()
         while not stop.wait(1.0):  # as the bare server: SimServer.realtime_factor reads these
-            print(f"STATS {sim.stats.steps} {time.perf_counter() - start:.3f}", flush=True)
+            print(f"STATS {sim.stats.steps} {time.perf_counter() - start:.3f} {sim.stats.missed_commands}", flush=True)
 
 
 if __name__ == "__main__":

@@ -148,13 +148,16 @@ def run_campaign(
                 if name == "recorder_sigkill" and c.episodes and c.recorder is not None:
                     stop_episode(c)  # keep the first episode; the kill takes the next one
                 log(f"fault: {name}")
-                t_fault = time.time()
+                t_fault, missed = time.time(), sim.missed_commands()
                 fn = FAULT_RUNS[name]
                 try:
                     per_fault[name] = fn(c, pipe) if name in POLICY_FAULTS else fn(c)
                 except Exception as err:  # noqa: BLE001 - a fault that breaks the campaign is not survived
                     per_fault[name] = {"survived": False, "error": f"{type(err).__name__}: {err}"}
                 c.note_excursion(t_fault)
+                if missed is not None and sim.missed_commands() is not None:
+                    # a starved franka_node: the sim ran physics on its last torque (a delayed loop)
+                    per_fault[name]["sim_missed_commands"] = sim.missed_commands() - missed
                 if not c.alive():
                     log("franka_node died: restarting it for the remaining faults")
                     start_franka(c)
@@ -178,6 +181,7 @@ def run_campaign(
             stop_process(c.recorder)
             result["franka_node_exit_code"] = stop_process(c.franka)
             result["sim_realtime_factor"] = sim.realtime_factor()
+            result["sim_missed_commands"] = sim.missed_commands()
     result.update(campaign_summary(c, per_fault, still_mm, control.safety.wall_deceleration_m_s2, wall0))
     return result
 

@@ -46,15 +46,15 @@ def serve(host: str, realtime: bool = True) -> None:
             faults = SimFaults(server, host, log=lambda m: print(m, flush=True))
             print(f"READY {host}", flush=True)
             deadline = start = time.perf_counter()
-            steps, next_report = 0, start + 1.0
+            steps, missed, next_report = 0, 0, start + 1.0
             try:
                 while not stop:
-                    step_server(server, faults=faults)
+                    missed += step_server(server, faults=faults)
                     deadline += 0.001
                     steps += 1
                     now = time.perf_counter()
                     if now >= next_report:  # lets the parent report how close to real time the sim ran
-                        print(f"STATS {steps} {now - start:.3f}", flush=True)
+                        print(f"STATS {steps} {now - start:.3f} {missed}", flush=True)
                         next_report += 1.0
                     delay = deadline - now
                     if delay > 0:
@@ -181,7 +181,8 @@ class SimServer:
         self.module, self.args = module, tuple(args)
         self.process: subprocess.Popen | None = None
         self.ready: list[str] = []  # the words after READY <host>
-        self.stats: list[tuple[float, int, float]] = []  # (monotonic, steps, server wall s), once a second
+        # (monotonic, steps, server wall s, ticks that reused a late client's command), once a second
+        self.stats: list[tuple[float, int, float, int]] = []
 
     def start(self) -> SimServer:
         _check_port_free(self.host)
@@ -213,8 +214,8 @@ class SimServer:
     def _read_stats(self, stream) -> None:
         for line in stream:
             if line.startswith("STATS"):
-                _, steps, wall = line.split()
-                self.stats.append((time.monotonic(), int(steps), float(wall)))
+                _, steps, wall, missed = line.split()
+                self.stats.append((time.monotonic(), int(steps), float(wall), int(missed)))
 
     def inject(self, fault: str, seconds: float | None = None) -> str:
         """Inject ``fault`` into the running server (``robots.franky.faults``); its status once applied."""
@@ -231,8 +232,13 @@ class SimServer:
         rows = [r for r in self.stats if since is None or r[0] >= since]
         if len(rows) < 2:
             return None
-        (_, s0, w0), (_, s1, w1) = rows[0], rows[-1]
+        (_, s0, w0, _), (_, s1, w1, _) = rows[0], rows[-1]
         return (s1 - s0) / 1000.0 / (w1 - w0)
+
+    def missed_commands(self) -> int | None:
+        """Ticks so far that reused the client's last command (it was starved past the sim's wait):
+        each is a tick of a delayed torque loop, which an FR3 would have stopped with a reflex."""
+        return self.stats[-1][3] if self.stats else None
 
     def stop(self) -> None:
         if self.process is None:
