@@ -2,6 +2,7 @@
 and `bench train --variants`."""
 
 import contextlib
+import dataclasses
 import json
 import subprocess
 import sys
@@ -168,6 +169,12 @@ def test_recipe_resumes_an_interrupted_run(tmp_path):
     ):
         assert part in text
     assert "--resume" not in cmd
+    assert "--lr 0.0005" in text and "--lr 0.001" in " ".join(
+        dataclasses.replace(recipe, baseline_lr=1e-3).train_command("baseline", "none", bags, tmp_path / "run")
+    )
+    assert "--lr 0.0005" in " ".join(
+        dataclasses.replace(recipe, baseline_lr=1e-3).train_command("equidiff", "none", bags, tmp_path / "run")
+    )
     (tmp_path / "run").mkdir()
     (tmp_path / "run" / "last.ckpt").write_bytes(b"")
     assert cmd + ["--resume"] == recipe.train_command("baseline", "none", bags, tmp_path / "run")

@@ -625,6 +625,15 @@ def test_the_bench_names_the_recipe_settings_its_policies_were_trained_with_diff
         "lr: equidiff 0.0005, baseline 0.0005, baseline_aug 0.0001",
         "noise_repeats: equidiff None, baseline 4, baseline_aug None",
     ]
+    # each policy at the learning rate the bench names for it (the baselines' own): checked one by one
+    lrs = {"equidiff": 5e-4, "baseline": 1e-3, "baseline_aug": 1e-3}
+    assert recipe_differences(recipes, lrs) == [
+        "lr: baseline 0.0005 where the bench asks for 0.001, baseline_aug 0.0001 where the bench asks for 0.001"
+    ]
+    fitting = {**recipes, "baseline": {**base, "lr": 1e-3}, "baseline_aug": {**base, "lr": 1e-3}}
+    assert recipe_differences(fitting, lrs) == [] and recipe_differences(fitting) == [
+        "lr: equidiff 0.0005, baseline 0.001, baseline_aug 0.001"
+    ]
 
 
 @pytest.mark.slow
@@ -649,7 +658,8 @@ def test_bench_generalization_trains_in_parts_and_rolls_out_once_all_three_share
         out.mkdir(parents=True, exist_ok=True)
         export_tiny_baseline(out / "policy.pt")
         (out / "history.json").write_text(json.dumps([{"step": steps, "loss": 0.1}]))
-        recipe = {"preset": "tiny", "batch_size": args.batch_size, "lr": args.lr, "ema": args.ema}
+        lr = bench.Recipe.from_args(args).lr_of(bench._recipe(name, args)[0])  # as the real command's --lr
+        recipe = {"preset": "tiny", "batch_size": args.batch_size, "lr": lr, "ema": args.ema}
         (out / "run.json").write_text(json.dumps({"recipe": {**recipe, "rotation_aug": bench._recipe(name, args)[1]}}))
         return subprocess.Popen([sys.executable, "-c", "pass"])
 
@@ -664,18 +674,21 @@ def test_bench_generalization_trains_in_parts_and_rolls_out_once_all_three_share
     assert started == ["equidiff"] and first["trained"] == ["equidiff"]
     assert first["pending"] == ["baseline", "baseline_aug"] and "--policies baseline baseline_aug" in first["next"]
 
-    # a second session trains the other two with another learning rate: refused, nothing rolled out
+    # a second session trains the other two with another batch size: refused, nothing rolled out
+    assert main([*argv, "--policies", "baseline", "baseline_aug", "--batch-size", "4"]) == 2
+    captured = capsys.readouterr()
+    assert "not trained with the same recipe (batch_size: equidiff 8, baseline 4, baseline_aug 4)" in captured.err
+    assert "[eval]" not in captured.out
+    # ... or called with another learning rate than the one EquiDiff was trained at: refused too
     assert main([*argv, "--policies", "baseline", "baseline_aug", "--lr", "1e-4"]) == 2
     captured = capsys.readouterr()
-    assert "not trained with the same recipe (lr: equidiff 0.0005, baseline 0.0001, baseline_aug 0.0001)" in (
-        captured.err
-    )
+    assert "(lr: equidiff 0.0005 where the bench asks for 0.0001)" in captured.err
     assert "[eval]" not in captured.out
 
     # the same recipe: all three are rolled out (in range first; untrained, they fail the gate)
     assert main([*argv, "--policies", "baseline", "baseline_aug"]) == 3
     result = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
-    assert started == ["equidiff", "baseline", "baseline_aug", "baseline", "baseline_aug"]
+    assert started == ["equidiff", *["baseline", "baseline_aug"] * 3]
     assert result["failed_in_range"] == ["equidiff", "baseline", "baseline_aug"]
     assert result["train_steps_by_policy"] == {"equidiff": 5, "baseline": 5, "baseline_aug": 5}
     assert result["training_recipes"]["baseline_aug"]["rotation_aug"] == "continuous"

@@ -104,18 +104,22 @@ def evaluate_runs(
     latency_s: float,
     max_fit_ratio: float,
     device: str = "cpu",
+    lr_by_policy: dict[str, float] | None = None,
     log=print,
 ) -> dict:
     """Roll out every run ``runs_dir/<policy>_<count>/policy.pt`` (or its committed ``weights.ckpt``,
     ``training_runs.run_policy``) on the same ``episodes`` in-range scenes and
-    return the bench's result (see the module doc); ValueError when the runs' recipes differ.
+    return the bench's result (see the module doc); ValueError when the runs' recipes differ (with
+    ``lr_by_policy``, when a run's peak learning rate is not its policy's).
 
     Roll-outs are saved in ``out/<run>/rollouts.json`` and reused by a later call with the same scenes,
     settings and policy file."""
     names = [run_name(p, n) for p in POLICIES for n in counts]
     run_dirs = {name: resolve_run(runs_dir / name) for name in names}
     recipes = {name: training_recipe(run_dirs[name]) for name in names}
-    differences = recipe_differences(recipes)
+    differences = recipe_differences(
+        recipes, None if lr_by_policy is None else {run_name(p, n): lr_by_policy[p] for p in POLICIES for n in counts}
+    )
     if differences:
         raise ValueError(
             "the runs were not trained with the same recipe (" + "; ".join(differences) + "): retrain the odd ones out"
@@ -164,9 +168,10 @@ def evaluate_runs(
             rec.close()
     table = success_table({name: s["success"] for name, s in summaries.items()}, counts)
     recipe = recipes[names[0]] or {}
+    lrs = {p: (recipes[run_name(p, counts[0])] or {}).get("lr") for p in POLICIES}
     note = ", ".join(
         f"{k} {recipe[k]}" for k in ("preset", "schedule_steps", "batch_size", "noise_repeats", "lr") if k in recipe
-    )
+    ) + (f" (baseline {lrs['baseline']})" if lrs["baseline"] not in (None, recipe.get("lr")) else "")
     plot = plot_success(table, episodes, out / "success_vs_demos.png", note)
     return {
         "bench": "demos",
@@ -182,6 +187,7 @@ def evaluate_runs(
         "max_fit_ratio": max_fit_ratio,
         "train_steps": {name: trained_steps(run_dirs[name]) for name in names},
         "recipe": recipe,
+        "lr_by_policy": lrs,
         "max_duration_s": max_duration_s,
         "latency_budget_ms": round(latency_s * 1000, 1),
         "device": device,
@@ -280,6 +286,7 @@ def run_demos_bench(args) -> int:
             args.latency_ms / 1000,
             args.max_fit_ratio,
             args.device,
+            lr_by_policy={p: Recipe.from_args(args).lr_of(p) for p in POLICIES},
             log=lambda s: print(s, flush=True),
         )
     except ValueError as err:  # the runs' recipes differ

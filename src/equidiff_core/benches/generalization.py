@@ -246,7 +246,8 @@ def _evaluate(
     gate (the JSON line says which)."""
     run_dirs = run_dirs or {name: path.parent for name, path in policies.items()}
     recipes = {name: training_recipe(run_dirs[name]) for name in policies}
-    differences = recipe_differences(recipes)
+    recipe = Recipe.from_args(args)
+    differences = recipe_differences(recipes, {name: recipe.lr_of(_recipe(name, args)[0]) for name in policies})
     if differences:
         print(
             "equidiff bench generalization: the policies were not trained with the same recipe ("

@@ -1,10 +1,11 @@
 """``equidiff train`` runs for the benches: one recipe for every policy, runs side by side, what they
 recorded (steps, recipe, fit of the training samples) and the two checks made before any roll-out.
 
-Every policy of a bench trains with the same recipe (``Recipe``: preset, steps, batch, lr, warm-up,
-seed, noise draws, EMA); only rotation augmentation (by design) and how fast it ran (device, data
-path, time budget) may differ, and ``recipe_differences`` names any other difference from the
-run.json files ``equidiff train`` writes. ``training_fit`` reads the DDIM action error on the training
+Every policy of a bench trains with the same recipe (``Recipe``: preset, steps, batch, warm-up, seed,
+noise draws, EMA); only rotation augmentation (by design), the baseline's own peak learning rate
+(each network at the rate it fits its demos with at this budget: docs/model.md) and how fast it ran
+(device, data path, time budget) may differ, and ``recipe_differences`` names any other difference
+from the run.json files ``equidiff train`` writes. ``training_fit`` reads the DDIM action error on the training
 samples that ``equidiff train --val-fraction 0`` records at its end; ``under_fit`` names the policies
 whose error exceeds ``max_ratio`` times the reference policy's: such a policy has not learned its own
 demos, so rolling it out measures the budget or the network, not what the bench asks.
@@ -13,6 +14,7 @@ demos, so rolling it out measures the budget or the network, not what the bench 
 from __future__ import annotations
 
 import json
+import math
 import os
 import subprocess
 import sys
@@ -25,6 +27,11 @@ from pathlib import Path
 RECIPE_FREE = ("rotation_aug", "device", "data", "max_minutes")
 # the benches' second gate: a policy's training-sample action error at most this times EquiDiff's
 MAX_FIT_RATIO = 1.5
+# The benches' default peak learning rates for 6000 steps of batch 8: EquiDiff fits its 40 demos at
+# 5e-4, the plain-CNN baseline only at 1e-3 (1.5x EquiDiff's action error at 5e-4, 1.0x at 1e-3;
+# docs/model.md, "The baseline's learning rate").
+EQUIDIFF_LR = 5e-4
+BASELINE_LR = 1e-3
 
 
 class TrainRunError(RuntimeError):
@@ -45,6 +52,11 @@ class Recipe:
     ema: bool = False
     max_minutes: float | None = None
     lab_config: Path | None = None
+    baseline_lr: float | None = None  # the baseline's peak learning rate (None: ``lr``)
+
+    def lr_of(self, policy: str) -> float:
+        """The peak learning rate ``policy`` trains with."""
+        return self.baseline_lr if policy == "baseline" and self.baseline_lr is not None else self.lr
 
     @classmethod
     def from_args(cls, args) -> Recipe:
@@ -60,6 +72,7 @@ class Recipe:
             ema=args.ema,
             max_minutes=args.max_minutes,
             lab_config=args.lab_config,
+            baseline_lr=args.baseline_lr,
         )
 
     def train_command(self, policy: str, rotation_aug: str, bags: list[Path], out: Path) -> list[str]:
@@ -67,7 +80,7 @@ class Recipe:
         training samples is scored once, at the end), four checkpoints, warm-up min(500, steps / 10)."""
         cmd = [sys.executable, "-m", "equidiff_ros.cli", "train", *map(str, bags), "--out", str(out)]
         cmd += ["--policy", policy, "--preset", self.preset, "--rotation-aug", rotation_aug]
-        cmd += ["--steps", str(self.steps), "--batch-size", str(self.batch_size), "--lr", str(self.lr)]
+        cmd += ["--steps", str(self.steps), "--batch-size", str(self.batch_size), "--lr", str(self.lr_of(policy))]
         cmd += ["--seed", str(self.seed), "--device", self.device, "--val-fraction", "0"]
         cmd += ["--eval-every", str(10**9), "--checkpoint-every", str(max(10, self.steps // 4))]
         cmd += ["--warmup-steps", str(min(500, max(1, self.steps // 10))), "--no-progress"]
@@ -158,16 +171,25 @@ def training_recipe(run_dir: Path) -> dict | None:
         return None
 
 
-def recipe_differences(recipes: dict[str, dict | None]) -> list[str]:
+def recipe_differences(recipes: dict[str, dict | None], lrs: dict[str, float] | None = None) -> list[str]:
     """The recipe settings the policies were trained with differently (runs without a run.json are not
-    compared): a comparison needs the same budget for all."""
+    compared): a comparison needs the same budget for all. With ``lrs`` (each run's peak learning rate
+    as the bench's flags name it, ``Recipe.lr_of``), each run's lr is checked against its own instead
+    of against the others'."""
     known = {name: recipe for name, recipe in recipes.items() if recipe is not None}
-    keys = sorted({key for recipe in known.values() for key in recipe} - set(RECIPE_FREE))
-    return [
+    free = set(RECIPE_FREE) | ({"lr"} if lrs is not None else set())
+    keys = sorted({key for recipe in known.values() for key in recipe} - free)
+    differences = [
         f"{key}: " + ", ".join(f"{name} {recipe.get(key)}" for name, recipe in known.items())
         for key in keys
         if len({json.dumps(recipe.get(key)) for recipe in known.values()}) > 1
     ]
+    wrong_lr = [
+        f"{name} {recipe.get('lr')} where the bench asks for {lrs[name]:g}"
+        for name, recipe in known.items()
+        if lrs is not None and name in lrs and "lr" in recipe and not math.isclose(float(recipe["lr"]), lrs[name])
+    ]
+    return differences + (["lr: " + ", ".join(wrong_lr)] if wrong_lr else [])
 
 
 def training_fit(run_dir: Path) -> dict | None:

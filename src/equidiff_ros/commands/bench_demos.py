@@ -7,7 +7,8 @@
 EquiDiff (Vo) and DiffPo-C (Vo) train on the first 10, 20 and 40 (``--counts``) of the same narrow-yaw
 demos (``--demos-dir``, or recorded into OUT/demos like ``bench generalization`` does; one recording
 serves both benches), with one recipe and seed (defaults: compact, 6000 steps of batch 8 with 4 noise
-draws, EMA, lr 5e-4, no rotation augmentation), each into OUT/<policy>_<count>. Each is rolled out
+draws, EMA, peak lr 5e-4 for EquiDiff and 1e-3 for the baseline, no rotation augmentation), each into
+OUT/<policy>_<count>. Each is rolled out
 in closed loop (in-process, sim clock) on the same ``--eval-episodes`` scenes whose block yaw lies
 inside the demos' range. Prints one JSON line: ``success`` per policy per demo count, the roll-outs'
 stages, each run's DDIM action error on its training samples (``train_fit``, and ``under_fit``: runs
@@ -27,7 +28,7 @@ import argparse
 from pathlib import Path
 
 from equidiff_core.benches.demos import DEMO_COUNTS, POLICIES, run_demos_bench
-from equidiff_core.benches.training_runs import MAX_FIT_RATIO
+from equidiff_core.benches.training_runs import BASELINE_LR, EQUIDIFF_LR, MAX_FIT_RATIO
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -40,7 +41,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--train-steps", type=int, default=6000)
     parser.add_argument("--batch-size", type=int, default=8)
-    parser.add_argument("--lr", type=float, default=5e-4)
+    parser.add_argument("--lr", type=float, default=EQUIDIFF_LR, help="peak learning rate (EquiDiff's)")
+    parser.add_argument(
+        "--baseline-lr",
+        type=float,
+        default=BASELINE_LR,
+        help="the baseline's peak learning rate (default 1e-3: at 5e-4 it under-fits this budget; docs/model.md)",
+    )
     parser.add_argument("--noise-repeats", type=int, default=4)
     parser.add_argument("--ema", action=argparse.BooleanOptionalAction, default=True)
     parser.add_argument("--preset", default="compact")

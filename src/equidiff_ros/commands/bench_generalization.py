@@ -30,16 +30,17 @@ the non-augmented baseline), unseen_by_yaw (each policy's unseen-yaw episodes by
 offset modulo 90 deg -- or C8 -- modulo 45 deg -- maps the block into the training range),
 train_fit, demos, train_steps, ...
 
-The three must share one recipe (preset, steps, batch, lr, warm-up, seed, noise repeats, EMA,
-precision; rotation augmentation differs by design): the bench compares their ``equidiff
-train`` run.json recipes and refuses to roll out policies trained differently. On a small CPU
+The three must share one recipe (preset, steps, batch, warm-up, seed, noise repeats, EMA,
+precision; rotation augmentation differs by design, and the baselines train at ``--baseline-lr``):
+the bench compares their ``equidiff train`` run.json recipes and refuses to roll out policies
+trained differently. On a small CPU
 one policy can take a whole working session, so ``--policies`` trains a subset into ``--out``
 (demos recorded there by the first call are reused) and prints a ``pending`` line; once
 ``--out`` holds all three, the next call rolls them out. Reused demos (``--demos-dir`` or an
 earlier call's) whose metadata records another block yaw range than ``--train-yaw`` are refused.
 
-The default recipe (compact, 6000 steps of batch 8 with 4 noise draws per encoder pass, EMA, lr
-5e-4) is the one ``bench demos`` uses too, so one EquiDiff run on the 40 demos serves both. Time
+The default recipe (compact, 6000 steps of batch 8 with 4 noise draws per encoder pass, EMA, peak
+lr 5e-4, the baselines' 1e-3) is the one ``bench demos`` uses too, so one EquiDiff run on the 40 demos serves both. Time
 on this 2-core CPU (quiet machine): demos ~14 s each (40: 9-12 min); EquiDiff ~0.6 s a step
 (6000: ~67 min beside another training); evaluation ~6 s per 30 s episode. ``--max-minutes`` gives each policy a training budget
 (``equidiff train`` stops, checkpoints and exports; the steps each trained are reported).
@@ -53,7 +54,7 @@ import argparse
 from pathlib import Path
 
 from equidiff_core.benches.generalization import POLICIES, run_generalization
-from equidiff_core.benches.training_runs import MAX_FIT_RATIO
+from equidiff_core.benches.training_runs import BASELINE_LR, EQUIDIFF_LR, MAX_FIT_RATIO
 from equidiff_core.presets import ROTATION_AUGS
 
 
@@ -66,9 +67,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--lr",
         type=float,
-        default=5e-4,
-        help="peak learning rate (default 5e-4: the shipped twin checkpoint's recipe for a few "
+        default=EQUIDIFF_LR,
+        help="EquiDiff's peak learning rate (default 5e-4: the shipped twin checkpoint's recipe for a few "
         "thousand steps of batch 8; equidiff train's 1e-4 suits long runs)",
+    )
+    parser.add_argument(
+        "--baseline-lr",
+        type=float,
+        default=BASELINE_LR,
+        help="peak learning rate of baseline and baseline_aug (default 1e-3: at 5e-4 the baseline under-fits "
+        "this budget, docs/model.md; pass --lr's value for one rate for all)",
     )
     parser.add_argument("--eval-episodes", type=int, default=20, help="unseen-yaw episodes per policy")
     parser.add_argument(
