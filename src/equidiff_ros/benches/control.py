@@ -122,6 +122,9 @@ def run_track_and_hold(
     if hold_start is None:
         hold_start = last_step + watchdog_s
     _h_times, h_positions = client.samples("poses", hold_start, hold_start + 2.0)
+    at_rest = wait_for_rest(client, hold_start)
+    _, held_targets = client.samples("targets", hold_start, at_rest or time.time())
+    rest_position = client.latest_position()
     lag, lag_rms = metrics.tracking_lag(times, positions, circle.position)
     # the commanded TCP at each chunk switch (this process receives its own chunks as franka_node does),
     # on a 50 Hz grid: a state message that repeats a command would otherwise read as a standstill
@@ -141,9 +144,33 @@ def run_track_and_hold(
         "command_velocity_reversals": metrics.velocity_reversals(t_times, t_positions, circle.tangent),
         "tracking_samples": len(times),
         "state_hz": round(len(times) / max(t_to - t_from, 1e-9), 1),
+        # how far the arm went on after the hold engaged: on a sim slower than real time the arm is
+        # still catching up with the last command when the (wall-clock) watchdog fires, so this grows
+        # with the machine's load (1.8 mm quiet at 0.98x real time; 0.1-14 mm on the 2-core Xeon at 0.4-0.7x
+        # beside a twin and a test run, 2026-11-28)
         "hold_drift_mm": round(metrics.max_drift(h_positions, h_positions[0]) * 1000, 2),
+        # what the hold is, whatever the load: one target, and the arm come to rest at it
+        "hold_target_span_mm": round(float(np.ptp(held_targets, axis=0).max()) * 1000, 3),
+        "hold_at_rest_after_s": None if at_rest is None else round(at_rest - hold_start, 2),
+        "hold_rest_distance_to_target_mm": round(float(np.linalg.norm(rest_position - held_targets[-1])) * 1000, 2),
         "hold_engaged_after_ms": round((hold_start - last_step) * 1000, 1),
     }
+
+
+def wait_for_rest(
+    client: ControlClient, since: float, still_m: float = 5e-4, window_s: float = 0.5, timeout_s: float = 10.0
+) -> float | None:
+    """When (wall clock) the TCP had moved less than ``still_m`` over the last ``window_s``, waiting until
+    ``since + timeout_s``; None if it never did. A sim slower than real time takes more wall time to
+    come to rest, so this waits rather than looking at a fixed window."""
+    while True:
+        now = time.time()
+        _, positions = client.samples("poses", now - window_s, now)
+        if now - since >= window_s and len(positions) > 1 and np.ptp(positions, axis=0).max() < still_m:
+            return now
+        if now > since + timeout_s:
+            return None
+        time.sleep(0.1)
 
 
 def run_workspace(client: ControlClient, workspace, duration: float = 3.0) -> dict:
