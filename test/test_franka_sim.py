@@ -149,9 +149,9 @@ def test_curve_is_tracked_smoothly_and_held_when_commands_stop(franka):
     assert r["command_velocity_reversals"] == 0, r
     assert r["track_chunk_switches"] > 0 and r["track_standstill_total_s"] == 0.0, r  # no stop at a switch
     # Held: one target from the hold on, and the arm at rest at it. How far the arm ran on after the
-    # hold engaged (hold_drift_mm, 1.8 mm quiet) is the load's figure, not the hold's: the watchdog counts
-    # wall time while a starved sim lags the command (0.1-14 mm beside a twin), so `equidiff bench
-    # control` reports it with the sim's real-time factor.
+    # hold engaged (hold_drift_mm) is the load's figure, not the hold's: the watchdog counts wall time
+    # while a starved sim lags the command, so `equidiff bench control` reports it with the sim's
+    # real-time factor (docs/control.md).
     assert r["hold_target_span_mm"] <= 0.1, r
     assert r["hold_at_rest_after_s"] is not None, r  # still for 0.5 s, within 10 s of wall time
     assert r["hold_rest_distance_to_target_mm"] <= 3.0, r

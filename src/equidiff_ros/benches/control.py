@@ -146,8 +146,7 @@ def run_track_and_hold(
         "state_hz": round(len(times) / max(t_to - t_from, 1e-9), 1),
         # how far the arm went on after the hold engaged: on a sim slower than real time the arm is
         # still catching up with the last command when the (wall-clock) watchdog fires, so this grows
-        # with the machine's load (1.8 mm quiet at 0.98x real time; 0.1-14 mm on the 2-core Xeon at 0.4-0.7x
-        # beside a twin and a test run, 2026-11-28)
+        # with the machine's load (measured in docs/control.md, `equidiff bench control`)
         "hold_drift_mm": round(metrics.max_drift(h_positions, h_positions[0]) * 1000, 2),
         # what the hold is, whatever the load: one target, and the arm come to rest at it
         "hold_target_span_mm": round(float(np.ptp(held_targets, axis=0).max()) * 1000, 3),
@@ -163,14 +162,17 @@ def wait_for_rest(
     """When (wall clock) the TCP had moved less than ``still_m`` over the last ``window_s``, waiting until
     ``since + timeout_s``; None if it never did. A sim slower than real time takes more wall time to
     come to rest, so this waits rather than looking at a fixed window."""
-    while True:
+
+    def still() -> bool:
         now = time.time()
         _, positions = client.samples("poses", now - window_s, now)
-        if now - since >= window_s and len(positions) > 1 and np.ptp(positions, axis=0).max() < still_m:
-            return now
-        if now > since + timeout_s:
-            return None
-        time.sleep(0.1)
+        return now - since >= window_s and len(positions) > 1 and np.ptp(positions, axis=0).max() < still_m
+
+    try:
+        client.wait_for(still, max(0.1, since + timeout_s - time.time()), "the arm at rest")
+    except TimeoutError:
+        return None
+    return time.time()
 
 
 def run_workspace(client: ControlClient, workspace, duration: float = 3.0) -> dict:
