@@ -171,13 +171,13 @@ def training_recipe(run_dir: Path) -> dict | None:
         return None
 
 
-def recipe_differences(recipes: dict[str, dict | None], lrs: dict[str, float] | None = None) -> list[str]:
+def recipe_differences(recipes: dict[str, dict | None], lr_by_run: dict[str, float] | None = None) -> list[str]:
     """The recipe settings the policies were trained with differently (runs without a run.json are not
-    compared): a comparison needs the same budget for all. With ``lrs`` (each run's peak learning rate
+    compared): a comparison needs the same budget for all. With ``lr_by_run`` (each run's peak learning rate
     as the bench's flags name it, ``Recipe.lr_of``), each run's lr is checked against its own instead
     of against the others'."""
     known = {name: recipe for name, recipe in recipes.items() if recipe is not None}
-    free = set(RECIPE_FREE) | ({"lr"} if lrs is not None else set())
+    free = set(RECIPE_FREE) | ({"lr"} if lr_by_run is not None else set())
     keys = sorted({key for recipe in known.values() for key in recipe} - free)
     differences = [
         f"{key}: " + ", ".join(f"{name} {recipe.get(key)}" for name, recipe in known.items())
@@ -185,9 +185,12 @@ def recipe_differences(recipes: dict[str, dict | None], lrs: dict[str, float] | 
         if len({json.dumps(recipe.get(key)) for recipe in known.values()}) > 1
     ]
     wrong_lr = [
-        f"{name} {recipe.get('lr')} where the bench asks for {lrs[name]:g}"
+        f"{name} {recipe['lr']} where the bench asks for {lr_by_run[name]:g}"
         for name, recipe in known.items()
-        if lrs is not None and name in lrs and "lr" in recipe and not math.isclose(float(recipe["lr"]), lrs[name])
+        if lr_by_run is not None
+        and name in lr_by_run
+        and "lr" in recipe
+        and not math.isclose(float(recipe["lr"]), lr_by_run[name])
     ]
     return differences + (["lr: " + ", ".join(wrong_lr)] if wrong_lr else [])
 

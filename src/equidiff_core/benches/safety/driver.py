@@ -155,9 +155,10 @@ def run_campaign(
                 except Exception as err:  # noqa: BLE001 - a fault that breaks the campaign is not survived
                     per_fault[name] = {"survived": False, "error": f"{type(err).__name__}: {err}"}
                 c.note_excursion(t_fault)
-                if missed is not None and sim.missed_commands() is not None:
+                missed_now = sim.missed_commands()
+                if missed is not None and missed_now is not None:
                     # a starved franka_node: the sim ran physics on its last torque (a delayed loop)
-                    per_fault[name]["sim_missed_commands"] = sim.missed_commands() - missed
+                    per_fault[name]["sim_missed_commands"] = missed_now - missed
                 if not c.alive():
                     log("franka_node died: restarting it for the remaining faults")
                     start_franka(c)
