@@ -4,6 +4,7 @@ import math
 
 import numpy as np
 import pytest
+import torch
 from scipy.spatial.transform import Rotation
 
 from equidiff_core import geometry
@@ -192,7 +193,12 @@ class _ExpertAsPolicy:
 
 
 class _FrozenPolicy(_ExpertAsPolicy):
+    def __init__(self, sim):
+        super().__init__(sim)
+        self.threads_seen: set[int] = set()  # torch's intra-op threads at each answer
+
     def predict(self, grid, ee, seed=0):
+        self.threads_seen.add(torch.get_num_threads())
         return np.repeat(ee[None], 16, axis=0)
 
 
@@ -205,18 +211,24 @@ def test_closed_loop_evaluation_scores_the_expert_and_the_stages_a_frozen_policy
     reports every stage; a policy that never moves reaches none."""
     from equidiff_core.config import default_config_dir, load_lab_config
     from equidiff_core.twin.demos import DirectRecorder
-    from equidiff_core.twin.evaluate import evaluate_policy
+    from equidiff_core.twin.evaluate import ROLLOUT_THREADS, evaluate_policy
 
     lab = load_lab_config(default_config_dir() / "lab.yaml")
     rec = DirectRecorder(CFG, lab)
+    threads_before = torch.get_num_threads()
+    torch.set_num_threads(2)
     try:
         (solved,) = evaluate_policy(
             _ExpertAsPolicy(rec.sim), CFG, lab, [3], 30.0, log=lambda s: None, recorder=rec, execute_steps=execute_steps
         )
+        frozen_policy = _FrozenPolicy(rec.sim)
         (frozen,) = evaluate_policy(
-            _FrozenPolicy(rec.sim), CFG, lab, [3], 4.0, log=lambda s: None, recorder=rec, execute_steps=execute_steps
+            frozen_policy, CFG, lab, [3], 4.0, log=lambda s: None, recorder=rec, execute_steps=execute_steps
         )
+        # the roll-outs answer on a fixed thread count, whatever the process uses, and give it back
+        assert frozen_policy.threads_seen == {ROLLOUT_THREADS} and torch.get_num_threads() == 2
     finally:
+        torch.set_num_threads(threads_before)
         rec.close()
     assert solved.success and solved.reached and solved.lifted
     assert solved.closest_to_bowl_m < CFG.scene.bowl_inner_radius and solved.closest_to_block_m < 0.02

@@ -6,8 +6,6 @@ from __future__ import annotations
 import json
 import time
 
-import torch
-
 from equidiff_core.chunk import AnswerSchedule, steps_to_publish
 from equidiff_core.config import default_config_dir, load_lab_config
 from equidiff_core.inference import load_inference_policy
@@ -28,8 +26,6 @@ def run_chunking_bench(args) -> int:
     checkpoint = args.checkpoint or SHIPPED_CHECKPOINT
     if not checkpoint.is_file():
         raise SystemExit(f"no checkpoint at {checkpoint}")
-    if args.threads > 0:
-        torch.set_num_threads(args.threads)
     lab = load_lab_config(args.lab_config or default_config_dir() / "lab.yaml")
     cfg = load_twin_config(args.twin_config)
     policy = load_inference_policy(checkpoint, device=args.device)
@@ -68,6 +64,7 @@ def run_chunking_bench(args) -> int:
                     recorder=rec,
                     latency_s=latency_ms / 1000,
                     probe=probe,
+                    threads=args.threads or None,  # 0: the threads the CLI chose from the idle cores
                     log=lambda s, w=label: print(f"[{w}] {s}", flush=True),
                     **schedule,
                 )

@@ -63,6 +63,13 @@ class DirectRecorder:
         self._stamp = 0
         self.images: list[np.ndarray | None] = []  # each camera's colour image of the latest grid
 
+    def reset(self, seed: int):
+        """The sim at the seed's scene (``DirectSim.reset``, its ``ScenePoses`` returned) and each camera's
+        depth noise started from the seed, so an episode is the same whatever ran before it."""
+        for c in self.cameras:
+            c.reseed(seed)
+        return self.sim.reset(seed)
+
     def close(self) -> None:
         for c in self.cameras:
             c.disconnect()
@@ -115,7 +122,7 @@ class DirectWorld:
     def reset_scene(self, seed: int) -> None:
         ex = self.rec.cfg.expert
         self.seed = seed
-        self.scene = self.sim.reset(seed)  # puts the arm back at its initial posture ...
+        self.scene = self.rec.reset(seed)  # puts the arm back at its initial posture ...
         self.sim.command(tcp_pose(ex.ready_position, 0.0), ex.open_width)
         self.sim.step(1500)  # ... from which it reaches the ready pose, where the live twin's homing leaves it
 

@@ -26,11 +26,13 @@ DirectSim's IK and joint PD instead of franky's Cartesian impedance tracker in f
 
 from __future__ import annotations
 
+import contextlib
 import math
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 
 import numpy as np
+import torch
 
 from ..chunk import DEFAULT_EXECUTE_STEPS, DEFAULT_RTC, DEFAULT_TRANSPORT_S, AnswerSchedule
 from ..chunk_sizing import ChunkSizing
@@ -49,6 +51,22 @@ from .direct_execution import (
     RecordedChunks,
 )
 from .yaw_range import OFFSET_BINS_DEG, block_yaw_offset_deg, in_range_yaw_seeds, unseen_yaw_seeds, yaw_breakdown
+
+# policy_node's default torch_threads. A fixed count also keeps each seed's outcome the same from
+# run to run: 1 and 2 threads round differently and ended one scene differently (docs/twin.md).
+ROLLOUT_THREADS = 1
+
+
+@contextlib.contextmanager
+def torch_threads(threads: int | None):
+    """torch's intra-op threads set to ``threads`` inside the block (None: left as they are)."""
+    before = torch.get_num_threads()
+    if threads is not None:
+        torch.set_num_threads(threads)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
 
 
 @dataclass(frozen=True)
@@ -78,6 +96,7 @@ def evaluate_policy(
     publish_steps: int | None = None,
     rtc: bool = DEFAULT_RTC,
     probe=None,
+    threads: int | None = ROLLOUT_THREADS,
 ) -> list[EvalEpisode]:
     """Roll ``policy`` (an ``inference.InferencePolicy``) out from each seed's scene; returns per-episode results.
 
@@ -90,7 +109,10 @@ def evaluate_policy(
     denoised towards the previous one (``chunk.RealTimeChunking``, its delay from ``latency_s``); see the
     module doc. The policy's sampling seeds are ``chunk.SamplingSeeds``' for the episode's seed. ``probe``
     (e.g. ``twin.chunking.ChunkingProbe``) sees each episode's chunks as franka_node's
-    Controller receives them and its every command."""
+    Controller receives them and its every command. Inference runs on ``threads`` torch threads (None:
+    the process's setting); each scene's cameras draw their depth noise from its seed
+    (``DirectRecorder.reset``), so with a fixed thread count a seed's episode does not depend on the
+    episodes rolled out before it."""
     from .demos import DirectRecorder, DirectWorld
 
     preset = policy.preset
@@ -111,46 +133,47 @@ def evaluate_policy(
     world = DirectWorld(rec)  # records nothing
     results = []
     try:
-        for seed in seeds:
-            actor = DirectPolicy(
-                world, policy, seed, control, max_duration_s, latency_s, execute_steps, publish_steps, rtc, probe
-            )
-            # settle_s 0: the cameras render the sim state itself, no pipeline to flush; the actor
-            # ends the episode at the time limit's observation instant, after it has been judged
-            episode = run_episode(world, actor, seed, float("inf"), cfg.success.hold_s, settle_s=0.0)
-            progress, t = actor.progress, world.now_s() - actor.t0
-            block_yaw = world.scene.block_yaw
-            results.append(
-                EvalEpisode(
-                    seed,
-                    episode.success,
-                    round(t, 2),
-                    actor.observations,
-                    round(float(np.degrees(block_yaw)), 1),
-                    progress.reached,
-                    progress.lifted,
-                    round(progress.closest_to_bowl_m, 3),
-                    round(progress.closest_to_block_m, 3),
+        with torch_threads(threads):
+            for seed in seeds:
+                actor = DirectPolicy(
+                    world, policy, seed, control, max_duration_s, latency_s, execute_steps, publish_steps, rtc, probe
                 )
-            )
-            stats = actor.controller.stats
-            control_note = "".join(
-                [
-                    f"; {stats.rejected_chunks} chunks rejected ({stats.last_rejection})"
-                    if stats.rejected_chunks
-                    else "",
-                    f"; {stats.watchdog_holds} watchdog holds" if stats.watchdog_holds else "",
-                    f"; {stats.divergence_stops} divergence stops" if stats.divergence_stops else "",
-                ]
-            )
-            log(
-                f"[eval] seed {seed} (block yaw {np.degrees(block_yaw):+.0f} deg): "
-                f"{'success' if episode.success else 'failure'} after {t:.1f} s sim, {actor.observations} "
-                f"observations; TCP within {progress.closest_to_block_m * 1000:.0f} mm of the block, "
-                f"reached it: {'yes' if progress.reached else 'no'}, lifted it: "
-                f"{'yes' if progress.lifted else 'no'}, block came within {progress.closest_to_bowl_m * 1000:.0f} mm "
-                f"of the bowl's centre{control_note}"
-            )
+                # settle_s 0: the cameras render the sim state itself, no pipeline to flush; the actor
+                # ends the episode at the time limit's observation instant, after it has been judged
+                episode = run_episode(world, actor, seed, float("inf"), cfg.success.hold_s, settle_s=0.0)
+                progress, t = actor.progress, world.now_s() - actor.t0
+                block_yaw = world.scene.block_yaw
+                results.append(
+                    EvalEpisode(
+                        seed,
+                        episode.success,
+                        round(t, 2),
+                        actor.observations,
+                        round(float(np.degrees(block_yaw)), 1),
+                        progress.reached,
+                        progress.lifted,
+                        round(progress.closest_to_bowl_m, 3),
+                        round(progress.closest_to_block_m, 3),
+                    )
+                )
+                stats = actor.controller.stats
+                control_note = "".join(
+                    [
+                        f"; {stats.rejected_chunks} chunks rejected ({stats.last_rejection})"
+                        if stats.rejected_chunks
+                        else "",
+                        f"; {stats.watchdog_holds} watchdog holds" if stats.watchdog_holds else "",
+                        f"; {stats.divergence_stops} divergence stops" if stats.divergence_stops else "",
+                    ]
+                )
+                log(
+                    f"[eval] seed {seed} (block yaw {np.degrees(block_yaw):+.0f} deg): "
+                    f"{'success' if episode.success else 'failure'} after {t:.1f} s sim, {actor.observations} "
+                    f"observations; TCP within {progress.closest_to_block_m * 1000:.0f} mm of the block, "
+                    f"reached it: {'yes' if progress.reached else 'no'}, lifted it: "
+                    f"{'yes' if progress.lifted else 'no'}, block came within {progress.closest_to_bowl_m * 1000:.0f} mm "
+                    f"of the bowl's centre{control_note}"
+                )
     finally:
         if recorder is None:
             rec.close()

@@ -120,10 +120,20 @@ class TwinCamera(Camera):
         self._reader = None
         self._model = self._data = self._renderer = None
         self._worker: ThreadPoolExecutor | None = None
-        self._rng = np.random.default_rng([render.seed, sum(map(ord, camera.name))])
+        self._rng = self._noise_rng()
         self._last_tick = -1
         self._last_frame = 0
         self._connected = False
+
+    def _noise_rng(self, episode_seed: int | None = None) -> np.random.Generator:
+        key = [self.render_cfg.seed, sum(map(ord, self.camera.name))]
+        return np.random.default_rng(key if episode_seed is None else [*key, episode_seed])
+
+    def reseed(self, episode_seed: int) -> None:
+        """Start the depth noise afresh for an episode: its frames then depend on its scene seed alone,
+        not on how many frames this camera rendered before (the in-process roll-outs and demos call it
+        for every scene; a live camera node renders one stream and keeps its generator)."""
+        self._rng = self._noise_rng(episode_seed)
 
     # -- Camera interface --------------------------------------------------------------------
     def connect(self) -> None:
