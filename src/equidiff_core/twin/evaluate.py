@@ -132,51 +132,50 @@ def evaluate_policy(
     rec = recorder or DirectRecorder(cfg, lab)
     world = DirectWorld(rec)  # records nothing
     results = []
-    try:
-        with torch_threads(threads):
-            for seed in seeds:
-                actor = DirectPolicy(
-                    world, policy, seed, control, max_duration_s, latency_s, execute_steps, publish_steps, rtc, probe
-                )
-                # settle_s 0: the cameras render the sim state itself, no pipeline to flush; the actor
-                # ends the episode at the time limit's observation instant, after it has been judged
-                episode = run_episode(world, actor, seed, float("inf"), cfg.success.hold_s, settle_s=0.0)
-                progress, t = actor.progress, world.now_s() - actor.t0
-                block_yaw = world.scene.block_yaw
-                results.append(
-                    EvalEpisode(
-                        seed,
-                        episode.success,
-                        round(t, 2),
-                        actor.observations,
-                        round(float(np.degrees(block_yaw)), 1),
-                        progress.reached,
-                        progress.lifted,
-                        round(progress.closest_to_bowl_m, 3),
-                        round(progress.closest_to_block_m, 3),
-                    )
-                )
-                stats = actor.controller.stats
-                control_note = "".join(
-                    [
-                        f"; {stats.rejected_chunks} chunks rejected ({stats.last_rejection})"
-                        if stats.rejected_chunks
-                        else "",
-                        f"; {stats.watchdog_holds} watchdog holds" if stats.watchdog_holds else "",
-                        f"; {stats.divergence_stops} divergence stops" if stats.divergence_stops else "",
-                    ]
-                )
-                log(
-                    f"[eval] seed {seed} (block yaw {np.degrees(block_yaw):+.0f} deg): "
-                    f"{'success' if episode.success else 'failure'} after {t:.1f} s sim, {actor.observations} "
-                    f"observations; TCP within {progress.closest_to_block_m * 1000:.0f} mm of the block, "
-                    f"reached it: {'yes' if progress.reached else 'no'}, lifted it: "
-                    f"{'yes' if progress.lifted else 'no'}, block came within {progress.closest_to_bowl_m * 1000:.0f} mm "
-                    f"of the bowl's centre{control_note}"
-                )
-    finally:
+    with contextlib.ExitStack() as cleanup:
         if recorder is None:
-            rec.close()
+            cleanup.callback(rec.close)
+        cleanup.enter_context(torch_threads(threads))
+        for seed in seeds:
+            actor = DirectPolicy(
+                world, policy, seed, control, max_duration_s, latency_s, execute_steps, publish_steps, rtc, probe
+            )
+            # settle_s 0: the cameras render the sim state itself, no pipeline to flush; the actor
+            # ends the episode at the time limit's observation instant, after it has been judged
+            episode = run_episode(world, actor, seed, float("inf"), cfg.success.hold_s, settle_s=0.0)
+            progress, t = actor.progress, world.now_s() - actor.t0
+            block_yaw = world.scene.block_yaw
+            results.append(
+                EvalEpisode(
+                    seed,
+                    episode.success,
+                    round(t, 2),
+                    actor.observations,
+                    round(float(np.degrees(block_yaw)), 1),
+                    progress.reached,
+                    progress.lifted,
+                    round(progress.closest_to_bowl_m, 3),
+                    round(progress.closest_to_block_m, 3),
+                )
+            )
+            stats = actor.controller.stats
+            control_note = "".join(
+                [
+                    f"; {stats.rejected_chunks} chunks rejected ({stats.last_rejection})"
+                    if stats.rejected_chunks
+                    else "",
+                    f"; {stats.watchdog_holds} watchdog holds" if stats.watchdog_holds else "",
+                    f"; {stats.divergence_stops} divergence stops" if stats.divergence_stops else "",
+                ]
+            )
+            log(
+                f"[eval] seed {seed} (block yaw {np.degrees(block_yaw):+.0f} deg): "
+                f"{'success' if episode.success else 'failure'} after {t:.1f} s sim, {actor.observations} "
+                f"observations; TCP within {progress.closest_to_block_m * 1000:.0f} mm of the block, "
+                f"reached it: {'yes' if progress.reached else 'no'}, lifted it: "
+                f"{'yes' if progress.lifted else 'no'}, block came within {progress.closest_to_bowl_m * 1000:.0f} mm "
+                f"of the bowl's centre{control_note}"
+            )
     return results
 
 
