@@ -2,6 +2,9 @@
 publishes chunks and voxel grids the way policy_node does and records what the nodes send back
 (poses, executed targets, chunks, diagnostics). ``equidiff bench control`` and the node tests
 drive franka_node and policy_node through it.
+
+Its clock is the graph's: the wall clock, or with ``use_sim_time`` the twin's simulated time
+(``now``, ``sleep``), so chunks are stamped, paced and measured in the time franka_node runs on.
 """
 
 from __future__ import annotations
@@ -17,6 +20,7 @@ import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped
 from rclpy.executors import SingleThreadedExecutor
+from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState, PointCloud2
 from trajectory_msgs.msg import MultiDOFJointTrajectory
@@ -33,6 +37,7 @@ from equidiff_ros.common import (
     TOPIC_JOINT_STATES,
     TOPIC_VOXELS,
     VOXEL_QOS,
+    node_clock,
 )
 
 MS = 1_000_000
@@ -52,14 +57,20 @@ class Recorded:
 class ControlClient:
     """An rclpy node in a background thread: publishes chunks/voxels, records what comes back."""
 
-    def __init__(self, lab, lab_path: str):
+    def __init__(self, lab, lab_path: str, use_sim_time: bool = False):
         self.lab = lab
         self.lab_path = lab_path
         self.factory = RclpyFactory()
         self.data = Recorded()
         self.context = rclpy.Context()
         rclpy.init(context=self.context)
-        self.node = rclpy.create_node("control_bench", context=self.context)
+        self.node = rclpy.create_node(
+            "control_bench",
+            context=self.context,
+            parameter_overrides=[Parameter("use_sim_time", Parameter.Type.BOOL, use_sim_time)],
+        )
+        self.clock = node_clock(self.node)
+        self._stop = threading.Event()  # ends a sleep on simulated time when the client closes
         self.pub_chunk = self.node.create_publisher(MultiDOFJointTrajectory, TOPIC_COMMAND_CHUNK, RELIABLE_QOS)
         self.pub_voxels = self.node.create_publisher(PointCloud2, TOPIC_VOXELS, VOXEL_QOS)
         self.node.create_subscription(PoseStamped, TOPIC_EE_POSE, self._on_pose, RELIABLE_QOS)
@@ -86,7 +97,7 @@ class ControlClient:
         self.data.targets.append((stamp_to_ns(msg.header.stamp) / 1e9, position_from_msg(msg)))
 
     def _on_chunk(self, msg):
-        self.data.chunks.append((time.time_ns() / 1e9, stamp_to_ns(msg.header.stamp) / 1e9))
+        self.data.chunks.append((self.now(), stamp_to_ns(msg.header.stamp) / 1e9))
         self.data.last_chunk = msg
 
     def _on_joints(self, msg):
@@ -98,12 +109,31 @@ class ControlClient:
             self.data.diagnostics[entry.name] = entry.values
 
     def close(self):
+        self._stop.set()
         self.executor.shutdown(timeout_sec=1.0)
         self.node.destroy_node()
         self.context.try_shutdown()
         self._thread.join(timeout=2)
 
     # --- helpers -------------------------------------------------------------------------
+    def now_ns(self) -> int:
+        """The graph's time: the wall clock, or simulated time (0 until the first /clock)."""
+        return self.clock.now_ns()
+
+    def now(self) -> float:
+        return self.now_ns() / 1e9
+
+    def sleep_until(self, t: float) -> None:
+        self.clock.sleep_until(int(t * 1e9), self._stop)
+
+    def sleep(self, seconds: float) -> None:
+        """``seconds`` of the graph's time (longer on the wall clock while a loaded sim runs slow)."""
+        self.sleep_until(self.now() + seconds)
+
+    def wait_for_clock(self, timeout: float = 30.0) -> None:
+        """On simulated time, until /clock has arrived (at once on the wall clock)."""
+        self.wait_for(lambda: self.now_ns() > 0, timeout, "/clock")
+
     def wait_for(self, predicate, timeout: float, what: str, proc: subprocess.Popen | None = None):
         deadline = time.monotonic() + timeout
         while time.monotonic() < deadline:
@@ -131,20 +161,19 @@ class ControlClient:
         width: float = 0.08,
     ) -> tuple[float, float]:
         """Publish chunks sampled from ``path(t) -> position`` every ``period`` s; returns the last
-        send time and the time the last chunk's final step is due (wall clock, s)."""
+        send time and the time the last chunk's final step is due (the client's clock, s)."""
 
-        end = time.monotonic() + duration
-        next_send = time.monotonic()
-        last = last_step = time.time()
-        while time.monotonic() < end:
-            now = time.time_ns()
-            obs = now - int(obs_latency * 1e9)
+        end = self.now() + duration
+        next_send = self.now()
+        last = last_step = self.now()
+        while self.now() < end:
+            obs = self.now_ns() - int(obs_latency * 1e9)
             times = obs + np.arange(steps, dtype=np.int64) * int(dt * 1e9)
             poses = np.stack([down_pose(path(t / 1e9)) for t in times])
             self.publish_chunk(PoseChunk(obs, times, poses, np.full(steps, width)))
-            last, last_step = time.time(), float(times[-1]) / 1e9
+            last, last_step = self.now(), float(times[-1]) / 1e9
             next_send += period
-            time.sleep(max(0.0, next_send - time.monotonic()))
+            self.sleep_until(next_send)
         return last, last_step
 
     def samples(self, which: str, t_from: float, t_to: float) -> tuple[np.ndarray, np.ndarray]:

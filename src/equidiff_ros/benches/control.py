@@ -81,7 +81,7 @@ def export_untrained(preset: str, path: Path, workspace) -> Path:
 def approach(client: ControlClient, target: np.ndarray, speed: float = 0.05, settle: float = 0.5) -> None:
     """Stream a straight line from the current TCP position to ``target`` (the node rejects jumps)."""
     start = client.latest_position()
-    t_start = time.time()
+    t_start = client.now()
     length = float(np.linalg.norm(target - start))
     duration = max(length / speed, 0.2)
 
@@ -103,7 +103,7 @@ def run_track_and_hold(
 ) -> dict:
     circle = Circle(radius=radius, speed=speed)
     approach(client, circle.position(0.0))
-    circle = Circle(radius=radius, speed=speed, t0=time.time() + 0.3)
+    circle = Circle(radius=radius, speed=speed, t0=client.now() + 0.3)
     approach_end = circle.t0
 
     def path(t):
@@ -116,14 +116,14 @@ def run_track_and_hold(
     # Hold: the last chunk runs to its final step; the watchdog fires ~watchdog_s after that.
     # Find when the node's executed target froze (it holds the TCP pose it measured then), and
     # measure 2 s from there.
-    time.sleep(max(0.0, last_step + watchdog_s + 2.5 - time.time()))
+    client.sleep_until(last_step + watchdog_s + 2.5)
     e_times, e_positions = client.samples("targets", last_step, last_step + watchdog_s + 2.5)
     hold_start = metrics.settle_time(e_times, e_positions, tol_m=2e-4)
     if hold_start is None:
         hold_start = last_step + watchdog_s
     _h_times, h_positions = client.samples("poses", hold_start, hold_start + 2.0)
     at_rest = wait_for_rest(client, hold_start)
-    _, held_targets = client.samples("targets", hold_start, at_rest or time.time())
+    _, held_targets = client.samples("targets", hold_start, at_rest or client.now())
     rest_position = client.latest_position()
     lag, lag_rms = metrics.tracking_lag(times, positions, circle.position)
     # the commanded TCP at each chunk switch (this process receives its own chunks as franka_node does),
@@ -144,9 +144,9 @@ def run_track_and_hold(
         "command_velocity_reversals": metrics.velocity_reversals(t_times, t_positions, circle.tangent),
         "tracking_samples": len(times),
         "state_hz": round(len(times) / max(t_to - t_from, 1e-9), 1),
-        # how far the arm went on after the hold engaged: on a sim slower than real time the arm is
-        # still catching up with the last command when the (wall-clock) watchdog fires, so this grows
-        # with the machine's load (measured in docs/control.md, `equidiff bench control`)
+        # how far the arm went on after the hold engaged: with franka_node on the wall clock and a sim
+        # slower than real time the arm is still catching up with the last command when the watchdog
+        # fires, so this grows with the machine's load (measured in docs/control.md, `equidiff bench control`)
         "hold_drift_mm": round(metrics.max_drift(h_positions, h_positions[0]) * 1000, 2),
         # what the hold is, whatever the load: one target, and the arm come to rest at it
         "hold_target_span_mm": round(float(np.ptp(held_targets, axis=0).max()) * 1000, 3),
@@ -159,32 +159,32 @@ def run_track_and_hold(
 def wait_for_rest(
     client: ControlClient, since: float, still_m: float = 5e-4, window_s: float = 0.5, timeout_s: float = 10.0
 ) -> float | None:
-    """When (wall clock) the TCP had moved less than ``still_m`` over the last ``window_s``, waiting until
-    ``since + timeout_s``; None if it never did. A sim slower than real time takes more wall time to
-    come to rest, so this waits rather than looking at a fixed window."""
+    """When (the client's clock) the TCP had moved less than ``still_m`` over the last ``window_s``,
+    waiting until ``since + timeout_s``; None if it never did. On the wall clock a sim slower than real
+    time takes longer to come to rest, so this waits rather than looking at a fixed window."""
 
     def still() -> bool:
-        now = time.time()
+        now = client.now()
         _, positions = client.samples("poses", now - window_s, now)
         return now - since >= window_s and len(positions) > 1 and np.ptp(positions, axis=0).max() < still_m
 
     try:
-        client.wait_for(still, max(0.1, since + timeout_s - time.time()), "the arm at rest")
+        client.wait_for(still, max(0.1, since + timeout_s - client.now()), "the arm at rest")
     except TimeoutError:
         return None
-    return time.time()
+    return client.now()
 
 
 def run_workspace(client: ControlClient, workspace, duration: float = 3.0) -> dict:
     start = client.latest_position()
-    t_start = time.time()
+    t_start = client.now()
     direction = np.array([1.0, 0.0, 1.0]) / np.sqrt(2)
 
     def path(t):  # 0.1 m/s diagonally up and out, for long enough to end 25+ cm past the lid
         return start + direction * 0.1 * max(t - t_start, 0.0)
 
     last, _ = client.stream(path, duration, obs_latency=0.0)
-    time.sleep(0.5)
+    client.sleep(0.5)
     times, positions = client.samples("poses", t_start, last + 0.5)
     outside = np.linalg.norm(
         np.maximum(workspace.lower - positions, 0) + np.maximum(positions - workspace.upper, 0), axis=1
@@ -204,7 +204,7 @@ def run_workspace(client: ControlClient, workspace, duration: float = 3.0) -> di
 
 def run_nan(client: ControlClient) -> dict:
     before = int(client.diag_value("franka_node", "nan_rejected", 0))
-    now = time.time_ns()
+    now = client.now_ns()
     here = client.latest_position()
     chunk = PoseChunk(
         now, now + np.arange(4, dtype=np.int64) * 200 * MS, np.stack([down_pose(here)] * 4), np.full(4, 0.08)
@@ -212,7 +212,7 @@ def run_nan(client: ControlClient) -> dict:
     msg = chunk_to_msg(chunk, client.factory, client.lab.base_frame)
     msg.points[2].transforms[0].translation.x = float("nan")
     client.pub_chunk.publish(msg)
-    t_sent = time.time()
+    t_sent = client.now()
     try:
         client.wait_for(
             lambda: int(client.diag_value("franka_node", "nan_rejected", 0)) > before,
@@ -221,7 +221,7 @@ def run_nan(client: ControlClient) -> dict:
         )
     except TimeoutError:
         pass
-    time.sleep(0.3)
+    client.sleep(0.3)
     alive = any(t > t_sent + 0.1 for t, _ in list(client.data.poses)[-50:])
     return {
         "nan_rejected": int(client.diag_value("franka_node", "nan_rejected", 0)) - before,
@@ -270,7 +270,7 @@ def run_latency(
 
     def on_chunk(msg):
         chunk = chunk_from_msg(msg)
-        received.append((time.time(), chunk.stamp_ns / 1e9, chunk.times_ns[-1] / 1e9, len(chunk)))
+        received.append((client.now(), chunk.stamp_ns / 1e9, chunk.times_ns[-1] / 1e9, len(chunk)))
 
     subscription = client.node.create_subscription(MultiDOFJointTrajectory, TOPIC_COMMAND_CHUNK, on_chunk, RELIABLE_QOS)
     log_name = "policy_node.log" if not params else "policy_node_baseline.log"
@@ -287,7 +287,7 @@ def run_latency(
         def publish_voxels():
             period = 1.0 / client.lab.observation_hz
             while not stop.is_set():
-                stamp = time.time_ns()
+                stamp = client.now_ns()
                 stamps.add(stamp / 1e9)
                 client.pub_voxels.publish(
                     grid_to_voxel_msg(grid, ws.lower, ws.voxel_size, stamp, client.lab.base_frame, client.factory)
@@ -298,8 +298,8 @@ def run_latency(
         feeder.start()
         try:
             client.wait_for(lambda: len(client.data.chunks) > n_before, 180.0, "the policy node's first chunk", proc)
-            t_first = time.time()
-            time.sleep(duration)
+            t_first = client.now()
+            client.sleep(duration)
         finally:
             stop.set()
             feeder.join(timeout=2)
