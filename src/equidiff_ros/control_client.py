@@ -130,10 +130,6 @@ class ControlClient:
         """``seconds`` of the graph's time (longer on the wall clock while a loaded sim runs slow)."""
         self.sleep_until(self.now() + seconds)
 
-    def wait_for_clock(self, timeout: float = 30.0) -> None:
-        """On simulated time, until /clock has arrived (at once on the wall clock)."""
-        self.wait_for(lambda: self.now_ns() > 0, timeout, "/clock")
-
     def wait_for(self, predicate, timeout: float, what: str, proc: subprocess.Popen | None = None):
         deadline = time.monotonic() + timeout
         while time.monotonic() < deadline:
