@@ -160,19 +160,21 @@ def wait_for_rest(
     client: ControlClient, since: float, still_m: float = 5e-4, window_s: float = 0.5, timeout_s: float = 10.0
 ) -> float | None:
     """When (the client's clock) the TCP had moved less than ``still_m`` over the last ``window_s``,
-    waiting until ``since + timeout_s``; None if it never did. On the wall clock a sim slower than real
-    time takes longer to come to rest, so this waits rather than looking at a fixed window."""
+    waiting until ``since + timeout_s`` of that clock; None if it never did. On the wall clock a sim
+    slower than real time takes longer to come to rest, so this waits rather than looking at a fixed
+    window; on simulated time ``timeout_s`` is sim seconds, however long they take."""
+    rested: list[float] = []
 
-    def still() -> bool:
+    def rested_or_late() -> bool:
         now = client.now()
         _, positions = client.samples("poses", now - window_s, now)
-        return now - since >= window_s and len(positions) > 1 and np.ptp(positions, axis=0).max() < still_m
+        if now - since >= window_s and len(positions) > 1 and np.ptp(positions, axis=0).max() < still_m:
+            rested.append(now)
+        return bool(rested) or now > since + timeout_s
 
-    try:
-        client.wait_for(still, max(0.1, since + timeout_s - client.now()), "the arm at rest")
-    except TimeoutError:
-        return None
-    return client.now()
+    # the wall-clock bound only catches a clock that stopped (the sim gone): 10 s at a tenth of real time
+    client.wait_for(rested_or_late, 10 * timeout_s, "the arm at rest, or the time limit on the client's clock")
+    return rested[0] if rested else None
 
 
 def run_workspace(client: ControlClient, workspace, duration: float = 3.0) -> dict:
