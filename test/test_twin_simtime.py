@@ -256,3 +256,44 @@ def test_the_stamp_of_a_serialised_message_is_read_without_decoding_it():
         msg = cls()
         msg.header.stamp.sec, msg.header.stamp.nanosec, msg.header.frame_id = 12, 345_000_001, "fr3_link0"
         assert header_stamp_ns_from_cdr(serialize_message(msg)) == 12_345_000_001
+
+
+@pytest.mark.ros
+def test_the_control_clients_sleep_follows_the_sim_clock_and_a_stopped_one_is_a_clear_error(ros_domain):
+    """The client's sleeps are sim seconds, however long they take on the wall clock; a /clock that stops
+    (twin_node gone) ends a sleep with TimeoutError after ``clock_stall_s`` wall seconds, not a hang."""
+    from rosgraph_msgs.msg import Clock
+
+    from equidiff_core.config import default_config_dir, load_lab_config
+    from equidiff_ros.control_client import ControlClient
+
+    lab_path = default_config_dir() / "lab.yaml"
+    client = ControlClient(load_lab_config(lab_path), str(lab_path), use_sim_time=True, clock_stall_s=1.0)
+    clock_pub = client.node.create_publisher(Clock, "/clock", 10)
+    sim_ns = [1_000_000_000]
+    ticking = threading.Event()
+    ticking.set()
+
+    def tick():  # the sim at a tenth of real time: 1 ms of sim time every 10 ms
+        while ticking.is_set() and client.context.ok():
+            clock_pub.publish(Clock(clock=client.factory.time(sim_ns[0])))
+            sim_ns[0] += 1_000_000
+            time.sleep(0.01)
+
+    ticker = threading.Thread(target=tick, daemon=True)
+    try:
+        ticker.start()
+        client.wait_for(lambda: client.now_ns() > 0, 30.0, "the first /clock")
+        start = client.now()
+        wall = time.monotonic()
+        client.sleep(0.05)  # 50 ms of sim time: ~0.5 s of wall time
+        assert client.now() >= start + 0.05 and time.monotonic() - wall > 0.2
+        ticking.clear()
+        ticker.join()
+        wall = time.monotonic()
+        with pytest.raises(TimeoutError, match="simulated clock stood still .* is the twin still running"):
+            client.sleep(1.0)
+        assert 1.0 <= time.monotonic() - wall < 20.0
+    finally:
+        ticking.clear()
+        client.close()

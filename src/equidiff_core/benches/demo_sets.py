@@ -6,10 +6,13 @@ from __future__ import annotations
 from collections.abc import Callable
 from pathlib import Path
 
+from ..bags import find_bags, read_meta
+from ..dataset import find_episodes
+from ..twin.demos import collect_direct
+from ..twin.scene import recorded_block_yaw_range, same_yaw_range
+
 
 def count_demos(folder: Path) -> int:
-    from ..dataset import find_episodes
-
     return len(find_episodes([folder]))
 
 
@@ -24,8 +27,6 @@ def ensure_demos(
     demos_dir = out / "demos"
     if demos_dir.is_dir() and count_demos(demos_dir) >= n:
         return demos_dir, count_demos(demos_dir)
-    from ..twin.demos import collect_direct
-
     results = collect_direct(train_cfg, lab, demos_dir, range(seed, seed + 10 * n), log=log, stop_after=n)
     return demos_dir, sum(1 for _, ok, _ in results if ok)
 
@@ -33,9 +34,6 @@ def ensure_demos(
 def demos_off_range(folder: Path, train_yaw: tuple[float, float]) -> tuple[list[str], int]:
     """Bags in ``folder`` whose metadata records another block yaw range than ``train_yaw``
     ("bag: range"), and how many bags record none (recorded before episodes kept it)."""
-    from ..bags import find_bags, read_meta
-    from ..twin.scene import recorded_block_yaw_range, same_yaw_range
-
     wrong, unrecorded = [], 0
     for bag in find_bags([folder]):
         recorded = recorded_block_yaw_range(read_meta(bag).extra)
@@ -49,8 +47,6 @@ def demos_off_range(folder: Path, train_yaw: tuple[float, float]) -> tuple[list[
 def nested_subsets(folder: Path, counts: list[int]) -> dict[int, list[Path]]:
     """count -> the first ``count`` episodes of ``folder`` in name order (the recording order, seed by seed),
     so each subset holds every smaller one; ValueError when the folder holds fewer than the largest count."""
-    from ..dataset import find_episodes
-
     episodes = sorted(find_episodes([folder]), key=lambda p: p.name)
     if counts and len(episodes) < max(counts):
         raise ValueError(f"{folder} holds {len(episodes)} demos, the bench needs {max(counts)}")

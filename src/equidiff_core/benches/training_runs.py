@@ -22,6 +22,10 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
+from ..inference import export_policy
+from ..models.baseline import baseline_encoder_channels
+from ..training import load_policy_from_checkpoint
+
 # Settings that may differ between a bench's runs: rotation augmentation by design, and what only
 # changes how fast the same recipe ran (device, data path, time budget).
 RECIPE_FREE = ("rotation_aug", "device", "data", "max_minutes")
@@ -270,9 +274,6 @@ def run_policy(run_dir: Path, cache_dir: Path) -> Path:
         raise FileNotFoundError(f"no {policy} or {slim}")
     cached = cache_dir / "policy.pt"
     if not cached.is_file() or cached.stat().st_mtime < slim.stat().st_mtime:
-        from ..inference import export_policy
-        from ..training import load_policy_from_checkpoint
-
         cache_dir.mkdir(parents=True, exist_ok=True)
         export_policy(load_policy_from_checkpoint(slim), cached)
     return cached
@@ -282,8 +283,6 @@ def encoder_summary(policy_name: str, preset) -> str:
     """What a policy's voxel encoder is, for a bench's JSON: EquiDiff's escnn fields or the baseline's width."""
     if policy_name == "equidiff":
         return f"escnn C{preset.group_order}, regular fields {'/'.join(map(str, preset.encoder_channels))}"
-    from ..models.baseline import baseline_encoder_channels
-
     width = f"width {preset.baseline_width}" if preset.baseline_width else "parameter-matched"
     channels = "/".join(map(str, baseline_encoder_channels(preset)))
     return f"plain Conv3d, {width} (channels {channels}), {preset.baseline_init} init"
