@@ -298,7 +298,8 @@ def test_the_operator_flow_drives_the_twin_the_same_way(ros_domain, tmp_path):
                 time.sleep(0.02)
 
         drive([0.5, 0, 0, 0, 0, 0], 1.0)
-        assert state()["policy"].startswith("paused") and "teleop" in state()["policy"]
+        policy_state = state()["policy"]
+        assert policy_state.startswith("paused") and "teleop" in policy_state
         drive([0.0] * 6, 1.0)  # let go: the takeover ends, and the policy stays paused until resumed
         sup.sim_sleep(1.0, stack.check)
         assert state()["policy"].startswith("paused")

@@ -154,6 +154,35 @@ def test_process_group_detects_deaths_and_stops_whole_process_trees(tmp_path):
         pass
 
 
+def test_a_process_group_stops_its_clients_together_and_then_their_server(tmp_path):
+    """twin_node serves franky-sim and the cameras' shared memory: every other node must be gone before
+    it is stopped; those others are stopped together, not one after another."""
+    node = (
+        "import signal, sys, time\n"
+        "def leave(*_):\n"
+        "    print('got', time.monotonic(), flush=True); time.sleep(0.5)\n"
+        "    print('bye', time.monotonic(), flush=True); sys.exit(0)\n"
+        "signal.signal(signal.SIGINT, leave); print('up', flush=True); time.sleep(60)\n"
+    )
+    names = ("server", "client_a", "client_b")
+    with ProcessGroup(dict(os.environ), tmp_path, grace_s=10.0, servers=("server",)) as group:
+        for name in names:
+            group.start(name, [sys.executable, "-c", node])
+        deadline = time.monotonic() + 60
+        while not all("up" in (tmp_path / f"{n}.log").read_text() for n in names) and time.monotonic() < deadline:
+            time.sleep(0.05)
+
+    def stamps(name: str) -> dict[str, float]:
+        return {
+            k: float(v)
+            for k, v in (line.split() for line in (tmp_path / f"{name}.log").read_text().split("\n")[1:] if line)
+        }
+
+    server, a, b = (stamps(n) for n in names)
+    assert server["got"] > max(a["bye"], b["bye"])  # the server outlived its clients
+    assert max(a["got"], b["got"]) < min(a["bye"], b["bye"])  # both clients were told before either left
+
+
 @pytest.mark.ros
 def test_nodes_shut_down_when_their_job_is_killed(ros_domain, tmp_path):
     """A job killed with SIGKILL cannot stop its nodes (their own sessions): they notice and exit."""

@@ -183,8 +183,11 @@ class NodeProcess:
 class ProcessGroup:
     """Start nodes, watch them, stop them all (context manager; also on SIGTERM)."""
 
-    def __init__(self, env: dict[str, str], log_dir: Path, grace_s: float = 6.0):
+    def __init__(self, env: dict[str, str], log_dir: Path, grace_s: float = 6.0, servers: tuple[str, ...] = ()):
+        """``servers``: the names of nodes the others connect to (twin_node: franky-sim and the cameras'
+        shared memory), stopped after all the others."""
         self.env = env
+        self.servers = servers
         self.log_dir = Path(log_dir)
         self.log_dir.mkdir(parents=True, exist_ok=True)
         self.grace_s = grace_s
@@ -226,8 +229,10 @@ class ProcessGroup:
             self.nodes.remove(node)
 
     def stop_all(self) -> None:
-        # one at a time, newest first: a client (franka_node) must leave before its server (twin_node)
-        for node in reversed(self.nodes):
+        # a client (franka_node) must leave before its server (twin_node): the clients together (each takes
+        # up to a second or two to shut down), then the servers one at a time, newest first
+        self._stop([n for n in self.nodes if n.name not in self.servers])
+        for node in reversed([n for n in self.nodes if n.name in self.servers]):
             self._stop([node])
         self.nodes.clear()
 

@@ -18,6 +18,9 @@ from equidiff_core.twin.node_specs import pipeline_specs, twin_node_params
 from equidiff_core.twin.processes import ProcessGroup, composed_command, node_command, private_ros_env
 from equidiff_ros.twin.supervisor import Supervisor, SupervisorError
 
+# pipeline nodes that need nothing of twin_node but its /clock
+CLOCK_ONLY_NODES = ("policy_node", "voxel_node", "recorder_node")
+
 
 class TwinStack:
     """All nodes of the twin as separate processes on a private ROS domain, plus the supervisor.
@@ -96,9 +99,9 @@ class TwinStack:
         for key in ("ROS_DOMAIN_ID", "ROS_AUTOMATIC_DISCOVERY_RANGE", "EQUIDIFF_TWIN_SHM", "MUJOCO_GL"):
             os.environ[key] = env[key]
         self.host = free_loopback_host()
-        self.group = ProcessGroup(env, self.out_dir / "logs").__enter__()
+        self.group = ProcessGroup(env, self.out_dir / "logs", servers=("twin_node",)).__enter__()
         try:
-            self._start_nodes(node_command)
+            self._start_nodes()
         except BaseException:
             self.__exit__(None, None, None)
             raise
@@ -112,7 +115,7 @@ class TwinStack:
             stall_timeout_s=self.stall_timeout_s,
         )
 
-    def _start_nodes(self, node_command) -> None:
+    def _start_nodes(self) -> None:
         g = self.group
         sim = not self.realtime
         clock = f"simulated time (latency budget {self.latency_s * 1000:.0f} ms)" if sim else "real time"
@@ -120,6 +123,28 @@ class TwinStack:
             f"[twin] ROS_DOMAIN_ID={self.domain_id}; franky-sim on {self.host}; {clock}; logs in {g.log_dir}"
             + ("; the pipeline's nodes in one process" if self.composed else "")
         )
+        specs = pipeline_specs(
+            self.lab,
+            self.lab_path,
+            self.out_dir,
+            self.host,
+            self.task,
+            self.record_clouds,
+            sim=not self.realtime,
+            lenient=self.lenient,
+            latency_s=self.latency_s,
+            policy=self.policy,
+            device=self.device,
+            precision=self.precision,
+            torch_threads=self.torch_threads,
+        )
+        # The nodes that need nothing of twin_node but /clock start first, so that their start-up (imports;
+        # policy_node loads and warms up its checkpoint before it waits for /clock) overlaps twin_node's
+        # instead of competing with the running sim's cameras. The others connect to franky-sim or read
+        # the cameras' shared memory: they start once twin_node serves.
+        early = [] if self.composed else [name for name in specs if specs[name][0] in CLOCK_ONLY_NODES]
+        for name in early:
+            self._start_pipeline_node(name, specs.pop(name))
         g.start(
             "twin_node",
             node_command(
@@ -140,21 +165,6 @@ class TwinStack:
         self.sup.wait_for(
             lambda: self.sup.twin_state is not None, self.start_timeout_s, "twin_node's /twin/state", g.check
         )
-        specs = pipeline_specs(
-            self.lab,
-            self.lab_path,
-            self.out_dir,
-            self.host,
-            self.task,
-            self.record_clouds,
-            sim=not self.realtime,
-            lenient=self.lenient,
-            latency_s=self.latency_s,
-            policy=self.policy,
-            device=self.device,
-            precision=self.precision,
-            torch_threads=self.torch_threads,
-        )
         if self.composed:
             g.start(
                 "pipeline",
@@ -167,10 +177,8 @@ class TwinStack:
                 priority=True,
             )  # franka_node is in it
         else:
-            for name, (kind, params, remaps) in specs.items():
-                # its node name, as in the composed process and twin.launch.py
-                named = remaps if name == kind else {**remaps, "__node": name}
-                g.start(name, node_command(kind, params, named), priority=name == "franka_node")
+            for name, spec in specs.items():
+                self._start_pipeline_node(name, spec)
         self.sup.wait_ready(self.start_timeout_s, g.check)
         self.sup.wait_for(
             lambda: self.sup.recorder_status.startswith("idle"), self.start_timeout_s, "recorder_node", g.check
@@ -183,6 +191,11 @@ class TwinStack:
                 g.check,
             )
         self.log("[twin] all nodes up")
+
+    def _start_pipeline_node(self, name: str, spec) -> None:
+        kind, params, remaps = spec
+        named = remaps if name == kind else {**remaps, "__node": name}  # its node name, as in twin.launch.py
+        self.group.start(name, node_command(kind, params, named), priority=name == "franka_node")
 
     def __exit__(self, *exc) -> None:
         try:
