@@ -6,7 +6,7 @@ ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 bash "$ROOT/scripts/setup.sh"
 cd "$ROOT"
 export MUJOCO_GL="${MUJOCO_GL:-egl}"
-# The whole suite takes ~20 min on 2 cores and about three times that beside a running twin (README,
+# The whole suite takes ~20 min on 2 cores and about twice that beside a running twin (README,
 # "Results"); a hang must end in a report, not in CI's own 90 min timeout.
 # SIGINT makes pytest print where it was and the results so far.
 LIMIT_S="${EQUIDIFF_TEST_LIMIT_S:-4500}"

@@ -160,7 +160,7 @@ def test_a_process_group_stops_its_clients_together_and_then_their_server(tmp_pa
     node = (
         "import signal, sys, time\n"
         "def leave(*_):\n"
-        "    print('got', time.monotonic(), flush=True); time.sleep(0.5)\n"
+        "    print('got', time.monotonic(), flush=True); time.sleep(2.0)\n"
         "    print('bye', time.monotonic(), flush=True); sys.exit(0)\n"
         "signal.signal(signal.SIGINT, leave); print('up', flush=True); time.sleep(60)\n"
     )
