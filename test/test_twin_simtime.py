@@ -200,6 +200,9 @@ def test_polled_clock_sleeps_until_its_time_and_stops_on_request():
     assert clock.sleep_until(10, stop) is True and clock.now_ns() == 10
     threading.Timer(0.05, stop.set).start()
     assert clock.sleep_until(20, stop) is False  # a clock that stopped never traps the caller
+    watched = PolledClock(lambda: now[0], stall_s=0.2)  # a client's clock: a dead sim is an error
+    with pytest.raises(TimeoutError, match="stood still at 0.000 s for 0.2 s"):
+        watched.sleep_until(20, threading.Event())
 
 
 @pytest.mark.slow

@@ -41,17 +41,31 @@ class PolledClock:
     rclpy's ``Clock.sleep_until`` cannot be interrupted and never returns if ``/clock``
     stops, so a node could not shut down while the sim is gone; a short wall-clock poll
     (1 ms by default, ~1 % of a core) stays responsive to ``stop`` whatever the clock does.
+
+    ``stall_s``: a sleep raises ``TimeoutError`` once the clock has stood still that many wall
+    seconds. None (the nodes' choice) waits on: a paused sim is not a dead one. A test or bench
+    client sets it, so that a dead sim ends it with an error instead of a hang.
     """
 
-    def __init__(self, now_ns: Callable[[], int], poll_s: float = 0.001):
+    def __init__(self, now_ns: Callable[[], int], poll_s: float = 0.001, stall_s: float | None = None):
         self._now_ns = now_ns
         self.poll_s = poll_s
+        self.stall_s = stall_s
 
     def now_ns(self) -> int:
         return self._now_ns()
 
     def sleep_until(self, t_ns: int, stop: threading.Event) -> bool:
-        while self._now_ns() < t_ns:
+        seen, seen_at = self._now_ns(), time.monotonic()
+        while seen < t_ns:
             if stop.wait(self.poll_s):
                 return False
+            now = self._now_ns()
+            if now != seen:
+                seen, seen_at = now, time.monotonic()
+            elif self.stall_s is not None and time.monotonic() - seen_at > self.stall_s:
+                raise TimeoutError(
+                    f"the simulated clock stood still at {now / 1e9:.3f} s for {self.stall_s:g} s of wall time "
+                    "(no /clock: is the twin still running?)"
+                )
         return not stop.is_set()

@@ -157,8 +157,9 @@ def wait_for_clock(node: Node, log_every_s: float = 5.0) -> None:
         rclpy.spin_once(node, timeout_sec=0.1)
 
 
-def node_clock(node: Node):
-    """The node's time as an ``equidiff_core.clock.Clock`` for loops that tick at a rate."""
+def node_clock(node: Node, stall_s: float | None = None):
+    """The node's time as an ``equidiff_core.clock.Clock`` for loops that tick at a rate; on simulated
+    time ``stall_s`` bounds how long a sleep waits for a clock that stands still (``PolledClock``)."""
     from equidiff_core.clock import PolledClock, WallClock
 
-    return PolledClock(lambda: now_ns(node)) if uses_sim_time(node) else WallClock()
+    return PolledClock(lambda: now_ns(node), stall_s=stall_s) if uses_sim_time(node) else WallClock()

@@ -73,9 +73,7 @@ class ControlClient:
             context=self.context,
             parameter_overrides=[Parameter("use_sim_time", Parameter.Type.BOOL, use_sim_time)],
         )
-        self.clock = node_clock(self.node)
-        self.use_sim_time = use_sim_time
-        self.clock_stall_s = clock_stall_s
+        self.clock = node_clock(self.node, stall_s=clock_stall_s)
         self._stop = threading.Event()  # ends a sleep on simulated time when the client closes
         self.pub_chunk = self.node.create_publisher(MultiDOFJointTrajectory, TOPIC_COMMAND_CHUNK, RELIABLE_QOS)
         self.pub_voxels = self.node.create_publisher(PointCloud2, TOPIC_VOXELS, VOXEL_QOS)
@@ -132,22 +130,7 @@ class ControlClient:
     def sleep_until(self, t: float) -> None:
         """Until ``t`` (s) of the graph's time, or the client closes. On simulated time a clock that
         stands still for ``clock_stall_s`` wall seconds (the sim gone) raises TimeoutError."""
-        t_ns = int(t * 1e9)
-        if not self.use_sim_time:
-            self.clock.sleep_until(t_ns, self._stop)
-            return
-        # PolledClock's own poll, plus a watch on the clock: the nodes' sleeps must outlast a paused sim,
-        # the client's must not outlast a dead one
-        seen, seen_at = self.now_ns(), time.monotonic()
-        while seen < t_ns and not self._stop.wait(self.clock.poll_s):
-            now = self.now_ns()
-            if now != seen:
-                seen, seen_at = now, time.monotonic()
-            elif time.monotonic() - seen_at > self.clock_stall_s:
-                raise TimeoutError(
-                    f"the simulated clock stood still at {now / 1e9:.3f} s for {self.clock_stall_s:g} s of wall "
-                    "time (no /clock: is the twin still running?)"
-                )
+        self.clock.sleep_until(int(t * 1e9), self._stop)
 
     def sleep(self, seconds: float) -> None:
         """``seconds`` of the graph's time (longer on the wall clock while a loaded sim runs slow)."""
