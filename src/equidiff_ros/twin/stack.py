@@ -7,6 +7,7 @@ stopping the processes is ``equidiff_core.twin.processes``.
 from __future__ import annotations
 
 import os
+import time
 from pathlib import Path
 from typing import Self
 
@@ -116,6 +117,7 @@ class TwinStack:
         )
 
     def _start_nodes(self) -> None:
+        started = time.monotonic()
         g = self.group
         sim = not self.realtime
         clock = f"simulated time (latency budget {self.latency_s * 1000:.0f} ms)" if sim else "real time"
@@ -190,7 +192,7 @@ class TwinStack:
                 "policy_node's first chunk (loading and warming up the policy)",
                 g.check,
             )
-        self.log("[twin] all nodes up")
+        self.log(f"[twin] all nodes up in {time.monotonic() - started:.1f} s")
 
     def _start_pipeline_node(self, name: str, spec) -> None:
         kind, params, remaps = spec
@@ -206,8 +208,10 @@ class TwinStack:
                     pass
         finally:
             if self.group is not None:
+                stopping = time.monotonic()
                 self.group.__exit__(*exc)
                 self.group = None
+                self.log(f"[twin] all nodes stopped in {time.monotonic() - stopping:.1f} s")
             if self.sup is not None:
                 self.sup.close()
                 self.sup = None
