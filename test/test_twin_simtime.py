@@ -24,7 +24,8 @@ def test_a_frame_owes_its_chunk_by_its_instant_plus_the_latency_budget():
     ls = Lockstep(LockstepConfig(frame_period_ticks=200, latency_ticks=100))
     ls.frame_taken(200)  # not awaiting yet: nothing is owed
     assert ls.chunk_blocker(10_000) == ""
-    ls.set_awaiting(True)
+    assert ls.await_from(400 * MS)  # an episode starting at t=0.4 s, announced in time
+    assert ls.awaiting
     ls.frame_taken(400)
     assert ls.chunk_blocker(499) == ""  # before t + L the sim runs on
     assert "voxel_node" in ls.chunk_blocker(500)  # at t + L: no grid for the frame either
@@ -40,11 +41,23 @@ def test_a_frame_owes_its_chunk_by_its_instant_plus_the_latency_budget():
     ls.on_skipped(600 * MS)  # the policy will not answer it (no robot state): nothing is owed
     assert ls.chunk_blocker(700) == ""
     ls.frame_taken(800)
-    ls.set_awaiting(False)  # the episode ended: its debts are void
+    ls.await_from(-1)  # the episode ended: its debts are void
+    assert ls.chunk_blocker(10_000) == "" and not ls.awaiting
+    # the next episode starts at t=1.2 s: the frame before it owes nothing, its own frame does
+    assert ls.await_from(1200 * MS)
+    ls.frame_taken(1000)
     assert ls.chunk_blocker(10_000) == ""
+    ls.frame_taken(1200)
+    assert ls.chunk_blocker(1300)
+    ls.await_from(-1)
+    # a start announced after its first frame was taken is late: that frame is not owed
+    ls.frame_taken(1400)
+    assert not ls.await_from(1400 * MS)
+    assert ls.chunk_blocker(10_000) == ""
+    ls.await_from(-1)
     # with L longer than a frame period several chunks are owed; a newer chunk pays older debts too
     slow = Lockstep(LockstepConfig(frame_period_ticks=200, latency_ticks=400))
-    slow.set_awaiting(True)
+    slow.await_from(0)
     slow.frame_taken(600)
     slow.frame_taken(800)
     assert slow.chunk_blocker(999) == "" and slow.chunk_blocker(1000)
@@ -54,7 +67,7 @@ def test_a_frame_owes_its_chunk_by_its_instant_plus_the_latency_budget():
 
 def test_a_stall_gives_up_the_oldest_debt_and_is_recorded():
     ls = Lockstep(LockstepConfig(frame_period_ticks=200, latency_ticks=100))
-    ls.set_awaiting(True)
+    ls.await_from(0)
     ls.frame_taken(200)
     ls.frame_taken(400)
     ls.give_up_oldest("policy stalled")
@@ -106,7 +119,7 @@ def test_sim_waits_for_cameras_and_the_policy_and_keeps_franky_alive_through_a_l
         frame, _, sim_time, stamp = camera.take_frame(0, timeout_s=1.0)
         assert stamp == stuck * MS and sim_time == pytest.approx(stuck / 1000)
         # while an episode awaits the policy: the next frame's chunk is owed by its instant + L
-        sim.lockstep.set_awaiting(True)
+        sim.lockstep.await_from(0)
         frame, *_ = camera.take_frame(frame, timeout_s=5.0)
         owed = sim.tick - sim.tick % 200
         deadline = time.monotonic() + 5.0
@@ -121,7 +134,7 @@ def test_sim_waits_for_cameras_and_the_policy_and_keeps_franky_alive_through_a_l
         assert ticks_after(1.0) > held
         # the episode ends: nothing holds the sim now (awaiting, the next frame's chunk would hold
         # the motion below until the 60 s stall timeout let the sim go on)
-        sim.lockstep.set_awaiting(False)
+        sim.lockstep.await_from(-1)
         # libfranka survived the pause: state reads and a motion work
         with keep_thread_scheduler("libfranka"):
             robot.move(franky.JointMotion(list(robot.state.q)))

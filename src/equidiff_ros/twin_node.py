@@ -12,7 +12,8 @@ Wiring:
       with use_sim_time
   clock ``realtime``: 1 kHz to fixed wall-clock deadlines; no /clock
   /twin/reset (std_msgs/Int64: seed)      -> new object poses drawn from that seed
-  /twin/await_policy (std_msgs/Bool, latched) -> whether frames are owed a policy chunk (sim clock)
+  /twin/await_policy (std_msgs/Int64, latched) -> frames stamped from this sim time (ns) on are owed a
+                                             policy chunk; -1: none (between episodes)
   /franka/command_chunk, /voxels, /policy/skipped -> stamps only: what arrived or will not (the
                                              lockstep, stall reports)
   /twin/scene (std_msgs/String, latched)  <- JSON {seed, block_xy, block_yaw, bowl_xy, bowl_yaw, host, shm}
@@ -39,7 +40,7 @@ from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import PointCloud2
-from std_msgs.msg import Bool, Int64, String
+from std_msgs.msg import Int64, String
 from trajectory_msgs.msg import MultiDOFJointTrajectory
 
 from equidiff_core.config import ConfigError, default_config_dir
@@ -118,7 +119,7 @@ class TwinNode(Node):
         self.create_subscription(Int64, TOPIC_TWIN_RESET, self.on_reset, RELIABLE_QOS)
         if lockstep is not None:
             ls = self.twin.lockstep
-            self.create_subscription(Bool, TOPIC_TWIN_AWAIT_POLICY, lambda m: ls.set_awaiting(m.data), LATCHED_QOS)
+            self.create_subscription(Int64, TOPIC_TWIN_AWAIT_POLICY, self.on_await_policy, LATCHED_QOS)
             # stamps only: read from the serialised messages (a voxel grid is up to 1 MiB)
             self.create_subscription(
                 MultiDOFJointTrajectory,
@@ -151,6 +152,13 @@ class TwinNode(Node):
         msg = Clock()
         msg.clock.sec, msg.clock.nanosec = divmod(int(t_ns), 1_000_000_000)
         self.pub_clock.publish(msg)
+
+    def on_await_policy(self, msg) -> None:
+        if not self.twin.lockstep.await_from(msg.data):
+            self.get_logger().warning(
+                f"an episode starting at t={msg.data / 1e9:.3f} s was announced after its first camera frame: "
+                "frames taken before the announcement are not owed a chunk"
+            )
 
     def on_reset(self, msg) -> None:
         poses = self.twin.reset(int(msg.data))

@@ -6,8 +6,8 @@ machine's timing however slow this one is:
 * **Camera frames.** At each frame instant (a multiple of the cameras' period) the sim
   publishes the state for the cameras and does not step on until every registered camera
   has taken it (``twin.shared_state``). Rendering then overlaps the sim's next steps.
-* **Policy chunks.** While an episode runs (``set_awaiting(True)``), the chunk answering
-  the frame taken at t must reach the robot by t + L, L being the declared latency budget:
+* **Policy chunks.** While an episode runs (``await_from(start)``), the chunk answering
+  each frame taken at t >= start must reach the robot by t + L, L being the declared latency budget:
   the sim does not pass t + L until a chunk stamped t or later has arrived on
   ``/franka/command_chunk``. The twin's supervisor holds each chunk until t + L, so it takes
   effect then, exactly as on a machine whose inference plus transport takes L. An observation
@@ -15,7 +15,9 @@ machine's timing however slow this one is:
   failed inference) owes nothing: on a lab machine the robot would go on without that chunk
   too. Without this a divergence stop deadlocked: franka_node's franky call to restart the
   motion waits for the sim to step, and the sim waited for a chunk the policy could not make
-  without franka_node's state.
+  without franka_node's state. The episode's start is a stamp, not the moment its message
+  arrives, so that the frames the sim owes are exactly those the supervisor's gate passes
+  chunks for; a start that arrives after its first frame was taken is reported as late.
 * **Stalls.** A wait longer than ``stall_timeout_s`` of wall time is a stall: it is recorded
   naming the stage that did not deliver (camera, voxel node, policy) and the wait is given
   up, so a dead or hung node never hangs the sim.
@@ -54,7 +56,8 @@ class Lockstep:
     def __init__(self, config: LockstepConfig):
         self.config = config
         self._lock = threading.Lock()
-        self._awaiting = False
+        self._await_from_ns = -1  # frames stamped from here on are owed a chunk; -1: none (between episodes)
+        self._last_frame_ns = -1
         self._pending: collections.deque[int] = collections.deque()  # frame ticks whose chunk is owed
         self._chunk_stamp_ns = -1  # newest chunk stamp seen on /franka/command_chunk
         self._voxel_stamp_ns = -1  # newest /voxels stamp (only to name a stalled stage)
@@ -62,16 +65,21 @@ class Lockstep:
         self.stalls: list[str] = []
 
     # -- inputs (ROS callbacks, any thread) --------------------------------------------------
-    def set_awaiting(self, on: bool) -> None:
+    def await_from(self, start_ns: int) -> bool:
+        """Owe a chunk to each frame stamped at or after ``start_ns`` (an episode's start); -1: owe
+        nothing (its debts are void). False when the start came late: a frame at or after it was
+        taken already, and is not owed."""
         with self._lock:
-            self._awaiting = bool(on)
-            if not on:
+            self._await_from_ns = int(start_ns)
+            if start_ns < 0:
                 self._pending.clear()
                 self._skipped.clear()
+                return True
+            return self._last_frame_ns < start_ns
 
     @property
     def awaiting(self) -> bool:
-        return self._awaiting
+        return self._await_from_ns >= 0
 
     def on_chunk(self, stamp_ns: int) -> None:
         with self._lock:
@@ -79,7 +87,7 @@ class Lockstep:
 
     def on_skipped(self, stamp_ns: int) -> None:
         with self._lock:
-            if self._awaiting:
+            if self._await_from_ns >= 0:
                 self._skipped.add(int(stamp_ns))
 
     def on_voxels(self, stamp_ns: int) -> None:
@@ -91,9 +99,10 @@ class Lockstep:
         return tick % self.config.frame_period_ticks == 0
 
     def frame_taken(self, tick: int) -> None:
-        """The cameras took the frame of ``tick``: while awaiting, its chunk is owed by tick + L."""
+        """The cameras took the frame of ``tick``: from the episode's start on, its chunk is owed by tick + L."""
         with self._lock:
-            if self._awaiting:
+            self._last_frame_ns = tick * NS_PER_TICK
+            if 0 <= self._await_from_ns <= self._last_frame_ns:
                 self._pending.append(tick)
 
     def chunk_blocker(self, tick: int) -> str:

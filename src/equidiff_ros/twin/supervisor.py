@@ -7,7 +7,8 @@ Used by ``equidiff twin run`` and ``equidiff twin collect`` (not a standalone ex
       reset; on simulated time each chunk is held until its observation's stamp + L (the latency
       budget), so it takes effect when it would on a lab machine with that latency
   /clock -> (simulated time) releases held chunks; the node's own clock follows it
-  /twin/await_policy <- true while the gate is open: twin_node then waits for each frame's chunk
+  /twin/await_policy <- the episode's start (sim ns; -1 after it): twin_node waits for the chunk
+      of each frame from then on
   /policy/episode <- {"seed", "start_ns"} as the gate opens: policy_node samples the episode's
       observations with ``chunk.SamplingSeeds`` for its seed, as the in-process evaluation does
   /franka/command_chunk <- one-point targets at 20 Hz, stamped now, reached 50 ms later: the
@@ -34,7 +35,7 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 from rclpy.signals import SignalHandlerOptions
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import JointState
-from std_msgs.msg import Bool, Int64, String
+from std_msgs.msg import Int64, String
 from std_srvs.srv import Trigger
 from trajectory_msgs.msg import MultiDOFJointTrajectory
 
@@ -69,6 +70,11 @@ from equidiff_core.twin.gate import GateRecord, PolicyGate
 from equidiff_ros.common import LATCHED_QOS, RELIABLE_QOS
 
 NS = NS_PER_S
+# How far ahead of this node's clock an episode starts on simulated time: one frame period of the
+# 5 Hz cameras, at the default max_speed (1x real time) at least 0.2 s of wall time for messages
+# that take milliseconds. A start announced after its first frame would leave that frame outside
+# the lockstep (twin_node warns when it happens).
+EPISODE_LEAD_NS = 200_000_000
 # what a homing error quotes of franka_node's diagnostics (control.controller.ControllerStats):
 # whether the chunks arrived, were refused, and moved the gripper
 FRANKA_COUNTS_REPORTED = ("state", "accepted_chunks", "rejected_chunks", "gripper_commands")
@@ -114,7 +120,7 @@ class Supervisor:
         self.pub_chunk = n.create_publisher(MultiDOFJointTrajectory, TOPIC_COMMAND_CHUNK, RELIABLE_QOS)
         self.pub_reset = n.create_publisher(Int64, TOPIC_TWIN_RESET, RELIABLE_QOS)
         self.pub_recorder = n.create_publisher(String, TOPIC_RECORDER_COMMAND, RELIABLE_QOS)
-        self.pub_await = n.create_publisher(Bool, TOPIC_TWIN_AWAIT_POLICY, LATCHED_QOS)
+        self.pub_await = n.create_publisher(Int64, TOPIC_TWIN_AWAIT_POLICY, LATCHED_QOS)
         self.pub_episode = n.create_publisher(String, TOPIC_POLICY_EPISODE, LATCHED_QOS)
         if self.sim_time:  # best effort: the publisher's QoS (a reliable subscription would not match it)
             n.create_subscription(
@@ -381,18 +387,22 @@ class Supervisor:
         """Start forwarding policy chunks answering observations from now on (and, on simulated
         time, have twin_node wait for each frame's chunk). With ``episode_seed``, policy_node
         answers the first observation from now on at once and samples the episode's observations
-        with that seed's noise (``chunk.SamplingSeeds``)."""
+        with that seed's noise (``chunk.SamplingSeeds``).
+
+        On simulated time the episode starts ``EPISODE_LEAD_NS`` ahead of this node's clock, so that
+        twin_node and policy_node have its start before the sim takes its first frame: the frames
+        twin_node waits for are then exactly those whose chunks the gate passes."""
         with self.lock:
-            start_ns = self.now_ns()
+            start_ns = self.now_ns() + (EPISODE_LEAD_NS if self.sim_time else 0)
+            if self.sim_time:
+                self.pub_await.publish(Int64(data=start_ns))
             if episode_seed is not None:
                 self.pub_episode.publish(String(data=json.dumps({"seed": int(episode_seed), "start_ns": start_ns})))
             self.gate.open(start_ns)
-        if self.sim_time:
-            self.pub_await.publish(Bool(data=True))
 
     def close_gate(self) -> GateRecord:
         """Stop forwarding; what passed: forward times, reasons of dropped observations, end-to-end and inference ms."""
         if self.sim_time:
-            self.pub_await.publish(Bool(data=False))
+            self.pub_await.publish(Int64(data=-1))
         with self.lock:
             return self.gate.close()
