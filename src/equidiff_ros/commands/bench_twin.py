@@ -40,7 +40,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--torch-threads",
         type=int,
         default=None,
-        help="policy_node's torch threads (default: all cores on simulated time)",
+        help="policy_node's torch threads (default 1: beside the sim's cameras more were slower)",
     )
     parser.add_argument("--out", type=Path, default=None, help="output directory (default: a temporary one)")
     parser.add_argument(

@@ -67,9 +67,10 @@ class TwinStack:
         self.policy, self.domain_id, self.task, self.device = policy, domain_id, task, device
         self.precision = precision  # policy_node's
         self.seed, self.record_clouds, self.start_timeout_s = seed, record_clouds, start_timeout_s
-        # On simulated time the sim waits while the policy infers, so inference has the machine to
-        # itself: all cores. On real time everything runs at once, and one thread was faster.
-        self.torch_threads = torch_threads if torch_threads is not None else (1 if realtime else os.cpu_count() or 1)
+        # One thread, policy_node's own default, on either clock: the sim waits only for a chunk that is
+        # due, while the cameras render and the other nodes run beside the inference, and on the 2-core
+        # Xeon two threads made it several times slower beside any other load (docs/results.md).
+        self.torch_threads = torch_threads if torch_threads is not None else 1
         # lenient: accept older observations (CI machines too loaded to hold 5 Hz); never for reported numbers
         self.lenient = lenient
         self.attach = attach  # nodes started by someone else (launch file): only supervise them
