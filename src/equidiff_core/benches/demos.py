@@ -14,6 +14,7 @@ import json
 import os
 import shutil
 import sys
+import textwrap
 import time
 from pathlib import Path
 
@@ -84,9 +85,13 @@ def plot_success(table: dict[str, dict[str, float | None]], episodes: int, path:
     ax.set_ylabel(f"success, % of {episodes} scenes")
     ax.set_ylim(-5, 105)
     ax.grid(alpha=0.3)
-    ax.legend(loc="upper left")
-    ax.set_title("Block in bowl (twin), in-range yaw" + (f"\n{note}" if note else ""), fontsize=9)
-    fig.tight_layout()
+    ax.legend(loc="best")
+    ax.set_title("Block in bowl (twin), in-range yaw", fontsize=9)
+    if note:  # the recipe, wrapped to the figure's width
+        fig.text(0.5, 0.01, "\n".join(textwrap.wrap(note, 80)), ha="center", va="bottom", fontsize=7)
+        fig.tight_layout(rect=(0, 0.06, 1, 1))
+    else:
+        fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path)
     return path
