@@ -175,8 +175,8 @@ class PolicyNode(Node):
                 "e.g. -p checkpoint:=runs/pick/policy.pt)"
             )
         # Loading and warming up on one thread: the node starts beside every other node (in the twin also
-        # beside the sim's cameras), where more threads than idle cores slowed the warm-up several times in a
-        # check by hand. Inference then gets its own.
+        # beside the sim's cameras), where more threads than idle cores are slower (docs/twin.md measures
+        # it for inference). Inference then gets its own.
         inference_threads = int(threads) if threads > 0 else torch.get_num_threads()
         torch.set_num_threads(1)
         t0 = time.perf_counter()

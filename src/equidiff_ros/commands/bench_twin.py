@@ -39,8 +39,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--torch-threads",
         type=int,
-        default=None,
-        help="policy_node's torch threads (default 1: beside the sim's cameras more were slower)",
+        default=1,
+        help="policy_node's torch threads (default 1: beside other load two were slower)",
     )
     parser.add_argument("--out", type=Path, default=None, help="output directory (default: a temporary one)")
     parser.add_argument(

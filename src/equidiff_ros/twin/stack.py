@@ -50,7 +50,7 @@ class TwinStack:
         seed: int = 0,
         record_clouds: bool = False,
         start_timeout_s: float = 120.0,
-        torch_threads: int | None = None,
+        torch_threads: int = 1,
         lenient: bool = False,
         attach: bool = False,
         realtime: bool = False,
@@ -67,10 +67,10 @@ class TwinStack:
         self.policy, self.domain_id, self.task, self.device = policy, domain_id, task, device
         self.precision = precision  # policy_node's
         self.seed, self.record_clouds, self.start_timeout_s = seed, record_clouds, start_timeout_s
-        # One thread, policy_node's own default, on either clock: the sim waits only for a chunk that is
-        # due, while the cameras render and the other nodes run beside the inference, and on the 2-core
-        # Xeon two threads made it several times slower beside any other load (docs/results.md).
-        self.torch_threads = torch_threads if torch_threads is not None else 1
+        # One thread by default, policy_node's own, on either clock: the sim waits only for a chunk that
+        # is due, while the cameras render and the other nodes run beside the inference; beside other load
+        # two threads were 3x slower on the 2-core Xeon (docs/twin.md, equidiff bench twin).
+        self.torch_threads = torch_threads
         # lenient: accept older observations (CI machines too loaded to hold 5 Hz); never for reported numbers
         self.lenient = lenient
         self.attach = attach  # nodes started by someone else (launch file): only supervise them
