@@ -251,6 +251,14 @@ def test_each_gate_stops_bench_generalization_before_the_roll_outs_it_guards(tmp
     result = json.loads(out.out.strip().splitlines()[-1])
     assert out.out.count("in_range] [eval]") == 3 and "unseen] [eval]" not in out.out
     assert result["under_fit"] == [] and "budget is too small" in result["verdict"]
+    # every in-range rate with n and its interval; each baseline paired with EquiDiff on the same scene
+    assert result["equidiff_in_range_success_ci95"] == [0.0, 0.793]  # 0 of 1, Wilson
+    assert set(result["paired"]["in_range"]) == {"equidiff_vs_baseline", "equidiff_vs_baseline_aug"}
+    assert result["paired"]["in_range"]["equidiff_vs_baseline"]["n"] == 1 and result["paired"]["unseen"] == {}
+    # a second call rolls nothing out again: the roll-outs are kept beside each policy
+    assert main(["bench", "generalization", "--trained", str(trained), "--out", str(tmp_path / "ob"), *argv]) == 3
+    again = capsys.readouterr().out
+    assert again.count("roll-outs reused") == 3 and "[eval]" not in again
 
 
 @pytest.mark.slow
@@ -284,6 +292,8 @@ def test_bench_demos_trains_in_parts_then_rolls_out_once_and_plots(tmp_path, cap
     assert [name for name, _ in started] == ["equidiff_1", "equidiff_2", "baseline_1", "baseline_2"]
     assert result["success"] == {"equidiff": {"1": 0.0, "2": 0.0}, "baseline": {"1": 0.0, "2": 0.0}}
     assert result["stages"]["baseline_2"]["episodes"] == 1 and result["under_fit"] == []
+    assert result["success_ci95"]["baseline"]["2"] == [0.0, 0.793] and result["stages"]["baseline_2"]["successes"] == 0
+    assert result["paired"]["1"]["n"] == 1 and result["paired"]["1"]["difference"] == 0.0
     assert result["encoders"]["baseline_1"].startswith("plain Conv3d, width 32")  # tiny's baseline
     assert (out / "success_vs_demos.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     # a third call trains nothing and rolls nothing out again

@@ -33,7 +33,8 @@ def test_summary_json_line_has_the_issue_keys_and_pools_episodes():
     assert REQUIRED_KEYS <= set(d)
     assert d["episodes"] == 2 and d["success_rate"] == 0.5 and d["dropped_cycles"] == 12
     assert d["end_to_end_p95_ms"] == pytest.approx(290.0) and d["inference_p95_ms"] == pytest.approx(99.0)
-    assert "success rate:      50 %" in s.human()
+    assert "success rate:      50 % of 2 (95 % interval 10%-90%)" in s.human()
+    assert d["success_ci95"] == [0.095, 0.905]  # Wilson's interval of 1 of 2
     assert d["clock"] == "sim" and d["representative"] is True
 
 

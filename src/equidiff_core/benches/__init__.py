@@ -13,5 +13,7 @@ parsing plus one call into here).
   steps and their CPU variants); ``cost``: parameters and FLOPs per sample;
   ``throughput``: the two benches' runs, those timings assembled into one JSON line each.
 * ``images``: what recording the cameras' JPEG images costs (bytes and CPU per frame, the twin's renders).
+* ``stats``: every success rate with n and its Wilson 95 % interval; paired comparisons on the same scenes
+  (McNemar's exact test, a paired bootstrap interval of the difference); the scenes a comparison needs.
 * ``safety``: the fault campaign of ``bench safety`` against franky-sim through franka_node (its ROS side passed in).
 """

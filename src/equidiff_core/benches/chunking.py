@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import time
 
+from equidiff_core.benches.stats import paired_comparison, paired_outcomes, success_rate
 from equidiff_core.chunk import AnswerSchedule, steps_to_publish
 from equidiff_core.config import default_config_dir, load_lab_config
 from equidiff_core.inference import load_inference_policy
@@ -17,6 +18,18 @@ from equidiff_core.twin.evaluate import evaluate_policy
 from equidiff_core.twin.shipped import SHIPPED_CHECKPOINT
 
 MODES = ("whole", "replace", "horizon", "rtc")
+
+
+def _paired_against_default(outcomes: dict, latencies, modes) -> dict:
+    """Each mode against the execution horizon (the default) at the same latency, scene by scene."""
+    paired = {}
+    for latency_ms in latencies:
+        base = f"horizon_{latency_ms:g}ms"
+        for mode in modes:
+            label = f"{mode}_{latency_ms:g}ms"
+            if mode != "horizon" and base in outcomes:
+                paired[f"{label}_vs_{base}"] = paired_comparison(*paired_outcomes(outcomes[label], outcomes[base]))
+    return paired
 
 
 def run_chunking_bench(args) -> int:
@@ -37,6 +50,7 @@ def run_chunking_bench(args) -> int:
     available = preset.horizon - preset.n_obs_steps + 1
     seeds = list(range(args.seed, args.seed + args.seeds))
     result: dict = {}
+    outcomes: dict[str, dict[int, bool]] = {}  # label -> seed -> solved, for the paired comparisons
     t0 = time.monotonic()
     rec = DirectRecorder(cfg, lab)
     try:
@@ -68,7 +82,10 @@ def run_chunking_bench(args) -> int:
                     log=lambda s, w=label: print(f"[{w}] {s}", flush=True),
                     **schedule,
                 )
-                result[f"{label}_success"] = round(sum(e.success for e in episodes) / len(episodes), 3)
+                rate = success_rate([e.success for e in episodes])
+                result[f"{label}_success"] = rate["rate"]
+                result[f"{label}_success_ci95"] = rate["ci95"]
+                outcomes[label] = {e.seed: e.success for e in episodes}
                 result[f"{label}_lifted"] = round(sum(e.lifted for e in episodes) / len(episodes), 3)
                 result.update({f"{label}_{key}": value for key, value in probe.summary().items()})
                 result[f"{label}_publish_steps"] = schedule["publish_steps"] or preset.n_action_steps
@@ -76,6 +93,7 @@ def run_chunking_bench(args) -> int:
         rec.close()
     result.update(
         {
+            "paired": _paired_against_default(outcomes, args.latencies, args.modes),
             "execute_steps": k,
             "seeds": seeds,
             "episode_s": args.duration,

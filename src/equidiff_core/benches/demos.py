@@ -9,7 +9,6 @@ parts rolls nothing out twice).
 
 from __future__ import annotations
 
-import hashlib
 import json
 import os
 import shutil
@@ -17,12 +16,14 @@ import sys
 import textwrap
 import time
 from pathlib import Path
+from typing import Any
 
 import torch
 from matplotlib.figure import Figure
 
 from equidiff_core.benches.demo_sets import demos_off_range, ensure_demos, nested_subsets
-from equidiff_core.benches.rollouts import load_rollouts, save_rollouts, summarize
+from equidiff_core.benches.rollouts import cached_rollouts, file_digest, summarize
+from equidiff_core.benches.stats import paired_comparison, paired_outcomes
 from equidiff_core.benches.training_runs import (
     SLIM_CHECKPOINT,
     Recipe,
@@ -53,13 +54,8 @@ def run_name(policy: str, count: int) -> str:
     return f"{policy}_{count}"
 
 
-def file_digest(path: Path) -> str:
-    """sha256 of a policy file: roll-outs saved for one file are not reused for another."""
-    return hashlib.sha256(Path(path).read_bytes()).hexdigest()[:16]
-
-
-def success_table(success: dict[str, float | None], counts: list[int]) -> dict[str, dict[str, float | None]]:
-    """{run name: success} -> {policy: {count (str, for JSON): success}}."""
+def success_table(success: dict[str, Any], counts: list[int]) -> dict[str, dict[str, Any]]:
+    """{run name: value} -> {policy: {count (str, for JSON): value}} (a success rate, or its interval)."""
     return {
         policy: {str(n): success.get(run_name(policy, n)) for n in counts}
         for policy in POLICIES
@@ -67,22 +63,36 @@ def success_table(success: dict[str, float | None], counts: list[int]) -> dict[s
     }
 
 
-def plot_success(table: dict[str, dict[str, float | None]], episodes: int, path: Path, note: str = "") -> Path:
-    """PNG of success (%) against demos, one line per policy (matplotlib's Figure, no pyplot: no display needed)."""
+def plot_success(
+    table: dict[str, dict[str, float | None]],
+    episodes: int,
+    path: Path,
+    note: str = "",
+    intervals: dict[str, dict[str, list | None]] | None = None,
+) -> Path:
+    """PNG of success (%) against demos, one line per policy, each point with its 95 % interval as an error bar
+    when ``intervals`` (same layout as ``table``) has it (matplotlib's Figure, no pyplot: no display needed)."""
     labels = {"equidiff": "EquiDiff (Vo)", "baseline": "DiffPo-C (Vo)"}
     fig = Figure(figsize=(5.0, 3.6), dpi=120)
     ax = fig.subplots()
-    for policy, row in table.items():
+    for i, (policy, row) in enumerate(table.items()):
         points = [(int(n), 100 * rate) for n, rate in row.items() if rate is not None]
         if points:
             xs, ys = zip(*points)
-            ax.plot(xs, ys, marker="o", label=labels.get(policy, policy))
-            for x, y in points:
-                ax.annotate(f"{y:.0f}", (x, y), textcoords="offset points", xytext=(0, 6), ha="center", fontsize=8)
+            # a small horizontal offset per policy keeps overlapping error bars apart
+            shifted = [x * (1 + 0.025 * (i - (len(table) - 1) / 2)) for x in xs]
+            cis = [((intervals or {}).get(policy) or {}).get(str(x)) for x in xs]
+            errors = [
+                [y - 100 * ci[0] if ci else 0.0 for y, ci in zip(ys, cis)],
+                [100 * ci[1] - y if ci else 0.0 for y, ci in zip(ys, cis)],
+            ]
+            ax.errorbar(shifted, ys, yerr=errors, marker="o", capsize=3, label=labels.get(policy, policy))
+            for x, y in zip(shifted, ys):
+                ax.annotate(f"{y:.0f}", (x, y), textcoords="offset points", xytext=(8, 0), va="center", fontsize=8)
     counts = sorted({int(n) for row in table.values() for n in row})
     ax.set_xticks(counts)
     ax.set_xlabel("demos")
-    ax.set_ylabel(f"success, % of {episodes} scenes")
+    ax.set_ylabel(f"success, % of {episodes} scenes (95 % interval)")
     ax.set_ylim(-5, 105)
     ax.grid(alpha=0.3)
     ax.legend(loc="best")
@@ -137,7 +147,7 @@ def evaluate_runs(
         underfit += [run_name(p, n) for p in under_fit(at_n, "equidiff", max_fit_ratio)]
     seeds = in_range_yaw_seeds(cfg, train_yaw, episodes)
     t0 = time.monotonic()
-    summaries, encoders, rec = {}, {}, None
+    summaries, encoders, outcomes, rec = {}, {}, {}, None
     try:
         for name in names:
             policy_file = run_policy(runs_dir / name, out / name)
@@ -147,11 +157,11 @@ def evaluate_runs(
                 "latency_s": latency_s,
                 "policy_sha256_16": file_digest(policy_file),
             }
-            cache = out / name / "rollouts.json"
-            done = load_rollouts(cache, settings)
-            if done is None:
+
+            def roll_out(name=name, policy_file=policy_file) -> list:
+                nonlocal rec
                 rec = rec or DirectRecorder(cfg, lab)
-                done = evaluate_policy(
+                return evaluate_policy(
                     load_inference_policy(policy_file, device=device),
                     cfg,
                     lab,
@@ -159,28 +169,39 @@ def evaluate_runs(
                     max_duration_s,
                     recorder=rec,
                     latency_s=latency_s,
-                    log=lambda s, name=name: log(f"[{name}] {s}"),
+                    log=lambda s: log(f"[{name}] {s}"),
                 )
-                cache.parent.mkdir(parents=True, exist_ok=True)
-                save_rollouts(cache, done, settings)
-            else:
-                log(f"[{name}] {len(done)} roll-outs reused from {cache}")
+
+            done = cached_rollouts(
+                out / name / "rollouts.json", settings, roll_out, lambda s, name=name: log(f"[{name}] {s}")
+            )
             summaries[name] = summarize(done)
+            outcomes[name] = {e.seed: e.success for e in done}
             config, _ = read_policy_file(policy_file)
             encoders[name] = encoder_summary(config["policy"], preset_from_dict(config["preset"]))
     finally:
         if rec is not None:
             rec.close()
     table = success_table({name: s["success"] for name, s in summaries.items()}, counts)
+    intervals = success_table({name: s["success_ci95"] for name, s in summaries.items()}, counts)
+    paired = {
+        str(n): paired_comparison(
+            *paired_outcomes(outcomes[run_name("equidiff", n)], outcomes[run_name("baseline", n)])
+        )
+        for n in counts
+    }
     recipe = recipes[names[0]] or {}
     lrs = {p: (recipes[run_name(p, counts[0])] or {}).get("lr") for p in POLICIES}
     note = ", ".join(
         f"{k} {recipe[k]}" for k in ("preset", "schedule_steps", "batch_size", "noise_repeats", "lr") if k in recipe
     ) + (f" (baseline {lrs['baseline']})" if lrs["baseline"] not in (None, recipe.get("lr")) else "")
-    plot = plot_success(table, episodes, out / "success_vs_demos.png", note)
+    plot = plot_success(table, episodes, out / "success_vs_demos.png", note, intervals)
     return {
         "bench": "demos",
         "success": table,
+        "success_ci95": intervals,
+        # EquiDiff against the baseline at each demo count, on the same scenes: difference, interval, McNemar p
+        "paired": paired,
         "counts": list(counts),
         "eval_episodes": episodes,
         "eval_scenes": f"block yaw inside the demos' range {list(train_yaw)} (modulo 180 deg), seeds {seeds[0]}..",

@@ -20,7 +20,8 @@ from pathlib import Path
 import torch
 
 from equidiff_core.benches.demo_sets import count_demos, demos_off_range, ensure_demos
-from equidiff_core.benches.rollouts import summarize
+from equidiff_core.benches.rollouts import cached_rollouts, file_digest, summarize
+from equidiff_core.benches.stats import paired_comparison, paired_outcomes
 from equidiff_core.benches.training_runs import (
     Recipe,
     TrainRunError,
@@ -191,17 +192,35 @@ def in_range_failures(in_range_success: dict[str, float | None], min_in_range: f
     return [name for name, rate in in_range_success.items() if rate is not None and rate < min_in_range]
 
 
-def _verdict(failed: list[str], success: dict, args) -> str:
+def _paired_against_equidiff(by_policy: dict[str, dict[int, bool]]) -> dict:
+    """EquiDiff against each other policy rolled out on the same scenes (none when EquiDiff was not)."""
+    if "equidiff" not in by_policy:
+        return {}
+    return {
+        f"equidiff_vs_{name}": paired_comparison(*paired_outcomes(by_policy["equidiff"], outcomes))
+        for name, outcomes in by_policy.items()
+        if name != "equidiff"
+    }
+
+
+def _verdict(failed: list[str], success: dict, args, versus_baseline: dict | None = None) -> str:
     if failed:
         return (
             f"{', '.join(failed)} solved fewer than {args.min_in_range:.0%} of the in-range scenes: the training "
             "budget is too small for this comparison (more demos, steps or a GPU); not rolled out at unseen yaw"
         )
     lead = round(100 * (success["equidiff"] - success["baseline"]))
-    return (
+    verdict = (
         f"unseen yaw: equidiff {success['equidiff']:.0%}, baseline {success['baseline']:.0%}, "
-        f"baseline_aug {success['baseline_aug']:.0%} (equidiff {lead:+d} points over baseline)"
+        f"baseline_aug {success['baseline_aug']:.0%} (equidiff {lead:+d} points over baseline"
     )
+    if versus_baseline and versus_baseline["ci95"] is not None:
+        low, high = versus_baseline["ci95"]
+        verdict += (
+            f", 95 % interval {100 * low:+.0f} to {100 * high:+.0f}, McNemar p = {versus_baseline['p_value']:.3g}: "
+            + ("more than chance" if versus_baseline["significant"] else "not distinguishable from chance")
+        )
+    return verdict + ")"
 
 
 def _report_under_fit(args, out: Path, underfit: list, fits: dict, recipes: dict, steps_done: dict, n_demos, minutes):
@@ -266,23 +285,41 @@ def _evaluate(
     in_range = in_range_yaw_seeds(cfg, tuple(args.train_yaw), args.in_range_episodes)
     loaded = {name: load_inference_policy(path, device=args.device) for name, path in policies.items()}
     stages: dict[str, dict] = {name: {} for name in policies}
+    outcomes: dict[str, dict[str, dict[int, bool]]] = {
+        "in_range": {},
+        "unseen": {},
+    }  # label -> policy -> seed -> solved
+    intervals: dict[str, dict[str, list | None]] = {"in_range": {}, "unseen": {}}
     by_yaw: dict[str, dict] = {}
     rec = DirectRecorder(cfg, lab)
 
     def roll_out(name: str, label: str, scene_seeds: list[int]) -> float | None:
         if not scene_seeds:
             return None
-        episodes = evaluate_policy(
-            loaded[name],
-            cfg,
-            lab,
-            scene_seeds,
-            args.max_duration,
-            recorder=rec,
-            latency_s=args.latency_ms / 1000,
-            log=lambda s: print(f"[{name}, {label}] {s}", flush=True),
+        settings = {
+            "seeds": scene_seeds,
+            "max_duration_s": args.max_duration,
+            "latency_s": args.latency_ms / 1000,
+            "policy_sha256_16": file_digest(policies[name]),
+        }
+        episodes = cached_rollouts(
+            out / name / f"rollouts_{label}.json",
+            settings,
+            lambda: evaluate_policy(
+                loaded[name],
+                cfg,
+                lab,
+                scene_seeds,
+                args.max_duration,
+                recorder=rec,
+                latency_s=args.latency_ms / 1000,
+                log=lambda s: print(f"[{name}, {label}] {s}", flush=True),
+            ),
+            lambda s: print(f"[{name}, {label}] {s}", flush=True),
         )
         summary = summarize(episodes)  # how far failures got: reached the block, lifted it, closest TCP
+        outcomes[label][name] = {e.seed: e.success for e in episodes}
+        intervals[label][name] = summary["success_ci95"]
         stages[name][label] = {k: summary[k] for k in ("reached", "lifted", "median_closest_to_block_m")}
         if label == "unseen":
             by_yaw[name] = yaw_breakdown(episodes, tuple(args.train_yaw))
@@ -296,12 +333,17 @@ def _evaluate(
         rec.close()
     t_end = time.monotonic()
     lead = None if failed else round(100 * (success["equidiff"] - success["baseline"]), 1)
+    paired = {label: _paired_against_equidiff(by_policy) for label, by_policy in outcomes.items()}
     result = {
         **{f"{name}_success": success[name] for name in policies},  # unseen yaw; null when not rolled out
+        **{f"{name}_success_ci95": intervals["unseen"].get(name) for name in policies},
         **{f"{name}_in_range_success": in_range_success[name] for name in policies},
+        **{f"{name}_in_range_success_ci95": intervals["in_range"].get(name) for name in policies},
         "failed_in_range": failed,
-        "verdict": _verdict(failed, success, args),
+        "verdict": _verdict(failed, success, args, paired["unseen"].get("equidiff_vs_baseline")),
         "equidiff_minus_baseline_points": lead,
+        # each baseline against EquiDiff on the same scenes: difference, paired 95 % interval, McNemar p
+        "paired": paired,
         # the issue's goal for the twin: EquiDiff >= 80 % at unseen yaw, >= 30 points above the baseline
         "goal_met": None if failed else bool(success["equidiff"] >= 0.8 and lead >= 30),
         "min_in_range": args.min_in_range,

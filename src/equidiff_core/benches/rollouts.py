@@ -4,22 +4,36 @@ a bench finished in parts does not roll a policy out twice."""
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import json
 import statistics
+from collections.abc import Callable
 from pathlib import Path
 
 from ..twin.evaluate import EvalEpisode
+from .stats import success_rate
 
 
 def summarize(episodes: list[EvalEpisode]) -> dict:
-    """Success and how far failures got: the fractions that reached the block and lifted it, the median
+    """Success (with n and its Wilson 95 % interval) and how far failures got: the fractions that reached the block and lifted it, the median
     closest approach of the TCP to the block."""
     if not episodes:
-        return {"episodes": 0, "success": None, "reached": None, "lifted": None, "median_closest_to_block_m": None}
+        return {
+            "episodes": 0,
+            "success": None,
+            "successes": 0,
+            "success_ci95": None,
+            "reached": None,
+            "lifted": None,
+            "median_closest_to_block_m": None,
+        }
     n = len(episodes)
+    rate = success_rate([e.success for e in episodes])
     return {
         "episodes": n,
-        "success": round(sum(e.success for e in episodes) / n, 3),
+        "success": rate["rate"],
+        "successes": rate["successes"],
+        "success_ci95": rate["ci95"],
         "reached": round(sum(e.reached for e in episodes) / n, 3),
         "lifted": round(sum(e.lifted for e in episodes) / n, 3),
         "median_closest_to_block_m": round(statistics.median(e.closest_to_block_m for e in episodes), 3),
@@ -43,3 +57,23 @@ def load_rollouts(path: Path, settings: dict) -> list[EvalEpisode] | None:
         return [EvalEpisode(**e) for e in payload["episodes"]]
     except (OSError, ValueError, KeyError, TypeError):
         return None
+
+
+def file_digest(path: Path) -> str:
+    """sha256 of a policy file: roll-outs saved for one file are not reused for another."""
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()[:16]
+
+
+def cached_rollouts(
+    cache: Path, settings: dict, roll_out: Callable[[], list[EvalEpisode]], log: Callable[[str], None]
+) -> list[EvalEpisode]:
+    """The roll-outs saved in ``cache`` for exactly ``settings``, else ``roll_out()``'s, saved there: a bench
+    finished in parts, or re-run to report its figures anew, rolls no scene out twice."""
+    done = load_rollouts(cache, settings)
+    if done is not None:
+        log(f"{len(done)} roll-outs reused from {cache}")
+        return done
+    done = roll_out()
+    cache.parent.mkdir(parents=True, exist_ok=True)
+    save_rollouts(cache, done, settings)
+    return done

@@ -11,6 +11,7 @@ import time
 import numpy as np
 
 from equidiff_core.bags import BagError, find_bags
+from equidiff_core.benches.stats import success_rate
 from equidiff_core.config import default_config_dir, load_lab_config
 from equidiff_core.inference import load_inference_policy
 from equidiff_core.twin.config import load_twin_config
@@ -54,6 +55,7 @@ def run_evaluation(args) -> int:
             {
                 "episodes": len(episodes),
                 "success": sum(e.success for e in episodes),
+                "success_rate": success_rate([e.success for e in episodes]),
                 "reached": sum(e.reached for e in episodes),
                 "lifted": sum(e.lifted for e in episodes),
                 "successful_seeds": [e.seed for e in episodes if e.success],

@@ -7,6 +7,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from equidiff_core.benches.stats import success_rate
+
 
 @dataclass
 class EpisodeRecord:
@@ -52,6 +54,7 @@ class RunSummary:
         return {
             "episodes": n,
             "success_rate": round(len(ok) / n, 3) if n else 0.0,
+            "success_ci95": success_rate([e.success for e in eps])["ci95"],
             "mean_episode_s": round(float(np.mean([e.duration_s for e in eps])), 2) if n else None,
             "mean_success_episode_s": round(float(np.mean([e.duration_s for e in ok])), 2) if ok else None,
             "inference_p50_ms": percentile(inf, 50),
@@ -77,7 +80,8 @@ class RunSummary:
             "== twin run summary ==",
             f"policy:            {d['policy']}",
             f"episodes:          {d['episodes']}",
-            f"success rate:      {d['success_rate'] * 100:.0f} %",
+            f"success rate:      {d['success_rate'] * 100:.0f} % of {d['episodes']}"
+            + (f" (95 % interval {d['success_ci95'][0]:.0%}-{d['success_ci95'][1]:.0%})" if d["success_ci95"] else ""),
             f"mean episode time: {d['mean_episode_s']} s (successful: {d['mean_success_episode_s']} s)",
             f"inference:         p50 {d['inference_p50_ms']} ms, p95 {d['inference_p95_ms']} ms",
             (
@@ -110,6 +114,7 @@ class RunSummary:
         keys = (
             "episodes",
             "success_rate",
+            "success_ci95",
             "inference_p95_ms",
             "end_to_end_p95_ms",
             "dropped_cycles",
