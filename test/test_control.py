@@ -10,7 +10,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from equidiff_core import geometry
-from equidiff_core.chunk import ChunkError, PoseChunk, chunk_from_msg, chunk_to_msg
+from equidiff_core.chunk import ChunkError, ChunkReason, PoseChunk, chunk_from_msg, chunk_to_msg
 from equidiff_core.config import (
     ConfigError,
     SafetyBox,
@@ -972,3 +972,80 @@ def test_a_new_chunk_continues_the_motion_without_a_standstill_tick():
     assert len(switches) == 9
     for i in switches:
         assert steps[i] == pytest.approx(steady, rel=0.05), (i, steps[i - 2 : i + 2])
+
+
+# --- time cannot disable safety ------------------------------------------------------------
+
+
+def _tick_for(ctl, clock, seconds):
+    """Tick the controller on its own clock for ``seconds``; the first instant it held (None: never)."""
+    period = int(1e9 / ctl.config.control_hz)
+    held_at = None
+    for _ in range(round(seconds * ctl.config.control_hz)):
+        clock.t += period
+        ctl.tick()
+        if ctl.holding and held_at is None:
+            held_at = clock.t
+    return held_at
+
+
+@pytest.mark.parametrize(
+    "stamp_ahead_s, first_step_s",
+    [(86_400.0, 0.0), (0.2, 0.0), (0.0, 86_400.0), (0.0, 2.0)],
+    ids=["stamped-a-day-ahead", "stamped-0.2s-ahead", "first-step-a-day-ahead", "first-step-2s-ahead"],
+)
+def test_a_far_future_chunk_is_refused_and_silence_after_it_still_holds_the_arm(stamp_ahead_s, first_step_s):
+    """A chunk stamped (or starting) far ahead of franka_node's clock is refused and counted, and
+    it does not keep the watchdog quiet: with silence after it, the arm holds watchdog_timeout_s
+    after the last *accepted* chunk's final step, as without it."""
+    ctl, _robot, clock = make_controller()
+    t0 = clock.t
+    accepted = circle_chunk(t0, t0)
+    assert ctl.submit(accepted)
+    clock.t += 100 * MS
+    stamp = clock.t + int(stamp_ahead_s * 1e9)
+    first = stamp + int(first_step_s * 1e9)
+    bad = PoseChunk(stamp, first + np.arange(8, dtype=np.int64) * 200 * MS, accepted.poses, accepted.widths)
+    assert not ctl.submit(bad)
+    assert ctl.stats.future_rejected == 1 and ctl.stats.rejected_chunks == 1
+    assert ctl.stats.last_rejection_reason == "future" and "future" in ctl.stats.last_rejection
+    deadline = int(accepted.times_ns[-1]) + int(ctl.config.safety.watchdog_timeout_s * 1e9)
+    held_at = _tick_for(ctl, clock, (deadline - clock.t) / 1e9 + 0.1)
+    assert held_at is not None and held_at <= deadline + int(1e9 / ctl.config.control_hz)
+    assert ctl.stats.watchdog_holds == 1
+
+
+def test_a_chunk_stamped_slightly_ahead_is_accepted_but_does_not_stretch_the_watchdog():
+    """Within max_future_stamp_s a stamp ahead of our clock (skew between machines) is accepted,
+    and the watchdog counts the chunk's span from its receipt: silence after it holds the arm no
+    later than for the same chunk stamped at its receipt."""
+    config = ControlConfig()
+    ahead = int(config.scheduler.max_future_stamp_s * 1e9)
+    ctl, _robot, clock = make_controller(config)
+    t0 = clock.t
+    chunk = circle_chunk(t0 + ahead, t0 + ahead)
+    assert ctl.submit(chunk)
+    span = int(chunk.times_ns[-1]) - chunk.stamp_ns
+    deadline = t0 + span + int(config.safety.watchdog_timeout_s * 1e9)
+    held_at = _tick_for(ctl, clock, (deadline - t0) / 1e9 + 0.1)
+    assert held_at is not None and held_at <= deadline + int(1e9 / config.control_hz)
+
+
+def test_rejections_are_counted_by_their_reason_not_their_text():
+    ctl, _robot, _clock = make_controller()
+    expected = {
+        "nan": ChunkError("anything at all", ChunkReason.NAN),
+        "stale": ChunkError("no keyword here", ChunkReason.STALE),
+        "future": ChunkError("x", ChunkReason.FUTURE),
+        "malformed": ChunkError("chunk is stale NaN orthonormal"),  # the words no longer decide
+        "cone": SafetyRejection("y", kind="cone"),
+        "jump": SafetyRejection("z"),
+    }
+    for reason, err in expected.items():
+        before = getattr(ctl.stats, f"{reason}_rejected")
+        ctl.record_rejection(err)
+        assert getattr(ctl.stats, f"{reason}_rejected") == before + 1
+        assert ctl.stats.last_rejection_reason == reason
+    assert ctl.stats.rejected_chunks == len(expected)
+    with pytest.raises(ConfigError, match="max_future_stamp_s"):
+        from_dict(ControlConfig, {"scheduler": {"max_future_stamp_s": -1.0}})

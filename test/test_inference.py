@@ -306,8 +306,9 @@ def test_bad_observations_raise(exported):
     vox = np.zeros((4, 64, 64, 64), np.uint8)
     with pytest.raises(PolicyInputError, match="uint8"):
         inf.predict(vox.astype(np.float32), ee)
-    with pytest.raises(PolicyInputError, match="smaller than the crop"):
-        inf.predict(vox[:, :32, :32, :32], ee)
+    for size in (32, 58, 80):  # any grid but the workspace's (64^3) would be cropped from another part of space
+        with pytest.raises(PolicyInputError, match="not this policy's workspace grid"):
+            inf.predict(np.zeros((4, size, size, size), np.uint8), ee)
     with pytest.raises(PolicyInputError, match="NaN"):
         inf.predict(vox, np.full(10, np.nan, np.float32))
     with pytest.raises(PolicyInputError, match=r"\(10,\)"):

@@ -11,6 +11,7 @@ the two functions here.
 from __future__ import annotations
 
 import collections
+import enum
 import math
 from dataclasses import dataclass
 
@@ -22,8 +23,24 @@ from .rosmsg import MsgFactory, stamp_to_ns
 JOINT_NAMES = ("fr3_hand_tcp", "gripper")
 
 
+class ChunkReason(enum.StrEnum):
+    """Why a chunk was refused: franka_node counts each on /diagnostics (``<reason>_rejected``)."""
+
+    MALFORMED = "malformed"  # empty, arrays that disagree, steps out of order, wrong joint names
+    NAN = "nan"  # NaN / inf, a non-unit quaternion, a non-orthonormal rotation
+    STALE = "stale"  # every step in the past, the last one too long ago
+    FUTURE = "future"  # stamped further ahead of the receiver's clock than allowed
+    JUMP = "jump"  # the first live step too far from the robot
+    CONE = "cone"  # a step tilted past the orientation cone
+    HELD = "held"  # the controller refuses chunks: a stop awaits acknowledgement, or it is homing
+
+
 class ChunkError(ValueError):
-    """A chunk that must not be executed (empty, NaN, non-orthonormal, out of order)."""
+    """A chunk that must not be executed; ``reason`` (a ``ChunkReason``) says which kind of refusal."""
+
+    def __init__(self, message: str, reason: ChunkReason = ChunkReason.MALFORMED):
+        super().__init__(message)
+        self.reason = ChunkReason(reason)
 
 
 @dataclass(frozen=True)
@@ -267,19 +284,26 @@ class RealTimeChunking:
 
 
 def validate_chunk(chunk: PoseChunk) -> None:
-    k = len(chunk.times_ns)
+    times, poses, widths = (np.asarray(a) for a in (chunk.times_ns, chunk.poses, chunk.widths))
+    if not isinstance(chunk.stamp_ns, (int, np.integer)) or isinstance(chunk.stamp_ns, bool):
+        raise ChunkError(f"chunk stamp must be integer nanoseconds, got {chunk.stamp_ns!r}")
+    if times.ndim != 1 or not np.issubdtype(times.dtype, np.integer):
+        raise ChunkError(f"chunk step times must be a 1-D integer array, got {times.dtype} {times.shape}")
+    k = len(times)
     if k == 0:
         raise ChunkError("chunk has no steps")
-    if chunk.poses.shape != (k, 4, 4) or chunk.widths.shape != (k,):
-        raise ChunkError(f"chunk arrays disagree: {k} times, poses {chunk.poses.shape}, widths {chunk.widths.shape}")
-    if np.any(np.diff(chunk.times_ns) < 0):
+    if poses.shape != (k, 4, 4) or widths.shape != (k,):
+        raise ChunkError(f"chunk arrays disagree: {k} times, poses {poses.shape}, widths {widths.shape}")
+    if np.any(np.diff(times) < 0):
         raise ChunkError("chunk step times go backwards")
-    if not np.all(np.isfinite(chunk.widths)):
-        raise ChunkError("chunk gripper widths contain NaN or inf")
+    if not np.issubdtype(widths.dtype, np.number) or not np.all(np.isfinite(widths)):
+        raise ChunkError("chunk gripper widths contain NaN or inf", ChunkReason.NAN)
+    if not np.issubdtype(poses.dtype, np.number) or not np.all(np.isfinite(poses)):
+        raise ChunkError("chunk poses contain NaN or inf", ChunkReason.NAN)
     try:
-        geometry.validate_pose(chunk.poses, tol=1e-3)
+        geometry.validate_pose(poses, tol=1e-3)
     except geometry.GeometryError as err:
-        raise ChunkError(f"chunk pose invalid: {err}") from err
+        raise ChunkError(f"chunk pose invalid: {err}", ChunkReason.NAN) from err
 
 
 def chunk_from_actions(actions: np.ndarray, stamp_ns: int, dt_ns: int, start_step: int = 0) -> PoseChunk:
@@ -288,7 +312,7 @@ def chunk_from_actions(actions: np.ndarray, stamp_ns: int, dt_ns: int, start_ste
     try:
         poses, widths = geometry.action_to_pose(actions)
     except geometry.GeometryError as err:
-        raise ChunkError(f"actions invalid: {err}") from err
+        raise ChunkError(f"actions invalid: {err}", ChunkReason.NAN) from err
     times = stamp_ns + (start_step + np.arange(len(actions), dtype=np.int64)) * int(dt_ns)
     return PoseChunk(int(stamp_ns), times, poses, np.asarray(widths, dtype=np.float64))
 
@@ -327,12 +351,16 @@ def chunk_to_msg(chunk: PoseChunk, factory: MsgFactory, frame_id: str):
     )
 
 
-def chunk_from_msg(msg) -> PoseChunk:
-    """MultiDOFJointTrajectory (either flavour) -> validated PoseChunk; raises ChunkError."""
+def chunk_from_msg(msg, frame_id: str | None = None) -> PoseChunk:
+    """MultiDOFJointTrajectory (either flavour) -> validated PoseChunk; raises ChunkError.
+
+    ``joint_names`` must be exactly ``JOINT_NAMES`` and every step must carry one transform per
+    joint; with ``frame_id`` (the receiver's base frame) the header's frame must be it."""
     names = list(msg.joint_names)
-    if names[:1] != [JOINT_NAMES[0]]:
-        raise ChunkError(f"chunk joint_names must start with {JOINT_NAMES[0]!r}, got {names}")
-    has_gripper = JOINT_NAMES[1] in names
+    if names != list(JOINT_NAMES):
+        raise ChunkError(f"chunk joint_names must be {list(JOINT_NAMES)}, got {names}")
+    if frame_id is not None and str(msg.header.frame_id) != frame_id:
+        raise ChunkError(f"chunk frame_id {str(msg.header.frame_id)!r} is not {frame_id!r}")
     if not msg.points:
         raise ChunkError("chunk has no steps")
     stamp = stamp_to_ns(msg.header.stamp)
@@ -340,18 +368,16 @@ def chunk_from_msg(msg) -> PoseChunk:
     for i, point in enumerate(msg.points):
         if len(point.transforms) != len(names):
             raise ChunkError(f"step {i} has {len(point.transforms)} transforms for {len(names)} joints")
-        tcp = point.transforms[0]
+        tcp, gripper = point.transforms
         times.append(stamp + stamp_to_ns(point.time_from_start))
         positions.append([tcp.translation.x, tcp.translation.y, tcp.translation.z])
         quats.append([tcp.rotation.x, tcp.rotation.y, tcp.rotation.z, tcp.rotation.w])
-        widths.append(point.transforms[names.index(JOINT_NAMES[1])].translation.x if has_gripper else np.nan)
+        widths.append(gripper.translation.x)
     quats = np.asarray(quats, dtype=np.float64)
     if not np.all(np.isfinite(quats)) or not np.all(np.isfinite(positions)):
-        raise ChunkError("chunk poses contain NaN or inf")
+        raise ChunkError("chunk poses contain NaN or inf", ChunkReason.NAN)
     norms = np.linalg.norm(quats, axis=1)
     if np.any(np.abs(norms - 1.0) > 1e-3):
-        raise ChunkError(f"chunk quaternions are not unit length (|q| = {norms.round(4).tolist()})")
-    if not has_gripper:
-        raise ChunkError(f"chunk has no {JOINT_NAMES[1]!r} joint")
+        raise ChunkError(f"chunk quaternions are not unit length (|q| = {norms.round(4).tolist()})", ChunkReason.NAN)
     poses = geometry.pose_from_pos_quat(np.asarray(positions), quats)
     return PoseChunk(stamp, np.asarray(times, dtype=np.int64), poses, np.asarray(widths, dtype=np.float64))

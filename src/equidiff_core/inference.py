@@ -229,6 +229,10 @@ class InferencePolicy:
             raise PolicyInputError(f"voxels must be uint8, got {voxels.dtype}")
         if voxels.ndim != 4 or voxels.shape[0] != p.voxel_channels or len(set(voxels.shape[1:])) != 1:
             raise PolicyInputError(f"voxels must be ({p.voxel_channels}, R, R, R), got {voxels.shape}")
+        if voxels.shape[1] != self.workspace.resolution:  # another grid would crop another part of space
+            raise PolicyInputError(
+                f"voxel grid {voxels.shape[1]}^3 is not this policy's workspace grid {self.workspace.resolution}^3"
+            )
         if voxels.shape[1] < p.crop:
             raise PolicyInputError(f"voxel grid {voxels.shape[1]}^3 is smaller than the crop {p.crop}^3")
         if ee.shape != (10,):

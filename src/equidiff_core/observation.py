@@ -20,11 +20,17 @@ import numpy as np
 
 from . import geometry
 
-__all__ = ["STATE_TOLERANCE_S", "StateHistory", "ee_input", "nearest"]
+__all__ = ["MAX_FUTURE_STAMP_S", "STATE_TOLERANCE_S", "StateHistory", "ee_input", "nearest"]
 
 # At franka_node's 100 Hz state rate the nearest state is at most 5 ms away; 50 ms leaves room
 # for a late message without pairing an observation with a state from another moment of motion.
 STATE_TOLERANCE_S = 0.05
+
+# A camera cloud (at voxel_node) or a voxel grid (at policy_node) stamped further ahead of the
+# receiving node's clock than this is refused: a capture is never in the future, and a stamp
+# from a wrong clock would make every age check pass. Room for clock skew between machines and
+# a /clock message in flight on simulated time (the nodes' ``max_future_stamp_s`` parameter).
+MAX_FUTURE_STAMP_S = 0.05
 
 
 def nearest(sorted_ns: np.ndarray, t_ns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -182,7 +182,7 @@ class FrankaNode(Node):
 
     def on_chunk(self, msg) -> None:
         try:
-            chunk = chunk_from_msg(msg)
+            chunk = chunk_from_msg(msg, self.frame)
         except ChunkError as err:
             self.controller.record_rejection(err)
             return

@@ -33,6 +33,12 @@ While paused no chunk is published: each observation is announced on /policy/ski
 The policy runs once per observation, so the cameras set its rate (5 Hz), with no timer
 phase between a grid and its inference; on the twin's simulated time, which pauses until
 this observation's chunk has arrived, a cycle waiting for a timer tick would never come.
+A /voxels message that does not decode to this policy's grid (``pointcloud.voxel_msg_to_grid``
+against lab.yaml's workspace and base frame: layout, frame, resolution, origin, voxel size) is
+skipped as ``malformed_observation``, one stamped more than ``max_future_stamp_s`` ahead of the
+node's clock as ``future_observation``; either way the observation it would have replaced is
+kept. A /franka/ee_pose that is not a valid pose in the base frame, or a /franka/joint_states
+without a finite gripper width, is dropped and counted (``dropped_ee_pose``, ``dropped_joint_states``).
 An observation is skipped (``skipped_<reason>``, with a throttled warning) when a newer one
 replaced it while the worker was busy (``busy``), when it is older than
 ``max_observation_age_s`` (``stale_observation``; a missing camera stops the voxel node's
@@ -66,7 +72,7 @@ docs/control.md), ``rtc_max_gap_m`` (with ``rtc``, a previous chunk whose step f
 observation lies farther than this from the observed TCP was rejected by franka_node and is not
 joined: franka_node's first-step jump limit, control.yaml ``safety.max_first_step_jump_m``, which
 the launchers pass in; default that key's default),
-``torch_threads`` (default 1: on a shared CPU more threads are slower; 0: torch's default),
+``max_future_stamp_s`` (``observation.MAX_FUTURE_STAMP_S``), ``torch_threads`` (default 1: on a shared CPU more threads are slower; 0: torch's default),
 ``start_paused``, ``lab_config``.
 """
 
@@ -108,8 +114,8 @@ from equidiff_core.config import ConfigError
 from equidiff_core.control import SafetyConfig
 from equidiff_core.control.metrics import percentiles_ms
 from equidiff_core.inference import CheckpointError, load_inference_policy
-from equidiff_core.observation import STATE_TOLERANCE_S, StateHistory, ee_input
-from equidiff_core.pointcloud import voxel_msg_to_grid
+from equidiff_core.observation import MAX_FUTURE_STAMP_S, STATE_TOLERANCE_S, StateHistory, ee_input
+from equidiff_core.pointcloud import CloudError, VoxelGridSpec, voxel_msg_to_grid
 from equidiff_core.rosmsg import RclpyFactory, stamp_to_ns
 from equidiff_core.topics import SERVICE_POLICY_ENABLE, TOPIC_POLICY_EPISODE
 from equidiff_ros.common import (
@@ -154,6 +160,7 @@ class PolicyNode(Node):
         rate_hz = declare_number(self, "rate_hz", self.lab.observation_hz)
         self.max_obs_age_ns = int(declare_number(self, "max_observation_age_s", 0.5) * 1e9)
         self.max_state_offset_ns = int(declare_number(self, "max_state_offset_s", STATE_TOLERANCE_S) * 1e9)
+        self.max_future_ns = int(declare_number(self, "max_future_stamp_s", MAX_FUTURE_STAMP_S) * 1e9)
         seed = self.declare_parameter("seed", -1).value
         n_steps = self.declare_parameter("n_action_steps", DEFAULT_N_ACTION_STEPS).value
         execute_steps = self.declare_parameter("execute_steps", DEFAULT_EXECUTE_STEPS).value
@@ -217,8 +224,11 @@ class PolicyNode(Node):
         wait_for_clock(self)
 
         self.factory = RclpyFactory()
+        self._grid_spec = VoxelGridSpec.of(self.policy.workspace, self.lab.base_frame)
         self._lock = threading.Lock()
-        self._voxels = None  # newest PointCloud2
+        self._voxels = None  # newest PointCloud2 that decoded
+        self._grid = None  # its grid
+        self.dropped = collections.Counter()  # robot-state messages dropped, by topic
         self._poses = StateHistory()  # TCP poses, matched to observations as training matches them
         self._widths = StateHistory()  # gripper widths
         self._voxel_error = ""  # voxel node status at ERROR level, if any
@@ -252,6 +262,23 @@ class PolicyNode(Node):
 
     # --- inputs (cheap: callbacks never wait for inference) ---------------------------
     def on_voxels(self, msg) -> None:
+        # Decoded here, not in the worker: a message that is not this policy's grid must not
+        # replace the observation waiting for the worker.
+        stamp = stamp_to_ns(msg.header.stamp)
+        ahead = stamp - now_ns(self)
+        if ahead > self.max_future_ns:
+            return self.skip(
+                "future_observation",
+                f"a voxel grid stamped {ahead / 1e6:.0f} ms ahead of this node's clock "
+                f"(limit {self.max_future_ns / 1e6:.0f} ms): a clock is wrong",
+                stamp,
+            )
+        try:
+            grid = voxel_msg_to_grid(msg, self._grid_spec)
+        except CloudError as err:
+            return self.skip(
+                "malformed_observation", f"a {TOPIC_VOXELS} message is not this policy's grid: {err}", stamp
+            )
         with self._cycle_lock:
             previous = self._voxels
             if self._busy and previous is not None and stamp_to_ns(previous.header.stamp) != self._last_obs_stamp:
@@ -260,23 +287,30 @@ class PolicyNode(Node):
                     "an observation was replaced by a newer one while the previous inference ran",
                     stamp_to_ns(previous.header.stamp),
                 )
-            self._voxels = msg
+            self._voxels, self._grid = msg, grid
         self.start_cycle()
+
+    def drop(self, topic: str, detail: str) -> None:
+        """Count and say (throttled) that a robot-state message was unusable."""
+        self.dropped[topic.strip("/").replace("/", "_").removeprefix("franka_")] += 1
+        self.get_logger().warning(f"dropped a {topic} message: {detail}", throttle_duration_sec=5.0)
 
     def on_pose(self, msg) -> None:
         try:
+            if msg.header.frame_id != self.lab.base_frame:
+                raise geometry.GeometryError(f"frame_id {msg.header.frame_id!r} is not {self.lab.base_frame!r}")
             pose = rosmsg.pose_from_msg(msg)
         except geometry.GeometryError as err:
-            self.get_logger().warning(f"ignoring invalid ee pose: {err}", throttle_duration_sec=5.0)
-            return
+            return self.drop(TOPIC_EE_POSE, str(err))
         with self._lock:
             self._poses.add(stamp_to_ns(msg.header.stamp), pose)
 
     def on_joints(self, msg) -> None:
         width = rosmsg.gripper_width_from_joint_state(msg)
-        if width is not None and np.isfinite(width):
-            with self._lock:
-                self._widths.add(stamp_to_ns(msg.header.stamp), width)
+        if width is None or not np.isfinite(width):
+            return self.drop(TOPIC_JOINT_STATES, f"no finite gripper width (finger joints {width})")
+        with self._lock:
+            self._widths.add(stamp_to_ns(msg.header.stamp), width)
 
     def on_diagnostics(self, msg) -> None:
         for entry in rosmsg.diagnostic_entries(msg):
@@ -386,12 +420,11 @@ class PolicyNode(Node):
             self._busy = True
             self.sizing.answers.answer(stamp)
             self.obs_age_s.append(age / 1e9)
-            self.worker.submit(self.infer, msg, stamp, pose, float(width), self.seeds.next())
+            self.worker.submit(self.infer, self._grid, stamp, pose, float(width), self.seeds.next())
 
-    def infer(self, msg, stamp: int, pose, width: float, seed: int) -> None:
+    def infer(self, grid, stamp: int, pose, width: float, seed: int) -> None:
         try:
             t0 = time.perf_counter()
-            grid = voxel_msg_to_grid(msg, self.policy.workspace.resolution)
             ee = ee_input(pose, width)
             if self.chunking is None:
                 actions = self.policy.predict(grid, ee, seed=seed)
@@ -445,6 +478,7 @@ class PolicyNode(Node):
             "failures": self.failures,
             "state": f"paused {self._paused}" if self._paused else "running",
             **{f"skipped_{k}": v for k, v in self.skipped.items()},
+            **{f"dropped_{k}": v for k, v in self.dropped.items()},
         }
         values.update(
             {

@@ -15,6 +15,14 @@ Teleop takeovers (/teleop/active true..false) during an episode are in the bag a
 its metadata (``extra.interventions``: start-end seconds from the episode start,
 ``extra.intervention_count``).
 
+While recording, the messages a training set is built from are decoded first with the
+decoders their live readers use: a ``/voxels`` message that is not lab.yaml's grid
+(``pointcloud.voxel_msg_to_grid``) or a ``/franka/command_chunk`` that does not decode
+(``chunk.chunk_from_msg``, base frame) is dropped from the bag, counted on /diagnostics
+(``recorder_node``: ``dropped_<topic>_<reason>``, ``last_drop``) and logged (throttled); one
+bad message would otherwise cost the whole episode when the dataset is built. Every other
+topic is written untouched.
+
 State is published latched on /recorder/status (std_msgs/String: ``idle`` or ``recording
 <path>``). Episodes go to ``output_dir/<task>_NNNN`` and are never overwritten; free disk is
 checked before each start and while recording (stop-and-keep when low). A killed recorder's
@@ -27,14 +35,18 @@ on by default), ``record_clouds`` (the three camera clouds, off by default), ``c
 
 from __future__ import annotations
 
+import collections
 import sys
 import threading
 
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.serialization import deserialize_message
 
-from equidiff_core import topics
+from equidiff_core import rosmsg, topics
 from equidiff_core.bags import EpisodeMeta
+from equidiff_core.chunk import ChunkError, chunk_from_msg
+from equidiff_core.pointcloud import CloudError, VoxelGridSpec, voxel_msg_to_grid
 from equidiff_core.recording import (
     EpisodeWriter,
     InterventionLog,
@@ -47,8 +59,11 @@ from equidiff_core.rosmsg import RclpyFactory
 from equidiff_ros.common import (
     LATCHED_QOS,
     RELIABLE_QOS,
+    TOPIC_COMMAND_CHUNK,
+    TOPIC_DIAGNOSTICS,
     TOPIC_RECORDER_COMMAND,
     TOPIC_TELEOP_ACTIVE,
+    TOPIC_VOXELS,
     declare_config,
     declare_lab_config,
     now_ns,
@@ -147,6 +162,14 @@ class RecorderNode(Node):
         self.interventions: InterventionLog | None = None  # of the episode being recorded
         self.teleop_active = False
         self.topics = recorded_topics(self.lab, self.cfg.record_clouds, self.cfg.record_images)
+        grid_spec = VoxelGridSpec.of(self.lab.workspace, self.lab.base_frame)
+        # topic -> a check that raises CloudError / ChunkError (with a ``reason``) on a message the dataset cannot use
+        self.checks = {
+            TOPIC_VOXELS: lambda msg: voxel_msg_to_grid(msg, grid_spec),
+            TOPIC_COMMAND_CHUNK: lambda msg: chunk_from_msg(msg, self.lab.base_frame),
+        }
+        self.dropped: collections.Counter[str] = collections.Counter()
+        self.last_drop = ""
         for topic, msgtype in self.topics.items():
             if topics.camera_of_color_topic(topic) is not None:
                 qos = RECORD_IMAGE_QOS
@@ -169,6 +192,10 @@ class RecorderNode(Node):
         )
         self.create_service(Trigger, topics.SERVICE_RECORDER_DISCARD, self._service(self.discard))
         self.create_timer(0.5, self.housekeeping)
+        self.diag_pub = self.create_publisher(
+            self.factory.cls("diagnostic_msgs/msg/DiagnosticArray"), TOPIC_DIAGNOSTICS, RELIABLE_QOS
+        )
+        self.create_timer(1.0, self.publish_diagnostics)
         self.publish_status()
         self.get_logger().info(f"recording {sorted(self.topics)} to {self.cfg.output_dir}/")
         if keyboard:
@@ -232,12 +259,39 @@ class RecorderNode(Node):
 
     # -- plumbing --------------------------------------------------------------------
     def _writer_cb(self, topic: str, msgtype: str):
+        check = self.checks.get(topic)
+        msg_class = self.factory.cls(msgtype)
+
         def cb(data: bytes):
+            if self.writer is None:
+                return
+            if check is not None:
+                try:
+                    check(deserialize_message(data, msg_class))
+                except (CloudError, ChunkError) as err:
+                    return self._drop(topic, str(err.reason), str(err))
             with self.lock:
                 if self.writer is not None:
                     self.writer.write_raw(topic, now_ns(self), data, msgtype)
 
         return cb
+
+    def _drop(self, topic: str, reason: str, detail: str) -> None:
+        self.dropped[f"{topic.strip('/').replace('/', '_')}_{reason}"] += 1
+        self.last_drop = f"{topic}: {reason}: {detail}"
+        self.get_logger().warning(f"not recording a {topic} message ({reason}): {detail}", throttle_duration_sec=2.0)
+
+    def publish_diagnostics(self) -> None:
+        writer = self.writer
+        values = {f"dropped_{key}": count for key, count in sorted(self.dropped.items())}
+        values.update(recording=writer is not None, last_drop=self.last_drop)
+        level = rosmsg.WARN if self.dropped else rosmsg.OK
+        text = "idle" if writer is None else f"recording {writer.path}"
+        if self.dropped:
+            text += f"; {sum(self.dropped.values())} unusable message(s) not recorded"
+        self.diag_pub.publish(
+            rosmsg.diagnostic_array(self.factory, now_ns(self), self.get_name(), "", level, text, values)
+        )
 
     def _service(self, action):
         def handler(request, response):

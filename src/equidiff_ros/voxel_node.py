@@ -2,14 +2,16 @@
 
 Wiring:
   /cameras/<name>/points (PointCloud2, sensor-data QoS), one subscription per camera
-      -> ``pointcloud.msg_to_cloud`` (malformed: dropped with a throttled warning)
+      -> ``pointcloud.msg_to_cloud`` (malformed, in another frame, stamped more than
+         ``max_future_stamp_s`` ahead, or unusable by the voxeliser: dropped, counted per camera
+         and reason on /diagnostics, with a throttled warning)
       -> ``fusion.CloudFusion`` (one queue per camera; the same rule ``equidiff dataset
          revoxelize`` applies to recorded clouds)
   each cloud, no camera stale: a new complete set within ``slop_s`` (at most ``observation_hz``)?
       -> ``voxels.Voxelizer`` (extrinsics from lab.yaml) -> ``pointcloud.grid_to_voxel_msg``
       -> /voxels (stamp = newest capture stamp of the set)
   timer at ``observation_hz`` -> stale camera? say which (the stale camera has no set to add)
-  timer at 1 Hz -> /diagnostics (``voxel_node``: voxelize_ms, per-camera age_ms, drops)
+  timer at 1 Hz -> /diagnostics (``voxel_node``: voxelize_ms, per-camera age_ms, drops by reason)
 
 A set is fused the moment its last cloud arrives, not on a timer of our own: a timer's phase
 added up to a period of latency, and on the twin's simulated time (which pauses until the
@@ -19,13 +21,15 @@ Parameters: ``lab_config``; ``observation_hz`` (default: lab.yaml); ``slop_s`` (
 spread of a matched set, 0.1); ``stale_after_s`` (a camera whose newest cloud is older than
 this stops the output, 0.5); ``queue_size`` (5); ``check_frame_id`` (drop clouds whose frame
 is not the camera's optical frame, true); ``allow_nan_points`` (drop NaN/inf points instead
-of the whole cloud, false); ``reliable_clouds`` (subscribe reliably, false: true only with
+of the whole cloud, false); ``max_future_stamp_s`` (a cloud stamped further ahead of the
+node's clock is dropped, ``observation.MAX_FUTURE_STAMP_S``); ``reliable_clouds`` (subscribe reliably, false: true only with
 camera_nodes that publish reliably, as the lockstep twin's do); clean-up: ``remove_table`` (false) drops points below ``table_z``
 (m, base frame), ``outlier_neighbors`` (0 = off), ``outlier_std_ratio`` (2.0).
 """
 
 from __future__ import annotations
 
+import collections
 import dataclasses
 import re
 import sys
@@ -36,7 +40,8 @@ from rclpy.node import Node
 from equidiff_core import rosmsg
 from equidiff_core.config import ConfigError
 from equidiff_core.fusion import CloudFusion
-from equidiff_core.pointcloud import CloudError, grid_to_voxel_msg, msg_to_cloud
+from equidiff_core.observation import MAX_FUTURE_STAMP_S
+from equidiff_core.pointcloud import CloudError, CloudReason, grid_to_voxel_msg, msg_to_cloud
 from equidiff_core.voxels import VoxelError, VoxelizerConfig
 from equidiff_ros.common import (
     RELIABLE_QOS,
@@ -74,6 +79,7 @@ class VoxelNode(Node):
         queue_size = param("queue_size", 5)
         self.check_frame_id = param("check_frame_id", True)
         self.allow_nan = param("allow_nan_points", False)
+        self.max_future_ns = int(param("max_future_stamp_s", MAX_FUTURE_STAMP_S) * 1e9)
         reliable = param("reliable_clouds", False)
         remove_table = param("remove_table", False)
         table_z = param("table_z", 0.0)
@@ -97,6 +103,8 @@ class VoxelNode(Node):
             self.factory.cls("diagnostic_msgs/msg/DiagnosticArray"), TOPIC_DIAGNOSTICS, RELIABLE_QOS
         )
         self.dropped = {n: 0 for n in self.names}
+        self.dropped_by_reason: collections.Counter[str] = collections.Counter()
+        self.last_drop = ""
         self._last_warned: dict[tuple[str, ...], float] = {}
         self.published = 0
         self.skipped_stale = 0
@@ -108,18 +116,27 @@ class VoxelNode(Node):
 
     def _on_cloud(self, cam, msg):
         try:
-            cloud = msg_to_cloud(msg, drop_invalid=self.allow_nan)
-            if self.check_frame_id and cloud.frame_id != cam.frame_id:
+            cloud = msg_to_cloud(
+                msg, drop_invalid=self.allow_nan, frame_id=cam.frame_id if self.check_frame_id else None
+            )
+            ahead_ns = cloud.stamp_ns - now_ns(self)
+            if ahead_ns > self.max_future_ns:
                 raise CloudError(
-                    f"frame_id {cloud.frame_id!r} is not {cam.frame_id!r}, whose extrinsics lab.yaml holds"
+                    f"stamped {ahead_ns / 1e6:.0f} ms ahead of this node's clock "
+                    f"(limit {self.max_future_ns / 1e6:.0f} ms)",
+                    CloudReason.FUTURE,
                 )
-        except CloudError as err:
+            self.fusion.add(cam.name, cloud.stamp_ns, cloud)
+            self._publish_new_set()
+        except (CloudError, VoxelError) as err:
+            # VoxelError: a cloud the decoder let through but the voxeliser cannot use; either way
+            # this one message is dropped and the node goes on
+            reason = str(getattr(err, "reason", "voxelizer"))
             self.dropped[cam.name] += 1
+            self.dropped_by_reason[reason] += 1
+            self.last_drop = f"{cam.name}: {reason}: {err}"
             # throttled per camera and kind of problem (numbers removed), so each is seen
-            self._warn((cam.name, re.sub(r"\d+", "#", str(err))), f"dropped a cloud on {cam.topic}: {err}")
-            return
-        self.fusion.add(cam.name, cloud.stamp_ns, cloud)
-        self._publish_new_set()
+            self._warn((cam.name, re.sub(r"\d+", "#", str(err))), f"dropped a cloud on {cam.topic} ({reason}): {err}")
 
     def _stale_cameras(self) -> bool:
         """Say which cameras are stale (and count it); True when any is."""
@@ -181,6 +198,8 @@ class VoxelNode(Node):
         for n in self.names:
             values[f"{n}_age_ms"] = "none" if ages[n] is None else round(ages[n] / 1e6, 1)
             values[f"{n}_dropped"] = self.dropped[n]
+        values.update({f"dropped_{reason}": count for reason, count in sorted(self.dropped_by_reason.items())})
+        values["last_drop"] = self.last_drop
         level = rosmsg.OK if self.state == "publishing" else rosmsg.WARN
         self.diag_pub.publish(rosmsg.diagnostic_array(self.factory, now, NODE_NAME, "", level, self.state, values))
 

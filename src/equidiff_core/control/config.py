@@ -92,12 +92,25 @@ class SchedulerConfig:
     # "go there in lead_s", if its last step is at most this old; older chunks are rejected.
     max_step_age_s: float = 0.25
     lead_s: float = 0.05
+    # A chunk whose header stamp lies further ahead of franka_node's clock than this is refused
+    # (a stamp is an observation's time or "now", never the future): five control periods at
+    # 200 Hz, room for clock skew between machines (chrony on a LAN: well under 1 ms) and for a
+    # /clock message in flight on simulated time. A future stamp must not stretch the watchdog.
+    max_future_stamp_s: float = 0.025
+    # ... and so is one whose first step still to execute lies further ahead than this (it would
+    # creep towards it and keep the watchdog quiet meanwhile): teleop's lead is 0.05 s, a policy
+    # chunk's next step at most its dt (0.2 s).
+    max_first_step_lead_s: float = 1.0
 
     def __post_init__(self):
         if self.interpolation not in ("cubic", "linear"):
             raise ValueError(f"interpolation must be 'cubic' or 'linear', got {self.interpolation!r}")
         if self.lead_s <= 0:
             raise ValueError("lead_s must be positive")
+        if not self.max_future_stamp_s >= 0:
+            raise ValueError(f"max_future_stamp_s must be >= 0, got {self.max_future_stamp_s}")
+        if not self.max_first_step_lead_s > 0:
+            raise ValueError(f"max_first_step_lead_s must be positive, got {self.max_first_step_lead_s}")
 
 
 @dataclass(frozen=True)

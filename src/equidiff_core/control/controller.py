@@ -23,12 +23,12 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from .. import geometry
-from ..chunk import ChunkError, PoseChunk
+from ..chunk import ChunkError, ChunkReason, PoseChunk
 from ..clock import Clock, WallClock
 from ..config import SafetyBox
 from ..robots.base import Robot, RobotError, RobotState
 from .config import ControlConfig
-from .safety import FilteredTarget, SafetyFilter, SafetyRejection, check_chunk
+from .safety import FilteredTarget, SafetyFilter, check_chunk
 from .scheduler import ChunkScheduler, Setpoint
 from .stops import DIVERGENCE_GRACE_S, STOPPED_POLL_HZ, AcknowledgeRefused, HeldState
 
@@ -47,6 +47,8 @@ class ControllerStats:
     jump_rejected: int = 0
     cone_rejected: int = 0  # a step tilted past the orientation cone
     stale_rejected: int = 0
+    future_rejected: int = 0  # stamped further ahead than scheduler.max_future_stamp_s (or a first step too far ahead)
+    malformed_rejected: int = 0  # did not decode: wrong joint names, frame, step layout, times out of order
     watchdog_holds: int = 0
     robot_stops: int = 0  # the robot stopped on its own: user stop, reflex, lost connection, robot error
     recoveries: int = 0  # acknowledged recoveries of a stopped robot
@@ -60,6 +62,7 @@ class ControllerStats:
     acknowledged: int = 0
     ack_refused: int = 0  # acknowledgements refused (user stop still pressed, recovery failed)
     last_rejection: str = ""
+    last_rejection_reason: str = ""  # the last rejection's ChunkReason ("" before the first)
     last_recovery_reason: str = ""  # the robot's own text for its last stop
     last_divergence: str = ""
 
@@ -247,16 +250,23 @@ class Controller(HeldState):
                     self.stats.ack_rejected += 1
                     raise ChunkError(
                         f"awaiting an operator's acknowledgement after: {held} "
-                        f"(franka_node's /franka/acknowledge, `equidiff lab ack`)"
+                        f"(franka_node's /franka/acknowledge, `equidiff lab ack`)",
+                        ChunkReason.HELD,
                     )
                 if now < self._homing_until_ns:
-                    raise ChunkError(f"homing: chunks are refused for {(self._homing_until_ns - now) / 1e9:.1f} s more")
+                    raise ChunkError(
+                        f"homing: chunks are refused for {(self._homing_until_ns - now) / 1e9:.1f} s more",
+                        ChunkReason.HELD,
+                    )
                 live = self.scheduler.live_steps(chunk, now)
                 state = self._state
                 check_chunk(live, None if state is None else state.ee_pose, self.config.safety)
                 current = self._current_setpoint(now)
                 self.scheduler.schedule(live, now, current)
-                self._valid_until_ns = max(now, self.scheduler.end_ns() or now)
+                # Counted from the receipt: a stamp ahead of our clock (within max_future_stamp_s)
+                # must not stretch the time until the watchdog holds the arm.
+                ahead = max(0, int(chunk.stamp_ns) - now)
+                self._valid_until_ns = max(now, (self.scheduler.end_ns() or now) - ahead)
                 self._holding = False
                 self._hold_pose = None
                 self._homing = False
@@ -267,19 +277,22 @@ class Controller(HeldState):
             return False
 
     def record_rejection(self, err: ChunkError) -> None:
-        """Count a chunk that never became a PoseChunk (decode failed) or failed the checks."""
+        """Count a chunk that never became a PoseChunk (decode failed) or failed the checks, by its reason."""
         text = str(err)
+        reason = getattr(err, "reason", ChunkReason.MALFORMED)
         self.stats.rejected_chunks += 1
-        if isinstance(err, SafetyRejection):
-            if err.kind == "cone":
-                self.stats.cone_rejected += 1
-            else:
-                self.stats.jump_rejected += 1
-        elif "stale" in text:
-            self.stats.stale_rejected += 1
-        elif any(word in text for word in ("NaN", "inf", "orthonormal", "unit length", "determinant")):
-            self.stats.nan_rejected += 1
+        counter = {
+            ChunkReason.NAN: "nan_rejected",
+            ChunkReason.STALE: "stale_rejected",
+            ChunkReason.FUTURE: "future_rejected",
+            ChunkReason.JUMP: "jump_rejected",
+            ChunkReason.CONE: "cone_rejected",
+            ChunkReason.MALFORMED: "malformed_rejected",
+        }.get(reason)  # HELD: counted as ack_rejected where it is raised
+        if counter is not None:
+            setattr(self.stats, counter, getattr(self.stats, counter) + 1)
         self.stats.last_rejection = text
+        self.stats.last_rejection_reason = str(reason)
         self.log.warning(f"rejected chunk: {text}; holding the current trajectory")
 
     # --- what an operator sees -------------------------------------------------------------

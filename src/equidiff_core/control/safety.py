@@ -25,7 +25,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from .. import geometry
-from ..chunk import ChunkError, PoseChunk
+from ..chunk import ChunkError, ChunkReason, PoseChunk
 from ..config import SafetyBox
 from .config import SafetyConfig
 
@@ -35,7 +35,7 @@ class SafetyRejection(ChunkError):
     robot) or "cone" (tilted past the orientation cone)."""
 
     def __init__(self, message: str, kind: str = "jump"):
-        super().__init__(message)
+        super().__init__(message, ChunkReason(kind))
         self.kind = kind
 
 
@@ -46,11 +46,11 @@ def check_chunk(chunk: PoseChunk, current_pose: np.ndarray | None, limits: Safet
     measured to what the robot will actually be asked to do next.
     """
     if not np.all(np.isfinite(chunk.poses)) or not np.all(np.isfinite(chunk.widths)):
-        raise ChunkError("chunk contains NaN or inf")
+        raise ChunkError("chunk contains NaN or inf", ChunkReason.NAN)
     try:
         geometry.validate_pose(chunk.poses, tol=limits.orthonormal_tol)
     except geometry.GeometryError as err:
-        raise ChunkError(f"chunk pose invalid: {err}") from err
+        raise ChunkError(f"chunk pose invalid: {err}", ChunkReason.NAN) from err
     tilts = [geometry.tilt_angle(T[:3, :3]) for T in chunk.poses]
     worst = int(np.argmax(tilts))
     if tilts[worst] > limits.max_tilt_rad:

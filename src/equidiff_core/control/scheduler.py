@@ -23,7 +23,7 @@ from scipy.interpolate import CubicHermiteSpline
 from scipy.spatial.transform import Rotation, Slerp
 
 from .. import geometry
-from ..chunk import ChunkError, PoseChunk
+from ..chunk import ChunkError, ChunkReason, PoseChunk
 from .config import SchedulerConfig
 
 NS = 1e9
@@ -63,20 +63,36 @@ class ChunkScheduler:
         self._times = None
 
     def live_steps(self, chunk: PoseChunk, now_ns: int) -> PoseChunk:
-        """The steps of ``chunk`` still to execute; raise ChunkError if it is stale.
+        """The steps of ``chunk`` still to execute; raise ChunkError if it is stale, stamped more
+        than ``max_future_stamp_s`` ahead of ``now_ns``, or its first live step lies more than
+        ``max_first_step_lead_s`` ahead.
 
         A chunk whose steps all lie in the past but whose last step is recent (a teleop target
         stamped 'now', a policy chunk that arrived late) becomes one step at now + lead_s.
         """
         cfg = self.config
+        ahead_s = (chunk.stamp_ns - now_ns) / NS
+        if ahead_s > cfg.max_future_stamp_s:
+            raise ChunkError(
+                f"chunk is stamped {ahead_s * 1000:.0f} ms in the future "
+                f"(limit {cfg.max_future_stamp_s * 1000:.0f} ms): a clock is wrong",
+                ChunkReason.FUTURE,
+            )
         live = chunk.after(now_ns + int(cfg.drop_margin_s * NS))
         if live is not None:
+            lead_s = (int(live.times_ns[0]) - now_ns) / NS
+            if lead_s > cfg.max_first_step_lead_s:
+                raise ChunkError(
+                    f"chunk's first step is {lead_s:.3g} s in the future (limit {cfg.max_first_step_lead_s:.3g} s)",
+                    ChunkReason.FUTURE,
+                )
             return live
         age_s = (now_ns - int(chunk.times_ns[-1])) / NS
         if age_s > cfg.max_step_age_s:
             raise ChunkError(
                 f"chunk is stale: its last step was {age_s * 1000:.0f} ms ago "
-                f"(limit {cfg.max_step_age_s * 1000:.0f} ms)"
+                f"(limit {cfg.max_step_age_s * 1000:.0f} ms)",
+                ChunkReason.STALE,
             )
         return PoseChunk(
             chunk.stamp_ns,

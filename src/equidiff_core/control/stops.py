@@ -28,7 +28,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
 from .. import geometry
-from ..chunk import ChunkError, PoseChunk
+from ..chunk import ChunkError, ChunkReason, PoseChunk
 from ..robots.base import STOP_KINDS, RobotError, RobotStopped, UserStopPressed
 
 # How often a stopped robot's state is read (the user stop released? the arm's pose for the
@@ -157,7 +157,7 @@ class HeldState:
         with self._lock:
             held = self._fault or self.stats.awaiting_ack or (self._stopped and f"the robot stopped ({self._stopped})")
             if held:
-                raise ChunkError(f"awaiting an operator's acknowledgement after: {held}")
+                raise ChunkError(f"awaiting an operator's acknowledgement after: {held}", ChunkReason.HELD)
             start = (self._state or self._read_state()).ee_pose
             goal, cfg = self.home_pose, self.config
             distance = float(np.linalg.norm(goal[:3, 3] - start[:3, 3]))
