@@ -120,4 +120,6 @@ def test_distinct_names_from_the_common_folder(tmp_path):
     assert distinct_names([day1, day2]) == ["day1__pick_0000", "day2__pick_0000"]
     assert distinct_names([day1, tmp_path / "day1" / "pick_0001"]) == ["pick_0000", "pick_0001"]
     assert distinct_names([day1]) == ["pick_0000"]
+    day2_other = tmp_path / "day2" / "pick_0001"
+    assert distinct_names([day1, day2, day2_other]) == ["day1__pick_0000", "day2__pick_0000", "pick_0001"]
     assert unique_paths([day1, tmp_path / "day1" / ".." / "day1" / "pick_0000", day2]) == [day1, day2]

@@ -17,6 +17,7 @@ from __future__ import annotations
 import os
 import shutil
 import tempfile
+from collections import Counter
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -83,14 +84,14 @@ def staged_output(target: str | Path, *, force: bool = False) -> Iterator[Staged
 
 
 def distinct_names(paths: list[Path], separator: str = "__") -> list[str]:
-    """One output name per input path, all different: the path relative to the inputs' common folder, its
-    parts joined by ``separator`` (``day1/pick_0000``, ``day2/pick_0000`` -> ``day1__pick_0000``, ...).
-    Inputs in one folder keep their own names. Give each path once: one path twice has one name."""
+    """One output name per input path: its own name, or, where inputs share a name, the path relative to
+    the common folder of those, its parts joined by ``separator`` (``day1/pick_0000``, ``day2/pick_0000``
+    -> ``day1__pick_0000``, ``day2__pick_0000``). Give each path once: one path twice has one name."""
     resolved = [Path(os.path.abspath(p)) for p in paths]
-    if len(resolved) < 2:
-        return [p.name for p in resolved]
-    root = Path(os.path.commonpath([p.parent for p in resolved]))
-    return [separator.join(p.relative_to(root).parts) for p in resolved]
+    uses = Counter(p.name for p in resolved)
+    shared = [p.parent for p in resolved if uses[p.name] > 1]
+    root = Path(os.path.commonpath(shared)) if shared else None
+    return [separator.join(p.relative_to(root).parts) if uses[p.name] > 1 else p.name for p in resolved]
 
 
 def unique_paths(paths: list[Path]) -> list[Path]:
