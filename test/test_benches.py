@@ -168,16 +168,13 @@ def test_recipe_resumes_an_interrupted_run(tmp_path):
         "--val-fraction 0",
     ):
         assert part in text
-    assert "--resume" not in cmd
+    assert cmd[-1] == "--resume"  # the bench's run folder holds its train.log: a new run starts, a stopped one goes on
     assert "--lr 0.0005" in text and "--lr 0.001" in " ".join(
         dataclasses.replace(recipe, baseline_lr=1e-3).train_command("baseline", "none", bags, tmp_path / "run")
     )
     assert "--lr 0.0005" in " ".join(
         dataclasses.replace(recipe, baseline_lr=1e-3).train_command("equidiff", "none", bags, tmp_path / "run")
     )
-    (tmp_path / "run").mkdir()
-    (tmp_path / "run" / "last.ckpt").write_bytes(b"")
-    assert cmd + ["--resume"] == recipe.train_command("baseline", "none", bags, tmp_path / "run")
 
 
 def test_nested_demo_subsets(tmp_path):

@@ -347,6 +347,7 @@ def test_calibrated_lab_file_loads_and_is_never_overwritten_silently(tmp_path):
     _, backup = write_calibrated_lab(LAB_PATH, {"cam_front": np.eye(4)}, out, force=True)
     assert backup is not None and backup.read_text() == before
     assert load_lab_config(out).camera("cam_front").extrinsics.translation == (0.0, 0.0, 0.0)
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted([out.name, backup.name])  # no temporary left
     with pytest.raises(CalibrationError, match="no camera"):
         write_calibrated_lab(LAB_PATH, {"cam_nowhere": np.eye(4)}, tmp_path / "other.yaml")
     assert not (tmp_path / "other.yaml").exists()

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -201,6 +202,49 @@ def test_packed_episode_decoded_differently_or_damaged_is_refused(bag, tmp_path)
     episodes, skipped = dataset_mod.load_episodes([tmp_path])
     assert len(episodes) == 1 and [p.name for p, _ in skipped] == [broken.name]
     assert "not a readable packed episode" in skipped[0][1]
+
+
+def _pack(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, "-m", "equidiff_ros.cli", "dataset", "pack", *args],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+
+
+def _tree(folder: Path) -> dict[str, bytes]:
+    return {str(p.relative_to(folder)): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+def test_pack_names_same_named_bags_apart_and_never_clobbers(bag, tmp_path):
+    """Two days' ``ep_0000`` give two files; an existing folder is refused unless --force, and a pack that
+    produces nothing leaves the old folder as it was and no temporary behind."""
+    day1, day2 = tmp_path / "day1" / bag.name, tmp_path / "day2" / bag.name
+    shutil.copytree(bag, day1)
+    shutil.copytree(bag, day2)
+    out = tmp_path / "packed"
+    first = _pack(str(tmp_path / "day1"), str(tmp_path / "day2"), str(day1), "--out", str(out))
+    assert first.returncode == 0, first.stderr
+    names = sorted(p.name for p in out.iterdir())
+    assert names == [f"day1__ep_0000{dataset_mod.PACKED_SUFFIX}", f"day2__ep_0000{dataset_mod.PACKED_SUFFIX}"]
+    assert json.loads(first.stdout.splitlines()[-1])["packed"] == 2  # day1 named twice is packed once
+    before = _tree(out)
+
+    again = _pack(str(day1), "--out", str(out))
+    assert again.returncode == 2 and f"{out} exists; not replacing it" in again.stderr and "--force" in again.stderr
+    assert "Traceback" not in again.stderr
+    assert _tree(out) == before
+
+    nothing = _pack(str(tmp_path / "missing"), "--out", str(out), "--force")
+    assert nothing.returncode == 1 and json.loads(nothing.stdout.splitlines()[-1])["packed"] == 0
+    assert _tree(out) == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["day1", "day2", "packed"]  # no temporary left
+
+    forced = _pack(str(day2), "--out", str(out), "--force")
+    assert forced.returncode == 0, forced.stderr
+    assert [p.name for p in out.iterdir()] == [f"ep_0000{dataset_mod.PACKED_SUFFIX}"]  # replaced, not merged
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["day1", "day2", "packed"]
 
 
 def test_split_holds_out_whole_episodes_deterministically():

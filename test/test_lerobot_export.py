@@ -23,6 +23,7 @@ from equidiff_core.bags import read_episode
 from equidiff_core.cameras.color import image_from_msg
 from equidiff_core.dataset import DatasetConfig, load_episode_arrays
 from equidiff_core.recording import EpisodeWriter, RecordingConfig
+from equidiff_core.rosmsg import rosbags_factory
 from equidiff_core.topics import camera_color_topic
 from equidiff_ros.cli import main as cli
 
@@ -118,7 +119,10 @@ def test_export_options_and_refusals(bags, tmp_path, capsys):
     info = json.loads((out / "meta" / "info.json").read_text())
     assert "observation.voxels" not in info["features"] and info["video_path"] is None
     assert not (out / "videos").exists()
+    before = _tree(out)
     assert cli(["export", "lerobot", str(bags[1]), "--out", str(out)]) == 2  # never overwrites
+    assert f"{out} exists; not replacing it" in capsys.readouterr().err
+    assert _tree(out) == before
 
     # a bag recorded without images beside one with them: refused, naming the bag and the way out
     plain = write_synthetic_episode(
@@ -141,6 +145,45 @@ def test_export_options_and_refusals(bags, tmp_path, capsys):
     # bags without images at all: exported without image features
     assert cli(["export", "lerobot", str(plain), "--out", str(tmp_path / "old"), "--no-voxels"]) == 0
     assert json.loads((tmp_path / "old" / "meta" / "info.json").read_text())["video_path"] is None
+
+
+def _tree(folder: Path) -> dict[str, bytes]:
+    return {p.relative_to(folder).as_posix(): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+def test_a_corrupt_jpeg_half_way_leaves_nothing_and_deletes_nothing(bags, tmp_path, capsys):
+    """The second bag's 6th cam_right image is not a JPEG: the first episode is already encoded when the
+    export fails. Nothing is left behind (no dataset, no temporary), an existing dataset stays as it was
+    even with --force, and the rerun without the bad bag is not blocked."""
+    bad = tmp_path / "bad_0000"
+    typestore = rosbags_factory().typestore
+    images = 0
+    with Reader(bags[1]) as reader, EpisodeWriter(bad, config=CFG) as writer:
+        for conn, t, raw in reader.messages():
+            data = raw
+            if conn.topic == camera_color_topic("cam_right"):
+                images += 1
+                if images == 6:
+                    msg = typestore.deserialize_cdr(raw, conn.msgtype)
+                    msg.data = np.frombuffer(b"not a jpeg at all", np.uint8)
+                    data = typestore.serialize_cdr(msg, conn.msgtype)
+            writer.write_raw(conn.topic, t, data, conn.msgtype)
+    out = tmp_path / "dataset"
+    args = ["export", "lerobot", str(bags[1]), str(bad), "--no-voxels", "--out", str(out)]
+    capsys.readouterr()
+    assert cli(args) == 2
+    err = capsys.readouterr().err
+    assert "bad_0000: cam_right: frame 5" in err and "Traceback" not in err, err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["bad_0000"]  # no half-written dataset, no temporary
+
+    assert cli(["export", "lerobot", str(bags[1]), "--no-voxels", "--no-images", "--out", str(out)]) == 0
+    before = _tree(out)
+    assert cli([*args, "--force"]) == 2
+    assert _tree(out) == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["bad_0000", "dataset"]
+    assert cli(["export", "lerobot", str(bags[1]), "--no-voxels", "--out", str(out), "--force"]) == 0
+    assert json.loads((out / "meta" / "info.json").read_text())["video_path"] is not None  # replaced
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["bad_0000", "dataset"]
 
 
 @pytest.mark.slow

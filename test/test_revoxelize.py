@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import dataclasses
+import shutil
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -215,8 +217,28 @@ def test_revoxelize_command_writes_one_bag_per_input(tmp_path, clouds, capsys):
     assert sorted(p.name for p in (tmp_path / "new").iterdir()) == ["a", "b"]
     out = capsys.readouterr().out
     assert "a: 2 grids" in out and "b: 3 grids" in out
+    new = tmp_path / "new"
+    before = _tree(new)
+    assert main(["dataset", "revoxelize", str(tmp_path / "bags"), "--lab", str(lab_yaml), "--out", str(new)]) == 2
+    assert f"{new} exists; not replacing it" in capsys.readouterr().err  # never overwrites
+    assert _tree(new) == before
+    # every bag fails (no clouds): even with --force the old folder stays, and no temporary is left
+    _record(tmp_path / "plain" / "a", LAB, clouds, n_sets=2, with_clouds=False)
     assert (
-        main(["dataset", "revoxelize", str(tmp_path / "bags"), "--lab", str(lab_yaml), "--out", str(tmp_path / "new")])
+        main(["dataset", "revoxelize", str(tmp_path / "plain"), "--lab", str(lab_yaml), "--out", str(new), "--force"])
         == 1
-    )  # never overwrites
-    assert "already exists" in capsys.readouterr().err
+    )
+    assert "no recorded clouds" in capsys.readouterr().err
+    assert _tree(new) == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["bags", "new", "plain"]
+    # two days' same-named bags land apart; --force replaces the folder whole
+    shutil.copytree(tmp_path / "bags" / "a", tmp_path / "day1" / "a")
+    shutil.copytree(tmp_path / "bags" / "a", tmp_path / "day2" / "a")
+    days = [str(tmp_path / "day1"), str(tmp_path / "day2")]
+    assert main(["dataset", "revoxelize", *days, "--lab", str(lab_yaml), "--out", str(new), "--force"]) == 0
+    assert sorted(p.name for p in new.iterdir()) == ["day1__a", "day2__a"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["bags", "day1", "day2", "new", "plain"]
+
+
+def _tree(folder: Path) -> dict[str, bytes]:
+    return {p.relative_to(folder).as_posix(): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()}

@@ -102,9 +102,23 @@ def test_train_writes_a_loadable_policy_and_plot(bags, tmp_path, capsys):
     assert len(losses(repeats)) == len(losses(out)) and losses(repeats) != losses(out)
     assert train(bags, tmp_path / "none", "--noise-repeats", "0") == 2
     assert "noise_repeats must be >= 1" in capsys.readouterr().err
+    assert not (tmp_path / "none").exists()  # a run that never started leaves nothing to block the rerun
+
+    # --force replaces a run only once the new one is complete: a failed one leaves it as it was
+    before = _tree(repeats)
+    assert train(bags, repeats, "--noise-repeats", "0", "--force") == 2
+    assert _tree(repeats) == before
+    capsys.readouterr()
+    assert train(bags, repeats, "--force") == 0
+    assert losses(repeats) == losses(again)
+    assert json.loads(capsys.readouterr().out.strip().splitlines()[-1])["policy"] == str(repeats / "policy.pt")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["again", "repeats", "run"]  # no temporary left
 
     # an existing run is never silently restarted; --resume continues it from its checkpoint and split
+    before = _tree(out)
     assert train(bags, out) == 2
+    assert "pass --resume to continue its run, --force to replace it" in capsys.readouterr().err
+    assert _tree(out) == before
     assert (
         cli(
             [
@@ -156,6 +170,10 @@ def test_train_writes_a_loadable_policy_and_plot(bags, tmp_path, capsys):
     assert load_inference_policy(tmp_path / "budget" / "policy.pt").preset.rotation_aug == "none"
 
 
+def _tree(folder: Path) -> dict[str, bytes]:
+    return {p.relative_to(folder).as_posix(): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
 def test_train_reports_missing_data(tmp_path, capsys):
     assert (
         cli(
@@ -175,3 +193,4 @@ def test_train_reports_missing_data(tmp_path, capsys):
     )
     err = capsys.readouterr().err
     assert "no such bag" in err and "no usable episodes" in err
+    assert not (tmp_path / "run").exists()  # nothing left that would refuse the rerun

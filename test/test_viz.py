@@ -6,6 +6,7 @@ expected count and time range below comes from what was written, not from the co
 
 from __future__ import annotations
 
+import shutil
 import subprocess
 import sys
 import time
@@ -438,6 +439,34 @@ def test_cli_converts_bags(episode_bags, tmp_path):
     assert (tmp_path / "dir" / "episode_0000.rrd").is_file()
     assert main(["viz", str(tmp_path / "nope"), "-o", str(tmp_path / "x.rrd")]) == 1
     assert not (tmp_path / "x.rrd").exists()
+
+
+def test_cli_never_clobbers_an_output(episode_bags, tmp_path, capsys):
+    """An existing -o is refused (left byte-identical) unless --force; a conversion that fails leaves it
+    as it was and no temporary beside it; per-episode names same-named bags apart."""
+    from equidiff_ros.cli import main
+
+    bags, _ = episode_bags
+    out = tmp_path / "kept.rrd"
+    out.write_bytes(b"an earlier recording")
+    assert main(["viz", str(bags[0]), "-o", str(out)]) == 2
+    assert f"{out} exists; not replacing it" in capsys.readouterr().err
+    assert main(["viz", str(tmp_path / "nope"), "-o", str(out), "--force"]) == 1  # nothing converted
+    assert out.read_bytes() == b"an earlier recording"
+    assert main(["viz", str(bags[0]), "-o", str(out), "--force"]) == 0
+    assert summarize_rrd(out)["world/voxels"].rows == N_OBS
+
+    day1, day2 = tmp_path / "day1" / bags[0].name, tmp_path / "day2" / bags[0].name
+    shutil.copytree(bags[0], day1)
+    shutil.copytree(bags[0], day2)
+    per = tmp_path / "per"
+    assert main(["viz", str(day1), str(day2), "-o", str(per), "--per-episode"]) == 0
+    assert sorted(p.name for p in per.iterdir()) == [f"day1__{bags[0].name}.rrd", f"day2__{bags[0].name}.rrd"]
+    before = {p.name: p.read_bytes() for p in per.iterdir()}
+    assert main(["viz", str(day1), "-o", str(per), "--per-episode"]) == 2
+    assert main(["viz", str(tmp_path / "nope"), "-o", str(per), "--per-episode", "--force"]) == 1
+    assert {p.name: p.read_bytes() for p in per.iterdir()} == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["day1", "day2", "kept.rrd", "per"]  # no temporaries
 
 
 def test_voxel_logging_keeps_up_with_a_dense_grid(tmp_path):

@@ -50,6 +50,7 @@ from .episode_arrays import (
     write_packed,
 )
 from .observation import ee_input, nearest
+from .output_files import distinct_names, staged_output, unique_paths
 from .pointcloud import CloudError, voxel_msg_to_grid
 from .robots.base import FINGER_JOINT_NAMES
 from .rosmsg import NS_PER_S, gripper_width_from_joint_state, pose_from_msg
@@ -190,15 +191,31 @@ def find_episodes(paths: Iterable[str | Path]) -> list[Path]:
 
 
 def pack_episodes(
-    paths: Iterable[str | Path], out_dir: str | Path, config: DatasetConfig = DatasetConfig(), log=None
+    paths: Iterable[str | Path],
+    out_dir: str | Path,
+    config: DatasetConfig = DatasetConfig(),
+    log=None,
+    *,
+    force: bool = False,
 ) -> tuple[list[Path], list[tuple[Path, str]]]:
-    """Decode every bag under ``paths`` and write one packed episode per bag into ``out_dir``."""
+    """Decode every bag under ``paths`` and write one packed episode per bag into ``out_dir``, a new folder
+    (``output_files.staged_output``: ``OutputExistsError`` if it holds anything, unless ``force``; it lands
+    only once every bag is packed, and not at all when none could be). Each file is named after its bag's
+    path below the bags' common folder, so same-named bags of two days both land. Returns (the packed
+    files in ``out_dir``, the skipped bags with their reasons)."""
+    out_dir = Path(out_dir)
+    bags = unique_paths(find_bags(paths))
     skipped: list[tuple[Path, str]] = []
-    written = [
-        write_packed(ep, Path(out_dir) / f"{ep.path.name}{PACKED_SUFFIX}", config)
-        for ep in iter_episodes(paths, config, skipped, log, find=find_bags)
-    ]
-    return written, skipped
+    with staged_output(out_dir, force=force) as staged:
+        staged.path.mkdir()
+        packed = 0
+        for bag, name in zip(bags, distinct_names(bags), strict=True):
+            for episode in iter_episodes([bag], config, skipped, log, find=find_bags):
+                write_packed(episode, staged.path / f"{name}{PACKED_SUFFIX}", config)
+                packed += 1
+        if not packed:
+            staged.discard()
+    return (sorted(out_dir.glob(f"*{PACKED_SUFFIX}")) if packed else []), skipped
 
 
 # --- sampling ---------------------------------------------------------------------------------

@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import os
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -17,6 +16,7 @@ import numpy as np
 
 from .bags import BagError, EpisodeMeta
 from .observation import STATE_TOLERANCE_S
+from .output_files import staged_output
 from .rosmsg import NS_PER_S
 
 CACHE_VERSION = 2  # 2: compressed, with the decoding settings inside (shared with packed episodes)
@@ -107,7 +107,6 @@ def _decoding(config: DatasetConfig) -> dict:
 
 def write_packed(arrays: EpisodeArrays, file: Path, config: DatasetConfig) -> Path:
     """Write ``arrays`` compressed to ``file`` (atomically: a killed writer leaves no partial file)."""
-    file.parent.mkdir(parents=True, exist_ok=True)
     extra = json.dumps(
         {
             "version": CACHE_VERSION,
@@ -129,10 +128,9 @@ def write_packed(arrays: EpisodeArrays, file: Path, config: DatasetConfig) -> Pa
         else np.zeros(0, np.intp)
     )
     fields["voxel_flat_delta"] = np.diff(flat, prepend=0).astype(np.int32)
-    # per-process temporary name: data-parallel ranks decoding the same bag may cache it at once
-    tmp = file.with_name(f"{file.name}.{os.getpid()}.tmp.npz")
-    np.savez_compressed(tmp, extra=np.array(extra), **fields)
-    tmp.replace(file)
+    # replaced when there: data-parallel ranks decoding the same bag may cache it at once, each staged apart
+    with staged_output(file, force=True) as staged:
+        np.savez_compressed(staged.path, extra=np.array(extra), **fields)
     return file
 
 

@@ -11,17 +11,18 @@ its metadata (``extrinsics_metadata``), so nothing in it still describes the old
 from __future__ import annotations
 
 import shutil
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
 import yaml
 from rosbags.rosbag2 import Reader
 
-from .bags import BagError, close_derived_bag
+from .bags import BagError, close_derived_bag, find_bags
 from .cameras import extrinsics_tf_message
 from .config import LabConfig
 from .mcap_writer import open_bag_writer
+from .output_files import distinct_names, staged_output, unique_paths
 from .pointcloud import CloudError, grid_to_voxel_msg, msg_to_cloud
 from .recording import _qos as recorder_qos
 from .rosmsg import rosbags_factory, stamp_to_ns
@@ -194,3 +195,29 @@ def revoxelize_bag(
             shutil.rmtree(output, ignore_errors=True)
             raise
     return RevoxelizeReport(output, grids, replaced, clouds)
+
+
+def revoxelize_bags(
+    sources: list[str | Path], out_dir: str | Path, lab: LabConfig, slop_s: float = 0.1, *, force: bool = False
+) -> tuple[list[RevoxelizeReport], list[tuple[Path, str]]]:
+    """``revoxelize_bag`` for every bag under ``sources`` (``bags.find_bags``) into ``out_dir``, a new folder:
+    each bag under its own name, or its path below the bags' common folder where names repeat. ``out_dir``
+    is written beside itself and renamed into place once every bag is done (``output_files.staged_output``):
+    an existing one raises ``OutputExistsError`` unless ``force``; nothing lands when no bag could be
+    re-voxelised. Returns (the reports, paths as in ``out_dir``; the failed bags with their reasons)."""
+    out_dir = Path(out_dir)
+    bags = unique_paths(find_bags(sources))
+    reports: list[RevoxelizeReport] = []
+    failed: list[tuple[Path, str]] = []
+    with staged_output(out_dir, force=force) as staged:
+        staged.path.mkdir()
+        for bag, name in zip(bags, distinct_names(bags), strict=True):
+            try:
+                report = revoxelize_bag(bag, staged.path / name, lab, slop_s=slop_s)
+            except BagError as err:
+                failed.append((bag, str(err)))
+                continue
+            reports.append(replace(report, path=out_dir / name))
+        if not reports:
+            staged.discard()
+    return reports, failed

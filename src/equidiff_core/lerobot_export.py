@@ -35,7 +35,6 @@ header stamps, nearest TCP pose and finger width, the commanded target in effect
 from __future__ import annotations
 
 import json
-import shutil
 import time
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
@@ -72,6 +71,7 @@ from .lerobot_layout import (
     tasks_table,
 )
 from .lerobot_video import VideoEncoding, VideoFiles, bag_cameras, decoded_images, matched_images
+from .output_files import refuse_existing, staged_output
 from .rosmsg import NS_PER_S
 
 
@@ -122,13 +122,18 @@ def export_lerobot(
     options: ExportOptions = ExportOptions(),
     dataset_config: DatasetConfig | None = None,
     log: Callable[[str], None] = print,
+    *,
+    force: bool = False,
 ) -> ExportReport:
-    """Write ``out`` (a new directory) from the bags; bags that cannot be used are skipped and reported."""
+    """Write ``out`` (a new directory) from the bags; bags that cannot be used are skipped and reported.
+
+    ``out`` is written beside itself and renamed into place once complete (``output_files.staged_output``):
+    an existing one raises ``OutputExistsError`` unless ``force``; an export that fails half-way (a corrupt
+    image, Ctrl-C) leaves no partial dataset and the old ``out`` as it was."""
     t0 = time.perf_counter()
     dataset_config = dataset_config or DatasetConfig()
     out = Path(out)
-    if out.exists():
-        raise ExportError(f"{out} exists; not overwriting")
+    refuse_existing(out, force)  # before decoding anything
     episodes, skipped = load_episodes(bags, dataset_config, log=log)
     skipped = [(str(p), str(why)) for p, why in skipped]
     if options.only_successful:
@@ -155,15 +160,35 @@ def export_lerobot(
         if not cameras:
             log("no colour images in these bags (recorded before record_images existed?): exporting without images")
 
-    R = dataset_config.resolution
+    with staged_output(out, force=force) as staged:
+        written, frames, tasks = _write_dataset(
+            staged.path, episodes, cameras, fps, tolerance_ns, options, dataset_config.resolution, skipped, log
+        )
+    return ExportReport(out, written, frames, fps, tasks, cameras, skipped, time.perf_counter() - t0)
+
+
+def _write_dataset(
+    root: Path,
+    episodes: list,
+    cameras: list[str],
+    fps: int,
+    tolerance_ns: int,
+    options: ExportOptions,
+    resolution: int,
+    skipped: list[tuple[str, str]],
+    log: Callable[[str], None],
+) -> tuple[int, int, list[str]]:
+    """The dataset's files under ``root`` (a new folder); (episodes written, frames, tasks). Episodes whose
+    images do not match go to ``skipped``; ``ExportError`` when none is left."""
+    R = resolution
     features = frame_features(R if options.voxels else None)
     schema = arrow_schema(features)
 
-    out.mkdir(parents=True)
-    data = DataFiles(out, schema, options.data_files_size_in_mb, options.chunks_size)
+    root.mkdir()
+    data = DataFiles(root, schema, options.data_files_size_in_mb, options.chunks_size)
     videos = {
         cam: VideoFiles(
-            out,
+            root,
             IMAGE_KEY.format(camera=cam),
             fps,
             options.video,
@@ -233,7 +258,6 @@ def export_lerobot(
             v.close()
 
     if not rows:
-        shutil.rmtree(out)  # nothing written that looks like a dataset
         raise ExportError("no usable episodes")
     for cam, v in videos.items():  # after the state and action, as LeRobot lists them
         key = IMAGE_KEY.format(camera=cam)
@@ -260,15 +284,15 @@ def export_lerobot(
         "robot_type": options.robot_type,
         "splits": {"train": f"0:{len(rows)}"},
     }
-    meta = out / "meta"
+    meta = root / "meta"
     meta.mkdir()
     (meta / "info.json").write_text(json.dumps(info, indent=4))
     (meta / "stats.json").write_text(json.dumps(jsonable_stats(merge_stats(all_stats)), indent=4))
-    pq.write_table(tasks_table(tasks), out / TASKS_PATH)
-    episodes_path = out / EPISODES_PATH.format(chunk_index=0, file_index=0)
+    pq.write_table(tasks_table(tasks), root / TASKS_PATH)
+    episodes_path = root / EPISODES_PATH.format(chunk_index=0, file_index=0)
     episodes_path.parent.mkdir(parents=True)
     pq.write_table(pa.Table.from_pylist(rows), episodes_path, compression="snappy")
-    return ExportReport(out, len(rows), index, fps, sorted(tasks), cameras, skipped, time.perf_counter() - t0)
+    return len(rows), index, sorted(tasks)
 
 
 __all__ = [

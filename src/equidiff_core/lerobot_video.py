@@ -94,7 +94,8 @@ class VideoFiles:
 
     def add_episode(self, frames: Iterable[np.ndarray]) -> dict[str, Any]:
         """Append one episode's RGB frames (H, W, 3); returns its LeRobot episode-metadata columns."""
-        if self.container is not None and self.path.stat().st_size / MiB >= self.limit_mb:
+        # the muxer creates the file with its first packet: the encoder may still hold every frame so far
+        if self.container is not None and self.path.is_file() and self.path.stat().st_size / MiB >= self.limit_mb:
             self.close()
             self.chunk, self.file = next_chunk_file(self.chunk, self.file, self.chunks_size)
         start = None

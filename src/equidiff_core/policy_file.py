@@ -15,6 +15,7 @@ from typing import Any
 import torch
 
 from .models import action_space
+from .output_files import staged_output
 from .presets import PolicyPreset
 
 FORMAT = "equidiff_policy"
@@ -46,10 +47,10 @@ def export_policy(policy, path: str | Path) -> Path:
 
 
 def save_atomically(obj: Any, path: Path) -> Path:
-    """``torch.save`` through a temporary file: a killed writer never leaves a half-written ``path``."""
-    tmp = path.with_name(path.name + ".tmp")
-    torch.save(obj, tmp)
-    tmp.replace(path)
+    """``torch.save`` through a temporary file beside ``path``, which it replaces: a killed writer never
+    leaves a half-written ``path`` (checkpoints are rewritten in place on purpose)."""
+    with staged_output(path, force=True) as staged:
+        torch.save(obj, staged.path)
     return path
 
 

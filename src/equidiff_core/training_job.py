@@ -7,12 +7,14 @@ and the recipe it trained with (read back by ``benches.training_runs``). The com
 from __future__ import annotations
 
 import json
+import shutil
 import sys
 from pathlib import Path
 
 from equidiff_core import distributed
 from equidiff_core.config import ConfigError, default_config_dir, load_lab_config
 from equidiff_core.dataset import DatasetConfig, DemoDataset, load_episodes, split_episodes
+from equidiff_core.output_files import occupied, staged_output
 from equidiff_core.policies import make_policy
 from equidiff_core.presets import get_preset
 from equidiff_core.training import (
@@ -68,16 +70,70 @@ def run_training(args) -> int:
 
 
 def _run(args, dist_info) -> int:
+    """OUT as the run directory: a new one (trained in place, so that a killed run can be resumed), the
+    one to continue (``--resume``), or one to replace (``--force``: the new run trains beside it and
+    replaces it only once complete). A new run that stops before its first checkpoint leaves no OUT."""
     out = Path(args.out)
+    force = getattr(args, "force", False)
+    if args.resume and force:
+        print("equidiff train: --resume continues OUT and --force replaces it: pass one of them", file=sys.stderr)
+        return 2
+    # every rank sees the same: rank 0 writes into OUT only after all ranks got here
+    if not args.resume and occupied(out):
+        if not force:
+            print(
+                f"equidiff train: {out} exists and holds files; pass --resume to continue its run, --force to "
+                "replace it once the new run is complete, or choose a new --out",
+                file=sys.stderr,
+            )
+            return 2
+        return _replace_run(args, dist_info, out)
+    existed = out.exists()
+    try:
+        status = _train_into(args, dist_info, out, out)
+    except BaseException:
+        if dist_info.is_main and not args.resume:
+            _discard_unstarted(out, existed)
+        raise
+    if status != 0 and dist_info.is_main and not args.resume:
+        _discard_unstarted(out, existed)
+    return status
+
+
+def _replace_run(args, dist_info, out: Path) -> int:
+    """``--force`` over an existing run: every rank trains into one folder staged beside OUT, which
+    replaces OUT once the run completed; a failed run leaves OUT as it was."""
+    if not dist_info.is_main:
+        return _train_into(args, dist_info, Path(distributed.broadcast_object(None)), out)
+    with staged_output(out, force=True) as staged:
+        staged.path.mkdir()
+        distributed.broadcast_object(str(staged.path))
+        status = _train_into(args, dist_info, staged.path, out)
+        if status != 0:
+            staged.discard()
+    return status
+
+
+def _discard_unstarted(out: Path, existed: bool) -> None:
+    """What a new run wrote before its first checkpoint (split, decoded episodes): without it a rerun would
+    be refused. A run with a checkpoint stays, to be continued with --resume."""
+    if not out.is_dir() or (out / "last.ckpt").exists():
+        return
+    if not existed:
+        shutil.rmtree(out)
+        return
+    for child in out.iterdir():  # OUT was an empty folder: keep the folder
+        if child.is_dir() and not child.is_symlink():
+            shutil.rmtree(child)
+        else:
+            child.unlink()
+
+
+def _train_into(args, dist_info, out: Path, named: Path) -> int:
+    """The run, written into ``out``; the paths it prints and keeps in run.json are under ``named``
+    (OUT itself, or the folder a --force run is staged in before it replaces OUT)."""
     main = dist_info.is_main
     say = (lambda m: print(f"equidiff train: {m}", file=sys.stderr)) if main else (lambda m: None)
-    if (out / "last.ckpt").exists() and not args.resume:
-        # every rank sees the same: rank 0 writes the first checkpoint only after all ranks joined DDP
-        print(
-            f"equidiff train: {out}/last.ckpt exists; pass --resume to continue it or choose a new --out",
-            file=sys.stderr,
-        )
-        return 2
     lab = load_lab_config(args.lab_config or default_config_dir() / "lab.yaml")
     overrides = {
         "rotation_aug": args.rotation_aug,
@@ -172,9 +228,9 @@ def _run(args, dist_info) -> int:
     evals = [h for h in result.history if "val_loss" in h]
     losses = [h["loss"] for h in result.history if "loss" in h]
     summary = {
-        "checkpoint": str(result.checkpoint),
-        "policy": str(result.exported),
-        "plot": str(out / "training.png"),
+        "checkpoint": str(named / result.checkpoint.relative_to(out)),
+        "policy": str(named / result.exported.relative_to(out)),
+        "plot": str(named / "training.png"),
         "steps": result.steps,
         "final_loss": losses[-1] if losses else None,
         "val_action_mse": evals[-1].get("val_action_mse") if evals else None,

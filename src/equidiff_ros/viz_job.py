@@ -6,8 +6,10 @@ from __future__ import annotations
 
 import os
 import sys
+from contextlib import nullcontext
 
 from equidiff_core.config import ConfigError, default_config_dir, load_lab_config
+from equidiff_core.output_files import OutputExistsError, staged_output
 from equidiff_core.viz import VizUnavailable, require_rerun
 from equidiff_core.viz.bag_to_rrd import BagConversionError, convert_bags
 from equidiff_core.viz.logger import RerunLogger, load_viz_config, open_recording
@@ -54,9 +56,16 @@ def _convert(args, lab, config) -> int:
         return 2
     try:
         report = convert_bags(
-            args.bags, args.output, lab, config, per_episode=args.per_episode, spawn=args.spawn, connect=args.connect
+            args.bags,
+            args.output,
+            lab,
+            config,
+            per_episode=args.per_episode,
+            spawn=args.spawn,
+            connect=args.connect,
+            force=args.force,
         )
-    except BagConversionError as err:
+    except (BagConversionError, OutputExistsError) as err:
         print(f"equidiff viz: {err}", file=sys.stderr)
         return 2
     for ep in report.episodes:
@@ -101,14 +110,19 @@ def _live(args, lab, config) -> int:
             file=sys.stderr,
         )
         return 2
-    rec = open_recording("live", spawn=spawn, connect=args.connect, save=args.output)
-    logger = RerunLogger(rec, lab, config)
-    logger.log_static_scene()
-    try:
-        received = run_live(logger, lab, clouds=config.clouds, duration_s=args.duration)
-    finally:
-        rec.flush()
-        rec.disconnect()
+    try:  # a file lands when the viewing ends (Ctrl-C, --duration), never over an existing one without --force
+        with staged_output(args.output, force=args.force) if args.output is not None else nullcontext() as staged:
+            rec = open_recording("live", spawn=spawn, connect=args.connect, save=staged.path if staged else None)
+            logger = RerunLogger(rec, lab, config)
+            logger.log_static_scene()
+            try:
+                received = run_live(logger, lab, clouds=config.clouds, duration_s=args.duration)
+            finally:
+                rec.flush()
+                rec.disconnect()
+    except OutputExistsError as err:
+        print(f"equidiff viz: {err}", file=sys.stderr)
+        return 2
     for warning in logger.warnings:
         print(f"warning: {warning}", file=sys.stderr)
     dropped = f"; dropped {dict(logger.errors)} (last: {logger.last_error})" if logger.errors else ""

@@ -10,6 +10,7 @@ import statistics
 from collections.abc import Callable
 from pathlib import Path
 
+from ..output_files import staged_output
 from ..twin.evaluate import EvalEpisode
 from .stats import success_rate
 
@@ -43,9 +44,8 @@ def summarize(episodes: list[EvalEpisode]) -> dict:
 def save_rollouts(path: Path, episodes: list[EvalEpisode], settings: dict) -> None:
     """``episodes`` and the ``settings`` they were rolled out with (seeds, duration, latency, policy file)."""
     payload = {"settings": settings, "episodes": [dataclasses.asdict(e) for e in episodes]}
-    tmp = path.with_suffix(".tmp")
-    tmp.write_text(json.dumps(payload, indent=1))
-    tmp.replace(path)
+    with staged_output(path, force=True) as staged:  # rewritten as episodes come in, never half-written
+        staged.path.write_text(json.dumps(payload, indent=1))
 
 
 def load_rollouts(path: Path, settings: dict) -> list[EvalEpisode] | None:

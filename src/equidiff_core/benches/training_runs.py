@@ -96,8 +96,9 @@ class Recipe:
             cmd += ["--lab-config", str(self.lab_config)]
         if self.max_minutes is not None:
             cmd += ["--max-minutes", str(self.max_minutes)]
-        if (out / "last.ckpt").is_file():  # an interrupted run goes on where it stopped
-            cmd += ["--resume"]
+        # the bench owns ``out`` (start_run puts its train.log there first): an interrupted run goes on
+        # where it stopped, a new one starts
+        cmd += ["--resume"]
         return cmd
 
 

@@ -7,7 +7,7 @@ file is never replaced unless asked (``force``), and then the old one is kept be
 
 from __future__ import annotations
 
-import os
+import shutil
 import time
 from pathlib import Path
 
@@ -15,6 +15,7 @@ import numpy as np
 import yaml
 
 from ..config import ConfigError, Extrinsics, LabConfig, load_lab_config, load_yaml
+from ..output_files import staged_output
 from .board import CalibrationError
 
 
@@ -55,15 +56,12 @@ def write_calibrated_lab(
     text = "".join(f"# {line}\n" for line in header) + yaml.safe_dump(
         data, sort_keys=False, default_flow_style=None, width=120
     )
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.with_name(f".{out.name}.tmp")
-    tmp.write_text(text)
-    try:
-        lab = load_lab_config(tmp)  # what lands must load with the loader every node uses
-    except ConfigError as err:
-        tmp.unlink()
-        raise CalibrationError(f"the calibrated lab file would not load: {err}") from err
-    if backup is not None:
-        os.replace(out, backup)
-    os.replace(tmp, out)
+    with staged_output(out, force=force) as staged:
+        staged.path.write_text(text)
+        try:
+            lab = load_lab_config(staged.path)  # what lands must load with the loader every node uses
+        except ConfigError as err:
+            raise CalibrationError(f"the calibrated lab file would not load: {err}") from err
+        if backup is not None:
+            shutil.copy2(out, backup)  # the old one stays in place until the new one replaces it
     return lab, backup

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Iterable
+from contextlib import nullcontext
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -26,6 +27,7 @@ from typing import Any
 import yaml
 
 from ..config import LabConfig
+from ..output_files import distinct_names, staged_output, unique_paths
 from ..rosmsg import rosbags_factory
 from ..topics import camera_of_color_topic
 from .logger import TOPICS_HANDLED, RerunLogger
@@ -132,74 +134,82 @@ def convert_bags(
     *,
     spawn: bool = False,
     connect: str | None = None,
+    force: bool = False,
 ) -> ConversionReport:
     """Convert bags to .rrd (``out`` a file, or a directory with ``per_episode``), or stream them to a viewer
-    (``spawn`` / ``connect``, one recording); never raises because of one bad bag."""
+    (``spawn`` / ``connect``, one recording); never raises because of one bad bag. ``out`` is written beside
+    itself and renamed into place once complete (``output_files.staged_output``): an existing one raises
+    ``OutputExistsError`` unless ``force``, and is kept when nothing could be converted."""
     t0 = time.perf_counter()
-    bags = expand_bag_paths(bags)
+    bags = unique_paths(expand_bag_paths(bags))
     out = Path(out) if out is not None else None
     results: list[EpisodeResult] = []
     outputs: list[Path] = []
     if per_episode:
         if out is None or out.suffix == ".rrd":
             raise BagConversionError(f"--per-episode writes one file per bag: give a directory, not {out}")
-        out.mkdir(parents=True, exist_ok=True)
-        for index, bag in enumerate(bags):
-            target = out / f"{bag.name}.rrd"
-            result = EpisodeResult(bag, target)
-            rec = open_recording(
-                recording_id=bag.name,
-                save=target,
-                application_id=APPLICATION_ID,
-                blueprint=default_blueprint([c.name for c in lab.cameras] if config.images else ()),
-            )
-            logger = RerunLogger(rec, lab, config)
-            logger.log_static_scene(static_cameras=False)
-            try:
-                _log_bag(logger, bag, index, result)
-            except BagConversionError as err:
-                result.error, result.output = str(err), None
-            _finish(rec)
-            if result.error is not None:
-                target.unlink(missing_ok=True)  # no half-empty .rrd that looks like a converted episode
-            else:
-                outputs.append(target)
-            result.logged, result.dropped, result.warnings = dict(logger.logged), dict(logger.errors), logger.warnings
-            results.append(result)
+        with staged_output(out, force=force) as staged:
+            staged.path.mkdir()
+            for index, (bag, name) in enumerate(zip(bags, distinct_names(bags), strict=True)):
+                target = out / f"{name}.rrd"
+                result = EpisodeResult(bag, target)
+                rec = open_recording(
+                    recording_id=bag.name,
+                    save=staged.path / target.name,
+                    application_id=APPLICATION_ID,
+                    blueprint=default_blueprint([c.name for c in lab.cameras] if config.images else ()),
+                )
+                logger = RerunLogger(rec, lab, config)
+                logger.log_static_scene(static_cameras=False)
+                try:
+                    _log_bag(logger, bag, index, result)
+                except BagConversionError as err:
+                    result.error, result.output = str(err), None
+                _finish(rec)
+                if result.error is not None:
+                    (staged.path / target.name).unlink(missing_ok=True)  # no half-empty .rrd: not an episode
+                else:
+                    outputs.append(target)
+                result.logged = dict(logger.logged)
+                result.dropped, result.warnings = dict(logger.errors), logger.warnings
+                results.append(result)
+            if not outputs:
+                staged.discard()
         return ConversionReport(results, outputs, time.perf_counter() - t0)
 
     if out is not None and out.suffix != ".rrd":
         raise BagConversionError(f"output must be a .rrd file (or use --per-episode with a directory), got {out}")
     name = out.stem if out is not None else (bags[0].name if len(bags) == 1 else "episodes")
-    rec = open_recording(
-        recording_id=name,
-        save=out,
-        spawn=spawn,
-        connect=connect,
-        application_id=APPLICATION_ID,
-        blueprint=default_blueprint([c.name for c in lab.cameras] if config.images else ()),
-    )
-    logger = RerunLogger(rec, lab, config)
-    logger.log_static_scene(static_cameras=False)
-    for index, bag in enumerate(bags):
-        result = EpisodeResult(bag, out)
-        before_logged, before_dropped = logger.logged.copy(), logger.errors.copy()
-        logger._voxel_size_checked = False  # each bag may come from another lab set-up
-        before_warnings = len(logger.warnings)
-        try:
-            _log_bag(logger, bag, index, result)
-        except BagConversionError as err:
-            result.error, result.output = str(err), None
-        result.logged = dict(logger.logged - before_logged)
-        result.dropped = dict(logger.errors - before_dropped)
-        result.warnings = logger.warnings[before_warnings:]
-        results.append(result)
-    _finish(rec)
-    if out is not None:
-        if any(r.error is None for r in results):
-            outputs.append(out)
-        else:
-            out.unlink(missing_ok=True)  # nothing converted: no file that looks like a recording
+    with staged_output(out, force=force) if out is not None else nullcontext() as staged:
+        rec = open_recording(
+            recording_id=name,
+            save=staged.path if staged is not None else None,
+            spawn=spawn,
+            connect=connect,
+            application_id=APPLICATION_ID,
+            blueprint=default_blueprint([c.name for c in lab.cameras] if config.images else ()),
+        )
+        logger = RerunLogger(rec, lab, config)
+        logger.log_static_scene(static_cameras=False)
+        for index, bag in enumerate(bags):
+            result = EpisodeResult(bag, out)
+            before_logged, before_dropped = logger.logged.copy(), logger.errors.copy()
+            logger._voxel_size_checked = False  # each bag may come from another lab set-up
+            before_warnings = len(logger.warnings)
+            try:
+                _log_bag(logger, bag, index, result)
+            except BagConversionError as err:
+                result.error, result.output = str(err), None
+            result.logged = dict(logger.logged - before_logged)
+            result.dropped = dict(logger.errors - before_dropped)
+            result.warnings = logger.warnings[before_warnings:]
+            results.append(result)
+        _finish(rec)
+        if staged is not None:
+            if any(r.error is None for r in results):
+                outputs.append(out)
+            else:
+                staged.discard()  # nothing converted: no file that looks like a recording
     return ConversionReport(results, outputs, time.perf_counter() - t0)
 
 

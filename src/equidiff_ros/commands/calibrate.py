@@ -31,6 +31,7 @@ from pathlib import Path
 
 from equidiff_core.calibration.board import BoardSpec
 from equidiff_core.calibration_job import run_camera_calibration
+from equidiff_ros.commands import add_force_argument
 
 
 def add_board_arguments(parser: argparse.ArgumentParser) -> None:
@@ -66,7 +67,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=None,
         help="franka_node's control.yaml: limits, home pose and franky settings for the moves (default: the project's)",
     )
-    parser.add_argument("--force", action="store_true", help="replace --output if it exists (the old one is backed up)")
+    add_force_argument(
+        parser, "replace --output if it exists, once the new file is complete (the old one is backed up)"
+    )
     parser.add_argument(
         "--write-board",
         type=Path,

@@ -5,6 +5,10 @@
 mp4), ``observation.voxels`` (``--no-voxels`` to leave out). LeRobot 0.6.1 loads it with
 ``LeRobotDataset(repo_id, root=DIR)``. Prints one JSON line; exit 1 when a bag was skipped
 (each named with its reason on stderr), 2 when nothing could be exported.
+
+DIR is written beside itself and renamed into place once complete: an export that fails half-way
+(a corrupt JPEG, Ctrl-C) leaves nothing behind, and an existing DIR is refused (exit 2) unless
+``--force``, which replaces it only then.
 """
 
 from __future__ import annotations
@@ -15,11 +19,13 @@ import sys
 from equidiff_core.dataset import DatasetConfig
 from equidiff_core.lerobot_export import ExportError, ExportOptions, export_lerobot
 from equidiff_core.observation import STATE_TOLERANCE_S
+from equidiff_core.output_files import OutputExistsError
+from equidiff_ros.commands import add_force_argument
 
 
 def add_arguments(parser) -> None:
     parser.add_argument("bags", nargs="+", help="bag directories, or folders holding bag directories")
-    parser.add_argument("--out", required=True, help="new dataset directory (never overwritten)")
+    parser.add_argument("--out", required=True, help="new dataset directory (replaced only with --force)")
     parser.add_argument("--no-voxels", action="store_true", help="leave the voxel grids out")
     parser.add_argument("--no-images", action="store_true", help="leave the camera images out")
     parser.add_argument("--robot-type", default="franka_fr3")
@@ -29,6 +35,7 @@ def add_arguments(parser) -> None:
     )
     parser.add_argument("--resolution", type=int, default=DatasetConfig.resolution)
     parser.add_argument("--only-successful", action="store_true", help="skip episodes not marked success")
+    add_force_argument(parser)
 
 
 def run(args) -> int:
@@ -44,8 +51,8 @@ def run(args) -> int:
     )
     config = DatasetConfig(resolution=args.resolution, state_tolerance_s=args.tolerance)
     try:
-        report = export_lerobot(args.bags, args.out, options, config, log=log)
-    except ExportError as err:
+        report = export_lerobot(args.bags, args.out, options, config, log=log, force=args.force)
+    except (ExportError, OutputExistsError) as err:
         log(str(err))
         return 2
     print(json.dumps(report.summary()))

@@ -12,6 +12,11 @@ Data-parallel on several GPUs (or CPU processes) with torchrun, e.g.
 ``torchrun --nproc-per-node 4 -m equidiff_ros.cli train bags/ --out runs/ddp --device cuda``:
 every rank decodes the same episodes and split, rank 0 alone writes files and prints
 (``equidiff_core.distributed``). ``--batch-size`` is per rank.
+
+An existing DIR that holds files is refused (exit 2) unless ``--resume`` continues its run or
+``--force`` replaces it: the new run then trains in a folder beside DIR and replaces DIR only once
+it completed. A new run trains in DIR itself (a killed one is continued with ``--resume``); one
+that stops before its first checkpoint leaves no DIR behind.
 """
 
 from __future__ import annotations
@@ -19,6 +24,7 @@ from __future__ import annotations
 from equidiff_core.observation import STATE_TOLERANCE_S
 from equidiff_core.presets import BASELINE_INITS, ROTATION_AUGS
 from equidiff_core.training_job import run_training
+from equidiff_ros.commands import add_force_argument
 
 
 def add_arguments(parser) -> None:
@@ -88,7 +94,11 @@ def add_arguments(parser) -> None:
         default="auto",
         help="auto: the whole training set on the GPU when it fits in half its free memory, a DataLoader on the CPU",
     )
-    parser.add_argument("--resume", action="store_true", help="continue from OUT/last.ckpt")
+    parser.add_argument("--resume", action="store_true", help="continue from OUT/last.ckpt (a new run when none)")
+    add_force_argument(
+        parser,
+        "replace an existing OUT: the new run trains beside it and replaces it once complete (not with --resume)",
+    )
     parser.add_argument("--lab-config", help="lab.yaml (workspace); default: the installed one")
     parser.add_argument("--cache-dir", help="decoded-episode cache (default OUT/dataset_cache)")
     parser.add_argument("--tolerance", type=float, default=STATE_TOLERANCE_S, help="state/voxel stamp tolerance, s")

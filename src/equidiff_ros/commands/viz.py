@@ -6,6 +6,9 @@ equidiff viz -o eval.rrd             # live, headless: writes a file (open it la
 equidiff viz bags/ -o all.rrd        # every bag in bags/ as one recording with an `episode` timeline
 equidiff viz bags/ -o rrd/ --per-episode   # one <bag>.rrd per episode
 equidiff viz bags/episode_0003 --spawn     # look at a bag right away
+
+OUT is written beside itself and renamed into place once complete; an existing OUT is refused
+(exit 2) unless --force, which replaces it only then. Nothing converted: OUT is left as it was.
 """
 
 from __future__ import annotations
@@ -13,6 +16,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from equidiff_ros.commands import add_force_argument
 from equidiff_ros.viz_job import run_viz
 
 
@@ -40,6 +44,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--lab-config", type=Path, default=None, help="lab.yaml (default: the installed one)")
     parser.add_argument("--viz-config", type=Path, default=None, help="viz.yaml (default: config/viz.yaml)")
     parser.add_argument("--duration", type=float, default=None, metavar="S", help="live: stop after S seconds")
+    add_force_argument(parser)
 
 
 def run(args: argparse.Namespace) -> int:
