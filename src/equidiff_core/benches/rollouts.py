@@ -16,8 +16,8 @@ from .stats import success_rate
 
 
 def summarize(episodes: list[EvalEpisode]) -> dict:
-    """Success (with n and its Wilson 95 % interval) and how far failures got: the fractions that reached the block and lifted it, the median
-    closest approach of the TCP to the block."""
+    """Success (with n and its Wilson 95 % interval) and how far failures got: the fractions that reached the
+    block and lifted it, the median closest approach of the TCP to the block."""
     if not episodes:
         return {
             "episodes": 0,

@@ -10,7 +10,8 @@ serves both benches), with one recipe and seed (defaults: compact, 6000 steps of
 draws, EMA, peak lr 5e-4 for EquiDiff and 1e-3 for the baseline, no rotation augmentation), each into
 OUT/<policy>_<count>. Each is rolled out
 in closed loop (in-process, sim clock) on the same ``--eval-episodes`` scenes whose block yaw lies
-inside the demos' range. Prints one JSON line: ``success`` per policy per demo count, the roll-outs'
+inside the demos' range. Prints one JSON line: ``success`` per policy per demo count with ``success_ci95``
+(Wilson 95 % intervals) and ``paired`` (EquiDiff against the baseline on the same scenes), the roll-outs'
 stages, each run's DDIM action error on its training samples (``train_fit``, and ``under_fit``: runs
 more than ``--max-fit-ratio`` times EquiDiff's at the same count, named, not stopped: too few demos
 is what this bench varies), the recipe, and ``plot``, a PNG of success against demo count.
@@ -28,6 +29,7 @@ import argparse
 from pathlib import Path
 
 from equidiff_core.benches.demos import DEMO_COUNTS, POLICIES, run_demos_bench
+from equidiff_core.benches.stats import SCENES_PER_CELL
 from equidiff_core.benches.training_runs import BASELINE_LR, EQUIDIFF_LR, MAX_FIT_RATIO
 
 
@@ -54,7 +56,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--device", default="auto", help="auto | cpu | cuda")
     parser.add_argument("--max-minutes", type=float, default=None, help="training time budget per run")
-    parser.add_argument("--eval-episodes", type=int, default=20, help="in-range scenes per run")
+    parser.add_argument(
+        "--eval-episodes",
+        type=int,
+        default=SCENES_PER_CELL,
+        help=f"in-range scenes per run (default {SCENES_PER_CELL}: docs/evaluation_scheme.md)",
+    )
     parser.add_argument("--max-duration", type=float, default=30.0, help="sim seconds per episode")
     parser.add_argument(
         "--latency-ms", type=float, default=100.0, help="each chunk takes effect this long after its observation"

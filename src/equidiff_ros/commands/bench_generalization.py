@@ -24,7 +24,8 @@ would say nothing: the bench names it, says the budget is too small, skips the u
 rollouts and exits 3. Otherwise (4) all three are rolled out on scenes whose block yaw lies at
 least 15 deg outside the training range, modulo the box's half-turn symmetry (the round bowl's
 yaw does not matter). Prints one JSON line: equidiff_success, baseline_success,
-baseline_aug_success, their *_in_range_success, under_fit, failed_in_range, verdict,
+baseline_aug_success, their *_in_range_success, each with *_ci95 (n and Wilson 95 % interval),
+paired (each baseline against EquiDiff on the same scenes: difference, its 95 % interval, McNemar p), under_fit, failed_in_range, verdict,
 equidiff_minus_baseline_points, goal_met (EquiDiff >= 80 % at unseen yaw and >= 30 points above
 the non-augmented baseline), unseen_by_yaw (each policy's unseen-yaw episodes by whether C4 --
 offset modulo 90 deg -- or C8 -- modulo 45 deg -- maps the block into the training range),
@@ -54,6 +55,7 @@ import argparse
 from pathlib import Path
 
 from equidiff_core.benches.generalization import POLICIES, run_generalization
+from equidiff_core.benches.stats import SCENES_PER_CELL
 from equidiff_core.benches.training_runs import BASELINE_LR, EQUIDIFF_LR, MAX_FIT_RATIO
 from equidiff_core.presets import ROTATION_AUGS
 
@@ -78,11 +80,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="peak learning rate of baseline and baseline_aug (default 1e-3: at 5e-4 the baseline under-fits "
         "this budget, docs/model.md; pass --lr's value for one rate for all)",
     )
-    parser.add_argument("--eval-episodes", type=int, default=20, help="unseen-yaw episodes per policy")
+    parser.add_argument(
+        "--eval-episodes",
+        type=int,
+        default=SCENES_PER_CELL,
+        help=f"unseen-yaw episodes per policy (default {SCENES_PER_CELL}: what tells a 20-point difference from "
+        "chance, docs/evaluation_scheme.md)",
+    )
     parser.add_argument(
         "--in-range-episodes",
         type=int,
-        default=10,
+        default=SCENES_PER_CELL,
         help="episodes per policy with block yaw inside the training range, rolled out first (0: none)",
     )
     parser.add_argument(
