@@ -218,9 +218,8 @@ class Bounds:
             if isinstance(item, (int, float)) and not isinstance(item, bool) and not self.allows(item):
                 at = f"{where}[{i}]" if isinstance(value, (tuple, list)) else where
                 why = f" ({self.doc})" if self.doc else ""
-                raise ConfigError(
-                    f"{at}: {item!r} {self.unit} is out of range; allowed: {self.describe()} {self.unit}{why}"
-                )
+                unit = f" {self.unit}" if self.unit else ""
+                raise ConfigError(f"{at}: {item!r}{unit} is out of range; allowed: {self.describe()}{unit}{why}")
 
 
 def _num(value: float) -> str:
@@ -241,7 +240,7 @@ def field_bounds(f: dataclasses.Field) -> Bounds | None:
     return f.metadata.get("bounds")
 
 
-UNIT_QUATERNION = "a unit quaternion: |q| within 0.001 of 1"
+UNIT_QUATERNION = "a unit quaternion: norm within 0.001 of 1"
 
 
 def check_unit_quaternion(q: typing.Sequence[float], name: str, tol: float = 1e-3) -> None:
