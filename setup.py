@@ -36,7 +36,7 @@ setup(
         "numpy>=2",
         "scipy",
         "pyyaml",
-        "torch>=2.4",
+        "torch>=2.6",  # weights_only loading has a known bypass before 2.6 (CVE-2025-32434)
         "diffusers>=0.30",
         "escnn==1.0.11",
         "rosbags>=0.10",

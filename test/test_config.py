@@ -56,7 +56,10 @@ def _write(tmp_path, data) -> Path:
         ),
         (lambda d: d["cameras"][0].pop("serial"), r"cameras\[0\]: missing required key 'serial'"),
         (lambda d: d["workspace"].update(edge="big"), r"workspace.edge: expected a finite number"),
-        (lambda d: d["workspace"].update(edge=-1.0), r"edge must be positive"),
+        (
+            lambda d: d["workspace"].update(edge=-1.0),
+            r"workspace.edge: -1.0 m is out of range; allowed: 0 < x <= 2.4 m",
+        ),
         (lambda d: d.update(colour="red"), r"unknown key\(s\) \['colour'\]"),
         (lambda d: d["cameras"][2]["extrinsics"].update(quaternion_xyzw=[0, 0, 0, 3]), r"not unit length"),
         (lambda d: d["cameras"][2].update(name="cam_front"), r"unique"),

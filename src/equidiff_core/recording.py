@@ -32,7 +32,7 @@ from typing import Any, Self
 import yaml
 
 from .bags import META_SIDECAR, EpisodeMeta
-from .config import LabConfig
+from .config import LabConfig, bounded
 from .mcap_writer import MiB, open_bag_writer
 from .rosmsg import RosbagsFactory, rosbags_factory, transform_msg_from_pos_quat
 from .topics import CLOUD_TYPE, COMPRESSED_IMAGE_TYPE, RECORDED_TOPICS, TF_TYPE, TOPIC_TF_STATIC, camera_color_topic
@@ -76,9 +76,9 @@ class RecordingConfig:
     output_dir: str = "episodes"
     record_clouds: bool = False  # the three camera clouds (docs/data.md: 5x the bag in the twin, ~100x with D455s)
     record_images: bool = True  # each camera's JPEG colour image (docs/data.md: what it costs)
-    chunk_size_mib: float = 8.0  # > the largest message (a dense voxel grid is ~1 MiB)
-    chunk_max_age_s: float = 2.0  # a SIGKILL loses at most this much
-    min_free_gib: float = 2.0  # refuse to start (or stop) below this much free disk
+    chunk_size_mib: float = bounded(8.0, unit="MiB", ge=2, le=1024)  # > the largest message (a voxel grid ~1 MiB)
+    chunk_max_age_s: float = bounded(2.0, unit="s", gt=0, le=60)  # a SIGKILL loses at most this much
+    min_free_gib: float = bounded(2.0, unit="GiB", ge=0, le=100_000)  # refuse to start (or stop) below this free disk
 
     def __post_init__(self):
         if self.chunk_size_mib < 2:

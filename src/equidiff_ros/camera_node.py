@@ -39,7 +39,6 @@ import sys
 import threading
 import time
 
-import yaml
 from rclpy.node import Node
 
 from equidiff_core import rosmsg
@@ -52,7 +51,7 @@ from equidiff_core.cameras import (
 )
 from equidiff_core.cameras.color import DEFAULT_JPEG_QUALITY, ImageError, color_image_msg
 from equidiff_core.cameras.replay import ReplayFinished
-from equidiff_core.config import ConfigError
+from equidiff_core.config import ConfigError, parse_yaml
 from equidiff_core.pointcloud import cloud_to_msg
 from equidiff_core.sync import PublishPacer
 from equidiff_core.topics import COMPRESSED_IMAGE_TYPE, camera_color_topic
@@ -98,10 +97,7 @@ class CameraNode(Node):
             raise ConfigError(f"jpeg_quality must be in 1..100, got {self.jpeg_quality}")
         self.configs = [self.lab.camera(name)] if name else list(self.lab.cameras)
         self.factory = rosmsg.RclpyFactory()
-        try:
-            options = yaml.safe_load(options_text) if options_text else {}
-        except yaml.YAMLError as err:
-            raise ConfigError(f"backend_options: malformed YAML: {err}") from err
+        options = parse_yaml(options_text, "backend_options") if options_text else {}
         if not isinstance(options, dict):
             raise ConfigError(f"backend_options must be a YAML mapping, got {options_text!r}")
         clock = lambda: now_ns(self)

@@ -128,7 +128,17 @@ def main(argv: list[str] | None = None) -> int:
     if getattr(args, "_missing", False):
         print(f"equidiff: '{' '.join(argv[:2])}' is not available in this build", file=sys.stderr)
         return 2
-    return int(_load(args._module).run(args) or 0)
+    try:
+        return int(_load(args._module).run(args) or 0)
+    except Exception as err:
+        # A bad config file or value is the user's to fix: one line, not a traceback. The check by
+        # module keeps `equidiff --help` from importing the config module (numpy, scipy).
+        config = sys.modules.get("equidiff_core.config")
+        if config is None or not isinstance(err, config.ConfigError):
+            raise
+        command = " ".join(v for v in (args.command, getattr(args, "subcommand", None)) if v)
+        print(f"equidiff {command}: {' '.join(str(err).split())}", file=sys.stderr)
+        return 2
 
 
 if __name__ == "__main__":

@@ -53,7 +53,7 @@ from trajectory_msgs.msg import MultiDOFJointTrajectory
 from equidiff_core import rosmsg
 from equidiff_core.chunk import ChunkError, chunk_from_msg
 from equidiff_core.config import ConfigError, default_config_dir
-from equidiff_core.control import AcknowledgeRefused, Controller, load_control_config
+from equidiff_core.control import AcknowledgeRefused, Controller, check_home_inside, load_control_config
 from equidiff_core.robots import BACKENDS, RobotError, make_robot
 from equidiff_core.topics import SERVICE_FRANKA_ACKNOWLEDGE, SERVICE_FRANKA_HOME, TOPIC_FRANKA_STATUS
 from equidiff_ros.common import (
@@ -98,6 +98,7 @@ class FrankaNode(Node):
             self.declare_parameter("run_dir", "").value or os.environ.get("XDG_RUNTIME_DIR") or tempfile.gettempdir()
         )
         self.config = load_control_config(Path(control_path))
+        check_home_inside(self.config, self.lab.safety_box)  # a home outside the box would be clipped, never reached
         home = self.declare_parameter("home_on_start", self.config.home_on_start).value
         # the dry run moves nothing, so nothing can resume on its own there
         require_ack = self.declare_parameter("require_ack_on_start", backend != "dryrun").value

@@ -12,9 +12,8 @@ import time
 from pathlib import Path
 
 import numpy as np
-import yaml
 
-from ..config import ConfigError, Extrinsics, LabConfig, load_lab_config, load_yaml
+from ..config import ConfigError, Extrinsics, LabConfig, dump_yaml, load_lab_config, load_yaml
 from ..output_files import staged_output
 from .board import CalibrationError
 
@@ -53,7 +52,7 @@ def write_calibrated_lab(
         "Extrinsics are T_base_optical (colour optical frame in the robot base frame).",
         *notes,
     ]
-    text = "".join(f"# {line}\n" for line in header) + yaml.safe_dump(
+    text = "".join(f"# {line}\n" for line in header) + dump_yaml(
         data, sort_keys=False, default_flow_style=None, width=120
     )
     with staged_output(out, force=force) as staged:

@@ -8,6 +8,7 @@ from .config import (
     FrankyConfig,
     SafetyConfig,
     SchedulerConfig,
+    check_home_inside,
     load_control_config,
 )
 from .controller import AcknowledgeRefused, Command, Controller, ControllerStats, ControllerStatus
@@ -35,5 +36,6 @@ __all__ = [
     "SchedulerConfig",
     "Setpoint",
     "check_chunk",
+    "check_home_inside",
     "load_control_config",
 ]

@@ -38,6 +38,22 @@ class JointLimits:
     joint_position_max_rad: tuple[float, ...] = (2.7437, 1.7837, 2.9007, -0.1518, 2.8065, 4.5169, 3.0159)
 
 
+class CartesianLimits:
+    """The FR3's Cartesian limits, as franky 2.0 reports them (``Robot.translation_velocity_limit.max``
+    and its siblings; libfranka's published FR3 limits): config speeds and decelerations must not exceed them."""
+
+    translation_velocity_m_s = 1.7
+    translation_acceleration_m_s2 = 13.0
+    translation_jerk_m_s3 = 6500.0
+    rotation_velocity_rad_s = 2.5
+    rotation_acceleration_rad_s2 = 25.0
+    rotation_jerk_rad_s3 = 12500.0
+
+
+# The FR3's joint speed limits (rad/s, joints 1-7; franky-sim's fr3.urdf): a configured joint speed may not exceed them.
+FR3_JOINT_SPEEDS_RAD_S = (2.62, 2.62, 2.62, 2.62, 5.26, 4.18, 5.26)
+
+
 class RobotError(RuntimeError):
     """The robot refused or aborted a command (reflex, connection loss, motion failure)."""
 

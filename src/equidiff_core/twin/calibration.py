@@ -27,7 +27,6 @@ from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
-import yaml
 from PIL import Image
 from scipy.spatial.transform import Rotation
 
@@ -37,7 +36,7 @@ from ..calibration.limits import MotionLimits
 from ..calibration.plan import PlanConfig, plan_poses
 from ..calibration.solve import Calibration, CameraModel, calibrate, pose_error
 from ..cameras.twin import Intrinsics, TwinCamera
-from ..config import Extrinsics, LabConfig, to_dict
+from ..config import Extrinsics, LabConfig, dump_yaml, to_dict
 from ..geometry import make_pose
 from ..robots.franky.hand import TCP_OFFSET
 from ..robots.franky.sim import SimServer
@@ -156,7 +155,7 @@ class FrankyTwinArm:
         self.twin_cfg = twin_cfg
         self._dir = tempfile.TemporaryDirectory(prefix="equidiff_calib_twin_")
         config = Path(self._dir.name) / "twin.yaml"
-        config.write_text(yaml.safe_dump(to_dict(twin_cfg)))
+        config.write_text(dump_yaml(to_dict(twin_cfg)))
         shm_name = f"equidiff_calib_{time.time_ns()}"
         self.twin = SimServer(module="equidiff_core.twin.sim", args=("--config", str(config), "--shm", shm_name))
         self.reader = None

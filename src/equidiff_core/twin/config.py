@@ -9,7 +9,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
-from ..config import ConfigError, LabConfig, default_config_dir, from_dict, load_yaml
+from ..config import REACH_M, LabConfig, bounded, check_unit_quaternion, default_config_dir, from_dict, load_mapping
+from ..robots.base import CartesianLimits
 
 # The policy's arithmetic in the twin: pinned, not "auto" (bf16 where the CPU has it natively),
 # so an episode's result does not depend on which machine ran it.
@@ -37,6 +38,7 @@ class BoardMountConfig:
     def __post_init__(self):
         if min(self.size) <= 0 or self.thickness <= 0:
             raise ValueError("board size and thickness must be positive")
+        check_unit_quaternion(self.quat_wxyz, "quat_wxyz")
 
 
 @dataclass(frozen=True)
@@ -65,11 +67,11 @@ class SceneConfig:
     friction: tuple[float, float, float] = (1.5, 0.01, 0.0002)
     # Randomisation: object centres uniform in this rectangle (base frame, m), yaw uniform in
     # the given range (degrees; [0, 360) is the full circle), at least min_separation apart.
-    region_x: tuple[float, float] = (0.36, 0.56)
-    region_y: tuple[float, float] = (-0.14, 0.14)
-    block_yaw_deg: tuple[float, float] = (0.0, 360.0)
-    bowl_yaw_deg: tuple[float, float] = (0.0, 360.0)
-    min_separation: float = 0.15
+    region_x: tuple[float, float] = bounded((0.36, 0.56), unit="m", ge=-REACH_M, le=REACH_M)
+    region_y: tuple[float, float] = bounded((-0.14, 0.14), unit="m", ge=-REACH_M, le=REACH_M)
+    block_yaw_deg: tuple[float, float] = bounded((0.0, 360.0), unit="deg", ge=-360, le=360)
+    bowl_yaw_deg: tuple[float, float] = bounded((0.0, 360.0), unit="deg", ge=-360, le=360)
+    min_separation: float = bounded(0.15, unit="m", ge=0, le=1)
     # Off (None) unless calibrating: policies' observations never show a board.
     calibration_board: BoardMountConfig | None = None
 
@@ -92,23 +94,24 @@ class SceneConfig:
 class SuccessConfig:
     """The block rests inside the bowl: centred within the wall, below the rim, still, released."""
 
-    margin: float = 0.01  # block centre at least this far inside the inner wall (m)
-    max_speed: float = 0.05  # m/s
-    hold_s: float = 0.5  # success must hold this long before an episode ends early
+    margin: float = bounded(0.01, unit="m", ge=0, le=0.1)  # block centre at least this far inside the inner wall
+    max_speed: float = bounded(0.05, unit="m/s", gt=0, le=1)
+    hold_s: float = bounded(0.5, unit="s", ge=0, le=10)  # success must hold this long before an episode ends early
 
 
 @dataclass(frozen=True)
 class RenderConfig:
     """Simulated D455s: the poses come from lab.yaml; intrinsics, resolution and noise from here."""
 
-    width: int = 424
-    height: int = 240
-    fovy_deg: float = 58.0  # D455 depth VFOV; with fx = fy this gives HFOV ~88 degrees at 16:9
+    width: int = bounded(424, unit="px", ge=8, le=4096)
+    height: int = bounded(240, unit="px", ge=8, le=4096)
+    # D455 depth VFOV; with fx = fy this gives HFOV ~88 degrees at 16:9
+    fovy_deg: float = bounded(58.0, unit="deg", gt=0, lt=180)
     # Depth noise, D455-like: sigma(z) = noise_base + noise_quadratic * z^2 (m), plus dropout.
     depth_noise: bool = True
-    noise_base: float = 0.0005
-    noise_quadratic: float = 0.0015
-    dropout: float = 0.02  # fraction of pixels lost at random
+    noise_base: float = bounded(0.0005, unit="m", ge=0, le=0.1)
+    noise_quadratic: float = bounded(0.0015, unit="1/m", ge=0, le=0.1)
+    dropout: float = bounded(0.02, unit="", ge=0, lt=1)  # fraction of pixels lost at random
     edge_dropout: bool = True  # lose pixels at depth discontinuities like a stereo camera
     seed: int = 0
 
@@ -122,8 +125,8 @@ class RenderConfig:
 @dataclass(frozen=True)
 class SimConfig:
     host: str = "127.0.0.1"  # loopback address franky-sim serves libfranka on ("auto": pick a free one)
-    state_hz: float = 60.0  # shared-memory state snapshots for the cameras
-    status_hz: float = 10.0  # /twin/state
+    state_hz: float = bounded(60.0, unit="Hz", gt=0, le=1000)  # shared-memory state snapshots for the cameras
+    status_hz: float = bounded(10.0, unit="Hz", gt=0, le=1000)  # /twin/state
     initial_q: tuple[float, float, float, float, float, float, float] = (0.0, 0.0, 0.0, -1.57, 0.0, 1.57, 0.785)
 
 
@@ -131,25 +134,27 @@ class SimConfig:
 class ExpertConfig:
     """Scripted grasp-lift-place planner (speeds like a careful SpaceMouse operator)."""
 
-    ready_position: tuple[float, float, float] = (0.45, 0.0, 0.30)
-    speed: float = 0.15  # m/s TCP speed for transfers
-    slow_speed: float = 0.05  # m/s for the last centimetres of approach and grasp
-    yaw_speed: float = 1.5  # rad/s
+    ready_position: tuple[float, float, float] = bounded((0.45, 0.0, 0.30), unit="m", ge=-REACH_M, le=REACH_M)
+    # TCP speed for transfers
+    speed: float = bounded(0.15, unit="m/s", gt=0, le=CartesianLimits.translation_velocity_m_s)
+    # for the last centimetres of approach and grasp
+    slow_speed: float = bounded(0.05, unit="m/s", gt=0, le=CartesianLimits.translation_velocity_m_s)
+    yaw_speed: float = bounded(1.5, unit="rad/s", gt=0, le=CartesianLimits.rotation_velocity_rad_s)
     approach_height: float = 0.10  # above the object before descending
     grasp_height: float = 0.018  # TCP z when closing on the block
     lift_height: float = 0.15
     place_height: float = 0.09  # TCP z when releasing above the bowl
     open_width: float = 0.08
     close_width: float = 0.0  # commanded closed width (franky-sim holds with a smaller width)
-    gripper_wait_s: float = 0.8
-    settle_s: float = 0.3
-    command_hz: float = 20.0  # like teleop
+    gripper_wait_s: float = bounded(0.8, unit="s", ge=0, le=10)
+    settle_s: float = bounded(0.3, unit="s", ge=0, le=10)
+    command_hz: float = bounded(20.0, unit="Hz", gt=0, le=1000)  # like teleop
 
 
 @dataclass(frozen=True)
 class EpisodeConfig:
-    max_duration_s: float = 40.0
-    home_timeout_s: float = 15.0
+    max_duration_s: float = bounded(40.0, unit="s", gt=0, le=3600)
+    home_timeout_s: float = bounded(15.0, unit="s", gt=0, le=300)
 
 
 @dataclass(frozen=True)
@@ -177,10 +182,7 @@ def load_twin_config(path: str | Path | None = None) -> TwinConfig:
         path = default_config_dir() / "twin.yaml"
         if not Path(path).is_file():
             return TwinConfig()
-    data = load_yaml(path) or {}
-    if not isinstance(data, dict):
-        raise ConfigError(f"{path}: expected a mapping at the top level")
-    return from_dict(TwinConfig, data, where=Path(path).name)
+    return from_dict(TwinConfig, load_mapping(path), where=Path(path).name)
 
 
 @dataclass(frozen=True)

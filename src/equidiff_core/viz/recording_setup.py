@@ -29,7 +29,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from ..config import ConfigError, default_config_dir, from_dict, load_yaml
+from ..config import bounded, default_config_dir, from_dict, load_mapping
 from .rerun_sdk import require_rerun
 
 APPLICATION_ID = "equidiff_ros"
@@ -56,14 +56,16 @@ IMAGES = "images"
 class VizConfig:
     """What to show and how often (config/viz.yaml)."""
 
-    ee_hz: float = 20.0  # TCP pose, executed target and their trails (state arrives at >= 100 Hz)
-    trail_s: float = 5.0  # length of the TCP / executed-target trails
+    # TCP pose, executed target and their trails (state arrives at >= 100 Hz)
+    ee_hz: float = bounded(20.0, unit="Hz", gt=0, le=1000)
+    trail_s: float = bounded(5.0, unit="s", gt=0, le=600)  # length of the TCP / executed-target trails
     clouds: bool = False  # also show the raw camera clouds (costs bandwidth: ~5 MB per cloud)
     images: bool = True  # the cameras' colour images (JPEG, logged as recorded: tens of kB each)
-    cloud_hz: float = 1.0  # per camera
-    max_cloud_points: int = 50_000  # clouds are strided down to at most this many points
+    cloud_hz: float = bounded(1.0, unit="Hz", gt=0, le=100)  # per camera
+    # clouds are strided down to at most this many points
+    max_cloud_points: int = bounded(50_000, unit="points", ge=1, le=10_000_000)
     solid_voxels: bool = True  # filled boxes (False: wireframe)
-    axis_length: float = 0.05  # m, TCP / camera / base axes
+    axis_length: float = bounded(0.05, unit="m", gt=0, le=1)  # TCP / camera / base axes
 
     def __post_init__(self):
         for name in ("ee_hz", "trail_s", "cloud_hz", "axis_length"):
@@ -79,10 +81,7 @@ def load_viz_config(path: str | Path | None = None) -> VizConfig:
         path = default_config_dir() / "viz.yaml"
         if not Path(path).is_file():
             return VizConfig()
-    data = load_yaml(path) or {}
-    if not isinstance(data, dict):
-        raise ConfigError(f"{path}: expected a mapping at the top level")
-    return from_dict(VizConfig, data, where=Path(path).name)
+    return from_dict(VizConfig, load_mapping(path), where=Path(path).name)
 
 
 def default_blueprint(cameras: tuple[str, ...] | list[str] = ()) -> Any:

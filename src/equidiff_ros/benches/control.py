@@ -20,12 +20,11 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-import yaml
 from trajectory_msgs.msg import MultiDOFJointTrajectory
 
 from equidiff_core import geometry
 from equidiff_core.chunk import PoseChunk, chunk_from_msg, chunk_to_msg
-from equidiff_core.config import default_config_dir, load_lab_config, to_dict
+from equidiff_core.config import default_config_dir, dump_yaml, load_lab_config, to_dict
 from equidiff_core.control import load_control_config, metrics
 from equidiff_core.inference import export_policy, load_inference_policy
 from equidiff_core.normalizer import Normalizer
@@ -348,7 +347,7 @@ def run_control_bench(args) -> int:
                 control, scheduler=dataclasses.replace(control.scheduler, interpolation=args.interpolation)
             )
             control_path = tmp / "control.yaml"
-            control_path.write_text(yaml.safe_dump(to_dict(control)))
+            control_path.write_text(dump_yaml(to_dict(control)))
         result["interpolation"] = control.scheduler.interpolation
         checkpoint = label = None
         if not args.no_policy:

@@ -1,12 +1,14 @@
 """`equidiff dataset stats BAGS...`: episodes, durations, steps, samples and action ranges.
 
 Bad bags (truncated, killed recordings, missing topics) are listed with the reason and make
-the command exit 1, so a script never trains on a silently shrunken set.
+the command exit 1, so a script never trains on a silently shrunken set; so does a folder with no
+episodes at all.
 """
 
 from __future__ import annotations
 
 import json
+import sys
 
 from equidiff_core.dataset import DatasetConfig, dataset_stats
 from equidiff_core.observation import STATE_TOLERANCE_S
@@ -45,6 +47,9 @@ def run(args) -> int:
         resolution=args.resolution,
     )
     stats = dataset_stats(args.bags, cfg)
+    if not stats["episodes"] and not stats["skipped"]:  # "0 episodes" is not a dataset: say so, fail
+        print(f"equidiff dataset stats: no episodes (bag directories) in {' '.join(args.bags)}", file=sys.stderr)
+        return 1
     if args.json:
         print(json.dumps(stats))
     else:

@@ -8,9 +8,7 @@ import sys
 import time
 from pathlib import Path
 
-import yaml
-
-from equidiff_core.config import ConfigError, to_dict
+from equidiff_core.config import ConfigError, dump_yaml, to_dict
 from equidiff_core.episode import run_episode
 from equidiff_core.twin.config import load_twin_job_configs
 from equidiff_core.twin.demos import collect_direct
@@ -25,7 +23,7 @@ def _collect_ros(args, lab_path: Path, twin_path: Path, cfg_override) -> list[tu
     twin_cfg_path = twin_path
     if cfg_override is not None:  # the nodes read YAML: write the narrowed config next to the bags
         twin_cfg_path = args.out / "twin_collect.yaml"
-        twin_cfg_path.write_text(yaml.safe_dump(to_dict(cfg_override), sort_keys=False))
+        twin_cfg_path.write_text(dump_yaml(to_dict(cfg_override), sort_keys=False))
     with TwinStack(
         args.out, lab_path, twin_cfg_path, policy=None, domain_id=args.domain, task=args.task, seed=args.seed
     ) as stack:

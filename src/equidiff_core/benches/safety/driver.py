@@ -15,12 +15,11 @@ from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
-import yaml
 
 from equidiff_core.benches.safety import chunk_faults, node_faults, stop_faults
 from equidiff_core.benches.safety.campaign import Campaign, Probe, start_episode, start_franka, stop_episode
 from equidiff_core.benches.safety.report import campaign_summary
-from equidiff_core.config import default_config_dir, load_lab_config
+from equidiff_core.config import default_config_dir, dump_yaml, load_lab_config, load_mapping
 from equidiff_core.control import load_control_config
 from equidiff_core.machine import cpu_description
 from equidiff_core.robots.franky.sim import SimServer
@@ -54,10 +53,10 @@ def control_config_with_margin(tmp: Path, margin_mm: float | None, path: Path | 
     """``path`` (default control.yaml), or a copy of it with ``safety.box_margin_m`` set (``--box-margin-mm``)."""
     path = Path(path) if path is not None else default_config_dir() / "control.yaml"
     if margin_mm is not None:
-        data = yaml.safe_load(path.read_text()) or {}
+        data = load_mapping(path)
         data.setdefault("safety", {})["box_margin_m"] = float(margin_mm) / 1000
         path = tmp / "control.yaml"
-        path.write_text(yaml.safe_dump(data))
+        path.write_text(dump_yaml(data))
     return path, load_control_config(path)
 
 

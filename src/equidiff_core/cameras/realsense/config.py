@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from ...config import bounded
+
 VISUAL_PRESETS = ("custom", "default", "hand", "high_accuracy", "high_density", "medium_density")
 
 
@@ -23,25 +25,27 @@ class RealSenseOptions:
     doubling up to ``reconnect_backoff_max_s``, for as long as the node runs.
     """
 
-    depth_width: int | None = None  # default: the colour width/height (the D455 supports 848x480 for both)
-    depth_height: int | None = None
-    decimation: int = 1  # 1 = off; 2..8 divides the depth resolution (and noise, and cost)
+    # default: the colour width/height (the D455 supports 848x480 for both)
+    depth_width: int | None = bounded(None, unit="px", gt=0, le=4096)
+    depth_height: int | None = bounded(None, unit="px", gt=0, le=4096)
+    decimation: int = bounded(
+        1, unit="", ge=1, le=8
+    )  # 1 = off; 2..8 divides the depth resolution (and noise, and cost)
     spatial: bool = False  # edge-preserving spatial smoothing (in disparity space)
     temporal: bool = False  # temporal smoothing over the last frames (in disparity space)
     hole_filling: bool = False  # fill holes from the nearest valid neighbour
-    exposure_us: float | None = None  # colour exposure in microseconds; None = auto
-    white_balance_k: float | None = None  # colour white balance in kelvin; None = auto
-    depth_exposure_us: float | None = None  # depth sensor exposure; None = auto
-    laser_power: float | None = None  # emitter power in mW; None = device default
+    exposure_us: float | None = bounded(None, unit="us", gt=0, le=1_000_000)  # colour exposure; None = auto
+    white_balance_k: float | None = bounded(None, unit="K", gt=0, le=20_000)  # colour white balance; None = auto
+    depth_exposure_us: float | None = bounded(None, unit="us", gt=0, le=1_000_000)  # None = auto
+    laser_power: float | None = bounded(None, unit="mW", gt=0, le=1000)  # emitter power; None = device default
     visual_preset: str | None = None  # one of VISUAL_PRESETS; None = device default
-    reset_after_timeouts: int = (
-        3  # consecutive frame timeouts (each the reader's timeout, 1 s in camera_node) before a reset
-    )
-    reenumerate_timeout_s: float = (
-        10.0  # wait this long for the serial to come back after a reset (a D4xx takes a few s)
-    )
-    reconnect_backoff_s: float = 1.0  # pause before the next reset after a failed one; doubles each time...
-    reconnect_backoff_max_s: float = 30.0  # ...up to this
+    # consecutive frame timeouts (each the reader's timeout, 1 s in camera_node) before a reset
+    reset_after_timeouts: int = bounded(3, unit="timeouts", ge=1, le=100)
+    # wait this long for the serial to come back after a reset (a D4xx takes a few s)
+    reenumerate_timeout_s: float = bounded(10.0, unit="s", gt=0, le=120)
+    # pause before the next reset after a failed one; doubles each time...
+    reconnect_backoff_s: float = bounded(1.0, unit="s", gt=0, le=600)
+    reconnect_backoff_max_s: float = bounded(30.0, unit="s", gt=0, le=3600)  # ...up to this
 
     def __post_init__(self):
         if not 1 <= self.decimation <= 8:
