@@ -166,11 +166,14 @@ def _walk(data: mmap.mmap, scan: McapScan, tolerant: bool) -> Iterator:
             break
         except CRCValidationError as err:  # the data-section CRC (chunk CRCs are checked below, per chunk)
             what = "data section" if isinstance(err.record, DataEnd) else type(err.record).__name__
-            msg = f"{scan.path}: CRC mismatch in the {what} (a damaged byte outside the chunks' messages)"
+            if scan.damaged:  # the damaged chunks' bytes are in the data section: they explain it
+                scan.stopped = f"CRC mismatch in the {what}, from the damaged chunks"
+                return  # strict: ``iter_mcap`` raises, naming them
+            msg = f"CRC mismatch in the {what} (a damaged byte outside the chunks' messages)"
             if tolerant:
                 scan.stopped = msg
                 return
-            raise BagIntegrityError(msg, scan.damaged) from None
+            raise BagIntegrityError(f"{scan.path}: {msg}", scan.damaged) from None
         except Exception as err:  # mcap raises EndOfFile, struct.error, ValueError... on bad bytes
             where = "summary section" if data_end_seen else f"record at byte {record_start}"
             if data.tell() >= len(data):  # the parser ran into the end of the file
