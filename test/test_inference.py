@@ -430,3 +430,17 @@ def test_checkpoint_errors_name_the_real_reason(exported, tmp_path, capsys):
     assert main(["check", "equivariance", "--checkpoint", str(future), "--scenes", "1"]) == 2
     err = capsys.readouterr().err
     assert "version 99" in err and "training checkpoint" not in err
+
+
+def test_shipped_policy_files_and_checkpoints_carry_a_checked_weights_hash():
+    """Re-written by scripts/rewrite_integrity.py; load_checked verifies each hash."""
+    from equidiff_core.policy_file import FORMAT, HASH_KEY, VERSION, load_checked
+    from equidiff_core.training import load_training_checkpoint
+
+    root = Path(__file__).resolve().parents[1] / "checkpoints"
+    policies, ckpts = sorted(root.rglob("policy.pt")), sorted(root.rglob("*.ckpt"))
+    assert policies and ckpts
+    for path in policies:
+        assert load_checked(path, FORMAT, VERSION, "policy file", "a policy", "state_dict").get(HASH_KEY), path
+    for path in ckpts:
+        assert load_training_checkpoint(path).get(HASH_KEY), path
