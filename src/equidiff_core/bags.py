@@ -256,8 +256,7 @@ class RepairReport:
 
     def dropped(self) -> list[str]:
         """One line per dropped chunk: its topics, time range and message counts."""
-        start = min((d.start_ns for d in self.damaged), default=None)
-        lines = [f"dropped {d.describe(start)}" for d in self.damaged]
+        lines = [f"dropped {d.describe()}" for d in self.damaged]
         if self.orphaned:
             lines.append(f"dropped {self.orphaned} later messages whose channel was defined in a damaged chunk")
         return lines

@@ -80,10 +80,10 @@ class DamagedChunk:
         return sum(self.messages.values())
 
     def describe(self, episode_start_ns: int | None = None) -> str:
-        """e.g. "chunk at byte 4242 (first message /voxels at 1700000001.200000000 s, +1.200 s; ...)"."""
+        """e.g. "chunk at byte 4242 (first message /voxels at 1700000001.200000000 s, +1.200 s from ...; ...)"."""
 
         def when(ns: int) -> str:
-            rel = f", +{(ns - episode_start_ns) / 1e9:.3f} s" if episode_start_ns else ""
+            rel = f", {(ns - episode_start_ns) / 1e9:+.3f} s from the first intact message" if episode_start_ns else ""
             return f"{ns // 1_000_000_000}.{ns % 1_000_000_000:09d} s{rel}"
 
         first = f"first message {self.first_topic or '(topic unknown)'} at {when(self.start_ns)}"
