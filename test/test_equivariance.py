@@ -160,6 +160,7 @@ def test_check_equivariance_of_the_baseline_has_no_second_baseline(capsys):
     assert main(["check", "equivariance", "--preset", "tiny", "--policy", "baseline", "--scenes", "1"]) == 0
     base = json.loads(capsys.readouterr().out.strip())
     assert base["policy"] == "baseline" and "baseline" not in base
+    assert len(base["weights_sha256"]) == 64  # the hash of the weights checked, verified at load
     for path in ("escnn", "exported_fp32", "exported_bf16"):
         assert base[path]["denoiser"]["c4_max_rel_err"] > 0.1
 

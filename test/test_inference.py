@@ -376,3 +376,72 @@ def test_precision_choices(exported):
     assert auto.precision == ("bf16" if cpu_has_native_bf16() else "fp32")
     with pytest.raises(ValueError, match="precision"):
         load_inference_policy(path, precision="fp8")
+
+
+def test_policy_files_carry_a_weights_hash_checked_at_load(exported, tmp_path):
+    """export_policy stores the sha256 of the weights; a changed weight is refused by name; a file
+    without a hash (written before) loads and is reported unhashed; rewrite_with_hash adds it, bit for bit."""
+    from equidiff_core.policy_file import UNHASHED, open_policy_file, rewrite_with_hash, weights_sha256
+
+    _, path = exported
+    payload = torch.load(path, weights_only=True)
+    stored = payload["weights_sha256"]
+    assert len(stored) == 64 and stored == weights_sha256(payload["state_dict"])
+    assert load_inference_policy(path).weights_sha256 == stored
+    # the hash does not depend on the dict's order, only on names, dtypes, shapes and bytes
+    assert weights_sha256(dict(reversed(list(payload["state_dict"].items())))) == stored
+    altered = {k: v.clone() for k, v in payload["state_dict"].items()}
+    name = next(k for k, v in altered.items() if v.is_floating_point() and v.numel() > 1)
+    flat = altered[name].view(-1)
+    flat.view(torch.int32)[0] ^= 1  # one flipped bit in one weight
+    flipped = tmp_path / "flipped.pt"
+    torch.save({**payload, "state_dict": altered}, flipped)
+    with pytest.raises(CheckpointError, match="do not match their stored sha256"):
+        load_inference_policy(flipped)
+    old = tmp_path / "old.pt"
+    torch.save({k: v for k, v in payload.items() if k != "weights_sha256"}, old)
+    assert open_policy_file(old).weights_sha256 is None
+    assert load_inference_policy(old).weights_sha256 == UNHASHED
+    assert rewrite_with_hash(old) == stored
+    again = open_policy_file(old)
+    assert again.weights_sha256 == stored
+    for k, v in payload["state_dict"].items():
+        assert torch.equal(again.state[k], v)
+
+
+def test_checkpoint_errors_name_the_real_reason(exported, tmp_path, capsys):
+    """Each failure says what it is; a future policy file is not reported as "not a training checkpoint"."""
+    from equidiff_ros.cli import main
+
+    _, path = exported
+    payload = torch.load(path, weights_only=True)
+    future = tmp_path / "future.pt"
+    torch.save({**payload, "version": 99}, future)
+    with pytest.raises(CheckpointError, match=r"version 99, which this equidiff cannot read \(it reads version 1"):
+        load_inference_policy(future)
+    cut = tmp_path / "cut.pt"
+    cut.write_bytes(path.read_bytes()[: path.stat().st_size // 2])
+    with pytest.raises(CheckpointError, match="truncated"):
+        load_inference_policy(cut)
+    ckpt_like = tmp_path / "ckpt_like.pt"
+    torch.save({"format": "equidiff_train_ckpt", "version": 1}, ckpt_like)
+    with pytest.raises(CheckpointError, match="it is an equidiff training checkpoint"):
+        load_inference_policy(ckpt_like)
+    # equidiff check equivariance falls back to the training-checkpoint loader only for another format
+    assert main(["check", "equivariance", "--checkpoint", str(future), "--scenes", "1"]) == 2
+    err = capsys.readouterr().err
+    assert "version 99" in err and "training checkpoint" not in err
+
+
+def test_shipped_policy_files_and_checkpoints_carry_a_checked_weights_hash():
+    """Re-written by scripts/rewrite_integrity.py; load_checked verifies each hash."""
+    from equidiff_core.policy_file import FORMAT, HASH_KEY, VERSION, load_checked
+    from equidiff_core.training import load_training_checkpoint
+
+    root = Path(__file__).resolve().parents[1] / "checkpoints"
+    policies, ckpts = sorted(root.rglob("policy.pt")), sorted(root.rglob("*.ckpt"))
+    assert policies and ckpts
+    for path in policies:
+        assert load_checked(path, FORMAT, VERSION, "policy file", "a policy", "state_dict").get(HASH_KEY), path
+    for path in ckpts:
+        assert load_training_checkpoint(path).get(HASH_KEY), path

@@ -1,25 +1,29 @@
-"""Reading episode bags (rosbag2 directories, MCAP storage) and repairing killed recordings.
+"""Reading episode bags (rosbag2 directories, MCAP storage) and repairing killed or damaged recordings.
 
-``read_episode(path)`` decodes every message of the requested topics with rosbags' Jazzy
+``read_episode(path)`` reads the bag's .mcap through ``mcap_reader.iter_mcap`` (every chunk,
+data-section and summary CRC checked), decodes the requested topics with rosbags' Jazzy
 typestore and returns them per topic with their bag (receive) times; the dataset aligns
-observations by *header* stamps, which the messages carry. ``EpisodeMeta`` is what the
-recorder stores in metadata.yaml ``custom_data`` (and in the ``episode.yaml`` sidecar, so
-it survives a killed recorder).
+observations by *header* stamps, which the messages carry. A flipped bit raises
+``BagIntegrityError`` naming the episode, the damaged chunk's topics and times; a bag written
+without CRCs (rosbags' MCAP storage, this project's bags before) still reads, with
+``Episode.integrity == "unchecked"``. ``EpisodeMeta`` is what the recorder stores in
+metadata.yaml ``custom_data`` (and in the ``episode.yaml`` sidecar, so it survives a killed
+recorder).
 
-``repair_bag(path)`` handles the one way a recording goes wrong on its own: the recorder
-process dies (SIGKILL, power) before rosbags writes the MCAP summary and metadata.yaml.
-rosbags' reader needs the summary section, so repair scans the MCAP records itself,
-keeps every message of every complete chunk (CRC-checked by rosbags' ``decompress``), stops
-at the first truncated record, and rewrites a proper bag with the same topics, types and
-QoS. The damaged original is kept next to it (``<name>.unrepaired``); nothing is lost.
+``repair_bag(path)`` handles the two ways a recording goes wrong on its own: the recorder
+process dies (SIGKILL, power) before the MCAP summary and metadata.yaml are written, or bytes
+of the file change afterwards (a bad disk, a bad copy). It reads every record it can, keeps
+every message of every intact chunk (chunk CRCs checked), drops damaged chunks (the report
+names their topics, times and message counts), stops at the first truncated record, and
+rewrites a proper bag with the same topics, types and QoS. The damaged original is kept next
+to it (``<name>.unrepaired``); nothing is lost.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import shutil
-import struct
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -27,15 +31,13 @@ from typing import Any
 import numpy as np
 import yaml
 
+from .mcap_reader import CHECKED, UNCHECKED, BagError, BagIntegrityError, DamagedChunk, McapScan, iter_mcap
 from .rosmsg import rosbags_factory, stamp_to_ns
 
 META_SIDECAR = "episode.yaml"
 UNREPAIRED_SUFFIX = ".unrepaired"
-MCAP_MAGIC = b"\x89MCAP0\r\n"
-
-
-class BagError(RuntimeError):
-    """A bag that cannot be read as an episode (missing, truncated, malformed); the message says why."""
+# BagError and BagIntegrityError live with the reader (mcap_reader) and are this module's API too
+__all__ = ["CHECKED", "UNCHECKED", "BagError", "BagIntegrityError", "DamagedChunk"]
 
 
 # --- metadata ------------------------------------------------------------------------------
@@ -96,7 +98,7 @@ class EpisodeMeta:
 @dataclass
 class TopicMessages:
     msgtype: str
-    log_ns: np.ndarray  # (N,) int64 bag record (receive) times, in file order
+    log_ns: np.ndarray  # (N,) int64 bag record (receive) times, ascending
     messages: list  # decoded rosbags messages
 
     def __len__(self) -> int:
@@ -118,6 +120,7 @@ class Episode:
     duration_ns: int
     topics: dict[str, TopicMessages]
     message_counts: dict[str, int]  # per topic in the bag (including topics not decoded)
+    integrity: str = UNCHECKED  # "checked": every chunk's CRC matched; "unchecked": stored without CRCs
 
     def __getitem__(self, topic: str) -> TopicMessages:
         if topic not in self.topics:
@@ -161,10 +164,17 @@ def read_meta(path: str | Path) -> EpisodeMeta:
     return EpisodeMeta()
 
 
-def read_episode(path: str | Path, topics: Iterable[str] | None = None) -> Episode:
-    """Decode a bag's messages (all topics, or only ``topics``); BagError with the reason if unreadable."""
-    from rosbags.rosbag2 import Reader
+def bag_mcap(path: Path) -> Path:
+    """The one .mcap file of the bag directory ``path`` (BagError if there is not exactly one)."""
+    mcaps = sorted(path.glob("*.mcap"))
+    if len(mcaps) != 1:
+        raise BagError(f"{path}: expected one .mcap file, found {len(mcaps)}")
+    return mcaps[0]
 
+
+def read_episode(path: str | Path, topics: Iterable[str] | None = None) -> Episode:
+    """Decode a bag's messages (all topics, or only ``topics``), every CRC checked: ``BagIntegrityError``
+    for a damaged bag, ``BagError`` with the reason for any other unreadable one."""
     path = Path(path)
     if not path.exists():
         raise BagError(f"{path}: no such bag directory")
@@ -173,39 +183,57 @@ def read_episode(path: str | Path, topics: Iterable[str] | None = None) -> Episo
     if not (path / "metadata.yaml").is_file():
         hint = " (a killed recording? run: equidiff bags repair " + str(path) + ")" if any(path.glob("*.mcap")) else ""
         raise BagError(f"{path}: no metadata.yaml{hint}")
-    typestore = rosbags_factory().typestore
+    mcap = bag_mcap(path)
     wanted = None if topics is None else set(topics)
+    scan = McapScan(mcap)
+    raw = _read_checked(path, scan, lambda topic: wanted is None or topic in wanted)
+    typestore = rosbags_factory().typestore
+    out: dict[str, TopicMessages] = {
+        ch.topic: TopicMessages(ch.msgtype, np.zeros(0, np.int64), [])
+        for ch in scan.channels.values()
+        if wanted is None or ch.topic in wanted
+    }
+    log: dict[str, list[int]] = {t: [] for t in out}
+    for channel, ts, data in raw:
+        try:
+            msg = typestore.deserialize_cdr(data, channel.msgtype)
+        except Exception as err:  # rosbags raises several kinds on bad CDR
+            raise BagError(
+                f"{path}: undecodable {channel.msgtype} message on {channel.topic} at {ts} ns: {err}"
+            ) from err
+        out[channel.topic].messages.append(msg)
+        log[channel.topic].append(ts)
+    for t, stamps in log.items():
+        # per topic in log-time order, as rosbags' reader gives them (file order may interleave)
+        order = np.argsort(np.asarray(stamps, dtype=np.int64), kind="stable")
+        out[t].log_ns = np.asarray(stamps, dtype=np.int64)[order]
+        out[t].messages = [out[t].messages[k] for k in order]
+    counts = {ch.topic: scan.counts.get(ch.topic, 0) for ch in scan.channels.values()}
+    start = scan.start_ns or 0
+    duration = (scan.end_ns - scan.start_ns) if scan.start_ns is not None else 0
+    return Episode(path, read_meta(path), start, duration, out, counts, scan.integrity)
+
+
+def verify_bag(path: str | Path) -> McapScan:
+    """Read the bag's whole .mcap, checking every CRC, without decoding: its ``McapScan`` (``integrity``
+    says whether there was anything to check); ``BagIntegrityError`` / ``BagError`` like ``read_episode``."""
+    path = Path(path)
+    scan = McapScan(bag_mcap(path) if path.is_dir() else path)
+    _read_checked(path, scan, lambda topic: False)
+    return scan
+
+
+def _read_checked(path: Path, scan: McapScan, keep: Callable[[str], bool]) -> list:
+    """The (channel, log_ns, data) of ``scan.path`` whose topic ``keep`` accepts, every CRC checked; errors
+    name the bag and what to run."""
     try:
-        with Reader(path) as reader:
-            counts = {t: info.msgcount for t, info in reader.topics.items()}
-            conns = [c for c in reader.connections if wanted is None or c.topic in wanted]
-            out: dict[str, TopicMessages] = {}
-            for conn in conns:
-                out.setdefault(conn.topic, TopicMessages(conn.msgtype, np.zeros(0, np.int64), []))
-            log: dict[str, list[int]] = {t: [] for t in out}
-            # rosbags reads every topic when given no connections: only read what was asked for
-            for conn, ts, raw in reader.messages(connections=conns) if conns else ():
-                try:
-                    msg = typestore.deserialize_cdr(raw, conn.msgtype)
-                except Exception as err:  # rosbags raises several kinds on bad CDR
-                    raise BagError(
-                        f"{path}: undecodable {conn.msgtype} message on {conn.topic} at {ts} ns: {err}"
-                    ) from err
-                out[conn.topic].messages.append(msg)
-                log[conn.topic].append(ts)
-            for t, stamps in log.items():
-                out[t].log_ns = np.asarray(stamps, dtype=np.int64)
-            start, duration = reader.start_time, reader.duration
-    except BagError:
-        raise
-    except Exception as err:  # ReaderError, struct.error, OSError on truncated/corrupt files
+        return [m for m in iter_mcap(scan.path, scan) if keep(m[0].topic)]
+    except BagIntegrityError as err:
+        raise BagIntegrityError(f"{err}; equidiff bags repair {path} keeps the intact chunks", err.damaged) from None
+    except BagError as err:
         raise BagError(
-            f"{path}: unreadable bag ({type(err).__name__}: {err}); "
-            f"if its recorder was killed, run: equidiff bags repair {path}"
-        ) from err
-    return Episode(
-        path, read_meta(path), int(start) if counts and sum(counts.values()) else 0, int(duration), out, counts
-    )
+            f"unreadable bag ({err}); if its recorder was killed, run: equidiff bags repair {path}"
+        ) from None
 
 
 # --- repair -------------------------------------------------------------------------------
@@ -218,103 +246,43 @@ class RepairReport:
     messages: dict[str, int]  # recovered messages per topic
     chunks: int
     dropped_bytes: int  # unreadable tail (incomplete chunk)
-    reason: str  # what stopped the scan ('end of file', 'truncated chunk at byte N', ...)
+    reason: str  # what stopped the scan ('end of file', 'truncated ... at byte N', a CRC mismatch ...)
+    damaged: list[DamagedChunk] = field(default_factory=list)  # chunks dropped for a CRC mismatch
+    orphaned: int = 0  # messages of intact chunks lost because their channel was defined in a damaged one
 
     @property
     def total(self) -> int:
         return sum(self.messages.values())
 
+    def dropped(self) -> list[str]:
+        """One line per dropped chunk: its topics, time range and message counts."""
+        lines = [f"dropped {d.describe()}" for d in self.damaged]
+        if self.orphaned:
+            lines.append(f"dropped {self.orphaned} later messages whose channel was defined in a damaged chunk")
+        return lines
+
 
 @dataclass
-class _Scan:
-    schemas: dict[int, tuple[str, str, str]] = field(default_factory=dict)  # id -> (name, encoding, text)
-    channels: dict[int, tuple[int, str, str, bytes]] = field(default_factory=dict)  # id -> (schema, topic, enc, meta)
-    messages: list[tuple[int, int, bytes]] = field(default_factory=list)  # (channel, log_time, data)
-    chunks: int = 0
-    good_until: int = 0
-    reason: str = "end of file"
+class McapSalvage(McapScan):
+    """What a tolerant read of a (possibly truncated or damaged) .mcap recovered, for repair."""
+
+    messages: list[tuple] = field(default_factory=list)  # (McapChannel, log_time_ns, data) in file order
+
+    @property
+    def reason(self) -> str:
+        return self.stopped or ("end of file" if self.complete else "end of file without a footer")
 
 
-def _string(buf: bytes, off: int) -> tuple[str, int]:
-    (n,) = struct.unpack_from("<I", buf, off)
-    return buf[off + 4 : off + 4 + n].decode(), off + 4 + n
-
-
-def _records(buf: bytes, scan: _Scan, top_level: bool, base: int = 0) -> None:
-    """Parse MCAP records of ``buf``; on the top level stop cleanly at a truncated record."""
-    from rosbags.rosbag2.storage_mcap import decompress
-
-    off = 0
-    while off < len(buf):
-        if off + 9 > len(buf):
-            raise _Truncated(base + off, "truncated record header")
-        op, size = buf[off], struct.unpack_from("<Q", buf, off + 1)[0]
-        body_start, body_end = off + 9, off + 9 + size
-        if body_end > len(buf):
-            raise _Truncated(base + off, f"record 0x{op:02x} of {size} bytes cut off")
-        body = buf[body_start:body_end]
-        if op == 0x02:  # footer: the file was closed properly after all
-            scan.good_until = base + body_end
-            return
-        if op == 0x03:
-            (sid,) = struct.unpack_from("<H", body, 0)
-            name, p = _string(body, 2)
-            enc, p = _string(body, p)
-            (n,) = struct.unpack_from("<I", body, p)
-            scan.schemas[sid] = (name, enc, body[p + 4 : p + 4 + n].decode())
-        elif op == 0x04:
-            cid, sid = struct.unpack_from("<HH", body, 0)
-            topic, p = _string(body, 4)
-            enc, p = _string(body, p)
-            (n,) = struct.unpack_from("<I", body, p)
-            scan.channels[cid] = (sid, topic, enc, body[p + 4 : p + 4 + n])
-        elif op == 0x05:
-            cid, _seq, log_time = struct.unpack_from("<HIQ", body, 0)
-            scan.messages.append((cid, log_time, body[22:]))
-        elif op == 0x06:
-            if not top_level:
-                raise _Truncated(base + off, "nested chunk")
-            _start, _end, usize, crc = struct.unpack_from("<QQQI", body, 0)
-            comp, p = _string(body, 28)
-            (csize,) = struct.unpack_from("<Q", body, p)
-            try:
-                inner = decompress(body[p + 8 : p + 8 + csize], comp, usize, crc)
-            except Exception as err:
-                raise _Truncated(base + off, f"corrupt chunk ({err})") from err
-            before = (len(scan.messages), dict(scan.schemas), dict(scan.channels))
-            try:
-                _records(inner, scan, top_level=False)
-            except _Truncated as err:  # a chunk is all or nothing
-                del scan.messages[before[0] :]
-                scan.schemas, scan.channels = before[1], before[2]
-                raise _Truncated(base + off, f"corrupt chunk ({err.reason})") from None
-            scan.chunks += 1
-        if top_level:
-            scan.good_until = base + body_end
-        off = body_end
-
-
-class _Truncated(Exception):
-    def __init__(self, offset: int, reason: str):
-        super().__init__(reason)
-        self.offset, self.reason = offset, reason
-
-
-def scan_mcap(mcap: Path) -> _Scan:
-    """Every schema, channel and message of the complete records of a (possibly truncated) MCAP file."""
-    data = mcap.read_bytes()
-    if not data.startswith(MCAP_MAGIC):
-        raise BagError(f"{mcap}: not an MCAP file (bad magic)")
-    scan = _Scan(good_until=len(MCAP_MAGIC))
-    try:
-        _records(data[len(MCAP_MAGIC) :], scan, top_level=True, base=len(MCAP_MAGIC))
-    except _Truncated as err:
-        scan.reason = f"{err.reason} at byte {err.offset}"
-    return scan
+def scan_mcap(mcap: Path) -> McapSalvage:
+    """Every message of every intact chunk of a (possibly truncated or damaged) MCAP file, and what
+    was dropped (``damaged``, ``stopped``); BagError only if it is not an MCAP file at all."""
+    salvage = McapSalvage(Path(mcap))
+    salvage.messages = list(iter_mcap(mcap, salvage, tolerant=True))
+    return salvage
 
 
 def _needs_repair(path: Path) -> str | None:
-    """Why the bag needs repair, or None if it reads fine."""
+    """Why the bag needs repair, or None if it reads fine (every CRC checked, rosbags opens it)."""
     if not (path / "metadata.yaml").is_file():
         return "no metadata.yaml"
     try:
@@ -347,27 +315,27 @@ def close_derived_bag(
 
 
 def repair_bag(path: str | Path, output: str | Path | None = None, force: bool = False) -> RepairReport | None:
-    """Rebuild a readable bag from a killed recording; returns None if ``path`` is healthy (unless ``force``).
+    """Rebuild a readable bag from a killed or damaged recording; returns None if ``path`` is healthy
+    (unless ``force``). Damaged chunks are dropped and listed in the report (``RepairReport.dropped``).
 
     ``output`` defaults to ``path`` itself: the damaged directory is renamed to
     ``<path>.unrepaired`` and the repaired bag takes its place.
     """
-    from rosbags.rosbag2.storage_mcap import get_qos
+    from rosbags.rosbag2.storage_mcap import parse_qos
 
     from .mcap_writer import open_bag_writer
 
     path = Path(path)
     if not path.is_dir():
         raise BagError(f"{path}: no such bag directory")
-    mcaps = sorted(path.glob("*.mcap"))
-    if len(mcaps) != 1:
-        raise BagError(f"{path}: expected one .mcap file, found {len(mcaps)}")
-    if not force and _needs_repair(path) is None:
+    mcap = bag_mcap(path)
+    need = _needs_repair(path)
+    if not force and need is None:
         return None
-    scan = scan_mcap(mcaps[0])
-    size = mcaps[0].stat().st_size
+    scan = scan_mcap(mcap)
+    size = mcap.stat().st_size
     if not scan.messages:
-        raise BagError(f"{path}: nothing recoverable ({scan.reason}; no complete chunk was written)")
+        raise BagError(f"{path}: nothing recoverable ({scan.reason}; no intact chunk was written)")
 
     in_place = output is None or Path(output).resolve() == path.resolve()
     # In place: build next to it under the same name (the .mcap is named after its directory).
@@ -381,31 +349,34 @@ def repair_bag(path: str | Path, output: str | Path | None = None, force: bool =
     writer = open_bag_writer(target, chunk_max_age_s=float("inf"))
     conns, counts = {}, {}
     try:
-        for cid, (sid, topic, enc, meta) in sorted(scan.channels.items()):
-            name, _schema_enc, text = scan.schemas.get(sid, ("", "", ""))
-            if not name:
-                continue
+        for channel in sorted({ch.id: ch for ch, _, _ in scan.messages}.values(), key=lambda ch: ch.id):
             try:
-                rihs = typestore.hash_rihs01(name)
+                rihs = typestore.hash_rihs01(channel.msgtype)
             except KeyError:
                 from rosbags.typesys import get_types_from_msg
 
-                typestore.register(get_types_from_msg(text, name))
-                rihs = typestore.hash_rihs01(name)
-            conns[cid] = writer.add_connection(
-                topic, name, msgdef=text, rihs01=rihs, serialization_format=enc, offered_qos_profiles=get_qos(meta)
+                typestore.register(get_types_from_msg(channel.schema_text, channel.msgtype))
+                rihs = typestore.hash_rihs01(channel.msgtype)
+            qos = channel.metadata.get("offered_qos_profiles", "")
+            conns[channel.id] = writer.add_connection(
+                channel.topic,
+                channel.msgtype,
+                msgdef=channel.schema_text,
+                rihs01=rihs,
+                serialization_format=channel.message_encoding,
+                offered_qos_profiles=parse_qos(qos) if qos else [],
             )
-            counts[topic] = 0
-        for cid, log_time, data in scan.messages:
-            if cid in conns:
-                writer.write(conns[cid], log_time, data)
-                counts[conns[cid].topic] += 1
+            counts[channel.topic] = 0
+        for channel, log_time, data in scan.messages:
+            writer.write(conns[channel.id], log_time, data)
+            counts[channel.topic] += 1
         lost = size - scan.good_until
+        dropped = f", {len(scan.damaged)} damaged chunks dropped" if scan.damaged else ""
         close_derived_bag(
             writer,
             path,
             target,
-            f"recovered by equidiff bags repair: {sum(counts.values())} messages, {lost} trailing bytes lost",
+            f"recovered by equidiff bags repair: {sum(counts.values())} messages, {lost} trailing bytes lost{dropped}",
         )
     except BaseException:
         writer.abort()
@@ -420,4 +391,7 @@ def repair_bag(path: str | Path, output: str | Path | None = None, force: bool =
         target.rename(path)
         staging.rmdir()
         target = path
-    return RepairReport(target, original, counts, scan.chunks, size - scan.good_until, scan.reason)
+    reason = scan.stopped or (need if scan.complete and need else scan.reason)
+    return RepairReport(
+        target, original, counts, scan.chunks, size - scan.good_until, reason, scan.damaged, scan.orphaned
+    )

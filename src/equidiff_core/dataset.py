@@ -37,7 +37,7 @@ from typing import Any
 import numpy as np
 
 from . import geometry
-from .bags import BagError, find_bags, is_bag_dir, read_episode
+from .bags import CHECKED, BagError, find_bags, is_bag_dir, read_episode
 from .chunk import ChunkError, chunk_from_msg
 from .episode_arrays import (
     CACHE_VERSION,
@@ -170,6 +170,7 @@ def load_episode_arrays(path: str | Path, config: DatasetConfig = DatasetConfig(
         obs_period_ns=period,
         dropped_steps=int(len(stamps) - len(keep)),
         rejected_chunks=rejected,
+        integrity=episode.integrity,
     )
     if not np.all(np.isfinite(arrays.ee)) or not np.all(np.isfinite(arrays.schedule)):
         raise BagError(f"{path}: NaN/inf in poses or commands")
@@ -351,6 +352,7 @@ def dataset_stats(paths: Iterable[str | Path], config: DatasetConfig = DatasetCo
                 "samples": len(sample_starts(len(ep), config.horizon, config.n_obs_steps, config.n_action_steps)),
                 "dropped_steps": ep.dropped_steps,
                 "rejected_chunks": ep.rejected_chunks,
+                "integrity": ep.integrity,
                 "action_min": acts.min(0).round(4).tolist(),
                 "action_max": acts.max(0).round(4).tolist(),
             }
@@ -362,6 +364,8 @@ def dataset_stats(paths: Iterable[str | Path], config: DatasetConfig = DatasetCo
         "total": {
             "episodes": len(episodes),
             "skipped": len(skipped),
+            # bags stored without CRCs (written before the project wrote them): read, but nothing was checked
+            "unchecked": sum(r["integrity"] != CHECKED for r in rows),
             "duration_s": round(sum(r["duration_s"] for r in rows), 3),
             "steps": int(sum(r["steps"] for r in rows)),
             "samples": int(sum(r["samples"] for r in rows)),

@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-from .bags import BagError, EpisodeMeta
+from .bags import UNCHECKED, BagError, EpisodeMeta
 from .observation import STATE_TOLERANCE_S
 from .output_files import staged_output
 from .rosmsg import NS_PER_S
@@ -63,6 +63,7 @@ class EpisodeArrays:
     obs_period_ns: int
     dropped_steps: int = 0
     rejected_chunks: int = 0
+    integrity: str = UNCHECKED  # of the source bag: "checked" (every CRC matched) or "unchecked" (no CRCs)
 
     def __len__(self) -> int:
         return len(self.stamps_ns)
@@ -116,6 +117,7 @@ def write_packed(arrays: EpisodeArrays, file: Path, config: DatasetConfig) -> Pa
             "obs_period_ns": arrays.obs_period_ns,
             "dropped_steps": arrays.dropped_steps,
             "rejected_chunks": arrays.rejected_chunks,
+            "integrity": arrays.integrity,
         }
     )
     fields = {k: getattr(arrays, k) for k in _ARRAY_FIELDS if k != "voxel_idx"}
@@ -156,6 +158,7 @@ def read_packed(file: Path, config: DatasetConfig, path: Path | None = None) -> 
         obs_period_ns=extra["obs_period_ns"],
         dropped_steps=extra["dropped_steps"],
         rejected_chunks=extra["rejected_chunks"],
+        integrity=extra.get("integrity", UNCHECKED),
         **arrays,
     )
 

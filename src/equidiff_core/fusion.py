@@ -18,7 +18,7 @@ import numpy as np
 import yaml
 from rosbags.rosbag2 import Reader
 
-from .bags import BagError, close_derived_bag, find_bags
+from .bags import BagError, close_derived_bag, find_bags, verify_bag
 from .cameras import extrinsics_tf_message
 from .config import LabConfig
 from .mcap_writer import open_bag_writer
@@ -125,6 +125,7 @@ def revoxelize_bag(
     ws = lab.workspace
     clouds = dict.fromkeys(camera_of.values(), 0)
     replaced = grids = 0
+    verify_bag(source)  # every CRC, before anything is derived from it (rosbags' reader checks none)
     with Reader(source) as reader:
         missing = sorted(t for t in camera_of if t not in reader.topics)
         if missing:

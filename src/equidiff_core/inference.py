@@ -48,12 +48,15 @@ from .normalizer import Normalizer, NormalizerError
 from .policies import PolicyInputError
 from .policy_file import (
     FORMAT,
+    UNHASHED,
     VERSION,
     CheckpointError,
+    CheckpointFormatError,
     build_plain_network,
     check_device,
     export_policy,
     load_checked,
+    open_policy_file,
     read_policy_file,
     save_atomically,
 )
@@ -73,7 +76,8 @@ def load_inference_policy(
 ) -> InferencePolicy:
     if precision not in PRECISIONS:
         raise ValueError(f"precision must be one of {PRECISIONS}, got {precision!r}")
-    config, state = read_policy_file(path)
+    policy_file = open_policy_file(path)
+    config, state = policy_file.config, policy_file.state
     try:
         preset = preset_from_dict(config["preset"])
         workspace = from_dict(Workspace, config["workspace"], where="workspace")
@@ -93,7 +97,7 @@ def load_inference_policy(
     check_device(device)
     if precision == "auto":
         precision = "bf16" if str(device).startswith("cuda") or cpu_has_native_bf16() else "fp32"
-    return InferencePolicy(
+    policy = InferencePolicy(
         net,
         name,
         preset,
@@ -106,6 +110,9 @@ def load_inference_policy(
         compile,
         cuda_graph,
     )
+    # what ``equidiff check ...`` report: the checked sha256 of the weights, or "unhashed" (an old file)
+    policy.weights_sha256 = policy_file.weights_sha256 or UNHASHED
+    return policy
 
 
 class InferencePolicy:
@@ -128,6 +135,7 @@ class InferencePolicy:
         if cuda_graph and device.type != "cuda":
             raise ValueError(f"cuda_graph needs a CUDA device, got {device}")
         self.name = name
+        self.weights_sha256 = UNHASHED  # set by load_inference_policy from the file's checked hash
         self.preset = preset
         self.workspace = workspace
         self.normalizer = normalizer
@@ -423,6 +431,7 @@ __all__ = [
     "PRECISIONS",
     "VERSION",
     "CheckpointError",
+    "CheckpointFormatError",
     "FastMish",
     "InferencePolicy",
     "MatmulConv1d",

@@ -45,7 +45,16 @@ from .config import Workspace, from_dict, to_dict
 from .models.state import learned_state_dict, load_learned_state, parameters_only, refresh_escnn_caches
 from .normalizer import Normalizer
 from .policies import DiffusionPolicy, make_policy
-from .policy_file import CheckpointError, export_policy, load_checked, read_policy_file, save_atomically
+from .policy_file import (
+    HASH_KEY,
+    CheckpointError,
+    CheckpointFormatError,
+    export_policy,
+    load_checked,
+    read_policy_file,
+    save_atomically,
+    weights_sha256,
+)
 from .presets import preset_from_dict
 from .train_config import (
     DATA_SOURCES,
@@ -208,6 +217,7 @@ def train(
             "ema": ema.state_dict() if ema else None,
             "history_json": json.dumps(history),
         }
+        state[HASH_KEY] = weights_sha256(state["model"])  # checked at load
         save_atomically(state, ckpt_path)
         (out_dir / "history.json").write_text(json.dumps(history, indent=1))
 
@@ -346,7 +356,7 @@ def evaluate(policy: DiffusionPolicy, dataset: Dataset, cfg: TrainConfig, device
 
 
 def load_training_checkpoint(path: str | Path) -> dict:
-    return load_checked(path, CKPT_FORMAT, CKPT_VERSION, "checkpoint", "an equidiff training checkpoint")
+    return load_checked(path, CKPT_FORMAT, CKPT_VERSION, "checkpoint", "an equidiff training checkpoint", "model")
 
 
 def without_optimizer_state(path: str | Path, out: str | Path) -> Path:
@@ -370,6 +380,7 @@ def slim_checkpoint(path: str | Path, out: str | Path) -> Path:
     state = load_training_checkpoint(path)
     policy = load_policy_from_checkpoint(path, ema=True)
     state["model"] = parameters_only(policy.model)
+    state[HASH_KEY] = weights_sha256(state["model"])
     state["ema"] = None
     state["optimizer"] = None
     history = json.loads(state["history_json"])
@@ -393,11 +404,13 @@ def load_policy_from_checkpoint(path: str | Path, device: str = "cpu", ema: bool
         state = load_training_checkpoint(path)
         config, weights = state["config"], state["model"]
         ema_state = state.get("ema") if ema else None
-    except CheckpointError as train_err:
+    except CheckpointFormatError as train_err:  # only another format is worth the other loader
         try:
             config, weights = read_policy_file(path)
-        except CheckpointError:
-            raise train_err from None
+        except CheckpointFormatError:
+            raise CheckpointError(
+                f"{train_err}; not an exported equidiff policy either (last.ckpt or policy.pt expected)"
+            ) from None
         if config.get("policy") != "baseline":
             raise CheckpointError(
                 f"{path}: an exported EquiDiff policy has no escnn weights; use last.ckpt "

@@ -14,7 +14,7 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from rclpy.serialization import deserialize_message
 from rosbags.rosbag2 import Reader
 
-from equidiff_core.bags import BagError
+from equidiff_core.bags import BagError, verify_bag
 from equidiff_core.chunk import chunk_from_msg
 from equidiff_core.rosmsg import RclpyFactory, position_from_msg, split_ns, stamp_to_ns
 from equidiff_core.topics import TOPIC_COMMAND_CHUNK as COMMAND_TOPIC
@@ -42,6 +42,7 @@ def shift_stamps(msg, offset_ns: int) -> None:
 
 def _load(bag, topics, exclude, start_s):
     """({topic: type}, [(log_ns, topic, raw)] in time order) of the selected topics."""
+    verify_bag(bag)  # every CRC checked first (rosbags' reader checks none): a damaged bag is not replayed
     try:
         with Reader(bag) as reader:
             conns = [c for c in reader.connections if (topics is None or c.topic in topics) and c.topic not in exclude]

@@ -180,6 +180,7 @@ def run_conditioning_check(args) -> int:
                 return 2
             frames = frames or first_frames(bags, policy.workspace.resolution)
             results[label] = conditioning_response(policy, frames, args.shift_vox, args.seed)
+            results[label]["weights_sha256"] = policy.weights_sha256  # verified at load, or "unhashed"
     print(json.dumps({"policies": results, "demos": len(bags), "shift_vox": args.shift_vox, "seed": args.seed}))
     return 0
 

@@ -11,7 +11,13 @@ from pathlib import Path
 import torch
 
 from equidiff_core.config import Workspace
-from equidiff_core.inference import CheckpointError, export_policy, load_inference_policy, read_policy_file
+from equidiff_core.inference import (
+    CheckpointError,
+    CheckpointFormatError,
+    export_policy,
+    load_inference_policy,
+    read_policy_file,
+)
 from equidiff_core.machine import cpu_description
 from equidiff_core.models import equivariance
 from equidiff_core.normalizer import Normalizer
@@ -30,7 +36,7 @@ def load_subjects(args, export_dir):
         return policy.eval(), export_policy(policy, export_dir / "policy.pt")
     try:
         config, _ = read_policy_file(args.checkpoint)
-    except CheckpointError:  # not an exported file: a training checkpoint (or an error saying why not)
+    except CheckpointFormatError:  # not an exported file: a training checkpoint (or an error saying why not)
         policy = load_policy_from_checkpoint(args.checkpoint)
         return policy.eval(), export_policy(policy, export_dir / "policy.pt")
     if config.get("policy") == "baseline":  # exported baseline weights are its training-time weights
@@ -60,6 +66,7 @@ def run_equivariance_check(args) -> int:
         "policy": fp32.name,
         "control": preset.control,
         "weights": args.checkpoint or "random",
+        "weights_sha256": fp32.weights_sha256,  # of the plain weights checked (verified at load), or "unhashed"
         "scenes": args.scenes,
         "timestep": args.timestep,
         "escnn": measure(equivariance.TrainingModel(policy)) if policy is not None else None,

@@ -10,9 +10,11 @@ Same entity paths and blueprint as the live ``equidiff viz``. Two layouts:
 The all-in-one recording can also go straight to a viewer (``spawn`` / ``connect``) instead
 of a file.
 
-Messages are streamed in bag order with rosbags (not collected per episode as
-``equidiff_core.bags.read_episode`` does) so a long episode with raw clouds does not have to
-fit in memory. An unreadable bag is reported and skipped; the others are still converted.
+Messages are streamed in file order through ``mcap_reader.iter_mcap`` (every CRC checked; not
+collected per episode as ``equidiff_core.bags.read_episode`` does) so a long episode with raw
+clouds does not have to fit in memory. An unreadable or damaged bag is reported and skipped
+(a damaged one once it was read: what came before the damage is already in the recording);
+the others are still converted.
 """
 
 from __future__ import annotations
@@ -26,7 +28,9 @@ from typing import Any
 
 import yaml
 
+from ..bags import BagIntegrityError, bag_mcap
 from ..config import LabConfig
+from ..mcap_reader import iter_mcap
 from ..output_files import distinct_names, staged_output, unique_paths
 from ..rosmsg import rosbags_factory
 from ..topics import camera_of_color_topic
@@ -105,17 +109,24 @@ def _log_bag(logger: RerunLogger, bag: Path, index: int, result: EpisodeResult) 
         )
     typestore = rosbags_factory().typestore
     try:
-        with Reader(bag) as reader:
-            conns = [c for c in reader.connections if _wanted(c.topic, logger.config)]
-            logger.begin_episode(index, reader.start_time if reader.message_count else 0, episode_info(bag))
-            for conn, receive_ns, raw in reader.messages(connections=conns):
-                result.messages += 1
-                try:
-                    msg = typestore.deserialize_cdr(raw, conn.msgtype)
-                except Exception as err:  # noqa: BLE001 - rosbags raises several kinds on bad CDR: drop one message
-                    logger._drop(f"undecodable {conn.topic}", err)
-                    continue
-                logger.log_message(conn.topic, msg, receive_ns)
+        with Reader(bag) as reader:  # metadata.yaml's start time (the .mcap is read below, CRCs checked)
+            start_ns = reader.start_time if reader.message_count else 0
+        logger.begin_episode(index, start_ns, episode_info(bag))
+        # streamed: a CRC mismatch raises BagIntegrityError (naming the chunk) once the file was read
+        for channel, receive_ns, raw in iter_mcap(bag_mcap(bag)):
+            if not _wanted(channel.topic, logger.config):
+                continue
+            result.messages += 1
+            try:
+                msg = typestore.deserialize_cdr(raw, channel.msgtype)
+            except Exception as err:  # noqa: BLE001 - rosbags raises several kinds on bad CDR: drop one message
+                logger._drop(f"undecodable {channel.topic}", err)
+                continue
+            logger.log_message(channel.topic, msg, receive_ns)
+    except BagIntegrityError as err:
+        raise BagConversionError(
+            f"{bag}: damaged bag: {err}; equidiff bags repair {bag} keeps the intact chunks"
+        ) from err
     except BagConversionError:
         raise
     except Exception as err:  # ReaderError, struct.error, OSError on truncated/corrupt files

@@ -1,8 +1,9 @@
-"""`equidiff bags repair BAG...`: recover a bag whose recorder was killed before closing it.
+"""`equidiff bags repair BAG...`: recover a bag whose recorder was killed before closing it,
+or whose bytes were damaged afterwards (a chunk CRC mismatch).
 
-Rebuilds metadata.yaml and the MCAP summary from every complete chunk; the damaged original
-is kept as ``<bag>.unrepaired`` (or left untouched with ``--output``). Healthy bags are left
-alone.
+Rebuilds metadata.yaml and the MCAP summary from every intact chunk and prints one ``dropped``
+line per damaged chunk (its topics, time range and message counts); the damaged original is
+kept as ``<bag>.unrepaired`` (or left untouched with ``--output``). Healthy bags are left alone.
 """
 
 from __future__ import annotations
@@ -39,4 +40,6 @@ def run(args) -> int:
             f"repaired {report.path}: {report.total} messages in {report.chunks} chunks ({counts}); "
             f"stopped at {report.reason}, {report.dropped_bytes} bytes lost{kept}"
         )
+        for line in report.dropped():
+            print(f"  {line}")
     return 1 if failed else 0

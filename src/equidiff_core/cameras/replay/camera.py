@@ -65,6 +65,7 @@ class ReplayCamera(Camera):
             return
         from rosbags.rosbag2 import Reader
 
+        from ...bags import verify_bag
         from ...rosmsg import rosbags_factory
 
         if not (self.bag / "metadata.yaml").is_file():
@@ -72,9 +73,10 @@ class ReplayCamera(Camera):
                 f"replay camera {self.camera.name!r}: {self.bag} is not a rosbag2 directory (no metadata.yaml)"
             )
         try:
+            verify_bag(self.bag)  # every CRC checked first (rosbags' reader checks none)
             reader = Reader(self.bag)
             reader.open()
-        except Exception as err:  # rosbags raises several types for damaged bags
+        except Exception as err:  # rosbags raises several types for damaged bags; ours is a BagError
             raise CameraError(f"replay camera {self.camera.name!r}: cannot open {self.bag}: {err}") from err
         self._connections = [c for c in reader.connections if c.topic == self.topic]
         if not self._connections or reader.message_count == 0:
