@@ -22,7 +22,7 @@ import torch
 from matplotlib.figure import Figure
 
 from equidiff_core.benches.demo_sets import demos_off_range, ensure_demos, nested_subsets
-from equidiff_core.benches.rollouts import cached_rollouts, file_digest, summarize
+from equidiff_core.benches.rollouts import cached_rollouts, policy_digest, summarize
 from equidiff_core.benches.stats import paired_comparison, paired_outcomes
 from equidiff_core.benches.training_runs import (
     SLIM_CHECKPOINT,
@@ -155,7 +155,7 @@ def evaluate_runs(
                 "seeds": seeds,
                 "max_duration_s": max_duration_s,
                 "latency_s": latency_s,
-                "policy_sha256_16": file_digest(policy_file),
+                "policy_digest": policy_digest(policy_file),
             }
 
             def roll_out(name=name, policy_file=policy_file) -> list:

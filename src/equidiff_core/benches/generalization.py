@@ -20,7 +20,7 @@ from pathlib import Path
 import torch
 
 from equidiff_core.benches.demo_sets import count_demos, demos_off_range, ensure_demos
-from equidiff_core.benches.rollouts import cached_rollouts, file_digest, summarize
+from equidiff_core.benches.rollouts import cached_rollouts, policy_digest, summarize
 from equidiff_core.benches.stats import paired_comparison, paired_outcomes
 from equidiff_core.benches.training_runs import (
     Recipe,
@@ -300,7 +300,7 @@ def _evaluate(
             "seeds": scene_seeds,
             "max_duration_s": args.max_duration,
             "latency_s": args.latency_ms / 1000,
-            "policy_sha256_16": file_digest(policies[name]),
+            "policy_digest": policy_digest(policies[name]),
         }
         episodes = cached_rollouts(
             out / name / f"rollouts_{label}.json",

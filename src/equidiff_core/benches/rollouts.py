@@ -11,6 +11,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 from ..output_files import staged_output
+from ..policy_file import open_policy_file, weights_sha256
 from ..twin.evaluate import EvalEpisode
 from .stats import success_rate
 
@@ -59,9 +60,14 @@ def load_rollouts(path: Path, settings: dict) -> list[EvalEpisode] | None:
         return None
 
 
-def file_digest(path: Path) -> str:
-    """sha256 of a policy file: roll-outs saved for one file are not reused for another."""
-    return hashlib.sha256(Path(path).read_bytes()).hexdigest()[:16]
+def policy_digest(path: Path) -> str:
+    """What the roll-outs of a policy file depend on, its configuration and its weights' sha256, hashed: roll-outs
+    saved for one policy are not reused for another, and are for the same policy re-exported or re-written (the
+    file's bytes change, its weights do not)."""
+    policy = open_policy_file(path)
+    weights = policy.weights_sha256 or weights_sha256(policy.state)
+    config = json.dumps(policy.config, sort_keys=True)
+    return hashlib.sha256(f"{config}\n{weights}".encode()).hexdigest()[:16]
 
 
 def cached_rollouts(
