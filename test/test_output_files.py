@@ -6,7 +6,14 @@ import re
 
 import pytest
 
-from equidiff_core.output_files import OutputExistsError, distinct_names, staged_output, unique_paths
+from equidiff_core.output_files import (
+    OutputExistsError,
+    distinct_names,
+    staged_dir,
+    staged_output,
+    unique_paths,
+    write_output_text,
+)
 
 
 def _listing(folder):
@@ -113,6 +120,34 @@ def test_discard_keeps_the_target_as_it_was(tmp_path):
         staged.discard()
     assert target.read_text() == "old"
     assert _listing(tmp_path) == ["out.txt"]
+
+
+def test_write_output_text_refuses_a_named_file_and_rewrites_an_owned_one(tmp_path):
+    target = tmp_path / "plots" / "result.json"
+    assert write_output_text(target, "first") == target
+    with pytest.raises(OutputExistsError):
+        write_output_text(target, "second")  # a file the user named: refused without --force
+    assert target.read_text() == "first"
+    write_output_text(target, "second", force=True)  # a file the command owns: rewritten whole
+    assert target.read_text() == "second"
+    assert _listing(tmp_path) == ["plots", "plots/result.json"]
+
+
+def test_staged_dir_lands_a_folder_or_fills_a_temporary_one(tmp_path):
+    with staged_dir(tmp_path / "run") as staged:
+        assert staged.path.is_dir() and not any(staged.path.iterdir())
+        (staged.path / "log").write_text("x")
+    assert _listing(tmp_path) == ["run", "run/log"]
+    with pytest.raises(OutputExistsError), staged_dir(tmp_path / "run"):
+        pytest.fail("the block must not run")
+    with staged_dir(tmp_path / "run", force=True) as staged:  # a failure that returns: nothing lands
+        (staged.path / "half").write_text("x")
+        staged.discard()
+    assert _listing(tmp_path) == ["run", "run/log"]
+    with staged_dir(None, prefix="kept_nowhere_") as staged:  # no target: a temporary folder, then nothing
+        assert staged.path == staged.target and staged.path.name.startswith("kept_nowhere_")
+        (staged.path / "log").write_text("x")
+    assert not staged.path.exists()
 
 
 def test_distinct_names_from_the_common_folder(tmp_path):

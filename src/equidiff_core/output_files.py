@@ -83,6 +83,29 @@ def staged_output(target: str | Path, *, force: bool = False) -> Iterator[Staged
                     break
 
 
+def write_output_text(target: str | Path, text: str, *, force: bool = False) -> Path:
+    """``text`` written to ``target`` through ``staged_output``: a reader sees the old file or the new, never half
+    of one. ``force=True`` is for a file its command owns and rewrites on each call (a bench's result.json in
+    its work folder); a file the user named is refused if it exists unless they passed ``--force``."""
+    with staged_output(target, force=force) as staged:
+        staged.path.write_text(text)
+    return Path(target)
+
+
+@contextmanager
+def staged_dir(target: str | Path | None, *, force: bool = False, prefix: str = "equidiff_") -> Iterator[StagedOutput]:
+    """A folder to fill: ``target``'s staged folder (``staged_output``, created empty; it lands as ``target`` when
+    the block ends normally), or, without a ``target``, a temporary folder removed when the block ends (``path``
+    and ``target`` the same). ``discard()`` on a failure that returns rather than raises leaves nothing."""
+    if target is None:
+        with tempfile.TemporaryDirectory(prefix=prefix) as tmp:
+            yield StagedOutput(Path(tmp), Path(tmp))
+        return
+    with staged_output(target, force=force) as staged:
+        staged.path.mkdir()
+        yield staged
+
+
 def distinct_names(paths: list[Path], separator: str = "__") -> list[str]:
     """One output name per input path: its own name, or, where inputs share a name, the path relative to
     the common folder of those, its parts joined by ``separator`` (``day1/pick_0000``, ``day2/pick_0000``
@@ -135,6 +158,8 @@ __all__ = [
     "distinct_names",
     "occupied",
     "refuse_existing",
+    "staged_dir",
     "staged_output",
     "unique_paths",
+    "write_output_text",
 ]

@@ -131,10 +131,12 @@ def main(argv: list[str] | None = None) -> int:
     try:
         return int(_load(args._module).run(args) or 0)
     except Exception as err:
-        # A bad config file or value is the user's to fix: one line, not a traceback. The check by
-        # module keeps `equidiff --help` from importing the config module (numpy, scipy).
-        config = sys.modules.get("equidiff_core.config")
-        if config is None or not isinstance(err, config.ConfigError):
+        # A bad config file or value, or an output that exists already (``output_files.OutputExistsError``:
+        # --force replaces it), is the user's to fix: one line, not a traceback. The check by module keeps
+        # `equidiff --help` from importing the config module (numpy, scipy).
+        known = [getattr(sys.modules.get("equidiff_core.config"), "ConfigError", None)]
+        known.append(getattr(sys.modules.get("equidiff_core.output_files"), "OutputExistsError", None))
+        if not isinstance(err, tuple(e for e in known if e is not None)):
             raise
         command = " ".join(v for v in (args.command, getattr(args, "subcommand", None)) if v)
         print(f"equidiff {command}: {' '.join(str(err).split())}", file=sys.stderr)
