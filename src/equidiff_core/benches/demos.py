@@ -41,6 +41,7 @@ from equidiff_core.benches.training_runs import (
     wait_for_runs,
 )
 from equidiff_core.inference import load_inference_policy, read_policy_file
+from equidiff_core.output_files import refuse_existing, staged_output, write_output_text
 from equidiff_core.presets import preset_from_dict
 from equidiff_core.twin.config import load_twin_job_configs
 from equidiff_core.twin.demos import DirectRecorder
@@ -102,8 +103,8 @@ def plot_success(
         fig.tight_layout(rect=(0, 0.06, 1, 1))
     else:
         fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path)
+    with staged_output(path, force=True) as staged:  # the bench's own plot, redrawn on each call
+        fig.savefig(staged.path)
     return path
 
 
@@ -228,6 +229,8 @@ def run_demos_bench(args) -> int:
     if args.eval_episodes < 1 or min(args.counts) < 1:
         print("equidiff bench demos: need --eval-episodes >= 1 and positive --counts", file=sys.stderr)
         return 2
+    if args.plot is not None:  # a file the user named: refused now, not after hours of training
+        refuse_existing(args.plot, args.force)
     if args.device == "auto":
         args.device = "cuda" if torch.cuda.is_available() else "cpu"
     t_start = time.monotonic()
@@ -320,9 +323,9 @@ def run_demos_bench(args) -> int:
         return 2
     result["minutes"] = {**minutes, **result["minutes"]}
     if args.plot is not None:
-        args.plot.parent.mkdir(parents=True, exist_ok=True)
-        shutil.copyfile(result["plot"], args.plot)
-    (out / "result.json").write_text(json.dumps(result) + "\n")
+        with staged_output(args.plot, force=args.force) as staged:
+            shutil.copyfile(result["plot"], staged.path)
+    write_output_text(out / "result.json", json.dumps(result) + "\n", force=True)
     print(json.dumps(result))
     return 0
 

@@ -21,6 +21,11 @@ subset now (side by side, the cores shared out; an interrupted run resumes from 
 the call after which OUT holds every run rolls them all out (roll-outs already done are kept in
 OUT/<run>/rollouts.json and reused). The runs must share one recipe: their run.json files are
 compared and policies trained differently are refused (exit 2).
+
+OUT is a work folder, filled over several calls, so it is never refused; every file the bench writes
+there (result.json, success_vs_demos.png, OUT/<run>/rollouts.json) is written whole, beside itself, and
+renamed into place. ``--plot FILE`` is a file you name: an existing one is refused (exit 2) before
+anything runs, unless ``--force``.
 """
 
 from __future__ import annotations
@@ -31,6 +36,7 @@ from pathlib import Path
 from equidiff_core.benches.demos import DEMO_COUNTS, POLICIES, run_demos_bench
 from equidiff_core.benches.stats import SCENES_PER_CELL
 from equidiff_core.benches.training_runs import BASELINE_LR, EQUIDIFF_LR, MAX_FIT_RATIO
+from equidiff_ros.commands import add_force_argument
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -92,7 +98,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="roll out DIR/<policy>_<count>/policy.pt (or weights.ckpt; a folder with only same_as names another "
         "bench's run); train nothing",
     )
-    parser.add_argument("--plot", type=Path, default=None, help="also write the PNG here")
+    parser.add_argument("--plot", type=Path, default=None, help="also write the PNG here (refused if it exists)")
+    add_force_argument(parser, help="replace an existing --plot FILE (OUT is a work folder: never refused)")
     parser.add_argument("--lab-config", type=Path, default=None)
     parser.add_argument("--twin-config", type=Path, default=None)
 

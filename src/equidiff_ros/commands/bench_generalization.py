@@ -47,6 +47,10 @@ on this 2-core CPU (quiet machine): demos ~14 s each (40: 9-12 min); EquiDiff ~0
 (``equidiff train`` stops, checkpoints and exports; the steps each trained are reported).
 The measured results, with the commands that produced them, are in docs/twin.md (numbers
 live there only, so this text cannot go stale). On CUDA thousands of steps fit in minutes.
+
+``--out`` is a work folder, filled over several calls, so it is never refused; every file the bench
+writes there (result.json, <policy>/rollouts_*.json) is written whole, beside itself, and renamed
+into place.
 """
 
 from __future__ import annotations
