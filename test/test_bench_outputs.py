@@ -72,3 +72,53 @@ def test_bench_demos_rewrites_its_own_result_whole_and_refuses_a_named_plot(tmp_
     assert main([*argv, "--plot", str(plot), "--force"]) == 0
     assert plot.read_bytes() == b"second plot"
     assert _listing(plot.parent) == ["demos.png"]
+
+
+def _occupied(folder, content=b"an earlier run's"):
+    folder.mkdir(parents=True)
+    (folder / "kept.bin").write_bytes(content)
+    return folder
+
+
+def test_bench_overfit_refuses_an_existing_out_then_replaces_it_with_force(tmp_path, capsys):
+    out = _occupied(tmp_path / "overfit")
+    argv = ["bench", "overfit", "--preset", "tiny", "--steps", "1", "--noise-repeats", "1", "--out", str(out)]
+    assert main(argv) == 2  # before any training
+    out_text, err = capsys.readouterr()
+    assert (
+        out_text == ""
+        and err.startswith(f"equidiff bench overfit: {out} exists; not replacing it")
+        and err.count("\n") == 1
+    )
+    assert (
+        _listing(tmp_path) == ["overfit", "overfit/kept.bin"] and (out / "kept.bin").read_bytes() == b"an earlier run's"
+    )
+
+    assert main([*argv, "--force"]) == 3  # one step fits nothing: the gate fails, the run is kept all the same
+    assert json.loads(capsys.readouterr().out.strip().splitlines()[-1])["steps"] == 1
+    assert (out / "run" / "policy.pt").is_file() and (out / "untrained.pt").is_file()
+    assert not (out / "kept.bin").exists()  # replaced, not merged
+    assert [p.name for p in tmp_path.iterdir()] == ["overfit"]  # no temporary left beside it
+
+
+def test_bench_twin_refuses_an_existing_out_before_the_twin_starts(tmp_path, monkeypatch, capsys):
+    from equidiff_ros.benches import twin as bench_twin
+
+    monkeypatch.setattr(bench_twin, "TwinStack", lambda *a, **k: pytest.fail("the twin started"))
+    monkeypatch.setattr(bench_twin, "resolve_policy", lambda *a, **k: pytest.fail("a policy was built"))
+    out = _occupied(tmp_path / "twin")
+    assert main(["bench", "twin", "--standin", "--out", str(out)]) == 2
+    assert capsys.readouterr().err.startswith(f"equidiff bench twin: {out} exists; not replacing it")
+    assert _listing(tmp_path) == ["twin", "twin/kept.bin"] and (out / "kept.bin").read_bytes() == b"an earlier run's"
+
+
+def test_bench_safety_refuses_an_existing_keep_before_anything_starts(tmp_path, monkeypatch):
+    from equidiff_core.benches.safety import driver
+    from equidiff_core.output_files import OutputExistsError
+
+    monkeypatch.setenv("ROS_DOMAIN_ID", "117")
+    monkeypatch.setattr(driver, "run_campaign", lambda *a, **k: pytest.fail("the campaign started"))
+    keep = _occupied(tmp_path / "safety")
+    with pytest.raises(OutputExistsError, match="pass --force"):
+        driver.run_bench("nan", None, keep=keep)  # no probe: nothing of the ROS side is needed to refuse
+    assert _listing(tmp_path) == ["safety", "safety/kept.bin"]

@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import json
 import sys
-import tempfile
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -29,6 +28,7 @@ import torch
 from ..config import Workspace
 from ..inference import load_inference_policy
 from ..machine import cpu_description
+from ..output_files import staged_dir
 from ..policies import make_policy
 from ..policy_file import export_policy
 from ..presets import get_preset
@@ -176,9 +176,9 @@ def run_overfit_bench(args) -> int:
     except ValueError as err:  # ConfigError included
         print(f"equidiff bench overfit: {err}", file=sys.stderr)
         return 2
-    with tempfile.TemporaryDirectory() as tmp:
+    with staged_dir(args.out, force=args.force, prefix="bench_overfit_") as staged:  # lands when trained
         result = run_overfit(
-            Path(args.out) if args.out else Path(tmp),
+            staged.path,
             steps=args.steps,
             policy=args.policy,
             preset=args.preset,

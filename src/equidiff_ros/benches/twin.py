@@ -4,11 +4,10 @@ from __future__ import annotations
 
 import json
 import sys
-import tempfile
 import time
-from pathlib import Path
 
 from equidiff_core.machine import cpu_description
+from equidiff_core.output_files import staged_dir
 from equidiff_core.twin.config import load_twin_job_configs
 from equidiff_core.twin.processes import NodeProcessError, cpu_seconds
 from equidiff_core.twin.shipped import resolve_policy
@@ -20,36 +19,38 @@ from equidiff_ros.twin.world import run_policy_episode
 def run_twin_bench(args) -> int:
     """``equidiff bench twin`` for its parsed arguments: one JSON line; the exit status."""
     configs = load_twin_job_configs(None, None)
-    out = args.out or Path(tempfile.mkdtemp(prefix="bench_twin_"))
-    out.mkdir(parents=True, exist_ok=True)
     args.smoke, args.attach = False, False
-    policy_path, label = resolve_policy(args, out, configs.lab.workspace, configs.twin)
-    try:
-        with TwinStack(
-            out,
-            configs.lab_path,
-            configs.twin_path,
-            policy=str(policy_path),
-            task="bench_twin",
-            seed=args.seed,
-            precision=args.precision,
-            latency_s=args.latency_ms / 1000,
-            max_speed=args.max_speed,
-            torch_threads=args.torch_threads,
-            composed=args.composed,
-        ) as stack:
-            procs = {n.name: n.popen.pid for n in stack.group.nodes}
-            cpu0 = {name: cpu_seconds(pid) for name, pid in procs.items()}
-            me0, wall0, sim0 = time.process_time(), time.monotonic(), stack.sup.now_ns() / 1e9
-            waits0 = dict(stack.sup.twin().get("wait_s", {}))
-            records = [run_policy_episode(stack, args.seed + i, args.max_duration) for i in range(args.episodes)]
-            wall, sim = time.monotonic() - wall0, stack.sup.now_ns() / 1e9 - sim0
-            shares = {name: round((cpu_seconds(pid) - cpu0[name]) / wall, 3) for name, pid in procs.items()}
-            shares["supervisor"] = round((time.process_time() - me0) / wall, 3)
-            waits = {k: round(v - waits0.get(k, 0.0), 1) for k, v in stack.sup.twin().get("wait_s", {}).items()}
-    except (NodeProcessError, SupervisorError, FileNotFoundError) as err:
-        print(f"equidiff bench twin: {err}", file=sys.stderr)
-        return 1
+    # --out: a new folder, refused if it holds anything (unless --force), landing once the episodes ran
+    with staged_dir(args.out, force=args.force, prefix="bench_twin_") as staged:
+        out = staged.path
+        policy_path, label = resolve_policy(args, out, configs.lab.workspace, configs.twin)
+        try:
+            with TwinStack(
+                out,
+                configs.lab_path,
+                configs.twin_path,
+                policy=str(policy_path),
+                task="bench_twin",
+                seed=args.seed,
+                precision=args.precision,
+                latency_s=args.latency_ms / 1000,
+                max_speed=args.max_speed,
+                torch_threads=args.torch_threads,
+                composed=args.composed,
+            ) as stack:
+                procs = {n.name: n.popen.pid for n in stack.group.nodes}
+                cpu0 = {name: cpu_seconds(pid) for name, pid in procs.items()}
+                me0, wall0, sim0 = time.process_time(), time.monotonic(), stack.sup.now_ns() / 1e9
+                waits0 = dict(stack.sup.twin().get("wait_s", {}))
+                records = [run_policy_episode(stack, args.seed + i, args.max_duration) for i in range(args.episodes)]
+                wall, sim = time.monotonic() - wall0, stack.sup.now_ns() / 1e9 - sim0
+                shares = {name: round((cpu_seconds(pid) - cpu0[name]) / wall, 3) for name, pid in procs.items()}
+                shares["supervisor"] = round((time.process_time() - me0) / wall, 3)
+                waits = {k: round(v - waits0.get(k, 0.0), 1) for k, v in stack.sup.twin().get("wait_s", {}).items()}
+        except (NodeProcessError, SupervisorError, FileNotFoundError) as err:
+            print(f"equidiff bench twin: {err}", file=sys.stderr)
+            staged.discard()
+            return 1
     inference = sorted(v for r in records for v in r.inference_ms)
     result = {
         "cpu_share": dict(sorted(shares.items(), key=lambda kv: -kv[1])),

@@ -8,6 +8,8 @@ must land within 1.5 cm of its own trajectory, 3x closer than to the other demo'
 3 cm, and the loss must fall 10-fold (``equidiff_core.benches.overfit``). Prints one JSON line
 (``errors`` per demo, ``untrained_errors`` for the same policy before training, the loss, the
 training's wall and CPU seconds, the CPU); exits 3 when the check fails, saying what failed.
+``--out DIR`` keeps the run (``untrained.pt``, ``run/``): written beside DIR and renamed to it once
+trained; an existing DIR holding anything is refused (exit 2) before training, unless ``--force``.
 """
 
 from __future__ import annotations
@@ -15,6 +17,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from equidiff_core.benches.overfit import STEPS, run_overfit_bench
+from equidiff_ros.commands import add_force_argument
 
 
 def add_arguments(parser) -> None:
@@ -31,7 +34,10 @@ def add_arguments(parser) -> None:
     parser.add_argument("--lr", type=float, default=2e-3)
     parser.add_argument("--noise-repeats", type=int, default=16, help="(noise, step) draws per encoder pass")
     parser.add_argument("--seed", type=int, default=0, help="the demos, the weights and the training's noise")
-    parser.add_argument("--out", type=Path, default=None, help="keep the run here (default: a temporary folder)")
+    parser.add_argument(
+        "--out", type=Path, default=None, help="keep the run here, a new folder (default: a temporary folder)"
+    )
+    add_force_argument(parser)
 
 
 def run(args) -> int:

@@ -61,7 +61,9 @@ awaited an acknowledgement: must be 0) and ``episodes_lost`` (recorded episodes 
 read, after repair: must be 0). Baseline in the same run: the arm's drift while holding still
 before any fault (``baseline_hold_drift_mm``), against which ``--still-mm`` is set.
 
-Prints one JSON line.
+Prints one JSON line. ``--keep DIR`` keeps the logs and episodes: written beside DIR and renamed to it
+when the campaign ends (failed faults included; a crash leaves nothing); an existing DIR holding
+anything is refused (exit 2) before anything starts, unless ``--force``.
 """
 
 from __future__ import annotations
@@ -71,6 +73,7 @@ from pathlib import Path
 
 from equidiff_core.benches.safety import FAULTS, run_bench
 from equidiff_ros.benches.safety_probe import SafetyProbe
+from equidiff_ros.commands import add_force_argument
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -102,7 +105,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="policy_node's checkpoint for the policy faults (default: the shipped one if present)",
     )
     parser.add_argument("--domain-id", type=int, default=None, help="ROS_DOMAIN_ID (default: a random private one)")
-    parser.add_argument("--keep", type=Path, default=None, help="keep logs and episodes here (default: a temp dir)")
+    parser.add_argument(
+        "--keep", type=Path, default=None, help="keep logs and episodes in this new folder (default: a temp dir)"
+    )
+    add_force_argument(parser)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -115,4 +121,5 @@ def run(args: argparse.Namespace) -> int:
         control_config=args.control_config,
         domain_id=args.domain_id,
         keep=args.keep,
+        force=args.force,
     )

@@ -11,6 +11,9 @@ the supervisor = this process), the sim factor (sim seconds per wall second) and
 inverse ``wall_s_per_sim_s`` (the issue's cost: a 40 s episode takes that many times 40 s),
 how the twin's wall time split between waiting for the cameras and for the policy, and the
 CPU it ran on (name and whether it has AVX-512 / bf16: absolute numbers depend on it).
+``--out DIR`` keeps the episodes' bags and the nodes' logs: written beside DIR and renamed to it when
+the episodes have run (a run that fails leaves nothing); an existing DIR holding anything is refused
+(exit 2) before the twin starts, unless ``--force``.
 """
 
 from __future__ import annotations
@@ -20,6 +23,7 @@ from pathlib import Path
 
 from equidiff_core.twin.config import EVALUATION_FIRST_SEED
 from equidiff_ros.benches.twin import run_twin_bench
+from equidiff_ros.commands import add_force_argument
 from equidiff_ros.commands.twin_run import add_precision_argument
 
 
@@ -42,7 +46,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=1,
         help="policy_node's torch threads (default 1: beside other load two were slower)",
     )
-    parser.add_argument("--out", type=Path, default=None, help="output directory (default: a temporary one)")
+    parser.add_argument(
+        "--out", type=Path, default=None, help="keep the bags and logs in this new folder (default: a temporary one)"
+    )
+    add_force_argument(parser)
     parser.add_argument(
         "--composed",
         action="store_true",

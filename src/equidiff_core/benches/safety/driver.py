@@ -9,7 +9,6 @@ from __future__ import annotations
 import json
 import os
 import sys
-import tempfile
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -22,6 +21,7 @@ from equidiff_core.benches.safety.report import campaign_summary
 from equidiff_core.config import default_config_dir, dump_yaml, load_lab_config, load_mapping
 from equidiff_core.control import load_control_config
 from equidiff_core.machine import cpu_description
+from equidiff_core.output_files import staged_dir
 from equidiff_core.robots.franky.sim import SimServer
 from equidiff_core.twin.processes import join_private_domain, start_node, stop_process
 from equidiff_core.twin.standin import STANDIN_LABEL, make_standin_policy
@@ -205,15 +205,16 @@ def run_bench(
     control_config: Path | None = None,
     domain_id: int | None = None,
     keep: Path | None = None,
+    force: bool = False,
 ) -> int:
     """``equidiff bench safety``: ``faults`` comma-separated, on a private ROS domain (``domain_id``), its
-    logs and episodes in ``keep`` (default: a temp dir); progress to stderr, one JSON line to stdout; the
-    exit status (2 for an unknown fault)."""
+    logs and episodes in ``keep`` (default: a temp dir; a new folder, landing when the campaign ends, refused
+    if it holds anything unless ``force``); progress to stderr, one JSON line to stdout; the exit status (2
+    for an unknown fault)."""
     join_private_domain(domain_id)
     names = [f.strip() for f in faults.split(",") if f.strip()]
-    with tempfile.TemporaryDirectory(prefix="bench_safety_") as tmp:
-        out = keep or Path(tmp)
-        out.mkdir(parents=True, exist_ok=True)
+    with staged_dir(keep, force=force, prefix="bench_safety_") as staged:
+        out = staged.path
         try:
             result = run_campaign(
                 names,
@@ -227,6 +228,7 @@ def run_bench(
             )
         except ValueError as err:
             print(f"equidiff bench safety: {err}", file=sys.stderr)
+            staged.discard()
             return 2
     print(json.dumps(result))
     return 0
