@@ -122,3 +122,45 @@ def test_bench_safety_refuses_an_existing_keep_before_anything_starts(tmp_path, 
     with pytest.raises(OutputExistsError, match="pass --force"):
         driver.run_bench("nan", None, keep=keep)  # no probe: nothing of the ROS side is needed to refuse
     assert _listing(tmp_path) == ["safety", "safety/kept.bin"]
+
+
+class _NoTwin:
+    """A TwinStack that starts nothing: the run's episodes are not what these tests are about."""
+
+    def __init__(self, *args, **kwargs):
+        pass
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        return False
+
+
+def test_twin_run_refuses_its_summary_files_before_the_twin_starts(tmp_path, monkeypatch, capsys):
+    from equidiff_ros.twin import main_job
+
+    monkeypatch.setattr(main_job, "TwinStack", lambda *a, **k: pytest.fail("the twin started"))
+    monkeypatch.setattr(main_job, "resolve_policy", lambda *a, **k: pytest.fail("a policy was built"))
+    out = tmp_path / "run"
+    out.mkdir()
+    (out / "bags").mkdir()  # an earlier run's bags: kept, and no reason to refuse
+    (out / "twin_run.rrd").write_bytes(b"an earlier recording")
+    assert main(["twin", "run", "--standin", "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"equidiff twin run: {out / 'twin_run.rrd'} exists; not replacing it (pass --force")
+    assert (out / "twin_run.rrd").read_bytes() == b"an earlier recording"
+
+    (out / "summary.json").write_text('{"episodes": 5}\n')  # refused even when no recording is asked for
+    assert main(["twin", "run", "--standin", "--no-rrd", "--out", str(out)]) == 2
+    assert f"{out / 'summary.json'} exists" in capsys.readouterr().err
+    assert _listing(out) == ["bags", "summary.json", "twin_run.rrd"]
+
+    # --force: the run goes on, and its summary is renamed over the old one when it ends
+    monkeypatch.setattr(main_job, "TwinStack", _NoTwin)
+    monkeypatch.setattr(main_job, "resolve_policy", lambda *a, **k: (tmp_path / "policy.pt", "stand-in"))
+    with open(out / "summary.json") as old_reader:
+        assert main(["twin", "run", "--standin", "--episodes", "0", "--out", str(out), "--force"]) == 0
+        assert old_reader.read() == '{"episodes": 5}\n'
+    assert json.loads((out / "summary.json").read_text())["episodes"] == 0
+    assert _listing(out) == ["bags", "summary.json", "twin_run.rrd"]  # no temporary left

@@ -12,6 +12,10 @@ the demos are byte-for-byte the kind a human would record. ``--direct`` runs sim
 voxeliser and expert in this process with the sim clock and writes the same topics with the
 same EpisodeWriter (no recorder_node, no real-time requirement): for benchmarks and quick data.
 Every bag's metadata carries task, success and the scene seed.
+
+DIR is a work folder: each call adds its bags, numbered after those already there (a bag is never
+overwritten), so it is not refused and takes no --force. With --yaw-range the ROS path writes the
+narrowed twin.yaml its nodes read to DIR/twin_collect.yaml, whole, replacing an earlier call's.
 """
 
 from __future__ import annotations
@@ -26,7 +30,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.epilog = __doc__.split("\n", 1)[1]
     parser.formatter_class = argparse.RawDescriptionHelpFormatter
     parser.add_argument("--episodes", type=int, required=True)
-    parser.add_argument("--out", type=Path, required=True, help="directory for the episode bags")
+    parser.add_argument(
+        "--out", type=Path, required=True, help="directory for the episode bags (a work folder: bags are added)"
+    )
     parser.add_argument("--seed", type=int, default=0, help="first scene seed (then +1 per episode)")
     parser.add_argument("--direct", action="store_true", help="in-process, sim clock (no ROS nodes)")
     parser.add_argument(

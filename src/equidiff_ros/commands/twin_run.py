@@ -12,6 +12,11 @@ Writes one bag per episode and one rerun recording; prints a summary and, last, 
 (episodes, success_rate, inference_p95_ms, end_to_end_p95_ms, dropped_cycles, clock,
 latency_budget_ms, wall_s, ...). Ctrl-C or any node failure stops every process.
 
+OUT keeps each episode's bag as it is written, numbered after any already there, so an interrupted
+run keeps what it recorded. The run's summary files, OUT/summary.json and OUT/twin_run.rrd, are
+written whole at the end (beside themselves, then renamed); an existing one is refused (exit 2)
+before the twin starts, unless --force.
+
 By default the twin runs on simulated time: twin_node publishes /clock, every node runs with
 use_sim_time, and the sim waits for camera frames and for each observation's chunk, which
 takes effect at the observation's time + --latency-ms (the budget of a lab machine; 100 ms).
@@ -26,6 +31,7 @@ from pathlib import Path
 
 from equidiff_core.twin.config import EVALUATION_FIRST_SEED, TWIN_PRECISION
 from equidiff_core.twin.shipped import SHIPPED_CHECKPOINT
+from equidiff_ros.commands import add_force_argument
 from equidiff_ros.twin.main_job import run_main_job
 
 
@@ -59,6 +65,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="use an untrained stand-in policy (plumbing test; success is meaningless)",
     )
     parser.add_argument("--out", type=Path, default=None, help="output directory (default: runs/twin_run_<time>)")
+    add_force_argument(
+        parser,
+        help="replace OUT's summary.json and twin_run.rrd (without it an existing one is refused before the run)",
+    )
     parser.add_argument("--max-duration", type=float, default=None, help="seconds per episode (twin.yaml's default)")
     parser.add_argument("--smoke", action="store_true", help="1 episode of a few seconds (CI)")
     parser.add_argument("--domain", type=int, default=None, help="ROS_DOMAIN_ID (default: a random private one)")

@@ -10,6 +10,7 @@ from pathlib import Path
 
 from equidiff_core.config import ConfigError, dump_yaml, to_dict
 from equidiff_core.episode import run_episode
+from equidiff_core.output_files import write_output_text
 from equidiff_core.twin.config import load_twin_job_configs
 from equidiff_core.twin.demos import collect_direct
 from equidiff_core.twin.processes import NodeProcessError
@@ -21,9 +22,9 @@ from equidiff_ros.twin.world import LiveExpert, LiveTwin
 def _collect_ros(args, lab_path: Path, twin_path: Path, cfg_override) -> list[tuple[int, bool, str]]:
     results = []
     twin_cfg_path = twin_path
-    if cfg_override is not None:  # the nodes read YAML: write the narrowed config next to the bags
+    if cfg_override is not None:  # the nodes read YAML: the narrowed config next to the bags, this call's replacing any
         twin_cfg_path = args.out / "twin_collect.yaml"
-        twin_cfg_path.write_text(dump_yaml(to_dict(cfg_override), sort_keys=False))
+        write_output_text(twin_cfg_path, dump_yaml(to_dict(cfg_override), sort_keys=False), force=True)
     with TwinStack(
         args.out, lab_path, twin_cfg_path, policy=None, domain_id=args.domain, task=args.task, seed=args.seed
     ) as stack:

@@ -10,6 +10,7 @@ import time
 from pathlib import Path
 
 from equidiff_core.config import ConfigError
+from equidiff_core.output_files import refuse_existing, write_output_text
 from equidiff_core.twin.config import load_twin_job_configs
 from equidiff_core.twin.metrics import RunSummary
 from equidiff_core.twin.processes import NodeProcessError
@@ -18,9 +19,20 @@ from equidiff_ros.twin.stack import TwinStack
 from equidiff_ros.twin.supervisor import SupervisorError
 from equidiff_ros.twin.world import run_policy_episode
 
+# the run's summary files in OUT, beside its bags and logs
+SUMMARY_JSON = "summary.json"
+RUN_RRD = "twin_run.rrd"
+
 
 def run_main_job(args) -> int:
-    """``equidiff twin run`` for its parsed arguments: the episodes, the summary and its JSON line; the exit status."""
+    """``equidiff twin run`` for its parsed arguments: the episodes, the summary and its JSON line; the exit status.
+
+    OUT keeps each episode's bag as it is written (numbered after those there); the run's summary files
+    (summary.json, twin_run.rrd) land whole at the end, and an existing one is refused
+    (``OutputExistsError``) before anything starts, unless ``args.force``."""
+    out = args.out or Path("runs") / time.strftime("twin_run_%Y%m%d_%H%M%S")
+    for summary_file in (SUMMARY_JSON, *(() if args.no_rrd else (RUN_RRD,))):
+        refuse_existing(out / summary_file, args.force)  # now, not after the run
     try:
         configs = load_twin_job_configs(args.lab_config, args.twin_config)
     except ConfigError as err:
@@ -29,7 +41,6 @@ def run_main_job(args) -> int:
     lab_path, twin_path, lab, cfg = configs.lab_path, configs.twin_path, configs.lab, configs.twin
     episodes = 1 if args.smoke else args.episodes
     max_duration = args.max_duration or (8.0 if args.smoke else cfg.episode.max_duration_s)
-    out = args.out or Path("runs") / time.strftime("twin_run_%Y%m%d_%H%M%S")
     out.mkdir(parents=True, exist_ok=True)
     try:
         policy_path, policy_label = resolve_policy(args, out, lab.workspace, cfg)
@@ -93,21 +104,21 @@ def run_main_job(args) -> int:
         wall_s=time.monotonic() - wall_start,
     )
     if not args.no_rrd and records:
-        summary.rrd = write_rrd([r.bag for r in records if r.bag], out / "twin_run.rrd", lab)
+        summary.rrd = write_rrd([r.bag for r in records if r.bag], out / RUN_RRD, lab, force=args.force)
     print(summary.human())
-    (out / "summary.json").write_text(summary.json_line() + "\n")
+    write_output_text(out / SUMMARY_JSON, summary.json_line() + "\n", force=args.force)
     print(summary.json_line())
     return 0
 
 
-def write_rrd(bags, path: Path, lab) -> str:
+def write_rrd(bags, path: Path, lab, force: bool = False) -> str:
     try:  # rerun-sdk is an optional extra: imported only when a recording is asked for
         from equidiff_core.viz.bag_to_rrd import convert_bags
     except ImportError as err:  # rerun-sdk is an optional extra
         print(f"[twin] no rerun recording: {err}", file=sys.stderr)
         return ""
     try:
-        convert_bags(bags, path, lab)
+        convert_bags(bags, path, lab, force=force)
     except Exception as err:  # noqa: BLE001 - a viz failure must not lose the run's results
         print(f"[twin] rerun conversion failed: {err}", file=sys.stderr)
         return ""
