@@ -164,3 +164,14 @@ def test_twin_run_refuses_its_summary_files_before_the_twin_starts(tmp_path, mon
         assert old_reader.read() == '{"episodes": 5}\n'
     assert json.loads((out / "summary.json").read_text())["episodes"] == 0
     assert _listing(out) == ["bags", "summary.json", "twin_run.rrd"]  # no temporary left
+
+
+def test_calibrate_check_refuses_an_existing_rrd_before_capturing(tmp_path, monkeypatch, capsys):
+    from equidiff_core import calibration_job
+
+    monkeypatch.setattr(calibration_job, "_twin_capture", lambda *a, **k: pytest.fail("captured"))
+    rrd = tmp_path / "check.rrd"
+    rrd.write_bytes(b"an earlier check")
+    assert main(["calibrate", "check", "--twin", "--direct", "--rrd", str(rrd)]) == 2
+    assert capsys.readouterr().err.startswith(f"equidiff calibrate check: {rrd} exists; not replacing it")
+    assert rrd.read_bytes() == b"an earlier check" and _listing(tmp_path) == ["check.rrd"]

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import sys
+from contextlib import nullcontext
 
 import numpy as np
 
@@ -24,6 +25,7 @@ from equidiff_core.cameras import make_camera
 from equidiff_core.cameras.base import CameraError
 from equidiff_core.cameras.twin import TwinCamera
 from equidiff_core.config import ConfigError, default_config_dir, load_lab_config
+from equidiff_core.output_files import refuse_existing, staged_output
 from equidiff_core.robots.base import RobotError
 from equidiff_core.robots.franky import FrankyRobot
 from equidiff_core.robots.franky.hand import finger_width
@@ -211,6 +213,9 @@ def _lab_capture(lab):
 
 def run_calibration_check(args) -> int:
     """``equidiff calibrate check`` for its parsed arguments: one JSON line; 3 when a camera is beyond tolerance."""
+    rrd = None if args.spawn else args.rrd
+    if rrd is not None:  # refused before anything moves or captures
+        refuse_existing(rrd, args.force)
     try:
         lab_path = args.lab or default_config_dir() / "lab.yaml"
         lab = load_lab_config(lab_path)
@@ -219,11 +224,12 @@ def run_calibration_check(args) -> int:
         _log(f"equidiff calibrate check: {err}")
         return 1
     results = check_alignment(lab, {n: p for n, (p, _) in clouds.items()}, tcp, width)
-    if args.rrd is not None or args.spawn:
-        rec = open_recording("calibration_check", spawn=args.spawn, save=None if args.spawn else args.rrd)
-        log_check(rec, lab, clouds, results, tcp, width)
-        rec.flush()
-        rec.disconnect()
+    if rrd is not None or args.spawn:
+        with staged_output(rrd, force=args.force) if rrd is not None else nullcontext() as staged:
+            rec = open_recording("calibration_check", spawn=args.spawn, save=staged.path if staged else None)
+            log_check(rec, lab, clouds, results, tcp, width)
+            rec.flush()
+            rec.disconnect()
     worst = {
         key: max((getattr(r, key) for r in results.values() if getattr(r, key) is not None), default=None)
         for key in ("cloud_to_cloud_mm", "fingertips_mm")

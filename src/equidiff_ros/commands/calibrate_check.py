@@ -7,8 +7,9 @@ Each camera's cloud is moved into the base frame with the extrinsics in ``--lab`
 with (1) the other cameras' clouds (median point-to-plane distance where the views overlap)
 and (2) the FR3's fingertips placed at the TCP pose the robot reports (median distance of the
 camera's points on the fingers to the fingers' surface). One JSON line; ``--rrd`` / ``--spawn``
-show the clouds, camera frames and the finger model in rerun. Exit status 3 when a camera is
-beyond ``--tolerance-mm``.
+show the clouds, camera frames and the finger model in rerun (``--rrd FILE`` is written beside
+itself and renamed into place; an existing FILE is refused, exit 2, before anything is captured,
+unless ``--force``). Exit status 3 when a camera is beyond ``--tolerance-mm``.
 
 On the robot: nothing moves. Put the open gripper where every camera sees it, stop the
 camera and franka nodes (this command opens the devices itself) and run it.
@@ -23,6 +24,7 @@ import argparse
 from pathlib import Path
 
 from equidiff_core.calibration_job import run_calibration_check
+from equidiff_ros.commands import add_force_argument
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -30,7 +32,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.formatter_class = argparse.RawDescriptionHelpFormatter
     parser.add_argument("--lab", type=Path, default=None, help="lab file whose extrinsics are checked")
     parser.add_argument("--tolerance-mm", type=float, default=2.0, help="exit 3 if a camera's median is above this")
-    parser.add_argument("--rrd", type=Path, default=None, help="save the rerun view to this .rrd")
+    parser.add_argument(
+        "--rrd", type=Path, default=None, help="save the rerun view to this .rrd (refused if it exists)"
+    )
+    add_force_argument(parser)
     parser.add_argument("--spawn", action="store_true", help="open a rerun viewer")
     parser.add_argument("--twin", action="store_true", help="check against the digital twin's cameras")
     parser.add_argument("--truth", type=Path, default=None, help="twin: where its cameras really are")
