@@ -6,11 +6,26 @@ refused if they exist, before any work, unless --force."""
 
 from __future__ import annotations
 
+import argparse
 import json
 
 import pytest
 
-from equidiff_ros.cli import main
+from equidiff_ros.cli import COMMANDS, build_parser, main
+
+# the options that name what a command writes
+WRITES = ("--out", "-o", "--output", "--plot", "--keep", "--rrd")
+# commands whose output option names a work folder, filled over several calls: never refused, so no --force
+WORK_FOLDERS = {
+    ("bench", "generalization"): "--out holds the demos, the runs trained in parts and the roll-outs of earlier "
+    "calls; each file the bench writes there (result.json, rollouts_*.json) lands whole",
+    ("twin", "collect"): "--out: each call adds its bags, numbered after those there, never overwriting one",
+}
+# commands with a --force of another meaning whose output is never replaced at all
+NEVER_REPLACED = {
+    ("bags", "repair"): "an existing --output is always refused (bags.repair_bag); --force rewrites a bag that "
+    "reads fine",
+}
 
 
 def _listing(folder):
@@ -175,3 +190,30 @@ def test_calibrate_check_refuses_an_existing_rrd_before_capturing(tmp_path, monk
     assert main(["calibrate", "check", "--twin", "--direct", "--rrd", str(rrd)]) == 2
     assert capsys.readouterr().err.startswith(f"equidiff calibrate check: {rrd} exists; not replacing it")
     assert rrd.read_bytes() == b"an earlier check" and _listing(tmp_path) == ["check.rrd"]
+
+
+def _leaf_parser(path: tuple[str, ...]) -> argparse.ArgumentParser:
+    parser = build_parser(list(path))
+    for name in path:
+        subcommands = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+        parser = subcommands.choices[name]
+    return parser
+
+
+@pytest.mark.parametrize("path", list(COMMANDS), ids=" ".join)
+def test_every_command_that_writes_can_be_told_to_replace(path):
+    """Every command with an output option refuses an existing output unless --force (its help says it
+    replaces), except the work folders and the one that never replaces, listed above with the reason."""
+    options = {option: action for action in _leaf_parser(path)._actions for option in action.option_strings}
+    writes = sorted(set(WRITES) & set(options))
+    if path in WORK_FOLDERS:
+        assert writes and "--force" not in options, f"{' '.join(path)}: {WORK_FOLDERS[path]}"
+    elif path in NEVER_REPLACED:
+        assert writes and "replace" not in options["--force"].help, NEVER_REPLACED[path]
+    elif writes:
+        assert "--force" in options, f"equidiff {' '.join(path)} writes {writes} but takes no --force"
+        assert "replace" in options["--force"].help, options["--force"].help
+
+
+def test_the_exceptions_are_real_commands():
+    assert set(WORK_FOLDERS) | set(NEVER_REPLACED) <= set(COMMANDS)
