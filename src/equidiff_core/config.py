@@ -41,7 +41,7 @@ class ConfigError(ValueError):
 # --- Strict YAML -------------------------------------------------------------------------------
 
 # YAML 1.2 core schema scalars. PyYAML implements YAML 1.1, where 0123456 is octal, yes/no/on/off
-# are booleans, 1:30 is a base-60 number and 2024-01-02 a date: none of that may reach a field.
+# are booleans, 1:30 is a base-60 number and YYYY-MM-DD a date: none of that may reach a field.
 _BOOL = re.compile(r"^(?:true|True|TRUE|false|False|FALSE)$")
 _INT = re.compile(r"^(?:[-+]?(?:0|[1-9][0-9]*)|[-+]?0x[0-9a-fA-F]+)$")
 _FLOAT = re.compile(
