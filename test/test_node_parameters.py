@@ -187,10 +187,16 @@ def test_ros2_param_describe_reads_the_description_and_range_and_a_set_out_of_ra
 @pytest.mark.parametrize(
     "override, expected",
     [
-        ("slop_s:=5.0", "Parameter slop_s out of range Min: 0.0, Max: 1.0, value: 5.0 (unit: s)"),
-        ("slop_s:=0.0", "0.0 s is out of range; allowed: 0 < x <= 1 s"),  # the exclusive end, checked by the node
-        ("observation_hz:=500", "500.0 Hz is out of range; allowed: 0 < x <= 100 Hz"),  # an integer for a float
-        ("queue_size:=0", "Parameter queue_size out of range. Min: 1, Max: 100, value: 0"),
+        ("slop_s:=5.0", "slop_s: Parameter slop_s out of range Min: 0.0, Max: 1.0, value: 5.0, unit s (voxel_node)"),
+        (
+            "slop_s:=0.0",
+            "slop_s: 0.0 s is out of range; allowed: 0 < x <= 1 s (voxel_node)",
+        ),  # the exclusive end, checked by the node
+        (
+            "observation_hz:=500",
+            "observation_hz: 500.0 Hz is out of range; allowed: 0 < x <= 100 Hz (voxel_node)",
+        ),  # an integer for a float
+        ("queue_size:=0", "Parameter queue_size out of range. Min: 1, Max: 100, value: 0 (voxel_node)"),
         ("queue_size:=many", "expecting type 'INTEGER'"),
     ],
 )
@@ -201,5 +207,15 @@ def test_an_out_of_range_override_stops_the_node_at_start_naming_the_parameter(r
     assert voxel_node.main(["--ros-args", "-p", override]) == 1
     err = capsys.readouterr().err.strip()
     name = override.split(":=")[0]
-    assert err.startswith(f"voxel_node: parameter {name} of voxel_node: ") and expected in err
+    assert err.startswith(f"voxel_node: parameter {name}: ") and expected in err
     assert voxel_node.PARAMETERS.by_name[name].description in err and "\n" not in err
+
+
+@pytest.mark.ros
+def test_an_array_parameter_is_checked_item_by_item(ros_domain, capsys):
+    """rclpy applies a range to scalars only; the node checks each item of an array parameter."""
+    from equidiff_ros import teleop_node
+
+    assert teleop_node.main(["--ros-args", "-p", "linear_scale:=[0.1, -0.2, 0.1]"]) == 1
+    err = capsys.readouterr().err
+    assert "parameter linear_scale[1]: -0.2 m/s is out of range; allowed: 0 <= x m/s (teleop_node)" in err

@@ -78,6 +78,8 @@ class NodeParameter:
                 descriptor.floating_point_range = [FloatingPointRange(from_value=low, to_value=high, step=0.0)]
                 if bounds.gt is not None or bounds.lt is not None:
                     constraints.append(f"{bounds.describe()} {self.unit}".strip())
+        if isinstance(self.default, list) and descriptor.floating_point_range:
+            constraints.append("the range is each item's")  # rclpy checks scalars only: the node checks items
         if self.choices:
             constraints.append("one of " + ", ".join(self.choices))
         if self.number:
@@ -85,23 +87,28 @@ class NodeParameter:
         descriptor.additional_constraints = "; ".join(constraints)
         return descriptor
 
-    def check(self, value: Any, where: str) -> Any:
+    def check(self, value: Any, node_name: str) -> Any:
         """The declared value, or ParameterError saying why the node cannot run with it; rclpy has
-        checked the type and the inclusive range already, not an exclusive end or a number's integer."""
+        checked the type and the inclusive range already, not an exclusive end, an array's items or a
+        number given as an integer."""
         if self.number:
             if isinstance(value, bool) or not isinstance(value, (int, float)):
-                raise ParameterError(f"{where} must be a number, got {value!r}; {self.description}")
+                raise self.error(f"{self.name}: must be a number, got {value!r}", node_name)
             value = float(value)
         if self.choices and value not in self.choices:
-            raise ParameterError(f"{where} must be one of {', '.join(self.choices)}, got {value!r}")
+            raise self.error(f"{self.name}: must be one of {', '.join(self.choices)}, got {value!r}", node_name)
         if hasattr(value, "tolist"):  # rclpy hands a numeric array parameter over as an array.array
             value = value.tolist()
         if self.bounds is not None and not isinstance(value, (str, bool)):
             try:
-                self.bounds.check(value, where)
+                self.bounds.check(value, self.name)
             except ConfigError as err:
-                raise ParameterError(f"{err}; {self.description}") from None
+                raise self.error(str(err), node_name) from None
         return value
+
+    def error(self, what: str, node_name: str) -> ParameterError:
+        """``parameter <name>: <what> (<node>); <what the parameter is>``: one line, all a reader needs."""
+        return ParameterError(f"parameter {what} ({node_name}); {self.description}")
 
 
 LAB_CONFIG = NodeParameter(
@@ -151,15 +158,14 @@ def declare(node, parameter: NodeParameter, default: Any = _NOT_GIVEN) -> Any:
     value = parameter.default if default is _NOT_GIVEN else default
     if parameter.number:
         value = float(value)
-    where = f"parameter {name} of {node.get_name()}"
     try:
         declared = node.declare_parameter(name, value, parameter.descriptor()).value
     except (InvalidParameterValueException, InvalidParameterTypeException) as err:
         # rclpy's reason names the range or the type and the value given; add the unit and what it is
         reason = str(err).split("Reason: ", 1)[-1].removesuffix(f": {name}")
-        unit = f" (unit: {parameter.unit})" if parameter.unit else ""
-        raise ParameterError(f"{where}: {reason}{unit}; {parameter.description}") from None
-    return parameter.check(declared, where)
+        unit = f", unit {parameter.unit}" if parameter.unit else ""
+        raise parameter.error(f"{name}: {reason}{unit}", node.get_name()) from None
+    return parameter.check(declared, node.get_name())
 
 
 def bounds_of(cls: type, field_name: str) -> Bounds:
