@@ -1,6 +1,7 @@
 """The package installs two ways: colcon (ament index, lib/equidiff_ros executables, share/) and pip -e."""
 
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -192,3 +193,31 @@ def test_no_general_module_imports_the_twin():
         if twin:
             offenders.append(f"{relative}: {sorted(twin)}")
     assert not offenders, offenders
+
+
+# A figure in a comment goes stale with the machine and the code it was measured on; the docs keep
+# each with its command, machine and date (docs/model.md, docs/control.md, ...), and the code says why
+# and points there. Names of processors and ISO dates are the sure sign of a figure in code.
+DATED_FIGURE = re.compile(
+    r"\b20\d\d-[01]\d-[0-3]\d\b"
+    r"|\b(?:Xeon|EPYC|Epyc|Ryzen|Threadripper|Opteron|Core i[3579]|Zen ?\d|Sapphire Rapids|Ice Lake)\b"
+    r"|\b(?:[ABH]100|H200|B200|GB200|L40S?|RTX ?\d{4})\b"
+    r"|\bAVX-?512 (?:machine|box|CPU|host)\b"
+)
+
+
+def test_no_source_line_names_a_processor_or_a_date():
+    offending = [
+        f"{path.relative_to(ROOT)}:{number}: {line.strip()}"
+        for path in sorted((ROOT / "src").rglob("*.py"))
+        for number, line in enumerate(path.read_text().splitlines(), 1)
+        if DATED_FIGURE.search(line)
+    ]
+    assert not offending, "figures belong in docs/*.md with their command, machine and date:\n" + "\n".join(offending)
+
+
+def test_the_dated_figure_check_catches_what_it_is_for():
+    for line in ("# 2.2 ms on the 2-core EPYC", "(2026-11-27, the Xeon)", "on one H100", "an AVX-512 machine"):
+        assert DATED_FIGURE.search(line), line
+    for line in ("cpu_model()", "bf16 with AVX512-BF16/AMX", "YYYY-MM-DD", "100 Hz"):
+        assert not DATED_FIGURE.search(line), line

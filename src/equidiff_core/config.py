@@ -41,7 +41,7 @@ class ConfigError(ValueError):
 # --- Strict YAML -------------------------------------------------------------------------------
 
 # YAML 1.2 core schema scalars. PyYAML implements YAML 1.1, where 0123456 is octal, yes/no/on/off
-# are booleans, 1:30 is a base-60 number and 2024-01-02 a date: none of that may reach a field.
+# are booleans, 1:30 is a base-60 number and YYYY-MM-DD a date: none of that may reach a field.
 _BOOL = re.compile(r"^(?:true|True|TRUE|false|False|FALSE)$")
 _INT = re.compile(r"^(?:[-+]?(?:0|[1-9][0-9]*)|[-+]?0x[0-9a-fA-F]+)$")
 _FLOAT = re.compile(
@@ -226,18 +226,37 @@ def _num(value: float) -> str:
     return f"{value:g}"
 
 
-def bounded(default: Any = dataclasses.MISSING, *, unit: str, doc: str = "", **limits: float) -> Any:
+def bounded(
+    default: Any = dataclasses.MISSING, *, unit: str, doc: str = "", description: str = "", **limits: float
+) -> Any:
     """A dataclass field with its unit and physical range (``gt``, ``ge``, ``lt``, ``le``; for a tuple,
     of each item), written once where it is declared: ``bounded(0.25, unit="m/s", gt=0, le=1.7)``.
-    ``from_dict`` refuses a value outside, naming the dotted path, value, unit and range."""
+    ``from_dict`` refuses a value outside, naming the dotted path, value, unit and range.
+    ``description``: what the field is, where a node declares it as a ROS parameter (``described``)."""
     unknown = set(limits) - {"gt", "ge", "lt", "le"}
     if unknown:
         raise TypeError(f"bounded(): unknown limit(s) {sorted(unknown)}")
-    return field(default=default, metadata={"bounds": Bounds(unit=unit, doc=doc, **limits)})
+    metadata = {"bounds": Bounds(unit=unit, doc=doc, **limits), "description": description}
+    return field(default=default, metadata=metadata)
+
+
+def described(default: Any, description: str, choices: tuple[str, ...] = ()) -> Any:
+    """A dataclass field that says what it is (and, for a string, the values it may take), for a field a
+    node declares as a ROS parameter (``equidiff_ros.parameters.config_parameters``: its descriptor,
+    ``--help``, docs/architecture.md). The dataclass still checks its values itself."""
+    return field(default=default, metadata={"description": description, "choices": choices})
 
 
 def field_bounds(f: dataclasses.Field) -> Bounds | None:
     return f.metadata.get("bounds")
+
+
+def field_description(f: dataclasses.Field) -> str:
+    return f.metadata.get("description", "")
+
+
+def field_choices(f: dataclasses.Field) -> tuple[str, ...]:
+    return f.metadata.get("choices", ())
 
 
 UNIT_QUATERNION = "a unit quaternion: norm within 0.001 of 1"

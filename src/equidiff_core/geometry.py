@@ -29,7 +29,7 @@ from scipy.spatial.transform import Rotation
 
 class _LazyTorch:
     """torch, imported on first use: a tensor argument means the caller has imported it already,
-    and ROS nodes that only need numpy geometry start ~9 s sooner on a busy 2-core machine."""
+    and ROS nodes that only need numpy geometry start seconds sooner without importing it."""
 
     def __getattr__(self, name: str) -> Any:
         import torch

@@ -19,8 +19,8 @@ RTC-guided) and replayed per call, so a ``predict`` launches one graph instead o
 small kernels. Always: the U-Net's FiLM terms split into an observation part (once per
 ``encode``) and a step part (cached per diffusion step); on CPU a
 faster Mish, and in bf16 on CPU the U-Net's Conv1d and ConvTranspose1d run as GEMMs. ``precision="auto"``
-picks bf16 on CUDA and on CPUs with native bf16 (AVX512-BF16/AMX), fp32 elsewhere. Measured on
-the 2-core EPYC: docs/model.md (compact, 1 thread, traced: 63-89 ms per DDIM-16 call).
+picks bf16 on CUDA and on CPUs with native bf16 (AVX512-BF16/AMX), fp32 elsewhere. What each of
+these buys: docs/model.md, "Inference speed on a CPU" (``equidiff bench policy``).
 """
 
 from __future__ import annotations
@@ -194,9 +194,10 @@ class InferencePolicy:
     def _compile(self):
         """torch.compile the denoising step (inductor fuses GroupNorm, Mish, FiLM and the im2col copies).
 
-        Measured on the 2-core EPYC, paper preset bf16: 12.5-14.5 ms per step against 21-23.5 ms traced;
-        the first compile takes ~45 s (then ~6 s from inductor's on-disk cache). It needs a C++
-        compiler: if compiling fails, the traced/eager step is kept and a warning says why."""
+        Faster per step than the traced step on a CPU, but the first compile takes tens of seconds
+        (less from inductor's on-disk cache; docs/model.md has the figures, ``equidiff bench policy
+        --compile``). It needs a C++ compiler: if compiling fails, the traced/eager step is kept and a
+        warning says why."""
         x = torch.zeros(1, self.preset.horizon, self.codec.dim, device=self.device)
         compiled = torch.compile(self.net.denoise_films, dynamic=False)
         try:

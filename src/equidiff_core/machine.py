@@ -37,7 +37,7 @@ def cpu_flags() -> set[str]:
 
 
 def cpu_has_native_bf16() -> bool:
-    """AVX512-BF16 or AMX: there bf16 3D convolutions are ~10x faster than fp32 (measured, 2-core EPYC)."""
+    """AVX512-BF16 or AMX: there bf16 3D convolutions are much faster than fp32 (docs/model.md)."""
     return bool({"avx512_bf16", "amx_bf16"} & cpu_flags())
 
 

@@ -1,6 +1,6 @@
 """The operator loop of ``equidiff lab``: what the screen shows, what each key does, the reset countdown.
 
-ROS-free. The terminal UI (``equidiff_ros.commands.lab_ui``) feeds an ``OperatorLoop`` what the
+ROS-free. The terminal UI (``equidiff_ros.lab_screen``) feeds an ``OperatorLoop`` what the
 nodes publish (``observe``), the keys the operator presses (``press``) and the answers of the
 service calls it made (``done``); each of these and the UI's periodic ``tick`` hands back the
 ``Request``s (service calls, run in order) that follow. ``render`` is the screen. How the nodes'

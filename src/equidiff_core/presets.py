@@ -175,7 +175,7 @@ def encoder_output_size(crop: int, layout: str) -> int:
 # baseline's features did not respond to the block).
 PRESETS: dict[str, PolicyPreset] = {
     "paper": PolicyPreset(name="paper", baseline_width=256, baseline_init="he"),
-    # Measured cost on the 2-core CPU (see docs/model.md): the 56^3 and 28^3 convolutions
+    # Measured cost on a CPU (see docs/model.md): the 56^3 and 28^3 convolutions
     # dominate, so the first fields are cut hardest; the 12^3 and 6^3 stages of the official layout
     # cost more than the legacy 9^3 and 3^3 ones, so they are halved against the legacy compact
     # (16, 32, 32): a training step then costs 6-19 % more than the legacy compact's (docs/model.md).

@@ -32,7 +32,7 @@ from typing import Any, Self
 import yaml
 
 from .bags import META_SIDECAR, EpisodeMeta
-from .config import LabConfig, bounded
+from .config import LabConfig, bounded, described
 from .mcap_writer import MiB, open_bag_writer
 from .rosmsg import RosbagsFactory, rosbags_factory, transform_msg_from_pos_quat
 from .topics import CLOUD_TYPE, COMPRESSED_IMAGE_TYPE, RECORDED_TOPICS, TF_TYPE, TOPIC_TF_STATIC, camera_color_topic
@@ -73,12 +73,24 @@ class InterventionLog:
 class RecordingConfig:
     """How episodes are written (config/data.yaml ``recorder`` section)."""
 
-    output_dir: str = "episodes"
-    record_clouds: bool = False  # the three camera clouds (docs/data.md: 5x the bag in the twin, ~100x with D455s)
-    record_images: bool = True  # each camera's JPEG colour image (docs/data.md: what it costs)
-    chunk_size_mib: float = bounded(8.0, unit="MiB", ge=2, le=1024)  # > the largest message (a voxel grid ~1 MiB)
-    chunk_max_age_s: float = bounded(2.0, unit="s", gt=0, le=60)  # a SIGKILL loses at most this much
-    min_free_gib: float = bounded(2.0, unit="GiB", ge=0, le=100_000)  # refuse to start (or stop) below this free disk
+    output_dir: str = described(
+        "episodes", "Directory of the episodes: one rosbag2 directory <output_dir>/<task>_NNNN each"
+    )
+    # docs/data.md: what the clouds and images cost a bag
+    record_clouds: bool = described(False, "Record each camera's point cloud")
+    record_images: bool = described(True, "Record each camera's JPEG colour image")
+    # above the largest message (a voxel grid, about 1 MiB; config/data.yaml says why)
+    chunk_size_mib: float = bounded(8.0, unit="MiB", ge=2, le=1024, description="MCAP chunk size")
+    chunk_max_age_s: float = bounded(
+        2.0, unit="s", gt=0, le=60, description="A chunk is flushed at least this often: what a SIGKILL can lose"
+    )
+    min_free_gib: float = bounded(
+        2.0,
+        unit="GiB",
+        ge=0,
+        le=100_000,
+        description="Free disk below which no episode starts (or it stops and is kept)",
+    )
 
     def __post_init__(self):
         if self.chunk_size_mib < 2:

@@ -24,6 +24,7 @@ Input sources (``spacemouse``: the device via pyspacemouse/hidapi, polled by the
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Self
@@ -33,7 +34,8 @@ from scipy.spatial.transform import Rotation
 
 from . import geometry
 from .chunk import PoseChunk
-from .config import Workspace
+from .config import Workspace, bounded, described
+from .control.config import HAND_MAX_WIDTH_M
 from .rosmsg import NS_PER_S, stamp_to_ns
 
 
@@ -41,38 +43,74 @@ class TeleopError(RuntimeError):
     """No input device, or an input that cannot be used."""
 
 
+SOURCES = ("joy", "spacemouse")
+FRAMES = ("base", "tool")
+GRIPPER_MODES = ("buttons", "toggle", "hold")
+
+
 @dataclass(frozen=True)
 class TeleopConfig:
-    source: str = "joy"  # "joy" (sensor_msgs/Joy on /spacenav/joy) or "spacemouse" (direct HID)
-    device: str = ""  # pyspacemouse device name ("" = the first supported one found)
-    rate_hz: float = 200.0  # device polling and integration rate (diffusion_policy polls at 200 Hz)
-    publish_hz: float = 20.0  # /franka/command_chunk rate
-    command_lead_s: float = 0.05  # each target's time_from_start: reached this long after publishing
-    deadzone: float = 0.08  # of the normalised axis range
-    linear_scale: tuple[float, float, float] = (0.15, 0.15, 0.15)  # m/s at full deflection, x y z
-    angular_scale: tuple[float, float, float] = (0.8, 0.8, 0.8)  # rad/s at full deflection, roll pitch yaw
-    axis_signs: tuple[float, float, float, float, float, float] = (1, 1, 1, 1, 1, 1)  # device mounting
-    translation_frame: str = "base"  # "base" or "tool"
-    rotation_frame: str = "base"  # axes of the rotation about the TCP: "base" or "tool"
-    lock_rotation: bool = False
-    gripper_mode: str = "buttons"  # "buttons" | "toggle" | "hold"
-    open_button: int = 0
-    close_button: int = 1
-    open_width: float = 0.08  # m
-    closed_width: float = 0.0  # m (franky grasps with a force; the width is the goal)
-    workspace_margin: float = 0.0  # m kept from the workspace box faces
-    max_lead_m: float = 0.05  # target may run at most this far ahead of the measured TCP
-    max_lead_rad: float = 0.5
-    input_timeout_s: float = 0.2  # newest device report older than this: hold (the device stopped reporting)
-    clutch_button: int = -1  # >= 0: no motion unless this button is held (-1 = no clutch)
-    rotation_button: int = -1  # >= 0: rotation only while this button is held (-1 = always rotate)
+    """How teleop_node turns the SpaceMouse into commands (config/data.yaml ``teleop_node``); each field is
+    one of its ROS parameters, described here once."""
+
+    source: str = described("joy", "Input: sensor_msgs/Joy on /spacenav/joy, or the SpaceMouse by direct HID", SOURCES)
+    device: str = described("", "pyspacemouse device name; empty: the first supported one found")
+    # diffusion_policy polls its SpaceMouse at 200 Hz; a SpaceMouse needs >= 100 Hz (__post_init__)
+    rate_hz: float = bounded(200.0, unit="Hz", gt=0, le=1000, description="Device polling and integration rate")
+    publish_hz: float = bounded(20.0, unit="Hz", gt=0, le=1000, description="/franka/command_chunk rate")
+    command_lead_s: float = bounded(
+        0.05, unit="s", ge=0, le=1, description="Each target's time_from_start: reached this long after publishing"
+    )
+    deadzone: float = bounded(0.08, unit="", ge=0, lt=1, description="Deadzone, as a fraction of the axis range")
+    linear_scale: tuple[float, float, float] = bounded(
+        (0.15, 0.15, 0.15), unit="m/s", ge=0, description="Translation speed at full deflection, x y z"
+    )
+    angular_scale: tuple[float, float, float] = bounded(
+        (0.8, 0.8, 0.8), unit="rad/s", ge=0, description="Rotation speed at full deflection, roll pitch yaw"
+    )
+    axis_signs: tuple[float, float, float, float, float, float] = described(
+        (1, 1, 1, 1, 1, 1), "Sign of each axis x y z roll pitch yaw, for how the device is mounted"
+    )
+    translation_frame: str = described("base", "Frame of the translation axes", FRAMES)
+    rotation_frame: str = described("base", "Axes of the rotation about the TCP", FRAMES)
+    lock_rotation: bool = described(False, "Translate only; the orientation holds")
+    gripper_mode: str = described(
+        "buttons",
+        "buttons: open_button opens, close_button closes; toggle: either toggles; hold: closed while held",
+        GRIPPER_MODES,
+    )
+    open_button: int = bounded(0, unit="", ge=0, description="Index of the button that opens the gripper")
+    close_button: int = bounded(1, unit="", ge=0, description="Index of the button that closes the gripper")
+    open_width: float = bounded(0.08, unit="m", ge=0, le=HAND_MAX_WIDTH_M, description="Gripper width when open")
+    # franky grasps with a force: the width is the goal, not where the fingers stop
+    closed_width: float = bounded(
+        0.0, unit="m", ge=0, le=HAND_MAX_WIDTH_M, description="Gripper width commanded to close"
+    )
+    workspace_margin: float = bounded(
+        0.0, unit="m", ge=0, le=0.5, description="Distance the target keeps from the workspace box faces"
+    )
+    max_lead_m: float = bounded(
+        0.05, unit="m", gt=0, le=0.5, description="How far the target may run ahead of the measured TCP"
+    )
+    max_lead_rad: float = bounded(
+        0.5, unit="rad", gt=0, le=math.pi, description="How far the target may turn ahead of the measured TCP"
+    )
+    input_timeout_s: float = bounded(
+        0.2, unit="s", gt=0, le=1, description="Input older than this is no input: the target holds"
+    )
+    clutch_button: int = bounded(
+        -1, unit="", ge=-1, description="Button that must be held for any motion; -1: no clutch"
+    )
+    rotation_button: int = bounded(
+        -1, unit="", ge=-1, description="Button that must be held to rotate; -1: always rotate"
+    )
 
     def __post_init__(self):
-        if self.source not in ("joy", "spacemouse"):
+        if self.source not in SOURCES:
             raise ValueError(f"source must be 'joy' or 'spacemouse', got {self.source!r}")
-        if self.translation_frame not in ("base", "tool") or self.rotation_frame not in ("base", "tool"):
+        if self.translation_frame not in FRAMES or self.rotation_frame not in FRAMES:
             raise ValueError("translation_frame and rotation_frame must be 'base' or 'tool'")
-        if self.gripper_mode not in ("buttons", "toggle", "hold"):
+        if self.gripper_mode not in GRIPPER_MODES:
             raise ValueError(f"gripper_mode must be buttons/toggle/hold, got {self.gripper_mode!r}")
         if not 0 <= self.deadzone < 1:
             raise ValueError(f"deadzone must be in [0, 1), got {self.deadzone}")

@@ -24,7 +24,7 @@ camera-frame depth limits, table removal (points whose base-frame height is belo
 standard deviations) on the points inside the workspace only.
 
 Speed (``equidiff bench voxelize``): the fast path is numpy only and single-threaded (threads
-did not pay on a shared 2-core machine). The ``Voxelizer`` keeps its per-point scratch buffers
+did not pay on a shared machine with few cores). The ``Voxelizer`` keeps its per-point scratch buffers
 between calls: page faults on fresh 10 MB temporaries cost more than the arithmetic. Each
 camera's points are transformed and tested, and only those that land are gathered (most of a
 real frame lies outside the workspace). The colour means come

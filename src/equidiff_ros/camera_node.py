@@ -23,14 +23,9 @@ The header stamp is the capture time the backend reports (host clock for RealSen
 global time, the node clock for replay, sim time for the twin); the frame id is
 ``<name>_color_optical_frame``.
 
-Parameters: ``lab_config`` (lab.yaml), ``camera`` (a camera name; empty = all configured),
-``backend`` (realsense | replay | twin), ``bag`` / ``loop`` / ``rate`` / ``restamp``
-(replay), ``backend_options`` (a YAML mapping passed to the backend, e.g. "{width: 424}"),
-``reliable_clouds`` (publish reliably instead of sensor-data QoS, false; the lockstep twin sets
-it, with voxel_node's, so no frame it owes a chunk is lost in transport; the colour images follow
-it), ``publish_color`` (true: the colour image beside each cloud; the replay backend has none),
-``jpeg_quality`` (90).
 A RealSense that is not connected stops the node at once with the missing serial named.
+
+Parameters: ``PARAMETERS`` below (``--help``, ``ros2 param describe``, docs/architecture.md).
 """
 
 from __future__ import annotations
@@ -43,6 +38,7 @@ from rclpy.node import Node
 
 from equidiff_core import rosmsg
 from equidiff_core.cameras import (
+    BACKENDS,
     CameraError,
     NoFrameYet,
     extrinsics_tf_message,
@@ -51,7 +47,7 @@ from equidiff_core.cameras import (
 )
 from equidiff_core.cameras.color import DEFAULT_JPEG_QUALITY, ImageError, color_image_msg
 from equidiff_core.cameras.replay import ReplayFinished
-from equidiff_core.config import ConfigError, parse_yaml
+from equidiff_core.config import Bounds, ConfigError, parse_yaml
 from equidiff_core.pointcloud import cloud_to_msg
 from equidiff_core.sync import PublishPacer
 from equidiff_core.topics import COMPRESSED_IMAGE_TYPE, camera_color_topic
@@ -65,17 +61,42 @@ from equidiff_ros.common import (
     now_ns,
     wait_for_clock,
 )
+from equidiff_ros.parameters import LAB_CONFIG, NodeParameter, NodeParameters, parameters_help
 from equidiff_ros.runner import run_node
+
+NODE_NAME = "camera_node"
+
+PARAMETERS = NodeParameters(
+    LAB_CONFIG,
+    NodeParameter("camera", "", "The camera of lab.yaml to publish; empty: every configured camera"),
+    NodeParameter("backend", "realsense", "Where the frames come from", choices=tuple(BACKENDS)),
+    NodeParameter("bag", "", "replay: the rosbag2 directory holding /cameras/<name>/points"),
+    NodeParameter("loop", True, "replay: start over at the end of the bag"),
+    NodeParameter("rate", 1.0, "replay: speed factor", Bounds("", gt=0, le=100.0)),
+    NodeParameter("restamp", True, "replay: stamp frames with this node's clock (false: the recorded stamps)"),
+    NodeParameter(
+        "backend_options", "", 'A YAML mapping handed to the backend, e.g. "{width: 424, height: 240}" (twin)'
+    ),
+    NodeParameter(
+        "reliable_clouds",
+        False,
+        "Publish clouds and images reliably instead of with sensor-data QoS: the lockstep twin sets it, "
+        "with voxel_node's, so that no frame it owes a chunk is lost in transport",
+    ),
+    NodeParameter(
+        "publish_color", True, "Publish each frame's colour image as JPEG beside its cloud (replay has none)"
+    ),
+    NodeParameter("jpeg_quality", DEFAULT_JPEG_QUALITY, "JPEG quality of the colour images", Bounds("", ge=1, le=100)),
+)
 
 USAGE = (
     __doc__
+    + parameters_help(PARAMETERS)
     + """
 usage: camera_node [--ros-args -p backend:=realsense|replay|twin -p camera:=cam_left
                     -p lab_config:=config/lab.yaml -p bag:=bags/episode_0001 -p loop:=true]
 """
 )
-
-NODE_NAME = "camera_node"
 
 
 class CameraNode(Node):
@@ -83,18 +104,17 @@ class CameraNode(Node):
         super().__init__(node_name)
         wait_for_clock(self)  # simulated time (the twin): nothing is timed before /clock
         self.lab = declare_lab_config(self)
-        name = self.declare_parameter("camera", "").value
-        self.backend = self.declare_parameter("backend", "realsense").value
-        bag = self.declare_parameter("bag", "").value
-        loop = self.declare_parameter("loop", True).value
-        rate = self.declare_parameter("rate", 1.0).value
-        restamp = self.declare_parameter("restamp", True).value
-        options_text = self.declare_parameter("backend_options", "").value
-        reliable = self.declare_parameter("reliable_clouds", False).value
-        self.publish_color = bool(self.declare_parameter("publish_color", True).value)
-        self.jpeg_quality = int(self.declare_parameter("jpeg_quality", DEFAULT_JPEG_QUALITY).value)
-        if not 1 <= self.jpeg_quality <= 100:
-            raise ConfigError(f"jpeg_quality must be in 1..100, got {self.jpeg_quality}")
+        param = lambda name: PARAMETERS.declare(self, name)
+        name = param("camera")
+        self.backend = param("backend")
+        bag = param("bag")
+        loop = param("loop")
+        rate = param("rate")
+        restamp = param("restamp")
+        options_text = param("backend_options")
+        reliable = param("reliable_clouds")
+        self.publish_color = param("publish_color")
+        self.jpeg_quality = param("jpeg_quality")
         self.configs = [self.lab.camera(name)] if name else list(self.lab.cameras)
         self.factory = rosmsg.RclpyFactory()
         options = parse_yaml(options_text, "backend_options") if options_text else {}

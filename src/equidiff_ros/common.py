@@ -5,8 +5,6 @@ The QoS profiles here are the ones docs/architecture.md lists; nodes never build
 
 from __future__ import annotations
 
-import dataclasses
-import typing
 from pathlib import Path
 
 from rclpy.node import Node
@@ -47,6 +45,7 @@ from equidiff_core.topics import (  # noqa: F401
     TOPIC_TWIN_STATE,
     TOPIC_VOXELS,
 )
+from equidiff_ros.parameters import LAB_CONFIG, config_parameters, declare
 
 SENSOR_QOS = qos_profile_sensor_data  # best effort, volatile, keep last 5
 RELIABLE_QOS = QoSProfile(
@@ -99,26 +98,17 @@ def cloud_qos(reliable: bool) -> QoSProfile:
     return RELIABLE_CLOUD_QOS if reliable else SENSOR_QOS
 
 
-def declare_config(node, cls, prefix: str = ""):
-    """Declare one ROS parameter per dataclass field (defaults from the class) and build the config:
-    each default is written once, in the config dataclass."""
-    values = {}
-    hints = typing.get_type_hints(cls)
-    for f in dataclasses.fields(cls):
-        default = f.default if f.default is not dataclasses.MISSING else None
-        if isinstance(default, tuple):
-            default = [float(v) for v in default] if "float" in str(hints[f.name]) else list(default)
-        if default is None or isinstance(default, dict):
-            continue  # optional / mapping fields keep their defaults
-        value = node.declare_parameter(prefix + f.name, default).value
-        values[f.name] = list(value) if isinstance(value, (list, tuple)) or hasattr(value, "tolist") else value
+def declare_config(node, cls):
+    """Declare one ROS parameter per field of config dataclass ``cls`` (default and description from
+    the field, ``parameters.config_parameters``) and build the config from their values."""
+    parameters = config_parameters(cls)
+    values = {p.name: parameters.declare(node, p.name) for p in parameters}
     return from_dict(cls, values, node.get_name())
 
 
 def declare_lab_config(node: Node) -> LabConfig:
-    """Declare the `lab_config` parameter (path to lab.yaml; default: the installed one) and load it."""
-    default = str(default_config_dir() / "lab.yaml")
-    path = node.declare_parameter("lab_config", default).value
+    """Declare the ``lab_config`` parameter (default: the installed lab.yaml) and load the file."""
+    path = declare(node, LAB_CONFIG, str(default_config_dir() / "lab.yaml"))
     return load_lab_config(Path(path))
 
 

@@ -24,13 +24,7 @@ the next franka_node for the same robot names it in its reason, and holds even w
 
 Policy and teleop publish the same chunk topic, so both go through the same checks.
 
-Parameters: ``lab_config`` (lab.yaml: workspace box, robot IP, state rate), ``control_config``
-(control.yaml: limits, scheduling, gains), ``backend`` (franky | dryrun), ``robot_ip`` (overrides
-lab.yaml), ``realtime`` (false for franky-sim or a machine without an RT kernel),
-``home_on_start`` (overrides control.yaml; with the start hold it only applies when the TCP is
-outside the safety box: the acknowledgement then moves it home), ``require_ack_on_start``,
-``gripper`` (false: arm only), ``run_dir`` (where the unclean-exit marker lives; default
-$XDG_RUNTIME_DIR, else the temp dir).
+Parameters: ``PARAMETERS`` below (``--help``, ``ros2 param describe``, docs/architecture.md).
 """
 
 from __future__ import annotations
@@ -52,7 +46,7 @@ from trajectory_msgs.msg import MultiDOFJointTrajectory
 
 from equidiff_core import rosmsg
 from equidiff_core.chunk import ChunkError, chunk_from_msg
-from equidiff_core.config import ConfigError, default_config_dir
+from equidiff_core.config import ConfigError, RobotConfig, default_config_dir
 from equidiff_core.control import AcknowledgeRefused, Controller, check_home_inside, load_control_config
 from equidiff_core.robots import BACKENDS, RobotError, make_robot
 from equidiff_core.topics import SERVICE_FRANKA_ACKNOWLEDGE, SERVICE_FRANKA_HOME, TOPIC_FRANKA_STATUS
@@ -70,10 +64,55 @@ from equidiff_ros.common import (
     now_ns,
     wait_for_clock,
 )
-from equidiff_ros.runner import declare_number, run_node
+from equidiff_ros.parameters import LAB_CONFIG, NodeParameter, NodeParameters, bounds_of, parameters_help
+from equidiff_ros.runner import run_node
+
+NODE_NAME = "franka_node"
+
+PARAMETERS = NodeParameters(
+    LAB_CONFIG,
+    NodeParameter(
+        "control_config",
+        "",
+        "Path of control.yaml: limits, scheduling, gains",
+        default_from="the installed config/control.yaml",
+    ),
+    NodeParameter("backend", "franky", "The arm: franky (an FR3 or franky-sim) or dryrun", choices=BACKENDS),
+    NodeParameter("robot_ip", "", "The robot's address; empty: lab.yaml's robot.ip"),
+    NodeParameter("realtime", True, "Real-time control loop: false for franky-sim or a machine without an RT kernel"),
+    NodeParameter(
+        "home_on_start",
+        False,
+        "Move home at start; with the start hold only when the TCP is outside the safety box (the acknowledgement "
+        "then moves it home)",
+        default_from="control.yaml home_on_start",
+    ),
+    NodeParameter(
+        "require_ack_on_start",
+        True,
+        "Every start holds until /franka/acknowledge; false only where nothing else could move the arm unexpectedly "
+        "(the twin's launchers, the dry run)",
+        default_from="true; false with backend dryrun",
+    ),
+    NodeParameter("gripper", True, "Drive the Franka Hand (false: the arm only)"),
+    NodeParameter(
+        "run_dir",
+        "",
+        "Directory of the unclean-exit marker franka_node_<robot_ip>.pid; empty: $XDG_RUNTIME_DIR, else the temp dir",
+    ),
+    NodeParameter(
+        "state_hz",
+        100.0,
+        "Rate of /franka/ee_pose, /franka/joint_states and /tf",
+        bounds_of(RobotConfig, "state_hz"),
+        default_from="lab.yaml robot.state_hz",
+        number=True,
+    ),
+)
 
 USAGE = (
     __doc__
+    + parameters_help(PARAMETERS)
     + """
 usage: franka_node [--ros-args -p backend:=franky|dryrun -p robot_ip:=172.16.0.2 -p realtime:=true
                     -p control_config:=config/control.yaml -p lab_config:=config/lab.yaml
@@ -81,30 +120,25 @@ usage: franka_node [--ros-args -p backend:=franky|dryrun -p robot_ip:=172.16.0.2
 """
 )
 
-NODE_NAME = "franka_node"
-
 
 class FrankaNode(Node):
     def __init__(self, node_name: str = NODE_NAME):
         super().__init__(node_name)
         wait_for_clock(self)  # simulated time (the twin): nothing is timed before /clock
         self.lab = declare_lab_config(self)
-        control_path = self.declare_parameter("control_config", str(default_config_dir() / "control.yaml")).value
-        backend = self.declare_parameter("backend", "franky").value
-        robot_ip = self.declare_parameter("robot_ip", "").value or self.lab.robot.ip
-        realtime = self.declare_parameter("realtime", True).value
-        gripper = self.declare_parameter("gripper", True).value
-        run_dir = (
-            self.declare_parameter("run_dir", "").value or os.environ.get("XDG_RUNTIME_DIR") or tempfile.gettempdir()
-        )
+        param = lambda name: PARAMETERS.declare(self, name)
+        control_path = PARAMETERS.declare(self, "control_config", str(default_config_dir() / "control.yaml"))
+        backend = param("backend")
+        robot_ip = param("robot_ip") or self.lab.robot.ip
+        realtime = param("realtime")
+        gripper = param("gripper")
+        run_dir = param("run_dir") or os.environ.get("XDG_RUNTIME_DIR") or tempfile.gettempdir()
         self.config = load_control_config(Path(control_path))
         check_home_inside(self.config, self.lab.safety_box)  # a home outside the box would be clipped, never reached
-        home = self.declare_parameter("home_on_start", self.config.home_on_start).value
+        home = PARAMETERS.declare(self, "home_on_start", self.config.home_on_start)
         # the dry run moves nothing, so nothing can resume on its own there
-        require_ack = self.declare_parameter("require_ack_on_start", backend != "dryrun").value
-        state_hz = declare_number(self, "state_hz", self.lab.robot.state_hz)
-        if backend not in BACKENDS:
-            raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
+        require_ack = PARAMETERS.declare(self, "require_ack_on_start", backend != "dryrun")
+        state_hz = PARAMETERS.declare(self, "state_hz", self.lab.robot.state_hz)
         self.frame = self.lab.base_frame
         self.factory = rosmsg.RclpyFactory()
         self.hardware_id = "dryrun" if backend == "dryrun" else robot_ip

@@ -1,4 +1,4 @@
-"""policy_node: voxels + robot state -> DDIM policy at 5 Hz -> /franka/command_chunk.
+"""policy_node: voxels + robot state -> DDIM policy, once per observation -> /franka/command_chunk.
 
 Wiring:
   /voxels (PointCloud2 of occupied voxels)       -> newest observation (kept raw; decoded in the worker);
@@ -8,9 +8,10 @@ Wiring:
                                                     effort (``common.VOXEL_READER_QOS``): a paused policy
                                                     must not hold the grids back from the other readers
   /franka/ee_pose, /franka/joint_states          -> short history; the pose/width nearest the voxel stamp
-  worker: ``InferencePolicy.predict`` -> first ``n_action_steps`` (8) of ``horizon`` (16) steps
+  worker: ``InferencePolicy.predict`` -> the steps of the predicted ``horizon`` that bridge the
+          latency (``chunk_sizing.ChunkSizing``: ``n_action_steps``, ``execute_steps``, ``latency_s``)
           -> ``chunk.chunk_from_actions`` (step i at observation stamp + i·dt) -> /franka/command_chunk
-  timer at ``rate_hz`` (5 Hz) -> warns when no fresh observation has come (a camera or the voxel node is down)
+  timer at ``rate_hz`` -> warns when no fresh observation has come (a camera or the voxel node is down)
   timer at 1 Hz -> /diagnostics (``policy_node``: inference_ms, observation_age_ms, skipped_cycles,
                    obs_to_cmd_ms and its p50/p95, latency_s (auto | auto (initial) | fixed | off),
                    latency_estimate_ms, latency_bridged_max_ms, publish_steps; WARN when L exceeds
@@ -30,7 +31,7 @@ While paused no chunk is published: each observation is announced on /policy/ski
 ``paused`` (an inference already running is finished and dropped), and /diagnostics says
 ``paused``. ``start_paused`` (default false; robot.launch.py sets true) waits for an enable.
 
-The policy runs once per observation, so the cameras set its rate (5 Hz), with no timer
+The policy runs once per observation, so the cameras set its rate, with no timer
 phase between a grid and its inference; on the twin's simulated time, which pauses until
 this observation's chunk has arrived, a cycle waiting for a timer tick would never come.
 A /voxels message that does not decode to this policy's grid (``pointcloud.voxel_msg_to_grid``
@@ -45,35 +46,13 @@ replaced it while the worker was busy (``busy``), when it is older than
 matched sets, so it shows up as a stale grid), when the voxel node reports ERROR in
 /diagnostics (``voxel_error``), or when there is no robot state near its stamp (``no_robot_state``).
 
-Parameters: ``checkpoint`` (exported policy file, required), ``device`` (cpu | cuda | auto),
-``precision`` (auto | fp32 | bf16; auto = bf16 where the CPU has native bf16), ``jit``
-(default true: jit.trace), ``rate_hz`` (the rate at which a missing observation is reported),
-``max_observation_age_s``, ``max_state_offset_s``, ``seed`` (the noise outside an announced
-episode; -1: random), ``n_action_steps`` (steps published per chunk; 0, the default: enough to
-bridge the latency below, or the preset's with ``latency_s`` -1), ``execute_steps`` (k: how many
-steps of a chunk run before the next observation is answered; 0: all ``n_action_steps``, or fewer
-when the latency is too long for them to bridge (``chunk.bridging_execute_steps``), the
-default, chosen by measurement: in the twin's closed-loop evaluation whole chunks solved 4 of
-10 scenes where a new chunk every observation solved 1, docs/evaluation_scheme.md; 1: answer
-every observation; the others are announced on /policy/skipped as ``executing``),
-``latency_s`` (the observation-to-arrival latency L that each chunk bridges: it carries
-k + ceil(L/dt) + 1 steps, at most the horizon's, so the next chunk is there before this one runs
-out and the arm never stands still at a chunk boundary. ``auto``, the default: measured online,
-``chunk.LatencyEstimate``: the observation's stamp to the chunk's publication on this node's
-clock (the sim clock on simulated time), p95 of the last 20, plus ``latency_transport_s``
-(default 0.01 s: DDS delivery to franka_node and the control tick that applies the chunk, which
-this node cannot see); until the first measurement, the most the horizon can bridge. A number
->= 0: that L, fixed (the twin passes its latency budget, which it imposes exactly). -1: off,
-chunks carry ``n_action_steps`` and the arm stands still for about dt + L at each boundary),
-``rtc`` (default false: real-time chunking, each chunk
-denoised towards the previous one, hard on the steps due before it arrives (from L),
-decaying over the rest of the overlap; ``chunk.RealTimeChunking``,
-docs/control.md), ``rtc_max_gap_m`` (with ``rtc``, a previous chunk whose step for the new
-observation lies farther than this from the observed TCP was rejected by franka_node and is not
-joined: franka_node's first-step jump limit, control.yaml ``safety.max_first_step_jump_m``, which
-the launchers pass in; default that key's default),
-``max_future_stamp_s`` (``observation.MAX_FUTURE_STAMP_S``), ``torch_threads`` (default 1: on a shared CPU more threads are slower; 0: torch's default),
-``start_paused``, ``lab_config``.
+Chunk execution (``n_action_steps``, ``execute_steps``, ``latency_s``, ``rtc``) is described in
+docs/control.md; the defaults are ``chunk.DEFAULT_*``, which robot.launch.py and twin.launch.py
+declare as their launch arguments' defaults. ``execute_steps`` 0 (answer once a chunk has run,
+fewer steps when the latency needs it) was chosen by the twin's closed-loop evaluation
+(docs/evaluation_scheme.md).
+
+Parameters: ``PARAMETERS`` below (``--help``, ``ros2 param describe``, docs/architecture.md).
 """
 
 from __future__ import annotations
@@ -90,7 +69,6 @@ import numpy as np
 import torch
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped
-from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.node import Node
 from sensor_msgs.msg import JointState, PointCloud2
 from std_msgs.msg import Bool, String
@@ -110,10 +88,10 @@ from equidiff_core.chunk import (
     chunk_to_msg,
 )
 from equidiff_core.chunk_sizing import ChunkSizing
-from equidiff_core.config import ConfigError
+from equidiff_core.config import Bounds, ConfigError, LabConfig
 from equidiff_core.control import SafetyConfig
 from equidiff_core.control.metrics import percentiles_ms
-from equidiff_core.inference import CheckpointError, load_inference_policy
+from equidiff_core.inference import PRECISIONS, CheckpointError, load_inference_policy
 from equidiff_core.observation import MAX_FUTURE_STAMP_S, STATE_TOLERANCE_S, StateHistory, ee_input
 from equidiff_core.pointcloud import CloudError, VoxelGridSpec, voxel_msg_to_grid
 from equidiff_core.rosmsg import RclpyFactory, stamp_to_ns
@@ -134,10 +112,103 @@ from equidiff_ros.common import (
     now_ns,
     wait_for_clock,
 )
-from equidiff_ros.runner import declare_number, run_node
+from equidiff_ros.parameters import LAB_CONFIG, NodeParameter, NodeParameters, bounds_of, parameters_help
+from equidiff_ros.runner import run_node
+
+NODE_NAME = "policy_node"
+
+PARAMETERS = NodeParameters(
+    LAB_CONFIG,
+    NodeParameter("checkpoint", "", "Exported policy file (required)"),
+    NodeParameter("device", "cpu", "Torch device: cpu, cuda[:N] or auto"),
+    NodeParameter(
+        "precision",
+        "auto",
+        "Inference precision; auto: bf16 on CUDA and where the CPU has native bf16, else fp32",
+        choices=PRECISIONS,
+    ),
+    NodeParameter("jit", True, "Trace the denoising step with torch.jit.trace"),
+    NodeParameter("compile", False, "Compile the denoising step with torch.compile"),
+    NodeParameter(
+        "rate_hz",
+        5.0,
+        "Rate at which a missing observation is reported (the observations set the inference rate)",
+        bounds_of(LabConfig, "observation_hz"),
+        default_from="lab.yaml observation_hz",
+        number=True,
+    ),
+    NodeParameter(
+        "max_observation_age_s",
+        0.5,
+        "An older observation is skipped as stale_observation",
+        Bounds("s", gt=0, le=10.0),
+        number=True,
+    ),
+    NodeParameter(
+        "max_state_offset_s",
+        STATE_TOLERANCE_S,
+        "Robot state farther than this from the observation's stamp is no state (no_robot_state)",
+        Bounds("s", gt=0, le=1.0),
+        number=True,
+    ),
+    NodeParameter(
+        "max_future_stamp_s",
+        MAX_FUTURE_STAMP_S,
+        "A grid stamped further ahead of this node's clock is skipped as future_observation",
+        Bounds("s", gt=0, le=1.0),
+        number=True,
+    ),
+    NodeParameter("seed", -1, "DDIM noise seed outside an announced episode; -1: random", Bounds("", ge=-1)),
+    NodeParameter(
+        "n_action_steps",
+        DEFAULT_N_ACTION_STEPS,
+        "Steps published per chunk, at most the horizon; 0: enough to bridge the latency (the preset's with "
+        "latency_s -1)",
+        Bounds("", ge=0),
+    ),
+    NodeParameter(
+        "execute_steps",
+        DEFAULT_EXECUTE_STEPS,
+        "Steps of a chunk that run before the next observation is answered (the others are skipped as "
+        "executing); 0: all n_action_steps, fewer when the latency is too long for them; 1: answer every observation",
+        Bounds("", ge=0),
+    ),
+    NodeParameter(
+        "latency_s",
+        DEFAULT_LATENCY_S,
+        "Observation-to-arrival latency L each chunk bridges: auto (measured online, p95 of the last 20, plus "
+        "latency_transport_s), a number of seconds 0..10 (fixed), or -1 (off: chunks of n_action_steps)",
+        dynamic_typing=True,
+    ),
+    NodeParameter(
+        "latency_transport_s",
+        DEFAULT_TRANSPORT_S,
+        "latency_s auto: added to the measured latency for DDS delivery and franka_node's control tick, which "
+        "this node cannot see",
+        Bounds("s", ge=0, le=1.0),
+        number=True,
+    ),
+    NodeParameter("rtc", DEFAULT_RTC, "Real-time chunking: each chunk denoised towards the previous one"),
+    NodeParameter(
+        "rtc_max_gap_m",
+        SafetyConfig.max_first_step_jump_m,
+        "rtc: a previous chunk farther than this from the observed TCP is not joined (franka_node rejected it); "
+        "the launchers pass control.yaml's safety.max_first_step_jump_m",
+        bounds_of(SafetyConfig, "max_first_step_jump_m"),
+        number=True,
+    ),
+    NodeParameter(
+        "torch_threads",
+        1,
+        "Inference threads; 0: torch's default (on a shared CPU more threads are slower)",
+        Bounds("", ge=0, le=1024),
+    ),
+    NodeParameter("start_paused", False, "Start paused: no chunks until /policy/enable (robot.launch.py sets it)"),
+)
 
 USAGE = (
     __doc__
+    + parameters_help(PARAMETERS)
     + """
 usage: policy_node --ros-args -p checkpoint:=/path/policy.pt [-p device:=cpu -p precision:=auto|fp32|bf16
                    -p rate_hz:=5.0 -p max_observation_age_s:=0.5 -p execute_steps:=0 -p latency_s:=auto
@@ -145,37 +216,30 @@ usage: policy_node --ros-args -p checkpoint:=/path/policy.pt [-p device:=cpu -p 
 """
 )
 
-NODE_NAME = "policy_node"
-
 
 class PolicyNode(Node):
     def __init__(self, node_name: str = NODE_NAME):
         super().__init__(node_name)
         self.lab = declare_lab_config(self)
-        checkpoint = self.declare_parameter("checkpoint", "").value
-        device = self.declare_parameter("device", "cpu").value
-        precision = self.declare_parameter("precision", "auto").value
-        jit = self.declare_parameter("jit", True).value
-        compile_step = self.declare_parameter("compile", False).value
-        rate_hz = declare_number(self, "rate_hz", self.lab.observation_hz)
-        self.max_obs_age_ns = int(declare_number(self, "max_observation_age_s", 0.5) * 1e9)
-        self.max_state_offset_ns = int(declare_number(self, "max_state_offset_s", STATE_TOLERANCE_S) * 1e9)
-        self.max_future_ns = int(declare_number(self, "max_future_stamp_s", MAX_FUTURE_STAMP_S) * 1e9)
-        seed = self.declare_parameter("seed", -1).value
-        n_steps = self.declare_parameter("n_action_steps", DEFAULT_N_ACTION_STEPS).value
-        execute_steps = self.declare_parameter("execute_steps", DEFAULT_EXECUTE_STEPS).value
-        latency_s = self.declare_parameter(
-            "latency_s", DEFAULT_LATENCY_S, ParameterDescriptor(dynamic_typing=True)
-        ).value
-        transport_s = self.declare_parameter(
-            "latency_transport_s", DEFAULT_TRANSPORT_S, ParameterDescriptor(dynamic_typing=True)
-        ).value  # 0 allowed: checked by LatencyEstimate
-        rtc = self.declare_parameter("rtc", DEFAULT_RTC).value
-        rtc_max_gap_m = declare_number(self, "rtc_max_gap_m", SafetyConfig.max_first_step_jump_m)
-        threads = self.declare_parameter("torch_threads", 1).value
-        self._paused = (
-            "waiting for an enable (start_paused)" if self.declare_parameter("start_paused", False).value else ""
-        )  # why no chunks are published; "" = running
+        param = lambda name: PARAMETERS.declare(self, name)
+        checkpoint = param("checkpoint")
+        device = param("device")
+        precision = param("precision")
+        jit = param("jit")
+        compile_step = param("compile")
+        rate_hz = PARAMETERS.declare(self, "rate_hz", self.lab.observation_hz)
+        self.max_obs_age_ns = int(param("max_observation_age_s") * 1e9)
+        self.max_state_offset_ns = int(param("max_state_offset_s") * 1e9)
+        self.max_future_ns = int(param("max_future_stamp_s") * 1e9)
+        seed = param("seed")
+        n_steps = param("n_action_steps")
+        execute_steps = param("execute_steps")
+        latency_s = param("latency_s")
+        transport_s = param("latency_transport_s")
+        rtc = param("rtc")
+        rtc_max_gap_m = param("rtc_max_gap_m")
+        threads = param("torch_threads")
+        self._paused = "waiting for an enable (start_paused)" if param("start_paused") else ""  # "" = running
         if not checkpoint:
             raise CheckpointError(
                 "the 'checkpoint' parameter is required (an exported policy file, "

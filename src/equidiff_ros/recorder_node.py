@@ -28,9 +28,8 @@ State is published latched on /recorder/status (std_msgs/String: ``idle`` or ``r
 checked before each start and while recording (stop-and-keep when low). A killed recorder's
 bag is recovered with ``equidiff bags repair``.
 
-Parameters: ``lab_config``, ``output_dir``, ``record_images`` (each camera's JPEG colour image,
-on by default), ``record_clouds`` (the three camera clouds, off by default), ``chunk_size_mib``, ``chunk_max_age_s``, ``min_free_gib``, ``task``, ``operator``,
-``notes``, ``keyboard``, ``autostart``; defaults in config/data.yaml.
+Parameters: ``PARAMETERS`` below, each field of ``RecordingConfig`` and the episode's metadata
+(``--help``, ``ros2 param describe``, docs/architecture.md); config/data.yaml sets them.
 """
 
 from __future__ import annotations
@@ -69,6 +68,7 @@ from equidiff_ros.common import (
     now_ns,
     wait_for_clock,
 )
+from equidiff_ros.parameters import LAB_CONFIG, NodeParameter, NodeParameters, config_parameters, parameters_help
 from equidiff_ros.runner import run_node
 
 # The contract's profiles, but with deep queues: a recorder must not drop 100 Hz state
@@ -100,8 +100,23 @@ RECORD_IMAGE_QOS = QoSProfile(
     history=HistoryPolicy.KEEP_LAST,
 )
 
+PARAMETERS = (
+    NodeParameters(LAB_CONFIG)
+    + config_parameters(RecordingConfig)
+    + NodeParameters(
+        NodeParameter("task", "episode", "Task name: the episode directory's prefix and its metadata"),
+        NodeParameter("operator", "", "Operator's name, in each episode's metadata"),
+        NodeParameter("notes", "", "Notes, in each episode's metadata"),
+        NodeParameter(
+            "keyboard", False, "Keys on the terminal: s start, k keep (success), f keep (failure), d discard"
+        ),
+        NodeParameter("autostart", False, "Start an episode as soon as the node is up"),
+    )
+)
+
 USAGE = (
     __doc__
+    + parameters_help(PARAMETERS)
     + """
 usage: recorder_node [--ros-args -p output_dir:=DIR -p task:=NAME -p operator:=NAME -p record_images:=true
                       -p record_clouds:=false ...]
@@ -151,11 +166,11 @@ class RecorderNode(Node):
         wait_for_clock(self)  # simulated time (the twin): nothing is timed before /clock
         self.lab = declare_lab_config(self)
         self.cfg = declare_config(self, RecordingConfig)
-        self.task = str(self.declare_parameter("task", "episode").value)
-        self.operator = str(self.declare_parameter("operator", "").value)
-        self.notes = str(self.declare_parameter("notes", "").value)
-        keyboard = bool(self.declare_parameter("keyboard", False).value)
-        autostart = bool(self.declare_parameter("autostart", False).value)
+        self.task = PARAMETERS.declare(self, "task")
+        self.operator = PARAMETERS.declare(self, "operator")
+        self.notes = PARAMETERS.declare(self, "notes")
+        keyboard = PARAMETERS.declare(self, "keyboard")
+        autostart = PARAMETERS.declare(self, "autostart")
         self.factory = RclpyFactory()
         self.lock = threading.Lock()
         self.writer: EpisodeWriter | None = None

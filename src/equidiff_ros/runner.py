@@ -48,6 +48,10 @@ def run_nodes(
     import rclpy
     from rclpy.signals import SignalHandlerOptions
 
+    from equidiff_core.config import ConfigError
+
+    # a config file or parameter the node cannot run with is a start-up error of every node
+    startup_errors = (*startup_errors, ConfigError)
     rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     nodes = []
     try:
@@ -96,13 +100,3 @@ def spin_until_signal(nodes, multithreaded: bool = False) -> None:
             executor.remove_node(node)
         for sig, handler in previous.items():
             signal.signal(sig, handler)
-
-
-def declare_number(node, name: str, default: float) -> float:
-    """A positive float parameter that also accepts integers on the command line (-p rate_hz:=5)."""
-    from rcl_interfaces.msg import ParameterDescriptor
-
-    value = node.declare_parameter(name, float(default), ParameterDescriptor(dynamic_typing=True)).value
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not value > 0:
-        raise ValueError(f"parameter {name} must be a positive number, got {value!r}")
-    return float(value)

@@ -15,10 +15,8 @@ Freshness: a Joy message counts from its header stamp (the driver stamps each de
 the receive time if that is earlier, or if the message is unstamped), a direct SpaceMouse from
 its last HID report; input older than ``input_timeout_s`` is no input, so the target holds.
 
-Parameters: ``lab_config`` and every field of ``TeleopConfig`` (``source``, ``deadzone``,
-``linear_scale``, ``angular_scale``, ``translation_frame``, ``rotation_frame``,
-``lock_rotation``, ``gripper_mode``, ...), plus ``resync_after_s``; defaults in
-config/data.yaml (``teleop_node.ros__parameters``).
+Parameters: ``PARAMETERS`` below, each field of ``TeleopConfig`` and ``resync_after_s`` (``--help``,
+``ros2 param describe``, docs/architecture.md); config/data.yaml sets them.
 """
 
 from __future__ import annotations
@@ -29,6 +27,7 @@ import sys
 from rclpy.node import Node
 
 from equidiff_core.chunk import chunk_to_msg
+from equidiff_core.config import Bounds
 from equidiff_core.geometry import GeometryError
 from equidiff_core.rosmsg import NS_PER_S, RclpyFactory, gripper_width_from_joint_state, pose_from_msg
 from equidiff_core.teleop import (
@@ -53,10 +52,26 @@ from equidiff_ros.common import (
     now_ns,
     wait_for_clock,
 )
+from equidiff_ros.parameters import LAB_CONFIG, NodeParameter, NodeParameters, config_parameters, parameters_help
 from equidiff_ros.runner import run_node
+
+PARAMETERS = (
+    NodeParameters(LAB_CONFIG)
+    + config_parameters(TeleopConfig)
+    + NodeParameters(
+        NodeParameter(
+            "resync_after_s",
+            1.0,
+            "Idle this long, the operator has let go (/teleop/active false) and the target restarts from the "
+            "measured pose",
+            Bounds("s", gt=0, le=60.0),
+        )
+    )
+)
 
 USAGE = (
     __doc__
+    + parameters_help(PARAMETERS)
     + """
 usage: teleop_node [--ros-args -p source:=joy|spacemouse -p gripper_mode:=buttons|toggle|hold ...]
 """
@@ -69,7 +84,7 @@ class TeleopNode(Node):
         wait_for_clock(self)  # simulated time (the twin): nothing is timed before /clock
         self.lab = declare_lab_config(self)
         self.cfg = declare_config(self, TeleopConfig)
-        self.resync_after_s = float(self.declare_parameter("resync_after_s", 1.0).value)
+        self.resync_after_s = PARAMETERS.declare(self, "resync_after_s")
         self.factory = RclpyFactory()
         self.teleop = TeleopIntegrator(self.cfg, self.lab.workspace)
         self.measured = None  # latest /franka/ee_pose (4x4)

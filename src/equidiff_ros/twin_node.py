@@ -23,11 +23,7 @@ Wiring:
 The robot is never teleported: a reset moves the objects only; whoever resets commands the arm
 home first (``equidiff twin run`` does), so the franky client's controller is never surprised.
 
-Parameters: ``twin_config`` (twin.yaml), ``lab_config``, ``host`` (loopback address to serve on;
-"auto" picks a free one, "" = twin.yaml's), ``seed`` (first episode), ``shm_name`` ("" = from
-ROS_DOMAIN_ID), ``clock`` (sim | realtime), ``latency_s`` (the latency budget L, 0.1),
-``stall_timeout_s`` (wall seconds a lockstep wait may last, 30), ``max_speed`` (sim seconds per
-wall second at most, 1.0; 0 = unbounded).
+Parameters: ``PARAMETERS`` below (``--help``, ``ros2 param describe``, docs/architecture.md).
 """
 
 from __future__ import annotations
@@ -43,7 +39,7 @@ from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import Int64, String
 from trajectory_msgs.msg import MultiDOFJointTrajectory
 
-from equidiff_core.config import ConfigError, default_config_dir
+from equidiff_core.config import Bounds, ConfigError, default_config_dir
 from equidiff_core.rosmsg import header_stamp_ns_from_cdr
 from equidiff_core.twin.config import load_twin_config
 from equidiff_core.twin.lockstep import LockstepConfig
@@ -63,30 +59,81 @@ from equidiff_ros.common import (
     VOXEL_QOS,
     declare_lab_config,
 )
-from equidiff_ros.runner import declare_number, run_node
+from equidiff_ros.parameters import LAB_CONFIG, NodeParameter, NodeParameters, parameters_help
+from equidiff_ros.runner import run_node
+
+NODE_NAME = "twin_node"
+CLOCKS = ("sim", "realtime")
+
+PARAMETERS = NodeParameters(
+    LAB_CONFIG,
+    NodeParameter(
+        "twin_config",
+        "",
+        "Path of twin.yaml: scene, success, render, sim",
+        default_from="the installed config/twin.yaml",
+    ),
+    NodeParameter(
+        "host",
+        "",
+        "Loopback address franky-sim serves libfranka on; auto: a free random 127.x.y.z, so parallel twins never "
+        "collide on port 1337; empty: twin.yaml's sim.host",
+    ),
+    NodeParameter("seed", 0, "Seed of the first episode's scene", Bounds("", ge=0)),
+    NodeParameter(
+        "shm_name",
+        "",
+        "Shared-memory state the twin cameras read; empty: equidiff_twin_<ROS_DOMAIN_ID>, or $EQUIDIFF_TWIN_SHM",
+    ),
+    NodeParameter(
+        "clock",
+        "sim",
+        "sim: the sim owns time (/clock) in lockstep with the pipeline; realtime: 1 kHz to wall-clock deadlines",
+        choices=CLOCKS,
+    ),
+    NodeParameter(
+        "latency_s",
+        0.1,
+        "Clock sim: the latency budget L, a policy chunk is in place by its observation's time + L",
+        Bounds("s", ge=0, le=10.0),
+        number=True,
+    ),
+    NodeParameter(
+        "stall_timeout_s",
+        30.0,
+        "Clock sim: wall seconds a lockstep wait may last before it counts as a stall",
+        Bounds("s", gt=0, le=3600.0),
+        number=True,
+    ),
+    NodeParameter(
+        "max_speed",
+        1.0,
+        "Clock sim: at most this many sim seconds per wall second; 0: unbounded",
+        Bounds("", ge=0, le=1000.0),
+        number=True,
+    ),
+)
 
 USAGE = (
     __doc__
+    + parameters_help(PARAMETERS)
     + """
 usage: twin_node [--ros-args -p host:=127.0.0.1 -p seed:=0 -p twin_config:=config/twin.yaml]
 """
 )
-
-NODE_NAME = "twin_node"
-CLOCKS = ("sim", "realtime")
 
 
 class TwinNode(Node):
     def __init__(self, node_name: str = NODE_NAME):
         super().__init__(node_name)
         self.lab = declare_lab_config(self)
-        cfg_path = self.declare_parameter("twin_config", str(default_config_dir() / "twin.yaml")).value
-        host = self.declare_parameter("host", "").value
-        seed = int(self.declare_parameter("seed", 0).value)
-        shm = self.declare_parameter("shm_name", "").value or None
-        clock = self.declare_parameter("clock", "sim").value
-        if clock not in CLOCKS:
-            raise ValueError(f"clock must be one of {CLOCKS}, got {clock!r}")
+        param = lambda name: PARAMETERS.declare(self, name)
+        cfg_path = PARAMETERS.declare(self, "twin_config", str(default_config_dir() / "twin.yaml"))
+        host = param("host")
+        seed = param("seed")
+        shm = param("shm_name") or None
+        clock = param("clock")
+        latency_s, stall_timeout_s, max_speed = param("latency_s"), param("stall_timeout_s"), param("max_speed")
         self.cfg = load_twin_config(Path(cfg_path))
         lockstep = None
         if clock == "sim":
@@ -98,9 +145,9 @@ class TwinNode(Node):
                 )
             lockstep = LockstepConfig(
                 frame_period_ticks=periods.pop(),
-                latency_ticks=round(1000 * self.declare_parameter("latency_s", 0.1).value),
-                stall_timeout_s=declare_number(self, "stall_timeout_s", 30.0),
-                max_speed=float(self.declare_parameter("max_speed", 1.0).value),
+                latency_ticks=round(1000 * latency_s),
+                stall_timeout_s=stall_timeout_s,
+                max_speed=max_speed,
             )
             # best effort like rclpy's own /clock subscription; a lost message is repeated while the sim waits
             self.pub_clock = self.create_publisher(

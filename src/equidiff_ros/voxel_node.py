@@ -17,14 +17,7 @@ A set is fused the moment its last cloud arrives, not on a timer of our own: a t
 added up to a period of latency, and on the twin's simulated time (which pauses until the
 policy has answered this very observation) a grid waiting for a timer tick never came.
 
-Parameters: ``lab_config``; ``observation_hz`` (default: lab.yaml); ``slop_s`` (max stamp
-spread of a matched set, 0.1); ``stale_after_s`` (a camera whose newest cloud is older than
-this stops the output, 0.5); ``queue_size`` (5); ``check_frame_id`` (drop clouds whose frame
-is not the camera's optical frame, true); ``allow_nan_points`` (drop NaN/inf points instead
-of the whole cloud, false); ``max_future_stamp_s`` (a cloud stamped further ahead of the
-node's clock is dropped, ``observation.MAX_FUTURE_STAMP_S``); ``reliable_clouds`` (subscribe reliably, false: true only with
-camera_nodes that publish reliably, as the lockstep twin's do); clean-up: ``remove_table`` (false) drops points below ``table_z``
-(m, base frame), ``outlier_neighbors`` (0 = off), ``outlier_std_ratio`` (2.0).
+Parameters: ``PARAMETERS`` below (``--help``, ``ros2 param describe``, docs/architecture.md).
 """
 
 from __future__ import annotations
@@ -38,7 +31,7 @@ import time
 from rclpy.node import Node
 
 from equidiff_core import rosmsg
-from equidiff_core.config import ConfigError
+from equidiff_core.config import Bounds, ConfigError, LabConfig
 from equidiff_core.fusion import CloudFusion
 from equidiff_core.observation import MAX_FUTURE_STAMP_S
 from equidiff_core.pointcloud import CloudError, CloudReason, grid_to_voxel_msg, msg_to_cloud
@@ -53,16 +46,68 @@ from equidiff_ros.common import (
     now_ns,
     wait_for_clock,
 )
+from equidiff_ros.parameters import LAB_CONFIG, NodeParameter, NodeParameters, bounds_of, parameters_help
 from equidiff_ros.runner import run_node
+
+NODE_NAME = "voxel_node"
+
+PARAMETERS = NodeParameters(
+    LAB_CONFIG,
+    NodeParameter(
+        "observation_hz",
+        5.0,
+        "Most grids per second",
+        bounds_of(LabConfig, "observation_hz"),
+        default_from="lab.yaml observation_hz",
+        number=True,
+    ),
+    NodeParameter(
+        "slop_s", 0.1, "Largest capture-stamp spread of the clouds fused into one grid", Bounds("s", gt=0, le=1.0)
+    ),
+    NodeParameter(
+        "stale_after_s",
+        0.5,
+        "A camera whose newest cloud is older than this stops the output",
+        Bounds("s", gt=0, le=10.0),
+    ),
+    NodeParameter("queue_size", 5, "Clouds kept per camera for matching", Bounds("", ge=1, le=100)),
+    NodeParameter("check_frame_id", True, "Drop clouds whose frame is not the camera's optical frame"),
+    NodeParameter("allow_nan_points", False, "Drop NaN/inf points instead of the whole cloud"),
+    NodeParameter(
+        "max_future_stamp_s",
+        MAX_FUTURE_STAMP_S,
+        "A cloud stamped further ahead of this node's clock is dropped",
+        Bounds("s", ge=0, le=1.0),
+        number=True,
+    ),
+    NodeParameter(
+        "reliable_clouds",
+        False,
+        "Subscribe to the clouds reliably: only with camera_nodes that publish reliably, as the lockstep twin's do",
+    ),
+    NodeParameter("remove_table", False, "Drop the points below table_z"),
+    NodeParameter("table_z", 0.0, "Height below which remove_table drops points, base frame", Bounds("m")),
+    NodeParameter(
+        "outlier_neighbors",
+        0,
+        "Statistical outlier removal: neighbours per point (0: off)",
+        Bounds("", ge=0, le=100),
+    ),
+    NodeParameter(
+        "outlier_std_ratio",
+        2.0,
+        "Statistical outlier removal: a point farther than the mean + this many standard deviations goes",
+        Bounds("", gt=0, le=100.0),
+    ),
+)
 
 USAGE = (
     __doc__
+    + parameters_help(PARAMETERS)
     + """
 usage: voxel_node [--ros-args -p lab_config:=config/lab.yaml -p slop_s:=0.1 -p stale_after_s:=0.5]
 """
 )
-
-NODE_NAME = "voxel_node"
 
 
 class VoxelNode(Node):
@@ -70,23 +115,21 @@ class VoxelNode(Node):
         super().__init__(node_name)
         wait_for_clock(self)  # simulated time (the twin): nothing is timed before /clock
         self.lab = declare_lab_config(self)
-        param = lambda name, default: self.declare_parameter(name, default).value
-        hz = param("observation_hz", self.lab.observation_hz)
-        if not hz > 0:
-            raise ValueError(f"observation_hz must be positive, got {hz}")
-        self.slop_ns = int(param("slop_s", 0.1) * 1e9)
-        self.stale_ns = int(param("stale_after_s", 0.5) * 1e9)
-        queue_size = param("queue_size", 5)
-        self.check_frame_id = param("check_frame_id", True)
-        self.allow_nan = param("allow_nan_points", False)
-        self.max_future_ns = int(param("max_future_stamp_s", MAX_FUTURE_STAMP_S) * 1e9)
-        reliable = param("reliable_clouds", False)
-        remove_table = param("remove_table", False)
-        table_z = param("table_z", 0.0)
+        param = lambda name: PARAMETERS.declare(self, name)
+        hz = PARAMETERS.declare(self, "observation_hz", self.lab.observation_hz)
+        self.slop_ns = int(param("slop_s") * 1e9)
+        self.stale_ns = int(param("stale_after_s") * 1e9)
+        queue_size = param("queue_size")
+        self.check_frame_id = param("check_frame_id")
+        self.allow_nan = param("allow_nan_points")
+        self.max_future_ns = int(param("max_future_stamp_s") * 1e9)
+        reliable = param("reliable_clouds")
+        remove_table = param("remove_table")
+        table_z = param("table_z")
         cleanup = VoxelizerConfig(
             table_z=table_z if remove_table else None,
-            outlier_neighbors=param("outlier_neighbors", 0),
-            outlier_std_ratio=param("outlier_std_ratio", 2.0),
+            outlier_neighbors=param("outlier_neighbors"),
+            outlier_std_ratio=param("outlier_std_ratio"),
         )
         self.cameras = list(self.lab.cameras)
         self.names = [c.name for c in self.cameras]

@@ -10,8 +10,8 @@ between the two), and the width with the demos' open 80 mm (``width_m``). The un
 measured the same way in the same run, is the baseline.
 
 With epsilon prediction the observation dependence of x0 at high noise is learned last, so samples
-lag the loss: on a quiet 2-core Xeon (2026-11-27) 600 steps left them ~3 cm off, 1200 steps ~7 mm
-(docs/model.md). The baseline needs longer (``STEPS``).
+lag the loss: half the steps leave them centimetres off (docs/model.md, "The over-fit check"). The
+baseline needs longer (``STEPS``).
 """
 
 from __future__ import annotations
@@ -37,10 +37,10 @@ from ..training import TrainConfig, fit_normalizer, train
 
 __all__ = ["STEPS", "OverfitGate", "OverfitResult", "run_overfit", "sample_errors"]
 
-# Optimiser steps per policy at the recipe's lr of 2e-3, measured on the 2-core Xeon (docs/model.md,
-# "The baseline that learns"). The baseline's loss sits on the average-motion plateau (0.11-0.12)
-# until step ~900-1100 and leaves it only while the learning rate is still high: at 1200 steps the
-# cosine schedule has ended first (it fails, 6-8 cm off); at 4800 it fits (1-4 mm, tiny and compact).
+# Optimiser steps per policy at the recipe's lr of 2e-3. The baseline's loss sits on the average-motion
+# plateau for about a thousand steps and leaves it only while the learning rate is still high: at
+# EquiDiff's steps the cosine schedule ends first and it fails; at four times as many it fits
+# (docs/model.md, "The baseline passes it too": `equidiff bench overfit --policy baseline`).
 STEPS = {"equidiff": 1200, "baseline": 4800}
 
 

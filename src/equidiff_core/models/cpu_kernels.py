@@ -13,9 +13,8 @@ import torch
 def pad_first_conv(encoder: torch.nn.Sequential, multiple: int) -> int:
     """Give the first Conv3d zero weights for extra input channels up to ``multiple``; returns how many.
 
-    oneDNN's fp32 3D convolution on CPU takes a slow path for 4 input channels (measured on the
-    2-core EPYC: 91 ms for 4->8 channels at 58^3, 12 ms for 8->8); the padded channels are zeros,
-    so the output is unchanged."""
+    oneDNN's fp32 3D convolution on CPU takes a slow path for 4 input channels, several times slower
+    than for 8 (docs/model.md); the padded channels are zeros, so the output is unchanged."""
     conv = encoder[0]
     extra = -conv.in_channels % multiple
     if not isinstance(conv, torch.nn.Conv3d) or extra == 0:
@@ -41,8 +40,8 @@ class MatmulConv1d(torch.nn.Module):
     """A Conv1d computed as one matrix product over unfolded windows (same weights, same output).
 
     The U-Net's convolutions see 4-16 time steps and 8 group elements per call, where oneDNN's
-    bf16 Conv1d is ~1.7x slower than the equivalent GEMM (measured on the 2-core EPYC, 1024
-    channels, kernel 5: 3.5 ms vs 2.0 ms); in fp32 the GEMM is not faster, so only bf16 uses this."""
+    bf16 Conv1d is slower than the equivalent GEMM (docs/model.md, "What the denoising step does");
+    in fp32 the GEMM is not faster, so only bf16 uses this."""
 
     def __init__(self, conv: torch.nn.Conv1d):
         super().__init__()
@@ -69,8 +68,8 @@ class MatmulConvTranspose1d(torch.nn.Module):
     """The U-Net's upsampling ConvTranspose1d (kernel 2*stride, padding stride/2) as one GEMM
     plus an overlap-add of the two kernel halves (same weights, same output).
 
-    oneDNN's bf16 ConvTranspose1d took ~0.65 ms for 8 rows x 4-8 steps x 256-512 channels on
-    the 2-core EPYC, 10x the GEMM; torch has no cheaper col2im for 1D, hence the hand-written add."""
+    oneDNN's bf16 ConvTranspose1d at these sizes is many times slower than the GEMM (docs/model.md);
+    torch has no cheaper col2im for 1D, hence the hand-written add."""
 
     def __init__(self, conv: torch.nn.ConvTranspose1d):
         super().__init__()
@@ -101,9 +100,9 @@ class MatmulConvTranspose1d(torch.nn.Module):
 
 
 class FastMish(torch.nn.Module):
-    """Mish as x * n / (n + 2) with n = e^x (e^x + 2) (= x tanh(softplus(x))): ~2x faster than
-    torch's CPU kernel on the U-Net's small tensors (measured 60 vs 118 us for 32k bf16 values,
-    2-core EPYC). The exponent is clamped at 20, where the ratio is 1 to float precision."""
+    """Mish as x * n / (n + 2) with n = e^x (e^x + 2) (= x tanh(softplus(x))): faster than torch's
+    scalar CPU kernel on the U-Net's small tensors (docs/model.md). The exponent is clamped at 20,
+    where the ratio is 1 to float precision."""
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         e = torch.clamp(x, max=20.0).exp_()

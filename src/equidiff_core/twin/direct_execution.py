@@ -19,9 +19,9 @@ from ..robots.base import Robot, RobotError, RobotState
 from .scene import BLOCK, BOWL, body_pose
 
 # Rate at which the controller's newest target is sent to DirectSim.command.
-# franka_node streams at control_hz (200 Hz), but every DirectSim.command solves IK (2.2 ms on
-# the 2-core EPYC, as much as 5 ms of sim stepping), so 200 Hz would double the sim's cost;
-# at 50 Hz it adds ~25 %. Between commands the joint PD holds the last IK target (1 kHz); the
+# franka_node streams at control_hz (200 Hz), but every DirectSim.command solves IK, which costs
+# as much as several ms of sim stepping, so 200 Hz would double the sim's cost (docs/evaluation_scheme.md
+# has the figures). Between commands the joint PD holds the last IK target (1 kHz); the
 # trajectory moves at most a few mm in 20 ms, within the arm's tracking lag at these speeds.
 COMMAND_HZ = 50.0
 

@@ -227,7 +227,7 @@ class StateReader:
         """Wait for the first frame numbered above ``after``, take it (the sim may step on) and
         return (frame, qpos, sim_time, stamp_ns); SharedStateError after ``timeout_s``. Polling every
         3 ms holds the sim ~1.5 ms per frame; at 1 ms three idle cameras woke 3000 times a second
-        on a 2-core machine, each wake-up competing with the sim's 1 kHz loop."""
+        on a machine with few cores, each wake-up competing with the sim's 1 kHz loop."""
         deadline = time.monotonic() + timeout_s
         while True:
             frame = int(self._header[3])

@@ -59,7 +59,7 @@ def add_arguments(parser) -> None:
         "--threads",
         type=int,
         default=1,
-        help="torch intra-op threads (default 1: on a shared 2-core machine more threads oversubscribe; 0: one per core idle at the start)",
+        help="torch intra-op threads (default 1: on a shared machine more threads oversubscribe; 0: one per core idle at the start)",
     )
 
 

@@ -46,7 +46,7 @@ for what "survived" means for it:
   never finishes) while a new width is sent and the arm moves 3 cm. Survived: the fingers did
   not move (the fault took), the arm reached its target (< 5 mm) and its state kept coming (no
   gap longer than half the 6 s jam: a control loop waiting on the gripper would stall until the
-  jam clears; a loaded 2-core machine starves it for ~1.4 s at times), and after the jam clears
+  jam clears; a loaded machine starves it for over a second at times), and after the jam clears
   a new width is reached.
 * between faults the arm goes back home through franka_node's ``/franka/home`` (refused, and
   the campaign's next fault then fails, if a stop still awaited acknowledgement).

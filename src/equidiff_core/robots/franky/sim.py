@@ -91,7 +91,7 @@ def await_command(robot_server, timeout_s: float = 0.02) -> bool:
     """Process the client's commands, waiting up to ``timeout_s`` for the one answering the last state.
 
     A real FR3 gets a command every 1 ms from a client on a real-time kernel (or stops with a
-    reflex). On a loaded 2-core box the franky client is sometimes starved for tens of ms, and
+    reflex). On a loaded machine with few cores the franky client is sometimes starved for tens of ms, and
     stock franky-sim then keeps applying the stale torque while physics runs on: the
     1 kHz impedance loop becomes a delayed, sampled one and can swing the arm centimetres off
     (we saw 4-6 cm). Waiting for the command instead slows simulated time a little under load
@@ -150,7 +150,7 @@ def raise_priority(niceness: int = -10) -> bool:
     """Run this process at a higher CPU priority when permitted (root / CAP_SYS_NICE).
 
     franky-sim stands in for the FR3's own controller, which never competes with our
-    Python for a CPU; on a loaded 2-core machine an ordinary-priority sim fell to 10 % of
+    Python for a CPU; on a loaded machine with few cores an ordinary-priority sim fell to 10 % of
     real time and every tracking number became meaningless. Returns whether it worked.
     """
     try:
