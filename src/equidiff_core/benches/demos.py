@@ -345,9 +345,9 @@ def train_runs(args, out: Path, subsets: dict[int, list[Path]]) -> list[str]:
     for policy, n in todo:
         name = run_name(policy, n)
         outs[name] = out / name
-        cmd = recipe.train_command(policy, "none", subsets[n], outs[name])
-        print(f"[bench] training {name} on {n} demos: {' '.join(cmd[3:5])} ... {' '.join(cmd[3 + n :])}", flush=True)
-        runs[name] = start_run(cmd, outs[name], threads)
+        spec = recipe.train_spec(policy, "none", subsets[n], outs[name])
+        print(f"[bench] training {name} on {n} demos: {spec.settings_text()}", flush=True)
+        runs[name] = start_run(spec, threads)
     deadline = None if args.max_minutes is None else time.monotonic() + args.max_minutes * 60 + 600
     wait_for_runs(runs, outs, deadline)
     return list(runs)

@@ -54,11 +54,11 @@ def _recipe(name: str, args) -> tuple[str, str]:
 
 
 def _start_training(name: str, bags: Path, out: Path, args, steps: int, threads: int) -> subprocess.Popen:
-    """``equidiff train`` for one of POLICIES in the background, its output in ``out/train.log``."""
+    """The ``equidiff train`` run for one of POLICIES in the background, its output in ``out/train.log``."""
     policy, rotation_aug = _recipe(name, args)
-    cmd = dataclasses.replace(Recipe.from_args(args), steps=steps).train_command(policy, rotation_aug, [bags], out)
-    print(f"[bench] training {name}: {' '.join(cmd[3:])}", flush=True)
-    return start_run(cmd, out, threads)
+    spec = dataclasses.replace(Recipe.from_args(args), steps=steps).train_spec(policy, rotation_aug, [bags], out)
+    print(f"[bench] training {name}: {spec.settings_text()}", flush=True)
+    return start_run(spec, threads)
 
 
 def _train_all(demos_dir: Path, out: Path, args) -> dict[str, Path]:
