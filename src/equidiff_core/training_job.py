@@ -34,7 +34,7 @@ from equidiff_core.training import (
 )
 from equidiff_core.training_callbacks import ActionMseEvaluator, PlotWriter, ProgressBar
 
-log = logging.getLogger(__name__)
+logger = logging.getLogger(__name__)
 
 
 class TrainJobError(JobError):
@@ -206,7 +206,7 @@ def _train_into(spec: TrainingSpec, dist_info, out: Path, named: Path) -> dict |
     """The run, written into ``out``; the paths its summary and run.json name are under ``named``
     (OUT itself, or the folder a --force run is staged in before it replaces OUT)."""
     main = dist_info.is_main
-    say = log.info if main else (lambda m: None)
+    say = logger.info if main else (lambda m: None)
     lab = load_lab_config(spec.lab_config or default_config_dir() / "lab.yaml")
     overrides = {
         "rotation_aug": spec.rotation_aug,

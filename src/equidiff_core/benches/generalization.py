@@ -48,7 +48,7 @@ from equidiff_core.twin.evaluate import evaluate_policy, in_range_yaw_seeds, uns
 # and DiffPo-C (Vo) with rotation augmentation ("CNN + Aug" in the paper's appendix).
 POLICIES = ("equidiff", "baseline", "baseline_aug")
 
-log = logging.getLogger(__name__)
+logger = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -100,7 +100,7 @@ def _start_training(
     """The ``equidiff train`` run for one of POLICIES in the background, its output in ``out/train.log``."""
     policy, rotation_aug = _recipe(name, settings)
     spec = settings.recipe.train_spec(policy, rotation_aug, [bags], out)
-    log.info(f"[bench] training {name}: {spec.settings_text()}")
+    logger.info(f"[bench] training {name}: {spec.settings_text()}")
     return start_run(spec, threads)
 
 
@@ -152,7 +152,7 @@ def run_generalization(settings: GeneralizationSettings) -> dict:
         run_dirs = {name: settings.trained / name for name in POLICIES}
         return _evaluate(settings, cfg, lab, out, policies, steps_done, n_demos, {}, run_dirs)
     demos_dir, n_demos = ensure_demos(
-        settings.demos_dir, out, settings.demos, train_cfg, lab, settings.recipe.seed, log=log.info
+        settings.demos_dir, out, settings.demos, train_cfg, lab, settings.recipe.seed, log=logger.info
     )
     wrong, unrecorded = demos_off_range(demos_dir, tuple(settings.train_yaw))
     if wrong:  # demos of another yaw range would measure something else: refuse before any training
@@ -162,7 +162,7 @@ def run_generalization(settings: GeneralizationSettings) -> dict:
             2,
         )
     if unrecorded:
-        log.info(
+        logger.info(
             f"[bench] {unrecorded} demos in {demos_dir} do not record the yaw range they were drawn from "
             "(recorded before episodes kept it): make sure it is --train-yaw"
         )
@@ -363,9 +363,9 @@ def _evaluate(
                 settings.max_duration,
                 recorder=rec,
                 latency_s=settings.latency_ms / 1000,
-                log=lambda s: log.info(f"[{name}, {label}] {s}"),
+                log=lambda s: logger.info(f"[{name}, {label}] {s}"),
             ),
-            lambda s: log.info(f"[{name}, {label}] {s}"),
+            lambda s: logger.info(f"[{name}, {label}] {s}"),
         )
         summary = summarize(episodes)  # how far failures got: reached the block, lifted it, closest TCP
         outcomes[label][name] = {e.seed: e.success for e in episodes}

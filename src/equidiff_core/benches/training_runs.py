@@ -63,23 +63,6 @@ class Recipe:
         """The peak learning rate ``policy`` trains with."""
         return self.baseline_lr if policy == "baseline" and self.baseline_lr is not None else self.lr
 
-    @classmethod
-    def from_args(cls, args) -> Recipe:
-        """The recipe a bench's parsed flags name (the bench commands share ``equidiff train``'s flags)."""
-        return cls(
-            preset=args.preset,
-            steps=args.train_steps,
-            batch_size=args.batch_size,
-            lr=args.lr,
-            seed=args.seed,
-            device=args.device,
-            noise_repeats=args.noise_repeats,
-            ema=args.ema,
-            max_minutes=args.max_minutes,
-            lab_config=args.lab_config,
-            baseline_lr=args.baseline_lr,
-        )
-
     def train_spec(self, policy: str, rotation_aug: str, bags: list[Path], out: Path) -> TrainingSpec:
         """The ``equidiff train`` run for ``policy`` on ``bags`` into ``out``: no held-out episodes (the fit of
         the training samples is scored once, at the end), four checkpoints, warm-up min(500, steps / 10)."""
