@@ -444,6 +444,15 @@ def test_bench_and_collect_commands_parse():
         assert not getattr(args, "_missing", False), argv
 
 
+def test_the_in_process_twin_jobs_refuse_what_they_cannot_run_with_one_line_and_exit_1(tmp_path, capsys):
+    from equidiff_ros.cli import main
+
+    assert main(["twin", "evaluate", "--episodes", "0"]) == 1
+    assert capsys.readouterr().err == "equidiff twin evaluate: --episodes must be at least 1\n"
+    assert main(["twin", "replay-chunks", str(tmp_path)]) == 1
+    assert capsys.readouterr().err == f"equidiff twin replay-chunks: no bags in {tmp_path}\n"
+
+
 def test_nodes_never_inherit_a_real_time_scheduling_policy():
     """A job whose thread had become SCHED_FIFO 99 (libfranka's doing) started every node real-time:
     busy camera and voxel nodes then starved the machine. Nodes always start time-shared."""
@@ -802,8 +811,8 @@ def test_twin_evaluate_rolls_out_the_main_jobs_seeds_in_process(tmp_path, capsys
 
     from equidiff_ros.cli import main
 
-    with pytest.raises(SystemExit, match="no checkpoint at"):
-        main(["twin", "evaluate", "--checkpoint", str(tmp_path / "none.pt")])
+    assert main(["twin", "evaluate", "--checkpoint", str(tmp_path / "none.pt")]) == 1
+    assert capsys.readouterr().err == f"equidiff twin evaluate: no checkpoint at {tmp_path / 'none.pt'}\n"
     assert main(["twin", "evaluate", "--episodes", "2", "--max-duration", "0.6"]) == 0
     out = capsys.readouterr().out.strip().splitlines()
     result = json.loads(out[-1])
