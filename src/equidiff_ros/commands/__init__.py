@@ -34,7 +34,7 @@ def bench_recipe(args: argparse.Namespace):
     )
 
 
-def print_result(result: dict, command: str, exit_status: int = 0) -> int:
+def print_result(result: dict, command: str = "", exit_status: int = 0) -> int:
     """Print a job's result as its JSON line; a non-zero ``exit_status`` (a gate that stopped it) also prints
     its ``verdict`` on stderr as ``equidiff <command>: <verdict>``. Returns ``exit_status``."""
     print(json.dumps(result))
