@@ -397,3 +397,12 @@ def test_bench_overfit_refuses_a_bad_setting_before_training(bad, said, tmp_path
     out, err = capsys.readouterr()
     assert out == "" and err.startswith("equidiff bench overfit: ") and said in err and err.count("\n") == 1  # one line
     assert not any(tmp_path.iterdir())  # nothing was built or trained
+
+
+def test_check_conditioning_refuses_without_policies_or_demos(tmp_path, capsys):
+    from equidiff_ros.cli import main
+
+    assert main(["check", "conditioning", "--demos", str(tmp_path)]) == 2
+    assert capsys.readouterr().err == "equidiff check conditioning: name policy files or --fresh policies\n"
+    assert main(["check", "conditioning", "--fresh", "equidiff", "--demos", str(tmp_path)]) == 2
+    assert capsys.readouterr().err == f"equidiff check conditioning: no demos in {tmp_path}\n"
