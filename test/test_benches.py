@@ -406,3 +406,10 @@ def test_check_conditioning_refuses_without_policies_or_demos(tmp_path, capsys):
     assert capsys.readouterr().err == "equidiff check conditioning: name policy files or --fresh policies\n"
     assert main(["check", "conditioning", "--fresh", "equidiff", "--demos", str(tmp_path)]) == 2
     assert capsys.readouterr().err == f"equidiff check conditioning: no demos in {tmp_path}\n"
+
+
+def test_bench_train_refuses_step_counts_below_one_with_one_line_and_exit_1(capsys):
+    from equidiff_ros.cli import main
+
+    assert main(["bench", "train", "--steps", "0"]) == 1
+    assert capsys.readouterr().err == "equidiff bench train: --steps, --warmup and --noise-repeats must be >= 1\n"
