@@ -22,7 +22,9 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from equidiff_core.calibration_job import run_calibration_check
+from equidiff_core.calibration_job import CalibrationCheckSettings, beyond_tolerance, run_calibration_check
+from equidiff_core.jobs import progress_lines
+from equidiff_ros.commands import print_result
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -54,4 +56,20 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    return run_calibration_check(args)
+    settings = CalibrationCheckSettings(
+        lab=args.lab,
+        tolerance_mm=args.tolerance_mm,
+        rrd=args.rrd,
+        spawn=args.spawn,
+        twin=args.twin,
+        truth=args.truth,
+        twin_config=args.twin_config,
+        direct=args.direct,
+        control_config=args.control_config,
+        tcp=tuple(args.tcp),
+        width=args.width,
+    )
+    with progress_lines("stderr"):  # stdout holds the JSON line
+        report = run_calibration_check(settings)
+    print_result(report)
+    return 3 if beyond_tolerance(report) else 0
