@@ -1,4 +1,5 @@
-"""The ``equidiff`` subcommands, one module each (``add_arguments`` + ``run``), and the options they share."""
+"""The ``equidiff`` subcommands, one module each (``add_arguments`` + ``run``), and what they share: options, the
+training benches' recipe, a job's result printed as its JSON line."""
 
 from __future__ import annotations
 
