@@ -4,8 +4,10 @@ and `bench train --variants`."""
 import contextlib
 import dataclasses
 import json
+import os
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -13,14 +15,16 @@ import torch
 
 from equidiff_core.benches.conditioning import Frame, block_mask, conditioning_response, move_block
 from equidiff_core.benches.demo_sets import nested_subsets
-from equidiff_core.benches.training_runs import Recipe, fit_ratios, training_fit, under_fit
+from equidiff_core.benches.training_runs import Recipe, fit_ratios, train_command, training_fit, under_fit
 from equidiff_core.config import Workspace
 from equidiff_core.inference import export_policy, load_inference_policy
 from equidiff_core.normalizer import Normalizer
 from equidiff_core.policies import make_policy
 from equidiff_core.presets import get_preset
+from equidiff_core.training_job import TrainingSpec
 from equidiff_core.twin.evaluate import EvalEpisode, yaw_breakdown
 
+ROOT = Path(__file__).resolve().parents[1]
 WS = Workspace()
 BLOCK_RGB = (217, 31, 26)
 
@@ -149,32 +153,42 @@ def test_training_fit_gate_names_who_did_not_fit_its_own_demos(tmp_path):
     assert fit_ratios(fits, "equidiff")["baseline"] == 1.498
 
 
-def test_recipe_resumes_an_interrupted_run(tmp_path):
+def test_recipe_trains_as_equidiff_train_would_and_resumes_an_interrupted_run(tmp_path):
+    from equidiff_ros.cli import build_parser
+    from equidiff_ros.commands.train import training_spec
+
     recipe = Recipe(
         preset="compact", steps=6000, batch_size=8, lr=5e-4, seed=0, device="cpu", noise_repeats=4, ema=True
     )
     bags = [tmp_path / "a", tmp_path / "b"]
-    cmd = recipe.train_command("baseline", "none", bags, tmp_path / "run")
-    assert cmd[3:6] == ["train", str(bags[0]), str(bags[1])]
-    text = " ".join(cmd)
-    for part in (
-        "--policy baseline",
-        "--rotation-aug none",
-        "--steps 6000",
-        "--checkpoint-every 1500",
-        "--warmup-steps 500",
-        "--noise-repeats 4",
-        "--ema",
-        "--val-fraction 0",
-    ):
-        assert part in text
-    assert cmd[-1] == "--resume"  # the bench's run folder holds its train.log: a new run starts, a stopped one goes on
-    assert "--lr 0.0005" in text and "--lr 0.001" in " ".join(
-        dataclasses.replace(recipe, baseline_lr=1e-3).train_command("baseline", "none", bags, tmp_path / "run")
+    spec = recipe.train_spec("baseline", "none", bags, tmp_path / "run")
+    # the run `equidiff train` makes of the flags the benches passed it before they started runs themselves
+    argv = ["train", *map(str, bags), "--out", str(tmp_path / "run"), "--policy", "baseline", "--preset", "compact"]
+    argv += ["--rotation-aug", "none", "--steps", "6000", "--batch-size", "8", "--lr", "0.0005", "--seed", "0"]
+    argv += ["--device", "cpu", "--val-fraction", "0", "--eval-every", str(10**9), "--checkpoint-every", "1500"]
+    argv += ["--warmup-steps", "500", "--no-progress", "--noise-repeats", "4", "--ema", "--resume"]
+    assert spec == training_spec(build_parser(argv).parse_args(argv))
+    assert spec.resume  # the bench's run folder holds its train.log: a new run starts, a stopped one goes on
+    assert dataclasses.replace(recipe, baseline_lr=1e-3).train_spec("baseline", "none", bags, tmp_path).lr == 1e-3
+    assert dataclasses.replace(recipe, baseline_lr=1e-3).train_spec("equidiff", "none", bags, tmp_path).lr == 5e-4
+    # the run starts in a process of its own that reads nothing but the spec, not through the CLI
+    cmd = train_command(spec)
+    assert cmd[1:3] == ["-m", "equidiff_core.train_process"] and TrainingSpec.from_json(cmd[3]) == spec
+    assert "policy=baseline" in spec.settings_text() and "bags" not in spec.settings_text()
+
+
+def test_a_training_process_reports_as_equidiff_train_does(tmp_path):
+    """The bench's training process prints an error and exits as `equidiff train` would."""
+    spec = TrainingSpec(bags=(tmp_path / "nothing",), out=tmp_path / "run", resume=True, force=True, device="cpu")
+    proc = subprocess.run(
+        train_command(spec),
+        capture_output=True,
+        text=True,
+        timeout=300,
+        env={**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT / "src"), os.environ.get("PYTHONPATH", "")])},
     )
-    assert "--lr 0.0005" in " ".join(
-        dataclasses.replace(recipe, baseline_lr=1e-3).train_command("equidiff", "none", bags, tmp_path / "run")
-    )
+    assert proc.returncode == 2 and proc.stdout == ""
+    assert proc.stderr == "equidiff train: --resume continues OUT and --force replaces it: pass one of them\n"
 
 
 def test_nested_demo_subsets(tmp_path):
@@ -270,9 +284,9 @@ def test_bench_demos_trains_in_parts_then_rolls_out_once_and_plots(tmp_path, cap
         (demos / f"twin_block_in_bowl_{i:04d}" / "metadata.yaml").write_text("rosbag2_bagfile_information: {}\n")
     started = []
 
-    def instant_train(cmd, out, threads):  # an instant `equidiff train`: a real tiny policy and its records
-        started.append((out.name, [c for c in cmd if "twin_block_in_bowl" in c]))
-        _trained_dir(out.parent, [out.name], {out.name: 0.02})
+    def instant_train(spec, threads):  # an instant `equidiff train`: a real tiny policy and its records
+        started.append((spec.out.name, [bag for bag in spec.bags if "twin_block_in_bowl" in bag.name]))
+        _trained_dir(spec.out.parent, [spec.out.name], {spec.out.name: 0.02})
         return subprocess.Popen([sys.executable, "-c", "pass"])
 
     monkeypatch.setattr(bench_demos, "start_run", instant_train)
@@ -383,3 +397,19 @@ def test_bench_overfit_refuses_a_bad_setting_before_training(bad, said, tmp_path
     out, err = capsys.readouterr()
     assert out == "" and err.startswith("equidiff bench overfit: ") and said in err and err.count("\n") == 1  # one line
     assert not any(tmp_path.iterdir())  # nothing was built or trained
+
+
+def test_check_conditioning_refuses_without_policies_or_demos(tmp_path, capsys):
+    from equidiff_ros.cli import main
+
+    assert main(["check", "conditioning", "--demos", str(tmp_path)]) == 2
+    assert capsys.readouterr().err == "equidiff check conditioning: name policy files or --fresh policies\n"
+    assert main(["check", "conditioning", "--fresh", "equidiff", "--demos", str(tmp_path)]) == 2
+    assert capsys.readouterr().err == f"equidiff check conditioning: no demos in {tmp_path}\n"
+
+
+def test_bench_train_refuses_step_counts_below_one_with_one_line_and_exit_1(capsys):
+    from equidiff_ros.cli import main
+
+    assert main(["bench", "train", "--steps", "0"]) == 1
+    assert capsys.readouterr().err == "equidiff bench train: --steps, --warmup and --noise-repeats must be >= 1\n"

@@ -455,6 +455,26 @@ def test_check_command_flags_a_misplaced_camera_and_writes_a_rerun_view(tmp_path
     assert "check/fingers_model" in summary
 
 
+def test_calibrate_cameras_without_an_output_file_says_so_and_exits_2(capsys):
+    from equidiff_ros.cli import main
+
+    assert main(["calibrate", "cameras"]) == 2
+    assert capsys.readouterr().err == (
+        "equidiff calibrate cameras: --output is required (the calibrated lab file to write)\n"
+    )
+
+
+def test_calibrate_cameras_writes_the_printable_board_and_says_how_to_print_it(tmp_path, capsys):
+    from equidiff_ros.cli import main
+
+    assert main(["calibrate", "cameras", "--write-board", str(tmp_path / "board.png")]) == 0
+    out = capsys.readouterr()
+    assert json.loads(out.out)["board"] == str(tmp_path / "board.png") and (tmp_path / "board.png").is_file()
+    assert out.err.startswith(f"{tmp_path / 'board.png'}: print at 100 % scale")  # progress on stderr
+    assert main(["calibrate", "cameras", "--write-board", str(tmp_path / "b.png"), "--dpi", "100"]) == 1
+    assert capsys.readouterr().err.startswith("equidiff calibrate cameras: square 45.000 mm is not a whole number")
+
+
 def test_cli_refuses_to_overwrite_before_moving_anything(tmp_path):
     existing = tmp_path / "lab_calibrated.yaml"
     existing.write_text("keep me")

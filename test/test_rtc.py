@@ -179,6 +179,17 @@ class _DriftingPolicy:
         return actions
 
 
+def test_bench_chunking_refuses_what_it_cannot_run_with_one_line_and_exit_1(tmp_path, capsys):
+    from equidiff_ros.cli import main
+
+    assert main(["bench", "chunking", "--seeds", "0"]) == 1
+    assert capsys.readouterr().err == (
+        "equidiff bench chunking: need --seeds >= 1, --duration > 0 and latencies >= 0\n"
+    )
+    assert main(["bench", "chunking", "--checkpoint", str(tmp_path / "none.pt")]) == 1
+    assert capsys.readouterr().err == f"equidiff bench chunking: no checkpoint at {tmp_path / 'none.pt'}\n"
+
+
 @pytest.mark.slow
 @pytest.mark.sim
 def test_bench_chunking_prints_one_json_line_with_every_mode_and_latency(tmp_path, capsys, monkeypatch):

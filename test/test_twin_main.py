@@ -444,6 +444,15 @@ def test_bench_and_collect_commands_parse():
         assert not getattr(args, "_missing", False), argv
 
 
+def test_the_in_process_twin_jobs_refuse_what_they_cannot_run_with_one_line_and_exit_1(tmp_path, capsys):
+    from equidiff_ros.cli import main
+
+    assert main(["twin", "evaluate", "--episodes", "0"]) == 1
+    assert capsys.readouterr().err == "equidiff twin evaluate: --episodes must be at least 1\n"
+    assert main(["twin", "replay-chunks", str(tmp_path)]) == 1
+    assert capsys.readouterr().err == f"equidiff twin replay-chunks: no bags in {tmp_path}\n"
+
+
 def test_nodes_never_inherit_a_real_time_scheduling_policy():
     """A job whose thread had become SCHED_FIFO 99 (libfranka's doing) started every node real-time:
     busy camera and voxel nodes then starved the machine. Nodes always start time-shared."""
@@ -584,9 +593,26 @@ def test_shipped_checkpoint_loads_and_its_training_is_recorded():
     assert load_policy_from_checkpoint(SHIPPED_CHECKPOINT.parent / "last.ckpt").preset == policy.preset
 
 
+def _generalization_settings(*flags: str):
+    """The settings `equidiff bench generalization FLAGS` runs with."""
+    from equidiff_ros.cli import build_parser
+    from equidiff_ros.commands.bench_generalization import generalization_settings
+
+    argv = ["bench", "generalization", *flags]
+    return generalization_settings(build_parser(argv).parse_args(argv))
+
+
+def test_bench_generalization_quick_is_a_smaller_bench_and_leaves_the_settings_asked_for_as_they_were():
+    quick, full = _generalization_settings("--quick"), _generalization_settings()
+    assert (quick.demos, quick.recipe.steps, quick.recipe.preset, quick.eval_episodes) == (4, 30, "tiny", 1)
+    assert quick.min_in_range == quick.max_fit_ratio == 0.0  # no gate: no policy acts after 30 steps
+    assert (quick.in_range_episodes, quick.max_duration) == (1, 6.0)
+    assert full.quick() == quick and (full.demos, full.recipe.steps, full.recipe.preset) == (40, 6000, "compact")
+
+
 @pytest.mark.slow
 def test_bench_generalization_trains_its_policies_side_by_side_sharing_the_cores(tmp_path, monkeypatch):
-    import argparse
+    import dataclasses
     import os
     import subprocess
     import sys
@@ -603,16 +629,16 @@ def test_bench_generalization_trains_its_policies_side_by_side_sharing_the_cores
     )
     behaviour = {"equidiff": (0.3, 0), "baseline": (0.3, 0), "baseline_aug": (0.3, 0)}  # seconds, exit code
 
-    def fake_start(policy, bags, out, args, steps, threads):
+    def fake_start(policy, bags, out, settings, threads):
         out.mkdir(parents=True, exist_ok=True)
         (out / "train.log").write_text(f"{policy} log line\n")
-        runs[policy] = (time.time(), threads, steps)
+        runs[policy] = (time.time(), threads, settings.recipe.steps)
         seconds, code = behaviour[policy]
         return subprocess.Popen([sys.executable, "-c", script, str(out / "policy.pt"), str(seconds), str(code)])
 
     monkeypatch.setattr(bench, "_start_training", fake_start)
-    args = argparse.Namespace(train_steps=7, max_minutes=None, policies=list(bench.POLICIES))
-    policies = bench._train_all(tmp_path / "demos", tmp_path, args)
+    settings = _generalization_settings("--train-steps", "7")
+    policies = bench._train_all(tmp_path / "demos", tmp_path, settings)
     assert policies == {name: tmp_path / name / "policy.pt" for name in ("equidiff", "baseline", "baseline_aug")}
     started = {name: runs[name][0] for name in policies}
     ended = {name: float(policies[name].read_text()) for name in policies}
@@ -624,7 +650,7 @@ def test_bench_generalization_trains_its_policies_side_by_side_sharing_the_cores
     behaviour.update(equidiff=(0.0, 3), baseline=(60.0, 0), baseline_aug=(60.0, 0))
     t0 = time.monotonic()
     with pytest.raises(bench.TrainRunError) as err:
-        bench._train_all(tmp_path / "demos", tmp_path / "second", args)
+        bench._train_all(tmp_path / "demos", tmp_path / "second", settings)
     assert time.monotonic() - t0 < 20
     message = str(err.value)
     assert "equidiff train equidiff failed (exit 3" in message and "equidiff log line" in message
@@ -633,8 +659,8 @@ def test_bench_generalization_trains_its_policies_side_by_side_sharing_the_cores
     # --policies: only those train now, and they get the cores the others would have had
     runs.clear()
     behaviour.update(equidiff=(0.0, 0), baseline=(0.0, 0))
-    args.policies = ["baseline"]
-    assert bench._train_all(tmp_path / "demos", tmp_path / "third", args) == {
+    settings = dataclasses.replace(settings, policies=("baseline",))
+    assert bench._train_all(tmp_path / "demos", tmp_path / "third", settings) == {
         "baseline": tmp_path / "third" / "baseline" / "policy.pt"
     }
     assert runs.keys() == {"baseline"} and runs["baseline"][1] == max(1, os.cpu_count() or 2)
@@ -683,14 +709,15 @@ def test_bench_generalization_trains_in_parts_and_rolls_out_once_all_three_share
 
     started = []
 
-    def fake_start(name, bags, out, args, steps, threads):  # an instant `equidiff train`
+    def fake_start(name, bags, out, settings, threads):  # an instant `equidiff train`
         started.append(name)
         out.mkdir(parents=True, exist_ok=True)
         export_tiny_baseline(out / "policy.pt")
-        (out / "history.json").write_text(json.dumps([{"step": steps, "loss": 0.1}]))
-        lr = bench.Recipe.from_args(args).lr_of(bench._recipe(name, args)[0])  # as the real command's --lr
-        recipe = {"preset": "tiny", "batch_size": args.batch_size, "lr": lr, "ema": args.ema}
-        (out / "run.json").write_text(json.dumps({"recipe": {**recipe, "rotation_aug": bench._recipe(name, args)[1]}}))
+        (out / "history.json").write_text(json.dumps([{"step": settings.recipe.steps, "loss": 0.1}]))
+        policy, rotation_aug = bench._recipe(name, settings)
+        lr = settings.recipe.lr_of(policy)  # as the real run's
+        recipe = {"preset": "tiny", "batch_size": settings.recipe.batch_size, "lr": lr, "ema": settings.recipe.ema}
+        (out / "run.json").write_text(json.dumps({"recipe": {**recipe, "rotation_aug": rotation_aug}}))
         return subprocess.Popen([sys.executable, "-c", "pass"])
 
     monkeypatch.setattr(bench, "_start_training", fake_start)
@@ -784,8 +811,8 @@ def test_twin_evaluate_rolls_out_the_main_jobs_seeds_in_process(tmp_path, capsys
 
     from equidiff_ros.cli import main
 
-    with pytest.raises(SystemExit, match="no checkpoint at"):
-        main(["twin", "evaluate", "--checkpoint", str(tmp_path / "none.pt")])
+    assert main(["twin", "evaluate", "--checkpoint", str(tmp_path / "none.pt")]) == 1
+    assert capsys.readouterr().err == f"equidiff twin evaluate: no checkpoint at {tmp_path / 'none.pt'}\n"
     assert main(["twin", "evaluate", "--episodes", "2", "--max-duration", "0.6"]) == 0
     out = capsys.readouterr().out.strip().splitlines()
     result = json.loads(out[-1])

@@ -262,3 +262,13 @@ def test_dense_grid_path_equals_reference():
     assert vox.last_stats.max_points_per_voxel >= 700  # with a crowded voxel
     assert vox.last_stats.occupied == int(np.count_nonzero(grid[0]))
     np.testing.assert_array_equal(grid, voxelize_reference(clouds, exts, lab.workspace))
+
+
+def test_bench_voxelize_prints_one_json_line_and_exits_0_when_the_grid_equals_the_reference(capsys):
+    from equidiff_ros.cli import main
+
+    argv = ["bench", "voxelize", "--points", "2000", "--repeats", "2", "--no-open3d", "--scene", "uniform"]
+    assert main(argv) == 0
+    result = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert result["reference_equal"] is True and result["points_per_camera"] == 2000 and result["repeats"] == 2
+    assert result["open3d_median_ms"] is None and result["scene"] == "uniform"

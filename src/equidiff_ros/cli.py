@@ -14,6 +14,7 @@ import os
 import signal
 import sys
 
+from equidiff_core.jobs import report_error
 from equidiff_core.machine import default_threads_to_idle_cores
 
 # (command path) -> (module, one-line help)
@@ -131,16 +132,13 @@ def main(argv: list[str] | None = None) -> int:
     try:
         return int(_load(args._module).run(args) or 0)
     except Exception as err:
-        # A bad config file or value, or an output that exists already (``output_files.OutputExistsError``:
-        # --force replaces it), is the user's to fix: one line, not a traceback. The check by module keeps
-        # `equidiff --help` from importing the config module (numpy, scipy).
-        known = [getattr(sys.modules.get("equidiff_core.config"), "ConfigError", None)]
-        known.append(getattr(sys.modules.get("equidiff_core.output_files"), "OutputExistsError", None))
-        if not isinstance(err, tuple(e for e in known if e is not None)):
-            raise
+        # A job's error, a bad config file or value, or an output that exists already (--force replaces it)
+        # are the user's to fix: one message, not a traceback
         command = " ".join(v for v in (args.command, getattr(args, "subcommand", None)) if v)
-        print(f"equidiff {command}: {' '.join(str(err).split())}", file=sys.stderr)
-        return 2
+        status = report_error(command, err)
+        if status is None:
+            raise
+        return status
 
 
 if __name__ == "__main__":

@@ -1,5 +1,6 @@
 """Bench logic shared by the ``equidiff bench`` / ``equidiff check`` commands (each command is argument
-parsing plus one call into here).
+parsing plus one call into here: typed settings in, the bench's JSON line out as a dict, ``BenchError`` when
+it cannot run; progress through the module's logger).
 
 * ``conditioning``: does a policy look at its observation? Its features and its actions when the block moves.
 * ``equivariance``: C4 and 45 deg equivariance errors of every inference path (``check equivariance``).
@@ -17,3 +18,10 @@ parsing plus one call into here).
   (McNemar's exact test, a paired bootstrap interval of the difference); the scenes a comparison needs.
 * ``safety``: the fault campaign of ``bench safety`` against franky-sim through franka_node (its ROS side passed in).
 """
+
+from equidiff_core.jobs import JobError
+
+
+class BenchError(JobError):
+    """A bench or check could not run: exit status 2 for settings or inputs it cannot run with (out of range,
+    missing or mismatched demos, runs trained with different recipes), 1 when its work failed (a training)."""

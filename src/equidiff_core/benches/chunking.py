@@ -1,11 +1,16 @@
 """Whole chunks vs replace vs execution horizon vs real-time chunking, by latency, in the in-process twin
-(``equidiff bench chunking``; the command's help text defines the modes and the JSON keys)."""
+(``equidiff bench chunking``; the command's help text defines the modes and the JSON keys).
+``run_chunking_bench`` takes its ``ChunkingSettings`` and returns the JSON line as a dict, or raises
+``BenchError``; its progress goes to this module's logger."""
 
 from __future__ import annotations
 
-import json
+import logging
 import time
+from dataclasses import dataclass
+from pathlib import Path
 
+from equidiff_core.benches import BenchError
 from equidiff_core.benches.stats import paired_comparison, paired_outcomes, success_rate
 from equidiff_core.chunk import AnswerSchedule, steps_to_publish
 from equidiff_core.config import default_config_dir, load_lab_config
@@ -18,6 +23,25 @@ from equidiff_core.twin.evaluate import evaluate_policy
 from equidiff_core.twin.shipped import SHIPPED_CHECKPOINT
 
 MODES = ("whole", "replace", "horizon", "rtc")
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class ChunkingSettings:
+    """``equidiff bench chunking``'s settings: its flags, same names (the command's help says more)."""
+
+    checkpoint: Path | None  # policy.pt (None: the shipped checkpoint)
+    seeds: int  # episodes per mode and latency, the same scenes for all
+    seed: int  # the first scene seed
+    duration: float  # sim seconds per episode
+    latencies: tuple[float, ...]  # latency budgets, ms
+    modes: tuple[str, ...]  # of MODES
+    execute_steps: int  # k for horizon and rtc (0: the preset's n_action_steps)
+    device: str  # the policy's: cpu, cuda or auto
+    threads: int  # torch intra-op threads (0: the threads the CLI chose from the idle cores)
+    lab_config: Path | None  # lab.yaml (None: the installed one)
+    twin_config: Path | None  # twin.yaml (None: the installed one)
 
 
 def _paired_against_default(outcomes: dict, latencies, modes) -> dict:
@@ -32,31 +56,32 @@ def _paired_against_default(outcomes: dict, latencies, modes) -> dict:
     return paired
 
 
-def run_chunking_bench(args) -> int:
-    """``equidiff bench chunking`` for its parsed arguments: every mode at every latency, one JSON line."""
-    if args.seeds < 1 or args.duration <= 0 or any(ms < 0 for ms in args.latencies):
-        raise SystemExit("equidiff bench chunking: need --seeds >= 1, --duration > 0 and latencies >= 0")
-    checkpoint = args.checkpoint or SHIPPED_CHECKPOINT
+def run_chunking_bench(settings: ChunkingSettings) -> dict:
+    """Every mode at every latency: the bench's JSON line. BenchError (exit status 1) for settings it cannot
+    run with or a missing checkpoint."""
+    if settings.seeds < 1 or settings.duration <= 0 or any(ms < 0 for ms in settings.latencies):
+        raise BenchError("need --seeds >= 1, --duration > 0 and latencies >= 0")
+    checkpoint = settings.checkpoint or SHIPPED_CHECKPOINT
     if not checkpoint.is_file():
-        raise SystemExit(f"no checkpoint at {checkpoint}")
-    lab = load_lab_config(args.lab_config or default_config_dir() / "lab.yaml")
-    cfg = load_twin_config(args.twin_config)
-    policy = load_inference_policy(checkpoint, device=args.device)
+        raise BenchError(f"no checkpoint at {checkpoint}")
+    lab = load_lab_config(settings.lab_config or default_config_dir() / "lab.yaml")
+    cfg = load_twin_config(settings.twin_config)
+    policy = load_inference_policy(checkpoint, device=settings.device)
     preset = policy.preset
     try:
-        k = AnswerSchedule(args.execute_steps, preset.n_action_steps, 1).steps
+        k = AnswerSchedule(settings.execute_steps, preset.n_action_steps, 1).steps
     except ValueError as err:
-        raise SystemExit(f"equidiff bench chunking: {err}") from err
+        raise BenchError(str(err)) from err
     available = preset.horizon - preset.n_obs_steps + 1
-    seeds = list(range(args.seed, args.seed + args.seeds))
+    seeds = list(range(settings.seed, settings.seed + settings.seeds))
     result: dict = {}
     outcomes: dict[str, dict[int, bool]] = {}  # label -> seed -> solved, for the paired comparisons
     t0 = time.monotonic()
     rec = DirectRecorder(cfg, lab)
     try:
         policy.warmup()
-        for latency_ms in args.latencies:
-            for mode in args.modes:
+        for latency_ms in settings.latencies:
+            for mode in settings.modes:
                 label = f"{mode}_{latency_ms:g}ms"
                 if mode == "replace":
                     schedule = {"execute_steps": 1, "publish_steps": 0, "rtc": False}
@@ -74,12 +99,12 @@ def run_chunking_bench(args) -> int:
                     cfg,
                     lab,
                     seeds,
-                    args.duration,
+                    settings.duration,
                     recorder=rec,
                     latency_s=latency_ms / 1000,
                     probe=probe,
-                    threads=args.threads or None,  # 0: the threads the CLI chose from the idle cores
-                    log=lambda s, w=label: print(f"[{w}] {s}", flush=True),
+                    threads=settings.threads or None,  # 0: the threads the CLI chose from the idle cores
+                    log=lambda s, w=label: logger.info(f"[{w}] {s}"),
                     **schedule,
                 )
                 rate = success_rate([e.success for e in episodes])
@@ -93,16 +118,15 @@ def run_chunking_bench(args) -> int:
         rec.close()
     result.update(
         {
-            "paired": _paired_against_default(outcomes, args.latencies, args.modes),
+            "paired": _paired_against_default(outcomes, settings.latencies, settings.modes),
             "execute_steps": k,
             "seeds": seeds,
-            "episode_s": args.duration,
-            "latencies_ms": list(args.latencies),
+            "episode_s": settings.duration,
+            "latencies_ms": list(settings.latencies),
             "checkpoint": str(checkpoint),
             "preset": preset.name,
             "cpu": cpu_model(),
             "wall_s": round(time.monotonic() - t0, 1),
         }
     )
-    print(json.dumps(result), flush=True)
-    return 0
+    return result

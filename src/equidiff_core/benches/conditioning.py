@@ -13,12 +13,12 @@ the demos. Two measurements tell it apart from one that looks:
 
 Frames are the first observation of each demo (the arm at its start pose, the block somewhere in the
 region); the same frames, shifts and noise for every policy, so the numbers compare across policies.
+``run_conditioning_check`` takes its ``ConditioningSettings`` and returns the JSON line as a dict, or raises
+``BenchError``.
 """
 
 from __future__ import annotations
 
-import json
-import sys
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path
@@ -27,6 +27,7 @@ import numpy as np
 import torch
 
 from equidiff_core.augment import voxel_input
+from equidiff_core.benches import BenchError
 from equidiff_core.config import ConfigError, Workspace
 from equidiff_core.dataset import DatasetConfig, find_episodes, load_episodes
 from equidiff_core.inference import CheckpointError, export_policy, load_inference_policy
@@ -147,26 +148,36 @@ def conditioning_response(policy, frames: list[Frame], shift_vox: int = 8, seed:
     }
 
 
-def run_conditioning_check(args) -> int:
-    """``equidiff check conditioning`` for its parsed arguments: one JSON line; 2 for bad input."""
-    if not args.policies and not args.fresh:
-        print("equidiff check conditioning: name policy files or --fresh policies", file=sys.stderr)
-        return 2
-    bags = find_episodes([args.demos])[: args.episodes]
+@dataclass(frozen=True)
+class ConditioningSettings:
+    """``equidiff check conditioning``'s settings: its arguments, same names (the command's help says more)."""
+
+    policies: tuple[Path, ...]  # exported policy.pt files
+    fresh: tuple[str, ...]  # untrained policies to build: NAME[:WIDTH[:INIT]]
+    preset: str  # the preset of the ``fresh`` policies
+    demos: Path  # demo bags (their first frames are measured)
+    episodes: int  # how many of the demos
+    shift_vox: int  # block displacement, voxels
+    seed: int  # DDIM noise and the ``fresh`` weights
+
+
+def run_conditioning_check(settings: ConditioningSettings) -> dict:
+    """Every policy's response: the check's JSON line; BenchError (exit status 2) for bad input."""
+    if not settings.policies and not settings.fresh:
+        raise BenchError("name policy files or --fresh policies", 2)
+    bags = find_episodes([settings.demos])[: settings.episodes]
     if not bags:
-        print(f"equidiff check conditioning: no demos in {args.demos}", file=sys.stderr)
-        return 2
+        raise BenchError(f"no demos in {settings.demos}", 2)
     results = {}
     with tempfile.TemporaryDirectory(prefix="conditioning_") as tmp:
-        subjects = {str(path): path for path in args.policies}
-        for spec in args.fresh:
+        subjects = {str(path): path for path in settings.policies}
+        for spec in settings.fresh:
             try:
                 name, overrides = _fresh_spec(spec)
-                preset = get_preset(args.preset, **overrides)
+                preset = get_preset(settings.preset, **overrides)
             except (ValueError, ConfigError) as err:
-                print(f"equidiff check conditioning: --fresh {spec}: {err}", file=sys.stderr)
-                return 2
-            torch.manual_seed(args.seed)
+                raise BenchError(f"--fresh {spec}: {err}", 2) from err
+            torch.manual_seed(settings.seed)
             ws = Workspace()
             policy = make_policy(name, preset, ws)
             policy.set_normalizer(Normalizer.from_workspace(ws))
@@ -176,13 +187,11 @@ def run_conditioning_check(args) -> int:
             try:
                 policy = load_inference_policy(path, precision="fp32")
             except CheckpointError as err:
-                print(f"equidiff check conditioning: {err}", file=sys.stderr)
-                return 2
+                raise BenchError(str(err), 2) from err
             frames = frames or first_frames(bags, policy.workspace.resolution)
-            results[label] = conditioning_response(policy, frames, args.shift_vox, args.seed)
+            results[label] = conditioning_response(policy, frames, settings.shift_vox, settings.seed)
             results[label]["weights_sha256"] = policy.weights_sha256  # verified at load, or "unhashed"
-    print(json.dumps({"policies": results, "demos": len(bags), "shift_vox": args.shift_vox, "seed": args.seed}))
-    return 0
+    return {"policies": results, "demos": len(bags), "shift_vox": settings.shift_vox, "seed": settings.seed}
 
 
 def _fresh_spec(spec: str) -> tuple[str, dict]:

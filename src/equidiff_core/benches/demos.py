@@ -4,23 +4,27 @@ EquiDiff and the baseline (DiffPo-C, Vo) train on the first 10, 20 and 40 of the
 demos (nested subsets, ``demo_sets.nested_subsets``) with one recipe and seed, and each is rolled out
 on the same scenes inside the demos' yaw range. ``OUT/<policy>_<count>/`` holds each run (what
 ``equidiff train`` writes, plus ``rollouts.json``, the roll-outs done, so that a bench finished in
-parts rolls nothing out twice).
+parts rolls nothing out twice). ``run_demos_bench`` takes its ``DemosSettings`` and returns the bench's JSON
+line as a dict, or raises ``BenchError``; its progress goes to this module's logger.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import json
+import logging
 import os
 import shutil
-import sys
 import textwrap
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import torch
 from matplotlib.figure import Figure
 
+from equidiff_core.benches import BenchError
 from equidiff_core.benches.demo_sets import demos_off_range, ensure_demos, nested_subsets
 from equidiff_core.benches.rollouts import cached_rollouts, policy_digest, summarize
 from equidiff_core.benches.stats import paired_comparison, paired_outcomes
@@ -49,6 +53,29 @@ from equidiff_core.twin.evaluate import evaluate_policy, in_range_yaw_seeds
 
 POLICIES = ("equidiff", "baseline")
 DEMO_COUNTS = (10, 20, 40)
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class DemosSettings:
+    """``equidiff bench demos``'s settings: its flags, same names (the command's help says more)."""
+
+    recipe: Recipe  # what every training shares: preset, steps (--train-steps), batch, lr, seed, device, ...
+    counts: tuple[int, ...]  # the demo counts compared
+    policies: tuple[str, ...]  # the POLICIES to train now
+    train_counts: tuple[int, ...] | None  # the counts to train now (None: ``counts``)
+    eval_episodes: int  # in-range scenes per run
+    max_duration: float  # sim seconds per roll-out
+    latency_ms: float  # each chunk takes effect this long after its observation
+    train_yaw: tuple[float, float]  # the demos' block yaw range, degrees
+    max_fit_ratio: float  # under-fit: training-sample action error above this times EquiDiff's (0: no gate)
+    out: Path | None  # work directory (None: runs/bench_demos_<time>)
+    demos_dir: Path | None  # narrow-yaw demos recorded earlier (None: record them into ``out``)
+    trained: Path | None  # roll out DIR/<policy>_<count> trained elsewhere; train nothing
+    plot: Path | None  # also write the PNG here
+    twin_config: Path | None  # twin.yaml (None: the installed one); lab.yaml is the recipe's
+    force: bool = False  # replace an existing ``plot``
 
 
 def run_name(policy: str, count: int) -> str:
@@ -121,7 +148,7 @@ def evaluate_runs(
     max_fit_ratio: float,
     device: str = "cpu",
     lr_by_policy: dict[str, float] | None = None,
-    log=print,
+    log=logger.info,
 ) -> dict:
     """Roll out every run ``runs_dir/<policy>_<count>/policy.pt`` (or its committed ``weights.ckpt``,
     ``training_runs.run_policy``) on the same ``episodes`` in-range scenes and
@@ -223,121 +250,108 @@ def evaluate_runs(
     }
 
 
-def run_demos_bench(args) -> int:
-    """The whole bench for ``equidiff bench demos``'s parsed arguments (train what is asked, roll out once every
-    run is in OUT); prints one JSON line and returns the exit status."""
-    if args.eval_episodes < 1 or min(args.counts) < 1:
-        print("equidiff bench demos: need --eval-episodes >= 1 and positive --counts", file=sys.stderr)
-        return 2
-    if args.plot is not None:  # a file the user named: refused now, not after hours of training
-        refuse_existing(args.plot, args.force)
-    if args.device == "auto":
-        args.device = "cuda" if torch.cuda.is_available() else "cpu"
+def run_demos_bench(settings: DemosSettings) -> dict:
+    """The whole bench (train what is asked, roll out once every run is in OUT): its JSON line (also in
+    OUT/result.json once rolled out; ``pending`` names the runs still to train). BenchError for settings or
+    inputs it cannot run with (exit status 2) or a failed training (1)."""
+    if settings.eval_episodes < 1 or min(settings.counts) < 1:
+        raise BenchError("need --eval-episodes >= 1 and positive --counts", 2)
+    if settings.plot is not None:  # a file the user named: refused now, not after hours of training
+        refuse_existing(settings.plot, settings.force)
+    if settings.recipe.device == "auto":
+        device = "cuda" if torch.cuda.is_available() else "cpu"
+        settings = dataclasses.replace(settings, recipe=dataclasses.replace(settings.recipe, device=device))
     t_start = time.monotonic()
-    configs = load_twin_job_configs(args.lab_config, args.twin_config)
+    configs = load_twin_job_configs(settings.recipe.lab_config, settings.twin_config)
     lab, cfg = configs.lab, configs.twin
-    out = args.out or Path("runs") / time.strftime("bench_demos_%Y%m%d_%H%M%S")
+    out = settings.out or Path("runs") / time.strftime("bench_demos_%Y%m%d_%H%M%S")
     out.mkdir(parents=True, exist_ok=True)
-    runs_dir = args.trained or out
-    all_runs = [run_name(p, n) for p in POLICIES for n in args.counts]
+    runs_dir = settings.trained or out
+    all_runs = [run_name(p, n) for p in POLICIES for n in settings.counts]
     minutes = {}
-    if args.trained is None:
+    if settings.trained is None:
         demos_dir, _ = ensure_demos(
-            args.demos_dir,
+            settings.demos_dir,
             out,
-            max(args.counts),
-            cfg.with_yaw_range(tuple(args.train_yaw)),
+            max(settings.counts),
+            cfg.with_yaw_range(tuple(settings.train_yaw)),
             lab,
-            args.seed,
-            log=lambda s: print(s, flush=True),
+            settings.recipe.seed,
+            log=logger.info,
         )
-        wrong, _ = demos_off_range(demos_dir, tuple(args.train_yaw))
+        wrong, _ = demos_off_range(demos_dir, tuple(settings.train_yaw))
         if wrong:
-            print(
-                f"equidiff bench demos: {len(wrong)} demos in {demos_dir} were drawn from another block yaw "
+            raise BenchError(
+                f"{len(wrong)} demos in {demos_dir} were drawn from another block yaw "
                 f"range than --train-yaw, e.g. {wrong[0]}",
-                file=sys.stderr,
+                2,
             )
-            return 2
         try:
-            subsets = nested_subsets(demos_dir, args.counts)
+            subsets = nested_subsets(demos_dir, settings.counts)
         except ValueError as err:
-            print(f"equidiff bench demos: {err}", file=sys.stderr)
-            return 2
+            raise BenchError(str(err), 2) from err
         minutes["demos"] = round((time.monotonic() - t_start) / 60, 1)
         t_train = time.monotonic()
         try:
-            trained_now = train_runs(args, out, subsets)
+            trained_now = train_runs(settings, out, subsets)
         except TrainRunError as err:
-            print(f"equidiff bench demos: {err}\nrerun the same command to resume", file=sys.stderr)
-            return 1
+            raise BenchError(f"{err}\nrerun the same command to resume") from err
         minutes["train"] = round((time.monotonic() - t_train) / 60, 1)
         pending = [name for name in all_runs if not (resolve_run(out / name) / "policy.pt").is_file()]
         if pending:
-            print(
-                json.dumps(
-                    {
-                        "bench": "demos",
-                        "trained": trained_now,
-                        "pending": pending,
-                        "out": str(out),
-                        "next": f"equidiff bench demos --out {out} --demos-dir {demos_dir} --policies "
-                        + " ".join(p for p in POLICIES if any(name.startswith(p + "_") for name in pending))
-                        + " --train-counts "
-                        + " ".join(str(n) for n in args.counts if any(name.endswith(f"_{n}") for name in pending))
-                        + " with this call's recipe flags",
-                        "minutes": minutes,
-                    }
-                )
-            )
-            return 0
+            return {
+                "bench": "demos",
+                "trained": trained_now,
+                "pending": pending,
+                "out": str(out),
+                "next": f"equidiff bench demos --out {out} --demos-dir {demos_dir} --policies "
+                + " ".join(p for p in POLICIES if any(name.startswith(p + "_") for name in pending))
+                + " --train-counts "
+                + " ".join(str(n) for n in settings.counts if any(name.endswith(f"_{n}") for name in pending))
+                + " with this call's recipe flags",
+                "minutes": minutes,
+            }
     missing = [
         name
         for name in all_runs
         if not any((resolve_run(runs_dir / name) / f).is_file() for f in ("policy.pt", SLIM_CHECKPOINT))
     ]
     if missing:
-        print(
-            f"equidiff bench demos: no policy.pt or {SLIM_CHECKPOINT} for {', '.join(missing)} in {runs_dir}",
-            file=sys.stderr,
-        )
-        return 2
+        raise BenchError(f"no policy.pt or {SLIM_CHECKPOINT} for {', '.join(missing)} in {runs_dir}", 2)
     try:
         result = evaluate_runs(
             runs_dir,
             out,
-            args.counts,
+            settings.counts,
             cfg,
             lab,
-            args.eval_episodes,
-            tuple(args.train_yaw),
-            args.max_duration,
-            args.latency_ms / 1000,
-            args.max_fit_ratio,
-            args.device,
-            lr_by_policy={p: Recipe.from_args(args).lr_of(p) for p in POLICIES},
-            log=lambda s: print(s, flush=True),
+            settings.eval_episodes,
+            tuple(settings.train_yaw),
+            settings.max_duration,
+            settings.latency_ms / 1000,
+            settings.max_fit_ratio,
+            settings.recipe.device,
+            lr_by_policy={p: settings.recipe.lr_of(p) for p in POLICIES},
+            log=logger.info,
         )
     except ValueError as err:  # the runs' recipes differ
-        print(f"equidiff bench demos: {err}", file=sys.stderr)
-        return 2
+        raise BenchError(str(err), 2) from err
     result["minutes"] = {**minutes, **result["minutes"]}
-    if args.plot is not None:
-        with staged_output(args.plot, force=args.force) as staged:
+    if settings.plot is not None:
+        with staged_output(settings.plot, force=settings.force) as staged:
             shutil.copyfile(result["plot"], staged.path)
-    write_output_text(out / "result.json", json.dumps(result) + "\n", force=True)
-    print(json.dumps(result))
-    return 0
+    write_output_text(out / "result.json", json.dumps(result) + "\n", force=True)  # the bench's own, rewritten
+    return result
 
 
-def train_runs(args, out: Path, subsets: dict[int, list[Path]]) -> list[str]:
+def train_runs(settings: DemosSettings, out: Path, subsets: dict[int, list[Path]]) -> list[str]:
     """Train the requested runs not trained yet, side by side; their names."""
-    recipe = Recipe.from_args(args)
-    counts = args.train_counts or args.counts
+    recipe = settings.recipe
+    counts = settings.train_counts or settings.counts
     todo = [
         (policy, n)
         for policy in POLICIES
-        if policy in args.policies
+        if policy in settings.policies
         for n in counts
         if n in subsets and not (resolve_run(out / run_name(policy, n)) / "policy.pt").is_file()
     ]
@@ -348,9 +362,11 @@ def train_runs(args, out: Path, subsets: dict[int, list[Path]]) -> list[str]:
     for policy, n in todo:
         name = run_name(policy, n)
         outs[name] = out / name
-        cmd = recipe.train_command(policy, "none", subsets[n], outs[name])
-        print(f"[bench] training {name} on {n} demos: {' '.join(cmd[3:5])} ... {' '.join(cmd[3 + n :])}", flush=True)
-        runs[name] = start_run(cmd, outs[name], threads)
-    deadline = None if args.max_minutes is None else time.monotonic() + args.max_minutes * 60 + 600
+        spec = recipe.train_spec(policy, "none", subsets[n], outs[name])
+        logger.info(f"[bench] training {name} on {n} demos: {spec.settings_text()}")
+        runs[name] = start_run(spec, threads)
+    deadline = (
+        None if settings.recipe.max_minutes is None else time.monotonic() + settings.recipe.max_minutes * 60 + 600
+    )
     wait_for_runs(runs, outs, deadline)
     return list(runs)

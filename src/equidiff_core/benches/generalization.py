@@ -3,22 +3,25 @@
 Records narrow-yaw demos (or reuses them), trains EquiDiff, the baseline and the baseline with rotation
 augmentation side by side with one recipe (``equidiff train`` runs, ``training_runs``), then gates and
 rolls them out in-process on the sim clock: the training-fit gate, in-range scenes, then unseen yaw. The
-command's help text describes the protocol and its exit codes; ``run_generalization`` takes its parsed
-arguments (any object with the same attributes) and returns the exit status.
+command's help text describes the protocol and its exit codes; ``run_generalization`` takes its
+``GeneralizationSettings`` and returns the bench's JSON line as a dict, or raises ``BenchError``; its
+progress goes to this module's logger.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import json
+import logging
 import os
 import subprocess
-import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import torch
 
+from equidiff_core.benches import BenchError
 from equidiff_core.benches.demo_sets import count_demos, demos_off_range, ensure_demos
 from equidiff_core.benches.rollouts import cached_rollouts, policy_digest, summarize
 from equidiff_core.benches.stats import paired_comparison, paired_outcomes
@@ -46,96 +49,130 @@ from equidiff_core.twin.evaluate import evaluate_policy, in_range_yaw_seeds, uns
 # and DiffPo-C (Vo) with rotation augmentation ("CNN + Aug" in the paper's appendix).
 POLICIES = ("equidiff", "baseline", "baseline_aug")
 
+logger = logging.getLogger(__name__)
 
-def _recipe(name: str, args) -> tuple[str, str]:
+
+@dataclass(frozen=True)
+class GeneralizationSettings:
+    """``equidiff bench generalization``'s settings: its flags, same names (the command's help says more)."""
+
+    recipe: Recipe  # what every training shares: preset, steps (--train-steps), batch, lr, seed, device, ...
+    demos: int  # narrow-yaw demos recorded for the training
+    eval_episodes: int  # unseen-yaw scenes per policy
+    in_range_episodes: int  # scenes per policy inside the training range, rolled out first (0: none)
+    train_yaw: tuple[float, float]  # the demos' block yaw range, degrees
+    rotation_aug: str  # training rotation augmentation of equidiff and baseline
+    baseline_aug: str  # rotation augmentation of baseline_aug
+    min_in_range: float  # the in-range gate: fraction of the in-range scenes every policy must solve (0: no gate)
+    max_fit_ratio: float  # the training-fit gate: action error at most this times EquiDiff's (0: no gate)
+    policies: tuple[str, ...]  # the POLICIES to train now (the others must already be in ``out``)
+    out: Path | None  # work directory (None: runs/bench_generalization_<time>)
+    demos_dir: Path | None  # demos recorded earlier (None: record them into ``out``)
+    trained: Path | None  # roll out DIR/<policy> trained elsewhere instead of recording and training
+    max_duration: float  # sim seconds per roll-out
+    latency_ms: float  # each chunk takes effect this long after its observation
+    twin_config: Path | None  # twin.yaml (None: the installed one); lab.yaml is the recipe's
+
+    def quick(self) -> GeneralizationSettings:
+        """The plumbing check (``--quick``): 4 demos, 30 steps of tiny, one short roll-out per policy and stage,
+        no gates (no policy acts after 30 steps: the gates would stop every quick run)."""
+        return dataclasses.replace(
+            self,
+            recipe=dataclasses.replace(self.recipe, steps=30, preset="tiny"),
+            demos=4,
+            eval_episodes=1,
+            min_in_range=0.0,
+            max_fit_ratio=0.0,
+            in_range_episodes=min(self.in_range_episodes, 1),
+            max_duration=min(self.max_duration, 6.0),  # a few chunks each: enough to test the plumbing
+        )
+
+
+def _recipe(name: str, settings: GeneralizationSettings) -> tuple[str, str]:
     """``equidiff train``'s --policy and --rotation-aug for one of POLICIES."""
     if name == "baseline_aug":
-        return "baseline", args.baseline_aug
-    return name, args.rotation_aug
+        return "baseline", settings.baseline_aug
+    return name, settings.rotation_aug
 
 
-def _start_training(name: str, bags: Path, out: Path, args, steps: int, threads: int) -> subprocess.Popen:
-    """``equidiff train`` for one of POLICIES in the background, its output in ``out/train.log``."""
-    policy, rotation_aug = _recipe(name, args)
-    cmd = dataclasses.replace(Recipe.from_args(args), steps=steps).train_command(policy, rotation_aug, [bags], out)
-    print(f"[bench] training {name}: {' '.join(cmd[3:])}", flush=True)
-    return start_run(cmd, out, threads)
+def _start_training(
+    name: str, bags: Path, out: Path, settings: GeneralizationSettings, threads: int
+) -> subprocess.Popen:
+    """The ``equidiff train`` run for one of POLICIES in the background, its output in ``out/train.log``."""
+    policy, rotation_aug = _recipe(name, settings)
+    spec = settings.recipe.train_spec(policy, rotation_aug, [bags], out)
+    logger.info(f"[bench] training {name}: {spec.settings_text()}")
+    return start_run(spec, threads)
 
 
-def _train_all(demos_dir: Path, out: Path, args) -> dict[str, Path]:
+def _train_all(demos_dir: Path, out: Path, settings: GeneralizationSettings) -> dict[str, Path]:
     """The policies at the same time, the CPU cores shared out (torch's intra-op threads scale
     poorly on few cores). On CUDA they share the GPU.
 
     A failing run stops the others within 10 s (their checkpoints and ``train.log`` stay), so an
     error is not held back until the longest run ends; every run that failed is reported."""
-    names = [name for name in POLICIES if name in args.policies]
+    names = [name for name in POLICIES if name in settings.policies]
     threads = max(1, (os.cpu_count() or 2) // len(names))
     # train stops itself at --max-minutes and exports; this deadline is only a backstop
-    deadline = None if args.max_minutes is None else time.monotonic() + args.max_minutes * 60 + 600
-    runs = {name: _start_training(name, demos_dir, out / name, args, args.train_steps, threads) for name in names}
+    deadline = (
+        None if settings.recipe.max_minutes is None else time.monotonic() + settings.recipe.max_minutes * 60 + 600
+    )
+    runs = {name: _start_training(name, demos_dir, out / name, settings, threads) for name in names}
     wait_for_runs(runs, {name: out / name for name in names}, deadline)
     return {name: out / name / "policy.pt" for name in runs}
 
 
-def run_generalization(args) -> int:
-    """The whole bench for ``equidiff bench generalization``'s parsed arguments; returns its exit status."""
-    if args.quick:  # no policy acts after 30 steps: the gate would stop every quick run
-        args.demos, args.train_steps, args.eval_episodes, args.preset, args.min_in_range = 4, 30, 1, "tiny", 0.0
-        args.max_fit_ratio = 0.0
-        args.in_range_episodes = min(args.in_range_episodes, 1)
-        args.max_duration = min(args.max_duration, 6.0)  # a few chunks each: enough to test the plumbing
-    if args.eval_episodes < 1 or args.in_range_episodes < 0 or not 0.0 <= args.min_in_range <= 1.0:
-        print(
-            "equidiff bench generalization: need --eval-episodes >= 1, --in-range-episodes >= 0 and "
-            "--min-in-range in [0, 1]",
-            file=sys.stderr,
+def run_generalization(settings: GeneralizationSettings) -> dict:
+    """The whole bench: its JSON line (also in OUT/result.json once rolled out). A stopped bench returns too:
+    ``under_fit`` names the policies the training-fit gate stopped (nothing rolled out), ``failed_in_range``
+    those the in-range gate stopped (not rolled out at unseen yaw), ``pending`` the policies still to train.
+    BenchError for settings or inputs it cannot run with (exit status 2) or a failed training (1)."""
+    if settings.eval_episodes < 1 or settings.in_range_episodes < 0 or not 0.0 <= settings.min_in_range <= 1.0:
+        raise BenchError(
+            "need --eval-episodes >= 1, --in-range-episodes >= 0 and --min-in-range in [0, 1]",
+            2,
         )
-        return 2
-    if args.device == "auto":
-        args.device = "cuda" if torch.cuda.is_available() else "cpu"
+    if settings.recipe.device == "auto":
+        device = "cuda" if torch.cuda.is_available() else "cpu"
+        settings = dataclasses.replace(settings, recipe=dataclasses.replace(settings.recipe, device=device))
     t_start = time.monotonic()
-    configs = load_twin_job_configs(args.lab_config, args.twin_config)
+    configs = load_twin_job_configs(settings.recipe.lab_config, settings.twin_config)
     lab, cfg = configs.lab, configs.twin
-    train_cfg = cfg.with_yaw_range(tuple(args.train_yaw))
-    out = args.out or Path("runs") / time.strftime("bench_generalization_%Y%m%d_%H%M%S")
+    train_cfg = cfg.with_yaw_range(tuple(settings.train_yaw))
+    out = settings.out or Path("runs") / time.strftime("bench_generalization_%Y%m%d_%H%M%S")
     out.mkdir(parents=True, exist_ok=True)
 
-    if args.trained is not None:
+    if settings.trained is not None:
         try:
-            policies, steps_done = _trained_policies(args.trained, out)
+            policies, steps_done = _trained_policies(settings.trained, out)
         except FileNotFoundError as err:
-            print(f"equidiff bench generalization: {err}", file=sys.stderr)
-            return 2
-        n_demos = count_demos(args.demos_dir) if args.demos_dir else _trained_demos(args.trained / "equidiff")
-        run_dirs = {name: args.trained / name for name in POLICIES}
-        return _evaluate(args, cfg, lab, out, policies, steps_done, n_demos, {}, run_dirs)
-    demos_dir, n_demos = ensure_demos(
-        args.demos_dir, out, args.demos, train_cfg, lab, args.seed, log=lambda s: print(s, flush=True)
-    )
-    wrong, unrecorded = demos_off_range(demos_dir, tuple(args.train_yaw))
-    if wrong:  # demos of another yaw range would measure something else: refuse before any training
-        print(
-            f"equidiff bench generalization: {len(wrong)} demos in {demos_dir} were drawn from another block "
-            f"yaw range than --train-yaw {args.train_yaw[0]:g} {args.train_yaw[1]:g}, e.g. {wrong[0]}",
-            file=sys.stderr,
+            raise BenchError(str(err), 2) from err
+        n_demos = (
+            count_demos(settings.demos_dir) if settings.demos_dir else _trained_demos(settings.trained / "equidiff")
         )
-        return 2
+        run_dirs = {name: settings.trained / name for name in POLICIES}
+        return _evaluate(settings, cfg, lab, out, policies, steps_done, n_demos, {}, run_dirs)
+    demos_dir, n_demos = ensure_demos(
+        settings.demos_dir, out, settings.demos, train_cfg, lab, settings.recipe.seed, log=logger.info
+    )
+    wrong, unrecorded = demos_off_range(demos_dir, tuple(settings.train_yaw))
+    if wrong:  # demos of another yaw range would measure something else: refuse before any training
+        raise BenchError(
+            f"{len(wrong)} demos in {demos_dir} were drawn from another block "
+            f"yaw range than --train-yaw {settings.train_yaw[0]:g} {settings.train_yaw[1]:g}, e.g. {wrong[0]}",
+            2,
+        )
     if unrecorded:
-        print(
+        logger.info(
             f"[bench] {unrecorded} demos in {demos_dir} do not record the yaw range they were drawn from "
-            "(recorded before episodes kept it): make sure it is --train-yaw",
-            flush=True,
+            "(recorded before episodes kept it): make sure it is --train-yaw"
         )
     t_demos = time.monotonic()
 
     try:
-        trained_now = _train_all(demos_dir, out, args)
+        trained_now = _train_all(demos_dir, out, settings)
     except TrainRunError as err:  # the demos stay: a rerun need not record them again
-        print(
-            f"equidiff bench generalization: {err}\nthe demos are kept: rerun with --demos-dir {demos_dir}",
-            file=sys.stderr,
-        )
-        return 1
+        raise BenchError(f"{err}\nthe demos are kept: rerun with --demos-dir {demos_dir}") from err
     t_train = time.monotonic()
     minutes = {"demos": round((t_demos - t_start) / 60, 1), "train": round((t_train - t_demos) / 60, 1)}
     pending = [name for name in POLICIES if not (out / name / "policy.pt").is_file()]
@@ -150,12 +187,11 @@ def run_generalization(args) -> int:
             f"{' '.join(pending)} with this call's recipe flags",
             "minutes": minutes,
         }
-        print(json.dumps(result))
-        return 0
+        return result
     policies = {name: out / name / "policy.pt" for name in POLICIES}
-    steps_done = {name: trained_steps(out / name) or args.train_steps for name in policies}
+    steps_done = {name: trained_steps(out / name) or settings.recipe.steps for name in policies}
     return _evaluate(
-        args,
+        settings,
         cfg,
         lab,
         out,
@@ -204,10 +240,12 @@ def _paired_against_equidiff(by_policy: dict[str, dict[int, bool]]) -> dict:
     }
 
 
-def _verdict(failed: list[str], success: dict, args, versus_baseline: dict | None = None) -> str:
+def _verdict(
+    failed: list[str], success: dict, settings: GeneralizationSettings, versus_baseline: dict | None = None
+) -> str:
     if failed:
         return (
-            f"{', '.join(failed)} solved fewer than {args.min_in_range:.0%} of the in-range scenes: the training "
+            f"{', '.join(failed)} solved fewer than {settings.min_in_range:.0%} of the in-range scenes: the training "
             "budget is too small for this comparison (more demos, steps or a GPU); not rolled out at unseen yaw"
         )
     lead = round(100 * (success["equidiff"] - success["baseline"]))
@@ -224,13 +262,22 @@ def _verdict(failed: list[str], success: dict, args, versus_baseline: dict | Non
     return verdict + ")"
 
 
-def _report_under_fit(args, out: Path, underfit: list, fits: dict, recipes: dict, steps_done: dict, n_demos, minutes):
-    """The JSON line of a bench stopped at the training-fit gate (nothing rolled out); exit status 4."""
+def _report_under_fit(
+    settings: GeneralizationSettings,
+    out: Path,
+    underfit: list,
+    fits: dict,
+    recipes: dict,
+    steps_done: dict,
+    n_demos,
+    minutes,
+) -> dict:
+    """The JSON line of a bench stopped at the training-fit gate (nothing rolled out)."""
     ratios = fit_ratios(fits, "equidiff")
     verdict = (
         "under-fit: "
         + ", ".join(f"{name} ({ratios[name]}x EquiDiff's)" for name in underfit)
-        + f": the DDIM action error on a policy's own training samples is more than {args.max_fit_ratio:g}x "
+        + f": the DDIM action error on a policy's own training samples is more than {settings.max_fit_ratio:g}x "
         f"EquiDiff's ({fits['equidiff']['pos_err_m'] * 100:.1f} cm), so it has not fit its demos and its "
         "roll-outs would measure its network or training, not generalisation; nothing rolled out"
     )
@@ -244,47 +291,50 @@ def _report_under_fit(args, out: Path, underfit: list, fits: dict, recipes: dict
         "goal_met": None,
         "train_fit": fits,
         "train_fit_vs_equidiff": ratios,
-        "max_fit_ratio": args.max_fit_ratio,
+        "max_fit_ratio": settings.max_fit_ratio,
         "demos": n_demos,
         "train_steps_by_policy": steps_done,
         "training_recipes": recipes,
         "minutes": minutes,
     }
     write_output_text(out / "result.json", json.dumps(result) + "\n", force=True)  # the bench's own, rewritten
-    print(json.dumps(result))
-    print(f"equidiff bench generalization: {verdict}", file=sys.stderr)
-    return 4
+    return result
 
 
 def _evaluate(
-    args, cfg, lab, out: Path, policies: dict, steps_done: dict, n_demos, minutes: dict, run_dirs: dict | None = None
-) -> int:
+    settings: GeneralizationSettings,
+    cfg,
+    lab,
+    out: Path,
+    policies: dict,
+    steps_done: dict,
+    n_demos,
+    minutes: dict,
+    run_dirs: dict | None = None,
+) -> dict:
     """The training-fit gate, in-range rollouts of every policy, the in-range gate, then (if both passed)
-    the unseen-yaw rollouts.
-
-    Returns 0, 4 when a policy is under-fit (nothing rolled out) or 3 when a policy failed the in-range
-    gate (the JSON line says which)."""
+    the unseen-yaw rollouts; the JSON line (``under_fit`` or ``failed_in_range`` name the policies a gate
+    stopped)."""
     run_dirs = run_dirs or {name: path.parent for name, path in policies.items()}
     recipes = {name: training_recipe(run_dirs[name]) for name in policies}
-    recipe = Recipe.from_args(args)
-    differences = recipe_differences(recipes, {name: recipe.lr_of(_recipe(name, args)[0]) for name in policies})
+    recipe = settings.recipe
+    differences = recipe_differences(recipes, {name: recipe.lr_of(_recipe(name, settings)[0]) for name in policies})
     if differences:
-        print(
-            "equidiff bench generalization: the policies were not trained with the same recipe ("
+        raise BenchError(
+            "the policies were not trained with the same recipe ("
             + "; ".join(differences)
             + "): retrain the odd ones out",
-            file=sys.stderr,
+            2,
         )
-        return 2
     # the second gate, before any roll-out: a policy that has not fit its own demos is under-fit
     fits = {name: training_fit(run_dirs[name]) for name in policies}
-    underfit = under_fit(fits, "equidiff", args.max_fit_ratio)
+    underfit = under_fit(fits, "equidiff", settings.max_fit_ratio)
     if underfit:
-        return _report_under_fit(args, out, underfit, fits, recipes, steps_done, n_demos, minutes)
+        return _report_under_fit(settings, out, underfit, fits, recipes, steps_done, n_demos, minutes)
     t_eval = time.monotonic()
-    seeds = unseen_yaw_seeds(cfg, tuple(args.train_yaw), args.eval_episodes)
-    in_range = in_range_yaw_seeds(cfg, tuple(args.train_yaw), args.in_range_episodes)
-    loaded = {name: load_inference_policy(path, device=args.device) for name, path in policies.items()}
+    seeds = unseen_yaw_seeds(cfg, tuple(settings.train_yaw), settings.eval_episodes)
+    in_range = in_range_yaw_seeds(cfg, tuple(settings.train_yaw), settings.in_range_episodes)
+    loaded = {name: load_inference_policy(path, device=settings.recipe.device) for name, path in policies.items()}
     stages: dict[str, dict] = {name: {} for name in policies}
     outcomes: dict[str, dict[str, dict[int, bool]]] = {
         "in_range": {},
@@ -297,38 +347,38 @@ def _evaluate(
     def roll_out(name: str, label: str, scene_seeds: list[int]) -> float | None:
         if not scene_seeds:
             return None
-        settings = {
+        rollout_settings = {
             "seeds": scene_seeds,
-            "max_duration_s": args.max_duration,
-            "latency_s": args.latency_ms / 1000,
+            "max_duration_s": settings.max_duration,
+            "latency_s": settings.latency_ms / 1000,
             "policy_digest": policy_digest(policies[name]),
         }
         episodes = cached_rollouts(
             out / name / f"rollouts_{label}.json",
-            settings,
+            rollout_settings,
             lambda: evaluate_policy(
                 loaded[name],
                 cfg,
                 lab,
                 scene_seeds,
-                args.max_duration,
+                settings.max_duration,
                 recorder=rec,
-                latency_s=args.latency_ms / 1000,
-                log=lambda s: print(f"[{name}, {label}] {s}", flush=True),
+                latency_s=settings.latency_ms / 1000,
+                log=lambda s: logger.info(f"[{name}, {label}] {s}"),
             ),
-            lambda s: print(f"[{name}, {label}] {s}", flush=True),
+            lambda s: logger.info(f"[{name}, {label}] {s}"),
         )
         summary = summarize(episodes)  # how far failures got: reached the block, lifted it, closest TCP
         outcomes[label][name] = {e.seed: e.success for e in episodes}
         intervals[label][name] = summary["success_ci95"]
         stages[name][label] = {k: summary[k] for k in ("reached", "lifted", "median_closest_to_block_m")}
         if label == "unseen":
-            by_yaw[name] = yaw_breakdown(episodes, tuple(args.train_yaw))
+            by_yaw[name] = yaw_breakdown(episodes, tuple(settings.train_yaw))
         return summary["success"]
 
     try:
         in_range_success = {name: roll_out(name, "in_range", in_range) for name in policies}
-        failed = in_range_failures(in_range_success, args.min_in_range)
+        failed = in_range_failures(in_range_success, settings.min_in_range)
         success = {name: None if failed else roll_out(name, "unseen", seeds) for name in policies}
     finally:
         rec.close()
@@ -341,38 +391,34 @@ def _evaluate(
         **{f"{name}_in_range_success": in_range_success[name] for name in policies},
         **{f"{name}_in_range_success_ci95": intervals["in_range"].get(name) for name in policies},
         "failed_in_range": failed,
-        "verdict": _verdict(failed, success, args, paired["unseen"].get("equidiff_vs_baseline")),
+        "verdict": _verdict(failed, success, settings, paired["unseen"].get("equidiff_vs_baseline")),
         "equidiff_minus_baseline_points": lead,
         # each baseline against EquiDiff on the same scenes: difference, paired 95 % interval, McNemar p
         "paired": paired,
         # the issue's goal for the twin: EquiDiff >= 80 % at unseen yaw, >= 30 points above the baseline
         "goal_met": None if failed else bool(success["equidiff"] >= 0.8 and lead >= 30),
-        "min_in_range": args.min_in_range,
-        "in_range_episodes": args.in_range_episodes,
-        "latency_budget_ms": args.latency_ms,
+        "min_in_range": settings.min_in_range,
+        "in_range_episodes": settings.in_range_episodes,
+        "latency_budget_ms": settings.latency_ms,
         "stages": stages,
         # unseen-yaw success by what C4 (offset modulo 90 deg) and C8 (modulo 45 deg) map into the range
         "unseen_by_yaw": by_yaw,
         "train_fit": fits,
         "train_fit_vs_equidiff": fit_ratios(fits, "equidiff"),
         "under_fit": [],
-        "max_fit_ratio": args.max_fit_ratio,
+        "max_fit_ratio": settings.max_fit_ratio,
         "demos": n_demos,
         "train_steps": min((v for v in steps_done.values() if v is not None), default=None),
         "train_steps_by_policy": steps_done,  # differ when --max-minutes stopped the slower ones first
-        "eval_episodes": args.eval_episodes,
-        "train_yaw_range_deg": list(args.train_yaw),
+        "eval_episodes": settings.eval_episodes,
+        "train_yaw_range_deg": list(settings.train_yaw),
         "eval_yaw": f"block yaw >= 15 deg outside the training range, modulo 180 deg (seeds {seeds[0]}..)",
         "preset": "/".join(sorted({p.preset.name for p in loaded.values()})),  # as the policies were trained
         "rotation_aug": {name: p.preset.rotation_aug for name, p in loaded.items()},
         "encoders": {name: encoder_summary(p.name, p.preset) for name, p in loaded.items()},
-        "device": args.device,  # of the evaluation; the training's is in training_recipes
+        "device": settings.recipe.device,  # of the evaluation; the training's is in training_recipes
         "training_recipes": recipes,
         "minutes": {**minutes, "eval": round((t_end - t_eval) / 60, 1)},
     }
     write_output_text(out / "result.json", json.dumps(result) + "\n", force=True)  # the bench's own, rewritten
-    print(json.dumps(result))
-    if failed:
-        print(f"equidiff bench generalization: {result['verdict']}", file=sys.stderr)
-        return 3
-    return 0
+    return result

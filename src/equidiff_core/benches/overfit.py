@@ -16,8 +16,6 @@ baseline needs longer (``STEPS``).
 
 from __future__ import annotations
 
-import json
-import sys
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -34,6 +32,7 @@ from ..policy_file import export_policy
 from ..presets import get_preset
 from ..synthetic import OPEN_WIDTH_M, CubeDataset
 from ..training import TrainConfig, fit_normalizer, train
+from . import BenchError
 
 __all__ = ["STEPS", "OverfitGate", "OverfitResult", "run_overfit", "sample_errors"]
 
@@ -167,27 +166,47 @@ def run_overfit(
     )
 
 
-def run_overfit_bench(args) -> int:
-    """``equidiff bench overfit``: one JSON line; exit 0 when the gate holds, else 3 (what failed on
-    stderr); 2 for a setting out of range or an unknown preset, before anything is trained."""
+@dataclass(frozen=True)
+class OverfitSettings:
+    """``equidiff bench overfit``'s settings: its flags, same names (the command's help says more)."""
+
+    policy: str  # equidiff or baseline
+    preset: str
+    steps: int | None  # training steps (None: the policy's STEPS)
+    lr: float  # peak learning rate
+    noise_repeats: int  # (noise, step) draws per encoder pass
+    seed: int  # the demos, the weights and the training's noise
+    out: Path | None  # keep the run here (None: a temporary folder)
+    force: bool = False  # replace an existing ``out``
+
+
+@dataclass(frozen=True)
+class OverfitOutcome:
+    """The bench's JSON line and what the gate found wrong (``failures`` empty: it held; the command exits 3
+    otherwise, each failure a line on stderr)."""
+
+    line: dict
+    failures: list[str]
+
+
+def run_overfit_bench(settings: OverfitSettings) -> OverfitOutcome:
+    """Train, sample, judge; BenchError (exit status 2) for a setting out of range or an unknown preset,
+    before anything is trained."""
     try:
-        overfit_train_config(policy_steps(args.policy, args.steps), args.lr, args.noise_repeats)
-        get_preset(args.preset)
+        overfit_train_config(policy_steps(settings.policy, settings.steps), settings.lr, settings.noise_repeats)
+        get_preset(settings.preset)
     except ValueError as err:  # ConfigError included
-        print(f"equidiff bench overfit: {err}", file=sys.stderr)
-        return 2
-    with staged_dir(args.out, force=args.force, prefix="bench_overfit_") as staged:  # lands when trained
+        raise BenchError(str(err), 2) from err
+    with staged_dir(settings.out, force=settings.force, prefix="bench_overfit_") as staged:  # lands when trained
         result = run_overfit(
             staged.path,
-            steps=args.steps,
-            policy=args.policy,
-            preset=args.preset,
-            lr=args.lr,
-            noise_repeats=args.noise_repeats,
-            seed=args.seed,
+            steps=settings.steps,
+            policy=settings.policy,
+            preset=settings.preset,
+            lr=settings.lr,
+            noise_repeats=settings.noise_repeats,
+            seed=settings.seed,
         )
     failures = OverfitGate().failures(result)
-    print(json.dumps({**result.as_dict(), "policy": args.policy, "preset": args.preset, "passed": not failures}))
-    for line in failures:
-        print(f"equidiff bench overfit: {line}", file=sys.stderr)
-    return 3 if failures else 0
+    line = {**result.as_dict(), "policy": settings.policy, "preset": settings.preset, "passed": not failures}
+    return OverfitOutcome(line, failures)

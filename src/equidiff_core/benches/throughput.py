@@ -1,17 +1,19 @@
 """What ``equidiff bench policy`` and ``equidiff bench train`` print: the timings of ``benches.timing`` (inference
-modes, training steps) and ``benches.cost`` assembled into one JSON line each (their help texts list the keys)."""
+modes, training steps) and ``benches.cost`` assembled into one JSON line each (their help texts list the keys).
+Each takes its settings and returns its JSON line as a dict, or raises ``BenchError``."""
 
 from __future__ import annotations
 
 import json
 import os
-import sys
 import tempfile
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import torch
 
+from equidiff_core.benches import BenchError
 from equidiff_core.benches.cost import policy_cost
 from equidiff_core.benches.timing import (
     InferenceMode,
@@ -35,52 +37,70 @@ from equidiff_core.policies import count_parameters
 from equidiff_core.presets import get_preset
 
 
-def run_policy_bench(args) -> int:
-    """``equidiff bench policy`` for its parsed arguments: one JSON line; the exit status."""
-    if args.threads:
-        torch.set_num_threads(args.threads)
+@dataclass(frozen=True)
+class PolicyBenchSettings:
+    """``equidiff bench policy``'s settings: its flags, same names (the command's help says more)."""
+
+    preset: str  # the random-weight policy's preset (ignored with ``checkpoint``)
+    policy: str  # equidiff or baseline (ignored with ``checkpoint``)
+    checkpoint: str | None  # time this exported policy.pt instead of random weights
+    device: str  # auto, cpu or cuda
+    precision: str  # the one mode's precision (without ``modes``)
+    execution: str  # the one mode's execution: traced, eager (--no-jit) or compiled (--compile)
+    graph: bool  # the one mode as one captured CUDA graph
+    modes: str | None  # comma-separated InferenceMode names, timed in one run (None: the one mode above)
+    rtc: bool  # also time RTC-guided sampling
+    compare_relu_order: bool  # also time the same file with the old encoder order
+    iters: int  # timed DDIM-16 runs of the exported policy
+    eager_iters: int  # timed runs of the eager escnn model (0: none)
+    threads: int  # torch intra-op threads (0: as chosen at start)
+
+
+def run_policy_bench(settings: PolicyBenchSettings) -> dict:
+    """The timings: the bench's JSON line. BenchError: exit status 2 for settings or a checkpoint it cannot
+    time, 1 when no mode ran."""
+    if settings.threads:
+        torch.set_num_threads(settings.threads)
     device = torch.device(
         "cuda"
-        if args.device == "auto" and torch.cuda.is_available()
-        else ("cpu" if args.device == "auto" else args.device)
+        if settings.device == "auto" and torch.cuda.is_available()
+        else ("cpu" if settings.device == "auto" else settings.device)
     )
     try:
         check_device(str(device))
         modes = (
-            [InferenceMode.parse(m) for m in args.modes.split(",")]
-            if args.modes
-            else [InferenceMode(args.precision, _execution(args), args.graph)]
+            [InferenceMode.parse(m) for m in settings.modes.split(",")]
+            if settings.modes
+            else [InferenceMode(settings.precision, settings.execution, settings.graph)]
         )
     except ValueError as err:
-        print(f"equidiff bench policy: {err}", file=sys.stderr)
-        return 2
-    if any(m.graph for m in modes) and device.type != "cuda" and not args.modes:
-        print("equidiff bench policy: --graph needs --device cuda", file=sys.stderr)
-        return 2
+        raise BenchError(str(err), 2) from err
+    if any(m.graph for m in modes) and device.type != "cuda" and not settings.modes:
+        raise BenchError("--graph needs --device cuda", 2)
 
     with tempfile.TemporaryDirectory(prefix="bench_policy_") as tmp:
-        if args.checkpoint:
+        if settings.checkpoint:
             try:  # validates the file and its config before anything is timed
-                plain = load_inference_policy(args.checkpoint)
+                plain = load_inference_policy(settings.checkpoint)
             except CheckpointError as err:
-                print(f"equidiff bench policy: {err}", file=sys.stderr)
-                return 2
-            path, policy_name, eager = Path(args.checkpoint), plain.name, None
+                raise BenchError(str(err), 2) from err
+            path, policy_name, eager = Path(settings.checkpoint), plain.name, None
         else:
-            policy_name = args.policy
-            eager = fresh_policy(policy_name, get_preset(args.preset), Workspace()).eval().to(device)
+            policy_name = settings.policy
+            eager = fresh_policy(policy_name, get_preset(settings.preset), Workspace()).eval().to(device)
             path = export_policy(eager, Path(tmp) / "policy.pt")
-        if args.modes:
-            per_mode = time_inference_modes(path, device, modes, args.iters, args.rtc)
+        if settings.modes:
+            per_mode = time_inference_modes(path, device, modes, settings.iters, settings.rtc)
         else:  # one mode: its errors are the command's
-            per_mode = {modes[0].name: time_inference_mode(path, device, modes[0], args.iters, args.rtc)[0]}
+            per_mode = {modes[0].name: time_inference_mode(path, device, modes[0], settings.iters, settings.rtc)[0]}
         first = next((name for name, r in per_mode.items() if "ddim16_median_ms" in r), None)
         if first is None:
-            print(f"equidiff bench policy: no mode ran: {json.dumps(per_mode)}", file=sys.stderr)
-            return 1
+            raise BenchError(f"no mode ran: {json.dumps(per_mode)}")
         # the same file with the old encoder order, timed alike in this run
         relu_orders = (
-            time_relu_orders(path, device, InferenceMode.parse(first), args.iters) if args.compare_relu_order else {}
+            time_relu_orders(path, device, InferenceMode.parse(first), settings.iters)
+            if settings.compare_relu_order
+            else {}
         )
     # escnn's trainable count; an exported file only holds the expanded (larger) plain weights
     params = count_parameters(eager.model if eager is not None else plain.net)
@@ -93,82 +113,98 @@ def run_policy_bench(args) -> int:
         "eager_ddim16_median_ms": None,
         "device": device_name(device),
         "mode": first,
-        "iters": args.iters,
+        "iters": settings.iters,
         "torch": torch.__version__,
         **relu_orders,
     }
-    if args.modes:
+    if settings.modes:
         result["modes"] = per_mode
         result["best_mode"] = best_mode(per_mode)
         result["best_ddim16_p99_ms"] = per_mode[result["best_mode"]]["ddim16_p99_ms"]
-    if eager is not None and args.eager_iters > 0:
+    if eager is not None and settings.eager_iters > 0:
         vox, ee = random_observation(eager, batch=1, seed=0, fill=0.05)
         obs = {"voxels": vox.to(device), "ee": ee.to(device)}
         sync = synchronizer(device)
         eager.predict_action(obs)  # warm-up (escnn filter expansion, allocator)
-        times = timed_ms(lambda: eager.predict_action(obs), args.eager_iters, sync)
+        times = timed_ms(lambda: eager.predict_action(obs), settings.eager_iters, sync)
         result["eager_ddim16_median_ms"] = round(float(np.median(times)), 2)
         result["speedup_vs_eager"] = round(result["eager_ddim16_median_ms"] / result["ddim16_median_ms"], 2)
-    print(json.dumps(result), flush=True)
-    return 0
+    return result
 
 
-def _execution(args) -> str:
-    if args.compile:
-        return "compiled"
-    return "eager" if args.no_jit else "traced"
+@dataclass(frozen=True)
+class TrainBenchSettings:
+    """``equidiff bench train``'s settings: its flags, same names (the command's help says more)."""
+
+    preset: str
+    policy: str  # equidiff or baseline
+    device: str  # auto (the CPU, then CUDA when there is one), cpu or cuda
+    batch_size: int  # the CPU's batch size
+    cuda_batch_size: int
+    steps: int  # timed optimiser steps per device
+    warmup: int  # untimed steps first
+    samples: int  # synthetic training samples, held in memory
+    cpu_precision: str  # the CPU's precision (without ``runs``)
+    runs: str | None  # PRECISION[:DATA],... measured on each device (None: one run each)
+    threads: int  # torch intra-op threads (0: as chosen at start)
+    rotation_aug: str | None  # None: the preset's
+    noise_repeats: int  # (noise, step) draws per encoder pass
+    variants: tuple[str, ...] | None  # CPU variants timed instead of the CPU's plain measurement
+    rounds: int  # alternating rounds of the variants
+    cpu: bool  # measure the CPU (``--no-cpu``: False, CUDA only)
 
 
-def run_train_bench(args) -> int:
-    """``equidiff bench train`` for its parsed arguments: one JSON line; the exit status."""
-    if args.steps < 1 or args.warmup < 1 or args.noise_repeats < 1:
-        raise SystemExit("equidiff bench train: --steps, --warmup and --noise-repeats must be >= 1")
+def run_train_bench(settings: TrainBenchSettings) -> dict:
+    """The training throughput: the bench's JSON line. BenchError: exit status 2 for a preset, run list or
+    device it cannot measure, 1 for step counts out of range."""
+    if settings.steps < 1 or settings.warmup < 1 or settings.noise_repeats < 1:
+        raise BenchError("--steps, --warmup and --noise-repeats must be >= 1")
     try:
-        runs = parse_training_runs(args.runs) if args.runs else None
-        preset = get_preset(args.preset, **({"rotation_aug": args.rotation_aug} if args.rotation_aug else {}))
+        runs = parse_training_runs(settings.runs) if settings.runs else None
+        preset = get_preset(
+            settings.preset, **({"rotation_aug": settings.rotation_aug} if settings.rotation_aug else {})
+        )
     except (ValueError, ConfigError) as err:
-        print(f"equidiff bench train: {err}", file=sys.stderr)
-        return 2
+        raise BenchError(str(err), 2) from err
     cuda = torch.cuda.is_available()
-    if args.device == "cuda" and not cuda:
-        print("equidiff bench train: --device cuda but CUDA is not available", file=sys.stderr)
-        return 2
-    if args.threads:
-        torch.set_num_threads(args.threads)
+    if settings.device == "cuda" and not cuda:
+        raise BenchError("--device cuda but CUDA is not available", 2)
+    if settings.threads:
+        torch.set_num_threads(settings.threads)
     devices = {
-        "cpu": args.device in ("auto", "cpu") and not args.no_cpu,
-        "cuda": cuda and args.device in ("auto", "cuda"),
+        "cpu": settings.device in ("auto", "cpu") and settings.cpu,
+        "cuda": cuda and settings.device in ("auto", "cuda"),
     }
-    batch_sizes = {"cpu": args.batch_size, "cuda": args.cuda_batch_size}
-    default_runs = {"cpu": [(args.cpu_precision, "auto")], "cuda": [("auto", "auto")]}
+    batch_sizes = {"cpu": settings.batch_size, "cuda": settings.cuda_batch_size}
+    default_runs = {"cpu": [(settings.cpu_precision, "auto")], "cuda": [("auto", "auto")]}
     ws = Workspace()
-    batches = [batch_sizes[d] for d, on in devices.items() if on] + ([args.batch_size] if args.variants else [])
-    data = SyntheticTrainingSet(preset, ws, max([args.samples, *batches]))
-    cost = policy_cost(fresh_policy(args.policy, preset, ws), batch=2, noise_repeats=args.noise_repeats)
-    policy = fresh_policy(args.policy, preset, ws)  # trained by every run in turn: the timing does not care
+    batches = [batch_sizes[d] for d, on in devices.items() if on] + ([settings.batch_size] if settings.variants else [])
+    data = SyntheticTrainingSet(preset, ws, max([settings.samples, *batches]))
+    cost = policy_cost(fresh_policy(settings.policy, preset, ws), batch=2, noise_repeats=settings.noise_repeats)
+    policy = fresh_policy(settings.policy, preset, ws)  # trained by every run in turn: the timing does not care
     result = {
         "bench": "train",
         "preset": preset.name,
-        "policy": args.policy,
+        "policy": settings.policy,
         "params": cost["params"],
         "cost": cost,
         "rotation_aug": preset.rotation_aug,
         "samples": len(data),
-        "noise_repeats": args.noise_repeats,
+        "noise_repeats": settings.noise_repeats,
         "load_avg_1min": round(os.getloadavg()[0], 2),  # a shared machine's load shows in CPU figures
     }
-    if args.variants:  # instead of the CPU's plain measurement
+    if settings.variants:  # instead of the CPU's plain measurement
         result["cpu_variants"] = measure_training_variants(
-            args.policy,
+            settings.policy,
             preset,
             ws,
             data,
-            args.variants,
-            args.batch_size,
-            args.steps,
-            args.warmup,
-            args.rounds,
-            args.noise_repeats,
+            list(settings.variants),
+            settings.batch_size,
+            settings.steps,
+            settings.warmup,
+            settings.rounds,
+            settings.noise_repeats,
         )
         devices["cpu"] = False
     for device, on in devices.items():
@@ -183,11 +219,11 @@ def run_train_bench(args) -> int:
                         data,
                         device,
                         batch_sizes[device],
-                        args.steps,
-                        args.warmup,
+                        settings.steps,
+                        settings.warmup,
                         precision,
                         source,
-                        args.noise_repeats,
+                        settings.noise_repeats,
                     )
                 )
             except (RuntimeError, MemoryError) as err:  # e.g. CUDA out of memory in fp32: the other runs still count
@@ -202,9 +238,8 @@ def run_train_bench(args) -> int:
     if not devices["cuda"]:
         result["cuda"] = None
         result["cuda_note"] = (
-            "not asked for (--device cpu)" if args.device == "cpu" else "CUDA not available: not measured"
+            "not asked for (--device cpu)" if settings.device == "cpu" else "CUDA not available: not measured"
         )
     if "samples_per_s" in (result.get("cpu") or {}) and "samples_per_s" in (result["cuda"] or {}):
         result["cuda_vs_cpu"] = round(result["cuda"]["samples_per_s"] / result["cpu"]["samples_per_s"], 1)
-    print(json.dumps(result), flush=True)
-    return 0
+    return result

@@ -1,5 +1,5 @@
-"""``equidiff train`` runs for the benches: one recipe for every policy, runs side by side, what they
-recorded (steps, recipe, fit of the training samples) and the two checks made before any roll-out.
+"""``equidiff train`` runs for the benches (each in a process of its own, ``equidiff_core.train_process``):
+one recipe for every policy, runs side by side, what they recorded (steps, recipe, fit of the training samples) and the two checks made before any roll-out.
 
 Every policy of a bench trains with the same recipe (``Recipe``: preset, steps, batch, warm-up, seed,
 noise draws, EMA); only rotation augmentation (by design), the baseline's own peak learning rate
@@ -25,6 +25,7 @@ from pathlib import Path
 from ..inference import export_policy
 from ..models.baseline import baseline_encoder_channels
 from ..training import load_policy_from_checkpoint
+from ..training_job import TrainingSpec
 
 # Settings that may differ between a bench's runs: rotation augmentation by design, and what only
 # changes how fast the same recipe ran (device, data path, time budget).
@@ -62,52 +63,47 @@ class Recipe:
         """The peak learning rate ``policy`` trains with."""
         return self.baseline_lr if policy == "baseline" and self.baseline_lr is not None else self.lr
 
-    @classmethod
-    def from_args(cls, args) -> Recipe:
-        """The recipe a bench's parsed flags name (the bench commands share ``equidiff train``'s flags)."""
-        return cls(
-            preset=args.preset,
-            steps=args.train_steps,
-            batch_size=args.batch_size,
-            lr=args.lr,
-            seed=args.seed,
-            device=args.device,
-            noise_repeats=args.noise_repeats,
-            ema=args.ema,
-            max_minutes=args.max_minutes,
-            lab_config=args.lab_config,
-            baseline_lr=args.baseline_lr,
+    def train_spec(self, policy: str, rotation_aug: str, bags: list[Path], out: Path) -> TrainingSpec:
+        """The ``equidiff train`` run for ``policy`` on ``bags`` into ``out``: no held-out episodes (the fit of
+        the training samples is scored once, at the end), four checkpoints, warm-up min(500, steps / 10)."""
+        return TrainingSpec(
+            bags=tuple(bags),
+            out=out,
+            policy=policy,
+            preset=self.preset,
+            rotation_aug=rotation_aug,
+            steps=self.steps,
+            batch_size=self.batch_size,
+            lr=self.lr_of(policy),
+            seed=self.seed,
+            device=self.device,
+            val_fraction=0.0,
+            eval_every=10**9,
+            checkpoint_every=max(10, self.steps // 4),
+            warmup_steps=min(500, max(1, self.steps // 10)),
+            progress=False,
+            noise_repeats=self.noise_repeats,
+            ema=self.ema,
+            lab_config=self.lab_config,
+            max_minutes=self.max_minutes,
+            # the bench owns ``out`` (start_run puts its train.log there first): an interrupted run goes on
+            # where it stopped, a new one starts
+            resume=True,
         )
 
-    def train_command(self, policy: str, rotation_aug: str, bags: list[Path], out: Path) -> list[str]:
-        """``equidiff train`` for ``policy`` on ``bags`` into ``out``: no held-out episodes (the fit of the
-        training samples is scored once, at the end), four checkpoints, warm-up min(500, steps / 10)."""
-        cmd = [sys.executable, "-m", "equidiff_ros.cli", "train", *map(str, bags), "--out", str(out)]
-        cmd += ["--policy", policy, "--preset", self.preset, "--rotation-aug", rotation_aug]
-        cmd += ["--steps", str(self.steps), "--batch-size", str(self.batch_size), "--lr", str(self.lr_of(policy))]
-        cmd += ["--seed", str(self.seed), "--device", self.device, "--val-fraction", "0"]
-        cmd += ["--eval-every", str(10**9), "--checkpoint-every", str(max(10, self.steps // 4))]
-        cmd += ["--warmup-steps", str(min(500, max(1, self.steps // 10))), "--no-progress"]
-        if self.noise_repeats != 1:
-            cmd += ["--noise-repeats", str(self.noise_repeats)]
-        if self.ema:
-            cmd += ["--ema"]
-        if self.lab_config:
-            cmd += ["--lab-config", str(self.lab_config)]
-        if self.max_minutes is not None:
-            cmd += ["--max-minutes", str(self.max_minutes)]
-        # the bench owns ``out`` (start_run puts its train.log there first): an interrupted run goes on
-        # where it stopped, a new one starts
-        cmd += ["--resume"]
-        return cmd
+
+def train_command(spec: TrainingSpec) -> list[str]:
+    """``spec``'s run in a process of its own (``equidiff_core.train_process``)."""
+    return [sys.executable, "-m", "equidiff_core.train_process", spec.to_json()]
 
 
-def start_run(cmd: list[str], out: Path, threads: int) -> subprocess.Popen:
-    """``cmd`` in the background with ``threads`` torch threads, its output appended to ``out/train.log``."""
-    out.mkdir(parents=True, exist_ok=True)
-    with open(out / "train.log", "ab") as log:
+def start_run(spec: TrainingSpec, threads: int) -> subprocess.Popen:
+    """``spec``'s run in the background with ``threads`` torch threads, its output appended to
+    ``spec.out/train.log``."""
+    spec.out.mkdir(parents=True, exist_ok=True)
+    with open(spec.out / "train.log", "ab") as log:
         return subprocess.Popen(
-            cmd,
+            train_command(spec),
             stdout=log,
             stderr=subprocess.STDOUT,
             stdin=subprocess.DEVNULL,

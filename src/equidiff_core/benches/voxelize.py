@@ -1,11 +1,13 @@
 """Fusing three camera clouds into the voxel grid, timed against open3d (``equidiff bench voxelize``; the
-command's help text lists the JSON keys). ``synthetic_scene`` is the ray-cast input the perception tests share."""
+command's help text lists the JSON keys; ``run_voxelize_bench`` takes its ``VoxelizeSettings`` and returns the JSON
+line as a dict). ``synthetic_scene`` is the ray-cast input the perception tests share."""
 
 from __future__ import annotations
 
-import json
 import os
 import time
+from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -77,16 +79,29 @@ def _timed(fn, repeats: int) -> tuple[list[float], list[float]]:
     return wall, cpu
 
 
-def run_voxelize_bench(args) -> int:
-    """``equidiff bench voxelize`` for its parsed arguments: one JSON line; 1 when the grid differs from the
-    reference."""
-    lab = load_lab_config(args.lab_config or default_config_dir() / "lab.yaml")
+@dataclass(frozen=True)
+class VoxelizeSettings:
+    """``equidiff bench voxelize``'s settings: its flags, same names (the command's help says more)."""
+
+    points: int  # points per camera
+    repeats: int  # timed calls of our voxeliser
+    open3d_repeats: int  # timed calls of open3d
+    scene: str  # raycast or uniform
+    lab_config: Path | None  # lab.yaml (None: the installed one)
+    seed: int
+    open3d: bool  # also time the open3d baseline (``--no-open3d``: False)
+
+
+def run_voxelize_bench(settings: VoxelizeSettings) -> dict:
+    """The timings: the bench's JSON line (``reference_equal`` False when the grid differs from the
+    reference: the command exits 1)."""
+    lab = load_lab_config(settings.lab_config or default_config_dir() / "lab.yaml")
     ws = lab.workspace
     extrinsics = [c.extrinsics.matrix() for c in lab.cameras]
-    clouds = synthetic_scene(lab, args.points, args.seed, args.scene)
+    clouds = synthetic_scene(lab, settings.points, settings.seed, settings.scene)
     voxelizer = Voxelizer(ws, extrinsics)
     grid = voxelizer(clouds)  # warm-up: sizes the scratch buffers
-    times, cpu = _timed(lambda: voxelizer(clouds), args.repeats)
+    times, cpu = _timed(lambda: voxelizer(clouds), settings.repeats)
     stats = voxelizer.last_stats
     t0 = time.perf_counter()
     reference = voxelize_reference(clouds, extrinsics, ws)
@@ -100,22 +115,21 @@ def run_voxelize_bench(args) -> int:
         "reference_ms": round(reference_ms, 1),
         "reference_equal": bool(np.array_equal(grid, reference)),
         "cameras": len(clouds),
-        "points_per_camera": args.points,
-        "scene": args.scene,
+        "points_per_camera": settings.points,
+        "scene": settings.scene,
         "points_in_workspace": stats.points_used,
         "occupied_voxels": stats.occupied,
         "resolution": ws.resolution,
-        "repeats": args.repeats,
+        "repeats": settings.repeats,
         "load_avg_1min": round(os.getloadavg()[0], 2),
         "cpu_count": os.cpu_count(),
     }
-    if not args.no_open3d:
+    if settings.open3d:
         pcd = _open3d_cloud(clouds, extrinsics)
-        o3d_times, _ = _timed(lambda: _open3d_grid(pcd, ws), args.open3d_repeats)
+        o3d_times, _ = _timed(lambda: _open3d_grid(pcd, ws), settings.open3d_repeats)
         result["open3d_median_ms"] = round(float(np.median(o3d_times)), 3)
         result["speedup_vs_open3d"] = round(result["open3d_median_ms"] / result["median_ms"], 1)
-    print(json.dumps(result))
-    return 0 if result["reference_equal"] else 1
+    return result
 
 
 def _open3d_cloud(clouds, extrinsics):

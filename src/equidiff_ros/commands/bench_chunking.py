@@ -33,8 +33,10 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from equidiff_core.benches.chunking import MODES, run_chunking_bench
+from equidiff_core.benches.chunking import MODES, ChunkingSettings, run_chunking_bench
+from equidiff_core.jobs import progress_lines
 from equidiff_core.twin.config import EVALUATION_FIRST_SEED
+from equidiff_ros.commands import print_result
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -62,4 +64,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    return run_chunking_bench(args)
+    settings = ChunkingSettings(
+        checkpoint=args.checkpoint,
+        seeds=args.seeds,
+        seed=args.seed,
+        duration=args.duration,
+        latencies=tuple(args.latencies),
+        modes=tuple(args.modes),
+        execute_steps=args.execute_steps,
+        device=args.device,
+        threads=args.threads,
+        lab_config=args.lab_config,
+        twin_config=args.twin_config,
+    )
+    with progress_lines():
+        result = run_chunking_bench(settings)
+    return print_result(result, "bench chunking")

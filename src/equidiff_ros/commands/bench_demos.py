@@ -33,10 +33,11 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from equidiff_core.benches.demos import DEMO_COUNTS, POLICIES, run_demos_bench
+from equidiff_core.benches.demos import DEMO_COUNTS, POLICIES, DemosSettings, run_demos_bench
 from equidiff_core.benches.stats import SCENES_PER_CELL
 from equidiff_core.benches.training_runs import BASELINE_LR, EQUIDIFF_LR, MAX_FIT_RATIO
-from equidiff_ros.commands import add_force_argument
+from equidiff_core.jobs import progress_lines
+from equidiff_ros.commands import add_force_argument, bench_recipe, print_result
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -104,5 +105,28 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--twin-config", type=Path, default=None)
 
 
+def demos_settings(args: argparse.Namespace) -> DemosSettings:
+    """The bench the parsed flags ask for."""
+    return DemosSettings(
+        recipe=bench_recipe(args),
+        counts=tuple(args.counts),
+        policies=tuple(args.policies),
+        train_counts=None if args.train_counts is None else tuple(args.train_counts),
+        eval_episodes=args.eval_episodes,
+        max_duration=args.max_duration,
+        latency_ms=args.latency_ms,
+        train_yaw=tuple(args.train_yaw),
+        max_fit_ratio=args.max_fit_ratio,
+        out=args.out,
+        demos_dir=args.demos_dir,
+        trained=args.trained,
+        plot=args.plot,
+        twin_config=args.twin_config,
+        force=args.force,
+    )
+
+
 def run(args: argparse.Namespace) -> int:
-    return run_demos_bench(args)
+    with progress_lines():
+        result = run_demos_bench(demos_settings(args))
+    return print_result(result, "bench demos")

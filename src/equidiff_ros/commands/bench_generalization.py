@@ -58,10 +58,12 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from equidiff_core.benches.generalization import POLICIES, run_generalization
+from equidiff_core.benches.generalization import POLICIES, GeneralizationSettings, run_generalization
 from equidiff_core.benches.stats import SCENES_PER_CELL
 from equidiff_core.benches.training_runs import BASELINE_LR, EQUIDIFF_LR, MAX_FIT_RATIO
+from equidiff_core.jobs import progress_lines
 from equidiff_core.presets import ROTATION_AUGS
+from equidiff_ros.commands import bench_recipe, print_result
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -192,5 +194,32 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--twin-config", type=Path, default=None)
 
 
+def generalization_settings(args: argparse.Namespace) -> GeneralizationSettings:
+    """The bench the parsed flags ask for (``--quick``: its plumbing check)."""
+    settings = GeneralizationSettings(
+        recipe=bench_recipe(args),
+        demos=args.demos,
+        eval_episodes=args.eval_episodes,
+        in_range_episodes=args.in_range_episodes,
+        train_yaw=tuple(args.train_yaw),
+        rotation_aug=args.rotation_aug,
+        baseline_aug=args.baseline_aug,
+        min_in_range=args.min_in_range,
+        max_fit_ratio=args.max_fit_ratio,
+        policies=tuple(args.policies),
+        out=args.out,
+        demos_dir=args.demos_dir,
+        trained=args.trained,
+        max_duration=args.max_duration,
+        latency_ms=args.latency_ms,
+        twin_config=args.twin_config,
+    )
+    return settings.quick() if args.quick else settings
+
+
 def run(args: argparse.Namespace) -> int:
-    return run_generalization(args)
+    with progress_lines():
+        result = run_generalization(generalization_settings(args))
+    # exit status 4: the training-fit gate stopped the bench; 3: the in-range gate did
+    status = 4 if result.get("under_fit") else 3 if result.get("failed_in_range") else 0
+    return print_result(result, "bench generalization", status)

@@ -14,10 +14,11 @@ trained; an existing DIR holding anything is refused (exit 2) before training, u
 
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 
-from equidiff_core.benches.overfit import STEPS, run_overfit_bench
-from equidiff_ros.commands import add_force_argument
+from equidiff_core.benches.overfit import STEPS, OverfitSettings, run_overfit_bench
+from equidiff_ros.commands import add_force_argument, print_result
 
 
 def add_arguments(parser) -> None:
@@ -41,4 +42,18 @@ def add_arguments(parser) -> None:
 
 
 def run(args) -> int:
-    return run_overfit_bench(args)
+    settings = OverfitSettings(
+        policy=args.policy,
+        preset=args.preset,
+        steps=args.steps,
+        lr=args.lr,
+        noise_repeats=args.noise_repeats,
+        seed=args.seed,
+        out=args.out,
+        force=args.force,
+    )
+    outcome = run_overfit_bench(settings)
+    print_result(outcome.line)
+    for line in outcome.failures:
+        print(f"equidiff bench overfit: {line}", file=sys.stderr)
+    return 3 if outcome.failures else 0

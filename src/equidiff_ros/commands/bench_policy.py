@@ -17,7 +17,8 @@ max-pool (``relu_before_pool``; ``relu_order_cpu_ms``: both orders alternately i
 
 from __future__ import annotations
 
-from equidiff_core.benches.throughput import run_policy_bench
+from equidiff_core.benches.throughput import PolicyBenchSettings, run_policy_bench
+from equidiff_ros.commands import print_result
 
 
 def add_arguments(parser) -> None:
@@ -64,4 +65,19 @@ def add_arguments(parser) -> None:
 
 
 def run(args) -> int:
-    return run_policy_bench(args)
+    settings = PolicyBenchSettings(
+        preset=args.preset,
+        policy=args.policy,
+        checkpoint=args.checkpoint,
+        device=args.device,
+        precision=args.precision,
+        execution="compiled" if args.compile else "eager" if args.no_jit else "traced",
+        graph=args.graph,
+        modes=args.modes,
+        rtc=args.rtc,
+        compare_relu_order=args.compare_relu_order,
+        iters=args.iters,
+        eager_iters=args.eager_iters,
+        threads=args.threads,
+    )
+    return print_result(run_policy_bench(settings), "bench policy")

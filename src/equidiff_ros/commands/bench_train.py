@@ -20,8 +20,9 @@ the reference (``benches.timing.CPU_VARIANTS``).
 
 from __future__ import annotations
 
-from equidiff_core.benches.throughput import run_train_bench
+from equidiff_core.benches.throughput import TrainBenchSettings, run_train_bench
 from equidiff_core.benches.timing import CPU_VARIANTS
+from equidiff_ros.commands import print_result
 
 
 def add_arguments(parser) -> None:
@@ -73,4 +74,22 @@ def add_arguments(parser) -> None:
 
 
 def run(args) -> int:
-    return run_train_bench(args)
+    settings = TrainBenchSettings(
+        preset=args.preset,
+        policy=args.policy,
+        device=args.device,
+        batch_size=args.batch_size,
+        cuda_batch_size=args.cuda_batch_size,
+        steps=args.steps,
+        warmup=args.warmup,
+        samples=args.samples,
+        cpu_precision=args.cpu_precision,
+        runs=args.runs,
+        threads=args.threads,
+        rotation_aug=args.rotation_aug,
+        noise_repeats=args.noise_repeats,
+        variants=None if args.variants is None else tuple(args.variants),
+        rounds=args.rounds,
+        cpu=not args.no_cpu,
+    )
+    return print_result(run_train_bench(settings), "bench train")

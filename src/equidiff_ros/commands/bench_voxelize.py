@@ -19,8 +19,10 @@ the worst case for every implementation).
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 
-from equidiff_core.benches.voxelize import run_voxelize_bench
+from equidiff_core.benches.voxelize import VoxelizeSettings, run_voxelize_bench
+from equidiff_ros.commands import print_result
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -34,4 +36,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    return run_voxelize_bench(args)
+    settings = VoxelizeSettings(
+        points=args.points,
+        repeats=args.repeats,
+        open3d_repeats=args.open3d_repeats,
+        scene=args.scene,
+        lab_config=None if args.lab_config is None else Path(args.lab_config),
+        seed=args.seed,
+        open3d=not args.no_open3d,
+    )
+    result = run_voxelize_bench(settings)
+    print_result(result)
+    return 0 if result["reference_equal"] else 1  # 1: the grid differs from the reference

@@ -27,11 +27,13 @@ as ``max_translation_error_mm`` / ``max_rotation_error_deg``.
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
 from equidiff_core.calibration.board import BoardSpec
-from equidiff_core.calibration_job import run_camera_calibration
-from equidiff_ros.commands import add_force_argument
+from equidiff_core.calibration_job import CameraCalibrationSettings, run_camera_calibration
+from equidiff_core.jobs import progress_lines
+from equidiff_ros.commands import add_force_argument, print_result
 
 
 def add_board_arguments(parser: argparse.ArgumentParser) -> None:
@@ -101,5 +103,36 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--perturb-deg", type=float, default=3.0, help="twin: initial guess rotation")
 
 
+def _wait_for_enter(message: str) -> None:
+    """What the arm is about to do, on stderr (stdout holds the JSON line); returns on Enter."""
+    print(message, file=sys.stderr, flush=True)
+    input()
+
+
 def run(args: argparse.Namespace) -> int:
-    return run_camera_calibration(args)
+    settings = CameraCalibrationSettings(
+        squares=tuple(args.squares),
+        square_mm=args.square_mm,
+        marker_mm=args.marker_mm,
+        dictionary=args.dictionary,
+        write_board=args.write_board,
+        dpi=args.dpi,
+        lab=args.lab,
+        output=args.output,
+        force=args.force,
+        control_config=args.control_config,
+        poses=args.poses,
+        max_tilt=args.max_tilt,
+        max_yaw=args.max_yaw,
+        seed=args.seed,
+        operator=args.operator,
+        yes=args.yes,
+        twin=args.twin,
+        twin_config=args.twin_config,
+        direct=args.direct,
+        perturb_mm=args.perturb_mm,
+        perturb_deg=args.perturb_deg,
+    )
+    with progress_lines("stderr"):  # stdout holds the JSON line
+        result = run_camera_calibration(settings, confirm=_wait_for_enter)
+    return print_result(result, "calibrate cameras")

@@ -23,8 +23,9 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from equidiff_core.calibration_job import run_calibration_check
-from equidiff_ros.commands import add_force_argument
+from equidiff_core.calibration_job import CalibrationCheckSettings, beyond_tolerance, run_calibration_check
+from equidiff_core.jobs import progress_lines
+from equidiff_ros.commands import add_force_argument, print_result
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -59,4 +60,21 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    return run_calibration_check(args)
+    settings = CalibrationCheckSettings(
+        lab=args.lab,
+        tolerance_mm=args.tolerance_mm,
+        rrd=args.rrd,
+        spawn=args.spawn,
+        twin=args.twin,
+        truth=args.truth,
+        twin_config=args.twin_config,
+        direct=args.direct,
+        control_config=args.control_config,
+        tcp=tuple(args.tcp),
+        width=args.width,
+        force=args.force,
+    )
+    with progress_lines("stderr"):  # stdout holds the JSON line
+        report = run_calibration_check(settings)
+    print_result(report)
+    return 3 if beyond_tolerance(report) else 0

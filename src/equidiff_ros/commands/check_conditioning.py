@@ -14,7 +14,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from equidiff_core.benches.conditioning import run_conditioning_check
+from equidiff_core.benches.conditioning import ConditioningSettings, run_conditioning_check
+from equidiff_ros.commands import print_result
 
 
 def add_arguments(parser) -> None:
@@ -36,4 +37,13 @@ def add_arguments(parser) -> None:
 
 
 def run(args) -> int:
-    return run_conditioning_check(args)
+    settings = ConditioningSettings(
+        policies=tuple(args.policies),
+        fresh=tuple(args.fresh),
+        preset=args.preset,
+        demos=args.demos,
+        episodes=args.episodes,
+        shift_vox=args.shift_vox,
+        seed=args.seed,
+    )
+    return print_result(run_conditioning_check(settings), "check conditioning")

@@ -22,7 +22,8 @@ Random weights by default; ``--checkpoint`` measures a training ``last.ckpt`` or
 
 from __future__ import annotations
 
-from equidiff_core.benches.equivariance import run_equivariance_check
+from equidiff_core.benches.equivariance import EquivarianceSettings, run_equivariance_check
+from equidiff_ros.commands import print_result
 
 
 def add_arguments(parser) -> None:
@@ -38,4 +39,13 @@ def add_arguments(parser) -> None:
 
 
 def run(args) -> int:
-    return run_equivariance_check(args)
+    settings = EquivarianceSettings(
+        preset=args.preset,
+        policy=args.policy,
+        control=args.control,
+        checkpoint=args.checkpoint,
+        scenes=args.scenes,
+        timestep=args.timestep,
+        seed=args.seed,
+    )
+    return print_result(run_equivariance_check(settings), "check equivariance")

@@ -21,77 +21,87 @@ that stops before its first checkpoint leaves no DIR behind.
 
 from __future__ import annotations
 
-from equidiff_core.observation import STATE_TOLERANCE_S
+import json
+from pathlib import Path
+
+from equidiff_core.jobs import progress_lines
 from equidiff_core.presets import BASELINE_INITS, ROTATION_AUGS
-from equidiff_core.training_job import run_training
+from equidiff_core.training_job import TrainingSpec, run_training
 from equidiff_ros.commands import add_force_argument
+
+# the flags' defaults are the spec's
+DEFAULT = TrainingSpec(bags=(), out=Path())
 
 
 def add_arguments(parser) -> None:
     parser.add_argument("bags", nargs="+", help="bag directories, or folders holding bag directories")
     parser.add_argument("--out", required=True, help="output directory (checkpoints, policy.pt, plots)")
-    parser.add_argument("--policy", choices=("equidiff", "baseline"), default="equidiff")
-    parser.add_argument("--preset", default="compact", help="model preset: paper, compact or tiny (default compact)")
+    parser.add_argument("--policy", choices=("equidiff", "baseline"), default=DEFAULT.policy)
+    parser.add_argument(
+        "--preset", default=DEFAULT.preset, help="model preset: paper, compact or tiny (default compact)"
+    )
     parser.add_argument(
         "--rotation-aug",
         choices=ROTATION_AUGS,
-        default=None,
+        default=DEFAULT.rotation_aug,
         help="random yaw rotation of voxels, state and actions while training (default: the preset's)",
     )
     parser.add_argument(
         "--baseline-width",
         type=int,
-        default=None,
+        default=DEFAULT.baseline_width,
         help="the baseline encoder's n_hidden (official channels n/16 ... n; default: the preset's; 0: channels "
         "matched to EquiDiff's parameter count, the baselines trained before the width existed)",
     )
     parser.add_argument(
         "--baseline-init",
         choices=BASELINE_INITS,
-        default=None,
+        default=DEFAULT.baseline_init,
         help="the baseline encoder's initialisation: torch (PyTorch's default) or he (default: the preset's)",
     )
-    parser.add_argument("--steps", type=int, default=20000)
-    parser.add_argument("--batch-size", type=int, default=64)
-    parser.add_argument("--lr", type=float, default=1e-4)
-    parser.add_argument("--warmup-steps", type=int, default=500)
+    parser.add_argument("--steps", type=int, default=DEFAULT.steps)
+    parser.add_argument("--batch-size", type=int, default=DEFAULT.batch_size)
+    parser.add_argument("--lr", type=float, default=DEFAULT.lr)
+    parser.add_argument("--warmup-steps", type=int, default=DEFAULT.warmup_steps)
     parser.add_argument(
         "--ema", action="store_true", help="keep an EMA of the weights (the paper's real-robot runs do not)"
     )
     parser.add_argument(
         "--noise-repeats",
         type=int,
-        default=1,
+        default=DEFAULT.noise_repeats,
         help="(noise, step) draws per observation per step, one encoder pass for all (default 1, the paper's)",
     )
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--device", default="auto", help="auto, cpu, cuda or cuda:N")
-    parser.add_argument("--val-fraction", type=float, default=0.1, help="fraction of episodes held out (default 0.1)")
-    parser.add_argument("--eval-every", type=int, default=1000)
+    parser.add_argument("--seed", type=int, default=DEFAULT.seed)
+    parser.add_argument("--device", default=DEFAULT.device, help="auto, cpu, cuda or cuda:N")
+    parser.add_argument(
+        "--val-fraction", type=float, default=DEFAULT.val_fraction, help="fraction of episodes held out (default 0.1)"
+    )
+    parser.add_argument("--eval-every", type=int, default=DEFAULT.eval_every)
     parser.add_argument(
         "--eval-max-samples",
         type=int,
-        default=64,
+        default=DEFAULT.eval_max_samples,
         help="held-out samples scored by action MSE at each evaluation (DDIM sampling)",
     )
-    parser.add_argument("--checkpoint-every", type=int, default=1000)
+    parser.add_argument("--checkpoint-every", type=int, default=DEFAULT.checkpoint_every)
     parser.add_argument(
         "--max-minutes",
         type=float,
-        default=None,
+        default=DEFAULT.max_minutes,
         help="stop after this much training time, then checkpoint and export as at the end",
     )
-    parser.add_argument("--num-workers", type=int, default=0)
+    parser.add_argument("--num-workers", type=int, default=DEFAULT.num_workers)
     parser.add_argument(
         "--precision",
         choices=("auto", "fp32", "bf16"),
-        default="auto",
+        default=DEFAULT.precision,
         help="auto: bf16 autocast on CUDA, fp32 on the CPU",
     )
     parser.add_argument(
         "--data",
         choices=("auto", "device", "loader"),
-        default="auto",
+        default=DEFAULT.data,
         help="auto: the whole training set on the GPU when it fits in half its free memory, a DataLoader on the CPU",
     )
     parser.add_argument("--resume", action="store_true", help="continue from OUT/last.ckpt (a new run when none)")
@@ -101,10 +111,51 @@ def add_arguments(parser) -> None:
     )
     parser.add_argument("--lab-config", help="lab.yaml (workspace); default: the installed one")
     parser.add_argument("--cache-dir", help="decoded-episode cache (default OUT/dataset_cache)")
-    parser.add_argument("--tolerance", type=float, default=STATE_TOLERANCE_S, help="state/voxel stamp tolerance, s")
+    parser.add_argument("--tolerance", type=float, default=DEFAULT.tolerance, help="state/voxel stamp tolerance, s")
     parser.add_argument("--rerun", metavar="FILE.rrd|spawn|HOST:PORT", help="also log training to rerun")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar (logs every eval instead)")
 
 
+def training_spec(args) -> TrainingSpec:
+    """The run the parsed flags ask for."""
+    return TrainingSpec(
+        bags=tuple(Path(bag) for bag in args.bags),
+        out=Path(args.out),
+        policy=args.policy,
+        preset=args.preset,
+        rotation_aug=args.rotation_aug,
+        baseline_width=args.baseline_width,
+        baseline_init=args.baseline_init,
+        steps=args.steps,
+        batch_size=args.batch_size,
+        lr=args.lr,
+        warmup_steps=args.warmup_steps,
+        ema=args.ema,
+        noise_repeats=args.noise_repeats,
+        seed=args.seed,
+        device=args.device,
+        val_fraction=args.val_fraction,
+        eval_every=args.eval_every,
+        eval_max_samples=args.eval_max_samples,
+        checkpoint_every=args.checkpoint_every,
+        max_minutes=args.max_minutes,
+        num_workers=args.num_workers,
+        precision=args.precision,
+        data=args.data,
+        resume=args.resume,
+        force=args.force,
+        lab_config=None if args.lab_config is None else Path(args.lab_config),
+        cache_dir=None if args.cache_dir is None else Path(args.cache_dir),
+        tolerance=args.tolerance,
+        rerun=args.rerun,
+        progress=not args.no_progress,
+    )
+
+
 def run(args) -> int:
-    return run_training(args)
+    spec = training_spec(args)
+    with progress_lines("stderr", "equidiff train: "):
+        summary = run_training(spec)  # TrainJobError: its message and exit status (equidiff_ros.cli)
+    if summary is not None:  # rank 0 alone reports
+        print(json.dumps(summary))
+    return 0

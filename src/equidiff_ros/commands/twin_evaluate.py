@@ -21,8 +21,10 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from equidiff_core.jobs import progress_lines
 from equidiff_core.twin.config import EVALUATION_FIRST_SEED
-from equidiff_core.twin.inprocess_jobs import run_evaluation
+from equidiff_core.twin.inprocess_jobs import EvaluationSettings, run_evaluation
+from equidiff_ros.commands import print_result
 from equidiff_ros.commands.twin_run import add_precision_argument
 
 
@@ -54,4 +56,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    return run_evaluation(args)
+    settings = EvaluationSettings(
+        episodes=args.episodes,
+        seed=args.seed,
+        checkpoint=args.checkpoint,
+        max_duration=args.max_duration,
+        latency_ms=args.latency_ms,
+        execute_steps=args.execute_steps,
+        device=args.device,
+        precision=args.precision,
+        lab_config=args.lab_config,
+        twin_config=args.twin_config,
+    )
+    with progress_lines():
+        result = run_evaluation(settings)
+    return print_result(result, "twin evaluate")

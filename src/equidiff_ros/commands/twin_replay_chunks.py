@@ -17,7 +17,9 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from equidiff_core.twin.inprocess_jobs import run_chunk_replay
+from equidiff_core.jobs import progress_lines
+from equidiff_core.twin.inprocess_jobs import ChunkReplaySettings, run_chunk_replay
+from equidiff_ros.commands import print_result
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -33,4 +35,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    return run_chunk_replay(args)
+    settings = ChunkReplaySettings(
+        bags=tuple(args.bags),
+        latency_ms=args.latency_ms,
+        max_duration=args.max_duration,
+        lab_config=args.lab_config,
+        twin_config=args.twin_config,
+    )
+    with progress_lines():
+        result = run_chunk_replay(settings)
+    return print_result(result, "twin replay-chunks")
