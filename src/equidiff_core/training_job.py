@@ -15,6 +15,7 @@ from equidiff_core import distributed
 from equidiff_core.config import ConfigError, default_config_dir, load_lab_config
 from equidiff_core.dataset import DatasetConfig, DemoDataset, load_episodes, split_episodes
 from equidiff_core.output_files import occupied, staged_output
+from equidiff_core.pointcloud import VoxelGridSpec
 from equidiff_core.policies import make_policy
 from equidiff_core.presets import get_preset
 from equidiff_core.training import (
@@ -151,6 +152,7 @@ def _train_into(args, dist_info, out: Path, named: Path) -> int:
     data_cfg = DatasetConfig.from_preset(
         preset,
         resolution=lab.workspace.resolution,
+        grid=VoxelGridSpec.of(lab.workspace, lab.base_frame),  # every bag's grids must be this lab's
         state_tolerance_s=args.tolerance,
         cache_dir=str(args.cache_dir or out / "dataset_cache"),
     )
