@@ -13,6 +13,8 @@ from equidiff_core import geometry
 from equidiff_core.chunk import PoseChunk, chunk_to_msg
 from equidiff_core.config import Workspace
 from equidiff_core.pointcloud import INT16, UINT8, cloud_to_msg, grid_to_voxel_msg
+from equidiff_core.robots.base import RobotState
+from equidiff_core.rosmsg import joint_state, pose_stamped
 
 DAY_NS = 86_400 * 1_000_000_000
 
@@ -110,4 +112,56 @@ def bad_chunks(factory, position, stamp_ns: int, frame_id: str) -> dict:
     m.points[0].transforms[0].rotation.w = 2.0
     out["one_transform"] = m = good()
     m.points[2].transforms = m.points[2].transforms[:1]
+    return out
+
+
+def bad_ee_poses(factory, pose, stamp_ns: int, frame_id: str) -> dict:
+    """TCP poses (PoseStamped) with one defect each that the decoder itself refuses (the stamp is good)."""
+
+    def good(frame=frame_id):
+        return pose_stamped(factory, pose, stamp_ns, frame)
+
+    out = {}
+    out["wrong_frame"] = good(frame="somewhere_else")
+    out["nan_position"] = m = good()
+    m.pose.position.y = float("nan")
+    out["nan_quaternion"] = m = good()
+    m.pose.orientation.z = float("nan")
+    out["non_unit_quaternion"] = m = good()  # |q| = 1.5: a normaliser would have hidden a corrupted rotation
+    o = m.pose.orientation
+    o.x, o.y, o.z, o.w = 1.5 * o.x, 1.5 * o.y, 1.5 * o.z, 1.5 * o.w
+    return out
+
+
+def robot_state(position, width: float = 0.04) -> RobotState:
+    """A state of the arm holding the tool pointing down at ``position``."""
+    pose = geometry.pose_from_pos_quat(position, (1.0, 0.0, 0.0, 0.0))
+    q = np.array([0.0, -0.785, 0.0, -2.356, 0.0, 1.571, 0.785])
+    return RobotState(0, pose, q, np.zeros(7), width)
+
+
+def bad_joint_states(factory, state: RobotState, stamp_ns: int) -> dict:
+    """JointStates (7 arm joints + two fingers) with one defect each that the decoder refuses."""
+
+    def good():
+        return joint_state(factory, state, stamp_ns)
+
+    def set_positions(m, positions):
+        m.position = factory.float64_array(positions)
+
+    out = {}
+    out["one_position_short"] = m = good()
+    set_positions(m, list(m.position)[:-1])
+    out["name_twice"] = m = good()
+    m.name = [*m.name[:-1], m.name[-2]]  # the second finger named as the first
+    out["nan_finger"] = m = good()
+    set_positions(m, [*list(m.position)[:-1], float("nan")])
+    out["nan_arm_joint"] = m = good()
+    set_positions(m, [float("nan"), *list(m.position)[1:]])
+    out["width_beyond_stroke"] = m = good()  # 0.12 m: the hand opens to 0.08
+    set_positions(m, [*list(m.position)[:-2], 0.06, 0.06])
+    out["negative_width"] = m = good()
+    set_positions(m, [*list(m.position)[:-2], -0.01, -0.01])
+    out["velocities_short"] = m = good()
+    m.velocity = factory.float64_array(list(m.velocity)[:3])
     return out

@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers_bad_messages import robot_state
 from helpers_data import (
     LAB,
     SyntheticEpisode,
@@ -22,6 +23,7 @@ from helpers_data import (
 import equidiff_core.dataset as dataset_mod
 from equidiff_core import geometry
 from equidiff_core.chunk import PoseChunk
+from equidiff_core.config import Workspace
 from equidiff_core.dataset import (
     DatasetConfig,
     DemoDataset,
@@ -32,7 +34,8 @@ from equidiff_core.dataset import (
     split_episodes,
 )
 from equidiff_core.recording import RecordingConfig
-from equidiff_core.rosmsg import NS_PER_S
+from equidiff_core.rosmsg import NS_PER_S, joint_state, pose_stamped, rosbags_factory, stamp_to_ns
+from equidiff_core.topics import TOPIC_EE_POSE, TOPIC_JOINT_STATES
 
 CFG = RecordingConfig(min_free_gib=0.0)
 EP = SyntheticEpisode(duration_s=6.0)  # 30 observations at 5 Hz
@@ -285,3 +288,60 @@ def test_dataset_stats_cli(bag, tmp_path):
     )
     assert table.returncode == 0, table.stderr
     assert "ep_0000" in table.stdout and "30" in table.stdout and "total" in table.stdout
+
+
+# --- offline decoding checks: the lab's grid, and robot state rosmsg refuses ------------------------
+
+
+def test_grids_are_checked_against_the_labs_workspace_where_the_lab_is_known(tmp_path):
+    moved = Workspace(tuple(np.asarray(LAB.workspace.center) + 0.05), LAB.workspace.edge, LAB.workspace.resolution)
+    elsewhere = write_synthetic_episode(tmp_path / "ep_moved", SyntheticEpisode(duration_s=2.0), ws=moved, config=CFG)
+    with pytest.raises(dataset_mod.BagError, match="origin or voxel size"):
+        load_episode_arrays(elsewhere, DatasetConfig.for_lab(LAB))
+    # without the lab only the resolution can be checked: the same bag decodes
+    assert len(load_episode_arrays(elsewhere, DatasetConfig(resolution=moved.resolution)).stamps_ns) > 0
+    with pytest.raises(ValueError, match="resolution"):
+        DatasetConfig(resolution=32, grid=DatasetConfig.for_lab(LAB).grid)
+
+
+class _Episode(dict):
+    path = Path("in_memory_bag")
+
+
+class _Topic:
+    def __init__(self, messages):
+        self.messages = messages
+
+    def header_ns(self) -> np.ndarray:
+        return np.array([stamp_to_ns(m.header.stamp) for m in self.messages], dtype=np.int64)
+
+
+def test_refused_poses_and_joint_states_are_left_out_and_the_next_nearest_is_used():
+    f = rosbags_factory()
+    t, ms = 10 * NS_PER_S, 1_000_000
+    down = (1.0, 0.0, 0.0, 0.0)
+
+    def pose(x, stamp, frame=LAB.base_frame):
+        return pose_stamped(f, geometry.pose_from_pos_quat((x, 0.0, 0.3), down), stamp, frame)
+
+    def joints(width, stamp):
+        return joint_state(f, robot_state((0.4, 0.0, 0.3), width), stamp)
+
+    nan_pose = pose(0.4, t)
+    nan_pose.pose.position.x = float("nan")
+    poses = [pose(0.41, t - 20 * ms), nan_pose, pose(0.42, t + 1 * ms, frame="elsewhere"), pose(0.43, t + 10 * ms)]
+    too_wide = joints(0.04, t)
+    too_wide.position = f.float64_array([*list(too_wide.position)[:-2], 0.06, 0.06])
+    states = [joints(0.02, t - 30 * ms), too_wide, joints(0.03, t + 5 * ms)]
+    episode = _Episode({TOPIC_EE_POSE: _Topic(poses), TOPIC_JOINT_STATES: _Topic(states)})
+    stamps = np.array([t], dtype=np.int64)
+    ee, ok = dataset_mod._ee_actions(episode, stamps, 50 * ms, LAB.base_frame)
+    assert ok.tolist() == [True]
+    assert ee[0, 0] == pytest.approx(0.43) and ee[0, 9] == pytest.approx(0.03)  # not the NaN, foreign or 0.12 m
+    ee, ok = dataset_mod._ee_actions(episode, stamps, 50 * ms, None)  # no frame known: the foreign pose is nearest
+    assert ee[0, 0] == pytest.approx(0.42)
+    # every pose refused: the episode has no robot state, said so
+    with pytest.raises(dataset_mod.BagError, match="no usable /franka/ee_pose"):
+        dataset_mod._ee_actions(
+            _Episode({**episode, TOPIC_EE_POSE: _Topic([nan_pose])}), stamps, 50 * ms, LAB.base_frame
+        )

@@ -1,12 +1,21 @@
 """Fuzzed decoders and chunk validation: a message either decodes to exactly what was encoded, or
-raises the decoder's documented error (``CloudError``, ``ChunkError``) with a message: never
-another exception, never a silently wrong value. Small budgets: each test runs in seconds."""
+raises the decoder's documented error (``CloudError``, ``ChunkError``, ``MessageError``) with a
+message: never another exception, never a silently wrong value. Small budgets: each test runs in
+seconds."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
-from helpers_bad_messages import bad_chunks, bad_clouds, bad_voxel_msgs, voxel_msg
+from helpers_bad_messages import (
+    bad_chunks,
+    bad_clouds,
+    bad_ee_poses,
+    bad_joint_states,
+    bad_voxel_msgs,
+    robot_state,
+    voxel_msg,
+)
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
@@ -16,7 +25,28 @@ from equidiff_core.chunk import ChunkError, ChunkReason, PoseChunk, chunk_from_m
 from equidiff_core.config import Workspace
 from equidiff_core.control import ChunkScheduler, SchedulerConfig
 from equidiff_core.pointcloud import CloudError, VoxelGridSpec, cloud_to_msg, msg_to_cloud, voxel_msg_to_grid
-from equidiff_core.rosmsg import rosbags_factory
+from equidiff_core.robots.base import ARM_JOINT_NAMES, FINGER_JOINT_NAMES, RobotState
+from equidiff_core.rosmsg import (
+    GRIPPER_WIDTH_SLACK_M,
+    MessageError,
+    MessageReason,
+    arm_joint_positions,
+    check_not_future,
+    diagnostic_array,
+    diagnostic_entries,
+    gripper_width_from_joint_state,
+    has_gripper_joints,
+    header_stamp_ns_from_cdr,
+    joint_state,
+    pos_quat_from_msg,
+    pose_from_msg,
+    pose_from_transform,
+    pose_stamped,
+    position_from_msg,
+    rosbags_factory,
+    tf_message,
+    transform_msg,
+)
 
 FUZZ = settings(max_examples=100, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 WS = Workspace(resolution=16)  # a small grid: the checks are the same at 64
@@ -170,7 +200,7 @@ def test_mutated_camera_clouds_decode_consistently_or_raise_cloud_error(points, 
         assert np.isfinite(cloud.points).all()
 
 
-@pytest.mark.parametrize("kind", ["clouds", "voxels", "chunks"])
+@pytest.mark.parametrize("kind", ["clouds", "voxels", "chunks", "ee_poses", "joint_states"])
 def test_every_listed_bad_message_is_refused_with_its_error(kind):
     """The defects the live-node test publishes (helpers_bad_messages), each refused here too."""
     rng = np.random.default_rng(1)
@@ -191,9 +221,15 @@ def test_every_listed_bad_message_is_refused_with_its_error(kind):
             lambda m: voxel_msg_to_grid(m, spec),
             CloudError,
         )
-    else:
+    elif kind == "chunks":
         cases = bad_chunks(F, (0.45, 0.0, 0.3), NOW, "base")
         decode, error = lambda m: ChunkScheduler().live_steps(chunk_from_msg(m, "base"), NOW), ChunkError
+    elif kind == "ee_poses":
+        pose = geometry.pose_from_pos_quat((0.45, 0.0, 0.3), (1.0, 0.0, 0.0, 0.0))
+        cases, decode, error = bad_ee_poses(F, pose, NOW, "base"), lambda m: pose_from_msg(m, "base"), MessageError
+    else:
+        cases = bad_joint_states(F, robot_state((0.45, 0.0, 0.3)), NOW)
+        decode, error = gripper_width_from_joint_state, MessageError
     for name, msg in cases.items():
         with pytest.raises(error, match=".") as err:
             decode(msg)
@@ -237,3 +273,238 @@ def test_chunk_validation_refuses_what_it_must_and_nothing_else_escapes(data):
     assert chunk.stamp_ns - NOW <= config.max_future_stamp_s * 1e9
     assert live.times_ns[0] - NOW <= config.max_first_step_lead_s * 1e9
     assert NOW - chunk.times_ns[-1] <= config.max_step_age_s * 1e9
+
+
+# --- robot state, transforms, diagnostics (rosmsg) -----------------------------------------
+
+positions = hnp.arrays(np.float64, 3, elements=st.floats(-10, 10))
+frames = st.text(min_size=1, max_size=12)
+stamps = st.integers(0, 2**31 * 10**9 - 1)  # builtin_interfaces/Time: int32 seconds
+
+
+def _unit(q: np.ndarray) -> np.ndarray:
+    return q / np.linalg.norm(q)
+
+
+@FUZZ
+@given(position=positions, quat=unit_quats, frame=frames, stamp=stamps)
+def test_pose_stamped_round_trips(position, quat, frame, stamp):
+    pose = geometry.pose_from_pos_quat(position, _unit(quat))
+    msg = pose_stamped(F, pose, stamp, frame)
+    back = pose_from_msg(msg, frame)
+    np.testing.assert_array_equal(back[:3, 3], position)  # the position travels as is
+    np.testing.assert_allclose(back, pose, atol=1e-12)
+    np.testing.assert_array_equal(position_from_msg(msg, frame), position)
+    p, q = pos_quat_from_msg(msg, frame)
+    o = msg.pose.orientation
+    np.testing.assert_array_equal(q, [o.x, o.y, o.z, o.w])  # exactly as sent, not renormalised
+    np.testing.assert_array_equal(p, position)
+
+
+@FUZZ
+@given(
+    transforms=st.lists(st.tuples(frames, frames, positions, unit_quats), min_size=1, max_size=4),
+    stamp=stamps,
+)
+def test_transforms_round_trip(transforms, stamp):
+    poses = [geometry.pose_from_pos_quat(p, _unit(q)) for _, _, p, q in transforms]
+    for pose in poses:
+        np.testing.assert_allclose(pose_from_transform(transform_msg(F, pose)), pose, atol=1e-12)
+    msg = tf_message(F, [(parent, child, pose) for (parent, child, _, _), pose in zip(transforms, poses)], stamp)
+    assert len(msg.transforms) == len(transforms)
+    for tf, (parent, child, _, _), pose in zip(msg.transforms, transforms, poses):
+        np.testing.assert_allclose(pose_from_transform(tf, parent, child), pose, atol=1e-12)
+        with pytest.raises(MessageError, match="child_frame_id") as err:
+            pose_from_transform(tf, parent, child + "_other")
+        assert err.value.reason == MessageReason.FRAME
+
+
+@FUZZ
+@given(
+    q=hnp.arrays(np.float64, 7, elements=st.floats(-3, 3)),
+    dq=hnp.arrays(np.float64, 7, elements=st.floats(-3, 3)),
+    width=st.one_of(st.floats(0.0, 0.08, allow_subnormal=False), st.just(float("nan"))),
+)
+def test_joint_state_round_trips(q, dq, width):
+    state = RobotState(NOW, np.eye(4), q, dq, width)
+    msg = joint_state(F, state, NOW)
+    np.testing.assert_array_equal(arm_joint_positions(msg), q)
+    if np.isnan(width):  # an unknown width is left out, never sent as a width
+        assert not has_gripper_joints(msg) and gripper_width_from_joint_state(msg) is None
+    else:
+        assert has_gripper_joints(msg) and gripper_width_from_joint_state(msg) == width
+
+
+diag_values = st.dictionaries(
+    st.text(min_size=1, max_size=10), st.one_of(st.text(max_size=10), st.integers(), st.booleans()), max_size=6
+)
+
+
+@pytest.mark.parametrize("flavour", ["rosbags", "rclpy"])
+@FUZZ
+@given(
+    name=st.text(max_size=10),
+    level=st.integers(0, 3),
+    message=st.text(max_size=20),
+    values=diag_values,
+)
+def test_diagnostic_array_round_trips(flavour, name, level, message, values):
+    factory = F if flavour == "rosbags" else _rclpy_factory()
+    (entry,) = diagnostic_entries(diagnostic_array(factory, NOW, name, "hw", level, message, values))
+    assert (entry.name, entry.level, entry.message, entry.hardware_id) == (name, level, message, "hw")
+    assert entry.values == {k: str(v) for k, v in values.items()}
+
+
+def _rclpy_factory():
+    pytest.importorskip("rclpy")
+    from equidiff_core.rosmsg import RclpyFactory
+
+    return RclpyFactory()
+
+
+def _cdr(msg, typename: str) -> bytes:
+    return bytes(F.typestore.serialize_cdr(msg, typename))
+
+
+@FUZZ
+@given(stamp=stamps, frame=frames, cut=st.integers(0, 11))
+def test_header_stamp_from_cdr_round_trips_and_refuses_truncated_bytes(stamp, frame, cut):
+    pose = geometry.pose_from_pos_quat((0.1, 0.2, 0.3), (0.0, 0.0, 0.0, 1.0))
+    data = _cdr(pose_stamped(F, pose, stamp, frame), "geometry_msgs/msg/PoseStamped")
+    assert header_stamp_ns_from_cdr(data) == stamp
+    with pytest.raises(MessageError, match="ends before"):
+        header_stamp_ns_from_cdr(data[:cut])
+
+
+@FUZZ
+@given(data=st.binary(max_size=24))
+def test_header_stamp_from_random_bytes_is_a_stamp_or_message_error(data):
+    stamp = _refused(header_stamp_ns_from_cdr, data, MessageError)
+    if stamp is not None:  # 12 bytes or more whose nanoseconds are below a second
+        assert len(data) >= 12 and 0 <= stamp % 10**9 < 10**9
+
+
+def _mutate_pose(msg, data):
+    """One random defect: a NaN / inf or arbitrary value in any of the seven numbers, the quaternion
+    scaled, or another frame."""
+    what = data.draw(st.sampled_from(["value", "scale", "frame"]))
+    pose = msg.pose
+    if what == "value":
+        part, axis = data.draw(st.sampled_from([("position", a) for a in "xyz"] + [("orientation", a) for a in "xyzw"]))
+        value = data.draw(st.one_of(st.sampled_from([np.nan, np.inf, -np.inf]), st.floats(-2, 2)))
+        setattr(getattr(pose, part), axis, value)
+    elif what == "scale":
+        factor = data.draw(st.floats(0.0, 3.0))
+        o = pose.orientation
+        o.x, o.y, o.z, o.w = o.x * factor, o.y * factor, o.z * factor, o.w * factor
+    else:
+        msg.header.frame_id = data.draw(st.text(max_size=8))
+    return msg
+
+
+@FUZZ
+@given(position=positions, quat=unit_quats, data=st.data())
+def test_mutated_poses_decode_exactly_or_raise_message_error(position, quat, data):
+    msg = _mutate_pose(pose_stamped(F, geometry.pose_from_pos_quat(position, _unit(quat)), NOW, "base"), data)
+    out = _refused(lambda m: pos_quat_from_msg(m, "base"), msg, MessageError)
+    p, o = msg.pose.position, msg.pose.orientation
+    sent_p, sent_q = np.array([p.x, p.y, p.z]), np.array([o.x, o.y, o.z, o.w])
+    usable = (
+        msg.header.frame_id == "base"
+        and np.isfinite(sent_p).all()
+        and np.isfinite(sent_q).all()
+        and abs(np.linalg.norm(sent_q) - 1.0) <= 1e-3
+    )
+    assert (out is not None) == usable, (msg, out)
+    if out is not None:
+        np.testing.assert_array_equal(out[0], sent_p)
+        np.testing.assert_array_equal(out[1], sent_q)
+    else:
+        with pytest.raises(MessageError) as err:
+            pose_from_msg(msg, "base")
+        assert isinstance(err.value.reason, MessageReason)
+
+
+def _mutate_joint_state(msg, data):
+    """One random defect: a position dropped or added, a name repeated or renamed, a position set to
+    NaN / inf / any value, the velocities' or efforts' length."""
+    what = data.draw(st.sampled_from(["drop", "add", "repeat", "rename", "value", "velocity", "effort"]))
+    names, positions = list(msg.name), list(msg.position)
+    i = data.draw(st.integers(0, len(names) - 1))
+    if what == "drop":
+        del positions[i]
+    elif what == "add":
+        positions.append(0.0)
+    elif what == "repeat":
+        names[i] = names[data.draw(st.integers(0, len(names) - 1))]
+    elif what == "rename":
+        names[i] = data.draw(st.text(max_size=8))
+    elif what == "value":
+        positions[i] = data.draw(st.one_of(st.sampled_from([np.nan, np.inf, -np.inf]), st.floats(-0.2, 0.2)))
+    elif what == "velocity":
+        msg.velocity = F.float64_array(np.zeros(data.draw(st.integers(0, len(names) + 2))))
+    else:
+        msg.effort = F.float64_array(np.zeros(data.draw(st.integers(0, len(names) + 2))))
+    msg.name, msg.position = names, F.float64_array(positions)
+    return msg
+
+
+@FUZZ
+@given(width=st.floats(0.0, 0.08, allow_subnormal=False), data=st.data())
+def test_mutated_joint_states_decode_exactly_or_raise_message_error(width, data):
+    msg = _mutate_joint_state(joint_state(F, robot_state((0.45, 0.0, 0.3), width), NOW), data)
+    out = _refused(gripper_width_from_joint_state, msg, MessageError)
+    names, positions = list(msg.name), np.asarray(msg.position)
+    well_formed = (
+        len(names) == len(positions)
+        and len(set(names)) == len(names)
+        and len(msg.velocity) in (0, len(names))
+        and len(msg.effort) in (0, len(names))
+        and np.isfinite(positions).all()
+    )
+    if not well_formed:
+        assert out is None
+        for decode in (arm_joint_positions, has_gripper_joints):
+            with pytest.raises(MessageError):
+                decode(msg)
+        return
+    by_name = dict(zip(names, positions))
+    arm = arm_joint_positions(msg)
+    if all(n in by_name for n in ARM_JOINT_NAMES):
+        np.testing.assert_array_equal(arm, [by_name[n] for n in ARM_JOINT_NAMES])
+    else:
+        assert arm is None
+    if not all(n in by_name for n in FINGER_JOINT_NAMES):
+        assert out is None and not has_gripper_joints(msg)
+        return
+    sent = by_name[FINGER_JOINT_NAMES[0]] + by_name[FINGER_JOINT_NAMES[1]]
+    in_stroke = -GRIPPER_WIDTH_SLACK_M <= sent <= 0.08 + GRIPPER_WIDTH_SLACK_M
+    assert (out == sent) if in_stroke else out is None
+
+
+@FUZZ
+@given(values=diag_values, data=st.data())
+def test_mutated_diagnostics_decode_exactly_or_raise_message_error(values, data):
+    msg = diagnostic_array(F, NOW, "node", "", 0, "ok", values)
+    status = msg.status[0]
+    what = data.draw(st.sampled_from(["level", "empty_key", "repeated_key", "none"]))
+    if what == "level":
+        status.level = data.draw(st.integers(0, 255))
+    elif what == "empty_key":
+        status.values = [*status.values, F.make("diagnostic_msgs/msg/KeyValue", key="", value="1")]
+    elif what == "repeated_key" and status.values:
+        status.values = [*status.values, status.values[0]]
+    out = _refused(diagnostic_entries, msg, MessageError)
+    keys = [kv.key for kv in status.values]
+    usable = int(status.level) <= 3 and all(keys) and len(set(keys)) == len(keys)
+    assert (out is not None) == usable
+    if out is not None:
+        (entry,) = out
+        assert entry.level == int(status.level) and entry.values == {kv.key: kv.value for kv in status.values}
+
+
+def test_a_state_stamped_beyond_the_future_bound_is_refused():
+    check_not_future(NOW + 50_000_000, NOW, 50_000_000, "a pose")  # at the bound: taken
+    with pytest.raises(MessageError, match="ahead of this node's clock") as err:
+        check_not_future(NOW + 50_000_001, NOW, 50_000_000, "a pose")
+    assert err.value.reason == MessageReason.FUTURE

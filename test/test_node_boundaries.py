@@ -11,12 +11,23 @@ import pytest
 
 pytest.importorskip("rclpy")
 
-from helpers_bad_messages import DAY_NS, bad_chunks, bad_clouds, bad_voxel_msgs, hold_chunk, voxel_msg
+from helpers_bad_messages import (
+    DAY_NS,
+    bad_chunks,
+    bad_clouds,
+    bad_ee_poses,
+    bad_joint_states,
+    bad_voxel_msgs,
+    hold_chunk,
+    robot_state,
+    voxel_msg,
+)
 from test_policy_node import checkpoint  # noqa: F401 - the module's fixture: a tiny exported policy
 
 from equidiff_core.chunk import chunk_to_msg
 from equidiff_core.config import default_config_dir, load_lab_config
 from equidiff_core.pointcloud import VoxelGridSpec, cloud_to_msg, voxel_msg_to_grid
+from equidiff_core.rosmsg import gripper_width_from_joint_state, joint_state, pose_from_msg, pose_stamped
 
 LAB_PATH = default_config_dir() / "lab.yaml"
 
@@ -36,9 +47,12 @@ def _keep_publishing(publish, done, timeout_s: float, period_s: float = 0.3) -> 
 @pytest.mark.ros
 @pytest.mark.slow
 def test_bad_messages_are_dropped_counted_and_the_nodes_go_on(ros_domain, checkpoint, tmp_path):  # noqa: F811
+    from geometry_msgs.msg import PoseStamped
+    from sensor_msgs.msg import JointState
+
     from equidiff_core.bags import read_episode
     from equidiff_core.twin.processes import start_node, stop_process
-    from equidiff_ros.common import SENSOR_QOS
+    from equidiff_ros.common import RELIABLE_QOS, SENSOR_QOS, TOPIC_EE_POSE, TOPIC_JOINT_STATES
     from equidiff_ros.control_client import ControlClient
 
     lab = load_lab_config(LAB_PATH)
@@ -135,6 +149,44 @@ def test_bad_messages_are_dropped_counted_and_the_nodes_go_on(ros_domain, checkp
                 f"recorder_node dropping a {key} message",
             )
 
+        # --- policy_node and recorder_node: bad robot state among franka_node's good one; the policy
+        # still answers grids sent with it (on franka_node's states), the recorder keeps none of it
+        pub_pose = client.node.create_publisher(PoseStamped, TOPIC_EE_POSE, RELIABLE_QOS)
+        pub_joints = client.node.create_publisher(JointState, TOPIC_JOINT_STATES, RELIABLE_QOS)
+        state = robot_state(here)
+        sent_with_bad_state: set[float] = set()
+
+        def publish_states():
+            now = time.time_ns()
+            for bad in bad_ee_poses(f, state.ee_pose, now, frame).values():
+                pub_pose.publish(bad)
+            pub_pose.publish(pose_stamped(f, state.ee_pose, now + DAY_NS, frame))
+            for bad in bad_joint_states(f, state, now).values():
+                pub_joints.publish(bad)
+            pub_joints.publish(joint_state(f, state, now + DAY_NS))
+            client.pub_voxels.publish(voxel_msg(f, grid, ws, now + 1, frame))
+            sent_with_bad_state.add((now + 1) / 1e9)
+
+        policy_drops = [f"dropped_ee_pose_{r}" for r in ("frame", "nan", "quaternion", "future")]
+        policy_drops += [f"dropped_joint_states_{r}" for r in ("malformed", "nan", "range", "future")]
+        recorder_drops = [f"dropped_franka_ee_pose_{r}" for r in ("frame", "nan", "quaternion")]
+        recorder_drops += [f"dropped_franka_joint_states_{r}" for r in ("malformed", "nan", "range")]
+
+        def state_done() -> bool:
+            return (
+                all(_count(client, "policy_node", k) >= 1 for k in policy_drops)
+                and all(_count(client, "recorder_node", k) >= 1 for k in recorder_drops)
+                and any(s in sent_with_bad_state for _, s in client.data.chunks)
+            )
+
+        _keep_publishing(publish_states, state_done, 120.0)
+        assert state_done(), (
+            client.data.diagnostics.get("policy_node"),
+            client.data.diagnostics.get("recorder_node"),
+            (tmp_path / "policy.log").read_text()[-2000:],
+        )
+        assert not dead(), dead()
+
         # --- franka_node (and the recorder): bad chunks, then a good one it accepts
         def publish_chunks():
             now = time.time_ns()
@@ -171,8 +223,13 @@ def test_bad_messages_are_dropped_counted_and_the_nodes_go_on(ros_domain, checkp
     assert set(codes.values()) == {0}, (codes, {n: p.read_text()[-1500:] for n, p in logs.items()})
     # the recorder kept the good messages and none of the bad: every grid in the bag is lab.yaml's
     (bag,) = sorted((tmp_path / "bags").iterdir())
-    episode = read_episode(bag, topics=("/voxels",))
+    episode = read_episode(bag, topics=("/voxels", "/franka/ee_pose", "/franka/joint_states"))
     spec = VoxelGridSpec.of(ws, frame)
     assert len(episode["/voxels"].messages) >= 1
     for msg in episode["/voxels"].messages:
         voxel_msg_to_grid(msg, spec)
+    assert len(episode["/franka/ee_pose"].messages) >= 1 and len(episode["/franka/joint_states"].messages) >= 1
+    for msg in episode["/franka/ee_pose"].messages:
+        pose_from_msg(msg, frame)
+    for msg in episode["/franka/joint_states"].messages:
+        assert gripper_width_from_joint_state(msg) is not None

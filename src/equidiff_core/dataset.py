@@ -6,7 +6,14 @@ One observation per ``/voxels`` message (5 Hz), at its header stamp ``t``:
 * ``ee``: the ``/franka/ee_pose`` nearest to ``t`` (header stamps) and the gripper width from
   the ``/franka/joint_states`` nearest to ``t`` (sum of the two finger joints), as a 10-D
   absolute action; both must lie within ``state_tolerance_s`` or the step is dropped (and
-  counted) rather than paired with a stale state.
+  counted) rather than paired with a stale state. A pose or joint state that ``rosmsg`` refuses
+  (NaN / inf, a non-unit quaternion, names and positions that disagree, a width outside the
+  hand's stroke; with ``DatasetConfig.grid`` a pose in another frame) is left out, as the live
+  policy node drops it: its step pairs with the next nearest usable state, or is dropped.
+
+Grids are checked against ``DatasetConfig.grid`` (lab.yaml's workspace: origin, voxel size,
+base frame; ``DatasetConfig.for_lab``) where the caller knows the lab; without it, only the
+resolution is checked, and a bag from a lab with another workspace of that resolution decodes.
 
 Actions: the commanded absolute target *in effect* at ``t + i·dt`` (i = 0 … horizon−1, dt =
 the observation period). "In effect" replays what the franka node does with
@@ -53,7 +60,7 @@ from .observation import ee_input, nearest
 from .output_files import distinct_names, staged_output, unique_paths
 from .pointcloud import CloudError, voxel_msg_to_grid
 from .robots.base import FINGER_JOINT_NAMES
-from .rosmsg import NS_PER_S, gripper_width_from_joint_state, pose_from_msg
+from .rosmsg import NS_PER_S, MessageError, gripper_width_from_joint_state, pose_from_msg
 from .topics import TOPIC_COMMAND_CHUNK, TOPIC_EE_POSE, TOPIC_JOINT_STATES, TOPIC_VOXELS
 
 
@@ -76,31 +83,60 @@ def command_schedule(chunks: Sequence[Any]) -> tuple[np.ndarray, np.ndarray]:
     return np.asarray(times, dtype=np.int64), np.asarray(targets, dtype=np.float64)
 
 
-def _ee_actions(episode, stamps_ns: np.ndarray, tol_ns: int) -> tuple[np.ndarray, np.ndarray]:
+def _ee_actions(episode, stamps_ns: np.ndarray, tol_ns: int, frame_id: str | None) -> tuple[np.ndarray, np.ndarray]:
     """(N, 10) measured pose + width at each stamp and a (N,) mask of steps within tolerance."""
     poses_t = episode[TOPIC_EE_POSE]
     pose_ns = poses_t.header_ns()
     order = np.argsort(pose_ns, kind="stable")
     pose_ns = pose_ns[order]
-    pi, pd = nearest(pose_ns, stamps_ns)
     js_t = episode[TOPIC_JOINT_STATES]
     js_ns = js_t.header_ns()
     js_order = np.argsort(js_ns, kind="stable")
-    # a message without finger joints (e.g. an arm-only publisher) is no gripper state
-    widths = np.array(
-        [np.nan if (w := gripper_width_from_joint_state(js_t.messages[i])) is None else w for i in js_order],
-        dtype=np.float64,
-    )
+    # a message without finger joints (e.g. an arm-only publisher) or one rosmsg refuses is no gripper state
+    widths = np.array([_width_or_nan(js_t.messages[i]) for i in js_order], dtype=np.float64)
     valid_js = np.isfinite(widths)
     if not valid_js.any():
-        raise BagError(f"{episode.path}: /franka/joint_states has no {' / '.join(FINGER_JOINT_NAMES)} positions")
+        raise BagError(f"{episode.path}: /franka/joint_states has no usable {' / '.join(FINGER_JOINT_NAMES)} positions")
     js_ns_valid, widths = js_ns[js_order][valid_js], widths[valid_js]
     wi, wd = nearest(js_ns_valid, stamps_ns)
-    ok = (pd <= tol_ns) & (wd <= tol_ns)
+    # Poses are decoded only where a step needs one (a bag holds ~20 per observation); a refused one
+    # is left out and the steps that wanted it look again among the rest.
+    usable = np.ones(len(pose_ns), dtype=bool)
+    decoded: dict[int, np.ndarray] = {}
+    while True:
+        if not usable.any():
+            raise BagError(f"{episode.path}: no usable /franka/ee_pose{'' if frame_id is None else f' in {frame_id}'}")
+        candidates = np.nonzero(usable)[0]
+        pi, pd = nearest(pose_ns[candidates], stamps_ns)
+        ok = (pd <= tol_ns) & (wd <= tol_ns)
+        wanted = {int(candidates[pi[n]]) for n in np.nonzero(ok)[0]} - decoded.keys()
+        for k in wanted:
+            pose = _pose_or_none(poses_t.messages[order[k]], frame_id)
+            if pose is None:
+                usable[k] = False
+            else:
+                decoded[k] = pose
+        if all(usable[k] for k in wanted):
+            break
     out = np.zeros((len(stamps_ns), geometry.ACTION_DIM), dtype=np.float32)
     for n in np.nonzero(ok)[0]:
-        out[n] = ee_input(pose_from_msg(poses_t.messages[order[pi[n]]]), widths[wi[n]])
+        out[n] = ee_input(decoded[int(candidates[pi[n]])], widths[wi[n]])
     return out, ok
+
+
+def _width_or_nan(msg) -> float:
+    try:
+        width = gripper_width_from_joint_state(msg)
+    except MessageError:
+        return np.nan
+    return np.nan if width is None else width
+
+
+def _pose_or_none(msg, frame_id: str | None) -> np.ndarray | None:
+    try:
+        return pose_from_msg(msg, frame_id)
+    except MessageError:
+        return None
 
 
 def load_episode_arrays(path: str | Path, config: DatasetConfig = DatasetConfig()) -> EpisodeArrays:
@@ -126,7 +162,8 @@ def load_episode_arrays(path: str | Path, config: DatasetConfig = DatasetConfig(
         period = round(config.obs_period_s * NS_PER_S) if config.obs_period_s else int(np.median(np.diff(stamps)))
     else:
         period = round((config.obs_period_s or 0.2) * NS_PER_S)
-    ee, ok = _ee_actions(episode, stamps, int(config.state_tolerance_s * NS_PER_S))
+    frame_id = None if config.grid is None else config.grid.frame_id
+    ee, ok = _ee_actions(episode, stamps, int(config.state_tolerance_s * NS_PER_S), frame_id)
 
     chunks, rejected = [], 0
     for msg in episode[TOPIC_COMMAND_CHUNK].messages:
@@ -146,7 +183,7 @@ def load_episode_arrays(path: str | Path, config: DatasetConfig = DatasetConfig(
     offsets, idx_parts, rgb_parts = [0], [], []
     for n in keep:
         try:
-            grid = voxel_msg_to_grid(vox.messages[order[n]], config.resolution)
+            grid = voxel_msg_to_grid(vox.messages[order[n]], config.grid or config.resolution)
         except CloudError as err:
             raise BagError(f"{path}: malformed /voxels message {n}: {err}") from err
         occ = np.nonzero(grid[0])

@@ -17,6 +17,7 @@ import numpy as np
 from .bags import UNCHECKED, BagError, EpisodeMeta
 from .observation import STATE_TOLERANCE_S
 from .output_files import staged_output
+from .pointcloud import VoxelGridSpec
 from .rosmsg import NS_PER_S
 
 CACHE_VERSION = 2  # 2: compressed, with the decoding settings inside (shared with packed episodes)
@@ -32,10 +33,16 @@ class DatasetConfig:
     state_tolerance_s: float = STATE_TOLERANCE_S  # ee pose / joint state must be this close to the voxel stamp
     obs_period_s: float | None = None  # None: the median interval of the bag's /voxels stamps
     cache_dir: str | None = None
+    # The grid every /voxels message must be (origin, voxel size, base frame; that frame also for
+    # /franka/ee_pose), where the lab is known: ``for_lab``. None (a bag from a lab whose lab.yaml
+    # is not at hand): only the resolution is checked, and poses in any frame are taken.
+    grid: VoxelGridSpec | None = None
 
     def __post_init__(self):
         if self.horizon < 1 or self.n_obs_steps < 1 or not 1 <= self.n_action_steps <= self.horizon:
             raise ValueError(f"need horizon >= n_action_steps >= 1 and n_obs_steps >= 1, got {self}")
+        if self.grid is not None and self.grid.resolution != self.resolution:
+            raise ValueError(f"grid {self.grid} does not have the resolution {self.resolution}")
         if self.state_tolerance_s <= 0:
             raise ValueError("state_tolerance_s must be positive")
 
@@ -45,6 +52,12 @@ class DatasetConfig:
         kw = {"horizon": preset.horizon, "n_obs_steps": preset.n_obs_steps, "n_action_steps": preset.n_action_steps}
         kw.update(overrides)
         return cls(**kw)
+
+    @classmethod
+    def for_lab(cls, lab: Any, **overrides: Any) -> DatasetConfig:
+        """Decoding checked against ``lab`` (a ``config.LabConfig``): its workspace's grid in its base frame."""
+        grid = VoxelGridSpec.of(lab.workspace, lab.base_frame)
+        return cls(**{"resolution": grid.resolution, "grid": grid, **overrides})
 
 
 @dataclass
@@ -98,7 +111,8 @@ _ARRAY_FIELDS = ("stamps_ns", "voxel_offsets", "voxel_idx", "voxel_rgb", "ee", "
 
 
 def _decoding(config: DatasetConfig) -> dict:
-    """The settings that change what a bag decodes to (the rest only change the sampling)."""
+    """The settings that change what a bag decodes to (the rest only change the sampling). ``grid``
+    is not one: it only decides whether a bag decodes at all, so a bag packed without it still reads."""
     return {
         "resolution": config.resolution,
         "state_tolerance_s": config.state_tolerance_s,

@@ -16,11 +16,18 @@ encoder in core is written once against a ``MsgFactory`` and works for both:
 Readers only use attribute access, so they take either kind of message directly. The
 factories differ in what array fields want (rclpy: ``array.array``/bytes, rosbags: numpy),
 which ``uint8_array`` / ``float64_array`` hide.
+
+Decoders check what they receive against what the receiver expects (the frame where the caller
+knows it; finite values; unit quaternions within ``geometry``'s tolerance, refused rather than
+normalised beyond it; joint states whose names and positions agree; a gripper width the hand
+can have; well-formed diagnostics) and raise ``MessageError`` with a ``MessageReason`` on
+anything else, never another exception and never a repaired value.
 """
 
 from __future__ import annotations
 
 import array
+import enum
 import functools
 import importlib
 import math
@@ -37,6 +44,37 @@ from .robots.base import ARM_JOINT_NAMES, FINGER_JOINT_NAMES, RobotState
 NS_PER_S = 1_000_000_000
 
 
+class MessageReason(enum.StrEnum):
+    """Why a robot-state, transform or diagnostics message was refused: nodes count each on
+    /diagnostics (``dropped_<topic>_<reason>``)."""
+
+    MALFORMED = "malformed"  # arrays that disagree, repeated names, truncated bytes, a field out of its range
+    NAN = "nan"  # NaN / inf values
+    QUATERNION = "quaternion"  # not unit length within geometry's tolerance
+    FRAME = "frame"  # header.frame_id (or child_frame_id) is not the one the receiver expects
+    RANGE = "range"  # a value the hardware cannot have: a gripper width outside its stroke
+    FUTURE = "future"  # stamped further ahead of the receiver's clock than allowed
+
+
+class MessageError(ValueError):
+    """A message that cannot be used (and must be dropped, not guessed at); ``reason`` a ``MessageReason``."""
+
+    def __init__(self, message: str, reason: MessageReason = MessageReason.MALFORMED):
+        super().__init__(message)
+        self.reason = MessageReason(reason)
+
+
+def check_not_future(stamp_ns: int, now_ns: int, max_future_ns: int, what: str) -> None:
+    """MessageError (FUTURE) when ``stamp_ns`` is more than ``max_future_ns`` ahead of ``now_ns``:
+    a clock is wrong, and a state from the future would pass every age check."""
+    ahead = int(stamp_ns) - int(now_ns)
+    if ahead > max_future_ns:
+        raise MessageError(
+            f"{what} stamped {ahead / 1e6:.0f} ms ahead of this node's clock (limit {max_future_ns / 1e6:.0f} ms)",
+            MessageReason.FUTURE,
+        )
+
+
 def stamp_to_ns(stamp: Any) -> int:
     """builtin_interfaces/Time (either flavour) -> integer nanoseconds."""
     return int(stamp.sec) * NS_PER_S + int(stamp.nanosec)
@@ -45,9 +83,15 @@ def stamp_to_ns(stamp: Any) -> int:
 def header_stamp_ns_from_cdr(data: bytes) -> int:
     """The ``header.stamp`` of a serialised (CDR) message that starts with a std_msgs/Header
     (PointCloud2, MultiDOFJointTrajectory, ...), without deserialising the rest: a listener
-    that needs only the stamp of a 1 MiB voxel grid reads 8 bytes."""
-    little = len(data) > 1 and data[1] & 1  # encapsulation id: 0x0001 = CDR little endian
+    that needs only the stamp of a 1 MiB voxel grid reads 8 bytes. MessageError when the bytes
+    end before the stamp or its nanoseconds are not below one second (not a Header)."""
+    data = bytes(data[:12])
+    if len(data) < 12:
+        raise MessageError(f"a serialised message of {len(data)} bytes ends before its header stamp (bytes 4..12)")
+    little = data[1] & 1  # encapsulation id: 0x0001 = CDR little endian
     sec, nanosec = struct.unpack_from("<iI" if little else ">iI", data, 4)
+    if nanosec >= NS_PER_S:
+        raise MessageError(f"header stamp nanosec {nanosec} is not below one second: not a std_msgs/Header")
     return sec * NS_PER_S + nanosec
 
 
@@ -186,38 +230,77 @@ def pose_stamped(factory: MsgFactory, pose: np.ndarray, stamp_ns: int, frame_id:
     )
 
 
-def position_from_msg(msg: Any) -> np.ndarray:
-    """PoseStamped or Pose (either flavour) -> position (3,), unchecked."""
+def _check_frame(msg: Any, frame_id: str | None, what: str) -> None:
+    """MessageError (FRAME) unless ``frame_id`` is None or ``msg``'s header frame; a bare (unstamped)
+    message cannot show a frame the caller asked for."""
+    if frame_id is None:
+        return
+    header = getattr(msg, "header", None)
+    if header is None:
+        raise MessageError(f"a bare {what} has no header: it cannot show the expected frame {frame_id!r}")
+    if str(header.frame_id) != frame_id:
+        raise MessageError(f"{what} frame_id {str(header.frame_id)!r} is not {frame_id!r}", MessageReason.FRAME)
+
+
+def _finite(values: np.ndarray, what: str) -> np.ndarray:
+    if not np.all(np.isfinite(values)):
+        raise MessageError(f"{what} contains NaN or inf: {values.tolist()}", MessageReason.NAN)
+    return values
+
+
+def _checked_pose(position: np.ndarray, quat_xyzw: np.ndarray, what: str) -> np.ndarray:
+    """(4, 4) from a finite position and a unit quaternion (geometry's tolerance); MessageError otherwise."""
+    _finite(position, f"{what} position")
+    _finite(quat_xyzw, f"{what} quaternion")
+    try:
+        return geometry.pose_from_pos_quat(position, quat_xyzw)
+    except geometry.GeometryError as err:  # finite, so only its length can be wrong
+        raise MessageError(f"{what}: {err}", MessageReason.QUATERNION) from err
+
+
+def position_from_msg(msg: Any, frame_id: str | None = None) -> np.ndarray:
+    """PoseStamped or Pose (either flavour) -> position (3,); MessageError on NaN / inf or, with
+    ``frame_id``, another frame. The orientation is not read (nor checked)."""
+    _check_frame(msg, frame_id, "pose")
     p = getattr(msg, "pose", msg).position
-    return np.array([p.x, p.y, p.z], dtype=np.float64)
+    return _finite(np.array([p.x, p.y, p.z], dtype=np.float64), "pose position")
 
 
-def _pos_quat(msg: Any) -> tuple[np.ndarray, np.ndarray]:
+def _pos_quat_pose(msg: Any, frame_id: str | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    _check_frame(msg, frame_id, "pose")
     pose = getattr(msg, "pose", msg)
-    o = pose.orientation
-    return position_from_msg(pose), np.array([o.x, o.y, o.z, o.w], dtype=np.float64)
+    p, o = pose.position, pose.orientation
+    pos = np.array([p.x, p.y, p.z], dtype=np.float64)
+    quat = np.array([o.x, o.y, o.z, o.w], dtype=np.float64)
+    return pos, quat, _checked_pose(pos, quat, "pose")
 
 
-def pose_from_msg(msg: Any) -> np.ndarray:
-    """PoseStamped or Pose (either flavour) -> (4, 4); raises GeometryError on NaN / non-unit quaternions."""
-    return geometry.pose_from_pos_quat(*_pos_quat(msg))
-
-
-def pos_quat_from_msg(msg: Any) -> tuple[np.ndarray, np.ndarray]:
-    """PoseStamped or Pose -> (position (3,), quaternion xyzw (4,)) as sent; raises GeometryError
-    on a NaN / inf position or a NaN / non-unit quaternion."""
-    pos, quat = _pos_quat(msg)
-    if not np.all(np.isfinite(pos)):
-        raise geometry.GeometryError("pose position contains NaN or inf")
-    geometry.pose_from_pos_quat(pos, quat)  # validates the quaternion
+def pos_quat_from_msg(msg: Any, frame_id: str | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """PoseStamped or Pose -> (position (3,), quaternion xyzw (4,)) exactly as sent; MessageError on
+    NaN / inf, a quaternion off unit length, or, with ``frame_id``, another frame."""
+    pos, quat, _ = _pos_quat_pose(msg, frame_id)
     return pos, quat
 
 
-def pose_from_transform(msg: Any) -> np.ndarray:
-    """Transform or TransformStamped (either flavour) -> (4, 4); raises GeometryError on NaN / non-unit quaternions."""
+def pose_from_msg(msg: Any, frame_id: str | None = None) -> np.ndarray:
+    """PoseStamped or Pose (either flavour) -> (4, 4); MessageError as ``pos_quat_from_msg``."""
+    return _pos_quat_pose(msg, frame_id)[2]
+
+
+def pose_from_transform(msg: Any, frame_id: str | None = None, child_frame_id: str | None = None) -> np.ndarray:
+    """Transform or TransformStamped (either flavour) -> (4, 4); MessageError on NaN / inf, a quaternion
+    off unit length, or, where given, another parent ``frame_id`` or ``child_frame_id``."""
+    _check_frame(msg, frame_id, "transform")
+    if child_frame_id is not None and str(getattr(msg, "child_frame_id", "")) != child_frame_id:
+        raise MessageError(
+            f"transform child_frame_id {str(getattr(msg, 'child_frame_id', None))!r} is not {child_frame_id!r}",
+            MessageReason.FRAME,
+        )
     transform = getattr(msg, "transform", msg)
     t, r = transform.translation, transform.rotation
-    return geometry.pose_from_pos_quat([t.x, t.y, t.z], [r.x, r.y, r.z, r.w])
+    return _checked_pose(
+        np.array([t.x, t.y, t.z], dtype=np.float64), np.array([r.x, r.y, r.z, r.w], dtype=np.float64), "transform"
+    )
 
 
 def tf_message(factory: MsgFactory, transforms: list[tuple[str, str, np.ndarray]], stamp_ns: int) -> Any:
@@ -236,45 +319,87 @@ def tf_message(factory: MsgFactory, transforms: list[tuple[str, str, np.ndarray]
 
 
 def joint_state(factory: MsgFactory, state: RobotState, stamp_ns: int) -> Any:
-    width = float(state.gripper_width) if np.isfinite(state.gripper_width) else 0.0
-    positions = [*map(float, state.joint_positions), width / 2, width / 2]
-    velocities = [*map(float, state.joint_velocities), 0.0, 0.0]
+    """The arm's joints and, when the gripper width is known, the two finger joints at width/2 each:
+    an unknown width (not read yet) is left out, not sent as a width the gripper may not have."""
+    positions = list(map(float, state.joint_positions))
+    velocities = list(map(float, state.joint_velocities))
+    names = list(ARM_JOINT_NAMES)
+    if np.isfinite(state.gripper_width):
+        width = float(state.gripper_width)
+        positions += [width / 2, width / 2]
+        velocities += [0.0, 0.0]
+        names += FINGER_JOINT_NAMES
     return factory.make(
         "sensor_msgs/msg/JointState",
         header=factory.header(stamp_ns, ""),
-        name=[*ARM_JOINT_NAMES, *FINGER_JOINT_NAMES],
+        name=names,
         position=factory.float64_array(positions),
         velocity=factory.float64_array(velocities),
         effort=factory.float64_array([]),
     )
 
 
-def _named_positions(msg: Any, names: tuple[str, ...]) -> list[float] | None:
-    order = list(msg.name)
-    try:
-        return [float(msg.position[order.index(n)]) for n in names]
-    except (ValueError, IndexError):
-        return None
+# A measured width may read a little beyond the stroke (encoder noise, a simulated finger pressed
+# into an object); more than this is not a width the hand can have.
+GRIPPER_WIDTH_SLACK_M = 0.002
+
+
+def _hand_max_width_m() -> float:
+    from .control.config import HAND_MAX_WIDTH_M  # imported late: control imports this module
+
+    return HAND_MAX_WIDTH_M
+
+
+def joint_positions(msg: Any) -> dict[str, float]:
+    """A JointState's positions by joint name; MessageError unless it is well formed: names and
+    positions of equal length (velocities and efforts each empty or as long), no name twice,
+    every position finite."""
+    names = [str(n) for n in msg.name]
+    positions = np.asarray(msg.position, dtype=np.float64).reshape(-1)
+    if len(positions) != len(names):
+        raise MessageError(f"joint state has {len(names)} names but {len(positions)} positions")
+    for field in ("velocity", "effort"):
+        n = len(getattr(msg, field))
+        if n not in (0, len(names)):
+            raise MessageError(f"joint state has {len(names)} names but {n} {field} values (0 or one each)")
+    if len(set(names)) != len(names):
+        repeated = sorted({n for n in names if names.count(n) > 1})
+        raise MessageError(f"joint state names {repeated} more than once")
+    _finite(positions, "joint state positions")
+    return dict(zip(names, positions.tolist(), strict=True))
 
 
 def has_gripper_joints(msg: Any) -> bool:
-    """Whether a JointState names both finger joints (an arm-only publisher does not)."""
-    names = list(msg.name)
-    return all(j in names for j in FINGER_JOINT_NAMES)
+    """Whether a well-formed JointState names both finger joints (an arm-only publisher does not);
+    MessageError as ``joint_positions``."""
+    positions = joint_positions(msg)
+    return all(j in positions for j in FINGER_JOINT_NAMES)
 
 
 def gripper_width_from_joint_state(msg: Any) -> float | None:
-    """Gripper width = sum of the two finger joints; None if the message carries no gripper state
-    (no finger joints, e.g. an arm-only publisher, or fewer positions than names: malformed).
-    The value may be NaN/inf if the publisher sent that: callers check ``isfinite``."""
-    fingers = _named_positions(msg, FINGER_JOINT_NAMES)
-    return None if fingers is None else float(sum(fingers))
+    """Gripper width = sum of the two finger joints; None if the message names no finger joints
+    (an arm-only publisher). MessageError as ``joint_positions``, or (RANGE) a width outside
+    [0, the hand's stroke] by more than ``GRIPPER_WIDTH_SLACK_M``."""
+    positions = joint_positions(msg)
+    if not all(j in positions for j in FINGER_JOINT_NAMES):
+        return None
+    width = float(sum(positions[j] for j in FINGER_JOINT_NAMES))
+    stroke = _hand_max_width_m()
+    if not -GRIPPER_WIDTH_SLACK_M <= width <= stroke + GRIPPER_WIDTH_SLACK_M:
+        raise MessageError(
+            f"gripper width {width:.4f} m is outside the hand's 0..{stroke} m (slack {GRIPPER_WIDTH_SLACK_M} m)",
+            MessageReason.RANGE,
+        )
+    return width
 
 
 def arm_joint_positions(msg: Any) -> np.ndarray | None:
-    """The 7 arm joints' positions (rad, joint 1 first) of a JointState, by name; None if any is missing."""
-    positions = _named_positions(msg, ARM_JOINT_NAMES)
-    return None if positions is None else np.array(positions, dtype=np.float64)
+    """The 7 arm joints' positions (rad, joint 1 first) of a JointState, by name; None if any is
+    missing (a gripper-only publisher); MessageError as ``joint_positions``."""
+    positions = joint_positions(msg)
+    if not all(j in positions for j in ARM_JOINT_NAMES):
+        return None
+    return np.array([positions[j] for j in ARM_JOINT_NAMES], dtype=np.float64)
 
 
 def diagnostic_array(
@@ -319,18 +444,40 @@ class DiagnosticEntry:
         return value if math.isfinite(value) else None
 
 
+def _level(status: Any) -> int:
+    level = status.level
+    if isinstance(level, bytes | bytearray):
+        if len(level) != 1:
+            raise MessageError(f"diagnostic status {str(status.name)!r} has a level of {len(level)} bytes")
+        level = level[0]
+    level = int(level)
+    if level not in (OK, WARN, ERROR, STALE):
+        raise MessageError(f"diagnostic status {str(status.name)!r} has level {level}, not OK..STALE (0..3)")
+    return level
+
+
 def diagnostic_entries(msg: Any) -> list[DiagnosticEntry]:
-    """DiagnosticArray (either flavour) -> its entries, values as the strings they were sent as."""
-    return [
-        DiagnosticEntry(
-            str(status.name),
-            status.level[0] if isinstance(status.level, bytes) else int(status.level),
-            str(status.message),
-            str(status.hardware_id),
-            {str(kv.key): kv.value for kv in status.values},
+    """DiagnosticArray (either flavour) -> its entries, values as the strings they were sent as;
+    MessageError on a level other than OK..STALE, a key that is empty or repeated within a status,
+    or a key or value that is not a string."""
+    entries = []
+    for status in msg.status:
+        values: dict[str, str] = {}
+        for kv in status.values:
+            if not isinstance(kv.key, str) or not isinstance(kv.value, str):
+                raise MessageError(
+                    f"diagnostic status {str(status.name)!r} has a non-string key or value: {kv.key!r}: {kv.value!r}"
+                )
+            if not kv.key or kv.key in values:
+                raise MessageError(
+                    f"diagnostic status {str(status.name)!r} has an {'empty' if not kv.key else 'repeated'} "
+                    f"key {kv.key!r}"
+                )
+            values[kv.key] = kv.value
+        entries.append(
+            DiagnosticEntry(str(status.name), _level(status), str(status.message), str(status.hardware_id), values)
         )
-        for status in msg.status
-    ]
+    return entries
 
 
 def _fmt(v: Any) -> str:

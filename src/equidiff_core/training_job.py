@@ -22,6 +22,7 @@ from equidiff_core.dataset import DatasetConfig, DemoDataset, load_episodes, spl
 from equidiff_core.jobs import JobError
 from equidiff_core.observation import STATE_TOLERANCE_S
 from equidiff_core.output_files import occupied, staged_output
+from equidiff_core.pointcloud import VoxelGridSpec
 from equidiff_core.policies import make_policy
 from equidiff_core.presets import get_preset
 from equidiff_core.training import (
@@ -223,6 +224,7 @@ def _train_into(spec: TrainingSpec, dist_info, out: Path, named: Path) -> dict |
     data_cfg = DatasetConfig.from_preset(
         preset,
         resolution=lab.workspace.resolution,
+        grid=VoxelGridSpec.of(lab.workspace, lab.base_frame),  # every bag's grids must be this lab's
         state_tolerance_s=spec.tolerance,
         cache_dir=str(spec.cache_dir or out / "dataset_cache"),
     )

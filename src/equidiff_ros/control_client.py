@@ -12,7 +12,7 @@ from __future__ import annotations
 import subprocess
 import threading
 import time
-from collections import deque
+from collections import Counter, deque
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -27,7 +27,7 @@ from trajectory_msgs.msg import MultiDOFJointTrajectory
 
 from equidiff_core.chunk import PoseChunk, chunk_to_msg
 from equidiff_core.geometry import down_pose
-from equidiff_core.rosmsg import RclpyFactory, diagnostic_entries, position_from_msg, stamp_to_ns
+from equidiff_core.rosmsg import MessageError, RclpyFactory, diagnostic_entries, position_from_msg, stamp_to_ns
 from equidiff_ros.common import (
     RELIABLE_QOS,
     TOPIC_COMMAND_CHUNK,
@@ -56,6 +56,7 @@ class Recorded:
     joint_states: int = 0
     last_joint_state: object = None
     last_chunk: object = None
+    unusable: Counter = field(default_factory=Counter)  # messages rosmsg refused, by kind
 
 
 class ControlClient:
@@ -94,11 +95,18 @@ class ControlClient:
             except Exception:  # noqa: BLE001 - context shut down under us
                 break
 
+    # An unusable message is left out here, never raised: an exception would end the spin thread.
     def _on_pose(self, msg):
-        self.data.poses.append((stamp_to_ns(msg.header.stamp) / 1e9, position_from_msg(msg)))
+        try:
+            self.data.poses.append((stamp_to_ns(msg.header.stamp) / 1e9, position_from_msg(msg)))
+        except MessageError:
+            self.data.unusable["ee_pose"] += 1
 
     def _on_target(self, msg):
-        self.data.targets.append((stamp_to_ns(msg.header.stamp) / 1e9, position_from_msg(msg)))
+        try:
+            self.data.targets.append((stamp_to_ns(msg.header.stamp) / 1e9, position_from_msg(msg)))
+        except MessageError:
+            self.data.unusable["executed_target"] += 1
 
     def _on_chunk(self, msg):
         self.data.chunks.append((self.now(), stamp_to_ns(msg.header.stamp) / 1e9))
@@ -109,7 +117,12 @@ class ControlClient:
         self.data.last_joint_state = msg
 
     def _on_diag(self, msg):
-        for entry in diagnostic_entries(msg):
+        try:
+            entries = diagnostic_entries(msg)
+        except MessageError:
+            self.data.unusable["diagnostics"] += 1
+            return
+        for entry in entries:
             self.data.diagnostics[entry.name] = entry.values
 
     def close(self):

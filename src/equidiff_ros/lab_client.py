@@ -25,7 +25,7 @@ from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 
 from equidiff_core import topics
 from equidiff_core.operator_loop import FRANKA_DIAGNOSTICS_NAME, NodeView, Request
-from equidiff_core.rosmsg import RclpyFactory, diagnostic_entries
+from equidiff_core.rosmsg import MessageError, RclpyFactory, diagnostic_entries
 from equidiff_ros.common import LATCHED_QOS, RELIABLE_QOS
 
 SERVICE_WAIT_S = 5.0
@@ -122,7 +122,11 @@ class LabClient:
             )
 
         def on_diagnostics(msg):
-            for entry in diagnostic_entries(msg):
+            try:
+                entries = diagnostic_entries(msg)
+            except MessageError:
+                return  # a malformed array from some node: the franka_node entry comes in the next
+            for entry in entries:
                 if entry.name == FRANKA_DIAGNOSTICS_NAME:
                     on_value("franka_diagnostics", (entry.message, entry.values))
 

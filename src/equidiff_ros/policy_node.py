@@ -38,8 +38,11 @@ A /voxels message that does not decode to this policy's grid (``pointcloud.voxel
 against lab.yaml's workspace and base frame: layout, frame, resolution, origin, voxel size) is
 skipped as ``malformed_observation``, one stamped more than ``max_future_stamp_s`` ahead of the
 node's clock as ``future_observation``; either way the observation it would have replaced is
-kept. A /franka/ee_pose that is not a valid pose in the base frame, or a /franka/joint_states
-without a finite gripper width, is dropped and counted (``dropped_ee_pose``, ``dropped_joint_states``).
+kept. A /franka/ee_pose or /franka/joint_states message that ``rosmsg`` refuses (a pose not in the
+base frame, NaN / inf, a non-unit quaternion; names and positions that disagree, a name twice, a
+gripper width outside the hand's stroke) or stamped more than ``max_future_stamp_s`` ahead, and a
+malformed /diagnostics message, is dropped and counted (``dropped_<topic>_<reason>``, a
+``rosmsg.MessageReason``: ``dropped_ee_pose_frame``, ``dropped_joint_states_future``, ...).
 An observation is skipped (``skipped_<reason>``, with a throttled warning) when a newer one
 replaced it while the worker was busy (``busy``), when it is older than
 ``max_observation_age_s`` (``stale_observation``; a missing camera stops the voxel node's
@@ -65,7 +68,6 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
-import numpy as np
 import torch
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped
@@ -75,7 +77,7 @@ from std_msgs.msg import Bool, String
 from std_srvs.srv import SetBool
 from trajectory_msgs.msg import MultiDOFJointTrajectory
 
-from equidiff_core import geometry, rosmsg
+from equidiff_core import rosmsg
 from equidiff_core.chunk import (
     DEFAULT_EXECUTE_STEPS,
     DEFAULT_LATENCY_S,
@@ -355,30 +357,43 @@ class PolicyNode(Node):
             self._voxels, self._grid = msg, grid
         self.start_cycle()
 
-    def drop(self, topic: str, detail: str) -> None:
-        """Count and say (throttled) that a robot-state message was unusable."""
-        self.dropped[topic.strip("/").replace("/", "_").removeprefix("franka_")] += 1
-        self.get_logger().warning(f"dropped a {topic} message: {detail}", throttle_duration_sec=5.0)
+    def drop(self, topic: str, reason: str, detail: str) -> None:
+        """Count (``dropped_<topic>_<reason>``) and say (throttled) that an input message was unusable."""
+        self.dropped[f"{topic.strip('/').replace('/', '_').removeprefix('franka_')}_{reason}"] += 1
+        self.get_logger().warning(f"dropped a {topic} message ({reason}): {detail}", throttle_duration_sec=5.0)
+
+    def _robot_state_stamp(self, msg, topic: str) -> int:
+        """The header stamp of a robot-state message; MessageError (FUTURE) when it is too far ahead."""
+        stamp = stamp_to_ns(msg.header.stamp)
+        rosmsg.check_not_future(stamp, now_ns(self), self.max_future_ns, f"a {topic} message")
+        return stamp
 
     def on_pose(self, msg) -> None:
         try:
-            if msg.header.frame_id != self.lab.base_frame:
-                raise geometry.GeometryError(f"frame_id {msg.header.frame_id!r} is not {self.lab.base_frame!r}")
-            pose = rosmsg.pose_from_msg(msg)
-        except geometry.GeometryError as err:
-            return self.drop(TOPIC_EE_POSE, str(err))
+            stamp = self._robot_state_stamp(msg, TOPIC_EE_POSE)
+            pose = rosmsg.pose_from_msg(msg, self.lab.base_frame)
+        except rosmsg.MessageError as err:
+            return self.drop(TOPIC_EE_POSE, err.reason, str(err))
         with self._lock:
-            self._poses.add(stamp_to_ns(msg.header.stamp), pose)
+            self._poses.add(stamp, pose)
 
     def on_joints(self, msg) -> None:
-        width = rosmsg.gripper_width_from_joint_state(msg)
-        if width is None or not np.isfinite(width):
-            return self.drop(TOPIC_JOINT_STATES, f"no finite gripper width (finger joints {width})")
+        try:
+            stamp = self._robot_state_stamp(msg, TOPIC_JOINT_STATES)
+            width = rosmsg.gripper_width_from_joint_state(msg)
+        except rosmsg.MessageError as err:
+            return self.drop(TOPIC_JOINT_STATES, err.reason, str(err))
+        if width is None:  # an arm-only publisher: the gripper's state comes in another message
+            return
         with self._lock:
-            self._widths.add(stamp_to_ns(msg.header.stamp), width)
+            self._widths.add(stamp, width)
 
     def on_diagnostics(self, msg) -> None:
-        for entry in rosmsg.diagnostic_entries(msg):
+        try:
+            entries = rosmsg.diagnostic_entries(msg)
+        except rosmsg.MessageError as err:
+            return self.drop(TOPIC_DIAGNOSTICS, err.reason, str(err))
+        for entry in entries:
             if entry.name.startswith("voxel"):
                 self._voxel_error = entry.message if entry.level >= rosmsg.ERROR else ""
 

@@ -17,8 +17,11 @@ its metadata (``extra.interventions``: start-end seconds from the episode start,
 
 While recording, the messages a training set is built from are decoded first with the
 decoders their live readers use: a ``/voxels`` message that is not lab.yaml's grid
-(``pointcloud.voxel_msg_to_grid``) or a ``/franka/command_chunk`` that does not decode
-(``chunk.chunk_from_msg``, base frame) is dropped from the bag, counted on /diagnostics
+(``pointcloud.voxel_msg_to_grid``), a ``/franka/command_chunk`` that does not decode
+(``chunk.chunk_from_msg``, base frame), a ``/franka/ee_pose`` that is not a pose in the base
+frame (``rosmsg.pose_from_msg``: NaN / inf, a non-unit quaternion) or a ``/franka/joint_states``
+that ``rosmsg.gripper_width_from_joint_state`` refuses (names and positions that disagree, a name
+twice, NaN / inf, a width outside the hand's stroke) is dropped from the bag, counted on /diagnostics
 (``recorder_node``: ``dropped_<topic>_<reason>``, ``last_drop``) and logged (throttled); one
 bad message would otherwise cost the whole episode when the dataset is built. Every other
 topic is written untouched.
@@ -54,12 +57,14 @@ from equidiff_core.recording import (
     next_episode_path,
     recorded_topics,
 )
-from equidiff_core.rosmsg import RclpyFactory
+from equidiff_core.rosmsg import MessageError, RclpyFactory, gripper_width_from_joint_state, pose_from_msg
 from equidiff_ros.common import (
     LATCHED_QOS,
     RELIABLE_QOS,
     TOPIC_COMMAND_CHUNK,
     TOPIC_DIAGNOSTICS,
+    TOPIC_EE_POSE,
+    TOPIC_JOINT_STATES,
     TOPIC_RECORDER_COMMAND,
     TOPIC_TELEOP_ACTIVE,
     TOPIC_VOXELS,
@@ -178,10 +183,13 @@ class RecorderNode(Node):
         self.teleop_active = False
         self.topics = recorded_topics(self.lab, self.cfg.record_clouds, self.cfg.record_images)
         grid_spec = VoxelGridSpec.of(self.lab.workspace, self.lab.base_frame)
-        # topic -> a check that raises CloudError / ChunkError (with a ``reason``) on a message the dataset cannot use
+        # topic -> a check that raises CloudError / ChunkError / MessageError (with a ``reason``) on a
+        # message the dataset cannot use
         self.checks = {
             TOPIC_VOXELS: lambda msg: voxel_msg_to_grid(msg, grid_spec),
             TOPIC_COMMAND_CHUNK: lambda msg: chunk_from_msg(msg, self.lab.base_frame),
+            TOPIC_EE_POSE: lambda msg: pose_from_msg(msg, self.lab.base_frame),
+            TOPIC_JOINT_STATES: gripper_width_from_joint_state,
         }
         self.dropped: collections.Counter[str] = collections.Counter()
         self.last_drop = ""
@@ -283,7 +291,7 @@ class RecorderNode(Node):
             if check is not None:
                 try:
                     check(deserialize_message(data, msg_class))
-                except (CloudError, ChunkError) as err:
+                except (CloudError, ChunkError, MessageError) as err:
                     return self._drop(topic, str(err.reason), str(err))
             with self.lock:
                 if self.writer is not None:

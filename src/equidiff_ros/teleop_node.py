@@ -11,6 +11,12 @@ pauses on the first, and the recorder marks both in the episode. After
 a script may have moved the arm meanwhile), and nothing is published while idle, so teleop
 never fights the policy.
 
+A /franka/ee_pose or /franka/joint_states message that ``rosmsg`` refuses (another frame than
+the base frame, NaN / inf, a non-unit quaternion; names and positions that disagree, a name
+twice, a gripper width outside the hand's stroke) is dropped, logged (throttled) and counted on
+/diagnostics (``teleop_node``: ``dropped_<topic>_<reason>``, ``last_drop``; WARN once it dropped
+one); the target keeps following the last good state.
+
 Freshness: a Joy message counts from its header stamp (the driver stamps each device event;
 the receive time if that is earlier, or if the message is unstamped), a direct SpaceMouse from
 its last HID report; input older than ``input_timeout_s`` is no input, so the target holds.
@@ -21,15 +27,16 @@ Parameters: ``PARAMETERS`` below, each field of ``TeleopConfig`` and ``resync_af
 
 from __future__ import annotations
 
+import collections
 import dataclasses
 import sys
 
 from rclpy.node import Node
 
+from equidiff_core import rosmsg
 from equidiff_core.chunk import chunk_to_msg
 from equidiff_core.config import Bounds
-from equidiff_core.geometry import GeometryError
-from equidiff_core.rosmsg import NS_PER_S, RclpyFactory, gripper_width_from_joint_state, pose_from_msg
+from equidiff_core.rosmsg import NS_PER_S, MessageError, RclpyFactory, gripper_width_from_joint_state, pose_from_msg
 from equidiff_core.teleop import (
     SpaceMouseSource,
     TeleopConfig,
@@ -43,6 +50,7 @@ from equidiff_ros.common import (
     RELIABLE_QOS,
     SENSOR_QOS,
     TOPIC_COMMAND_CHUNK,
+    TOPIC_DIAGNOSTICS,
     TOPIC_EE_POSE,
     TOPIC_JOINT_STATES,
     TOPIC_JOY,
@@ -94,6 +102,8 @@ class TeleopNode(Node):
         self.last_active_ns = 0
         self.last_publish_ns = 0
         self.last_tick_ns: int | None = None
+        self.dropped: collections.Counter[str] = collections.Counter()  # by ``<topic>_<reason>``
+        self.last_drop = ""
 
         self.pub = self.create_publisher(
             self.factory.cls("trajectory_msgs/msg/MultiDOFJointTrajectory"), TOPIC_COMMAND_CHUNK, RELIABLE_QOS
@@ -115,25 +125,48 @@ class TeleopNode(Node):
         else:
             self.create_subscription(self.factory.cls("sensor_msgs/msg/Joy"), TOPIC_JOY, self.on_joy, SENSOR_QOS)
         self.create_timer(1.0 / self.cfg.rate_hz, self.tick)
+        self.pub_diag = self.create_publisher(
+            self.factory.cls("diagnostic_msgs/msg/DiagnosticArray"), TOPIC_DIAGNOSTICS, RELIABLE_QOS
+        )
+        self.create_timer(1.0, self.publish_diagnostics)
         self.get_logger().info(
             f"teleop from {self.cfg.source} ({TOPIC_JOY if self.device is None else 'HID'}), "
             f"{self.cfg.translation_frame}-frame translation, gripper {self.cfg.gripper_mode}"
         )
 
+    def drop(self, topic: str, err: MessageError) -> None:
+        """Count (``dropped_<topic>_<reason>``) and say (throttled) that a robot-state message was unusable."""
+        self.dropped[f"{topic.strip('/').replace('/', '_').removeprefix('franka_')}_{err.reason}"] += 1
+        self.last_drop = f"{topic}: {err.reason}: {err}"
+        self.get_logger().warning(f"dropped a {topic} message ({err.reason}): {err}", throttle_duration_sec=2.0)
+
     def on_pose(self, msg):
         try:
-            pose = pose_from_msg(msg)
-        except GeometryError as err:
-            self.get_logger().warn(f"ignoring bad {TOPIC_EE_POSE}: {err}", throttle_duration_sec=2.0)
-            return
+            pose = pose_from_msg(msg, self.lab.base_frame)
+        except MessageError as err:
+            return self.drop(TOPIC_EE_POSE, err)
         self.measured = pose
         if self.teleop.ready:
             self.teleop.observe(pose)
 
     def on_joints(self, msg):
-        width = gripper_width_from_joint_state(msg)
+        try:
+            width = gripper_width_from_joint_state(msg)
+        except MessageError as err:
+            return self.drop(TOPIC_JOINT_STATES, err)
         if width is not None:
             self.width_measured = width
+
+    def publish_diagnostics(self) -> None:
+        values = {f"dropped_{key}": count for key, count in sorted(self.dropped.items())}
+        values.update(active=self.taken_over, last_drop=self.last_drop)
+        level = rosmsg.WARN if self.dropped else rosmsg.OK
+        text = "operator active" if self.taken_over else "idle"
+        if self.dropped:
+            text += f"; {sum(self.dropped.values())} unusable robot-state message(s) dropped"
+        self.pub_diag.publish(
+            rosmsg.diagnostic_array(self.factory, now_ns(self), self.get_name(), "", level, text, values)
+        )
 
     def on_joy(self, msg):
         try:

@@ -28,6 +28,7 @@ from ..chunk import ChunkError, chunk_from_msg
 from ..config import LabConfig
 from ..pointcloud import CloudError, _structured, msg_to_cloud
 from ..rosmsg import (
+    MessageError,
     diagnostic_entries,
     gripper_width_from_joint_state,
     has_gripper_joints,
@@ -339,7 +340,7 @@ class RerunLogger:
             return False
         try:
             pos, quat = pos_quat_from_msg(msg)
-        except geometry.GeometryError as err:
+        except MessageError as err:
             return self._drop("ee_pose", err)
         self._at(stamp)
         self.rec.log(EE, self.rr.Transform3D(translation=pos, quaternion=self.rr.Quaternion(xyzw=quat)))
@@ -350,16 +351,15 @@ class RerunLogger:
 
     def log_joint_states(self, msg: Any, receive_ns: int | None = None) -> bool:
         """JointState -> measured gripper width (sum of the two finger joints), at most ``ee_hz``."""
-        if not has_gripper_joints(msg):
-            return False  # arm-only joint states carry no gripper
-        stamp = _stamp(msg, receive_ns)
-        if not self._pose_throttle.ready("joints", stamp):
-            return False
-        width = gripper_width_from_joint_state(msg)
-        if width is None:
-            return self._drop("joint_states", ValueError(f"{len(msg.name)} names but {len(msg.position)} positions"))
-        if not np.isfinite(width):
-            return self._drop("joint_states", ValueError("gripper finger positions contain NaN or inf"))
+        try:
+            if not has_gripper_joints(msg):
+                return False  # arm-only joint states carry no gripper
+            stamp = _stamp(msg, receive_ns)
+            if not self._pose_throttle.ready("joints", stamp):
+                return False
+            width = gripper_width_from_joint_state(msg)
+        except MessageError as err:
+            return self._drop("joint_states", err)
         self._at(stamp)
         self.rec.log(f"{GRIPPER_WIDTH}/measured", self.rr.Scalars(width))
         self.logged["joint_states"] += 1
@@ -388,7 +388,7 @@ class RerunLogger:
             return False
         try:
             pos, quat = pos_quat_from_msg(msg)
-        except geometry.GeometryError as err:
+        except MessageError as err:
             return self._drop("executed_target", err)
         self._at(stamp)
         self.rec.log(EXECUTED, self.rr.Transform3D(translation=pos, quaternion=self.rr.Quaternion(xyzw=quat)))
@@ -399,10 +399,13 @@ class RerunLogger:
 
     def log_diagnostics(self, msg: Any, receive_ns: int | None = None) -> bool:
         """DiagnosticArray -> one time series per numeric key (latency and observation age in their own views)."""
-        stamp = _stamp(msg, receive_ns)
-        self._at(stamp)
+        try:
+            entries = diagnostic_entries(msg)
+        except MessageError as err:
+            return self._drop("diagnostics", err)
+        self._at(_stamp(msg, receive_ns))
         count = 0
-        for entry in diagnostic_entries(msg):
+        for entry in entries:
             prefix = f"{DIAGNOSTICS}/{_entity_part(entry.name or 'unnamed')}"
             for key in entry.values:
                 value = entry.number(key)

@@ -16,7 +16,7 @@ import numpy as np
 from geometry_msgs.msg import PoseStamped
 from std_msgs.msg import String
 
-from equidiff_core.rosmsg import pose_from_msg
+from equidiff_core.rosmsg import MessageError, pose_from_msg
 from equidiff_core.topics import SERVICE_FRANKA_ACKNOWLEDGE, TOPIC_EE_POSE, TOPIC_FRANKA_STATUS
 from equidiff_core.twin.shipped import SHIPPED_CHECKPOINT, SHIPPED_NAME
 from equidiff_ros.benches.control import approach
@@ -39,7 +39,10 @@ class StatusWatch:
         client.node.create_subscription(PoseStamped, TOPIC_EE_POSE, self._on_pose, RELIABLE_QOS)
 
     def _on_pose(self, msg) -> None:
-        self.ee_pose = pose_from_msg(msg)
+        try:
+            self.ee_pose = pose_from_msg(msg)
+        except MessageError:
+            pass  # the newest usable pose stays; raising would end the client's spin thread
 
     @property
     def latest(self) -> dict:

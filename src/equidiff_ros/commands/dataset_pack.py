@@ -36,13 +36,15 @@ def add_arguments(parser) -> None:
     parser.add_argument(
         "--tolerance", type=float, default=STATE_TOLERANCE_S, help="state/voxel stamp tolerance, s (as train)"
     )
-    parser.add_argument("--lab-config", help="lab.yaml (its workspace resolution); default: the installed one")
+    parser.add_argument(
+        "--lab-config", help="lab.yaml (the workspace every grid must be on); default: the installed one"
+    )
     add_force_argument(parser)
 
 
 def run(args) -> int:
     lab = load_lab_config(args.lab_config or default_config_dir() / "lab.yaml")
-    cfg = DatasetConfig(resolution=lab.workspace.resolution, state_tolerance_s=args.tolerance)
+    cfg = DatasetConfig.for_lab(lab, state_tolerance_s=args.tolerance)
     try:
         written, skipped = pack_episodes(args.bags, args.out, cfg, force=args.force)
     except OutputExistsError as err:

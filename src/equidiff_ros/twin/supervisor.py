@@ -20,6 +20,7 @@ Used by ``equidiff twin run`` and ``equidiff twin collect`` (not a standalone ex
 
 from __future__ import annotations
 
+import collections
 import json
 import threading
 import time
@@ -42,6 +43,7 @@ from trajectory_msgs.msg import MultiDOFJointTrajectory
 from equidiff_core.chunk import PoseChunk, chunk_to_msg
 from equidiff_core.rosmsg import (
     NS_PER_S,
+    MessageError,
     RclpyFactory,
     diagnostic_entries,
     gripper_width_from_joint_state,
@@ -116,6 +118,7 @@ class Supervisor:
         self.twin_state: dict | None = None
         self.scene: dict | None = None
         self.recorder_status = ""
+        self.unusable: collections.Counter[str] = collections.Counter()  # messages rosmsg refused, by topic
         n = self.node
         self.pub_chunk = n.create_publisher(MultiDOFJointTrajectory, TOPIC_COMMAND_CHUNK, RELIABLE_QOS)
         self.pub_reset = n.create_publisher(Int64, TOPIC_TWIN_RESET, RELIABLE_QOS)
@@ -221,13 +224,22 @@ class Supervisor:
         with self.lock:
             self.gate.skipped(skipped["stamp_ns"], skipped["reason"])
 
+    # A message rosmsg refuses is left out (counted in ``unusable``): the newest usable state stays.
     def _on_pose(self, msg):
-        pose = pose_from_msg(msg)
+        try:
+            pose = pose_from_msg(msg, self.frame)
+        except MessageError:
+            self.unusable["ee_pose"] += 1
+            return
         with self.lock:
             self.ee_pose = pose
 
     def _on_joints(self, msg):
-        width = gripper_width_from_joint_state(msg)
+        try:
+            width = gripper_width_from_joint_state(msg)
+        except MessageError:
+            self.unusable["joint_states"] += 1
+            return
         if width is None:
             return
         with self.lock:
@@ -247,7 +259,12 @@ class Supervisor:
             self.recorder_status = msg.data
 
     def _on_diag(self, msg):
-        for entry in diagnostic_entries(msg):
+        try:
+            entries = diagnostic_entries(msg)
+        except MessageError:
+            self.unusable["diagnostics"] += 1
+            return
+        for entry in entries:
             inference_ms = entry.number("inference_ms") if entry.name == "policy_node" else None
             with self.lock:
                 if entry.name == "franka_node":
