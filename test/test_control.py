@@ -356,9 +356,9 @@ def test_arm_running_away_from_its_command_is_stopped_and_held_where_it_is():
     for _ in range(int(0.5 * ctl.config.control_hz)):  # braking grace: no second stop
         clock.t += period
         ctl.tick()
-    assert ctl.stats.divergence_stops == 1 and not ctl.stats.faulted
+    assert ctl.stats.divergence_stops == 1 and not ctl.faulted
     # It never resumes on its own: chunks are refused, the arm holds, until an operator acknowledges.
-    assert "divergence stop" in ctl.stats.awaiting_ack
+    assert "divergence stop" in ctl.awaiting_ack
     assert not ctl.submit(circle_chunk(clock.t, t0)) and ctl.stats.ack_rejected == 1 and ctl.holding
     assert "awaiting an operator's acknowledgement" in ctl.stats.last_rejection
     robot.joint_speed = np.array([2.4, 0, 0, 0, 0, 3.9, 4.9])  # fast but within each joint's limit
@@ -366,7 +366,7 @@ def test_arm_running_away_from_its_command_is_stopped_and_held_where_it_is():
         clock.t += period
         np.testing.assert_allclose(ctl.tick().target.pose[:3, 3], runaway, atol=1e-9)  # still held
     assert ctl.stats.divergence_stops == 1 and ctl.holding
-    assert "divergence stop" in ctl.acknowledge() and not ctl.stats.awaiting_ack and ctl.acknowledge() == ""
+    assert "divergence stop" in ctl.acknowledge() and not ctl.awaiting_ack and ctl.acknowledge() == ""
     go_on = PoseChunk(clock.t, np.array([clock.t + 200 * MS]), pose_at(runaway + 0.01)[None], np.ones(1))
     assert ctl.submit(go_on) and not ctl.holding  # after the operator's go-ahead
     robot.joint_speed = np.full(7, 3.0)  # keeps whipping: stopped and held, then streaming stopped
@@ -376,7 +376,7 @@ def test_arm_running_away_from_its_command_is_stopped_and_held_where_it_is():
         ctl.tick()
     assert "joint 1 at 3.0 rad/s (limit 2.5 rad/s)" in ctl.stats.last_divergence
     assert ctl.stats.divergence_stops == 3 and robot.restarts == restarts + 1  # restarted once, then left stopped
-    assert not ctl.stats.faulted and ctl.status().state == "awaiting_ack" and "streaming stopped" in ctl.status().reason
+    assert not ctl.faulted and ctl.status().state == "awaiting_ack" and "streaming stopped" in ctl.status().reason
     assert not ctl.submit(go_on)
     robot.joint_speed = np.zeros(7)
     assert "again while holding" in ctl.acknowledge() and robot.restarts == restarts + 2
@@ -569,13 +569,13 @@ def test_a_recovery_the_robot_refuses_faults_until_an_acknowledgement_succeeds()
     with pytest.raises(AcknowledgeRefused, match="manual error recovery required"):
         ctl.acknowledge()
     status = ctl.status()
-    assert status.state == "faulted" and "manual error recovery" in status.reason and ctl.stats.faulted
+    assert status.state == "faulted" and "manual error recovery" in status.reason and ctl.faulted
     assert "manual error recovery" in status.last_fault
     assert all(c is None for c in run_ticks(ctl, clock, 1.0)) and not ctl.submit(circle_chunk(clock.t, clock.t))
     with pytest.raises(ChunkError):
         ctl.go_home()
     robot.manual = False  # fixed at the robot: acknowledged again
-    assert ctl.acknowledge().startswith("reflex") and not ctl.stats.faulted
+    assert ctl.acknowledge().startswith("reflex") and not ctl.faulted
     assert ctl.status().state == "holding" and ctl.submit(circle_chunk(clock.t, clock.t))
 
 
@@ -734,7 +734,7 @@ def test_joint_moving_into_its_position_limit_stops_the_motion_until_acknowledge
     clock.t += period
     assert ctl.tick() is None
     assert ctl.stats.divergence_stops == 1 and "joint 7" in ctl.stats.last_divergence
-    assert "moving towards its limit" in ctl.stats.awaiting_ack and ctl.holding
+    assert "moving towards its limit" in ctl.awaiting_ack and ctl.holding
     assert not ctl.submit(circle_chunk(clock.t, clock.t))
     assert "joint 7" in ctl.acknowledge()
 

@@ -245,7 +245,13 @@ class FrankaNode(Node):
         if stats.last_rejection and level == rosmsg.OK:
             level, text = rosmsg.WARN, f"{text}; last rejected chunk: {stats.last_rejection}"
         values = {k: v for k, v in stats.as_dict().items() if k not in ("last_rejection",)}
-        values.update(state=status.state, last_fault=status.last_fault)
+        # faulted and awaiting_ack are the controller's state, not counters; their keys stay for the readers
+        values.update(
+            faulted=self.controller.faulted,
+            awaiting_ack=self.controller.awaiting_ack,
+            state=status.state,
+            last_fault=status.last_fault,
+        )
         self.pub_diag.publish(
             rosmsg.diagnostic_array(self.factory, now_ns(self), NODE_NAME, self.hardware_id, level, text, values)
         )
