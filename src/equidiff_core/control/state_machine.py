@@ -45,6 +45,7 @@ class Event(Enum):
     TICK_FAILED = "tick failed"  # a bug in a tick: hold rather than stream stale targets
     ROBOT_STOPPED = "robot stopped"  # user stop, reflex, lost connection, robot error
     DIVERGED = "diverged"  # tracking error, joint speed, a joint moving into its limit
+    DIVERGED_OUTSIDE = "diverged outside"  # ... and the TCP ended outside the box or cone: no streaming from there
     ACKNOWLEDGED = "acknowledged"  # an acknowledgement with nothing to recover
     ACK_REFUSED = "ack refused"  # the user stop is still pressed
     RECOVERED = "recovered"  # the acknowledgement recovered the robot and streaming started again
@@ -76,6 +77,9 @@ _STREAMING_STOPS = {
     E.HOLD_REQUESTED: Transition(S.AWAITING_ACK, A.HOLD),
     E.ROBOT_STOPPED: Transition(S.STOPPED, A.HOLD),
     E.DIVERGED: Transition(S.AWAITING_ACK, A.RESEED),
+    # Streaming seeded outside would pull the arm back in unasked (every command is kept inside):
+    # it stays stopped, and the acknowledgement moves it home first.
+    E.DIVERGED_OUTSIDE: Transition(S.STOPPED, A.HOLD),
 }
 _ACKNOWLEDGEMENT = {
     E.ACK_REFUSED: None,  # stays

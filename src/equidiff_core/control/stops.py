@@ -115,21 +115,35 @@ class HeldState:
 
     def _stop_diverged(self, now: int, reason: str) -> None:
         """Stop the motion, restart it seeded where the arm is and hold there (the arm brakes
-        meanwhile). If it runs away again while already holding for an operator, streaming stays
-        stopped (the robot holds itself) until the acknowledgement restarts it."""
+        meanwhile). Where the arm ended outside the box or cone streaming is not restarted (it
+        would pull the arm back in): the acknowledgement moves it home first. If it runs away
+        again while already holding for an operator, streaming stays stopped (the robot holds
+        itself) until the acknowledgement restarts it."""
         self.stats.divergence_stops += 1
         self.stats.last_divergence = reason
         self._divergence_grace_until_ns = now + int(DIVERGENCE_GRACE_S * 1e9)
         again = self._safety_state is SafetyState.AWAITING_ACK
         text = f"divergence stop: {reason}"
         self.record_fault(text)
+        outside = ""
         try:
             self.robot.stop_streaming()
             if not again:
-                self.robot.start_streaming()
                 self._state = self._read_state()  # the restarted motion holds here
+                outside = self._outside(self._state.ee_pose)
+                if not outside:
+                    self.robot.start_streaming()
         except RobotError as err:
             self._robot_stopped(err)
+            return
+        if outside:
+            self._robot_mode = ""
+            self._fire(
+                Event.DIVERGED_OUTSIDE,
+                f"{text}; {outside}: the acknowledgement moves it home first",
+                stop_kind="outside",
+            )
+            self.log.error(f"the arm diverged from its command ({reason}) and {outside}: streaming stopped")
             return
         if again:
             self._robot_mode = ""
@@ -256,16 +270,22 @@ class HeldState:
         self.log.info(f"moving to the home pose {self.config.home_position} (the TCP was outside), then holding")
         try:
             self.robot.move_to(self.home_pose)
-            self.robot.start_streaming()
-            self._state = self._read_state()
+            state = self._read_state()
+            # Streaming from outside would pull the arm in unasked: the move must have got it in.
+            failed = self._outside(state.ee_pose)
+            if not failed:
+                self.robot.start_streaming()
+                self._state = state
         except RobotError as err:
             if isinstance(err, RobotStopped):
                 self._robot_stopped(err)
-            else:
-                text = f"the move home failed: {err}"
-                self.record_fault(text)
-                self._fire(Event.MOVE_HOME_FAILED, text)
-                self.log.error(f"{text}; holding until an operator acknowledges again")
+                return
+            failed = str(err)
+        if failed:
+            text = f"the move home failed: {failed}"
+            self.record_fault(text)
+            self._fire(Event.MOVE_HOME_FAILED, text)
+            self.log.error(f"{text}; holding until an operator acknowledges again")
             return
         self._streaming_again(self.clock.now_ns(), Event.MOVED_HOME)
 
