@@ -9,7 +9,8 @@ Wiring:
       /tf (base -> fr3_hand_tcp, where tf2_msgs is installed: RViz, easy_handeye2)
   timer at 1 Hz -> /diagnostics (``franka_node``: rejected chunks, stops, watchdog holds, ...)
   timer at 20 Hz -> /franka/status (latched JSON ``Controller.status()``, published on change:
-      moving | holding | homing | awaiting_ack | faulted, with the reason and the last fault)
+      moving | holding | homing | awaiting_ack | faulted, with the reason and the last fault;
+      ``control.state_machine.STATUS`` names the controller's states so)
   service /franka/acknowledge (Trigger) -> ``Controller.acknowledge``: after a user stop, a reflex,
       a lost connection, a divergence stop or a restart the arm holds and chunks are refused
       until an operator calls it; refused while the user stop is pressed or if recovery fails

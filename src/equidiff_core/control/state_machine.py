@@ -13,8 +13,7 @@ operators see are fewer (``STATUS``: what /franka/status, /diagnostics and ``equ
 show): the arm held for an acknowledgement while streaming or not both read ``awaiting_ack``,
 both homings ``homing``.
 
-docs/control.md draws ``TRANSITIONS`` with ``mermaid_diagram()`` (``python -m
-equidiff_core.control.state_machine`` prints it); a test keeps the two equal.
+docs/control.md draws ``TRANSITIONS`` with ``mermaid_diagram()``, and a test keeps the two equal.
 """
 
 from __future__ import annotations
@@ -72,7 +71,7 @@ class Transition:
     action: Action
 
 
-S, E, A = SafetyState, Event, Action
+S, E, A = SafetyState, Event, Action  # short names for the table below
 _STREAMING_STOPS = {
     E.HOLD_REQUESTED: Transition(S.AWAITING_ACK, A.HOLD),
     E.ROBOT_STOPPED: Transition(S.STOPPED, A.HOLD),
@@ -187,7 +186,3 @@ def mermaid_diagram() -> str:
     lines += [f"    {state.name} : {STATUS[state]}" for state in SafetyState]
     lines += [f"    {a.name} --> {b.name} : {', '.join(labels)}" for (a, b), labels in edges.items()]
     return "\n".join(lines) + "\n"
-
-
-if __name__ == "__main__":
-    print(mermaid_diagram(), end="")
