@@ -3,11 +3,13 @@
 from __future__ import annotations
 
 import dataclasses
+from pathlib import Path
 
 import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from hypothesis.stateful import RuleBasedStateMachine, initialize, invariant, rule
 
 from equidiff_core import geometry
 from equidiff_core.chunk import ChunkError, ChunkReason, PoseChunk, chunk_from_msg, chunk_to_msg
@@ -31,6 +33,17 @@ from equidiff_core.control import (
     Setpoint,
     check_chunk,
     load_control_config,
+)
+from equidiff_core.control.state_machine import (
+    AWAITING_OPERATOR,
+    MOVING,
+    NOT_STREAMING,
+    STATES,
+    STATUS,
+    TRANSITIONS,
+    Event,
+    SafetyState,
+    mermaid_diagram,
 )
 from equidiff_core.robots import RobotError, RobotStopped, UserStopPressed, make_robot
 from equidiff_core.robots.dryrun import DryRunConfig, DryRunRobot
@@ -356,9 +369,9 @@ def test_arm_running_away_from_its_command_is_stopped_and_held_where_it_is():
     for _ in range(int(0.5 * ctl.config.control_hz)):  # braking grace: no second stop
         clock.t += period
         ctl.tick()
-    assert ctl.stats.divergence_stops == 1 and not ctl.stats.faulted
+    assert ctl.stats.divergence_stops == 1 and not ctl.faulted
     # It never resumes on its own: chunks are refused, the arm holds, until an operator acknowledges.
-    assert "divergence stop" in ctl.stats.awaiting_ack
+    assert "divergence stop" in ctl.awaiting_ack
     assert not ctl.submit(circle_chunk(clock.t, t0)) and ctl.stats.ack_rejected == 1 and ctl.holding
     assert "awaiting an operator's acknowledgement" in ctl.stats.last_rejection
     robot.joint_speed = np.array([2.4, 0, 0, 0, 0, 3.9, 4.9])  # fast but within each joint's limit
@@ -366,7 +379,7 @@ def test_arm_running_away_from_its_command_is_stopped_and_held_where_it_is():
         clock.t += period
         np.testing.assert_allclose(ctl.tick().target.pose[:3, 3], runaway, atol=1e-9)  # still held
     assert ctl.stats.divergence_stops == 1 and ctl.holding
-    assert "divergence stop" in ctl.acknowledge() and not ctl.stats.awaiting_ack and ctl.acknowledge() == ""
+    assert "divergence stop" in ctl.acknowledge() and not ctl.awaiting_ack and ctl.acknowledge() == ""
     go_on = PoseChunk(clock.t, np.array([clock.t + 200 * MS]), pose_at(runaway + 0.01)[None], np.ones(1))
     assert ctl.submit(go_on) and not ctl.holding  # after the operator's go-ahead
     robot.joint_speed = np.full(7, 3.0)  # keeps whipping: stopped and held, then streaming stopped
@@ -376,7 +389,7 @@ def test_arm_running_away_from_its_command_is_stopped_and_held_where_it_is():
         ctl.tick()
     assert "joint 1 at 3.0 rad/s (limit 2.5 rad/s)" in ctl.stats.last_divergence
     assert ctl.stats.divergence_stops == 3 and robot.restarts == restarts + 1  # restarted once, then left stopped
-    assert not ctl.stats.faulted and ctl.status().state == "awaiting_ack" and "streaming stopped" in ctl.status().reason
+    assert not ctl.faulted and ctl.status().state == "awaiting_ack" and "streaming stopped" in ctl.status().reason
     assert not ctl.submit(go_on)
     robot.joint_speed = np.zeros(7)
     assert "again while holding" in ctl.acknowledge() and robot.restarts == restarts + 2
@@ -569,13 +582,13 @@ def test_a_recovery_the_robot_refuses_faults_until_an_acknowledgement_succeeds()
     with pytest.raises(AcknowledgeRefused, match="manual error recovery required"):
         ctl.acknowledge()
     status = ctl.status()
-    assert status.state == "faulted" and "manual error recovery" in status.reason and ctl.stats.faulted
+    assert status.state == "faulted" and "manual error recovery" in status.reason and ctl.faulted
     assert "manual error recovery" in status.last_fault
     assert all(c is None for c in run_ticks(ctl, clock, 1.0)) and not ctl.submit(circle_chunk(clock.t, clock.t))
     with pytest.raises(ChunkError):
         ctl.go_home()
     robot.manual = False  # fixed at the robot: acknowledged again
-    assert ctl.acknowledge().startswith("reflex") and not ctl.stats.faulted
+    assert ctl.acknowledge().startswith("reflex") and not ctl.faulted
     assert ctl.status().state == "holding" and ctl.submit(circle_chunk(clock.t, clock.t))
 
 
@@ -734,7 +747,7 @@ def test_joint_moving_into_its_position_limit_stops_the_motion_until_acknowledge
     clock.t += period
     assert ctl.tick() is None
     assert ctl.stats.divergence_stops == 1 and "joint 7" in ctl.stats.last_divergence
-    assert "moving towards its limit" in ctl.stats.awaiting_ack and ctl.holding
+    assert "moving towards its limit" in ctl.awaiting_ack and ctl.holding
     assert not ctl.submit(circle_chunk(clock.t, clock.t))
     assert "joint 7" in ctl.acknowledge()
 
@@ -1049,3 +1062,268 @@ def test_rejections_are_counted_by_their_reason_not_their_text():
     assert ctl.stats.rejected_chunks == len(expected)
     with pytest.raises(ConfigError, match="max_future_stamp_s"):
         from_dict(ControlConfig, {"scheduler": {"max_future_stamp_s": -1.0}})
+
+
+# --- the safety state machine ---------------------------------------------------------------
+
+
+class FaultyRobot(StoppingRobot):
+    """``StoppingRobot`` that can also run away from its command (a divergence) and whose planned
+    move fails like the real one: stopped by a stop, refused by a fault recovery cannot clear.
+    Keeps every motion command it was given, in order."""
+
+    def __init__(self, position=None):
+        super().__init__(position)
+        self.offset = np.zeros(3)
+        self.motions = []  # (kind, value): "target" pose, "move_to" pose, "gripper" width
+
+    def read_state(self):
+        state = super().read_state()
+        state.ee_pose[:3, 3] += self.offset
+        return state
+
+    def stream_target(self, pose, v, w):
+        super().stream_target(pose, v, w)
+        self.motions.append(("target", np.array(pose)))
+
+    def move_to(self, pose):
+        if self.lost or self.stopped:
+            raise RobotStopped(self.stopped or "connection_lost", "libfranka: Motion aborted")
+        if self.manual:
+            raise RobotError("libfranka: Move command rejected: manual error recovery required")
+        super().move_to(pose)
+        self.motions.append(("move_to", np.array(pose)))
+
+    def move_gripper(self, width):
+        super().move_gripper(width)
+        self.motions.append(("gripper", width))
+
+
+def test_the_docs_draw_the_state_machine_from_its_table():
+    text = (Path(__file__).resolve().parents[1] / "docs" / "control.md").read_text()
+    marker = "<!-- generated by equidiff_core.control.state_machine.mermaid_diagram(); test_control.py compares -->"
+    assert marker in text
+    drawn = text.split(marker, 1)[1].split("```mermaid\n", 1)[1].split("```", 1)[0]
+    assert drawn == mermaid_diagram(), "paste state_machine.mermaid_diagram() into docs/control.md"
+
+
+def test_the_table_leaves_no_stop_unhandled_and_no_held_state_without_an_acknowledgement():
+    streaming = [state for state in SafetyState if state not in NOT_STREAMING]
+    for state in streaming:  # the robot may stop, and the arm run away, whatever it streams
+        assert TRANSITIONS[state, Event.ROBOT_STOPPED].target in AWAITING_OPERATOR
+        assert TRANSITIONS[state, Event.DIVERGED].target in AWAITING_OPERATOR
+        outside = TRANSITIONS.get((state, Event.DIVERGED_OUTSIDE))
+        assert outside is None or outside.target is SafetyState.STOPPED  # never streams from outside
+    acknowledgement = {Event.ACKNOWLEDGED, Event.RECOVERED, Event.RECOVERED_OUTSIDE}
+    for (state, event), transition in TRANSITIONS.items():
+        if state in AWAITING_OPERATOR and transition.target not in AWAITING_OPERATOR:
+            assert event in acknowledgement, (state, event)
+        if transition.target in MOVING and state not in MOVING:
+            assert event in (Event.CHUNK_ACCEPTED, Event.HOME_REQUESTED), (state, event)
+    accepting = {state for (state, event) in TRANSITIONS if event is Event.CHUNK_ACCEPTED}
+    assert accepting == {SafetyState.HOLDING, SafetyState.TRACKING}
+    assert set(STATUS) == set(SafetyState) and set(STATUS.values()) == set(STATES)
+
+
+def test_a_runaway_that_ends_outside_the_box_stops_streaming_and_the_acknowledgement_moves_home():
+    """Streaming seeded outside the box would pull the arm back in without an acknowledgement
+    (every command is kept inside): it stays stopped, and the acknowledgement's planned move
+    brings it home before streaming starts again."""
+    robot = FaultyRobot(position=(0.60, 0.0, 0.25))
+    ctl, _, clock = make_controller(robot=robot)
+    run_ticks(ctl, clock, 0.1)
+    robot._pose[0, 3] += 0.12  # the arm runs 12 cm out, past the box's x = 0.64 m wall, and stays there
+    motions = len(robot.motions)
+    assert all(c is None for c in run_ticks(ctl, clock, 1.0)) and len(robot.motions) == motions  # nothing sent
+    status = ctl.status()
+    assert status.state == "awaiting_ack" and ctl.safety_state is SafetyState.STOPPED
+    assert "outside the safety box" in status.reason and "moves it home first" in status.reason
+    assert not ctl.submit(circle_chunk(clock.t, clock.t))
+    assert "moving home first" in ctl.acknowledge() and ctl.status().state == "homing"
+    run_ticks(ctl, clock, 0.1)
+    assert robot.motions[motions][0] == "move_to" and ctl.status().state == "holding"
+    np.testing.assert_allclose(ctl.state.ee_pose[:3, 3], ctl.config.home_position)
+
+
+class SafetyStateMachine(RuleBasedStateMachine):
+    """Random stops, reflexes, dropped connections, runaways, acknowledgements, chunks (good, stale,
+    far-future, NaN), homings and silences through the real Controller and a fake robot behind our
+    ``Robot`` interface, on a simulated clock. After every step and every tick: nothing moves while
+    an operator's acknowledgement is awaited, no chunk is accepted there, only an acknowledgement
+    leaves it, and the arm never moves past the watchdog's (or the glide's) deadline."""
+
+    config = dataclasses.replace(ControlConfig(), control_hz=10.0)  # fewer ticks per simulated second
+
+    @initialize(start=st.sampled_from(["streaming", "held", "held outside the box"]))
+    def start(self, start):
+        self.robot = FaultyRobot((0.55, 0.0, 0.52) if start == "held outside the box" else None)
+        self.robot.connect()
+        self.clock = FakeClock()
+        self.ctl = Controller(self.robot, BOX, self.config, clock=self.clock)
+        self.ctl.start(home=True, thread=False, hold="" if start == "streaming" else "a test start")
+        self.period = int(1e9 / self.config.control_hz)
+        self.motion_deadline_ns = self.clock.t  # the arm may follow a trajectory until then
+        self.previous_state = self.ctl.safety_state
+        self.acknowledged = False  # by the step just taken
+        self.held_pose = None  # the one pose commanded while an acknowledgement is awaited
+
+    # --- time and the robot --------------------------------------------------------------
+    def tick(self):
+        motions, before = len(self.robot.motions), self.ctl.safety_state
+        self.clock.t += self.period
+        command = self.ctl.tick()
+        state = self.ctl.safety_state
+        if state in AWAITING_OPERATOR:  # no motion commanded: nothing, or the one held pose again
+            if before in AWAITING_OPERATOR:  # (a tick that meets a fault may have moved before it)
+                assert all(kind == "target" for kind, _ in self.robot.motions[motions:])
+            if command is not None:
+                assert command.holding
+                self.held_pose = command.target.pose if self.held_pose is None else self.held_pose
+                assert np.abs(command.target.pose - self.held_pose).max() <= 1e-9, (command.target.pose, self.held_pose)
+        if state in MOVING:  # the watchdog is armed: silence ends every motion
+            assert self.clock.t <= self.motion_deadline_ns
+
+    @rule(seconds=st.sampled_from([0.05, 0.3, 1.0]))
+    def advance(self, seconds):
+        for _ in range(round(seconds * self.config.control_hz)):
+            self.tick()
+
+    @rule()
+    def silence(self):
+        """Longer than any chunk here plus the watchdog's timeout."""
+        self.advance(2.0)
+
+    @rule(stop=st.sampled_from(["user stop", "reflex", "connection lost"]))
+    def robot_stops(self, stop):
+        if stop == "user stop":
+            self.robot.press()
+        elif stop == "reflex":
+            self.robot.stopped = "reflex"
+        else:
+            self.robot.lost = True
+        self.tick()  # the next tick meets it
+
+    @rule()
+    def robot_fault_that_needs_manual_recovery(self):
+        self.robot.stopped, self.robot.manual = "error", True
+        self.tick()
+
+    @rule(fix=st.sampled_from(["release the user stop", "clear the manual fault"]))
+    def operator_fixes_the_robot(self, fix):
+        if fix == "release the user stop":
+            self.robot.pressed = False
+        else:
+            self.robot.manual = False
+
+    @rule(metres=st.sampled_from([0.12, 0.3]))  # 0.3: out of the box from anywhere in it
+    def runaway(self, metres):
+        self.robot.offset = np.array([metres, 0.0, 0.0])
+        self.tick()
+        self.robot.offset = np.zeros(3)
+        self.advance(0.3)
+
+    # --- chunks -------------------------------------------------------------------------
+    def chunk_here(self, stamp_ns, first_step_ns, direction=1.0):
+        here = self.ctl.state.ee_pose
+        times = first_step_ns + np.arange(4, dtype=np.int64) * 200 * MS
+        poses = np.stack([pose_at(here[:3, 3] + [0.0, direction * 0.003 * i, 0.0], base=here) for i in range(4)])
+        return PoseChunk(int(stamp_ns), times, poses, np.full(4, 0.08))
+
+    @rule(direction=st.sampled_from([-1.0, 1.0]))
+    def good_chunk(self, direction):
+        before = self.ctl.safety_state
+        chunk = self.chunk_here(self.clock.t, self.clock.t + 100 * MS, direction)
+        accepted = self.ctl.submit(chunk)
+        assert accepted == (before in (SafetyState.HOLDING, SafetyState.TRACKING)), (before, self.ctl.stats)
+        if accepted:
+            self.motion_deadline_ns = int(chunk.times_ns[-1]) + int(self.config.safety.watchdog_timeout_s * 1e9)
+
+    @rule()
+    def chunk_then_silence(self):
+        self.good_chunk(1.0)
+        self.silence()
+
+    @rule(kind=st.sampled_from(["stale", "far future", "nan"]))
+    def bad_chunk(self, kind):
+        before, rejected = self.ctl.safety_state, self.ctl.stats.rejected_chunks
+        if kind == "stale":
+            assert not self.ctl.submit(self.chunk_here(self.clock.t - 2_000 * MS, self.clock.t - 2_000 * MS))
+        elif kind == "far future":
+            day = 86_400_000 * MS
+            assert not self.ctl.submit(self.chunk_here(self.clock.t + day, self.clock.t + day))
+        else:  # never becomes a PoseChunk: franka_node records the decoder's error
+            msg = chunk_to_msg(self.chunk_here(self.clock.t, self.clock.t), rosbags_factory(), "fr3_link0")
+            msg.points[1].transforms[0].translation.x = float("nan")
+            with pytest.raises(ChunkError) as err:
+                chunk_from_msg(msg)
+            self.ctl.record_rejection(err.value)
+        assert self.ctl.safety_state is before and self.ctl.stats.rejected_chunks == rejected + 1
+
+    # --- operators ------------------------------------------------------------------------
+    @rule()
+    def acknowledge(self):
+        before = self.ctl.safety_state
+        try:
+            acknowledged = self.ctl.acknowledge()
+        except AcknowledgeRefused:
+            assert before in (SafetyState.STOPPED, SafetyState.FAULTED)
+            assert self.ctl.safety_state in (SafetyState.STOPPED, SafetyState.FAULTED)
+            return
+        if before in AWAITING_OPERATOR:
+            assert acknowledged and self.ctl.safety_state in (SafetyState.HOLDING, SafetyState.MOVING_HOME)
+            self.acknowledged = True
+        else:
+            assert acknowledged == "" and self.ctl.safety_state is before
+
+    @rule()
+    def operator_fixes_the_robot_and_acknowledges(self):
+        """Once its cause is fixed at the robot, an acknowledgement always goes on."""
+        before = self.ctl.safety_state
+        self.robot.pressed = self.robot.manual = False
+        acknowledged = self.ctl.acknowledge()
+        assert bool(acknowledged) == (before in AWAITING_OPERATOR)
+        self.acknowledged = True
+        assert self.ctl.safety_state not in AWAITING_OPERATOR
+
+    @rule()
+    def go_home(self):
+        before = self.ctl.safety_state
+        try:
+            seconds = self.ctl.go_home()
+        except ChunkError as err:
+            assert err.reason is ChunkReason.HELD and before not in (SafetyState.HOLDING, SafetyState.TRACKING)
+            return
+        assert before in (SafetyState.HOLDING, SafetyState.TRACKING, SafetyState.HOMING)
+        assert self.ctl.safety_state is SafetyState.HOMING
+        self.motion_deadline_ns = self.clock.t + int(seconds * 1e9)
+
+    @rule()
+    def require_acknowledgement(self):
+        self.ctl.require_acknowledgement("an operator must look first")
+        assert self.ctl.safety_state in AWAITING_OPERATOR
+
+    # --- after every step -------------------------------------------------------------------
+    @invariant()
+    def never_resumes_on_its_own(self):
+        state = self.ctl.safety_state
+        if self.previous_state in AWAITING_OPERATOR and state not in AWAITING_OPERATOR:
+            assert self.acknowledged, (self.previous_state, state)
+        if state not in AWAITING_OPERATOR:
+            self.held_pose = None
+        self.previous_state, self.acknowledged = state, False
+
+    @invariant()
+    def the_status_reads_the_state(self):
+        state, status = self.ctl.safety_state, self.ctl.status()
+        assert status.state == STATUS[state] and status.state in STATES
+        assert self.ctl.holding == (state not in MOVING) and self.ctl.faulted == (state is SafetyState.FAULTED)
+        if state in (SafetyState.AWAITING_ACK, SafetyState.STOPPED):
+            assert self.ctl.awaiting_ack and status.reason.startswith(self.ctl.awaiting_ack)
+        elif state is not SafetyState.FAULTED:
+            assert self.ctl.awaiting_ack == ""
+        if state in MOVING:
+            assert self.clock.t <= self.motion_deadline_ns
+
+
+SafetyStateMachine.TestCase.settings = settings(max_examples=80, stateful_step_count=25, deadline=None)
+test_safety_state_machine = SafetyStateMachine.TestCase

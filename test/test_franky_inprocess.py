@@ -88,10 +88,10 @@ def test_a_fault_automatic_recovery_cannot_clear_faults_until_it_is_cleared_at_t
                 assert status.state == "awaiting_ack" and "joint_position_limits_violation" in status.reason, status
                 with pytest.raises(AcknowledgeRefused, match="manual error recovery required"):
                     ctl.acknowledge()
-                assert ctl.status().state == "faulted" and ctl.stats.faulted and not robot._robot.is_in_control
+                assert ctl.status().state == "faulted" and ctl.faulted and not robot._robot.is_in_control
                 sim.inject("clear")  # the operator's manual recovery at the arm
                 assert "joint_position_limits_violation" in ctl.acknowledge()
-                assert ctl.status().state == "holding" and not ctl.stats.faulted and robot._robot.is_in_control
+                assert ctl.status().state == "holding" and not ctl.faulted and robot._robot.is_in_control
             finally:
                 ctl.stop()
 
@@ -234,7 +234,7 @@ def test_limits_are_set_explicitly_on_connect_and_a_joint_driven_into_its_limit_
                 home = ctl.state.ee_pose.copy()
                 yaw0, yaw = tcp_yaw(home), 0.0
                 deadline = time.monotonic() + 60.0
-                while not ctl.stats.awaiting_ack and yaw < 1.2 and time.monotonic() < deadline:
+                while not ctl.awaiting_ack and yaw < 1.2 and time.monotonic() < deadline:
                     yaw += 0.01  # ~0.2 rad/s: one-point targets 50 ms ahead at 20 Hz, as teleop sends
                     now = time.time_ns()
                     ctl.submit(
@@ -243,7 +243,7 @@ def test_limits_are_set_explicitly_on_connect_and_a_joint_driven_into_its_limit_
                         )
                     )
                     time.sleep(0.05)
-                assert "joint 7" in ctl.stats.awaiting_ack, ctl.stats
+                assert "joint 7" in ctl.awaiting_ack, ctl.stats
                 assert abs(ctl.state.joint_positions[6] - q7) < 0.3 + 0.05  # stopped near its limit
                 stopped_at = ctl.state.ee_pose.copy()
                 now = time.time_ns()

@@ -9,7 +9,8 @@ Wiring:
       /tf (base -> fr3_hand_tcp, where tf2_msgs is installed: RViz, easy_handeye2)
   timer at 1 Hz -> /diagnostics (``franka_node``: rejected chunks, stops, watchdog holds, ...)
   timer at 20 Hz -> /franka/status (latched JSON ``Controller.status()``, published on change:
-      moving | holding | homing | awaiting_ack | faulted, with the reason and the last fault)
+      moving | holding | homing | awaiting_ack | faulted, with the reason and the last fault;
+      ``control.state_machine.STATUS`` names the controller's states so)
   service /franka/acknowledge (Trigger) -> ``Controller.acknowledge``: after a user stop, a reflex,
       a lost connection, a divergence stop or a restart the arm holds and chunks are refused
       until an operator calls it; refused while the user stop is pressed or if recovery fails
@@ -279,7 +280,13 @@ class FrankaNode(Node):
         if stats.last_rejection and level == rosmsg.OK:
             level, text = rosmsg.WARN, f"{text}; last rejected chunk: {stats.last_rejection}"
         values = {k: v for k, v in stats.as_dict().items() if k not in ("last_rejection",)}
-        values.update(state=status.state, last_fault=status.last_fault)
+        # faulted and awaiting_ack are the controller's state, not counters; their keys stay for the readers
+        values.update(
+            faulted=self.controller.faulted,
+            awaiting_ack=self.controller.awaiting_ack,
+            state=status.state,
+            last_fault=status.last_fault,
+        )
         self.pub_diag.publish(
             rosmsg.diagnostic_array(self.factory, now_ns(self), NODE_NAME, self.hardware_id, level, text, values)
         )

@@ -145,9 +145,9 @@ class ControlledArm:
     def stopped_reason(self) -> str:
         """Why the control loop holds the arm ('' while it follows commands)."""
         stats = self.controller.stats
-        if stats.faulted:
+        if self.controller.faulted:
             return f"faulted after repeated failures ({stats.last_recovery_reason or stats.last_divergence})"
-        return stats.awaiting_ack
+        return self.controller.awaiting_ack
 
     def _raise_if_stopped(self) -> None:
         if reason := self.stopped_reason():

@@ -7,8 +7,11 @@ robot, move the gripper when its target changes. ``submit`` (called from a ROS c
 checks a chunk and swaps the scheduler's trajectory under a lock, so callbacks never wait for
 the robot.
 
-Stops (every one leads to the same held state until an operator acknowledges), the
-acknowledgement and ``go_home`` live in ``stops.HeldState``, which ``Controller`` inherits.
+Which state the controller is in (holding, tracking a chunk, homing, awaiting an operator's
+acknowledgement, ...) and how events move it are one table, ``state_machine.TRANSITIONS``;
+``_fire`` is the only place that applies it. Stops (every one leads to a state only an
+acknowledgement leaves), the acknowledgement and ``go_home`` live in ``stops.HeldState``, which
+``Controller`` inherits.
 """
 
 from __future__ import annotations
@@ -30,11 +33,23 @@ from ..robots.base import Robot, RobotError, RobotState
 from .config import ControlConfig
 from .safety import FilteredTarget, SafetyFilter, check_chunk
 from .scheduler import ChunkScheduler, Setpoint
+from .state_machine import (
+    AWAITING_OPERATOR,
+    INITIAL,
+    MOVING,
+    NOT_STREAMING,
+    STATES,
+    STATUS,
+    Action,
+    Event,
+    SafetyState,
+    Transition,
+    next_transition,
+    permits,
+)
 from .stops import DIVERGENCE_GRACE_S, STOPPED_POLL_HZ, AcknowledgeRefused, HeldState
 
 log = logging.getLogger("equidiff.control")
-
-STATES = ("moving", "holding", "homing", "awaiting_ack", "faulted")
 
 
 @dataclass
@@ -56,8 +71,6 @@ class ControllerStats:
     clipped_ticks: int = 0
     speed_limited_ticks: int = 0
     gripper_commands: int = 0
-    faulted: bool = False  # an acknowledged recovery failed (see the module docstring)
-    awaiting_ack: str = ""  # why the arm holds until an operator acknowledges ("" when it does not)
     ack_rejected: int = 0  # chunks refused while a stop awaits acknowledgement (subset of rejected_chunks)
     acknowledged: int = 0
     ack_refused: int = 0  # acknowledgements refused (user stop still pressed, recovery failed)
@@ -108,34 +121,34 @@ class Controller(HeldState):
         self.safety = SafetyFilter(box, config.safety)
         self.scheduler = ChunkScheduler(config.scheduler)
         self.stats = ControllerStats()
-        self._lock = threading.Lock()  # the trajectory (scheduler, hold, homing), shared with submit()
+        # The state and the trajectory (scheduler, hold), shared with submit(); reentrant so that
+        # a caller holding it can fire an event.
+        self._lock = threading.RLock()
         # the robot: one tick, a stopped robot's poll or an acknowledgement's recovery at a time
         self._robot_lock = threading.RLock()
         self._state: RobotState | None = None
         self._setpoint: FilteredTarget | None = None  # the last command sent
         self.last_command: Command | None = None
-        self._hold_pose: np.ndarray | None = None  # watchdog target (None: hold the last command)
-        self._hold_reason = "no chunk yet"
+        self._safety_state = INITIAL  # changed only by _fire
+        self._reason = "no chunk yet"  # why the state (holding, awaiting an acknowledgement, faulted)
+        self._pending_ack = ""  # what the next acknowledgement acknowledges
+        self._hold_pose: np.ndarray | None = None  # what a hold holds (None: the last command)
         # The last instant the current command is valid: its trajectory's last step, or its arrival
         # for a one-step chunk already due. The watchdog counts from here, not from the arrival:
         # a chunk is a plan for its whole span (policy_node answers once per 1.6 s with 1.4 s of
         # steps), so counting from the arrival cut every chunk short.
         self._valid_until_ns: int | None = None
-        self._holding = True
         self._last_tick_ns: int | None = None
         self._last_robot_time_s: float | None = None
         self._gripper_sent = float("nan")
         self._divergence_grace_until_ns = 0
-        self._homing_until_ns = 0  # go_home's trajectory runs until then: chunks are refused
-        self._homing = False  # the trajectory is go_home's (until the next chunk): the gripper is left alone
-        # The robot is not streaming: "user_stop" | "reflex" | "connection_lost" | "error" (RobotStopped.kind),
-        # "divergence" (it ran away again while holding), "outside" (the TCP outside the box or cone:
-        # streaming may only start after the planned home move); "" while streaming.
-        self._stopped = ""
+        self._home_arrival_ns = 0  # HOMING: when go_home's glide arrives
+        # STOPPED and FAULTED: why the robot stopped streaming: "user_stop" | "reflex" | "connection_lost" |
+        # "error" (RobotStopped.kind), "divergence" (it ran away again while held), "outside" (the TCP outside
+        # the box or cone: streaming may only start after the planned home move).
+        self._stop_kind = ""
         self._robot_mode = ""  # a stopped robot's mode at the last poll ("unreachable" when it could not be read)
         self._next_poll_ns = 0
-        self._move_home = False  # acknowledged with the TCP outside: the loop moves it home, then streams
-        self._fault = ""  # why an acknowledged recovery failed ("" when not faulted)
         self._last_fault, self._last_fault_ns = "", 0
         self._thread: threading.Thread | None = None
         self._stop = threading.Event()
@@ -168,11 +181,13 @@ class Controller(HeldState):
             raise RobotError(f"{outside}; move it inside (or enable home_on_start) before streaming")
         if outside:
             self._state = self._read_state()
-            self._stopped = "outside"
-            self.require_acknowledgement(f"{hold}; {outside}: the acknowledgement moves it home first")
+            reason = f"{hold}; {outside}: the acknowledgement moves it home first"
+            self._fire(Event.STARTED_OUTSIDE, reason, stop_kind="outside")
+            self.log.warning(f"holding until an operator acknowledges: {reason}")
         else:
             self.robot.start_streaming()
-            self._reset_to_measured()
+            self._state = self._read_state()
+            self._fire(Event.STARTED)
             if hold:
                 self.require_acknowledgement(hold)
         if thread:
@@ -221,7 +236,9 @@ class Controller(HeldState):
                 self.tick()
             except Exception as err:  # noqa: BLE001 - keep the loop alive; a bug here must not leave the arm streaming stale targets
                 self.log.error(f"control tick failed: {err!r}")
-                self._holding = True
+                with self._lock:
+                    if permits(self._safety_state, Event.TICK_FAILED):
+                        self._fire(Event.TICK_FAILED, f"the control tick failed: {err!r}")
             deadline += period_ns
             if self.clock.now_ns() - deadline > period_ns:
                 self.stats.overruns += 1
@@ -236,26 +253,79 @@ class Controller(HeldState):
 
     @property
     def holding(self) -> bool:
-        return self._holding
+        """The arm is not following a trajectory (whatever the reason)."""
+        return self._safety_state not in MOVING
+
+    @property
+    def safety_state(self) -> SafetyState:
+        return self._safety_state
+
+    @property
+    def faulted(self) -> bool:
+        """An acknowledged recovery failed (/diagnostics ``faulted``)."""
+        return self._safety_state is SafetyState.FAULTED
+
+    @property
+    def awaiting_ack(self) -> str:
+        """Why the arm holds until an operator acknowledges ("" when it does not; /diagnostics ``awaiting_ack``)."""
+        return self._pending_ack if self._safety_state in AWAITING_OPERATOR else ""
+
+    def _fire(self, event: Event, reason: str | None = None, stop_kind: str = "") -> Transition:
+        """The one place the state changes: ``(state, event)`` looked up in ``TRANSITIONS``, the
+        state moved on and the transition's action applied to the trajectory. ``reason`` says why
+        (None: the state's reason stays); ``stop_kind`` why a state that streams nothing does not."""
+        with self._lock:
+            transition = next_transition(self._safety_state, event)
+            target = transition.target
+            self._safety_state = target
+            if reason is not None:
+                self._reason = reason
+            if target in (SafetyState.AWAITING_ACK, SafetyState.STOPPED):
+                self._pending_ack = self._reason
+            elif target is not SafetyState.FAULTED:  # faulted: the acknowledgement still acknowledges the stop
+                self._pending_ack = ""
+            if stop_kind:
+                self._stop_kind = stop_kind
+            self._act(transition.action)
+        return transition
+
+    def _act(self, action: Action) -> None:
+        """What a transition does to the commanded trajectory (called by ``_fire``, under the lock)."""
+        if action is Action.NONE:
+            return
+        self._hold_pose = None
+        if action is Action.FOLLOW:
+            return
+        self.scheduler.clear()
+        if action is Action.HOLD_MEASURED:
+            self._hold_pose = self._state.ee_pose.copy()
+        elif action is Action.HOLD_HOME:
+            self._hold_pose = self.home_pose
+        elif action is Action.RESEED:  # the caller has just read the measured state
+            self._setpoint = FilteredTarget(self._state.ee_pose, np.zeros(3), np.zeros(3), False, False)
+            self._last_robot_time_s = None  # the robot's clock may have restarted (a new connection)
+
+    def _held_text(self) -> str:
+        """Why chunks and go_home are refused in a state only an acknowledgement leaves (or while moving home)."""
+        if self._safety_state is SafetyState.MOVING_HOME:
+            return "the TCP was outside: the robot's planned move home runs first"
+        return self._pending_ack or self._reason
 
     def submit(self, chunk: PoseChunk) -> bool:
         """Check ``chunk`` and make it the trajectory to follow; False (and a warning) if rejected."""
         now = self.clock.now_ns()
         try:
             with self._lock:
-                held = (
-                    self.stats.awaiting_ack or self._fault or (self._stopped and f"the robot stopped ({self._stopped})")
-                )
-                if held:
-                    self.stats.ack_rejected += 1
+                if self._safety_state is SafetyState.HOMING:
                     raise ChunkError(
-                        f"awaiting an operator's acknowledgement after: {held} "
-                        f"(franka_node's /franka/acknowledge, `equidiff lab ack`)",
+                        f"homing: chunks are refused for {max(0, self._home_arrival_ns - now) / 1e9:.1f} s more",
                         ChunkReason.HELD,
                     )
-                if now < self._homing_until_ns:
+                if not permits(self._safety_state, Event.CHUNK_ACCEPTED):
+                    self.stats.ack_rejected += 1
                     raise ChunkError(
-                        f"homing: chunks are refused for {(self._homing_until_ns - now) / 1e9:.1f} s more",
+                        f"awaiting an operator's acknowledgement after: {self._held_text()} "
+                        f"(franka_node's /franka/acknowledge, `equidiff lab ack`)",
                         ChunkReason.HELD,
                     )
                 live = self.scheduler.live_steps(chunk, now)
@@ -267,9 +337,7 @@ class Controller(HeldState):
                 # must not stretch the time until the watchdog holds the arm.
                 ahead = max(0, int(chunk.stamp_ns) - now)
                 self._valid_until_ns = max(now, (self.scheduler.end_ns() or now) - ahead)
-                self._holding = False
-                self._hold_pose = None
-                self._homing = False
+                self._fire(Event.CHUNK_ACCEPTED)
             self.stats.accepted_chunks += 1
             return True
         except ChunkError as err:
@@ -293,36 +361,31 @@ class Controller(HeldState):
             setattr(self.stats, counter, getattr(self.stats, counter) + 1)
         self.stats.last_rejection = text
         self.stats.last_rejection_reason = str(reason)
+        self._fire(Event.CHUNK_REJECTED)
         self.log.warning(f"rejected chunk: {text}; holding the current trajectory")
 
     # --- what an operator sees -------------------------------------------------------------
     def status(self) -> ControllerStatus:
         """The operator's view (franka_node's /franka/status): moving, holding, homing, awaiting_ack, faulted."""
-        now = self.clock.now_ns()
-        if self._fault:
-            state, reason = "faulted", self._fault
-        elif self.stats.awaiting_ack:
-            state, reason = "awaiting_ack", self.stats.awaiting_ack + self._stopped_detail()
-        elif self._move_home:
-            state, reason = "homing", "moving home (the robot's planned move) before streaming: the TCP was outside"
-        elif self._homing:  # go_home's trajectory, until the next chunk
-            if now < self._homing_until_ns:
-                state, reason = "homing", f"gliding home, {(self._homing_until_ns - now) / 1e9:.1f} s to go"
-            else:
-                state, reason = "holding", "at home"
-        elif self._holding:
-            state, reason = "holding", self._hold_reason
-        else:
-            state, reason = "moving", ""
-        return ControllerStatus(state, reason, self._last_fault, self._last_fault_ns)
+        with self._lock:
+            state, reason = self._safety_state, self._reason
+            if state is SafetyState.TRACKING:
+                reason = ""
+            elif state is SafetyState.HOMING:
+                reason = f"gliding home, {max(0, self._home_arrival_ns - self.clock.now_ns()) / 1e9:.1f} s to go"
+            elif state is SafetyState.MOVING_HOME:
+                reason = "moving home (the robot's planned move) before streaming: the TCP was outside"
+            elif state is SafetyState.STOPPED:
+                reason += self._stopped_detail()
+        return ControllerStatus(STATUS[state], reason, self._last_fault, self._last_fault_ns)
 
     def _stopped_detail(self) -> str:
-        if self._stopped == "user_stop":
+        if self._stop_kind == "user_stop":
             if self._robot_mode == "user_stopped":
                 return " (the user stop is still pressed: release it, then acknowledge)"
             if self._robot_mode and self._robot_mode != "unreachable":
                 return " (the user stop is released: acknowledge to go on)"
-        if self._stopped == "connection_lost" or self._robot_mode == "unreachable":
+        if self._stop_kind == "connection_lost" or self._robot_mode == "unreachable":
             return " (the robot cannot be read: the acknowledgement connects again)"
         return ""
 
@@ -340,25 +403,14 @@ class Controller(HeldState):
             pose = self._state.ee_pose if self._state is not None else self.robot.read_state().ee_pose
             return Setpoint(pose, np.zeros(3), np.zeros(3), float("nan"), False)
         pose = sp.pose
-        if not self._holding and self._last_tick_ns is not None:
+        moving = self._safety_state in MOVING
+        if moving and self._last_tick_ns is not None:
             elapsed = float(np.clip((now_ns - self._last_tick_ns) / 1e9, 0.0, 1.0 / self.config.control_hz))
             pose = geometry.make_pose(
                 Rotation.from_rotvec(sp.angular_velocity * elapsed).as_matrix() @ sp.pose[:3, :3],
                 sp.pose[:3, 3] + sp.linear_velocity * elapsed,
             )
-        return Setpoint(pose, sp.linear_velocity, sp.angular_velocity, float("nan"), not self._holding)
-
-    def _reset_to_measured(self, reason: str = "") -> None:
-        state = self._read_state()
-        self._state = state
-        with self._lock:
-            self.scheduler.clear()
-            self._holding = True
-            self._hold_pose = None
-            self._homing, self._homing_until_ns = False, 0
-            self._hold_reason = reason or self._hold_reason
-            self._setpoint = FilteredTarget(state.ee_pose, np.zeros(3), np.zeros(3), False, False)
-        self._last_robot_time_s = None  # the robot's clock may have restarted (a new connection)
+        return Setpoint(pose, sp.linear_velocity, sp.angular_velocity, float("nan"), moving)
 
     def _read_state(self) -> RobotState:
         """The robot's state stamped on the controller's clock (simulated time in the twin)."""
@@ -370,7 +422,7 @@ class Controller(HeldState):
 
     def _tick(self) -> Command | None:
         now = self.clock.now_ns()
-        if self._stopped:
+        if self._safety_state in NOT_STREAMING:
             self._while_stopped(now)
             return None
         try:
@@ -384,23 +436,24 @@ class Controller(HeldState):
             return None
         dt = self._tick_dt(now)
         with self._lock:
-            if (
-                not self._holding
-                and self._valid_until_ns is not None
-                and now - self._valid_until_ns > self.config.safety.watchdog_timeout_s * 1e9
+            if self._safety_state is SafetyState.HOMING and now >= self._home_arrival_ns:
+                self._fire(Event.HOME_REACHED, "at home")
+            elif self._safety_state is SafetyState.TRACKING and (
+                now - self._valid_until_ns > self.config.safety.watchdog_timeout_s * 1e9
             ):
                 # Hold where the arm *is* (not where the setpoint had got to, ~0.1 s ahead of a
                 # moving arm): stopping there takes the shortest way.
-                self.scheduler.clear()
-                self._holding = True
-                self._hold_pose = self._state.ee_pose.copy()
-                self._hold_reason = f"watchdog: no new chunk within {self.config.safety.watchdog_timeout_s} s of the last one's final step"
+                timeout = self.config.safety.watchdog_timeout_s
+                self._fire(
+                    Event.WATCHDOG_EXPIRED, f"watchdog: no new chunk within {timeout} s of the last one's final step"
+                )
                 self.stats.watchdog_holds += 1
                 self.log.warning(
-                    f"no new command for {self.config.safety.watchdog_timeout_s} s after the last "
-                    f"one's final step: holding the current pose"
+                    f"no new command for {timeout} s after the last one's final step: holding the current pose"
                 )
-            sp = None if self._holding else self.scheduler.sample(now)
+            moving = self._safety_state in MOVING
+            homing = self._safety_state is SafetyState.HOMING
+            sp = self.scheduler.sample(now) if moving else None
             previous = self._setpoint
             hold_pose = self._hold_pose
         if sp is None:
@@ -416,13 +469,13 @@ class Controller(HeldState):
         self.stats.ticks += 1
         self.stats.clipped_ticks += int(filtered.clipped)
         self.stats.speed_limited_ticks += int(filtered.speed_limited)
-        if sp is not None and np.isfinite(sp.width) and not self._homing:
+        if sp is not None and np.isfinite(sp.width) and not homing:  # go_home leaves the gripper alone
             width = self.safety.clip_width(sp.width)
             if not abs(width - self._gripper_sent) <= self.config.gripper_deadband_m:  # NaN-safe
                 self.robot.move_gripper(width)
                 self._gripper_sent = width
                 self.stats.gripper_commands += 1
-        command = Command(now, filtered, self._holding)
+        command = Command(now, filtered, not moving)
         self.last_command = command
         if self.on_command is not None:
             self.on_command(command)
@@ -454,4 +507,5 @@ __all__ = [
     "Controller",
     "ControllerStats",
     "ControllerStatus",
+    "SafetyState",
 ]
