@@ -32,10 +32,10 @@ def status(state: str, reason: str = "", last_fault: str = "", last_fault_ns: in
     return json.dumps({"state": state, "reason": reason, "last_fault": last_fault, "last_fault_ns": last_fault_ns})
 
 
-def franka_diagnostics(message: str, **stats) -> tuple[str, dict]:
+def franka_diagnostics(message: str, faulted: bool = False, awaiting_ack: str = "", **stats) -> tuple[str, dict]:
     """franka_node's /diagnostics status as the client reads it: built by the node's own message code
-    from its controller's real statistics."""
-    values = ControllerStats(**stats).as_dict()
+    from its controller's real statistics, with the controller's state keys beside them as the node adds them."""
+    values = {**ControllerStats(**stats).as_dict(), "faulted": faulted, "awaiting_ack": awaiting_ack}
     array = rosmsg.diagnostic_array(rosbags_factory(), 0, "franka_node", "dryrun", rosmsg.OK, message, values)
     (s,) = array.status
     return s.message, {kv.key: kv.value for kv in s.values}
