@@ -30,7 +30,7 @@ from equidiff_core.bags import CHECKED, find_bags, read_meta, scan_mcap, verify_
 from equidiff_core.inference import load_inference_policy
 from equidiff_core.mcap_writer import open_bag_writer
 from equidiff_core.policy_file import FORMAT, HASH_KEY, rewrite_with_hash
-from equidiff_core.rosmsg import rosbags_factory
+from equidiff_core.wire.rosmsg import rosbags_factory
 
 ROOT = Path(__file__).resolve().parents[1]
 CKPT_FORMAT = "equidiff_train_ckpt"

@@ -27,7 +27,7 @@ from equidiff_core.bags import (
 from equidiff_core.dataset import dataset_stats
 from equidiff_core.mcap_writer import open_bag_writer
 from equidiff_core.recording import RecordingConfig
-from equidiff_core.rosmsg import rosbags_factory
+from equidiff_core.wire.rosmsg import rosbags_factory
 
 CFG = RecordingConfig(min_free_gib=0.0, chunk_size_mib=2.0)
 F = rosbags_factory()

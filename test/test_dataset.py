@@ -22,7 +22,6 @@ from helpers_data import (
 
 import equidiff_core.dataset as dataset_mod
 from equidiff_core import geometry
-from equidiff_core.chunk import PoseChunk
 from equidiff_core.config import Workspace
 from equidiff_core.dataset import (
     DatasetConfig,
@@ -34,8 +33,9 @@ from equidiff_core.dataset import (
     split_episodes,
 )
 from equidiff_core.recording import RecordingConfig
-from equidiff_core.rosmsg import NS_PER_S, joint_state, pose_stamped, rosbags_factory, stamp_to_ns
-from equidiff_core.topics import TOPIC_EE_POSE, TOPIC_JOINT_STATES
+from equidiff_core.wire.chunk import PoseChunk
+from equidiff_core.wire.rosmsg import NS_PER_S, joint_state, pose_stamped, rosbags_factory, stamp_to_ns
+from equidiff_core.wire.topics import TOPIC_EE_POSE, TOPIC_JOINT_STATES
 
 CFG = RecordingConfig(min_free_gib=0.0)
 EP = SyntheticEpisode(duration_s=6.0)  # 30 observations at 5 Hz

@@ -23,8 +23,8 @@ from equidiff_core.bags import read_episode
 from equidiff_core.cameras.color import image_from_msg
 from equidiff_core.dataset import DatasetConfig, load_episode_arrays
 from equidiff_core.recording import EpisodeWriter, RecordingConfig
-from equidiff_core.rosmsg import rosbags_factory
-from equidiff_core.topics import camera_color_topic
+from equidiff_core.wire.rosmsg import rosbags_factory
+from equidiff_core.wire.topics import camera_color_topic
 from equidiff_ros.cli import main as cli
 
 CFG = RecordingConfig(min_free_gib=0.0)

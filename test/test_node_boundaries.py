@@ -24,10 +24,10 @@ from helpers_bad_messages import (
 )
 from test_policy_node import checkpoint  # noqa: F401 - the module's fixture: a tiny exported policy
 
-from equidiff_core.chunk import chunk_to_msg
 from equidiff_core.config import default_config_dir, load_lab_config
-from equidiff_core.pointcloud import VoxelGridSpec, cloud_to_msg, voxel_msg_to_grid
-from equidiff_core.rosmsg import gripper_width_from_joint_state, joint_state, pose_from_msg, pose_stamped
+from equidiff_core.wire.chunk import chunk_to_msg
+from equidiff_core.wire.pointcloud import VoxelGridSpec, cloud_to_msg, voxel_msg_to_grid
+from equidiff_core.wire.rosmsg import gripper_width_from_joint_state, joint_state, pose_from_msg, pose_stamped
 
 LAB_PATH = default_config_dir() / "lab.yaml"
 

@@ -143,8 +143,8 @@ def test_policy_publishes_nothing_until_enabled_and_a_takeover_pauses_it(ros_dom
 
     from std_msgs.msg import Bool, String
 
-    from equidiff_core.pointcloud import grid_to_voxel_msg
     from equidiff_core.twin.processes import start_node, stop_process
+    from equidiff_core.wire.pointcloud import grid_to_voxel_msg
     from equidiff_ros.common import LATCHED_QOS, RELIABLE_QOS
     from equidiff_ros.control_client import ControlClient
 
@@ -379,8 +379,8 @@ def test_the_operator_screen_drives_the_nodes(ros_domain, checkpoint, tmp_path):
     from equidiff_core.bags import read_episode
     from equidiff_core.control import load_control_config
     from equidiff_core.robots.franky.sim import SimServer
-    from equidiff_core.topics import TOPIC_FRANKA_STATUS, TOPIC_POLICY_STATE
     from equidiff_core.twin.processes import start_node, stop_process
+    from equidiff_core.wire.topics import TOPIC_FRANKA_STATUS, TOPIC_POLICY_STATE
     from equidiff_ros.common import LATCHED_QOS, SENSOR_QOS
     from equidiff_ros.control_client import ControlClient
 

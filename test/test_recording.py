@@ -19,15 +19,15 @@ from equidiff_core.bags import (
     scan_mcap,
 )
 from equidiff_core.config import default_config_dir, load_lab_config
-from equidiff_core.pointcloud import grid_to_voxel_msg, voxel_msg_to_grid
 from equidiff_core.recording import (
     EpisodeWriter,
     RecordingConfig,
     RecordingError,
     next_episode_path,
 )
-from equidiff_core.rosmsg import rosbags_factory
-from equidiff_core.topics import camera_color_topic
+from equidiff_core.wire.pointcloud import grid_to_voxel_msg, voxel_msg_to_grid
+from equidiff_core.wire.rosmsg import rosbags_factory
+from equidiff_core.wire.topics import camera_color_topic
 
 ROOT = Path(__file__).resolve().parents[1]
 LAB = load_lab_config(default_config_dir() / "lab.yaml")

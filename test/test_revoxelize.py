@@ -14,11 +14,11 @@ from scipy.spatial.transform import Rotation
 from equidiff_core.bags import BagError, EpisodeMeta, read_episode, read_meta
 from equidiff_core.benches.voxelize import synthetic_scene
 from equidiff_core.config import Extrinsics, default_config_dir, load_lab_config
-from equidiff_core.pointcloud import cloud_to_msg, grid_to_voxel_msg, voxel_msg_to_grid
 from equidiff_core.recording import EpisodeWriter, RecordingConfig, recorded_topics
-from equidiff_core.rosmsg import tf_message
-from equidiff_core.topics import TOPIC_EE_POSE, TOPIC_VOXELS
 from equidiff_core.voxels import voxelize_reference
+from equidiff_core.wire.pointcloud import cloud_to_msg, grid_to_voxel_msg, voxel_msg_to_grid
+from equidiff_core.wire.rosmsg import tf_message
+from equidiff_core.wire.topics import TOPIC_EE_POSE, TOPIC_VOXELS
 
 LAB = load_lab_config(default_config_dir() / "lab.yaml")
 NS = 1_000_000_000
@@ -29,7 +29,7 @@ def _record(path, lab, clouds, n_sets=6, with_clouds=True, with_tf=True):
     """An episode as recorder_node writes it with record_clouds: /tf_static from ``lab`` first,
     three clouds every 0.2 s (a few ms apart, in camera order), a stale /voxels grid after each
     set, and 100 Hz ee poses."""
-    from equidiff_core import rosmsg
+    from equidiff_core.wire import rosmsg
 
     ws = lab.workspace
     wrong = np.zeros((4, ws.resolution, ws.resolution, ws.resolution), np.uint8)
@@ -176,7 +176,7 @@ def test_revoxelized_bag_carries_the_new_extrinsics_in_tf_static_and_metadata(tm
 
 def test_revoxelize_keeps_transforms_to_other_frames():
     from equidiff_core.fusion import replace_camera_transforms
-    from equidiff_core.rosmsg import rosbags_factory
+    from equidiff_core.wire.rosmsg import rosbags_factory
 
     factory = rosbags_factory()
     tool = np.eye(4)

@@ -8,7 +8,6 @@ import pytest
 import torch
 
 from equidiff_core import geometry
-from equidiff_core.chunk import RealTimeChunking, steps_to_publish
 from equidiff_core.config import Workspace
 from equidiff_core.inference import export_policy, load_inference_policy
 from equidiff_core.models import action_space, equivariance
@@ -17,6 +16,7 @@ from equidiff_core.normalizer import Normalizer
 from equidiff_core.policies import PolicyInputError, make_policy
 from equidiff_core.presets import get_preset
 from equidiff_core.twin.config import load_twin_config
+from equidiff_core.wire.chunk import RealTimeChunking, steps_to_publish
 
 WS = Workspace()
 DT_NS = 200_000_000
@@ -119,8 +119,8 @@ def test_rtc_is_c4_equivariant_rotated_scene_and_previous_chunk_give_the_rotated
 def test_chunking_probe_measures_boundary_velocity_changes_jerk_and_mode_switches():
     from types import SimpleNamespace
 
-    from equidiff_core.chunk import PoseChunk
     from equidiff_core.twin.chunking import ChunkingProbe
+    from equidiff_core.wire.chunk import PoseChunk
 
     def chunk(stamp_ms, y):
         times = (stamp_ms + np.arange(4) * 200) * 1_000_000

@@ -144,7 +144,7 @@ def test_direct_collection_writes_a_trainable_demo_bag(tmp_path):
     # each camera's colour image of every grid, stamped like it, as camera_node and the recorder write them
     from equidiff_core.bags import read_episode
     from equidiff_core.cameras.color import image_from_msg
-    from equidiff_core.topics import camera_color_topic
+    from equidiff_core.wire.topics import camera_color_topic
 
     images = read_episode(bag, topics=[camera_color_topic(c.name) for c in lab.cameras])
     for cam in lab.cameras:
@@ -384,13 +384,13 @@ def test_replaying_recorded_chunks_executes_them_from_the_bags_scene(tmp_path):
     stamped on a live run's clock, far from 0) replays as a success; the same chunks 6 cm higher
     grasp above the block and fail. The outcome is the replay's, not the bag's."""
     from equidiff_core.bags import BagError, EpisodeMeta
-    from equidiff_core.chunk import PoseChunk, chunk_to_msg
     from equidiff_core.config import default_config_dir, load_lab_config
     from equidiff_core.recording import EpisodeWriter
-    from equidiff_core.rosmsg import rosbags_factory
-    from equidiff_core.topics import RECORDED_TOPICS, TOPIC_COMMAND_CHUNK
     from equidiff_core.twin.demos import DirectRecorder
     from equidiff_core.twin.evaluate import evaluate_policy, replay_chunks
+    from equidiff_core.wire.chunk import PoseChunk, chunk_to_msg
+    from equidiff_core.wire.rosmsg import rosbags_factory
+    from equidiff_core.wire.topics import RECORDED_TOPICS, TOPIC_COMMAND_CHUNK
 
     lab = load_lab_config(default_config_dir() / "lab.yaml")
     rec, tap = DirectRecorder(CFG, lab), _ChunkTap()

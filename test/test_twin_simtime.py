@@ -266,7 +266,7 @@ def test_the_stamp_of_a_serialised_message_is_read_without_decoding_it():
     from sensor_msgs.msg import PointCloud2
     from trajectory_msgs.msg import MultiDOFJointTrajectory
 
-    from equidiff_core.rosmsg import header_stamp_ns_from_cdr
+    from equidiff_core.wire.rosmsg import header_stamp_ns_from_cdr
 
     for cls in (PointCloud2, MultiDOFJointTrajectory):
         msg = cls()

@@ -16,10 +16,10 @@ import numpy as np
 import pytest
 
 from equidiff_core import geometry
-from equidiff_core.chunk import chunk_from_actions, chunk_to_msg
 from equidiff_core.config import default_config_dir, load_lab_config
-from equidiff_core.pointcloud import cloud_to_msg, grid_to_voxel_msg
-from equidiff_core.rosmsg import NS_PER_S, MsgFactory, RosbagsFactory, rosbags_factory
+from equidiff_core.wire.chunk import chunk_from_actions, chunk_to_msg
+from equidiff_core.wire.pointcloud import cloud_to_msg, grid_to_voxel_msg
+from equidiff_core.wire.rosmsg import NS_PER_S, MsgFactory, RosbagsFactory, rosbags_factory
 
 rr = pytest.importorskip("rerun")
 
@@ -685,7 +685,7 @@ def test_recorded_camera_images_are_logged_as_the_jpegs_they_are(tmp_path):
 
     from equidiff_core.bags import read_episode
     from equidiff_core.recording import RecordingConfig
-    from equidiff_core.topics import camera_color_topic
+    from equidiff_core.wire.topics import camera_color_topic
 
     bag = write_synthetic_episode(
         tmp_path / "ep_0000", SyntheticEpisode(duration_s=2.0), config=RecordingConfig(min_free_gib=0)

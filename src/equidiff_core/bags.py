@@ -32,7 +32,7 @@ import numpy as np
 import yaml
 
 from .mcap_reader import CHECKED, UNCHECKED, BagError, BagIntegrityError, DamagedChunk, McapScan, iter_mcap
-from .rosmsg import rosbags_factory, stamp_to_ns
+from .wire.rosmsg import rosbags_factory, stamp_to_ns
 
 META_SIDECAR = "episode.yaml"
 UNREPAIRED_SUFFIX = ".unrepaired"
@@ -173,7 +173,7 @@ def bag_mcap(path: Path) -> Path:
 
 
 def read_episode(path: str | Path, topics: Iterable[str] | None = None) -> Episode:
-    """Decode a bag's messages (all topics, or only ``topics``), every CRC checked: ``BagIntegrityError``
+    """Decode a bag's messages (all topics, or only ``wire.topics``), every CRC checked: ``BagIntegrityError``
     for a damaged bag, ``BagError`` with the reason for any other unreadable one."""
     path = Path(path)
     if not path.exists():

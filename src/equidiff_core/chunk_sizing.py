@@ -1,16 +1,16 @@
 """How many steps each chunk carries and how many run before the next answer: policy_node's rule, ROS-free.
 
-A chunk bridges the observation-to-arrival latency L (``chunk.LatencyEstimate``: fixed, off, or
+A chunk bridges the observation-to-arrival latency L (``wire.chunk.LatencyEstimate``: fixed, off, or
 measured online): it carries k + ceil(L/dt) + 1 steps, at most what the horizon predicts, where k
 (``execute_steps``) is how many steps run before the next observation is answered. With
 ``n_action_steps`` set or L off, every chunk carries ``n_action_steps``; with ``execute_steps`` 0
-while bridging, k follows L (``chunk.bridging_execute_steps``).
+while bridging, k follows L (``wire.chunk.bridging_execute_steps``).
 """
 
 from __future__ import annotations
 
-from .chunk import AnswerSchedule, LatencyEstimate, bridging_execute_steps, max_bridged_latency_s, steps_to_publish
 from .presets import PolicyPreset
+from .wire.chunk import AnswerSchedule, LatencyEstimate, bridging_execute_steps, max_bridged_latency_s, steps_to_publish
 
 
 class ChunkSizing:

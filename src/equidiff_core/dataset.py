@@ -2,11 +2,11 @@
 
 One observation per ``/voxels`` message (5 Hz), at its header stamp ``t``:
 
-* ``voxels``: the exact uint8 (4, R, R, R) grid (``pointcloud.voxel_msg_to_grid``);
+* ``voxels``: the exact uint8 (4, R, R, R) grid (``wire.pointcloud.voxel_msg_to_grid``);
 * ``ee``: the ``/franka/ee_pose`` nearest to ``t`` (header stamps) and the gripper width from
   the ``/franka/joint_states`` nearest to ``t`` (sum of the two finger joints), as a 10-D
   absolute action; both must lie within ``state_tolerance_s`` or the step is dropped (and
-  counted) rather than paired with a stale state. A pose or joint state that ``rosmsg`` refuses
+  counted) rather than paired with a stale state. A pose or joint state that ``wire.rosmsg`` refuses
   (NaN / inf, a non-unit quaternion, names and positions that disagree, a width outside the
   hand's stroke; with ``DatasetConfig.grid`` a pose in another frame) is left out, as the live
   policy node drops it: its step pairs with the next nearest usable state, or is dropped.
@@ -45,7 +45,6 @@ import numpy as np
 
 from . import geometry
 from .bags import CHECKED, BagError, find_bags, is_bag_dir, read_episode
-from .chunk import ChunkError, chunk_from_msg
 from .episode_arrays import (
     CACHE_VERSION,
     PACKED_SUFFIX,
@@ -58,10 +57,11 @@ from .episode_arrays import (
 )
 from .observation import ee_input, nearest
 from .output_files import distinct_names, staged_output, unique_paths
-from .pointcloud import CloudError, voxel_msg_to_grid
 from .robots.base import FINGER_JOINT_NAMES
-from .rosmsg import NS_PER_S, MessageError, gripper_width_from_joint_state, pose_from_msg
-from .topics import TOPIC_COMMAND_CHUNK, TOPIC_EE_POSE, TOPIC_JOINT_STATES, TOPIC_VOXELS
+from .wire.chunk import ChunkError, chunk_from_msg
+from .wire.pointcloud import CloudError, voxel_msg_to_grid
+from .wire.rosmsg import NS_PER_S, MessageError, gripper_width_from_joint_state, pose_from_msg
+from .wire.topics import TOPIC_COMMAND_CHUNK, TOPIC_EE_POSE, TOPIC_JOINT_STATES, TOPIC_VOXELS
 
 
 def command_schedule(chunks: Sequence[Any]) -> tuple[np.ndarray, np.ndarray]:

@@ -17,8 +17,8 @@ import numpy as np
 from .bags import UNCHECKED, BagError, EpisodeMeta
 from .observation import STATE_TOLERANCE_S
 from .output_files import staged_output
-from .pointcloud import VoxelGridSpec
-from .rosmsg import NS_PER_S
+from .wire.pointcloud import VoxelGridSpec
+from .wire.rosmsg import NS_PER_S
 
 CACHE_VERSION = 2  # 2: compressed, with the decoding settings inside (shared with packed episodes)
 PACKED_SUFFIX = ".episode.npz"

@@ -294,7 +294,7 @@ class InferencePolicy:
         """Absolute actions (horizon, 10) for one observation; ``seed`` makes the DDIM noise reproducible.
 
         ``guide = (target (horizon, 10) absolute actions, weights (horizon,))``: real-time chunking,
-        the sample is inpainted towards ``target`` (``chunk.RealTimeChunking``); None: plain DDIM.
+        the sample is inpainted towards ``target`` (``wire.chunk.RealTimeChunking``); None: plain DDIM.
         With ``cuda_graph`` both run as one graph replay; the actions are the same as without it."""
         obs = self._obs_inputs(voxels, ee)
         gen = None

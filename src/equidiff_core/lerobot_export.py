@@ -72,7 +72,7 @@ from .lerobot_layout import (
 )
 from .lerobot_video import VideoEncoding, VideoFiles, bag_cameras, decoded_images, matched_images
 from .output_files import refuse_existing, staged_output
-from .rosmsg import NS_PER_S
+from .wire.rosmsg import NS_PER_S
 
 
 @dataclass(frozen=True)

@@ -8,7 +8,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
-from . import topics
+from .wire import topics
 
 ROBOT_STATES = ("moving", "holding", "homing", "awaiting_ack", "faulted")
 FRANKA_DIAGNOSTICS_NAME = "franka_node"  # the name of franka_node's status on /diagnostics

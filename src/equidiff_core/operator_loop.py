@@ -25,7 +25,6 @@ from collections import deque
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from . import topics
 from .bags import find_bags
 from .node_view import (
     DIAGNOSTICS_STALE_S,
@@ -36,6 +35,7 @@ from .node_view import (
     parse_franka_status,
     robot_status_from_diagnostics,
 )
+from .wire import topics
 
 ROBOT_BLOCKS_START = {
     "homing": "the arm is homing: start once it holds",

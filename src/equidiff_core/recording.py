@@ -34,8 +34,15 @@ import yaml
 from .bags import META_SIDECAR, EpisodeMeta
 from .config import LabConfig, bounded, described
 from .mcap_writer import MiB, open_bag_writer
-from .rosmsg import RosbagsFactory, rosbags_factory, transform_msg_from_pos_quat
-from .topics import CLOUD_TYPE, COMPRESSED_IMAGE_TYPE, RECORDED_TOPICS, TF_TYPE, TOPIC_TF_STATIC, camera_color_topic
+from .wire.rosmsg import RosbagsFactory, rosbags_factory, transform_msg_from_pos_quat
+from .wire.topics import (
+    CLOUD_TYPE,
+    COMPRESSED_IMAGE_TYPE,
+    RECORDED_TOPICS,
+    TF_TYPE,
+    TOPIC_TF_STATIC,
+    camera_color_topic,
+)
 
 
 class RecordingError(RuntimeError):

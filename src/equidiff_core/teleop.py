@@ -33,10 +33,10 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from . import geometry
-from .chunk import PoseChunk
 from .config import Workspace, bounded, described
 from .control.config import HAND_MAX_WIDTH_M
-from .rosmsg import NS_PER_S, stamp_to_ns
+from .wire.chunk import PoseChunk
+from .wire.rosmsg import NS_PER_S, stamp_to_ns
 
 
 class TeleopError(RuntimeError):

@@ -22,7 +22,6 @@ from equidiff_core.dataset import DatasetConfig, DemoDataset, load_episodes, spl
 from equidiff_core.jobs import JobError
 from equidiff_core.observation import STATE_TOLERANCE_S
 from equidiff_core.output_files import occupied, staged_output
-from equidiff_core.pointcloud import VoxelGridSpec
 from equidiff_core.policies import make_policy
 from equidiff_core.presets import get_preset
 from equidiff_core.training import (
@@ -34,6 +33,7 @@ from equidiff_core.training import (
     train,
 )
 from equidiff_core.training_callbacks import ActionMseEvaluator, PlotWriter, ProgressBar
+from equidiff_core.wire.pointcloud import VoxelGridSpec
 
 logger = logging.getLogger(__name__)
 

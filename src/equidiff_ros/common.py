@@ -23,8 +23,8 @@ from equidiff_core.config import (
     load_lab_config,
 )
 
-# The topic names, re-exported for the nodes: they are written once, in equidiff_core.topics.
-from equidiff_core.topics import (  # noqa: F401
+# The topic names, re-exported for the nodes: they are written once, in equidiff_core.wire.topics.
+from equidiff_core.wire.topics import (  # noqa: F401
     TOPIC_CLOCK,
     TOPIC_COMMAND_CHUNK,
     TOPIC_DIAGNOSTICS,

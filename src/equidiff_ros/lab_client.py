@@ -23,9 +23,9 @@ from dataclasses import asdict
 import rclpy
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 
-from equidiff_core import topics
 from equidiff_core.operator_loop import FRANKA_DIAGNOSTICS_NAME, NodeView, Request
-from equidiff_core.rosmsg import MessageError, RclpyFactory, diagnostic_entries
+from equidiff_core.wire import topics
+from equidiff_core.wire.rosmsg import MessageError, RclpyFactory, diagnostic_entries
 from equidiff_ros.common import LATCHED_QOS, RELIABLE_QOS
 
 SERVICE_WAIT_S = 5.0

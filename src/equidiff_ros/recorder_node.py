@@ -17,10 +17,10 @@ its metadata (``extra.interventions``: start-end seconds from the episode start,
 
 While recording, the messages a training set is built from are decoded first with the
 decoders their live readers use: a ``/voxels`` message that is not lab.yaml's grid
-(``pointcloud.voxel_msg_to_grid``), a ``/franka/command_chunk`` that does not decode
-(``chunk.chunk_from_msg``, base frame), a ``/franka/ee_pose`` that is not a pose in the base
-frame (``rosmsg.pose_from_msg``: NaN / inf, a non-unit quaternion) or a ``/franka/joint_states``
-that ``rosmsg.gripper_width_from_joint_state`` refuses (names and positions that disagree, a name
+(``wire.pointcloud.voxel_msg_to_grid``), a ``/franka/command_chunk`` that does not decode
+(``wire.chunk.chunk_from_msg``, base frame), a ``/franka/ee_pose`` that is not a pose in the base
+frame (``wire.rosmsg.pose_from_msg``: NaN / inf, a non-unit quaternion) or a ``/franka/joint_states``
+that ``wire.rosmsg.gripper_width_from_joint_state`` refuses (names and positions that disagree, a name
 twice, NaN / inf, a width outside the hand's stroke) is dropped from the bag, counted on /diagnostics
 (``recorder_node``: ``dropped_<topic>_<reason>``, ``last_drop``) and logged (throttled); one
 bad message would otherwise cost the whole episode when the dataset is built. Every other
@@ -45,10 +45,7 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.serialization import deserialize_message
 
-from equidiff_core import rosmsg, topics
 from equidiff_core.bags import EpisodeMeta
-from equidiff_core.chunk import ChunkError, chunk_from_msg
-from equidiff_core.pointcloud import CloudError, VoxelGridSpec, voxel_msg_to_grid
 from equidiff_core.recording import (
     EpisodeWriter,
     InterventionLog,
@@ -57,7 +54,10 @@ from equidiff_core.recording import (
     next_episode_path,
     recorded_topics,
 )
-from equidiff_core.rosmsg import MessageError, RclpyFactory, gripper_width_from_joint_state, pose_from_msg
+from equidiff_core.wire import rosmsg, topics
+from equidiff_core.wire.chunk import ChunkError, chunk_from_msg
+from equidiff_core.wire.pointcloud import CloudError, VoxelGridSpec, voxel_msg_to_grid
+from equidiff_core.wire.rosmsg import MessageError, RclpyFactory, gripper_width_from_joint_state, pose_from_msg
 from equidiff_ros.common import (
     LATCHED_QOS,
     RELIABLE_QOS,

@@ -11,7 +11,7 @@ pauses on the first, and the recorder marks both in the episode. After
 a script may have moved the arm meanwhile), and nothing is published while idle, so teleop
 never fights the policy.
 
-A /franka/ee_pose or /franka/joint_states message that ``rosmsg`` refuses (another frame than
+A /franka/ee_pose or /franka/joint_states message that ``wire.rosmsg`` refuses (another frame than
 the base frame, NaN / inf, a non-unit quaternion; names and positions that disagree, a name
 twice, a gripper width outside the hand's stroke) is dropped, logged (throttled) and counted on
 /diagnostics (``teleop_node``: ``dropped_<topic>_<reason>``, ``last_drop``; WARN once it dropped
@@ -33,10 +33,7 @@ import sys
 
 from rclpy.node import Node
 
-from equidiff_core import rosmsg
-from equidiff_core.chunk import chunk_to_msg
 from equidiff_core.config import Bounds
-from equidiff_core.rosmsg import NS_PER_S, MessageError, RclpyFactory, gripper_width_from_joint_state, pose_from_msg
 from equidiff_core.teleop import (
     SpaceMouseSource,
     TeleopConfig,
@@ -44,6 +41,15 @@ from equidiff_core.teleop import (
     TeleopInput,
     TeleopIntegrator,
     is_fresh,
+)
+from equidiff_core.wire import rosmsg
+from equidiff_core.wire.chunk import chunk_to_msg
+from equidiff_core.wire.rosmsg import (
+    NS_PER_S,
+    MessageError,
+    RclpyFactory,
+    gripper_width_from_joint_state,
+    pose_from_msg,
 )
 from equidiff_ros.common import (
     LATCHED_QOS,

@@ -12,7 +12,6 @@ from pathlib import Path
 
 from equidiff_core.benches import BenchError
 from equidiff_core.benches.stats import paired_comparison, paired_outcomes, success_rate
-from equidiff_core.chunk import AnswerSchedule, steps_to_publish
 from equidiff_core.config import default_config_dir, load_lab_config
 from equidiff_core.inference import load_inference_policy
 from equidiff_core.machine import cpu_model
@@ -21,6 +20,7 @@ from equidiff_core.twin.config import load_twin_config
 from equidiff_core.twin.demos import DirectRecorder
 from equidiff_core.twin.evaluate import evaluate_policy
 from equidiff_core.twin.shipped import SHIPPED_CHECKPOINT
+from equidiff_core.wire.chunk import AnswerSchedule, steps_to_publish
 
 MODES = ("whole", "replace", "horizon", "rtc")
 

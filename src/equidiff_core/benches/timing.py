@@ -32,7 +32,6 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ..chunk import RealTimeChunking
 from ..inference import load_inference_policy
 from ..machine import cpu_description, cpu_model
 from ..models.equivariance import random_observation
@@ -40,6 +39,7 @@ from ..models.plain import relu_before_pool_order
 from ..normalizer import Normalizer
 from ..policies import make_policy
 from ..training import DATA_SOURCES, PRECISIONS, TrainConfig, train
+from ..wire.chunk import RealTimeChunking
 
 MODE_PRECISIONS = ("auto", "fp32", "bf16")
 MODE_EXECUTIONS = ("eager", "traced", "compiled")

@@ -28,8 +28,8 @@ import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
 from .. import geometry
-from ..chunk import ChunkError, ChunkReason, PoseChunk
 from ..robots.base import STOP_KINDS, RobotError, RobotStopped, UserStopPressed
+from ..wire.chunk import ChunkError, ChunkReason, PoseChunk
 
 # How often a stopped robot's state is read (the user stop released? the arm's pose for the
 # topics): often enough for an operator, rare enough to leave the robot's link alone.

@@ -19,17 +19,18 @@ from pathlib import Path
 
 import numpy as np
 
-from .. import rosmsg
 from ..bags import EpisodeMeta
 from ..cameras import limit_depth
 from ..cameras.color import color_image_msg
 from ..cameras.twin import TwinCamera
-from ..chunk import PoseChunk, chunk_to_msg
 from ..config import LabConfig
 from ..episode import run_episode
-from ..pointcloud import grid_to_voxel_msg
 from ..recording import EpisodeWriter, next_episode_path
-from ..topics import (
+from ..voxels import Voxelizer
+from ..wire import rosmsg
+from ..wire.chunk import PoseChunk, chunk_to_msg
+from ..wire.pointcloud import grid_to_voxel_msg
+from ..wire.topics import (
     COMPRESSED_IMAGE_TYPE,
     TOPIC_COMMAND_CHUNK,
     TOPIC_EE_POSE,
@@ -38,7 +39,6 @@ from ..topics import (
     TRAINING_TOPICS,
     camera_color_topic,
 )
-from ..voxels import Voxelizer
 from .config import TwinConfig
 from .expert import plan_pick_place, tcp_pose
 from .scene import BLOCK, BOWL, body_pose, scene_record

@@ -12,10 +12,10 @@ from collections import deque
 
 import numpy as np
 
-from ..chunk import AnswerSchedule, PoseChunk, RealTimeChunking, SamplingSeeds, chunk_from_actions
 from ..control import Controller
 from ..observation import ee_input
 from ..robots.base import Robot, RobotError, RobotState
+from ..wire.chunk import AnswerSchedule, PoseChunk, RealTimeChunking, SamplingSeeds, chunk_from_actions
 from .scene import BLOCK, BOWL, body_pose
 
 # Rate at which the controller's newest target is sent to DirectSim.command.
@@ -223,7 +223,7 @@ class _DirectExecution:
 
 class DirectPolicy(_DirectExecution):
     """The policy as an ``episode.Actor`` in a ``demos.DirectWorld``: policy_node's answering rule
-    and sampling seeds (``chunk.SamplingSeeds`` for the episode's seed, as policy_node's in the
+    and sampling seeds (``wire.chunk.SamplingSeeds`` for the episode's seed, as policy_node's in the
     live twin) and franka_node's own ``Controller`` over DirectSim (``_DirectExecution``)."""
 
     def __init__(

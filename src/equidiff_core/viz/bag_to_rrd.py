@@ -32,8 +32,8 @@ from ..bags import BagIntegrityError, bag_mcap
 from ..config import LabConfig
 from ..mcap_reader import iter_mcap
 from ..output_files import distinct_names, staged_output, unique_paths
-from ..rosmsg import rosbags_factory
-from ..topics import camera_of_color_topic
+from ..wire.rosmsg import rosbags_factory
+from ..wire.topics import camera_of_color_topic
 from .logger import TOPICS_HANDLED, RerunLogger
 from .recording_setup import APPLICATION_ID, VizConfig, default_blueprint, open_recording
 

@@ -16,9 +16,9 @@ import numpy as np
 from geometry_msgs.msg import PoseStamped
 from std_msgs.msg import String
 
-from equidiff_core.rosmsg import MessageError, pose_from_msg
-from equidiff_core.topics import SERVICE_FRANKA_ACKNOWLEDGE, TOPIC_EE_POSE, TOPIC_FRANKA_STATUS
 from equidiff_core.twin.shipped import SHIPPED_CHECKPOINT, SHIPPED_NAME
+from equidiff_core.wire.rosmsg import MessageError, pose_from_msg
+from equidiff_core.wire.topics import SERVICE_FRANKA_ACKNOWLEDGE, TOPIC_EE_POSE, TOPIC_FRANKA_STATUS
 from equidiff_ros.benches.control import approach
 from equidiff_ros.common import LATCHED_QOS, RELIABLE_QOS
 from equidiff_ros.control_client import ControlClient

@@ -17,12 +17,12 @@ from typing import Any, Protocol, Self
 import numpy as np
 
 from equidiff_core import geometry
-from equidiff_core.chunk import PoseChunk
 from equidiff_core.control import metrics
 from equidiff_core.geometry import down_pose
-from equidiff_core.rosmsg import NS_PER_S
-from equidiff_core.topics import SERVICE_FRANKA_HOME, SERVICE_RECORDER_START, SERVICE_RECORDER_STOP
 from equidiff_core.twin.processes import start_node
+from equidiff_core.wire.chunk import PoseChunk
+from equidiff_core.wire.rosmsg import NS_PER_S
+from equidiff_core.wire.topics import SERVICE_FRANKA_HOME, SERVICE_RECORDER_START, SERVICE_RECORDER_STOP
 
 STEP_NS = NS_PER_S // 5  # the step (0.2 s) of the chunks the campaign sends
 

@@ -13,10 +13,10 @@ from scipy.spatial.transform import Rotation
 
 from equidiff_core import geometry
 from equidiff_core.benches.safety.campaign import STEP_NS, Campaign
-from equidiff_core.chunk import PoseChunk, chunk_to_msg
 from equidiff_core.control import metrics
 from equidiff_core.geometry import down_pose
-from equidiff_core.rosmsg import NS_PER_S
+from equidiff_core.wire.chunk import PoseChunk, chunk_to_msg
+from equidiff_core.wire.rosmsg import NS_PER_S
 
 # The arm's approaches in out_of_box start here and head for the floor, the -y and +x walls and
 # the corner of the -y wall and the floor. The box's corners at the floor nearest to and farthest

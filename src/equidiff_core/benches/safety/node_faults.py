@@ -15,8 +15,8 @@ import numpy as np
 
 from equidiff_core.bags import BagError, read_episode, repair_bag
 from equidiff_core.benches.safety.campaign import Campaign, franka_log, start_episode
-from equidiff_core.rosmsg import gripper_width_from_joint_state
 from equidiff_core.twin.processes import start_node, stop_process
+from equidiff_core.wire.rosmsg import gripper_width_from_joint_state
 
 STALL_S = 5.0  # how long camera_stall stalls a camera
 

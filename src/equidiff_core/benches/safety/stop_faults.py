@@ -16,8 +16,8 @@ import numpy as np
 
 from equidiff_core import geometry
 from equidiff_core.benches.safety.campaign import STEP_NS, Campaign, Sender, start_franka
-from equidiff_core.chunk import PoseChunk
-from equidiff_core.rosmsg import arm_joint_positions
+from equidiff_core.wire.chunk import PoseChunk
+from equidiff_core.wire.rosmsg import arm_joint_positions
 
 
 def held_until_acknowledged(

@@ -4,7 +4,7 @@ This module is the message codec: the factories, time stamps, and the robot-stat
 (``/franka/ee_pose`` and ``/franka/executed_target`` PoseStamped, ``/franka/joint_states``
 JointState: 7 arm joints + two finger joints each at width/2, ``/tf_static`` TFMessage, the
 ``/diagnostics`` entries). Nodes, commands and loggers read and write those only through it.
-The wire formats with a module of their own are the point clouds (``pointcloud``), the pose
+The wire formats with a module of their own are the point clouds (``wire.pointcloud``), the pose
 chunks (``chunk``) and the camera images (``cameras.color``).
 
 rclpy's generated classes and rosbags' typestore classes share field names, so every
@@ -38,8 +38,8 @@ from typing import Any
 
 import numpy as np
 
-from . import geometry
-from .robots.base import ARM_JOINT_NAMES, FINGER_JOINT_NAMES, RobotState
+from .. import geometry
+from ..robots.base import ARM_JOINT_NAMES, FINGER_JOINT_NAMES, RobotState
 
 NS_PER_S = 1_000_000_000
 
@@ -345,7 +345,7 @@ GRIPPER_WIDTH_SLACK_M = 0.002
 
 
 def _hand_max_width_m() -> float:
-    from .control.config import HAND_MAX_WIDTH_M  # imported late: control imports this module
+    from ..control.config import HAND_MAX_WIDTH_M  # imported late: control imports this module
 
     return HAND_MAX_WIDTH_M
 

@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from . import geometry
+from .. import geometry
 from .rosmsg import MsgFactory, stamp_to_ns
 
 JOINT_NAMES = ("fr3_hand_tcp", "gripper")
