@@ -11,7 +11,7 @@ from helpers_ros import spawn_node, stop_node
 
 from equidiff_core.benches.voxelize import synthetic_scene
 from equidiff_core.config import default_config_dir, load_lab_config
-from equidiff_core.voxels import voxelize_reference
+from equidiff_core.perception.voxels import voxelize_reference
 
 LAB_YAML = str(default_config_dir() / "lab.yaml")
 

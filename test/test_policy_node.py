@@ -355,7 +355,7 @@ def test_an_announced_episode_samples_like_the_in_process_evaluation(ros_domain,
     from std_msgs.msg import String
 
     from equidiff_core.inference import load_inference_policy
-    from equidiff_core.observation import ee_input
+    from equidiff_core.perception.observation import ee_input
     from equidiff_core.twin.processes import start_node, stop_process
     from equidiff_core.wire import rosmsg
     from equidiff_core.wire.chunk import chunk_from_actions

@@ -55,8 +55,8 @@ from .episode_arrays import (
     read_packed,
     write_packed,
 )
-from .observation import ee_input, nearest
 from .output_files import distinct_names, staged_output, unique_paths
+from .perception.observation import ee_input, nearest
 from .robots.base import FINGER_JOINT_NAMES
 from .wire.chunk import ChunkError, chunk_from_msg
 from .wire.pointcloud import CloudError, voxel_msg_to_grid

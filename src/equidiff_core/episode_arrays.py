@@ -15,8 +15,8 @@ from typing import Any
 import numpy as np
 
 from .bags import UNCHECKED, BagError, EpisodeMeta
-from .observation import STATE_TOLERANCE_S
 from .output_files import staged_output
+from .perception.observation import STATE_TOLERANCE_S
 from .wire.pointcloud import VoxelGridSpec
 from .wire.rosmsg import NS_PER_S
 

@@ -3,7 +3,7 @@ rosbag2 directory and its metadata.yaml) over an MCAP file written by the ``mcap
 ``Writer`` with CRCs, in large, promptly flushed chunks.
 
 Everything that writes bags (the episode recorder ``recording.EpisodeWriter``, bag repair
-``bags.repair_bag``, re-voxelisation ``fusion``) goes through ``open_bag_writer``; it lives apart
+``bags.repair_bag``, re-voxelisation ``perception.fusion``) goes through ``open_bag_writer``; it lives apart
 from them so none imports another.
 
 Why not rosbags' stock MCAP storage:

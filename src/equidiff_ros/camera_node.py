@@ -47,7 +47,7 @@ from equidiff_core.cameras import (
 from equidiff_core.cameras.color import DEFAULT_JPEG_QUALITY, ImageError, color_image_msg
 from equidiff_core.cameras.replay import ReplayFinished
 from equidiff_core.config import Bounds, ConfigError, parse_yaml
-from equidiff_core.sync import PublishPacer
+from equidiff_core.perception.sync import PublishPacer
 from equidiff_core.wire import rosmsg
 from equidiff_core.wire.pointcloud import cloud_to_msg
 from equidiff_core.wire.topics import COMPRESSED_IMAGE_TYPE, camera_color_topic

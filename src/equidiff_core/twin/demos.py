@@ -25,8 +25,8 @@ from ..cameras.color import color_image_msg
 from ..cameras.twin import TwinCamera
 from ..config import LabConfig
 from ..episode import run_episode
+from ..perception.voxels import Voxelizer
 from ..recording import EpisodeWriter, next_episode_path
-from ..voxels import Voxelizer
 from ..wire import rosmsg
 from ..wire.chunk import PoseChunk, chunk_to_msg
 from ..wire.pointcloud import grid_to_voxel_msg

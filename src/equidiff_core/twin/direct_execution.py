@@ -13,7 +13,7 @@ from collections import deque
 import numpy as np
 
 from ..control import Controller
-from ..observation import ee_input
+from ..perception.observation import ee_input
 from ..robots.base import Robot, RobotError, RobotState
 from ..wire.chunk import AnswerSchedule, PoseChunk, RealTimeChunking, SamplingSeeds, chunk_from_actions
 from .scene import BLOCK, BOWL, body_pose

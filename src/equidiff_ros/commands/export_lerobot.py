@@ -18,8 +18,8 @@ import sys
 
 from equidiff_core.dataset import DatasetConfig
 from equidiff_core.lerobot_export import ExportError, ExportOptions, export_lerobot
-from equidiff_core.observation import STATE_TOLERANCE_S
 from equidiff_core.output_files import OutputExistsError
+from equidiff_core.perception.observation import STATE_TOLERANCE_S
 from equidiff_ros.commands import add_force_argument
 
 

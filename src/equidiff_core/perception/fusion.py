@@ -18,17 +18,17 @@ import numpy as np
 import yaml
 from rosbags.rosbag2 import Reader
 
-from .bags import BagError, close_derived_bag, find_bags, verify_bag
-from .cameras import extrinsics_tf_message
-from .config import LabConfig
-from .mcap_writer import open_bag_writer
-from .output_files import distinct_names, staged_output, unique_paths
-from .recording import _qos as recorder_qos
+from ..bags import BagError, close_derived_bag, find_bags, verify_bag
+from ..cameras import extrinsics_tf_message
+from ..config import LabConfig
+from ..mcap_writer import open_bag_writer
+from ..output_files import distinct_names, staged_output, unique_paths
+from ..recording import _qos as recorder_qos
+from ..wire.pointcloud import CloudError, grid_to_voxel_msg, msg_to_cloud
+from ..wire.rosmsg import rosbags_factory, stamp_to_ns
+from ..wire.topics import CLOUD_TYPE, TF_TYPE, TOPIC_TF_STATIC, TOPIC_VOXELS
 from .sync import ApproximateTimeMatcher, Match
 from .voxels import Voxelizer, VoxelizerConfig
-from .wire.pointcloud import CloudError, grid_to_voxel_msg, msg_to_cloud
-from .wire.rosmsg import rosbags_factory, stamp_to_ns
-from .wire.topics import CLOUD_TYPE, TF_TYPE, TOPIC_TF_STATIC, TOPIC_VOXELS
 
 # A set newer than the last grid by less than this share of the period is not due yet
 # (cameras faster than the observation rate): jitter must not skip a frame at the nominal rate.

@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from . import geometry
+from .. import geometry
 
 __all__ = ["MAX_FUTURE_STAMP_S", "STATE_TOLERANCE_S", "StateHistory", "ee_input", "nearest"]
 

@@ -42,7 +42,7 @@ from typing import Any
 
 import numpy as np
 
-from .config import Workspace
+from ..config import Workspace
 
 _RB_MAX_COUNT = 257  # 257 * 255 < 2^16: R sums stay below the B field of R + B*2^16
 _COUNT_BITS = 20  # G*2^20 + 1: the count lives in the low 20 bits
