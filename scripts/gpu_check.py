@@ -577,7 +577,7 @@ def verify(directory: Path) -> dict:
     import torch
 
     from equidiff_core.benches.timing import probe_observation
-    from equidiff_core.inference import load_inference_policy
+    from equidiff_core.policy.inference import load_inference_policy
     from equidiff_core.training import load_policy_from_checkpoint, load_training_checkpoint
 
     policy = load_inference_policy(directory / "train_policy.pt", device="cpu")
@@ -611,7 +611,7 @@ def check_ddp(run_dir: Path) -> dict:
 
     from equidiff_core import distributed
     from equidiff_core.benches.timing import probe_observation
-    from equidiff_core.inference import load_inference_policy
+    from equidiff_core.policy.inference import load_inference_policy
     from equidiff_core.training import load_policy_from_checkpoint
 
     history = json.loads((run_dir / "history.json").read_text())

@@ -17,10 +17,10 @@ from equidiff_core.benches.conditioning import Frame, block_mask, conditioning_r
 from equidiff_core.benches.demo_sets import nested_subsets
 from equidiff_core.benches.training_runs import Recipe, fit_ratios, train_command, training_fit, under_fit
 from equidiff_core.config import Workspace
-from equidiff_core.inference import export_policy, load_inference_policy
-from equidiff_core.normalizer import Normalizer
-from equidiff_core.policies import make_policy
-from equidiff_core.presets import get_preset
+from equidiff_core.policy.diffusion import make_policy
+from equidiff_core.policy.inference import export_policy, load_inference_policy
+from equidiff_core.policy.normalizer import Normalizer
+from equidiff_core.policy.presets import get_preset
 from equidiff_core.training_job import TrainingSpec
 from equidiff_core.twin.evaluate import EvalEpisode, yaw_breakdown
 
@@ -77,7 +77,7 @@ def test_conditioning_tells_a_blind_baseline_from_a_policy_that_looks(tmp_path):
 
 def test_baseline_width_follows_the_official_encoder_and_old_presets_keep_their_channels():
     from equidiff_core.models.baseline import baseline_encoder_channels, matched_channels
-    from equidiff_core.presets import preset_from_dict
+    from equidiff_core.policy.presets import preset_from_dict
 
     compact = get_preset("compact")
     assert baseline_encoder_channels(compact.replace(baseline_width=128)) == (8, 16, 16, 32, 32, 64, 64, 128)

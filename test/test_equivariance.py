@@ -10,11 +10,11 @@ import pytest
 import torch
 
 from equidiff_core.config import Workspace
-from equidiff_core.inference import export_policy, load_inference_policy
 from equidiff_core.models import equivariance
-from equidiff_core.normalizer import Normalizer
-from equidiff_core.policies import make_policy
-from equidiff_core.presets import get_preset
+from equidiff_core.policy.diffusion import make_policy
+from equidiff_core.policy.inference import export_policy, load_inference_policy
+from equidiff_core.policy.normalizer import Normalizer
+from equidiff_core.policy.presets import get_preset
 from equidiff_core.twin.config import load_twin_config
 
 WS = Workspace()

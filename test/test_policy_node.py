@@ -39,10 +39,10 @@ def run_node(module: str, *ros_args: str, timeout: float = 120) -> subprocess.Co
 
 @pytest.fixture(scope="module")
 def checkpoint(tmp_path_factory):
-    from equidiff_core.inference import export_policy
-    from equidiff_core.normalizer import Normalizer
-    from equidiff_core.policies import make_policy
-    from equidiff_core.presets import get_preset
+    from equidiff_core.policy.diffusion import make_policy
+    from equidiff_core.policy.inference import export_policy
+    from equidiff_core.policy.normalizer import Normalizer
+    from equidiff_core.policy.presets import get_preset
 
     ws = Workspace()
     policy = make_policy("baseline", get_preset("tiny"), ws)
@@ -354,8 +354,8 @@ def test_an_announced_episode_samples_like_the_in_process_evaluation(ros_domain,
     from geometry_msgs.msg import PoseStamped
     from std_msgs.msg import String
 
-    from equidiff_core.inference import load_inference_policy
     from equidiff_core.perception.observation import ee_input
+    from equidiff_core.policy.inference import load_inference_policy
     from equidiff_core.twin.processes import start_node, stop_process
     from equidiff_core.wire import rosmsg
     from equidiff_core.wire.chunk import chunk_from_actions

@@ -9,12 +9,12 @@ import torch
 
 from equidiff_core import geometry
 from equidiff_core.config import Workspace
-from equidiff_core.inference import export_policy, load_inference_policy
 from equidiff_core.models import action_space, equivariance
 from equidiff_core.models.sampling import ddim_sample
-from equidiff_core.normalizer import Normalizer
-from equidiff_core.policies import PolicyInputError, make_policy
-from equidiff_core.presets import get_preset
+from equidiff_core.policy.diffusion import PolicyInputError, make_policy
+from equidiff_core.policy.inference import export_policy, load_inference_policy
+from equidiff_core.policy.normalizer import Normalizer
+from equidiff_core.policy.presets import get_preset
 from equidiff_core.twin.config import load_twin_config
 from equidiff_core.wire.chunk import RealTimeChunking, steps_to_publish
 

@@ -67,7 +67,7 @@ def train(bags, out, *extra):
 
 
 def test_train_writes_a_loadable_policy_and_plot(bags, tmp_path, capsys):
-    from equidiff_core.inference import load_inference_policy
+    from equidiff_core.policy.inference import load_inference_policy
 
     out = tmp_path / "run"
     assert train(bags, out) == 0

@@ -564,7 +564,7 @@ def test_shipped_checkpoint_loads_and_its_training_is_recorded():
     """The checkpoint `equidiff twin run` uses by default: loadable, plain torch, documented next to it."""
     import numpy as np
 
-    from equidiff_core.inference import load_inference_policy
+    from equidiff_core.policy.inference import load_inference_policy
     from equidiff_core.twin.shipped import SHIPPED_CHECKPOINT
 
     assert SHIPPED_CHECKPOINT.is_file(), SHIPPED_CHECKPOINT
@@ -579,7 +579,7 @@ def test_shipped_checkpoint_loads_and_its_training_is_recorded():
 
     # its training state is kept beside it (`equidiff train --resume`), at the step its history ends, without
     # AdamW's moments (a resume starts fresh ones): the file stays small enough to keep in git
-    from equidiff_core.presets import preset_from_dict
+    from equidiff_core.policy.presets import preset_from_dict
     from equidiff_core.training import load_policy_from_checkpoint, load_training_checkpoint
 
     state = load_training_checkpoint(SHIPPED_CHECKPOINT.parent / "last.ckpt")

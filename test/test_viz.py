@@ -542,8 +542,8 @@ def test_training_callback_with_the_real_trainer(tmp_path):
     training = pytest.importorskip("equidiff_core.training")
     import torch
 
-    from equidiff_core.policies import make_policy
-    from equidiff_core.presets import get_preset
+    from equidiff_core.policy.diffusion import make_policy
+    from equidiff_core.policy.presets import get_preset
     from equidiff_core.viz.training import RerunTrainingCallback
 
     preset = get_preset("tiny")

@@ -48,7 +48,7 @@ class DatasetConfig:
 
     @classmethod
     def from_preset(cls, preset: Any, **overrides: Any) -> DatasetConfig:
-        """Horizon, observation steps and action steps from a model preset (``presets.PolicyPreset``)."""
+        """Horizon, observation steps and action steps from a model preset (``policy.presets.PolicyPreset``)."""
         kw = {"horizon": preset.horizon, "n_obs_steps": preset.n_obs_steps, "n_action_steps": preset.n_action_steps}
         kw.update(overrides)
         return cls(**kw)

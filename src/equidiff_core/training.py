@@ -18,7 +18,7 @@ tensors and swap the averaged weights in for evaluation and export.
 
 Files in ``out_dir``: ``last.ckpt`` (resumable: weights, optimiser, schedule, EMA, step,
 history, config; loads with ``torch.load(weights_only=True)``), ``history.json`` and
-``policy.pt`` (the exported inference policy, see ``inference.py``). ``without_optimizer_state``
+``policy.pt`` (the exported inference policy, see ``policy.inference.py``). ``without_optimizer_state``
 writes a checkpoint to share without the optimiser's moments; it still resumes, with fresh moments.
 
 The run's configuration, its result and the resolution of ``auto`` settings are in ``train_config``.
@@ -43,9 +43,8 @@ from . import distributed
 from .batches import DeviceBatchSource, loader_batches, make_sampler
 from .config import Workspace, from_dict, to_dict
 from .models.state import learned_state_dict, load_learned_state, parameters_only, refresh_escnn_caches
-from .normalizer import Normalizer
-from .policies import DiffusionPolicy, make_policy
-from .policy_file import (
+from .policy.diffusion import DiffusionPolicy, make_policy
+from .policy.file import (
     HASH_KEY,
     CheckpointError,
     CheckpointFormatError,
@@ -55,7 +54,8 @@ from .policy_file import (
     save_atomically,
     weights_sha256,
 )
-from .presets import preset_from_dict
+from .policy.normalizer import Normalizer
+from .policy.presets import preset_from_dict
 from .train_config import (
     DATA_SOURCES,
     DEVICE_DATA_SHARE,
@@ -396,7 +396,7 @@ def load_policy_from_checkpoint(path: str | Path, device: str = "cpu", ema: bool
     ones training exports to ``policy.pt`` and a robot runs. ``ema=False`` gives the raw
     training weights instead (where training resumes from).
     An exported file holds plain-torch weights: for the baseline they load as-is; for EquiDiff
-    use ``inference.load_inference_policy`` instead (the escnn parameters are not recoverable
+    use ``policy.inference.load_inference_policy`` instead (the escnn parameters are not recoverable
     from expanded filters)."""
     path = Path(path)
     ema_state = None
@@ -414,7 +414,7 @@ def load_policy_from_checkpoint(path: str | Path, device: str = "cpu", ema: bool
         if config.get("policy") != "baseline":
             raise CheckpointError(
                 f"{path}: an exported EquiDiff policy has no escnn weights; use last.ckpt "
-                "or inference.load_inference_policy"
+                "or policy.inference.load_inference_policy"
             ) from None
     try:
         policy = make_policy(

@@ -22,8 +22,8 @@ from equidiff_core.dataset import DatasetConfig, DemoDataset, load_episodes, spl
 from equidiff_core.jobs import JobError
 from equidiff_core.output_files import occupied, staged_output
 from equidiff_core.perception.observation import STATE_TOLERANCE_S
-from equidiff_core.policies import make_policy
-from equidiff_core.presets import get_preset
+from equidiff_core.policy.diffusion import make_policy
+from equidiff_core.policy.presets import get_preset
 from equidiff_core.training import (
     TrainConfig,
     TrainingError,

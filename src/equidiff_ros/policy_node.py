@@ -9,7 +9,7 @@ Wiring:
                                                     must not hold the grids back from the other readers
   /franka/ee_pose, /franka/joint_states          -> short history; the pose/width nearest the voxel stamp
   worker: ``InferencePolicy.predict`` -> the steps of the predicted ``horizon`` that bridge the
-          latency (``chunk_sizing.ChunkSizing``: ``n_action_steps``, ``execute_steps``, ``latency_s``)
+          latency (``policy.chunk_sizing.ChunkSizing``: ``n_action_steps``, ``execute_steps``, ``latency_s``)
           -> ``wire.chunk.chunk_from_actions`` (step i at observation stamp + i·dt) -> /franka/command_chunk
   timer at ``rate_hz`` -> warns when no fresh observation has come (a camera or the voxel node is down)
   timer at 1 Hz -> /diagnostics (``policy_node``: inference_ms, observation_age_ms, skipped_cycles,
@@ -77,12 +77,12 @@ from std_msgs.msg import Bool, String
 from std_srvs.srv import SetBool
 from trajectory_msgs.msg import MultiDOFJointTrajectory
 
-from equidiff_core.chunk_sizing import ChunkSizing
 from equidiff_core.config import Bounds, ConfigError, LabConfig
 from equidiff_core.control import SafetyConfig
 from equidiff_core.control.metrics import percentiles_ms
-from equidiff_core.inference import PRECISIONS, CheckpointError, load_inference_policy
 from equidiff_core.perception.observation import MAX_FUTURE_STAMP_S, STATE_TOLERANCE_S, StateHistory, ee_input
+from equidiff_core.policy.chunk_sizing import ChunkSizing
+from equidiff_core.policy.inference import PRECISIONS, CheckpointError, load_inference_policy
 from equidiff_core.wire import rosmsg
 from equidiff_core.wire.chunk import (
     DEFAULT_EXECUTE_STEPS,

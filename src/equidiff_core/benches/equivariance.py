@@ -13,18 +13,18 @@ import torch
 
 from equidiff_core.benches import BenchError
 from equidiff_core.config import Workspace
-from equidiff_core.inference import (
+from equidiff_core.machine import cpu_description
+from equidiff_core.models import equivariance
+from equidiff_core.policy.diffusion import make_policy
+from equidiff_core.policy.inference import (
     CheckpointError,
     CheckpointFormatError,
     export_policy,
     load_inference_policy,
     read_policy_file,
 )
-from equidiff_core.machine import cpu_description
-from equidiff_core.models import equivariance
-from equidiff_core.normalizer import Normalizer
-from equidiff_core.policies import make_policy
-from equidiff_core.presets import get_preset
+from equidiff_core.policy.normalizer import Normalizer
+from equidiff_core.policy.presets import get_preset
 from equidiff_core.training import load_policy_from_checkpoint
 from equidiff_core.twin.config import load_twin_config
 

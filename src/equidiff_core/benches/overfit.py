@@ -24,12 +24,12 @@ import numpy as np
 import torch
 
 from ..config import Workspace
-from ..inference import load_inference_policy
 from ..machine import cpu_description
 from ..output_files import staged_dir
-from ..policies import make_policy
-from ..policy_file import export_policy
-from ..presets import get_preset
+from ..policy.diffusion import make_policy
+from ..policy.file import export_policy
+from ..policy.inference import load_inference_policy
+from ..policy.presets import get_preset
 from ..synthetic import OPEN_WIDTH_M, CubeDataset
 from ..training import TrainConfig, fit_normalizer, train
 from . import BenchError

@@ -22,8 +22,8 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-from ..inference import export_policy
 from ..models.baseline import baseline_encoder_channels
+from ..policy.inference import export_policy
 from ..training import load_policy_from_checkpoint
 from ..training_job import TrainingSpec
 

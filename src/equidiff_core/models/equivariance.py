@@ -24,8 +24,8 @@ network and the resampling, not content falling off the crop. Random sparse voxe
 filled) hide the 45 deg error: a network sees mostly empty space, so that is not what is measured.
 
 Subjects: anything with ``denoise(voxels, ee, x, t)`` and ``sample(voxels, ee, noise)``:
-``TrainingModel`` wraps a ``policies.DiffusionPolicy`` (escnn for EquiDiff), ``ExportedModel`` an
-``inference.InferencePolicy`` (plain torch, fp32 or bf16, traced or not).
+``TrainingModel`` wraps a ``policy.diffusion.DiffusionPolicy`` (escnn for EquiDiff), ``ExportedModel`` an
+``policy.inference.InferencePolicy`` (plain torch, fp32 or bf16, traced or not).
 """
 
 from __future__ import annotations
@@ -186,7 +186,7 @@ def rotate_observation(workspace, voxels: torch.Tensor, ee: torch.Tensor, theta:
 
 
 class TrainingModel:
-    """A ``policies.DiffusionPolicy`` (escnn for EquiDiff), one observation at a time."""
+    """A ``policy.diffusion.DiffusionPolicy`` (escnn for EquiDiff), one observation at a time."""
 
     def __init__(self, policy):
         self.policy = policy.eval()
@@ -205,7 +205,7 @@ class TrainingModel:
 
 
 class ExportedModel:
-    """An ``inference.InferencePolicy`` (plain torch; its single-step history is the newest observation)."""
+    """An ``policy.inference.InferencePolicy`` (plain torch; its single-step history is the newest observation)."""
 
     def __init__(self, fast):
         self.fast = fast

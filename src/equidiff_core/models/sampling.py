@@ -8,8 +8,8 @@ import torch
 from diffusers import DDIMScheduler, DDPMScheduler
 
 from .. import geometry
-from ..normalizer import Normalizer
-from ..presets import PolicyPreset
+from ..policy.normalizer import Normalizer
+from ..policy.presets import PolicyPreset
 from . import action_space
 
 

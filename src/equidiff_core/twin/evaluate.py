@@ -34,9 +34,9 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from ..chunk_sizing import ChunkSizing
 from ..config import LabConfig
 from ..episode import run_episode
+from ..policy.chunk_sizing import ChunkSizing
 from ..wire.chunk import DEFAULT_EXECUTE_STEPS, DEFAULT_RTC, DEFAULT_TRANSPORT_S, AnswerSchedule
 from ..wire.rosmsg import position_from_msg
 from ..wire.topics import TOPIC_COMMAND_CHUNK, TOPIC_EE_POSE
@@ -98,7 +98,7 @@ def evaluate_policy(
     probe=None,
     threads: int | None = ROLLOUT_THREADS,
 ) -> list[EvalEpisode]:
-    """Roll ``policy`` (an ``inference.InferencePolicy``) out from each seed's scene; returns per-episode results.
+    """Roll ``policy`` (an ``policy.inference.InferencePolicy``) out from each seed's scene; returns per-episode results.
 
     Each answered observation's chunk takes effect ``latency_s`` after it (default 0.1 s, the
     twin's default budget); the policy answers every ``execute_steps``-th observation (0: every

@@ -25,7 +25,7 @@ import json
 from pathlib import Path
 
 from equidiff_core.jobs import progress_lines
-from equidiff_core.presets import BASELINE_INITS, ROTATION_AUGS
+from equidiff_core.policy.presets import BASELINE_INITS, ROTATION_AUGS
 from equidiff_core.training_job import TrainingSpec, run_training
 from equidiff_ros.commands import add_force_argument
 

@@ -1,7 +1,7 @@
 """Exported policies at inference: ``load_inference_policy`` and the sampling paths of ``InferencePolicy``.
 
 A policy file holds plain torch modules + a JSON config in one ``torch.load(weights_only=True)``
-file; its format, ``export_policy``, checked loading and ``CheckpointError`` live in ``policy_file``,
+file; its format, ``export_policy``, checked loading and ``CheckpointError`` live in ``policy.file``,
 the CPU kernels in ``models.cpu_kernels`` (both re-exported here). ``export_policy(policy, path)``
 converts the escnn model with escnn's own per-layer ``export()``
 (R3Conv -> Conv3d, equivariant Linear -> Linear, same outputs to float rounding) into
@@ -31,10 +31,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from .augment import voxel_input
-from .config import Workspace, from_dict
-from .machine import cpu_has_native_bf16
-from .models.cpu_kernels import (
+from ..config import Workspace, from_dict
+from ..machine import cpu_has_native_bf16
+from ..models.cpu_kernels import (
     FastMish,
     MatmulConv1d,
     MatmulConvTranspose1d,
@@ -43,10 +42,10 @@ from .models.cpu_kernels import (
     pad_first_conv,
     swap_modules,
 )
-from .models.sampling import ActionCodec, _guided_noise, ddim_sample, make_inference_scheduler
-from .normalizer import Normalizer, NormalizerError
-from .policies import PolicyInputError
-from .policy_file import (
+from ..models.sampling import ActionCodec, _guided_noise, ddim_sample, make_inference_scheduler
+from .augment import voxel_input
+from .diffusion import PolicyInputError
+from .file import (
     FORMAT,
     UNHASHED,
     VERSION,
@@ -60,6 +59,7 @@ from .policy_file import (
     read_policy_file,
     save_atomically,
 )
+from .normalizer import Normalizer, NormalizerError
 from .presets import PolicyPreset, preset_from_dict
 
 PRECISIONS = ("fp32", "bf16", "auto")

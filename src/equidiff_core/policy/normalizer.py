@@ -20,7 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from .config import Workspace
+from ..config import Workspace
 
 MIN_RANGE = 1e-3  # m; a degenerate axis (all z equal) falls back to +- this
 

@@ -13,7 +13,7 @@ import math
 
 import torch
 
-from . import geometry
+from .. import geometry
 
 
 def center_crop(voxels: torch.Tensor, size: int) -> torch.Tensor:

@@ -9,8 +9,14 @@ while bridging, k follows L (``wire.chunk.bridging_execute_steps``).
 
 from __future__ import annotations
 
+from ..wire.chunk import (
+    AnswerSchedule,
+    LatencyEstimate,
+    bridging_execute_steps,
+    max_bridged_latency_s,
+    steps_to_publish,
+)
 from .presets import PolicyPreset
-from .wire.chunk import AnswerSchedule, LatencyEstimate, bridging_execute_steps, max_bridged_latency_s, steps_to_publish
 
 
 class ChunkSizing:

@@ -30,7 +30,7 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass
 
-from .config import ConfigError, from_dict, to_dict
+from ..config import ConfigError, from_dict, to_dict
 
 CONTROL_MODES = ("absolute", "relative")
 ROTATION_AUGS = ("none", "c4", "c8", "continuous")

@@ -16,15 +16,15 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from . import augment
-from .config import Workspace, to_dict
-from .models import action_space
-from .models.sampling import (
+from ..config import Workspace, to_dict
+from ..models import action_space
+from ..models.sampling import (
     ActionCodec,
     ddim_sample,
     make_inference_scheduler,
     make_train_scheduler,
 )
+from . import augment
 from .normalizer import Normalizer
 from .presets import PolicyPreset
 
@@ -153,13 +153,13 @@ class DiffusionPolicy(nn.Module):
 def make_policy(name: str, preset: PolicyPreset, workspace: Workspace) -> DiffusionPolicy:
     freqs = action_space.freqs_for(preset.control)
     if name == "equidiff":
-        from .models.equivariant import (
+        from ..models.equivariant import (
             EquiNoisePredictor,  # escnn is imported only here
         )
 
         model = EquiNoisePredictor(preset, freqs)
     elif name == "baseline":
-        from .models.baseline import BaselineNoisePredictor
+        from ..models.baseline import BaselineNoisePredictor
 
         model = BaselineNoisePredictor(preset, freqs)
     else:

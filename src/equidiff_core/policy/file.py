@@ -7,7 +7,7 @@ checkpoints carry the hash of their model weights too and are read with the same
 truncated or unreadable, another format (``CheckpointFormatError``), an unknown version, or
 weights that no longer match their hash. A file written before the hash existed loads and is
 reported as unhashed (``PolicyFile.weights_sha256`` is None; ``equidiff check ...`` print
-``"weights_sha256": "unhashed"``). ``inference.load_inference_policy`` builds the runnable
+``"weights_sha256": "unhashed"``). ``policy.inference.load_inference_policy`` builds the runnable
 policy from such a file.
 """
 
@@ -22,8 +22,8 @@ from typing import Any
 
 import torch
 
-from .models import action_space
-from .output_files import staged_output
+from ..models import action_space
+from ..output_files import staged_output
 from .presets import PolicyPreset
 
 FORMAT = "equidiff_policy"
@@ -69,7 +69,7 @@ def weights_sha256(state: dict) -> str:
 
 
 def export_policy(policy, path: str | Path) -> Path:
-    """Write ``policy`` (a policies.DiffusionPolicy with its normaliser set) as a plain-torch inference file."""
+    """Write ``policy`` (a diffusion.DiffusionPolicy with its normaliser set) as a plain-torch inference file."""
     if policy.normalizer is None:
         raise CheckpointError("cannot export a policy without a normaliser")
     path = Path(path)
@@ -100,11 +100,11 @@ def save_atomically(obj: Any, path: Path) -> Path:
 def build_plain_network(policy_name: str, preset: PolicyPreset) -> torch.nn.Module:
     freqs = action_space.freqs_for(preset.control)
     if policy_name == "equidiff":
-        from .models.plain import PlainEquiNoisePredictor
+        from ..models.plain import PlainEquiNoisePredictor
 
         return PlainEquiNoisePredictor(preset, freqs)
     if policy_name == "baseline":
-        from .models.baseline import BaselineNoisePredictor
+        from ..models.baseline import BaselineNoisePredictor
 
         return BaselineNoisePredictor(preset, freqs)
     raise CheckpointError(f"unknown policy kind {policy_name!r} in checkpoint")
