@@ -24,8 +24,8 @@ from pathlib import Path
 
 import numpy as np
 
-from equidiff_core.bags import find_bags, read_episode
 from equidiff_core.config import default_config_dir, load_lab_config
+from equidiff_core.data.bags import find_bags, read_episode
 from equidiff_core.perception.observation import ee_input
 from equidiff_core.policy.inference import load_inference_policy
 from equidiff_core.twin.config import load_twin_config

@@ -31,10 +31,10 @@ if str(ROOT / "src") not in sys.path:
     sys.path.insert(0, str(ROOT / "src"))
 
 from equidiff_core import geometry
-from equidiff_core.bags import EpisodeMeta
 from equidiff_core.cameras.color import color_image_msg
 from equidiff_core.config import Workspace, load_lab_config
-from equidiff_core.recording import EpisodeWriter, RecordingConfig
+from equidiff_core.data.bags import EpisodeMeta
+from equidiff_core.data.recording import EpisodeWriter, RecordingConfig
 from equidiff_core.wire.chunk import PoseChunk, chunk_to_msg
 from equidiff_core.wire.pointcloud import grid_to_voxel_msg
 from equidiff_core.wire.rosmsg import NS_PER_S, rosbags_factory

@@ -1,4 +1,4 @@
-"""Model-test helpers (the synthetic cube data lives in ``equidiff_core.synthetic``)."""
+"""Model-test helpers (the synthetic cube data lives in ``equidiff_core.data.synthetic``)."""
 
 from __future__ import annotations
 

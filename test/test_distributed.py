@@ -22,10 +22,10 @@ from equidiff_core.batches import (
     make_sampler,
 )
 from equidiff_core.config import Workspace
-from equidiff_core.dataset import DatasetConfig, DemoDataset
+from equidiff_core.data.dataset import DatasetConfig, DemoDataset
+from equidiff_core.data.synthetic import CubeDataset
 from equidiff_core.policy.diffusion import make_policy
 from equidiff_core.policy.presets import get_preset
-from equidiff_core.synthetic import CubeDataset
 from equidiff_core.training import TrainConfig, resolve_precision, train
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -8,10 +8,10 @@ import pytest
 import torch
 
 from equidiff_core.config import ConfigError, Workspace, from_dict
+from equidiff_core.data.synthetic import CubeDataset
 from equidiff_core.policy.diffusion import make_policy
 from equidiff_core.policy.inference import CheckpointError, load_inference_policy
 from equidiff_core.policy.presets import get_preset
-from equidiff_core.synthetic import CubeDataset
 from equidiff_core.training import (
     TrainConfig,
     TrainingError,

@@ -342,7 +342,7 @@ def test_main_job_smoke_run_end_to_end(ros_domain, tmp_path):
     assert "success rate" in summary and "end to end" in summary
     bags = list((out / "bags").glob("twin_eval_*"))
     assert len(bags) == 1 and (bags[0] / "metadata.yaml").is_file()
-    from equidiff_core.bags import read_episode
+    from equidiff_core.data.bags import read_episode
 
     episode = read_episode(bags[0])
     assert episode.meta.success is not None
@@ -359,7 +359,7 @@ def test_main_job_smoke_run_end_to_end(ros_domain, tmp_path):
 def test_twin_collect_over_ros_records_the_experts_demo_with_its_seed(ros_domain, tmp_path):
     """`equidiff twin collect` through the live graph (teleop-style chunks, recorder_node): the
     same episode sequence as the main job, and a kept demo the dataset reads."""
-    from equidiff_core.bags import read_meta
+    from equidiff_core.data.bags import read_meta
 
     out = tmp_path / "demos"
     proc = run_job(

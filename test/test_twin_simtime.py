@@ -225,8 +225,8 @@ def test_a_hung_policy_ends_its_episode_as_stalled_naming_it_and_the_job_goes_on
     """A policy_node that stops answering (its main thread frozen: alive, silent) must not hang the sim: after
     the stall timeout the episode ends as stalled, naming policy_node, its bag is kept, and the
     next episode runs once the policy answers again."""
-    from equidiff_core.bags import read_episode
     from equidiff_core.config import default_config_dir, load_lab_config
+    from equidiff_core.data.bags import read_episode
     from equidiff_core.twin.config import TwinConfig
     from equidiff_core.twin.standin import make_standin_policy
     from equidiff_ros.twin import TwinStack, run_policy_episode

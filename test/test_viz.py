@@ -683,8 +683,8 @@ def test_recorded_camera_images_are_logged_as_the_jpegs_they_are(tmp_path):
     sys.path.insert(0, str(ROOT / "test"))
     from helpers_data import SyntheticEpisode, write_synthetic_episode
 
-    from equidiff_core.bags import read_episode
-    from equidiff_core.recording import RecordingConfig
+    from equidiff_core.data.bags import read_episode
+    from equidiff_core.data.recording import RecordingConfig
     from equidiff_core.wire.topics import camera_color_topic
 
     bag = write_synthetic_episode(

@@ -60,7 +60,7 @@ def loader_batches(
 
 
 def _is_episode_dataset(dataset) -> bool:
-    """``dataset.DemoDataset``-like: windows over decoded episodes with sparse voxels."""
+    """``data.dataset.DemoDataset``-like: windows over decoded episodes with sparse voxels."""
     return hasattr(dataset, "episodes") and hasattr(dataset, "window") and hasattr(dataset, "index")
 
 

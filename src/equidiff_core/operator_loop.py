@@ -25,7 +25,7 @@ from collections import deque
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from .bags import find_bags
+from .data.bags import find_bags
 from .node_view import (
     DIAGNOSTICS_STALE_S,
     FRANKA_DIAGNOSTICS_NAME,

@@ -79,7 +79,7 @@ def seed_everything(seed: int) -> None:
 
 
 def fit_normalizer(dataset: Dataset, workspace) -> Normalizer:
-    """From ``dataset.normalizer_arrays() -> (actions (N, 10), ee (N, 10))`` if it has one (cheap),
+    """From ``data.dataset.normalizer_arrays() -> (actions (N, 10), ee (N, 10))`` if it has one (cheap),
     else by reading every sample's action and ee."""
     if hasattr(dataset, "normalizer_arrays"):
         actions, ee = dataset.normalizer_arrays()

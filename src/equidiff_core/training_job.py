@@ -18,7 +18,7 @@ from pathlib import Path
 
 from equidiff_core import distributed
 from equidiff_core.config import ConfigError, default_config_dir, load_lab_config
-from equidiff_core.dataset import DatasetConfig, DemoDataset, load_episodes, split_episodes
+from equidiff_core.data.dataset import DatasetConfig, DemoDataset, load_episodes, split_episodes
 from equidiff_core.jobs import JobError
 from equidiff_core.output_files import occupied, staged_output
 from equidiff_core.perception.observation import STATE_TOLERANCE_S

@@ -1,7 +1,7 @@
 """recorder_node: records demonstration episodes to rosbag2 MCAP directories, one per episode.
 
 Wiring: raw (serialised CDR) subscriptions on every recorded topic are written untouched
-into the bag by ``equidiff_core.recording.EpisodeWriter`` at their receive time; the
+into the bag by ``equidiff_core.data.recording.EpisodeWriter`` at their receive time; the
 episode starts and stops on
 
 * services (std_srvs/Trigger): /recorder/start, /recorder/stop (keep, success),
@@ -45,8 +45,8 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.serialization import deserialize_message
 
-from equidiff_core.bags import EpisodeMeta
-from equidiff_core.recording import (
+from equidiff_core.data.bags import EpisodeMeta
+from equidiff_core.data.recording import (
     EpisodeWriter,
     InterventionLog,
     RecordingConfig,

@@ -24,8 +24,8 @@ from ..cameras.base import limit_depth
 from ..cameras.color import DEFAULT_JPEG_QUALITY, color_image_msg
 from ..cameras.twin import TwinCamera
 from ..config import LabConfig
+from ..data.recording import EpisodeWriter, RecordingConfig
 from ..perception.voxels import Voxelizer
-from ..recording import EpisodeWriter, RecordingConfig
 from ..twin import scene
 from ..wire.pointcloud import cloud_to_msg, grid_to_voxel_msg
 from ..wire.rosmsg import rosbags_factory

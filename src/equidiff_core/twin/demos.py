@@ -19,14 +19,14 @@ from pathlib import Path
 
 import numpy as np
 
-from ..bags import EpisodeMeta
 from ..cameras import limit_depth
 from ..cameras.color import color_image_msg
 from ..cameras.twin import TwinCamera
 from ..config import LabConfig
+from ..data.bags import EpisodeMeta
+from ..data.recording import EpisodeWriter, next_episode_path
 from ..episode import run_episode
 from ..perception.voxels import Voxelizer
-from ..recording import EpisodeWriter, next_episode_path
 from ..wire import rosmsg
 from ..wire.chunk import PoseChunk, chunk_to_msg
 from ..wire.pointcloud import grid_to_voxel_msg

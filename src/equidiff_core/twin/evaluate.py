@@ -228,7 +228,7 @@ def replay_chunks(
     /franka/command_chunk messages with more than one step (the supervisor's one-point hold
     targets after an episode are not the policy's). The TCP gap compares the replayed TCP with
     the bag's /franka/ee_pose at each observation instant (within 5 ms)."""
-    from ..bags import BagError, read_episode
+    from ..data.bags import BagError, read_episode
     from ..wire.chunk import ChunkError, chunk_from_msg
     from .demos import DirectRecorder, DirectWorld
 

@@ -8,8 +8,8 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
-from equidiff_core.bags import read_episode
 from equidiff_core.benches.safety.campaign import Campaign
+from equidiff_core.data.bags import read_episode
 
 
 def episodes_lost(paths: list[Path]) -> int:

@@ -65,7 +65,7 @@ class ReplayCamera(Camera):
             return
         from rosbags.rosbag2 import Reader
 
-        from ...bags import verify_bag
+        from ...data.bags import verify_bag
         from ...wire.rosmsg import rosbags_factory
 
         if not (self.bag / "metadata.yaml").is_file():

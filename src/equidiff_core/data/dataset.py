@@ -30,7 +30,7 @@ Decoding happens once per bag: episodes are kept in memory as sparse voxel lists
 and mtime, so neither the second epoch nor the second run decodes bags again.
 
 Packed episodes (``equidiff dataset pack``): the same arrays, compressed, in one
-``<episode>.episode.npz`` per bag, about 7 % of the bag's size (``episode_arrays``, with the cache). Training accepts them wherever it
+``<episode>.episode.npz`` per bag, about 7 % of the bag's size (``data.episode_arrays``, with the cache). Training accepts them wherever it
 accepts bags, so a dataset can be copied to a GPU machine without its MCAP files.
 """
 
@@ -43,7 +43,14 @@ from typing import Any
 
 import numpy as np
 
-from . import geometry
+from .. import geometry
+from ..output_files import distinct_names, staged_output, unique_paths
+from ..perception.observation import ee_input, nearest
+from ..robots.base import FINGER_JOINT_NAMES
+from ..wire.chunk import ChunkError, chunk_from_msg
+from ..wire.pointcloud import CloudError, voxel_msg_to_grid
+from ..wire.rosmsg import NS_PER_S, MessageError, gripper_width_from_joint_state, pose_from_msg
+from ..wire.topics import TOPIC_COMMAND_CHUNK, TOPIC_EE_POSE, TOPIC_JOINT_STATES, TOPIC_VOXELS
 from .bags import CHECKED, BagError, find_bags, is_bag_dir, read_episode
 from .episode_arrays import (
     CACHE_VERSION,
@@ -55,13 +62,6 @@ from .episode_arrays import (
     read_packed,
     write_packed,
 )
-from .output_files import distinct_names, staged_output, unique_paths
-from .perception.observation import ee_input, nearest
-from .robots.base import FINGER_JOINT_NAMES
-from .wire.chunk import ChunkError, chunk_from_msg
-from .wire.pointcloud import CloudError, voxel_msg_to_grid
-from .wire.rosmsg import NS_PER_S, MessageError, gripper_width_from_joint_state, pose_from_msg
-from .wire.topics import TOPIC_COMMAND_CHUNK, TOPIC_EE_POSE, TOPIC_JOINT_STATES, TOPIC_VOXELS
 
 
 def command_schedule(chunks: Sequence[Any]) -> tuple[np.ndarray, np.ndarray]:
@@ -219,7 +219,7 @@ def load_episode_arrays(path: str | Path, config: DatasetConfig = DatasetConfig(
 
 
 def find_episodes(paths: Iterable[str | Path]) -> list[Path]:
-    """Bags (``bags.find_bags``) and packed episodes: a folder expands to both kinds inside it."""
+    """Bags (``data.bags.find_bags``) and packed episodes: a folder expands to both kinds inside it."""
     out: list[Path] = []
     for p in map(Path, paths):
         if p.is_dir() and not is_bag_dir(p):

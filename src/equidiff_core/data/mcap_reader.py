@@ -3,7 +3,7 @@
 ``iter_mcap(path, scan)`` yields ``(channel, log_time_ns, data)`` for each message and fills
 ``scan`` (an ``McapScan``) with what it found: the channels, how many chunks carried a CRC,
 which chunks are damaged (their topics, times and message counts, from the message indexes
-written beside them), where reading stopped. ``bags.read_episode``, ``bags.repair_bag``, the
+written beside them), where reading stopped. ``data.bags.read_episode``, ``data.bags.repair_bag``, the
 rerun converter and re-voxelisation all read through it.
 
 It walks the file with the ``mcap`` package's ``StreamReader`` (its record parser and chunk

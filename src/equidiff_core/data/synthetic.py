@@ -11,8 +11,8 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
-from . import geometry
-from .config import Workspace
+from .. import geometry
+from ..config import Workspace
 
 __all__ = ["OPEN_WIDTH_M", "CubeDataset", "cube_sample"]
 

@@ -14,11 +14,11 @@ from typing import Any
 
 import numpy as np
 
+from ..output_files import staged_output
+from ..perception.observation import STATE_TOLERANCE_S
+from ..wire.pointcloud import VoxelGridSpec
+from ..wire.rosmsg import NS_PER_S
 from .bags import UNCHECKED, BagError, EpisodeMeta
-from .output_files import staged_output
-from .perception.observation import STATE_TOLERANCE_S
-from .wire.pointcloud import VoxelGridSpec
-from .wire.rosmsg import NS_PER_S
 
 CACHE_VERSION = 2  # 2: compressed, with the decoding settings inside (shared with packed episodes)
 PACKED_SUFFIX = ".episode.npz"

@@ -1,6 +1,6 @@
 """Reading episode bags (rosbag2 directories, MCAP storage) and repairing killed or damaged recordings.
 
-``read_episode(path)`` reads the bag's .mcap through ``mcap_reader.iter_mcap`` (every chunk,
+``read_episode(path)`` reads the bag's .mcap through ``data.mcap_reader.iter_mcap`` (every chunk,
 data-section and summary CRC checked), decodes the requested topics with rosbags' Jazzy
 typestore and returns them per topic with their bag (receive) times; the dataset aligns
 observations by *header* stamps, which the messages carry. A flipped bit raises
@@ -31,8 +31,8 @@ from typing import Any
 import numpy as np
 import yaml
 
+from ..wire.rosmsg import rosbags_factory, stamp_to_ns
 from .mcap_reader import CHECKED, UNCHECKED, BagError, BagIntegrityError, DamagedChunk, McapScan, iter_mcap
-from .wire.rosmsg import rosbags_factory, stamp_to_ns
 
 META_SIDECAR = "episode.yaml"
 UNREPAIRED_SUFFIX = ".unrepaired"

@@ -2,15 +2,15 @@
 rosbag2 directory and its metadata.yaml) over an MCAP file written by the ``mcap`` package's
 ``Writer`` with CRCs, in large, promptly flushed chunks.
 
-Everything that writes bags (the episode recorder ``recording.EpisodeWriter``, bag repair
-``bags.repair_bag``, re-voxelisation ``perception.fusion``) goes through ``open_bag_writer``; it lives apart
+Everything that writes bags (the episode recorder ``data.recording.EpisodeWriter``, bag repair
+``data.bags.repair_bag``, re-voxelisation ``perception.fusion``) goes through ``open_bag_writer``; it lives apart
 from them so none imports another.
 
 Why not rosbags' stock MCAP storage:
 
 * it stores every chunk CRC as 0 (and its reader checks only non-zero CRCs), so its bags carry
   no integrity check at all. The ``mcap`` package writes the chunk, data-section and summary
-  CRCs, which ``bags.read_episode`` verifies (and ``ros2 bag``, Foxglove, rerun ignore or check);
+  CRCs, which ``data.bags.read_episode`` verifies (and ``ros2 bag``, Foxglove, rerun ignore or check);
 * it closes a chunk once it exceeds a hard-coded 1 MiB and leaves it in Python's write buffer.
   rosbag2's Jazzy C++ reader mishandles messages larger than the chunk (one voxel grid approaches
   1 MiB), and a SIGKILLed recorder loses whatever is still buffered. So chunks here have a

@@ -5,7 +5,7 @@ this venv (Python 3.11, torch 2.13). So this module writes the files LeRobot 0.6
 writes (``lerobot.datasets.dataset_writer`` / ``dataset_metadata``; checked against a dataset
 made by ``LeRobotDataset.create`` + ``save_episode`` + ``finalize``), with pyarrow and PyAV, and
 ``test_lerobot_export.py`` loads the result with LeRobot itself in a venv of its own. The layout's
-parts (paths, schema, statistics) are in ``lerobot_layout``, the camera videos in ``lerobot_video``.
+parts (paths, schema, statistics) are in ``data.lerobot.layout``, the camera videos in ``data.lerobot.video``.
 
 Layout (v3.0: many episodes per file)::
 
@@ -19,7 +19,7 @@ Layout (v3.0: many episodes per file)::
     videos/<key>/chunk-000/file-000.mp4              one stream per camera, episodes back to back
                                                      (a new file past 200 MB)
 
-One frame per observation, the dataset's own alignment (``dataset.load_episodes``: /voxels
+One frame per observation, the dataset's own alignment (``data.dataset.load_episodes``: /voxels
 header stamps, nearest TCP pose and finger width, the commanded target in effect):
 
 * ``observation.state`` float32 (10,): measured TCP pose + width, ``[x, y, z, r6, width]``;
@@ -45,9 +45,11 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from .bags import BagError
-from .dataset import DatasetConfig, load_episodes
-from .lerobot_layout import (
+from ...output_files import refuse_existing, staged_output
+from ...wire.rosmsg import NS_PER_S
+from ..bags import BagError
+from ..dataset import DatasetConfig, load_episodes
+from .layout import (
     ACTION_NAMES,
     CHUNK_FILE,
     CODEBASE_VERSION,
@@ -70,9 +72,7 @@ from .lerobot_layout import (
     next_chunk_file,
     tasks_table,
 )
-from .lerobot_video import VideoEncoding, VideoFiles, bag_cameras, decoded_images, matched_images
-from .output_files import refuse_existing, staged_output
-from .wire.rosmsg import NS_PER_S
+from .video import VideoEncoding, VideoFiles, bag_cameras, decoded_images, matched_images
 
 
 @dataclass(frozen=True)

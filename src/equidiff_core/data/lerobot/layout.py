@@ -1,6 +1,6 @@
 """LeRobot's v3.0 layout: path templates, the frame table's schema, statistics, files that roll over.
 
-What ``lerobot_export`` writes besides the videos (``lerobot_video``), each part following the
+What ``data.lerobot.export`` writes besides the videos (``data.lerobot.video``), each part following the
 LeRobot 0.6.1 function named in its section.
 """
 
@@ -15,7 +15,7 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from .geometry import ACTION_DIM
+from ...geometry import ACTION_DIM
 
 CODEBASE_VERSION = "v3.0"
 CHUNK_FILE = "chunk-{chunk_index:03d}/file-{file_index:03d}"

@@ -9,7 +9,7 @@ demonstration recorder needs on top of it:
   cleanly instead of leaving a half-written file;
 * **large chunks** (8 MiB default; rosbags hard-codes 1 MiB): rosbag2's Jazzy C++ reader
   mishandles messages larger than the chunk and one voxel grid can approach 1 MiB. Chunks are also closed after ``chunk_max_age_s`` and flushed to the OS, so a
-  recorder killed with SIGKILL loses at most the last few seconds: ``bags.repair_bag``
+  recorder killed with SIGKILL loses at most the last few seconds: ``data.bags.repair_bag``
   recovers everything in completed chunks;
 * **episode metadata** (task, operator, success, notes, seed) in metadata.yaml's
   ``custom_data`` and, from the first moment, in a sidecar ``episode.yaml`` that repair uses
@@ -31,11 +31,9 @@ from typing import Any, Self
 
 import yaml
 
-from .bags import META_SIDECAR, EpisodeMeta
-from .config import LabConfig, bounded, described
-from .mcap_writer import MiB, open_bag_writer
-from .wire.rosmsg import RosbagsFactory, rosbags_factory, transform_msg_from_pos_quat
-from .wire.topics import (
+from ..config import LabConfig, bounded, described
+from ..wire.rosmsg import RosbagsFactory, rosbags_factory, transform_msg_from_pos_quat
+from ..wire.topics import (
     CLOUD_TYPE,
     COMPRESSED_IMAGE_TYPE,
     RECORDED_TOPICS,
@@ -43,6 +41,8 @@ from .wire.topics import (
     TOPIC_TF_STATIC,
     camera_color_topic,
 )
+from .bags import META_SIDECAR, EpisodeMeta
+from .mcap_writer import MiB, open_bag_writer
 
 
 class RecordingError(RuntimeError):

@@ -13,12 +13,12 @@ from typing import Any
 import av
 import numpy as np
 
-from .bags import read_episode
-from .cameras.color import ImageError, image_from_msg
-from .dataset import EpisodeArrays
-from .lerobot_layout import VIDEO_PATH, ExportError, MiB, next_chunk_file
-from .machine import keep_thread_scheduler
-from .wire.topics import camera_color_topic, camera_of_color_topic
+from ...cameras.color import ImageError, image_from_msg
+from ...machine import keep_thread_scheduler
+from ...wire.topics import camera_color_topic, camera_of_color_topic
+from ..bags import read_episode
+from ..dataset import EpisodeArrays
+from .layout import VIDEO_PATH, ExportError, MiB, next_chunk_file
 
 # SVT-AV1 prints its whole configuration to stderr for each encoder it opens; errors only
 os.environ.setdefault("SVT_LOG", "1")
