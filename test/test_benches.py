@@ -21,7 +21,7 @@ from equidiff_core.policy.diffusion import make_policy
 from equidiff_core.policy.inference import export_policy, load_inference_policy
 from equidiff_core.policy.normalizer import Normalizer
 from equidiff_core.policy.presets import get_preset
-from equidiff_core.training_job import TrainingSpec
+from equidiff_core.training.job import TrainingSpec
 from equidiff_core.twin.evaluate import EvalEpisode, yaw_breakdown
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -173,7 +173,7 @@ def test_recipe_trains_as_equidiff_train_would_and_resumes_an_interrupted_run(tm
     assert dataclasses.replace(recipe, baseline_lr=1e-3).train_spec("equidiff", "none", bags, tmp_path).lr == 5e-4
     # the run starts in a process of its own that reads nothing but the spec, not through the CLI
     cmd = train_command(spec)
-    assert cmd[1:3] == ["-m", "equidiff_core.train_process"] and TrainingSpec.from_json(cmd[3]) == spec
+    assert cmd[1:3] == ["-m", "equidiff_core.training.process"] and TrainingSpec.from_json(cmd[3]) == spec
     assert "policy=baseline" in spec.settings_text() and "bags" not in spec.settings_text()
 
 

@@ -168,7 +168,7 @@ def test_check_equivariance_of_the_baseline_has_no_second_baseline(capsys):
 @pytest.mark.slow  # ~15 s: every path (bf16 emulated on AVX2 CPUs), 7 rotations, DDIM
 def test_check_equivariance_of_a_training_checkpoint(tmp_path, capsys):
     from equidiff_core.data.synthetic import CubeDataset
-    from equidiff_core.training import TrainConfig, train
+    from equidiff_core.training.loop import TrainConfig, train
     from equidiff_ros.cli import main
 
     cfg = TrainConfig(

@@ -436,7 +436,7 @@ def test_checkpoint_errors_name_the_real_reason(exported, tmp_path, capsys):
 def test_shipped_policy_files_and_checkpoints_carry_a_checked_weights_hash():
     """Re-written by scripts/rewrite_integrity.py; load_checked verifies each hash."""
     from equidiff_core.policy.file import FORMAT, HASH_KEY, VERSION, load_checked
-    from equidiff_core.training import load_training_checkpoint
+    from equidiff_core.training.loop import load_training_checkpoint
 
     root = Path(__file__).resolve().parents[1] / "checkpoints"
     policies, ckpts = sorted(root.rglob("policy.pt")), sorted(root.rglob("*.ckpt"))

@@ -12,7 +12,7 @@ from equidiff_core.data.synthetic import CubeDataset
 from equidiff_core.policy.diffusion import make_policy
 from equidiff_core.policy.inference import CheckpointError, load_inference_policy
 from equidiff_core.policy.presets import get_preset
-from equidiff_core.training import (
+from equidiff_core.training.loop import (
     TrainConfig,
     TrainingError,
     load_policy_from_checkpoint,
@@ -285,7 +285,7 @@ def test_a_slim_checkpoint_is_the_smallest_file_that_reproduces_the_exported_pol
     """What gets committed of a finished run: the exported (EMA) escnn weights only, a third of the
     expanded policy.pt and of last.ckpt; exported again on load it predicts exactly as policy.pt."""
     from equidiff_core.benches.training_runs import run_policy
-    from equidiff_core.training import slim_checkpoint
+    from equidiff_core.training.loop import slim_checkpoint
 
     ds = CubeDataset(3, seed=6)
     torch.manual_seed(0)

@@ -580,7 +580,7 @@ def test_shipped_checkpoint_loads_and_its_training_is_recorded():
     # its training state is kept beside it (`equidiff train --resume`), at the step its history ends, without
     # AdamW's moments (a resume starts fresh ones): the file stays small enough to keep in git
     from equidiff_core.policy.presets import preset_from_dict
-    from equidiff_core.training import load_policy_from_checkpoint, load_training_checkpoint
+    from equidiff_core.training.loop import load_policy_from_checkpoint, load_training_checkpoint
 
     state = load_training_checkpoint(SHIPPED_CHECKPOINT.parent / "last.ckpt")
     history = json.loads((SHIPPED_CHECKPOINT.parent / "history.json").read_text())

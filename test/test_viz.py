@@ -538,8 +538,8 @@ def test_training_callback_logs_loss_curves_and_sampled_chunks(tmp_path):
 
 @pytest.mark.slow
 def test_training_callback_with_the_real_trainer(tmp_path):
-    """`training.train` drives the callback through its protocol (tiny preset, a handful of steps)."""
-    training = pytest.importorskip("equidiff_core.training")
+    """`training.loop.train` drives the callback through its protocol (tiny preset, a handful of steps)."""
+    training = pytest.importorskip("equidiff_core.training.loop")
     import torch
 
     from equidiff_core.policy.diffusion import make_policy

@@ -25,7 +25,7 @@ from equidiff_core.policy.inference import (
 )
 from equidiff_core.policy.normalizer import Normalizer
 from equidiff_core.policy.presets import get_preset
-from equidiff_core.training import load_policy_from_checkpoint
+from equidiff_core.training.loop import load_policy_from_checkpoint
 from equidiff_core.twin.config import load_twin_config
 
 

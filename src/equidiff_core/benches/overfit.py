@@ -31,7 +31,7 @@ from ..policy.diffusion import make_policy
 from ..policy.file import export_policy
 from ..policy.inference import load_inference_policy
 from ..policy.presets import get_preset
-from ..training import TrainConfig, fit_normalizer, train
+from ..training.loop import TrainConfig, fit_normalizer, train
 from . import BenchError
 
 __all__ = ["STEPS", "OverfitGate", "OverfitResult", "run_overfit", "sample_errors"]

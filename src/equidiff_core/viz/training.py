@@ -1,4 +1,4 @@
-"""``RerunTrainingCallback``: loss curves and sampled vs ground-truth chunks while ``training.train`` runs.
+"""``RerunTrainingCallback``: loss curves and sampled vs ground-truth chunks while ``training.loop.train`` runs.
 
 Implements the trainer's duck-typed callback protocol (``on_step``, ``on_eval``, ``on_end``).
 Everything is on the ``step`` timeline:

@@ -4,10 +4,10 @@ AdamW (lr 1e-4, weight decay 1e-6), cosine schedule with 500 warm-up steps (diff
 ``get_cosine_schedule_with_warmup``), optional EMA, CPU or CUDA picked automatically.
 
 On CUDA the forward pass runs under bf16 autocast (weights, gradients and optimiser stay fp32)
-and the whole training set sits on the GPU (``batches.DeviceBatchSource``); on the CPU training
+and the whole training set sits on the GPU (``training.batches.DeviceBatchSource``); on the CPU training
 stays fp32 and draws batches through a DataLoader (``precision`` / ``data`` override both).
 
-Launched by torchrun (``distributed.py``), each process trains one data-parallel replica:
+Launched by torchrun (``training.distributed.py``), each process trains one data-parallel replica:
 DistributedDataParallel averages the gradients, every rank draws a disjoint shard of each epoch,
 rank 0 alone evaluates and writes checkpoints, history and the export. The logged loss is the
 mean over ranks.
@@ -21,7 +21,7 @@ history, config; loads with ``torch.load(weights_only=True)``), ``history.json``
 ``policy.pt`` (the exported inference policy, see ``policy.inference.py``). ``without_optimizer_state``
 writes a checkpoint to share without the optimiser's moments; it still resumes, with fresh moments.
 
-The run's configuration, its result and the resolution of ``auto`` settings are in ``train_config``.
+The run's configuration, its result and the resolution of ``auto`` settings are in ``training.config``.
 """
 
 from __future__ import annotations
@@ -39,12 +39,10 @@ import numpy as np
 import torch
 from torch.utils.data import DataLoader, Dataset
 
-from . import distributed
-from .batches import DeviceBatchSource, loader_batches, make_sampler
-from .config import Workspace, from_dict, to_dict
-from .models.state import learned_state_dict, load_learned_state, parameters_only, refresh_escnn_caches
-from .policy.diffusion import DiffusionPolicy, make_policy
-from .policy.file import (
+from ..config import Workspace, from_dict, to_dict
+from ..models.state import learned_state_dict, load_learned_state, parameters_only, refresh_escnn_caches
+from ..policy.diffusion import DiffusionPolicy, make_policy
+from ..policy.file import (
     HASH_KEY,
     CheckpointError,
     CheckpointFormatError,
@@ -54,9 +52,11 @@ from .policy.file import (
     save_atomically,
     weights_sha256,
 )
-from .policy.normalizer import Normalizer
-from .policy.presets import preset_from_dict
-from .train_config import (
+from ..policy.normalizer import Normalizer
+from ..policy.presets import preset_from_dict
+from . import distributed
+from .batches import DeviceBatchSource, loader_batches, make_sampler
+from .config import (
     DATA_SOURCES,
     DEVICE_DATA_SHARE,
     PRECISIONS,

@@ -1,9 +1,9 @@
-"""One ``equidiff train`` run: bags -> episodes and their train/validation split -> ``training.train`` -> run.json.
+"""One ``equidiff train`` run: bags -> episodes and their train/validation split -> ``training.loop.train`` -> run.json.
 
 ``run_training(TrainingSpec)`` returns the run's summary (the JSON line the command prints) or raises
 ``TrainJobError``; its progress goes to this module's logger. The split is saved in OUT/split.json and reused
 on resume; OUT/run.json keeps the summary and the recipe it trained with (read back by
-``benches.training_runs``, which starts runs in their own process through ``equidiff_core.train_process``).
+``benches.training_runs``, which starts runs in their own process through ``equidiff_core.training.process``).
 The command's help text says more.
 """
 
@@ -16,7 +16,6 @@ import shutil
 from dataclasses import dataclass
 from pathlib import Path
 
-from equidiff_core import distributed
 from equidiff_core.config import ConfigError, default_config_dir, load_lab_config
 from equidiff_core.data.dataset import DatasetConfig, DemoDataset, load_episodes, split_episodes
 from equidiff_core.jobs import JobError
@@ -24,7 +23,9 @@ from equidiff_core.output_files import occupied, staged_output
 from equidiff_core.perception.observation import STATE_TOLERANCE_S
 from equidiff_core.policy.diffusion import make_policy
 from equidiff_core.policy.presets import get_preset
-from equidiff_core.training import (
+from equidiff_core.training import distributed
+from equidiff_core.training.callbacks import ActionMseEvaluator, PlotWriter, ProgressBar
+from equidiff_core.training.loop import (
     TrainConfig,
     TrainingError,
     load_training_checkpoint,
@@ -32,7 +33,6 @@ from equidiff_core.training import (
     seed_everything,
     train,
 )
-from equidiff_core.training_callbacks import ActionMseEvaluator, PlotWriter, ProgressBar
 from equidiff_core.wire.pointcloud import VoxelGridSpec
 
 logger = logging.getLogger(__name__)
@@ -51,7 +51,7 @@ _PATH_FIELDS = ("out", "lab_config", "cache_dir")
 class TrainingSpec:
     """One ``equidiff train`` run: the command's flags, with their names and defaults (``--no-progress`` is
     ``progress=False``); the command's help says what each does. ``to_json`` / ``from_json`` carry it to
-    a run in another process (``equidiff_core.train_process``)."""
+    a run in another process (``equidiff_core.training.process``)."""
 
     bags: tuple[Path, ...]  # bag directories, or folders holding bag directories
     out: Path  # the run directory (checkpoints, policy.pt, plots, split.json, run.json)

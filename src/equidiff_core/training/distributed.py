@@ -1,4 +1,4 @@
-"""Data-parallel training across processes with ``torch.distributed`` (used by ``training.train``).
+"""Data-parallel training across processes with ``torch.distributed`` (used by ``training.loop.train``).
 
 Launch with torchrun, one process per GPU (or per CPU socket), e.g.::
 

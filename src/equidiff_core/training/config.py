@@ -1,5 +1,5 @@
 """What a training run is asked for (``TrainConfig``), what it gives back (``TrainResult``), and how
-``auto`` device, precision and data source resolve on this machine (used by ``training.train``)."""
+``auto`` device, precision and data source resolve on this machine (used by ``training.loop.train``)."""
 
 from __future__ import annotations
 

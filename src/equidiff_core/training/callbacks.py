@@ -1,4 +1,4 @@
-"""What ``equidiff train`` hooks into ``training.train``: the held-out action error, a progress bar and the plot."""
+"""What ``equidiff train`` hooks into ``training.loop.train``: the held-out action error, a progress bar and the plot."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""``python -m equidiff_core.train_process SPEC_JSON``: one training run in a process of its own, for the
+"""``python -m equidiff_core.training.process SPEC_JSON``: one training run in a process of its own, for the
 benches that train several policies side by side (``benches.training_runs``).
 
 It parses nothing but a ``TrainingSpec``'s JSON and then runs and reports exactly as ``equidiff train``
@@ -17,10 +17,10 @@ from equidiff_core.machine import default_threads_to_idle_cores
 
 def main(argv: list[str]) -> int:
     if len(argv) != 1:
-        print("usage: python -m equidiff_core.train_process SPEC_JSON (a TrainingSpec.to_json)", file=sys.stderr)
+        print("usage: python -m equidiff_core.training.process SPEC_JSON (a TrainingSpec.to_json)", file=sys.stderr)
         return 2
     default_threads_to_idle_cores()  # before torch is imported, as the CLI does
-    from equidiff_core.training_job import TrainingSpec, run_training
+    from equidiff_core.training.job import TrainingSpec, run_training
 
     spec = TrainingSpec.from_json(argv[0])
     try:
