@@ -9,7 +9,7 @@ import pytest
 from helpers_data import SyntheticEpisode, write_synthetic_episode
 
 from equidiff_core.control.controller import ControllerStats
-from equidiff_core.operator_loop import (
+from equidiff_core.lab.operator_loop import (
     DIAGNOSTICS_STALE_S,
     KEY_ROWS,
     KEYS,

@@ -10,7 +10,7 @@ from scipy.spatial.transform import Rotation
 
 from equidiff_core import geometry
 from equidiff_core.config import Workspace
-from equidiff_core.teleop import (
+from equidiff_core.lab.teleop import (
     SpaceMouseSource,
     TeleopConfig,
     TeleopError,

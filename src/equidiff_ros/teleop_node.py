@@ -1,7 +1,7 @@
 """teleop_node: SpaceMouse (direct HID or the spacenav driver's /spacenav/joy) -> /franka/command_chunk.
 
 Wiring: /franka/ee_pose + /franka/joint_states (measured state) and the input source feed
-``equidiff_core.teleop.TeleopIntegrator`` at ``rate_hz``; while the operator is active it
+``equidiff_core.lab.teleop.TeleopIntegrator`` at ``rate_hz``; while the operator is active it
 publishes one-point chunks at ``publish_hz`` on /franka/command_chunk, exactly like the
 policy, so the franka node's safety and scheduling apply to human commands too. It says on
 /teleop/active (std_msgs/Bool, latched) when the operator takes over (the first input beyond
@@ -34,7 +34,7 @@ import sys
 from rclpy.node import Node
 
 from equidiff_core.config import Bounds
-from equidiff_core.teleop import (
+from equidiff_core.lab.teleop import (
     SpaceMouseSource,
     TeleopConfig,
     TeleopError,

@@ -4,7 +4,7 @@ ROS-free. The terminal UI (``equidiff_ros.lab_screen``) feeds an ``OperatorLoop`
 nodes publish (``observe``), the keys the operator presses (``press``) and the answers of the
 service calls it made (``done``); each of these and the UI's periodic ``tick`` hands back the
 ``Request``s (service calls, run in order) that follow. ``render`` is the screen. How the nodes'
-publications read (``NodeView``, franka_node's ``RobotStatus``) is ``node_view``.
+publications read (``NodeView``, franka_node's ``RobotStatus``) is ``lab.node_view``.
 
 Rules a lab relies on (docs/lab.md, "The operator loop"):
 
@@ -25,7 +25,8 @@ from collections import deque
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from .data.bags import find_bags
+from ..data.bags import find_bags
+from ..wire import topics
 from .node_view import (
     DIAGNOSTICS_STALE_S,
     FRANKA_DIAGNOSTICS_NAME,
@@ -35,7 +36,6 @@ from .node_view import (
     parse_franka_status,
     robot_status_from_diagnostics,
 )
-from .wire import topics
 
 ROBOT_BLOCKS_START = {
     "homing": "the arm is homing: start once it holds",

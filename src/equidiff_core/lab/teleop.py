@@ -32,11 +32,11 @@ from typing import Self
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from . import geometry
-from .config import Workspace, bounded, described
-from .control.config import HAND_MAX_WIDTH_M
-from .wire.chunk import PoseChunk
-from .wire.rosmsg import NS_PER_S, stamp_to_ns
+from .. import geometry
+from ..config import Workspace, bounded, described
+from ..control.config import HAND_MAX_WIDTH_M
+from ..wire.chunk import PoseChunk
+from ..wire.rosmsg import NS_PER_S, stamp_to_ns
 
 
 class TeleopError(RuntimeError):

@@ -1,4 +1,4 @@
-"""What the lab's nodes publish, as the operator loop (``operator_loop``) and ``equidiff lab status`` read it:
+"""What the lab's nodes publish, as the operator loop (``lab.operator_loop``) and ``equidiff lab status`` read it:
 the recorder's and the policy's state, and franka_node's (``/franka/status``, else its ``/diagnostics``)."""
 
 from __future__ import annotations
@@ -8,7 +8,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
-from .wire import topics
+from ..wire import topics
 
 ROBOT_STATES = ("moving", "holding", "homing", "awaiting_ack", "faulted")
 FRANKA_DIAGNOSTICS_NAME = "franka_node"  # the name of franka_node's status on /diagnostics
