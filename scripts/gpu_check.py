@@ -429,7 +429,7 @@ def summarize(results: dict) -> dict:
 def environment(check: Check) -> dict:
     env = {"python": platform.python_version(), "cpu": platform.processor() or platform.machine()}
     try:
-        from equidiff_core.machine import cpu_model
+        from equidiff_core.runtime.machine import cpu_model
 
         env["cpu"] = f"{cpu_model()}, {os.cpu_count()} cores"
     except ImportError:

@@ -369,7 +369,7 @@ def test_cuda_without_cuda_is_a_clear_error_not_a_traceback(exported, capsys):
 
 
 def test_precision_choices(exported):
-    from equidiff_core.machine import cpu_has_native_bf16
+    from equidiff_core.runtime.machine import cpu_has_native_bf16
 
     _, path = exported
     auto = load_inference_policy(path, precision="auto")

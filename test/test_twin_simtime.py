@@ -85,8 +85,8 @@ def test_sim_waits_for_cameras_and_the_policy_and_keeps_franky_alive_through_a_l
     longer than libfranka's 1 s UDP timeout: the client must still be connected and able to
     move afterwards (keep_alive re-sends the last state under its id)."""
     franky = pytest.importorskip("franky")
-    from equidiff_core.machine import keep_thread_scheduler
     from equidiff_core.robots.franky.sim import free_loopback_host
+    from equidiff_core.runtime.machine import keep_thread_scheduler
     from equidiff_core.twin import TwinConfig
     from equidiff_core.twin.shared_state import StateReader
     from equidiff_core.twin.sim import TwinSim
@@ -204,7 +204,7 @@ def test_a_node_on_simulated_time_without_clock_waits_and_says_why(ros_domain, t
 
 
 def test_polled_clock_sleeps_until_its_time_and_stops_on_request():
-    from equidiff_core.clock import PolledClock
+    from equidiff_core.runtime.clock import PolledClock
 
     now = [0]
     clock = PolledClock(lambda: now[0])

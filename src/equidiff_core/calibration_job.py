@@ -28,11 +28,11 @@ from equidiff_core.cameras import make_camera
 from equidiff_core.cameras.base import CameraError
 from equidiff_core.cameras.twin import TwinCamera
 from equidiff_core.config import ConfigError, default_config_dir, load_lab_config
-from equidiff_core.jobs import JobError
-from equidiff_core.output_files import refuse_existing, staged_output
 from equidiff_core.robots.base import RobotError
 from equidiff_core.robots.franky import FrankyRobot
 from equidiff_core.robots.franky.hand import finger_width
+from equidiff_core.runtime.jobs import JobError
+from equidiff_core.runtime.output_files import refuse_existing, staged_output
 from equidiff_core.twin.calibration import DirectSimArm, FrankyTwinArm, calibrate_twin, nominal_mount
 from equidiff_core.twin.config import load_twin_config
 from equidiff_core.viz.logger import open_recording

@@ -19,7 +19,7 @@ it cannot run; progress through the module's logger).
 * ``safety``: the fault campaign of ``bench safety`` against franky-sim through franka_node (its ROS side passed in).
 """
 
-from equidiff_core.jobs import JobError
+from equidiff_core.runtime.jobs import JobError
 
 
 class BenchError(JobError):

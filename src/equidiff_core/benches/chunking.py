@@ -13,8 +13,8 @@ from pathlib import Path
 from equidiff_core.benches import BenchError
 from equidiff_core.benches.stats import paired_comparison, paired_outcomes, success_rate
 from equidiff_core.config import default_config_dir, load_lab_config
-from equidiff_core.machine import cpu_model
 from equidiff_core.policy.inference import load_inference_policy
+from equidiff_core.runtime.machine import cpu_model
 from equidiff_core.twin.chunking import ChunkingProbe
 from equidiff_core.twin.config import load_twin_config
 from equidiff_core.twin.demos import DirectRecorder

@@ -44,9 +44,9 @@ from equidiff_core.benches.training_runs import (
     under_fit,
     wait_for_runs,
 )
-from equidiff_core.output_files import refuse_existing, staged_output, write_output_text
 from equidiff_core.policy.inference import load_inference_policy, read_policy_file
 from equidiff_core.policy.presets import preset_from_dict
+from equidiff_core.runtime.output_files import refuse_existing, staged_output, write_output_text
 from equidiff_core.twin.config import load_twin_job_configs
 from equidiff_core.twin.demos import DirectRecorder
 from equidiff_core.twin.evaluate import evaluate_policy, in_range_yaw_seeds

@@ -13,7 +13,6 @@ import torch
 
 from equidiff_core.benches import BenchError
 from equidiff_core.config import Workspace
-from equidiff_core.machine import cpu_description
 from equidiff_core.models import equivariance
 from equidiff_core.policy.diffusion import make_policy
 from equidiff_core.policy.inference import (
@@ -25,6 +24,7 @@ from equidiff_core.policy.inference import (
 )
 from equidiff_core.policy.normalizer import Normalizer
 from equidiff_core.policy.presets import get_preset
+from equidiff_core.runtime.machine import cpu_description
 from equidiff_core.training.loop import load_policy_from_checkpoint
 from equidiff_core.twin.config import load_twin_config
 

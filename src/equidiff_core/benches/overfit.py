@@ -25,12 +25,12 @@ import torch
 
 from ..config import Workspace
 from ..data.synthetic import OPEN_WIDTH_M, CubeDataset
-from ..machine import cpu_description
-from ..output_files import staged_dir
 from ..policy.diffusion import make_policy
 from ..policy.file import export_policy
 from ..policy.inference import load_inference_policy
 from ..policy.presets import get_preset
+from ..runtime.machine import cpu_description
+from ..runtime.output_files import staged_dir
 from ..training.loop import TrainConfig, fit_normalizer, train
 from . import BenchError
 

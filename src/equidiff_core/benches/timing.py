@@ -32,12 +32,12 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ..machine import cpu_description, cpu_model
 from ..models.equivariance import random_observation
 from ..models.plain import relu_before_pool_order
 from ..policy.diffusion import make_policy
 from ..policy.inference import load_inference_policy
 from ..policy.normalizer import Normalizer
+from ..runtime.machine import cpu_description, cpu_model
 from ..training.loop import DATA_SOURCES, PRECISIONS, TrainConfig, train
 from ..wire.chunk import RealTimeChunking
 

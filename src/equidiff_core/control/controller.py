@@ -23,9 +23,9 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from .. import geometry
-from ..clock import Clock, WallClock
 from ..config import SafetyBox
 from ..robots.base import Robot, RobotError, RobotState
+from ..runtime.clock import Clock, WallClock
 from ..wire.chunk import ChunkError, ChunkReason, PoseChunk
 from .config import ControlConfig
 from .safety import FilteredTarget, SafetyFilter, check_chunk

@@ -44,9 +44,9 @@ from typing import Any
 import numpy as np
 
 from .. import geometry
-from ..output_files import distinct_names, staged_output, unique_paths
 from ..perception.observation import ee_input, nearest
 from ..robots.base import FINGER_JOINT_NAMES
+from ..runtime.output_files import distinct_names, staged_output, unique_paths
 from ..wire.chunk import ChunkError, chunk_from_msg
 from ..wire.pointcloud import CloudError, voxel_msg_to_grid
 from ..wire.rosmsg import NS_PER_S, MessageError, gripper_width_from_joint_state, pose_from_msg
@@ -237,7 +237,7 @@ def pack_episodes(
     force: bool = False,
 ) -> tuple[list[Path], list[tuple[Path, str]]]:
     """Decode every bag under ``paths`` and write one packed episode per bag into ``out_dir``, a new folder
-    (``output_files.staged_output``: ``OutputExistsError`` if it holds anything, unless ``force``; it lands
+    (``runtime.output_files.staged_output``: ``OutputExistsError`` if it holds anything, unless ``force``; it lands
     only once every bag is packed, and not at all when none could be). Each file is named after its bag's
     path below the bags' common folder, so same-named bags of two days both land. Returns (the packed
     files in ``out_dir``, the skipped bags with their reasons)."""

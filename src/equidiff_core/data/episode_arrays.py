@@ -14,8 +14,8 @@ from typing import Any
 
 import numpy as np
 
-from ..output_files import staged_output
 from ..perception.observation import STATE_TOLERANCE_S
+from ..runtime.output_files import staged_output
 from ..wire.pointcloud import VoxelGridSpec
 from ..wire.rosmsg import NS_PER_S
 from .bags import UNCHECKED, BagError, EpisodeMeta

@@ -23,7 +23,7 @@ from ..config import LabConfig
 from ..data.bags import BagError, close_derived_bag, find_bags, verify_bag
 from ..data.mcap_writer import open_bag_writer
 from ..data.recording import _qos as recorder_qos
-from ..output_files import distinct_names, staged_output, unique_paths
+from ..runtime.output_files import distinct_names, staged_output, unique_paths
 from ..wire.pointcloud import CloudError, grid_to_voxel_msg, msg_to_cloud
 from ..wire.rosmsg import rosbags_factory, stamp_to_ns
 from ..wire.topics import CLOUD_TYPE, TF_TYPE, TOPIC_TF_STATIC, TOPIC_VOXELS
@@ -203,7 +203,7 @@ def revoxelize_bags(
 ) -> tuple[list[RevoxelizeReport], list[tuple[Path, str]]]:
     """``revoxelize_bag`` for every bag under ``sources`` (``data.bags.find_bags``) into ``out_dir``, a new folder:
     each bag under its own name, or its path below the bags' common folder where names repeat. ``out_dir``
-    is written beside itself and renamed into place once every bag is done (``output_files.staged_output``):
+    is written beside itself and renamed into place once every bag is done (``runtime.output_files.staged_output``):
     an existing one raises ``OutputExistsError`` unless ``force``; nothing lands when no bag could be
     re-voxelised. Returns (the reports, paths as in ``out_dir``; the failed bags with their reasons)."""
     out_dir = Path(out_dir)

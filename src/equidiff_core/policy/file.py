@@ -23,7 +23,7 @@ from typing import Any
 import torch
 
 from ..models import action_space
-from ..output_files import staged_output
+from ..runtime.output_files import staged_output
 from .presets import PolicyPreset
 
 FORMAT = "equidiff_policy"

@@ -32,7 +32,6 @@ import numpy as np
 import torch
 
 from ..config import Workspace, from_dict
-from ..machine import cpu_has_native_bf16
 from ..models.cpu_kernels import (
     FastMish,
     MatmulConv1d,
@@ -43,6 +42,7 @@ from ..models.cpu_kernels import (
     swap_modules,
 )
 from ..models.sampling import ActionCodec, _guided_noise, ddim_sample, make_inference_scheduler
+from ..runtime.machine import cpu_has_native_bf16
 from .augment import voxel_input
 from .diffusion import PolicyInputError
 from .file import (

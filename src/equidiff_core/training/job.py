@@ -18,11 +18,11 @@ from pathlib import Path
 
 from equidiff_core.config import ConfigError, default_config_dir, load_lab_config
 from equidiff_core.data.dataset import DatasetConfig, DemoDataset, load_episodes, split_episodes
-from equidiff_core.jobs import JobError
-from equidiff_core.output_files import occupied, staged_output
 from equidiff_core.perception.observation import STATE_TOLERANCE_S
 from equidiff_core.policy.diffusion import make_policy
 from equidiff_core.policy.presets import get_preset
+from equidiff_core.runtime.jobs import JobError
+from equidiff_core.runtime.output_files import occupied, staged_output
 from equidiff_core.training import distributed
 from equidiff_core.training.callbacks import ActionMseEvaluator, PlotWriter, ProgressBar
 from equidiff_core.training.loop import (

@@ -11,8 +11,8 @@ from __future__ import annotations
 import json
 import sys
 
-from equidiff_core.jobs import progress_lines, report_error
-from equidiff_core.machine import default_threads_to_idle_cores
+from equidiff_core.runtime.jobs import progress_lines, report_error
+from equidiff_core.runtime.machine import default_threads_to_idle_cores
 
 
 def main(argv: list[str]) -> int:

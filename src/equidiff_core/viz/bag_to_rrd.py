@@ -31,7 +31,7 @@ import yaml
 from ..config import LabConfig
 from ..data.bags import BagIntegrityError, bag_mcap
 from ..data.mcap_reader import iter_mcap
-from ..output_files import distinct_names, staged_output, unique_paths
+from ..runtime.output_files import distinct_names, staged_output, unique_paths
 from ..wire.rosmsg import rosbags_factory
 from ..wire.topics import camera_of_color_topic
 from .logger import TOPICS_HANDLED, RerunLogger
@@ -149,7 +149,7 @@ def convert_bags(
 ) -> ConversionReport:
     """Convert bags to .rrd (``out`` a file, or a directory with ``per_episode``), or stream them to a viewer
     (``spawn`` / ``connect``, one recording); never raises because of one bad bag. ``out`` is written beside
-    itself and renamed into place once complete (``output_files.staged_output``): an existing one raises
+    itself and renamed into place once complete (``runtime.output_files.staged_output``): an existing one raises
     ``OutputExistsError`` unless ``force``, and is kept when nothing could be converted."""
     t0 = time.perf_counter()
     bags = unique_paths(expand_bag_paths(bags))

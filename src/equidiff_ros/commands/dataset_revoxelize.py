@@ -19,8 +19,8 @@ from pathlib import Path
 
 from equidiff_core.config import load_lab_config
 from equidiff_core.data.bags import find_bags
-from equidiff_core.output_files import OutputExistsError
 from equidiff_core.perception.fusion import revoxelize_bags
+from equidiff_core.runtime.output_files import OutputExistsError
 from equidiff_ros.commands import add_force_argument
 
 

@@ -18,8 +18,8 @@ import sys
 
 from equidiff_core.data.dataset import DatasetConfig
 from equidiff_core.data.lerobot.export import ExportError, ExportOptions, export_lerobot
-from equidiff_core.output_files import OutputExistsError
 from equidiff_core.perception.observation import STATE_TOLERANCE_S
+from equidiff_core.runtime.output_files import OutputExistsError
 from equidiff_ros.commands import add_force_argument
 
 

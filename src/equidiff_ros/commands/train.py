@@ -24,8 +24,8 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from equidiff_core.jobs import progress_lines
 from equidiff_core.policy.presets import BASELINE_INITS, ROTATION_AUGS
+from equidiff_core.runtime.jobs import progress_lines
 from equidiff_core.training.job import TrainingSpec, run_training
 from equidiff_ros.commands import add_force_argument
 

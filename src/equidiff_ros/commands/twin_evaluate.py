@@ -21,7 +21,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from equidiff_core.jobs import progress_lines
+from equidiff_core.runtime.jobs import progress_lines
 from equidiff_core.twin.config import EVALUATION_FIRST_SEED
 from equidiff_core.twin.inprocess_jobs import EvaluationSettings, run_evaluation
 from equidiff_ros.commands import print_result

@@ -10,7 +10,7 @@ import time
 from pathlib import Path
 
 from equidiff_core.config import ConfigError
-from equidiff_core.output_files import refuse_existing, write_output_text
+from equidiff_core.runtime.output_files import refuse_existing, write_output_text
 from equidiff_core.twin.config import load_twin_job_configs
 from equidiff_core.twin.metrics import RunSummary
 from equidiff_core.twin.processes import NodeProcessError

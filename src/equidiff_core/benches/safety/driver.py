@@ -20,9 +20,9 @@ from equidiff_core.benches.safety.campaign import Campaign, Probe, start_episode
 from equidiff_core.benches.safety.report import campaign_summary
 from equidiff_core.config import default_config_dir, dump_yaml, load_lab_config, load_mapping
 from equidiff_core.control import load_control_config
-from equidiff_core.machine import cpu_description
-from equidiff_core.output_files import staged_dir
 from equidiff_core.robots.franky.sim import SimServer
+from equidiff_core.runtime.machine import cpu_description
+from equidiff_core.runtime.output_files import staged_dir
 from equidiff_core.twin.processes import join_private_domain, start_node, stop_process
 from equidiff_core.twin.standin import STANDIN_LABEL, make_standin_policy
 

@@ -45,7 +45,7 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from ...output_files import refuse_existing, staged_output
+from ...runtime.output_files import refuse_existing, staged_output
 from ...wire.rosmsg import NS_PER_S
 from ..bags import BagError
 from ..dataset import DatasetConfig, load_episodes
@@ -127,7 +127,7 @@ def export_lerobot(
 ) -> ExportReport:
     """Write ``out`` (a new directory) from the bags; bags that cannot be used are skipped and reported.
 
-    ``out`` is written beside itself and renamed into place once complete (``output_files.staged_output``):
+    ``out`` is written beside itself and renamed into place once complete (``runtime.output_files.staged_output``):
     an existing one raises ``OutputExistsError`` unless ``force``; an export that fails half-way (a corrupt
     image, Ctrl-C) leaves no partial dataset and the old ``out`` as it was."""
     t0 = time.perf_counter()

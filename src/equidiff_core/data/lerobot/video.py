@@ -14,7 +14,7 @@ import av
 import numpy as np
 
 from ...cameras.color import ImageError, image_from_msg
-from ...machine import keep_thread_scheduler
+from ...runtime.machine import keep_thread_scheduler
 from ...wire.topics import camera_color_topic, camera_of_color_topic
 from ..bags import read_episode
 from ..dataset import EpisodeArrays

@@ -71,7 +71,7 @@ def report_error(command: str, err: BaseException) -> int | None:
     traceback is worth more than a line)."""
     # checked by module, so that this module (and `equidiff --help`) does not import the config module
     config = sys.modules.get("equidiff_core.config")
-    outputs = sys.modules.get("equidiff_core.output_files")
+    outputs = sys.modules.get("equidiff_core.runtime.output_files")
     if isinstance(err, JobError):
         message, status = str(err), err.exit_status
     elif (config is not None and isinstance(err, config.ConfigError)) or (
