@@ -182,7 +182,7 @@ def test_twin_run_refuses_its_summary_files_before_the_twin_starts(tmp_path, mon
 
 
 def test_calibrate_check_refuses_an_existing_rrd_before_capturing(tmp_path, monkeypatch, capsys):
-    from equidiff_core import calibration_job
+    from equidiff_core.calibration import job as calibration_job
 
     monkeypatch.setattr(calibration_job, "_twin_capture", lambda *a, **k: pytest.fail("captured"))
     rrd = tmp_path / "check.rrd"
