@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 from helpers_ros import run_job
 
-from equidiff_core.episode import SuccessHold
+from equidiff_core.twin.episode import SuccessHold
 from equidiff_core.twin.metrics import EpisodeRecord, RunSummary
 from equidiff_core.twin.processes import (
     NodeProcessError,

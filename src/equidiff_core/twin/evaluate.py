@@ -3,7 +3,7 @@
 Used by ``equidiff twin evaluate``, ``bench generalization`` and ``bench chunking``: the same
 scene, cameras (rendered from the sim state), voxeliser and inference code as the live stack,
 but stepped synchronously, so the result does not depend on how fast this machine is. Each
-episode is ``episode.run_episode`` (the sequence ``twin run`` and ``twin collect`` run) in a
+episode is ``twin.episode.run_episode`` (the sequence ``twin run`` and ``twin collect`` run) in a
 ``demos.DirectWorld`` that records nothing, with ``direct_execution.DirectPolicy`` acting.
 
 Chunks execute exactly as the live stack executes them on simulated time (policy_node +
@@ -35,7 +35,6 @@ import numpy as np
 import torch
 
 from ..config import LabConfig
-from ..episode import run_episode
 from ..policy.chunk_sizing import ChunkSizing
 from ..wire.chunk import DEFAULT_EXECUTE_STEPS, DEFAULT_RTC, DEFAULT_TRANSPORT_S, AnswerSchedule
 from ..wire.rosmsg import position_from_msg
@@ -50,6 +49,7 @@ from .direct_execution import (
     EpisodeProgress,
     RecordedChunks,
 )
+from .episode import run_episode
 from .yaw_range import OFFSET_BINS_DEG, block_yaw_offset_deg, in_range_yaw_seeds, unseen_yaw_seeds, yaw_breakdown
 
 # policy_node's default torch_threads. A fixed count also keeps each seed's outcome the same from
