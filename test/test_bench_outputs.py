@@ -35,7 +35,7 @@ def _listing(folder):
 def _demos_bench_ready(tmp_path, monkeypatch, plot_bytes: bytes):
     """`bench demos --trained` with the roll-outs replaced by a result whose plot holds ``plot_bytes``: what
     the command writes, without the hours it measures."""
-    from equidiff_core.benches import demos as bench_demos
+    from equidiff_core.benches import sample_efficiency as bench_demos
 
     trained = tmp_path / "trained"
     for name in ("equidiff_1", "baseline_1"):
@@ -73,7 +73,8 @@ def test_bench_demos_rewrites_its_own_result_whole_and_refuses_a_named_plot(tmp_
     # a plot the user named is refused before anything runs, left byte-identical; --force replaces it
     plot.write_bytes(b"someone's figure")
     monkeypatch.setattr(
-        "equidiff_core.benches.demos.load_twin_job_configs", lambda *a: pytest.fail("refused after work began")
+        "equidiff_core.benches.sample_efficiency.load_twin_job_configs",
+        lambda *a: pytest.fail("refused after work began"),
     )
     assert main(argv) == 2
     err = capsys.readouterr().err

@@ -275,7 +275,7 @@ def test_each_gate_stops_bench_generalization_before_the_roll_outs_it_guards(tmp
 @pytest.mark.slow
 @pytest.mark.sim
 def test_bench_demos_trains_in_parts_then_rolls_out_once_and_plots(tmp_path, capsys, monkeypatch):
-    from equidiff_core.benches import demos as bench_demos
+    from equidiff_core.benches import sample_efficiency as bench_demos
     from equidiff_ros.cli import main
 
     demos = tmp_path / "demos"

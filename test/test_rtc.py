@@ -195,11 +195,11 @@ def test_bench_chunking_refuses_what_it_cannot_run_with_one_line_and_exit_1(tmp_
 def test_bench_chunking_prints_one_json_line_with_every_mode_and_latency(tmp_path, capsys, monkeypatch):
     import json
 
-    from equidiff_core.benches import chunking
+    from equidiff_core.benches import chunk_modes
     from equidiff_ros.cli import main
 
     policy = _DriftingPolicy()
-    monkeypatch.setattr(chunking, "load_inference_policy", lambda path, device: policy)
+    monkeypatch.setattr(chunk_modes, "load_inference_policy", lambda path, device: policy)
     checkpoint = tmp_path / "policy.pt"
     checkpoint.write_bytes(b"stands in")
     assert (

@@ -12,13 +12,13 @@ import pytest
 from helpers_ros import run_job
 
 from equidiff_core.twin.episode import SuccessHold
-from equidiff_core.twin.metrics import EpisodeRecord, RunSummary
 from equidiff_core.twin.processes import (
     NodeProcessError,
     ProcessGroup,
     node_command,
     private_ros_env,
 )
+from equidiff_core.twin.run_summary import EpisodeRecord, RunSummary
 
 REQUIRED_KEYS = {"episodes", "success_rate", "inference_p95_ms", "end_to_end_p95_ms", "dropped_cycles"}
 

@@ -408,9 +408,9 @@ def test_missing_rerun_names_the_install_extra(monkeypatch):
     monkeypatch.setitem(sys.modules, "rerun", None)
     with pytest.raises(VizUnavailable, match=r"equidiff_ros\[viz\]"):
         require_rerun()
-    monkeypatch.delitem(sys.modules, "equidiff_core.viz.training", raising=False)
+    monkeypatch.delitem(sys.modules, "equidiff_core.viz.training_callback", raising=False)
     with pytest.raises(ImportError, match=r"equidiff_ros\[viz\]"):  # what `equidiff train --rerun` catches
-        import equidiff_core.viz.training  # noqa: F401
+        import equidiff_core.viz.training_callback  # noqa: F401
     from equidiff_ros.commands import viz as viz_command
 
     parser = __import__("argparse").ArgumentParser()
@@ -510,7 +510,7 @@ def _fake_sample(rng, horizon: int = 16) -> dict:
 
 
 def test_training_callback_logs_loss_curves_and_sampled_chunks(tmp_path):
-    from equidiff_core.viz.training import RerunTrainingCallback
+    from equidiff_core.viz.training_callback import RerunTrainingCallback
 
     rng = np.random.default_rng(0)
     cb = RerunTrainingCallback(tmp_path / "train.rrd", max_samples=2)
@@ -544,7 +544,7 @@ def test_training_callback_with_the_real_trainer(tmp_path):
 
     from equidiff_core.policy.diffusion import make_policy
     from equidiff_core.policy.presets import get_preset
-    from equidiff_core.viz.training import RerunTrainingCallback
+    from equidiff_core.viz.training_callback import RerunTrainingCallback
 
     preset = get_preset("tiny")
     policy = make_policy("baseline", preset, LAB.workspace)

@@ -283,7 +283,7 @@ def _train_into(spec: TrainingSpec, dist_info, out: Path, named: Path) -> dict |
     ]
     if spec.rerun and main:
         try:  # rerun-sdk is an optional extra: imported only when asked for
-            from equidiff_core.viz.training import RerunTrainingCallback
+            from equidiff_core.viz.training_callback import RerunTrainingCallback
         except ImportError as err:
             raise TrainJobError(f"--rerun needs the viz extra (rerun-sdk): {err}", 2) from err
         callbacks.append(RerunTrainingCallback.from_target(spec.rerun))

@@ -15,7 +15,7 @@ import numpy as np
 
 from equidiff_core.twin.episode import run_episode
 from equidiff_core.twin.expert import object_poses_from_state, plan_pick_place
-from equidiff_core.twin.metrics import EpisodeRecord
+from equidiff_core.twin.run_summary import EpisodeRecord
 from equidiff_core.twin.scene import ScenePoses, scene_record
 from equidiff_core.wire.rosmsg import NS_PER_S
 from equidiff_ros.twin.stack import TwinStack
