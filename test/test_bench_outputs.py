@@ -129,7 +129,7 @@ def test_bench_twin_refuses_an_existing_out_before_the_twin_starts(tmp_path, mon
 
 
 def test_bench_safety_refuses_an_existing_keep_before_anything_starts(tmp_path, monkeypatch):
-    from equidiff_core.benches.safety import driver
+    from equidiff_core.benches.fault_campaign import driver
     from equidiff_core.runtime.output_files import OutputExistsError
 
     monkeypatch.setenv("ROS_DOMAIN_ID", "117")

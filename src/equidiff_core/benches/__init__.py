@@ -16,7 +16,7 @@ it cannot run; progress through the module's logger).
 * ``images``: what recording the cameras' JPEG images costs (bytes and CPU per frame, the twin's renders).
 * ``stats``: every success rate with n and its Wilson 95 % interval; paired comparisons on the same scenes
   (McNemar's exact test, a paired bootstrap interval of the difference); the scenes a comparison needs.
-* ``safety``: the fault campaign of ``bench safety`` against franky-sim through franka_node (its ROS side passed in).
+* ``fault_campaign``: the fault campaign of ``bench safety`` against franky-sim through franka_node (its ROS side passed in).
 """
 
 from equidiff_core.runtime.jobs import JobError

@@ -1,4 +1,4 @@
-"""The ROS side of ``equidiff bench safety``: what its campaign (``equidiff_core.benches.safety``, ROS-free)
+"""The ROS side of ``equidiff bench safety``: what its campaign (``equidiff_core.benches.fault_campaign``, ROS-free)
 needs of the live graph, passed in as a ``SafetyProbe``: the rclpy client that drives franka_node and
 records what comes back, a watch on /franka/status and the measured pose, and the operator's service calls
 (acknowledge, home, recorder start/stop) as ``equidiff lab`` makes them.

@@ -15,7 +15,7 @@ from collections.abc import Callable
 import numpy as np
 
 from equidiff_core import geometry
-from equidiff_core.benches.safety.campaign import STEP_NS, Campaign, Sender, start_franka
+from equidiff_core.benches.fault_campaign.campaign import STEP_NS, Campaign, Sender, start_franka
 from equidiff_core.wire.chunk import PoseChunk
 from equidiff_core.wire.rosmsg import arm_joint_positions
 

@@ -12,7 +12,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from equidiff_core import geometry
-from equidiff_core.benches.safety.campaign import STEP_NS, Campaign
+from equidiff_core.benches.fault_campaign.campaign import STEP_NS, Campaign
 from equidiff_core.control import metrics
 from equidiff_core.geometry import down_pose
 from equidiff_core.wire.chunk import PoseChunk, chunk_to_msg

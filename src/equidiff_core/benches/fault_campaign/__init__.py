@@ -6,7 +6,7 @@ side comes in as a ``Probe`` (``equidiff_ros.benches.safety_probe.SafetyProbe``)
 * ``report``: the summary across the campaign (excursion, auto-resumes, episodes lost).
 """
 
-from equidiff_core.benches.safety.campaign import Probe
-from equidiff_core.benches.safety.driver import FAULTS, run_bench, run_campaign
+from equidiff_core.benches.fault_campaign.campaign import Probe
+from equidiff_core.benches.fault_campaign.driver import FAULTS, run_bench, run_campaign
 
 __all__ = ["FAULTS", "Probe", "run_bench", "run_campaign"]

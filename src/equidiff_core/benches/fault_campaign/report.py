@@ -8,7 +8,7 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
-from equidiff_core.benches.safety.campaign import Campaign
+from equidiff_core.benches.fault_campaign.campaign import Campaign
 from equidiff_core.data.bags import read_episode
 
 

@@ -15,9 +15,9 @@ from pathlib import Path
 
 import numpy as np
 
-from equidiff_core.benches.safety import chunk_faults, node_faults, stop_faults
-from equidiff_core.benches.safety.campaign import Campaign, Probe, start_episode, start_franka, stop_episode
-from equidiff_core.benches.safety.report import campaign_summary
+from equidiff_core.benches.fault_campaign import chunk_faults, node_faults, stop_faults
+from equidiff_core.benches.fault_campaign.campaign import Campaign, Probe, start_episode, start_franka, stop_episode
+from equidiff_core.benches.fault_campaign.report import campaign_summary
 from equidiff_core.config import default_config_dir, dump_yaml, load_lab_config, load_mapping
 from equidiff_core.control import load_control_config
 from equidiff_core.robots.franky.sim import SimServer
