@@ -2,7 +2,7 @@
 board the arm carries, written to a new lab file) and ``equidiff calibrate check`` (each camera's alignment
 against the other clouds and the fingertips). Their help texts say what each does; the calibration itself is
 ``equidiff_core.calibration``, its twin side ``equidiff_core.twin.calibration``. A job of both (the lab and the
-twin), so it sits above them, as ``training.job`` does. Each takes its settings and returns its JSON line as a
+twin), as ``training.job`` is ``equidiff train``'s. Each takes its settings and returns its JSON line as a
 dict, or raises ``CalibrationJobError``; progress goes to this module's logger.
 """
 
