@@ -7,7 +7,7 @@ On CUDA the forward pass runs under bf16 autocast (weights, gradients and optimi
 and the whole training set sits on the GPU (``training.batches.DeviceBatchSource``); on the CPU training
 stays fp32 and draws batches through a DataLoader (``precision`` / ``data`` override both).
 
-Launched by torchrun (``training.distributed.py``), each process trains one data-parallel replica:
+Launched by torchrun (``distributed.py``), each process trains one data-parallel replica:
 DistributedDataParallel averages the gradients, every rank draws a disjoint shard of each epoch,
 rank 0 alone evaluates and writes checkpoints, history and the export. The logged loss is the
 mean over ranks.
@@ -18,7 +18,7 @@ tensors and swap the averaged weights in for evaluation and export.
 
 Files in ``out_dir``: ``last.ckpt`` (resumable: weights, optimiser, schedule, EMA, step,
 history, config; loads with ``torch.load(weights_only=True)``), ``history.json`` and
-``policy.pt`` (the exported inference policy, see ``policy.inference.py``). ``without_optimizer_state``
+``policy.pt`` (the exported inference policy, see ``policy/inference.py``). ``without_optimizer_state``
 writes a checkpoint to share without the optimiser's moments; it still resumes, with fresh moments.
 
 The run's configuration, its result and the resolution of ``auto`` settings are in ``training.config``.
