@@ -24,16 +24,16 @@ from pathlib import Path
 
 import numpy as np
 
-from equidiff_core.bags import find_bags, read_episode
-from equidiff_core.chunk import SamplingSeeds, chunk_from_actions, chunk_from_msg
 from equidiff_core.config import default_config_dir, load_lab_config
-from equidiff_core.inference import load_inference_policy
-from equidiff_core.observation import ee_input
-from equidiff_core.pointcloud import voxel_msg_to_grid
-from equidiff_core.rosmsg import stamp_to_ns
-from equidiff_core.topics import TOPIC_COMMAND_CHUNK, TOPIC_VOXELS
+from equidiff_core.data.bags import find_bags, read_episode
+from equidiff_core.perception.observation import ee_input
+from equidiff_core.policy.inference import load_inference_policy
 from equidiff_core.twin.config import load_twin_config
 from equidiff_core.twin.demos import DirectRecorder, DirectWorld
+from equidiff_core.wire.chunk import SamplingSeeds, chunk_from_actions, chunk_from_msg
+from equidiff_core.wire.pointcloud import voxel_msg_to_grid
+from equidiff_core.wire.rosmsg import stamp_to_ns
+from equidiff_core.wire.topics import TOPIC_COMMAND_CHUNK, TOPIC_VOXELS
 
 
 def iou(a: np.ndarray, b: np.ndarray) -> float:

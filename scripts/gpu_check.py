@@ -429,7 +429,7 @@ def summarize(results: dict) -> dict:
 def environment(check: Check) -> dict:
     env = {"python": platform.python_version(), "cpu": platform.processor() or platform.machine()}
     try:
-        from equidiff_core.machine import cpu_model
+        from equidiff_core.runtime.machine import cpu_model
 
         env["cpu"] = f"{cpu_model()}, {os.cpu_count()} cores"
     except ImportError:
@@ -550,7 +550,7 @@ def table(results: dict) -> str:
 
 def collect(run_dir: Path, dest: Path) -> dict:
     """Copy a training run's files to ``dest`` under the names that come back from $OUT, then verify them."""
-    from equidiff_core.training import without_optimizer_state
+    from equidiff_core.training.loop import without_optimizer_state
 
     dest.mkdir(parents=True, exist_ok=True)
     without_optimizer_state(run_dir / "last.ckpt", dest / "train_last.ckpt")
@@ -577,8 +577,8 @@ def verify(directory: Path) -> dict:
     import torch
 
     from equidiff_core.benches.timing import probe_observation
-    from equidiff_core.inference import load_inference_policy
-    from equidiff_core.training import load_policy_from_checkpoint, load_training_checkpoint
+    from equidiff_core.policy.inference import load_inference_policy
+    from equidiff_core.training.loop import load_policy_from_checkpoint, load_training_checkpoint
 
     policy = load_inference_policy(directory / "train_policy.pt", device="cpu")
     vox, ee = probe_observation(policy.preset, policy.workspace)
@@ -609,10 +609,10 @@ def check_ddp(run_dir: Path) -> dict:
     weights loaded on the CPU hash to rank 0's digest."""
     import numpy as np
 
-    from equidiff_core import distributed
     from equidiff_core.benches.timing import probe_observation
-    from equidiff_core.inference import load_inference_policy
-    from equidiff_core.training import load_policy_from_checkpoint
+    from equidiff_core.policy.inference import load_inference_policy
+    from equidiff_core.training import distributed
+    from equidiff_core.training.loop import load_policy_from_checkpoint
 
     history = json.loads((run_dir / "history.json").read_text())
     sync = next(h for h in history if "param_digests" in h)

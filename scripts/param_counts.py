@@ -26,8 +26,8 @@ import json
 from escnn import nn as enn
 
 from equidiff_core.config import Workspace
-from equidiff_core.policies import count_parameters, make_policy
-from equidiff_core.presets import PRESETS, get_preset
+from equidiff_core.policy.diffusion import count_parameters, make_policy
+from equidiff_core.policy.presets import PRESETS, get_preset
 
 
 def resnet18_trunk_params() -> int:

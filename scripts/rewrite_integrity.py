@@ -4,7 +4,7 @@
     PYTHONPATH=src python scripts/rewrite_integrity.py --check    # verify only (exit 1 if any is old)
 
 * ``checkpoints/**/policy.pt`` (exported policies) and ``checkpoints/**/*.ckpt`` (training
-  checkpoints) get the sha256 of their weights (``policy_file.rewrite_with_hash``). Verified:
+  checkpoints) get the sha256 of their weights (``policy.file.rewrite_with_hash``). Verified:
   the same tensors bit for bit, and an exported policy predicts the same actions (same seed).
 * ``bags/*`` (the sample episode) is re-written through the project's bag writer (chunk,
   data-section and summary CRCs). Verified: the same messages (topic, log time, bytes) in the
@@ -26,11 +26,11 @@ import numpy as np
 import torch
 from rosbags.rosbag2.storage_mcap import parse_qos
 
-from equidiff_core.bags import CHECKED, find_bags, read_meta, scan_mcap, verify_bag
-from equidiff_core.inference import load_inference_policy
-from equidiff_core.mcap_writer import open_bag_writer
-from equidiff_core.policy_file import FORMAT, HASH_KEY, rewrite_with_hash
-from equidiff_core.rosmsg import rosbags_factory
+from equidiff_core.data.bags import CHECKED, find_bags, read_meta, scan_mcap, verify_bag
+from equidiff_core.data.mcap_writer import open_bag_writer
+from equidiff_core.policy.file import FORMAT, HASH_KEY, rewrite_with_hash
+from equidiff_core.policy.inference import load_inference_policy
+from equidiff_core.wire.rosmsg import rosbags_factory
 
 ROOT = Path(__file__).resolve().parents[1]
 CKPT_FORMAT = "equidiff_train_ckpt"

@@ -6,7 +6,7 @@ import pytest
 import torch
 from helpers_ros import private_test_domain
 
-from equidiff_core.machine import idle_cores
+from equidiff_core.runtime.machine import idle_cores
 
 os.environ.setdefault("MUJOCO_GL", "egl")
 
@@ -34,7 +34,7 @@ def _runner_stays_time_shared():
 @pytest.fixture(autouse=True)
 def _torch_threads_on_idle_cores(monkeypatch):
     """Each test gets torch threads for the cores idle when it starts, as each `equidiff` command
-    does (equidiff_core.machine.default_threads_to_idle_cores): in process, and through
+    does (equidiff_core.runtime.machine.default_threads_to_idle_cores): in process, and through
     OMP_NUM_THREADS in the commands and nodes it starts. The suite runs for many minutes and the load
     beside it changes, so the choice is made again for every test, not once."""
     threads = idle_cores()

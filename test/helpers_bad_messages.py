@@ -10,11 +10,11 @@ from __future__ import annotations
 import numpy as np
 
 from equidiff_core import geometry
-from equidiff_core.chunk import PoseChunk, chunk_to_msg
 from equidiff_core.config import Workspace
-from equidiff_core.pointcloud import INT16, UINT8, cloud_to_msg, grid_to_voxel_msg
 from equidiff_core.robots.base import RobotState
-from equidiff_core.rosmsg import joint_state, pose_stamped
+from equidiff_core.wire.chunk import PoseChunk, chunk_to_msg
+from equidiff_core.wire.pointcloud import INT16, UINT8, cloud_to_msg, grid_to_voxel_msg
+from equidiff_core.wire.rosmsg import joint_state, pose_stamped
 
 DAY_NS = 86_400 * 1_000_000_000
 

@@ -31,14 +31,14 @@ if str(ROOT / "src") not in sys.path:
     sys.path.insert(0, str(ROOT / "src"))
 
 from equidiff_core import geometry
-from equidiff_core.bags import EpisodeMeta
 from equidiff_core.cameras.color import color_image_msg
-from equidiff_core.chunk import PoseChunk, chunk_to_msg
 from equidiff_core.config import Workspace, load_lab_config
-from equidiff_core.pointcloud import grid_to_voxel_msg
-from equidiff_core.recording import EpisodeWriter, RecordingConfig
-from equidiff_core.rosmsg import NS_PER_S, rosbags_factory
-from equidiff_core.topics import COMPRESSED_IMAGE_TYPE, camera_color_topic
+from equidiff_core.data.bags import EpisodeMeta
+from equidiff_core.data.recording import EpisodeWriter, RecordingConfig
+from equidiff_core.wire.chunk import PoseChunk, chunk_to_msg
+from equidiff_core.wire.pointcloud import grid_to_voxel_msg
+from equidiff_core.wire.rosmsg import NS_PER_S, rosbags_factory
+from equidiff_core.wire.topics import COMPRESSED_IMAGE_TYPE, camera_color_topic
 
 LAB = load_lab_config(ROOT / "config" / "lab.yaml")
 T0_NS = 1_700_000_000 * NS_PER_S  # a fixed wall-clock start: deterministic bags
@@ -235,7 +235,7 @@ class RosHarness:
         import rclpy
         from rclpy.executors import SingleThreadedExecutor
 
-        from equidiff_core.rosmsg import RclpyFactory
+        from equidiff_core.wire.rosmsg import RclpyFactory
 
         self.rclpy = rclpy
         self.ctx = rclpy.Context()

@@ -1,4 +1,4 @@
-"""Model-test helpers (the synthetic cube data lives in ``equidiff_core.synthetic``)."""
+"""Model-test helpers (the synthetic cube data lives in ``equidiff_core.data.synthetic``)."""
 
 from __future__ import annotations
 
@@ -8,10 +8,10 @@ from equidiff_core.config import Workspace
 def export_tiny_baseline(path):
     """An untrained export of the baseline at the tiny preset: loads and predicts in a fraction of
     a second, and a node treats every exported policy alike."""
-    from equidiff_core.inference import export_policy
-    from equidiff_core.normalizer import Normalizer
-    from equidiff_core.policies import make_policy
-    from equidiff_core.presets import get_preset
+    from equidiff_core.policy.diffusion import make_policy
+    from equidiff_core.policy.inference import export_policy
+    from equidiff_core.policy.normalizer import Normalizer
+    from equidiff_core.policy.presets import get_preset
 
     ws = Workspace()
     policy = make_policy("baseline", get_preset("tiny"), ws)

@@ -13,7 +13,7 @@ from helpers_data import SyntheticEpisode, write_synthetic_episode
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from equidiff_core.bags import (
+from equidiff_core.data.bags import (
     CHECKED,
     UNCHECKED,
     BagError,
@@ -24,10 +24,10 @@ from equidiff_core.bags import (
     scan_mcap,
     verify_bag,
 )
-from equidiff_core.dataset import dataset_stats
-from equidiff_core.mcap_writer import open_bag_writer
-from equidiff_core.recording import RecordingConfig
-from equidiff_core.rosmsg import rosbags_factory
+from equidiff_core.data.dataset import dataset_stats
+from equidiff_core.data.mcap_writer import open_bag_writer
+from equidiff_core.data.recording import RecordingConfig
+from equidiff_core.wire.rosmsg import rosbags_factory
 
 CFG = RecordingConfig(min_free_gib=0.0, chunk_size_mib=2.0)
 F = rosbags_factory()

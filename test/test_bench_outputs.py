@@ -35,7 +35,7 @@ def _listing(folder):
 def _demos_bench_ready(tmp_path, monkeypatch, plot_bytes: bytes):
     """`bench demos --trained` with the roll-outs replaced by a result whose plot holds ``plot_bytes``: what
     the command writes, without the hours it measures."""
-    from equidiff_core.benches import demos as bench_demos
+    from equidiff_core.benches import sample_efficiency as bench_demos
 
     trained = tmp_path / "trained"
     for name in ("equidiff_1", "baseline_1"):
@@ -73,7 +73,8 @@ def test_bench_demos_rewrites_its_own_result_whole_and_refuses_a_named_plot(tmp_
     # a plot the user named is refused before anything runs, left byte-identical; --force replaces it
     plot.write_bytes(b"someone's figure")
     monkeypatch.setattr(
-        "equidiff_core.benches.demos.load_twin_job_configs", lambda *a: pytest.fail("refused after work began")
+        "equidiff_core.benches.sample_efficiency.load_twin_job_configs",
+        lambda *a: pytest.fail("refused after work began"),
     )
     assert main(argv) == 2
     err = capsys.readouterr().err
@@ -128,8 +129,8 @@ def test_bench_twin_refuses_an_existing_out_before_the_twin_starts(tmp_path, mon
 
 
 def test_bench_safety_refuses_an_existing_keep_before_anything_starts(tmp_path, monkeypatch):
-    from equidiff_core.benches.safety import driver
-    from equidiff_core.output_files import OutputExistsError
+    from equidiff_core.benches.fault_campaign import driver
+    from equidiff_core.runtime.output_files import OutputExistsError
 
     monkeypatch.setenv("ROS_DOMAIN_ID", "117")
     monkeypatch.setattr(driver, "run_campaign", lambda *a, **k: pytest.fail("the campaign started"))
@@ -182,7 +183,7 @@ def test_twin_run_refuses_its_summary_files_before_the_twin_starts(tmp_path, mon
 
 
 def test_calibrate_check_refuses_an_existing_rrd_before_capturing(tmp_path, monkeypatch, capsys):
-    from equidiff_core import calibration_job
+    from equidiff_core.calibration import job as calibration_job
 
     monkeypatch.setattr(calibration_job, "_twin_capture", lambda *a, **k: pytest.fail("captured"))
     rrd = tmp_path / "check.rrd"

@@ -15,7 +15,7 @@ pytest.importorskip("franky")
 pytest.importorskip("franky_sim")
 pytest.importorskip("rclpy")
 
-from equidiff_core.benches.safety import run_campaign
+from equidiff_core.benches.fault_campaign import run_campaign
 from equidiff_ros.benches.safety_probe import SafetyProbe
 
 pytestmark = [pytest.mark.sim, pytest.mark.ros, pytest.mark.slow]

@@ -17,11 +17,11 @@ from equidiff_core.benches.conditioning import Frame, block_mask, conditioning_r
 from equidiff_core.benches.demo_sets import nested_subsets
 from equidiff_core.benches.training_runs import Recipe, fit_ratios, train_command, training_fit, under_fit
 from equidiff_core.config import Workspace
-from equidiff_core.inference import export_policy, load_inference_policy
-from equidiff_core.normalizer import Normalizer
-from equidiff_core.policies import make_policy
-from equidiff_core.presets import get_preset
-from equidiff_core.training_job import TrainingSpec
+from equidiff_core.policy.diffusion import make_policy
+from equidiff_core.policy.inference import export_policy, load_inference_policy
+from equidiff_core.policy.normalizer import Normalizer
+from equidiff_core.policy.presets import get_preset
+from equidiff_core.training.job import TrainingSpec
 from equidiff_core.twin.evaluate import EvalEpisode, yaw_breakdown
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -77,7 +77,7 @@ def test_conditioning_tells_a_blind_baseline_from_a_policy_that_looks(tmp_path):
 
 def test_baseline_width_follows_the_official_encoder_and_old_presets_keep_their_channels():
     from equidiff_core.models.baseline import baseline_encoder_channels, matched_channels
-    from equidiff_core.presets import preset_from_dict
+    from equidiff_core.policy.presets import preset_from_dict
 
     compact = get_preset("compact")
     assert baseline_encoder_channels(compact.replace(baseline_width=128)) == (8, 16, 16, 32, 32, 64, 64, 128)
@@ -173,7 +173,7 @@ def test_recipe_trains_as_equidiff_train_would_and_resumes_an_interrupted_run(tm
     assert dataclasses.replace(recipe, baseline_lr=1e-3).train_spec("equidiff", "none", bags, tmp_path).lr == 5e-4
     # the run starts in a process of its own that reads nothing but the spec, not through the CLI
     cmd = train_command(spec)
-    assert cmd[1:3] == ["-m", "equidiff_core.train_process"] and TrainingSpec.from_json(cmd[3]) == spec
+    assert cmd[1:3] == ["-m", "equidiff_core.training.process"] and TrainingSpec.from_json(cmd[3]) == spec
     assert "policy=baseline" in spec.settings_text() and "bags" not in spec.settings_text()
 
 
@@ -275,7 +275,7 @@ def test_each_gate_stops_bench_generalization_before_the_roll_outs_it_guards(tmp
 @pytest.mark.slow
 @pytest.mark.sim
 def test_bench_demos_trains_in_parts_then_rolls_out_once_and_plots(tmp_path, capsys, monkeypatch):
-    from equidiff_core.benches import demos as bench_demos
+    from equidiff_core.benches import sample_efficiency as bench_demos
     from equidiff_ros.cli import main
 
     demos = tmp_path / "demos"

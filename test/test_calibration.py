@@ -489,7 +489,7 @@ def test_cli_refuses_to_overwrite_before_moving_anything(tmp_path):
 
 
 class ScriptedSpaceMouse:
-    """Stands in for ``teleop.SpaceMouseSource`` (no device here): plays (reports, axes, buttons)
+    """Stands in for ``lab.teleop.SpaceMouseSource`` (no device here): plays (reports, axes, buttons)
     steps, one device report per read, so the motion does not depend on how busy the machine is."""
 
     def __init__(self, script):
@@ -503,7 +503,7 @@ class ScriptedSpaceMouse:
         pass
 
     def read(self, now_ns):
-        from equidiff_core.teleop import TeleopInput
+        from equidiff_core.lab.teleop import TeleopInput
 
         axes, buttons = self.reports[min(self.index, len(self.reports) - 1)]
         self.index += 1

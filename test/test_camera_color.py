@@ -14,11 +14,11 @@ from helpers_ros import spawn_node, stop_node
 from equidiff_core.cameras.color import JPEG_FORMAT, image_from_msg
 from equidiff_core.cameras.twin import Intrinsics
 from equidiff_core.config import default_config_dir, load_lab_config
-from equidiff_core.pointcloud import msg_to_cloud
-from equidiff_core.topics import camera_color_topic
 from equidiff_core.twin import scene
 from equidiff_core.twin.config import TwinConfig
 from equidiff_core.twin.shared_state import StateWriter
+from equidiff_core.wire.pointcloud import msg_to_cloud
+from equidiff_core.wire.topics import camera_color_topic
 
 pytestmark = [pytest.mark.ros, pytest.mark.sim, pytest.mark.slow]
 

@@ -21,8 +21,8 @@ from equidiff_core.config import (
     default_config_dir,
     load_lab_config,
 )
-from equidiff_core.pointcloud import cloud_to_msg
-from equidiff_core.rosmsg import rosbags_factory
+from equidiff_core.wire.pointcloud import cloud_to_msg
+from equidiff_core.wire.rosmsg import rosbags_factory
 
 
 def _camera(name="cam_a", **kw):
@@ -348,7 +348,7 @@ def test_colour_image_travels_as_image_transport_jpeg_and_bad_ones_are_refused()
         encode_jpeg,
         image_from_msg,
     )
-    from equidiff_core.rosmsg import rosbags_factory
+    from equidiff_core.wire.rosmsg import rosbags_factory
 
     f = rosbags_factory()
     v, u = np.mgrid[0:120, 0:212]

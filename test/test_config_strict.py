@@ -32,8 +32,8 @@ from equidiff_core.config import (
     to_dict,
 )
 from equidiff_core.control import check_home_inside, load_control_config
+from equidiff_core.data.recording import RecordingConfig
 from equidiff_core.limits_table import limits_markdown
-from equidiff_core.recording import RecordingConfig
 from equidiff_core.twin.config import load_twin_config
 from equidiff_core.viz.recording_setup import load_viz_config
 from equidiff_ros import cli

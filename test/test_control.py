@@ -12,7 +12,6 @@ from hypothesis import strategies as st
 from hypothesis.stateful import RuleBasedStateMachine, initialize, invariant, rule
 
 from equidiff_core import geometry
-from equidiff_core.chunk import ChunkError, ChunkReason, PoseChunk, chunk_from_msg, chunk_to_msg
 from equidiff_core.config import (
     ConfigError,
     SafetyBox,
@@ -47,7 +46,8 @@ from equidiff_core.control.state_machine import (
 )
 from equidiff_core.robots import RobotError, RobotStopped, UserStopPressed, make_robot
 from equidiff_core.robots.dryrun import DryRunConfig, DryRunRobot
-from equidiff_core.rosmsg import rosbags_factory
+from equidiff_core.wire.chunk import ChunkError, ChunkReason, PoseChunk, chunk_from_msg, chunk_to_msg
+from equidiff_core.wire.rosmsg import rosbags_factory
 
 WS = Workspace()
 BOX = SafetyBox()
@@ -901,7 +901,7 @@ def test_franky_gripper_command_that_fails_is_retried_not_lost():
 
 
 def test_answer_schedule_answers_one_observation_per_executed_chunk_despite_stamp_jitter():
-    from equidiff_core.chunk import AnswerSchedule
+    from equidiff_core.wire.chunk import AnswerSchedule
 
     dt = 200_000_000
     answers = AnswerSchedule(0, 8, dt)  # 0: the whole chunk
@@ -927,7 +927,7 @@ def test_answer_schedule_answers_one_observation_per_executed_chunk_despite_stam
 def test_sampling_seeds_follow_the_episode_and_repeat_with_it():
     """The rule policy_node and the in-process evaluation share: k-th answered observation of
     episode s gets s * 1000 + k; outside an episode, draws from the node's own seed."""
-    from equidiff_core.chunk import SamplingSeeds
+    from equidiff_core.wire.chunk import SamplingSeeds
 
     seeds = SamplingSeeds(0)
     outside = [seeds.next() for _ in range(3)]
@@ -943,8 +943,8 @@ def test_tf_message_carries_the_tcp_pose_in_the_base_frame():
     built here with the rosbags factory, which has the type."""
     from scipy.spatial.transform import Rotation
 
-    from equidiff_core import rosmsg
-    from equidiff_core.rosmsg import rosbags_factory
+    from equidiff_core.wire import rosmsg
+    from equidiff_core.wire.rosmsg import rosbags_factory
 
     pose = pose_at(np.array([0.4, -0.1, 0.25]))
     pose[:3, :3] = Rotation.from_euler("xyz", [170, 5, 30], degrees=True).as_matrix()

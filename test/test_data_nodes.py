@@ -17,12 +17,12 @@ from helpers_data import RosHarness, assert_same, decoded
 from helpers_ros import spawn_node, stop_node
 
 from equidiff_core import geometry
-from equidiff_core.bags import BagError, read_episode, repair_bag
 from equidiff_core.cameras.color import color_image_msg
-from equidiff_core.chunk import PoseChunk, chunk_from_msg, chunk_to_msg
 from equidiff_core.config import default_config_dir, load_lab_config
-from equidiff_core.pointcloud import grid_to_voxel_msg
-from equidiff_core.topics import camera_color_topic
+from equidiff_core.data.bags import BagError, read_episode, repair_bag
+from equidiff_core.wire.chunk import PoseChunk, chunk_from_msg, chunk_to_msg
+from equidiff_core.wire.pointcloud import grid_to_voxel_msg
+from equidiff_core.wire.topics import camera_color_topic
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow]
 

@@ -20,11 +20,10 @@ from helpers_data import (
     write_synthetic_episode,
 )
 
-import equidiff_core.dataset as dataset_mod
+import equidiff_core.data.dataset as dataset_mod
 from equidiff_core import geometry
-from equidiff_core.chunk import PoseChunk
 from equidiff_core.config import Workspace
-from equidiff_core.dataset import (
+from equidiff_core.data.dataset import (
     DatasetConfig,
     DemoDataset,
     command_schedule,
@@ -33,9 +32,10 @@ from equidiff_core.dataset import (
     sample_starts,
     split_episodes,
 )
-from equidiff_core.recording import RecordingConfig
-from equidiff_core.rosmsg import NS_PER_S, joint_state, pose_stamped, rosbags_factory, stamp_to_ns
-from equidiff_core.topics import TOPIC_EE_POSE, TOPIC_JOINT_STATES
+from equidiff_core.data.recording import RecordingConfig
+from equidiff_core.wire.chunk import PoseChunk
+from equidiff_core.wire.rosmsg import NS_PER_S, joint_state, pose_stamped, rosbags_factory, stamp_to_ns
+from equidiff_core.wire.topics import TOPIC_EE_POSE, TOPIC_JOINT_STATES
 
 CFG = RecordingConfig(min_free_gib=0.0)
 EP = SyntheticEpisode(duration_s=6.0)  # 30 observations at 5 Hz

@@ -21,12 +21,12 @@ from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
 from equidiff_core import geometry
-from equidiff_core.chunk import ChunkError, ChunkReason, PoseChunk, chunk_from_msg, chunk_to_msg
 from equidiff_core.config import Workspace
 from equidiff_core.control import ChunkScheduler, SchedulerConfig
-from equidiff_core.pointcloud import CloudError, VoxelGridSpec, cloud_to_msg, msg_to_cloud, voxel_msg_to_grid
 from equidiff_core.robots.base import ARM_JOINT_NAMES, FINGER_JOINT_NAMES, RobotState
-from equidiff_core.rosmsg import (
+from equidiff_core.wire.chunk import ChunkError, ChunkReason, PoseChunk, chunk_from_msg, chunk_to_msg
+from equidiff_core.wire.pointcloud import CloudError, VoxelGridSpec, cloud_to_msg, msg_to_cloud, voxel_msg_to_grid
+from equidiff_core.wire.rosmsg import (
     GRIPPER_WIDTH_SLACK_M,
     MessageError,
     MessageReason,
@@ -357,7 +357,7 @@ def test_diagnostic_array_round_trips(flavour, name, level, message, values):
 
 def _rclpy_factory():
     pytest.importorskip("rclpy")
-    from equidiff_core.rosmsg import RclpyFactory
+    from equidiff_core.wire.rosmsg import RclpyFactory
 
     return RclpyFactory()
 

@@ -13,20 +13,20 @@ import numpy as np
 import pytest
 import torch
 
-from equidiff_core import distributed
-from equidiff_core.batches import (
+from equidiff_core.config import Workspace
+from equidiff_core.data.dataset import DatasetConfig, DemoDataset
+from equidiff_core.data.synthetic import CubeDataset
+from equidiff_core.policy.diffusion import make_policy
+from equidiff_core.policy.presets import get_preset
+from equidiff_core.training import distributed
+from equidiff_core.training.batches import (
     BatchSourceError,
     DeviceBatchSource,
     estimate_nbytes,
     loader_batches,
     make_sampler,
 )
-from equidiff_core.config import Workspace
-from equidiff_core.dataset import DatasetConfig, DemoDataset
-from equidiff_core.policies import make_policy
-from equidiff_core.presets import get_preset
-from equidiff_core.synthetic import CubeDataset
-from equidiff_core.training import TrainConfig, resolve_precision, train
+from equidiff_core.training.loop import TrainConfig, resolve_precision, train
 
 ROOT = Path(__file__).resolve().parents[1]
 SAMPLE_BAG = ROOT / "bags" / "sample_pick_0000"
@@ -135,8 +135,8 @@ def test_two_gloo_ranks_train_in_sync_and_leave_a_normal_checkpoint(tmp_path):
     """torchrun, 2 CPU processes, 3 steps of EquiDiff/tiny on the sample bag with the data resident
     on the (CPU) device: both ranks end with the same parameters, rank 0 wrote a checkpoint that
     loads, predicts and resumes in a single process."""
-    from equidiff_core.inference import load_inference_policy
-    from equidiff_core.training import (
+    from equidiff_core.policy.inference import load_inference_policy
+    from equidiff_core.training.loop import (
         load_policy_from_checkpoint,
         load_training_checkpoint,
     )

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from equidiff_core.episode import run_episode
+from equidiff_core.twin.episode import run_episode
 
 
 class ScriptedWorld:

@@ -22,12 +22,12 @@ pytest.importorskip("rclpy")
 
 from helpers_ros import private_test_domain
 
-from equidiff_core.chunk import PoseChunk
 from equidiff_core.config import default_config_dir, load_lab_config
 from equidiff_core.control import load_control_config, metrics
 from equidiff_core.robots.franky.sim import free_loopback_host
 from equidiff_core.twin.node_specs import twin_node_params
 from equidiff_core.twin.processes import start_node, stop_process
+from equidiff_core.wire.chunk import PoseChunk
 from equidiff_ros.benches import control as bench
 from equidiff_ros.benches.safety_probe import acknowledge
 from equidiff_ros.control_client import ControlClient, down_pose

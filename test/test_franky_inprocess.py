@@ -18,10 +18,10 @@ import pytest
 pytest.importorskip("franky")
 pytest.importorskip("franky_sim")
 
-from equidiff_core.chunk import PoseChunk
 from equidiff_core.config import default_config_dir, load_lab_config
 from equidiff_core.control import load_control_config
 from equidiff_core.robots.franky.sim import SimServer
+from equidiff_core.wire.chunk import PoseChunk
 
 pytestmark = [pytest.mark.sim, pytest.mark.slow]
 

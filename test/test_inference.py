@@ -11,16 +11,16 @@ import pytest
 import torch
 
 from equidiff_core.config import Workspace
-from equidiff_core.inference import (
+from equidiff_core.models.equivariance import random_observation, twin_scenes
+from equidiff_core.policy.diffusion import PolicyInputError, make_policy
+from equidiff_core.policy.inference import (
     CheckpointError,
     export_policy,
     load_inference_policy,
     read_policy_file,
 )
-from equidiff_core.models.equivariance import random_observation, twin_scenes
-from equidiff_core.normalizer import Normalizer
-from equidiff_core.policies import PolicyInputError, make_policy
-from equidiff_core.presets import get_preset
+from equidiff_core.policy.normalizer import Normalizer
+from equidiff_core.policy.presets import get_preset
 from equidiff_core.twin.config import load_twin_config
 
 WS = Workspace()
@@ -203,7 +203,7 @@ def test_cuda_graph_replays_the_traced_policys_actions(exported):
 
 @pytest.mark.parametrize("kernel, stride, padding, bias", [(5, 1, 2, True), (3, 2, 1, True), (1, 1, 0, False)])
 def test_matmul_conv1d_equals_conv1d(kernel, stride, padding, bias):
-    from equidiff_core.inference import MatmulConv1d
+    from equidiff_core.policy.inference import MatmulConv1d
 
     torch.manual_seed(0)
     conv = torch.nn.Conv1d(12, 20, kernel, stride, padding, bias=bias)
@@ -215,7 +215,7 @@ def test_matmul_conv1d_equals_conv1d(kernel, stride, padding, bias):
 
 @pytest.mark.parametrize("channels, steps, bias", [(12, 4, True), (7, 5, False), (16, 1, True)])
 def test_matmul_conv_transpose1d_equals_conv_transpose1d(channels, steps, bias):
-    from equidiff_core.inference import MatmulConvTranspose1d
+    from equidiff_core.policy.inference import MatmulConvTranspose1d
 
     torch.manual_seed(0)
     conv = torch.nn.ConvTranspose1d(channels, channels + 3, 4, 2, 1, bias=bias)  # the U-Net's upsampler
@@ -226,7 +226,7 @@ def test_matmul_conv_transpose1d_equals_conv_transpose1d(channels, steps, bias):
 
 
 def test_fast_mish_equals_mish():
-    from equidiff_core.inference import FastMish
+    from equidiff_core.policy.inference import FastMish
 
     x = torch.cat([torch.linspace(-60.0, 60.0, 20001), torch.tensor([-1e4, 1e4, 0.0])])
     torch.testing.assert_close(FastMish()(x), torch.nn.functional.mish(x), rtol=1e-5, atol=1e-6)
@@ -255,7 +255,7 @@ def test_inference_does_not_import_escnn(exported):
     _, path = exported
     code = textwrap.dedent(f"""
         import sys, numpy as np
-        from equidiff_core.inference import load_inference_policy
+        from equidiff_core.policy.inference import load_inference_policy
         p = load_inference_policy({str(path)!r})
         vox = np.zeros((4, 64, 64, 64), np.uint8); ee = np.array([0.45, 0, 0.2, 1, 0, 0, 0, 1, 0, 0.04], np.float32)
         a = p.predict(vox, ee, seed=0)
@@ -369,7 +369,7 @@ def test_cuda_without_cuda_is_a_clear_error_not_a_traceback(exported, capsys):
 
 
 def test_precision_choices(exported):
-    from equidiff_core.machine import cpu_has_native_bf16
+    from equidiff_core.runtime.machine import cpu_has_native_bf16
 
     _, path = exported
     auto = load_inference_policy(path, precision="auto")
@@ -381,7 +381,7 @@ def test_precision_choices(exported):
 def test_policy_files_carry_a_weights_hash_checked_at_load(exported, tmp_path):
     """export_policy stores the sha256 of the weights; a changed weight is refused by name; a file
     without a hash (written before) loads and is reported unhashed; rewrite_with_hash adds it, bit for bit."""
-    from equidiff_core.policy_file import UNHASHED, open_policy_file, rewrite_with_hash, weights_sha256
+    from equidiff_core.policy.file import UNHASHED, open_policy_file, rewrite_with_hash, weights_sha256
 
     _, path = exported
     payload = torch.load(path, weights_only=True)
@@ -435,8 +435,8 @@ def test_checkpoint_errors_name_the_real_reason(exported, tmp_path, capsys):
 
 def test_shipped_policy_files_and_checkpoints_carry_a_checked_weights_hash():
     """Re-written by scripts/rewrite_integrity.py; load_checked verifies each hash."""
-    from equidiff_core.policy_file import FORMAT, HASH_KEY, VERSION, load_checked
-    from equidiff_core.training import load_training_checkpoint
+    from equidiff_core.policy.file import FORMAT, HASH_KEY, VERSION, load_checked
+    from equidiff_core.training.loop import load_training_checkpoint
 
     root = Path(__file__).resolve().parents[1] / "checkpoints"
     policies, ckpts = sorted(root.rglob("policy.pt")), sorted(root.rglob("*.ckpt"))

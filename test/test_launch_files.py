@@ -136,7 +136,7 @@ def test_launchers_expose_chunk_execution_with_the_nodes_defaults(launch_file):
     parameters are these constants.)"""
     import yaml
 
-    from equidiff_core import chunk
+    from equidiff_core.wire import chunk
 
     node_defaults = {
         "execute_steps": chunk.DEFAULT_EXECUTE_STEPS,

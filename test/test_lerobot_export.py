@@ -19,12 +19,12 @@ from helpers_data import LAB, SyntheticEpisode, write_synthetic_episode
 from helpers_lerobot import LeRobotUnavailable, lerobot_python
 from rosbags.rosbag2 import Reader
 
-from equidiff_core.bags import read_episode
 from equidiff_core.cameras.color import image_from_msg
-from equidiff_core.dataset import DatasetConfig, load_episode_arrays
-from equidiff_core.recording import EpisodeWriter, RecordingConfig
-from equidiff_core.rosmsg import rosbags_factory
-from equidiff_core.topics import camera_color_topic
+from equidiff_core.data.bags import read_episode
+from equidiff_core.data.dataset import DatasetConfig, load_episode_arrays
+from equidiff_core.data.recording import EpisodeWriter, RecordingConfig
+from equidiff_core.wire.rosmsg import rosbags_factory
+from equidiff_core.wire.topics import camera_color_topic
 from equidiff_ros.cli import main as cli
 
 CFG = RecordingConfig(min_free_gib=0.0)

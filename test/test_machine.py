@@ -8,7 +8,7 @@ import time
 
 import pytest
 
-from equidiff_core.machine import default_threads_to_idle_cores, idle_cores
+from equidiff_core.runtime.machine import default_threads_to_idle_cores, idle_cores
 from equidiff_ros.cli import main
 
 

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from equidiff_core import augment, geometry
+from equidiff_core import geometry
 from equidiff_core.config import ConfigError, Workspace
 from equidiff_core.models import action_space
 from equidiff_core.models.baseline import matched_channels
@@ -17,9 +17,10 @@ from equidiff_core.models.sampling import (
     make_inference_scheduler,
     make_train_scheduler,
 )
-from equidiff_core.normalizer import Normalizer, NormalizerError
-from equidiff_core.policies import PolicyInputError, count_parameters, make_policy
-from equidiff_core.presets import PRESETS, encoder_sizes, get_preset, preset_from_dict
+from equidiff_core.policy import augment
+from equidiff_core.policy.diffusion import PolicyInputError, count_parameters, make_policy
+from equidiff_core.policy.normalizer import Normalizer, NormalizerError
+from equidiff_core.policy.presets import PRESETS, encoder_sizes, get_preset, preset_from_dict
 from equidiff_core.twin.config import load_twin_config
 
 WS = Workspace()

@@ -24,10 +24,10 @@ from helpers_bad_messages import (
 )
 from test_policy_node import checkpoint  # noqa: F401 - the module's fixture: a tiny exported policy
 
-from equidiff_core.chunk import chunk_to_msg
 from equidiff_core.config import default_config_dir, load_lab_config
-from equidiff_core.pointcloud import VoxelGridSpec, cloud_to_msg, voxel_msg_to_grid
-from equidiff_core.rosmsg import gripper_width_from_joint_state, joint_state, pose_from_msg, pose_stamped
+from equidiff_core.wire.chunk import chunk_to_msg
+from equidiff_core.wire.pointcloud import VoxelGridSpec, cloud_to_msg, voxel_msg_to_grid
+from equidiff_core.wire.rosmsg import gripper_width_from_joint_state, joint_state, pose_from_msg, pose_stamped
 
 LAB_PATH = default_config_dir() / "lab.yaml"
 
@@ -50,7 +50,7 @@ def test_bad_messages_are_dropped_counted_and_the_nodes_go_on(ros_domain, checkp
     from geometry_msgs.msg import PoseStamped
     from sensor_msgs.msg import JointState
 
-    from equidiff_core.bags import read_episode
+    from equidiff_core.data.bags import read_episode
     from equidiff_core.twin.processes import start_node, stop_process
     from equidiff_ros.common import RELIABLE_QOS, SENSOR_QOS, TOPIC_EE_POSE, TOPIC_JOINT_STATES
     from equidiff_ros.control_client import ControlClient

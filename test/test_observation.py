@@ -1,15 +1,15 @@
-"""One observation builder (equidiff_core.observation) for training, the live node and the twin's evaluation."""
+"""One observation builder (equidiff_core.perception.observation) for training, the live node and the twin's evaluation."""
 
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from equidiff_core.bags import read_episode
-from equidiff_core.dataset import DatasetConfig, load_episode_arrays
-from equidiff_core.observation import STATE_TOLERANCE_S, StateHistory, ee_input, nearest
-from equidiff_core.pointcloud import voxel_msg_to_grid
-from equidiff_core.rosmsg import gripper_width_from_joint_state, pose_from_msg, stamp_to_ns
+from equidiff_core.data.bags import read_episode
+from equidiff_core.data.dataset import DatasetConfig, load_episode_arrays
+from equidiff_core.perception.observation import STATE_TOLERANCE_S, StateHistory, ee_input, nearest
+from equidiff_core.wire.pointcloud import voxel_msg_to_grid
+from equidiff_core.wire.rosmsg import gripper_width_from_joint_state, pose_from_msg, stamp_to_ns
 
 BAG = Path(__file__).resolve().parents[1] / "bags" / "sample_pick_0000"
 

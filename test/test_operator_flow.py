@@ -19,7 +19,7 @@ from helpers_ros import spawn_node, stop_node
 
 from equidiff_core import geometry
 from equidiff_core.config import default_config_dir, load_lab_config
-from equidiff_core.recording import InterventionLog
+from equidiff_core.data.recording import InterventionLog
 
 LAB = load_lab_config(default_config_dir() / "lab.yaml")
 S = 1_000_000_000
@@ -53,7 +53,7 @@ def test_intervention_log_lists_each_takeover_from_the_episode_start():
 def test_lab_cli_records_an_episode_with_a_teleop_takeover(ros_domain, tmp_path):
     from rosbags.rosbag2 import Reader
 
-    from equidiff_core.bags import read_episode
+    from equidiff_core.data.bags import read_episode
     from equidiff_ros.common import LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS
 
     out = tmp_path / "episodes"
@@ -143,8 +143,8 @@ def test_policy_publishes_nothing_until_enabled_and_a_takeover_pauses_it(ros_dom
 
     from std_msgs.msg import Bool, String
 
-    from equidiff_core.pointcloud import grid_to_voxel_msg
     from equidiff_core.twin.processes import start_node, stop_process
+    from equidiff_core.wire.pointcloud import grid_to_voxel_msg
     from equidiff_ros.common import LATCHED_QOS, RELIABLE_QOS
     from equidiff_ros.control_client import ControlClient
 
@@ -227,8 +227,8 @@ def test_the_operator_flow_drives_the_twin_the_same_way(ros_domain, tmp_path):
     """The operator flow in the twin, on simulated time: `equidiff lab` homes the arm, records an
     episode, pauses and resumes the policy; a SpaceMouse takeover pauses it and is marked in the
     bag; the episode is kept as a success. The same commands and nodes as in the lab."""
-    from equidiff_core.bags import read_episode
     from equidiff_core.control import load_control_config
+    from equidiff_core.data.bags import read_episode
     from equidiff_core.twin.config import TwinConfig
     from equidiff_core.twin.processes import node_command
     from equidiff_core.twin.standin import make_standin_policy
@@ -376,11 +376,11 @@ def test_the_operator_screen_drives_the_nodes(ros_domain, checkpoint, tmp_path):
     import yaml
     from std_msgs.msg import String
 
-    from equidiff_core.bags import read_episode
     from equidiff_core.control import load_control_config
+    from equidiff_core.data.bags import read_episode
     from equidiff_core.robots.franky.sim import SimServer
-    from equidiff_core.topics import TOPIC_FRANKA_STATUS, TOPIC_POLICY_STATE
     from equidiff_core.twin.processes import start_node, stop_process
+    from equidiff_core.wire.topics import TOPIC_FRANKA_STATUS, TOPIC_POLICY_STATE
     from equidiff_ros.common import LATCHED_QOS, SENSOR_QOS
     from equidiff_ros.control_client import ControlClient
 

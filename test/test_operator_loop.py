@@ -8,9 +8,8 @@ import json
 import pytest
 from helpers_data import SyntheticEpisode, write_synthetic_episode
 
-from equidiff_core import rosmsg, topics
 from equidiff_core.control.controller import ControllerStats
-from equidiff_core.operator_loop import (
+from equidiff_core.lab.operator_loop import (
     DIAGNOSTICS_STALE_S,
     KEY_ROWS,
     KEYS,
@@ -23,7 +22,8 @@ from equidiff_core.operator_loop import (
     parse_franka_status,
     robot_status_from_diagnostics,
 )
-from equidiff_core.rosmsg import rosbags_factory
+from equidiff_core.wire import rosmsg, topics
+from equidiff_core.wire.rosmsg import rosbags_factory
 
 T0 = 1000.0  # the loop's clock (monotonic seconds)
 

@@ -6,7 +6,7 @@ import re
 
 import pytest
 
-from equidiff_core.output_files import (
+from equidiff_core.runtime.output_files import (
     OutputExistsError,
     distinct_names,
     staged_dir,

@@ -159,9 +159,10 @@ def test_ruff_finds_nothing_in_the_sources_and_tests(command):
     assert result.returncode == 0, result.stdout + result.stderr
 
 
-# The twin is the test bed: the jobs, benches and commands that run it may import it; the libraries
-# a lab runs on its real robot (cameras, robots, calibration, control, models, training, viz, ...) may not.
-TWIN_USERS = ("twin/", "benches/", "commands/", "_job.py", "twin_node.py")
+# The twin is the test bed: the jobs (``<package>/job.py``, e.g. calibration.job, lab or twin), benches and
+# commands that run it may import it; the libraries a lab runs on its real robot (cameras, robots, calibration,
+# control, models, training, viz, ...) may not.
+TWIN_USERS = ("twin/", "benches/", "commands/", "/job.py", "_job.py", "twin_node.py")
 
 
 def _imported_modules(path: Path, module: str) -> set[str]:

@@ -11,7 +11,7 @@ from helpers_ros import spawn_node, stop_node
 
 from equidiff_core.benches.voxelize import synthetic_scene
 from equidiff_core.config import default_config_dir, load_lab_config
-from equidiff_core.voxels import voxelize_reference
+from equidiff_core.perception.voxels import voxelize_reference
 
 LAB_YAML = str(default_config_dir() / "lab.yaml")
 
@@ -108,15 +108,15 @@ def scene():
 
 
 def _cloud_msgs(lab, clouds, stamp_ns):
-    from equidiff_core.pointcloud import cloud_to_msg
-    from equidiff_core.rosmsg import RclpyFactory
+    from equidiff_core.wire.pointcloud import cloud_to_msg
+    from equidiff_core.wire.rosmsg import RclpyFactory
 
     f = RclpyFactory()
     return {c.name: cloud_to_msg(p, col, stamp_ns, c.frame_id, f) for c, (p, col) in zip(lab.cameras, clouds)}
 
 
 def _grid(msg, lab):
-    from equidiff_core.pointcloud import voxel_msg_to_grid
+    from equidiff_core.wire.pointcloud import voxel_msg_to_grid
 
     return voxel_msg_to_grid(msg, lab.workspace.resolution)
 
@@ -168,8 +168,8 @@ def test_three_clouds_become_the_expected_grid_and_a_missing_camera_stops_output
 @pytest.mark.ros
 @pytest.mark.slow
 def test_a_camera_never_seen_blocks_output_and_malformed_clouds_do_not_crash_the_node(tester, scene):
-    from equidiff_core.pointcloud import cloud_to_msg
-    from equidiff_core.rosmsg import RclpyFactory
+    from equidiff_core.wire.pointcloud import cloud_to_msg
+    from equidiff_core.wire.rosmsg import RclpyFactory
 
     lab, clouds, expected = scene
     f = RclpyFactory()

@@ -20,9 +20,9 @@ import pytest
 
 pytest.importorskip("rclpy")
 
-from equidiff_core.chunk import chunk_from_msg
 from equidiff_core.config import Workspace, default_config_dir, load_lab_config
-from equidiff_core.rosmsg import stamp_to_ns
+from equidiff_core.wire.chunk import chunk_from_msg
+from equidiff_core.wire.rosmsg import stamp_to_ns
 
 LAB_PATH = default_config_dir() / "lab.yaml"
 
@@ -39,10 +39,10 @@ def run_node(module: str, *ros_args: str, timeout: float = 120) -> subprocess.Co
 
 @pytest.fixture(scope="module")
 def checkpoint(tmp_path_factory):
-    from equidiff_core.inference import export_policy
-    from equidiff_core.normalizer import Normalizer
-    from equidiff_core.policies import make_policy
-    from equidiff_core.presets import get_preset
+    from equidiff_core.policy.diffusion import make_policy
+    from equidiff_core.policy.inference import export_policy
+    from equidiff_core.policy.normalizer import Normalizer
+    from equidiff_core.policy.presets import get_preset
 
     ws = Workspace()
     policy = make_policy("baseline", get_preset("tiny"), ws)
@@ -110,7 +110,7 @@ def test_rtc_max_gap_reaches_the_real_time_chunking(ros_domain, checkpoint):
 def test_policy_node_defaults_are_the_launchers_execution_defaults(ros_domain, checkpoint):
     """A policy_node started with no execution parameters has the values robot.launch.py and
     twin.launch.py declare as their launch arguments' defaults (test_launch_files.py: those are
-    ``chunk.DEFAULT_*``): latency_s auto, so it bridges its measured latency by default."""
+    ``wire.chunk.DEFAULT_*``): latency_s auto, so it bridges its measured latency by default."""
     import rclpy
     import yaml
     from test_launch_files import LAUNCH, launch_arguments
@@ -149,9 +149,9 @@ def block_grid(ws) -> np.ndarray:
 def test_policy_closes_the_loop_and_skips_stale_observations(ros_domain, checkpoint, tmp_path):
     from rclpy.qos import ReliabilityPolicy
 
-    from equidiff_core.pointcloud import grid_to_voxel_msg
-    from equidiff_core.topics import TOPIC_VOXELS
     from equidiff_core.twin.processes import start_node, stop_process
+    from equidiff_core.wire.pointcloud import grid_to_voxel_msg
+    from equidiff_core.wire.topics import TOPIC_VOXELS
     from equidiff_ros.control_client import ControlClient
 
     lab = load_lab_config(LAB_PATH)
@@ -284,8 +284,8 @@ def test_execution_horizon_covers_the_latency_and_rtc_joins_the_previous_chunk(r
     2 + 2 + 1 steps, real-time chunking on. (Whether a new chunk's first steps are the previous
     chunk's is checked where a policy's chunks can be executed, test_rtc.py: this untrained
     policy's chunks lie far from the arm, so RTC rightly does not pin to them.)"""
-    from equidiff_core.pointcloud import grid_to_voxel_msg
     from equidiff_core.twin.processes import start_node, stop_process
+    from equidiff_core.wire.pointcloud import grid_to_voxel_msg
     from equidiff_ros.control_client import ControlClient
 
     lab = load_lab_config(LAB_PATH)
@@ -354,13 +354,13 @@ def test_an_announced_episode_samples_like_the_in_process_evaluation(ros_domain,
     from geometry_msgs.msg import PoseStamped
     from std_msgs.msg import String
 
-    from equidiff_core import rosmsg
-    from equidiff_core.chunk import chunk_from_actions
-    from equidiff_core.inference import load_inference_policy
-    from equidiff_core.observation import ee_input
-    from equidiff_core.pointcloud import grid_to_voxel_msg, voxel_msg_to_grid
-    from equidiff_core.topics import TOPIC_COMMAND_CHUNK, TOPIC_EE_POSE, TOPIC_POLICY_EPISODE
+    from equidiff_core.perception.observation import ee_input
+    from equidiff_core.policy.inference import load_inference_policy
     from equidiff_core.twin.processes import start_node, stop_process
+    from equidiff_core.wire import rosmsg
+    from equidiff_core.wire.chunk import chunk_from_actions
+    from equidiff_core.wire.pointcloud import grid_to_voxel_msg, voxel_msg_to_grid
+    from equidiff_core.wire.topics import TOPIC_COMMAND_CHUNK, TOPIC_EE_POSE, TOPIC_POLICY_EPISODE
     from equidiff_ros.common import LATCHED_QOS, RELIABLE_QOS
     from equidiff_ros.control_client import ControlClient
 
@@ -468,10 +468,11 @@ def test_latency_auto_measures_on_the_sim_clock_converges_and_bridges(ros_domain
     from std_msgs.msg import String
     from trajectory_msgs.msg import MultiDOFJointTrajectory
 
-    from equidiff_core import geometry, rosmsg
-    from equidiff_core.pointcloud import grid_to_voxel_msg
+    from equidiff_core import geometry
     from equidiff_core.robots.base import RobotState
-    from equidiff_core.rosmsg import RclpyFactory
+    from equidiff_core.wire import rosmsg
+    from equidiff_core.wire.pointcloud import grid_to_voxel_msg
+    from equidiff_core.wire.rosmsg import RclpyFactory
     from equidiff_ros.common import (
         RELIABLE_QOS,
         TOPIC_COMMAND_CHUNK,

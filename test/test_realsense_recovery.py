@@ -255,7 +255,7 @@ def test_cameras_list_with_no_device_names_every_missing_serial(bus, capsys):
 
 def test_camera_node_diagnostics_carry_the_recovery_counters(bus, monkeypatch):
     """camera_node's /diagnostics values for a camera mid-recovery (the node's method, without a ROS graph)."""
-    from equidiff_core.rosmsg import rosbags_factory
+    from equidiff_core.wire.rosmsg import rosbags_factory
     from equidiff_ros.camera_node import CameraNode
 
     device = bus.plug(FRONT.serial)

@@ -10,7 +10,8 @@ import pytest
 import yaml
 from helpers_data import SyntheticEpisode, write_synthetic_episode
 
-from equidiff_core.bags import (
+from equidiff_core.config import default_config_dir, load_lab_config
+from equidiff_core.data.bags import (
     BagError,
     EpisodeMeta,
     find_bags,
@@ -18,16 +19,15 @@ from equidiff_core.bags import (
     repair_bag,
     scan_mcap,
 )
-from equidiff_core.config import default_config_dir, load_lab_config
-from equidiff_core.pointcloud import grid_to_voxel_msg, voxel_msg_to_grid
-from equidiff_core.recording import (
+from equidiff_core.data.recording import (
     EpisodeWriter,
     RecordingConfig,
     RecordingError,
     next_episode_path,
 )
-from equidiff_core.rosmsg import rosbags_factory
-from equidiff_core.topics import camera_color_topic
+from equidiff_core.wire.pointcloud import grid_to_voxel_msg, voxel_msg_to_grid
+from equidiff_core.wire.rosmsg import rosbags_factory
+from equidiff_core.wire.topics import camera_color_topic
 
 ROOT = Path(__file__).resolve().parents[1]
 LAB = load_lab_config(default_config_dir() / "lab.yaml")
@@ -294,7 +294,7 @@ def test_episode_is_valid_mcap_for_other_readers(tmp_path):
 
 
 def test_low_disk_while_recording_is_flagged(tmp_path, monkeypatch):
-    from equidiff_core import recording
+    from equidiff_core.data import recording
 
     w = EpisodeWriter(tmp_path / "ep", config=RecordingConfig(min_free_gib=1.0, chunk_size_mib=2.0)).open()
     big = dense_grid(2, 0.4)  # ~2.5 MiB: closes a chunk, which checks the disk
@@ -308,7 +308,7 @@ def test_low_disk_while_recording_is_flagged(tmp_path, monkeypatch):
 
 
 def test_recorded_topics_hold_each_cameras_colour_image_by_default():
-    from equidiff_core.recording import recorded_topics
+    from equidiff_core.data.recording import recorded_topics
 
     images = {camera_color_topic(c.name) for c in LAB.cameras}
     assert images == {f"/cameras/{c.name}/color/image_raw/compressed" for c in LAB.cameras}

@@ -13,9 +13,9 @@ import numpy as np
 import pytest
 from helpers_data import RosHarness, assert_same
 
-from equidiff_core.bags import read_episode
-from equidiff_core.chunk import chunk_from_msg
-from equidiff_core.rosmsg import stamp_to_ns
+from equidiff_core.data.bags import read_episode
+from equidiff_core.wire.chunk import chunk_from_msg
+from equidiff_core.wire.rosmsg import stamp_to_ns
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow]
 

@@ -11,14 +11,14 @@ import pytest
 import yaml
 from scipy.spatial.transform import Rotation
 
-from equidiff_core.bags import BagError, EpisodeMeta, read_episode, read_meta
 from equidiff_core.benches.voxelize import synthetic_scene
 from equidiff_core.config import Extrinsics, default_config_dir, load_lab_config
-from equidiff_core.pointcloud import cloud_to_msg, grid_to_voxel_msg, voxel_msg_to_grid
-from equidiff_core.recording import EpisodeWriter, RecordingConfig, recorded_topics
-from equidiff_core.rosmsg import tf_message
-from equidiff_core.topics import TOPIC_EE_POSE, TOPIC_VOXELS
-from equidiff_core.voxels import voxelize_reference
+from equidiff_core.data.bags import BagError, EpisodeMeta, read_episode, read_meta
+from equidiff_core.data.recording import EpisodeWriter, RecordingConfig, recorded_topics
+from equidiff_core.perception.voxels import voxelize_reference
+from equidiff_core.wire.pointcloud import cloud_to_msg, grid_to_voxel_msg, voxel_msg_to_grid
+from equidiff_core.wire.rosmsg import tf_message
+from equidiff_core.wire.topics import TOPIC_EE_POSE, TOPIC_VOXELS
 
 LAB = load_lab_config(default_config_dir() / "lab.yaml")
 NS = 1_000_000_000
@@ -29,7 +29,7 @@ def _record(path, lab, clouds, n_sets=6, with_clouds=True, with_tf=True):
     """An episode as recorder_node writes it with record_clouds: /tf_static from ``lab`` first,
     three clouds every 0.2 s (a few ms apart, in camera order), a stale /voxels grid after each
     set, and 100 Hz ee poses."""
-    from equidiff_core import rosmsg
+    from equidiff_core.wire import rosmsg
 
     ws = lab.workspace
     wrong = np.zeros((4, ws.resolution, ws.resolution, ws.resolution), np.uint8)
@@ -77,7 +77,7 @@ def clouds():
 
 
 def test_revoxelize_rebuilds_the_voxels_from_the_clouds_with_new_extrinsics(tmp_path, clouds):
-    from equidiff_core.fusion import revoxelize_bag
+    from equidiff_core.perception.fusion import revoxelize_bag
 
     src = _record(tmp_path / "demo", LAB, clouds)
     new_lab = _recalibrated(LAB)
@@ -142,7 +142,7 @@ def _metadata_extrinsics(bag):
 
 @pytest.mark.parametrize("with_tf", [True, False], ids=["recorded-tf_static", "no-tf_static"])
 def test_revoxelized_bag_carries_the_new_extrinsics_in_tf_static_and_metadata(tmp_path, clouds, with_tf):
-    from equidiff_core.fusion import revoxelize_bag
+    from equidiff_core.perception.fusion import revoxelize_bag
 
     src = _record(tmp_path / "demo", LAB, clouds, n_sets=2, with_tf=with_tf)
     new_lab = _recalibrated(LAB)
@@ -175,8 +175,8 @@ def test_revoxelized_bag_carries_the_new_extrinsics_in_tf_static_and_metadata(tm
 
 
 def test_revoxelize_keeps_transforms_to_other_frames():
-    from equidiff_core.fusion import replace_camera_transforms
-    from equidiff_core.rosmsg import rosbags_factory
+    from equidiff_core.perception.fusion import replace_camera_transforms
+    from equidiff_core.wire.rosmsg import rosbags_factory
 
     factory = rosbags_factory()
     tool = np.eye(4)
@@ -194,7 +194,7 @@ def test_revoxelize_keeps_transforms_to_other_frames():
 
 
 def test_revoxelize_refuses_a_bag_without_clouds_and_an_existing_output(tmp_path, clouds):
-    from equidiff_core.fusion import revoxelize_bag
+    from equidiff_core.perception.fusion import revoxelize_bag
 
     src = _record(tmp_path / "demo", LAB, clouds, n_sets=2, with_clouds=False)
     with pytest.raises(BagError, match="no recorded clouds on /cameras/cam_front/points"):

@@ -8,15 +8,15 @@ import pytest
 import torch
 
 from equidiff_core import geometry
-from equidiff_core.chunk import RealTimeChunking, steps_to_publish
 from equidiff_core.config import Workspace
-from equidiff_core.inference import export_policy, load_inference_policy
 from equidiff_core.models import action_space, equivariance
 from equidiff_core.models.sampling import ddim_sample
-from equidiff_core.normalizer import Normalizer
-from equidiff_core.policies import PolicyInputError, make_policy
-from equidiff_core.presets import get_preset
+from equidiff_core.policy.diffusion import PolicyInputError, make_policy
+from equidiff_core.policy.inference import export_policy, load_inference_policy
+from equidiff_core.policy.normalizer import Normalizer
+from equidiff_core.policy.presets import get_preset
 from equidiff_core.twin.config import load_twin_config
+from equidiff_core.wire.chunk import RealTimeChunking, steps_to_publish
 
 WS = Workspace()
 DT_NS = 200_000_000
@@ -119,8 +119,8 @@ def test_rtc_is_c4_equivariant_rotated_scene_and_previous_chunk_give_the_rotated
 def test_chunking_probe_measures_boundary_velocity_changes_jerk_and_mode_switches():
     from types import SimpleNamespace
 
-    from equidiff_core.chunk import PoseChunk
     from equidiff_core.twin.chunking import ChunkingProbe
+    from equidiff_core.wire.chunk import PoseChunk
 
     def chunk(stamp_ms, y):
         times = (stamp_ms + np.arange(4) * 200) * 1_000_000
@@ -195,11 +195,11 @@ def test_bench_chunking_refuses_what_it_cannot_run_with_one_line_and_exit_1(tmp_
 def test_bench_chunking_prints_one_json_line_with_every_mode_and_latency(tmp_path, capsys, monkeypatch):
     import json
 
-    from equidiff_core.benches import chunking
+    from equidiff_core.benches import chunk_modes
     from equidiff_ros.cli import main
 
     policy = _DriftingPolicy()
-    monkeypatch.setattr(chunking, "load_inference_policy", lambda path, device: policy)
+    monkeypatch.setattr(chunk_modes, "load_inference_policy", lambda path, device: policy)
     checkpoint = tmp_path / "policy.pt"
     checkpoint.write_bytes(b"stands in")
     assert (

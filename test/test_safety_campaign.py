@@ -7,8 +7,8 @@ from __future__ import annotations
 import subprocess
 import sys
 
-from equidiff_core.benches.safety import FAULTS, run_bench
-from equidiff_core.benches.safety.driver import control_config_with_margin
+from equidiff_core.benches.fault_campaign import FAULTS, run_bench
+from equidiff_core.benches.fault_campaign.driver import control_config_with_margin
 from equidiff_core.config import default_config_dir, to_dict
 
 
@@ -17,7 +17,7 @@ def test_the_campaign_imports_without_ros():
         "import sys\n"
         "for m in ('rclpy', 'std_msgs', 'geometry_msgs'):\n"
         "    sys.modules[m] = None\n"
-        "import equidiff_core.benches.safety as safety\n"
+        "import equidiff_core.benches.fault_campaign as safety\n"
         "print(sorted(m for m in sys.modules if m.startswith('equidiff_ros')))\n"
         "print(len(safety.FAULTS))\n"
     )

@@ -8,14 +8,14 @@ import math
 import numpy as np
 import pytest
 
-from equidiff_core.chunk import (
+from equidiff_core.control.metrics import standstill_at_switches, standstill_summary
+from equidiff_core.wire.chunk import (
     DEFAULT_TRANSPORT_S,
     LatencyEstimate,
     bridging_execute_steps,
     max_bridged_latency_s,
     steps_to_publish,
 )
-from equidiff_core.control.metrics import standstill_at_switches, standstill_summary
 
 DT = 0.2
 AVAILABLE = 16  # horizon 16, one observation step

@@ -2,7 +2,7 @@
 
 import pytest
 
-from equidiff_core.sync import ApproximateTimeMatcher
+from equidiff_core.perception.sync import ApproximateTimeMatcher
 
 MS = 1_000_000
 NAMES = ("a", "b", "c")
@@ -91,7 +91,7 @@ def test_invalid_construction_and_unknown_stream():
 
 
 def test_publish_pacer_picks_frames_near_the_clock_grid_whatever_the_start_phase():
-    from equidiff_core.sync import PublishPacer
+    from equidiff_core.perception.sync import PublishPacer
 
     # two 30 fps cameras started at different phases, published at 5 Hz
     picked = []
@@ -110,7 +110,7 @@ def test_publish_pacer_picks_frames_near_the_clock_grid_whatever_the_start_phase
 
 
 def test_on_demand_source_read_at_the_pacers_times_lands_on_the_grid():
-    from equidiff_core.sync import PublishPacer
+    from equidiff_core.perception.sync import PublishPacer
 
     pacer = PublishPacer(5.0)
     now, published = 10.037, []

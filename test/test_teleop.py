@@ -9,10 +9,8 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from equidiff_core import geometry
-from equidiff_core.chunk import chunk_from_msg, chunk_to_msg
 from equidiff_core.config import Workspace
-from equidiff_core.rosmsg import rosbags_factory
-from equidiff_core.teleop import (
+from equidiff_core.lab.teleop import (
     SpaceMouseSource,
     TeleopConfig,
     TeleopError,
@@ -21,6 +19,8 @@ from equidiff_core.teleop import (
     apply_deadzone,
     is_fresh,
 )
+from equidiff_core.wire.chunk import chunk_from_msg, chunk_to_msg
+from equidiff_core.wire.rosmsg import rosbags_factory
 
 NS = 1_000_000_000
 WS = Workspace(center=(0.45, 0.0, 0.18), edge=0.4, resolution=64)

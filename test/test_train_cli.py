@@ -18,7 +18,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 @pytest.fixture(scope="module")
 def bags(tmp_path_factory):
-    from equidiff_core.recording import RecordingConfig
+    from equidiff_core.data.recording import RecordingConfig
 
     folder = tmp_path_factory.mktemp("bags")
     cfg = RecordingConfig(min_free_gib=0.0)
@@ -67,7 +67,7 @@ def train(bags, out, *extra):
 
 
 def test_train_writes_a_loadable_policy_and_plot(bags, tmp_path, capsys):
-    from equidiff_core.inference import load_inference_policy
+    from equidiff_core.policy.inference import load_inference_policy
 
     out = tmp_path / "run"
     assert train(bags, out) == 0
@@ -84,7 +84,7 @@ def test_train_writes_a_loadable_policy_and_plot(bags, tmp_path, capsys):
     assert summary["val_action_mse"] == evals[-1]["val_action_mse"]
     policy = load_inference_policy(out / "policy.pt")
     assert policy.preset.rotation_aug == "continuous"  # the preset's own
-    from equidiff_core.dataset import DatasetConfig, DemoDataset
+    from equidiff_core.data.dataset import DatasetConfig, DemoDataset
 
     ds = DemoDataset.from_bags([bags[0]], DatasetConfig())
     sample = ds[0]

@@ -8,11 +8,11 @@ import pytest
 import torch
 
 from equidiff_core.config import ConfigError, Workspace, from_dict
-from equidiff_core.inference import CheckpointError, load_inference_policy
-from equidiff_core.policies import make_policy
-from equidiff_core.presets import get_preset
-from equidiff_core.synthetic import CubeDataset
-from equidiff_core.training import (
+from equidiff_core.data.synthetic import CubeDataset
+from equidiff_core.policy.diffusion import make_policy
+from equidiff_core.policy.inference import CheckpointError, load_inference_policy
+from equidiff_core.policy.presets import get_preset
+from equidiff_core.training.loop import (
     TrainConfig,
     TrainingError,
     load_policy_from_checkpoint,
@@ -114,7 +114,7 @@ def test_a_checkpoint_loads_with_the_ema_weights_that_training_exported(tmp_path
     """A run with an EMA exports the averaged weights to policy.pt; ``load_policy_from_checkpoint``
     on its last.ckpt must give that same policy (it gave the raw training weights, so
     ``equidiff check-equivariance --checkpoint last.ckpt`` measured weights no robot runs)."""
-    from equidiff_core.inference import read_policy_file
+    from equidiff_core.policy.inference import read_policy_file
 
     ds = CubeDataset(3, seed=6)
     trained = make_policy("baseline", get_preset("tiny"), WS)
@@ -285,7 +285,7 @@ def test_a_slim_checkpoint_is_the_smallest_file_that_reproduces_the_exported_pol
     """What gets committed of a finished run: the exported (EMA) escnn weights only, a third of the
     expanded policy.pt and of last.ckpt; exported again on load it predicts exactly as policy.pt."""
     from equidiff_core.benches.training_runs import run_policy
-    from equidiff_core.training import slim_checkpoint
+    from equidiff_core.training.loop import slim_checkpoint
 
     ds = CubeDataset(3, seed=6)
     torch.manual_seed(0)

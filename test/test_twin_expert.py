@@ -123,9 +123,9 @@ def test_expert_solves_at_least_90_percent_of_20_seeded_episodes():
 @pytest.mark.sim
 def test_direct_collection_writes_a_trainable_demo_bag(tmp_path):
     """`twin collect --direct`: one expert episode -> a bag with the recorder's topics that the dataset reads."""
-    from equidiff_core.bags import read_meta
     from equidiff_core.config import default_config_dir, load_lab_config
-    from equidiff_core.dataset import DatasetConfig, load_episode_arrays
+    from equidiff_core.data.bags import read_meta
+    from equidiff_core.data.dataset import DatasetConfig, load_episode_arrays
     from equidiff_core.twin.demos import collect_direct
     from equidiff_core.twin.scene import recorded_block_yaw_range
 
@@ -142,9 +142,9 @@ def test_direct_collection_writes_a_trainable_demo_bag(tmp_path):
     arrays = load_episode_arrays(bag, DatasetConfig())
     assert len(arrays) >= 40 and arrays.dropped_steps == 0  # ~5 Hz over a ~12 s episode
     # each camera's colour image of every grid, stamped like it, as camera_node and the recorder write them
-    from equidiff_core.bags import read_episode
     from equidiff_core.cameras.color import image_from_msg
-    from equidiff_core.topics import camera_color_topic
+    from equidiff_core.data.bags import read_episode
+    from equidiff_core.wire.topics import camera_color_topic
 
     images = read_episode(bag, topics=[camera_color_topic(c.name) for c in lab.cameras])
     for cam in lab.cameras:
@@ -383,14 +383,14 @@ def test_replaying_recorded_chunks_executes_them_from_the_bags_scene(tmp_path):
     """`twin replay-chunks`' core: a bag of chunks that solved seed 3 (the expert as the policy,
     stamped on a live run's clock, far from 0) replays as a success; the same chunks 6 cm higher
     grasp above the block and fail. The outcome is the replay's, not the bag's."""
-    from equidiff_core.bags import BagError, EpisodeMeta
-    from equidiff_core.chunk import PoseChunk, chunk_to_msg
     from equidiff_core.config import default_config_dir, load_lab_config
-    from equidiff_core.recording import EpisodeWriter
-    from equidiff_core.rosmsg import rosbags_factory
-    from equidiff_core.topics import RECORDED_TOPICS, TOPIC_COMMAND_CHUNK
+    from equidiff_core.data.bags import BagError, EpisodeMeta
+    from equidiff_core.data.recording import EpisodeWriter
     from equidiff_core.twin.demos import DirectRecorder
     from equidiff_core.twin.evaluate import evaluate_policy, replay_chunks
+    from equidiff_core.wire.chunk import PoseChunk, chunk_to_msg
+    from equidiff_core.wire.rosmsg import rosbags_factory
+    from equidiff_core.wire.topics import RECORDED_TOPICS, TOPIC_COMMAND_CHUNK
 
     lab = load_lab_config(default_config_dir() / "lab.yaml")
     rec, tap = DirectRecorder(CFG, lab), _ChunkTap()

@@ -52,8 +52,8 @@ def test_a_homing_that_times_out_says_what_franka_node_reported(ros_domain):
     from diagnostic_msgs.msg import DiagnosticArray
 
     from equidiff_core.geometry import make_pose
-    from equidiff_core.rosmsg import RclpyFactory, diagnostic_array
-    from equidiff_core.topics import TOPIC_DIAGNOSTICS
+    from equidiff_core.wire.rosmsg import RclpyFactory, diagnostic_array
+    from equidiff_core.wire.topics import TOPIC_DIAGNOSTICS
     from equidiff_ros.common import RELIABLE_QOS
     from equidiff_ros.twin.supervisor import Supervisor, SupervisorError
 

@@ -11,14 +11,14 @@ from pathlib import Path
 import pytest
 from helpers_ros import run_job
 
-from equidiff_core.episode import SuccessHold
-from equidiff_core.twin.metrics import EpisodeRecord, RunSummary
+from equidiff_core.twin.episode import SuccessHold
 from equidiff_core.twin.processes import (
     NodeProcessError,
     ProcessGroup,
     node_command,
     private_ros_env,
 )
+from equidiff_core.twin.run_summary import EpisodeRecord, RunSummary
 
 REQUIRED_KEYS = {"episodes", "success_rate", "inference_p95_ms", "end_to_end_p95_ms", "dropped_cycles"}
 
@@ -342,7 +342,7 @@ def test_main_job_smoke_run_end_to_end(ros_domain, tmp_path):
     assert "success rate" in summary and "end to end" in summary
     bags = list((out / "bags").glob("twin_eval_*"))
     assert len(bags) == 1 and (bags[0] / "metadata.yaml").is_file()
-    from equidiff_core.bags import read_episode
+    from equidiff_core.data.bags import read_episode
 
     episode = read_episode(bags[0])
     assert episode.meta.success is not None
@@ -359,7 +359,7 @@ def test_main_job_smoke_run_end_to_end(ros_domain, tmp_path):
 def test_twin_collect_over_ros_records_the_experts_demo_with_its_seed(ros_domain, tmp_path):
     """`equidiff twin collect` through the live graph (teleop-style chunks, recorder_node): the
     same episode sequence as the main job, and a kept demo the dataset reads."""
-    from equidiff_core.bags import read_meta
+    from equidiff_core.data.bags import read_meta
 
     out = tmp_path / "demos"
     proc = run_job(
@@ -564,7 +564,7 @@ def test_shipped_checkpoint_loads_and_its_training_is_recorded():
     """The checkpoint `equidiff twin run` uses by default: loadable, plain torch, documented next to it."""
     import numpy as np
 
-    from equidiff_core.inference import load_inference_policy
+    from equidiff_core.policy.inference import load_inference_policy
     from equidiff_core.twin.shipped import SHIPPED_CHECKPOINT
 
     assert SHIPPED_CHECKPOINT.is_file(), SHIPPED_CHECKPOINT
@@ -579,8 +579,8 @@ def test_shipped_checkpoint_loads_and_its_training_is_recorded():
 
     # its training state is kept beside it (`equidiff train --resume`), at the step its history ends, without
     # AdamW's moments (a resume starts fresh ones): the file stays small enough to keep in git
-    from equidiff_core.presets import preset_from_dict
-    from equidiff_core.training import load_policy_from_checkpoint, load_training_checkpoint
+    from equidiff_core.policy.presets import preset_from_dict
+    from equidiff_core.training.loop import load_policy_from_checkpoint, load_training_checkpoint
 
     state = load_training_checkpoint(SHIPPED_CHECKPOINT.parent / "last.ckpt")
     history = json.loads((SHIPPED_CHECKPOINT.parent / "history.json").read_text())

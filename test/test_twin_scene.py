@@ -142,7 +142,7 @@ def test_missing_shared_state_is_a_clear_error():
 def test_sim_server_runs_in_real_time_and_shares_its_state():
     import franky
 
-    from equidiff_core.machine import keep_thread_scheduler
+    from equidiff_core.runtime.machine import keep_thread_scheduler
     from equidiff_core.twin.sim import TwinSim
 
     shm = f"equidiff_twin_test_{time.time_ns()}"

@@ -85,8 +85,8 @@ def test_sim_waits_for_cameras_and_the_policy_and_keeps_franky_alive_through_a_l
     longer than libfranka's 1 s UDP timeout: the client must still be connected and able to
     move afterwards (keep_alive re-sends the last state under its id)."""
     franky = pytest.importorskip("franky")
-    from equidiff_core.machine import keep_thread_scheduler
     from equidiff_core.robots.franky.sim import free_loopback_host
+    from equidiff_core.runtime.machine import keep_thread_scheduler
     from equidiff_core.twin import TwinConfig
     from equidiff_core.twin.shared_state import StateReader
     from equidiff_core.twin.sim import TwinSim
@@ -204,7 +204,7 @@ def test_a_node_on_simulated_time_without_clock_waits_and_says_why(ros_domain, t
 
 
 def test_polled_clock_sleeps_until_its_time_and_stops_on_request():
-    from equidiff_core.clock import PolledClock
+    from equidiff_core.runtime.clock import PolledClock
 
     now = [0]
     clock = PolledClock(lambda: now[0])
@@ -225,8 +225,8 @@ def test_a_hung_policy_ends_its_episode_as_stalled_naming_it_and_the_job_goes_on
     """A policy_node that stops answering (its main thread frozen: alive, silent) must not hang the sim: after
     the stall timeout the episode ends as stalled, naming policy_node, its bag is kept, and the
     next episode runs once the policy answers again."""
-    from equidiff_core.bags import read_episode
     from equidiff_core.config import default_config_dir, load_lab_config
+    from equidiff_core.data.bags import read_episode
     from equidiff_core.twin.config import TwinConfig
     from equidiff_core.twin.standin import make_standin_policy
     from equidiff_ros.twin import TwinStack, run_policy_episode
@@ -266,7 +266,7 @@ def test_the_stamp_of_a_serialised_message_is_read_without_decoding_it():
     from sensor_msgs.msg import PointCloud2
     from trajectory_msgs.msg import MultiDOFJointTrajectory
 
-    from equidiff_core.rosmsg import header_stamp_ns_from_cdr
+    from equidiff_core.wire.rosmsg import header_stamp_ns_from_cdr
 
     for cls in (PointCloud2, MultiDOFJointTrajectory):
         msg = cls()

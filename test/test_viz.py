@@ -16,10 +16,10 @@ import numpy as np
 import pytest
 
 from equidiff_core import geometry
-from equidiff_core.chunk import chunk_from_actions, chunk_to_msg
 from equidiff_core.config import default_config_dir, load_lab_config
-from equidiff_core.pointcloud import cloud_to_msg, grid_to_voxel_msg
-from equidiff_core.rosmsg import NS_PER_S, MsgFactory, RosbagsFactory, rosbags_factory
+from equidiff_core.wire.chunk import chunk_from_actions, chunk_to_msg
+from equidiff_core.wire.pointcloud import cloud_to_msg, grid_to_voxel_msg
+from equidiff_core.wire.rosmsg import NS_PER_S, MsgFactory, RosbagsFactory, rosbags_factory
 
 rr = pytest.importorskip("rerun")
 
@@ -408,9 +408,9 @@ def test_missing_rerun_names_the_install_extra(monkeypatch):
     monkeypatch.setitem(sys.modules, "rerun", None)
     with pytest.raises(VizUnavailable, match=r"equidiff_ros\[viz\]"):
         require_rerun()
-    monkeypatch.delitem(sys.modules, "equidiff_core.viz.training", raising=False)
+    monkeypatch.delitem(sys.modules, "equidiff_core.viz.training_callback", raising=False)
     with pytest.raises(ImportError, match=r"equidiff_ros\[viz\]"):  # what `equidiff train --rerun` catches
-        import equidiff_core.viz.training  # noqa: F401
+        import equidiff_core.viz.training_callback  # noqa: F401
     from equidiff_ros.commands import viz as viz_command
 
     parser = __import__("argparse").ArgumentParser()
@@ -510,7 +510,7 @@ def _fake_sample(rng, horizon: int = 16) -> dict:
 
 
 def test_training_callback_logs_loss_curves_and_sampled_chunks(tmp_path):
-    from equidiff_core.viz.training import RerunTrainingCallback
+    from equidiff_core.viz.training_callback import RerunTrainingCallback
 
     rng = np.random.default_rng(0)
     cb = RerunTrainingCallback(tmp_path / "train.rrd", max_samples=2)
@@ -538,13 +538,13 @@ def test_training_callback_logs_loss_curves_and_sampled_chunks(tmp_path):
 
 @pytest.mark.slow
 def test_training_callback_with_the_real_trainer(tmp_path):
-    """`training.train` drives the callback through its protocol (tiny preset, a handful of steps)."""
-    training = pytest.importorskip("equidiff_core.training")
+    """`training.loop.train` drives the callback through its protocol (tiny preset, a handful of steps)."""
+    training = pytest.importorskip("equidiff_core.training.loop")
     import torch
 
-    from equidiff_core.policies import make_policy
-    from equidiff_core.presets import get_preset
-    from equidiff_core.viz.training import RerunTrainingCallback
+    from equidiff_core.policy.diffusion import make_policy
+    from equidiff_core.policy.presets import get_preset
+    from equidiff_core.viz.training_callback import RerunTrainingCallback
 
     preset = get_preset("tiny")
     policy = make_policy("baseline", preset, LAB.workspace)
@@ -683,9 +683,9 @@ def test_recorded_camera_images_are_logged_as_the_jpegs_they_are(tmp_path):
     sys.path.insert(0, str(ROOT / "test"))
     from helpers_data import SyntheticEpisode, write_synthetic_episode
 
-    from equidiff_core.bags import read_episode
-    from equidiff_core.recording import RecordingConfig
-    from equidiff_core.topics import camera_color_topic
+    from equidiff_core.data.bags import read_episode
+    from equidiff_core.data.recording import RecordingConfig
+    from equidiff_core.wire.topics import camera_color_topic
 
     bag = write_synthetic_episode(
         tmp_path / "ep_0000", SyntheticEpisode(duration_s=2.0), config=RecordingConfig(min_free_gib=0)

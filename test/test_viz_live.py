@@ -27,9 +27,9 @@ from test_viz import (
 )
 
 from equidiff_core.cameras.color import color_image_msg
-from equidiff_core.rosmsg import RclpyFactory
-from equidiff_core.topics import camera_color_topic
 from equidiff_core.viz.rrd import summarize_rrd
+from equidiff_core.wire.rosmsg import RclpyFactory
+from equidiff_core.wire.topics import camera_color_topic
 
 N_FRAMES = 8
 

@@ -8,7 +8,7 @@ import pytest
 
 from equidiff_core import geometry
 from equidiff_core.config import Workspace, default_config_dir, load_lab_config
-from equidiff_core.voxels import (
+from equidiff_core.perception.voxels import (
     VoxelError,
     Voxelizer,
     VoxelizerConfig,

@@ -5,20 +5,20 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from equidiff_core import geometry
-from equidiff_core.chunk import (
+from equidiff_core.wire.chunk import (
     ChunkError,
     chunk_from_actions,
     chunk_from_msg,
     chunk_to_msg,
 )
-from equidiff_core.pointcloud import (
+from equidiff_core.wire.pointcloud import (
     CloudError,
     cloud_to_msg,
     grid_to_voxel_msg,
     msg_to_cloud,
     voxel_msg_to_grid,
 )
-from equidiff_core.rosmsg import RclpyFactory, rosbags_factory
+from equidiff_core.wire.rosmsg import RclpyFactory, rosbags_factory
 
 
 @pytest.fixture(params=["rclpy", "rosbags"])

@@ -14,11 +14,11 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from rclpy.serialization import deserialize_message
 from rosbags.rosbag2 import Reader
 
-from equidiff_core.bags import BagError, verify_bag
-from equidiff_core.chunk import chunk_from_msg
-from equidiff_core.rosmsg import RclpyFactory, position_from_msg, split_ns, stamp_to_ns
-from equidiff_core.topics import TOPIC_COMMAND_CHUNK as COMMAND_TOPIC
-from equidiff_core.topics import TOPIC_TF_STATIC
+from equidiff_core.data.bags import BagError, verify_bag
+from equidiff_core.wire.chunk import chunk_from_msg
+from equidiff_core.wire.rosmsg import RclpyFactory, position_from_msg, split_ns, stamp_to_ns
+from equidiff_core.wire.topics import TOPIC_COMMAND_CHUNK as COMMAND_TOPIC
+from equidiff_core.wire.topics import TOPIC_TF_STATIC
 from equidiff_ros.common import LATCHED_QOS, SENSOR_QOS, TOPIC_EE_POSE
 
 

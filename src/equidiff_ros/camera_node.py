@@ -3,7 +3,7 @@
 Wiring:
   backend (``realsense`` | ``replay`` | ``twin``, built by ``cameras.make_camera``)
       -> one reader thread per camera: ``Camera.read`` -> depth limits (``cameras.limit_depth``)
-      -> ``pointcloud.cloud_to_msg`` -> /cameras/<name>/points (sensor-data QoS) at ``publish_hz``
+      -> ``wire.pointcloud.cloud_to_msg`` -> /cameras/<name>/points (sensor-data QoS) at ``publish_hz``
       -> with ``publish_color``: the same frame's colour image as JPEG (``cameras.color``)
          -> /cameras/<name>/color/image_raw/compressed (sensor_msgs/CompressedImage, same stamp,
          frame and QoS as the cloud)
@@ -36,7 +36,6 @@ import time
 
 from rclpy.node import Node
 
-from equidiff_core import rosmsg
 from equidiff_core.cameras import (
     BACKENDS,
     CameraError,
@@ -48,9 +47,10 @@ from equidiff_core.cameras import (
 from equidiff_core.cameras.color import DEFAULT_JPEG_QUALITY, ImageError, color_image_msg
 from equidiff_core.cameras.replay import ReplayFinished
 from equidiff_core.config import Bounds, ConfigError, parse_yaml
-from equidiff_core.pointcloud import cloud_to_msg
-from equidiff_core.sync import PublishPacer
-from equidiff_core.topics import COMPRESSED_IMAGE_TYPE, camera_color_topic
+from equidiff_core.perception.sync import PublishPacer
+from equidiff_core.wire import rosmsg
+from equidiff_core.wire.pointcloud import cloud_to_msg
+from equidiff_core.wire.topics import COMPRESSED_IMAGE_TYPE, camera_color_topic
 from equidiff_ros.common import (
     LATCHED_QOS,
     RELIABLE_QOS,

@@ -14,8 +14,8 @@ import os
 import signal
 import sys
 
-from equidiff_core.jobs import report_error
-from equidiff_core.machine import default_threads_to_idle_cores
+from equidiff_core.runtime.jobs import report_error
+from equidiff_core.runtime.machine import default_threads_to_idle_cores
 
 # (command path) -> (module, one-line help)
 COMMANDS: dict[tuple[str, ...], tuple[str, str]] = {

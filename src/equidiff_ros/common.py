@@ -23,8 +23,8 @@ from equidiff_core.config import (
     load_lab_config,
 )
 
-# The topic names, re-exported for the nodes: they are written once, in equidiff_core.topics.
-from equidiff_core.topics import (  # noqa: F401
+# The topic names, re-exported for the nodes: they are written once, in equidiff_core.wire.topics.
+from equidiff_core.wire.topics import (  # noqa: F401
     TOPIC_CLOCK,
     TOPIC_COMMAND_CHUNK,
     TOPIC_DIAGNOSTICS,
@@ -148,8 +148,8 @@ def wait_for_clock(node: Node, log_every_s: float = 5.0) -> None:
 
 
 def node_clock(node: Node, stall_s: float | None = None):
-    """The node's time as an ``equidiff_core.clock.Clock`` for loops that tick at a rate; on simulated
+    """The node's time as an ``equidiff_core.runtime.clock.Clock`` for loops that tick at a rate; on simulated
     time ``stall_s`` bounds how long a sleep waits for a clock that stands still (``PolledClock``)."""
-    from equidiff_core.clock import PolledClock, WallClock
+    from equidiff_core.runtime.clock import PolledClock, WallClock
 
     return PolledClock(lambda: now_ns(node), stall_s=stall_s) if uses_sim_time(node) else WallClock()

@@ -25,9 +25,9 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState, PointCloud2
 from trajectory_msgs.msg import MultiDOFJointTrajectory
 
-from equidiff_core.chunk import PoseChunk, chunk_to_msg
 from equidiff_core.geometry import down_pose
-from equidiff_core.rosmsg import MessageError, RclpyFactory, diagnostic_entries, position_from_msg, stamp_to_ns
+from equidiff_core.wire.chunk import PoseChunk, chunk_to_msg
+from equidiff_core.wire.rosmsg import MessageError, RclpyFactory, diagnostic_entries, position_from_msg, stamp_to_ns
 from equidiff_ros.common import (
     RELIABLE_QOS,
     TOPIC_COMMAND_CHUNK,

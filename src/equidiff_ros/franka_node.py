@@ -1,7 +1,7 @@
 """franka_node: the arm. Executes /franka/command_chunk safely with franky; publishes the robot state.
 
 Wiring:
-  /franka/command_chunk (MultiDOFJointTrajectory, decoded only by ``chunk.chunk_from_msg``)
+  /franka/command_chunk (MultiDOFJointTrajectory, decoded only by ``wire.chunk.chunk_from_msg``)
       -> ``control.Controller.submit`` (drop past steps, safety checks, replace the trajectory)
   ``Controller`` thread at ``control_hz`` -> ``robots.Robot`` (franky CartesianImpedanceTracker,
       or the dry run) ; watchdog, workspace clip, speed limits, error recovery live there
@@ -45,12 +45,12 @@ from std_msgs.msg import String
 from std_srvs.srv import Trigger
 from trajectory_msgs.msg import MultiDOFJointTrajectory
 
-from equidiff_core import rosmsg
-from equidiff_core.chunk import ChunkError, chunk_from_msg
 from equidiff_core.config import ConfigError, RobotConfig, default_config_dir
 from equidiff_core.control import AcknowledgeRefused, Controller, check_home_inside, load_control_config
 from equidiff_core.robots import BACKENDS, RobotError, make_robot
-from equidiff_core.topics import SERVICE_FRANKA_ACKNOWLEDGE, SERVICE_FRANKA_HOME, TOPIC_FRANKA_STATUS
+from equidiff_core.wire import rosmsg
+from equidiff_core.wire.chunk import ChunkError, chunk_from_msg
+from equidiff_core.wire.topics import SERVICE_FRANKA_ACKNOWLEDGE, SERVICE_FRANKA_HOME, TOPIC_FRANKA_STATUS
 from equidiff_ros.common import (
     LATCHED_QOS,
     RELIABLE_QOS,

@@ -1,5 +1,5 @@
 """The operator loop's terminal screen (``equidiff lab``; its help text says what it shows and does): the loop
-(``equidiff_core.operator_loop``) behind one lock, fed by the ROS client (``lab_client``) and prompt_toolkit's keys.
+(``equidiff_core.lab.operator_loop``) behind one lock, fed by the ROS client (``lab_client``) and prompt_toolkit's keys.
 
 Built on prompt_toolkit: a full-screen application with raw single-key bindings and a periodic
 redraw, already installed with the ROS tooling (IPython's dependency), so the lab needs nothing
@@ -14,7 +14,7 @@ import sys
 import threading
 import time
 
-from equidiff_core.operator_loop import LoopConfig, OperatorLoop, Request
+from equidiff_core.lab.operator_loop import LoopConfig, OperatorLoop, Request
 from equidiff_ros.lab_client import LabClient, LabError
 
 REDRAW_S = 0.25

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import yaml
 
-from equidiff_core import chunk
+from equidiff_core.wire import chunk
 
 
 def _launch_text(value) -> str:
@@ -17,7 +17,7 @@ def _launch_text(value) -> str:
     return yaml.safe_dump(value, default_flow_style=True).removesuffix("\n...\n").strip()
 
 
-# name -> (default, description); the defaults are policy_node's (equidiff_core.chunk.DEFAULT_*)
+# name -> (default, description); the defaults are policy_node's (equidiff_core.wire.chunk.DEFAULT_*)
 EXECUTION_ARGUMENTS = {
     "execute_steps": (chunk.DEFAULT_EXECUTE_STEPS, "steps of a chunk run before the next answer (0: all 8)"),
     "latency_s": (

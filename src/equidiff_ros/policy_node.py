@@ -9,8 +9,8 @@ Wiring:
                                                     must not hold the grids back from the other readers
   /franka/ee_pose, /franka/joint_states          -> short history; the pose/width nearest the voxel stamp
   worker: ``InferencePolicy.predict`` -> the steps of the predicted ``horizon`` that bridge the
-          latency (``chunk_sizing.ChunkSizing``: ``n_action_steps``, ``execute_steps``, ``latency_s``)
-          -> ``chunk.chunk_from_actions`` (step i at observation stamp + i·dt) -> /franka/command_chunk
+          latency (``policy.chunk_sizing.ChunkSizing``: ``n_action_steps``, ``execute_steps``, ``latency_s``)
+          -> ``wire.chunk.chunk_from_actions`` (step i at observation stamp + i·dt) -> /franka/command_chunk
   timer at ``rate_hz`` -> warns when no fresh observation has come (a camera or the voxel node is down)
   timer at 1 Hz -> /diagnostics (``policy_node``: inference_ms, observation_age_ms, skipped_cycles,
                    obs_to_cmd_ms and its p50/p95, latency_s (auto | auto (initial) | fixed | off),
@@ -24,7 +24,7 @@ Wiring:
   /policy/state (std_msgs/String, latched)       <- ``running`` or ``paused <reason>``
   /policy/episode (std_msgs/String JSON {seed, start_ns}, latched) -> an episode begins (the twin's
                    supervisor): the first observation stamped at or after start_ns is answered at once,
-                   and the episode's answered observations get ``chunk.SamplingSeeds``' noise for its
+                   and the episode's answered observations get ``wire.chunk.SamplingSeeds``' noise for its
                    seed, the in-process evaluation's, so both sample a scene alike
 
 While paused no chunk is published: each observation is announced on /policy/skipped as
@@ -34,15 +34,15 @@ While paused no chunk is published: each observation is announced on /policy/ski
 The policy runs once per observation, so the cameras set its rate, with no timer
 phase between a grid and its inference; on the twin's simulated time, which pauses until
 this observation's chunk has arrived, a cycle waiting for a timer tick would never come.
-A /voxels message that does not decode to this policy's grid (``pointcloud.voxel_msg_to_grid``
+A /voxels message that does not decode to this policy's grid (``wire.pointcloud.voxel_msg_to_grid``
 against lab.yaml's workspace and base frame: layout, frame, resolution, origin, voxel size) is
 skipped as ``malformed_observation``, one stamped more than ``max_future_stamp_s`` ahead of the
 node's clock as ``future_observation``; either way the observation it would have replaced is
-kept. A /franka/ee_pose or /franka/joint_states message that ``rosmsg`` refuses (a pose not in the
+kept. A /franka/ee_pose or /franka/joint_states message that ``wire.rosmsg`` refuses (a pose not in the
 base frame, NaN / inf, a non-unit quaternion; names and positions that disagree, a name twice, a
 gripper width outside the hand's stroke) or stamped more than ``max_future_stamp_s`` ahead, and a
 malformed /diagnostics message, is dropped and counted (``dropped_<topic>_<reason>``, a
-``rosmsg.MessageReason``: ``dropped_ee_pose_frame``, ``dropped_joint_states_future``, ...).
+``wire.rosmsg.MessageReason``: ``dropped_ee_pose_frame``, ``dropped_joint_states_future``, ...).
 An observation is skipped (``skipped_<reason>``, with a throttled warning) when a newer one
 replaced it while the worker was busy (``busy``), when it is older than
 ``max_observation_age_s`` (``stale_observation``; a missing camera stops the voxel node's
@@ -50,7 +50,7 @@ matched sets, so it shows up as a stale grid), when the voxel node reports ERROR
 /diagnostics (``voxel_error``), or when there is no robot state near its stamp (``no_robot_state``).
 
 Chunk execution (``n_action_steps``, ``execute_steps``, ``latency_s``, ``rtc``) is described in
-docs/control.md; the defaults are ``chunk.DEFAULT_*``, which robot.launch.py and twin.launch.py
+docs/control.md; the defaults are ``wire.chunk.DEFAULT_*``, which robot.launch.py and twin.launch.py
 declare as their launch arguments' defaults. ``execute_steps`` 0 (answer once a chunk has run,
 fewer steps when the latency needs it) was chosen by the twin's closed-loop evaluation
 (docs/evaluation_scheme.md).
@@ -77,8 +77,14 @@ from std_msgs.msg import Bool, String
 from std_srvs.srv import SetBool
 from trajectory_msgs.msg import MultiDOFJointTrajectory
 
-from equidiff_core import rosmsg
-from equidiff_core.chunk import (
+from equidiff_core.config import Bounds, ConfigError, LabConfig
+from equidiff_core.control import SafetyConfig
+from equidiff_core.control.metrics import percentiles_ms
+from equidiff_core.perception.observation import MAX_FUTURE_STAMP_S, STATE_TOLERANCE_S, StateHistory, ee_input
+from equidiff_core.policy.chunk_sizing import ChunkSizing
+from equidiff_core.policy.inference import PRECISIONS, CheckpointError, load_inference_policy
+from equidiff_core.wire import rosmsg
+from equidiff_core.wire.chunk import (
     DEFAULT_EXECUTE_STEPS,
     DEFAULT_LATENCY_S,
     DEFAULT_N_ACTION_STEPS,
@@ -89,15 +95,9 @@ from equidiff_core.chunk import (
     chunk_from_actions,
     chunk_to_msg,
 )
-from equidiff_core.chunk_sizing import ChunkSizing
-from equidiff_core.config import Bounds, ConfigError, LabConfig
-from equidiff_core.control import SafetyConfig
-from equidiff_core.control.metrics import percentiles_ms
-from equidiff_core.inference import PRECISIONS, CheckpointError, load_inference_policy
-from equidiff_core.observation import MAX_FUTURE_STAMP_S, STATE_TOLERANCE_S, StateHistory, ee_input
-from equidiff_core.pointcloud import CloudError, VoxelGridSpec, voxel_msg_to_grid
-from equidiff_core.rosmsg import RclpyFactory, stamp_to_ns
-from equidiff_core.topics import SERVICE_POLICY_ENABLE, TOPIC_POLICY_EPISODE
+from equidiff_core.wire.pointcloud import CloudError, VoxelGridSpec, voxel_msg_to_grid
+from equidiff_core.wire.rosmsg import RclpyFactory, stamp_to_ns
+from equidiff_core.wire.topics import SERVICE_POLICY_ENABLE, TOPIC_POLICY_EPISODE
 from equidiff_ros.common import (
     LATCHED_QOS,
     RELIABLE_QOS,

@@ -1,7 +1,7 @@
 """recorder_node: records demonstration episodes to rosbag2 MCAP directories, one per episode.
 
 Wiring: raw (serialised CDR) subscriptions on every recorded topic are written untouched
-into the bag by ``equidiff_core.recording.EpisodeWriter`` at their receive time; the
+into the bag by ``equidiff_core.data.recording.EpisodeWriter`` at their receive time; the
 episode starts and stops on
 
 * services (std_srvs/Trigger): /recorder/start, /recorder/stop (keep, success),
@@ -17,10 +17,10 @@ its metadata (``extra.interventions``: start-end seconds from the episode start,
 
 While recording, the messages a training set is built from are decoded first with the
 decoders their live readers use: a ``/voxels`` message that is not lab.yaml's grid
-(``pointcloud.voxel_msg_to_grid``), a ``/franka/command_chunk`` that does not decode
-(``chunk.chunk_from_msg``, base frame), a ``/franka/ee_pose`` that is not a pose in the base
-frame (``rosmsg.pose_from_msg``: NaN / inf, a non-unit quaternion) or a ``/franka/joint_states``
-that ``rosmsg.gripper_width_from_joint_state`` refuses (names and positions that disagree, a name
+(``wire.pointcloud.voxel_msg_to_grid``), a ``/franka/command_chunk`` that does not decode
+(``wire.chunk.chunk_from_msg``, base frame), a ``/franka/ee_pose`` that is not a pose in the base
+frame (``wire.rosmsg.pose_from_msg``: NaN / inf, a non-unit quaternion) or a ``/franka/joint_states``
+that ``wire.rosmsg.gripper_width_from_joint_state`` refuses (names and positions that disagree, a name
 twice, NaN / inf, a width outside the hand's stroke) is dropped from the bag, counted on /diagnostics
 (``recorder_node``: ``dropped_<topic>_<reason>``, ``last_drop``) and logged (throttled); one
 bad message would otherwise cost the whole episode when the dataset is built. Every other
@@ -45,11 +45,8 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.serialization import deserialize_message
 
-from equidiff_core import rosmsg, topics
-from equidiff_core.bags import EpisodeMeta
-from equidiff_core.chunk import ChunkError, chunk_from_msg
-from equidiff_core.pointcloud import CloudError, VoxelGridSpec, voxel_msg_to_grid
-from equidiff_core.recording import (
+from equidiff_core.data.bags import EpisodeMeta
+from equidiff_core.data.recording import (
     EpisodeWriter,
     InterventionLog,
     RecordingConfig,
@@ -57,7 +54,10 @@ from equidiff_core.recording import (
     next_episode_path,
     recorded_topics,
 )
-from equidiff_core.rosmsg import MessageError, RclpyFactory, gripper_width_from_joint_state, pose_from_msg
+from equidiff_core.wire import rosmsg, topics
+from equidiff_core.wire.chunk import ChunkError, chunk_from_msg
+from equidiff_core.wire.pointcloud import CloudError, VoxelGridSpec, voxel_msg_to_grid
+from equidiff_core.wire.rosmsg import MessageError, RclpyFactory, gripper_width_from_joint_state, pose_from_msg
 from equidiff_ros.common import (
     LATCHED_QOS,
     RELIABLE_QOS,

@@ -14,7 +14,7 @@ import sys
 import threading
 from collections.abc import Callable, Sequence
 
-from equidiff_core.parent_job import job_gone
+from equidiff_core.runtime.parent_job import job_gone
 
 
 def run_node(

@@ -1,7 +1,7 @@
 """teleop_node: SpaceMouse (direct HID or the spacenav driver's /spacenav/joy) -> /franka/command_chunk.
 
 Wiring: /franka/ee_pose + /franka/joint_states (measured state) and the input source feed
-``equidiff_core.teleop.TeleopIntegrator`` at ``rate_hz``; while the operator is active it
+``equidiff_core.lab.teleop.TeleopIntegrator`` at ``rate_hz``; while the operator is active it
 publishes one-point chunks at ``publish_hz`` on /franka/command_chunk, exactly like the
 policy, so the franka node's safety and scheduling apply to human commands too. It says on
 /teleop/active (std_msgs/Bool, latched) when the operator takes over (the first input beyond
@@ -11,7 +11,7 @@ pauses on the first, and the recorder marks both in the episode. After
 a script may have moved the arm meanwhile), and nothing is published while idle, so teleop
 never fights the policy.
 
-A /franka/ee_pose or /franka/joint_states message that ``rosmsg`` refuses (another frame than
+A /franka/ee_pose or /franka/joint_states message that ``wire.rosmsg`` refuses (another frame than
 the base frame, NaN / inf, a non-unit quaternion; names and positions that disagree, a name
 twice, a gripper width outside the hand's stroke) is dropped, logged (throttled) and counted on
 /diagnostics (``teleop_node``: ``dropped_<topic>_<reason>``, ``last_drop``; WARN once it dropped
@@ -33,17 +33,23 @@ import sys
 
 from rclpy.node import Node
 
-from equidiff_core import rosmsg
-from equidiff_core.chunk import chunk_to_msg
 from equidiff_core.config import Bounds
-from equidiff_core.rosmsg import NS_PER_S, MessageError, RclpyFactory, gripper_width_from_joint_state, pose_from_msg
-from equidiff_core.teleop import (
+from equidiff_core.lab.teleop import (
     SpaceMouseSource,
     TeleopConfig,
     TeleopError,
     TeleopInput,
     TeleopIntegrator,
     is_fresh,
+)
+from equidiff_core.wire import rosmsg
+from equidiff_core.wire.chunk import chunk_to_msg
+from equidiff_core.wire.rosmsg import (
+    NS_PER_S,
+    MessageError,
+    RclpyFactory,
+    gripper_width_from_joint_state,
+    pose_from_msg,
 )
 from equidiff_ros.common import (
     LATCHED_QOS,

@@ -40,11 +40,11 @@ from std_msgs.msg import Int64, String
 from trajectory_msgs.msg import MultiDOFJointTrajectory
 
 from equidiff_core.config import Bounds, ConfigError, default_config_dir
-from equidiff_core.rosmsg import header_stamp_ns_from_cdr
 from equidiff_core.twin.config import load_twin_config
 from equidiff_core.twin.lockstep import LockstepConfig
 from equidiff_core.twin.scene import SceneError
 from equidiff_core.twin.sim import TwinSim
+from equidiff_core.wire.rosmsg import header_stamp_ns_from_cdr
 from equidiff_ros.common import (
     LATCHED_QOS,
     RELIABLE_QOS,

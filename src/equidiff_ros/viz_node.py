@@ -23,7 +23,7 @@ from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
 
 from equidiff_core.config import LabConfig
-from equidiff_core.topics import camera_color_topic
+from equidiff_core.wire.topics import camera_color_topic
 from equidiff_ros.common import (
     RELIABLE_QOS,
     SENSOR_QOS,

@@ -2,13 +2,13 @@
 
 Wiring:
   /cameras/<name>/points (PointCloud2, sensor-data QoS), one subscription per camera
-      -> ``pointcloud.msg_to_cloud`` (malformed, in another frame, stamped more than
+      -> ``wire.pointcloud.msg_to_cloud`` (malformed, in another frame, stamped more than
          ``max_future_stamp_s`` ahead, or unusable by the voxeliser: dropped, counted per camera
          and reason on /diagnostics, with a throttled warning)
-      -> ``fusion.CloudFusion`` (one queue per camera; the same rule ``equidiff dataset
+      -> ``perception.fusion.CloudFusion`` (one queue per camera; the same rule ``equidiff dataset
          revoxelize`` applies to recorded clouds)
   each cloud, no camera stale: a new complete set within ``slop_s`` (at most ``observation_hz``)?
-      -> ``voxels.Voxelizer`` (extrinsics from lab.yaml) -> ``pointcloud.grid_to_voxel_msg``
+      -> ``perception.voxels.Voxelizer`` (extrinsics from lab.yaml) -> ``wire.pointcloud.grid_to_voxel_msg``
       -> /voxels (stamp = newest capture stamp of the set)
   timer at ``observation_hz`` -> stale camera? say which (the stale camera has no set to add)
   timer at 1 Hz -> /diagnostics (``voxel_node``: voxelize_ms, per-camera age_ms, drops by reason)
@@ -30,12 +30,12 @@ import time
 
 from rclpy.node import Node
 
-from equidiff_core import rosmsg
 from equidiff_core.config import Bounds, ConfigError, LabConfig
-from equidiff_core.fusion import CloudFusion
-from equidiff_core.observation import MAX_FUTURE_STAMP_S
-from equidiff_core.pointcloud import CloudError, CloudReason, grid_to_voxel_msg, msg_to_cloud
-from equidiff_core.voxels import VoxelError, VoxelizerConfig
+from equidiff_core.perception.fusion import CloudFusion
+from equidiff_core.perception.observation import MAX_FUTURE_STAMP_S
+from equidiff_core.perception.voxels import VoxelError, VoxelizerConfig
+from equidiff_core.wire import rosmsg
+from equidiff_core.wire.pointcloud import CloudError, CloudReason, grid_to_voxel_msg, msg_to_cloud
 from equidiff_ros.common import (
     RELIABLE_QOS,
     TOPIC_DIAGNOSTICS,

@@ -26,15 +26,15 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from equidiff_core.augment import voxel_input
 from equidiff_core.benches import BenchError
 from equidiff_core.config import ConfigError, Workspace
-from equidiff_core.dataset import DatasetConfig, find_episodes, load_episodes
-from equidiff_core.inference import CheckpointError, export_policy, load_inference_policy
+from equidiff_core.data.dataset import DatasetConfig, find_episodes, load_episodes
 from equidiff_core.models.plain import EquiNoiseCore, to_escnn_layout
-from equidiff_core.normalizer import Normalizer
-from equidiff_core.policies import make_policy
-from equidiff_core.presets import get_preset
+from equidiff_core.policy.augment import voxel_input
+from equidiff_core.policy.diffusion import make_policy
+from equidiff_core.policy.inference import CheckpointError, export_policy, load_inference_policy
+from equidiff_core.policy.normalizer import Normalizer
+from equidiff_core.policy.presets import get_preset
 
 # the twin block's colour (twin.config.SceneConfig.block_rgba: 0.85, 0.12, 0.1) as the cameras see it,
 # shaded sides included: red at least 80 and twice green and blue; the bowl (blue), its mark (yellow:
@@ -69,7 +69,7 @@ def move_block(grid: np.ndarray, shift: tuple[int, int, int]) -> np.ndarray | No
 @torch.no_grad()
 def layer_features(policy, grid: np.ndarray) -> list[np.ndarray]:
     """The voxel encoder's activations after each ReLU for one uint8 grid (4, R, R, R), of an
-    ``inference.InferencePolicy`` (fp32); the last is what the observation embedding (EquiDiff) or the
+    ``policy.inference.InferencePolicy`` (fp32); the last is what the observation embedding (EquiDiff) or the
     U-Net's condition (baseline) gets."""
     vox = voxel_input(torch.from_numpy(np.ascontiguousarray(grid))[None], policy.preset.crop, "center")
     vox = vox.to(device=policy.device, dtype=policy.dtype)
@@ -107,7 +107,7 @@ def first_frames(bags, resolution: int, log=None) -> list[Frame]:
 
 
 def conditioning_response(policy, frames: list[Frame], shift_vox: int = 8, seed: int = 0) -> dict:
-    """How ``policy`` (an fp32 ``inference.InferencePolicy``) responds when the block moves; see the module doc."""
+    """How ``policy`` (an fp32 ``policy.inference.InferencePolicy``) responds when the block moves; see the module doc."""
     if not frames:
         raise ValueError("no frames to measure on")
     voxel_m = policy.workspace.voxel_size

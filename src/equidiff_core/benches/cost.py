@@ -14,9 +14,9 @@ from __future__ import annotations
 import torch
 from torch.utils.flop_counter import FlopCounterMode
 
-from ..augment import voxel_input
 from ..models.equivariance import random_observation
-from ..policies import count_parameters
+from ..policy.augment import voxel_input
+from ..policy.diffusion import count_parameters
 
 
 def _flops(fn) -> int:
@@ -27,7 +27,7 @@ def _flops(fn) -> int:
 
 
 def policy_cost(policy, batch: int = 4, noise_repeats: int = 1) -> dict:
-    """Parameters and FLOPs per sample of ``policy`` (a ``policies.DiffusionPolicy`` with its normaliser set)."""
+    """Parameters and FLOPs per sample of ``policy`` (a ``policy.diffusion.DiffusionPolicy`` with its normaliser set)."""
     preset = policy.preset
     net = policy.model.export_plain().eval()
     vox, ee = random_observation(policy, batch=batch, seed=0)

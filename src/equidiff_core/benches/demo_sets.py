@@ -6,8 +6,8 @@ from __future__ import annotations
 from collections.abc import Callable
 from pathlib import Path
 
-from ..bags import find_bags, read_meta
-from ..dataset import find_episodes
+from ..data.bags import find_bags, read_meta
+from ..data.dataset import find_episodes
 from ..twin.demos import collect_direct
 from ..twin.scene import recorded_block_yaw_range, same_yaw_range
 

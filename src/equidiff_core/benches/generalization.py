@@ -39,8 +39,8 @@ from equidiff_core.benches.training_runs import (
     under_fit,
     wait_for_runs,
 )
-from equidiff_core.inference import load_inference_policy
-from equidiff_core.output_files import write_output_text
+from equidiff_core.policy.inference import load_inference_policy
+from equidiff_core.runtime.output_files import write_output_text
 from equidiff_core.twin.config import load_twin_job_configs
 from equidiff_core.twin.demos import DirectRecorder
 from equidiff_core.twin.evaluate import evaluate_policy, in_range_yaw_seeds, unseen_yaw_seeds, yaw_breakdown

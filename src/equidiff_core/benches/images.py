@@ -24,12 +24,12 @@ from ..cameras.base import limit_depth
 from ..cameras.color import DEFAULT_JPEG_QUALITY, color_image_msg
 from ..cameras.twin import TwinCamera
 from ..config import LabConfig
-from ..pointcloud import cloud_to_msg, grid_to_voxel_msg
-from ..recording import EpisodeWriter, RecordingConfig
-from ..rosmsg import rosbags_factory
-from ..topics import COMPRESSED_IMAGE_TYPE, TOPIC_VOXELS, camera_color_topic
+from ..data.recording import EpisodeWriter, RecordingConfig
+from ..perception.voxels import Voxelizer
 from ..twin import scene
-from ..voxels import Voxelizer
+from ..wire.pointcloud import cloud_to_msg, grid_to_voxel_msg
+from ..wire.rosmsg import rosbags_factory
+from ..wire.topics import COMPRESSED_IMAGE_TYPE, TOPIC_VOXELS, camera_color_topic
 
 CLOUD_TYPE = "sensor_msgs/msg/PointCloud2"
 

@@ -2,7 +2,7 @@
 reads its observation (``equidiff bench overfit``; the suite's ``test_overfits_tiny_dataset`` runs a
 shorter version of it).
 
-Two synthetic cube demos (``synthetic.CubeDataset``: different cubes and start poses, the gripper
+Two synthetic cube demos (``data.synthetic.CubeDataset``: different cubes and start poses, the gripper
 reaching from its start to above the cube) are trained on for ``steps``; then DDIM-16 samples from 4
 seeds, for each demo's observation, are compared with that demo's own trajectory (``own_m``, the
 mean position error) and with the other demo's (``other_m``: a policy that ignores its voxels lands
@@ -24,14 +24,14 @@ import numpy as np
 import torch
 
 from ..config import Workspace
-from ..inference import load_inference_policy
-from ..machine import cpu_description
-from ..output_files import staged_dir
-from ..policies import make_policy
-from ..policy_file import export_policy
-from ..presets import get_preset
-from ..synthetic import OPEN_WIDTH_M, CubeDataset
-from ..training import TrainConfig, fit_normalizer, train
+from ..data.synthetic import OPEN_WIDTH_M, CubeDataset
+from ..policy.diffusion import make_policy
+from ..policy.file import export_policy
+from ..policy.inference import load_inference_policy
+from ..policy.presets import get_preset
+from ..runtime.machine import cpu_description
+from ..runtime.output_files import staged_dir
+from ..training.loop import TrainConfig, fit_normalizer, train
 from . import BenchError
 
 __all__ = ["STEPS", "OverfitGate", "OverfitResult", "run_overfit", "sample_errors"]

@@ -10,8 +10,8 @@ import statistics
 from collections.abc import Callable
 from pathlib import Path
 
-from ..output_files import staged_output
-from ..policy_file import open_policy_file, weights_sha256
+from ..policy.file import open_policy_file, weights_sha256
+from ..runtime.output_files import staged_output
 from ..twin.evaluate import EvalEpisode
 from .stats import success_rate
 

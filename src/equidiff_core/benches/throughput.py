@@ -31,10 +31,10 @@ from equidiff_core.benches.timing import (
     timed_ms,
 )
 from equidiff_core.config import ConfigError, Workspace
-from equidiff_core.inference import CheckpointError, check_device, export_policy, load_inference_policy
 from equidiff_core.models.equivariance import random_observation
-from equidiff_core.policies import count_parameters
-from equidiff_core.presets import get_preset
+from equidiff_core.policy.diffusion import count_parameters
+from equidiff_core.policy.inference import CheckpointError, check_device, export_policy, load_inference_policy
+from equidiff_core.policy.presets import get_preset
 
 
 @dataclass(frozen=True)

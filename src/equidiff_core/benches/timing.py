@@ -8,7 +8,7 @@ DDIM. A graph mode also reports how far its actions lie from the same mode witho
 (same seed): on CUDA the graph must compute the same function. ``time_relu_orders`` times the same
 export with the encoder's old order (each ReLU before its max-pool) beside the current one.
 
-Training: the real ``training.train`` loop on synthetic observations (their content does not change
+Training: the real ``training.loop.train`` loop on synthetic observations (their content does not change
 the cost), timed over ``steps`` optimiser steps after ``warmup`` untimed ones, with the time the
 loop waited for its next batch (``data_s``, training's per-step metric) as a share of the step
 time. The loss is read back every step (``loss.item()``), so the device's queue is empty while the
@@ -32,14 +32,14 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ..chunk import RealTimeChunking
-from ..inference import load_inference_policy
-from ..machine import cpu_description, cpu_model
 from ..models.equivariance import random_observation
 from ..models.plain import relu_before_pool_order
-from ..normalizer import Normalizer
-from ..policies import make_policy
-from ..training import DATA_SOURCES, PRECISIONS, TrainConfig, train
+from ..policy.diffusion import make_policy
+from ..policy.inference import load_inference_policy
+from ..policy.normalizer import Normalizer
+from ..runtime.machine import cpu_description, cpu_model
+from ..training.loop import DATA_SOURCES, PRECISIONS, TrainConfig, train
+from ..wire.chunk import RealTimeChunking
 
 MODE_PRECISIONS = ("auto", "fp32", "bf16")
 MODE_EXECUTIONS = ("eager", "traced", "compiled")
@@ -323,7 +323,7 @@ def measure_training(
     noise_repeats: int = 1,
     callbacks: tuple = (),
 ) -> dict:
-    """Samples/s of ``training.train`` on ``device`` (``policy`` trains on: its weights change), with
+    """Samples/s of ``training.loop.train`` on ``device`` (``policy`` trains on: its weights change), with
     ``noise_repeats`` (noise, step) draws per encoder pass; ``callbacks`` run after each step, inside
     the timed steps."""
     device_t = torch.device(device)

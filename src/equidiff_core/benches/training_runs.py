@@ -1,4 +1,4 @@
-"""``equidiff train`` runs for the benches (each in a process of its own, ``equidiff_core.train_process``):
+"""``equidiff train`` runs for the benches (each in a process of its own, ``equidiff_core.training.process``):
 one recipe for every policy, runs side by side, what they recorded (steps, recipe, fit of the training samples) and the two checks made before any roll-out.
 
 Every policy of a bench trains with the same recipe (``Recipe``: preset, steps, batch, warm-up, seed,
@@ -22,10 +22,10 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-from ..inference import export_policy
 from ..models.baseline import baseline_encoder_channels
-from ..training import load_policy_from_checkpoint
-from ..training_job import TrainingSpec
+from ..policy.inference import export_policy
+from ..training.job import TrainingSpec
+from ..training.loop import load_policy_from_checkpoint
 
 # Settings that may differ between a bench's runs: rotation augmentation by design, and what only
 # changes how fast the same recipe ran (device, data path, time budget).
@@ -93,8 +93,8 @@ class Recipe:
 
 
 def train_command(spec: TrainingSpec) -> list[str]:
-    """``spec``'s run in a process of its own (``equidiff_core.train_process``)."""
-    return [sys.executable, "-m", "equidiff_core.train_process", spec.to_json()]
+    """``spec``'s run in a process of its own (``equidiff_core.training.process``)."""
+    return [sys.executable, "-m", "equidiff_core.training.process", spec.to_json()]
 
 
 def start_run(spec: TrainingSpec, threads: int) -> subprocess.Popen:
@@ -260,7 +260,7 @@ def resolve_run(run_dir: Path) -> Path:
 
 def run_policy(run_dir: Path, cache_dir: Path) -> Path:
     """The exported policy of the finished run in ``run_dir`` (``resolve_run``): its ``policy.pt``, else its
-    ``weights.ckpt`` (``training.slim_checkpoint``) exported once into ``cache_dir/policy.pt``;
+    ``weights.ckpt`` (``training.loop.slim_checkpoint``) exported once into ``cache_dir/policy.pt``;
     FileNotFoundError if neither."""
     run_dir = resolve_run(run_dir)
     policy = run_dir / "policy.pt"

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from equidiff_core.config import default_config_dir, load_lab_config
-from equidiff_core.voxels import Voxelizer, voxelize_reference
+from equidiff_core.perception.voxels import Voxelizer, voxelize_reference
 
 
 def synthetic_scene(lab, n_points: int, seed: int = 0, kind: str = "raycast"):

@@ -7,6 +7,7 @@
 * ``solve``: closed-form eye-to-hand per camera, then joint reprojection refinement
 * ``labfile``: the calibrated lab YAML (never overwritten silently)
 * ``check``: each camera's misalignment in mm against the other clouds and the fingertips
+* ``job``: the jobs of ``equidiff calibrate cameras`` and ``check``, lab or twin (``run_camera_calibration``, ``run_calibration_check``)
 
 In the digital twin, against its ground truth: ``twin.calibration``.
 Commands: ``equidiff calibrate cameras`` and ``equidiff calibrate check`` (docs/perception.md).

@@ -15,10 +15,10 @@ import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
 from .. import geometry
-from ..chunk import PoseChunk
 from ..control.controller import Controller
 from ..robots.base import Robot, RobotError, RobotState
 from ..robots.franky import FrankyRobot
+from ..wire.chunk import PoseChunk
 from .board import BoardDetector, BoardSpec, CalibrationError
 from .limits import MotionLimits
 from .solve import CameraModel, Sample

@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from ..config import ConfigError, Extrinsics, LabConfig, dump_yaml, load_lab_config, load_yaml
-from ..output_files import staged_output
+from ..runtime.output_files import staged_output
 from .board import CalibrationError
 
 

@@ -1,6 +1,6 @@
 """Operator-driven calibration poses: the SpaceMouse moves the arm, a button takes a sample.
 
-The same teleoperation as data collection (``teleop.TeleopIntegrator``: deadzone, speed
+The same teleoperation as data collection (``lab.teleop.TeleopIntegrator``: deadzone, speed
 scaling, target kept in the workspace box and at most 5 cm ahead of the measured TCP), sent at
 ``rate_hz`` as one-step chunks to franka_node's control loop (``capture.ControlledArm``), as
 teleop_node sends them to franka_node: the safety box, cone and speed limits apply. Left
@@ -12,7 +12,7 @@ from __future__ import annotations
 import time
 
 from ..config import Workspace
-from ..teleop import (
+from ..lab.teleop import (
     SpaceMouseSource,
     TeleopConfig,
     TeleopInput,

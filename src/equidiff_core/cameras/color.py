@@ -1,6 +1,6 @@
 """Colour images on the wire: ``sensor_msgs/CompressedImage`` holding a JPEG, as image_transport writes it.
 
-Each camera's colour image travels beside its cloud on ``topics.camera_color_topic(name)``
+Each camera's colour image travels beside its cloud on ``wire.topics.camera_color_topic(name)``
 (``/cameras/<name>/color/image_raw/compressed``), stamped with the cloud's capture time in the
 same ``<name>_color_optical_frame``. The topic and the ``format`` field follow ROS'
 ``compressed_image_transport`` (what realsense-ros publishes through image_transport): the
@@ -19,7 +19,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from ..rosmsg import stamp_to_ns, uint8_buffer
+from ..wire.rosmsg import stamp_to_ns, uint8_buffer
 
 # compressed_image_transport's format string for an rgb8 source compressed as JPEG (colour order bgr8)
 JPEG_FORMAT = "rgb8; jpeg compressed bgr8"

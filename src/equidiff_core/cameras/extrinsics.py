@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from ..rosmsg import tf_message
+from ..wire.rosmsg import tf_message
 
 
 def extrinsics_tf_message(cameras, base_frame: str, stamp_ns: int, factory):

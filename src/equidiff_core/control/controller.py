@@ -26,10 +26,10 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from .. import geometry
-from ..chunk import ChunkError, ChunkReason, PoseChunk
-from ..clock import Clock, WallClock
 from ..config import SafetyBox
 from ..robots.base import Robot, RobotError, RobotState
+from ..runtime.clock import Clock, WallClock
+from ..wire.chunk import ChunkError, ChunkReason, PoseChunk
 from .config import ControlConfig
 from .safety import FilteredTarget, SafetyFilter, check_chunk
 from .scheduler import ChunkScheduler, Setpoint

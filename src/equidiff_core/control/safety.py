@@ -25,8 +25,8 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from .. import geometry
-from ..chunk import ChunkError, ChunkReason, PoseChunk
 from ..config import SafetyBox
+from ..wire.chunk import ChunkError, ChunkReason, PoseChunk
 from .config import SafetyConfig
 
 

@@ -23,7 +23,7 @@ from scipy.interpolate import CubicHermiteSpline
 from scipy.spatial.transform import Rotation, Slerp
 
 from .. import geometry
-from ..chunk import ChunkError, ChunkReason, PoseChunk
+from ..wire.chunk import ChunkError, ChunkReason, PoseChunk
 from .config import SchedulerConfig
 
 NS = 1e9

@@ -32,8 +32,8 @@ import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
 from .. import geometry
-from ..chunk import ChunkError, ChunkReason, PoseChunk
 from ..robots.base import STOP_KINDS, RobotError, RobotStopped, UserStopPressed
+from ..wire.chunk import ChunkError, ChunkReason, PoseChunk
 from .state_machine import Event, SafetyState, permits
 
 # How often a stopped robot's state is read (the user stop released? the arm's pose for the

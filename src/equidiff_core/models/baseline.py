@@ -3,7 +3,7 @@ gripper state concatenated as the U-Net's global condition, the same U-Net. Plai
 exports and runs without escnn.
 
 The encoder is the official code's ``CNNVoxelEncoder58`` (pointW/equidiff,
-``diffusion_unet_voxel_policy.py``): the same stages as EquiDiff's encoder (``presets.ENCODER_LAYOUTS``),
+``diffusion_unet_voxel_policy.py``): the same stages as EquiDiff's encoder (``policy.presets.ENCODER_LAYOUTS``),
 conv + ReLU, four max-pools, channels n/16, n/8, n/8, n/4, n/4, n/2, n/2, n for one width n
 (``preset.baseline_width``, its ``enc_n_hidden``). ``preset.baseline_init`` "he" starts its
 convolutions the way escnn starts EquiDiff's (He-normal, zero biases) instead of PyTorch's default,
@@ -15,7 +15,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from ..presets import PolicyPreset
+from ..policy.presets import PolicyPreset
 from . import action_space
 from .plain import build_plain_encoder
 from .unet1d import ConditionalUnet1D

@@ -1,6 +1,6 @@
 """CPU speed-ups for the plain-torch networks at inference: same weights, same outputs, faster kernels.
 
-``inference.InferencePolicy`` applies them on CPU: the first Conv3d padded to 8 input channels
+``policy.inference.InferencePolicy`` applies them on CPU: the first Conv3d padded to 8 input channels
 (fp32), the U-Net's Conv1d and ConvTranspose1d as GEMMs (bf16) and a faster Mish; ``Method``
 lets ``torch.jit.trace`` trace one method of a module.
 """

@@ -18,14 +18,14 @@ official EquiDiff code has the same limit) and the grid itself is resampled.
 
 Scenes (``twin_scenes``): the twin's task objects (``twin.config.SceneConfig``: the block, the
 bowl's base and its 16 wall segments, the table top) at random positions and yaws, as coloured
-surface points voxelised by ``voxels.voxelize`` like a camera cloud. Everything stays inside the
+surface points voxelised by ``perception.voxels.voxelize`` like a camera cloud. Everything stays inside the
 cylinder that the centred crop keeps under any rotation, so the 45 deg elements measure the
 network and the resampling, not content falling off the crop. Random sparse voxels (about 1.5 %
 filled) hide the 45 deg error: a network sees mostly empty space, so that is not what is measured.
 
 Subjects: anything with ``denoise(voxels, ee, x, t)`` and ``sample(voxels, ee, noise)``:
-``TrainingModel`` wraps a ``policies.DiffusionPolicy`` (escnn for EquiDiff), ``ExportedModel`` an
-``inference.InferencePolicy`` (plain torch, fp32 or bf16, traced or not).
+``TrainingModel`` wraps a ``policy.diffusion.DiffusionPolicy`` (escnn for EquiDiff), ``ExportedModel`` an
+``policy.inference.InferencePolicy`` (plain torch, fp32 or bf16, traced or not).
 """
 
 from __future__ import annotations
@@ -36,7 +36,7 @@ import numpy as np
 import torch
 
 from .. import geometry
-from ..voxels import voxelize
+from ..perception.voxels import voxelize
 from . import action_space
 
 # The non-identity elements of C8, in degrees: 90, 180, 270 form C4 (exact), the rest are 45 deg off the grid.
@@ -163,7 +163,7 @@ def _in_disc(rng, radius: float) -> np.ndarray:
 
 def twin_scenes(preset, workspace, count: int = 2, seed: int = 0, *, scene) -> tuple[torch.Tensor, torch.Tensor]:
     """(voxels uint8 (B, To, 4, R, R, R), ee float32 (B, To, 10)): ``count`` scenes of ``scene``'s objects
-    (``twin.config.SceneConfig``, e.g. ``load_twin_config().scene``) voxelised by ``voxels.voxelize`` (the
+    (``twin.config.SceneConfig``, e.g. ``load_twin_config().scene``) voxelised by ``perception.voxels.voxelize`` (the
     points given in the base frame), a static history, and a downward gripper above the table at a random yaw."""
     scene_cfg = scene
     rng = np.random.default_rng(seed)
@@ -186,7 +186,7 @@ def rotate_observation(workspace, voxels: torch.Tensor, ee: torch.Tensor, theta:
 
 
 class TrainingModel:
-    """A ``policies.DiffusionPolicy`` (escnn for EquiDiff), one observation at a time."""
+    """A ``policy.diffusion.DiffusionPolicy`` (escnn for EquiDiff), one observation at a time."""
 
     def __init__(self, policy):
         self.policy = policy.eval()
@@ -205,7 +205,7 @@ class TrainingModel:
 
 
 class ExportedModel:
-    """An ``inference.InferencePolicy`` (plain torch; its single-step history is the newest observation)."""
+    """An ``policy.inference.InferencePolicy`` (plain torch; its single-step history is the newest observation)."""
 
     def __init__(self, fast):
         self.fast = fast

@@ -19,7 +19,7 @@ import torch
 from escnn import gspaces
 from escnn import nn as enn
 
-from ..presets import PolicyPreset
+from ..policy.presets import PolicyPreset
 from . import action_space
 from .plain import EquiNoiseCore, PlainEquiNoisePredictor, encoder_layer_specs, obs_embedding_relu
 

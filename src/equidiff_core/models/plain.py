@@ -1,7 +1,7 @@
 """The EquiDiff noise predictor as plain torch modules: what an exported policy runs.
 
 Its layers and their order mirror ``models.equivariant.EquiNoisePredictor`` exactly (both are
-built from ``presets.ENCODER_LAYOUTS`` and ``obs_embedding_relu``), so the escnn model's exported weights load into it
+built from ``policy.presets.ENCODER_LAYOUTS`` and ``obs_embedding_relu``), so the escnn model's exported weights load into it
 with ``load_state_dict(strict=True)``. Nothing here imports escnn.
 """
 
@@ -13,7 +13,7 @@ from contextvars import ContextVar
 import torch
 from torch import nn
 
-from ..presets import ENCODER_LAYOUTS, PolicyPreset
+from ..policy.presets import ENCODER_LAYOUTS, PolicyPreset
 from . import action_space
 from .unet1d import ConditionalUnet1D
 

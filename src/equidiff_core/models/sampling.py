@@ -8,8 +8,8 @@ import torch
 from diffusers import DDIMScheduler, DDPMScheduler
 
 from .. import geometry
-from ..normalizer import Normalizer
-from ..presets import PolicyPreset
+from ..policy.normalizer import Normalizer
+from ..policy.presets import PolicyPreset
 from . import action_space
 
 
@@ -53,7 +53,7 @@ def ddim_sample(
     ``guide = (target (B, T, D), weights (T,) in [0, 1])`` inpaints: at every step the predicted
     clean sample is pulled towards ``target`` by each step's weight (1: replaced by it, 0: left
     free) and the noise is re-derived from it, so the DDIM update continues from the guided
-    estimate (real-time chunking, ``chunk.RealTimeChunking``). The weights scale whole steps,
+    estimate (real-time chunking, ``wire.chunk.RealTimeChunking``). The weights scale whole steps,
     never single dimensions, so an equivariant denoiser stays equivariant. None: plain DDIM,
     the same operations as without the argument."""
     x = (

@@ -28,8 +28,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..chunk import PoseChunk
 from ..control.metrics import standstill_at_switches, standstill_summary
+from ..wire.chunk import PoseChunk
 
 JERK_HZ = 50.0
 MODE_SWITCH_M = 0.03

@@ -19,17 +19,17 @@ from pathlib import Path
 
 import numpy as np
 
-from .. import rosmsg
-from ..bags import EpisodeMeta
 from ..cameras import limit_depth
 from ..cameras.color import color_image_msg
 from ..cameras.twin import TwinCamera
-from ..chunk import PoseChunk, chunk_to_msg
 from ..config import LabConfig
-from ..episode import run_episode
-from ..pointcloud import grid_to_voxel_msg
-from ..recording import EpisodeWriter, next_episode_path
-from ..topics import (
+from ..data.bags import EpisodeMeta
+from ..data.recording import EpisodeWriter, next_episode_path
+from ..perception.voxels import Voxelizer
+from ..wire import rosmsg
+from ..wire.chunk import PoseChunk, chunk_to_msg
+from ..wire.pointcloud import grid_to_voxel_msg
+from ..wire.topics import (
     COMPRESSED_IMAGE_TYPE,
     TOPIC_COMMAND_CHUNK,
     TOPIC_EE_POSE,
@@ -38,8 +38,8 @@ from ..topics import (
     TRAINING_TOPICS,
     camera_color_topic,
 )
-from ..voxels import Voxelizer
 from .config import TwinConfig
+from .episode import run_episode
 from .expert import plan_pick_place, tcp_pose
 from .scene import BLOCK, BOWL, body_pose, scene_record
 from .sim import DirectSim
@@ -87,7 +87,7 @@ class DirectRecorder:
 
 
 class DirectWorld:
-    """The in-process twin as an ``episode.EpisodeWorld``: DirectSim, its cameras and an
+    """The in-process twin as a ``twin.episode.EpisodeWorld``: DirectSim, its cameras and an
     ``EpisodeWriter`` on the sim clock, writing what recorder_node would record.
 
     While recording, ``step`` writes /franka/ee_pose and /franka/joint_states at the robot's
@@ -193,7 +193,7 @@ class DirectWorld:
 
 
 class DirectExpert:
-    """The scripted expert as an ``episode.Actor`` in a ``DirectWorld``: its plan's target every
+    """The scripted expert as a ``twin.episode.Actor`` in a ``DirectWorld``: its plan's target every
     1/``command_hz``, success judged at each observation instant once the plan is done, and
     ``extra_s`` after it at most."""
 
@@ -247,7 +247,7 @@ def collect_direct(
     log: Callable[[str], None] = print,
     stop_after: int | None = None,
 ) -> list[tuple[int, bool, str]]:
-    """Record one bag per seed under ``out`` (``episode.run_episode`` with the scripted expert);
+    """Record one bag per seed under ``out`` (``twin.episode.run_episode`` with the scripted expert);
     failed episodes are deleted unless ``keep_failures``; stop once ``stop_after`` successful
     demos exist."""
 

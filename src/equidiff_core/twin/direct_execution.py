@@ -1,4 +1,4 @@
-"""Chunks executed in-process on the sim clock: franka_node's own ``Controller`` over DirectSim as an ``episode.Actor``.
+"""Chunks executed in-process on the sim clock: franka_node's own ``Controller`` over DirectSim as a ``twin.episode.Actor``.
 
 ``DirectPolicy`` answers observations with the policy (``evaluate.evaluate_policy``),
 ``RecordedChunks`` replays a recorded episode's chunks (``evaluate.replay_chunks``); both track
@@ -12,10 +12,10 @@ from collections import deque
 
 import numpy as np
 
-from ..chunk import AnswerSchedule, PoseChunk, RealTimeChunking, SamplingSeeds, chunk_from_actions
 from ..control import Controller
-from ..observation import ee_input
+from ..perception.observation import ee_input
 from ..robots.base import Robot, RobotError, RobotState
+from ..wire.chunk import AnswerSchedule, PoseChunk, RealTimeChunking, SamplingSeeds, chunk_from_actions
 from .scene import BLOCK, BOWL, body_pose
 
 # Rate at which the controller's newest target is sent to DirectSim.command.
@@ -119,7 +119,7 @@ class _DirectArm(Robot):
 
 
 class _DirectExecution:
-    """franka_node's own ``Controller`` over DirectSim as an ``episode.Actor`` in a
+    """franka_node's own ``Controller`` over DirectSim as a ``twin.episode.Actor`` in a
     ``demos.DirectWorld``, on simulated time (1 ms sim ticks), executing the chunks ``observe``
     queues; ``DirectPolicy`` answers observations with the policy, ``RecordedChunks`` replays a
     recorded episode's chunks.
@@ -222,8 +222,8 @@ class _DirectExecution:
 
 
 class DirectPolicy(_DirectExecution):
-    """The policy as an ``episode.Actor`` in a ``demos.DirectWorld``: policy_node's answering rule
-    and sampling seeds (``chunk.SamplingSeeds`` for the episode's seed, as policy_node's in the
+    """The policy as a ``twin.episode.Actor`` in a ``demos.DirectWorld``: policy_node's answering rule
+    and sampling seeds (``wire.chunk.SamplingSeeds`` for the episode's seed, as policy_node's in the
     live twin) and franka_node's own ``Controller`` over DirectSim (``_DirectExecution``)."""
 
     def __init__(

@@ -3,7 +3,7 @@
 Used by ``equidiff twin evaluate``, ``bench generalization`` and ``bench chunking``: the same
 scene, cameras (rendered from the sim state), voxeliser and inference code as the live stack,
 but stepped synchronously, so the result does not depend on how fast this machine is. Each
-episode is ``episode.run_episode`` (the sequence ``twin run`` and ``twin collect`` run) in a
+episode is ``twin.episode.run_episode`` (the sequence ``twin run`` and ``twin collect`` run) in a
 ``demos.DirectWorld`` that records nothing, with ``direct_execution.DirectPolicy`` acting.
 
 Chunks execute exactly as the live stack executes them on simulated time (policy_node +
@@ -11,14 +11,14 @@ franka_node, docs/evaluation_scheme.md): an observation is due every ``dt`` (the
 0.2 s: the cameras' frame rate); the policy answers one every ``execute_steps`` of them (0:
 ``n_action_steps``, policy_node's default). The answer to the observation at t_k (its first
 k + ceil(L/dt) + 1 actions, enough to last until the next answer arrives, as policy_node sizes
-them; step i stamped t_k + i*dt by ``chunk.chunk_from_actions`` as policy_node does) reaches
+them; step i stamped t_k + i*dt by ``wire.chunk.chunk_from_actions`` as policy_node does) reaches
 franka_node at t_k + ``latency_s`` (the twin's latency budget L);
 until then the previous chunk keeps running. franka_node's own ``control.Controller``
 (configured by ``config/control.yaml``, ticked at its ``control_hz`` on the sim clock) then
 does what it does in the lab: the jump and staleness checks, dropping the steps already due
 and replacing the rest of the trajectory from the current setpoint, the watchdog, the
 workspace clip and speed limits, the gripper deadband. Its streamed target reaches the sim's
-arm at ``COMMAND_HZ``. The policy samples each scene's observations with ``chunk.SamplingSeeds``,
+arm at ``COMMAND_HZ``. The policy samples each scene's observations with ``wire.chunk.SamplingSeeds``,
 as policy_node does in the live twin. What still differs from the live twin is the arm itself:
 DirectSim's IK and joint PD instead of franky's Cartesian impedance tracker in franky-sim;
 ``replay_chunks`` replays a live run's chunks on this arm to measure what that changes.
@@ -34,12 +34,11 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from ..chunk import DEFAULT_EXECUTE_STEPS, DEFAULT_RTC, DEFAULT_TRANSPORT_S, AnswerSchedule
-from ..chunk_sizing import ChunkSizing
 from ..config import LabConfig
-from ..episode import run_episode
-from ..rosmsg import position_from_msg
-from ..topics import TOPIC_COMMAND_CHUNK, TOPIC_EE_POSE
+from ..policy.chunk_sizing import ChunkSizing
+from ..wire.chunk import DEFAULT_EXECUTE_STEPS, DEFAULT_RTC, DEFAULT_TRANSPORT_S, AnswerSchedule
+from ..wire.rosmsg import position_from_msg
+from ..wire.topics import TOPIC_COMMAND_CHUNK, TOPIC_EE_POSE
 from .config import TwinConfig
 from .direct_execution import (
     COMMAND_HZ,
@@ -50,6 +49,7 @@ from .direct_execution import (
     EpisodeProgress,
     RecordedChunks,
 )
+from .episode import run_episode
 from .yaw_range import OFFSET_BINS_DEG, block_yaw_offset_deg, in_range_yaw_seeds, unseen_yaw_seeds, yaw_breakdown
 
 # policy_node's default torch_threads. A fixed count also keeps each seed's outcome the same from
@@ -98,7 +98,7 @@ def evaluate_policy(
     probe=None,
     threads: int | None = ROLLOUT_THREADS,
 ) -> list[EvalEpisode]:
-    """Roll ``policy`` (an ``inference.InferencePolicy``) out from each seed's scene; returns per-episode results.
+    """Roll ``policy`` (an ``policy.inference.InferencePolicy``) out from each seed's scene; returns per-episode results.
 
     Each answered observation's chunk takes effect ``latency_s`` after it (default 0.1 s, the
     twin's default budget); the policy answers every ``execute_steps``-th observation (0: every
@@ -106,8 +106,8 @@ def evaluate_policy(
     chunk (None, the default: enough to bridge ``latency_s``, as policy_node given that latency, which
     the live twin passes it, with ``execute_steps`` 0 lowered as policy_node lowers it when L is too
     long for n_action_steps; 0: ``n_action_steps``); with ``rtc`` (default policy_node's) each chunk is
-    denoised towards the previous one (``chunk.RealTimeChunking``, its delay from ``latency_s``); see the
-    module doc. The policy's sampling seeds are ``chunk.SamplingSeeds``' for the episode's seed. ``probe``
+    denoised towards the previous one (``wire.chunk.RealTimeChunking``, its delay from ``latency_s``); see the
+    module doc. The policy's sampling seeds are ``wire.chunk.SamplingSeeds``' for the episode's seed. ``probe``
     (e.g. ``twin.chunking.ChunkingProbe``) sees each episode's chunks as franka_node's
     Controller receives them and its every command. Inference runs on ``threads`` torch threads (None:
     the process's setting); each scene's cameras draw their depth noise from its seed
@@ -228,8 +228,8 @@ def replay_chunks(
     /franka/command_chunk messages with more than one step (the supervisor's one-point hold
     targets after an episode are not the policy's). The TCP gap compares the replayed TCP with
     the bag's /franka/ee_pose at each observation instant (within 5 ms)."""
-    from ..bags import BagError, read_episode
-    from ..chunk import ChunkError, chunk_from_msg
+    from ..data.bags import BagError, read_episode
+    from ..wire.chunk import ChunkError, chunk_from_msg
     from .demos import DirectRecorder, DirectWorld
 
     control = _control_config()

@@ -13,11 +13,11 @@ from pathlib import Path
 
 import numpy as np
 
-from equidiff_core.bags import BagError, find_bags
 from equidiff_core.benches.stats import success_rate
 from equidiff_core.config import default_config_dir, load_lab_config
-from equidiff_core.inference import load_inference_policy
-from equidiff_core.jobs import JobError
+from equidiff_core.data.bags import BagError, find_bags
+from equidiff_core.policy.inference import load_inference_policy
+from equidiff_core.runtime.jobs import JobError
 from equidiff_core.twin.config import load_twin_config
 from equidiff_core.twin.demos import DirectRecorder
 from equidiff_core.twin.evaluate import evaluate_policy, replay_chunks

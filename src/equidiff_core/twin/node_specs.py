@@ -10,7 +10,7 @@ from pathlib import Path
 
 from ..config import LabConfig, default_config_dir
 from ..control import load_control_config
-from ..topics import TOPIC_COMMAND_CHUNK, TOPIC_TWIN_POLICY_CHUNK
+from ..wire.topics import TOPIC_COMMAND_CHUNK, TOPIC_TWIN_POLICY_CHUNK
 from .config import TWIN_PRECISION
 
 NodeSpecs = dict[str, tuple[str, dict, dict]]

@@ -19,7 +19,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Self
 
-from ..parent_job import PARENT_PID_ENV
+from ..runtime.parent_job import PARENT_PID_ENV
 
 
 class NodeProcessError(RuntimeError):

@@ -46,10 +46,10 @@ def make_standin_policy(
 ) -> Path:
     import torch
 
-    from ..inference import export_policy
-    from ..normalizer import Normalizer
-    from ..policies import make_policy
-    from ..presets import get_preset
+    from ..policy.diffusion import make_policy
+    from ..policy.inference import export_policy
+    from ..policy.normalizer import Normalizer
+    from ..policy.presets import get_preset
 
     torch.manual_seed(seed)
     actions = expert_actions(cfg or TwinConfig())

@@ -2,7 +2,7 @@
 
 ROS-free. ``RerunLogger`` turns the project's messages (rclpy or rosbags flavour) into rerun
 entities with one method per message kind; ``equidiff_ros.viz_node`` feeds it from the live
-graph, ``bag_to_rrd`` from recorded bags, ``training.RerunTrainingCallback`` from the
+graph, ``bag_to_rrd`` from recorded bags, ``training_callback.RerunTrainingCallback`` from the
 trainer. rerun is an optional extra: this package imports it only inside functions, and a
 missing rerun raises ``VizUnavailable`` naming the extra to install.
 """
@@ -20,7 +20,7 @@ _LAZY_EXPORTS = {
     **dict.fromkeys(("VizConfig", "default_blueprint", "open_recording", "load_viz_config"), "recording_setup"),
     **dict.fromkeys(("convert_bags", "ConversionReport"), "bag_to_rrd"),
     **dict.fromkeys(("summarize_rrd", "RrdSummary", "EntitySummary"), "rrd"),
-    "RerunTrainingCallback": "training",
+    "RerunTrainingCallback": "training_callback",
 }
 
 __all__ = [

@@ -10,8 +10,8 @@ Same entity paths and blueprint as the live ``equidiff viz``. Two layouts:
 The all-in-one recording can also go straight to a viewer (``spawn`` / ``connect``) instead
 of a file.
 
-Messages are streamed in file order through ``mcap_reader.iter_mcap`` (every CRC checked; not
-collected per episode as ``equidiff_core.bags.read_episode`` does) so a long episode with raw
+Messages are streamed in file order through ``data.mcap_reader.iter_mcap`` (every CRC checked; not
+collected per episode as ``equidiff_core.data.bags.read_episode`` does) so a long episode with raw
 clouds does not have to fit in memory. An unreadable or damaged bag is reported and skipped
 (a damaged one once it was read: what came before the damage is already in the recording);
 the others are still converted.
@@ -28,12 +28,12 @@ from typing import Any
 
 import yaml
 
-from ..bags import BagIntegrityError, bag_mcap
 from ..config import LabConfig
-from ..mcap_reader import iter_mcap
-from ..output_files import distinct_names, staged_output, unique_paths
-from ..rosmsg import rosbags_factory
-from ..topics import camera_of_color_topic
+from ..data.bags import BagIntegrityError, bag_mcap
+from ..data.mcap_reader import iter_mcap
+from ..runtime.output_files import distinct_names, staged_output, unique_paths
+from ..wire.rosmsg import rosbags_factory
+from ..wire.topics import camera_of_color_topic
 from .logger import TOPICS_HANDLED, RerunLogger
 from .recording_setup import APPLICATION_ID, VizConfig, default_blueprint, open_recording
 
@@ -149,7 +149,7 @@ def convert_bags(
 ) -> ConversionReport:
     """Convert bags to .rrd (``out`` a file, or a directory with ``per_episode``), or stream them to a viewer
     (``spawn`` / ``connect``, one recording); never raises because of one bad bag. ``out`` is written beside
-    itself and renamed into place once complete (``output_files.staged_output``): an existing one raises
+    itself and renamed into place once complete (``runtime.output_files.staged_output``): an existing one raises
     ``OutputExistsError`` unless ``force``, and is kept when nothing could be converted."""
     t0 = time.perf_counter()
     bags = unique_paths(expand_bag_paths(bags))

@@ -22,12 +22,13 @@ from typing import Any
 
 import numpy as np
 
-from .. import geometry, topics
+from .. import geometry
 from ..cameras.color import ImageError, compressed_format
-from ..chunk import ChunkError, chunk_from_msg
 from ..config import LabConfig
-from ..pointcloud import CloudError, _structured, msg_to_cloud
-from ..rosmsg import (
+from ..wire import topics
+from ..wire.chunk import ChunkError, chunk_from_msg
+from ..wire.pointcloud import CloudError, _structured, msg_to_cloud
+from ..wire.rosmsg import (
     MessageError,
     diagnostic_entries,
     gripper_width_from_joint_state,

@@ -23,17 +23,17 @@ import numpy as np
 from trajectory_msgs.msg import MultiDOFJointTrajectory
 
 from equidiff_core import geometry
-from equidiff_core.chunk import PoseChunk, chunk_from_msg, chunk_to_msg
 from equidiff_core.config import default_config_dir, dump_yaml, load_lab_config, to_dict
 from equidiff_core.control import load_control_config, metrics
-from equidiff_core.inference import export_policy, load_inference_policy
-from equidiff_core.normalizer import Normalizer
-from equidiff_core.pointcloud import grid_to_voxel_msg
-from equidiff_core.policies import make_policy
-from equidiff_core.presets import get_preset
+from equidiff_core.policy.diffusion import make_policy
+from equidiff_core.policy.inference import export_policy, load_inference_policy
+from equidiff_core.policy.normalizer import Normalizer
+from equidiff_core.policy.presets import get_preset
 from equidiff_core.robots.franky.sim import SimServer
-from equidiff_core.topics import TOPIC_COMMAND_CHUNK
 from equidiff_core.twin.processes import join_private_domain, start_node, stop_process
+from equidiff_core.wire.chunk import PoseChunk, chunk_from_msg, chunk_to_msg
+from equidiff_core.wire.pointcloud import grid_to_voxel_msg
+from equidiff_core.wire.topics import TOPIC_COMMAND_CHUNK
 from equidiff_ros.common import RELIABLE_QOS
 from equidiff_ros.control_client import MS, ControlClient, down_pose
 

@@ -1,4 +1,4 @@
-"""The ROS side of ``equidiff bench safety``: what its campaign (``equidiff_core.benches.safety``, ROS-free)
+"""The ROS side of ``equidiff bench safety``: what its campaign (``equidiff_core.benches.fault_campaign``, ROS-free)
 needs of the live graph, passed in as a ``SafetyProbe``: the rclpy client that drives franka_node and
 records what comes back, a watch on /franka/status and the measured pose, and the operator's service calls
 (acknowledge, home, recorder start/stop) as ``equidiff lab`` makes them.
@@ -16,9 +16,9 @@ import numpy as np
 from geometry_msgs.msg import PoseStamped
 from std_msgs.msg import String
 
-from equidiff_core.rosmsg import MessageError, pose_from_msg
-from equidiff_core.topics import SERVICE_FRANKA_ACKNOWLEDGE, TOPIC_EE_POSE, TOPIC_FRANKA_STATUS
 from equidiff_core.twin.shipped import SHIPPED_CHECKPOINT, SHIPPED_NAME
+from equidiff_core.wire.rosmsg import MessageError, pose_from_msg
+from equidiff_core.wire.topics import SERVICE_FRANKA_ACKNOWLEDGE, TOPIC_EE_POSE, TOPIC_FRANKA_STATUS
 from equidiff_ros.benches.control import approach
 from equidiff_ros.common import LATCHED_QOS, RELIABLE_QOS
 from equidiff_ros.control_client import ControlClient

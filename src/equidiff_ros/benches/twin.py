@@ -6,8 +6,8 @@ import json
 import sys
 import time
 
-from equidiff_core.machine import cpu_description
-from equidiff_core.output_files import staged_dir
+from equidiff_core.runtime.machine import cpu_description
+from equidiff_core.runtime.output_files import staged_dir
 from equidiff_core.twin.config import load_twin_job_configs
 from equidiff_core.twin.processes import NodeProcessError, cpu_seconds
 from equidiff_core.twin.shipped import resolve_policy

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import sys
 
-from equidiff_core.bags import BagError, repair_bag
+from equidiff_core.data.bags import BagError, repair_bag
 
 
 def add_arguments(parser) -> None:

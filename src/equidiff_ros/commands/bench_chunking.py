@@ -33,8 +33,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from equidiff_core.benches.chunking import MODES, ChunkingSettings, run_chunking_bench
-from equidiff_core.jobs import progress_lines
+from equidiff_core.benches.chunk_modes import MODES, ChunkingSettings, run_chunking_bench
+from equidiff_core.runtime.jobs import progress_lines
 from equidiff_core.twin.config import EVALUATION_FIRST_SEED
 from equidiff_ros.commands import print_result
 

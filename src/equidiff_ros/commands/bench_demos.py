@@ -33,10 +33,10 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from equidiff_core.benches.demos import DEMO_COUNTS, POLICIES, DemosSettings, run_demos_bench
+from equidiff_core.benches.sample_efficiency import DEMO_COUNTS, POLICIES, DemosSettings, run_demos_bench
 from equidiff_core.benches.stats import SCENES_PER_CELL
 from equidiff_core.benches.training_runs import BASELINE_LR, EQUIDIFF_LR, MAX_FIT_RATIO
-from equidiff_core.jobs import progress_lines
+from equidiff_core.runtime.jobs import progress_lines
 from equidiff_ros.commands import add_force_argument, bench_recipe, print_result
 
 

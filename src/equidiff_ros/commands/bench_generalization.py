@@ -61,8 +61,8 @@ from pathlib import Path
 from equidiff_core.benches.generalization import POLICIES, GeneralizationSettings, run_generalization
 from equidiff_core.benches.stats import SCENES_PER_CELL
 from equidiff_core.benches.training_runs import BASELINE_LR, EQUIDIFF_LR, MAX_FIT_RATIO
-from equidiff_core.jobs import progress_lines
-from equidiff_core.presets import ROTATION_AUGS
+from equidiff_core.policy.presets import ROTATION_AUGS
+from equidiff_core.runtime.jobs import progress_lines
 from equidiff_ros.commands import bench_recipe, print_result
 
 

@@ -13,7 +13,7 @@ import json
 
 from equidiff_core.benches.images import measure
 from equidiff_core.config import default_config_dir, load_lab_config
-from equidiff_core.machine import cpu_description
+from equidiff_core.runtime.machine import cpu_description
 from equidiff_core.twin.config import load_twin_config
 
 

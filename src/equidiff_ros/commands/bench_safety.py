@@ -71,7 +71,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from equidiff_core.benches.safety import FAULTS, run_bench
+from equidiff_core.benches.fault_campaign import FAULTS, run_bench
 from equidiff_ros.benches.safety_probe import SafetyProbe
 from equidiff_ros.commands import add_force_argument
 

@@ -1,6 +1,6 @@
 """`equidiff bench train`: training throughput (samples/s) on the CPU and on CUDA, same run.
 
-Each device runs the real ``training.train`` loop with its defaults there (CPU: fp32, DataLoader;
+Each device runs the real ``training.loop.train`` loop with its defaults there (CPU: fp32, DataLoader;
 CUDA: bf16 autocast, the whole set resident on the GPU) on synthetic observations (random
 coloured voxels, gripper states near the workspace centre: the cost does not depend on their
 content), with the preset's rotation augmentation, and times ``--steps`` optimiser steps after

@@ -31,8 +31,8 @@ import sys
 from pathlib import Path
 
 from equidiff_core.calibration.board import BoardSpec
-from equidiff_core.calibration_job import CameraCalibrationSettings, run_camera_calibration
-from equidiff_core.jobs import progress_lines
+from equidiff_core.calibration.job import CameraCalibrationSettings, run_camera_calibration
+from equidiff_core.runtime.jobs import progress_lines
 from equidiff_ros.commands import add_force_argument, print_result
 
 

@@ -23,8 +23,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from equidiff_core.calibration_job import CalibrationCheckSettings, beyond_tolerance, run_calibration_check
-from equidiff_core.jobs import progress_lines
+from equidiff_core.calibration.job import CalibrationCheckSettings, beyond_tolerance, run_calibration_check
+from equidiff_core.runtime.jobs import progress_lines
 from equidiff_ros.commands import add_force_argument, print_result
 
 

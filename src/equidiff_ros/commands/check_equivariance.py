@@ -22,7 +22,7 @@ Random weights by default; ``--checkpoint`` measures a training ``last.ckpt`` or
 
 from __future__ import annotations
 
-from equidiff_core.benches.equivariance import EquivarianceSettings, run_equivariance_check
+from equidiff_core.benches.equivariance_check import EquivarianceSettings, run_equivariance_check
 from equidiff_ros.commands import print_result
 
 

@@ -2,7 +2,7 @@
 
 Each bag's /voxels are rebuilt from its recorded camera clouds (recorder ``record_clouds``,
 on by default) with the cameras and extrinsics of ``--lab``, exactly as voxel_node would have
-fused them (``fusion.CloudFusion``). The new extrinsics replace the cameras' transforms in
+fused them (``perception.fusion.CloudFusion``). The new extrinsics replace the cameras' transforms in
 ``/tf_static`` and are written into the episode's metadata (``extra.extrinsics.<camera>``);
 every other topic and metadata entry is copied. One new bag per input under ``--out`` (same
 name; where two inputs share one, their paths below the common folder: ``day1__pick_0000``).
@@ -17,10 +17,10 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from equidiff_core.bags import find_bags
 from equidiff_core.config import load_lab_config
-from equidiff_core.fusion import revoxelize_bags
-from equidiff_core.output_files import OutputExistsError
+from equidiff_core.data.bags import find_bags
+from equidiff_core.perception.fusion import revoxelize_bags
+from equidiff_core.runtime.output_files import OutputExistsError
 from equidiff_ros.commands import add_force_argument
 
 

@@ -11,8 +11,8 @@ from __future__ import annotations
 import json
 import sys
 
-from equidiff_core.dataset import DatasetConfig, dataset_stats
-from equidiff_core.observation import STATE_TOLERANCE_S
+from equidiff_core.data.dataset import DatasetConfig, dataset_stats
+from equidiff_core.perception.observation import STATE_TOLERANCE_S
 
 
 def add_arguments(parser) -> None:

@@ -1,6 +1,6 @@
 """`equidiff export lerobot BAGS... --out DIR`: episodes as a LeRobot dataset (format v3.0).
 
-``equidiff_core.lerobot_export`` writes it (layout, features and encoder settings there):
+``equidiff_core.data.lerobot.export`` writes it (layout, features and encoder settings there):
 ``observation.state``, ``action``, ``observation.images.<camera>`` (the recorded JPEGs as AV1
 mp4), ``observation.voxels`` (``--no-voxels`` to leave out). LeRobot 0.6.1 loads it with
 ``LeRobotDataset(repo_id, root=DIR)``. Prints one JSON line; exit 1 when a bag was skipped
@@ -16,10 +16,10 @@ from __future__ import annotations
 import json
 import sys
 
-from equidiff_core.dataset import DatasetConfig
-from equidiff_core.lerobot_export import ExportError, ExportOptions, export_lerobot
-from equidiff_core.observation import STATE_TOLERANCE_S
-from equidiff_core.output_files import OutputExistsError
+from equidiff_core.data.dataset import DatasetConfig
+from equidiff_core.data.lerobot.export import ExportError, ExportOptions, export_lerobot
+from equidiff_core.perception.observation import STATE_TOLERANCE_S
+from equidiff_core.runtime.output_files import OutputExistsError
 from equidiff_ros.commands import add_force_argument
 
 

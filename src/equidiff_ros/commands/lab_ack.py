@@ -7,7 +7,7 @@ service). Look at the arm and at franka_node's /diagnostics (`equidiff lab statu
 
 from __future__ import annotations
 
-from equidiff_core.operator_loop import Request
+from equidiff_core.lab.operator_loop import Request
 from equidiff_ros.lab_client import call_request
 
 

@@ -7,7 +7,7 @@ after looking at the arm). Speed and pose: control.yaml `home_*`.
 
 from __future__ import annotations
 
-from equidiff_core.operator_loop import Request
+from equidiff_core.lab.operator_loop import Request
 from equidiff_ros.lab_client import call_request
 
 

@@ -6,7 +6,7 @@ still drives it). A teleop takeover pauses it as well; it never resumes on its o
 
 from __future__ import annotations
 
-from equidiff_core.operator_loop import Request
+from equidiff_core.lab.operator_loop import Request
 from equidiff_ros.lab_client import call_request
 
 ENABLE = {"enable": True, "resume": True, "pause": False}

@@ -10,7 +10,7 @@ Calls recorder_node's services (std_srvs/Trigger), so it works under ``ros2 laun
 
 from __future__ import annotations
 
-from equidiff_core.operator_loop import Request
+from equidiff_core.lab.operator_loop import Request
 from equidiff_ros.lab_client import call_request
 
 # action -> the operator loop's request (the service the screen's keys s, k, f and x call)

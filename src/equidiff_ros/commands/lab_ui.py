@@ -4,7 +4,7 @@ One screen shows the robot's state and last fault, the recorder and the episode 
 policy and the SpaceMouse; single keys start, keep (success or failure) and discard episodes,
 home the arm, switch the policy, hand the arm to the SpaceMouse and acknowledge a stop. After
 each episode the arm goes home and a reset countdown runs (--reset-s; --auto-start starts the
-next episode when it ends). The keys and the rules are in equidiff_core.operator_loop and
+next episode when it ends). The keys and the rules are in equidiff_core.lab.operator_loop and
 docs/lab.md, "The operator loop".
 
 A client of the running nodes, through their services and latched topics (the same as

@@ -2,7 +2,7 @@
 
 Bags -> ``DemoDataset`` (decoded once, cached under ``--cache-dir``), whole episodes held out
 for validation (``--val-fraction``, split saved in ``DIR/split.json`` and reused on resume),
-then ``equidiff_core.training.train`` (AdamW + cosine, periodic checkpoints, resume from
+then ``equidiff_core.training.loop.train`` (AdamW + cosine, periodic checkpoints, resume from
 ``DIR/last.ckpt``); ``DIR/run.json`` keeps the summary and the recipe (device, batch, lr, ...).
 On every evaluation the held-out episodes are sampled with DDIM and
 scored by action MSE (absolute targets, metres/rot6d/metres); ``DIR/training.png`` plots the
@@ -11,7 +11,7 @@ loss and the evaluation curves. Deterministic for a given ``--seed`` on the same
 Data-parallel on several GPUs (or CPU processes) with torchrun, e.g.
 ``torchrun --nproc-per-node 4 -m equidiff_ros.cli train bags/ --out runs/ddp --device cuda``:
 every rank decodes the same episodes and split, rank 0 alone writes files and prints
-(``equidiff_core.distributed``). ``--batch-size`` is per rank.
+(``equidiff_core.training.distributed``). ``--batch-size`` is per rank.
 
 An existing DIR that holds files is refused (exit 2) unless ``--resume`` continues its run or
 ``--force`` replaces it: the new run then trains in a folder beside DIR and replaces DIR only once
@@ -24,9 +24,9 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from equidiff_core.jobs import progress_lines
-from equidiff_core.presets import BASELINE_INITS, ROTATION_AUGS
-from equidiff_core.training_job import TrainingSpec, run_training
+from equidiff_core.policy.presets import BASELINE_INITS, ROTATION_AUGS
+from equidiff_core.runtime.jobs import progress_lines
+from equidiff_core.training.job import TrainingSpec, run_training
 from equidiff_ros.commands import add_force_argument
 
 # the flags' defaults are the spec's

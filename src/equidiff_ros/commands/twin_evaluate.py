@@ -9,7 +9,7 @@ synchronously in one process (``twin.evaluate.evaluate_policy``): what the main 
 score, without its processes. The arm is the one thing not the same: DirectSim's IK + joint PD
 instead of franky's impedance tracker in franky-sim (docs/evaluation_scheme.md); `twin
 replay-chunks` replays a live run's chunks on it to measure what that changes. The policy's
-noise is seeded per scene and answered observation (``chunk.SamplingSeeds``), as policy_node's in
+noise is seeded per scene and answered observation (``wire.chunk.SamplingSeeds``), as policy_node's in
 `twin run`, and both default to fp32: a run is repeatable, and a scene gets the same noise in
 both. Prints one line per episode
 and, last, one JSON line: episodes, success, reached, lifted, successful_seeds, latency_budget_ms,
@@ -21,7 +21,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from equidiff_core.jobs import progress_lines
+from equidiff_core.runtime.jobs import progress_lines
 from equidiff_core.twin.config import EVALUATION_FIRST_SEED
 from equidiff_core.twin.inprocess_jobs import EvaluationSettings, run_evaluation
 from equidiff_ros.commands import print_result

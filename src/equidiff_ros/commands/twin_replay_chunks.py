@@ -17,7 +17,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from equidiff_core.jobs import progress_lines
+from equidiff_core.runtime.jobs import progress_lines
 from equidiff_core.twin.inprocess_jobs import ChunkReplaySettings, run_chunk_replay
 from equidiff_ros.commands import print_result
 

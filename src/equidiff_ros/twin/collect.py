@@ -9,10 +9,10 @@ import time
 from pathlib import Path
 
 from equidiff_core.config import ConfigError, dump_yaml, to_dict
-from equidiff_core.episode import run_episode
-from equidiff_core.output_files import write_output_text
+from equidiff_core.runtime.output_files import write_output_text
 from equidiff_core.twin.config import load_twin_job_configs
 from equidiff_core.twin.demos import collect_direct
+from equidiff_core.twin.episode import run_episode
 from equidiff_core.twin.processes import NodeProcessError
 from equidiff_ros.twin.stack import TwinStack
 from equidiff_ros.twin.supervisor import SupervisorError

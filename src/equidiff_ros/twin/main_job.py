@@ -10,10 +10,10 @@ import time
 from pathlib import Path
 
 from equidiff_core.config import ConfigError
-from equidiff_core.output_files import refuse_existing, write_output_text
+from equidiff_core.runtime.output_files import refuse_existing, write_output_text
 from equidiff_core.twin.config import load_twin_job_configs
-from equidiff_core.twin.metrics import RunSummary
 from equidiff_core.twin.processes import NodeProcessError
+from equidiff_core.twin.run_summary import RunSummary
 from equidiff_core.twin.shipped import resolve_policy
 from equidiff_ros.twin.stack import TwinStack
 from equidiff_ros.twin.supervisor import SupervisorError

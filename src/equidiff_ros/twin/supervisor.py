@@ -10,7 +10,7 @@ Used by ``equidiff twin run`` and ``equidiff twin collect`` (not a standalone ex
   /twin/await_policy <- the episode's start (sim ns; -1 after it): twin_node waits for the chunk
       of each frame from then on
   /policy/episode <- {"seed", "start_ns"} as the gate opens: policy_node samples the episode's
-      observations with ``chunk.SamplingSeeds`` for its seed, as the in-process evaluation does
+      observations with ``wire.chunk.SamplingSeeds`` for its seed, as the in-process evaluation does
   /franka/command_chunk <- one-point targets at 20 Hz, stamped now, reached 50 ms later: the
       same messages teleop_node publishes (homing and the scripted expert)
   /twin/reset <- seed; /twin/scene, /twin/state -> episode set-up and success
@@ -40,8 +40,10 @@ from std_msgs.msg import Int64, String
 from std_srvs.srv import Trigger
 from trajectory_msgs.msg import MultiDOFJointTrajectory
 
-from equidiff_core.chunk import PoseChunk, chunk_to_msg
-from equidiff_core.rosmsg import (
+from equidiff_core.twin.expert import LinePath
+from equidiff_core.twin.gate import GateRecord, PolicyGate
+from equidiff_core.wire.chunk import PoseChunk, chunk_to_msg
+from equidiff_core.wire.rosmsg import (
     NS_PER_S,
     MessageError,
     RclpyFactory,
@@ -50,7 +52,7 @@ from equidiff_core.rosmsg import (
     pose_from_msg,
     stamp_to_ns,
 )
-from equidiff_core.topics import (
+from equidiff_core.wire.topics import (
     SERVICE_FRANKA_ACKNOWLEDGE,
     TOPIC_CLOCK,
     TOPIC_COMMAND_CHUNK,
@@ -67,8 +69,6 @@ from equidiff_core.topics import (
     TOPIC_TWIN_SCENE,
     TOPIC_TWIN_STATE,
 )
-from equidiff_core.twin.expert import LinePath
-from equidiff_core.twin.gate import GateRecord, PolicyGate
 from equidiff_ros.common import LATCHED_QOS, RELIABLE_QOS
 
 NS = NS_PER_S
@@ -404,7 +404,7 @@ class Supervisor:
         """Start forwarding policy chunks answering observations from now on (and, on simulated
         time, have twin_node wait for each frame's chunk). With ``episode_seed``, policy_node
         answers the first observation from now on at once and samples the episode's observations
-        with that seed's noise (``chunk.SamplingSeeds``).
+        with that seed's noise (``wire.chunk.SamplingSeeds``).
 
         On simulated time the episode starts ``EPISODE_LEAD_NS`` ahead of this node's clock, so that
         twin_node and policy_node have its start before the sim takes its first frame: the frames

@@ -1,8 +1,8 @@
-"""The live twin's episodes (``episode.run_episode`` over ROS): the world and who acts in it.
+"""The live twin's episodes (``twin.episode.run_episode`` over ROS): the world and who acts in it.
 
-* ``LiveTwin``, the ``episode.EpisodeWorld``: the supervisor homes the arm, resets the scene,
+* ``LiveTwin``, the ``twin.episode.EpisodeWorld``: the supervisor homes the arm, resets the scene,
   reads success from /twin/state and drives recorder_node;
-* the ``episode.Actor``s: ``GatedPolicy`` (policy_node through the supervisor's gate) and
+* the ``twin.episode.Actor``s: ``GatedPolicy`` (policy_node through the supervisor's gate) and
   ``LiveExpert`` (the scripted expert through the teleop path);
 * ``run_policy_episode``: one episode of the main job.
 """
@@ -13,17 +13,17 @@ import time
 
 import numpy as np
 
-from equidiff_core.episode import run_episode
-from equidiff_core.rosmsg import NS_PER_S
+from equidiff_core.twin.episode import run_episode
 from equidiff_core.twin.expert import object_poses_from_state, plan_pick_place
-from equidiff_core.twin.metrics import EpisodeRecord
+from equidiff_core.twin.run_summary import EpisodeRecord
 from equidiff_core.twin.scene import ScenePoses, scene_record
+from equidiff_core.wire.rosmsg import NS_PER_S
 from equidiff_ros.twin.stack import TwinStack
 from equidiff_ros.twin.supervisor import SupervisorError
 
 
 class LiveTwin:
-    """The live twin stack as an ``episode.EpisodeWorld``: the supervisor homes the arm, resets
+    """The live twin stack as a ``twin.episode.EpisodeWorld``: the supervisor homes the arm, resets
     the scene, reads success from /twin/state and drives recorder_node."""
 
     def __init__(self, stack: TwinStack):
@@ -57,7 +57,7 @@ class LiveTwin:
 
 
 class GatedPolicy:
-    """policy_node as an ``episode.Actor``: its chunks reach the robot while the gate is open.
+    """policy_node as a ``twin.episode.Actor``: its chunks reach the robot while the gate is open.
 
     The episode's duration counts from the first chunk; a stall twin_node reports (a stage that
     did not deliver within its stall timeout, simulated time) ends the episode at once."""
@@ -106,7 +106,7 @@ class GatedPolicy:
 
 
 class LiveExpert:
-    """The scripted expert as an ``episode.Actor`` through the teleop path: one-point chunks at
+    """The scripted expert as a ``twin.episode.Actor`` through the teleop path: one-point chunks at
     ``hz`` (20 Hz), as teleop_node sends them.
 
     The plan's clock advances only while the arm keeps up (TCP within ``max_lag_m`` of the
@@ -173,7 +173,7 @@ class LiveExpert:
 
 
 def run_policy_episode(stack: TwinStack, seed: int, max_duration_s: float) -> EpisodeRecord:
-    """One episode of the main job (``episode.run_episode`` with policy_node acting through the
+    """One episode of the main job (``twin.episode.run_episode`` with policy_node acting through the
     gate); durations on the node clock (simulated time by default).
 
     An episode in which twin_node reports a stall (a camera or the policy did not deliver within

@@ -22,7 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ...config import CameraConfig, ConfigError, from_dict
-from ...sync import PublishPacer
+from ...perception.sync import PublishPacer
 from ..base import Camera, CameraError, CameraHealth, CloudFrame
 from .config import RealSenseOptions
 from .devices import connected_devices, device_info, find_device, usb2_warning

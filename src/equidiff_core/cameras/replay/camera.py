@@ -17,7 +17,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 from ...config import CameraConfig
-from ...pointcloud import CloudError, msg_to_cloud
+from ...wire.pointcloud import CloudError, msg_to_cloud
 from ..base import Camera, CameraError, CloudFrame
 from .config import ReplayOptions
 
@@ -65,8 +65,8 @@ class ReplayCamera(Camera):
             return
         from rosbags.rosbag2 import Reader
 
-        from ...bags import verify_bag
-        from ...rosmsg import rosbags_factory
+        from ...data.bags import verify_bag
+        from ...wire.rosmsg import rosbags_factory
 
         if not (self.bag / "metadata.yaml").is_file():
             raise CameraError(

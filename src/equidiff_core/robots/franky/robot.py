@@ -38,7 +38,7 @@ import time
 
 import numpy as np
 
-from ...machine import keep_thread_scheduler
+from ...runtime.machine import keep_thread_scheduler
 from ..base import JointLimits, Robot, RobotError, RobotState, RobotStopped, UserStopPressed
 from .config import FrankyConfig
 

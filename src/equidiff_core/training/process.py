@@ -1,0 +1,40 @@
+"""``python -m equidiff_core.training.process SPEC_JSON``: one training run in a process of its own, for the
+benches that train several policies side by side (``benches.training_runs``).
+
+It parses nothing but a ``TrainingSpec``'s JSON and then runs and reports exactly as ``equidiff train``
+with the same settings does: progress on stderr, the summary as one JSON line on stdout, an error as
+``equidiff train: <message>`` with the command's exit status.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+
+from equidiff_core.runtime.jobs import progress_lines, report_error
+from equidiff_core.runtime.machine import default_threads_to_idle_cores
+
+
+def main(argv: list[str]) -> int:
+    if len(argv) != 1:
+        print("usage: python -m equidiff_core.training.process SPEC_JSON (a TrainingSpec.to_json)", file=sys.stderr)
+        return 2
+    default_threads_to_idle_cores()  # before torch is imported, as the CLI does
+    from equidiff_core.training.job import TrainingSpec, run_training
+
+    spec = TrainingSpec.from_json(argv[0])
+    try:
+        with progress_lines("stderr", "equidiff train: "):
+            summary = run_training(spec)
+    except Exception as err:
+        status = report_error("train", err)
+        if status is None:
+            raise
+        return status
+    if summary is not None:
+        print(json.dumps(summary))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))
