@@ -40,7 +40,7 @@ def run_node(module: str, *ros_args: str, timeout: float = 120) -> subprocess.Co
 @pytest.fixture(scope="module")
 def checkpoint(tmp_path_factory):
     from equidiff_core.policy.diffusion import make_policy
-    from equidiff_core.policy.inference import export_policy
+    from equidiff_core.policy.file import export_policy
     from equidiff_core.policy.normalizer import Normalizer
     from equidiff_core.policy.presets import get_preset
 

@@ -38,7 +38,8 @@ from ..policy.diffusion import make_policy
 from ..policy.inference import load_inference_policy
 from ..policy.normalizer import Normalizer
 from ..runtime.machine import cpu_description, cpu_model
-from ..training.loop import DATA_SOURCES, PRECISIONS, TrainConfig, train
+from ..training.config import DATA_SOURCES, PRECISIONS, TrainConfig
+from ..training.loop import train
 from ..wire.chunk import RealTimeChunking
 
 MODE_PRECISIONS = ("auto", "fp32", "bf16")
