@@ -83,7 +83,8 @@ from equidiff_core.control.metrics import percentiles_ms
 from equidiff_core.perception.observation import MAX_FUTURE_STAMP_S, STATE_TOLERANCE_S, StateHistory, ee_input
 from equidiff_core.policy.chunk_sizing import ChunkSizing
 from equidiff_core.policy.file import CheckpointError
-from equidiff_core.policy.inference import PRECISIONS, load_inference_policy
+from equidiff_core.policy.inference import load_inference_policy
+from equidiff_core.runtime.machine import PRECISIONS
 from equidiff_core.wire import rosmsg
 from equidiff_core.wire.chunk import (
     DEFAULT_EXECUTE_STEPS,

@@ -40,7 +40,7 @@ from ..models.cpu_kernels import (
     swap_modules,
 )
 from ..models.sampling import ActionCodec, _guided_noise, ddim_sample, make_inference_scheduler
-from ..runtime.machine import cpu_has_native_bf16
+from ..runtime.machine import PRECISIONS, cpu_has_native_bf16
 from .augment import voxel_input
 from .diffusion import PolicyInputError
 from .file import (
@@ -52,8 +52,6 @@ from .file import (
 )
 from .normalizer import Normalizer, NormalizerError
 from .presets import PolicyPreset, preset_from_dict
-
-PRECISIONS = ("fp32", "bf16", "auto")
 
 
 def load_inference_policy(
