@@ -28,7 +28,9 @@ import re
 import sys
 import time
 
+from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.node import Node
+from sensor_msgs.msg import PointCloud2
 
 from equidiff_core.config import Bounds, ConfigError, LabConfig
 from equidiff_core.perception.fusion import CloudFusion
@@ -136,15 +138,12 @@ class VoxelNode(Node):
         self.fusion = CloudFusion(dataclasses.replace(self.lab, observation_hz=hz), self.slop_ns, queue_size, cleanup)
         self.matcher = self.fusion.matcher  # the camera queues: their ages say which camera is stale
         self.factory = rosmsg.RclpyFactory()
-        cloud_type = self.factory.cls("sensor_msgs/msg/PointCloud2")
         for cam in self.cameras:
             self.create_subscription(
-                cloud_type, cam.topic, lambda msg, cam=cam: self._on_cloud(cam, msg), cloud_qos(reliable)
+                PointCloud2, cam.topic, lambda msg, cam=cam: self._on_cloud(cam, msg), cloud_qos(reliable)
             )
-        self.pub = self.create_publisher(cloud_type, TOPIC_VOXELS, VOXEL_QOS)
-        self.diag_pub = self.create_publisher(
-            self.factory.cls("diagnostic_msgs/msg/DiagnosticArray"), TOPIC_DIAGNOSTICS, RELIABLE_QOS
-        )
+        self.pub = self.create_publisher(PointCloud2, TOPIC_VOXELS, VOXEL_QOS)
+        self.diag_pub = self.create_publisher(DiagnosticArray, TOPIC_DIAGNOSTICS, RELIABLE_QOS)
         self.dropped = {n: 0 for n in self.names}
         self.dropped_by_reason: collections.Counter[str] = collections.Counter()
         self.last_drop = ""
