@@ -52,17 +52,8 @@ from equidiff_core.config import Bounds, ConfigError, parse_yaml
 from equidiff_core.perception.sync import PublishPacer
 from equidiff_core.wire import rosmsg
 from equidiff_core.wire.pointcloud import cloud_to_msg
-from equidiff_core.wire.topics import camera_color_topic
-from equidiff_ros.common import (
-    LATCHED_QOS,
-    RELIABLE_QOS,
-    TOPIC_DIAGNOSTICS,
-    TOPIC_TF_STATIC,
-    cloud_qos,
-    declare_lab_config,
-    now_ns,
-    wait_for_clock,
-)
+from equidiff_core.wire.topics import TOPIC_DIAGNOSTICS, TOPIC_TF_STATIC, camera_color_topic
+from equidiff_ros.common import LATCHED_QOS, RELIABLE_QOS, cloud_qos, declare_lab_config, now_ns, wait_for_clock
 from equidiff_ros.parameters import LAB_CONFIG, NodeParameter, NodeParameters, parameters_help
 from equidiff_ros.runner import run_node
 

@@ -52,21 +52,18 @@ from equidiff_core.control import AcknowledgeRefused, Controller, check_home_ins
 from equidiff_core.robots import BACKENDS, RobotError, make_robot
 from equidiff_core.wire import rosmsg
 from equidiff_core.wire.chunk import ChunkError, chunk_from_msg
-from equidiff_core.wire.topics import SERVICE_FRANKA_ACKNOWLEDGE, SERVICE_FRANKA_HOME, TOPIC_FRANKA_STATUS
-from equidiff_ros.common import (
-    LATCHED_QOS,
-    RELIABLE_QOS,
+from equidiff_core.wire.topics import (
+    SERVICE_FRANKA_ACKNOWLEDGE,
+    SERVICE_FRANKA_HOME,
     TOPIC_COMMAND_CHUNK,
     TOPIC_DIAGNOSTICS,
     TOPIC_EE_POSE,
     TOPIC_EXECUTED_TARGET,
+    TOPIC_FRANKA_STATUS,
     TOPIC_JOINT_STATES,
     TOPIC_TF,
-    declare_lab_config,
-    node_clock,
-    now_ns,
-    wait_for_clock,
 )
+from equidiff_ros.common import LATCHED_QOS, RELIABLE_QOS, declare_lab_config, node_clock, now_ns, wait_for_clock
 from equidiff_ros.parameters import LAB_CONFIG, NodeParameter, NodeParameters, bounds_of, parameters_help
 from equidiff_ros.runner import run_node
 

@@ -99,23 +99,19 @@ from equidiff_core.wire.chunk import (
 )
 from equidiff_core.wire.pointcloud import CloudError, VoxelGridSpec, voxel_msg_to_grid
 from equidiff_core.wire.rosmsg import RclpyFactory, stamp_to_ns
-from equidiff_core.wire.topics import SERVICE_POLICY_ENABLE, TOPIC_POLICY_EPISODE
-from equidiff_ros.common import (
-    LATCHED_QOS,
-    RELIABLE_QOS,
+from equidiff_core.wire.topics import (
+    SERVICE_POLICY_ENABLE,
     TOPIC_COMMAND_CHUNK,
     TOPIC_DIAGNOSTICS,
     TOPIC_EE_POSE,
     TOPIC_JOINT_STATES,
+    TOPIC_POLICY_EPISODE,
     TOPIC_POLICY_SKIPPED,
     TOPIC_POLICY_STATE,
     TOPIC_TELEOP_ACTIVE,
     TOPIC_VOXELS,
-    VOXEL_READER_QOS,
-    declare_lab_config,
-    now_ns,
-    wait_for_clock,
 )
+from equidiff_ros.common import LATCHED_QOS, RELIABLE_QOS, VOXEL_READER_QOS, declare_lab_config, now_ns, wait_for_clock
 from equidiff_ros.parameters import LAB_CONFIG, NodeParameter, NodeParameters, bounds_of, parameters_help
 from equidiff_ros.runner import run_node
 

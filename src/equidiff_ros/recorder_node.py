@@ -61,9 +61,7 @@ from equidiff_core.wire import rosmsg, topics
 from equidiff_core.wire.chunk import ChunkError, chunk_from_msg
 from equidiff_core.wire.pointcloud import CloudError, VoxelGridSpec, voxel_msg_to_grid
 from equidiff_core.wire.rosmsg import MessageError, RclpyFactory, gripper_width_from_joint_state, pose_from_msg
-from equidiff_ros.common import (
-    LATCHED_QOS,
-    RELIABLE_QOS,
+from equidiff_core.wire.topics import (
     TOPIC_COMMAND_CHUNK,
     TOPIC_DIAGNOSTICS,
     TOPIC_EE_POSE,
@@ -71,11 +69,8 @@ from equidiff_ros.common import (
     TOPIC_RECORDER_COMMAND,
     TOPIC_TELEOP_ACTIVE,
     TOPIC_VOXELS,
-    declare_config,
-    declare_lab_config,
-    now_ns,
-    wait_for_clock,
 )
+from equidiff_ros.common import LATCHED_QOS, RELIABLE_QOS, declare_config, declare_lab_config, now_ns, wait_for_clock
 from equidiff_ros.parameters import LAB_CONFIG, NodeParameter, NodeParameters, config_parameters, parameters_help
 from equidiff_ros.runner import run_node
 

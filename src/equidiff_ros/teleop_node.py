@@ -56,16 +56,18 @@ from equidiff_core.wire.rosmsg import (
     gripper_width_from_joint_state,
     pose_from_msg,
 )
-from equidiff_ros.common import (
-    LATCHED_QOS,
-    RELIABLE_QOS,
-    SENSOR_QOS,
+from equidiff_core.wire.topics import (
     TOPIC_COMMAND_CHUNK,
     TOPIC_DIAGNOSTICS,
     TOPIC_EE_POSE,
     TOPIC_JOINT_STATES,
     TOPIC_JOY,
     TOPIC_TELEOP_ACTIVE,
+)
+from equidiff_ros.common import (
+    LATCHED_QOS,
+    RELIABLE_QOS,
+    SENSOR_QOS,
     declare_config,
     declare_lab_config,
     now_ns,

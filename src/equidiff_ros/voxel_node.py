@@ -38,16 +38,8 @@ from equidiff_core.perception.observation import MAX_FUTURE_STAMP_S
 from equidiff_core.perception.voxels import VoxelError, VoxelizerConfig
 from equidiff_core.wire import rosmsg
 from equidiff_core.wire.pointcloud import CloudError, CloudReason, grid_to_voxel_msg, msg_to_cloud
-from equidiff_ros.common import (
-    RELIABLE_QOS,
-    TOPIC_DIAGNOSTICS,
-    TOPIC_VOXELS,
-    VOXEL_QOS,
-    cloud_qos,
-    declare_lab_config,
-    now_ns,
-    wait_for_clock,
-)
+from equidiff_core.wire.topics import TOPIC_DIAGNOSTICS, TOPIC_VOXELS
+from equidiff_ros.common import RELIABLE_QOS, VOXEL_QOS, cloud_qos, declare_lab_config, now_ns, wait_for_clock
 from equidiff_ros.parameters import LAB_CONFIG, NodeParameter, NodeParameters, bounds_of, parameters_help
 from equidiff_ros.runner import run_node
 
