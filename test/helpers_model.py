@@ -9,7 +9,7 @@ def export_tiny_baseline(path):
     """An untrained export of the baseline at the tiny preset: loads and predicts in a fraction of
     a second, and a node treats every exported policy alike."""
     from equidiff_core.policy.diffusion import make_policy
-    from equidiff_core.policy.inference import export_policy
+    from equidiff_core.policy.file import export_policy
     from equidiff_core.policy.normalizer import Normalizer
     from equidiff_core.policy.presets import get_preset
 

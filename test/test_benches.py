@@ -18,7 +18,8 @@ from equidiff_core.benches.demo_sets import nested_subsets
 from equidiff_core.benches.training_runs import Recipe, fit_ratios, train_command, training_fit, under_fit
 from equidiff_core.config import Workspace
 from equidiff_core.policy.diffusion import make_policy
-from equidiff_core.policy.inference import export_policy, load_inference_policy
+from equidiff_core.policy.file import export_policy
+from equidiff_core.policy.inference import load_inference_policy
 from equidiff_core.policy.normalizer import Normalizer
 from equidiff_core.policy.presets import get_preset
 from equidiff_core.training.job import TrainingSpec

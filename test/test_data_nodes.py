@@ -97,7 +97,8 @@ def wait_status(ros: RosHarness, prefix: str, timeout: float = 20.0) -> str:
 
 
 def publishers(ros: RosHarness):
-    from equidiff_ros.common import RELIABLE_QOS, TOPIC_RECORDER_COMMAND
+    from equidiff_core.wire.topics import TOPIC_RECORDER_COMMAND
+    from equidiff_ros.common import RELIABLE_QOS
 
     types = {
         "/voxels": "sensor_msgs/msg/PointCloud2",

@@ -26,7 +26,8 @@ from equidiff_core.training.batches import (
     loader_batches,
     make_sampler,
 )
-from equidiff_core.training.loop import TrainConfig, resolve_precision, train
+from equidiff_core.training.config import TrainConfig, resolve_precision
+from equidiff_core.training.loop import train
 
 ROOT = Path(__file__).resolve().parents[1]
 SAMPLE_BAG = ROOT / "bags" / "sample_pick_0000"

@@ -12,7 +12,8 @@ import torch
 from equidiff_core.config import Workspace
 from equidiff_core.models import equivariance
 from equidiff_core.policy.diffusion import make_policy
-from equidiff_core.policy.inference import export_policy, load_inference_policy
+from equidiff_core.policy.file import export_policy
+from equidiff_core.policy.inference import load_inference_policy
 from equidiff_core.policy.normalizer import Normalizer
 from equidiff_core.policy.presets import get_preset
 from equidiff_core.twin.config import load_twin_config
@@ -168,7 +169,8 @@ def test_check_equivariance_of_the_baseline_has_no_second_baseline(capsys):
 @pytest.mark.slow  # ~15 s: every path (bf16 emulated on AVX2 CPUs), 7 rotations, DDIM
 def test_check_equivariance_of_a_training_checkpoint(tmp_path, capsys):
     from equidiff_core.data.synthetic import CubeDataset
-    from equidiff_core.training.loop import TrainConfig, train
+    from equidiff_core.training.config import TrainConfig
+    from equidiff_core.training.loop import train
     from equidiff_ros.cli import main
 
     cfg = TrainConfig(

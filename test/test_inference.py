@@ -13,12 +13,8 @@ import torch
 from equidiff_core.config import Workspace
 from equidiff_core.models.equivariance import random_observation, twin_scenes
 from equidiff_core.policy.diffusion import PolicyInputError, make_policy
-from equidiff_core.policy.inference import (
-    CheckpointError,
-    export_policy,
-    load_inference_policy,
-    read_policy_file,
-)
+from equidiff_core.policy.file import CheckpointError, export_policy, read_policy_file
+from equidiff_core.policy.inference import load_inference_policy
 from equidiff_core.policy.normalizer import Normalizer
 from equidiff_core.policy.presets import get_preset
 from equidiff_core.twin.config import load_twin_config
@@ -203,7 +199,7 @@ def test_cuda_graph_replays_the_traced_policys_actions(exported):
 
 @pytest.mark.parametrize("kernel, stride, padding, bias", [(5, 1, 2, True), (3, 2, 1, True), (1, 1, 0, False)])
 def test_matmul_conv1d_equals_conv1d(kernel, stride, padding, bias):
-    from equidiff_core.policy.inference import MatmulConv1d
+    from equidiff_core.models.cpu_kernels import MatmulConv1d
 
     torch.manual_seed(0)
     conv = torch.nn.Conv1d(12, 20, kernel, stride, padding, bias=bias)
@@ -215,7 +211,7 @@ def test_matmul_conv1d_equals_conv1d(kernel, stride, padding, bias):
 
 @pytest.mark.parametrize("channels, steps, bias", [(12, 4, True), (7, 5, False), (16, 1, True)])
 def test_matmul_conv_transpose1d_equals_conv_transpose1d(channels, steps, bias):
-    from equidiff_core.policy.inference import MatmulConvTranspose1d
+    from equidiff_core.models.cpu_kernels import MatmulConvTranspose1d
 
     torch.manual_seed(0)
     conv = torch.nn.ConvTranspose1d(channels, channels + 3, 4, 2, 1, bias=bias)  # the U-Net's upsampler
@@ -226,7 +222,7 @@ def test_matmul_conv_transpose1d_equals_conv_transpose1d(channels, steps, bias):
 
 
 def test_fast_mish_equals_mish():
-    from equidiff_core.policy.inference import FastMish
+    from equidiff_core.models.cpu_kernels import FastMish
 
     x = torch.cat([torch.linspace(-60.0, 60.0, 20001), torch.tensor([-1e4, 1e4, 0.0])])
     torch.testing.assert_close(FastMish()(x), torch.nn.functional.mish(x), rtol=1e-5, atol=1e-6)

@@ -52,7 +52,8 @@ def test_bad_messages_are_dropped_counted_and_the_nodes_go_on(ros_domain, checkp
 
     from equidiff_core.data.bags import read_episode
     from equidiff_core.twin.processes import start_node, stop_process
-    from equidiff_ros.common import RELIABLE_QOS, SENSOR_QOS, TOPIC_EE_POSE, TOPIC_JOINT_STATES
+    from equidiff_core.wire.topics import TOPIC_EE_POSE, TOPIC_JOINT_STATES
+    from equidiff_ros.common import RELIABLE_QOS, SENSOR_QOS
     from equidiff_ros.control_client import ControlClient
 
     lab = load_lab_config(LAB_PATH)

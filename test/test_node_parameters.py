@@ -74,7 +74,7 @@ def _started(kind: str):
 
     from equidiff_core.cameras import CameraError
     from equidiff_core.config import ConfigError
-    from equidiff_core.policy.inference import CheckpointError
+    from equidiff_core.policy.file import CheckpointError
 
     module = importlib.import_module(f"equidiff_ros.{kind}")
     expected_error = {"camera_node": CameraError, "policy_node": CheckpointError, "twin_node": ConfigError}

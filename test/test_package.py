@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from equidiff_ros.cli import COMMANDS, build_parser
+from equidiff_ros.cli import COMMANDS, GROUPS, build_parser
 
 ROOT = Path(__file__).resolve().parents[1]
 NODES = ["camera_node", "voxel_node", "policy_node", "franka_node", "teleop_node", "recorder_node", "twin_node"]
@@ -108,6 +108,18 @@ def test_every_command_parses_its_own_arguments(path, capsys):
     assert usage.startswith(f"usage: equidiff {' '.join(path)} ")
     has_subcommands = any(len(p) > len(path) and list(p[: len(path)]) == path for p in COMMANDS)
     assert ("SUBCOMMAND" in usage) == has_subcommands, usage
+
+
+def test_every_command_group_says_what_it_is_for(capsys):
+    """`equidiff --help` describes each group by its purpose, not as "<group> commands"."""
+    with pytest.raises(SystemExit):
+        build_parser(["--help"]).parse_args(["--help"])
+    usage = " ".join(capsys.readouterr().out.split())  # argparse wraps the help column
+    groups = {path[0] for path in COMMANDS if len(path) > 1}
+    assert set(GROUPS) == groups - {path[0] for path in COMMANDS if len(path) == 1}  # lab says its own command's
+    for group, purpose in GROUPS.items():
+        assert f"{group} {purpose}" in usage
+    assert not [group for group in groups if f"{group} commands" in usage], usage
 
 
 def test_a_leaf_command_takes_a_positional_bag():

@@ -40,7 +40,7 @@ def run_node(module: str, *ros_args: str, timeout: float = 120) -> subprocess.Co
 @pytest.fixture(scope="module")
 def checkpoint(tmp_path_factory):
     from equidiff_core.policy.diffusion import make_policy
-    from equidiff_core.policy.inference import export_policy
+    from equidiff_core.policy.file import export_policy
     from equidiff_core.policy.normalizer import Normalizer
     from equidiff_core.policy.presets import get_preset
 
@@ -473,8 +473,7 @@ def test_latency_auto_measures_on_the_sim_clock_converges_and_bridges(ros_domain
     from equidiff_core.wire import rosmsg
     from equidiff_core.wire.pointcloud import grid_to_voxel_msg
     from equidiff_core.wire.rosmsg import RclpyFactory
-    from equidiff_ros.common import (
-        RELIABLE_QOS,
+    from equidiff_core.wire.topics import (
         TOPIC_COMMAND_CHUNK,
         TOPIC_DIAGNOSTICS,
         TOPIC_EE_POSE,
@@ -482,6 +481,7 @@ def test_latency_auto_measures_on_the_sim_clock_converges_and_bridges(ros_domain
         TOPIC_POLICY_SKIPPED,
         TOPIC_VOXELS,
     )
+    from equidiff_ros.common import RELIABLE_QOS
     from equidiff_ros.policy_node import PolicyNode
 
     lab = load_lab_config(LAB_PATH)

@@ -12,7 +12,8 @@ from equidiff_core.config import Workspace
 from equidiff_core.models import action_space, equivariance
 from equidiff_core.models.sampling import ddim_sample
 from equidiff_core.policy.diffusion import PolicyInputError, make_policy
-from equidiff_core.policy.inference import export_policy, load_inference_policy
+from equidiff_core.policy.file import export_policy
+from equidiff_core.policy.inference import load_inference_policy
 from equidiff_core.policy.normalizer import Normalizer
 from equidiff_core.policy.presets import get_preset
 from equidiff_core.twin.config import load_twin_config

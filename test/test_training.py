@@ -10,14 +10,13 @@ import torch
 from equidiff_core.config import ConfigError, Workspace, from_dict
 from equidiff_core.data.synthetic import CubeDataset
 from equidiff_core.policy.diffusion import make_policy
-from equidiff_core.policy.inference import CheckpointError, load_inference_policy
+from equidiff_core.policy.file import CheckpointError
+from equidiff_core.policy.inference import load_inference_policy
 from equidiff_core.policy.presets import get_preset
+from equidiff_core.training.config import TrainConfig, TrainingError, resolve_device
 from equidiff_core.training.loop import (
-    TrainConfig,
-    TrainingError,
     load_policy_from_checkpoint,
     load_training_checkpoint,
-    resolve_device,
     train,
     without_optimizer_state,
 )
@@ -114,7 +113,7 @@ def test_a_checkpoint_loads_with_the_ema_weights_that_training_exported(tmp_path
     """A run with an EMA exports the averaged weights to policy.pt; ``load_policy_from_checkpoint``
     on its last.ckpt must give that same policy (it gave the raw training weights, so
     ``equidiff check-equivariance --checkpoint last.ckpt`` measured weights no robot runs)."""
-    from equidiff_core.policy.inference import read_policy_file
+    from equidiff_core.policy.file import read_policy_file
 
     ds = CubeDataset(3, seed=6)
     trained = make_policy("baseline", get_preset("tiny"), WS)

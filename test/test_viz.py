@@ -544,6 +544,7 @@ def test_training_callback_with_the_real_trainer(tmp_path):
 
     from equidiff_core.policy.diffusion import make_policy
     from equidiff_core.policy.presets import get_preset
+    from equidiff_core.training.config import TrainConfig
     from equidiff_core.viz.training_callback import RerunTrainingCallback
 
     preset = get_preset("tiny")
@@ -560,7 +561,7 @@ def test_training_callback_with_the_real_trainer(tmp_path):
                 "action": torch.from_numpy(s["gt"]),
             }
         )
-    cfg = training.TrainConfig(
+    cfg = TrainConfig(
         steps=4,
         batch_size=4,
         warmup_steps=1,

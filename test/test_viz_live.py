@@ -55,17 +55,15 @@ def test_live_viz_logs_real_topics_to_a_readable_rrd(ros_domain, tmp_path):
     from sensor_msgs.msg import CompressedImage, JointState, PointCloud2
     from trajectory_msgs.msg import MultiDOFJointTrajectory
 
-    from equidiff_ros.common import (
-        RELIABLE_QOS,
-        SENSOR_QOS,
+    from equidiff_core.wire.topics import (
         TOPIC_COMMAND_CHUNK,
         TOPIC_DIAGNOSTICS,
         TOPIC_EE_POSE,
         TOPIC_EXECUTED_TARGET,
         TOPIC_JOINT_STATES,
         TOPIC_VOXELS,
-        VOXEL_QOS,
     )
+    from equidiff_ros.common import RELIABLE_QOS, SENSOR_QOS, VOXEL_QOS
 
     out = tmp_path / "live.rrd"
     env = dict(os.environ, OMP_NUM_THREADS="1", PYTHONUNBUFFERED="1")

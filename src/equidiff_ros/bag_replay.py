@@ -18,8 +18,8 @@ from equidiff_core.data.bags import BagError, verify_bag
 from equidiff_core.wire.chunk import chunk_from_msg
 from equidiff_core.wire.rosmsg import RclpyFactory, position_from_msg, split_ns, stamp_to_ns
 from equidiff_core.wire.topics import TOPIC_COMMAND_CHUNK as COMMAND_TOPIC
-from equidiff_core.wire.topics import TOPIC_TF_STATIC
-from equidiff_ros.common import LATCHED_QOS, SENSOR_QOS, TOPIC_EE_POSE
+from equidiff_core.wire.topics import TOPIC_EE_POSE, TOPIC_TF_STATIC
+from equidiff_ros.common import LATCHED_QOS, SENSOR_QOS
 
 
 def shift_stamps(msg, offset_ns: int) -> None:

@@ -34,7 +34,9 @@ import sys
 import threading
 import time
 
+from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.node import Node
+from sensor_msgs.msg import CompressedImage, PointCloud2
 
 from equidiff_core.cameras import (
     BACKENDS,
@@ -50,17 +52,8 @@ from equidiff_core.config import Bounds, ConfigError, parse_yaml
 from equidiff_core.perception.sync import PublishPacer
 from equidiff_core.wire import rosmsg
 from equidiff_core.wire.pointcloud import cloud_to_msg
-from equidiff_core.wire.topics import COMPRESSED_IMAGE_TYPE, camera_color_topic
-from equidiff_ros.common import (
-    LATCHED_QOS,
-    RELIABLE_QOS,
-    TOPIC_DIAGNOSTICS,
-    TOPIC_TF_STATIC,
-    cloud_qos,
-    declare_lab_config,
-    now_ns,
-    wait_for_clock,
-)
+from equidiff_core.wire.topics import TOPIC_DIAGNOSTICS, TOPIC_TF_STATIC, camera_color_topic
+from equidiff_ros.common import LATCHED_QOS, RELIABLE_QOS, cloud_qos, declare_lab_config, now_ns, wait_for_clock
 from equidiff_ros.parameters import LAB_CONFIG, NodeParameter, NodeParameters, parameters_help
 from equidiff_ros.runner import run_node
 
@@ -145,14 +138,11 @@ class CameraNode(Node):
         except CameraError:
             self._disconnect_all()
             raise
-        self.pubs = {
-            c.name: self.create_publisher(self._cloud_type(), c.topic, cloud_qos(reliable)) for c in self.configs
-        }
+        self.pubs = {c.name: self.create_publisher(PointCloud2, c.topic, cloud_qos(reliable)) for c in self.configs}
         self.color_pubs = {}
         if self.publish_color:
-            image_type = self.factory.cls(COMPRESSED_IMAGE_TYPE)
             self.color_pubs = {
-                c.name: self.create_publisher(image_type, camera_color_topic(c.name), cloud_qos(reliable))
+                c.name: self.create_publisher(CompressedImage, camera_color_topic(c.name), cloud_qos(reliable))
                 for c in self.configs
             }
         self.stats = {
@@ -160,9 +150,7 @@ class CameraNode(Node):
             for c in self.configs
         }
         self._publish_tf_static()
-        self.diag_pub = self.create_publisher(
-            self.factory.cls("diagnostic_msgs/msg/DiagnosticArray"), TOPIC_DIAGNOSTICS, RELIABLE_QOS
-        )
+        self.diag_pub = self.create_publisher(DiagnosticArray, TOPIC_DIAGNOSTICS, RELIABLE_QOS)
         self.create_timer(1.0, self._publish_diagnostics)
         self._stop = threading.Event()
         self.threads = [
@@ -176,19 +164,16 @@ class CameraNode(Node):
         ]
         self.get_logger().info(f"{self.backend} backend: publishing {published}")
 
-    def _cloud_type(self):
-        return self.factory.cls("sensor_msgs/msg/PointCloud2")
-
     def _publish_tf_static(self):
         try:
-            tf_type = self.factory.cls("tf2_msgs/msg/TFMessage")
+            from tf2_msgs.msg import TFMessage
         except ImportError:
             self.get_logger().info(
                 "tf2_msgs is not installed: /tf_static is not published "
                 "(the recorder writes the camera extrinsics into bags)"
             )
             return
-        self.tf_pub = self.create_publisher(tf_type, TOPIC_TF_STATIC, LATCHED_QOS)
+        self.tf_pub = self.create_publisher(TFMessage, TOPIC_TF_STATIC, LATCHED_QOS)
         self.tf_pub.publish(extrinsics_tf_message(self.configs, self.lab.base_frame, now_ns(self), self.factory))
 
     def _run(self, cfg, camera):

@@ -79,6 +79,18 @@ COMMANDS: dict[tuple[str, ...], tuple[str, str]] = {
     ),
 }
 
+# (group) -> what its subcommands are for; a group with its own command (`equidiff lab`) says that command's help
+GROUPS: dict[str, str] = {
+    "dataset": "inspect, pack and re-voxelise recorded episodes for training",
+    "bags": "recover recorded bags that a killed recorder left unfinished",
+    "check": "check what a trained policy learned: its equivariance and whether it looks at its observation",
+    "bench": "measure speed, control, safety and learning: the benchmarks behind the documented figures",
+    "twin": "the digital twin: record expert demonstrations and evaluate policies in simulation",
+    "export": "convert recorded bags to other dataset formats",
+    "calibrate": "find and check the cameras' extrinsics",
+    "cameras": "the RealSense cameras connected to this machine",
+}
+
 
 def _load(module: str):
     return importlib.import_module(f"equidiff_ros.commands.{module}")
@@ -95,7 +107,7 @@ def build_parser(argv: list[str]) -> argparse.ArgumentParser:
             leaf = root.add_parser(path[0], help=help_text, description=help_text)
         else:
             if path[0] not in groups:
-                own = COMMANDS[(path[0],)][1] if has_own else f"{path[0]} commands"
+                own = COMMANDS[(path[0],)][1] if has_own else GROUPS[path[0]]
                 group = root.add_parser(path[0], help=own, description=own)
                 subs = group.add_subparsers(dest="subcommand", metavar="SUBCOMMAND", required=not has_own)
                 groups[path[0]] = (group, subs)

@@ -22,29 +22,6 @@ from equidiff_core.config import (
     from_dict,
     load_lab_config,
 )
-
-# The topic names, re-exported for the nodes: they are written once, in equidiff_core.wire.topics.
-from equidiff_core.wire.topics import (  # noqa: F401
-    TOPIC_CLOCK,
-    TOPIC_COMMAND_CHUNK,
-    TOPIC_DIAGNOSTICS,
-    TOPIC_EE_POSE,
-    TOPIC_EXECUTED_TARGET,
-    TOPIC_JOINT_STATES,
-    TOPIC_JOY,
-    TOPIC_POLICY_SKIPPED,
-    TOPIC_POLICY_STATE,
-    TOPIC_RECORDER_COMMAND,
-    TOPIC_TELEOP_ACTIVE,
-    TOPIC_TF,
-    TOPIC_TF_STATIC,
-    TOPIC_TWIN_AWAIT_POLICY,
-    TOPIC_TWIN_POLICY_CHUNK,
-    TOPIC_TWIN_RESET,
-    TOPIC_TWIN_SCENE,
-    TOPIC_TWIN_STATE,
-    TOPIC_VOXELS,
-)
 from equidiff_ros.parameters import LAB_CONFIG, config_parameters, declare
 
 SENSOR_QOS = qos_profile_sensor_data  # best effort, volatile, keep last 5

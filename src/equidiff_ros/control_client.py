@@ -28,17 +28,15 @@ from trajectory_msgs.msg import MultiDOFJointTrajectory
 from equidiff_core.geometry import down_pose
 from equidiff_core.wire.chunk import PoseChunk, chunk_to_msg
 from equidiff_core.wire.rosmsg import MessageError, RclpyFactory, diagnostic_entries, position_from_msg, stamp_to_ns
-from equidiff_ros.common import (
-    RELIABLE_QOS,
+from equidiff_core.wire.topics import (
     TOPIC_COMMAND_CHUNK,
     TOPIC_DIAGNOSTICS,
     TOPIC_EE_POSE,
     TOPIC_EXECUTED_TARGET,
     TOPIC_JOINT_STATES,
     TOPIC_VOXELS,
-    VOXEL_QOS,
-    node_clock,
 )
+from equidiff_ros.common import RELIABLE_QOS, VOXEL_QOS, node_clock
 
 MS = 1_000_000
 # Wall seconds the simulated clock may stand still inside one of the client's sleeps by default: far

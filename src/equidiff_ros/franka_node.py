@@ -40,7 +40,10 @@ import time
 from pathlib import Path
 from typing import ClassVar
 
+from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import PoseStamped
 from rclpy.node import Node
+from sensor_msgs.msg import JointState
 from std_msgs.msg import String
 from std_srvs.srv import Trigger
 from trajectory_msgs.msg import MultiDOFJointTrajectory
@@ -50,21 +53,18 @@ from equidiff_core.control import AcknowledgeRefused, Controller, check_home_ins
 from equidiff_core.robots import BACKENDS, RobotError, make_robot
 from equidiff_core.wire import rosmsg
 from equidiff_core.wire.chunk import ChunkError, chunk_from_msg
-from equidiff_core.wire.topics import SERVICE_FRANKA_ACKNOWLEDGE, SERVICE_FRANKA_HOME, TOPIC_FRANKA_STATUS
-from equidiff_ros.common import (
-    LATCHED_QOS,
-    RELIABLE_QOS,
+from equidiff_core.wire.topics import (
+    SERVICE_FRANKA_ACKNOWLEDGE,
+    SERVICE_FRANKA_HOME,
     TOPIC_COMMAND_CHUNK,
     TOPIC_DIAGNOSTICS,
     TOPIC_EE_POSE,
     TOPIC_EXECUTED_TARGET,
+    TOPIC_FRANKA_STATUS,
     TOPIC_JOINT_STATES,
     TOPIC_TF,
-    declare_lab_config,
-    node_clock,
-    now_ns,
-    wait_for_clock,
 )
+from equidiff_ros.common import LATCHED_QOS, RELIABLE_QOS, declare_lab_config, node_clock, now_ns, wait_for_clock
 from equidiff_ros.parameters import LAB_CONFIG, NodeParameter, NodeParameters, bounds_of, parameters_help
 from equidiff_ros.runner import run_node
 
@@ -174,18 +174,15 @@ class FrankaNode(Node):
             logger=log,
         )
 
-        cls = self.factory.cls
-        self.pub_pose = self.create_publisher(cls("geometry_msgs/msg/PoseStamped"), TOPIC_EE_POSE, RELIABLE_QOS)
-        self.pub_joints = self.create_publisher(cls("sensor_msgs/msg/JointState"), TOPIC_JOINT_STATES, RELIABLE_QOS)
-        self.pub_target = self.create_publisher(
-            cls("geometry_msgs/msg/PoseStamped"), TOPIC_EXECUTED_TARGET, RELIABLE_QOS
-        )
-        self.pub_diag = self.create_publisher(
-            cls("diagnostic_msgs/msg/DiagnosticArray"), TOPIC_DIAGNOSTICS, RELIABLE_QOS
-        )
+        self.pub_pose = self.create_publisher(PoseStamped, TOPIC_EE_POSE, RELIABLE_QOS)
+        self.pub_joints = self.create_publisher(JointState, TOPIC_JOINT_STATES, RELIABLE_QOS)
+        self.pub_target = self.create_publisher(PoseStamped, TOPIC_EXECUTED_TARGET, RELIABLE_QOS)
+        self.pub_diag = self.create_publisher(DiagnosticArray, TOPIC_DIAGNOSTICS, RELIABLE_QOS)
         self.pub_tf = None  # base -> TCP on /tf for RViz and ROS hand-eye tools, where tf2_msgs exists
         try:
-            self.pub_tf = self.create_publisher(cls("tf2_msgs/msg/TFMessage"), TOPIC_TF, RELIABLE_QOS)
+            from tf2_msgs.msg import TFMessage
+
+            self.pub_tf = self.create_publisher(TFMessage, TOPIC_TF, RELIABLE_QOS)
         except ImportError:
             self.get_logger().info(
                 "tf2_msgs is not installed: base -> TCP is not published on /tf (/franka/ee_pose carries the same pose)"

@@ -82,7 +82,9 @@ from equidiff_core.control import SafetyConfig
 from equidiff_core.control.metrics import percentiles_ms
 from equidiff_core.perception.observation import MAX_FUTURE_STAMP_S, STATE_TOLERANCE_S, StateHistory, ee_input
 from equidiff_core.policy.chunk_sizing import ChunkSizing
-from equidiff_core.policy.inference import PRECISIONS, CheckpointError, load_inference_policy
+from equidiff_core.policy.file import CheckpointError
+from equidiff_core.policy.inference import load_inference_policy
+from equidiff_core.runtime.machine import PRECISIONS
 from equidiff_core.wire import rosmsg
 from equidiff_core.wire.chunk import (
     DEFAULT_EXECUTE_STEPS,
@@ -97,23 +99,19 @@ from equidiff_core.wire.chunk import (
 )
 from equidiff_core.wire.pointcloud import CloudError, VoxelGridSpec, voxel_msg_to_grid
 from equidiff_core.wire.rosmsg import RclpyFactory, stamp_to_ns
-from equidiff_core.wire.topics import SERVICE_POLICY_ENABLE, TOPIC_POLICY_EPISODE
-from equidiff_ros.common import (
-    LATCHED_QOS,
-    RELIABLE_QOS,
+from equidiff_core.wire.topics import (
+    SERVICE_POLICY_ENABLE,
     TOPIC_COMMAND_CHUNK,
     TOPIC_DIAGNOSTICS,
     TOPIC_EE_POSE,
     TOPIC_JOINT_STATES,
+    TOPIC_POLICY_EPISODE,
     TOPIC_POLICY_SKIPPED,
     TOPIC_POLICY_STATE,
     TOPIC_TELEOP_ACTIVE,
     TOPIC_VOXELS,
-    VOXEL_READER_QOS,
-    declare_lab_config,
-    now_ns,
-    wait_for_clock,
 )
+from equidiff_ros.common import LATCHED_QOS, RELIABLE_QOS, VOXEL_READER_QOS, declare_lab_config, now_ns, wait_for_clock
 from equidiff_ros.parameters import LAB_CONFIG, NodeParameter, NodeParameters, bounds_of, parameters_help
 from equidiff_ros.runner import run_node
 
@@ -432,10 +430,14 @@ class PolicyNode(Node):
             self.set_paused("teleop takeover")
 
     # --- the 5 Hz cycle ------------------------------------------------------------------
-    def skip(self, reason: str, detail: str, stamp: int | None = None) -> None:
-        """Count and report a skip; with the observation's ``stamp``, announce that it gets no chunk."""
-        self.skipped[reason] += 1
-        self.get_logger().warning(f"skipping a cycle: {detail}", throttle_duration_sec=2.0)
+    def skip(self, reason: str, detail: str = "", stamp: int | None = None, counted: bool = True) -> None:
+        """Count a skip (``skipped_<reason>``) and warn of its ``detail``; with the observation's ``stamp``,
+        announce on /policy/skipped that it gets no chunk. No ``detail``: nothing to fix, no warning (paused,
+        or the last chunk still executing). ``counted=False``: a failure, which ``failures`` counts."""
+        if counted:
+            self.skipped[reason] += 1
+        if detail:
+            self.get_logger().warning(f"skipping a cycle: {detail}", throttle_duration_sec=2.0)
         if stamp is not None:
             self.pub_skipped.publish(String(data=json.dumps({"stamp_ns": int(stamp), "reason": reason})))
 
@@ -468,16 +470,11 @@ class PolicyNode(Node):
                     self.chunking.reset()
                 self._episode = None
             if self._paused:
-                self.skipped["paused"] += 1
-                self.pub_skipped.publish(String(data=json.dumps({"stamp_ns": int(stamp), "reason": "paused"})))
-                return
+                return self.skip("paused", stamp=stamp)
             with self._lock:
                 self.sizing.follow_latency()
             if not self.sizing.answers.due(stamp):
-                # the last chunk is still being executed: no warning, this is the schedule
-                self.skipped["executing"] += 1
-                self.pub_skipped.publish(String(data=json.dumps({"stamp_ns": int(stamp), "reason": "executing"})))
-                return
+                return self.skip("executing", stamp=stamp)  # the last chunk still runs: the schedule, no warning
             age = now_ns(self) - stamp
             if age > self.max_obs_age_ns:
                 return self.skip(
@@ -520,9 +517,7 @@ class PolicyNode(Node):
                 steps = self.sizing.publish_steps()
             chunk = chunk_from_actions(actions[:steps], stamp, self.sizing.dt_ns)
             if self._paused:  # paused while it ran: the operator has the arm now
-                self.skipped["paused"] += 1
-                self.pub_skipped.publish(String(data=json.dumps({"stamp_ns": int(stamp), "reason": "paused"})))
-                return
+                return self.skip("paused", stamp=stamp)
             self.pub_chunk.publish(chunk_to_msg(chunk, self.factory, self.lab.base_frame))
             with self._lock:  # the diagnostics read both as a pair
                 self.inference_s.append(inference)
@@ -532,7 +527,7 @@ class PolicyNode(Node):
         except Exception as err:  # noqa: BLE001 - bad input or a bad prediction: skip it, say why, keep serving
             self.failures += 1
             self.get_logger().error(f"inference failed: {type(err).__name__}: {err}", throttle_duration_sec=2.0)
-            self.pub_skipped.publish(String(data=json.dumps({"stamp_ns": int(stamp), "reason": "failure"})))
+            self.skip("failure", stamp=stamp, counted=False)
         finally:
             with self._cycle_lock:
                 self._busy = False

@@ -41,9 +41,12 @@ import collections
 import sys
 import threading
 
+from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.serialization import deserialize_message
+from std_msgs.msg import Bool, String
+from std_srvs.srv import Trigger
 
 from equidiff_core.data.bags import EpisodeMeta
 from equidiff_core.data.recording import (
@@ -58,9 +61,7 @@ from equidiff_core.wire import rosmsg, topics
 from equidiff_core.wire.chunk import ChunkError, chunk_from_msg
 from equidiff_core.wire.pointcloud import CloudError, VoxelGridSpec, voxel_msg_to_grid
 from equidiff_core.wire.rosmsg import MessageError, RclpyFactory, gripper_width_from_joint_state, pose_from_msg
-from equidiff_ros.common import (
-    LATCHED_QOS,
-    RELIABLE_QOS,
+from equidiff_core.wire.topics import (
     TOPIC_COMMAND_CHUNK,
     TOPIC_DIAGNOSTICS,
     TOPIC_EE_POSE,
@@ -68,11 +69,8 @@ from equidiff_ros.common import (
     TOPIC_RECORDER_COMMAND,
     TOPIC_TELEOP_ACTIVE,
     TOPIC_VOXELS,
-    declare_config,
-    declare_lab_config,
-    now_ns,
-    wait_for_clock,
 )
+from equidiff_ros.common import LATCHED_QOS, RELIABLE_QOS, declare_config, declare_lab_config, now_ns, wait_for_clock
 from equidiff_ros.parameters import LAB_CONFIG, NodeParameter, NodeParameters, config_parameters, parameters_help
 from equidiff_ros.runner import run_node
 
@@ -201,12 +199,8 @@ class RecorderNode(Node):
             else:
                 qos = RECORD_SENSOR_QOS if topic in BEST_EFFORT_TOPICS else RECORD_RELIABLE_QOS
             self.create_subscription(self.factory.cls(msgtype), topic, self._writer_cb(topic, msgtype), qos, raw=True)
-        String = self.factory.cls("std_msgs/msg/String")
-        Trigger = self.factory.cls("std_srvs/srv/Trigger")
         self.status_pub = self.create_publisher(String, topics.TOPIC_RECORDER_STATUS, LATCHED_QOS)
-        self.create_subscription(
-            self.factory.cls("std_msgs/msg/Bool"), TOPIC_TELEOP_ACTIVE, self.on_teleop_active, LATCHED_QOS
-        )
+        self.create_subscription(Bool, TOPIC_TELEOP_ACTIVE, self.on_teleop_active, LATCHED_QOS)
         self.create_subscription(String, TOPIC_RECORDER_COMMAND, self.on_command, RELIABLE_QOS)
         self.create_service(Trigger, topics.SERVICE_RECORDER_START, self._service(self.start))
         self.create_service(Trigger, topics.SERVICE_RECORDER_STOP, self._service(lambda: self.stop(success=True)))
@@ -215,9 +209,7 @@ class RecorderNode(Node):
         )
         self.create_service(Trigger, topics.SERVICE_RECORDER_DISCARD, self._service(self.discard))
         self.create_timer(0.5, self.housekeeping)
-        self.diag_pub = self.create_publisher(
-            self.factory.cls("diagnostic_msgs/msg/DiagnosticArray"), TOPIC_DIAGNOSTICS, RELIABLE_QOS
-        )
+        self.diag_pub = self.create_publisher(DiagnosticArray, TOPIC_DIAGNOSTICS, RELIABLE_QOS)
         self.create_timer(1.0, self.publish_diagnostics)
         self.publish_status()
         self.get_logger().info(f"recording {sorted(self.topics)} to {self.cfg.output_dir}/")
@@ -341,7 +333,6 @@ class RecorderNode(Node):
             self.get_logger().error(f"{TOPIC_RECORDER_COMMAND}: {err}")
 
     def publish_status(self):
-        String = self.factory.cls("std_msgs/msg/String")
         writer = self.writer
         self.status_pub.publish(String(data="idle" if writer is None else f"recording {writer.path}"))
 

@@ -31,7 +31,12 @@ import collections
 import dataclasses
 import sys
 
+from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import PoseStamped
 from rclpy.node import Node
+from sensor_msgs.msg import JointState, Joy
+from std_msgs.msg import Bool
+from trajectory_msgs.msg import MultiDOFJointTrajectory
 
 from equidiff_core.config import Bounds
 from equidiff_core.lab.teleop import (
@@ -51,16 +56,18 @@ from equidiff_core.wire.rosmsg import (
     gripper_width_from_joint_state,
     pose_from_msg,
 )
-from equidiff_ros.common import (
-    LATCHED_QOS,
-    RELIABLE_QOS,
-    SENSOR_QOS,
+from equidiff_core.wire.topics import (
     TOPIC_COMMAND_CHUNK,
     TOPIC_DIAGNOSTICS,
     TOPIC_EE_POSE,
     TOPIC_JOINT_STATES,
     TOPIC_JOY,
     TOPIC_TELEOP_ACTIVE,
+)
+from equidiff_ros.common import (
+    LATCHED_QOS,
+    RELIABLE_QOS,
+    SENSOR_QOS,
     declare_config,
     declare_lab_config,
     now_ns,
@@ -111,29 +118,20 @@ class TeleopNode(Node):
         self.dropped: collections.Counter[str] = collections.Counter()  # by ``<topic>_<reason>``
         self.last_drop = ""
 
-        self.pub = self.create_publisher(
-            self.factory.cls("trajectory_msgs/msg/MultiDOFJointTrajectory"), TOPIC_COMMAND_CHUNK, RELIABLE_QOS
-        )
-        self.Bool = self.factory.cls("std_msgs/msg/Bool")
-        self.pub_active = self.create_publisher(self.Bool, TOPIC_TELEOP_ACTIVE, LATCHED_QOS)
+        self.pub = self.create_publisher(MultiDOFJointTrajectory, TOPIC_COMMAND_CHUNK, RELIABLE_QOS)
+        self.pub_active = self.create_publisher(Bool, TOPIC_TELEOP_ACTIVE, LATCHED_QOS)
         self.taken_over = False
-        self.pub_active.publish(self.Bool(data=False))
-        self.create_subscription(
-            self.factory.cls("geometry_msgs/msg/PoseStamped"), TOPIC_EE_POSE, self.on_pose, SENSOR_QOS
-        )
-        self.create_subscription(
-            self.factory.cls("sensor_msgs/msg/JointState"), TOPIC_JOINT_STATES, self.on_joints, SENSOR_QOS
-        )
+        self.pub_active.publish(Bool(data=False))
+        self.create_subscription(PoseStamped, TOPIC_EE_POSE, self.on_pose, SENSOR_QOS)
+        self.create_subscription(JointState, TOPIC_JOINT_STATES, self.on_joints, SENSOR_QOS)
         self.device = None
         if self.cfg.source == "spacemouse":
             self.device = SpaceMouseSource(self.cfg.device)
             self.device.connect()  # TeleopError names what was looked for
         else:
-            self.create_subscription(self.factory.cls("sensor_msgs/msg/Joy"), TOPIC_JOY, self.on_joy, SENSOR_QOS)
+            self.create_subscription(Joy, TOPIC_JOY, self.on_joy, SENSOR_QOS)
         self.create_timer(1.0 / self.cfg.rate_hz, self.tick)
-        self.pub_diag = self.create_publisher(
-            self.factory.cls("diagnostic_msgs/msg/DiagnosticArray"), TOPIC_DIAGNOSTICS, RELIABLE_QOS
-        )
+        self.pub_diag = self.create_publisher(DiagnosticArray, TOPIC_DIAGNOSTICS, RELIABLE_QOS)
         self.create_timer(1.0, self.publish_diagnostics)
         self.get_logger().info(
             f"teleop from {self.cfg.source} ({TOPIC_JOY if self.device is None else 'HID'}), "
@@ -241,7 +239,7 @@ class TeleopNode(Node):
 
     def set_taken_over(self, active: bool):
         self.taken_over = active
-        self.pub_active.publish(self.Bool(data=active))
+        self.pub_active.publish(Bool(data=active))
         self.get_logger().info("operator took over (SpaceMouse)" if active else "operator let go")
 
     def destroy_node(self):

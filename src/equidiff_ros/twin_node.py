@@ -45,9 +45,7 @@ from equidiff_core.twin.lockstep import LockstepConfig
 from equidiff_core.twin.scene import SceneError
 from equidiff_core.twin.sim import TwinSim
 from equidiff_core.wire.rosmsg import header_stamp_ns_from_cdr
-from equidiff_ros.common import (
-    LATCHED_QOS,
-    RELIABLE_QOS,
+from equidiff_core.wire.topics import (
     TOPIC_CLOCK,
     TOPIC_COMMAND_CHUNK,
     TOPIC_POLICY_SKIPPED,
@@ -56,9 +54,8 @@ from equidiff_ros.common import (
     TOPIC_TWIN_SCENE,
     TOPIC_TWIN_STATE,
     TOPIC_VOXELS,
-    VOXEL_QOS,
-    declare_lab_config,
 )
+from equidiff_ros.common import LATCHED_QOS, RELIABLE_QOS, VOXEL_QOS, declare_lab_config
 from equidiff_ros.parameters import LAB_CONFIG, NodeParameter, NodeParameters, parameters_help
 from equidiff_ros.runner import run_node
 

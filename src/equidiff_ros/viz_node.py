@@ -23,20 +23,16 @@ from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
 
 from equidiff_core.config import LabConfig
-from equidiff_core.wire.topics import camera_color_topic
-from equidiff_ros.common import (
-    RELIABLE_QOS,
-    SENSOR_QOS,
+from equidiff_core.wire.topics import (
     TOPIC_COMMAND_CHUNK,
     TOPIC_DIAGNOSTICS,
     TOPIC_EE_POSE,
     TOPIC_EXECUTED_TARGET,
     TOPIC_JOINT_STATES,
     TOPIC_VOXELS,
-    VOXEL_READER_QOS,
-    now_ns,
-    wait_for_clock,
+    camera_color_topic,
 )
+from equidiff_ros.common import RELIABLE_QOS, SENSOR_QOS, VOXEL_READER_QOS, now_ns, wait_for_clock
 
 
 class VizNode(Node):

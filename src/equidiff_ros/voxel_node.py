@@ -28,7 +28,9 @@ import re
 import sys
 import time
 
+from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.node import Node
+from sensor_msgs.msg import PointCloud2
 
 from equidiff_core.config import Bounds, ConfigError, LabConfig
 from equidiff_core.perception.fusion import CloudFusion
@@ -36,16 +38,8 @@ from equidiff_core.perception.observation import MAX_FUTURE_STAMP_S
 from equidiff_core.perception.voxels import VoxelError, VoxelizerConfig
 from equidiff_core.wire import rosmsg
 from equidiff_core.wire.pointcloud import CloudError, CloudReason, grid_to_voxel_msg, msg_to_cloud
-from equidiff_ros.common import (
-    RELIABLE_QOS,
-    TOPIC_DIAGNOSTICS,
-    TOPIC_VOXELS,
-    VOXEL_QOS,
-    cloud_qos,
-    declare_lab_config,
-    now_ns,
-    wait_for_clock,
-)
+from equidiff_core.wire.topics import TOPIC_DIAGNOSTICS, TOPIC_VOXELS
+from equidiff_ros.common import RELIABLE_QOS, VOXEL_QOS, cloud_qos, declare_lab_config, now_ns, wait_for_clock
 from equidiff_ros.parameters import LAB_CONFIG, NodeParameter, NodeParameters, bounds_of, parameters_help
 from equidiff_ros.runner import run_node
 
@@ -136,15 +130,12 @@ class VoxelNode(Node):
         self.fusion = CloudFusion(dataclasses.replace(self.lab, observation_hz=hz), self.slop_ns, queue_size, cleanup)
         self.matcher = self.fusion.matcher  # the camera queues: their ages say which camera is stale
         self.factory = rosmsg.RclpyFactory()
-        cloud_type = self.factory.cls("sensor_msgs/msg/PointCloud2")
         for cam in self.cameras:
             self.create_subscription(
-                cloud_type, cam.topic, lambda msg, cam=cam: self._on_cloud(cam, msg), cloud_qos(reliable)
+                PointCloud2, cam.topic, lambda msg, cam=cam: self._on_cloud(cam, msg), cloud_qos(reliable)
             )
-        self.pub = self.create_publisher(cloud_type, TOPIC_VOXELS, VOXEL_QOS)
-        self.diag_pub = self.create_publisher(
-            self.factory.cls("diagnostic_msgs/msg/DiagnosticArray"), TOPIC_DIAGNOSTICS, RELIABLE_QOS
-        )
+        self.pub = self.create_publisher(PointCloud2, TOPIC_VOXELS, VOXEL_QOS)
+        self.diag_pub = self.create_publisher(DiagnosticArray, TOPIC_DIAGNOSTICS, RELIABLE_QOS)
         self.dropped = {n: 0 for n in self.names}
         self.dropped_by_reason: collections.Counter[str] = collections.Counter()
         self.last_drop = ""

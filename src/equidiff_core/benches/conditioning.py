@@ -32,7 +32,8 @@ from equidiff_core.data.dataset import DatasetConfig, find_episodes, load_episod
 from equidiff_core.models.plain import EquiNoiseCore, to_escnn_layout
 from equidiff_core.policy.augment import voxel_input
 from equidiff_core.policy.diffusion import make_policy
-from equidiff_core.policy.inference import CheckpointError, export_policy, load_inference_policy
+from equidiff_core.policy.file import CheckpointError, export_policy
+from equidiff_core.policy.inference import load_inference_policy
 from equidiff_core.policy.normalizer import Normalizer
 from equidiff_core.policy.presets import get_preset
 

@@ -15,13 +15,8 @@ from equidiff_core.benches import BenchError
 from equidiff_core.config import Workspace
 from equidiff_core.models import equivariance
 from equidiff_core.policy.diffusion import make_policy
-from equidiff_core.policy.inference import (
-    CheckpointError,
-    CheckpointFormatError,
-    export_policy,
-    load_inference_policy,
-    read_policy_file,
-)
+from equidiff_core.policy.file import CheckpointError, CheckpointFormatError, export_policy, read_policy_file
+from equidiff_core.policy.inference import load_inference_policy
 from equidiff_core.policy.normalizer import Normalizer
 from equidiff_core.policy.presets import get_preset
 from equidiff_core.runtime.machine import cpu_description

@@ -31,7 +31,8 @@ from ..policy.inference import load_inference_policy
 from ..policy.presets import get_preset
 from ..runtime.machine import cpu_description
 from ..runtime.output_files import staged_dir
-from ..training.loop import TrainConfig, fit_normalizer, train
+from ..training.config import TrainConfig
+from ..training.loop import fit_normalizer, train
 from . import BenchError
 
 __all__ = ["STEPS", "OverfitGate", "OverfitResult", "run_overfit", "sample_errors"]

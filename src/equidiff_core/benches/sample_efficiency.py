@@ -44,7 +44,8 @@ from equidiff_core.benches.training_runs import (
     under_fit,
     wait_for_runs,
 )
-from equidiff_core.policy.inference import load_inference_policy, read_policy_file
+from equidiff_core.policy.file import read_policy_file
+from equidiff_core.policy.inference import load_inference_policy
 from equidiff_core.policy.presets import preset_from_dict
 from equidiff_core.runtime.output_files import refuse_existing, staged_output, write_output_text
 from equidiff_core.twin.config import load_twin_job_configs

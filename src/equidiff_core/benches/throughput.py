@@ -33,7 +33,8 @@ from equidiff_core.benches.timing import (
 from equidiff_core.config import ConfigError, Workspace
 from equidiff_core.models.equivariance import random_observation
 from equidiff_core.policy.diffusion import count_parameters
-from equidiff_core.policy.inference import CheckpointError, check_device, export_policy, load_inference_policy
+from equidiff_core.policy.file import CheckpointError, check_device, export_policy
+from equidiff_core.policy.inference import load_inference_policy
 from equidiff_core.policy.presets import get_preset
 
 

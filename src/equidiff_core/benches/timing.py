@@ -37,11 +37,11 @@ from ..models.plain import relu_before_pool_order
 from ..policy.diffusion import make_policy
 from ..policy.inference import load_inference_policy
 from ..policy.normalizer import Normalizer
-from ..runtime.machine import cpu_description, cpu_model
-from ..training.loop import DATA_SOURCES, PRECISIONS, TrainConfig, train
+from ..runtime.machine import PRECISIONS, cpu_description, cpu_model
+from ..training.config import DATA_SOURCES, TrainConfig
+from ..training.loop import train
 from ..wire.chunk import RealTimeChunking
 
-MODE_PRECISIONS = ("auto", "fp32", "bf16")
 MODE_EXECUTIONS = ("eager", "traced", "compiled")
 
 
@@ -63,10 +63,10 @@ class InferenceMode:
         graph = parts[-1] == "graph"
         if graph:
             parts = parts[:-1]
-        if len(parts) != 2 or parts[0] not in MODE_PRECISIONS or parts[1] not in MODE_EXECUTIONS:
+        if len(parts) != 2 or parts[0] not in PRECISIONS or parts[1] not in MODE_EXECUTIONS:
             raise ValueError(
                 f"inference mode {text!r}: expected PRECISION-EXECUTION[-graph] with PRECISION in "
-                f"{MODE_PRECISIONS} and EXECUTION in {MODE_EXECUTIONS}, e.g. bf16-traced-graph"
+                f"{PRECISIONS} and EXECUTION in {MODE_EXECUTIONS}, e.g. bf16-traced-graph"
             )
         return cls(parts[0], parts[1], graph)
 

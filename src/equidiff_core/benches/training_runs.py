@@ -23,7 +23,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from ..models.baseline import baseline_encoder_channels
-from ..policy.inference import export_policy
+from ..policy.file import export_policy
 from ..training.job import TrainingSpec
 from ..training.loop import load_policy_from_checkpoint
 

@@ -2,7 +2,7 @@
 
 A policy file holds plain torch modules + a JSON config in one ``torch.load(weights_only=True)``
 file; its format, ``export_policy``, checked loading and ``CheckpointError`` live in ``policy.file``,
-the CPU kernels in ``models.cpu_kernels`` (both re-exported here). ``export_policy(policy, path)``
+the CPU kernels in ``models.cpu_kernels``. ``export_policy(policy, path)``
 converts the escnn model with escnn's own per-layer ``export()``
 (R3Conv -> Conv3d, equivariant Linear -> Linear, same outputs to float rounding) into
 ``models.plain.PlainEquiNoisePredictor``; the baseline is plain already. ``load_inference_policy``
@@ -34,35 +34,24 @@ import torch
 from ..config import Workspace, from_dict
 from ..models.cpu_kernels import (
     FastMish,
-    MatmulConv1d,
-    MatmulConvTranspose1d,
     Method,
     convs_as_matmuls,
     pad_first_conv,
     swap_modules,
 )
 from ..models.sampling import ActionCodec, _guided_noise, ddim_sample, make_inference_scheduler
-from ..runtime.machine import cpu_has_native_bf16
+from ..runtime.machine import PRECISIONS, cpu_has_native_bf16
 from .augment import voxel_input
 from .diffusion import PolicyInputError
 from .file import (
-    FORMAT,
     UNHASHED,
-    VERSION,
     CheckpointError,
-    CheckpointFormatError,
     build_plain_network,
     check_device,
-    export_policy,
-    load_checked,
     open_policy_file,
-    read_policy_file,
-    save_atomically,
 )
 from .normalizer import Normalizer, NormalizerError
 from .presets import PolicyPreset, preset_from_dict
-
-PRECISIONS = ("fp32", "bf16", "auto")
 
 
 def load_inference_policy(
@@ -425,23 +414,3 @@ class _StaticSampler:
         self.vox, self.ee, self.noise, self.target, self.weights = vox, ee, noise, target, weights
         self.out: dict[bool, torch.Tensor] = {}  # guided -> the graph's output sample
         self.graphs: dict[bool, torch.cuda.CUDAGraph] = {}  # guided -> captured graph (CUDA only)
-
-
-__all__ = [
-    "FORMAT",
-    "PRECISIONS",
-    "VERSION",
-    "CheckpointError",
-    "CheckpointFormatError",
-    "FastMish",
-    "InferencePolicy",
-    "MatmulConv1d",
-    "MatmulConvTranspose1d",
-    "build_plain_network",
-    "check_device",
-    "export_policy",
-    "load_checked",
-    "load_inference_policy",
-    "read_policy_file",
-    "save_atomically",
-]

@@ -1,7 +1,7 @@
 """What CPU this is: absolute timings depend on it (one development CPU has AVX-512 with bf16,
 another only AVX2), so every benchmark names it beside its figures. How many of its cores are idle,
-which sets torch's threads. And the calling thread's scheduling policy, which native libraries change
-behind our back."""
+which sets torch's threads. The precisions a policy computes in, since "auto" picks by machine. And
+the calling thread's scheduling policy, which native libraries change behind our back."""
 
 from __future__ import annotations
 
@@ -12,6 +12,10 @@ import platform
 import time
 
 log = logging.getLogger("equidiff.machine")
+
+# The arithmetic a policy trains or infers in. "auto" depends on the machine: bf16 on CUDA, and at
+# inference also on CPUs with native bf16 (``cpu_has_native_bf16``); fp32 elsewhere.
+PRECISIONS = ("auto", "fp32", "bf16")
 
 
 def _cpuinfo() -> str:

@@ -9,10 +9,10 @@ from pathlib import Path
 import torch
 from torch.utils.data import Dataset
 
+from ..runtime.machine import PRECISIONS
 from . import distributed
 from .batches import estimate_nbytes
 
-PRECISIONS = ("auto", "fp32", "bf16")
 DATA_SOURCES = ("auto", "device", "loader")
 # data "auto" keeps the training set on the GPU when it takes at most this share of the free memory
 DEVICE_DATA_SHARE = 0.5

@@ -25,14 +25,8 @@ from equidiff_core.runtime.jobs import JobError
 from equidiff_core.runtime.output_files import occupied, staged_output
 from equidiff_core.training import distributed
 from equidiff_core.training.callbacks import ActionMseEvaluator, PlotWriter, ProgressBar
-from equidiff_core.training.loop import (
-    TrainConfig,
-    TrainingError,
-    load_training_checkpoint,
-    resolve_device,
-    seed_everything,
-    train,
-)
+from equidiff_core.training.config import TrainConfig, TrainingError, resolve_device
+from equidiff_core.training.loop import load_training_checkpoint, seed_everything, train
 from equidiff_core.wire.pointcloud import VoxelGridSpec
 
 logger = logging.getLogger(__name__)

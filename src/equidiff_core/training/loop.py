@@ -57,9 +57,6 @@ from ..policy.presets import preset_from_dict
 from . import distributed
 from .batches import DeviceBatchSource, loader_batches, make_sampler
 from .config import (
-    DATA_SOURCES,
-    DEVICE_DATA_SHARE,
-    PRECISIONS,
     TrainConfig,
     TrainingError,
     TrainResult,
@@ -432,26 +429,3 @@ def load_policy_from_checkpoint(path: str | Path, device: str = "cpu", ema: bool
     except (KeyError, ValueError, RuntimeError) as err:
         raise CheckpointError(f"{path}: incompatible checkpoint: {str(err).splitlines()[0]}") from err
     return policy.to(resolve_device(device)).eval()
-
-
-# The run's configuration and result moved to train_config; importable from here too.
-__all__ = [
-    "CKPT_FORMAT",
-    "CKPT_VERSION",
-    "DATA_SOURCES",
-    "DEVICE_DATA_SHARE",
-    "PRECISIONS",
-    "TrainConfig",
-    "TrainResult",
-    "TrainingError",
-    "evaluate",
-    "fit_normalizer",
-    "load_policy_from_checkpoint",
-    "load_training_checkpoint",
-    "resolve_device",
-    "resolve_precision",
-    "seed_everything",
-    "slim_checkpoint",
-    "train",
-    "without_optimizer_state",
-]

@@ -47,7 +47,7 @@ def make_standin_policy(
     import torch
 
     from ..policy.diffusion import make_policy
-    from ..policy.inference import export_policy
+    from ..policy.file import export_policy
     from ..policy.normalizer import Normalizer
     from ..policy.presets import get_preset
 

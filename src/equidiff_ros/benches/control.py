@@ -26,7 +26,8 @@ from equidiff_core import geometry
 from equidiff_core.config import default_config_dir, dump_yaml, load_lab_config, to_dict
 from equidiff_core.control import load_control_config, metrics
 from equidiff_core.policy.diffusion import make_policy
-from equidiff_core.policy.inference import export_policy, load_inference_policy
+from equidiff_core.policy.file import export_policy
+from equidiff_core.policy.inference import load_inference_policy
 from equidiff_core.policy.normalizer import Normalizer
 from equidiff_core.policy.presets import get_preset
 from equidiff_core.robots.franky.sim import SimServer

@@ -37,6 +37,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from equidiff_core.runtime.machine import PRECISIONS
+
 # approach: bench safety drives the arm with it and imports it from here
 from equidiff_ros.benches.control import run_control_bench
 
@@ -65,7 +67,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="exported policy for the latency phase (default: untrained compact export)",
     )
     parser.add_argument("--policy-preset", default="compact", help="preset of the untrained export (default compact)")
-    parser.add_argument("--precision", choices=["auto", "fp32", "bf16"], default="auto")
+    parser.add_argument("--precision", choices=PRECISIONS, default="auto")
     parser.add_argument("--latency-duration", type=float, default=15.0, help="seconds of policy latency measurement")
     parser.add_argument("--no-policy", action="store_true", help="skip the latency phase")
     parser.add_argument("--domain-id", type=int, default=None, help="ROS_DOMAIN_ID (default: a random private one)")

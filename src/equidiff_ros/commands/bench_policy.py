@@ -18,6 +18,7 @@ max-pool (``relu_before_pool``; ``relu_order_cpu_ms``: both orders alternately i
 from __future__ import annotations
 
 from equidiff_core.benches.throughput import PolicyBenchSettings, run_policy_bench
+from equidiff_core.runtime.machine import PRECISIONS
 from equidiff_ros.commands import print_result
 
 
@@ -29,7 +30,7 @@ def add_arguments(parser) -> None:
     parser.add_argument(
         "--precision",
         default="auto",
-        choices=["auto", "fp32", "bf16"],
+        choices=PRECISIONS,
         help="auto: bf16 on CUDA and on CPUs with native bf16, else fp32",
     )
     parser.add_argument("--no-jit", action="store_true", help="skip torch.jit.trace of encoder and denoiser")

@@ -26,6 +26,7 @@ from pathlib import Path
 
 from equidiff_core.policy.presets import BASELINE_INITS, ROTATION_AUGS
 from equidiff_core.runtime.jobs import progress_lines
+from equidiff_core.runtime.machine import PRECISIONS
 from equidiff_core.training.job import TrainingSpec, run_training
 from equidiff_ros.commands import add_force_argument
 
@@ -94,7 +95,7 @@ def add_arguments(parser) -> None:
     parser.add_argument("--num-workers", type=int, default=DEFAULT.num_workers)
     parser.add_argument(
         "--precision",
-        choices=("auto", "fp32", "bf16"),
+        choices=PRECISIONS,
         default=DEFAULT.precision,
         help="auto: bf16 autocast on CUDA, fp32 on the CPU",
     )

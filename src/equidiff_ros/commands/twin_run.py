@@ -29,6 +29,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from equidiff_core.runtime.machine import PRECISIONS
 from equidiff_core.twin.config import EVALUATION_FIRST_SEED, TWIN_PRECISION
 from equidiff_core.twin.shipped import SHIPPED_CHECKPOINT
 from equidiff_ros.commands import add_force_argument
@@ -39,7 +40,7 @@ def add_precision_argument(parser: argparse.ArgumentParser) -> None:
     """The policy's arithmetic in the twin (``twin.config.TWIN_PRECISION`` unless asked otherwise)."""
     parser.add_argument(
         "--precision",
-        choices=("fp32", "bf16", "auto"),
+        choices=PRECISIONS,
         default=TWIN_PRECISION,
         help=f"policy arithmetic (default {TWIN_PRECISION} on every machine; auto: bf16 where the CPU has "
         "native bf16, so results would depend on the CPU)",
