@@ -124,7 +124,7 @@ def plot_success(
     ax.set_ylabel(f"success, % of {episodes} scenes (95 % interval)")
     ax.set_ylim(-5, 105)
     ax.grid(alpha=0.3)
-    ax.legend(loc="best")
+    ax.legend(loc="lower right")  # "best" weighs the lines, not the error bars, and covered one
     ax.set_title("Block in bowl (twin), in-range yaw", fontsize=9)
     if note:  # the recipe, wrapped to the figure's width
         fig.text(0.5, 0.01, "\n".join(textwrap.wrap(note, 80)), ha="center", va="bottom", fontsize=7)

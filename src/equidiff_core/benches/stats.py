@@ -75,7 +75,7 @@ def paired_comparison(a: Sequence[bool], b: Sequence[bool]) -> dict:
         "n": n,
         "difference": round(difference, 3),
         "ci95": [round(low, 3), round(high, 3)],
-        "p_value": round(p_value, 4),
+        "p_value": float(f"{p_value:.3g}"),  # significant digits: a small p must not print as 0
         "significant": p_value < 1 - CONFIDENCE,
         "a_only": a_only,
         "b_only": b_only,
