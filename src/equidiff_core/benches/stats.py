@@ -17,9 +17,9 @@ import numpy as np
 from scipy import stats
 
 CONFIDENCE = 0.95
-# The benches' default scenes per policy and condition: at the discordant shares the benches measured,
-# enough to tell a 20-point difference from chance (``scenes_needed``; docs/evaluation_scheme.md).
-SCENES_PER_CELL = 50
+# The benches' default scenes per policy and condition: ``scenes_needed(0.2, share)`` at the largest share of
+# scenes on which the benches' policies disagreed, rounded up (docs/evaluation_scheme.md says how it was chosen).
+SCENES_PER_CELL = 100
 # resamples of the paired bootstrap, and its fixed seed: the same outcomes give the same interval
 BOOTSTRAP_RESAMPLES = 10_000
 BOOTSTRAP_SEED = 0
