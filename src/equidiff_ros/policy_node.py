@@ -330,14 +330,10 @@ class PolicyNode(Node):
         # Decoded here, not in the worker: a message that is not this policy's grid must not
         # replace the observation waiting for the worker.
         stamp = stamp_to_ns(msg.header.stamp)
-        ahead = stamp - now_ns(self)
-        if ahead > self.max_future_ns:
-            return self.skip(
-                "future_observation",
-                f"a voxel grid stamped {ahead / 1e6:.0f} ms ahead of this node's clock "
-                f"(limit {self.max_future_ns / 1e6:.0f} ms): a clock is wrong",
-                stamp,
-            )
+        try:
+            rosmsg.check_not_future(stamp, now_ns(self), self.max_future_ns, "a voxel grid")
+        except rosmsg.MessageError as err:
+            return self.skip("future_observation", f"{err}: a clock is wrong", stamp)
         try:
             grid = voxel_msg_to_grid(msg, self._grid_spec)
         except CloudError as err:

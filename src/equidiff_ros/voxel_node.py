@@ -37,7 +37,7 @@ from equidiff_core.perception.fusion import CloudFusion
 from equidiff_core.perception.observation import MAX_FUTURE_STAMP_S
 from equidiff_core.perception.voxels import VoxelError, VoxelizerConfig
 from equidiff_core.wire import rosmsg
-from equidiff_core.wire.pointcloud import CloudError, CloudReason, grid_to_voxel_msg, msg_to_cloud
+from equidiff_core.wire.pointcloud import CloudError, grid_to_voxel_msg, msg_to_cloud
 from equidiff_core.wire.topics import TOPIC_DIAGNOSTICS, TOPIC_VOXELS
 from equidiff_ros.common import RELIABLE_QOS, VOXEL_QOS, cloud_qos, declare_lab_config, now_ns, wait_for_clock
 from equidiff_ros.parameters import LAB_CONFIG, NodeParameter, NodeParameters, bounds_of, parameters_help
@@ -153,16 +153,10 @@ class VoxelNode(Node):
             cloud = msg_to_cloud(
                 msg, drop_invalid=self.allow_nan, frame_id=cam.frame_id if self.check_frame_id else None
             )
-            ahead_ns = cloud.stamp_ns - now_ns(self)
-            if ahead_ns > self.max_future_ns:
-                raise CloudError(
-                    f"stamped {ahead_ns / 1e6:.0f} ms ahead of this node's clock "
-                    f"(limit {self.max_future_ns / 1e6:.0f} ms)",
-                    CloudReason.FUTURE,
-                )
+            rosmsg.check_not_future(cloud.stamp_ns, now_ns(self), self.max_future_ns, "a cloud")
             self.fusion.add(cam.name, cloud.stamp_ns, cloud)
             self._publish_new_set()
-        except (CloudError, VoxelError) as err:
+        except (CloudError, rosmsg.MessageError, VoxelError) as err:
             # VoxelError: a cloud the decoder let through but the voxeliser cannot use; either way
             # this one message is dropped and the node goes on
             reason = str(getattr(err, "reason", "voxelizer"))
