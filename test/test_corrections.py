@@ -152,3 +152,9 @@ def test_train_init_from_fine_tunes_the_starting_run(bags, tmp_path, capsys):
     refused = tmp_path / "refused"
     assert cli(["train", str(bags["demo"]), "--out", str(refused), *flags, "--preset", "compact", *common]) == 2
     assert "drop --preset" in capsys.readouterr().err and not refused.exists()
+
+
+def test_dataset_stats_command_reports_the_corrections(bags, capsys):
+    assert cli(["dataset", "stats", *map(str, bags.values()), "--horizon", "4", "--n-action-steps", "2"]) == 0
+    out = capsys.readouterr().out
+    assert "1 episodes with corrections (2.4 s of the operator's correction, 2.6 s of the policy); 1 gate alarms" in out
