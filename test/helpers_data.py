@@ -38,7 +38,12 @@ from equidiff_core.data.recording import EpisodeWriter, RecordingConfig
 from equidiff_core.wire.chunk import PoseChunk, chunk_to_msg
 from equidiff_core.wire.pointcloud import grid_to_voxel_msg
 from equidiff_core.wire.rosmsg import NS_PER_S, rosbags_factory
-from equidiff_core.wire.topics import COMPRESSED_IMAGE_TYPE, camera_color_topic
+from equidiff_core.wire.topics import (
+    COMPRESSED_IMAGE_TYPE,
+    TOPIC_POLICY_STATE,
+    TOPIC_TELEOP_ACTIVE,
+    camera_color_topic,
+)
 
 LAB = load_lab_config(ROOT / "config" / "lab.yaml")
 T0_NS = 1_700_000_000 * NS_PER_S  # a fixed wall-clock start: deterministic bags
@@ -158,7 +163,11 @@ def write_synthetic_episode(
     meta: EpisodeMeta | None = None,
     ws: Workspace | None = None,
     config: RecordingConfig = RecordingConfig(min_free_gib=0.0),
+    policy_states: tuple[tuple[float, str], ...] = (),
+    teleop_active: tuple[tuple[float, bool], ...] = (),
 ) -> Path:
+    """A demonstration, or with ``policy_states`` ((t, "running" | "paused <reason>"), ...) and ``teleop_active``
+    ((t, bool), ...) a policy's roll-out that the operator corrected, as policy_node and teleop_node latch them."""
     ws = ws or LAB.workspace
     f = rosbags_factory()
     meta = meta or EpisodeMeta(
@@ -217,6 +226,10 @@ def write_synthetic_episode(
             rgb = camera_image(grid, ws, cam.extrinsics.matrix(), ep.image_size, ep.image_hfov_deg)
             image = color_image_msg(rgb, ns(t), cam.frame_id, f)
             events.append((ns(t) + 10_000_000, camera_color_topic(cam.name), image))  # published with the cloud
+    for t, state in policy_states:
+        events.append((ns(t), TOPIC_POLICY_STATE, f.make("std_msgs/msg/String", data=state)))
+    for t, active in teleop_active:
+        events.append((ns(t), TOPIC_TELEOP_ACTIVE, f.make("std_msgs/msg/Bool", data=active)))
     events.sort(key=lambda e: e[0])
     with EpisodeWriter(path, meta, config) as writer:
         writer.write_tf_static(LAB, ep.t0_ns)

@@ -50,7 +50,15 @@ from ..runtime.output_files import distinct_names, staged_output, unique_paths
 from ..wire.chunk import ChunkError, chunk_from_msg
 from ..wire.pointcloud import CloudError, voxel_msg_to_grid
 from ..wire.rosmsg import NS_PER_S, MessageError, gripper_width_from_joint_state, pose_from_msg
-from ..wire.topics import TOPIC_COMMAND_CHUNK, TOPIC_EE_POSE, TOPIC_JOINT_STATES, TOPIC_VOXELS
+from ..wire.topics import (
+    TOPIC_COMMAND_CHUNK,
+    TOPIC_EE_POSE,
+    TOPIC_JOINT_STATES,
+    TOPIC_POLICY_STATE,
+    TOPIC_TELEOP_ACTIVE,
+    TOPIC_VOXELS,
+    TRAINING_TOPICS,
+)
 from .bags import CHECKED, BagError, find_bags, is_bag_dir, read_episode
 from .episode_arrays import (
     CACHE_VERSION,
@@ -62,6 +70,7 @@ from .episode_arrays import (
     read_packed,
     write_packed,
 )
+from .segments import FrameSource, SourceWeights, frame_sources, gate_alarms_ns, source_seconds
 
 
 def command_schedule(chunks: Sequence[Any]) -> tuple[np.ndarray, np.ndarray]:
@@ -148,8 +157,9 @@ def load_episode_arrays(path: str | Path, config: DatasetConfig = DatasetConfig(
     cached = cache_load(path, config)
     if cached is not None:
         return cached
-    episode = read_episode(path, topics=(TOPIC_VOXELS, TOPIC_EE_POSE, TOPIC_JOINT_STATES, TOPIC_COMMAND_CHUNK))
-    for topic in (TOPIC_VOXELS, TOPIC_EE_POSE, TOPIC_JOINT_STATES, TOPIC_COMMAND_CHUNK):
+    # who drove (data.segments) comes from the two latched state topics, where a roll-out's bag has them
+    episode = read_episode(path, topics=(*TRAINING_TOPICS, TOPIC_POLICY_STATE, TOPIC_TELEOP_ACTIVE))
+    for topic in TRAINING_TOPICS:
         if topic not in episode:
             raise BagError(f"{path}: no messages on {topic}")
     vox = episode[TOPIC_VOXELS]
@@ -208,6 +218,8 @@ def load_episode_arrays(path: str | Path, config: DatasetConfig = DatasetConfig(
         dropped_steps=int(len(stamps) - len(keep)),
         rejected_chunks=rejected,
         integrity=episode.integrity,
+        sources=frame_sources(episode, stamps[keep]),
+        gate_alarms=len(gate_alarms_ns(episode)),
     )
     if not np.all(np.isfinite(arrays.ee)) or not np.all(np.isfinite(arrays.schedule)):
         raise BagError(f"{path}: NaN/inf in poses or commands")
@@ -308,21 +320,45 @@ except ImportError:  # pragma: no cover
 
 
 class DemoDataset(_TorchDataset):
-    """Samples ``{"voxels": uint8 (To, 4, R, R, R), "ee": float32 (To, 10), "action": float32 (H, 10)}``."""
+    """Samples ``{"voxels": uint8 (To, 4, R, R, R), "ee": float32 (To, 10), "action": float32 (H, 10)}``, and
+    ``"weight"`` (float32) where corrected roll-outs make samples count differently.
 
-    def __init__(self, episodes: Sequence[EpisodeArrays], config: DatasetConfig = DatasetConfig()):
+    A sample's weight is its current frame's (the last observation step's) under ``weights``
+    (``data.segments.SourceWeights``): a demonstration's frames count 1, an operator's correction and the
+    policy's own frames as ``weights`` says; frames of weight 0 (the policy's by default, the arm held) are
+    not sampled at all."""
+
+    def __init__(
+        self,
+        episodes: Sequence[EpisodeArrays],
+        config: DatasetConfig = DatasetConfig(),
+        weights: SourceWeights = SourceWeights(),
+    ):
         self.config = config
+        self.source_weights = weights
         self.episodes = list(episodes)
-        index = []
+        index, sample_weights = [], []
         for e, ep in enumerate(self.episodes):
-            for s in sample_starts(len(ep), config.horizon, config.n_obs_steps, config.n_action_steps):
-                index.append((e, int(s)))
+            starts = sample_starts(len(ep), config.horizon, config.n_obs_steps, config.n_action_steps)
+            current = np.clip(starts + config.n_obs_steps - 1, 0, len(ep) - 1)
+            w = weights.of(ep.sources[current]) if len(starts) else np.zeros(0, np.float32)
+            index.extend((e, int(s)) for s in starts[w > 0])
+            sample_weights.append(w[w > 0])
         self.index = np.asarray(index, dtype=np.int64).reshape(-1, 2)
+        w = np.concatenate(sample_weights) if sample_weights else np.zeros(0, np.float32)
+        # None when every sample counts 1: the batches and the loss stay exactly those of plain demonstrations
+        self.weights: np.ndarray | None = None if np.all(w == 1.0) else w
 
     @classmethod
-    def from_bags(cls, paths: Iterable[str | Path], config: DatasetConfig = DatasetConfig(), log=None):
+    def from_bags(
+        cls,
+        paths: Iterable[str | Path],
+        config: DatasetConfig = DatasetConfig(),
+        log=None,
+        weights: SourceWeights = SourceWeights(),
+    ):
         episodes, skipped = load_episodes(paths, config, log)
-        ds = cls(episodes, config)
+        ds = cls(episodes, config, weights)
         ds.skipped = skipped
         return ds
 
@@ -348,11 +384,14 @@ class DemoDataset(_TorchDataset):
 
         ep, obs_idx, times = self.window(i)
         voxels = np.stack([ep.grid(int(k), self.config.resolution) for k in obs_idx])
-        return {
+        sample = {
             "voxels": torch.from_numpy(voxels),
             "ee": torch.from_numpy(ep.ee[obs_idx].astype(np.float32)),
             "action": torch.from_numpy(ep.targets_at(times).astype(np.float32)),
         }
+        if self.weights is not None:
+            sample["weight"] = torch.tensor(self.weights[i])
+        return sample
 
     def all_actions(self) -> np.ndarray:
         """(N, 10) every observation step's commanded target (for Normalizer.fit)."""
@@ -372,7 +411,8 @@ class DemoDataset(_TorchDataset):
 
 
 def dataset_stats(paths: Iterable[str | Path], config: DatasetConfig = DatasetConfig()) -> dict:
-    """Episodes, durations, steps, samples and action ranges of bags; bad bags listed with reasons."""
+    """Episodes, durations, steps, samples and action ranges of bags, who drove for how long (corrections of a
+    policy, its doubt gate's alarms: ``data.segments``); bad bags listed with reasons."""
     episodes, skipped = load_episodes(paths, config)
     rows = []
     for ep in episodes:
@@ -390,6 +430,12 @@ def dataset_stats(paths: Iterable[str | Path], config: DatasetConfig = DatasetCo
                 "dropped_steps": ep.dropped_steps,
                 "rejected_chunks": ep.rejected_chunks,
                 "integrity": ep.integrity,
+                # who drove (data.segments): seconds of demonstration, policy, operator correction, holding
+                "seconds_by_source": source_seconds(ep.sources, ep.obs_period_ns),
+                "corrected": bool(
+                    np.any(ep.sources == FrameSource.OPERATOR) and np.any(ep.sources == FrameSource.POLICY)
+                ),
+                "gate_alarms": ep.gate_alarms,
                 "action_min": acts.min(0).round(4).tolist(),
                 "action_max": acts.max(0).round(4).tolist(),
             }
@@ -404,6 +450,10 @@ def dataset_stats(paths: Iterable[str | Path], config: DatasetConfig = DatasetCo
             # bags stored without CRCs (written before the project wrote them): read, but nothing was checked
             "unchecked": sum(r["integrity"] != CHECKED for r in rows),
             "duration_s": round(sum(r["duration_s"] for r in rows), 3),
+            "episodes_with_corrections": sum(r["corrected"] for r in rows),
+            "correction_s": round(sum(r["seconds_by_source"]["operator"] for r in rows if r["corrected"]), 3),
+            "policy_s": round(sum(r["seconds_by_source"]["policy"] for r in rows), 3),
+            "gate_alarms": sum(r["gate_alarms"] for r in rows),
             "steps": int(sum(r["steps"] for r in rows)),
             "samples": int(sum(r["samples"] for r in rows)),
             "action_min": all_actions.min(0).round(4).tolist() if len(all_actions) else None,

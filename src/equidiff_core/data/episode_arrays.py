@@ -19,8 +19,11 @@ from ..runtime.output_files import staged_output
 from ..wire.pointcloud import VoxelGridSpec
 from ..wire.rosmsg import NS_PER_S
 from .bags import UNCHECKED, BagError, EpisodeMeta
+from .segments import FrameSource
 
-CACHE_VERSION = 2  # 2: compressed, with the decoding settings inside (shared with packed episodes)
+# 2: compressed, with the decoding settings inside (shared with packed episodes); 3: each frame's source
+# (data.segments) and the gate's alarms: a version 2 file cannot tell the policy's frames from a demo's
+CACHE_VERSION = 3
 PACKED_SUFFIX = ".episode.npz"
 
 
@@ -77,6 +80,17 @@ class EpisodeArrays:
     dropped_steps: int = 0
     rejected_chunks: int = 0
     integrity: str = UNCHECKED  # of the source bag: "checked" (every CRC matched) or "unchecked" (no CRCs)
+    # (N,) uint8 data.segments.FrameSource of each observation; None: every frame a demonstration's
+    sources: np.ndarray | None = None
+    gate_alarms: int = 0  # times the policy's doubt gate held the arm and asked for help
+
+    def __post_init__(self):
+        if self.sources is None:
+            self.sources = np.full(len(self.stamps_ns), FrameSource.DEMO, np.uint8)
+        if self.sources.shape != self.stamps_ns.shape or self.sources.dtype != np.uint8:
+            raise ValueError(f"{self.path}: {self.sources.shape} frame sources for {self.stamps_ns.shape} frames")
+        if len(self.sources) and self.sources.max() >= len(FrameSource):
+            raise ValueError(f"{self.path}: frame source {self.sources.max()} is none of {list(FrameSource)}")
 
     def __len__(self) -> int:
         return len(self.stamps_ns)
@@ -107,7 +121,7 @@ class EpisodeArrays:
 
 # --- packed episodes and the disk cache ------------------------------------------------------
 
-_ARRAY_FIELDS = ("stamps_ns", "voxel_offsets", "voxel_idx", "voxel_rgb", "ee", "schedule_ns", "schedule")
+_ARRAY_FIELDS = ("stamps_ns", "voxel_offsets", "voxel_idx", "voxel_rgb", "ee", "schedule_ns", "schedule", "sources")
 
 
 def _decoding(config: DatasetConfig) -> dict:
@@ -132,6 +146,7 @@ def write_packed(arrays: EpisodeArrays, file: Path, config: DatasetConfig) -> Pa
             "dropped_steps": arrays.dropped_steps,
             "rejected_chunks": arrays.rejected_chunks,
             "integrity": arrays.integrity,
+            "gate_alarms": arrays.gate_alarms,
         }
     )
     fields = {k: getattr(arrays, k) for k in _ARRAY_FIELDS if k != "voxel_idx"}
@@ -155,8 +170,10 @@ def read_packed(file: Path, config: DatasetConfig, path: Path | None = None) -> 
     try:
         with np.load(file, allow_pickle=False) as z:
             extra = json.loads(str(z["extra"]))
-            arrays = {k: z[k] for k in _ARRAY_FIELDS if k != "voxel_idx"}
-            flat = np.cumsum(z["voxel_flat_delta"].astype(np.int64))
+            if extra.get("version") == CACHE_VERSION and extra.get("decoding") == _decoding(config):
+                arrays = {k: z[k] for k in _ARRAY_FIELDS if k != "voxel_idx"}
+                flat = np.cumsum(z["voxel_flat_delta"].astype(np.int64))
+                gate_alarms = int(extra["gate_alarms"])
     except Exception as err:  # zipfile, ValueError, KeyError, JSON: all mean "not a usable packed episode"
         raise BagError(f"{file}: not a readable packed episode ({type(err).__name__}: {err})") from err
     if extra.get("version") != CACHE_VERSION or extra.get("decoding") != _decoding(config):
@@ -166,15 +183,19 @@ def read_packed(file: Path, config: DatasetConfig, path: Path | None = None) -> 
         )
     res = config.resolution
     arrays["voxel_idx"] = np.stack(np.unravel_index(flat, (res, res, res)), axis=1).astype(np.uint16)
-    return EpisodeArrays(
-        path=path or file,
-        meta=EpisodeMeta.from_dict(extra["meta"]),
-        obs_period_ns=extra["obs_period_ns"],
-        dropped_steps=extra["dropped_steps"],
-        rejected_chunks=extra["rejected_chunks"],
-        integrity=extra.get("integrity", UNCHECKED),
-        **arrays,
-    )
+    try:
+        return EpisodeArrays(
+            path=path or file,
+            meta=EpisodeMeta.from_dict(extra["meta"]),
+            obs_period_ns=extra["obs_period_ns"],
+            dropped_steps=extra["dropped_steps"],
+            rejected_chunks=extra["rejected_chunks"],
+            integrity=extra.get("integrity", UNCHECKED),
+            gate_alarms=gate_alarms,
+            **arrays,
+        )
+    except (KeyError, ValueError) as err:
+        raise BagError(f"{file}: not a readable packed episode ({type(err).__name__}: {err})") from err
 
 
 # The disk cache is a packed episode keyed by the bag's absolute path, size and mtime.

@@ -91,11 +91,17 @@ class DiffusionPolicy(nn.Module):
     ) -> torch.Tensor:
         """Epsilon-prediction MSE. ``noise_repeats`` > 1 denoises that many independent (noise, step)
         draws per observation with one encoder pass: cheaper gradient variance reduction when the
-        3D encoder dominates the step time (the paper trains with 1)."""
+        3D encoder dominates the step time (the paper trains with 1). With ``batch["weight"]`` (B,) each
+        sample's MSE counts that much (``data.segments.SourceWeights``: corrections against demonstrations)."""
         voxels, ee, action = batch["voxels"], batch["ee"], batch["action"]
         check_obs(voxels, ee, self.preset)
         if action.shape[1:] != (self.preset.horizon, 10) or not torch.isfinite(action).all():
             raise PolicyInputError(f"action must be finite (B, {self.preset.horizon}, 10), got {tuple(action.shape)}")
+        weight = batch.get("weight")
+        if weight is not None and (
+            weight.shape != action.shape[:1] or not torch.isfinite(weight).all() or (weight < 0).any()
+        ):
+            raise PolicyInputError(f"weight must be finite, >= 0 and (B,), got {tuple(weight.shape)}")
         codec = self.codec
         # Augment where the model runs: rotating 64^3 grids costs ~11 ms a sample on a CPU core,
         # which left a GPU idle for most of each step.
@@ -116,7 +122,10 @@ class DiffusionPolicy(nn.Module):
         t = torch.randint(0, self.preset.num_train_timesteps, (x0.shape[0],), generator=generator).to(device)
         noisy = self.noise_scheduler.add_noise(x0, noise, t)
         pred = self.model.denoise(noisy, t, cond)
-        return F.mse_loss(pred, noise)
+        if weight is None:
+            return F.mse_loss(pred, noise)
+        per_sample = F.mse_loss(pred, noise, reduction="none").flatten(1).mean(1)
+        return (per_sample * weight.to(device).float().repeat_interleave(noise_repeats)).mean()
 
     @torch.no_grad()
     def predict_action(

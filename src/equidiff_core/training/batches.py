@@ -81,12 +81,20 @@ def estimate_nbytes(dataset: Dataset) -> int:
 
 class DeviceBatchSource:
     """The training set resident on ``device``: ``frames`` uint8 (F, 4, R, R, R), ``obs_index`` long
-    (N, To) into frames, ``ee`` float32 (N, To, 10) and ``action`` float32 (N, H, 10)."""
+    (N, To) into frames, ``ee`` float32 (N, To, 10), ``action`` float32 (N, H, 10) and, where samples count
+    differently (``data.dataset.DemoDataset.weights``), ``weight`` float32 (N,)."""
 
-    def __init__(self, frames: torch.Tensor, obs_index: torch.Tensor, ee: torch.Tensor, action: torch.Tensor):
-        if not (len(obs_index) == len(ee) == len(action)):
-            raise BatchSourceError("obs_index, ee and action must have one row per sample")
-        self.frames, self.obs_index, self.ee, self.action = frames, obs_index, ee, action
+    def __init__(
+        self,
+        frames: torch.Tensor,
+        obs_index: torch.Tensor,
+        ee: torch.Tensor,
+        action: torch.Tensor,
+        weight: torch.Tensor | None = None,
+    ):
+        if not (len(obs_index) == len(ee) == len(action)) or (weight is not None and len(weight) != len(action)):
+            raise BatchSourceError("obs_index, ee, action and weight must have one row per sample")
+        self.frames, self.obs_index, self.ee, self.action, self.weight = frames, obs_index, ee, action, weight
 
     @property
     def device(self) -> torch.device:
@@ -97,7 +105,8 @@ class DeviceBatchSource:
 
     @property
     def nbytes(self) -> int:
-        return sum(t.numel() * t.element_size() for t in (self.frames, self.obs_index, self.ee, self.action))
+        tensors = (self.frames, self.obs_index, self.ee, self.action, self.weight)
+        return sum(t.numel() * t.element_size() for t in tensors if t is not None)
 
     @classmethod
     def from_dataset(cls, dataset: Dataset, device: torch.device | str) -> DeviceBatchSource:
@@ -132,7 +141,9 @@ class DeviceBatchSource:
             ee.append(ep.ee[obs_idx])
             action.append(ep.targets_at(times))
         as_t = lambda rows, dtype: torch.from_numpy(np.stack(rows)).to(device=device, dtype=dtype)
-        return cls(frames, as_t(obs_index, torch.long), as_t(ee, torch.float32), as_t(action, torch.float32))
+        weights = getattr(dataset, "weights", None)
+        weight = None if weights is None else torch.from_numpy(weights).to(device)
+        return cls(frames, as_t(obs_index, torch.long), as_t(ee, torch.float32), as_t(action, torch.float32), weight)
 
     @classmethod
     def _from_samples(cls, dataset, device: torch.device) -> DeviceBatchSource:
@@ -141,17 +152,23 @@ class DeviceBatchSource:
         frames = torch.empty((n * To, *grid), dtype=torch.uint8, device=device)
         ee = torch.empty((n, *first["ee"].shape), dtype=torch.float32, device=device)
         action = torch.empty((n, *first["action"].shape), dtype=torch.float32, device=device)
+        weight = torch.empty(n, dtype=torch.float32, device=device) if "weight" in first else None
         for i in range(n):  # one sample at a time: host memory stays at one sample
             s = dataset[i]
             frames[i * To : (i + 1) * To] = torch.as_tensor(s["voxels"]).to(device)
             ee[i] = torch.as_tensor(s["ee"]).to(device)
             action[i] = torch.as_tensor(s["action"]).to(device)
+            if weight is not None:
+                weight[i] = torch.as_tensor(s["weight"])
         obs_index = torch.arange(n * To, device=device).view(n, To)
-        return cls(frames, obs_index, ee, action)
+        return cls(frames, obs_index, ee, action, weight)
 
     def batch(self, idx: torch.Tensor) -> dict:
         """Samples ``idx`` (long, on the device) as a training batch (the DataLoader's format)."""
-        return {"voxels": self.frames[self.obs_index[idx]], "ee": self.ee[idx], "action": self.action[idx]}
+        batch = {"voxels": self.frames[self.obs_index[idx]], "ee": self.ee[idx], "action": self.action[idx]}
+        if self.weight is not None:
+            batch["weight"] = self.weight[idx]
+        return batch
 
     def batches(self, sampler: DistributedSampler, batch_size: int) -> Iterator[dict]:
         """Endless batches in ``sampler``'s order, drop-last as :func:`loader_batches`."""

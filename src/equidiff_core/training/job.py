@@ -18,15 +18,18 @@ from pathlib import Path
 
 from equidiff_core.config import ConfigError, default_config_dir, load_lab_config
 from equidiff_core.data.dataset import DatasetConfig, DemoDataset, load_episodes, split_episodes
+from equidiff_core.data.segments import FrameSource, SourceWeights
+from equidiff_core.models.state import learned_state_dict
 from equidiff_core.perception.observation import STATE_TOLERANCE_S
 from equidiff_core.policy.diffusion import make_policy
+from equidiff_core.policy.file import CheckpointError, weights_sha256
 from equidiff_core.policy.presets import get_preset
 from equidiff_core.runtime.jobs import JobError
 from equidiff_core.runtime.output_files import occupied, staged_output
 from equidiff_core.training import distributed
 from equidiff_core.training.callbacks import ActionMseEvaluator, PlotWriter, ProgressBar
 from equidiff_core.training.config import TrainConfig, TrainingError, resolve_device
-from equidiff_core.training.loop import load_training_checkpoint, seed_everything, train
+from equidiff_core.training.loop import load_policy_from_checkpoint, load_training_checkpoint, seed_everything, train
 from equidiff_core.wire.pointcloud import VoxelGridSpec
 
 logger = logging.getLogger(__name__)
@@ -38,7 +41,7 @@ class TrainJobError(JobError):
 
 
 # the settings that name files: paths in a TrainingSpec, strings in its JSON
-_PATH_FIELDS = ("out", "lab_config", "cache_dir")
+_PATH_FIELDS = ("out", "lab_config", "cache_dir", "init_from")
 
 
 @dataclass(frozen=True)
@@ -49,8 +52,8 @@ class TrainingSpec:
 
     bags: tuple[Path, ...]  # bag directories, or folders holding bag directories
     out: Path  # the run directory (checkpoints, policy.pt, plots, split.json, run.json)
-    policy: str = "equidiff"  # equidiff or baseline
-    preset: str = "compact"
+    policy: str | None = None  # equidiff or baseline; None: equidiff, or init_from's
+    preset: str | None = None  # None: compact, or init_from's
     rotation_aug: str | None = None  # None: the preset's
     baseline_width: int | None = None  # None: the preset's; 0: channels matched to EquiDiff's parameter count
     baseline_init: str | None = None  # None: the preset's
@@ -77,6 +80,10 @@ class TrainingSpec:
     tolerance: float = STATE_TOLERANCE_S  # state/voxel stamp tolerance, s
     rerun: str | None = None  # also log to rerun: FILE.rrd, spawn or HOST:PORT
     progress: bool = True  # the progress bar (without it every evaluation is logged)
+    # fine-tuning: start from this run's weights (last.ckpt or a slim weights.ckpt), its preset and normaliser
+    init_from: Path | None = None
+    intervention_weight: float = SourceWeights.intervention  # an operator's correction frame, against a demo's 1
+    policy_frame_weight: float = SourceWeights.policy  # the policy's own frames in a roll-out (0: left out)
 
     def to_json(self) -> str:
         """The spec as one JSON object (paths as strings)."""
@@ -203,17 +210,11 @@ def _train_into(spec: TrainingSpec, dist_info, out: Path, named: Path) -> dict |
     main = dist_info.is_main
     say = logger.info if main else (lambda m: None)
     lab = load_lab_config(spec.lab_config or default_config_dir() / "lab.yaml")
-    overrides = {
-        "rotation_aug": spec.rotation_aug,
-        "baseline_width": spec.baseline_width,
-        "baseline_init": spec.baseline_init,
-    }
-    overrides = {key: value for key, value in overrides.items() if value is not None}
-    if overrides.get("baseline_width") == 0:
-        overrides["baseline_width"] = None
+    start = _starting_policy(spec, lab.workspace) if spec.init_from is not None else None
+    preset = start.preset if start is not None else _preset(spec)
     try:
-        preset = get_preset(spec.preset, **overrides)
-    except ConfigError as err:  # an unknown preset or an override out of range
+        weights = SourceWeights(intervention=spec.intervention_weight, policy=spec.policy_frame_weight)
+    except ValueError as err:
         raise TrainJobError(str(err), 2) from err
     data_cfg = DatasetConfig.from_preset(
         preset,
@@ -226,7 +227,8 @@ def _train_into(spec: TrainingSpec, dist_info, out: Path, named: Path) -> dict |
     if not episodes:
         raise TrainJobError("no usable episodes")
     train_eps, val_eps = _load_split(out, episodes, spec.val_fraction, spec.seed, spec.resume, write=main)
-    train_set, val_set = DemoDataset(train_eps, data_cfg), DemoDataset(val_eps, data_cfg) if val_eps else None
+    train_set = DemoDataset(train_eps, data_cfg, weights)
+    val_set = DemoDataset(val_eps, data_cfg, weights) if val_eps else None
     if len(train_set) == 0:
         raise TrainJobError(
             "the training episodes are too short for one window "
@@ -235,7 +237,7 @@ def _train_into(spec: TrainingSpec, dist_info, out: Path, named: Path) -> dict |
     say(
         f"{len(train_eps)} train episodes ({len(train_set)} samples), "
         f"{len(val_eps)} held out ({len(val_set) if val_set else 0} samples), {len(skipped)} skipped; "
-        f"{spec.policy} / {preset.name}"
+        f"{start.name if start is not None else spec.policy or 'equidiff'} / {preset.name}"
         + (f"; {dist_info.world_size} data-parallel ranks ({dist_info.backend})" if dist_info.distributed else "")
     )
 
@@ -259,7 +261,8 @@ def _train_into(spec: TrainingSpec, dist_info, out: Path, named: Path) -> dict |
     except ValueError as err:  # a setting out of range, e.g. --noise-repeats 0
         raise TrainJobError(str(err), 2) from err
     seed_everything(spec.seed)  # the initial weights come from the global RNG: seed before building
-    policy = make_policy(spec.policy, preset, lab.workspace)
+    start_weights = None if start is None else weights_sha256(learned_state_dict(start.model))
+    policy = start if start is not None else make_policy(spec.policy or "equidiff", preset, lab.workspace)
     start_step = 0
     if main and spec.resume and (out / "last.ckpt").exists():  # for the progress bar
         start_step = int(load_training_checkpoint(out / "last.ckpt")["step"])
@@ -300,6 +303,8 @@ def _train_into(spec: TrainingSpec, dist_info, out: Path, named: Path) -> dict |
         "train_episodes": len(train_eps),
         "val_episodes": len(val_eps),
         "skipped": len(skipped),
+        # what the training samples' current frames were (data.segments): the expert's are demo + operator
+        "samples_by_source": _samples_by_source(train_set),
     }
     if result.stopped:
         summary["stopped"] = result.stopped
@@ -319,6 +324,55 @@ def _train_into(spec: TrainingSpec, dist_info, out: Path, named: Path) -> dict |
         "world_size": result.world_size,
         "precision": result.precision,
         "data": result.data,
+        "init_from": None if spec.init_from is None else str(spec.init_from),
+        "init_weights_sha256": None if start is None else start_weights,
+        "source_weights": {"intervention": weights.intervention, "policy": weights.policy},
     }
     (out / "run.json").write_text(json.dumps({**summary, "recipe": recipe}, indent=1) + "\n")
     return summary
+
+
+def _preset(spec: TrainingSpec):
+    overrides = {
+        "rotation_aug": spec.rotation_aug,
+        "baseline_width": spec.baseline_width,
+        "baseline_init": spec.baseline_init,
+    }
+    overrides = {key: value for key, value in overrides.items() if value is not None}
+    if overrides.get("baseline_width") == 0:
+        overrides["baseline_width"] = None
+    try:
+        return get_preset(spec.preset or "compact", **overrides)
+    except ConfigError as err:  # an unknown preset or an override out of range
+        raise TrainJobError(str(err), 2) from err
+
+
+def _starting_policy(spec: TrainingSpec, workspace):
+    """The policy ``spec.init_from`` holds, to fine-tune: its kind, preset and normaliser are the run's, so a flag
+    that asks for others is refused rather than ignored."""
+    conflicting = [
+        f"--{name.replace('_', '-')}"
+        for name in ("policy", "preset", "rotation_aug", "baseline_width", "baseline_init")
+        if getattr(spec, name) is not None
+    ]
+    if conflicting:
+        raise TrainJobError(f"--init-from brings its own model: drop {', '.join(conflicting)}", 2)
+    try:
+        start = load_policy_from_checkpoint(spec.init_from, device="cpu", ema=True)
+    except (CheckpointError, OSError) as err:
+        raise TrainJobError(f"--init-from {spec.init_from}: {err}", 2) from err
+    if start.workspace != workspace:
+        raise TrainJobError(
+            f"--init-from {spec.init_from} was trained for workspace {start.workspace}, this lab's is {workspace}", 2
+        )
+    return start.train()
+
+
+def _samples_by_source(dataset: DemoDataset) -> dict[str, int]:
+    """How many of ``dataset``'s samples have their current frame from each source."""
+    counts = dict.fromkeys((source.name.lower() for source in FrameSource), 0)
+    steps = dataset.config.n_obs_steps - 1
+    for e, start in dataset.index:
+        episode = dataset.episodes[e]
+        counts[FrameSource(episode.sources[min(max(start + steps, 0), len(episode) - 1)]).name.lower()] += 1
+    return counts

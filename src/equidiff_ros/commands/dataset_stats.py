@@ -1,4 +1,5 @@
-"""`equidiff dataset stats BAGS...`: episodes, durations, steps, samples and action ranges.
+"""`equidiff dataset stats BAGS...`: episodes, durations, steps, samples, action ranges, and the corrections of a
+policy's roll-outs (docs/corrections.md).
 
 Bad bags (truncated, killed recordings, damaged bytes caught by a CRC, missing topics) are
 listed with the reason and make the command exit 1, so a script never trains on a silently
@@ -65,6 +66,11 @@ def run(args) -> int:
         t = stats["total"]
         print(f"{'total':<32} {'':<16} {'':<5} {t['duration_s']:>7.1f} {t['steps']:>6} {t['samples']:>8}")
         print(f"{t['episodes']} episodes; action range: {_fmt_range(t['action_min'], t['action_max'])}")
+        if t["episodes_with_corrections"] or t["gate_alarms"]:
+            print(
+                f"{t['episodes_with_corrections']} episodes with corrections ({t['correction_s']:.1f} s of the "
+                f"operator's correction, {t['policy_s']:.1f} s of the policy); {t['gate_alarms']} gate alarms"
+            )
         if t["unchecked"]:
             print(f"{t['unchecked']} episodes UNCHECKED: their bags carry no CRCs (written before bags did)")
         for s in stats["skipped"]:

@@ -37,9 +37,13 @@ DEFAULT = TrainingSpec(bags=(), out=Path())
 def add_arguments(parser) -> None:
     parser.add_argument("bags", nargs="+", help="bag directories, or folders holding bag directories")
     parser.add_argument("--out", required=True, help="output directory (checkpoints, policy.pt, plots)")
-    parser.add_argument("--policy", choices=("equidiff", "baseline"), default=DEFAULT.policy)
     parser.add_argument(
-        "--preset", default=DEFAULT.preset, help="model preset: paper, compact or tiny (default compact)"
+        "--policy", choices=("equidiff", "baseline"), default=DEFAULT.policy, help="default equidiff (or --init-from's)"
+    )
+    parser.add_argument(
+        "--preset",
+        default=DEFAULT.preset,
+        help="model preset: paper, compact or tiny (default compact, or --init-from's)",
     )
     parser.add_argument(
         "--rotation-aug",
@@ -115,6 +119,27 @@ def add_arguments(parser) -> None:
     parser.add_argument("--tolerance", type=float, default=DEFAULT.tolerance, help="state/voxel stamp tolerance, s")
     parser.add_argument("--rerun", metavar="FILE.rrd|spawn|HOST:PORT", help="also log training to rerun")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar (logs every eval instead)")
+    corrections = parser.add_argument_group(
+        'fine-tuning on corrections (docs/lab.md, "Improving a policy with corrections")'
+    )
+    corrections.add_argument(
+        "--init-from",
+        metavar="CKPT",
+        help="start from this run's weights (its last.ckpt or weights.ckpt): its policy, preset and normaliser",
+    )
+    corrections.add_argument(
+        "--intervention-weight",
+        type=float,
+        default=DEFAULT.intervention_weight,
+        help="how much a frame the operator drove in a policy's roll-out counts, against a demonstration's 1 "
+        "(default %(default)s)",
+    )
+    corrections.add_argument(
+        "--policy-frame-weight",
+        type=float,
+        default=DEFAULT.policy_frame_weight,
+        help="how much a frame the policy drove counts (default %(default)s: left out)",
+    )
 
 
 def training_spec(args) -> TrainingSpec:
@@ -150,6 +175,9 @@ def training_spec(args) -> TrainingSpec:
         tolerance=args.tolerance,
         rerun=args.rerun,
         progress=not args.no_progress,
+        init_from=None if args.init_from is None else Path(args.init_from),
+        intervention_weight=args.intervention_weight,
+        policy_frame_weight=args.policy_frame_weight,
     )
 
 
