@@ -25,7 +25,14 @@ from equidiff_core.config import Workspace
 from equidiff_core.control import ChunkScheduler, SchedulerConfig
 from equidiff_core.robots.base import ARM_JOINT_NAMES, FINGER_JOINT_NAMES, RobotState
 from equidiff_core.wire.chunk import ChunkError, ChunkReason, PoseChunk, chunk_from_msg, chunk_to_msg
-from equidiff_core.wire.pointcloud import CloudError, VoxelGridSpec, cloud_to_msg, msg_to_cloud, voxel_msg_to_grid
+from equidiff_core.wire.pointcloud import (
+    CloudError,
+    VoxelGridSpec,
+    check_voxel_msg,
+    cloud_to_msg,
+    msg_to_cloud,
+    voxel_msg_to_grid,
+)
 from equidiff_core.wire.rosmsg import (
     GRIPPER_WIDTH_SLACK_M,
     MessageError,
@@ -179,6 +186,8 @@ def test_mutated_voxel_messages_decode_exactly_or_raise_cloud_error(grid, data):
     grid[1:, grid[0] == 0] = 0
     msg = _mutate_cloud(voxel_msg(F, grid, WS, NOW, "base"), data)
     out = _refused(lambda m: voxel_msg_to_grid(m, SPEC), msg, CloudError)
+    # the recorder's check without the grid refuses exactly what decoding refuses
+    assert (_refused(lambda m: check_voxel_msg(m, SPEC), msg, CloudError) is None) == (out is None)
     if out is not None:  # e.g. random bytes that still form valid voxels: the grid must be exactly them
         assert out.shape == (4, WS.resolution, WS.resolution, WS.resolution) and out.dtype == np.uint8
         assert msg.header.frame_id == "base" and int(msg.point_step) == 24

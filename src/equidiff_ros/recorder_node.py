@@ -17,7 +17,7 @@ its metadata (``extra.interventions``: start-end seconds from the episode start,
 
 While recording, the messages a training set is built from are decoded first with the
 decoders their live readers use: a ``/voxels`` message that is not lab.yaml's grid
-(``wire.pointcloud.voxel_msg_to_grid``), a ``/franka/command_chunk`` that does not decode
+(``wire.pointcloud.check_voxel_msg``), a ``/franka/command_chunk`` that does not decode
 (``wire.chunk.chunk_from_msg``, base frame), a ``/franka/ee_pose`` that is not a pose in the base
 frame (``wire.rosmsg.pose_from_msg``: NaN / inf, a non-unit quaternion) or a ``/franka/joint_states``
 that ``wire.rosmsg.gripper_width_from_joint_state`` refuses (names and positions that disagree, a name
@@ -59,7 +59,7 @@ from equidiff_core.data.recording import (
 )
 from equidiff_core.wire import rosmsg, topics
 from equidiff_core.wire.chunk import ChunkError, chunk_from_msg
-from equidiff_core.wire.pointcloud import CloudError, VoxelGridSpec, voxel_msg_to_grid
+from equidiff_core.wire.pointcloud import CloudError, VoxelGridSpec, check_voxel_msg
 from equidiff_core.wire.rosmsg import MessageError, RclpyFactory, gripper_width_from_joint_state, pose_from_msg
 from equidiff_core.wire.topics import (
     TOPIC_COMMAND_CHUNK,
@@ -184,7 +184,7 @@ class RecorderNode(Node):
         # topic -> a check that raises CloudError / ChunkError / MessageError (with a ``reason``) on a
         # message the dataset cannot use
         self.checks = {
-            TOPIC_VOXELS: lambda msg: voxel_msg_to_grid(msg, grid_spec),
+            TOPIC_VOXELS: lambda msg: check_voxel_msg(msg, grid_spec),
             TOPIC_COMMAND_CHUNK: lambda msg: chunk_from_msg(msg, self.lab.base_frame),
             TOPIC_EE_POSE: lambda msg: pose_from_msg(msg, self.lab.base_frame),
             TOPIC_JOINT_STATES: gripper_width_from_joint_state,

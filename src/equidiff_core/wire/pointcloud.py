@@ -224,11 +224,12 @@ def grid_to_voxel_msg(
     return _make_cloud_msg(factory, record, VOXEL_FIELDS, VOXEL_POINT_STEP, stamp_ns, frame_id)
 
 
-def voxel_msg_to_grid(msg, expected: VoxelGridSpec | int) -> np.ndarray:
-    """Occupied-voxel PointCloud2 -> the exact uint8 grid (4, R, R, R); raises CloudError unless
-    it is the wire format exactly (architecture.md note 2: fields, offsets, datatypes, point_step
-    24) and on the ``expected`` grid (an int: the resolution only): frame, indices below R, each
-    centre at ``lower + (index + 0.5) * voxel_size``, no voxel twice."""
+def check_voxel_msg(msg, expected: VoxelGridSpec | int) -> tuple[np.ndarray, np.ndarray]:
+    """Check an occupied-voxel PointCloud2 without building its grid; returns (its records, the (M, 3) voxel
+    indices). Raises CloudError unless it is the wire format exactly (architecture.md note 2: fields,
+    offsets, datatypes, point_step 24) and on the ``expected`` grid (an int: the resolution only): frame,
+    indices below R, each centre at ``lower + (index + 0.5) * voxel_size``, no voxel twice. The recorder
+    checks every grid so, at a fraction of decoding it."""
     spec = expected if isinstance(expected, VoxelGridSpec) else VoxelGridSpec(int(expected))
     R = spec.resolution
     check_frame(msg, spec.frame_id)
@@ -239,9 +240,8 @@ def voxel_msg_to_grid(msg, expected: VoxelGridSpec | int) -> np.ndarray:
             f"{[(n, o, d, 1) for n, o, d in VOXEL_FIELDS]} with point_step {VOXEL_POINT_STEP}"
         )
     record, _ = _structured(msg, ("x", "y", "z", "rgb", "i", "j", "k"))
-    grid = np.zeros((4, R, R, R), dtype=np.uint8)
     if len(record) == 0:
-        return grid
+        return record, np.zeros((0, 3), np.int64)
     idx = np.stack([record["i"], record["j"], record["k"]], axis=1).astype(np.int64)
     if idx.max() >= R:
         raise CloudError(f"voxel index {int(idx.max())} out of range for resolution {R}", CloudReason.GRID)
@@ -262,6 +262,17 @@ def voxel_msg_to_grid(msg, expected: VoxelGridSpec | int) -> np.ndarray:
                 f"{list(spec.lower)} / {spec.voxel_size} m ({int(bad.sum())} of {len(bad)} voxels off)",
                 CloudReason.GRID,
             )
+    return record, idx
+
+
+def voxel_msg_to_grid(msg, expected: VoxelGridSpec | int) -> np.ndarray:
+    """Occupied-voxel PointCloud2 -> the exact uint8 grid (4, R, R, R), checked by ``check_voxel_msg``
+    (CloudError)."""
+    record, idx = check_voxel_msg(msg, expected)
+    R = expected.resolution if isinstance(expected, VoxelGridSpec) else int(expected)
+    grid = np.zeros((4, R, R, R), dtype=np.uint8)
+    if len(record) == 0:
+        return grid
     colors = unpack_rgb(record["rgb"])
     grid[0, idx[:, 0], idx[:, 1], idx[:, 2]] = 255
     for c in range(3):
