@@ -234,3 +234,19 @@ def test_the_dated_figure_check_catches_what_it_is_for():
         assert DATED_FIGURE.search(line), line
     for line in ("cpu_model()", "bf16 with AVX512-BF16/AMX", "YYYY-MM-DD", "100 Hz"):
         assert not DATED_FIGURE.search(line), line
+
+
+def test_the_core_prints_only_in_its_process_entry_points():
+    """The core logs (``logging``) or reports through a callback; only a ``python -m equidiff_core...`` process,
+    whose output its parent reads, writes to stdout or stderr itself."""
+    import ast
+
+    offenders = []
+    for path in sorted((ROOT / "src" / "equidiff_core").rglob("*.py")):
+        text = path.read_text()
+        if 'if __name__ == "__main__":' in text:
+            continue
+        for node in ast.walk(ast.parse(text)):
+            if isinstance(node, ast.Call) and isinstance(node.func, ast.Name) and node.func.id == "print":
+                offenders.append(f"{path.relative_to(ROOT)}:{node.lineno}")
+    assert not offenders, offenders

@@ -157,6 +157,7 @@ class TwinNode(Node):
             lockstep=lockstep,
             on_clock=self.publish_clock,
             camera_names=tuple(c.name for c in self.lab.cameras),
+            log=self.get_logger().info,
         )
         self.pub_scene = self.create_publisher(String, TOPIC_TWIN_SCENE, LATCHED_QOS)
         self.pub_state = self.create_publisher(String, TOPIC_TWIN_STATE, RELIABLE_QOS)
