@@ -51,9 +51,8 @@ from ..wire.chunk import ChunkError, chunk_from_msg
 from ..wire.pointcloud import CloudError, voxel_msg_to_grid
 from ..wire.rosmsg import NS_PER_S, MessageError, gripper_width_from_joint_state, pose_from_msg
 from ..wire.topics import TOPIC_COMMAND_CHUNK, TOPIC_EE_POSE, TOPIC_JOINT_STATES, TOPIC_VOXELS
-from .bags import CHECKED, BagError, find_bags, is_bag_dir, read_episode
+from .bags import find_bags, is_bag_dir, read_episode
 from .episode_arrays import (
-    CACHE_VERSION,
     PACKED_SUFFIX,
     DatasetConfig,
     EpisodeArrays,
@@ -62,6 +61,7 @@ from .episode_arrays import (
     read_packed,
     write_packed,
 )
+from .mcap_reader import CHECKED, BagError
 
 
 def command_schedule(chunks: Sequence[Any]) -> tuple[np.ndarray, np.ndarray]:
@@ -410,24 +410,3 @@ def dataset_stats(paths: Iterable[str | Path], config: DatasetConfig = DatasetCo
             "action_max": all_actions.max(0).round(4).tolist() if len(all_actions) else None,
         },
     }
-
-
-# The episode arrays, their settings and their packed form moved to episode_arrays; importable from here too.
-__all__ = [
-    "CACHE_VERSION",
-    "PACKED_SUFFIX",
-    "DatasetConfig",
-    "DemoDataset",
-    "EpisodeArrays",
-    "command_schedule",
-    "dataset_stats",
-    "find_episodes",
-    "iter_episodes",
-    "load_episode_arrays",
-    "load_episodes",
-    "pack_episodes",
-    "read_packed",
-    "sample_starts",
-    "split_episodes",
-    "write_packed",
-]
