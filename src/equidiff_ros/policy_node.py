@@ -55,7 +55,7 @@ declare as their launch arguments' defaults. ``execute_steps`` 0 (answer once a 
 fewer steps when the latency needs it) was chosen by the twin's closed-loop evaluation
 (docs/evaluation_scheme.md).
 
-Parameters: ``PARAMETERS`` below (``--help``, ``ros2 param describe``, docs/architecture.md).
+Parameters: ``PARAMETERS`` below (``--help``, ``ros2 param describe``, docs/parameters.md).
 """
 
 from __future__ import annotations
@@ -246,8 +246,8 @@ class PolicyNode(Node):
                 "e.g. -p checkpoint:=runs/pick/policy.pt)"
             )
         # Loading and warming up on one thread: the node starts beside every other node (in the twin also
-        # beside the sim's cameras), where more threads than idle cores are slower (docs/twin.md measures
-        # it for inference). Inference then gets its own.
+        # beside the sim's cameras), where more threads than idle cores are slower (docs/results/twin.md
+        # measures it for inference). Inference then gets its own.
         inference_threads = int(threads) if threads > 0 else torch.get_num_threads()
         torch.set_num_threads(1)
         t0 = time.perf_counter()

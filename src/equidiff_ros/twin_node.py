@@ -23,7 +23,7 @@ Wiring:
 The robot is never teleported: a reset moves the objects only; whoever resets commands the arm
 home first (``equidiff twin run`` does), so the franky client's controller is never surprised.
 
-Parameters: ``PARAMETERS`` below (``--help``, ``ros2 param describe``, docs/architecture.md).
+Parameters: ``PARAMETERS`` below (``--help``, ``ros2 param describe``, docs/parameters.md).
 """
 
 from __future__ import annotations
