@@ -97,8 +97,8 @@ class DiffusionPolicy(nn.Module):
         if action.shape[1:] != (self.preset.horizon, 10) or not torch.isfinite(action).all():
             raise PolicyInputError(f"action must be finite (B, {self.preset.horizon}, 10), got {tuple(action.shape)}")
         codec = self.codec
-        # Augment where the model runs: rotating 64^3 grids costs ~11 ms a sample on a CPU core,
-        # which left a GPU idle for most of each step.
+        # Augment where the model runs: rotating 64^3 grids on a CPU core left a GPU idle for most of each
+        # step.
         voxels = voxels.to(next(self.model.parameters()).device)
         if self.training and self.preset.rotation_aug != "none":
             voxels, ee, action = augment.random_rotation(

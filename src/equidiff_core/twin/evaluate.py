@@ -47,7 +47,7 @@ from .direct_execution import (
 from .episode import run_episode
 
 # policy_node's default torch_threads. A fixed count also keeps each seed's outcome the same from
-# run to run: 1 and 2 threads round differently and ended one scene differently (docs/twin.md).
+# run to run: 1 and 2 threads round differently and ended one scene differently (docs/evaluation_scheme.md).
 ROLLOUT_THREADS = 1
 
 

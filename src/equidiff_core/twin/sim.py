@@ -325,7 +325,7 @@ class DirectSim:
     the arm follows the target like franky-sim's joint-impedance path: damped least-squares IK
     to a joint target, then PD with the same gains plus gravity/Coriolis compensation. We do
     the arm control with MuJoCo's own Jacobian and bias forces instead of franky-sim's
-    per-step pinocchio calls and state tracking, which made a 20-episode test 4x slower.
+    per-step pinocchio calls and state tracking, which made the twin's tests several times slower.
     """
 
     def __init__(self, cfg: TwinConfig):

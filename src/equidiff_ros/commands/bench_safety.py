@@ -1,6 +1,6 @@
 """`equidiff bench safety`: a fault campaign against franky-sim through franka_node (issues 16 and 27).
 
-    equidiff bench safety                          # all fourteen faults, ~6 min on 2 cores
+    equidiff bench safety                          # all fourteen faults
     equidiff bench safety --faults nan,out_of_box,user_stop,franka_node_killed
     equidiff bench safety --faults out_of_box --box-margin-mm 0   # the raw overshoot the margin is set from
 

@@ -9,7 +9,7 @@ injected at the libfranka protocol level through the sim's fault channel
 scene lives in ``equidiff_core.twin``; this is the smallest thing the franka node can talk to.
 
 We step the server ourselves instead of ``SimulationServer.run_async()``: the stock loop
-sleeps "1 ms minus compute" and runs 8-16 % slower than real time (measured); sleeping to
+sleeps "1 ms minus compute" and runs slower than real time (measured); sleeping to
 fixed 1 ms deadlines holds 1000 steps/s, which the tracking numbers depend on.
 """
 
