@@ -4,7 +4,7 @@
 #   bash scripts/gpu_prepare.sh [BAGS...]     (default BAGS: bags/)
 #
 # 1. .gpu_carry/wheels: what the GPU machine's python3 (3.12, torch 2.11 with CUDA, numpy 2.5.2,
-#    scipy, huggingface-hub, safetensors, requests, pillow, joblib...; docs/model.md "GPU check")
+#    scipy, huggingface-hub, safetensors, requests, pillow, joblib...; docs/gpu_check.md)
 #    lacks, as CPython 3.12 x86_64 wheels, since it reaches no registry: diffusers, escnn and its
 #    pure-Python needs (pymanopt, autograd) from the registry; lie_learn rebuilt against numpy 2.5.2
 #    (scripts/build_lie_learn.py, under a Python 3.12); py3nj compiled with gfortran and its
@@ -20,7 +20,7 @@ ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 CARRY="$ROOT/.gpu_carry"
 BUILD="${GPU_PREPARE_BUILD:-/tmp/equidiff_gpu_build}"
 PROJECT_PY="${PROJECT_PYTHON:-$ROOT/.venv/bin/python}"
-# the GPU image's numpy (docs/model.md): compiled extensions are built against it
+# the GPU image's numpy (docs/results/model.md): compiled extensions are built against it
 NUMPY_ON_GPU="2.5.2"
 # the versions this project runs here (setup.py pins escnn; the others as installed and tested)
 PURE_WHEELS=(diffusers==0.42.1 escnn==1.0.11 pymanopt==2.2.1 autograd==1.9.1)
@@ -71,7 +71,7 @@ if ! python3 "$ROOT/scripts/gpu_check.py" size --carry .gpu_carry; then
   cat >&2 <<MSG
 gpu_prepare: OVER the device's 64 MiB limit (see "largest" above): the call would be refused.
   Tracked files travel whatever .gitignore says, so the repository must carry less (see
-  docs/model.md "GPU check" for the options); nothing was sent.
+  docs/gpu_check.md for the options); nothing was sent.
 MSG
   exit 3
 fi

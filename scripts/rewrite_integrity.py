@@ -26,7 +26,8 @@ import numpy as np
 import torch
 from rosbags.rosbag2.storage_mcap import parse_qos
 
-from equidiff_core.data.bags import CHECKED, find_bags, read_meta, scan_mcap, verify_bag
+from equidiff_core.data.bags import find_bags, read_meta, scan_mcap, verify_bag
+from equidiff_core.data.mcap_reader import CHECKED
 from equidiff_core.data.mcap_writer import open_bag_writer
 from equidiff_core.policy.file import FORMAT, HASH_KEY, rewrite_with_hash
 from equidiff_core.policy.inference import load_inference_policy

@@ -13,18 +13,9 @@ from helpers_data import SyntheticEpisode, write_synthetic_episode
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from equidiff_core.data.bags import (
-    CHECKED,
-    UNCHECKED,
-    BagError,
-    BagIntegrityError,
-    EpisodeMeta,
-    read_episode,
-    repair_bag,
-    scan_mcap,
-    verify_bag,
-)
+from equidiff_core.data.bags import EpisodeMeta, read_episode, repair_bag, scan_mcap, verify_bag
 from equidiff_core.data.dataset import dataset_stats
+from equidiff_core.data.mcap_reader import CHECKED, UNCHECKED, BagError, BagIntegrityError
 from equidiff_core.data.mcap_writer import open_bag_writer
 from equidiff_core.data.recording import RecordingConfig
 from equidiff_core.wire.rosmsg import rosbags_factory

@@ -23,7 +23,8 @@ from equidiff_core.policy.inference import load_inference_policy
 from equidiff_core.policy.normalizer import Normalizer
 from equidiff_core.policy.presets import get_preset
 from equidiff_core.training.job import TrainingSpec
-from equidiff_core.twin.evaluate import EvalEpisode, yaw_breakdown
+from equidiff_core.twin.evaluate import EvalEpisode
+from equidiff_core.twin.yaw_range import yaw_breakdown
 
 ROOT = Path(__file__).resolve().parents[1]
 WS = Workspace()

@@ -11,8 +11,8 @@ import pytest
 import torch
 from helpers_data import SyntheticEpisode, write_synthetic_episode
 
-from equidiff_core.data.dataset import DatasetConfig, DemoDataset, dataset_stats, load_episode_arrays
-from equidiff_core.data.episode_arrays import write_packed
+from equidiff_core.data.dataset import DemoDataset, dataset_stats, load_episode_arrays
+from equidiff_core.data.episode_arrays import DatasetConfig, write_packed
 from equidiff_core.data.recording import RecordingConfig
 from equidiff_core.data.segments import GATE_PAUSE_PREFIX, FrameSource, SourceWeights
 from equidiff_core.wire.rosmsg import NS_PER_S

@@ -19,7 +19,8 @@ from helpers_ros import spawn_node, stop_node
 from equidiff_core import geometry
 from equidiff_core.cameras.color import color_image_msg
 from equidiff_core.config import default_config_dir, load_lab_config
-from equidiff_core.data.bags import BagError, read_episode, repair_bag
+from equidiff_core.data.bags import read_episode, repair_bag
+from equidiff_core.data.mcap_reader import BagError
 from equidiff_core.wire.chunk import PoseChunk, chunk_from_msg, chunk_to_msg
 from equidiff_core.wire.pointcloud import grid_to_voxel_msg
 from equidiff_core.wire.topics import camera_color_topic

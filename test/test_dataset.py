@@ -24,7 +24,6 @@ import equidiff_core.data.dataset as dataset_mod
 from equidiff_core import geometry
 from equidiff_core.config import Workspace
 from equidiff_core.data.dataset import (
-    DatasetConfig,
     DemoDataset,
     command_schedule,
     dataset_stats,
@@ -32,6 +31,8 @@ from equidiff_core.data.dataset import (
     sample_starts,
     split_episodes,
 )
+from equidiff_core.data.episode_arrays import PACKED_SUFFIX, DatasetConfig
+from equidiff_core.data.mcap_reader import BagError
 from equidiff_core.data.recording import RecordingConfig
 from equidiff_core.wire.chunk import PoseChunk
 from equidiff_core.wire.rosmsg import NS_PER_S, joint_state, pose_stamped, rosbags_factory, stamp_to_ns
@@ -183,7 +184,7 @@ def test_packed_episodes_hold_exactly_what_the_bag_decodes_to(bag, tmp_path):
     )
     assert out.returncode == 0, out.stderr
     assert json.loads(out.stdout.splitlines()[-1])["packed"] == 1
-    packed = tmp_path / "packed" / f"ep_0000{dataset_mod.PACKED_SUFFIX}"
+    packed = tmp_path / "packed" / f"ep_0000{PACKED_SUFFIX}"
     assert packed.stat().st_size < sum(f.stat().st_size for f in bag.glob("*.mcap")) / 4
     decoded, restored = load_episode_arrays(bag), load_episode_arrays(packed)
     for field in ("stamps_ns", "voxel_offsets", "voxel_idx", "voxel_rgb", "ee", "schedule_ns", "schedule"):
@@ -198,9 +199,9 @@ def test_packed_episodes_hold_exactly_what_the_bag_decodes_to(bag, tmp_path):
 
 def test_packed_episode_decoded_differently_or_damaged_is_refused(bag, tmp_path):
     packed = dataset_mod.pack_episodes([bag], tmp_path)[0][0]
-    with pytest.raises(dataset_mod.BagError, match="pack the bags again"):
+    with pytest.raises(BagError, match="pack the bags again"):
         load_episode_arrays(packed, DatasetConfig(resolution=32))
-    broken = tmp_path / f"broken{dataset_mod.PACKED_SUFFIX}"
+    broken = tmp_path / f"broken{PACKED_SUFFIX}"
     broken.write_bytes(packed.read_bytes()[:200])
     episodes, skipped = dataset_mod.load_episodes([tmp_path])
     assert len(episodes) == 1 and [p.name for p, _ in skipped] == [broken.name]
@@ -230,7 +231,7 @@ def test_pack_names_same_named_bags_apart_and_never_clobbers(bag, tmp_path):
     first = _pack(str(tmp_path / "day1"), str(tmp_path / "day2"), str(day1), "--out", str(out))
     assert first.returncode == 0, first.stderr
     names = sorted(p.name for p in out.iterdir())
-    assert names == [f"day1__ep_0000{dataset_mod.PACKED_SUFFIX}", f"day2__ep_0000{dataset_mod.PACKED_SUFFIX}"]
+    assert names == [f"day1__ep_0000{PACKED_SUFFIX}", f"day2__ep_0000{PACKED_SUFFIX}"]
     assert json.loads(first.stdout.splitlines()[-1])["packed"] == 2  # day1 named twice is packed once
     before = _tree(out)
 
@@ -246,7 +247,7 @@ def test_pack_names_same_named_bags_apart_and_never_clobbers(bag, tmp_path):
 
     forced = _pack(str(day2), "--out", str(out), "--force")
     assert forced.returncode == 0, forced.stderr
-    assert [p.name for p in out.iterdir()] == [f"ep_0000{dataset_mod.PACKED_SUFFIX}"]  # replaced, not merged
+    assert [p.name for p in out.iterdir()] == [f"ep_0000{PACKED_SUFFIX}"]  # replaced, not merged
     assert sorted(p.name for p in tmp_path.iterdir()) == ["day1", "day2", "packed"]
 
 
@@ -296,7 +297,7 @@ def test_dataset_stats_cli(bag, tmp_path):
 def test_grids_are_checked_against_the_labs_workspace_where_the_lab_is_known(tmp_path):
     moved = Workspace(tuple(np.asarray(LAB.workspace.center) + 0.05), LAB.workspace.edge, LAB.workspace.resolution)
     elsewhere = write_synthetic_episode(tmp_path / "ep_moved", SyntheticEpisode(duration_s=2.0), ws=moved, config=CFG)
-    with pytest.raises(dataset_mod.BagError, match="origin or voxel size"):
+    with pytest.raises(BagError, match="origin or voxel size"):
         load_episode_arrays(elsewhere, DatasetConfig.for_lab(LAB))
     # without the lab only the resolution can be checked: the same bag decodes
     assert len(load_episode_arrays(elsewhere, DatasetConfig(resolution=moved.resolution)).stamps_ns) > 0
@@ -341,7 +342,7 @@ def test_refused_poses_and_joint_states_are_left_out_and_the_next_nearest_is_use
     ee, ok = dataset_mod._ee_actions(episode, stamps, 50 * ms, None)  # no frame known: the foreign pose is nearest
     assert ee[0, 0] == pytest.approx(0.42)
     # every pose refused: the episode has no robot state, said so
-    with pytest.raises(dataset_mod.BagError, match="no usable /franka/ee_pose"):
+    with pytest.raises(BagError, match="no usable /franka/ee_pose"):
         dataset_mod._ee_actions(
             _Episode({**episode, TOPIC_EE_POSE: _Topic([nan_pose])}), stamps, 50 * ms, LAB.base_frame
         )

@@ -14,7 +14,8 @@ import pytest
 import torch
 
 from equidiff_core.config import Workspace
-from equidiff_core.data.dataset import DatasetConfig, DemoDataset
+from equidiff_core.data.dataset import DemoDataset
+from equidiff_core.data.episode_arrays import DatasetConfig
 from equidiff_core.data.synthetic import CubeDataset
 from equidiff_core.policy.diffusion import make_policy
 from equidiff_core.policy.presets import get_preset

@@ -4,7 +4,8 @@ turned into the commands' messages and exit statuses."""
 import logging
 
 from equidiff_core.config import ConfigError
-from equidiff_core.runtime.jobs import JobError, progress_lines, report_error
+from equidiff_core.runtime.jobs import JobError, progress_lines
+from equidiff_ros.cli import report_error
 
 
 def test_progress_lines_print_the_core_loggers_records_while_inside(capsys):

@@ -21,7 +21,8 @@ from rosbags.rosbag2 import Reader
 
 from equidiff_core.cameras.color import image_from_msg
 from equidiff_core.data.bags import read_episode
-from equidiff_core.data.dataset import DatasetConfig, load_episode_arrays
+from equidiff_core.data.dataset import load_episode_arrays
+from equidiff_core.data.episode_arrays import DatasetConfig
 from equidiff_core.data.recording import EpisodeWriter, RecordingConfig
 from equidiff_core.wire.rosmsg import rosbags_factory
 from equidiff_core.wire.topics import camera_color_topic

@@ -1,6 +1,6 @@
 """Every node parameter describes itself (``equidiff_ros.parameters``): ``ros2 param describe`` (the
 DescribeParameters service) gives its description and range, rclpy refuses a value outside the range,
-and docs/architecture.md's tables are generated from the same declarations."""
+and docs/parameters.md's tables are generated from the same declarations."""
 
 import ast
 import math
@@ -31,7 +31,7 @@ def test_no_module_declares_a_parameter_but_through_its_description():
 
 
 def test_the_committed_parameter_tables_are_the_generated_ones():
-    document = (REPO / "docs" / "architecture.md").read_text()
+    document = (REPO / "docs" / "parameters.md").read_text()
     assert document == with_parameter_tables(document, node_parameters()), "run python scripts/gen_parameters_doc.py"
     assert "| `slop_s` | `0.1` | s | 0 < x <= 1 |" in document
 

@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from equidiff_core.data.bags import read_episode
-from equidiff_core.data.dataset import DatasetConfig, load_episode_arrays
+from equidiff_core.data.dataset import load_episode_arrays
+from equidiff_core.data.episode_arrays import DatasetConfig
 from equidiff_core.perception.observation import STATE_TOLERANCE_S, StateHistory, ee_input, nearest
 from equidiff_core.wire.pointcloud import voxel_msg_to_grid
 from equidiff_core.wire.rosmsg import gripper_width_from_joint_state, pose_from_msg, stamp_to_ns

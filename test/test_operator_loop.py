@@ -9,19 +9,13 @@ import pytest
 from helpers_data import SyntheticEpisode, write_synthetic_episode
 
 from equidiff_core.control.controller import ControllerStats
-from equidiff_core.lab.operator_loop import (
+from equidiff_core.lab.node_view import (
     DIAGNOSTICS_STALE_S,
-    KEY_ROWS,
-    KEYS,
-    SERVICES,
-    LoopConfig,
     NodeView,
-    OperatorLoop,
-    Request,
-    ResetCountdown,
     parse_franka_status,
     robot_status_from_diagnostics,
 )
+from equidiff_core.lab.operator_loop import KEY_ROWS, KEYS, SERVICES, LoopConfig, OperatorLoop, Request, ResetCountdown
 from equidiff_core.wire import rosmsg, topics
 from equidiff_core.wire.rosmsg import rosbags_factory
 

@@ -234,3 +234,43 @@ def test_the_dated_figure_check_catches_what_it_is_for():
         assert DATED_FIGURE.search(line), line
     for line in ("cpu_model()", "bf16 with AVX512-BF16/AMX", "YYYY-MM-DD", "100 Hz"):
         assert not DATED_FIGURE.search(line), line
+
+
+def test_the_core_prints_only_in_its_process_entry_points():
+    """The core logs (``logging``) or reports through a callback; only a ``python -m equidiff_core...`` process,
+    whose output its parent reads, writes to stdout or stderr itself."""
+    import ast
+
+    offenders = []
+    for path in sorted((ROOT / "src" / "equidiff_core").rglob("*.py")):
+        text = path.read_text()
+        if 'if __name__ == "__main__":' in text:
+            continue
+        for node in ast.walk(ast.parse(text)):
+            if isinstance(node, ast.Call) and isinstance(node.func, ast.Name) and node.func.id == "print":
+                offenders.append(f"{path.relative_to(ROOT)}:{node.lineno}")
+    assert not offenders, offenders
+
+
+# A command's usage lines and help say what it does; how long it took on some machine goes stale with the
+# machine and lives in docs/results/ with its command, machine and date.
+TIMING_FIGURE = re.compile(r"~ ?\d+(?:\.\d+)? ?(?:ms|s|min|h)\b|\bon \d+ cores\b")
+
+
+def test_no_command_help_quotes_a_timing():
+    offending = [
+        f"{path.relative_to(ROOT)}:{number}: {line.strip()}"
+        for path in sorted((ROOT / "src" / "equidiff_ros" / "commands").glob("*.py"))
+        for number, line in enumerate(path.read_text().splitlines(), 1)
+        if TIMING_FIGURE.search(line)
+    ]
+    assert not offending, "timings belong in docs/results/ with their command, machine and date:\n" + "\n".join(
+        offending
+    )
+
+
+def test_the_timing_check_catches_what_it_is_for():
+    for line in ("# 1200 steps (~2 min on 2 cores)", 'help="compile (~45 s the first time)"', "demos ~14 s each"):
+        assert TIMING_FIGURE.search(line), line
+    for line in ("--timeout 10 s", "0.5 s after the last chunk", "at 5 Hz", "min_width_m", "~2 mm off"):
+        assert not TIMING_FIGURE.search(line), line

@@ -11,14 +11,8 @@ import yaml
 from helpers_data import SyntheticEpisode, write_synthetic_episode
 
 from equidiff_core.config import default_config_dir, load_lab_config
-from equidiff_core.data.bags import (
-    BagError,
-    EpisodeMeta,
-    find_bags,
-    read_episode,
-    repair_bag,
-    scan_mcap,
-)
+from equidiff_core.data.bags import EpisodeMeta, find_bags, read_episode, repair_bag, scan_mcap
+from equidiff_core.data.mcap_reader import BagError
 from equidiff_core.data.recording import (
     EpisodeWriter,
     RecordingConfig,

@@ -13,7 +13,8 @@ from scipy.spatial.transform import Rotation
 
 from equidiff_core.benches.voxelize import synthetic_scene
 from equidiff_core.config import Extrinsics, default_config_dir, load_lab_config
-from equidiff_core.data.bags import BagError, EpisodeMeta, read_episode, read_meta
+from equidiff_core.data.bags import EpisodeMeta, read_episode, read_meta
+from equidiff_core.data.mcap_reader import BagError
 from equidiff_core.data.recording import EpisodeWriter, RecordingConfig, recorded_topics
 from equidiff_core.perception.voxels import voxelize_reference
 from equidiff_core.wire.pointcloud import cloud_to_msg, grid_to_voxel_msg, voxel_msg_to_grid

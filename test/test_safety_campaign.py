@@ -1,5 +1,5 @@
 """`equidiff bench safety`'s campaign without the CLI and without the graph: the core package imports without
-ROS, an unknown fault is refused (exit 2, nothing started) and ``--box-margin-mm`` makes a copy of
+ROS, an unknown fault is refused (JobError, exit status 2, nothing started) and ``--box-margin-mm`` makes a copy of
 control.yaml with the margin set. The campaign itself against franky-sim: test_bench_safety.py."""
 
 from __future__ import annotations
@@ -7,9 +7,12 @@ from __future__ import annotations
 import subprocess
 import sys
 
+import pytest
+
 from equidiff_core.benches.fault_campaign import FAULTS, run_bench
 from equidiff_core.benches.fault_campaign.driver import control_config_with_margin
 from equidiff_core.config import default_config_dir, to_dict
+from equidiff_core.runtime.jobs import JobError
 
 
 def test_the_campaign_imports_without_ros():
@@ -26,13 +29,13 @@ def test_the_campaign_imports_without_ros():
     assert out.stdout.split("\n")[:2] == ["[]", "14"]
 
 
-def test_an_unknown_fault_is_refused_before_anything_starts(monkeypatch, capsys, tmp_path):
+def test_an_unknown_fault_is_refused_before_anything_starts(monkeypatch, tmp_path):
     monkeypatch.setenv("ROS_DOMAIN_ID", "117")
     # no probe: refusing the list needs nothing of the ROS side, and nothing is started
-    code = run_bench("nan, out_of_bounds", None, keep=tmp_path)
-    out = capsys.readouterr()
-    assert code == 2 and out.out == ""
-    assert out.err == f"equidiff bench safety: unknown fault(s) ['out_of_bounds']; choose from {list(FAULTS)}\n"
+    with pytest.raises(JobError) as refused:
+        run_bench("nan, out_of_bounds", None, keep=tmp_path / "keep")
+    assert refused.value.exit_status == 2
+    assert str(refused.value) == f"unknown fault(s) ['out_of_bounds']; choose from {list(FAULTS)}"
     assert list(tmp_path.iterdir()) == []
 
 

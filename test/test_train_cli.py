@@ -84,7 +84,8 @@ def test_train_writes_a_loadable_policy_and_plot(bags, tmp_path, capsys):
     assert summary["val_action_mse"] == evals[-1]["val_action_mse"]
     policy = load_inference_policy(out / "policy.pt")
     assert policy.preset.rotation_aug == "continuous"  # the preset's own
-    from equidiff_core.data.dataset import DatasetConfig, DemoDataset
+    from equidiff_core.data.dataset import DemoDataset
+    from equidiff_core.data.episode_arrays import DatasetConfig
 
     ds = DemoDataset.from_bags([bags[0]], DatasetConfig())
     sample = ds[0]

@@ -125,7 +125,8 @@ def test_direct_collection_writes_a_trainable_demo_bag(tmp_path):
     """`twin collect --direct`: one expert episode -> a bag with the recorder's topics that the dataset reads."""
     from equidiff_core.config import default_config_dir, load_lab_config
     from equidiff_core.data.bags import read_meta
-    from equidiff_core.data.dataset import DatasetConfig, load_episode_arrays
+    from equidiff_core.data.dataset import load_episode_arrays
+    from equidiff_core.data.episode_arrays import DatasetConfig
     from equidiff_core.twin.demos import collect_direct
     from equidiff_core.twin.scene import recorded_block_yaw_range
 
@@ -384,7 +385,8 @@ def test_replaying_recorded_chunks_executes_them_from_the_bags_scene(tmp_path):
     stamped on a live run's clock, far from 0) replays as a success; the same chunks 6 cm higher
     grasp above the block and fail. The outcome is the replay's, not the bag's."""
     from equidiff_core.config import default_config_dir, load_lab_config
-    from equidiff_core.data.bags import BagError, EpisodeMeta
+    from equidiff_core.data.bags import EpisodeMeta
+    from equidiff_core.data.mcap_reader import BagError
     from equidiff_core.data.recording import EpisodeWriter
     from equidiff_core.twin.demos import DirectRecorder
     from equidiff_core.twin.evaluate import evaluate_policy, replay_chunks

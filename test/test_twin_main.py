@@ -401,7 +401,7 @@ def test_generalisation_eval_scenes_have_unseen_block_yaw_modulo_its_half_turn_s
     import pytest
 
     from equidiff_core.twin import TwinConfig, sample_scene
-    from equidiff_core.twin.evaluate import in_range_yaw_seeds, unseen_yaw_seeds
+    from equidiff_core.twin.yaw_range import in_range_yaw_seeds, unseen_yaw_seeds
 
     cfg = TwinConfig()
     seeds = unseen_yaw_seeds(cfg, (-15.0, 15.0), 12)

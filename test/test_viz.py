@@ -25,7 +25,8 @@ rr = pytest.importorskip("rerun")
 
 from equidiff_core.viz import VizUnavailable, require_rerun
 from equidiff_core.viz.bag_to_rrd import convert_bags
-from equidiff_core.viz.logger import RerunLogger, VizConfig, open_recording
+from equidiff_core.viz.logger import RerunLogger
+from equidiff_core.viz.recording_setup import VizConfig, open_recording
 from equidiff_core.viz.rrd import summarize_rrd
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -646,7 +647,7 @@ def test_bag_conversion_needs_no_ros(episode_bags, tmp_path):
 
 
 def test_viewer_address_forms():
-    from equidiff_core.viz.logger import grpc_url
+    from equidiff_core.viz.recording_setup import grpc_url
 
     assert grpc_url("10.0.0.5:9877") == "rerun+http://10.0.0.5:9877/proxy"
     assert grpc_url("viewer-host") == "rerun+http://viewer-host:9876/proxy"

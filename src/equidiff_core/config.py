@@ -243,7 +243,7 @@ def bounded(
 def described(default: Any, description: str, choices: tuple[str, ...] = ()) -> Any:
     """A dataclass field that says what it is (and, for a string, the values it may take), for a field a
     node declares as a ROS parameter (``equidiff_ros.parameters.config_parameters``: its descriptor,
-    ``--help``, docs/architecture.md). The dataclass still checks its values itself."""
+    ``--help``, docs/parameters.md). The dataclass still checks its values itself."""
     return field(default=default, metadata={"description": description, "choices": choices})
 
 

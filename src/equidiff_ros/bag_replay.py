@@ -14,7 +14,8 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from rclpy.serialization import deserialize_message
 from rosbags.rosbag2 import Reader
 
-from equidiff_core.data.bags import BagError, verify_bag
+from equidiff_core.data.bags import verify_bag
+from equidiff_core.data.mcap_reader import BagError
 from equidiff_core.wire.chunk import chunk_from_msg
 from equidiff_core.wire.rosmsg import RclpyFactory, position_from_msg, split_ns, stamp_to_ns
 from equidiff_core.wire.topics import TOPIC_COMMAND_CHUNK as COMMAND_TOPIC

@@ -25,7 +25,7 @@ global time, the node clock for replay, sim time for the twin); the frame id is
 
 A RealSense that is not connected stops the node at once with the missing serial named.
 
-Parameters: ``PARAMETERS`` below (``--help``, ``ros2 param describe``, docs/architecture.md).
+Parameters: ``PARAMETERS`` below (``--help``, ``ros2 param describe``, docs/parameters.md).
 """
 
 from __future__ import annotations

@@ -14,7 +14,7 @@ import os
 import signal
 import sys
 
-from equidiff_core.runtime.jobs import report_error
+from equidiff_core.runtime.jobs import error_message
 from equidiff_core.runtime.machine import default_threads_to_idle_cores
 
 # (command path) -> (module, one-line help)
@@ -124,6 +124,17 @@ def build_parser(argv: list[str]) -> argparse.ArgumentParser:
                     raise
                 leaf.set_defaults(_missing=True)
     return parser
+
+
+def report_error(command: str, err: BaseException) -> int | None:
+    """Print ``err`` as ``equidiff <command>: <message>`` on stderr and return its exit status
+    (``error_message``); None, printing nothing, for an error that is a bug."""
+    known = error_message(err)
+    if known is None:
+        return None
+    message, status = known
+    print(f"equidiff {command}: {message}", file=sys.stderr)
+    return status
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -25,7 +25,7 @@ the next franka_node for the same robot names it in its reason, and holds even w
 
 Policy and teleop publish the same chunk topic, so both go through the same checks.
 
-Parameters: ``PARAMETERS`` below (``--help``, ``ros2 param describe``, docs/architecture.md).
+Parameters: ``PARAMETERS`` below (``--help``, ``ros2 param describe``, docs/parameters.md).
 """
 
 from __future__ import annotations

@@ -23,7 +23,8 @@ from dataclasses import asdict
 import rclpy
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 
-from equidiff_core.lab.operator_loop import FRANKA_DIAGNOSTICS_NAME, NodeView, Request
+from equidiff_core.lab.node_view import FRANKA_DIAGNOSTICS_NAME, NodeView
+from equidiff_core.lab.operator_loop import Request
 from equidiff_core.wire import topics
 from equidiff_core.wire.rosmsg import MessageError, RclpyFactory, diagnostic_entries
 from equidiff_ros.common import LATCHED_QOS, RELIABLE_QOS
@@ -113,7 +114,7 @@ class LabClient:
             self.node.destroy_subscription(sub)
 
     def subscribe_operator_state(self, on_value: Callable[[str, object], None]) -> None:
-        """Everything the operator loop shows (``lab.operator_loop.NodeView``'s fields): ``on_value(field,
+        """Everything the operator loop shows (``lab.node_view.NodeView``'s fields): ``on_value(field,
         value)`` for each latched value and each franka_node ``/diagnostics`` (message, values); and,
         once a second, ``on_value(field, None)`` for each latched topic that no node publishes any more."""
         for name, (topic, msg_type) in WATCHED_TOPICS.items():

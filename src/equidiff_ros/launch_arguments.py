@@ -1,5 +1,4 @@
-"""The launch arguments both launch files share: how policy_node executes chunks (docs/control.md,
-"Chunk execution"), with the node's own defaults.
+"""The launch arguments both launch files share: how policy_node executes chunks (docs/chunking.md), with the node's own defaults.
 
 The table is plain data, so tests read it without ROS's ``launch`` package; ``execution_arguments``
 builds the ``DeclareLaunchArgument`` actions inside a launch file.

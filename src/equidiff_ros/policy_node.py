@@ -34,15 +34,7 @@ While paused no chunk is published: each observation is announced on /policy/ski
 The policy runs once per observation, so the cameras set its rate, with no timer
 phase between a grid and its inference; on the twin's simulated time, which pauses until
 this observation's chunk has arrived, a cycle waiting for a timer tick would never come.
-A /voxels message that does not decode to this policy's grid (``wire.pointcloud.voxel_msg_to_grid``
-against lab.yaml's workspace and base frame: layout, frame, resolution, origin, voxel size) is
-skipped as ``malformed_observation``, one stamped more than ``max_future_stamp_s`` ahead of the
-node's clock as ``future_observation``; either way the observation it would have replaced is
-kept. A /franka/ee_pose or /franka/joint_states message that ``wire.rosmsg`` refuses (a pose not in the
-base frame, NaN / inf, a non-unit quaternion; names and positions that disagree, a name twice, a
-gripper width outside the hand's stroke) or stamped more than ``max_future_stamp_s`` ahead, and a
-malformed /diagnostics message, is dropped and counted (``dropped_<topic>_<reason>``, a
-``wire.rosmsg.MessageReason``: ``dropped_ee_pose_frame``, ``dropped_joint_states_future``, ...).
+What it refuses of its inputs, and the counters that say so: docs/architecture.md, "What a node refuses".
 An observation is skipped (``skipped_<reason>``, with a throttled warning) when a newer one
 replaced it while the worker was busy (``busy``), when it is older than
 ``max_observation_age_s`` (``stale_observation``; a missing camera stops the voxel node's
@@ -50,12 +42,12 @@ matched sets, so it shows up as a stale grid), when the voxel node reports ERROR
 /diagnostics (``voxel_error``), or when there is no robot state near its stamp (``no_robot_state``).
 
 Chunk execution (``n_action_steps``, ``execute_steps``, ``latency_s``, ``rtc``) is described in
-docs/control.md; the defaults are ``wire.chunk.DEFAULT_*``, which robot.launch.py and twin.launch.py
+docs/chunking.md; the defaults are ``wire.chunk.DEFAULT_*``, which robot.launch.py and twin.launch.py
 declare as their launch arguments' defaults. ``execute_steps`` 0 (answer once a chunk has run,
 fewer steps when the latency needs it) was chosen by the twin's closed-loop evaluation
 (docs/evaluation_scheme.md).
 
-Parameters: ``PARAMETERS`` below (``--help``, ``ros2 param describe``, docs/architecture.md).
+Parameters: ``PARAMETERS`` below (``--help``, ``ros2 param describe``, docs/parameters.md).
 """
 
 from __future__ import annotations
@@ -246,8 +238,8 @@ class PolicyNode(Node):
                 "e.g. -p checkpoint:=runs/pick/policy.pt)"
             )
         # Loading and warming up on one thread: the node starts beside every other node (in the twin also
-        # beside the sim's cameras), where more threads than idle cores are slower (docs/twin.md measures
-        # it for inference). Inference then gets its own.
+        # beside the sim's cameras), where more threads than idle cores are slower (docs/results/twin.md
+        # measures it for inference). Inference then gets its own.
         inference_threads = int(threads) if threads > 0 else torch.get_num_threads()
         torch.set_num_threads(1)
         t0 = time.perf_counter()

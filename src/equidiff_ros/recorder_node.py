@@ -32,7 +32,7 @@ checked before each start and while recording (stop-and-keep when low). A killed
 bag is recovered with ``equidiff bags repair``.
 
 Parameters: ``PARAMETERS`` below, each field of ``RecordingConfig`` and the episode's metadata
-(``--help``, ``ros2 param describe``, docs/architecture.md); config/data.yaml sets them.
+(``--help``, ``ros2 param describe``, docs/parameters.md); config/data.yaml sets them.
 """
 
 from __future__ import annotations

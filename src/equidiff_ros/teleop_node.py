@@ -22,7 +22,7 @@ the receive time if that is earlier, or if the message is unstamped), a direct S
 its last HID report; input older than ``input_timeout_s`` is no input, so the target holds.
 
 Parameters: ``PARAMETERS`` below, each field of ``TeleopConfig`` and ``resync_after_s`` (``--help``,
-``ros2 param describe``, docs/architecture.md); config/data.yaml sets them.
+``ros2 param describe``, docs/parameters.md); config/data.yaml sets them.
 """
 
 from __future__ import annotations

@@ -23,7 +23,7 @@ Wiring:
 The robot is never teleported: a reset moves the objects only; whoever resets commands the arm
 home first (``equidiff twin run`` does), so the franky client's controller is never surprised.
 
-Parameters: ``PARAMETERS`` below (``--help``, ``ros2 param describe``, docs/architecture.md).
+Parameters: ``PARAMETERS`` below (``--help``, ``ros2 param describe``, docs/parameters.md).
 """
 
 from __future__ import annotations
@@ -157,6 +157,7 @@ class TwinNode(Node):
             lockstep=lockstep,
             on_clock=self.publish_clock,
             camera_names=tuple(c.name for c in self.lab.cameras),
+            log=self.get_logger().info,
         )
         self.pub_scene = self.create_publisher(String, TOPIC_TWIN_SCENE, LATCHED_QOS)
         self.pub_state = self.create_publisher(String, TOPIC_TWIN_STATE, RELIABLE_QOS)

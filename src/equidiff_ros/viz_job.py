@@ -12,7 +12,8 @@ from equidiff_core.config import ConfigError, default_config_dir, load_lab_confi
 from equidiff_core.runtime.output_files import OutputExistsError, staged_output
 from equidiff_core.viz import VizUnavailable, require_rerun
 from equidiff_core.viz.bag_to_rrd import BagConversionError, convert_bags
-from equidiff_core.viz.logger import RerunLogger, load_viz_config, open_recording
+from equidiff_core.viz.logger import RerunLogger
+from equidiff_core.viz.recording_setup import load_viz_config, open_recording
 
 
 def _has_display() -> bool:

@@ -17,7 +17,7 @@ A set is fused the moment its last cloud arrives, not on a timer of our own: a t
 added up to a period of latency, and on the twin's simulated time (which pauses until the
 policy has answered this very observation) a grid waiting for a timer tick never came.
 
-Parameters: ``PARAMETERS`` below (``--help``, ``ros2 param describe``, docs/architecture.md).
+Parameters: ``PARAMETERS`` below (``--help``, ``ros2 param describe``, docs/parameters.md).
 """
 
 from __future__ import annotations

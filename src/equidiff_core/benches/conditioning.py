@@ -28,7 +28,8 @@ import torch
 
 from equidiff_core.benches import BenchError
 from equidiff_core.config import ConfigError, Workspace
-from equidiff_core.data.dataset import DatasetConfig, find_episodes, load_episodes
+from equidiff_core.data.dataset import find_episodes, load_episodes
+from equidiff_core.data.episode_arrays import DatasetConfig
 from equidiff_core.models.plain import EquiNoiseCore, to_escnn_layout
 from equidiff_core.policy.augment import voxel_input
 from equidiff_core.policy.diffusion import make_policy

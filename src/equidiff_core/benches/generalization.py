@@ -43,7 +43,8 @@ from equidiff_core.policy.inference import load_inference_policy
 from equidiff_core.runtime.output_files import write_output_text
 from equidiff_core.twin.config import load_twin_job_configs
 from equidiff_core.twin.demos import DirectRecorder
-from equidiff_core.twin.evaluate import evaluate_policy, in_range_yaw_seeds, unseen_yaw_seeds, yaw_breakdown
+from equidiff_core.twin.evaluate import evaluate_policy
+from equidiff_core.twin.yaw_range import in_range_yaw_seeds, unseen_yaw_seeds, yaw_breakdown
 
 # The three policies compared, in the order they are reported: EquiDiff (Vo), DiffPo-C (Vo)
 # and DiffPo-C (Vo) with rotation augmentation ("CNN + Aug" in the paper's appendix).

@@ -10,7 +10,7 @@ between the two), and the width with the demos' open 80 mm (``width_m``). The un
 measured the same way in the same run, is the baseline.
 
 With epsilon prediction the observation dependence of x0 at high noise is learned last, so samples
-lag the loss: half the steps leave them centimetres off (docs/model.md, "The over-fit check"). The
+lag the loss: half the steps leave them centimetres off (docs/results/model.md, "The over-fit check"). The
 baseline needs longer (``STEPS``).
 """
 
@@ -40,7 +40,7 @@ __all__ = ["STEPS", "OverfitGate", "OverfitResult", "run_overfit", "sample_error
 # Optimiser steps per policy at the recipe's lr of 2e-3. The baseline's loss sits on the average-motion
 # plateau for about a thousand steps and leaves it only while the learning rate is still high: at
 # EquiDiff's steps the cosine schedule ends first and it fails; at four times as many it fits
-# (docs/model.md, "The baseline passes it too": `equidiff bench overfit --policy baseline`).
+# (docs/results/model.md, "The baseline passes it too": `equidiff bench overfit --policy baseline`).
 STEPS = {"equidiff": 1200, "baseline": 4800}
 
 

@@ -50,7 +50,8 @@ from equidiff_core.policy.presets import preset_from_dict
 from equidiff_core.runtime.output_files import refuse_existing, staged_output, write_output_text
 from equidiff_core.twin.config import load_twin_job_configs
 from equidiff_core.twin.demos import DirectRecorder
-from equidiff_core.twin.evaluate import evaluate_policy, in_range_yaw_seeds
+from equidiff_core.twin.evaluate import evaluate_policy
+from equidiff_core.twin.yaw_range import in_range_yaw_seeds
 
 POLICIES = ("equidiff", "baseline")
 DEMO_COUNTS = (10, 20, 40)

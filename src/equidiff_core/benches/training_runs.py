@@ -3,7 +3,7 @@ one recipe for every policy, runs side by side, what they recorded (steps, recip
 
 Every policy of a bench trains with the same recipe (``Recipe``: preset, steps, batch, warm-up, seed,
 noise draws, EMA); only rotation augmentation (by design), the baseline's own peak learning rate
-(each network at the rate it fits its demos with at this budget: docs/model.md) and how fast it ran
+(each network at the rate it fits its demos with at this budget: docs/results/model.md) and how fast it ran
 (device, data path, time budget) may differ, and ``recipe_differences`` names any other difference
 from the run.json files ``equidiff train`` writes. ``training_fit`` reads the DDIM action error on the training
 samples that ``equidiff train --val-fraction 0`` records at its end; ``under_fit`` names the policies
@@ -33,8 +33,7 @@ RECIPE_FREE = ("rotation_aug", "device", "data", "max_minutes")
 # the benches' second gate: a policy's training-sample action error at most this times EquiDiff's
 MAX_FIT_RATIO = 1.5
 # The benches' default peak learning rates for 6000 steps of batch 8: EquiDiff fits its 40 demos at
-# 5e-4, the plain-CNN baseline only at 1e-3 (1.5x EquiDiff's action error at 5e-4, 1.0x at 1e-3;
-# docs/model.md, "The baseline's learning rate").
+# 5e-4, the plain-CNN baseline only at 1e-3 (docs/results/model.md, "The baseline's learning rate").
 EQUIDIFF_LR = 5e-4
 BASELINE_LR = 1e-3
 

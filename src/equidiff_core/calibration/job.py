@@ -35,7 +35,7 @@ from equidiff_core.runtime.jobs import JobError
 from equidiff_core.runtime.output_files import refuse_existing, staged_output
 from equidiff_core.twin.calibration import DirectSimArm, FrankyTwinArm, calibrate_twin, nominal_mount
 from equidiff_core.twin.config import load_twin_config
-from equidiff_core.viz.logger import open_recording
+from equidiff_core.viz.recording_setup import open_recording
 
 logger = logging.getLogger(__name__)
 

@@ -11,7 +11,7 @@ from .config import (
     check_home_inside,
     load_control_config,
 )
-from .controller import AcknowledgeRefused, Command, Controller, ControllerStats, ControllerStatus
+from .controller import Command, Controller, ControllerStats, ControllerStatus
 from .safety import (
     FilteredTarget,
     SafetyFilter,
@@ -19,6 +19,7 @@ from .safety import (
     check_chunk,
 )
 from .scheduler import ChunkScheduler, Setpoint
+from .stops import AcknowledgeRefused
 
 __all__ = [
     "AcknowledgeRefused",

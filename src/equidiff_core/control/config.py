@@ -49,11 +49,11 @@ class SafetyConfig:
     # Commands keep this far inside the safety box (lab.yaml), so the arm's overshoot past a
     # command stopped at a wall stays inside it: the largest overshoot `equidiff bench safety
     # --faults out_of_box` measured at the speed limit on franky-sim with the braking below,
-    # rounded up (docs/control.md, "The box margin, measured"). Measure it again on a real FR3.
+    # rounded up (docs/results/control.md, "The box margin, measured"). Measure it again on a real FR3.
     box_margin_m: float = bounded(0.005, unit="m", ge=0, le=0.05)
     # Commands heading for a wall brake at this deceleration so they arrive there at rest:
     # v <= sqrt(2 a d) at distance d. At 0.5 m/s^2 the arm follows the braking command, at 2 m/s^2
-    # it did not and overshot further (docs/control.md, "The box margin, measured"); the braking
+    # it did not and overshot further (docs/results/control.md, "The box margin, measured"); the braking
     # zone is v^2 / 2a (62 mm at the 0.25 m/s limit, 2.5 mm at 0.05 m/s).
     wall_deceleration_m_s2: float = bounded(
         0.5, unit="m/s^2", gt=0, le=CartesianLimits.translation_acceleration_m_s2, doc="the FR3's acceleration limit"

@@ -38,7 +38,6 @@ from .state_machine import (
     INITIAL,
     MOVING,
     NOT_STREAMING,
-    STATES,
     STATUS,
     Action,
     Event,
@@ -47,7 +46,7 @@ from .state_machine import (
     next_transition,
     permits,
 )
-from .stops import DIVERGENCE_GRACE_S, STOPPED_POLL_HZ, AcknowledgeRefused, HeldState
+from .stops import HeldState
 
 log = logging.getLogger("equidiff.control")
 
@@ -496,16 +495,3 @@ class Controller(HeldState):
             dt, low = (period if self._last_tick_ns is None else (now - self._last_tick_ns) / 1e9), 0.5 * period
         self._last_tick_ns, self._last_robot_time_s = now, robot_now if np.isfinite(robot_now) else None
         return float(np.clip(dt, low, 3 * period))
-
-
-__all__ = [
-    "DIVERGENCE_GRACE_S",
-    "STATES",
-    "STOPPED_POLL_HZ",
-    "AcknowledgeRefused",
-    "Command",
-    "Controller",
-    "ControllerStats",
-    "ControllerStatus",
-    "SafetyState",
-]

@@ -125,7 +125,7 @@ def standstill_at_switches(
     still_speed_m_s: float = STILL_SPEED_M_S,
     still_angular_speed_rad_s: float = STILL_ANGULAR_SPEED_RAD_S,
 ) -> list[float]:
-    """Seconds the TCP stands still at each chunk switch (docs/control.md, "Standstill at chunk boundaries").
+    """Seconds the TCP stands still at each chunk switch (docs/chunking.md, "Standstill at chunk boundaries").
 
     ``times`` (N,) s and ``positions`` (N, 3) m are the TCP samples (optionally ``rotations``
     (N, 3, 3)), ``switch_times`` the instants new chunks took over. Between consecutive samples

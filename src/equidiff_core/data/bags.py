@@ -32,12 +32,10 @@ import numpy as np
 import yaml
 
 from ..wire.rosmsg import rosbags_factory, stamp_to_ns
-from .mcap_reader import CHECKED, UNCHECKED, BagError, BagIntegrityError, DamagedChunk, McapScan, iter_mcap
+from .mcap_reader import UNCHECKED, BagError, BagIntegrityError, DamagedChunk, McapScan, iter_mcap
 
 META_SIDECAR = "episode.yaml"
 UNREPAIRED_SUFFIX = ".unrepaired"
-# BagError and BagIntegrityError live with the reader (mcap_reader) and are this module's API too
-__all__ = ["CHECKED", "UNCHECKED", "BagError", "BagIntegrityError", "DamagedChunk"]
 
 
 # --- metadata ------------------------------------------------------------------------------

@@ -59,9 +59,8 @@ from ..wire.topics import (
     TOPIC_VOXELS,
     TRAINING_TOPICS,
 )
-from .bags import CHECKED, BagError, find_bags, is_bag_dir, read_episode
+from .bags import find_bags, is_bag_dir, read_episode
 from .episode_arrays import (
-    CACHE_VERSION,
     PACKED_SUFFIX,
     DatasetConfig,
     EpisodeArrays,
@@ -70,6 +69,7 @@ from .episode_arrays import (
     read_packed,
     write_packed,
 )
+from .mcap_reader import CHECKED, BagError
 from .segments import FrameSource, SourceWeights, frame_sources, gate_alarms_ns, source_seconds
 
 
@@ -460,24 +460,3 @@ def dataset_stats(paths: Iterable[str | Path], config: DatasetConfig = DatasetCo
             "action_max": all_actions.max(0).round(4).tolist() if len(all_actions) else None,
         },
     }
-
-
-# The episode arrays, their settings and their packed form moved to episode_arrays; importable from here too.
-__all__ = [
-    "CACHE_VERSION",
-    "PACKED_SUFFIX",
-    "DatasetConfig",
-    "DemoDataset",
-    "EpisodeArrays",
-    "command_schedule",
-    "dataset_stats",
-    "find_episodes",
-    "iter_episodes",
-    "load_episode_arrays",
-    "load_episodes",
-    "pack_episodes",
-    "read_packed",
-    "sample_starts",
-    "split_episodes",
-    "write_packed",
-]

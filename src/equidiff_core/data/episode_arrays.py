@@ -18,7 +18,8 @@ from ..perception.observation import STATE_TOLERANCE_S
 from ..runtime.output_files import staged_output
 from ..wire.pointcloud import VoxelGridSpec
 from ..wire.rosmsg import NS_PER_S
-from .bags import UNCHECKED, BagError, EpisodeMeta
+from .bags import EpisodeMeta
+from .mcap_reader import UNCHECKED, BagError
 from .segments import FrameSource
 
 # 2: compressed, with the decoding settings inside (shared with packed episodes); 3: each frame's source

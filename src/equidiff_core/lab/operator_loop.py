@@ -28,13 +28,7 @@ from pathlib import Path
 from ..data.bags import find_bags
 from ..wire import topics
 from .node_view import (
-    DIAGNOSTICS_STALE_S,
-    FRANKA_DIAGNOSTICS_NAME,
-    ROBOT_STATES,
     NodeView,
-    RobotStatus,
-    parse_franka_status,
-    robot_status_from_diagnostics,
 )
 
 ROBOT_BLOCKS_START = {
@@ -467,24 +461,3 @@ def _clock_text(stamp_ns: int) -> str:
     if stamp_ns > 10**18:  # after 2001: a wall-clock stamp
         return time.strftime("%H:%M:%S", time.localtime(stamp_ns / 1e9))
     return f"t={stamp_ns / 1e9:.1f} s"
-
-
-# What the nodes publish moved to node_view; its names stay importable from here.
-__all__ = [
-    "DIAGNOSTICS_STALE_S",
-    "FRANKA_DIAGNOSTICS_NAME",
-    "KEYS",
-    "KEY_NAMES",
-    "KEY_ROWS",
-    "ROBOT_STATES",
-    "SERVICES",
-    "Counts",
-    "LoopConfig",
-    "NodeView",
-    "OperatorLoop",
-    "Request",
-    "ResetCountdown",
-    "RobotStatus",
-    "parse_franka_status",
-    "robot_status_from_diagnostics",
-]

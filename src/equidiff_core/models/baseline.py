@@ -7,7 +7,7 @@ The encoder is the official code's ``CNNVoxelEncoder58`` (pointW/equidiff,
 conv + ReLU, four max-pools, channels n/16, n/8, n/8, n/4, n/4, n/2, n/2, n for one width n
 (``preset.baseline_width``, its ``enc_n_hidden``). ``preset.baseline_init`` "he" starts its
 convolutions the way escnn starts EquiDiff's (He-normal, zero biases) instead of PyTorch's default,
-under which the block's signal fades to ~1e-3 of the features by the last layer (docs/model.md).
+under which the block's signal fades by the last layer (docs/results/model.md, "The baseline that learns").
 """
 
 from __future__ import annotations
@@ -79,9 +79,8 @@ class BaselineNoisePredictor(nn.Module):
 
     def encode_obs(self, voxels: torch.Tensor, ee: torch.Tensor) -> torch.Tensor:
         B = voxels.shape[0]
-        # channels-last 3D: oneDNN's fast layout for these few-channel convolutions (a compact training
-        # step took 0.37 CPU s instead of 0.60, `equidiff bench train --variants`, docs/model.md;
-        # EquiDiff's escnn convolutions gained nothing from it)
+        # channels-last 3D: oneDNN's fast layout for these few-channel convolutions (measured with `equidiff bench
+        # train --variants`, docs/results/model.md; EquiDiff's escnn convolutions gained nothing from it)
         x = voxels.flatten(0, 1).contiguous(memory_format=torch.channels_last_3d)
         feats = self.encoder(x).reshape(B, -1)
         return torch.cat([feats, ee.reshape(B, -1).to(feats.dtype)], dim=1)

@@ -14,7 +14,7 @@ def pad_first_conv(encoder: torch.nn.Sequential, multiple: int) -> int:
     """Give the first Conv3d zero weights for extra input channels up to ``multiple``; returns how many.
 
     oneDNN's fp32 3D convolution on CPU takes a slow path for 4 input channels, several times slower
-    than for 8 (docs/model.md); the padded channels are zeros, so the output is unchanged."""
+    than for 8 (docs/results/model.md, "What the denoising step does"); the padded channels are zeros, so the output is unchanged."""
     conv = encoder[0]
     extra = -conv.in_channels % multiple
     if not isinstance(conv, torch.nn.Conv3d) or extra == 0:
@@ -40,7 +40,7 @@ class MatmulConv1d(torch.nn.Module):
     """A Conv1d computed as one matrix product over unfolded windows (same weights, same output).
 
     The U-Net's convolutions see 4-16 time steps and 8 group elements per call, where oneDNN's
-    bf16 Conv1d is slower than the equivalent GEMM (docs/model.md, "What the denoising step does");
+    bf16 Conv1d is slower than the equivalent GEMM (docs/results/model.md, "What the denoising step does");
     in fp32 the GEMM is not faster, so only bf16 uses this."""
 
     def __init__(self, conv: torch.nn.Conv1d):
@@ -68,7 +68,7 @@ class MatmulConvTranspose1d(torch.nn.Module):
     """The U-Net's upsampling ConvTranspose1d (kernel 2*stride, padding stride/2) as one GEMM
     plus an overlap-add of the two kernel halves (same weights, same output).
 
-    oneDNN's bf16 ConvTranspose1d at these sizes is many times slower than the GEMM (docs/model.md);
+    oneDNN's bf16 ConvTranspose1d at these sizes is many times slower than the GEMM (docs/results/model.md);
     torch has no cheaper col2im for 1D, hence the hand-written add."""
 
     def __init__(self, conv: torch.nn.ConvTranspose1d):
@@ -101,7 +101,7 @@ class MatmulConvTranspose1d(torch.nn.Module):
 
 class FastMish(torch.nn.Module):
     """Mish as x * n / (n + 2) with n = e^x (e^x + 2) (= x tanh(softplus(x))): faster than torch's
-    scalar CPU kernel on the U-Net's small tensors (docs/model.md). The exponent is clamped at 20,
+    scalar CPU kernel on the U-Net's small tensors (docs/results/model.md). The exponent is clamped at 20,
     where the ratio is 1 to float precision."""
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:

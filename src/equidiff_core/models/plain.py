@@ -39,7 +39,7 @@ def encoder_layer_specs(preset: PolicyPreset, channels: list[int]) -> list[tuple
     A max-pool that follows a conv's ReLU runs before it: ReLU is monotone, so relu(maxpool(x)) ==
     maxpool(relu(x)), and the ReLU then touches k³ times fewer values. At the first stage (56³, the
     largest tensors) that removed most of a compact training step's ReLU and its backward
-    (docs/model.md, ``equidiff bench train --variants``). The modules hold no weights, so the order
+    (docs/results/model.md, ``equidiff bench train --variants``). The modules hold no weights, so the order
     changes no state-dict key and every checkpoint loads either way."""
     specs = []
     c_in = channels[0]

@@ -20,7 +20,8 @@ from rosbags.rosbag2 import Reader
 
 from ..cameras import extrinsics_tf_message
 from ..config import LabConfig
-from ..data.bags import BagError, close_derived_bag, find_bags, verify_bag
+from ..data.bags import close_derived_bag, find_bags, verify_bag
+from ..data.mcap_reader import BagError
 from ..data.mcap_writer import open_bag_writer
 from ..data.recording import _qos as recorder_qos
 from ..runtime.output_files import distinct_names, staged_output, unique_paths

@@ -103,8 +103,8 @@ class DiffusionPolicy(nn.Module):
         ):
             raise PolicyInputError(f"weight must be finite, >= 0 and (B,), got {tuple(weight.shape)}")
         codec = self.codec
-        # Augment where the model runs: rotating 64^3 grids costs ~11 ms a sample on a CPU core,
-        # which left a GPU idle for most of each step.
+        # Augment where the model runs: rotating 64^3 grids on a CPU core left a GPU idle for most of each
+        # step.
         voxels = voxels.to(next(self.model.parameters()).device)
         if self.training and self.preset.rotation_aug != "none":
             voxels, ee, action = augment.random_rotation(

@@ -20,7 +20,7 @@ small kernels. Always: the U-Net's FiLM terms split into an observation part (on
 ``encode``) and a step part (cached per diffusion step); on CPU a
 faster Mish, and in bf16 on CPU the U-Net's Conv1d and ConvTranspose1d run as GEMMs. ``precision="auto"``
 picks bf16 on CUDA and on CPUs with native bf16 (AVX512-BF16/AMX), fp32 elsewhere. What each of
-these buys: docs/model.md, "Inference speed on a CPU" (``equidiff bench policy``).
+these buys: docs/results/model.md, "Inference speed on a CPU" (``equidiff bench policy``).
 """
 
 from __future__ import annotations
@@ -184,7 +184,7 @@ class InferencePolicy:
         """torch.compile the denoising step (inductor fuses GroupNorm, Mish, FiLM and the im2col copies).
 
         Faster per step than the traced step on a CPU, but the first compile takes tens of seconds
-        (less from inductor's on-disk cache; docs/model.md has the figures, ``equidiff bench policy
+        (less from inductor's on-disk cache; docs/results/model.md has the figures, ``equidiff bench policy
         --compile``). It needs a C++ compiler: if compiling fails, the traced/eager step is kept and a
         warning says why."""
         x = torch.zeros(1, self.preset.horizon, self.codec.dim, device=self.device)

@@ -7,7 +7,7 @@
   embedding 64, U-Net down_dims 256/512/1024 kernel 5, horizon 16, one observation step, 8
   executed steps. Differences from it: no wrist camera (the official policy adds a ResNet-18 on
   the in-hand image), the gripper state is one width instead of two finger positions, and a
-  256-wide diffusion-step embedding (the official config uses 128); docs/model.md counts both.
+  256-wide diffusion-step embedding (the official config uses 128); docs/results/model.md counts both.
   Needs a GPU for 5 Hz.
 * ``compact``: the same stages with fewer channels (the early ones dominate the cost at 58³) and
   a narrower U-Net, so DDIM-16 runs at 5 Hz with margin on a 2-core CPU.
@@ -88,7 +88,7 @@ class PolicyPreset:
     baseline_width: int | None = None
     baseline_channels: tuple[int, ...] | None = None
     # How the baseline's convolutions start: "torch" (PyTorch's default, as the official code leaves them)
-    # or "he" (He-normal weights, zero biases: what escnn gives EquiDiff's convolutions). docs/model.md
+    # or "he" (He-normal weights, zero biases: what escnn gives EquiDiff's convolutions). docs/results/model.md
     # measures why it matters: with "torch" the block's signal fades ~2.5x per layer.
     baseline_init: str = "torch"
     obs_hidden: int = 128  # regular fields of the observation embedding (U-Net cond per group element)
@@ -170,15 +170,15 @@ def encoder_output_size(crop: int, layout: str) -> int:
 
 # DiffPo-C (Vo)'s width per preset: paper the official voxel config's enc_n_hidden (256); compact 128,
 # whose first layer has EquiDiff compact's 8 channels at 56³ (one C8 regular field) and whose training
-# step costs about EquiDiff's (docs/model.md); tiny the smallest with 2 first-layer channels. All start
-# He-initialised, as escnn starts EquiDiff's convolutions (docs/model.md: with PyTorch's default the
+# step costs about EquiDiff's (docs/results/model.md); tiny the smallest with 2 first-layer channels. All start
+# He-initialised, as escnn starts EquiDiff's convolutions (docs/results/model.md: with PyTorch's default the
 # baseline's features did not respond to the block).
 PRESETS: dict[str, PolicyPreset] = {
     "paper": PolicyPreset(name="paper", baseline_width=256, baseline_init="he"),
-    # Measured cost on a CPU (see docs/model.md): the 56^3 and 28^3 convolutions
+    # Measured cost on a CPU (docs/results/model.md, "Training"): the 56^3 and 28^3 convolutions
     # dominate, so the first fields are cut hardest; the 12^3 and 6^3 stages of the official layout
     # cost more than the legacy 9^3 and 3^3 ones, so they are halved against the legacy compact
-    # (16, 32, 32): a training step then costs 6-19 % more than the legacy compact's (docs/model.md).
+    # (16, 32, 32): a training step then costs a little more than the legacy compact's.
     # The U-Net runs once per group element (8 rows).
     "compact": PolicyPreset(
         name="compact",

@@ -5,7 +5,7 @@ A job takes typed settings (a frozen dataclass or plain parameters) and returns 
 progress through its module's logger (under ``equidiff_core``) and fails by raising ``JobError`` or its
 domain's subclass. Its caller, the ``equidiff`` CLI or a job's own ``python -m`` entry, prints the result,
 shows the progress lines with ``progress_lines`` and turns an error into its message and exit status with
-``report_error``. This module imports nothing heavy: the CLI loads it before any command.
+``error_message``. This module imports nothing heavy: the CLI loads it before any command.
 """
 
 from __future__ import annotations
@@ -64,21 +64,18 @@ def progress_lines(stream: str = "stdout", prefix: str = "") -> Iterator[None]:
         logger.setLevel(level)
 
 
-def report_error(command: str, err: BaseException) -> int | None:
-    """Print ``err`` as ``equidiff <command>: <message>`` on stderr and return the exit status for it: a
+def error_message(err: BaseException) -> tuple[str, int] | None:
+    """``err``'s message and exit status, for its caller to print after ``equidiff <command>: ``: a
     ``JobError``'s own, 2 for a bad config file or value (``ConfigError``, on one line) and for an output that
-    exists already (``OutputExistsError``); None, printing nothing, for any other error (a bug: its
-    traceback is worth more than a line)."""
+    exists already (``OutputExistsError``); None for any other error (a bug: its traceback is worth more than a
+    line)."""
     # checked by module, so that this module (and `equidiff --help`) does not import the config module
     config = sys.modules.get("equidiff_core.config")
     outputs = sys.modules.get("equidiff_core.runtime.output_files")
     if isinstance(err, JobError):
-        message, status = str(err), err.exit_status
-    elif (config is not None and isinstance(err, config.ConfigError)) or (
+        return str(err), err.exit_status
+    if (config is not None and isinstance(err, config.ConfigError)) or (
         outputs is not None and isinstance(err, outputs.OutputExistsError)
     ):
-        message, status = " ".join(str(err).split()), 2
-    else:
-        return None
-    print(f"equidiff {command}: {message}", file=sys.stderr)
-    return status
+        return " ".join(str(err).split()), 2
+    return None

@@ -41,7 +41,7 @@ def cpu_flags() -> set[str]:
 
 
 def cpu_has_native_bf16() -> bool:
-    """AVX512-BF16 or AMX: there bf16 3D convolutions are much faster than fp32 (docs/model.md)."""
+    """AVX512-BF16 or AMX: there bf16 3D convolutions are much faster than fp32 (docs/results/model.md)."""
     return bool({"avx512_bf16", "amx_bf16"} & cpu_flags())
 
 
@@ -54,7 +54,7 @@ def cpu_description() -> dict:
 def idle_cores(samples: int = 10, interval_s: float = 0.002) -> int:
     """Cores no other task is running on right now, at least one: the cores this process may use
     less the mean count of other runnable tasks (/proc/loadavg's fourth field, sampled ``samples``
-    times, ~20 ms in all); the core count where /proc is missing."""
+    times, ``interval_s`` apart); the core count where /proc is missing."""
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
     try:
         runnable = []
@@ -72,7 +72,7 @@ def default_threads_to_idle_cores(environ=os.environ) -> int | None:
 
     torch starts one OpenMP thread per core, and those threads spin while they wait for each other:
     on a machine busy with something else (a running twin) they fight it for the same cores, and a
-    thread per idle core is faster; on a quiet machine all cores are (measured in docs/model.md,
+    thread per idle core is faster; on a quiet machine all cores are (measured in docs/results/model.md,
     "CPU threads"). The choice is made once, at start: a job that starts on a quiet machine keeps
     all its cores. Returns the count set, or None where the user's value stands.
     """
@@ -94,7 +94,7 @@ def keep_thread_scheduler(library: str):
     thread and process started from it afterwards inherited SCHED_FIFO. Twin nodes that render or
     voxelise flat out then starved the rest of the machine (CI's main-job smoke test hung with
     franka_node stuck in its home move), and in a process that had exported videos a policy's
-    inference thread ran 10x slower beside busy ROS executor threads. The library's own threads
+    inference thread ran many times slower beside busy ROS executor threads. The library's own threads
     keep whatever it gave them.
     """
     try:

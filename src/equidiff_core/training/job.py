@@ -17,7 +17,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from equidiff_core.config import ConfigError, default_config_dir, load_lab_config
-from equidiff_core.data.dataset import DatasetConfig, DemoDataset, load_episodes, split_episodes
+from equidiff_core.data.dataset import DemoDataset, load_episodes, split_episodes
+from equidiff_core.data.episode_arrays import DatasetConfig
 from equidiff_core.data.segments import FrameSource, SourceWeights
 from equidiff_core.models.state import learned_state_dict
 from equidiff_core.perception.observation import STATE_TOLERANCE_S

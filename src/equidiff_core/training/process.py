@@ -11,11 +11,13 @@ from __future__ import annotations
 import json
 import sys
 
-from equidiff_core.runtime.jobs import progress_lines, report_error
+from equidiff_core.runtime.jobs import error_message, progress_lines
 from equidiff_core.runtime.machine import default_threads_to_idle_cores
 
 
 def main(argv: list[str]) -> int:
+    # a process entry point: its stdout and stderr are the run's train.log, whose tail the bench that started
+    # it reports on a failure
     if len(argv) != 1:
         print("usage: python -m equidiff_core.training.process SPEC_JSON (a TrainingSpec.to_json)", file=sys.stderr)
         return 2
@@ -27,10 +29,11 @@ def main(argv: list[str]) -> int:
         with progress_lines("stderr", "equidiff train: "):
             summary = run_training(spec)
     except Exception as err:
-        status = report_error("train", err)
-        if status is None:
+        known = error_message(err)
+        if known is None:
             raise
-        return status
+        print(f"equidiff train: {known[0]}", file=sys.stderr)
+        return known[1]
     if summary is not None:
         print(json.dumps(summary))
     return 0

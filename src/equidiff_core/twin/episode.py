@@ -4,7 +4,7 @@
 
 ``run_episode`` is that sequence. *Where* it runs is an ``EpisodeWorld``: the live twin over
 ROS (``equidiff_ros.twin.world``) or the in-process twin (``twin.demos``). *Who* acts is an
-``Actor``: the policy through the live graph or in-process (``twin.evaluate.DirectPolicy``), or
+``Actor``: the policy through the live graph or in-process (``twin.direct_execution.DirectPolicy``), or
 the scripted expert streaming its plan. So ``equidiff twin run``, ``twin collect`` (both paths),
 ``bench twin`` and the in-process evaluation (``twin evaluate``, ``bench generalization``,
 ``bench chunking``) share one answer to

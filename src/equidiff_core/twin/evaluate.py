@@ -41,19 +41,13 @@ from ..wire.rosmsg import position_from_msg
 from ..wire.topics import TOPIC_COMMAND_CHUNK, TOPIC_EE_POSE
 from .config import TwinConfig
 from .direct_execution import (
-    COMMAND_HZ,
-    LIFT_M,
-    LOW_M,
-    REACH_M,
     DirectPolicy,
-    EpisodeProgress,
     RecordedChunks,
 )
 from .episode import run_episode
-from .yaw_range import OFFSET_BINS_DEG, block_yaw_offset_deg, in_range_yaw_seeds, unseen_yaw_seeds, yaw_breakdown
 
 # policy_node's default torch_threads. A fixed count also keeps each seed's outcome the same from
-# run to run: 1 and 2 threads round differently and ended one scene differently (docs/twin.md).
+# run to run: 1 and 2 threads round differently and ended one scene differently (docs/evaluation_scheme.md).
 ROLLOUT_THREADS = 1
 
 
@@ -228,7 +222,8 @@ def replay_chunks(
     /franka/command_chunk messages with more than one step (the supervisor's one-point hold
     targets after an episode are not the policy's). The TCP gap compares the replayed TCP with
     the bag's /franka/ee_pose at each observation instant (within 5 ms)."""
-    from ..data.bags import BagError, read_episode
+    from ..data.bags import read_episode
+    from ..data.mcap_reader import BagError
     from ..wire.chunk import ChunkError, chunk_from_msg
     from .demos import DirectRecorder, DirectWorld
 
@@ -274,23 +269,3 @@ def replay_chunks(
     finally:
         rec.close()
     return results
-
-
-__all__ = [
-    "COMMAND_HZ",
-    "LIFT_M",
-    "LOW_M",
-    "OFFSET_BINS_DEG",
-    "REACH_M",
-    "DirectPolicy",
-    "EpisodeProgress",
-    "EvalEpisode",
-    "RecordedChunks",
-    "ReplayedEpisode",
-    "block_yaw_offset_deg",
-    "evaluate_policy",
-    "in_range_yaw_seeds",
-    "replay_chunks",
-    "unseen_yaw_seeds",
-    "yaw_breakdown",
-]

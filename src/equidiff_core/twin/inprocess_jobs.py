@@ -15,7 +15,8 @@ import numpy as np
 
 from equidiff_core.benches.stats import success_rate
 from equidiff_core.config import default_config_dir, load_lab_config
-from equidiff_core.data.bags import BagError, find_bags
+from equidiff_core.data.bags import find_bags
+from equidiff_core.data.mcap_reader import BagError
 from equidiff_core.policy.inference import load_inference_policy
 from equidiff_core.runtime.jobs import JobError
 from equidiff_core.twin.config import load_twin_config

@@ -226,8 +226,8 @@ class StateReader:
     def take_frame(self, after: int, timeout_s: float, poll_s: float = 0.003) -> tuple[int, np.ndarray, float, int]:
         """Wait for the first frame numbered above ``after``, take it (the sim may step on) and
         return (frame, qpos, sim_time, stamp_ns); SharedStateError after ``timeout_s``. Polling every
-        3 ms holds the sim ~1.5 ms per frame; at 1 ms three idle cameras woke 3000 times a second
-        on a machine with few cores, each wake-up competing with the sim's 1 kHz loop."""
+        few ms holds the sim a little per frame; polling every 1 ms, three idle cameras woke thousands of
+        times a second on a machine with few cores, each wake-up competing with the sim's 1 kHz loop."""
         deadline = time.monotonic() + timeout_s
         while True:
             frame = int(self._header[3])

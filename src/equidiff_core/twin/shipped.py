@@ -19,18 +19,26 @@ def shipped_checkpoint() -> Path:
 SHIPPED_CHECKPOINT = shipped_checkpoint()
 
 
-def resolve_policy(args, out: Path, workspace, cfg) -> tuple[Path, str]:
-    """The policy file a twin job runs and its label: ``--checkpoint``, else the shipped one, else (``--standin``,
-    ``--smoke``) an untrained stand-in written into ``out``; FileNotFoundError when the one asked for is missing."""
-    if args.checkpoint is not None or args.attach:
-        if args.checkpoint is None or not args.checkpoint.is_file():
-            raise FileNotFoundError(f"--checkpoint {args.checkpoint}: no such file")
-        return args.checkpoint, str(args.checkpoint)
-    if not args.standin and not args.smoke and SHIPPED_CHECKPOINT.is_file():
+def resolve_policy(
+    out: Path,
+    workspace,
+    cfg,
+    *,
+    checkpoint: Path | None = None,
+    attach: bool = False,
+    standin: bool = False,
+    standin_preset: str = "compact",
+) -> tuple[Path, str]:
+    """The policy file a twin job runs and its label: ``checkpoint``, else the shipped one, else (``standin``) an
+    untrained stand-in of ``standin_preset`` written into ``out``; FileNotFoundError when the one asked for (a
+    checkpoint, which ``attach`` requires, or the shipped one) is missing."""
+    if checkpoint is not None or attach:
+        if checkpoint is None or not checkpoint.is_file():
+            raise FileNotFoundError(f"--checkpoint {checkpoint}: no such file")
+        return checkpoint, str(checkpoint)
+    if not standin and SHIPPED_CHECKPOINT.is_file():
         return SHIPPED_CHECKPOINT, f"shipped {SHIPPED_NAME}"
-    if not args.standin and not args.smoke:
+    if not standin:
         raise FileNotFoundError(f"no shipped checkpoint at {SHIPPED_CHECKPOINT}; pass --checkpoint or --standin")
-    path = make_standin_policy(
-        out / "standin_policy.pt", workspace, preset="tiny" if args.smoke else "compact", cfg=cfg
-    )
+    path = make_standin_policy(out / "standin_policy.pt", workspace, preset=standin_preset, cfg=cfg)
     return path, STANDIN_LABEL

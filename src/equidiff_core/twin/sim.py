@@ -36,6 +36,7 @@ connection, a jammed gripper) on the sim's fault channel, ``FAULT_PORT`` at ``ho
 from __future__ import annotations
 
 import argparse
+import logging
 import signal
 import threading
 import time
@@ -69,6 +70,8 @@ from .scene import (
 )
 from .shared_state import StateWriter
 
+logger = logging.getLogger(__name__)
+
 
 @dataclass
 class LoopStats:
@@ -96,8 +99,10 @@ class TwinSim:
         lockstep: LockstepConfig | None = None,
         on_clock: Callable[[int], None] | None = None,
         camera_names: tuple[str, ...] = (),
+        log: Callable[[str], None] | None = None,
     ):
         self.cfg = cfg
+        self.log = log or logger.info  # where the fault channel's lines go
         self.host = host or cfg.sim.host
         if self.host == "auto":
             self.host = free_loopback_host()
@@ -128,7 +133,7 @@ class TwinSim:
         self._sim.init()
         self._server = SimulationServer(self._sim, hostname_candidates=[self.host])
         self._server.init()  # binds host:1337 and starts the simulation
-        self.faults = SimFaults(self._server, self.host, log=lambda m: print(f"[twin sim] {m}", flush=True))
+        self.faults = SimFaults(self._server, self.host, log=self.log)
         self._writer = StateWriter(self.model.nq, self.shm_name)
         self.shm_name = self._writer.name
         self.reset(seed)
@@ -320,7 +325,7 @@ class DirectSim:
     the arm follows the target like franky-sim's joint-impedance path: damped least-squares IK
     to a joint target, then PD with the same gains plus gravity/Coriolis compensation. We do
     the arm control with MuJoCo's own Jacobian and bias forces instead of franky-sim's
-    per-step pinocchio calls and state tracking, which made a 20-episode test 4x slower.
+    per-step pinocchio calls and state tracking, which made the twin's tests several times slower.
     """
 
     def __init__(self, cfg: TwinConfig):
@@ -450,7 +455,9 @@ def main(argv: list[str] | None = None) -> None:
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
     signal.signal(signal.SIGINT, lambda *_: stop.set())
     cfg = load_twin_config(args.config)
-    with TwinSim(cfg, host=args.host, shm_name=args.shm, command_wait_s=args.command_wait_s).start(
+    # a process entry point: its stdout is the READY/STATS protocol SimServer reads (other lines are its log)
+    log = lambda m: print(f"[twin sim] {m}", flush=True)
+    with TwinSim(cfg, host=args.host, shm_name=args.shm, command_wait_s=args.command_wait_s, log=log).start(
         seed=args.seed
     ) as sim:
         print(f"READY {sim.host} {sim.shm_name} {sim.model.nq}", flush=True)

@@ -29,8 +29,8 @@ from typing import Any
 import yaml
 
 from ..config import LabConfig
-from ..data.bags import BagIntegrityError, bag_mcap
-from ..data.mcap_reader import iter_mcap
+from ..data.bags import bag_mcap
+from ..data.mcap_reader import BagIntegrityError, iter_mcap
 from ..runtime.output_files import distinct_names, staged_output, unique_paths
 from ..wire.rosmsg import rosbags_factory
 from ..wire.topics import camera_of_color_topic

@@ -1,9 +1,7 @@
 """``RerunLogger``: one method per message kind, and the entity layout it logs.
 
-The entity paths, the default blueprint, ``VizConfig`` and ``open_recording`` live in
-``recording_setup`` (re-exported here).
-
-The entity layout (which message goes where) is in ``recording_setup``.
+The entity paths, the entity layout (which message goes where), the default blueprint, ``VizConfig`` and
+``open_recording`` live in ``recording_setup``.
 
 Time: every entity is logged on the ``ros_time`` timeline at the message's header stamp
 (falling back to the arrival/recording time when a publisher left the stamp at zero), plus
@@ -39,7 +37,6 @@ from ..wire.rosmsg import (
     uint8_buffer,
 )
 from .recording_setup import (
-    APPLICATION_ID,
     BASE,
     CAMERAS,
     CHUNK,
@@ -57,10 +54,6 @@ from .recording_setup import (
     WORKSPACE,
     WORLD,
     VizConfig,
-    default_blueprint,
-    grpc_url,
-    load_viz_config,
-    open_recording,
 )
 from .rerun_sdk import require_rerun
 
@@ -483,17 +476,3 @@ TOPICS_HANDLED = (
     topics.TOPIC_DIAGNOSTICS,
     topics.TOPIC_TF_STATIC,
 )
-
-# The recording setup's names stay importable from here, where callers found them before it moved.
-__all__ = [
-    "APPLICATION_ID",
-    "OPTICAL_SUFFIX",
-    "TOPICS_HANDLED",
-    "RerunLogger",
-    "VizConfig",
-    "default_blueprint",
-    "grpc_url",
-    "load_viz_config",
-    "log_pose_path",
-    "open_recording",
-]

@@ -146,7 +146,7 @@ def run_track_and_hold(
         "state_hz": round(len(times) / max(t_to - t_from, 1e-9), 1),
         # how far the arm went on after the hold engaged: with franka_node on the wall clock and a sim
         # slower than real time the arm is still catching up with the last command when the watchdog
-        # fires, so this grows with the machine's load (measured in docs/control.md, `equidiff bench control`)
+        # fires, so this grows with the machine's load (measured in docs/results/control.md, `equidiff bench control`)
         "hold_drift_mm": round(metrics.max_drift(h_positions, h_positions[0]) * 1000, 2),
         # what the hold is, whatever the load: one target, and the arm come to rest at it
         "hold_target_span_mm": round(float(np.ptp(held_targets, axis=0).max()) * 1000, 3),

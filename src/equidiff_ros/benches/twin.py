@@ -19,11 +19,12 @@ from equidiff_ros.twin.world import run_policy_episode
 def run_twin_bench(args) -> int:
     """``equidiff bench twin`` for its parsed arguments: one JSON line; the exit status."""
     configs = load_twin_job_configs(None, None)
-    args.smoke, args.attach = False, False
     # --out: a new folder, refused if it holds anything (unless --force), landing once the episodes ran
     with staged_dir(args.out, force=args.force, prefix="bench_twin_") as staged:
         out = staged.path
-        policy_path, label = resolve_policy(args, out, configs.lab.workspace, configs.twin)
+        policy_path, label = resolve_policy(
+            out, configs.lab.workspace, configs.twin, checkpoint=args.checkpoint, standin=args.standin
+        )
         try:
             with TwinStack(
                 out,

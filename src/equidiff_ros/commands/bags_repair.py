@@ -10,7 +10,8 @@ from __future__ import annotations
 
 import sys
 
-from equidiff_core.data.bags import BagError, repair_bag
+from equidiff_core.data.bags import repair_bag
+from equidiff_core.data.mcap_reader import BagError
 
 
 def add_arguments(parser) -> None:

@@ -21,7 +21,7 @@ then drives the node from this process exactly as the policy would, over /franka
    ``obs_to_cmd_p95_ms``), with the bare ``InferencePolicy.predict`` time measured in this
    process before anything else starts as the baseline (``baseline_bare_predict_p50_ms``).
 
-**Standstill at chunk boundaries** (docs/control.md): ``track_standstill_*`` is how long the
+**Standstill at chunk boundaries** (docs/chunking.md): ``track_standstill_*`` is how long the
 commanded TCP (/franka/executed_target) stands still at each chunk switch of the circle (target
 0: franka_node continues the motion through a switch); ``policy_standstill_*`` is the same for
 the policy node with its default parameters (``latency_s`` auto), read off its chunks' timing

@@ -41,12 +41,11 @@ one policy can take a whole working session, so ``--policies`` trains a subset i
 earlier call's) whose metadata records another block yaw range than ``--train-yaw`` are refused.
 
 The default recipe (compact, 6000 steps of batch 8 with 4 noise draws per encoder pass, EMA, peak
-lr 5e-4, the baselines' 1e-3) is the one ``bench demos`` uses too, so one EquiDiff run on the 40 demos serves both. Time
-on this 2-core CPU (quiet machine): demos ~14 s each (40: 9-12 min); EquiDiff ~0.6 s a step
-(6000: ~67 min beside another training); evaluation ~6 s per 30 s episode. ``--max-minutes`` gives each policy a training budget
+lr 5e-4, the baselines' 1e-3) is the one ``bench demos`` uses too, so one EquiDiff run on the 40 demos serves both. On a
+CPU the training dominates (hours for the default recipe); ``--max-minutes`` gives each policy a training budget
 (``equidiff train`` stops, checkpoints and exports; the steps each trained are reported).
-The measured results, with the commands that produced them, are in docs/twin.md (numbers
-live there only, so this text cannot go stale). On CUDA thousands of steps fit in minutes.
+The measured results and how long each part took, with the commands and machines, are in docs/results/twin.md
+("The paper's claims, measured"; numbers live there only, so this text cannot go stale).
 
 ``--out`` is a work folder, filled over several calls, so it is never refused; every file the bench
 writes there (result.json, <policy>/rollouts_*.json) is written whole, beside itself, and renamed

@@ -1,6 +1,6 @@
 """`equidiff bench overfit`: can a policy fit two demonstrations? Training and conditioning, checked.
 
-    equidiff bench overfit                          # EquiDiff, tiny preset, 1200 steps (~2 min on 2 cores)
+    equidiff bench overfit                          # EquiDiff, tiny preset, 1200 steps
     equidiff bench overfit --policy baseline        # 4800 steps: the baseline starts to read its voxels later
 
 Two synthetic cube demos, trained on for ``--steps``; DDIM-16 samples for each demo's observation

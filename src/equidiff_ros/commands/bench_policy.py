@@ -37,7 +37,7 @@ def add_arguments(parser) -> None:
     parser.add_argument(
         "--compile",
         action="store_true",
-        help="torch.compile the denoising step (~45 s the first time, then cached on disk)",
+        help="torch.compile the denoising step (slow the first time, then cached on disk)",
     )
     parser.add_argument(
         "--graph", action="store_true", help="CUDA only: replay encoder + DDIM-16 as one captured CUDA graph"

@@ -1,6 +1,6 @@
 """`equidiff bench safety`: a fault campaign against franky-sim through franka_node (issues 16 and 27).
 
-    equidiff bench safety                          # all fourteen faults, ~6 min on 2 cores
+    equidiff bench safety                          # all fourteen faults
     equidiff bench safety --faults nan,out_of_box,user_stop,franka_node_killed
     equidiff bench safety --faults out_of_box --box-margin-mm 0   # the raw overshoot the margin is set from
 
@@ -69,9 +69,11 @@ anything is refused (exit 2) before anything starts, unless ``--force``.
 from __future__ import annotations
 
 import argparse
+import json
 from pathlib import Path
 
 from equidiff_core.benches.fault_campaign import FAULTS, run_bench
+from equidiff_core.runtime.jobs import progress_lines
 from equidiff_ros.benches.safety_probe import SafetyProbe
 from equidiff_ros.commands import add_force_argument
 
@@ -112,14 +114,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    return run_bench(
-        args.faults,
-        SafetyProbe(),
-        still_mm=args.still_mm,
-        box_margin_mm=args.box_margin_mm,
-        policy=args.policy,
-        control_config=args.control_config,
-        domain_id=args.domain_id,
-        keep=args.keep,
-        force=args.force,
-    )
+    with progress_lines("stderr"):  # stdout holds the JSON line
+        result = run_bench(
+            args.faults,
+            SafetyProbe(),
+            still_mm=args.still_mm,
+            box_margin_mm=args.box_margin_mm,
+            policy=args.policy,
+            control_config=args.control_config,
+            domain_id=args.domain_id,
+            keep=args.keep,
+            force=args.force,
+        )
+    print(json.dumps(result))
+    return 0

@@ -22,7 +22,8 @@ import sys
 from pathlib import Path
 
 from equidiff_core.config import default_config_dir, load_lab_config
-from equidiff_core.data.dataset import DatasetConfig, pack_episodes
+from equidiff_core.data.dataset import pack_episodes
+from equidiff_core.data.episode_arrays import DatasetConfig
 from equidiff_core.perception.observation import STATE_TOLERANCE_S
 from equidiff_core.runtime.output_files import OutputExistsError
 from equidiff_ros.commands import add_force_argument

@@ -12,7 +12,8 @@ from __future__ import annotations
 import json
 import sys
 
-from equidiff_core.data.dataset import DatasetConfig, dataset_stats
+from equidiff_core.data.dataset import dataset_stats
+from equidiff_core.data.episode_arrays import DatasetConfig
 from equidiff_core.perception.observation import STATE_TOLERANCE_S
 
 

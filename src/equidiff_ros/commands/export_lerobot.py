@@ -16,8 +16,9 @@ from __future__ import annotations
 import json
 import sys
 
-from equidiff_core.data.dataset import DatasetConfig
-from equidiff_core.data.lerobot.export import ExportError, ExportOptions, export_lerobot
+from equidiff_core.data.episode_arrays import DatasetConfig
+from equidiff_core.data.lerobot.export import ExportOptions, export_lerobot
+from equidiff_core.data.lerobot.layout import ExportError
 from equidiff_core.perception.observation import STATE_TOLERANCE_S
 from equidiff_core.runtime.output_files import OutputExistsError
 from equidiff_ros.commands import add_force_argument

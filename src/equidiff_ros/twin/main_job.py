@@ -43,15 +43,23 @@ def run_main_job(args) -> int:
     max_duration = args.max_duration or (8.0 if args.smoke else cfg.episode.max_duration_s)
     out.mkdir(parents=True, exist_ok=True)
     try:
-        policy_path, policy_label = resolve_policy(args, out, lab.workspace, cfg)
+        policy_path, policy_label = resolve_policy(
+            out,
+            lab.workspace,
+            cfg,
+            checkpoint=args.checkpoint,
+            attach=args.attach,
+            standin=args.standin or args.smoke,
+            standin_preset="tiny" if args.smoke else "compact",
+        )
     except FileNotFoundError as err:
         print(f"equidiff twin run: {err}", file=sys.stderr)
         return 2
     clock = args.clock
-    args.realtime = clock == "realtime"
+    realtime = clock == "realtime"
     print(
         f"[twin] policy: {policy_label}; {episodes} episode(s) of at most {max_duration:.0f} s; output {out}; "
-        + ("real time" if args.realtime else f"simulated time, latency budget {args.latency_ms:.0f} ms")
+        + ("real time" if realtime else f"simulated time, latency budget {args.latency_ms:.0f} ms")
     )
     records = []
     sim_rates = []
@@ -68,9 +76,9 @@ def run_main_job(args) -> int:
             precision=args.precision,
             seed=args.seed,
             record_clouds=args.record_clouds,
-            lenient=args.lenient or (args.smoke and args.realtime),
+            lenient=args.lenient or (args.smoke and realtime),
             attach=args.attach,
-            realtime=args.realtime,
+            realtime=realtime,
             latency_s=args.latency_ms / 1000.0,
             stall_timeout_s=args.stall_timeout,
             composed=args.composed,
@@ -100,7 +108,7 @@ def run_main_job(args) -> int:
         sim_rate=sum(sim_rates) / len(sim_rates) if sim_rates else None,
         policy=policy_label,
         clock=clock,
-        latency_budget_ms=None if args.realtime else args.latency_ms,
+        latency_budget_ms=None if realtime else args.latency_ms,
         wall_s=time.monotonic() - wall_start,
     )
     if not args.no_rrd and records:

@@ -69,7 +69,7 @@ class TwinStack:
         self.seed, self.record_clouds, self.start_timeout_s = seed, record_clouds, start_timeout_s
         # One thread by default, policy_node's own, on either clock: the sim waits only for a chunk that
         # is due, while the cameras render and the other nodes run beside the inference; beside other load
-        # a second thread made inference slower, not faster (docs/twin.md: `equidiff bench twin --torch-threads`).
+        # a second thread made inference slower, not faster (docs/results/twin.md: `equidiff bench twin --torch-threads`).
         self.torch_threads = torch_threads
         # lenient: accept older observations (CI machines too loaded to hold 5 Hz); never for reported numbers
         self.lenient = lenient

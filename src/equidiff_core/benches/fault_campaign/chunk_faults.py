@@ -22,7 +22,7 @@ from equidiff_core.wire.rosmsg import NS_PER_S
 # the corner of the -y wall and the floor. The box's corners at the floor nearest to and farthest
 # from the base are out of the FR3's comfortable reach pointing down: towards x 0.26 the elbow ran
 # into its joint limit, towards x 0.64 the arm oscillated until franka_node's joint-speed stop
-# caught it (joint 4 at 2.5 rad/s; docs/control.md). The campaign's SCENE_SEED keeps the twin's
+# caught it (docs/results/control.md, "The box margin, measured"). The campaign's SCENE_SEED keeps the twin's
 # objects clear of every approach.
 APPROACH_START = np.array([0.50, -0.10, 0.22])
 APPROACHES = {

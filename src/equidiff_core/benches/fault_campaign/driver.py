@@ -7,8 +7,8 @@ arm home between them; one JSON line's content.
 from __future__ import annotations
 
 import json
+import logging
 import os
-import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -21,10 +21,13 @@ from equidiff_core.benches.fault_campaign.report import campaign_summary
 from equidiff_core.config import default_config_dir, dump_yaml, load_lab_config, load_mapping
 from equidiff_core.control import load_control_config
 from equidiff_core.robots.franky.sim import SimServer
+from equidiff_core.runtime.jobs import JobError
 from equidiff_core.runtime.machine import cpu_description
 from equidiff_core.runtime.output_files import staged_dir
 from equidiff_core.twin.processes import join_private_domain, start_node, stop_process
 from equidiff_core.twin.standin import STANDIN_LABEL, make_standin_policy
+
+logger = logging.getLogger(__name__)
 
 # each fault's run, in the campaign's order; the policy faults also take the camera pipeline
 FAULT_RUNS: dict[str, Callable[..., dict]] = {
@@ -74,7 +77,7 @@ def run_campaign(
     (the JSON line's content)."""
     unknown = sorted(set(faults) - set(FAULTS))
     if unknown:
-        raise ValueError(f"unknown fault(s) {unknown}; choose from {list(FAULTS)}")
+        raise JobError(f"unknown fault(s) {unknown}; choose from {list(FAULTS)}", 2)
     faults = [f for f in FAULTS if f in faults]
     lab_path = default_config_dir() / "lab.yaml"
     lab = load_lab_config(lab_path)
@@ -206,29 +209,21 @@ def run_bench(
     domain_id: int | None = None,
     keep: Path | None = None,
     force: bool = False,
-) -> int:
+) -> dict:
     """``equidiff bench safety``: ``faults`` comma-separated, on a private ROS domain (``domain_id``), its
     logs and episodes in ``keep`` (default: a temp dir; a new folder, landing when the campaign ends, refused
-    if it holds anything unless ``force``); progress to stderr, one JSON line to stdout; the exit status (2
-    for an unknown fault)."""
+    if it holds anything unless ``force``); progress through this module's logger; the result (the command's
+    JSON line). ``JobError`` (exit status 2) for an unknown fault, before anything starts."""
     join_private_domain(domain_id)
     names = [f.strip() for f in faults.split(",") if f.strip()]
     with staged_dir(keep, force=force, prefix="bench_safety_") as staged:
-        out = staged.path
-        try:
-            result = run_campaign(
-                names,
-                out,
-                probe,
-                still_mm,
-                box_margin_mm,
-                log=lambda m: print(m, file=sys.stderr, flush=True),
-                policy=policy,
-                control_config=control_config,
-            )
-        except ValueError as err:
-            print(f"equidiff bench safety: {err}", file=sys.stderr)
-            staged.discard()
-            return 2
-    print(json.dumps(result))
-    return 0
+        return run_campaign(
+            names,
+            staged.path,
+            probe,
+            still_mm,
+            box_margin_mm,
+            log=logger.info,
+            policy=policy,
+            control_config=control_config,
+        )

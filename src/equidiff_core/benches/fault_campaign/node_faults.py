@@ -14,7 +14,8 @@ from pathlib import Path
 import numpy as np
 
 from equidiff_core.benches.fault_campaign.campaign import Campaign, franka_log, start_episode
-from equidiff_core.data.bags import BagError, read_episode, repair_bag
+from equidiff_core.data.bags import read_episode, repair_bag
+from equidiff_core.data.mcap_reader import BagError
 from equidiff_core.twin.processes import start_node, stop_process
 from equidiff_core.wire.rosmsg import gripper_width_from_joint_state
 

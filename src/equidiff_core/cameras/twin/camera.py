@@ -8,8 +8,8 @@ MuJoCo depth is planar z, so the optical-frame point of pixel (u, v) is
 x = (u + 0.5 - cx) z / fx, y = (v + 0.5 - cy) z / fy (checked against rendered boxes: points land on
 them within 0.2 um; dropping the half pixel costs ~2 mm, reading depth as ray length 1-12 mm).
 
-Rendering settings are the cheap ones (no multisampling, shadows, reflections, skybox): at
-424x240 three cameras cost ~110-135 ms a set on this CPU, 4x less than the defaults.
+Rendering settings are the cheap ones (no multisampling, shadows, reflections, skybox): several
+times cheaper than MuJoCo's defaults (docs/results/twin.md measures a twin episode's cost).
 An EGL context belongs to one thread, so each camera renders in a worker thread of its own
 (created on connect, closed on disconnect) whichever threads call ``read``; set
 ``MUJOCO_GL=egl`` on headless machines (osmesa does not work).

@@ -47,21 +47,18 @@ import pyarrow.parquet as pq
 
 from ...runtime.output_files import refuse_existing, staged_output
 from ...wire.rosmsg import NS_PER_S
-from ..bags import BagError
-from ..dataset import DatasetConfig, load_episodes
+from ..dataset import load_episodes
+from ..episode_arrays import DatasetConfig
+from ..mcap_reader import BagError
 from .layout import (
-    ACTION_NAMES,
-    CHUNK_FILE,
     CODEBASE_VERSION,
     DATA_PATH,
     EPISODES_PATH,
     IMAGE_KEY,
-    QUANTILES,
     TASKS_PATH,
     VIDEO_PATH,
     DataFiles,
     ExportError,
-    MiB,
     arrow_schema,
     channel_stats,
     feature_stats,
@@ -69,7 +66,6 @@ from .layout import (
     jsonable_stats,
     merge_stats,
     nested_lists,
-    next_chunk_file,
     tasks_table,
 )
 from .video import VideoEncoding, VideoFiles, bag_cameras, decoded_images, matched_images
@@ -293,28 +289,3 @@ def _write_dataset(
     episodes_path.parent.mkdir(parents=True)
     pq.write_table(pa.Table.from_pylist(rows), episodes_path, compression="snappy")
     return len(rows), index, sorted(tasks)
-
-
-__all__ = [
-    "ACTION_NAMES",
-    "CHUNK_FILE",
-    "CODEBASE_VERSION",
-    "DATA_PATH",
-    "EPISODES_PATH",
-    "IMAGE_KEY",
-    "QUANTILES",
-    "TASKS_PATH",
-    "VIDEO_PATH",
-    "ExportError",
-    "ExportOptions",
-    "ExportReport",
-    "MiB",
-    "VideoEncoding",
-    "bag_cameras",
-    "channel_stats",
-    "export_lerobot",
-    "feature_stats",
-    "matched_images",
-    "merge_stats",
-    "next_chunk_file",
-]

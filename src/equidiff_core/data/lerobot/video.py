@@ -17,7 +17,7 @@ from ...cameras.color import ImageError, image_from_msg
 from ...runtime.machine import keep_thread_scheduler
 from ...wire.topics import camera_color_topic, camera_of_color_topic
 from ..bags import read_episode
-from ..dataset import EpisodeArrays
+from ..episode_arrays import EpisodeArrays
 from .layout import VIDEO_PATH, ExportError, MiB, next_chunk_file
 
 # SVT-AV1 prints its whole configuration to stderr for each encoder it opens; errors only

@@ -2,9 +2,9 @@
 
 Streaming uses franky 2.0's ``CartesianImpedanceTracker``: one long-lived torque-controlled
 motion whose target we set at the control rate with a velocity feed-forward. On franky-sim
-that tracked a 5 Hz chunk stream with 1.2-3.5 mm RMS and no stop-and-go, while preempting
+that tracked a 5 Hz chunk stream without stop-and-go, while preempting
 motions per chunk stops at every chunk and ``CartesianWaypointMotion`` needs per-waypoint
-velocities and ``minimum_time`` not to stop or overshoot (``docs/control.md``
+velocities and ``minimum_time`` not to stop or overshoot (``docs/results/control.md``
 for our own measurement). Being torque-controlled it also cannot trip the motion generator's
 discontinuity reflexes. The gripper has its own thread, which sends the newest requested width
 (``move_async`` / ``grasp_async``) and reads the width back: a gripper read blocks until the

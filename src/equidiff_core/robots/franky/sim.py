@@ -9,7 +9,7 @@ injected at the libfranka protocol level through the sim's fault channel
 scene lives in ``equidiff_core.twin``; this is the smallest thing the franka node can talk to.
 
 We step the server ourselves instead of ``SimulationServer.run_async()``: the stock loop
-sleeps "1 ms minus compute" and runs 8-16 % slower than real time (measured); sleeping to
+sleeps "1 ms minus compute" and runs slower than real time (measured); sleeping to
 fixed 1 ms deadlines holds 1000 steps/s, which the tracking numbers depend on.
 """
 
@@ -43,6 +43,7 @@ def serve(host: str, realtime: bool = True) -> None:
     with MujocoSimulator() as sim:
         sim.add_robot()
         with franky_sim.SimulationServer(sim, hostname_candidates=[host]) as server:
+            # a process entry point: its stdout is the READY/STATS protocol SimServer reads (other lines are its log)
             faults = SimFaults(server, host, log=lambda m: print(m, flush=True))
             print(f"READY {host}", flush=True)
             deadline = start = time.perf_counter()
@@ -301,7 +302,7 @@ def main(argv: list[str] | None = None) -> None:
     if args.inject is None:
         serve(args.host)
         return
-    print(inject_fault(args.host, args.inject, args.seconds))
+    print(inject_fault(args.host, args.inject, args.seconds))  # the command's answer, for whoever ran it
 
 
 if __name__ == "__main__":
