@@ -1,7 +1,7 @@
 """CPU speed-ups for the plain-torch networks at inference: same weights, same outputs, faster kernels.
 
-``policy.inference.InferencePolicy`` applies them on CPU: the first Conv3d padded to 8 input channels
-(fp32), the U-Net's Conv1d and ConvTranspose1d as GEMMs (bf16) and a faster Mish; ``Method``
+``policy.inference.InferencePolicy`` applies them on CPU: the encoder's Conv3d run by oneDNN in
+channels_last_3d (fp32; the old path pads the first Conv3d to 8 input channels instead), the U-Net's Conv1d and ConvTranspose1d as GEMMs (bf16) and a faster Mish; ``Method``
 lets ``torch.jit.trace`` trace one method of a module.
 """
 
@@ -34,6 +34,27 @@ def pad_first_conv(encoder: torch.nn.Sequential, multiple: int) -> int:
             padded.bias.copy_(conv.bias)
     encoder[0] = padded.eval()
     return extra
+
+
+class OneDnnConv3d(torch.nn.Module):
+    """A Conv3d always computed by oneDNN (``torch.mkldnn_convolution``): same weights, same output.
+
+    For a batch of one, torch's dispatcher sends a 3D convolution with few channels on a small map
+    (batch * channels * depth * height <= 20480, aten's ``use_mkldnn``) to its own vol2col + GEMM
+    kernel, several times slower there than oneDNN on AVX2 and AVX-512 alike: most of the encoder's
+    layers at 28³ and below (docs/results/model.md, "The encoder near the core's limit")."""
+
+    def __init__(self, conv: torch.nn.Conv3d):
+        super().__init__()
+        if conv.padding_mode != "zeros" or isinstance(conv.padding, str):
+            raise ValueError("OneDnnConv3d handles zero-padded convolutions with numeric padding only")
+        self.weight, self.bias = conv.weight, conv.bias
+        self.padding, self.stride, self.dilation, self.groups = conv.padding, conv.stride, conv.dilation, conv.groups
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return torch.mkldnn_convolution(
+            x, self.weight, self.bias, self.padding, self.stride, self.dilation, self.groups
+        )
 
 
 class MatmulConv1d(torch.nn.Module):
@@ -120,6 +141,11 @@ def swap_modules(module: torch.nn.Module, kind: type, replacement) -> int:
         else:
             count += swap_modules(child, kind, replacement)
     return count
+
+
+def onednn_conv3ds(module: torch.nn.Module) -> int:
+    """Run every Conv3d under ``module`` through oneDNN (``OneDnnConv3d``); returns how many."""
+    return swap_modules(module, torch.nn.Conv3d, OneDnnConv3d)
 
 
 def convs_as_matmuls(module: torch.nn.Module) -> int:
