@@ -476,6 +476,7 @@ def test_the_onednn_encoder_computes_what_the_native_one_did(exported, which):
     fast = load_inference_policy(path, precision="fp32", jit=which == "shipped")
     old = load_inference_policy(path, precision="fp32", encoder_kernels="native")
     assert fast.onednn_convs == 8 and fast.channels_last and fast.pad_channels == 0  # the default on a CPU
+    assert {type(m).__name__ for m in fast.net.encoder} >= {"OneDnnConv3d", "WholeMapConv3d"}
     assert old.onednn_convs == 0 and not old.channels_last and old.pad_channels == 4  # the path before
     ee = np.zeros(10, np.float32)
     ee[:3], ee[3], ee[7] = fast.workspace.center, 1.0, 1.0

@@ -42,6 +42,7 @@ from ..models.cpu_kernels import (
     pad_first_conv,
     swap_modules,
 )
+from ..models.plain import EquiNoiseCore, from_escnn_layout, to_escnn_layout
 from ..models.sampling import ActionCodec, _guided_noise, ddim_sample, make_inference_scheduler
 from ..runtime.machine import PRECISIONS, cpu_has_native_bf16
 from .augment import voxel_input
@@ -152,7 +153,7 @@ class InferencePolicy:
         self.onednn_convs = 0  # the encoder's Conv3d forced onto oneDNN (fp32 on CPU)
         if precision == "fp32" and device.type == "cpu":
             if encoder_kernels == "onednn":
-                self.onednn_convs = onednn_conv3ds(self.net.encoder)
+                self.onednn_convs = onednn_conv3ds(self.net.encoder, preset.crop)
             else:
                 self.pad_channels = pad_first_conv(self.net.encoder, multiple=8)
         self.channels_last = channels_last
@@ -233,8 +234,12 @@ class InferencePolicy:
     def _layout(self, vox: torch.Tensor) -> torch.Tensor:
         if not self.channels_last:
             return vox
-        # channels_last_3d on the (B*To, C, ...) view the convolutions see
-        flat = vox.flatten(0, 1).contiguous(memory_format=torch.channels_last_3d)
+        # channels_last_3d on the (B*To, C, ...) view the convolutions see (EquiDiff's after to_escnn_layout)
+        flat = vox.flatten(0, 1)
+        if isinstance(self.net, EquiNoiseCore):
+            flat = from_escnn_layout(to_escnn_layout(flat).contiguous(memory_format=torch.channels_last_3d))
+        else:
+            flat = flat.contiguous(memory_format=torch.channels_last_3d)
         return flat.unflatten(0, vox.shape[:2])
 
     def check_inputs(self, voxels: np.ndarray, ee: np.ndarray) -> None:
