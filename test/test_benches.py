@@ -345,6 +345,29 @@ def test_bench_policy_times_the_old_relu_order_in_the_same_run(capsys):
     assert result["relu_order_cpu_ms"].keys() == {"pool_before_relu", "relu_before_pool"}
 
 
+def test_bench_policy_rates_the_encoder_against_a_gemm_and_the_old_kernels_in_the_same_run(capsys):
+    from equidiff_core.benches.cost import encoder_flops
+    from equidiff_core.policy.file import build_plain_network
+    from equidiff_core.policy.presets import get_preset
+    from equidiff_ros.cli import main
+
+    argv = ["bench", "policy", "--preset", "tiny", "--policy", "baseline", "--device", "cpu", "--precision", "fp32"]
+    assert main([*argv, "--no-jit", "--iters", "1", "--eager-iters", "0", "--compare-encoder"]) == 0
+    result = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    preset = get_preset("tiny")
+    assert result["encoder_gflop"] == round(encoder_flops(build_plain_network("baseline", preset), preset) / 1e9, 3)
+    assert result["encoder_gflop"] > 0 and result["gemm_gflop_s"] > 0 and result["gemm_cpu_gflop_s"] > 0
+    rate = result["encoder_gflop"] / (result["encoder_ms"] / 1000)
+    assert result["encoder_gflop_s"] == pytest.approx(rate, rel=0.01, abs=0.1)
+    assert result["encoder_gemm_ratio"] == pytest.approx(result["encoder_gflop_s"] / result["gemm_gflop_s"], rel=0.01)
+    kernels = result["encoder_kernels"]
+    assert kernels.keys() == {"onednn", "native"} and kernels["onednn"]["max_abs_diff"] == 0.0
+    assert kernels["native"]["max_abs_diff"] < 1e-4 and kernels["native"]["encoder_cpu_ms"] > 0
+    assert result["encoder_speedup_vs_native"] == round(
+        kernels["native"]["encoder_ms"] / kernels["onednn"]["encoder_ms"], 2
+    )
+
+
 def test_train_refuses_a_baseline_width_the_official_pattern_cannot_take(tmp_path, capsys):
     from equidiff_ros.cli import main
 

@@ -441,3 +441,52 @@ def test_shipped_policy_files_and_checkpoints_carry_a_checked_weights_hash():
         assert load_checked(path, FORMAT, VERSION, "policy file", "a policy", "state_dict").get(HASH_KEY), path
     for path in ckpts:
         assert load_training_checkpoint(path).get(HASH_KEY), path
+
+
+SHIPPED = Path(__file__).resolve().parents[1] / "checkpoints" / "twin_compact" / "policy.pt"
+
+
+def _encoder_test_grids(preset, workspace) -> list[np.ndarray]:
+    """uint8 grids (4, R, R, R): two twin-like scenes, random sparse voxels, an empty grid, every voxel
+    occupied, and only the crop's outer shell occupied (where the convolutions' zero padding acts)."""
+    R, S = workspace.resolution, preset.crop
+    rng = np.random.default_rng(0)
+    scenes, _ = twin_scenes(preset, workspace, count=2, seed=3, scene=load_twin_config().scene)
+    grids = [g.numpy() for g in scenes[:, 0]]
+    grids.append(
+        random_observation(type("P", (), {"preset": preset, "workspace": workspace}), 1, seed=2)[0][0, 0].numpy()
+    )
+    grids.append(np.zeros((4, R, R, R), np.uint8))
+    full = rng.integers(1, 256, (4, R, R, R), dtype=np.uint8)
+    full[0] = 255
+    grids.append(full)
+    lo = (R - S) // 2
+    shell = full.copy()
+    shell[:, lo + 1 : lo + S - 1, lo + 1 : lo + S - 1, lo + 1 : lo + S - 1] = 0
+    grids.append(shell)
+    return grids
+
+
+@pytest.mark.parametrize("which", ["tiny", "shipped"])
+def test_the_onednn_encoder_computes_what_the_native_one_did(exported, which):
+    if which == "shipped" and not SHIPPED.is_file():
+        pytest.skip("the shipped checkpoint is not in this checkout")
+    path = exported[1] if which == "tiny" else SHIPPED
+    # the shipped file as deployed (traced; the exported-policy equivariance tests trace the tiny one)
+    fast = load_inference_policy(path, precision="fp32", jit=which == "shipped")
+    old = load_inference_policy(path, precision="fp32", encoder_kernels="native")
+    assert fast.onednn_convs == 8 and fast.channels_last and fast.pad_channels == 0  # the default on a CPU
+    assert {type(m).__name__ for m in fast.net.encoder} >= {"OneDnnConv3d", "WholeMapConv3d"}
+    assert old.onednn_convs == 0 and not old.channels_last and old.pad_channels == 4  # the path before
+    ee = np.zeros(10, np.float32)
+    ee[:3], ee[3], ee[7] = fast.workspace.center, 1.0, 1.0
+    grids = _encoder_test_grids(fast.preset, fast.workspace)
+    for grid in grids:
+        ref = old.encode(grid, ee)
+        assert float((fast.encode(grid, ee) - ref).abs().max()) <= 1e-5 * float(ref.abs().max())
+    np.testing.assert_allclose(fast.predict(grids[0], ee, seed=3), old.predict(grids[0], ee, seed=3), atol=1e-5)
+
+
+def test_encoder_kernels_must_be_known(exported):
+    with pytest.raises(ValueError, match="encoder_kernels"):
+        load_inference_policy(exported[1], encoder_kernels="fastest")

@@ -5,6 +5,7 @@ counted).
 * ``encoder_flops``, ``denoise_step_flops``: the exported plain-torch network (what a robot runs) on one
   observation, its voxel encoder and one denoising step (the whole U-Net: EquiDiff runs it once per
   group element); ``ddim16_flops`` = encoder + 16 steps (the FiLM split saves a little of that);
+  ``encoder_flops`` is also what ``equidiff bench policy`` divides by the encoder's time;
 * ``train_step_flops``: one training step's forward and backward (``compute_loss`` with ``noise_repeats``
   draws per encoder pass, escnn's filter expansion included for EquiDiff), per sample of a batch.
 """
@@ -26,6 +27,15 @@ def _flops(fn) -> int:
     return int(counter.get_total_flops())
 
 
+def encoder_flops(net, preset) -> int:
+    """FLOPs of ``net.encode_obs`` (a plain-torch network as exported, ``policy.file.build_plain_network``,
+    before any CPU kernel swap) on one observation: the voxel encoder and the observation embedding."""
+    vox = torch.zeros(1, preset.n_obs_steps, preset.voxel_channels, *(preset.crop,) * 3)
+    ee = torch.zeros(1, preset.n_obs_steps, 10)
+    with torch.no_grad():
+        return _flops(lambda: net.encode_obs(vox, ee))
+
+
 def policy_cost(policy, batch: int = 4, noise_repeats: int = 1) -> dict:
     """Parameters and FLOPs per sample of ``policy`` (a ``policy.diffusion.DiffusionPolicy`` with its normaliser set)."""
     preset = policy.preset
@@ -36,7 +46,7 @@ def policy_cost(policy, batch: int = 4, noise_repeats: int = 1) -> dict:
     with torch.no_grad():
         cond = net.encode_obs(x[:1], ee_n[:1])
         sample = torch.zeros(1, preset.horizon, policy.codec.dim)
-        encoder = _flops(lambda: net.encode_obs(x[:1], ee_n[:1]))
+        encoder = encoder_flops(net, preset)
         step = _flops(lambda: net.denoise(sample, torch.tensor([10]), cond))
     action = policy.predict_action({"voxels": vox, "ee": ee})["action_pred"].float()
     batch_dict = {"voxels": vox, "ee": ee, "action": action}

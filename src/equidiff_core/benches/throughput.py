@@ -14,17 +14,19 @@ import numpy as np
 import torch
 
 from equidiff_core.benches import BenchError
-from equidiff_core.benches.cost import policy_cost
+from equidiff_core.benches.cost import encoder_flops, policy_cost
 from equidiff_core.benches.timing import (
     InferenceMode,
     SyntheticTrainingSet,
     best_mode,
     device_name,
     fresh_policy,
+    gemm_gflop_s,
     measure_training,
     measure_training_variants,
     parse_training_runs,
     synchronizer,
+    time_encoder_kernels,
     time_inference_mode,
     time_inference_modes,
     time_relu_orders,
@@ -33,7 +35,7 @@ from equidiff_core.benches.timing import (
 from equidiff_core.config import ConfigError, Workspace
 from equidiff_core.models.equivariance import random_observation
 from equidiff_core.policy.diffusion import count_parameters
-from equidiff_core.policy.file import CheckpointError, check_device, export_policy
+from equidiff_core.policy.file import CheckpointError, build_plain_network, check_device, export_policy
 from equidiff_core.policy.inference import load_inference_policy
 from equidiff_core.policy.presets import get_preset
 
@@ -52,6 +54,7 @@ class PolicyBenchSettings:
     modes: str | None  # comma-separated InferenceMode names, timed in one run (None: the one mode above)
     rtc: bool  # also time RTC-guided sampling
     compare_relu_order: bool  # also time the same file with the old encoder order
+    compare_encoder: bool  # also time the same file with the fp32 CPU encoder's old kernels, alternately
     iters: int  # timed DDIM-16 runs of the exported policy
     eager_iters: int  # timed runs of the eager escnn model (0: none)
     threads: int  # torch intra-op threads (0: as chosen at start)
@@ -103,10 +106,29 @@ def run_policy_bench(settings: PolicyBenchSettings) -> dict:
             if settings.compare_relu_order
             else {}
         )
+        kernels = (
+            time_encoder_kernels(path, device, InferenceMode.parse(first), settings.iters)
+            if settings.compare_encoder
+            else None
+        )
     # escnn's trainable count; an exported file only holds the expanded (larger) plain weights
     params = count_parameters(eager.model if eager is not None else plain.net)
+    preset = (eager if eager is not None else plain).preset
+    # the encoder's FLOP rate against the same device's fp32 GEMM, measured now with the same threads
+    encoder_gflop = encoder_flops(build_plain_network(policy_name, preset), preset) / 1e9
+    gemm = gemm_gflop_s(device)
+
+    def rates(figures: dict) -> dict:
+        out = {}
+        for clock, gemm_key in (("", "gemm_gflop_s"), ("_cpu", "gemm_cpu_gflop_s")):
+            if f"encoder{clock}_ms" in figures and gemm_key in gemm:
+                rate = encoder_gflop / (figures[f"encoder{clock}_ms"] / 1000)
+                out[f"encoder{clock}_gflop_s"] = round(rate, 1)
+                out[f"encoder_gemm{clock}_ratio"] = round(rate / gemm[gemm_key], 3)
+        return out
+
     result = {
-        "preset": (eager if eager is not None else plain).preset.name,
+        "preset": preset.name,
         "policy": policy_name,
         "params": params,
         "params_kind": "trainable" if eager is not None else "exported",
@@ -116,8 +138,19 @@ def run_policy_bench(settings: PolicyBenchSettings) -> dict:
         "mode": first,
         "iters": settings.iters,
         "torch": torch.__version__,
+        "encoder_gflop": round(encoder_gflop, 3),
+        **rates(per_mode[first]),
+        **gemm,
+        "load_avg_1min": round(os.getloadavg()[0], 2),  # a shared machine's load shows in CPU figures
         **relu_orders,
     }
+    if kernels is not None:
+        for figures in kernels.values():
+            figures.update(rates(figures))
+        result["encoder_kernels"] = kernels
+        result["encoder_speedup_vs_native"] = round(
+            kernels["native"]["encoder_ms"] / kernels["onednn"]["encoder_ms"], 2
+        )
     if settings.modes:
         result["modes"] = per_mode
         result["best_mode"] = best_mode(per_mode)

@@ -6,7 +6,10 @@ denoising step, the whole DDIM-16 ``predict`` (median and p99, host wall clock a
 finished: what the control loop waits for), and optionally RTC-guided ``predict`` against plain
 DDIM. A graph mode also reports how far its actions lie from the same mode without the graph
 (same seed): on CUDA the graph must compute the same function. ``time_relu_orders`` times the same
-export with the encoder's old order (each ReLU before its max-pool) beside the current one.
+export with the encoder's old order (each ReLU before its max-pool) beside the current one, and
+``time_encoder_kernels`` with the fp32 CPU encoder's old kernels (``encoder_kernels="native"``),
+alternately. ``gemm_gflop_s``: the device's fp32 1024² matrix product, the yardstick for the
+encoder's FLOP rate.
 
 Training: the real ``training.loop.train`` loop on synthetic observations (their content does not change
 the cost), timed over ``steps`` optimiser steps after ``warmup`` untimed ones, with the time the
@@ -22,6 +25,7 @@ measure the work, not the waiting. ``measure_training_variants`` times CPU train
 from __future__ import annotations
 
 import contextlib
+import functools
 import statistics
 import tempfile
 import threading
@@ -35,7 +39,7 @@ import torch
 from ..models.equivariance import random_observation
 from ..models.plain import relu_before_pool_order
 from ..policy.diffusion import make_policy
-from ..policy.inference import load_inference_policy
+from ..policy.inference import ENCODER_KERNELS, load_inference_policy
 from ..policy.normalizer import Normalizer
 from ..runtime.machine import PRECISIONS, cpu_description, cpu_model
 from ..training.config import DATA_SOURCES, TrainConfig
@@ -70,7 +74,7 @@ class InferenceMode:
             )
         return cls(parts[0], parts[1], graph)
 
-    def load(self, path: str | Path, device: torch.device):
+    def load(self, path: str | Path, device: torch.device, encoder_kernels: str = "onednn"):
         return load_inference_policy(
             path,
             device=str(device),
@@ -78,6 +82,7 @@ class InferenceMode:
             jit=self.execution != "eager",
             compile=self.execution == "compiled",
             cuda_graph=self.graph,
+            encoder_kernels=encoder_kernels,
         )
 
 
@@ -213,23 +218,77 @@ def time_relu_orders(path: str | Path, device: torch.device, mode: InferenceMode
     old.warmup(3)
     old_enc = timed_ms(lambda: old.encode(vox, ee), max(5, iters // 3), sync)
     old_ddim = timed_ms(lambda: old.predict(vox, ee, seed=0), iters, sync)
-    cpu = {"pool_before_relu": ([], []), "relu_before_pool": ([], [])}
-    for _ in range(iters):
-        for label, policy in (("pool_before_relu", current), ("relu_before_pool", old)):
-            encoder_times, ddim_times = cpu[label]
-            t0 = time.process_time()
-            policy.encode(vox, ee)
-            sync()
-            t1 = time.process_time()
-            policy.predict(vox, ee, seed=0)
-            sync()
-            encoder_times.append((t1 - t0) * 1000)
-            ddim_times.append((time.process_time() - t1) * 1000)
+    both = time_alternately({"pool_before_relu": current, "relu_before_pool": old}, vox, ee, iters, sync)
     return {
         "relu_before_pool": {"encoder_ms": _ms(np.median(old_enc)), "ddim16_median_ms": _ms(np.median(old_ddim))},
         "relu_order_cpu_ms": {
-            label: {"encoder": _ms(np.median(e)), "ddim16": _ms(np.median(d))} for label, (e, d) in cpu.items()
+            label: {"encoder": r["encoder_cpu_ms"], "ddim16": r["ddim16_cpu_ms"]} for label, r in both.items()
         },
+    }
+
+
+def time_alternately(policies: dict, vox: np.ndarray, ee: np.ndarray, iters: int, sync) -> dict[str, dict]:
+    """Each policy's encoder and DDIM-16 ``predict``, one call of each policy in turn per round (a shared
+    machine's load then weighs on all alike): medians of the wall clock (``encoder_ms``,
+    ``ddim16_median_ms``) and of this process's CPU time (``encoder_cpu_ms``, ``ddim16_cpu_ms``)."""
+    times: dict[str, dict[str, list[float]]] = {label: {} for label in policies}
+    for _ in range(iters):
+        for label, policy in policies.items():
+            for key, call in (
+                ("encoder", functools.partial(policy.encode, vox, ee)),
+                ("ddim16", functools.partial(policy.predict, vox, ee, seed=0)),
+            ):
+                w0, c0 = time.perf_counter(), time.process_time()
+                call()
+                sync()
+                times[label].setdefault(key, []).append((time.perf_counter() - w0) * 1000)
+                times[label].setdefault(f"{key}_cpu", []).append((time.process_time() - c0) * 1000)
+    names = {
+        "encoder": "encoder_ms",
+        "ddim16": "ddim16_median_ms",
+        "encoder_cpu": "encoder_cpu_ms",
+        "ddim16_cpu": "ddim16_cpu_ms",
+    }
+    return {label: {names[k]: _ms(np.median(v)) for k, v in t.items()} for label, t in times.items()}
+
+
+def time_encoder_kernels(path: str | Path, device: torch.device, mode: InferenceMode, iters: int) -> dict[str, dict]:
+    """The same export loaded in ``mode`` with each of ``policy.inference.ENCODER_KERNELS`` (they differ in
+    fp32 on a CPU), timed alternately (``time_alternately``), and ``max_abs_diff``: the largest difference
+    of each one's encoder output from the first's, on the probe observation."""
+    sync = synchronizer(device)
+    policies = {kernels: mode.load(path, device, kernels) for kernels in ENCODER_KERNELS}
+    first = next(iter(policies.values()))
+    vox, ee = probe_observation(first.preset, first.workspace)
+    for policy in policies.values():
+        policy.warmup(3)
+    result = time_alternately(policies, vox, ee, max(3, iters), sync)
+    reference = first.encode(vox, ee).float()
+    for kernels, policy in policies.items():
+        result[kernels]["max_abs_diff"] = float(f"{(policy.encode(vox, ee).float() - reference).abs().max():.3g}")
+    return result
+
+
+def gemm_gflop_s(device: torch.device | str, n: int = 1024, iters: int = 10) -> dict[str, float]:
+    """The device's fp32 GEMM rate with torch's current thread count: n x n matrix products (2 n³ FLOPs
+    each), ``gemm_gflop_s`` from the median wall time of ``iters``; on a CPU also ``gemm_cpu_gflop_s`` from
+    the median of this process's CPU time, which a shared machine's waiting leaves out."""
+    gen = torch.Generator().manual_seed(0)
+    a, b = (torch.randn(n, n, generator=gen).to(device) for _ in range(2))
+    sync = synchronizer(device)
+    a @ b  # warm-up: MKL's/cuBLAS's handles and buffers
+    sync()
+    wall, cpu = [], []
+    for _ in range(iters):
+        w0, c0 = time.perf_counter(), time.process_time()
+        a @ b
+        sync()
+        wall.append(time.perf_counter() - w0)
+        cpu.append(time.process_time() - c0)
+    rate = lambda seconds: round(2 * n**3 / (float(np.median(seconds)) * 1e9), 1)
+    return {
+        "gemm_gflop_s": rate(wall),
+        **({"gemm_cpu_gflop_s": rate(cpu)} if torch.device(device).type == "cpu" else {}),
     }
 
 

@@ -1,7 +1,7 @@
 """CPU speed-ups for the plain-torch networks at inference: same weights, same outputs, faster kernels.
 
-``policy.inference.InferencePolicy`` applies them on CPU: the first Conv3d padded to 8 input channels
-(fp32), the U-Net's Conv1d and ConvTranspose1d as GEMMs (bf16) and a faster Mish; ``Method``
+``policy.inference.InferencePolicy`` applies them on CPU: the encoder's Conv3d run by oneDNN in
+channels_last_3d (fp32; the old path pads the first Conv3d to 8 input channels instead), the U-Net's Conv1d and ConvTranspose1d as GEMMs (bf16) and a faster Mish; ``Method``
 lets ``torch.jit.trace`` trace one method of a module.
 """
 
@@ -34,6 +34,27 @@ def pad_first_conv(encoder: torch.nn.Sequential, multiple: int) -> int:
             padded.bias.copy_(conv.bias)
     encoder[0] = padded.eval()
     return extra
+
+
+class OneDnnConv3d(torch.nn.Module):
+    """A Conv3d always computed by oneDNN (``torch.mkldnn_convolution``): same weights, same output.
+
+    For a batch of one, torch's dispatcher sends a 3D convolution with few channels on a small map
+    (batch * channels * depth * height <= 20480, aten's ``use_mkldnn``) to its own vol2col + GEMM
+    kernel, several times slower there than oneDNN on AVX2 and AVX-512 alike: most of the encoder's
+    layers at 28³ and below (docs/results/model.md, "The encoder near the core's limit")."""
+
+    def __init__(self, conv: torch.nn.Conv3d):
+        super().__init__()
+        if conv.padding_mode != "zeros" or isinstance(conv.padding, str):
+            raise ValueError("OneDnnConv3d handles zero-padded convolutions with numeric padding only")
+        self.weight, self.bias = conv.weight, conv.bias
+        self.padding, self.stride, self.dilation, self.groups = conv.padding, conv.stride, conv.dilation, conv.groups
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return torch.mkldnn_convolution(
+            x, self.weight, self.bias, self.padding, self.stride, self.dilation, self.groups
+        )
 
 
 class MatmulConv1d(torch.nn.Module):
@@ -119,6 +140,41 @@ def swap_modules(module: torch.nn.Module, kind: type, replacement) -> int:
             count += 1
         else:
             count += swap_modules(child, kind, replacement)
+    return count
+
+
+class WholeMapConv3d(torch.nn.Module):
+    """An unpadded Conv3d whose kernel covers its whole input (one output voxel) as one matrix-vector
+    product on a channels_last_3d input: same weights, same output, several times faster than oneDNN's
+    convolution or torch's on channels_last weights (docs/results/model.md)."""
+
+    def __init__(self, conv: torch.nn.Conv3d):
+        super().__init__()
+        out_ch = conv.out_channels
+        # (out, in, kd, kh, kw) -> (out, kd*kh*kw*in): the memory order of a channels_last_3d map
+        self.weight = torch.nn.Parameter(
+            conv.weight.detach().permute(0, 2, 3, 4, 1).reshape(out_ch, -1).contiguous(), requires_grad=False
+        )
+        self.bias = None if conv.bias is None else torch.nn.Parameter(conv.bias.detach().clone(), requires_grad=False)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        y = torch.nn.functional.linear(x.permute(0, 2, 3, 4, 1).reshape(x.shape[0], -1), self.weight, self.bias)
+        return y[:, :, None, None, None]
+
+
+def onednn_conv3ds(encoder: torch.nn.Sequential, size: int) -> int:
+    """Run the Conv3d of ``encoder`` (Conv3d, ReLU and MaxPool3d, input ``size``³) through oneDNN
+    (``OneDnnConv3d``), one whose kernel covers its whole input as ``WholeMapConv3d``; returns how many."""
+    count = 0
+    for i, layer in enumerate(encoder):
+        if isinstance(layer, torch.nn.MaxPool3d):
+            size = (size - layer.kernel_size) // layer.stride + 1
+        elif type(layer) is torch.nn.Conv3d:
+            k, pad = layer.kernel_size[0], layer.padding[0]
+            whole = pad == 0 and layer.stride == (1, 1, 1) and layer.kernel_size == (size,) * 3
+            encoder[i] = WholeMapConv3d(layer) if whole else OneDnnConv3d(layer)
+            size = size + 2 * pad - k + 1
+            count += 1
     return count
 
 

@@ -82,6 +82,11 @@ def to_escnn_layout(voxels: torch.Tensor) -> torch.Tensor:
     return voxels.permute(0, 1, 4, 2, 3)
 
 
+def from_escnn_layout(voxels: torch.Tensor) -> torch.Tensor:
+    """The inverse of ``to_escnn_layout``: (B, C, Z, X, Y) -> (B, C, X, Y, Z), a view."""
+    return voxels.permute(0, 1, 3, 4, 2)
+
+
 class EquiNoiseCore(nn.Module):
     """Shape plumbing shared by the escnn and the plain model (subclasses supply the layers)."""
 

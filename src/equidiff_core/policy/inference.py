@@ -12,13 +12,15 @@ process stays light (and starts fast). Missing, corrupt or incompatible files ra
 
 Speed switches (``load_inference_policy(..., precision="bf16", jit=True, compile=False,
 cuda_graph=False)``): bf16 weights and activations (the DDIM arithmetic stays fp32),
-channels_last_3d for the 3D convolutions, ``torch.jit.trace`` + freeze of the encoder and of one
+channels_last_3d for the 3D convolutions (also in fp32 on a CPU), ``torch.jit.trace`` + freeze of the encoder and of one
 denoising step, optionally ``torch.compile`` of the step, and on CUDA optionally ``cuda_graph``:
 the encoder, the 16 denoising steps and their DDIM updates captured once as CUDA graphs (plain and
 RTC-guided) and replayed per call, so a ``predict`` launches one graph instead of hundreds of
 small kernels. Always: the U-Net's FiLM terms split into an observation part (once per
 ``encode``) and a step part (cached per diffusion step); on CPU a
-faster Mish, and in bf16 on CPU the U-Net's Conv1d and ConvTranspose1d run as GEMMs. ``precision="auto"``
+faster Mish, in fp32 on CPU the encoder's Conv3d run by oneDNN (``encoder_kernels="onednn"``;
+``"native"``: torch's own choice of kernel with the first layer padded to 8 channels, the path before,
+kept as the benches' baseline), and in bf16 on CPU the U-Net's Conv1d and ConvTranspose1d run as GEMMs. ``precision="auto"``
 picks bf16 on CUDA and on CPUs with native bf16 (AVX512-BF16/AMX), fp32 elsewhere. What each of
 these buys: docs/results/model.md, "Inference speed on a CPU" (``equidiff bench policy``).
 """
@@ -36,9 +38,11 @@ from ..models.cpu_kernels import (
     FastMish,
     Method,
     convs_as_matmuls,
+    onednn_conv3ds,
     pad_first_conv,
     swap_modules,
 )
+from ..models.plain import EquiNoiseCore, from_escnn_layout, to_escnn_layout
 from ..models.sampling import ActionCodec, _guided_noise, ddim_sample, make_inference_scheduler
 from ..runtime.machine import PRECISIONS, cpu_has_native_bf16
 from .augment import voxel_input
@@ -62,9 +66,12 @@ def load_inference_policy(
     channels_last: bool | None = None,
     compile: bool = False,
     cuda_graph: bool = False,
+    encoder_kernels: str = "onednn",
 ) -> InferencePolicy:
     if precision not in PRECISIONS:
         raise ValueError(f"precision must be one of {PRECISIONS}, got {precision!r}")
+    if encoder_kernels not in ENCODER_KERNELS:
+        raise ValueError(f"encoder_kernels must be one of {ENCODER_KERNELS}, got {encoder_kernels!r}")
     policy_file = open_policy_file(path)
     config, state = policy_file.config, policy_file.state
     try:
@@ -86,6 +93,7 @@ def load_inference_policy(
     check_device(device)
     if precision == "auto":
         precision = "bf16" if str(device).startswith("cuda") or cpu_has_native_bf16() else "fp32"
+    onednn_fp32 = precision == "fp32" and torch.device(device).type == "cpu" and encoder_kernels == "onednn"
     policy = InferencePolicy(
         net,
         name,
@@ -95,13 +103,18 @@ def load_inference_policy(
         torch.device(device),
         precision,
         jit,
-        channels_last if channels_last is not None else precision == "bf16",
+        channels_last if channels_last is not None else (precision == "bf16" or onednn_fp32),
         compile,
         cuda_graph,
+        encoder_kernels,
     )
     # what ``equidiff check ...`` report: the checked sha256 of the weights, or "unhashed" (an old file)
     policy.weights_sha256 = policy_file.weights_sha256 or UNHASHED
     return policy
+
+
+# how an fp32 CPU policy runs its encoder's Conv3d: oneDNN always, or torch's own choice (the path before)
+ENCODER_KERNELS = ("onednn", "native")
 
 
 class InferencePolicy:
@@ -120,6 +133,7 @@ class InferencePolicy:
         channels_last: bool = False,
         compile: bool = False,
         cuda_graph: bool = False,
+        encoder_kernels: str = "onednn",
     ):
         if cuda_graph and device.type != "cuda":
             raise ValueError(f"cuda_graph needs a CUDA device, got {device}")
@@ -135,8 +149,13 @@ class InferencePolicy:
         self.scheduler = make_inference_scheduler(preset)
         self.net = net.eval().to(device=device, dtype=self.dtype)
         self.pad_channels = 0
+        self.encoder_kernels = encoder_kernels
+        self.onednn_convs = 0  # the encoder's Conv3d forced onto oneDNN (fp32 on CPU)
         if precision == "fp32" and device.type == "cpu":
-            self.pad_channels = pad_first_conv(self.net.encoder, multiple=8)
+            if encoder_kernels == "onednn":
+                self.onednn_convs = onednn_conv3ds(self.net.encoder, preset.crop)
+            else:
+                self.pad_channels = pad_first_conv(self.net.encoder, multiple=8)
         self.channels_last = channels_last
         if channels_last:
             self.net.encoder.to(memory_format=torch.channels_last_3d)
@@ -215,8 +234,12 @@ class InferencePolicy:
     def _layout(self, vox: torch.Tensor) -> torch.Tensor:
         if not self.channels_last:
             return vox
-        # channels_last_3d on the (B*To, C, ...) view the convolutions see
-        flat = vox.flatten(0, 1).contiguous(memory_format=torch.channels_last_3d)
+        # channels_last_3d on the (B*To, C, ...) view the convolutions see (EquiDiff's after to_escnn_layout)
+        flat = vox.flatten(0, 1)
+        if isinstance(self.net, EquiNoiseCore):
+            flat = from_escnn_layout(to_escnn_layout(flat).contiguous(memory_format=torch.channels_last_3d))
+        else:
+            flat = flat.contiguous(memory_format=torch.channels_last_3d)
         return flat.unflatten(0, vox.shape[:2])
 
     def check_inputs(self, voxels: np.ndarray, ee: np.ndarray) -> None:

@@ -13,6 +13,11 @@ mode's, ``modes`` holds each one's (or its error), ``best_mode`` / ``best_ddim16
 smallest p99. ``--rtc`` adds RTC-guided sampling (``rtc_median_ms``, ``rtc_vs_plain``).
 ``--compare-relu-order`` adds the same export with the encoder's old order, each ReLU before its
 max-pool (``relu_before_pool``; ``relu_order_cpu_ms``: both orders alternately in CPU time).
+``encoder_gflop`` (``benches.cost.encoder_flops``) over ``encoder_ms`` gives ``encoder_gflop_s``, and
+over ``gemm_gflop_s`` (an fp32 1024² matrix product on the same device and threads, same run)
+``encoder_gemm_ratio``. ``--compare-encoder`` adds ``encoder_kernels``: the same export in the first
+measured mode with each encoder kernel choice (``onednn``, the default, and ``native``, the path before;
+they differ in fp32 on a CPU), timed alternately, and ``encoder_speedup_vs_native``.
 """
 
 from __future__ import annotations
@@ -55,6 +60,12 @@ def add_arguments(parser) -> None:
         help="also time the same weights with each ReLU before its max-pool (the encoder order before), in the "
         "first measured mode (adds relu_before_pool: encoder_ms, ddim16_median_ms; relu_order_cpu_ms)",
     )
+    parser.add_argument(
+        "--compare-encoder",
+        action="store_true",
+        help="also time the same weights with the fp32 CPU encoder's old kernels (torch's choice), alternately, in "
+        "the first measured mode (adds encoder_kernels: onednn and native, encoder_speedup_vs_native)",
+    )
     parser.add_argument("--iters", type=int, default=30, help="timed DDIM-16 runs of the exported policy")
     parser.add_argument("--eager-iters", type=int, default=3, help="timed runs of the eager escnn model")
     parser.add_argument(
@@ -77,6 +88,7 @@ def run(args) -> int:
         modes=args.modes,
         rtc=args.rtc,
         compare_relu_order=args.compare_relu_order,
+        compare_encoder=args.compare_encoder,
         iters=args.iters,
         eager_iters=args.eager_iters,
         threads=args.threads,
