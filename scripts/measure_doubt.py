@@ -1,0 +1,88 @@
+"""Roll a policy out in-process with K samples per observation and score each doubt candidate's AUROC
+for failure (docs/results/doubt.md). Resumable: one JSON line per episode in --log; seeds already there are
+skipped. ``--report`` only summarises the log.
+
+    python scripts/measure_doubt.py --policy checkpoints/demos/equidiff_10 --episodes 40 --log doubt.jsonl
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+from pathlib import Path
+
+from equidiff_core.benches.doubt import auroc, episode_scores, roll_out_doubt
+from equidiff_core.benches.training_runs import run_policy
+from equidiff_core.policy.inference import load_inference_policy
+from equidiff_core.twin.config import load_twin_job_configs
+from equidiff_core.twin.evaluate import in_range_yaw_seeds
+
+
+def report(log_path: Path) -> dict:
+    episodes = [json.loads(line) for line in log_path.read_text().splitlines() if line.strip()]
+    out = {"episodes": len(episodes), "failures": sum(not e["success"] for e in episodes), "auroc": {}}
+    for label, q in (("max", 1.0), ("q90", 0.9), ("mean", None)):
+        scored = []
+        for e in episodes:
+            if q is None:
+                names = {n for c in e["chunks"] for n in c if n != "stamp_ns"}
+                vals = {n: [c[n] for c in e["chunks"] if n in c and c[n] == c[n]] for n in names}
+                scored.append((e["success"], {n: sum(v) / len(v) for n, v in vals.items() if v}))
+            else:
+                chunks = [{k: v for k, v in c.items() if k != "stamp_ns"} for c in e["chunks"]]
+                scored.append((e["success"], episode_scores(chunks, q)))
+        names = sorted({n for _, s in scored for n in s})
+        out["auroc"][label] = {
+            n: auroc(
+                [s[n] for ok, s in scored if not ok and s.get(n) == s.get(n) and n in s],
+                [s[n] for ok, s in scored if ok and s.get(n) == s.get(n) and n in s],
+            )
+            for n in names
+        }
+    return out
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__)
+    ap.add_argument("--policy", type=Path, default=Path("checkpoints/demos/equidiff_10"))
+    ap.add_argument("--episodes", type=int, default=40)
+    ap.add_argument("--samples", type=int, default=8)
+    ap.add_argument("--max-duration", type=float, default=30.0)
+    ap.add_argument("--latency-ms", type=float, default=100.0)
+    ap.add_argument("--train-yaw", type=float, nargs=2, default=(-15.0, 15.0))
+    ap.add_argument("--log", type=Path, required=True)
+    ap.add_argument("--cache", type=Path, default=Path("runs/doubt"))
+    ap.add_argument("--report", action="store_true")
+    args = ap.parse_args()
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s", stream=sys.stderr)
+    if not args.report:
+        configs = load_twin_job_configs(None, None)
+        seeds = in_range_yaw_seeds(configs.twin, tuple(args.train_yaw), args.episodes)
+        done = set()
+        if args.log.exists():
+            done = {json.loads(line)["seed"] for line in args.log.read_text().splitlines() if line.strip()}
+        policy = load_inference_policy(run_policy(args.policy, args.cache / args.policy.name))
+
+        def on_episode(record):
+            with args.log.open("a") as f:
+                f.write(json.dumps(record) + "\n")
+
+        roll_out_doubt(
+            policy,
+            configs.twin,
+            configs.lab,
+            [s for s in seeds if s not in done],
+            args.samples,
+            args.max_duration,
+            args.latency_ms / 1000,
+            logging.info,
+            on_episode,
+        )
+    print(json.dumps(report(args.log)))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,111 @@
+"""How unsure the policy is of a chunk: the doubt signals, shared by policy_node and the in-process roll-outs.
+
+Two signals, both in metres of gripper position over a chunk's steps (docs/doubt.md says which is
+the default and why; docs/results/doubt.md has the measurement):
+
+- ``chunk_disagreement``: how far the new chunk strays from the part of the previous chunk that has
+  not run yet (the previous prediction's steps from the new observation's stamp on). Free: it needs
+  no extra inference. A policy that keeps changing its mind is one that does not know what to do.
+- ``sample_spread``: the spread of K DDIM samples that share one encoder pass
+  (``InferencePolicy.predict_samples``): where the demos agree the samples do too.
+
+``DoubtTracker`` keeps what ``chunk_disagreement`` needs between chunks (the previous prediction,
+its stamp) and returns a ``ChunkDoubt`` per chunk; policy_node and ``twin.direct_execution.DirectPolicy``
+both use it, so the live and the in-process signal cannot drift apart.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from .. import geometry
+
+SIGNALS = ("disagreement", "spread")
+DEFAULT_SIGNAL = "disagreement"
+
+
+def _positions(actions: np.ndarray, name: str) -> np.ndarray:
+    a = np.asarray(actions, dtype=np.float64)
+    if a.ndim < 2 or a.shape[-1] != 10 or not np.isfinite(a).all():
+        raise ValueError(f"{name} must be finite (..., steps, 10) actions, got shape {a.shape}")
+    return a[..., geometry.POS]
+
+
+def sample_spread(samples: np.ndarray) -> float:
+    """(K, steps, 10) absolute actions sampled for one observation -> the mean over steps of the samples'
+    RMS distance (m) from their mean position. 0 for identical samples; needs K >= 2."""
+    p = _positions(samples, "samples")
+    if p.ndim != 3 or p.shape[0] < 2:
+        raise ValueError(f"samples must be (K >= 2, steps, 10), got {np.shape(samples)}")
+    deviation = p - p.mean(axis=0, keepdims=True)
+    return float(np.sqrt((deviation**2).sum(axis=-1).mean(axis=0)).mean())
+
+
+def chunk_disagreement(previous: np.ndarray, previous_stamp_ns: int, actions: np.ndarray, stamp_ns: int, dt_ns: int):
+    """The mean distance (m) between ``actions`` (steps, 10; step i at ``stamp_ns`` + i·dt) and the steps of
+    ``previous`` (stamped ``previous_stamp_ns``) due at the same times: what of the previous chunk had not
+    run yet when this one was observed. None when they do not overlap (the previous one is used up, or
+    the stamps do not fall on one dt grid)."""
+    new, old = _positions(actions, "actions"), _positions(previous, "previous")
+    if new.ndim != 2 or old.ndim != 2:
+        raise ValueError(f"actions and previous must be (steps, 10), got {np.shape(actions)}, {np.shape(previous)}")
+    if dt_ns <= 0:
+        raise ValueError(f"dt_ns must be > 0, got {dt_ns}")
+    shift, rest = divmod(int(stamp_ns) - int(previous_stamp_ns), int(dt_ns))
+    if shift < 0 or rest or shift >= len(old):
+        return None
+    overlap = min(len(old) - shift, len(new))
+    return float(np.linalg.norm(new[:overlap] - old[shift : shift + overlap], axis=-1).mean())
+
+
+@dataclass(frozen=True)
+class ChunkDoubt:
+    """The doubt of one chunk: both signals (NaN where not computed: no overlap with the previous chunk,
+    or a single sample) and the one that ``signal`` names as ``value``."""
+
+    stamp_ns: int
+    disagreement_m: float
+    spread_m: float
+    signal: str = DEFAULT_SIGNAL
+
+    @property
+    def value(self) -> float:
+        return self.disagreement_m if self.signal == "disagreement" else self.spread_m
+
+    def as_dict(self) -> dict:
+        return {"stamp_ns": self.stamp_ns, "signal": self.signal, "value": self.value,
+                "disagreement_m": self.disagreement_m, "spread_m": self.spread_m}  # fmt: skip
+
+
+class DoubtTracker:
+    """Per episode (``reset``), the doubt of each chunk in turn: ``update(stamp, samples)`` with the
+    prediction's samples (K, steps, 10), the first one the chunk that runs."""
+
+    def __init__(self, dt_ns: int, signal: str = DEFAULT_SIGNAL):
+        if signal not in SIGNALS:
+            raise ValueError(f"signal must be one of {SIGNALS}, got {signal!r}")
+        self.dt_ns, self.signal = int(dt_ns), signal
+        self.reset()
+
+    def reset(self) -> None:
+        self._previous: tuple[int, np.ndarray] | None = None
+
+    def update(self, stamp_ns: int, samples: np.ndarray) -> ChunkDoubt:
+        samples = np.asarray(samples)
+        if samples.ndim == 2:
+            samples = samples[None]
+        disagreement = None
+        if self._previous is not None:
+            disagreement = chunk_disagreement(self._previous[1], self._previous[0], samples[0], stamp_ns, self.dt_ns)
+        spread = sample_spread(samples) if len(samples) > 1 else None
+        self._previous = (int(stamp_ns), samples[0].copy())
+        nan = math.nan
+        return ChunkDoubt(
+            int(stamp_ns),
+            nan if disagreement is None else disagreement,
+            nan if spread is None else spread,
+            self.signal,
+        )
