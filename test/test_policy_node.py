@@ -106,6 +106,30 @@ def test_rtc_max_gap_reaches_the_real_time_chunking(ros_domain, checkpoint):
         rclpy.try_shutdown()
 
 
+def test_the_spread_signal_needs_two_samples(ros_domain, checkpoint):
+    """doubt_signal spread with one sample is refused at start; with K samples the node's tracker uses it."""
+    import rclpy
+
+    from equidiff_ros.policy_node import PolicyNode
+
+    for samples in (1, 3):
+        params = ["-p", f"checkpoint:={checkpoint}", "-p", "doubt_signal:=spread", "-p", f"doubt_samples:={samples}"]
+        rclpy.init(args=["--ros-args", *params])
+        try:
+            if samples == 1:
+                with pytest.raises(ValueError, match="doubt_samples >= 2"):
+                    PolicyNode()
+                continue
+            node = PolicyNode()
+            try:
+                assert node.doubt.signal == "spread" and node.doubt_samples == 3
+            finally:
+                node.shutdown()
+                node.destroy_node()
+        finally:
+            rclpy.try_shutdown()
+
+
 @pytest.mark.ros
 def test_policy_node_defaults_are_the_launchers_execution_defaults(ros_domain, checkpoint):
     """A policy_node started with no execution parameters has the values robot.launch.py and
@@ -351,7 +375,7 @@ def test_an_announced_episode_samples_like_the_in_process_evaluation(ros_domain,
     with ``SamplingSeeds``' noise for that seed (seed * 1000 + 0), the next answered one with the
     next seed; announcing the same episode again repeats the chunk, another seed changes it. The
     chunk equals ``InferencePolicy.predict`` with that seed, as the in-process evaluation calls it."""
-    from geometry_msgs.msg import PoseStamped
+    from geometry_msgs.msg import PoseStamped, Vector3Stamped
     from std_msgs.msg import String
 
     from equidiff_core.perception.observation import ee_input
@@ -360,7 +384,7 @@ def test_an_announced_episode_samples_like_the_in_process_evaluation(ros_domain,
     from equidiff_core.wire import rosmsg
     from equidiff_core.wire.chunk import chunk_from_actions
     from equidiff_core.wire.pointcloud import grid_to_voxel_msg, voxel_msg_to_grid
-    from equidiff_core.wire.topics import TOPIC_COMMAND_CHUNK, TOPIC_EE_POSE, TOPIC_POLICY_EPISODE
+    from equidiff_core.wire.topics import TOPIC_COMMAND_CHUNK, TOPIC_EE_POSE, TOPIC_POLICY_DOUBT, TOPIC_POLICY_EPISODE
     from equidiff_ros.common import LATCHED_QOS, RELIABLE_QOS
     from equidiff_ros.control_client import ControlClient
 
@@ -382,8 +406,9 @@ def test_an_announced_episode_samples_like_the_in_process_evaluation(ros_domain,
             tmp_path / "policy.log",
         )
         client = ControlClient(lab, str(LAB_PATH))
-        poses = []
+        poses, doubts = [], []
         client.node.create_subscription(PoseStamped, TOPIC_EE_POSE, poses.append, RELIABLE_QOS)
+        client.node.create_subscription(Vector3Stamped, TOPIC_POLICY_DOUBT, doubts.append, RELIABLE_QOS)
         pub_episode = client.node.create_publisher(String, TOPIC_POLICY_EPISODE, LATCHED_QOS)
         client.wait_for(lambda: len(poses) > 10, 60.0, "/franka/ee_pose from the dry-run arm", franka)
         client.wait_for(lambda: pub_episode.get_subscription_count() > 0, 60.0, "policy_node on /policy/episode")
@@ -430,6 +455,9 @@ def test_an_announced_episode_samples_like_the_in_process_evaluation(ros_domain,
         second, _ = answer()
         again, _ = answer(7)
         other, _ = answer(8)
+        client.wait_for(
+            lambda: other.stamp_ns in {stamp_to_ns(d.header.stamp) for d in doubts}, 10.0, "/policy/doubt", policy
+        )
         width = rosmsg.gripper_width_from_joint_state(client.data.last_joint_state)
         pose = rosmsg.pose_from_msg(poses[-1])
     finally:
@@ -442,6 +470,13 @@ def test_an_announced_episode_samples_like_the_in_process_evaluation(ros_domain,
     np.testing.assert_allclose(again.actions[:n], first.actions[:n], atol=1e-6)
     assert not np.allclose(second.actions[:n], first.actions[:n], atol=1e-3)
     assert not np.allclose(other.actions[:n], first.actions[:n], atol=1e-3)
+    # each chunk's doubt, at its stamp: an announced episode starts afresh (nothing to disagree with),
+    # the next chunk of it is compared with the remainder of the first
+    doubt = {d.stamp_ns: d for d in map(rosmsg.doubt_from_msg, doubts)}
+    assert {c.stamp_ns for c in (first, second, again, other)} <= set(doubt)
+    assert all(d.signal == "disagreement" and np.isnan(d.spread_m) for d in doubt.values())
+    assert np.isnan(doubt[first.stamp_ns].value) and np.isnan(doubt[other.stamp_ns].value)
+    assert doubt[second.stamp_ns].value >= 0
     in_process = load_inference_policy(checkpoint, precision="fp32")
     actions = in_process.predict(voxel_msg_to_grid(msg, ws.resolution), ee_input(pose, width), seed=7 * 1000)
     expected = chunk_from_actions(actions[: len(first)], first.stamp_ns, 200_000_000)

@@ -16,6 +16,8 @@ Wiring:
                    obs_to_cmd_ms and its p50/p95, latency_s (auto | auto (initial) | fixed | off),
                    latency_estimate_ms, latency_bridged_max_ms, publish_steps; WARN when L exceeds
                    what the chunks can bridge)
+  /policy/doubt (geometry_msgs/Vector3Stamped) <- each chunk's doubt (``policy.doubt``, ``wire.rosmsg.doubt_msg``),
+                   stamped with the chunk's stamp; also on /diagnostics (doubt_m, doubt_disagreement_m, ...)
   /policy/skipped (std_msgs/String JSON {stamp_ns, reason}) <- each observation that will get no chunk
                    (the twin's sim then stops waiting for it; a recorder or operator sees why)
   /policy/enable (std_srvs/SetBool service)      -> true runs, false pauses the policy (``equidiff lab policy``)
@@ -70,7 +72,7 @@ from pathlib import Path
 
 import torch
 from diagnostic_msgs.msg import DiagnosticArray
-from geometry_msgs.msg import PoseStamped
+from geometry_msgs.msg import PoseStamped, Vector3Stamped
 from rclpy.node import Node
 from sensor_msgs.msg import JointState, PointCloud2
 from std_msgs.msg import Bool, String
@@ -82,6 +84,7 @@ from equidiff_core.control import SafetyConfig
 from equidiff_core.control.metrics import percentiles_ms
 from equidiff_core.perception.observation import MAX_FUTURE_STAMP_S, STATE_TOLERANCE_S, StateHistory, ee_input
 from equidiff_core.policy.chunk_sizing import ChunkSizing
+from equidiff_core.policy.doubt import DEFAULT_SAMPLES, DEFAULT_SIGNAL, SIGNALS, DoubtTracker
 from equidiff_core.policy.file import CheckpointError
 from equidiff_core.policy.inference import load_inference_policy
 from equidiff_core.runtime.machine import PRECISIONS
@@ -105,6 +108,7 @@ from equidiff_core.wire.topics import (
     TOPIC_DIAGNOSTICS,
     TOPIC_EE_POSE,
     TOPIC_JOINT_STATES,
+    TOPIC_POLICY_DOUBT,
     TOPIC_POLICY_EPISODE,
     TOPIC_POLICY_SKIPPED,
     TOPIC_POLICY_STATE,
@@ -203,6 +207,20 @@ PARAMETERS = NodeParameters(
         "Inference threads; 0: torch's default (on a shared CPU more threads are slower)",
         Bounds("", ge=0, le=1024),
     ),
+    NodeParameter(
+        "doubt_signal",
+        DEFAULT_SIGNAL,
+        "The doubt signal on /policy/doubt's x and /diagnostics' doubt_m (docs/doubt.md): disagreement (the new "
+        "chunk against the previous one's remainder, free) or spread (of doubt_samples samples)",
+        choices=SIGNALS,
+    ),
+    NodeParameter(
+        "doubt_samples",
+        DEFAULT_SAMPLES,
+        "DDIM samples per observation sharing one encoder pass (the first is published); 2 or more also give the "
+        "spread; 1: plain DDIM",
+        Bounds("", ge=1, le=64),
+    ),
     NodeParameter("start_paused", False, "Start paused: no chunks until /policy/enable (robot.launch.py sets it)"),
 )
 
@@ -239,6 +257,10 @@ class PolicyNode(Node):
         rtc = param("rtc")
         rtc_max_gap_m = param("rtc_max_gap_m")
         threads = param("torch_threads")
+        doubt_signal = param("doubt_signal")
+        self.doubt_samples = param("doubt_samples")
+        if doubt_signal == "spread" and self.doubt_samples < 2:
+            raise ValueError(f"doubt_signal spread needs doubt_samples >= 2, got {self.doubt_samples}")
         self._paused = "waiting for an enable (start_paused)" if param("start_paused") else ""  # "" = running
         if not checkpoint:
             raise CheckpointError(
@@ -274,6 +296,8 @@ class PolicyNode(Node):
             else None
         )
         self.seeds = SamplingSeeds(None if seed < 0 else int(seed))
+        self.doubt = DoubtTracker(self.sizing.dt_ns, doubt_signal)  # reset where an episode or the operator restarts
+        self.last_doubt = None  # the newest chunk's ChunkDoubt
         self._episode: dict | None = None  # announced on /policy/episode, begins at its start_ns
         self.get_logger().info(
             f"loaded {self.policy.name} policy '{preset.name}' from {checkpoint} "
@@ -310,6 +334,7 @@ class PolicyNode(Node):
         self.pub_chunk = self.create_publisher(MultiDOFJointTrajectory, TOPIC_COMMAND_CHUNK, RELIABLE_QOS)
         self.pub_diag = self.create_publisher(DiagnosticArray, TOPIC_DIAGNOSTICS, RELIABLE_QOS)
         self.pub_skipped = self.create_publisher(String, TOPIC_POLICY_SKIPPED, RELIABLE_QOS)
+        self.pub_doubt = self.create_publisher(Vector3Stamped, TOPIC_POLICY_DOUBT, RELIABLE_QOS)
         # before /voxels: the executor serves ready subscriptions in creation order, so an episode
         # announced just before a grid is applied before that grid is answered
         self.create_subscription(String, TOPIC_POLICY_EPISODE, self.on_episode, LATCHED_QOS)
@@ -408,8 +433,10 @@ class PolicyNode(Node):
     def set_paused(self, reason: str) -> None:
         if reason != self._paused:
             self._paused = reason
-            if reason and self.chunking is not None:
-                self.chunking.reset()  # the operator has the arm: the next chunk starts afresh
+            if reason:  # the operator has the arm: the next chunk starts afresh
+                self.doubt.reset()
+                if self.chunking is not None:
+                    self.chunking.reset()
             self.get_logger().info(f"policy paused: {reason}" if reason else "policy running")
             self.publish_state()
 
@@ -464,6 +491,7 @@ class PolicyNode(Node):
                 self.seeds.start_episode(self._episode["seed"])
                 if self.chunking is not None:
                     self.chunking.reset()
+                self.doubt.reset()
                 self._episode = None
             if self._paused:
                 return self.skip("paused", stamp=stamp)
@@ -499,13 +527,17 @@ class PolicyNode(Node):
         try:
             t0 = time.perf_counter()
             ee = ee_input(pose, width)
-            if self.chunking is None:
-                actions = self.policy.predict(grid, ee, seed=seed)
-            else:
+            guide = None
+            if self.chunking is not None:
                 self.chunking.delay_steps = RealTimeChunking.delay_for(self.sizing.latency_s(), self.sizing.dt_ns / 1e9)
-                actions = self.policy.predict(grid, ee, seed=seed, guide=self.chunking.guide(stamp, ee))
+                guide = self.chunking.guide(stamp, ee)
+            samples = self.policy.predict_samples(grid, ee, self.doubt_samples, seed=seed, guide=guide)
+            actions = samples[0]
+            if self.chunking is not None:
                 self.chunking.remember(stamp, actions)
+            doubt = self.doubt.update(stamp, samples)
             inference = time.perf_counter() - t0
+            self.pub_doubt.publish(rosmsg.doubt_msg(self.factory, doubt))
             with self._lock:  # this chunk's own latency (it is published next) sizes it for the next one
                 self.sizing.record_latency(
                     (now_ns(self) - stamp) / 1e9
@@ -520,6 +552,7 @@ class PolicyNode(Node):
                 self.obs_to_cmd_s.append((now_ns(self) - stamp) / 1e9)
                 self.published += 1
                 self.last_publish_steps = steps
+                self.last_doubt = doubt
         except Exception as err:  # noqa: BLE001 - bad input or a bad prediction: skip it, say why, keep serving
             self.failures += 1
             self.get_logger().error(f"inference failed: {type(err).__name__}: {err}", throttle_duration_sec=2.0)
@@ -538,6 +571,7 @@ class PolicyNode(Node):
             p50, p95 = percentiles_ms(self.obs_to_cmd_s)
             latency = self.sizing.latency.value_s
             source = self.sizing.latency.source
+            doubt = self.last_doubt
         values = {
             "inference_ms": inference,
             "observation_age_ms": last_ms(self.obs_age_s),
@@ -558,6 +592,12 @@ class PolicyNode(Node):
                 "latency_bridged_max_ms": round(self.sizing.max_bridged_s * 1000, 1),
                 "publish_steps": self.last_publish_steps,
                 "execute_steps": self.sizing.answers.steps,
+                # the newest published chunk's doubt (NaN: not computed for it; -1: no chunk yet)
+                "doubt_signal": self.doubt.signal,
+                "doubt_samples": self.doubt_samples,
+                "doubt_m": -1.0 if doubt is None else round(doubt.value, 5),
+                "doubt_disagreement_m": -1.0 if doubt is None else round(doubt.disagreement_m, 5),
+                "doubt_spread_m": -1.0 if doubt is None else round(doubt.spread_m, 5),
             }
         )
         stale = self.skipped["stale_observation"] + self.skipped["no_observation"]

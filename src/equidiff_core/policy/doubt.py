@@ -25,6 +25,7 @@ from .. import geometry
 
 SIGNALS = ("disagreement", "spread")
 DEFAULT_SIGNAL = "disagreement"
+DEFAULT_SAMPLES = 1  # samples per observation: 1 draws no more than plain DDIM (no spread)
 
 
 def _positions(actions: np.ndarray, name: str) -> np.ndarray:
@@ -45,20 +46,27 @@ def sample_spread(samples: np.ndarray) -> float:
 
 
 def chunk_disagreement(previous: np.ndarray, previous_stamp_ns: int, actions: np.ndarray, stamp_ns: int, dt_ns: int):
-    """The mean distance (m) between ``actions`` (steps, 10; step i at ``stamp_ns`` + i·dt) and the steps of
-    ``previous`` (stamped ``previous_stamp_ns``) due at the same times: what of the previous chunk had not
-    run yet when this one was observed. None when they do not overlap (the previous one is used up, or
-    the stamps do not fall on one dt grid)."""
+    """The mean distance (m) between ``actions`` (steps, 10; step i at ``stamp_ns`` + i·dt) and ``previous``
+    (stamped ``previous_stamp_ns``) at the same times, over the steps of ``actions`` that fall within the
+    previous chunk: what of it had not run yet when this one was observed. Between two steps of
+    ``previous`` its positions are interpolated (camera stamps need not fall on its dt grid). None when
+    they do not overlap (the previous one is used up, or is newer)."""
     new, old = _positions(actions, "actions"), _positions(previous, "previous")
     if new.ndim != 2 or old.ndim != 2:
         raise ValueError(f"actions and previous must be (steps, 10), got {np.shape(actions)}, {np.shape(previous)}")
     if dt_ns <= 0:
         raise ValueError(f"dt_ns must be > 0, got {dt_ns}")
-    shift, rest = divmod(int(stamp_ns) - int(previous_stamp_ns), int(dt_ns))
-    if shift < 0 or rest or shift >= len(old):
+    offset = (int(stamp_ns) - int(previous_stamp_ns)) / int(dt_ns)  # the new chunk's step 0 in previous' steps
+    if offset < 0:
         return None
-    overlap = min(len(old) - shift, len(new))
-    return float(np.linalg.norm(new[:overlap] - old[shift : shift + overlap], axis=-1).mean())
+    at = offset + np.arange(len(new))
+    inside = at <= len(old) - 1 + 1e-9
+    if not inside.any():
+        return None
+    at = np.minimum(at[inside], len(old) - 1)
+    grid = np.arange(len(old))
+    then = np.stack([np.interp(at, grid, old[:, axis]) for axis in range(3)], axis=-1)
+    return float(np.linalg.norm(new[inside] - then, axis=-1).mean())
 
 
 @dataclass(frozen=True)

@@ -1,0 +1,141 @@
+"""The policy's doubt signals (policy.doubt), K samples from one encoder pass, the /policy/doubt message."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from equidiff_core.benches.doubt import auroc, chunk_signals, episode_scores
+from equidiff_core.config import Workspace
+from equidiff_core.policy.doubt import ChunkDoubt, DoubtTracker, chunk_disagreement, sample_spread
+from equidiff_core.wire.rosmsg import MessageError, MessageReason, doubt_from_msg, doubt_msg, rosbags_factory
+
+DT = 200_000_000
+F = rosbags_factory()
+
+
+def chunk(steps: int = 16, start=(0.4, 0.0, 0.2), step=(0.01, 0.0, 0.0), width: float = 0.08) -> np.ndarray:
+    """(steps, 10) actions moving ``step`` per step, identity rotation."""
+    a = np.zeros((steps, 10))
+    a[:, :3] = np.asarray(start) + np.arange(steps)[:, None] * np.asarray(step)
+    a[:, 3], a[:, 7], a[:, 9] = 1.0, 1.0, width
+    return a
+
+
+def test_identical_samples_have_no_spread_and_offset_ones_half_their_offset():
+    a = chunk()
+    assert sample_spread(np.stack([a, a, a])) == pytest.approx(0.0, abs=1e-15)
+    b = a.copy()
+    b[:, 1] += 0.02  # 2 cm apart: each sample 1 cm from their mean
+    assert sample_spread(np.stack([a, b])) == pytest.approx(0.01)
+    with pytest.raises(ValueError, match="K >= 2"):
+        sample_spread(a[None])
+    with pytest.raises(ValueError, match="finite"):
+        sample_spread(np.stack([a, np.full_like(a, np.nan)]))
+
+
+def test_a_chunk_that_continues_the_previous_one_does_not_disagree_and_a_shifted_one_by_its_shift():
+    previous = chunk()
+    shift = 8  # the new chunk observed 8 steps later: the previous one's steps 8.. had not run yet
+    same = chunk(start=previous[shift, :3])
+    assert chunk_disagreement(previous, 0, same, shift * DT, DT) == pytest.approx(0.0, abs=1e-12)
+    moved = same.copy()
+    moved[:, 2] += 0.03
+    assert chunk_disagreement(previous, 0, moved, shift * DT, DT) == pytest.approx(0.03)
+    # only the overlap (previous steps 8..15 against new steps 0..7) counts: the rest of the new one is free
+    moved[shift:, 2] += 1.0
+    assert chunk_disagreement(previous, 0, moved, shift * DT, DT) == pytest.approx(0.03)
+    assert chunk_disagreement(previous, 0, same, 16 * DT, DT) is None  # the previous one is used up
+    # a stamp off the dt grid: the previous chunk interpolated between its steps (it moves 1 cm per step)
+    half = chunk(start=previous[0, :3] + [0.005, 0, 0])
+    assert chunk_disagreement(previous, 0, half, DT // 2, DT) == pytest.approx(0.0, abs=1e-12)
+    assert chunk_disagreement(previous, 0, previous, DT // 2, DT) == pytest.approx(0.005)
+    assert chunk_disagreement(previous, DT, same, 0, DT) is None  # older than the previous one
+
+
+def test_the_tracker_compares_each_chunk_with_the_previous_one_until_reset():
+    tracker = DoubtTracker(DT, "disagreement")
+    first = tracker.update(0, chunk())
+    assert math.isnan(first.disagreement_m) and math.isnan(first.spread_m) and math.isnan(first.value)
+    moved = chunk(start=chunk()[8, :3] + [0, 0.01, 0])
+    second = tracker.update(8 * DT, np.stack([moved, moved]))
+    assert second.disagreement_m == pytest.approx(0.01) and second.spread_m == 0.0
+    assert second.value == second.disagreement_m and second.stamp_ns == 8 * DT
+    tracker.reset()
+    assert math.isnan(tracker.update(16 * DT, moved).disagreement_m)
+    assert DoubtTracker(DT, "spread").update(0, np.stack([moved, moved])).value == 0.0
+    with pytest.raises(ValueError, match="signal"):
+        DoubtTracker(DT, "entropy")
+
+
+@pytest.mark.parametrize("signal", ["disagreement", "spread"])
+def test_the_doubt_message_round_trips_and_its_decoder_refuses_what_it_cannot_mean(signal):
+    doubt = ChunkDoubt(1_234_000_000_007, 0.012, 0.003, signal)
+    back = doubt_from_msg(doubt_msg(F, doubt))
+    assert back == doubt
+    msg = doubt_msg(F, doubt)
+    assert msg.header.frame_id == signal and msg.vector.x == doubt.value
+    first = doubt_from_msg(doubt_msg(F, ChunkDoubt(5, math.nan, math.nan, signal)))  # nothing to compare yet
+    assert first.stamp_ns == 5 and math.isnan(first.value)
+    for field, value, reason in [
+        ("frame", "entropy", MessageReason.FRAME),
+        ("y", -0.01, MessageReason.RANGE),
+        ("z", math.inf, MessageReason.NAN),
+        ("x", 0.5, MessageReason.MALFORMED),  # not the named signal's value
+    ]:
+        bad = doubt_msg(F, doubt)
+        if field == "frame":
+            bad.header.frame_id = value
+        else:
+            setattr(bad.vector, field, value)
+        with pytest.raises(MessageError) as err:
+            doubt_from_msg(bad)
+        assert err.value.reason == reason
+
+
+def test_auroc_and_episode_scores():
+    assert auroc([3, 4], [1, 2]) == 1.0
+    assert auroc([1, 2], [3, 4]) == 0.0
+    assert auroc([1, 2], [1, 2]) == 0.5
+    assert auroc([], [1]) is None
+    chunks = [{"disagreement": math.nan, "spread_2": 0.01}, {"disagreement": 0.02, "spread_2": 0.03}]
+    assert episode_scores(chunks) == {"disagreement": 0.02, "spread_2": 0.03}
+    a = chunk()
+    b = a.copy()
+    b[:, 0] += 0.02
+    signals = chunk_signals(0.5, np.stack([a, b, a, b]), (2, 4, 8))
+    assert signals == {"disagreement": 0.5, "spread_2": pytest.approx(0.01), "spread_4": pytest.approx(0.01)}
+
+
+@pytest.fixture(scope="module")
+def tiny_policy(tmp_path_factory):
+    from equidiff_core.policy.diffusion import make_policy
+    from equidiff_core.policy.file import export_policy
+    from equidiff_core.policy.normalizer import Normalizer
+    from equidiff_core.policy.presets import get_preset
+
+    ws = Workspace()
+    policy = make_policy("baseline", get_preset("tiny"), ws)
+    policy.set_normalizer(Normalizer.from_workspace(ws))
+    return export_policy(policy, tmp_path_factory.mktemp("policy") / "policy.pt")
+
+
+@pytest.mark.parametrize("jit", [False, pytest.param(True, marks=pytest.mark.slow)])  # tracing takes ~10 s
+def test_k_samples_share_one_encoder_pass_and_the_first_is_the_plain_prediction(tiny_policy, jit):
+    from equidiff_core.policy.inference import load_inference_policy
+
+    policy = load_inference_policy(tiny_policy, precision="fp32", jit=jit)
+    vox, ee = policy._blank_observation()
+    vox[:, 10:14, 10:14, 0:3] = 255
+    plain = policy.predict(vox, ee, seed=11)
+    samples = policy.predict_samples(vox, ee, 4, seed=11)
+    assert samples.shape == (4, policy.preset.horizon, 10)
+    np.testing.assert_allclose(samples[0], plain, atol=1e-5)
+    assert sample_spread(samples) > 0  # other noise, other samples
+    np.testing.assert_array_equal(policy.predict_samples(vox, ee, 1, seed=11)[0], plain)
+    guide = (plain, np.ones(policy.preset.horizon))  # fully guided: every sample is the target
+    assert sample_spread(policy.predict_samples(vox, ee, 3, seed=2, guide=guide)) < 1e-4
+    with pytest.raises(ValueError, match="samples"):
+        policy.predict_samples(vox, ee, 0)
