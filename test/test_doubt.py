@@ -9,7 +9,15 @@ import pytest
 
 from equidiff_core.benches.doubt import auroc, chunk_signals, episode_scores
 from equidiff_core.config import Workspace
-from equidiff_core.policy.doubt import ChunkDoubt, DoubtTracker, chunk_disagreement, sample_spread
+from equidiff_core.policy.doubt import (
+    ChunkDoubt,
+    DoubtCalibration,
+    DoubtGate,
+    DoubtTracker,
+    calibrate_doubt,
+    chunk_disagreement,
+    sample_spread,
+)
 from equidiff_core.wire.rosmsg import MessageError, MessageReason, doubt_from_msg, doubt_msg, rosbags_factory
 
 DT = 200_000_000
@@ -139,3 +147,92 @@ def test_k_samples_share_one_encoder_pass_and_the_first_is_the_plain_prediction(
     assert sample_spread(policy.predict_samples(vox, ee, 3, seed=2, guide=guide)) < 1e-4
     with pytest.raises(ValueError, match="samples"):
         policy.predict_samples(vox, ee, 0)
+
+
+def test_the_gate_fires_above_the_demos_quantile_and_never_on_nothing_to_compare():
+    calibration = DoubtCalibration("disagreement", 1, tuple(np.linspace(0.0, 0.1, 101)), 10)
+    assert calibration.threshold(0.5) == pytest.approx(0.05) and calibration.threshold(1.0) == pytest.approx(0.1)
+    gate = DoubtGate(calibration, 0.9, "disagreement", 1)
+    assert gate.threshold_m == pytest.approx(0.09)
+    assert gate.alarm(ChunkDoubt(0, 0.08, math.nan)) == ""
+    assert gate.alarm(ChunkDoubt(0, math.nan, math.nan)) == ""  # the first chunk: nothing to compare
+    assert (
+        gate.alarm(ChunkDoubt(0, 0.1, math.nan)) == "doubt 100.0 mm (disagreement) above 90.0 mm, the q0.9 of its demos"
+    )
+    back = DoubtCalibration.from_dict(calibration.as_dict())  # stored to the micrometre
+    assert back.values_m == pytest.approx(calibration.values_m, abs=1e-6) and back.signal == calibration.signal
+    with pytest.raises(ValueError, match="calibrated on 'disagreement'"):
+        DoubtGate(calibration, 0.9, "spread", 2)
+    with pytest.raises(ValueError, match="spread was calibrated with 4 samples"):
+        DoubtGate(DoubtCalibration("spread", 4, (0.01,), 1), 0.9, "spread", 2)
+    with pytest.raises(ValueError, match="quantile"):
+        calibration.threshold(0.0)
+    for bad in [{"signal": "disagreement", "samples": 1, "episodes": 1, "values_m": []},
+                {"signal": "disagreement", "samples": 1, "episodes": 1, "values_m": [-0.1]},
+                {"signal": "spread", "samples": 1, "episodes": 1, "values_m": [0.1]},
+                {"signal": "disagreement", "samples": 1}]:  # fmt: skip
+        with pytest.raises(ValueError):
+            DoubtCalibration.from_dict(bad)
+
+
+class _Episode:
+    """Just what calibrate_doubt reads of an EpisodeArrays: frames (grid, ee) at 5 Hz."""
+
+    def __init__(self, frames: int, resolution: int):
+        self.stamps_ns = np.arange(frames) * DT
+        self.ee = np.tile(np.array([0.45, 0.0, 0.2, 1, 0, 0, 0, 1, 0, 0.08], np.float32), (frames, 1))
+        self.resolution = resolution
+
+    def __len__(self):
+        return len(self.stamps_ns)
+
+    def grid(self, i, resolution):
+        assert resolution == self.resolution
+        grid = np.zeros((4, resolution, resolution, resolution), np.uint8)
+        grid[:, 20:24, 20:24, 0:3] = 255
+        return grid
+
+
+def test_the_calibration_is_the_signal_on_the_demos_frames_and_is_stored_with_the_policy(tiny_policy, tmp_path):
+    from equidiff_core.policy.file import open_policy_file, with_doubt_calibration
+    from equidiff_core.policy.inference import load_inference_policy
+    from equidiff_core.runtime.output_files import OutputExistsError
+
+    policy = load_inference_policy(tiny_policy, precision="fp32")
+    assert policy.doubt_calibration is None  # a file without one (every file before the gate) still loads
+    steps = policy.n_action_steps
+    episodes = [_Episode(3 * steps + 1, policy.workspace.resolution), _Episode(2 * steps, policy.workspace.resolution)]
+    calibration = calibrate_doubt(policy, episodes)
+    # answered frames 0, n, 2n, 3n and 0, n: the first of each episode has nothing to compare with
+    assert len(calibration.values_m) == 3 + 1 and calibration.episodes == 2
+    out = with_doubt_calibration(tiny_policy, calibration.as_dict(), tmp_path / "gated.pt")
+    gated = load_inference_policy(out, precision="fp32")
+    assert gated.doubt_calibration.values_m == pytest.approx(calibration.values_m, abs=1e-6)
+    assert open_policy_file(out).weights_sha256 == open_policy_file(tiny_policy).weights_sha256
+    with pytest.raises(OutputExistsError):
+        with_doubt_calibration(tiny_policy, calibration.as_dict(), out)
+
+
+def test_check_doubt_measures_the_demos_and_stores_the_calibration_beside_the_weights(tiny_policy, tmp_path, capsys):
+    import json
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).parent))
+    from helpers_data import SyntheticEpisode, write_synthetic_episode
+
+    from equidiff_core.policy.inference import load_inference_policy
+    from equidiff_ros.cli import main
+
+    bag = write_synthetic_episode(tmp_path / "demos" / "ep_0000", SyntheticEpisode(duration_s=4.0, image_size=None))
+    out = tmp_path / "gated.pt"
+    args = ["check", "doubt", str(tiny_policy), "--demos", str(bag.parent), "--write", str(out)]
+    assert main(args) == 0
+    result = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert result["episodes"] == 1 and result["frames"] >= 1 and result["written"] == str(out)
+    assert result["quantiles_m"]["q0.5"] <= result["quantiles_m"]["q0.99"] <= result["quantiles_m"]["q1"]
+    calibration = load_inference_policy(out).doubt_calibration
+    assert len(calibration.values_m) == result["frames"] and calibration.signal == result["signal"]
+    assert main(args) != 0  # an existing output is refused without --force
+    assert main([*args[:-2], "--write", str(tiny_policy)]) == 2  # the policy file itself: --force
+    assert "--force" in capsys.readouterr().err

@@ -130,6 +130,46 @@ def test_the_spread_signal_needs_two_samples(ros_domain, checkpoint):
             rclpy.try_shutdown()
 
 
+def test_the_doubt_gate_holds_the_policy_and_asks_for_help(ros_domain, checkpoint, tmp_path):
+    """doubt_gate needs the calibration in the policy file; with it, a chunk whose doubt is above the
+    calibrated quantile is not published and the node pauses, asking for help, until enabled again."""
+    import rclpy
+
+    from equidiff_core import geometry
+    from equidiff_core.policy.doubt import HELP_REASON
+    from equidiff_core.policy.file import CheckpointError, with_doubt_calibration
+    from equidiff_ros.policy_node import PolicyNode
+
+    calibrated = with_doubt_calibration(
+        checkpoint, {"signal": "disagreement", "samples": 1, "episodes": 1, "values_m": [0.0, 1e-4]}, tmp_path / "g.pt"
+    )
+    for path in (checkpoint, calibrated):
+        params = ["-p", f"checkpoint:={path}", "-p", "doubt_gate:=true", "-p", "doubt_quantile:=0.5"]
+        params += ["-p", "precision:=fp32", "-p", "jit:=false"]
+        rclpy.init(args=["--ros-args", *params])
+        try:
+            if path == checkpoint:
+                with pytest.raises(CheckpointError, match="doubt_gate needs the doubt calibration"):
+                    PolicyNode()
+                continue
+            node = PolicyNode()
+            try:
+                assert node.gate.threshold_m == pytest.approx(5e-5)
+                grid = block_grid(node.lab.workspace)
+                pose = geometry.pose_from_pos_quat([0.45, 0.0, 0.25], [1.0, 0.0, 0.0, 0.0])
+                t0 = time.time_ns()
+                node.infer(grid, t0, pose, 0.08, seed=1)  # nothing to compare with: published
+                assert node.published == 1 and not node._paused
+                node.infer(grid, t0 + node.sizing.dt_ns, pose, 0.08, seed=2)  # another noise: it disagrees
+                assert node.published == 1 and node.alarms == 1 and node.skipped["doubt"] == 1
+                assert node._paused.startswith(f"{HELP_REASON}: doubt ") and "q0.5 of its demos" in node._paused
+            finally:
+                node.shutdown()
+                node.destroy_node()
+        finally:
+            rclpy.try_shutdown()
+
+
 @pytest.mark.ros
 def test_policy_node_defaults_are_the_launchers_execution_defaults(ros_domain, checkpoint):
     """A policy_node started with no execution parameters has the values robot.launch.py and

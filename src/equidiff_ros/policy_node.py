@@ -29,6 +29,11 @@ Wiring:
                    and the episode's answered observations get ``wire.chunk.SamplingSeeds``' noise for its
                    seed, the in-process evaluation's, so both sample a scene alike
 
+With ``doubt_gate`` a chunk whose doubt exceeds ``doubt_quantile`` of the signal over the policy's own demos
+(the calibration ``equidiff check doubt --write`` stores in the policy file) is not published: the node pauses
+as ``asks for help: <why>`` (announced as ``doubt`` on /policy/skipped, WARN on /diagnostics), franka_node
+holds once the steps already sent have run, and only an enable (``p`` in ``equidiff lab``) lets it go on.
+
 While paused no chunk is published: each observation is announced on /policy/skipped as
 ``paused`` (an inference already running is finished and dropped), and /diagnostics says
 ``paused``. ``start_paused`` (default false; robot.launch.py sets true) waits for an enable.
@@ -84,7 +89,16 @@ from equidiff_core.control import SafetyConfig
 from equidiff_core.control.metrics import percentiles_ms
 from equidiff_core.perception.observation import MAX_FUTURE_STAMP_S, STATE_TOLERANCE_S, StateHistory, ee_input
 from equidiff_core.policy.chunk_sizing import ChunkSizing
-from equidiff_core.policy.doubt import DEFAULT_SAMPLES, DEFAULT_SIGNAL, SIGNALS, DoubtTracker
+from equidiff_core.policy.doubt import (
+    DEFAULT_GATE,
+    DEFAULT_GATE_QUANTILE,
+    DEFAULT_SAMPLES,
+    DEFAULT_SIGNAL,
+    HELP_REASON,
+    SIGNALS,
+    DoubtGate,
+    DoubtTracker,
+)
 from equidiff_core.policy.file import CheckpointError
 from equidiff_core.policy.inference import load_inference_policy
 from equidiff_core.runtime.machine import PRECISIONS
@@ -221,6 +235,20 @@ PARAMETERS = NodeParameters(
         "spread; 1: plain DDIM",
         Bounds("", ge=1, le=64),
     ),
+    NodeParameter(
+        "doubt_gate",
+        DEFAULT_GATE,
+        "Ask for help: a chunk whose doubt exceeds doubt_quantile of the policy's demos is not published and the "
+        "node pauses (the arm holds) until enabled again; needs the calibration in the policy file (equidiff check "
+        "doubt --write)",
+    ),
+    NodeParameter(
+        "doubt_quantile",
+        DEFAULT_GATE_QUANTILE,
+        "doubt_gate: the threshold, this quantile of the signal over the policy's demos",
+        Bounds("", gt=0, le=1),
+        number=True,
+    ),
     NodeParameter("start_paused", False, "Start paused: no chunks until /policy/enable (robot.launch.py sets it)"),
 )
 
@@ -258,6 +286,7 @@ class PolicyNode(Node):
         rtc_max_gap_m = param("rtc_max_gap_m")
         threads = param("torch_threads")
         doubt_signal = param("doubt_signal")
+        gate_on, gate_quantile = param("doubt_gate"), param("doubt_quantile")
         self.doubt_samples = param("doubt_samples")
         if doubt_signal == "spread" and self.doubt_samples < 2:
             raise ValueError(f"doubt_signal spread needs doubt_samples >= 2, got {self.doubt_samples}")
@@ -298,6 +327,15 @@ class PolicyNode(Node):
         self.seeds = SamplingSeeds(None if seed < 0 else int(seed))
         self.doubt = DoubtTracker(self.sizing.dt_ns, doubt_signal)  # reset where an episode or the operator restarts
         self.last_doubt = None  # the newest chunk's ChunkDoubt
+        self.gate = None  # DoubtGate when doubt_gate is on
+        self.alarms = 0
+        if gate_on:
+            if self.policy.doubt_calibration is None:
+                raise CheckpointError(
+                    f"doubt_gate needs the doubt calibration in {checkpoint}: run `equidiff check doubt "
+                    f"{checkpoint} --demos <its training demos> --write <policy file>` first"
+                )
+            self.gate = DoubtGate(self.policy.doubt_calibration, gate_quantile, doubt_signal, self.doubt_samples)
         self._episode: dict | None = None  # announced on /policy/episode, begins at its start_ns
         self.get_logger().info(
             f"loaded {self.policy.name} policy '{preset.name}' from {checkpoint} "
@@ -538,6 +576,14 @@ class PolicyNode(Node):
             doubt = self.doubt.update(stamp, samples)
             inference = time.perf_counter() - t0
             self.pub_doubt.publish(rosmsg.doubt_msg(self.factory, doubt))
+            alarm = "" if self.gate is None else self.gate.alarm(doubt)
+            if alarm and not self._paused:  # hold the arm (no more chunks) and ask the operator for help
+                with self._lock:
+                    self.alarms += 1
+                    self.last_doubt = doubt
+                self.get_logger().warning(f"policy {HELP_REASON}: {alarm}")
+                self.set_paused(f"{HELP_REASON}: {alarm}")
+                return self.skip("doubt", stamp=stamp)
             with self._lock:  # this chunk's own latency (it is published next) sizes it for the next one
                 self.sizing.record_latency(
                     (now_ns(self) - stamp) / 1e9
@@ -598,6 +644,9 @@ class PolicyNode(Node):
                 "doubt_m": -1.0 if doubt is None else round(doubt.value, 5),
                 "doubt_disagreement_m": -1.0 if doubt is None else round(doubt.disagreement_m, 5),
                 "doubt_spread_m": -1.0 if doubt is None else round(doubt.spread_m, 5),
+                "doubt_gate": "on" if self.gate is not None else "off",
+                "doubt_threshold_m": -1.0 if self.gate is None else round(self.gate.threshold_m, 5),
+                "doubt_alarms": self.alarms,
             }
         )
         stale = self.skipped["stale_observation"] + self.skipped["no_observation"]
@@ -612,6 +661,8 @@ class PolicyNode(Node):
             )
         if self._paused:
             message = f"paused ({self._paused}), no chunks; {message}"
+            if self._paused.startswith(HELP_REASON):  # the arm holds until the operator takes over or enables
+                level = max(level, rosmsg.WARN)
         self.pub_diag.publish(
             rosmsg.diagnostic_array(self.factory, now_ns(self), NODE_NAME, self.policy.name, level, message, values)
         )

@@ -6,17 +6,26 @@ observation, runs the first, and keeps per chunk the free signal (disagreement w
 remainder) and the spread of the first 2, 4, ... K samples, so every candidate is measured on the same
 roll-outs. ``episode_scores`` reduces each episode's chunks to one score per candidate (their max, or a
 high quantile), ``auroc`` says how well a score separates failures from successes.
+``run_doubt_check`` (``equidiff check doubt``) measures the signal over a policy's own demos and can store
+that calibration in the policy file, for policy_node's gate.
 """
 
 from __future__ import annotations
 
+import logging
 import math
 from collections.abc import Callable, Iterable
+from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
+import torch
 from scipy.stats import mannwhitneyu
 
-from ..policy.doubt import sample_spread
+from ..policy.doubt import calibrate_doubt, sample_spread
+from . import BenchError
+
+logger = logging.getLogger(__name__)
 
 
 def auroc(failure_scores: Iterable[float], success_scores: Iterable[float]) -> float | None:
@@ -85,3 +94,62 @@ def roll_out_doubt(
             on_doubt=on_doubt,
         )
         on_episode({"seed": seed, "success": episode.success, "duration_s": episode.duration_s, "chunks": list(chunks)})
+
+
+@dataclass(frozen=True)
+class DoubtCheckSettings:
+    """``equidiff check doubt``'s settings: its flags, same names (the command's help says more)."""
+
+    policy: Path  # the exported policy file
+    demos: tuple[Path, ...]  # its training demos (bags, packed episodes or folders of them)
+    episodes: int  # at most this many of them (0: all)
+    signal: str
+    samples: int
+    write: Path | None  # store the calibration in a copy of the policy file here (may be ``policy``)
+    force: bool  # replace an existing ``write``
+    threads: int = 1
+
+
+def run_doubt_check(settings: DoubtCheckSettings, log: Callable[[str], None] = logger.info) -> dict:
+    """The doubt signal of a policy over its demos (``policy.doubt.calibrate_doubt``): its quantiles, the frames and
+    episodes, and where the calibration was stored (``write``). BenchError (status 2) for bad input."""
+    from ..data.dataset import find_episodes, load_episodes
+    from ..policy.file import CheckpointError, with_doubt_calibration
+    from ..policy.inference import load_inference_policy
+    from ..runtime.output_files import refuse_existing
+
+    if settings.write is not None and settings.write != settings.policy:
+        refuse_existing(settings.write, settings.force)  # before the work, not after
+    if settings.write == settings.policy and not settings.force:
+        raise BenchError(f"--write {settings.write} would replace the policy file itself: add --force", 2)
+    try:
+        policy = load_inference_policy(settings.policy)
+    except CheckpointError as err:
+        raise BenchError(str(err), 2) from err
+    paths = find_episodes(settings.demos)
+    if settings.episodes:
+        paths = paths[: settings.episodes]
+    if not paths:
+        raise BenchError(f"no episodes in {', '.join(map(str, settings.demos))}", 2)
+    episodes, skipped = load_episodes(paths, log=log)
+    if not episodes:
+        raise BenchError(f"no readable episode in {', '.join(map(str, settings.demos))}", 2)
+    torch.set_num_threads(settings.threads)
+    try:
+        calibration = calibrate_doubt(policy, episodes, settings.signal, settings.samples, log)
+    except ValueError as err:
+        raise BenchError(str(err), 2) from err
+    result = {
+        "policy": str(settings.policy),
+        "signal": calibration.signal,
+        "samples": calibration.samples,
+        "episodes": calibration.episodes,
+        "skipped": len(skipped),
+        "frames": len(calibration.values_m),
+        "quantiles_m": {f"q{q:g}": round(calibration.threshold(q), 5) for q in (0.5, 0.9, 0.95, 0.99, 1.0)},
+        "written": None,
+    }
+    if settings.write is not None:
+        with_doubt_calibration(settings.policy, calibration.as_dict(), settings.write, force=settings.force)
+        result["written"] = str(settings.write)
+    return result

@@ -117,3 +117,98 @@ class DoubtTracker:
             nan if spread is None else spread,
             self.signal,
         )
+
+
+# --- the gate: a threshold calibrated on the policy's own demos ------------------------------
+
+DEFAULT_GATE = False  # off until measured in the twin (docs/doubt.md)
+DEFAULT_GATE_QUANTILE = 0.99
+HELP_REASON = "asks for help"  # policy_node's /policy/state while its gate holds the arm: "paused asks for help: <why>"
+
+
+@dataclass(frozen=True)
+class DoubtCalibration:
+    """The doubt signal on the policy's own training demos (``calibrate_doubt``), stored in the policy file
+    (``policy.file.with_doubt_calibration``): every answered frame's value, so a gate can take any quantile."""
+
+    signal: str
+    samples: int
+    values_m: tuple[float, ...]  # sorted; the frames where the signal has a value
+    episodes: int
+
+    def __post_init__(self):
+        if self.signal not in SIGNALS:
+            raise ValueError(f"doubt calibration signal must be one of {SIGNALS}, got {self.signal!r}")
+        if self.samples < 1 or (self.signal == "spread" and self.samples < 2):
+            raise ValueError(f"doubt calibration of {self.signal} with {self.samples} samples")
+        values = np.asarray(self.values_m, dtype=np.float64)
+        if values.ndim != 1 or not len(values) or not np.isfinite(values).all() or (values < 0).any():
+            raise ValueError("doubt calibration values must be a non-empty list of finite values >= 0")
+
+    def threshold(self, quantile: float) -> float:
+        """The ``quantile`` (0 < q <= 1) of the signal over the demos' frames: above it, the policy is less
+        sure than on all but 1 - q of its own training frames."""
+        if not 0 < quantile <= 1:
+            raise ValueError(f"quantile must be in (0, 1], got {quantile}")
+        return float(np.quantile(self.values_m, quantile))
+
+    def as_dict(self) -> dict:
+        return {"signal": self.signal, "samples": self.samples, "episodes": self.episodes,
+                "values_m": [round(v, 6) for v in self.values_m]}  # fmt: skip
+
+    @classmethod
+    def from_dict(cls, d: dict) -> DoubtCalibration:
+        try:
+            return cls(
+                str(d["signal"]), int(d["samples"]), tuple(sorted(map(float, d["values_m"]))), int(d["episodes"])
+            )
+        except (KeyError, TypeError) as err:
+            raise ValueError(f"malformed doubt calibration: {err!r}") from err
+
+
+class DoubtGate:
+    """Asks for help when a chunk's doubt exceeds the calibration's ``quantile``: ``alarm(doubt)`` is why, or ""."""
+
+    def __init__(self, calibration: DoubtCalibration, quantile: float, signal: str, samples: int):
+        if calibration.signal != signal:
+            raise ValueError(
+                f"the policy's doubt was calibrated on {calibration.signal!r}, not on the signal in use ({signal!r})"
+            )
+        if signal == "spread" and calibration.samples != samples:
+            raise ValueError(f"the spread was calibrated with {calibration.samples} samples, not {samples}")
+        self.calibration, self.quantile = calibration, float(quantile)
+        self.threshold_m = calibration.threshold(quantile)
+
+    def alarm(self, doubt: ChunkDoubt) -> str:
+        if not doubt.value > self.threshold_m:  # NaN (nothing to compare yet) never fires
+            return ""
+        return (
+            f"doubt {doubt.value * 1000:.1f} mm ({doubt.signal}) above {self.threshold_m * 1000:.1f} mm, "
+            f"the q{self.quantile:g} of its demos"
+        )
+
+
+def calibrate_doubt(policy, episodes, signal: str = DEFAULT_SIGNAL, samples: int = DEFAULT_SAMPLES, log=None):
+    """The doubt signal of ``policy`` (an ``InferencePolicy``) on its demos (``data.episode_arrays.EpisodeArrays``):
+    in each episode, open loop, the frames policy_node would answer (every ``n_action_steps``-th from the
+    first), with ``wire.chunk.SamplingSeeds``' noise for the episode's index. ``log``: a progress callback."""
+    from ..wire.chunk import SamplingSeeds
+
+    tracker = DoubtTracker(round(policy.dt * 1e9), signal)
+    seeds, values, count = SamplingSeeds(), [], 0
+    resolution = policy.workspace.resolution
+    for index, episode in enumerate(episodes):
+        tracker.reset()
+        seeds.start_episode(index)
+        for frame in range(0, len(episode), policy.n_action_steps):
+            grid, ee = episode.grid(frame, resolution), np.asarray(episode.ee[frame], dtype=np.float64)
+            drawn = policy.predict_samples(grid, ee, samples, seed=seeds.next())
+            value = tracker.update(int(episode.stamps_ns[frame]), drawn).value
+            if math.isfinite(value):
+                values.append(value)
+        count += 1
+        if log is not None:
+            log(f"doubt calibration: episode {index + 1} ({len(values)} frames so far)")
+    if not values:
+        raise ValueError("no demo frame gave a doubt value (episodes shorter than two answers?)")
+    return DoubtCalibration(signal, samples, tuple(sorted(values)), count)

@@ -43,6 +43,7 @@ from ..models.sampling import ActionCodec, _guided_noise, ddim_sample, make_infe
 from ..runtime.machine import PRECISIONS, cpu_has_native_bf16
 from .augment import voxel_input
 from .diffusion import PolicyInputError
+from .doubt import DoubtCalibration
 from .file import (
     UNHASHED,
     CheckpointError,
@@ -101,6 +102,11 @@ def load_inference_policy(
     )
     # what ``equidiff check ...`` report: the checked sha256 of the weights, or "unhashed" (an old file)
     policy.weights_sha256 = policy_file.weights_sha256 or UNHASHED
+    if policy_file.doubt is not None:
+        try:
+            policy.doubt_calibration = DoubtCalibration.from_dict(policy_file.doubt)
+        except ValueError as err:
+            raise CheckpointError(f"{path}: {err}") from err
     return policy
 
 
@@ -125,6 +131,7 @@ class InferencePolicy:
             raise ValueError(f"cuda_graph needs a CUDA device, got {device}")
         self.name = name
         self.weights_sha256 = UNHASHED  # set by load_inference_policy from the file's checked hash
+        self.doubt_calibration: DoubtCalibration | None = None  # the doubt gate's, where the file stores one
         self.preset = preset
         self.workspace = workspace
         self.normalizer = normalizer
