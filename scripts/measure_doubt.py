@@ -13,34 +13,46 @@ import logging
 import sys
 from pathlib import Path
 
-from equidiff_core.benches.doubt import auroc, episode_scores, roll_out_doubt
+from equidiff_core.benches.doubt import auroc, auroc_ci95, episode_scores, roll_out_doubt
 from equidiff_core.benches.training_runs import run_policy
 from equidiff_core.policy.inference import load_inference_policy
 from equidiff_core.twin.config import load_twin_job_configs
 from equidiff_core.twin.evaluate import in_range_yaw_seeds
 
 
-def report(log_path: Path) -> dict:
+def report(log_path: Path, windows_s=(None, 10.0, 5.0)) -> dict:
+    """AUROC for failure of each candidate, per episode score (max, q90, mean of its chunks) and window (the
+    chunks observed in the first W s only: a failure runs to the time limit, so over the whole episode it has
+    more chunks to reach a high max than a success that ends early)."""
     episodes = [json.loads(line) for line in log_path.read_text().splitlines() if line.strip()]
     out = {"episodes": len(episodes), "failures": sum(not e["success"] for e in episodes), "auroc": {}}
-    for label, q in (("max", 1.0), ("q90", 0.9), ("mean", None)):
-        scored = []
-        for e in episodes:
-            if q is None:
-                names = {n for c in e["chunks"] for n in c if n != "stamp_ns"}
-                vals = {n: [c[n] for c in e["chunks"] if n in c and c[n] == c[n]] for n in names}
-                scored.append((e["success"], {n: sum(v) / len(v) for n, v in vals.items() if v}))
-            else:
-                chunks = [{k: v for k, v in c.items() if k != "stamp_ns"} for c in e["chunks"]]
-                scored.append((e["success"], episode_scores(chunks, q)))
-        names = sorted({n for _, s in scored for n in s})
-        out["auroc"][label] = {
-            n: auroc(
-                [s[n] for ok, s in scored if not ok and s.get(n) == s.get(n) and n in s],
-                [s[n] for ok, s in scored if ok and s.get(n) == s.get(n) and n in s],
-            )
-            for n in names
-        }
+    for window in windows_s:
+        for label, q in (("max", 1.0), ("q90", 0.9), ("mean", None)):
+            scored = []
+            for e in episodes:
+                chunks = [
+                    {k: v for k, v in c.items() if k != "stamp_ns"}
+                    for c in e["chunks"]
+                    if window is None or c["stamp_ns"] < window * 1e9
+                ]
+                if q is None:
+                    names = {n for c in chunks for n in c}
+                    vals = {n: [c[n] for c in chunks if n in c and c[n] == c[n]] for n in names}
+                    scored.append((e["success"], {n: sum(v) / len(v) for n, v in vals.items() if v}))
+                else:
+                    scored.append((e["success"], episode_scores(chunks, q)))
+            names = sorted({n for _, s in scored for n in s})
+            key = label if window is None else f"{label}_first_{window:g}s"
+            groups = {
+                n: (
+                    [s[n] for ok, s in scored if not ok and n in s and s[n] == s[n]],
+                    [s[n] for ok, s in scored if ok and n in s and s[n] == s[n]],
+                )
+                for n in names
+            }
+            out["auroc"][key] = {n: auroc(*g) for n, g in groups.items()}
+            if label == "max":  # the score the docs compare by: its bootstrap interval
+                out.setdefault("auroc_ci95", {})[key] = {n: auroc_ci95(*g) for n, g in groups.items()}
     return out
 
 

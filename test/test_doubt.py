@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from equidiff_core.benches.doubt import auroc, chunk_signals, episode_scores
+from equidiff_core.benches.doubt import auroc, auroc_ci95, chunk_signals, episode_scores
 from equidiff_core.config import Workspace
 from equidiff_core.policy.doubt import (
     ChunkDoubt,
@@ -108,6 +108,11 @@ def test_auroc_and_episode_scores():
     assert auroc([1, 2], [3, 4]) == 0.0
     assert auroc([1, 2], [1, 2]) == 0.5
     assert auroc([], [1]) is None
+    low, high = auroc_ci95([3, 4, 5], [1, 2, 3], resamples=200)
+    assert low < auroc([3, 4, 5], [1, 2, 3]) < high == 1.0  # 8.5 of 9 pairs: the interval reaches 1
+    low, high = auroc_ci95([1, 3, 5, 7], [2, 4, 6, 8], resamples=200)
+    assert low < auroc([1, 3, 5, 7], [2, 4, 6, 8]) < high
+    assert auroc_ci95([1], [2, 3]) is None
     chunks = [{"disagreement": math.nan, "spread_2": 0.01}, {"disagreement": 0.02, "spread_2": 0.03}]
     assert episode_scores(chunks) == {"disagreement": 0.02, "spread_2": 0.03}
     a = chunk()

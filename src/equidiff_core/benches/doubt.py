@@ -37,6 +37,25 @@ def auroc(failure_scores: Iterable[float], success_scores: Iterable[float]) -> f
     return float(mannwhitneyu(fail, ok, alternative="two-sided").statistic / (len(fail) * len(ok)))
 
 
+def auroc_ci95(failure_scores, success_scores, resamples: int = 2000, seed: int = 0) -> tuple[float, float] | None:
+    """A percentile bootstrap 95 % interval of ``auroc`` (failures and successes resampled apart:
+    scipy.stats.bootstrap over the two samples). None when either group has fewer than two."""
+    from scipy.stats import bootstrap
+
+    fail, ok = np.asarray(list(failure_scores), float), np.asarray(list(success_scores), float)
+    if len(fail) < 2 or len(ok) < 2:
+        return None
+    res = bootstrap(
+        (fail, ok),
+        auroc,
+        vectorized=False,
+        n_resamples=resamples,
+        method="percentile",
+        rng=np.random.default_rng(seed),
+    )
+    return round(float(res.confidence_interval.low), 3), round(float(res.confidence_interval.high), 3)
+
+
 def chunk_signals(disagreement_m: float, samples: np.ndarray, sample_counts: Iterable[int]) -> dict[str, float]:
     """One chunk's candidates: ``disagreement`` and ``spread_K`` of the first K samples for each K."""
     out = {"disagreement": disagreement_m}
