@@ -90,6 +90,7 @@ def roll_out_doubt(
 ) -> None:
     """Roll ``policy`` out on each seed's scene with ``samples`` samples per observation; ``on_episode`` gets
     {seed, success, duration_s, chunks: [{stamp_ns, disagreement, spread_2, ...}]} after each episode."""
+    from ..twin.demos import DirectRecorder
     from ..twin.evaluate import evaluate_policy
 
     counts = [k for k in (2, 4, 8, 16) if k <= samples]
@@ -98,21 +99,27 @@ def roll_out_doubt(
     def on_doubt(seed, doubt, drawn):
         chunks.append({"stamp_ns": doubt.stamp_ns, **chunk_signals(doubt.disagreement_m, drawn, counts)})
 
-    for seed in seeds:
-        chunks.clear()
-        (episode,) = evaluate_policy(
-            policy,
-            cfg,
-            lab,
-            [seed],
-            max_duration_s,
-            log=log,
-            recorder=recorder,
-            latency_s=latency_s,
-            doubt_samples=samples,
-            on_doubt=on_doubt,
-        )
-        on_episode({"seed": seed, "success": episode.success, "duration_s": episode.duration_s, "chunks": list(chunks)})
+    rec = recorder or DirectRecorder(cfg, lab)  # one renderer for every episode (a new one per episode grows)
+    try:
+        for seed in seeds:
+            chunks.clear()
+            (episode,) = evaluate_policy(
+                policy,
+                cfg,
+                lab,
+                [seed],
+                max_duration_s,
+                log=log,
+                recorder=rec,
+                latency_s=latency_s,
+                doubt_samples=samples,
+                on_doubt=on_doubt,
+            )
+            record = {"seed": seed, "success": episode.success, "duration_s": episode.duration_s}
+            on_episode({**record, "chunks": list(chunks)})
+    finally:
+        if recorder is None:
+            rec.close()
 
 
 @dataclass(frozen=True)
