@@ -1,6 +1,7 @@
 """Roll a policy out in-process with K samples per observation and score each doubt candidate's AUROC
 for failure (docs/results/doubt.md). Resumable: one JSON line per episode in --log; seeds already there are
-skipped. ``--report`` only summarises the log.
+skipped. ``--report`` only summarises the log; ``--gate FILE`` adds what the doubt gate calibrated in FILE
+would have flagged on the logged roll-outs.
 
     python scripts/measure_doubt.py --policy checkpoints/demos/equidiff_10 --episodes 40 --log doubt.jsonl
 """
@@ -56,6 +57,37 @@ def report(log_path: Path, windows_s=(None, 10.0, 5.0)) -> dict:
     return out
 
 
+def gate_preview(log_path: Path, policy_file: Path, quantiles=(0.9, 0.95, 0.99, 1.0)) -> dict:
+    """What the doubt gate would have done on the logged roll-outs, at each quantile of the calibration stored in
+    ``policy_file`` (``equidiff check doubt --write``): the share of failures and of successes with a chunk above
+    the threshold (the first alarm would have held the arm), and the median sim second of the failures' first."""
+    calibration = load_inference_policy(policy_file).doubt_calibration
+    if calibration is None:
+        raise SystemExit(f"{policy_file} holds no doubt calibration (equidiff check doubt --write)")
+    episodes = [json.loads(line) for line in log_path.read_text().splitlines() if line.strip()]
+    out = {"signal": calibration.signal, "calibration_frames": len(calibration.values_m), "quantiles": {}}
+    for q in quantiles:
+        threshold = calibration.threshold(q)
+
+        def first_alarm_s(e, threshold=threshold):
+            for c in e["chunks"]:
+                value = c.get(calibration.signal if calibration.signal != "spread" else f"spread_{calibration.samples}")
+                if value is not None and value > threshold:  # NaN: no alarm
+                    return c["stamp_ns"] / 1e9
+            return None
+
+        fails = [first_alarm_s(e) for e in episodes if not e["success"]]
+        oks = [first_alarm_s(e) for e in episodes if e["success"]]
+        flagged = sorted(t for t in fails if t is not None)
+        out["quantiles"][f"q{q:g}"] = {
+            "threshold_m": round(threshold, 5),
+            "failures_flagged": f"{len(flagged)} of {len(fails)}",
+            "successes_flagged": f"{sum(t is not None for t in oks)} of {len(oks)}",
+            "median_first_alarm_s_in_failures": flagged[len(flagged) // 2] if flagged else None,
+        }
+    return out
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--policy", type=Path, default=Path("checkpoints/demos/equidiff_10"))
@@ -67,6 +99,7 @@ def main() -> int:
     ap.add_argument("--log", type=Path, required=True)
     ap.add_argument("--cache", type=Path, default=Path("runs/doubt"))
     ap.add_argument("--report", action="store_true")
+    ap.add_argument("--gate", type=Path, default=None, help="also preview the gate of this calibrated policy file")
     args = ap.parse_args()
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s", stream=sys.stderr)
     if not args.report:
@@ -93,6 +126,8 @@ def main() -> int:
             on_episode,
         )
     print(json.dumps(report(args.log)))
+    if args.gate is not None:
+        print(json.dumps(gate_preview(args.log, args.gate)))
     return 0
 
 
