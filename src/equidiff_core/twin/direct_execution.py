@@ -268,11 +268,11 @@ class DirectPolicy(_DirectExecution):
         grid = self.world.rec.voxel_grid(stamp_ns)
         ee = ee_input(sim.tcp_pose(), sim.gripper_width())  # the state at the stamp itself: no matching needed
         seed = self.seeds.next()
-        guide = None if self.chunking is None else self.chunking.guide(stamp_ns, ee)
+        guided = {} if self.chunking is None else {"guide": self.chunking.guide(stamp_ns, ee)}
         if self.doubt_samples > 1:
-            samples = self.policy.predict_samples(grid, ee, self.doubt_samples, seed=seed, guide=guide)
-        else:
-            samples = self.policy.predict(grid, ee, seed=seed, guide=guide)[None]
+            samples = self.policy.predict_samples(grid, ee, self.doubt_samples, seed=seed, **guided)
+        else:  # plain predict, as before the doubt (a scripted stand-in need not take a guide)
+            samples = self.policy.predict(grid, ee, seed=seed, **guided)[None]
         actions = samples[0]
         if self.chunking is not None:
             self.chunking.remember(stamp_ns, actions)
