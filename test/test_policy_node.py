@@ -171,6 +171,72 @@ def test_the_doubt_gate_holds_the_policy_and_asks_for_help(ros_domain, checkpoin
 
 
 @pytest.mark.ros
+@pytest.mark.slow
+def test_the_doubt_gate_holds_the_arm_live_until_the_policy_is_enabled_again(ros_domain, checkpoint, tmp_path):
+    """Live: policy_node with the gate at a threshold of 0 answers every observation; the second chunk
+    disagrees with the first, so it is held back (``doubt`` on /policy/skipped), /policy/state asks for
+    help, franka_node holds once the first chunk has run, and an enable lets the policy go on."""
+    from std_msgs.msg import String
+    from std_srvs.srv import SetBool
+
+    from equidiff_core.policy.file import with_doubt_calibration
+    from equidiff_core.twin.processes import start_node, stop_process
+    from equidiff_core.wire.pointcloud import grid_to_voxel_msg
+    from equidiff_core.wire.topics import SERVICE_POLICY_ENABLE, TOPIC_POLICY_SKIPPED, TOPIC_POLICY_STATE
+    from equidiff_ros.common import LATCHED_QOS, RELIABLE_QOS
+    from equidiff_ros.control_client import ControlClient
+
+    calibrated = with_doubt_calibration(
+        checkpoint, {"signal": "disagreement", "samples": 1, "episodes": 1, "values_m": [0.0]}, tmp_path / "g.pt"
+    )
+    lab = load_lab_config(LAB_PATH)
+    ws = lab.workspace
+    grid = block_grid(ws)
+    franka = policy = client = None
+    try:
+        franka = start_node("franka_node", {"backend": "dryrun", "lab_config": str(LAB_PATH)}, tmp_path / "franka.log")
+        params = {"checkpoint": str(calibrated), "lab_config": str(LAB_PATH), "precision": "fp32", "jit": False}
+        params |= {"execute_steps": 1, "doubt_gate": True, "doubt_quantile": 1.0}
+        policy = start_node("policy_node", params, tmp_path / "policy.log")
+        client = ControlClient(lab, str(LAB_PATH))
+        states, skipped = [], []
+        client.node.create_subscription(String, TOPIC_POLICY_STATE, lambda m: states.append(m.data), LATCHED_QOS)
+        client.node.create_subscription(
+            String, TOPIC_POLICY_SKIPPED, lambda m: skipped.append(json.loads(m.data)["reason"]), RELIABLE_QOS
+        )
+        enable = client.node.create_client(SetBool, SERVICE_POLICY_ENABLE)
+        client.wait_for(lambda: client.data.joint_states > 10, 60.0, "the dry-run arm", franka)
+        client.wait_for(lambda: states, 60.0, "policy_node's state", policy)
+
+        def observe_until(predicate, what):
+            deadline = time.monotonic() + 90.0
+            while not predicate() and time.monotonic() < deadline:
+                stamp = time.time_ns()
+                client.pub_voxels.publish(
+                    grid_to_voxel_msg(grid, ws.lower, ws.voxel_size, stamp, lab.base_frame, client.factory)
+                )
+                time.sleep(0.2)
+            client.wait_for(predicate, 1.0, what, policy)
+
+        observe_until(lambda: states[-1].startswith("paused asks for help: doubt "), "the gate asking for help")
+        assert "doubt" in skipped and len(client.data.chunks) >= 1
+        chunks = len(client.data.chunks)
+        client.wait_for(
+            lambda: client.diag_value("franka_node", "state") == "holding", 30.0, "franka_node holding", franka
+        )
+        time.sleep(1.0)
+        assert len(client.data.chunks) == chunks  # nothing more while it asks for help
+        future = enable.call_async(SetBool.Request(data=True))
+        client.wait_for(lambda: future.done() and states[-1] == "running", 20.0, "the policy going on", policy)
+        observe_until(lambda: len(client.data.chunks) > chunks, "a chunk after the enable")
+    finally:
+        if client is not None:
+            client.close()
+        codes = [stop_process(policy, sig=signal.SIGINT, timeout=30), stop_process(franka, sig=signal.SIGTERM)]
+    assert codes == [0, 0], (tmp_path / "policy.log").read_text()[-3000:]
+
+
+@pytest.mark.ros
 def test_policy_node_defaults_are_the_launchers_execution_defaults(ros_domain, checkpoint):
     """A policy_node started with no execution parameters has the values robot.launch.py and
     twin.launch.py declare as their launch arguments' defaults (test_launch_files.py: those are
