@@ -9,6 +9,7 @@ would have flagged on the logged roll-outs.
 from __future__ import annotations
 
 import argparse
+import gzip
 import json
 import logging
 import sys
@@ -21,11 +22,17 @@ from equidiff_core.twin.config import load_twin_job_configs
 from equidiff_core.twin.evaluate import in_range_yaw_seeds
 
 
+def read_log(log_path: Path) -> list[dict]:
+    """The logged episodes (a .gz log, as kept in docs/results, is read as is)."""
+    text = gzip.decompress(log_path.read_bytes()).decode() if log_path.suffix == ".gz" else log_path.read_text()
+    return [json.loads(line) for line in text.splitlines() if line.strip()]
+
+
 def report(log_path: Path, windows_s=(None, 10.0, 5.0)) -> dict:
     """AUROC for failure of each candidate, per episode score (max, q90, mean of its chunks) and window (the
     chunks observed in the first W s only: a failure runs to the time limit, so over the whole episode it has
     more chunks to reach a high max than a success that ends early)."""
-    episodes = [json.loads(line) for line in log_path.read_text().splitlines() if line.strip()]
+    episodes = read_log(log_path)
     out = {"episodes": len(episodes), "failures": sum(not e["success"] for e in episodes), "auroc": {}}
     for window in windows_s:
         for label, q in (("max", 1.0), ("q90", 0.9), ("mean", None)):
@@ -64,7 +71,7 @@ def gate_preview(log_path: Path, policy_file: Path, quantiles=(0.9, 0.95, 0.99, 
     calibration = load_inference_policy(policy_file).doubt_calibration
     if calibration is None:
         raise SystemExit(f"{policy_file} holds no doubt calibration (equidiff check doubt --write)")
-    episodes = [json.loads(line) for line in log_path.read_text().splitlines() if line.strip()]
+    episodes = read_log(log_path)
     out = {"signal": calibration.signal, "calibration_frames": len(calibration.values_m), "quantiles": {}}
     for q in quantiles:
         threshold = calibration.threshold(q)
@@ -107,7 +114,7 @@ def main() -> int:
         seeds = in_range_yaw_seeds(configs.twin, tuple(args.train_yaw), args.episodes)
         done = set()
         if args.log.exists():
-            done = {json.loads(line)["seed"] for line in args.log.read_text().splitlines() if line.strip()}
+            done = {e["seed"] for e in read_log(args.log)}
         policy = load_inference_policy(run_policy(args.policy, args.cache / args.policy.name))
 
         def on_episode(record):
