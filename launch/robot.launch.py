@@ -12,7 +12,8 @@ start|success|failure|discard`` from any terminal (its keyboard needs a terminal
 under ros2 launch do not have). With ``teleop_source:=joy`` (the default) the spacenav driver
 (``spacenav`` package, ``spacenav_node``; it needs spacenavd running) is started too. Everything
 reads config/lab.yaml (cameras, extrinsics, robot IP). The policy's chunk execution
-(``execute_steps``, ``latency_s``, ``latency_transport_s``, ``rtc``, ``n_action_steps``) are launch
+(``execute_steps``, ``latency_s``, ``latency_transport_s``, ``rtc``, ``n_action_steps``) and its doubt gate
+(``doubt_gate``, ``doubt_quantile``; docs/doubt.md) are launch
 arguments with policy_node's defaults: by default each chunk bridges the measured latency, so the
 arm does not stand still between chunks.
 """

@@ -14,7 +14,8 @@ and the JSON line; when it exits, the whole launch shuts down. Use a private ROS
 ``clock:=sim`` (default): twin_node publishes /clock and steps in lockstep with the pipeline;
 every other node gets use_sim_time and the cameras take the frames the sim requests
 (docs/twin.md). ``latency_ms`` is the latency budget L. The policy's chunk execution
-(``execute_steps``, ``latency_s``, ``latency_transport_s``, ``rtc``, ``n_action_steps``) are launch
+(``execute_steps``, ``latency_s``, ``latency_transport_s``, ``rtc``, ``n_action_steps``) and its doubt gate
+(``doubt_gate``, ``doubt_quantile``; docs/doubt.md) are launch
 arguments with policy_node's defaults; on ``clock:=sim`` ``latency_s:=auto`` is the budget L, which
 the twin imposes exactly.
 """

@@ -24,7 +24,7 @@ EP = SyntheticEpisode(duration_s=6.0, image_size=None)  # 30 observations at 5 H
 ROLL_OUT = {
     "policy_states": (
         (0.0, "running"),
-        (2.5, f"paused {GATE_PAUSE_PREFIX}: doubt 0.9 over 0.5"),
+        (2.5, f"{GATE_PAUSE_PREFIX}: doubt 0.9 over 0.5"),
         (3.5, "paused teleop"),
     ),
     "teleop_active": ((0.0, False), (3.5, True)),
@@ -54,8 +54,8 @@ def test_each_frame_knows_who_drove_it(bags):
 
 
 def test_packed_episodes_keep_the_sources_and_a_bad_source_is_refused(bags, tmp_path):
-    from equidiff_core.data.bags import BagError
     from equidiff_core.data.episode_arrays import read_packed
+    from equidiff_core.data.mcap_reader import BagError
 
     rollout = load_episode_arrays(bags["rollout"], DATA)
     again = read_packed(write_packed(rollout, tmp_path / "r.episode.npz", DATA), DATA)

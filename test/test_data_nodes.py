@@ -21,8 +21,10 @@ from equidiff_core.cameras.color import color_image_msg
 from equidiff_core.config import default_config_dir, load_lab_config
 from equidiff_core.data.bags import read_episode, repair_bag
 from equidiff_core.data.mcap_reader import BagError
+from equidiff_core.policy.doubt import ChunkDoubt
 from equidiff_core.wire.chunk import PoseChunk, chunk_from_msg, chunk_to_msg
 from equidiff_core.wire.pointcloud import grid_to_voxel_msg
+from equidiff_core.wire.rosmsg import doubt_msg
 from equidiff_core.wire.topics import camera_color_topic
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow]
@@ -81,6 +83,7 @@ def make_messages(f, n: int, t0_ns: int):
         rgb = np.zeros((48, 64, 3), np.uint8)
         rgb[:, : 4 * i] = (200, 30 + i, 30)  # each image distinct
         out.append((IMAGE_TOPIC, color_image_msg(rgb, t, LAB.cameras[0].frame_id, f)))
+        out.append(("/policy/doubt", doubt_msg(f, ChunkDoubt(t, 0.001 * i, 0.002 * i))))
     return out
 
 
@@ -107,6 +110,7 @@ def publishers(ros: RosHarness):
         "/franka/joint_states": "sensor_msgs/msg/JointState",
         "/franka/command_chunk": "trajectory_msgs/msg/MultiDOFJointTrajectory",
         IMAGE_TOPIC: "sensor_msgs/msg/CompressedImage",  # recorded by default (record_images)
+        "/policy/doubt": "geometry_msgs/msg/Vector3Stamped",
     }
     pubs = {t: ros.node.create_publisher(ros.f.cls(m), t, RELIABLE_QOS) for t, m in types.items()}
     cmd = ros.node.create_publisher(ros.f.cls("std_msgs/msg/String"), TOPIC_RECORDER_COMMAND, RELIABLE_QOS)
@@ -136,6 +140,9 @@ def test_recorder_episode_reads_back_identically(ros, tmp_path):
         for topic, msg in msgs:
             pubs[topic].publish(msg)
             ros.spin_for(0.01)
+        bad = doubt_msg(ros.f, ChunkDoubt(1, 0.01, 0.01))
+        bad.vector.y = -1.0  # a negative doubt: refused, not recorded (the 12 good ones are)
+        pubs["/policy/doubt"].publish(bad)
         ros.spin_for(1.0)
         cmd.publish(ros.f.make("std_msgs/msg/String", data="stop failure slipped at the end"))
         wait_status(ros, "idle")
@@ -162,11 +169,9 @@ def test_recorder_episode_reads_back_identically(ros, tmp_path):
     assert ep.meta.success is False and ep.meta.notes == "slipped at the end"
     assert [t.child_frame_id for t in ep["/tf_static"].messages[0].transforms] == [c.frame_id for c in LAB.cameras]
     chunks_back = [chunk_from_msg(m) for m in ep["/franka/command_chunk"].messages]
-    assert (
-        len(chunks_back) == 12
-        and chunks_back[3].times_ns[0]
-        == msgs[3 * 4 + 3][1].header.stamp.sec * 10**9 + msgs[3 * 4 + 3][1].header.stamp.nanosec + 100_000_000
-    )
+    voxels_sent = [m for topic, m in msgs if topic == "/voxels"]  # chunk i answers grid i, 100 ms on
+    stamp_ns = lambda m: m.header.stamp.sec * 10**9 + m.header.stamp.nanosec
+    assert len(chunks_back) == 12 and chunks_back[3].times_ns[0] == stamp_ns(voxels_sent[3]) + 100_000_000
 
     # Never overwrite: the next episode of the same task gets the next index. This time the
     # episode is driven by the std_srvs/Trigger services; discard removes it.

@@ -314,7 +314,8 @@ def test_bad_observations_raise(exported):
 def test_bench_policy_command_prints_one_json_line(capsys):
     from equidiff_ros.cli import main
 
-    assert main(["bench", "policy", "--preset", "tiny", "--iters", "3", "--eager-iters", "1"]) == 0
+    args = ["bench", "policy", "--preset", "tiny", "--iters", "3", "--eager-iters", "1", "--doubt-samples", "2"]
+    assert main(args) == 0
     lines = capsys.readouterr().out.strip().splitlines()
     assert len(lines) == 1
     out = json.loads(lines[0])
@@ -331,6 +332,13 @@ def test_bench_policy_command_prints_one_json_line(capsys):
         assert key in out
     assert out["preset"] == "tiny" and out["params"] > 0
     assert 0 < out["encoder_ms"] < out["ddim16_median_ms"] <= out["ddim16_p99_ms"]
+    # the default doubt signal's cost beside DDIM-16 timed in the same rounds, and K = 2 samples'
+    assert out["doubt_signal"] in ("disagreement", "spread") and out["doubt_ms"] >= 0
+    assert out["doubt_vs_ddim16_percent"] == pytest.approx(
+        100 * out["doubt_ms"] / out["doubt_ddim16_median_ms"], abs=0.1
+    )
+    assert list(out["spread_extra_ms"]) == ["2"] and "2" in out["spread_vs_ddim16_percent"]
+    assert main([*args[:-1], "1"]) == 2  # one sample has no spread
 
 
 def test_bench_policy_times_several_modes_and_rtc_in_one_run(capsys):

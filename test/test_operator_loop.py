@@ -188,6 +188,19 @@ def test_policy_keys_and_the_spacemouse_takeover():
     assert loop.press("p", T0 + 7) == [] and "no policy node" in loop.messages[-1]
 
 
+def test_the_policy_asking_for_help_is_on_the_screen_with_why_and_the_keys_that_answer():
+    loop = loop_with(policy="running")
+    why = "doubt 41.0 mm (disagreement) above 23.5 mm, the q0.99 of its demos"
+    loop.observe("policy", f"paused asks for help: {why}", T0 + 1)  # policy_node's gate fired
+    screen = loop.screen_text(T0 + 1)
+    assert "ASKS FOR HELP" in screen and why in screen and "p: let the policy go on" in screen
+    assert why in loop.messages[-1] and "t hands the arm to the SpaceMouse" in loop.messages[-1]
+    assert kinds(loop.press("t", T0 + 2)) == [] and loop.takeover  # already paused: the SpaceMouse just drives
+    assert kinds(loop.press("p", T0 + 3)) == ["enable"]  # the policy goes on
+    loop.observe("policy", "running", T0 + 4)
+    assert "ASKS FOR HELP" not in loop.screen_text(T0 + 4) and not loop.takeover
+
+
 def test_countdown_start_now_cancel_and_quit():
     loop = loop_with(recorder="recording /d/e_0000", auto_start=True)
     answer(loop, loop.press("k", T0), T0)

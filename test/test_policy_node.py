@@ -106,6 +106,136 @@ def test_rtc_max_gap_reaches_the_real_time_chunking(ros_domain, checkpoint):
         rclpy.try_shutdown()
 
 
+def test_the_spread_signal_needs_two_samples(ros_domain, checkpoint):
+    """doubt_signal spread with one sample is refused at start; with K samples the node's tracker uses it."""
+    import rclpy
+
+    from equidiff_ros.policy_node import PolicyNode
+
+    for samples in (1, 3):
+        params = ["-p", f"checkpoint:={checkpoint}", "-p", "doubt_signal:=spread", "-p", f"doubt_samples:={samples}"]
+        rclpy.init(args=["--ros-args", *params])
+        try:
+            if samples == 1:
+                with pytest.raises(ValueError, match="doubt_samples >= 2"):
+                    PolicyNode()
+                continue
+            node = PolicyNode()
+            try:
+                assert node.doubt.signal == "spread" and node.doubt_samples == 3
+            finally:
+                node.shutdown()
+                node.destroy_node()
+        finally:
+            rclpy.try_shutdown()
+
+
+def test_the_doubt_gate_holds_the_policy_and_asks_for_help(ros_domain, checkpoint, tmp_path):
+    """doubt_gate needs the calibration in the policy file; with it, a chunk whose doubt is above the
+    calibrated quantile is not published and the node pauses, asking for help, until enabled again."""
+    import rclpy
+
+    from equidiff_core import geometry
+    from equidiff_core.policy.doubt import HELP_REASON
+    from equidiff_core.policy.file import CheckpointError, with_doubt_calibration
+    from equidiff_ros.policy_node import PolicyNode
+
+    calibrated = with_doubt_calibration(
+        checkpoint, {"signal": "disagreement", "samples": 1, "episodes": 1, "values_m": [0.0, 1e-4]}, tmp_path / "g.pt"
+    )
+    for path in (checkpoint, calibrated):
+        params = ["-p", f"checkpoint:={path}", "-p", "doubt_gate:=true", "-p", "doubt_quantile:=0.5"]
+        params += ["-p", "precision:=fp32", "-p", "jit:=false"]
+        rclpy.init(args=["--ros-args", *params])
+        try:
+            if path == checkpoint:
+                with pytest.raises(CheckpointError, match="doubt_gate needs the doubt calibration"):
+                    PolicyNode()
+                continue
+            node = PolicyNode()
+            try:
+                assert node.gate.threshold_m == pytest.approx(5e-5)
+                grid = block_grid(node.lab.workspace)
+                pose = geometry.pose_from_pos_quat([0.45, 0.0, 0.25], [1.0, 0.0, 0.0, 0.0])
+                t0 = time.time_ns()
+                node.infer(grid, t0, pose, 0.08, seed=1)  # nothing to compare with: published
+                assert node.published == 1 and not node._paused
+                node.infer(grid, t0 + node.sizing.dt_ns, pose, 0.08, seed=2)  # another noise: it disagrees
+                assert node.published == 1 and node.alarms == 1 and node.skipped["doubt"] == 1
+                assert node._paused.startswith(f"{HELP_REASON}: doubt ") and "q0.5 of its demos" in node._paused
+            finally:
+                node.shutdown()
+                node.destroy_node()
+        finally:
+            rclpy.try_shutdown()
+
+
+@pytest.mark.ros
+@pytest.mark.slow
+def test_the_doubt_gate_holds_the_arm_live_until_the_policy_is_enabled_again(ros_domain, checkpoint, tmp_path):
+    """Live: policy_node with the gate at a threshold of 0 answers every observation; the second chunk
+    disagrees with the first, so it is held back (``doubt`` on /policy/skipped), /policy/state asks for
+    help, franka_node holds once the first chunk has run, and an enable lets the policy go on."""
+    from std_msgs.msg import String
+    from std_srvs.srv import SetBool
+
+    from equidiff_core.policy.file import with_doubt_calibration
+    from equidiff_core.twin.processes import start_node, stop_process
+    from equidiff_core.wire.pointcloud import grid_to_voxel_msg
+    from equidiff_core.wire.topics import SERVICE_POLICY_ENABLE, TOPIC_POLICY_SKIPPED, TOPIC_POLICY_STATE
+    from equidiff_ros.common import LATCHED_QOS, RELIABLE_QOS
+    from equidiff_ros.control_client import ControlClient
+
+    calibrated = with_doubt_calibration(
+        checkpoint, {"signal": "disagreement", "samples": 1, "episodes": 1, "values_m": [0.0]}, tmp_path / "g.pt"
+    )
+    lab = load_lab_config(LAB_PATH)
+    ws = lab.workspace
+    grid = block_grid(ws)
+    franka = policy = client = None
+    try:
+        franka = start_node("franka_node", {"backend": "dryrun", "lab_config": str(LAB_PATH)}, tmp_path / "franka.log")
+        params = {"checkpoint": str(calibrated), "lab_config": str(LAB_PATH), "precision": "fp32", "jit": False}
+        params |= {"execute_steps": 1, "doubt_gate": True, "doubt_quantile": 1.0}
+        policy = start_node("policy_node", params, tmp_path / "policy.log")
+        client = ControlClient(lab, str(LAB_PATH))
+        states, skipped = [], []
+        client.node.create_subscription(String, TOPIC_POLICY_STATE, lambda m: states.append(m.data), LATCHED_QOS)
+        client.node.create_subscription(
+            String, TOPIC_POLICY_SKIPPED, lambda m: skipped.append(json.loads(m.data)["reason"]), RELIABLE_QOS
+        )
+        enable = client.node.create_client(SetBool, SERVICE_POLICY_ENABLE)
+        client.wait_for(lambda: client.data.joint_states > 10, 60.0, "the dry-run arm", franka)
+        client.wait_for(lambda: states, 60.0, "policy_node's state", policy)
+
+        def observe_until(predicate, what):
+            deadline = time.monotonic() + 90.0
+            while not predicate() and time.monotonic() < deadline:
+                stamp = time.time_ns()
+                client.pub_voxels.publish(
+                    grid_to_voxel_msg(grid, ws.lower, ws.voxel_size, stamp, lab.base_frame, client.factory)
+                )
+                time.sleep(0.2)
+            client.wait_for(predicate, 1.0, what, policy)
+
+        observe_until(lambda: states[-1].startswith("paused asks for help: doubt "), "the gate asking for help")
+        assert "doubt" in skipped and len(client.data.chunks) >= 1
+        chunks = len(client.data.chunks)
+        client.wait_for(
+            lambda: client.diag_value("franka_node", "state") == "holding", 30.0, "franka_node holding", franka
+        )
+        time.sleep(1.0)
+        assert len(client.data.chunks) == chunks  # nothing more while it asks for help
+        future = enable.call_async(SetBool.Request(data=True))
+        client.wait_for(lambda: future.done() and states[-1] == "running", 20.0, "the policy going on", policy)
+        observe_until(lambda: len(client.data.chunks) > chunks, "a chunk after the enable")
+    finally:
+        if client is not None:
+            client.close()
+        codes = [stop_process(policy, sig=signal.SIGINT, timeout=30), stop_process(franka, sig=signal.SIGTERM)]
+    assert codes == [0, 0], (tmp_path / "policy.log").read_text()[-3000:]
+
+
 @pytest.mark.ros
 def test_policy_node_defaults_are_the_launchers_execution_defaults(ros_domain, checkpoint):
     """A policy_node started with no execution parameters has the values robot.launch.py and
@@ -351,7 +481,7 @@ def test_an_announced_episode_samples_like_the_in_process_evaluation(ros_domain,
     with ``SamplingSeeds``' noise for that seed (seed * 1000 + 0), the next answered one with the
     next seed; announcing the same episode again repeats the chunk, another seed changes it. The
     chunk equals ``InferencePolicy.predict`` with that seed, as the in-process evaluation calls it."""
-    from geometry_msgs.msg import PoseStamped
+    from geometry_msgs.msg import PoseStamped, Vector3Stamped
     from std_msgs.msg import String
 
     from equidiff_core.perception.observation import ee_input
@@ -360,7 +490,7 @@ def test_an_announced_episode_samples_like_the_in_process_evaluation(ros_domain,
     from equidiff_core.wire import rosmsg
     from equidiff_core.wire.chunk import chunk_from_actions
     from equidiff_core.wire.pointcloud import grid_to_voxel_msg, voxel_msg_to_grid
-    from equidiff_core.wire.topics import TOPIC_COMMAND_CHUNK, TOPIC_EE_POSE, TOPIC_POLICY_EPISODE
+    from equidiff_core.wire.topics import TOPIC_COMMAND_CHUNK, TOPIC_EE_POSE, TOPIC_POLICY_DOUBT, TOPIC_POLICY_EPISODE
     from equidiff_ros.common import LATCHED_QOS, RELIABLE_QOS
     from equidiff_ros.control_client import ControlClient
 
@@ -382,8 +512,9 @@ def test_an_announced_episode_samples_like_the_in_process_evaluation(ros_domain,
             tmp_path / "policy.log",
         )
         client = ControlClient(lab, str(LAB_PATH))
-        poses = []
+        poses, doubts = [], []
         client.node.create_subscription(PoseStamped, TOPIC_EE_POSE, poses.append, RELIABLE_QOS)
+        client.node.create_subscription(Vector3Stamped, TOPIC_POLICY_DOUBT, doubts.append, RELIABLE_QOS)
         pub_episode = client.node.create_publisher(String, TOPIC_POLICY_EPISODE, LATCHED_QOS)
         client.wait_for(lambda: len(poses) > 10, 60.0, "/franka/ee_pose from the dry-run arm", franka)
         client.wait_for(lambda: pub_episode.get_subscription_count() > 0, 60.0, "policy_node on /policy/episode")
@@ -430,6 +561,9 @@ def test_an_announced_episode_samples_like_the_in_process_evaluation(ros_domain,
         second, _ = answer()
         again, _ = answer(7)
         other, _ = answer(8)
+        client.wait_for(
+            lambda: other.stamp_ns in {stamp_to_ns(d.header.stamp) for d in doubts}, 10.0, "/policy/doubt", policy
+        )
         width = rosmsg.gripper_width_from_joint_state(client.data.last_joint_state)
         pose = rosmsg.pose_from_msg(poses[-1])
     finally:
@@ -442,6 +576,13 @@ def test_an_announced_episode_samples_like_the_in_process_evaluation(ros_domain,
     np.testing.assert_allclose(again.actions[:n], first.actions[:n], atol=1e-6)
     assert not np.allclose(second.actions[:n], first.actions[:n], atol=1e-3)
     assert not np.allclose(other.actions[:n], first.actions[:n], atol=1e-3)
+    # each chunk's doubt, at its stamp: an announced episode starts afresh (nothing to disagree with),
+    # the next chunk of it is compared with the remainder of the first
+    doubt = {d.stamp_ns: d for d in map(rosmsg.doubt_from_msg, doubts)}
+    assert {c.stamp_ns for c in (first, second, again, other)} <= set(doubt)
+    assert all(d.signal == "disagreement" and np.isnan(d.spread_m) for d in doubt.values())
+    assert np.isnan(doubt[first.stamp_ns].value) and np.isnan(doubt[other.stamp_ns].value)
+    assert doubt[second.stamp_ns].value >= 0
     in_process = load_inference_policy(checkpoint, precision="fp32")
     actions = in_process.predict(voxel_msg_to_grid(msg, ws.resolution), ee_input(pose, width), seed=7 * 1000)
     expected = chunk_from_actions(actions[: len(first)], first.stamp_ns, 200_000_000)

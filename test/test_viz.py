@@ -731,3 +731,30 @@ def test_recorded_camera_images_are_logged_as_the_jpegs_they_are(tmp_path):
     assert dict(logger.errors) == {"images": 2} and logger.logged["images"] == 1
     rec.flush()
     rec.disconnect()
+
+
+def test_the_policys_doubt_is_a_time_series_at_each_chunks_stamp(tmp_path):
+    from equidiff_core.policy.doubt import ChunkDoubt
+    from equidiff_core.wire.rosmsg import doubt_msg
+    from equidiff_core.wire.topics import TOPIC_POLICY_DOUBT
+
+    f = rosbags_factory()
+    rec = open_recording("doubt", save=tmp_path / "doubt.rrd")
+    logger = RerunLogger(rec, LAB, VizConfig())
+    stamps = [T0_NS + i * 200_000_000 for i in range(3)]
+    doubts = [
+        ChunkDoubt(stamps[0], float("nan"), 0.01),
+        ChunkDoubt(stamps[1], 0.02, 0.01),
+        ChunkDoubt(stamps[2], 0.05, 0.02),
+    ]
+    assert all(logger.log_message(TOPIC_POLICY_DOUBT, doubt_msg(f, d)) for d in doubts)
+    bad = doubt_msg(f, doubts[1])
+    bad.vector.y = -1.0
+    assert not logger.log_message(TOPIC_POLICY_DOUBT, bad)
+    assert logger.errors["doubt"] == 1
+    rec.flush()
+    rec.disconnect()
+    s = summarize_rrd(tmp_path / "doubt.rrd")
+    assert s["metrics/doubt/spread"].rows == 3
+    assert s["metrics/doubt/disagreement"].rows == 2  # the first chunk has nothing to disagree with
+    assert s["metrics/doubt/disagreement"].time_range_ns("ros_time") == (stamps[1], stamps[2])

@@ -31,6 +31,10 @@ COMMANDS: dict[tuple[str, ...], tuple[str, str]] = {
         "check_conditioning",
         "does a policy look at its observation? its features and actions when the block moves",
     ),
+    ("check", "doubt"): (
+        "check_doubt",
+        "the policy's doubt over its own demos: the doubt gate's threshold, stored in the policy file",
+    ),
     ("bench", "voxelize"): ("bench_voxelize", "time voxelising 3 x 300k points against open3d"),
     ("bench", "policy"): ("bench_policy", "time the encoder, one denoising step and DDIM-16"),
     ("bench", "train"): ("bench_train", "training samples/s on the CPU and on CUDA, same run"),

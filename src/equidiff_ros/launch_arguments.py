@@ -1,4 +1,5 @@
-"""The launch arguments both launch files share: how policy_node executes chunks (docs/chunking.md), with the node's own defaults.
+"""The launch arguments both launch files share: how policy_node executes chunks (docs/chunking.md) and its
+doubt gate (docs/doubt.md), with the node's own defaults.
 
 The table is plain data, so tests read it without ROS's ``launch`` package; ``execution_arguments``
 builds the ``DeclareLaunchArgument`` actions inside a launch file.
@@ -8,6 +9,7 @@ from __future__ import annotations
 
 import yaml
 
+from equidiff_core.policy import doubt
 from equidiff_core.wire import chunk
 
 
@@ -26,6 +28,8 @@ EXECUTION_ARGUMENTS = {
     "latency_transport_s": (chunk.DEFAULT_TRANSPORT_S, "added to the measured latency (auto)"),
     "rtc": (chunk.DEFAULT_RTC, "real-time chunking"),
     "n_action_steps": (chunk.DEFAULT_N_ACTION_STEPS, "steps published per chunk (0: enough to bridge L)"),
+    "doubt_gate": (doubt.DEFAULT_GATE, "hold the arm and ask for help when a chunk's doubt exceeds doubt_quantile"),
+    "doubt_quantile": (doubt.DEFAULT_GATE_QUANTILE, "the doubt gate's threshold: this quantile over the demos"),
 }
 EXECUTION_PARAMETERS = tuple(EXECUTION_ARGUMENTS)
 

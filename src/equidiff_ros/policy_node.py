@@ -16,6 +16,8 @@ Wiring:
                    obs_to_cmd_ms and its p50/p95, latency_s (auto | auto (initial) | fixed | off),
                    latency_estimate_ms, latency_bridged_max_ms, publish_steps; WARN when L exceeds
                    what the chunks can bridge)
+  /policy/doubt (geometry_msgs/Vector3Stamped) <- each chunk's doubt (``policy.doubt``, ``wire.rosmsg.doubt_msg``),
+                   stamped with the chunk's stamp; also on /diagnostics (doubt_m, doubt_disagreement_m, ...)
   /policy/skipped (std_msgs/String JSON {stamp_ns, reason}) <- each observation that will get no chunk
                    (the twin's sim then stops waiting for it; a recorder or operator sees why)
   /policy/enable (std_srvs/SetBool service)      -> true runs, false pauses the policy (``equidiff lab policy``)
@@ -26,6 +28,11 @@ Wiring:
                    supervisor): the first observation stamped at or after start_ns is answered at once,
                    and the episode's answered observations get ``wire.chunk.SamplingSeeds``' noise for its
                    seed, the in-process evaluation's, so both sample a scene alike
+
+With ``doubt_gate`` a chunk whose doubt exceeds ``doubt_quantile`` of the signal over the policy's own demos
+(the calibration ``equidiff check doubt --write`` stores in the policy file) is not published: the node pauses
+as ``asks for help: <why>`` (announced as ``doubt`` on /policy/skipped, WARN on /diagnostics), franka_node
+holds once the steps already sent have run, and only an enable (``p`` in ``equidiff lab``) lets it go on.
 
 While paused no chunk is published: each observation is announced on /policy/skipped as
 ``paused`` (an inference already running is finished and dropped), and /diagnostics says
@@ -62,7 +69,7 @@ from pathlib import Path
 
 import torch
 from diagnostic_msgs.msg import DiagnosticArray
-from geometry_msgs.msg import PoseStamped
+from geometry_msgs.msg import PoseStamped, Vector3Stamped
 from rclpy.node import Node
 from sensor_msgs.msg import JointState, PointCloud2
 from std_msgs.msg import Bool, String
@@ -74,6 +81,16 @@ from equidiff_core.control import SafetyConfig
 from equidiff_core.control.metrics import percentiles_ms
 from equidiff_core.perception.observation import MAX_FUTURE_STAMP_S, STATE_TOLERANCE_S, StateHistory, ee_input
 from equidiff_core.policy.chunk_sizing import ChunkSizing
+from equidiff_core.policy.doubt import (
+    DEFAULT_GATE,
+    DEFAULT_GATE_QUANTILE,
+    DEFAULT_SAMPLES,
+    DEFAULT_SIGNAL,
+    HELP_REASON,
+    SIGNALS,
+    DoubtGate,
+    DoubtTracker,
+)
 from equidiff_core.policy.file import CheckpointError
 from equidiff_core.policy.inference import load_inference_policy
 from equidiff_core.runtime.machine import PRECISIONS
@@ -97,6 +114,7 @@ from equidiff_core.wire.topics import (
     TOPIC_DIAGNOSTICS,
     TOPIC_EE_POSE,
     TOPIC_JOINT_STATES,
+    TOPIC_POLICY_DOUBT,
     TOPIC_POLICY_EPISODE,
     TOPIC_POLICY_SKIPPED,
     TOPIC_POLICY_STATE,
@@ -195,6 +213,34 @@ PARAMETERS = NodeParameters(
         "Inference threads; 0: torch's default (on a shared CPU more threads are slower)",
         Bounds("", ge=0, le=1024),
     ),
+    NodeParameter(
+        "doubt_signal",
+        DEFAULT_SIGNAL,
+        "The doubt signal on /policy/doubt's x and /diagnostics' doubt_m (docs/doubt.md): disagreement (the new "
+        "chunk against the previous one's remainder, free) or spread (of doubt_samples samples)",
+        choices=SIGNALS,
+    ),
+    NodeParameter(
+        "doubt_samples",
+        DEFAULT_SAMPLES,
+        "DDIM samples per observation sharing one encoder pass (the first is published); 2 or more also give the "
+        "spread; 1: plain DDIM",
+        Bounds("", ge=1, le=64),
+    ),
+    NodeParameter(
+        "doubt_gate",
+        DEFAULT_GATE,
+        "Ask for help: a chunk whose doubt exceeds doubt_quantile of the policy's demos is not published and the "
+        "node pauses (the arm holds) until enabled again; needs the calibration in the policy file (equidiff check "
+        "doubt --write)",
+    ),
+    NodeParameter(
+        "doubt_quantile",
+        DEFAULT_GATE_QUANTILE,
+        "doubt_gate: the threshold, this quantile of the signal over the policy's demos",
+        Bounds("", gt=0, le=1),
+        number=True,
+    ),
     NodeParameter("start_paused", False, "Start paused: no chunks until /policy/enable (robot.launch.py sets it)"),
 )
 
@@ -231,6 +277,11 @@ class PolicyNode(Node):
         rtc = param("rtc")
         rtc_max_gap_m = param("rtc_max_gap_m")
         threads = param("torch_threads")
+        doubt_signal = param("doubt_signal")
+        gate_on, gate_quantile = param("doubt_gate"), param("doubt_quantile")
+        self.doubt_samples = param("doubt_samples")
+        if doubt_signal == "spread" and self.doubt_samples < 2:
+            raise ValueError(f"doubt_signal spread needs doubt_samples >= 2, got {self.doubt_samples}")
         self._paused = "waiting for an enable (start_paused)" if param("start_paused") else ""  # "" = running
         if not checkpoint:
             raise CheckpointError(
@@ -266,6 +317,17 @@ class PolicyNode(Node):
             else None
         )
         self.seeds = SamplingSeeds(None if seed < 0 else int(seed))
+        self.doubt = DoubtTracker(self.sizing.dt_ns, doubt_signal)  # reset where an episode or the operator restarts
+        self.last_doubt = None  # the newest chunk's ChunkDoubt
+        self.gate = None  # DoubtGate when doubt_gate is on
+        self.alarms = 0
+        if gate_on:
+            if self.policy.doubt_calibration is None:
+                raise CheckpointError(
+                    f"doubt_gate needs the doubt calibration in {checkpoint}: run `equidiff check doubt "
+                    f"{checkpoint} --demos <its training demos> --write <policy file>` first"
+                )
+            self.gate = DoubtGate(self.policy.doubt_calibration, gate_quantile, doubt_signal, self.doubt_samples)
         self._episode: dict | None = None  # announced on /policy/episode, begins at its start_ns
         self.get_logger().info(
             f"loaded {self.policy.name} policy '{preset.name}' from {checkpoint} "
@@ -302,6 +364,7 @@ class PolicyNode(Node):
         self.pub_chunk = self.create_publisher(MultiDOFJointTrajectory, TOPIC_COMMAND_CHUNK, RELIABLE_QOS)
         self.pub_diag = self.create_publisher(DiagnosticArray, TOPIC_DIAGNOSTICS, RELIABLE_QOS)
         self.pub_skipped = self.create_publisher(String, TOPIC_POLICY_SKIPPED, RELIABLE_QOS)
+        self.pub_doubt = self.create_publisher(Vector3Stamped, TOPIC_POLICY_DOUBT, RELIABLE_QOS)
         # before /voxels: the executor serves ready subscriptions in creation order, so an episode
         # announced just before a grid is applied before that grid is answered
         self.create_subscription(String, TOPIC_POLICY_EPISODE, self.on_episode, LATCHED_QOS)
@@ -400,8 +463,10 @@ class PolicyNode(Node):
     def set_paused(self, reason: str) -> None:
         if reason != self._paused:
             self._paused = reason
-            if reason and self.chunking is not None:
-                self.chunking.reset()  # the operator has the arm: the next chunk starts afresh
+            if reason:  # the operator has the arm: the next chunk starts afresh
+                self.doubt.reset()
+                if self.chunking is not None:
+                    self.chunking.reset()
             self.get_logger().info(f"policy paused: {reason}" if reason else "policy running")
             self.publish_state()
 
@@ -456,6 +521,7 @@ class PolicyNode(Node):
                 self.seeds.start_episode(self._episode["seed"])
                 if self.chunking is not None:
                     self.chunking.reset()
+                self.doubt.reset()
                 self._episode = None
             if self._paused:
                 return self.skip("paused", stamp=stamp)
@@ -491,13 +557,25 @@ class PolicyNode(Node):
         try:
             t0 = time.perf_counter()
             ee = ee_input(pose, width)
-            if self.chunking is None:
-                actions = self.policy.predict(grid, ee, seed=seed)
-            else:
+            guide = None
+            if self.chunking is not None:
                 self.chunking.delay_steps = RealTimeChunking.delay_for(self.sizing.latency_s(), self.sizing.dt_ns / 1e9)
-                actions = self.policy.predict(grid, ee, seed=seed, guide=self.chunking.guide(stamp, ee))
+                guide = self.chunking.guide(stamp, ee)
+            samples = self.policy.predict_samples(grid, ee, self.doubt_samples, seed=seed, guide=guide)
+            actions = samples[0]
+            if self.chunking is not None:
                 self.chunking.remember(stamp, actions)
+            doubt = self.doubt.update(stamp, samples)
             inference = time.perf_counter() - t0
+            self.pub_doubt.publish(rosmsg.doubt_msg(self.factory, doubt))
+            alarm = "" if self.gate is None else self.gate.alarm(doubt)
+            if alarm and not self._paused:  # hold the arm (no more chunks) and ask the operator for help
+                with self._lock:
+                    self.alarms += 1
+                    self.last_doubt = doubt
+                self.get_logger().warning(f"policy {HELP_REASON}: {alarm}")
+                self.set_paused(f"{HELP_REASON}: {alarm}")
+                return self.skip("doubt", stamp=stamp)
             with self._lock:  # this chunk's own latency (it is published next) sizes it for the next one
                 self.sizing.record_latency(
                     (now_ns(self) - stamp) / 1e9
@@ -512,6 +590,7 @@ class PolicyNode(Node):
                 self.obs_to_cmd_s.append((now_ns(self) - stamp) / 1e9)
                 self.published += 1
                 self.last_publish_steps = steps
+                self.last_doubt = doubt
         except Exception as err:  # noqa: BLE001 - bad input or a bad prediction: skip it, say why, keep serving
             self.failures += 1
             self.get_logger().error(f"inference failed: {type(err).__name__}: {err}", throttle_duration_sec=2.0)
@@ -530,6 +609,7 @@ class PolicyNode(Node):
             p50, p95 = percentiles_ms(self.obs_to_cmd_s)
             latency = self.sizing.latency.value_s
             source = self.sizing.latency.source
+            doubt = self.last_doubt
         values = {
             "inference_ms": inference,
             "observation_age_ms": last_ms(self.obs_age_s),
@@ -550,6 +630,15 @@ class PolicyNode(Node):
                 "latency_bridged_max_ms": round(self.sizing.max_bridged_s * 1000, 1),
                 "publish_steps": self.last_publish_steps,
                 "execute_steps": self.sizing.answers.steps,
+                # the newest published chunk's doubt (NaN: not computed for it; -1: no chunk yet)
+                "doubt_signal": self.doubt.signal,
+                "doubt_samples": self.doubt_samples,
+                "doubt_m": -1.0 if doubt is None else round(doubt.value, 5),
+                "doubt_disagreement_m": -1.0 if doubt is None else round(doubt.disagreement_m, 5),
+                "doubt_spread_m": -1.0 if doubt is None else round(doubt.spread_m, 5),
+                "doubt_gate": "on" if self.gate is not None else "off",
+                "doubt_threshold_m": -1.0 if self.gate is None else round(self.gate.threshold_m, 5),
+                "doubt_alarms": self.alarms,
             }
         )
         stale = self.skipped["stale_observation"] + self.skipped["no_observation"]
@@ -564,6 +653,8 @@ class PolicyNode(Node):
             )
         if self._paused:
             message = f"paused ({self._paused}), no chunks; {message}"
+            if self._paused.startswith(HELP_REASON):  # the arm holds until the operator takes over or enables
+                level = max(level, rosmsg.WARN)
         self.pub_diag.publish(
             rosmsg.diagnostic_array(self.factory, now_ns(self), NODE_NAME, self.policy.name, level, message, values)
         )

@@ -188,6 +188,7 @@ class RecorderNode(Node):
             TOPIC_COMMAND_CHUNK: lambda msg: chunk_from_msg(msg, self.lab.base_frame),
             TOPIC_EE_POSE: lambda msg: pose_from_msg(msg, self.lab.base_frame),
             TOPIC_JOINT_STATES: gripper_width_from_joint_state,
+            topics.TOPIC_POLICY_DOUBT: rosmsg.doubt_from_msg,
         }
         self.dropped: collections.Counter[str] = collections.Counter()
         self.last_drop = ""

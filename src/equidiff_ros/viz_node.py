@@ -29,6 +29,7 @@ from equidiff_core.wire.topics import (
     TOPIC_EE_POSE,
     TOPIC_EXECUTED_TARGET,
     TOPIC_JOINT_STATES,
+    TOPIC_POLICY_DOUBT,
     TOPIC_VOXELS,
     camera_color_topic,
 )
@@ -40,7 +41,7 @@ class VizNode(Node):
         super().__init__("equidiff_viz")
         wait_for_clock(self)  # simulated time (the twin): nothing is timed before /clock
         from diagnostic_msgs.msg import DiagnosticArray
-        from geometry_msgs.msg import PoseStamped
+        from geometry_msgs.msg import PoseStamped, Vector3Stamped
         from sensor_msgs.msg import CompressedImage, JointState, PointCloud2
         from trajectory_msgs.msg import MultiDOFJointTrajectory
 
@@ -56,6 +57,7 @@ class VizNode(Node):
             (TOPIC_COMMAND_CHUNK, MultiDOFJointTrajectory, RELIABLE_QOS),
             (TOPIC_EXECUTED_TARGET, PoseStamped, RELIABLE_QOS),
             (TOPIC_DIAGNOSTICS, DiagnosticArray, RELIABLE_QOS),
+            (TOPIC_POLICY_DOUBT, Vector3Stamped, RELIABLE_QOS),
         ]
         if clouds:
             topics += [(cam.topic, PointCloud2, SENSOR_QOS) for cam in lab.cameras]

@@ -58,6 +58,7 @@ class PolicyBenchSettings:
     iters: int  # timed DDIM-16 runs of the exported policy
     eager_iters: int  # timed runs of the eager escnn model (0: none)
     threads: int  # torch intra-op threads (0: as chosen at start)
+    doubt_samples: tuple[int, ...] = ()  # also time K samples per observation (the spread's cost), each K
 
 
 def run_policy_bench(settings: PolicyBenchSettings) -> dict:
@@ -79,6 +80,8 @@ def run_policy_bench(settings: PolicyBenchSettings) -> dict:
         )
     except ValueError as err:
         raise BenchError(str(err), 2) from err
+    if any(k < 2 for k in settings.doubt_samples):
+        raise BenchError(f"--doubt-samples must each be >= 2, got {list(settings.doubt_samples)}", 2)
     if any(m.graph for m in modes) and device.type != "cuda" and not settings.modes:
         raise BenchError("--graph needs --device cuda", 2)
 
@@ -94,9 +97,13 @@ def run_policy_bench(settings: PolicyBenchSettings) -> dict:
             eager = fresh_policy(policy_name, get_preset(settings.preset), Workspace()).eval().to(device)
             path = export_policy(eager, Path(tmp) / "policy.pt")
         if settings.modes:
-            per_mode = time_inference_modes(path, device, modes, settings.iters, settings.rtc)
+            per_mode = time_inference_modes(path, device, modes, settings.iters, settings.rtc, settings.doubt_samples)
         else:  # one mode: its errors are the command's
-            per_mode = {modes[0].name: time_inference_mode(path, device, modes[0], settings.iters, settings.rtc)[0]}
+            per_mode = {
+                modes[0].name: time_inference_mode(
+                    path, device, modes[0], settings.iters, settings.rtc, settings.doubt_samples
+                )[0]
+            }
         first = next((name for name, r in per_mode.items() if "ddim16_median_ms" in r), None)
         if first is None:
             raise BenchError(f"no mode ran: {json.dumps(per_mode)}")

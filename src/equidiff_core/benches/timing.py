@@ -39,6 +39,7 @@ import torch
 from ..models.equivariance import random_observation
 from ..models.plain import relu_before_pool_order
 from ..policy.diffusion import make_policy
+from ..policy.doubt import DEFAULT_SAMPLES, DEFAULT_SIGNAL, DoubtTracker
 from ..policy.inference import ENCODER_KERNELS, load_inference_policy
 from ..policy.normalizer import Normalizer
 from ..runtime.machine import PRECISIONS, cpu_description, cpu_model
@@ -135,8 +136,47 @@ def rtc_guide(policy, voxels: np.ndarray, ee: np.ndarray) -> tuple[np.ndarray, n
     return rtc.guide(2 * dt_ns)
 
 
+def time_doubt(policy, voxels: np.ndarray, ee: np.ndarray, iters: int, sample_counts, sync) -> dict:
+    """What the doubt signal (``policy.doubt``) adds to DDIM-16: the default signal's ``doubt_ms`` and
+    ``doubt_vs_ddim16_percent``, and with ``sample_counts`` the extra ms (and percent) of K samples
+    through the U-Net in one encoder pass (``spread_extra_ms``), all timed in alternating rounds with
+    plain DDIM-16 so that a shared machine's load weighs on each alike."""
+    tracker = DoubtTracker(round(policy.dt * 1e9), DEFAULT_SIGNAL)
+    counts = sorted({int(k) for k in sample_counts} | ({DEFAULT_SAMPLES} - {1}))
+    plain, update, drawn = [], [], {k: [] for k in counts}
+    previous = policy.predict(voxels, ee, seed=1)
+    tracker.update(0, previous)
+    stamp = policy.preset.n_action_steps * tracker.dt_ns  # the next answer's stamp: half the chunk overlaps
+    for k in counts:
+        policy.predict_samples(voxels, ee, k, seed=0)  # a traced policy traces each batch size once
+    for _ in range(iters):
+        plain += timed_ms(lambda: policy.predict(voxels, ee, seed=0), 1, sync)
+        update += timed_ms(lambda: tracker.update(stamp, previous[None]), 1, sync)
+        for k in counts:
+            drawn[k] += timed_ms(lambda k=k: policy.predict_samples(voxels, ee, k, seed=0), 1, sync)
+    base = float(np.median(plain))
+    extra = {k: float(np.median(v)) - base for k, v in drawn.items()}
+    doubt = float(np.median(update)) + (extra[DEFAULT_SAMPLES] if DEFAULT_SAMPLES > 1 else 0.0)
+    figures = {
+        "doubt_signal": DEFAULT_SIGNAL,
+        "doubt_samples": DEFAULT_SAMPLES,
+        "doubt_ms": _ms(doubt),
+        "doubt_vs_ddim16_percent": round(100 * doubt / base, 2),
+        "doubt_ddim16_median_ms": _ms(base),
+    }
+    if sample_counts:
+        figures["spread_extra_ms"] = {str(k): _ms(extra[k]) for k in sorted(sample_counts)}
+        figures["spread_vs_ddim16_percent"] = {str(k): round(100 * extra[k] / base, 1) for k in sorted(sample_counts)}
+    return figures
+
+
 def time_inference_mode(
-    path: str | Path, device: torch.device, mode: InferenceMode, iters: int, rtc: bool = False
+    path: str | Path,
+    device: torch.device,
+    mode: InferenceMode,
+    iters: int,
+    rtc: bool = False,
+    doubt_samples: tuple[int, ...] = (),
 ) -> tuple[dict, dict]:
     """(figures, actions) of one mode; actions: ``plain`` and ``guided`` (seeded) for comparisons."""
     sync = synchronizer(device)
@@ -169,6 +209,7 @@ def time_inference_mode(
         figures["rtc_median_ms"] = _ms(np.median(guided))
         figures["rtc_p99_ms"] = _ms(np.percentile(guided, 99))
         figures["rtc_vs_plain"] = round(float(np.median(guided) / np.median(ddim)), 3)
+    figures.update(time_doubt(policy, vox, ee, iters, doubt_samples, sync))
     actions = {
         "plain": policy.predict(vox, ee, seed=0),
         "guided": policy.predict(vox, ee, seed=0, guide=guide),
@@ -177,7 +218,12 @@ def time_inference_mode(
 
 
 def time_inference_modes(
-    path: str | Path, device: torch.device, modes: list[InferenceMode], iters: int, rtc: bool = False
+    path: str | Path,
+    device: torch.device,
+    modes: list[InferenceMode],
+    iters: int,
+    rtc: bool = False,
+    doubt_samples: tuple[int, ...] = (),
 ) -> dict[str, dict]:
     """Each mode's figures, or ``{"error": ...}`` / ``{"skipped": ...}``: one failing mode (a graph that
     will not capture, a compiler missing) leaves the others measured. Graph modes add
@@ -189,7 +235,7 @@ def time_inference_modes(
             results[mode.name] = {"skipped": "CUDA graphs need a CUDA device"}
             continue
         try:
-            results[mode.name], actions[mode.name] = time_inference_mode(path, device, mode, iters, rtc)
+            results[mode.name], actions[mode.name] = time_inference_mode(path, device, mode, iters, rtc, doubt_samples)
             if mode.graph:
                 plain = InferenceMode(mode.precision, mode.execution, graph=False)
                 if plain.name not in actions:

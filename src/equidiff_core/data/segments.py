@@ -10,8 +10,8 @@ From those two topics each observation stamp gets a ``FrameSource``:
 * ``HOLD``: the policy was paused and nobody drove (the arm held: after the gate's alarm, before a takeover);
 * ``DEMO``: a bag without ``/policy/state`` at all: a demonstration, every frame the expert's.
 
-A gate alarm is a pause whose reason starts with ``GATE_PAUSE_PREFIX`` (policy_node pauses itself so when
-its doubt signal crosses the threshold). Training weighs samples by the source of their current frame
+A gate alarm is a pause whose reason starts with ``policy.doubt.HELP_REASON`` (policy_node pauses itself so
+when its doubt signal crosses the calibrated threshold: docs/doubt.md). Training weighs samples by the source of their current frame
 (``SourceWeights``); ``dataset stats`` counts them.
 """
 
@@ -22,11 +22,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..policy.doubt import HELP_REASON
 from ..wire.rosmsg import NS_PER_S
 from ..wire.topics import TOPIC_POLICY_STATE, TOPIC_TELEOP_ACTIVE
 
-# what policy_node's /policy/state says when its doubt gate holds the arm: "paused <GATE_PAUSE_PREFIX> ..."
-GATE_PAUSE_PREFIX = "asks for help"
+# what policy_node's /policy/state says when its doubt gate holds the arm: "paused <HELP_REASON>: <why>"
+GATE_PAUSE_PREFIX = f"paused {HELP_REASON}"
 RUNNING = "running"
 
 
@@ -97,10 +98,9 @@ def gate_alarms_ns(episode) -> np.ndarray:
     if TOPIC_POLICY_STATE not in episode:
         return np.zeros(0, np.int64)
     state = episode[TOPIC_POLICY_STATE]
-    prefix = f"paused {GATE_PAUSE_PREFIX}"
     fired, previous = [], None
     for t, msg in zip(state.log_ns, state.messages, strict=True):
-        if msg.data.startswith(prefix) and msg.data != previous:
+        if msg.data.startswith(GATE_PAUSE_PREFIX) and msg.data != previous:
             fired.append(int(t))
         previous = msg.data
     return np.asarray(fired, dtype=np.int64)

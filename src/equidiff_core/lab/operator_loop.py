@@ -26,6 +26,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from ..data.bags import find_bags
+from ..policy.doubt import HELP_REASON
 from ..wire import topics
 from .node_view import (
     NodeView,
@@ -176,6 +177,10 @@ class OperatorLoop:
             self._recount(now, force=True)  # an episode began or was kept
         if name == "policy" and self.view.policy_running:
             self.takeover = False
+        help_state = f"paused {HELP_REASON}"
+        if name == "policy" and isinstance(value, str) and value.startswith(help_state) and value != was:
+            why = value.removeprefix(help_state).lstrip(": ")
+            self.say(f"the policy asks for help ({why}): t hands the arm to the SpaceMouse, p lets the policy go on")
 
     def press(self, key: str, now: float) -> list[Request]:
         """A key: the requests it makes (and what it says on the screen)."""
@@ -405,6 +410,10 @@ class OperatorLoop:
             row("POLICY", [("dim", "(no policy node)")])
         elif self.view.policy_running:
             row("POLICY", [("warn", "ON"), ("", "  running: its chunks move the arm")])
+        elif self.view.policy.startswith(f"paused {HELP_REASON}"):  # its doubt gate holds the arm
+            why = self.view.policy.removeprefix(f"paused {HELP_REASON}").lstrip(": ")
+            row("POLICY", [("warn", "ASKS FOR HELP"), ("", f"  {why}"),
+                           ("dim", "   t: SpaceMouse takes over  ·  p: let the policy go on")])  # fmt: skip
         else:
             row("POLICY", [("ok", "PAUSED"), ("", f"  {self.view.policy.removeprefix('paused').strip()}")])
 

@@ -31,6 +31,7 @@ VERSION = 1
 
 
 HASH_KEY = "weights_sha256"
+DOUBT_KEY = "doubt_json"  # optional: the doubt gate's calibration (with_doubt_calibration); older files lack it
 UNHASHED = "unhashed"  # what reports print for a file written before policy files carried a hash
 KNOWN_FORMATS = {FORMAT: "an exported equidiff policy", "equidiff_train_ckpt": "an equidiff training checkpoint"}
 
@@ -50,6 +51,7 @@ class PolicyFile:
     config: dict
     state: dict
     weights_sha256: str | None  # checked against the weights at load; None: an old, unhashed file
+    doubt: dict | None = None  # the doubt gate's calibration (policy.doubt.DoubtCalibration); None: none stored
 
 
 def weights_sha256(state: dict) -> str:
@@ -160,7 +162,22 @@ def open_policy_file(path: str | Path) -> PolicyFile:
         state = payload["state_dict"]
     except (KeyError, TypeError, json.JSONDecodeError) as err:
         raise CheckpointError(f"{path}: malformed policy file: {err}") from err
-    return PolicyFile(config, state, payload.get(HASH_KEY))
+    doubt = payload.get(DOUBT_KEY)
+    try:
+        doubt = None if doubt is None else json.loads(doubt)
+    except (TypeError, json.JSONDecodeError) as err:
+        raise CheckpointError(f"{path}: malformed doubt calibration: {err}") from err
+    return PolicyFile(config, state, payload.get(HASH_KEY), doubt)
+
+
+def with_doubt_calibration(path: str | Path, calibration: dict, out: str | Path, force: bool = False) -> Path:
+    """A copy of the policy file at ``path`` with ``calibration`` (``DoubtCalibration.as_dict``) stored in it,
+    written to ``out`` (refused if it exists unless ``force``; it may be ``path`` itself); weights untouched."""
+    payload = load_checked(path, FORMAT, VERSION, "policy file", "an exported equidiff policy", "state_dict")
+    payload[DOUBT_KEY] = json.dumps(calibration)
+    with staged_output(out, force=force) as staged:
+        torch.save(payload, staged.path)
+    return Path(out)
 
 
 def read_policy_file(path: str | Path) -> tuple[dict, dict]:

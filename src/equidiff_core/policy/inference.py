@@ -47,6 +47,7 @@ from ..models.sampling import ActionCodec, _guided_noise, ddim_sample, make_infe
 from ..runtime.machine import PRECISIONS, cpu_has_native_bf16
 from .augment import voxel_input
 from .diffusion import PolicyInputError
+from .doubt import DoubtCalibration
 from .file import (
     UNHASHED,
     CheckpointError,
@@ -110,6 +111,11 @@ def load_inference_policy(
     )
     # what ``equidiff check ...`` report: the checked sha256 of the weights, or "unhashed" (an old file)
     policy.weights_sha256 = policy_file.weights_sha256 or UNHASHED
+    if policy_file.doubt is not None:
+        try:
+            policy.doubt_calibration = DoubtCalibration.from_dict(policy_file.doubt)
+        except ValueError as err:
+            raise CheckpointError(f"{path}: {err}") from err
     return policy
 
 
@@ -139,6 +145,7 @@ class InferencePolicy:
             raise ValueError(f"cuda_graph needs a CUDA device, got {device}")
         self.name = name
         self.weights_sha256 = UNHASHED  # set by load_inference_policy from the file's checked hash
+        self.doubt_calibration: DoubtCalibration | None = None  # the doubt gate's, where the file stores one
         self.preset = preset
         self.workspace = workspace
         self.normalizer = normalizer
@@ -167,6 +174,7 @@ class InferencePolicy:
         self._encode = self.net.encode_obs
         self._denoise_films = self.net.denoise_films
         self._step_films: dict[int, torch.Tensor] = {}  # diffusion step -> its part of the FiLM terms
+        self._batch_steps: dict[int, object] = {}  # batch size -> its traced denoising step (predict_samples)
         self.jit = False
         if jit:
             self._trace()
@@ -309,11 +317,90 @@ class InferencePolicy:
         the sample is inpainted towards ``target`` (``wire.chunk.RealTimeChunking``); None: plain DDIM.
         With ``cuda_graph`` both run as one graph replay; the actions are the same as without it."""
         obs = self._obs_inputs(voxels, ee)
-        gen = None
-        if seed is not None:
-            gen = torch.Generator(device=self.device).manual_seed(int(seed))
+        gen = self._generator(seed)
         noise_t = None if noise is None else torch.as_tensor(np.asarray(noise, dtype=np.float32))[None]
         ee_t = torch.as_tensor(np.asarray(ee, dtype=np.float32), device=self.device)[None]
+        guide_t = self._guide_tensors(guide, ee_t)
+        if self._static is not None:
+            x = self._sample_static(obs, noise_t, gen, guide_t)
+        else:
+            x = ddim_sample(
+                self.denoise,
+                self.net.unet.global_films(self._encode(*obs)),
+                (1, self.preset.horizon, self.codec.dim),
+                self.scheduler,
+                generator=gen,
+                noise=noise_t,
+                device=self.device,
+                guide=guide_t,
+            )
+        return self._decoded(x, ee_t)[0]
+
+    @torch.no_grad()
+    def predict_samples(
+        self,
+        voxels: np.ndarray,
+        ee: np.ndarray,
+        samples: int,
+        seed: int | None = None,
+        guide: tuple[np.ndarray, np.ndarray] | None = None,
+    ) -> np.ndarray:
+        """``samples`` chunks (samples, horizon, 10) for one observation from one encoder pass, the K noise
+        rows denoised as one batch through the U-Net (``policy.doubt.sample_spread`` measures their spread).
+        The first row's noise is ``predict``'s for the same ``seed``, so it is the chunk ``predict`` would
+        give (to float rounding of the batched kernels); ``guide`` as ``predict``'s, for every row."""
+        if samples < 1:
+            raise ValueError(f"samples must be >= 1, got {samples}")
+        if samples == 1:
+            return self.predict(voxels, ee, seed=seed, guide=guide)[None]
+        obs = self._obs_inputs(voxels, ee)
+        ee_t = torch.as_tensor(np.asarray(ee, dtype=np.float32), device=self.device)[None]
+        guide_t = self._guide_tensors(guide, ee_t)
+        shape = (samples, self.preset.horizon, self.codec.dim)
+        if guide_t is not None:
+            guide_t = (guide_t[0].expand(shape), guide_t[1])
+        films = self.net.unet.global_films(self._encode(*obs))
+        rows = films.repeat(samples, 1)  # every sample's group elements, as encode_obs orders B*N rows
+        denoise = self._batched_step(samples)
+        x = ddim_sample(
+            lambda x, t, f: denoise(x, f + self._films_for_step(int(t.reshape(-1)[0]))),
+            rows,
+            shape,
+            self.scheduler,
+            generator=self._generator(seed),
+            device=self.device,
+            guide=guide_t,
+        )
+        return self._decoded(x, ee_t.expand(samples, 10))
+
+    def _batched_step(self, samples: int):
+        """The denoising step for a batch of ``samples`` rows: a traced step is traced for one row, so a
+        batch gets its own trace (made once per batch size)."""
+        if not self.jit:
+            return self.net.denoise_films
+        step = self._batch_steps.get(samples)
+        if step is None:
+            x = torch.zeros(samples, self.preset.horizon, self.codec.dim, device=self.device)
+            films = self.encode(*self._blank_observation()).repeat(samples, 1) + self._films_for_step(
+                self._timesteps[0]
+            )
+            with torch.no_grad(), warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                traced = torch.jit.trace(Method(self.net, "denoise_films").eval(), (x, films))
+                step = self._batch_steps[samples] = torch.jit.freeze(traced)
+        return step
+
+    def _generator(self, seed: int | None) -> torch.Generator | None:
+        return None if seed is None else torch.Generator(device=self.device).manual_seed(int(seed))
+
+    def _decoded(self, x: torch.Tensor, ee_t: torch.Tensor) -> np.ndarray:
+        out = self.codec.decode(x, ee_t).double().cpu().numpy()
+        if not np.isfinite(out).all():
+            raise PolicyInputError("policy produced non-finite actions")
+        return out
+
+    def _guide_tensors(self, guide, ee_t: torch.Tensor):
+        """``predict``'s ``guide`` checked and in model space (target (1, horizon, D), weights (horizon,)), or None."""
         guide_t = None
         if guide is not None:
             target, weights = (np.asarray(g, dtype=np.float32) for g in guide)
@@ -331,24 +418,7 @@ class InferencePolicy:
                 self.codec.encode(torch.from_numpy(target).to(self.device)[None], ee_t),
                 torch.from_numpy(weights),
             )
-        if self._static is not None:
-            x = self._sample_static(obs, noise_t, gen, guide_t)
-        else:
-            x = ddim_sample(
-                self.denoise,
-                self.net.unet.global_films(self._encode(*obs)),
-                (1, self.preset.horizon, self.codec.dim),
-                self.scheduler,
-                generator=gen,
-                noise=noise_t,
-                device=self.device,
-                guide=guide_t,
-            )
-        actions = self.codec.decode(x, ee_t)[0]
-        out = actions.double().cpu().numpy()
-        if not np.isfinite(out).all():
-            raise PolicyInputError("policy produced non-finite actions")
-        return out
+        return guide_t
 
     def warmup(self, iterations: int = 2) -> None:
         vox, ee = self._blank_observation()

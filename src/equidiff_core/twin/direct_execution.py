@@ -14,6 +14,7 @@ import numpy as np
 
 from ..control import Controller
 from ..perception.observation import ee_input
+from ..policy.doubt import DoubtTracker
 from ..robots.base import Robot, RobotError, RobotState
 from ..wire.chunk import AnswerSchedule, PoseChunk, RealTimeChunking, SamplingSeeds, chunk_from_actions
 from .scene import BLOCK, BOWL, body_pose
@@ -238,6 +239,8 @@ class DirectPolicy(_DirectExecution):
         publish_steps: int,
         rtc: bool,
         probe=None,
+        doubt_samples: int = 1,
+        on_doubt=None,
     ):
         preset = policy.preset
         super().__init__(
@@ -247,6 +250,10 @@ class DirectPolicy(_DirectExecution):
         self.delay_steps = RealTimeChunking.delay_for(latency_s, self.dt_ms / 1000)
         self.seeds = SamplingSeeds()
         self.seeds.start_episode(seed)
+        # policy_node's doubt of each chunk (policy.doubt), from doubt_samples samples per observation;
+        # on_doubt(seed, ChunkDoubt, samples (K, horizon, 10)) sees each
+        self.doubt_samples, self.on_doubt = int(doubt_samples), on_doubt
+        self.doubt = DoubtTracker(self.dt_ms * 1_000_000)
 
     def begin(self) -> float:
         t0 = super().begin()
@@ -261,11 +268,17 @@ class DirectPolicy(_DirectExecution):
         grid = self.world.rec.voxel_grid(stamp_ns)
         ee = ee_input(sim.tcp_pose(), sim.gripper_width())  # the state at the stamp itself: no matching needed
         seed = self.seeds.next()
-        if self.chunking is None:
-            actions = self.policy.predict(grid, ee, seed=seed)
-        else:
-            actions = self.policy.predict(grid, ee, seed=seed, guide=self.chunking.guide(stamp_ns, ee))
+        guided = {} if self.chunking is None else {"guide": self.chunking.guide(stamp_ns, ee)}
+        if self.doubt_samples > 1:
+            samples = self.policy.predict_samples(grid, ee, self.doubt_samples, seed=seed, **guided)
+        else:  # plain predict, as before the doubt (a scripted stand-in need not take a guide)
+            samples = self.policy.predict(grid, ee, seed=seed, **guided)[None]
+        actions = samples[0]
+        if self.chunking is not None:
             self.chunking.remember(stamp_ns, actions)
+        doubt = self.doubt.update(stamp_ns, samples)
+        if self.on_doubt is not None:
+            self.on_doubt(self.seed, doubt, samples)
         self.observations += 1
         chunk = chunk_from_actions(actions[: self.publish_steps], stamp_ns, self.dt_ms * 1_000_000)
         self.pending.append((self.now + self.latency_ms, chunk))

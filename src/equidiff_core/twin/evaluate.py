@@ -91,6 +91,8 @@ def evaluate_policy(
     rtc: bool = DEFAULT_RTC,
     probe=None,
     threads: int | None = ROLLOUT_THREADS,
+    doubt_samples: int = 1,
+    on_doubt=None,
 ) -> list[EvalEpisode]:
     """Roll ``policy`` (an ``policy.inference.InferencePolicy``) out from each seed's scene; returns per-episode results.
 
@@ -104,7 +106,8 @@ def evaluate_policy(
     module doc. The policy's sampling seeds are ``wire.chunk.SamplingSeeds``' for the episode's seed. ``probe``
     (e.g. ``twin.chunking.ChunkingProbe``) sees each episode's chunks as franka_node's
     Controller receives them and its every command. Inference runs on ``threads`` torch threads (None:
-    the process's setting); each scene's cameras draw their depth noise from its seed
+    the process's setting); ``doubt_samples`` and ``on_doubt``: ``DirectPolicy``'s (the doubt of each
+    chunk, ``policy.doubt``); each scene's cameras draw their depth noise from its seed
     (``DirectRecorder.reset``), so with a fixed thread count a seed's episode does not depend on the
     episodes rolled out before it."""
     from .demos import DirectRecorder, DirectWorld
@@ -132,7 +135,18 @@ def evaluate_policy(
         cleanup.enter_context(torch_threads(threads))
         for seed in seeds:
             actor = DirectPolicy(
-                world, policy, seed, control, max_duration_s, latency_s, execute_steps, publish_steps, rtc, probe
+                world,
+                policy,
+                seed,
+                control,
+                max_duration_s,
+                latency_s,
+                execute_steps,
+                publish_steps,
+                rtc,
+                probe,
+                doubt_samples,
+                on_doubt,
             )
             # settle_s 0: the cameras render the sim state itself, no pipeline to flush; the actor
             # ends the episode at the time limit's observation instant, after it has been judged

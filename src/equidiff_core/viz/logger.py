@@ -29,6 +29,7 @@ from ..wire.pointcloud import CloudError, _structured, msg_to_cloud
 from ..wire.rosmsg import (
     MessageError,
     diagnostic_entries,
+    doubt_from_msg,
     gripper_width_from_joint_state,
     has_gripper_joints,
     pos_quat_from_msg,
@@ -41,6 +42,7 @@ from .recording_setup import (
     CAMERAS,
     CHUNK,
     DIAGNOSTICS,
+    DOUBT,
     EE,
     EE_TRAIL,
     EPISODE_INFO,
@@ -391,6 +393,21 @@ class RerunLogger:
         self.logged["executed_target"] += 1
         return True
 
+    def log_doubt(self, msg: Any, receive_ns: int | None = None) -> bool:
+        """Vector3Stamped doubt of a chunk (``wire.rosmsg.doubt_msg``) -> one time series per signal, at the chunk's stamp."""
+        try:
+            doubt = doubt_from_msg(msg)
+        except MessageError as err:
+            return self._drop("doubt", err)
+        self._at(doubt.stamp_ns if doubt.stamp_ns > 0 else (receive_ns or time.time_ns()))
+        count = 0
+        for name, value in (("disagreement", doubt.disagreement_m), ("spread", doubt.spread_m)):
+            if np.isfinite(value):  # NaN: not computed for this chunk
+                self.rec.log(f"{DOUBT}/{name}", self.rr.Scalars(value))
+                count += 1
+        self.logged["doubt"] += 1
+        return count > 0
+
     def log_diagnostics(self, msg: Any, receive_ns: int | None = None) -> bool:
         """DiagnosticArray -> one time series per numeric key (latency and observation age in their own views)."""
         try:
@@ -435,6 +452,7 @@ class RerunLogger:
             topics.TOPIC_COMMAND_CHUNK: self.log_chunk,
             topics.TOPIC_EXECUTED_TARGET: self.log_executed_target,
             topics.TOPIC_DIAGNOSTICS: self.log_diagnostics,
+            topics.TOPIC_POLICY_DOUBT: self.log_doubt,
             topics.TOPIC_TF_STATIC: self.log_tf,
         }
 
@@ -474,5 +492,6 @@ TOPICS_HANDLED = (
     topics.TOPIC_COMMAND_CHUNK,
     topics.TOPIC_EXECUTED_TARGET,
     topics.TOPIC_DIAGNOSTICS,
+    topics.TOPIC_POLICY_DOUBT,
     topics.TOPIC_TF_STATIC,
 )

@@ -19,6 +19,7 @@ Entity layout (the same live and from bags; the base frame is the world):
 | ``metrics/latency/{inference,obs_to_cmd}`` | ``Scalars`` ms | ``/diagnostics`` (policy) |
 | ``metrics/observation_age/{policy,voxels_on_arrival}`` | ``Scalars`` ms | ``/diagnostics``; voxel stamp vs arrival |
 | ``metrics/gripper_width/{measured,commanded}`` | ``Scalars`` m | joint states; chunk step 0 |
+| ``metrics/doubt/{disagreement,spread}`` | ``Scalars`` m, at each chunk's stamp | ``/policy/doubt`` |
 | ``diagnostics/<status>/<key>`` | ``Scalars`` of every other numeric diagnostic | ``/diagnostics`` |
 | ``episode/info`` | ``TextDocument`` of the bag's episode metadata | bag ``custom_data`` |
 """
@@ -47,6 +48,7 @@ EXECUTED_TRAIL = "world/executed_trail"
 LATENCY = "metrics/latency"
 OBS_AGE = "metrics/observation_age"
 GRIPPER_WIDTH = "metrics/gripper_width"
+DOUBT = "metrics/doubt"
 DIAGNOSTICS = "diagnostics"
 EPISODE_INFO = "episode/info"
 IMAGES = "images"
@@ -86,7 +88,7 @@ def load_viz_config(path: str | Path | None = None) -> VizConfig:
 
 def default_blueprint(cameras: tuple[str, ...] | list[str] = ()) -> Any:
     """3D scene on the left (with a row of camera images below it, one per name in ``cameras``);
-    latency, observation age, gripper width and other diagnostics on the right."""
+    latency, observation age, gripper width, the policy's doubt and other diagnostics on the right."""
     require_rerun()
     import rerun.blueprint as rrb
 
@@ -101,6 +103,7 @@ def default_blueprint(cameras: tuple[str, ...] | list[str] = ()) -> Any:
                 rrb.TimeSeriesView(name="latency (ms)", origin=f"/{LATENCY}"),
                 rrb.TimeSeriesView(name="observation age (ms)", origin=f"/{OBS_AGE}"),
                 rrb.TimeSeriesView(name="gripper width (m)", origin=f"/{GRIPPER_WIDTH}"),
+                rrb.TimeSeriesView(name="doubt (m)", origin=f"/{DOUBT}"),
                 rrb.Tabs(
                     rrb.TimeSeriesView(name="diagnostics", origin=f"/{DIAGNOSTICS}"),
                     rrb.TextDocumentView(name="episode", origin="/episode"),

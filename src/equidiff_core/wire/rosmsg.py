@@ -39,6 +39,7 @@ from typing import Any
 import numpy as np
 
 from .. import geometry
+from ..policy.doubt import SIGNALS, ChunkDoubt
 from ..robots.base import ARM_JOINT_NAMES, FINGER_JOINT_NAMES, RobotState
 
 NS_PER_S = 1_000_000_000
@@ -484,3 +485,36 @@ def _fmt(v: Any) -> str:
     if isinstance(v, float):
         return f"{v:.3f}"
     return str(v)
+
+
+# --- the policy's doubt ---------------------------------------------------------------------
+
+
+def doubt_msg(factory: MsgFactory, doubt: ChunkDoubt) -> Any:
+    """A chunk's ``ChunkDoubt`` as geometry_msgs/Vector3Stamped: stamped with the chunk's stamp, frame_id the
+    signal's name, x its value, y the disagreement and z the spread (m; NaN where not computed)."""
+    return factory.make(
+        "geometry_msgs/msg/Vector3Stamped",
+        header=factory.header(doubt.stamp_ns, doubt.signal),
+        vector=factory.make(
+            "geometry_msgs/msg/Vector3", x=float(doubt.value), y=float(doubt.disagreement_m), z=float(doubt.spread_m)
+        ),
+    )
+
+
+def doubt_from_msg(msg: Any) -> ChunkDoubt:
+    """``doubt_msg``'s message -> ChunkDoubt; MessageError on a signal name it does not know, a negative or
+    infinite value, or an x that is not the named signal's value."""
+    signal = str(msg.header.frame_id)
+    if signal not in SIGNALS:
+        raise MessageError(f"doubt signal {signal!r} is not one of {SIGNALS}", MessageReason.FRAME)
+    v = msg.vector
+    values = np.array([v.x, v.y, v.z], dtype=np.float64)
+    if np.isinf(values).any():
+        raise MessageError(f"doubt values contain inf: {values.tolist()}", MessageReason.NAN)
+    if (values < 0).any():
+        raise MessageError(f"doubt values must be >= 0 m, got {values.tolist()}", MessageReason.RANGE)
+    doubt = ChunkDoubt(stamp_to_ns(msg.header.stamp), float(values[1]), float(values[2]), signal)
+    if not np.array_equal(values[0], doubt.value, equal_nan=True):
+        raise MessageError(f"doubt value {values[0]} is not the {signal} ({doubt.value})", MessageReason.MALFORMED)
+    return doubt

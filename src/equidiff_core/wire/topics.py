@@ -18,6 +18,8 @@ TOPIC_JOY = "/spacenav/joy"
 TOPIC_RECORDER_COMMAND = "/recorder/command"
 TOPIC_POLICY_SKIPPED = "/policy/skipped"
 TOPIC_POLICY_STATE = "/policy/state"  # running / paused <reason>, latched
+# each chunk's doubt (policy.doubt), geometry_msgs/Vector3Stamped stamped with the chunk's stamp (wire.rosmsg.doubt_msg)
+TOPIC_POLICY_DOUBT = "/policy/doubt"
 TOPIC_POLICY_EPISODE = "/policy/episode"  # {"seed", "start_ns"}: the sampling seeds of an episode, latched
 TOPIC_TELEOP_ACTIVE = "/teleop/active"  # an operator's takeover (intervention), latched
 TOPIC_RECORDER_STATUS = "/recorder/status"  # idle / recording <path> / ..., latched
@@ -48,6 +50,7 @@ SERVICE_FRANKA_HOME = "/franka/home"  # Trigger: glide slowly to the configured 
 
 CLOUD_TYPE = "sensor_msgs/msg/PointCloud2"
 POSE_TYPE = "geometry_msgs/msg/PoseStamped"
+DOUBT_TYPE = "geometry_msgs/msg/Vector3Stamped"
 TF_TYPE = "tf2_msgs/msg/TFMessage"
 COMPRESSED_IMAGE_TYPE = "sensor_msgs/msg/CompressedImage"
 
@@ -62,6 +65,7 @@ RECORDED_TOPICS: dict[str, str] = {
     TOPIC_DIAGNOSTICS: "diagnostic_msgs/msg/DiagnosticArray",
     TOPIC_TELEOP_ACTIVE: "std_msgs/msg/Bool",
     TOPIC_POLICY_STATE: "std_msgs/msg/String",
+    TOPIC_POLICY_DOUBT: DOUBT_TYPE,
 }
 # What training needs of a bag: the in-process demos write just these.
 TRAINING_TOPICS: dict[str, str] = {

@@ -11,6 +11,9 @@ Targets on a 2-core CPU: compact <= 100 ms p99, paper <= 400 ms median.
 export in one run (``benches.timing.InferenceMode``): the top-level figures are the first measured
 mode's, ``modes`` holds each one's (or its error), ``best_mode`` / ``best_ddim16_p99_ms`` the
 smallest p99. ``--rtc`` adds RTC-guided sampling (``rtc_median_ms``, ``rtc_vs_plain``).
+Every mode reports what the default doubt signal adds (``doubt_signal``, ``doubt_ms``,
+``doubt_vs_ddim16_percent`` against ``doubt_ddim16_median_ms``, timed alternately; docs/doubt.md);
+``--doubt-samples 2 4 8`` adds the extra ms of K samples per observation (``spread_extra_ms``).
 ``--compare-relu-order`` adds the same export with the encoder's old order, each ReLU before its
 max-pool (``relu_before_pool``; ``relu_order_cpu_ms``: both orders alternately in CPU time).
 ``encoder_gflop`` (``benches.cost.encoder_flops``) over ``encoder_ms`` gives ``encoder_gflop_s``, and
@@ -55,6 +58,14 @@ def add_arguments(parser) -> None:
     )
     parser.add_argument("--rtc", action="store_true", help="also time RTC-guided sampling against plain DDIM")
     parser.add_argument(
+        "--doubt-samples",
+        type=int,
+        nargs="+",
+        default=[],
+        metavar="K",
+        help="also time K DDIM samples per observation in one encoder pass (the spread signal's cost), each K >= 2",
+    )
+    parser.add_argument(
         "--compare-relu-order",
         action="store_true",
         help="also time the same weights with each ReLU before its max-pool (the encoder order before), in the "
@@ -87,6 +98,7 @@ def run(args) -> int:
         graph=args.graph,
         modes=args.modes,
         rtc=args.rtc,
+        doubt_samples=tuple(args.doubt_samples),
         compare_relu_order=args.compare_relu_order,
         compare_encoder=args.compare_encoder,
         iters=args.iters,
