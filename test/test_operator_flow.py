@@ -313,6 +313,107 @@ def test_the_operator_flow_drives_the_twin_the_same_way(ros_domain, tmp_path):
     assert ep.message_counts.get("/teleop/active", 0) >= 2  # the takeover's start and end
 
 
+@pytest.mark.ros
+@pytest.mark.slow
+@pytest.mark.sim
+def test_in_the_twin_the_gate_asks_for_help_and_the_correction_is_recorded_as_such(ros_domain, tmp_path):
+    """The corrections loop live, on simulated time: policy_node's doubt gate (threshold 0, so the second
+    chunk already doubts) holds the policy, franka_node holds the arm, a SpaceMouse takes over through
+    teleop_node, and the episode's bag holds the policy's, the held and the operator's stretches, which
+    ``dataset stats`` counts (docs/corrections.md)."""
+    from equidiff_core.data.dataset import dataset_stats
+    from equidiff_core.data.episode_arrays import DatasetConfig
+    from equidiff_core.data.segments import FrameSource
+    from equidiff_core.policy.file import with_doubt_calibration
+    from equidiff_core.twin.config import TwinConfig
+    from equidiff_core.twin.processes import node_command
+    from equidiff_core.twin.standin import make_standin_policy
+    from equidiff_ros.common import SENSOR_QOS
+    from equidiff_ros.twin import TwinStack
+
+    cfg_dir = default_config_dir()
+    standin = make_standin_policy(tmp_path / "standin.pt", LAB.workspace, preset="tiny", cfg=TwinConfig())
+    calibration = {"signal": "disagreement", "samples": 1, "episodes": 1, "values_m": [0.0]}
+    policy = with_doubt_calibration(standin, calibration, tmp_path / "gated.pt")
+    with TwinStack(
+        tmp_path / "run",
+        cfg_dir / "lab.yaml",
+        cfg_dir / "twin.yaml",
+        policy=str(policy),
+        task="corrections",
+        domain_id=221 + (ros_domain + 3) % 12,
+        policy_parameters={"doubt_gate": True, "doubt_quantile": 1.0},
+        log=lambda s: None,
+    ) as stack:
+        sup = stack.sup
+        stack.group.start(
+            "teleop_node",
+            node_command(
+                "teleop_node",
+                {"lab_config": str(cfg_dir / "lab.yaml"), "use_sim_time": True, "source": "joy", "resync_after_s": 0.5},
+            ),
+        )
+        f = sup.factory
+        joy_pub = sup.node.create_publisher(f.cls("sensor_msgs/msg/Joy"), "/spacenav/joy", SENSOR_QOS)
+        sup.wait_for(lambda: joy_pub.get_subscription_count() > 0, 60.0, "teleop_node", stack.check)
+        started = lab_cli("record", "start")
+        assert started.returncode == 0, started.stderr
+        episode = Path(started.stdout.strip())
+        sup.open_gate()
+
+        def status() -> dict:
+            got = lab_cli("status", "--json")
+            assert got.returncode == 0, got.stderr
+            return json.loads(got.stdout)
+
+        def until(predicate, what: str, timeout_s: float = 120.0) -> None:
+            deadline = time.monotonic() + timeout_s
+            while not predicate():
+                assert time.monotonic() < deadline, f"never {what}: {status()}"
+                sup.sim_sleep(0.5, stack.check)
+
+        asking = lambda: status()["policy"].startswith("paused asks for help")
+        # its first chunks (the twin's start-up, before the gate opened) already disagree: it asks at once
+        until(asking, "asked for help")
+        enabled = lab_cli("policy", "enable")  # the operator lets it go on: its next chunk reaches the arm
+        assert enabled.returncode == 0, enabled.stderr
+        until(lambda: sup.chunk_arrivals, "a chunk reached the arm after the enable")
+        until(asking, "asked for help again")
+        until(lambda: status()["robot"]["state"] == "holding", "franka_node held")
+        asked = len(sup.chunk_arrivals)
+        sup.sim_sleep(1.0, stack.check)
+        assert len(sup.chunk_arrivals) == asked  # the policy sends nothing while it asks for help
+
+        end = sup.now_ns() + 2 * S  # the operator drives 2 s of sim time, then lets go
+        while sup.now_ns() < end:
+            joy_pub.publish(
+                f.make(
+                    "sensor_msgs/msg/Joy", header=f.header(sup.now_ns(), ""), axes=[0.5, 0, 0, 0, 0, 0], buttons=[0, 0]
+                )
+            )
+            stack.check()
+            time.sleep(0.02)
+        sup.sim_sleep(1.5, stack.check)
+        kept = lab_cli("record", "success")
+        assert kept.returncode == 0, kept.stderr
+        sup.close_gate()
+    arrays_config = DatasetConfig.for_lab(LAB, horizon=4, n_obs_steps=1, n_action_steps=2)
+    stats = dataset_stats([episode], arrays_config)
+    assert not stats["skipped"], stats["skipped"]
+    row = stats["episodes"][0]
+    seconds = row["seconds_by_source"]
+    assert seconds["policy"] > 0 and seconds["hold"] > 0 and seconds["operator"] > 0, seconds
+    assert row["corrected"] and row["gate_alarms"] >= 1
+    assert stats["total"]["episodes_with_corrections"] == 1
+    from equidiff_core.data.dataset import load_episode_arrays
+
+    sources = load_episode_arrays(episode, arrays_config).sources.tolist()
+    # who drove, in order (stretches, not frames): the policy, then the held arm, then the operator
+    stretches = [source for k, source in enumerate(sources) if k == 0 or source != sources[k - 1]]
+    order = [FrameSource.POLICY, FrameSource.HOLD, FrameSource.OPERATOR]
+    assert stretches[stretches.index(FrameSource.POLICY) :][:3] == order, stretches
+
+
 class Tmux:
     """A terminal the test types into and reads back: a tmux server of its own (private socket),
     so the program runs on a real tty exactly as an operator's terminal runs it."""

@@ -53,10 +53,12 @@ def pipeline_specs(
     device: str = "cpu",
     precision: str = TWIN_PRECISION,
     torch_threads: int = 1,
+    policy_parameters: dict | None = None,
 ) -> NodeSpecs:
     """Every node but twin_node, in start order: one camera_node per camera, named
     ``camera_<camera>``, voxel_node, franka_node (robot_ip = the twin's ``host``), recorder_node
-    and, with a ``policy``, policy_node with its chunks remapped to the supervisor's gate.
+    and, with a ``policy``, policy_node with its chunks remapped to the supervisor's gate (and
+    ``policy_parameters`` beside the twin's own, e.g. the doubt gate's).
 
     ``sim``: every node runs on twin_node's clock; ``lenient``: accept older observations (CI
     machines too loaded to hold 5 Hz; real time only), never for reported numbers."""
@@ -118,6 +120,7 @@ def pipeline_specs(
                 "torch_threads": torch_threads,
                 "rtc_max_gap_m": control.safety.max_first_step_jump_m,
                 **timing,
+                **(policy_parameters or {}),
             },
             {TOPIC_COMMAND_CHUNK: TOPIC_TWIN_POLICY_CHUNK},
         )

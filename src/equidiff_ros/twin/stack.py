@@ -58,6 +58,7 @@ class TwinStack:
         stall_timeout_s: float = 30.0,
         max_speed: float = 1.0,
         composed: bool = False,
+        policy_parameters: dict | None = None,
         log=print,
     ):
         self.out_dir = Path(out_dir)
@@ -77,6 +78,7 @@ class TwinStack:
         self.realtime, self.latency_s, self.stall_timeout_s = realtime, latency_s, stall_timeout_s
         self.max_speed = max_speed  # simulated time: at most this many sim seconds per wall second
         self.composed = composed  # every node but twin_node in one process (equidiff_ros.composed)
+        self.policy_parameters = policy_parameters  # policy_node's, beside the twin's (e.g. doubt_gate)
         self.log = log
         self.group = None
         self.sup: Supervisor | None = None
@@ -140,6 +142,7 @@ class TwinStack:
             device=self.device,
             precision=self.precision,
             torch_threads=self.torch_threads,
+            policy_parameters=self.policy_parameters,
         )
         # The nodes that need nothing of twin_node but /clock start first, so that their start-up (imports;
         # policy_node loads and warms up its checkpoint before it waits for /clock) overlaps twin_node's
