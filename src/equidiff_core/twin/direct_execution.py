@@ -15,7 +15,7 @@ import numpy as np
 from ..control import Controller
 from ..perception.observation import ee_input
 from ..robots.base import Robot, RobotError, RobotState
-from ..wire.chunk import AnswerSchedule, PoseChunk, RealTimeChunking, SamplingSeeds, chunk_from_actions
+from ..wire.chunk import AnswerSchedule, ChunkError, PoseChunk, RealTimeChunking, SamplingSeeds, chunk_from_actions
 from .scene import BLOCK, BOWL, body_pose
 
 # Rate at which the controller's newest target is sent to DirectSim.command.
@@ -247,6 +247,7 @@ class DirectPolicy(_DirectExecution):
         self.delay_steps = RealTimeChunking.delay_for(latency_s, self.dt_ms / 1000)
         self.seeds = SamplingSeeds()
         self.seeds.start_episode(seed)
+        self.failed_predictions = 0  # answers policy_node would have skipped: no valid chunk in them
 
     def begin(self) -> float:
         t0 = super().begin()
@@ -267,7 +268,11 @@ class DirectPolicy(_DirectExecution):
             actions = self.policy.predict(grid, ee, seed=seed, guide=self.chunking.guide(stamp_ns, ee))
             self.chunking.remember(stamp_ns, actions)
         self.observations += 1
-        chunk = chunk_from_actions(actions[: self.publish_steps], stamp_ns, self.dt_ms * 1_000_000)
+        try:
+            chunk = chunk_from_actions(actions[: self.publish_steps], stamp_ns, self.dt_ms * 1_000_000)
+        except ChunkError:  # as policy_node: a bad prediction is skipped (counted per episode), the chunk runs on
+            self.failed_predictions += 1
+            return
         self.pending.append((self.now + self.latency_ms, chunk))
 
 
