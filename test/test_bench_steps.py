@@ -101,6 +101,7 @@ def test_bench_steps_rows_timing_paired_and_plot_then_resumes_without_rolling_ou
         assert 0 < row["inference_median_ms"] <= row["inference_p99_ms"]
         assert row["chunking"]["chunk_switches"] == 0 and row["boundary_dv_p95_mps"] is None  # no commands fed
     assert result["timing"]["ddim1_trailing"]["calls"] == 1 and result["cpu"] and result["complete"]
+    assert len(result["timing_load_average_1min"]) == 2
     assert result["seeds"] == [100000, 100003] and result["pending"] == []
     assert plot.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" == (out / bench.PLOT_NAME).read_bytes()[:8]
     assert json.loads((out / "result.json").read_text()) == result

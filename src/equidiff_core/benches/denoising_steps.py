@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 import statistics
 import textwrap
 import time
@@ -179,7 +180,9 @@ def run_steps_bench(settings: StepsSettings) -> dict:
             policies[name] = _load(settings, checkpoint, k, settings.spacing)
     vox, ee = twin_scenes(own.preset, own.workspace, count=1, seed=0, scene=cfg.scene)
     logger.info(f"[steps] timing {', '.join(policies)}: {settings.timing_calls} calls each, one thread")
+    load_before = os.getloadavg()[0]  # the timing shares the CPU with whatever else runs: say how busy it was
     timing = time_predict(policies, settings.timing_calls, vox[0, 0].numpy(), ee[0, 0].numpy())
+    load = [round(load_before, 2), round(os.getloadavg()[0], 2)]
     seeds = list(range(settings.seed, settings.seed + settings.episodes))
     digest = policy_digest(checkpoint)
     rows: list[dict] = []
@@ -256,11 +259,11 @@ def run_steps_bench(settings: StepsSettings) -> dict:
                 f"median {row['inference_median_ms']} ms, boundary dv p95 {row['boundary_dv_p95_mps']} m/s"
             )
             if fresh:  # what an interrupted run leaves: the figures so far (reused ones add nothing to redraw)
-                _result(settings, rows, policies, timing, checkpoint, seeds, max_duration, t_start)
+                _result(settings, rows, policies, timing, load, checkpoint, seeds, max_duration, t_start)
     finally:
         if rec is not None:
             rec.close()
-    result = _result(settings, rows, policies, timing, checkpoint, seeds, max_duration, t_start)
+    result = _result(settings, rows, policies, timing, load, checkpoint, seeds, max_duration, t_start)
     result["complete"] = True
     write_output_text(settings.out / "result.json", json.dumps(result) + "\n", force=True)
     if settings.plot is not None:
@@ -269,7 +272,7 @@ def run_steps_bench(settings: StepsSettings) -> dict:
     return result
 
 
-def _result(settings, rows, policies, timing, checkpoint, seeds, max_duration, t_start) -> dict:
+def _result(settings, rows, policies, timing, load, checkpoint, seeds, max_duration, t_start) -> dict:
     """The JSON line so far, written to OUT/result.json with its plot (``complete`` false until every sampler
     has been rolled out)."""
     own = next(iter(policies.values()))
@@ -287,6 +290,7 @@ def _result(settings, rows, policies, timing, checkpoint, seeds, max_duration, t
         "rows": rows,
         "pending": [name for name in policies if name not in {r["sampler"] for r in rows}],
         "timing": timing,
+        "timing_load_average_1min": load,  # before and after the timing
         "seeds": [seeds[0], seeds[-1]],
         "episodes": len(seeds),
         "max_duration_s": max_duration,
