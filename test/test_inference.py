@@ -119,6 +119,8 @@ def test_legacy_checkpoint_keeps_its_legacy_encoder_and_predicts_as_before():
     vox, ee = twin_scenes(inf.preset, inf.workspace, count=1, seed=7, scene=load_twin_config().scene)
     a = inf.predict(vox[0, 0].numpy(), ee[0, 0].numpy(), seed=0)
     np.testing.assert_allclose(a[[0, 7, 15]], LEGACY_ACTIONS, atol=1e-5)
+    sixteen = load_inference_policy(LEGACY, inference_steps=16, timestep_spacing="leading")
+    np.testing.assert_array_equal(a, sixteen.predict(vox[0, 0].numpy(), ee[0, 0].numpy(), seed=0))
 
 
 @pytest.mark.slow
@@ -498,3 +500,38 @@ def test_the_onednn_encoder_computes_what_the_native_one_did(exported, which):
 def test_encoder_kernels_must_be_known(exported):
     with pytest.raises(ValueError, match="encoder_kernels"):
         load_inference_policy(exported[1], encoder_kernels="fastest")
+
+
+def test_inference_steps_are_an_inference_time_setting(exported, tmp_path):
+    """The preset's 16 steps predict exactly as without the setting; fewer steps (either spacing) still
+    give valid chunks; a policy file's own ``sampler`` entry sets them, the arguments override it."""
+    policy, path = exported
+    vox, ee = random_observation(policy, batch=1, seed=5)
+    obs = (vox[0, 0].numpy(), ee[0, 0].numpy())
+    default = load_inference_policy(path)
+    assert default.inference_steps == 16 and default.timestep_spacing == "leading"
+    a = default.predict(*obs, seed=7)
+    np.testing.assert_array_equal(a, load_inference_policy(path, inference_steps=16).predict(*obs, seed=7))
+    for spacing in ("leading", "trailing"):
+        for k in (8, 4, 2, 1):
+            few = load_inference_policy(path, inference_steps=k, timestep_spacing=spacing)
+            assert few.inference_steps == k == len(few.scheduler.timesteps)
+            b = few.predict(*obs, seed=7)
+            assert b.shape == (16, 10) and np.isfinite(b).all()
+            assert not np.array_equal(a, b)
+    assert [
+        int(t) for t in load_inference_policy(path, inference_steps=1, timestep_spacing="trailing").scheduler.timesteps
+    ] == [99]
+    with pytest.raises(ValueError, match="inference steps"):
+        load_inference_policy(path, inference_steps=0)
+    with pytest.raises(ValueError, match="spacing"):
+        load_inference_policy(path, timestep_spacing="linspace-ish")
+    payload = torch.load(path, weights_only=True)
+    config = json.loads(payload["config_json"])
+    student = tmp_path / "student.pt"
+    torch.save({**payload, "config_json": json.dumps({**config, "sampler": {"steps": 2}})}, student)
+    assert load_inference_policy(student).inference_steps == 2
+    assert load_inference_policy(student, inference_steps=4).inference_steps == 4
+    torch.save({**payload, "config_json": json.dumps({**config, "sampler": {"steps": 500}})}, student)
+    with pytest.raises(CheckpointError, match="inference steps"):
+        load_inference_policy(student)

@@ -422,3 +422,32 @@ def test_replaying_recorded_chunks_executes_them_from_the_bags_scene(tmp_path):
     assert same.success and same.reached and same.lifted
     assert not (higher.success or higher.lifted) and higher.recorded_success
     assert np.isnan(same.tcp_gap_mean_mm)  # the bags hold no /franka/ee_pose to compare with
+
+
+@pytest.mark.sim
+def test_an_answer_with_no_valid_chunk_is_skipped_and_counted_as_policy_node_skips_it():
+    """Every other answer's rotation is degenerate (its 6-D rows parallel, as a one-step sampler can give):
+    the episode goes on with the running chunk, and counts each skipped answer."""
+    from equidiff_core.config import default_config_dir, load_lab_config
+    from equidiff_core.twin.demos import DirectRecorder
+    from equidiff_core.twin.evaluate import evaluate_policy
+
+    class SometimesDegenerate(_ExpertAsPolicy):
+        calls = 0
+
+        def predict(self, grid, ee, seed=0):
+            self.calls += 1
+            actions = np.repeat(ee[None].astype(np.float64), 16, axis=0)
+            if self.calls % 2 == 0:
+                actions[:, 6:9] = actions[:, 3:6]  # the second rotation row = the first
+            return actions
+
+    lab = load_lab_config(default_config_dir() / "lab.yaml")
+    rec = DirectRecorder(CFG, lab)
+    policy = SometimesDegenerate(rec.sim)
+    try:
+        (episode,) = evaluate_policy(policy, CFG, lab, [3], 1.0, log=lambda s: None, recorder=rec, execute_steps=1)
+    finally:
+        rec.close()
+    assert episode.observations == policy.calls >= 4
+    assert episode.failed_predictions == policy.calls // 2 and not episode.success

@@ -53,6 +53,10 @@ COMMANDS: dict[tuple[str, ...], tuple[str, str]] = {
         "bench_chunking",
         "replace vs execution horizon vs real-time chunking by latency, in the twin",
     ),
+    ("bench", "steps"): (
+        "bench_steps",
+        "success against DDIM denoising steps in the twin, with inference time and chunk-boundary velocity change",
+    ),
     ("bench", "twin"): ("bench_twin", "where the twin's CPU goes: each process's share and wall s per sim s"),
     ("bench", "images"): ("bench_images", "what recording the cameras' colour images costs: bytes and CPU per frame"),
     ("twin", "collect"): ("twin_collect", "record scripted-expert demonstrations in the digital twin"),

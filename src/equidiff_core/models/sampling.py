@@ -22,7 +22,20 @@ def make_train_scheduler(preset: PolicyPreset) -> DDPMScheduler:
     )
 
 
-def make_inference_scheduler(preset: PolicyPreset) -> DDIMScheduler:
+# How DDIM spaces its timesteps over the training schedule (diffusers' ``timestep_spacing``). "leading", the
+# policies' own, starts k steps at T - T/k (one step: at t = 0, the noise returned as it is); "trailing"
+# always starts at T - 1, as few-step samplers do (docs/denoising_steps.md).
+TIMESTEP_SPACINGS = ("leading", "trailing")
+
+
+def make_inference_scheduler(preset: PolicyPreset, steps: int | None = None, spacing: str = "leading") -> DDIMScheduler:
+    """The DDIM scheduler at ``steps`` denoising steps (None: the preset's ``num_inference_steps``) spaced by
+    ``spacing`` (of TIMESTEP_SPACINGS); ValueError outside 1..num_train_timesteps or for another spacing."""
+    steps = preset.num_inference_steps if steps is None else int(steps)
+    if not 1 <= steps <= preset.num_train_timesteps:
+        raise ValueError(f"inference steps must be in 1..{preset.num_train_timesteps}, got {steps}")
+    if spacing not in TIMESTEP_SPACINGS:
+        raise ValueError(f"timestep spacing must be one of {TIMESTEP_SPACINGS}, got {spacing!r}")
     # Same betas as training; eta = 0 (deterministic given the initial noise), as diffusion_policy's DDIM.
     sched = DDIMScheduler(
         num_train_timesteps=preset.num_train_timesteps,
@@ -31,8 +44,9 @@ def make_inference_scheduler(preset: PolicyPreset) -> DDIMScheduler:
         clip_sample=True,
         set_alpha_to_one=True,
         steps_offset=0,
+        timestep_spacing=spacing,
     )
-    sched.set_timesteps(preset.num_inference_steps)
+    sched.set_timesteps(steps)
     return sched
 
 

@@ -14,7 +14,7 @@ Speed switches (``load_inference_policy(..., precision="bf16", jit=True, compile
 cuda_graph=False)``): bf16 weights and activations (the DDIM arithmetic stays fp32),
 channels_last_3d for the 3D convolutions (also in fp32 on a CPU), ``torch.jit.trace`` + freeze of the encoder and of one
 denoising step, optionally ``torch.compile`` of the step, and on CUDA optionally ``cuda_graph``:
-the encoder, the 16 denoising steps and their DDIM updates captured once as CUDA graphs (plain and
+the encoder, the denoising steps and their DDIM updates captured once as CUDA graphs (plain and
 RTC-guided) and replayed per call, so a ``predict`` launches one graph instead of hundreds of
 small kernels. Always: the U-Net's FiLM terms split into an observation part (once per
 ``encode``) and a step part (cached per diffusion step); on CPU a
@@ -68,7 +68,12 @@ def load_inference_policy(
     compile: bool = False,
     cuda_graph: bool = False,
     encoder_kernels: str = "onednn",
+    inference_steps: int | None = None,
+    timestep_spacing: str | None = None,
 ) -> InferencePolicy:
+    """``inference_steps`` / ``timestep_spacing``: the DDIM sampler, an inference-time setting (None: the policy
+    file's ``sampler`` entry if it has one, else the preset's ``num_inference_steps``, "leading" spacing;
+    ``models.sampling.make_inference_scheduler``)."""
     if precision not in PRECISIONS:
         raise ValueError(f"precision must be one of {PRECISIONS}, got {precision!r}")
     if encoder_kernels not in ENCODER_KERNELS:
@@ -80,8 +85,13 @@ def load_inference_policy(
         workspace = from_dict(Workspace, config["workspace"], where="workspace")
         normalizer = Normalizer.from_dict(config["normalizer"])
         name = config["policy"]
+        # a policy file may carry its own sampler (a distilled few-step policy); the arguments override it
+        sampler = dict(config.get("sampler") or {})
+        make_inference_scheduler(preset, sampler.get("steps"), sampler.get("timestep_spacing", "leading"))
     except (KeyError, ValueError, TypeError, NormalizerError) as err:
         raise CheckpointError(f"{path}: incompatible policy config: {err}") from err
+    steps = inference_steps if inference_steps is not None else sampler.get("steps")
+    spacing = timestep_spacing or sampler.get("timestep_spacing", "leading")
     net = build_plain_network(name, preset)
     try:
         net.load_state_dict(state, strict=True)
@@ -108,6 +118,8 @@ def load_inference_policy(
         compile,
         cuda_graph,
         encoder_kernels,
+        steps,
+        spacing,
     )
     # what ``equidiff check ...`` report: the checked sha256 of the weights, or "unhashed" (an old file)
     policy.weights_sha256 = policy_file.weights_sha256 or UNHASHED
@@ -124,7 +136,8 @@ ENCODER_KERNELS = ("onednn", "native")
 
 
 class InferencePolicy:
-    """Plain-torch DDIM policy: ``predict(voxels (4, R, R, R) uint8, ee (10,)) -> (horizon, 10)``."""
+    """Plain-torch DDIM policy: ``predict(voxels (4, R, R, R) uint8, ee (10,)) -> (horizon, 10)``, sampled in
+    ``inference_steps`` DDIM steps spaced by ``timestep_spacing`` (None: the preset's steps, "leading")."""
 
     def __init__(
         self,
@@ -140,6 +153,8 @@ class InferencePolicy:
         compile: bool = False,
         cuda_graph: bool = False,
         encoder_kernels: str = "onednn",
+        inference_steps: int | None = None,
+        timestep_spacing: str | None = None,
     ):
         if cuda_graph and device.type != "cuda":
             raise ValueError(f"cuda_graph needs a CUDA device, got {device}")
@@ -153,7 +168,9 @@ class InferencePolicy:
         self.precision = precision
         self.dtype = torch.bfloat16 if precision == "bf16" else torch.float32
         self.codec = ActionCodec(preset.control, normalizer)
-        self.scheduler = make_inference_scheduler(preset)
+        self.timestep_spacing = timestep_spacing or "leading"
+        self.scheduler = make_inference_scheduler(preset, inference_steps, self.timestep_spacing)
+        self.inference_steps = len(self.scheduler.timesteps)
         self.net = net.eval().to(device=device, dtype=self.dtype)
         self.pad_channels = 0
         self.encoder_kernels = encoder_kernels
@@ -296,7 +313,7 @@ class InferencePolicy:
 
     def _films_for_step(self, step: int) -> torch.Tensor:
         films = self._step_films.get(step)
-        if films is None:  # at most num_train_timesteps entries; DDIM-16 uses 16
+        if films is None:  # at most num_train_timesteps entries; DDIM uses one per step
             films = self._step_films[step] = self.net.unet.step_films(torch.tensor([step], device=self.device)).to(
                 self.dtype
             )

@@ -16,7 +16,7 @@ from ..control import Controller
 from ..perception.observation import ee_input
 from ..policy.doubt import DoubtTracker
 from ..robots.base import Robot, RobotError, RobotState
-from ..wire.chunk import AnswerSchedule, PoseChunk, RealTimeChunking, SamplingSeeds, chunk_from_actions
+from ..wire.chunk import AnswerSchedule, ChunkError, PoseChunk, RealTimeChunking, SamplingSeeds, chunk_from_actions
 from .scene import BLOCK, BOWL, body_pose
 
 # Rate at which the controller's newest target is sent to DirectSim.command.
@@ -254,6 +254,7 @@ class DirectPolicy(_DirectExecution):
         # on_doubt(seed, ChunkDoubt, samples (K, horizon, 10)) sees each
         self.doubt_samples, self.on_doubt = int(doubt_samples), on_doubt
         self.doubt = DoubtTracker(self.dt_ms * 1_000_000)
+        self.failed_predictions = 0  # answers policy_node would have skipped: no valid chunk in them
 
     def begin(self) -> float:
         t0 = super().begin()
@@ -280,7 +281,11 @@ class DirectPolicy(_DirectExecution):
         if self.on_doubt is not None:
             self.on_doubt(self.seed, doubt, samples)
         self.observations += 1
-        chunk = chunk_from_actions(actions[: self.publish_steps], stamp_ns, self.dt_ms * 1_000_000)
+        try:
+            chunk = chunk_from_actions(actions[: self.publish_steps], stamp_ns, self.dt_ms * 1_000_000)
+        except ChunkError:  # as policy_node: a bad prediction is skipped (counted per episode), the chunk runs on
+            self.failed_predictions += 1
+            return
         self.pending.append((self.now + self.latency_ms, chunk))
 
 

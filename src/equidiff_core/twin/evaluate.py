@@ -75,6 +75,7 @@ class EvalEpisode:
     lifted: bool = False  # the block LIFT_M above where it started
     closest_to_bowl_m: float = float("nan")  # nearest the block's centre came to the bowl's axis
     closest_to_block_m: float = float("nan")  # nearest the TCP came to the block's centre
+    failed_predictions: int = 0  # answers with no valid chunk, skipped as policy_node skips them
 
 
 def evaluate_policy(
@@ -164,6 +165,7 @@ def evaluate_policy(
                     progress.lifted,
                     round(progress.closest_to_bowl_m, 3),
                     round(progress.closest_to_block_m, 3),
+                    actor.failed_predictions,
                 )
             )
             stats = actor.controller.stats
@@ -174,6 +176,9 @@ def evaluate_policy(
                     else "",
                     f"; {stats.watchdog_holds} watchdog holds" if stats.watchdog_holds else "",
                     f"; {stats.divergence_stops} divergence stops" if stats.divergence_stops else "",
+                    f"; {actor.failed_predictions} predictions skipped (no valid chunk)"
+                    if actor.failed_predictions
+                    else "",
                 ]
             )
             log(
