@@ -48,6 +48,10 @@ COMMANDS: dict[tuple[str, ...], tuple[str, str]] = {
         "bench_demos",
         "sample efficiency: EquiDiff vs the baseline trained on 10, 20 and 40 demos (success per count, PNG)",
     ),
+    ("bench", "corrections"): (
+        "bench_corrections",
+        "one round of corrections in the twin: takeovers, fine-tuning, against more demos (PNG)",
+    ),
     ("bench", "safety"): ("bench_safety", "fault campaign against franky-sim through franka_node (one JSON line)"),
     ("bench", "chunking"): (
         "bench_chunking",

@@ -83,3 +83,25 @@ def cached_rollouts(
     cache.parent.mkdir(parents=True, exist_ok=True)
     save_rollouts(cache, done, settings)
     return done
+
+
+def resumable_rollouts(
+    cache: Path,
+    settings: dict,
+    roll_one: Callable[[int], EvalEpisode],
+    log: Callable[[str], None],
+) -> list[EvalEpisode]:
+    """``cached_rollouts`` scene by scene: the episodes saved in ``cache`` for exactly ``settings`` (the same
+    file layout, so a complete file from ``cached_rollouts`` is reused as it is) and ``roll_one(seed)`` for each
+    seed of ``settings["seeds"]`` not yet there, the file rewritten after each: an interrupted bench loses at
+    most one scene."""
+    seeds = list(settings["seeds"])
+    saved = {e.seed: e for e in load_rollouts(cache, settings) or [] if e.seed in seeds}
+    if saved:
+        log(f"{len(saved)} of {len(seeds)} roll-outs reused from {cache}")
+    cache.parent.mkdir(parents=True, exist_ok=True)
+    for seed in seeds:
+        if seed not in saved:
+            saved[seed] = roll_one(seed)
+            save_rollouts(cache, [saved[s] for s in seeds if s in saved], settings)
+    return [saved[s] for s in seeds]

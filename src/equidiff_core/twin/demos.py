@@ -46,10 +46,14 @@ from .sim import DirectSim
 
 
 class DirectRecorder:
-    """Everything needed to turn DirectSim states into an episode bag."""
+    """Everything needed to turn DirectSim states into an episode bag.
 
-    def __init__(self, cfg: TwinConfig, lab: LabConfig):
-        self.cfg, self.lab = cfg, lab
+    With ``reuse_instant`` a second ``voxel_grid`` call at the same sim instant returns the first's grid: a
+    recorded roll-out (``twin.corrections``) asks twice, for the bag and for the policy, which must see the
+    same grid, and the second must draw no new depth noise."""
+
+    def __init__(self, cfg: TwinConfig, lab: LabConfig, reuse_instant: bool = False):
+        self.cfg, self.lab, self.reuse_instant = cfg, lab, reuse_instant
         self.sim = DirectSim(cfg)
         self._qpos = None
         self.cameras = [
@@ -62,12 +66,14 @@ class DirectRecorder:
         self.factory = rosmsg.rosbags_factory()
         self._stamp = 0
         self.images: list[np.ndarray | None] = []  # each camera's colour image of the latest grid
+        self._grid_at: tuple[float, np.ndarray] | None = None  # (sim time, grid) of the latest grid
 
     def reset(self, seed: int):
         """The sim at the seed's scene (``DirectSim.reset``, its ``ScenePoses`` returned) and each camera's
         depth noise started from the seed, so an episode is the same whatever ran before it."""
         for c in self.cameras:
             c.reseed(seed)
+        self._grid_at = None
         return self.sim.reset(seed)
 
     def close(self) -> None:
@@ -76,14 +82,19 @@ class DirectRecorder:
         self.sim.close()
 
     def voxel_grid(self, stamp_ns: int) -> np.ndarray:
-        """The fused grid the voxel node would publish for the current sim state."""
+        """The fused grid the voxel node would publish for the current sim state (with ``reuse_instant``, the
+        same one again when asked twice at one sim instant)."""
 
+        if self.reuse_instant and self._grid_at is not None and self._grid_at[0] == self.sim.time:
+            return self._grid_at[1]
         self._qpos, self._stamp = self.sim.data.qpos.copy(), stamp_ns
         frames = []
         for cam, cfg in zip(self.cameras, self.lab.cameras):
             frames.append(limit_depth(cam.read(), cfg.min_depth, cfg.max_depth))
         self.images = [f.image for f in frames]
-        return self.voxelizer(frames)
+        grid = self.voxelizer(frames)
+        self._grid_at = (self.sim.time, grid)
+        return grid
 
 
 class DirectWorld:

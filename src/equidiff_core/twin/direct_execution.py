@@ -203,10 +203,14 @@ class _DirectExecution:
                 self.arm.send()
                 self.next_cmd += self.cmd_ms
             upcoming = min(self.next_obs, self.next_tick, self.next_cmd, pending[0][0] if pending else self.next_obs)
-            self.sim.step(upcoming - now)
+            self.step_sim(upcoming - now)
             now = upcoming
         self.now = self.clock.ms = now
         self.progress.update()
+
+    def step_sim(self, ms: int) -> None:
+        """Advance the sim ``ms`` milliseconds (a recording subclass steps its world instead, one ms at a time)."""
+        self.sim.step(ms)
 
     def judging(self) -> bool:
         return self.now > 0

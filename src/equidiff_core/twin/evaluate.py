@@ -113,20 +113,8 @@ def evaluate_policy(
     episodes rolled out before it."""
     from .demos import DirectRecorder, DirectWorld
 
-    preset = policy.preset
-    if not (math.isfinite(latency_s) and latency_s >= 0):
-        raise ValueError(f"latency_s must be finite and >= 0, got {latency_s}")
-    if publish_steps is None:  # policy_node's own sizing, given L as its latency_s parameter
-        sizing = ChunkSizing(preset, 0, execute_steps, latency_s, DEFAULT_TRANSPORT_S)
-        sizing.follow_latency()
-        execute_steps, publish_steps = sizing.answers.steps, sizing.publish_steps()
-    else:
-        execute_steps = AnswerSchedule(execute_steps, int(preset.n_action_steps), 1).steps  # checked up front
-        available = preset.horizon - preset.n_obs_steps + 1  # the predicted steps from the observation on
-        if publish_steps and not 1 <= publish_steps <= available:
-            raise ValueError(f"publish_steps must be within 1..{available}, got {publish_steps}")
-        publish_steps = int(publish_steps) or int(preset.n_action_steps)
-    control = _control_config()
+    execute_steps, publish_steps = answer_sizing(policy.preset, latency_s, execute_steps, publish_steps)
+    control = control_config()
     rec = recorder or DirectRecorder(cfg, lab)
     world = DirectWorld(rec)  # records nothing
     results = []
@@ -192,7 +180,25 @@ def evaluate_policy(
     return results
 
 
-def _control_config():
+def answer_sizing(
+    preset, latency_s: float, execute_steps: int = DEFAULT_EXECUTE_STEPS, publish_steps: int | None = None
+) -> tuple[int, int]:
+    """(execute_steps, publish_steps) as ``evaluate_policy`` documents them (None: policy_node's own sizing for
+    ``latency_s``); ValueError for a latency or step count policy_node would refuse."""
+    if not (math.isfinite(latency_s) and latency_s >= 0):
+        raise ValueError(f"latency_s must be finite and >= 0, got {latency_s}")
+    if publish_steps is None:  # policy_node's own sizing, given L as its latency_s parameter
+        sizing = ChunkSizing(preset, 0, execute_steps, latency_s, DEFAULT_TRANSPORT_S)
+        sizing.follow_latency()
+        return sizing.answers.steps, sizing.publish_steps()
+    execute_steps = AnswerSchedule(execute_steps, int(preset.n_action_steps), 1).steps  # checked up front
+    available = preset.horizon - preset.n_obs_steps + 1  # the predicted steps from the observation on
+    if publish_steps and not 1 <= publish_steps <= available:
+        raise ValueError(f"publish_steps must be within 1..{available}, got {publish_steps}")
+    return execute_steps, int(publish_steps) or int(preset.n_action_steps)
+
+
+def control_config():
     """franka_node's control configuration (config/control.yaml): the scheduler and gripper deadband."""
     from ..config import default_config_dir
     from ..control import load_control_config
@@ -246,7 +252,7 @@ def replay_chunks(
     from ..wire.chunk import ChunkError, chunk_from_msg
     from .demos import DirectRecorder, DirectWorld
 
-    control = _control_config()
+    control = control_config()
     max_duration_s = max_duration_s or cfg.episode.max_duration_s
     rec = DirectRecorder(cfg, lab)
     world = DirectWorld(rec)
