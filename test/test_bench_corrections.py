@@ -188,6 +188,27 @@ def test_round_summary_and_gate_fields():
     assert gate["auroc"] is None and gate["false_alarms_per_success"] is None and gate["reason"]
 
 
+def test_gate_quality_from_the_doubt_the_round_logged():
+    def measured(seed, success, trigger, takeover_s, doubt_m, alarms, first_alarm_s):
+        return replace(_episode(seed, success, trigger, takeover_s), max_doubt_m=doubt_m, alarms=alarms,
+                       first_alarm_s=first_alarm_s)  # fmt: skip
+
+    episodes = [
+        measured(1, True, "", None, 0.02, 0, None),  # solved, quiet
+        measured(2, True, "", None, 0.09, 2, 4.0),  # solved, but the gate cried twice
+        measured(3, True, "lost/no lift", 15.0, 0.10, 1, 6.0),  # the gate saw it 9 s before the expert
+        measured(4, False, "lost/dropped", 5.0, 0.08, 1, 7.0),  # the gate was late: the block was down
+        measured(5, True, "lost/knocked", 8.0, 0.03, 0, None),  # missed
+    ]
+    gate = gate_quality(episodes)
+    # failures' largest doubt (0.10, 0.08, 0.03) against the successes' (0.02, 0.09): 4 of 6 pairs ordered
+    assert gate["auroc"] == pytest.approx(4 / 6) and gate["episodes"] == 5 and gate["reason"] is None
+    assert gate["failures_flagged_recoverable"]["successes"] == 1 and gate["failures_flagged_recoverable"]["n"] == 3
+    assert gate["false_alarms_per_success"] == 1.0  # 0 + 2 alarms over the 2 roll-outs the policy solved
+    watched = [replace(e, alarms=None, first_alarm_s=None) for e in episodes]
+    assert gate_quality(watched)["false_alarms_per_success"] is None and "quantile" in gate_quality(watched)["reason"]
+
+
 def test_the_plot_draws_the_points_and_bench_demos_curve(tmp_path):
     result = tmp_path / "result.json"
     result.write_text(
@@ -230,3 +251,18 @@ def test_roll_outs_resume_scene_by_scene(tmp_path):
     # other settings: nothing reused
     resumable_rollouts(cache, {**settings, "policy_digest": "def"}, roll_one, lambda s: None)
     assert len(calls) == 7
+
+
+def test_a_roll_outs_doubt_log_keeps_the_largest_and_the_gates_alarms():
+    from equidiff_core.policy.doubt import ChunkDoubt, DoubtCalibration, DoubtGate
+    from equidiff_core.twin.corrections import DoubtLog
+
+    gate = DoubtGate(DoubtCalibration("disagreement", 1, (0.01, 0.02, 0.05), 1), 1.0, "disagreement", 1)
+    log = DoubtLog(gate)
+    for t_s, value in ((0.0, float("nan")), (1.6, 0.03), (3.2, 0.07), (4.8, 0.06), (6.4, 0.04)):
+        log.add(0, ChunkDoubt(int(t_s * 1e9), value, float("nan")), None)
+    assert log.max_m == 0.07 and log.alarms == 2  # 0.07 and 0.06 are over the demos' largest, 0.05
+    assert log.first_alarm_ns == int(3.2e9) and log.first_alarm.startswith("doubt 70.0 mm")
+    watching = DoubtLog(None)
+    watching.add(0, ChunkDoubt(0, 0.5, float("nan")), None)
+    assert watching.max_m == 0.5 and watching.alarms == 0 and not watching.first_alarm

@@ -30,8 +30,10 @@ import numpy as np
 from matplotlib.figure import Figure
 
 from ..data.bags import read_episode, read_meta
-from ..data.dataset import find_episodes
+from ..data.dataset import find_episodes, load_episodes
+from ..data.episode_arrays import DatasetConfig
 from ..data.segments import FrameSource, frame_sources
+from ..policy.doubt import DEFAULT_SIGNAL, DoubtGate, calibrate_doubt
 from ..policy.inference import load_inference_policy
 from ..runtime.output_files import refuse_existing, staged_output, write_output_text
 from ..training.job import TrainingSpec
@@ -45,6 +47,7 @@ from ..twin.yaw_range import in_range_yaw_seeds
 from ..wire.topics import TOPIC_POLICY_STATE, TOPIC_TELEOP_ACTIVE, TOPIC_VOXELS
 from . import BenchError
 from .demo_sets import demos_off_range, ensure_demos, nested_subsets
+from .doubt import auroc
 from .rollouts import policy_digest, resumable_rollouts, summarize
 from .stats import paired_comparison, paired_outcomes, success_rate
 from .training_runs import SLIM_CHECKPOINT, TrainRunError, resolve_run, run_policy, start_run, wait_for_runs
@@ -53,9 +56,8 @@ logger = logging.getLogger(__name__)
 
 # The round's scenes: in-range seeds from here on (the held-out ones start at 20 000 000, the demos' at 0).
 ROUND_SEEDS_FROM = 30_000_000
-GATE_PENDING = (
-    "no doubt signal in the in-process policy yet (issue 41, parts 1-2): the round's takeovers are all the expert's"
-)
+NO_DOUBT = "the round's roll-outs were made before the doubt signal was logged: roll the round out into a new --out"
+NO_GATE = "no --gate-quantile: the alarms were not counted (the start policy needs a doubt calibration)"
 
 
 @dataclass(frozen=True)
@@ -96,6 +98,10 @@ class CorrectionsSettings:
     lab_config: Path | None = None
     twin_config: Path | None = None
     force: bool = False
+    # the doubt gate at this quantile of the start policy's calibration (equidiff check doubt) counts its alarms
+    # on the round; with gate_takes_over its first alarm hands the arm to the expert. None: no gate
+    gate_quantile: float | None = None
+    gate_takes_over: bool = False
 
 
 def episode_frames(bag: Path) -> dict[str, int]:
@@ -166,13 +172,30 @@ def round_summary(episodes: list[CorrectedEpisode], frames: list[dict[str, int]]
 
 
 def gate_quality(episodes: list[CorrectedEpisode]) -> dict:
-    """The doubt gate's figures on the round's roll-outs, where a gate signal exists (none yet: null, and why)."""
+    """The doubt signal and gate on the round's roll-outs (docs/corrections.md): the AUROC of each roll-out's
+    largest doubt for the policy failing it; with a gate, the failures it flagged while still recoverable
+    (its first alarm before the expert judged the episode lost, or its own takeover) and its alarms per
+    roll-out the policy solved. Meant for a gate that only watches: one that takes over decides outcomes."""
+    measured = [e for e in episodes if e.max_doubt_m is not None]
+    gated = [e for e in measured if e.alarms is not None]
+    failures = [e for e in gated if not e.policy_success]
+    successes = [e for e in gated if e.policy_success]
+
+    def early(e: CorrectedEpisode) -> bool:
+        if e.first_alarm_s is None:
+            return False
+        return e.trigger.startswith("gate:") or e.takeover_s is None or e.first_alarm_s < e.takeover_s
+
     return {
-        "auroc": None,
-        "failures_flagged_recoverable": None,
-        "false_alarms_per_success": None,
+        "auroc": auroc(
+            [e.max_doubt_m for e in measured if not e.policy_success],
+            [e.max_doubt_m for e in measured if e.policy_success],
+        ),
+        "episodes": len(measured),
+        "failures_flagged_recoverable": success_rate([early(e) for e in failures]) if failures else None,
+        "false_alarms_per_success": round(sum(e.alarms for e in successes) / len(successes), 3) if successes else None,
         "gate_takeovers": sum(1 for e in episodes if e.trigger.startswith("gate:")),
-        "reason": GATE_PENDING,
+        "reason": NO_DOUBT if not measured else (NO_GATE if not gated else None),
     }
 
 
@@ -259,7 +282,9 @@ def demos_curve(result_path: Path, frames_by_count: dict[int, int]) -> dict[int,
     }
 
 
-def _round(settings: CorrectionsSettings, cfg, lab, start_policy: Path, log) -> list[CorrectedEpisode]:
+def _round(
+    settings: CorrectionsSettings, cfg, lab, start_policy: Path, start_demos: list[Path], log
+) -> list[CorrectedEpisode]:
     """The round's corrected roll-outs, resumed from ``OUT/round.json`` (bags of an episode cut short, not
     listed there, are moved aside, never trained on)."""
     out = settings.out
@@ -272,6 +297,22 @@ def _round(settings: CorrectionsSettings, cfg, lab, start_policy: Path, log) -> 
         "latency_s": settings.latency_ms / 1000,
         "rule": asdict(settings.rule),
     }
+    if settings.gate_quantile is not None:  # (a round without a gate keeps its settings as they were)
+        round_settings["gate"] = {"quantile": settings.gate_quantile, "takes_over": settings.gate_takes_over}
+    policy = load_inference_policy(start_policy, device="cpu")
+    gate = None
+    if settings.gate_quantile is not None:
+        calibration = policy.doubt_calibration
+        if calibration is None:  # as `equidiff check doubt` would: the signal over the start policy's own demos
+            demos, skipped = load_episodes(start_demos, DatasetConfig.for_lab(lab))
+            if skipped or not demos:
+                raise BenchError(f"calibrating the doubt gate: demos unusable: {skipped[:1]}", 2)
+            calibration = calibrate_doubt(policy, demos, DEFAULT_SIGNAL, 1, log=log)
+        gate = DoubtGate(calibration, settings.gate_quantile, DEFAULT_SIGNAL, 1)
+        log(
+            f"[corrections] doubt gate at q{settings.gate_quantile:g} of {len(calibration.values_m)} demo frames: "
+            f"{gate.threshold_m * 1000:.1f} mm" + (" (it takes over)" if settings.gate_takes_over else " (watching)")
+        )
     done: dict[int, CorrectedEpisode] = {}
     if record.is_file():
         saved = json.loads(record.read_text())
@@ -295,7 +336,7 @@ def _round(settings: CorrectionsSettings, cfg, lab, start_policy: Path, log) -> 
     if todo:
         log(f"[corrections] rolling out {len(todo)} of {len(seeds)} round scenes with takeovers into {bags}")
         corrected_rollouts(
-            load_inference_policy(start_policy, device="cpu"),
+            policy,
             cfg,
             lab,
             todo,
@@ -303,6 +344,8 @@ def _round(settings: CorrectionsSettings, cfg, lab, start_policy: Path, log) -> 
             settings.rule,
             settings.max_duration,
             settings.latency_ms / 1000,
+            gate=gate,
+            gate_takes_over=settings.gate_takes_over,
             on_episode=save,
             log=log,
         )
@@ -404,7 +447,7 @@ def run_corrections_bench(settings: CorrectionsSettings) -> dict:
     }
 
     t = time.monotonic()
-    episodes = _round(settings, cfg, lab, policies["start"], log)
+    episodes = _round(settings, cfg, lab, policies["start"], start_demos, log)
     minutes["round"] = round((time.monotonic() - t) / 60, 1)
     bags = [Path(e.bag) for e in episodes]
     frames = [episode_frames(b) for b in bags]

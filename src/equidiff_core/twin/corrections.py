@@ -16,6 +16,7 @@ says whether the gate holds the arm.
 
 from __future__ import annotations
 
+import math
 import time
 from collections import deque
 from collections.abc import Callable, Iterable, Sequence
@@ -26,6 +27,7 @@ import numpy as np
 
 from ..config import LabConfig
 from ..data.segments import GATE_PAUSE_PREFIX, RUNNING
+from ..policy.doubt import ChunkDoubt, DoubtGate
 from ..wire.chunk import DEFAULT_RTC, PoseChunk, chunk_to_msg
 from ..wire.topics import RECORDED_TOPICS, TOPIC_COMMAND_CHUNK, TOPIC_POLICY_STATE, TOPIC_TELEOP_ACTIVE
 from .config import ExpertConfig, TwinConfig
@@ -332,6 +334,11 @@ class CorrectedEpisode:
     reached: bool  # how far the policy got before any takeover (twin.direct_execution.EpisodeProgress)
     lifted: bool
     bag: str
+    # the policy's doubt (policy.doubt, the default signal) over its own chunks: the largest, and with a gate
+    # the chunks over its threshold and when the first came (from the policy's start); None: not measured
+    max_doubt_m: float | None = None
+    alarms: int | None = None
+    first_alarm_s: float | None = None
 
     @property
     def policy_success(self) -> bool:
@@ -348,14 +355,17 @@ def corrected_rollouts(
     rule: LostRule = LostRule(),
     max_duration_s: float = 30.0,
     latency_s: float = 0.1,
-    gate_alarm: Callable[[], str] | None = None,
+    gate: DoubtGate | None = None,
+    gate_takes_over: bool = False,
     on_episode: Callable[[CorrectedEpisode], None] = lambda e: None,
     log: Callable[[str], None] = print,
     task: str = "twin_block_in_bowl",
 ) -> list[CorrectedEpisode]:
     """Roll ``policy`` (an ``InferencePolicy``) out from each seed's scene with takeovers (``GateRule`` first,
     then ``rule``), every episode recorded under ``out`` and kept; ``on_episode`` sees each as it ends.
-    Timing and answering are ``evaluate.evaluate_policy``'s (its defaults); inference runs on one thread."""
+    Timing and answering are ``evaluate.evaluate_policy``'s (its defaults); inference runs on one thread.
+    Each chunk's doubt is measured as policy_node measures it; ``gate`` counts the alarms it would raise,
+    and with ``gate_takes_over`` its first alarm hands the arm to the expert, as the doubt gate does live."""
     from .evaluate import ROLLOUT_THREADS, answer_sizing, control_config, torch_threads
 
     execute_steps, publish_steps = answer_sizing(policy.preset, latency_s)
@@ -368,10 +378,21 @@ def corrected_rollouts(
             for seed in seeds:
                 t_wall = time.monotonic()
                 world.epoch_ns = time.time_ns()
+                doubts = DoubtLog(gate)
                 actor = RecordedPolicy(
-                    world, policy, seed, control, max_duration_s, latency_s, execute_steps, publish_steps, DEFAULT_RTC
+                    world,
+                    policy,
+                    seed,
+                    control,
+                    max_duration_s,
+                    latency_s,
+                    execute_steps,
+                    publish_steps,
+                    DEFAULT_RTC,
+                    on_doubt=doubts.add,
                 )
-                rollout = CorrectedRollout(world, actor, (GateRule(), rule), rule.stall_s, gate_alarm)
+                alarm = (lambda doubts=doubts: doubts.first_alarm) if gate_takes_over else None
+                rollout = CorrectedRollout(world, actor, (GateRule(), rule), rule.stall_s, alarm)
                 episode = run_episode(world, rollout, seed, float("inf"), cfg.success.hold_s, settle_s=0.0)
                 row = CorrectedEpisode(
                     seed,
@@ -383,6 +404,9 @@ def corrected_rollouts(
                     actor.progress.reached,
                     actor.progress.lifted,
                     episode.bag,
+                    doubts.max_m,
+                    None if gate is None else doubts.alarms,
+                    None if doubts.first_alarm_ns is None else round(doubts.first_alarm_ns / 1e9, 2),
                 )
                 results.append(row)
                 on_episode(row)
@@ -394,6 +418,23 @@ def corrected_rollouts(
     finally:
         rec.close()
     return results
+
+
+class DoubtLog:
+    """One roll-out's chunk doubts (``DirectPolicy``'s ``on_doubt``): the largest, and ``gate``'s alarms."""
+
+    def __init__(self, gate: DoubtGate | None):
+        self.gate, self.max_m, self.alarms = gate, None, 0
+        self.first_alarm, self.first_alarm_ns = "", None
+
+    def add(self, seed: int, doubt: ChunkDoubt, samples) -> None:  # stamps count from the policy's start
+        if math.isfinite(doubt.value):
+            self.max_m = doubt.value if self.max_m is None else max(self.max_m, doubt.value)
+        why = self.gate.alarm(doubt) if self.gate is not None else ""
+        if why:
+            self.alarms += 1
+            if not self.first_alarm:
+                self.first_alarm, self.first_alarm_ns = why, doubt.stamp_ns
 
 
 def episode_dict(episode: CorrectedEpisode) -> dict:

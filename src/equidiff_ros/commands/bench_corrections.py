@@ -64,6 +64,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_force_argument(parser, help="replace an existing --plot FILE (OUT is a work folder: never refused)")
     parser.add_argument("--lab-config", type=Path, default=None)
     parser.add_argument("--twin-config", type=Path, default=None)
+    parser.add_argument(
+        "--gate-quantile",
+        type=float,
+        default=None,
+        help="count the doubt gate's alarms at this quantile of the start policy's demos (its calibration, "
+        "else calibrated here on its demos); reported as the gate's quality (docs/corrections.md)",
+    )
+    parser.add_argument(
+        "--gate-takes-over", action="store_true", help="the gate's first alarm hands the arm to the expert"
+    )
 
 
 def corrections_settings(args: argparse.Namespace):
@@ -97,6 +107,8 @@ def corrections_settings(args: argparse.Namespace):
         lab_config=args.lab_config,
         twin_config=args.twin_config,
         force=args.force,
+        gate_quantile=args.gate_quantile,
+        gate_takes_over=args.gate_takes_over,
     )
 
 
