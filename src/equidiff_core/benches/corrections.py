@@ -102,6 +102,7 @@ class CorrectionsSettings:
     # on the round; with gate_takes_over its first alarm hands the arm to the expert. None: no gate
     gate_quantile: float | None = None
     gate_takes_over: bool = False
+    round_only: bool = False  # stop after the round: its takeovers and the gate's quality, no fine-tuning
 
 
 def episode_frames(bag: Path) -> dict[str, int]:
@@ -452,6 +453,18 @@ def run_corrections_bench(settings: CorrectionsSettings) -> dict:
     bags = [Path(e.bag) for e in episodes]
     frames = [episode_frames(b) for b in bags]
 
+    if settings.round_only:
+        return {
+            "bench": "corrections",
+            "round_only": True,
+            "round": round_summary(episodes, frames),
+            "round_episodes": [asdict(e) for e in episodes],
+            "gate": gate_quality(episodes),
+            "gate_settings": {"quantile": settings.gate_quantile, "takes_over": settings.gate_takes_over},
+            "rule": asdict(settings.rule),
+            "round_scenes": f"block yaw inside {list(settings.train_yaw)}, seeds {ROUND_SEEDS_FROM}..",
+            "minutes": minutes,
+        }
     run_dir, fine_tune = _fine_tune(settings, start_weights, [*start_demos, *bags], log)
     policies["corrected"] = run_dir / "policy.pt"
 

@@ -74,6 +74,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--gate-takes-over", action="store_true", help="the gate's first alarm hands the arm to the expert"
     )
+    parser.add_argument(
+        "--round-only", action="store_true", help="stop after the round: its takeovers and the gate's quality"
+    )
 
 
 def corrections_settings(args: argparse.Namespace):
@@ -109,6 +112,7 @@ def corrections_settings(args: argparse.Namespace):
         force=args.force,
         gate_quantile=args.gate_quantile,
         gate_takes_over=args.gate_takes_over,
+        round_only=args.round_only,
     )
 
 
