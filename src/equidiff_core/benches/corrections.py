@@ -21,7 +21,6 @@ from __future__ import annotations
 import json
 import logging
 import shutil
-import textwrap
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -48,6 +47,7 @@ from ..wire.topics import TOPIC_POLICY_STATE, TOPIC_TELEOP_ACTIVE, TOPIC_VOXELS
 from . import BenchError
 from .demo_sets import demos_off_range, ensure_demos, nested_subsets
 from .doubt import auroc
+from .figures import save_with_note
 from .rollouts import policy_digest, resumable_rollouts, summarize
 from .stats import paired_comparison, paired_outcomes, success_rate
 from .training_runs import SLIM_CHECKPOINT, TrainRunError, resolve_run, run_policy, start_run, wait_for_runs
@@ -262,14 +262,7 @@ def plot_corrections(points: dict[str, dict], curve: dict[int, dict] | None, pat
     ax.grid(alpha=0.3)
     ax.legend(loc="lower right", fontsize=7)
     ax.set_title("Corrections against fresh demos (twin, in-range yaw)", fontsize=9)
-    if note:
-        fig.text(0.5, 0.01, "\n".join(textwrap.wrap(note, 90)), ha="center", va="bottom", fontsize=7)
-        fig.tight_layout(rect=(0, 0.07, 1, 1))
-    else:
-        fig.tight_layout()
-    with staged_output(path, force=True) as staged:  # the bench's own plot, redrawn on each call
-        fig.savefig(staged.path)
-    return path
+    return save_with_note(fig, path, note)
 
 
 def demos_curve(result_path: Path, frames_by_count: dict[int, int]) -> dict[int, dict]:

@@ -16,7 +16,6 @@ import json
 import logging
 import os
 import statistics
-import textwrap
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -25,6 +24,7 @@ import numpy as np
 from matplotlib.figure import Figure
 
 from equidiff_core.benches import BenchError
+from equidiff_core.benches.figures import save_with_note
 from equidiff_core.benches.rollouts import cached_rollouts, policy_digest, summarize
 from equidiff_core.benches.stats import paired_comparison, paired_outcomes
 from equidiff_core.config import default_config_dir, load_lab_config
@@ -121,14 +121,7 @@ def plot_steps(rows: list[dict], path: Path, title: str, note: str = "") -> Path
     ax.set_xlim(0, 1.35 * widest)  # room for the labels right of the slowest point
     ax.grid(alpha=0.3)
     ax.set_title(title, fontsize=9)
-    if note:
-        fig.text(0.5, 0.01, "\n".join(textwrap.wrap(note, 90)), ha="center", va="bottom", fontsize=7)
-        fig.tight_layout(rect=(0, 0.07, 1, 1))
-    else:
-        fig.tight_layout()
-    with staged_output(path, force=True) as staged:  # the bench's own plot, redrawn on each call
-        fig.savefig(staged.path)
-    return path
+    return save_with_note(fig, path, note)
 
 
 def _load(settings: StepsSettings, checkpoint: Path, steps: int | None = None, spacing: str | None = None):

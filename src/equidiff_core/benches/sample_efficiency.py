@@ -15,7 +15,6 @@ import json
 import logging
 import os
 import shutil
-import textwrap
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -26,6 +25,7 @@ from matplotlib.figure import Figure
 
 from equidiff_core.benches import BenchError
 from equidiff_core.benches.demo_sets import demos_off_range, ensure_demos, nested_subsets
+from equidiff_core.benches.figures import save_with_note
 from equidiff_core.benches.rollouts import cached_rollouts, policy_digest, summarize
 from equidiff_core.benches.stats import paired_comparison, paired_outcomes
 from equidiff_core.benches.training_runs import (
@@ -127,14 +127,7 @@ def plot_success(
     ax.grid(alpha=0.3)
     ax.legend(loc="lower right")  # "best" weighs the lines, not the error bars, and covered one
     ax.set_title("Block in bowl (twin), in-range yaw", fontsize=9)
-    if note:  # the recipe, wrapped to the figure's width
-        fig.text(0.5, 0.01, "\n".join(textwrap.wrap(note, 80)), ha="center", va="bottom", fontsize=7)
-        fig.tight_layout(rect=(0, 0.06, 1, 1))
-    else:
-        fig.tight_layout()
-    with staged_output(path, force=True) as staged:  # the bench's own plot, redrawn on each call
-        fig.savefig(staged.path)
-    return path
+    return save_with_note(fig, path, note)
 
 
 def evaluate_runs(
