@@ -134,7 +134,7 @@ PARAMETERS = NodeParameters(
     NodeParameter(
         "precision",
         "auto",
-        "Inference precision; auto: bf16 on CUDA and where the CPU has native bf16, else fp32",
+        "Inference precision; auto: bf16 on CUDA, fp32 on a CPU",
         choices=PRECISIONS,
     ),
     NodeParameter("jit", True, "Trace the denoising step with torch.jit.trace"),

@@ -21,7 +21,7 @@ small kernels. Always: the U-Net's FiLM terms split into an observation part (on
 faster Mish, in fp32 on CPU the encoder's Conv3d run by oneDNN (``encoder_kernels="onednn"``;
 ``"native"``: torch's own choice of kernel with the first layer padded to 8 channels, the path before,
 kept as the benches' baseline), and in bf16 on CPU the U-Net's Conv1d and ConvTranspose1d run as GEMMs. ``precision="auto"``
-picks bf16 on CUDA and on CPUs with native bf16 (AVX512-BF16/AMX), fp32 elsewhere. What each of
+picks bf16 on CUDA and fp32 on a CPU (``runtime.machine.PRECISIONS``). What each of
 these buys: docs/results/model.md, "Inference speed on a CPU" (``equidiff bench policy``).
 """
 
@@ -44,7 +44,7 @@ from ..models.cpu_kernels import (
 )
 from ..models.plain import EquiNoiseCore, from_escnn_layout, to_escnn_layout
 from ..models.sampling import ActionCodec, _guided_noise, ddim_sample, make_inference_scheduler
-from ..runtime.machine import PRECISIONS, cpu_has_native_bf16
+from ..runtime.machine import PRECISIONS
 from .augment import voxel_input
 from .diffusion import PolicyInputError
 from .doubt import DoubtCalibration
@@ -103,7 +103,7 @@ def load_inference_policy(
         device = "cuda" if torch.cuda.is_available() else "cpu"
     check_device(device)
     if precision == "auto":
-        precision = "bf16" if str(device).startswith("cuda") or cpu_has_native_bf16() else "fp32"
+        precision = "bf16" if str(device).startswith("cuda") else "fp32"
     onednn_fp32 = precision == "fp32" and torch.device(device).type == "cpu" and encoder_kernels == "onednn"
     policy = InferencePolicy(
         net,

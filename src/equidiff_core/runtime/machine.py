@@ -13,8 +13,9 @@ import time
 
 log = logging.getLogger("equidiff.machine")
 
-# The arithmetic a policy trains or infers in. "auto" depends on the machine: bf16 on CUDA, and at
-# inference also on CPUs with native bf16 (``cpu_has_native_bf16``); fp32 elsewhere.
+# The arithmetic a policy trains or infers in. "auto" depends on the machine: bf16 on CUDA, fp32 on a CPU
+# (with the encoder on oneDNN, fp32 inference outran bf16 even on a CPU with native bf16: docs/results/model.md,
+# "The encoder near the core's limit").
 PRECISIONS = ("auto", "fp32", "bf16")
 
 

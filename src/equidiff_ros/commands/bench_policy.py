@@ -39,7 +39,7 @@ def add_arguments(parser) -> None:
         "--precision",
         default="auto",
         choices=PRECISIONS,
-        help="auto: bf16 on CUDA and on CPUs with native bf16, else fp32",
+        help="auto: bf16 on CUDA, fp32 on a CPU",
     )
     parser.add_argument("--no-jit", action="store_true", help="skip torch.jit.trace of encoder and denoiser")
     parser.add_argument(

@@ -42,8 +42,8 @@ def add_precision_argument(parser: argparse.ArgumentParser) -> None:
         "--precision",
         choices=PRECISIONS,
         default=TWIN_PRECISION,
-        help=f"policy arithmetic (default {TWIN_PRECISION} on every machine; auto: bf16 where the CPU has "
-        "native bf16, so results would depend on the CPU)",
+        help=f"policy arithmetic (default {TWIN_PRECISION} on every machine, so results do not depend on the "
+        "machine; auto: bf16 on CUDA)",
     )
 
 
