@@ -337,14 +337,17 @@ class DemoDataset(_TorchDataset):
         self.config = config
         self.source_weights = weights
         self.episodes = list(episodes)
-        index, sample_weights = [], []
+        index, sample_weights, sample_sources = [], [], []
         for e, ep in enumerate(self.episodes):
             starts = sample_starts(len(ep), config.horizon, config.n_obs_steps, config.n_action_steps)
-            current = np.clip(starts + config.n_obs_steps - 1, 0, len(ep) - 1)
-            w = weights.of(ep.sources[current]) if len(starts) else np.zeros(0, np.float32)
+            sources = ep.sources[np.clip(starts + config.n_obs_steps - 1, 0, len(ep) - 1)]
+            w = weights.of(sources) if len(starts) else np.zeros(0, np.float32)
             index.extend((e, int(s)) for s in starts[w > 0])
             sample_weights.append(w[w > 0])
+            sample_sources.append(sources[w > 0])
         self.index = np.asarray(index, dtype=np.int64).reshape(-1, 2)
+        # (N,) data.segments.FrameSource of each sample's current frame
+        self.sources = np.concatenate(sample_sources) if sample_sources else np.zeros(0, np.uint8)
         w = np.concatenate(sample_weights) if sample_weights else np.zeros(0, np.float32)
         # None when every sample counts 1: the batches and the loss stay exactly those of plain demonstrations
         self.weights: np.ndarray | None = None if np.all(w == 1.0) else w

@@ -171,13 +171,14 @@ def read_packed(file: Path, config: DatasetConfig, path: Path | None = None) -> 
     try:
         with np.load(file, allow_pickle=False) as z:
             extra = json.loads(str(z["extra"]))
-            if extra.get("version") == CACHE_VERSION and extra.get("decoding") == _decoding(config):
+            current = extra.get("version") == CACHE_VERSION and extra.get("decoding") == _decoding(config)
+            if current:  # an older format may lack today's arrays: refused below with what to do
                 arrays = {k: z[k] for k in _ARRAY_FIELDS if k != "voxel_idx"}
                 flat = np.cumsum(z["voxel_flat_delta"].astype(np.int64))
                 gate_alarms = int(extra["gate_alarms"])
     except Exception as err:  # zipfile, ValueError, KeyError, JSON: all mean "not a usable packed episode"
         raise BagError(f"{file}: not a readable packed episode ({type(err).__name__}: {err})") from err
-    if extra.get("version") != CACHE_VERSION or extra.get("decoding") != _decoding(config):
+    if not current:
         raise BagError(
             f"{file}: packed with {extra.get('decoding')} (format {extra.get('version')}), but "
             f"training asks for {_decoding(config)} (format {CACHE_VERSION}): pack the bags again"

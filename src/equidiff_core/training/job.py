@@ -16,6 +16,8 @@ import shutil
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
+
 from equidiff_core.config import ConfigError, default_config_dir, load_lab_config
 from equidiff_core.data.dataset import DemoDataset, load_episodes, split_episodes
 from equidiff_core.data.episode_arrays import DatasetConfig
@@ -371,9 +373,5 @@ def _starting_policy(spec: TrainingSpec, workspace):
 
 def _samples_by_source(dataset: DemoDataset) -> dict[str, int]:
     """How many of ``dataset``'s samples have their current frame from each source."""
-    counts = dict.fromkeys((source.name.lower() for source in FrameSource), 0)
-    steps = dataset.config.n_obs_steps - 1
-    for e, start in dataset.index:
-        episode = dataset.episodes[e]
-        counts[FrameSource(episode.sources[min(max(start + steps, 0), len(episode) - 1)]).name.lower()] += 1
-    return counts
+    counts = np.bincount(dataset.sources.astype(np.intp), minlength=len(FrameSource))
+    return {source.name.lower(): int(counts[source]) for source in FrameSource}
