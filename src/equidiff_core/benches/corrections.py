@@ -293,20 +293,6 @@ def _round(
     }
     if settings.gate_quantile is not None:  # (a round without a gate keeps its settings as they were)
         round_settings["gate"] = {"quantile": settings.gate_quantile, "takes_over": settings.gate_takes_over}
-    policy = load_inference_policy(start_policy, device="cpu")
-    gate = None
-    if settings.gate_quantile is not None:
-        calibration = policy.doubt_calibration
-        if calibration is None:  # as `equidiff check doubt` would: the signal over the start policy's own demos
-            demos, skipped = load_episodes(start_demos, DatasetConfig.for_lab(lab))
-            if skipped or not demos:
-                raise BenchError(f"calibrating the doubt gate: demos unusable: {skipped[:1]}", 2)
-            calibration = calibrate_doubt(policy, demos, DEFAULT_SIGNAL, 1, log=log)
-        gate = DoubtGate(calibration, settings.gate_quantile, DEFAULT_SIGNAL, 1)
-        log(
-            f"[corrections] doubt gate at q{settings.gate_quantile:g} of {len(calibration.values_m)} demo frames: "
-            f"{gate.threshold_m * 1000:.1f} mm" + (" (it takes over)" if settings.gate_takes_over else " (watching)")
-        )
     done: dict[int, CorrectedEpisode] = {}
     if record.is_file():
         saved = json.loads(record.read_text())
@@ -327,7 +313,22 @@ def _round(
         rows = [asdict(done[s]) for s in seeds if s in done]
         write_output_text(record, json.dumps({"settings": round_settings, "episodes": rows}, indent=1), force=True)
 
-    if todo:
+    if todo:  # the start policy (and its gate) only where a scene is still to roll out
+        policy = load_inference_policy(start_policy, device="cpu")
+        gate = None
+        if settings.gate_quantile is not None:
+            calibration = policy.doubt_calibration
+            if calibration is None:  # as `equidiff check doubt` would: the signal over the start policy's own demos
+                demos, skipped = load_episodes(start_demos, DatasetConfig.for_lab(lab))
+                if skipped or not demos:
+                    raise BenchError(f"calibrating the doubt gate: demos unusable: {skipped[:1]}", 2)
+                calibration = calibrate_doubt(policy, demos, DEFAULT_SIGNAL, 1, log=log)
+            gate = DoubtGate(calibration, settings.gate_quantile, DEFAULT_SIGNAL, 1)
+            log(
+                f"[corrections] doubt gate at q{settings.gate_quantile:g} of {len(calibration.values_m)} demo frames: "
+                f"{gate.threshold_m * 1000:.1f} mm"
+                + (" (it takes over)" if settings.gate_takes_over else " (watching)")
+            )
         log(f"[corrections] rolling out {len(todo)} of {len(seeds)} round scenes with takeovers into {bags}")
         corrected_rollouts(
             policy,
