@@ -220,6 +220,30 @@ def test_policy_publishes_nothing_until_enabled_and_a_takeover_pauses_it(ros_dom
     assert codes == [0, 0], (tmp_path / "policy.log").read_text()[-3000:]
 
 
+def spacemouse(stack, lab_path):
+    """teleop_node in ``stack`` (a running ``TwinStack``) reading a simulated SpaceMouse on /spacenav/joy:
+    ``drive(axes, sim_seconds)`` deflects it for that much sim time, reports stamped on the node clock at ~50 Hz."""
+    from equidiff_core.twin.processes import node_command
+    from equidiff_ros.common import SENSOR_QOS
+
+    sup = stack.sup
+    params = {"lab_config": str(lab_path), "use_sim_time": True, "source": "joy", "resync_after_s": 0.5}
+    stack.group.start("teleop_node", node_command("teleop_node", params))
+    f = sup.factory
+    joy_pub = sup.node.create_publisher(f.cls("sensor_msgs/msg/Joy"), "/spacenav/joy", SENSOR_QOS)
+    sup.wait_for(lambda: joy_pub.get_subscription_count() > 0, 60.0, "teleop_node", stack.check)
+
+    def drive(axes, sim_seconds: float) -> None:
+        end = sup.now_ns() + int(sim_seconds * S)
+        while sup.now_ns() < end:
+            header = f.header(sup.now_ns(), "")
+            joy_pub.publish(f.make("sensor_msgs/msg/Joy", header=header, axes=[float(a) for a in axes], buttons=[0, 0]))
+            stack.check()
+            time.sleep(0.02)
+
+    return drive
+
+
 @pytest.mark.ros
 @pytest.mark.slow
 @pytest.mark.sim
@@ -230,9 +254,7 @@ def test_the_operator_flow_drives_the_twin_the_same_way(ros_domain, tmp_path):
     from equidiff_core.control import load_control_config
     from equidiff_core.data.bags import read_episode
     from equidiff_core.twin.config import TwinConfig
-    from equidiff_core.twin.processes import node_command
     from equidiff_core.twin.standin import make_standin_policy
-    from equidiff_ros.common import SENSOR_QOS
     from equidiff_ros.twin import TwinStack
 
     cfg_dir = default_config_dir()
@@ -248,16 +270,7 @@ def test_the_operator_flow_drives_the_twin_the_same_way(ros_domain, tmp_path):
         log=lambda s: None,
     ) as stack:
         sup = stack.sup
-        stack.group.start(
-            "teleop_node",
-            node_command(
-                "teleop_node",
-                {"lab_config": str(cfg_dir / "lab.yaml"), "use_sim_time": True, "source": "joy", "resync_after_s": 0.5},
-            ),
-        )
-        f = sup.factory
-        joy_pub = sup.node.create_publisher(f.cls("sensor_msgs/msg/Joy"), "/spacenav/joy", SENSOR_QOS)
-        sup.wait_for(lambda: joy_pub.get_subscription_count() > 0, 60.0, "teleop_node", stack.check)
+        drive = spacemouse(stack, cfg_dir / "lab.yaml")
 
         homed = lab_cli("home")
         assert homed.returncode == 0 and "homing" in homed.stdout, homed.stdout + homed.stderr
@@ -282,20 +295,6 @@ def test_the_operator_flow_drives_the_twin_the_same_way(ros_domain, tmp_path):
         assert len(sup.chunk_arrivals) == paused_at  # paused: no chunk for 2 s of sim time
         assert lab_cli("policy", "resume").returncode == 0
         sup.wait_for(lambda: len(sup.chunk_arrivals) > paused_at, 60.0, "chunks after resuming", stack.check)
-
-        def drive(axes, sim_seconds):  # SpaceMouse reports stamped on the node clock, at ~50 Hz of sim time
-            end = sup.now_ns() + int(sim_seconds * S)
-            while sup.now_ns() < end:
-                joy_pub.publish(
-                    f.make(
-                        "sensor_msgs/msg/Joy",
-                        header=f.header(sup.now_ns(), ""),
-                        axes=[float(a) for a in axes],
-                        buttons=[0, 0],
-                    )
-                )
-                stack.check()
-                time.sleep(0.02)
 
         drive([0.5, 0, 0, 0, 0, 0], 1.0)
         policy_state = state()["policy"]
@@ -326,9 +325,7 @@ def test_in_the_twin_the_gate_asks_for_help_and_the_correction_is_recorded_as_su
     from equidiff_core.data.segments import FrameSource
     from equidiff_core.policy.file import with_doubt_calibration
     from equidiff_core.twin.config import TwinConfig
-    from equidiff_core.twin.processes import node_command
     from equidiff_core.twin.standin import make_standin_policy
-    from equidiff_ros.common import SENSOR_QOS
     from equidiff_ros.twin import TwinStack
 
     cfg_dir = default_config_dir()
@@ -346,16 +343,7 @@ def test_in_the_twin_the_gate_asks_for_help_and_the_correction_is_recorded_as_su
         log=lambda s: None,
     ) as stack:
         sup = stack.sup
-        stack.group.start(
-            "teleop_node",
-            node_command(
-                "teleop_node",
-                {"lab_config": str(cfg_dir / "lab.yaml"), "use_sim_time": True, "source": "joy", "resync_after_s": 0.5},
-            ),
-        )
-        f = sup.factory
-        joy_pub = sup.node.create_publisher(f.cls("sensor_msgs/msg/Joy"), "/spacenav/joy", SENSOR_QOS)
-        sup.wait_for(lambda: joy_pub.get_subscription_count() > 0, 60.0, "teleop_node", stack.check)
+        drive = spacemouse(stack, cfg_dir / "lab.yaml")
         started = lab_cli("record", "start")
         assert started.returncode == 0, started.stderr
         episode = Path(started.stdout.strip())
@@ -384,15 +372,7 @@ def test_in_the_twin_the_gate_asks_for_help_and_the_correction_is_recorded_as_su
         sup.sim_sleep(1.0, stack.check)
         assert len(sup.chunk_arrivals) == asked  # the policy sends nothing while it asks for help
 
-        end = sup.now_ns() + 2 * S  # the operator drives 2 s of sim time, then lets go
-        while sup.now_ns() < end:
-            joy_pub.publish(
-                f.make(
-                    "sensor_msgs/msg/Joy", header=f.header(sup.now_ns(), ""), axes=[0.5, 0, 0, 0, 0, 0], buttons=[0, 0]
-                )
-            )
-            stack.check()
-            time.sleep(0.02)
+        drive([0.5, 0, 0, 0, 0, 0], 2.0)  # the operator drives 2 s of sim time, then lets go
         sup.sim_sleep(1.5, stack.check)
         kept = lab_cli("record", "success")
         assert kept.returncode == 0, kept.stderr
