@@ -150,13 +150,39 @@ def test_an_interrupted_bench_steps_keeps_what_it_rolled_out_and_resumes_there(t
     assert [r["sampler"] for r in leading["rows"]] == ["ddim16_leading", "ddim4_leading"]
 
 
+def test_a_distilled_policy_is_compared_at_its_own_sampler_on_the_same_scenes(
+    tiny_policy_file, tmp_path, monkeypatch, capsys
+):
+    roll_outs = _RollOuts()
+    monkeypatch.setattr(bench, "evaluate_policy", roll_outs)
+    monkeypatch.setattr(bench, "DirectRecorder", _NoRecorder)
+    # the same weights written as a 4-step policy from t = 90, as `equidiff distill` writes its student
+    torch.manual_seed(0)
+    policy = make_policy("equidiff", get_preset("tiny"), Workspace())
+    policy.set_normalizer(Normalizer.from_workspace(Workspace()))
+    student = export_policy(policy.eval(), tmp_path / "student.pt", sampler={"steps": 4, "first_timestep": 90})
+    assert main(_argv(tiny_policy_file, tmp_path / "work", "--steps", "--compare", str(student))) == 0
+    result = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    base, other = result["rows"]
+    assert base["sampler"] == "ddim16_leading" and base["policy"] == str(tiny_policy_file)
+    assert other["sampler"] == "student__ddim4_from90" and other["policy"] == str(student)
+    assert other["timesteps"] == [90, 65, 40, 15] and not other["baseline"]
+    assert other["paired_vs_baseline"]["n"] == 4 and other["successes"] == 2
+    assert roll_outs.calls == [(16, "leading"), (4, "leading")]
+    assert (tmp_path / "work" / "student__ddim4_from90" / "rollouts.json").is_file()
+
+
 def test_bench_steps_refuses_settings_it_cannot_run_with(tiny_policy_file, tmp_path, capsys):
     assert main(_argv(tiny_policy_file, tmp_path / "w", "--episodes", "0")) == 2
     assert "need --episodes >= 1" in capsys.readouterr().err
     assert main(_argv(tiny_policy_file, tmp_path / "w", "--steps", "0")) == 2
     assert "inference steps must be in 1..100, got 0" in capsys.readouterr().err
     assert main(_argv(tmp_path / "none.pt", tmp_path / "w")) == 2
-    assert capsys.readouterr().err == f"equidiff bench steps: no checkpoint at {tmp_path / 'none.pt'}\n"
+    assert capsys.readouterr().err == f"equidiff bench steps: no policy file at {tmp_path / 'none.pt'}\n"
+    assert main(_argv(tiny_policy_file, tmp_path / "w", "--steps", "--compare", str(tmp_path / "other.pt"))) == 2
+    assert capsys.readouterr().err == f"equidiff bench steps: no policy file at {tmp_path / 'other.pt'}\n"
+    assert main(_argv(tiny_policy_file, tmp_path / "w", "--steps")) == 2
+    assert "a step count or a --compare file" in capsys.readouterr().err
     with pytest.raises(BenchError, match="latency"):
         bench.run_steps_bench(
             bench.StepsSettings(tiny_policy_file, (4,), "trailing", 1, 0, 3.0, -1.0, 1, tmp_path / "w", None)

@@ -20,6 +20,7 @@ from equidiff_core.runtime.machine import default_threads_to_idle_cores
 # (command path) -> (module, one-line help)
 COMMANDS: dict[tuple[str, ...], tuple[str, str]] = {
     ("train",): ("train", "train EquiDiff or the baseline from recorded bags"),
+    ("distill",): ("distill", "distil a trained policy into a few-step DDIM sampler, a policy file of its own"),
     ("dataset", "stats"): ("dataset_stats", "episodes, durations, steps and action ranges of bags"),
     ("dataset", "revoxelize"): ("dataset_revoxelize", "rebuild the bags' voxels from their clouds with new extrinsics"),
     ("dataset", "pack"): ("dataset_pack", "one compressed .episode.npz per bag: train without the bags"),

@@ -51,7 +51,7 @@ class StepsSettings:
     """``equidiff bench steps``'s settings: its flags, same names (the command's help says more)."""
 
     checkpoint: Path | None  # policy.pt (None: the shipped checkpoint)
-    steps: tuple[int, ...]  # DDIM step counts, rolled out in this order after the baseline
+    steps: tuple[int, ...]  # DDIM step counts, rolled out in this order after the baseline (may be empty with compare)
     spacing: str  # their timestep spacing (of TIMESTEP_SPACINGS); the baseline keeps the policy's own
     episodes: int  # scenes per sampler, the same for all
     seed: int  # the first scene seed
@@ -65,10 +65,17 @@ class StepsSettings:
     lab_config: Path | None = None
     twin_config: Path | None = None
     force: bool = False  # replace an existing ``plot``
+    compare: tuple[Path, ...] = ()  # other policy files (distilled ones), each at its own sampler, after the steps
 
 
-def sampler_name(steps: int, spacing: str) -> str:
-    return f"ddim{steps}_{spacing}"
+def sampler_name(steps: int, spacing: str, first_timestep: int | None = None) -> str:
+    return f"ddim{steps}_{spacing}" if first_timestep is None else f"ddim{steps}_from{first_timestep}"
+
+
+def compared_name(path: Path, policy: InferencePolicy) -> str:
+    """A compared file's row: its name (its folder's for a run's ``policy.pt``) and its own sampler."""
+    label = path.parent.name if path.stem == "policy" else path.stem
+    return f"{label}__{sampler_name(policy.inference_steps, policy.timestep_spacing, policy.first_timestep)}"
 
 
 def time_predict(policies: dict[str, InferencePolicy], calls: int, vox: np.ndarray, ee: np.ndarray) -> dict:
@@ -109,10 +116,12 @@ def plot_steps(rows: list[dict], path: Path, title: str, note: str = "") -> Path
             yerr=[[y - 100 * ci[0]], [100 * ci[1] - y]],
             xerr=[[0.0], [row["inference_p99_ms"] - x]],
             marker="s" if baseline else "o",
-            color="black" if baseline else "tab:blue",
+            color="black" if baseline else ("tab:orange" if "__" in row["sampler"] else "tab:blue"),
             capsize=3,
         )
         label = f"{row['steps']}" + (" (policy's own)" if baseline else "")
+        if "__" in row["sampler"]:  # a compared file at its own sampler
+            label = f"{row['sampler'].split('__')[0]} ({row['steps']})"
         ax.annotate(label, (x, y), textcoords="offset points", xytext=(6, 6), fontsize=8)
     ax.set_xlabel("inference time per chunk, ms (median; bar to p99), one thread")
     ax.set_ylabel("success, % (95 % interval)")
@@ -149,8 +158,8 @@ def _chunking_summary(path: Path, settings: dict) -> dict | None:
 def run_steps_bench(settings: StepsSettings) -> dict:
     """Every sampler rolled out and timed: the bench's JSON line (also OUT/result.json). BenchError (exit status
     2) for settings it cannot run with, a missing or unloadable checkpoint, or a named plot that exists."""
-    if settings.episodes < 1 or settings.timing_calls < 1 or not settings.steps:
-        raise BenchError("need --episodes >= 1, --timing-calls >= 1 and at least one step count", 2)
+    if settings.episodes < 1 or settings.timing_calls < 1 or not (settings.steps or settings.compare):
+        raise BenchError("need --episodes >= 1, --timing-calls >= 1 and a step count or a --compare file", 2)
     if settings.spacing not in TIMESTEP_SPACINGS:
         raise BenchError(f"--spacing must be one of {TIMESTEP_SPACINGS}, got {settings.spacing!r}", 2)
     if not (np.isfinite(settings.latency_ms) and settings.latency_ms >= 0):
@@ -158,26 +167,35 @@ def run_steps_bench(settings: StepsSettings) -> dict:
     if settings.plot is not None:  # a file the user named: refused now, not after hours of roll-outs
         refuse_existing(settings.plot, settings.force)
     checkpoint = settings.checkpoint or SHIPPED_CHECKPOINT
-    if not checkpoint.is_file():
-        raise BenchError(f"no checkpoint at {checkpoint}", 2)
+    for path in (checkpoint, *settings.compare):
+        if not path.is_file():
+            raise BenchError(f"no policy file at {path}", 2)
     t_start = time.monotonic()
     lab = load_lab_config(settings.lab_config or default_config_dir() / "lab.yaml")
     cfg = load_twin_config(settings.twin_config)
     max_duration = settings.max_duration or cfg.episode.max_duration_s
     own = _load(settings, checkpoint)
-    base = sampler_name(own.inference_steps, own.timestep_spacing)
+    base = sampler_name(own.inference_steps, own.timestep_spacing, own.first_timestep)
     policies = {base: own}
+    files = {base: checkpoint}  # each sampler's policy file
     for k in settings.steps:
         name = sampler_name(k, settings.spacing)
         if name not in policies:
             policies[name] = _load(settings, checkpoint, k, settings.spacing)
+            files[name] = checkpoint
+    for path in settings.compare:
+        other = _load(settings, path)
+        name = compared_name(path, other)
+        if name in policies:
+            raise BenchError(f"--compare {path}: a second {name}", 2)
+        policies[name], files[name] = other, path
     vox, ee = twin_scenes(own.preset, own.workspace, count=1, seed=0, scene=cfg.scene)
     logger.info(f"[steps] timing {', '.join(policies)}: {settings.timing_calls} calls each, one thread")
     load_before = os.getloadavg()[0]  # the timing shares the CPU with whatever else runs: say how busy it was
     timing = time_predict(policies, settings.timing_calls, vox[0, 0].numpy(), ee[0, 0].numpy())
     load = [round(load_before, 2), round(os.getloadavg()[0], 2)]
     seeds = list(range(settings.seed, settings.seed + settings.episodes))
-    digest = policy_digest(checkpoint)
+    digests = {path: policy_digest(path) for path in set(files.values())}
     rows: list[dict] = []
     outcomes: dict[str, dict[int, bool]] = {}
     rec = None
@@ -187,9 +205,10 @@ def run_steps_bench(settings: StepsSettings) -> dict:
                 "seeds": seeds,
                 "max_duration_s": max_duration,
                 "latency_s": settings.latency_ms / 1000,
-                "policy_digest": digest,
+                "policy_digest": digests[files[name]],
                 "inference_steps": policy.inference_steps,
                 "timestep_spacing": policy.timestep_spacing,
+                **({"first_timestep": policy.first_timestep} if policy.first_timestep is not None else {}),
                 "precision": policy.precision,
                 "threads": ROLLOUT_THREADS,
             }
@@ -231,6 +250,7 @@ def run_steps_bench(settings: StepsSettings) -> dict:
             summary = summarize(episodes)
             row = {
                 "sampler": name,
+                "policy": str(files[name]),
                 "steps": policy.inference_steps,
                 "spacing": policy.timestep_spacing,
                 "timesteps": [int(t) for t in policy.scheduler.timesteps],

@@ -28,14 +28,33 @@ def make_train_scheduler(preset: PolicyPreset) -> DDPMScheduler:
 TIMESTEP_SPACINGS = ("leading", "trailing")
 
 
-def make_inference_scheduler(preset: PolicyPreset, steps: int | None = None, spacing: str = "leading") -> DDIMScheduler:
+def uniform_timesteps(num_train_timesteps: int, steps: int, first: int) -> list[int]:
+    """``steps`` timesteps from ``first`` down, ``num_train_timesteps // steps`` apart, the last step landing on
+    the clean sample: the stride diffusers' DDIM step assumes, from any start (a distilled sampler's,
+    ``training.distill``). ValueError where the steps do not fit in the schedule or would end before t = 0."""
+    stride = num_train_timesteps // steps if steps >= 1 else 0
+    if stride < 1:
+        raise ValueError(f"steps must be in 1..{num_train_timesteps}, got {steps}")
+    if not (steps - 1) * stride <= first < min(steps * stride, num_train_timesteps):
+        raise ValueError(
+            f"{steps} steps {stride} apart must start in {(steps - 1) * stride}.."
+            f"{min(steps * stride, num_train_timesteps) - 1} to end on the clean sample, got {first}"
+        )
+    return [first - i * stride for i in range(steps)]
+
+
+def make_inference_scheduler(
+    preset: PolicyPreset, steps: int | None = None, spacing: str = "leading", first_timestep: int | None = None
+) -> DDIMScheduler:
     """The DDIM scheduler at ``steps`` denoising steps (None: the preset's ``num_inference_steps``) spaced by
-    ``spacing`` (of TIMESTEP_SPACINGS); ValueError outside 1..num_train_timesteps or for another spacing."""
+    ``spacing`` (of TIMESTEP_SPACINGS), or, with ``first_timestep``, ``uniform_timesteps`` from there (a
+    distilled policy's own sampler); ValueError outside 1..num_train_timesteps or for another spacing."""
     steps = preset.num_inference_steps if steps is None else int(steps)
     if not 1 <= steps <= preset.num_train_timesteps:
         raise ValueError(f"inference steps must be in 1..{preset.num_train_timesteps}, got {steps}")
     if spacing not in TIMESTEP_SPACINGS:
         raise ValueError(f"timestep spacing must be one of {TIMESTEP_SPACINGS}, got {spacing!r}")
+    explicit = None if first_timestep is None else uniform_timesteps(preset.num_train_timesteps, steps, first_timestep)
     # Same betas as training; eta = 0 (deterministic given the initial noise), as diffusion_policy's DDIM.
     sched = DDIMScheduler(
         num_train_timesteps=preset.num_train_timesteps,
@@ -47,7 +66,19 @@ def make_inference_scheduler(preset: PolicyPreset, steps: int | None = None, spa
         timestep_spacing=spacing,
     )
     sched.set_timesteps(steps)
+    if explicit is not None:  # diffusers' step goes num_train_timesteps // steps down from any timestep
+        sched.timesteps = torch.tensor(explicit, dtype=sched.timesteps.dtype)
     return sched
+
+
+def ddim_step_between(
+    x: torch.Tensor, eps: torch.Tensor, alpha_bar: torch.Tensor, alpha_bar_next: torch.Tensor
+) -> torch.Tensor:
+    """One deterministic DDIM step from ``x`` at ᾱ = ``alpha_bar`` to ᾱ = ``alpha_bar_next`` (1: the clean
+    sample), the clean estimate clipped to [-1, 1]: what ``make_inference_scheduler``'s step computes
+    (tested equal), written out because distillation needs it between any two timesteps and differentiable."""
+    clean = ((x - (1 - alpha_bar).sqrt() * eps) / alpha_bar.sqrt()).clamp(-1.0, 1.0)
+    return alpha_bar_next.sqrt() * clean + (1 - alpha_bar_next).sqrt() * eps
 
 
 @torch.no_grad()

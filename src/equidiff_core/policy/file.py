@@ -70,8 +70,10 @@ def weights_sha256(state: dict) -> str:
     return digest.hexdigest()
 
 
-def export_policy(policy, path: str | Path) -> Path:
-    """Write ``policy`` (a diffusion.DiffusionPolicy with its normaliser set) as a plain-torch inference file."""
+def export_policy(policy, path: str | Path, sampler: dict | None = None) -> Path:
+    """Write ``policy`` (a diffusion.DiffusionPolicy with its normaliser set) as a plain-torch inference file;
+    ``sampler`` ({"steps", "timestep_spacing", "first_timestep"}) becomes the file's own DDIM sampler
+    (``inference.load_inference_policy``), as a distilled policy needs."""
     if policy.normalizer is None:
         raise CheckpointError("cannot export a policy without a normaliser")
     path = Path(path)
@@ -84,7 +86,7 @@ def export_policy(policy, path: str | Path) -> Path:
     payload = {
         "format": FORMAT,
         "version": VERSION,
-        "config_json": json.dumps(policy.config_dict()),
+        "config_json": json.dumps({**policy.config_dict(), **({"sampler": sampler} if sampler else {})}),
         "state_dict": state,
         HASH_KEY: weights_sha256(state),
     }

@@ -6,5 +6,6 @@
 * ``loop``: the training loop shared by EquiDiff and the baseline (``train``)
 * ``callbacks``: the held-out action error, a progress bar and the plot
 * ``job``: one ``equidiff train`` run (``run_training``)
+* ``distill``: a finished run's few-step student (``equidiff distill``, ``run_distillation``)
 * ``process``: ``python -m equidiff_core.training.process SPEC_JSON``, one run in a process of its own
 """

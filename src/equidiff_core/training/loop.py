@@ -87,7 +87,7 @@ def fit_normalizer(dataset: Dataset, workspace) -> Normalizer:
     return Normalizer.fit(actions, ee, workspace)
 
 
-class _Ema:
+class Ema:
     """diffusers' EMAModel over the parameters (no deepcopy of the escnn model)."""
 
     def __init__(self, policy: DiffusionPolicy, decay: float):
@@ -173,7 +173,7 @@ def train(
 
     optimizer = torch.optim.AdamW(policy.model.parameters(), lr=cfg.lr, betas=cfg.betas, weight_decay=cfg.weight_decay)
     scheduler = get_cosine_schedule_with_warmup(optimizer, cfg.warmup_steps, max(cfg.steps, 1))
-    ema = _Ema(policy, cfg.ema_decay) if cfg.ema else None
+    ema = Ema(policy, cfg.ema_decay) if cfg.ema else None
     history: list[dict] = []
     step = 0
 
@@ -423,7 +423,7 @@ def load_policy_from_checkpoint(path: str | Path, device: str = "cpu", ema: bool
             policy.set_normalizer(Normalizer.from_dict(config["normalizer"]))
         load_learned_state(policy.model, weights)
         if ema_state is not None:
-            averaged = _Ema(policy, TrainConfig.ema_decay)  # the saved state brings its own decay
+            averaged = Ema(policy, TrainConfig.ema_decay)  # the saved state brings its own decay
             averaged.load_state_dict(ema_state)
             averaged.copy_to_model()
     except (KeyError, ValueError, RuntimeError) as err:

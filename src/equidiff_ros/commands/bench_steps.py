@@ -3,16 +3,20 @@
     equidiff bench steps --out runs/bench_steps                       # shipped checkpoint, 50 unseen scenes
     equidiff bench steps --out runs/bench_steps --steps 4 1 8 2 16    # the most telling first
     equidiff bench steps --checkpoint runs/x/policy.pt --episodes 10 --steps 4 --out /tmp/steps
+    equidiff bench steps --out runs/bench_steps --steps --compare runs/policy_ddim4.pt   # a distilled policy
 
 One policy file sampled with DDIM at each of ``--steps`` (timesteps spaced by ``--spacing``; "leading", the
 policies' own, puts a single step at t = 0, which returns the noise, so few-step rows default to "trailing") and,
 always, at its own sampler (the baseline: the preset's steps or the file's ``sampler`` entry). Each is rolled out
 on the same scenes as `equidiff twin evaluate --episodes N` (seeds from 100000, twin.yaml's episode length, the
 twin's latency budget, one torch thread, fp32), and its ``predict`` timed on one thread in the same run, the
-samplers taking turns.
+samplers taking turns. ``--compare FILE...`` adds other policy files, a distilled few-step policy above all
+(`equidiff distill`), each at its own sampler on the same scenes, paired against the baseline: its row is named
+``<file>__ddim<k>_from<t>`` and drawn in orange.
 
-Prints one JSON line: ``rows``, one per sampler, baseline first: ``steps``, ``spacing``, ``timesteps``,
-``success`` with ``successes``, ``episodes`` and ``success_ci95`` (Wilson 95 %), ``reached``, ``lifted``,
+Prints one JSON line: ``rows``, one per sampler, baseline first: ``policy`` (its file), ``steps``, ``spacing``,
+``timesteps``, ``success`` with ``successes``, ``episodes`` and ``success_ci95`` (Wilson 95 %), ``reached``,
+``lifted``,
 ``paired_vs_baseline`` (same scenes: difference, paired bootstrap 95 % interval, McNemar p),
 ``inference_median_ms`` / ``inference_p99_ms`` / ``inference_vs_baseline`` (median ratio),
 ``boundary_dv_p95_mps`` (the commanded TCP velocity's change at chunk switches, p95, as in `bench chunking`) and
@@ -43,7 +47,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.formatter_class = argparse.RawDescriptionHelpFormatter
     parser.add_argument("--checkpoint", type=Path, default=None, help="policy.pt (default: the shipped checkpoint)")
     parser.add_argument(
-        "--steps", type=int, nargs="+", default=list(STEP_COUNTS), help="DDIM step counts, rolled out in this order"
+        "--steps",
+        type=int,
+        nargs="*",
+        default=list(STEP_COUNTS),
+        help="DDIM step counts, rolled out in this order (none: only the baseline and --compare)",
+    )
+    parser.add_argument(
+        "--compare",
+        type=Path,
+        nargs="+",
+        default=[],
+        help="other policy files (a distilled policy: `equidiff distill`), each at its own sampler, same scenes",
     )
     parser.add_argument(
         "--spacing", choices=TIMESTEP_SPACINGS, default="trailing", help="their timestep spacing (default trailing)"
@@ -66,6 +81,7 @@ def run(args: argparse.Namespace) -> int:
     settings = StepsSettings(
         checkpoint=args.checkpoint,
         steps=tuple(args.steps),
+        compare=tuple(args.compare),
         spacing=args.spacing,
         episodes=args.episodes,
         seed=args.seed,

@@ -1,0 +1,138 @@
+"""Few-step distillation (`equidiff distill`, training.distill): the student's sampler, the DDIM step it is
+trained through, a tiny teacher distilled end to end, and the student selected by its policy file alone."""
+
+from __future__ import annotations
+
+import itertools
+import json
+import math
+
+import pytest
+import torch
+from helpers_data import SyntheticEpisode, write_synthetic_episode
+
+from equidiff_core.config import Workspace
+from equidiff_core.data.recording import RecordingConfig
+from equidiff_core.models import equivariance
+from equidiff_core.models.sampling import ddim_step_between, make_inference_scheduler, uniform_timesteps
+from equidiff_core.policy.file import open_policy_file
+from equidiff_core.policy.inference import load_inference_policy
+from equidiff_core.policy.presets import get_preset
+from equidiff_core.training.distill import student_sampler
+from equidiff_core.twin.config import load_twin_config
+from equidiff_ros.cli import main as cli
+
+FP32_EXACT = 1e-5  # as test_equivariance: a C4-exact network leaves only float rounding
+
+
+def test_uniform_timesteps_end_on_the_clean_sample():
+    assert uniform_timesteps(100, 4, 90) == [90, 65, 40, 15]
+    assert uniform_timesteps(100, 2, 90) == [90, 40] and uniform_timesteps(100, 1, 99) == [99]
+    assert uniform_timesteps(100, 4, 75) == [75, 50, 25, 0]
+    with pytest.raises(ValueError, match="must start in 75..99"):
+        uniform_timesteps(100, 4, 70)  # its last step would land at t = 20, not on the clean sample
+    with pytest.raises(ValueError, match="steps must be in 1..100"):
+        uniform_timesteps(100, 0, 90)
+
+
+def test_the_distilled_sampler_steps_exactly_as_ddim_step_between():
+    preset = get_preset("tiny")
+    sched = make_inference_scheduler(preset, 4, first_timestep=90)
+    assert [int(t) for t in sched.timesteps] == [90, 65, 40, 15]
+    alphas = sched.alphas_cumprod
+    generator = torch.Generator().manual_seed(0)
+    x = torch.randn(3, 16, 14, generator=generator)
+    for t, after in zip([90, 65, 40, 15], [65, 40, 15, None]):
+        eps = torch.randn(x.shape, generator=generator)
+        ours = ddim_step_between(x, eps, alphas[t], alphas[after] if after is not None else torch.tensor(1.0))
+        theirs = sched.step(eps, torch.tensor(t), x).prev_sample
+        torch.testing.assert_close(ours, theirs, rtol=1e-5, atol=1e-6)
+        x = theirs
+    with pytest.raises(ValueError, match="must start in"):
+        make_inference_scheduler(preset, 4, first_timestep=50)
+
+
+def test_each_student_step_is_covered_by_the_teachers_finer_path():
+    sampler = student_sampler(100, 4, 90, 16)
+    assert sampler.timesteps == (90, 65, 40, 15)
+    ends = [65, 40, 15, -1]  # -1: the clean sample
+    for t, end, path in zip(sampler.timesteps, ends, sampler.teacher_paths):
+        assert path[0] == t and path[-1] == end and len(path) == 5
+        assert all(a > b for a, b in itertools.pairwise(path))
+    one = student_sampler(100, 1, 90, 16)
+    assert one.teacher_paths[0][0] == 90 and one.teacher_paths[0][-1] == -1 and len(one.teacher_paths[0]) == 17
+
+
+@pytest.fixture(scope="module")
+def tiny_teacher(tmp_path_factory):
+    """A tiny EquiDiff run (a few steps on one synthetic demo) and that demo."""
+    folder = tmp_path_factory.mktemp("distill")
+    demo = write_synthetic_episode(
+        folder / "demo_0000", SyntheticEpisode(duration_s=4.0, image_size=None), config=RecordingConfig(min_free_gib=0)
+    )
+    run = folder / "teacher"
+    flags = ["--preset", "tiny", "--steps", "5", "--batch-size", "4", "--val-fraction", "0", "--device", "cpu"]
+    assert cli(["train", str(demo), "--out", str(run), *flags, "--no-progress"]) == 0
+    return run / "last.ckpt", demo
+
+
+@pytest.mark.slow
+def test_distill_trains_an_equivariant_student_that_its_file_selects(tiny_teacher, tmp_path, capsys):
+    teacher, demo = tiny_teacher
+    capsys.readouterr()
+    student = tmp_path / "student.pt"
+    argv = ["distill", str(teacher), "--demos", str(demo), "--out", str(student), "--steps", "2"]
+    assert cli([*argv, "--train-steps", "60", "--batch-size", "16", "--lr", "1e-3"]) == 0
+    summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert summary["timesteps"] == [90, 40] and summary["sampler"]["first_timestep"] == 90
+    assert summary["teacher_paths"][0][0] == 90 and summary["teacher_paths"][-1][-1] == -1
+    assert summary["train_steps"] == 60 and summary["frames"] > 0
+    # the student learned the teacher's path: on the same held-out batch its one step lands nearer two of his
+    assert summary["check_loss_after"] < 0.9 * summary["check_loss_before"]
+
+    # the file alone selects the student's sampler; asking for steps overrides it
+    policy = load_inference_policy(student)
+    assert policy.inference_steps == 2 and [int(t) for t in policy.scheduler.timesteps] == [90, 40]
+    assert policy.first_timestep == 90
+    assert load_inference_policy(student, inference_steps=8).first_timestep is None
+    assert open_policy_file(student).config["sampler"] == {
+        "steps": 2,
+        "timestep_spacing": "leading",
+        "first_timestep": 90,
+    }
+
+    # the student stays C4-equivariant through its own sampler (its weights are escnn's, re-exported)
+    scene = load_twin_config().scene
+    voxels, ee = equivariance.twin_scenes(policy.preset, Workspace(), count=1, seed=3, scene=scene)
+    report = equivariance.measure(equivariance.ExportedModel(policy), voxels, ee, angles_deg=(90, 180, 270))
+    assert report["sampling"]["c4_max_rel_err"] <= FP32_EXACT and math.isfinite(report["sampling"]["c4_max_rel_err"])
+
+    # an existing output is refused before any work, and left as it is
+    before = student.read_bytes()
+    assert cli([*argv, "--train-steps", "1"]) == 2
+    assert "exists" in capsys.readouterr().err and student.read_bytes() == before
+    assert cli([*argv, "--train-steps", "-1", "--force"]) == 2
+    assert "--train-steps must be >= 0" in capsys.readouterr().err and student.read_bytes() == before
+
+    # no training at all: the teacher's weights at the student's sampler, the baseline a distillation must beat
+    undistilled = tmp_path / "undistilled.pt"
+    assert (
+        cli(
+            [
+                "distill",
+                str(teacher),
+                "--demos",
+                str(demo),
+                "--out",
+                str(undistilled),
+                "--steps",
+                "2",
+                "--train-steps",
+                "0",
+            ]
+        )
+        == 0
+    )
+    plain = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert plain["train_steps"] == 0 and plain["check_loss_after"] == plain["check_loss_before"]
+    assert plain["check_loss_before"] == summary["check_loss_before"]
