@@ -341,6 +341,7 @@ def test_bench_policy_times_the_old_relu_order_in_the_same_run(capsys):
     )
     result = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert result["mode"] == "fp32-eager" and result["ddim16_median_ms"] > 0
+    assert result["inference_steps"] == 16 and result["timesteps"][:2] == [90, 84]  # the preset's DDIM-16
     assert result["relu_before_pool"]["encoder_ms"] > 0 and result["relu_before_pool"]["ddim16_median_ms"] > 0
     assert result["relu_order_cpu_ms"].keys() == {"pool_before_relu", "relu_before_pool"}
 

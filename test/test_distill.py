@@ -82,13 +82,14 @@ def test_distill_trains_an_equivariant_student_that_its_file_selects(tiny_teache
     capsys.readouterr()
     student = tmp_path / "student.pt"
     argv = ["distill", str(teacher), "--demos", str(demo), "--out", str(student), "--steps", "2"]
-    assert cli([*argv, "--train-steps", "60", "--batch-size", "16", "--lr", "1e-3"]) == 0
+    assert cli([*argv, "--train-steps", "150", "--batch-size", "16", "--lr", "1e-3", "--crops", "2"]) == 0
     summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert summary["inputs"] == 2 * summary["frames"]  # the centred crop and a random one per frame
     assert summary["timesteps"] == [90, 40] and summary["sampler"]["first_timestep"] == 90
     assert summary["teacher_paths"][0][0] == 90 and summary["teacher_paths"][-1][-1] == -1
-    assert summary["train_steps"] == 60 and summary["frames"] > 0
+    assert summary["train_steps"] == 150 and summary["frames"] > 0 and summary["recipe"]["crops"] == 2
     # the student learned the teacher's path: on the same held-out batch its one step lands nearer two of his
-    assert summary["check_loss_after"] < 0.9 * summary["check_loss_before"]
+    assert summary["check_loss_after"] < 0.8 * summary["check_loss_before"]
 
     # the file alone selects the student's sampler; asking for steps overrides it
     policy = load_inference_policy(student)
@@ -100,6 +101,12 @@ def test_distill_trains_an_equivariant_student_that_its_file_selects(tiny_teache
         "timestep_spacing": "leading",
         "first_timestep": 90,
     }
+
+    # `bench policy` times what the file selects, and says so
+    timing = ["bench", "policy", "--checkpoint", str(student), "--device", "cpu", "--precision", "fp32"]
+    assert cli([*timing, "--no-jit", "--iters", "1", "--eager-iters", "0"]) == 0
+    timed = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert timed["inference_steps"] == 2 and timed["timesteps"] == [90, 40] and timed["ddim16_median_ms"] > 0
 
     # the student stays C4-equivariant through its own sampler (its weights are escnn's, re-exported)
     scene = load_twin_config().scene
@@ -116,23 +123,9 @@ def test_distill_trains_an_equivariant_student_that_its_file_selects(tiny_teache
 
     # no training at all: the teacher's weights at the student's sampler, the baseline a distillation must beat
     undistilled = tmp_path / "undistilled.pt"
-    assert (
-        cli(
-            [
-                "distill",
-                str(teacher),
-                "--demos",
-                str(demo),
-                "--out",
-                str(undistilled),
-                "--steps",
-                "2",
-                "--train-steps",
-                "0",
-            ]
-        )
-        == 0
-    )
+    untrained = ["distill", str(teacher), "--demos", str(demo), "--out", str(undistilled), "--steps", "2"]
+    assert cli([*untrained, "--train-steps", "0", "--crops", "2"]) == 0
     plain = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
-    assert plain["train_steps"] == 0 and plain["check_loss_after"] == plain["check_loss_before"]
+    assert plain["train_steps"] == 0 and plain["final_loss"] is None
+    assert plain["check_loss_after"] == plain["check_loss_before"]
     assert plain["check_loss_before"] == summary["check_loss_before"]

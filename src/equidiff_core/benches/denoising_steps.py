@@ -105,6 +105,7 @@ def plot_steps(rows: list[dict], path: Path, title: str, note: str = "") -> Path
     right reaching p99), one point per sampler labelled with its step count (matplotlib's Figure, no pyplot)."""
     fig = Figure(figsize=(5.2, 3.8), dpi=120)
     ax = fig.subplots()
+    compared = 0  # compared files often land on the same point: their labels are stacked downwards
     for row in rows:
         if row["success"] is None:
             continue
@@ -119,10 +120,11 @@ def plot_steps(rows: list[dict], path: Path, title: str, note: str = "") -> Path
             color="black" if baseline else ("tab:orange" if "__" in row["sampler"] else "tab:blue"),
             capsize=3,
         )
-        label = f"{row['steps']}" + (" (policy's own)" if baseline else "")
+        label, offset = f"{row['steps']}" + (" (policy's own)" if baseline else ""), 6
         if "__" in row["sampler"]:  # a compared file at its own sampler
-            label = f"{row['sampler'].split('__')[0]} ({row['steps']})"
-        ax.annotate(label, (x, y), textcoords="offset points", xytext=(6, 6), fontsize=8)
+            label, offset = f"{row['sampler'].split('__')[0]} ({row['steps']})", 6 - 11 * compared
+            compared += 1
+        ax.annotate(label, (x, y), textcoords="offset points", xytext=(6, offset), fontsize=8)
     ax.set_xlabel("inference time per chunk, ms (median; bar to p99), one thread")
     ax.set_ylabel("success, % (95 % interval)")
     ax.set_ylim(-5, 105)

@@ -34,6 +34,7 @@ from equidiff_core.benches.timing import (
 )
 from equidiff_core.config import ConfigError, Workspace
 from equidiff_core.models.equivariance import random_observation
+from equidiff_core.models.sampling import make_inference_scheduler
 from equidiff_core.policy.diffusion import count_parameters
 from equidiff_core.policy.file import CheckpointError, build_plain_network, check_device, export_policy
 from equidiff_core.policy.inference import load_inference_policy
@@ -121,6 +122,8 @@ def run_policy_bench(settings: PolicyBenchSettings) -> dict:
     # escnn's trainable count; an exported file only holds the expanded (larger) plain weights
     params = count_parameters(eager.model if eager is not None else plain.net)
     preset = (eager if eager is not None else plain).preset
+    # the sampler every predict() above ran: the preset's DDIM-16, or a policy file's own (a distilled one's)
+    scheduler = plain.scheduler if eager is None else make_inference_scheduler(preset)
     # the encoder's FLOP rate against the same device's fp32 GEMM, measured now with the same threads
     encoder_gflop = encoder_flops(build_plain_network(policy_name, preset), preset) / 1e9
     gemm = gemm_gflop_s(device)
@@ -139,6 +142,8 @@ def run_policy_bench(settings: PolicyBenchSettings) -> dict:
         "policy": policy_name,
         "params": params,
         "params_kind": "trainable" if eager is not None else "exported",
+        "inference_steps": len(scheduler.timesteps),
+        "timesteps": [int(t) for t in scheduler.timesteps],
         **per_mode[first],
         "eager_ddim16_median_ms": None,
         "device": device_name(device),

@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import itertools
 import logging
-import math
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -54,6 +53,7 @@ class DistillSpec:
     batch_size: int = 32
     lr: float = 1e-4  # peak; cosine decay after a 100-step warm-up
     max_minutes: float | None = None  # stop (and export) after this long
+    crops: int = 1  # encoder inputs per frame: the centred crop, and crops - 1 random ones
     seed: int = 0
     force: bool = False  # replace an existing ``out``
     lab_config: Path | None = None  # the lab whose grid the demos must have (None: config/lab.yaml)
@@ -87,9 +87,10 @@ def _alpha_bar(alphas_cumprod: torch.Tensor, t: int) -> torch.Tensor:
 
 
 class _Frames:
-    """Every training frame's encoder features (the teacher's, frozen) and clean model-space action."""
+    """Every training frame's encoder features (the teacher's, frozen) and clean model-space action: the centred
+    crop policy_node feeds it, and ``crops - 1`` random crops more per frame (training's augmentation)."""
 
-    def __init__(self, policy, dataset: DemoDataset, batch: int = 16):
+    def __init__(self, policy, dataset: DemoDataset, crops: int = 1, generator=None, batch: int = 16):
         conds, targets = [], []
         policy.eval()
         with torch.no_grad():
@@ -97,11 +98,12 @@ class _Frames:
                 items = [dataset[i] for i in range(start, min(start + batch, len(dataset)))]
                 voxels = torch.stack([s["voxels"] for s in items])
                 ee = torch.stack([s["ee"] for s in items])
-                action = torch.stack([s["action"] for s in items])
-                vox, ee_n = policy._prepare(voxels, ee, "center")
-                cond = policy.model.encode_obs(vox, ee_n)
-                conds.append(cond.unflatten(0, (len(items), -1)))  # (B, rows per sample, features)
-                targets.append(policy.codec.encode(action.float(), ee[:, -1].float()))
+                clean = policy.codec.encode(torch.stack([s["action"] for s in items]).float(), ee[:, -1].float())
+                for k in range(crops):
+                    vox, ee_n = policy._prepare(voxels, ee, "center" if k == 0 else "random", generator)
+                    cond = policy.model.encode_obs(vox, ee_n)
+                    conds.append(cond.unflatten(0, (len(items), -1)))  # (B, rows per sample, features)
+                    targets.append(clean)
         self.cond = torch.cat(conds)
         self.clean = torch.cat(targets)
 
@@ -145,9 +147,11 @@ def held_out_loss(student, teacher, frames: _Frames, sampler: StudentSampler, al
 
 def run_distillation(spec: DistillSpec, log=logger.info) -> dict:
     """Distil ``spec.teacher`` into ``spec.out``; returns the summary (also what ``equidiff distill`` prints)."""
-    if spec.train_steps < 0 or spec.batch_size < 1 or not spec.lr > 0:
+    if spec.train_steps < 0 or spec.batch_size < 1 or not spec.lr > 0 or spec.crops < 1:
         raise DistillError(
-            "--train-steps must be >= 0 (0: the teacher at the student's sampler), --batch-size and --lr positive", 2
+            "--train-steps must be >= 0 (0: the teacher at the student's sampler), --batch-size, --lr and --crops "
+            "positive",
+            2,
         )
     refuse_existing(spec.out, spec.force)
     try:
@@ -176,11 +180,11 @@ def run_distillation(spec: DistillSpec, log=logger.info) -> dict:
     dataset = DemoDataset(episodes, data_cfg)
     started = time.perf_counter()
     torch.manual_seed(spec.seed)
-    frames = _Frames(teacher, dataset)
+    frames = _Frames(teacher, dataset, spec.crops, torch.Generator().manual_seed(spec.seed + 1))
     swap_modules(teacher.model, torch.nn.Mish, lambda _: FastMish())  # the teacher only runs: the faster CPU Mish
     encode_s = time.perf_counter() - started
     log(
-        f"[distill] {len(frames)} frames of {len(episodes)} demos encoded in {encode_s:.0f} s; student "
+        f"[distill] {len(frames)} inputs ({spec.crops} per frame) of {len(episodes)} demos encoded in {encode_s:.0f} s; student "
         f"timesteps {list(sampler.timesteps)}, teacher paths {[list(p) for p in sampler.teacher_paths]}"
     )
 
@@ -234,11 +238,12 @@ def run_distillation(spec: DistillSpec, log=logger.info) -> dict:
         "sampler": sampler_entry,
         "timesteps": list(sampler.timesteps),
         "teacher_paths": [list(p) for p in sampler.teacher_paths],
-        "frames": len(frames),
+        "frames": len(dataset),
+        "inputs": len(frames),  # frames x crops
         "episodes": len(episodes),
         "skipped": len(skipped),
         "train_steps": step,
-        "final_loss": float(f"{sum(tail) / len(tail):.4g}") if tail else math.nan,
+        "final_loss": float(f"{sum(tail) / len(tail):.4g}") if tail else None,
         # the same frames and noise, every student step, before (the teacher's weights) and after
         "check_loss_before": float(f"{loss_before:.4g}"),
         "check_loss_after": float(f"{loss_after:.4g}"),

@@ -34,6 +34,9 @@ from equidiff_ros.commands import add_force_argument, print_result
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from equidiff_core.benches.corrections import FineTune  # torch: only once the command runs
+
+    recipe = FineTune()  # the fine-tuning flags' defaults are the measured recipe's
     parser.epilog = __doc__.split("\n", 1)[1]
     parser.formatter_class = argparse.RawDescriptionHelpFormatter
     parser.add_argument("--out", type=Path, required=True, help="work folder (resumes)")
@@ -46,12 +49,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--reference-demos", type=int, default=20, help="the reference run's demos: the first N")
     parser.add_argument("--rollouts", type=int, default=20, help="scenes of the round")
     parser.add_argument("--eval-episodes", type=int, default=50, help="held-out in-range scenes per policy")
-    parser.add_argument("--fine-tune-steps", type=int, default=1000)
-    parser.add_argument("--lr", type=float, default=1e-4, help="the fine-tuning's peak learning rate")
-    parser.add_argument("--batch-size", type=int, default=8)
-    parser.add_argument("--max-minutes", type=float, default=30.0, help="the fine-tuning's time budget")
-    parser.add_argument("--intervention-weight", type=float, default=1.0)
-    parser.add_argument("--policy-frame-weight", type=float, default=0.0)
+    parser.add_argument("--fine-tune-steps", type=int, default=recipe.steps)
+    parser.add_argument("--lr", type=float, default=recipe.lr, help="the fine-tuning's peak learning rate")
+    parser.add_argument("--batch-size", type=int, default=recipe.batch_size)
+    parser.add_argument("--max-minutes", type=float, default=recipe.max_minutes, help="the fine-tuning's time budget")
+    parser.add_argument("--intervention-weight", type=float, default=recipe.intervention_weight)
+    parser.add_argument("--policy-frame-weight", type=float, default=recipe.policy_frame_weight)
     parser.add_argument("--lift-by", type=float, default=15.0, help="takeover: the block not lifted after this, s")
     parser.add_argument("--give-up", type=float, default=25.0, help="takeover: not done after this, s")
     parser.add_argument("--max-duration", type=float, default=30.0, help="sim seconds per roll-out")

@@ -5,6 +5,8 @@ step), ``ddim16_median_ms`` and ``ddim16_p99_ms`` (full predict(): encoder + DDI
 for the exported plain-torch policy with the chosen switches, ``eager_ddim16_median_ms`` for the
 training-time model (escnn for EquiDiff) in fp32 eager mode, and ``device``. Random weights by
 default (timing does not depend on them); ``--checkpoint policy.pt`` times a trained file.
+``inference_steps`` and ``timesteps`` name the sampler every ``predict()`` ran: the preset's DDIM-16, or
+the file's own (a distilled few-step policy's, `equidiff distill`), which the ``ddim16_*`` keys then time.
 Targets on a 2-core CPU: compact <= 100 ms p99, paper <= 400 ms median.
 
 ``--modes bf16-traced,bf16-traced-graph,fp32-traced`` times several ways of running the same

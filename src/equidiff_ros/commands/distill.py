@@ -35,6 +35,9 @@ def add_arguments(parser) -> None:
     parser.add_argument("--batch-size", type=int, default=DEFAULT.batch_size)
     parser.add_argument("--lr", type=float, default=DEFAULT.lr, help="peak learning rate (cosine decay)")
     parser.add_argument("--max-minutes", type=float, default=None, help="stop and export after this long")
+    parser.add_argument(
+        "--crops", type=int, default=DEFAULT.crops, help="encoder inputs per frame: the centred crop and CROPS-1 random"
+    )
     parser.add_argument("--seed", type=int, default=DEFAULT.seed)
     parser.add_argument("--lab-config", type=Path, default=None, help="lab.yaml whose grid the demos have")
     add_force_argument(parser)
@@ -51,6 +54,7 @@ def run(args) -> int:
         batch_size=args.batch_size,
         lr=args.lr,
         max_minutes=args.max_minutes,
+        crops=args.crops,
         seed=args.seed,
         force=args.force,
         lab_config=args.lab_config,
