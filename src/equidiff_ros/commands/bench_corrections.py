@@ -47,7 +47,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--demos-dir", type=Path, default=None, help="the demos, name order = seed order")
     parser.add_argument("--start-demos", type=int, default=10, help="the start run's demos: the first N")
     parser.add_argument("--reference-demos", type=int, default=20, help="the reference run's demos: the first N")
-    parser.add_argument("--rollouts", type=int, default=20, help="scenes of the round")
+    parser.add_argument("--rollouts", type=int, default=12, help="scenes of the round")
     parser.add_argument("--eval-episodes", type=int, default=50, help="held-out in-range scenes per policy")
     parser.add_argument("--fine-tune-steps", type=int, default=recipe.steps)
     parser.add_argument("--lr", type=float, default=recipe.lr, help="the fine-tuning's peak learning rate")
