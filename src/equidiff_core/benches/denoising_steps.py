@@ -102,29 +102,31 @@ def time_predict(policies: dict[str, InferencePolicy], calls: int, vox: np.ndarr
 
 def plot_steps(rows: list[dict], path: Path, title: str, note: str = "") -> Path:
     """PNG of success (%, 95 % interval as error bars) against the median inference time (ms, the bar to the
-    right reaching p99), one point per sampler labelled with its step count (matplotlib's Figure, no pyplot)."""
+    right reaching p99), one point per sampler labelled with its step count, the compared files' in a legend
+    (they often land on one another; matplotlib's Figure, no pyplot)."""
     fig = Figure(figsize=(5.2, 3.8), dpi=120)
     ax = fig.subplots()
-    compared = 0  # compared files often land on the same point: their labels are stacked downwards
+    markers = iter("o^vD<>p")
     for row in rows:
         if row["success"] is None:
             continue
         x, y, ci = row["inference_median_ms"], 100 * row["success"], row["success_ci95"]
-        baseline = row["baseline"]
+        baseline, compared = row["baseline"], "__" in row["sampler"]  # a compared file at its own sampler
         ax.errorbar(
             [x],
             [y],
             yerr=[[y - 100 * ci[0]], [100 * ci[1] - y]],
             xerr=[[0.0], [row["inference_p99_ms"] - x]],
-            marker="s" if baseline else "o",
-            color="black" if baseline else ("tab:orange" if "__" in row["sampler"] else "tab:blue"),
+            marker="s" if baseline else (next(markers, "o") if compared else "o"),
+            color="black" if baseline else ("tab:orange" if compared else "tab:blue"),
             capsize=3,
+            label=f"{row['sampler'].split('__')[0]} ({row['steps']} steps)" if compared else None,
         )
-        label, offset = f"{row['steps']}" + (" (policy's own)" if baseline else ""), 6
-        if "__" in row["sampler"]:  # a compared file at its own sampler
-            label, offset = f"{row['sampler'].split('__')[0]} ({row['steps']})", 6 - 11 * compared
-            compared += 1
-        ax.annotate(label, (x, y), textcoords="offset points", xytext=(6, offset), fontsize=8)
+        if not compared:
+            label = f"{row['steps']}" + (" (policy's own)" if baseline else "")
+            ax.annotate(label, (x, y), textcoords="offset points", xytext=(6, 6), fontsize=8)
+    if any("__" in row["sampler"] for row in rows):
+        ax.legend(fontsize=7, loc="lower right")
     ax.set_xlabel("inference time per chunk, ms (median; bar to p99), one thread")
     ax.set_ylabel("success, % (95 % interval)")
     ax.set_ylim(-5, 105)

@@ -12,7 +12,7 @@ on the same scenes as `equidiff twin evaluate --episodes N` (seeds from 100000, 
 twin's latency budget, one torch thread, fp32), and its ``predict`` timed on one thread in the same run, the
 samplers taking turns. ``--compare FILE...`` adds other policy files, a distilled few-step policy above all
 (`equidiff distill`), each at its own sampler on the same scenes, paired against the baseline: its row is named
-``<file>__ddim<k>_from<t>`` and drawn in orange.
+``<file>__ddim<k>_from<t>``, drawn in orange and named in the legend.
 
 Prints one JSON line: ``rows``, one per sampler, baseline first: ``policy`` (its file), ``steps``, ``spacing``,
 ``timesteps``, ``success`` with ``successes``, ``episodes`` and ``success_ci95`` (Wilson 95 %), ``reached``,
