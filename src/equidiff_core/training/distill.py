@@ -21,6 +21,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import torch
+from diffusers.optimization import get_cosine_schedule_with_warmup
 
 from ..config import default_config_dir, load_lab_config
 from ..data.dataset import DemoDataset, load_episodes
@@ -134,7 +135,7 @@ def distill_loss(student, teacher, frames: _Frames, sampler: StudentSampler, alp
     return ((landed - z) ** 2).mean() / gain**2
 
 
-def held_out_loss(student, teacher, frames: _Frames, sampler: StudentSampler, alphas_cumprod, index, noise) -> float:
+def check_loss(student, teacher, frames: _Frames, sampler: StudentSampler, alphas_cumprod, index, noise) -> float:
     """``distill_loss`` of the frames ``index`` with fixed ``noise``, averaged over every student step: the same
     batch before and after distillation tells whether the student learned the teacher's path."""
     with torch.no_grad():
@@ -174,26 +175,25 @@ def run_distillation(spec: DistillSpec, log=logger.info) -> dict:
     data_cfg = DatasetConfig.from_preset(
         preset, resolution=lab.workspace.resolution, grid=VoxelGridSpec.of(lab.workspace, lab.base_frame)
     )
+    started = time.perf_counter()  # the cost reported: from reading the demos to the exported student
     episodes, skipped = load_episodes(spec.demos, data_cfg, log=log)
     if not episodes:
         raise DistillError(f"no usable demos in {[str(d) for d in spec.demos]}: {skipped[:1]}", 2)
     dataset = DemoDataset(episodes, data_cfg)
-    started = time.perf_counter()
     torch.manual_seed(spec.seed)
     frames = _Frames(teacher, dataset, spec.crops, torch.Generator().manual_seed(spec.seed + 1))
     swap_modules(teacher.model, torch.nn.Mish, lambda _: FastMish())  # the teacher only runs: the faster CPU Mish
     encode_s = time.perf_counter() - started
     log(
-        f"[distill] {len(frames)} inputs ({spec.crops} per frame) of {len(episodes)} demos encoded in {encode_s:.0f} s; student "
-        f"timesteps {list(sampler.timesteps)}, teacher paths {[list(p) for p in sampler.teacher_paths]}"
+        f"[distill] {len(frames)} inputs ({spec.crops} per frame) of {len(episodes)} demos read and encoded in "
+        f"{encode_s:.0f} s; student timesteps {list(sampler.timesteps)}, teacher paths "
+        f"{[list(p) for p in sampler.teacher_paths]}"
     )
 
     student = load_policy_from_checkpoint(spec.teacher, device="cpu", ema=True)  # escnn models refuse deepcopy
     student.train()
     # the encoder's features are precomputed: its parameters get no gradient, so AdamW leaves them as they are
     params = list(student.model.parameters())
-    from diffusers.optimization import get_cosine_schedule_with_warmup
-
     optimizer = torch.optim.AdamW(params, lr=spec.lr, weight_decay=1e-6)
     schedule = get_cosine_schedule_with_warmup(optimizer, min(100, spec.train_steps // 10), spec.train_steps)
     ema = Ema(student, decay=0.999)
@@ -202,7 +202,7 @@ def run_distillation(spec: DistillSpec, log=logger.info) -> dict:
     check_index = torch.randperm(len(frames), generator=generator)[: min(len(frames), 64)]
     check_noise = torch.randn(frames.clean[check_index].shape, generator=generator)
     student.eval()  # (escnn caches its filters in eval mode; train mode expands them on every call)
-    loss_before = held_out_loss(student, teacher, frames, sampler, alphas_cumprod, check_index, check_noise)
+    loss_before = check_loss(student, teacher, frames, sampler, alphas_cumprod, check_index, check_noise)
     student.train()
     losses: list[float] = []
     step = 0
@@ -226,7 +226,7 @@ def run_distillation(spec: DistillSpec, log=logger.info) -> dict:
             log(f"[distill] step {step}: loss {sum(losses[-200:]) / 200:.4g}")
     ema.copy_to_model()
     student.eval()
-    loss_after = held_out_loss(student, teacher, frames, sampler, alphas_cumprod, check_index, check_noise)
+    loss_after = check_loss(student, teacher, frames, sampler, alphas_cumprod, check_index, check_noise)
     sampler_entry = {"steps": spec.steps, "timestep_spacing": "leading", "first_timestep": first}
     refuse_existing(spec.out, spec.force)  # again: it may have appeared while the student trained
     export_policy(student, spec.out, sampler=sampler_entry)
@@ -247,7 +247,7 @@ def run_distillation(spec: DistillSpec, log=logger.info) -> dict:
         # the same frames and noise, every student step, before (the teacher's weights) and after
         "check_loss_before": float(f"{loss_before:.4g}"),
         "check_loss_after": float(f"{loss_after:.4g}"),
-        "encode_s": round(encode_s, 1),
+        "encode_s": round(encode_s, 1),  # reading the demos and encoding their frames
         "wall_s": round(wall, 1),
         "threads": torch.get_num_threads(),
         "recipe": {k: (str(v) if isinstance(v, Path) else v) for k, v in asdict(spec).items() if k != "demos"},
