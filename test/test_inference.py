@@ -81,7 +81,7 @@ def exported(tmp_path_factory):
 @torch.no_grad()
 def _max_abs_diff_noise_predictor(policy, plain):
     vox, ee = random_observation(policy, batch=2, seed=3, fill=0.05)
-    v, e = policy._prepare(vox, ee, "center")
+    v, e = policy.prepare_input(vox, ee, "center")
     x = torch.randn(2, 16, policy.codec.dim, generator=torch.Generator().manual_seed(0))
     t = torch.tensor([3, 70])
     ref = policy.model(x, t, v, e)

@@ -69,7 +69,7 @@ def test_observation_embedding_ends_in_a_relu_only_in_the_legacy_layout():
         policy.set_normalizer(Normalizer.from_workspace(WS))
         plain = policy.model.export_plain()
         vox, ee = random_observation(policy, batch=2, seed=0)
-        v, e = policy._prepare(vox, ee, "center")
+        v, e = policy.prepare_input(vox, ee, "center")
         for model in (policy.model, plain):
             cond = model.encode_obs(v, e)
             assert bool((cond >= 0).all()) == relu

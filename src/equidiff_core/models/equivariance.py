@@ -195,7 +195,7 @@ class TrainingModel:
 
     @torch.no_grad()
     def denoise(self, voxels: torch.Tensor, ee: torch.Tensor, x: torch.Tensor, t: int) -> torch.Tensor:
-        vox, ee_n = self.policy._prepare(voxels[None], ee[None], "center")
+        vox, ee_n = self.policy.prepare_input(voxels[None], ee[None], "center")
         return self.policy.model(x, torch.tensor([t]), vox, ee_n).float()
 
     @torch.no_grad()

@@ -81,7 +81,9 @@ class DiffusionPolicy(nn.Module):
         }
 
     # --- shared pre-processing --------------------------------------------------------
-    def _prepare(self, voxels: torch.Tensor, ee: torch.Tensor, crop: str, generator=None):
+    def prepare_input(self, voxels: torch.Tensor, ee: torch.Tensor, crop: str, generator=None):
+        """The network's input from a batch's uint8 grids and gripper states: the one place training,
+        evaluation and distillation build it (``crop``: "random" or "center", ``augment.voxel_input``)."""
         device = next(self.model.parameters()).device
         vox = augment.voxel_input(voxels, self.preset.crop, crop, generator, device)
         return vox, self.normalizer.normalize(ee.to(device).float())
@@ -110,7 +112,7 @@ class DiffusionPolicy(nn.Module):
             voxels, ee, action = augment.random_rotation(
                 voxels, ee.double(), action.double(), self.preset.rotation_aug, self.workspace.center, generator
             )
-        vox, ee_n = self._prepare(voxels, ee, "random" if self.training else "center", generator)
+        vox, ee_n = self.prepare_input(voxels, ee, "random" if self.training else "center", generator)
         device = vox.device
         x0 = codec.encode(action.to(device).float(), ee[:, -1].to(device).float())
         cond = self.model.encode_obs(vox, ee_n)
@@ -138,7 +140,7 @@ class DiffusionPolicy(nn.Module):
         voxels, ee = obs["voxels"], obs["ee"]
         check_obs(voxels, ee, self.preset)
         codec = self.codec
-        vox, ee_n = self._prepare(voxels, ee, "center")
+        vox, ee_n = self.prepare_input(voxels, ee, "center")
         cond = self.model.encode_obs(vox, ee_n)
         B, H = voxels.shape[0], self.preset.horizon
         x = ddim_sample(

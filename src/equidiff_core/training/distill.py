@@ -101,7 +101,7 @@ class _Frames:
                 ee = torch.stack([s["ee"] for s in items])
                 clean = policy.codec.encode(torch.stack([s["action"] for s in items]).float(), ee[:, -1].float())
                 for k in range(crops):
-                    vox, ee_n = policy._prepare(voxels, ee, "center" if k == 0 else "random", generator)
+                    vox, ee_n = policy.prepare_input(voxels, ee, "center" if k == 0 else "random", generator)
                     cond = policy.model.encode_obs(vox, ee_n)
                     conds.append(cond.unflatten(0, (len(items), -1)))  # (B, rows per sample, features)
                     targets.append(clean)
@@ -158,12 +158,11 @@ def run_distillation(spec: DistillSpec, log=logger.info) -> dict:
     try:
         teacher = load_policy_from_checkpoint(spec.teacher, device="cpu", ema=True)
     except CheckpointError as err:
-        raise DistillError(f"teacher {spec.teacher}: {err}", 2) from err
+        raise DistillError(f"the teacher: {err}", 2) from err
     preset = teacher.preset
-    first = spec.first_timestep
-    if first is None:
-        first = int(make_inference_scheduler(preset).timesteps[0])
-    teacher_steps = len(make_inference_scheduler(preset).timesteps)
+    teacher_timesteps = make_inference_scheduler(preset).timesteps  # the teacher's own sampler
+    teacher_steps = len(teacher_timesteps)
+    first = int(teacher_timesteps[0]) if spec.first_timestep is None else spec.first_timestep
     try:
         sampler = student_sampler(preset.num_train_timesteps, spec.steps, first, teacher_steps)
     except ValueError as err:
@@ -178,7 +177,8 @@ def run_distillation(spec: DistillSpec, log=logger.info) -> dict:
     started = time.perf_counter()  # the cost reported: from reading the demos to the exported student
     episodes, skipped = load_episodes(spec.demos, data_cfg, log=log)
     if not episodes:
-        raise DistillError(f"no usable demos in {[str(d) for d in spec.demos]}: {skipped[:1]}", 2)
+        reasons = "; ".join(reason for _, reason in skipped[:3]) or "none found"
+        raise DistillError(f"no usable demos in {', '.join(map(str, spec.demos))}: {reasons}", 2)
     dataset = DemoDataset(episodes, data_cfg)
     torch.manual_seed(spec.seed)
     frames = _Frames(teacher, dataset, spec.crops, torch.Generator().manual_seed(spec.seed + 1))
