@@ -88,7 +88,7 @@ class CorrectionsSettings:
     demos_dir: Path | None  # the demos (name order = seed order); None: recorded into OUT/demos
     start_demos: int = 10  # the start policy's demos: the first N of demos_dir
     reference_demos: int = 20
-    rollouts: int = 12  # scenes of the round (12: fewer operator frames than 10 more demos hold, measured)
+    rollouts: int = 12  # scenes of the round: the measured round's size (docs/results/corrections.md)
     eval_episodes: int = 50
     fine_tune: FineTune = field(default_factory=FineTune)
     rule: LostRule = field(default_factory=LostRule)

@@ -72,10 +72,13 @@ def sampler_name(steps: int, spacing: str, first_timestep: int | None = None) ->
     return f"ddim{steps}_{spacing}" if first_timestep is None else f"ddim{steps}_from{first_timestep}"
 
 
+COMPARED = "__"  # joins a compared file's name and its sampler in its row's name
+
+
 def compared_name(path: Path, policy: InferencePolicy) -> str:
     """A compared file's row: its name (its folder's for a run's ``policy.pt``) and its own sampler."""
     label = path.parent.name if path.stem == "policy" else path.stem
-    return f"{label}__{sampler_name(policy.inference_steps, policy.timestep_spacing, policy.first_timestep)}"
+    return f"{label}{COMPARED}{sampler_name(policy.inference_steps, policy.timestep_spacing, policy.first_timestep)}"
 
 
 def time_predict(policies: dict[str, InferencePolicy], calls: int, vox: np.ndarray, ee: np.ndarray) -> dict:
@@ -111,7 +114,7 @@ def plot_steps(rows: list[dict], path: Path, title: str, note: str = "") -> Path
         if row["success"] is None:
             continue
         x, y, ci = row["inference_median_ms"], 100 * row["success"], row["success_ci95"]
-        baseline, compared = row["baseline"], "__" in row["sampler"]  # a compared file at its own sampler
+        baseline, compared = row["baseline"], COMPARED in row["sampler"]  # a compared file at its own sampler
         ax.errorbar(
             [x],
             [y],
@@ -120,12 +123,12 @@ def plot_steps(rows: list[dict], path: Path, title: str, note: str = "") -> Path
             marker="s" if baseline else (next(markers, "o") if compared else "o"),
             color="black" if baseline else ("tab:orange" if compared else "tab:blue"),
             capsize=3,
-            label=f"{row['sampler'].split('__')[0]} ({row['steps']} steps)" if compared else None,
+            label=f"{row['sampler'].split(COMPARED)[0]} ({row['steps']} steps)" if compared else None,
         )
         if not compared:
             label = f"{row['steps']}" + (" (policy's own)" if baseline else "")
             ax.annotate(label, (x, y), textcoords="offset points", xytext=(6, 6), fontsize=8)
-    if any("__" in row["sampler"] for row in rows):
+    if any(COMPARED in row["sampler"] for row in rows):
         ax.legend(fontsize=7, loc="lower right")
     ax.set_xlabel("inference time per chunk, ms (median; bar to p99), one thread")
     ax.set_ylabel("success, % (95 % interval)")

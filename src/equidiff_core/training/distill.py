@@ -174,12 +174,12 @@ def run_distillation(spec: DistillSpec, log=logger.info) -> dict:
     data_cfg = DatasetConfig.from_preset(
         preset, resolution=lab.workspace.resolution, grid=VoxelGridSpec.of(lab.workspace, lab.base_frame)
     )
-    started = time.perf_counter()  # the cost reported: from reading the demos to the exported student
     episodes, skipped = load_episodes(spec.demos, data_cfg, log=log)
     if not episodes:
         reasons = "; ".join(reason for _, reason in skipped[:3]) or "none found"
         raise DistillError(f"no usable demos in {', '.join(map(str, spec.demos))}: {reasons}", 2)
     dataset = DemoDataset(episodes, data_cfg)
+    started = time.perf_counter()  # the cost reported: from encoding the frames to the exported student
     torch.manual_seed(spec.seed)
     frames = _Frames(teacher, dataset, spec.crops, torch.Generator().manual_seed(spec.seed + 1))
     swap_modules(teacher.model, torch.nn.Mish, lambda _: FastMish())  # the teacher only runs: the faster CPU Mish
@@ -247,7 +247,7 @@ def run_distillation(spec: DistillSpec, log=logger.info) -> dict:
         # the same frames and noise, every student step, before (the teacher's weights) and after
         "check_loss_before": float(f"{loss_before:.4g}"),
         "check_loss_after": float(f"{loss_after:.4g}"),
-        "encode_s": round(encode_s, 1),  # reading the demos and encoding their frames
+        "encode_s": round(encode_s, 1),  # encoding the frames
         "wall_s": round(wall, 1),
         "threads": torch.get_num_threads(),
         "recipe": {k: (str(v) if isinstance(v, Path) else v) for k, v in asdict(spec).items() if k != "demos"},
