@@ -197,3 +197,22 @@ def test_quaternion_helpers_round_trip():
     T = random_poses(11, 3)
     p, q = g.pos_quat_from_pose(T)
     np.testing.assert_allclose(g.pose_from_pos_quat(p, q), T, atol=1e-12)
+
+
+@pytest.mark.parametrize("theta", [0.3, math.pi / 4, -1.9, 2.5, math.pi / 2 + 1e-3])
+def test_nearest_rotation_picks_the_voxels_slice_resampling_picks(theta):
+    # The gather of whole columns must reproduce grid_sample's nearest choice on every slice exactly (the
+    # way it was computed before), including its rounding at pixel boundaries and the empty corners, for
+    # the training grids' shape and dtype and for float grids.
+    rng = np.random.default_rng(1)
+    occupied = rng.random((2, 1, 1, 64, 64, 64)) < 0.05
+    grid = torch.from_numpy((rng.integers(1, 256, (2, 1, 4, 64, 64, 64)) * occupied).astype(np.uint8))
+    values = torch.from_numpy(rng.standard_normal((3, 12, 12, 7)).astype(np.float32))
+    with g.slice_resampled_rotation():
+        resampled = g.rotate_voxel_grid(grid, theta), g.rotate_voxel_grid(values, theta)
+    rotated = g.rotate_voxel_grid(grid, theta)
+    assert rotated.dtype == torch.uint8 and rotated.shape == grid.shape
+    assert rotated.any() and not torch.equal(rotated, grid)
+    assert torch.equal(rotated, resampled[0])
+    assert torch.equal(g.rotate_voxel_grid(values, theta), resampled[1])
+    np.testing.assert_array_equal(g.rotate_voxel_grid(values.numpy(), theta), resampled[1].numpy())

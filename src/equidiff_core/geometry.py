@@ -19,8 +19,10 @@ rotation) raises ``GeometryError``; nothing is silently repaired except by
 
 from __future__ import annotations
 
+import contextlib
 import math
 import sys
+from contextvars import ContextVar
 from typing import Any
 
 import numpy as np
@@ -398,30 +400,74 @@ def rotate_voxel_grid(grid: Array, theta: float, mode: str = "nearest") -> Array
     return _resample_rotated(grid, theta, mode)
 
 
+# nearest rotation by resampling every x-y slice, as before _gather_columns (a context variable: scoped, thread-safe)
+_SLICE_RESAMPLING: ContextVar[bool] = ContextVar("slice_resampling", default=False)
+
+
+@contextlib.contextmanager
+def slice_resampled_rotation():
+    """Nearest rotations inside resample every x-y slice in float, as they did before they gathered whole
+    columns: the same voxels at the old cost, for the benches (``equidiff bench train --variants
+    slice_rotation``) and as the tests' reference."""
+    token = _SLICE_RESAMPLING.set(True)
+    try:
+        yield
+    finally:
+        _SLICE_RESAMPLING.reset(token)
+
+
 def _resample_rotated(grid: Array, theta: float, mode: str) -> Array:
     import torch.nn.functional as F
 
     is_t = _is_torch(grid)
     t = grid if is_t else torch.as_tensor(np.asarray(grid))
-    orig_dtype = t.dtype
     *lead, C, X, Y, Z = t.shape
     if X != Y:
         raise GeometryError(f"rotation needs a square x-y grid, got {X}x{Y}")
-    # Fold z into channels and resample each x-y slice: the rotation leaves z alone.
-    img = t.reshape(-1, C, X, Y, Z).permute(0, 1, 4, 2, 3).reshape(-1, C * Z, X, Y).float()
     # affine_grid maps output coords to input coords in (W=Y-index, H=X-index) order.
     # Output point q comes from input R^-1 q. In (x=H, y=W) order R^-1 = [[c, s], [-s, c]];
     # in (W, H) order it becomes [[c, -s], [s, c]].
     c, s = math.cos(theta), math.sin(theta)
-    affine = torch.tensor([[c, -s, 0.0], [s, c, 0.0]], dtype=torch.float32, device=img.device).expand(
-        img.shape[0], 2, 3
-    )
-    coords = F.affine_grid(affine, list(img.shape), align_corners=False)
+    affine = torch.tensor([[[c, -s, 0.0], [s, c, 0.0]]], dtype=torch.float32, device=t.device)
+    if mode == "nearest" and not _SLICE_RESAMPLING.get():
+        out = _gather_columns(t, _nearest_columns(affine, X, Y))
+        return out if is_t else out.numpy()
+    # Fold z into channels and resample each x-y slice: the rotation leaves z alone.
+    img = t.reshape(-1, C, X, Y, Z).permute(0, 1, 4, 2, 3).reshape(-1, C * Z, X, Y).float()
+    coords = F.affine_grid(affine.expand(img.shape[0], 2, 3), list(img.shape), align_corners=False)
     out = F.grid_sample(
         img, coords, mode="nearest" if mode == "nearest" else "bilinear", padding_mode="zeros", align_corners=False
     )
     out = out.reshape(-1, C, Z, X, Y).permute(0, 1, 3, 4, 2).reshape(*lead, C, X, Y, Z)
-    if not orig_dtype.is_floating_point:
-        out = out.round().clamp(torch.iinfo(orig_dtype).min, torch.iinfo(orig_dtype).max)
-    out = out.to(orig_dtype)
+    if not t.dtype.is_floating_point:
+        out = out.round().clamp(torch.iinfo(t.dtype).min, torch.iinfo(t.dtype).max)
+    out = out.to(t.dtype)
     return out if is_t else out.numpy()
+
+
+def _nearest_columns(affine, X: int, Y: int):
+    """(X*Y,) the flat x-y source column of each output column under ``grid_sample``'s nearest rule, -1 outside.
+
+    grid_sample itself picks them, from an image of column numbers (exact in float32 up to 2^24), so
+    the gather that moves the columns makes the choices nearest resampling every slice would make,
+    while touching each voxel once in its own dtype (resampling 64 z slices x 4 channels in float took
+    most of a training step's augmentation, docs/results/model.md)."""
+    import torch.nn.functional as F
+
+    numbers = torch.arange(1, X * Y + 1, dtype=torch.float32, device=affine.device).reshape(1, 1, X, Y)
+    coords = F.affine_grid(affine, [1, 1, X, Y], align_corners=False)
+    picked = F.grid_sample(numbers, coords, mode="nearest", padding_mode="zeros", align_corners=False)
+    return picked.reshape(-1).long() - 1
+
+
+def _gather_columns(t, columns):
+    """(..., C, X, Y, Z) with output column q = input column ``columns[q]`` (empty where it is -1)."""
+    *lead, C, X, Y, Z = t.shape
+    flat = t.contiguous().reshape(*lead, C, X * Y, Z)
+    # A column moves as 8-byte words where its bytes allow: indexing copies 64 uint8 voxels as 8 words
+    # several times faster than as 64 elements.
+    if (Z * t.element_size()) % 8 == 0 and (flat.storage_offset() * t.element_size()) % 8 == 0:
+        flat = flat.view(torch.int64)
+    out = flat[..., columns.clamp(min=0), :]
+    out.masked_fill_((columns < 0)[:, None], 0)
+    return out.view(t.dtype).reshape(t.shape)
