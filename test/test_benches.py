@@ -332,6 +332,40 @@ def test_bench_train_times_its_variants_in_one_run(capsys):
     assert result["cost"]["ddim16_flops"] == result["cost"]["encoder_flops"] + 16 * result["cost"]["denoise_step_flops"]
 
 
+def test_bench_train_times_the_step_before_the_sparse_first_stage_and_the_column_rotation(capsys, monkeypatch):
+    # EquiDiff with the continuous rotation, so that both earlier paths are in the step they replace.
+    import torch.nn.functional as F
+
+    from equidiff_core.models import sparse_stage
+    from equidiff_ros.cli import main
+
+    sparse_calls, resampled_channels = [], []
+    sparse_apply, grid_sample = sparse_stage._ConvPoolOccupied.apply, F.grid_sample
+
+    def counted_sparse(*args):
+        sparse_calls.append(1)
+        return sparse_apply(*args)
+
+    def counted_grid_sample(image, *args, **kwargs):
+        resampled_channels.append(image.shape[1])  # 1: the column numbers; C * Z: every slice, as before
+        return grid_sample(image, *args, **kwargs)
+
+    monkeypatch.setattr(sparse_stage._ConvPoolOccupied, "apply", counted_sparse)
+    monkeypatch.setattr(F, "grid_sample", counted_grid_sample)
+    argv = ["bench", "train", "--preset", "tiny", "--policy", "equidiff", "--device", "cpu", "--steps", "1"]
+    argv += ["--warmup", "1", "--batch-size", "2", "--samples", "2", "--rotation-aug", "continuous"]
+    # (the bench's cost count runs one step of the current code before the variants)
+    assert main([*argv, "--variants", "previous_default", "--rounds", "1"]) == 0
+    before = len(sparse_calls)
+    assert max(resampled_channels) > 1
+    resampled_channels.clear()
+    assert main([*argv, "--variants", "default", "--rounds", "1"]) == 0
+    assert len(sparse_calls) - before == before + 2  # and the warm-up and the timed step, one encoder pass each
+    assert resampled_channels and max(resampled_channels) == 1
+    result = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert list(result["cpu_variants"]["variants"]) == ["default"] and result["observations"] == "twin"
+
+
 def test_bench_policy_times_the_old_relu_order_in_the_same_run(capsys):
     from equidiff_ros.cli import main
 

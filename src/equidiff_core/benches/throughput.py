@@ -198,6 +198,7 @@ class TrainBenchSettings:
     variants: tuple[str, ...] | None  # CPU variants timed instead of the CPU's plain measurement
     rounds: int  # alternating rounds of the variants
     cpu: bool  # measure the CPU (``--no-cpu``: False, CUDA only)
+    observations: str = "twin"  # the synthetic set's voxels (``timing.SyntheticTrainingSet``): twin | noise
 
 
 def run_train_bench(settings: TrainBenchSettings) -> dict:
@@ -225,7 +226,10 @@ def run_train_bench(settings: TrainBenchSettings) -> dict:
     default_runs = {"cpu": [(settings.cpu_precision, "auto")], "cuda": [("auto", "auto")]}
     ws = Workspace()
     batches = [batch_sizes[d] for d, on in devices.items() if on] + ([settings.batch_size] if settings.variants else [])
-    data = SyntheticTrainingSet(preset, ws, max([settings.samples, *batches]))
+    try:
+        data = SyntheticTrainingSet(preset, ws, max([settings.samples, *batches]), observations=settings.observations)
+    except ValueError as err:
+        raise BenchError(str(err), 2) from err
     cost = policy_cost(fresh_policy(settings.policy, preset, ws), batch=2, noise_repeats=settings.noise_repeats)
     policy = fresh_policy(settings.policy, preset, ws)  # trained by every run in turn: the timing does not care
     result = {
@@ -237,6 +241,7 @@ def run_train_bench(settings: TrainBenchSettings) -> dict:
         "rotation_aug": preset.rotation_aug,
         "samples": len(data),
         "noise_repeats": settings.noise_repeats,
+        "observations": settings.observations,
         "load_avg_1min": round(os.getloadavg()[0], 2),  # a shared machine's load shows in CPU figures
     }
     if settings.variants:  # instead of the CPU's plain measurement

@@ -11,8 +11,8 @@ export with the encoder's old order (each ReLU before its max-pool) beside the c
 alternately. ``gemm_gflop_s``: the device's fp32 1024² matrix product, the yardstick for the
 encoder's FLOP rate.
 
-Training: the real ``training.loop.train`` loop on synthetic observations (their content does not change
-the cost), timed over ``steps`` optimiser steps after ``warmup`` untimed ones, with the time the
+Training: the real ``training.loop.train`` loop on synthetic observations (``SyntheticTrainingSet``: only the
+count of their occupied voxels changes the cost, through ``models.sparse_stage``), timed over ``steps`` optimiser steps after ``warmup`` untimed ones, with the time the
 loop waited for its next batch (``data_s``, training's per-step metric) as a share of the step
 time. The loss is read back every step (``loss.item()``), so the device's queue is empty while the
 host fetches a batch: that wait is time the GPU idles. On CUDA, NVML's utilisation (the share of
@@ -36,8 +36,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ..models.equivariance import random_observation
+from ..geometry import slice_resampled_rotation
+from ..models.equivariance import random_observation, twin_scenes
 from ..models.plain import relu_before_pool_order
+from ..models.sparse_stage import dense_first_stage
 from ..policy.diffusion import make_policy
 from ..policy.doubt import DEFAULT_SAMPLES, DEFAULT_SIGNAL, DoubtTracker
 from ..policy.inference import ENCODER_KERNELS, load_inference_policy
@@ -45,6 +47,7 @@ from ..policy.normalizer import Normalizer
 from ..runtime.machine import PRECISIONS, cpu_description, cpu_model
 from ..training.config import DATA_SOURCES, TrainConfig
 from ..training.loop import train
+from ..twin.config import load_twin_config
 from ..wire.chunk import RealTimeChunking
 
 MODE_EXECUTIONS = ("eager", "traced", "compiled")
@@ -344,12 +347,26 @@ def best_mode(results: dict[str, dict], key: str = "ddim16_p99_ms") -> str | Non
     return min(measured, key=measured.get) if measured else None
 
 
-class SyntheticTrainingSet:
-    """Random observations with actions around the gripper state (map-style dataset)."""
+OBSERVATIONS = ("twin", "noise")
 
-    def __init__(self, preset, workspace, n: int, seed: int = 0):
+
+class SyntheticTrainingSet:
+    """Synthetic observations with actions around the gripper state (map-style dataset).
+
+    ``observations``: "twin", the twin's table, block and bowl voxelised (``equivariance.twin_scenes``: about 3600
+    occupied voxels, the twin's recorded frames about 3900 in a crop, with the arm); "noise", random coloured voxels
+    filling 5 % of the crop's inscribed cylinder, scattered (about 6200). Only the count and spread of the occupied
+    voxels change a step's cost (the encoder's first stage, ``models.sparse_stage``)."""
+
+    def __init__(self, preset, workspace, n: int, seed: int = 0, observations: str = "twin"):
+        if observations not in OBSERVATIONS:
+            raise ValueError(f"observations must be one of {OBSERVATIONS}, got {observations!r}")
         probe = ObservationProbe(preset, workspace)
-        parts = [random_observation(probe, batch=min(8, n - a), seed=seed + a, fill=0.05) for a in range(0, n, 8)]
+        if observations == "twin":
+            scene = load_twin_config().scene
+            parts = [twin_scenes(preset, workspace, min(8, n - a), seed + a, scene=scene) for a in range(0, n, 8)]
+        else:
+            parts = [random_observation(probe, batch=min(8, n - a), seed=seed + a, fill=0.05) for a in range(0, n, 8)]
         self.voxels = torch.cat([v for v, _ in parts])
         self.ee = torch.cat([e for _, e in parts])
         gen = torch.Generator().manual_seed(seed)
@@ -484,6 +501,11 @@ CPU_VARIANTS = {
     "eight_noise_draws": "8 (noise, step) draws per encoder pass instead of noise_repeats",
     "train_mode_every_step": "policy.train() before every step, as training did before (escnn's train() hashes "
     "every basis expansion of the model)",
+    "dense_first_stage": "the encoder's first 3^3 conv and 2^3 max-pool computed densely, as before "
+    "models.sparse_stage computed them from the occupied voxels",
+    "slice_rotation": "the rotation augmentation resampling every x-y slice in float, as before it gathered whole "
+    "columns (geometry.slice_resampled_rotation)",
+    "previous_default": "dense_first_stage and slice_rotation together: the CPU step before both",
 }
 VARIANT_NOISE_REPEATS = {"one_noise_draw": 1, "eight_noise_draws": 8}
 
@@ -517,6 +539,17 @@ def variant_policy(policy_name: str, preset, workspace, variant: str):
     return policy, ("bf16" if variant == "bf16" else "fp32")
 
 
+@contextlib.contextmanager
+def _variant_paths(variant: str):
+    """The code paths ``variant`` trains through (the earlier ones it names), in force inside."""
+    with contextlib.ExitStack() as paths:
+        if variant in ("dense_first_stage", "previous_default"):
+            paths.enter_context(dense_first_stage())
+        if variant in ("slice_rotation", "previous_default"):
+            paths.enter_context(slice_resampled_rotation())
+        yield
+
+
 def measure_training_variants(
     policy_name: str,
     preset,
@@ -541,7 +574,8 @@ def measure_training_variants(
             policy, precision = variant_policy(policy_name, preset, workspace, name)
             repeats = VARIANT_NOISE_REPEATS.get(name, noise_repeats)
             extra = (_TrainModeEveryStep(policy),) if name == "train_mode_every_step" else ()
-            m = measure_training(policy, data, "cpu", batch_size, steps, warmup, precision, "auto", repeats, extra)
+            with _variant_paths(name):
+                m = measure_training(policy, data, "cpu", batch_size, steps, warmup, precision, "auto", repeats, extra)
             wall[name].append(m["sec_per_step"])
             cpu[name].append(m["cpu_sec_per_step"])
     first, cpu_first = statistics.median(wall[variants[0]]), statistics.median(cpu[variants[0]])

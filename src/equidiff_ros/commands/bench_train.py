@@ -1,9 +1,9 @@
 """`equidiff bench train`: training throughput (samples/s) on the CPU and on CUDA, same run.
 
 Each device runs the real ``training.loop.train`` loop with its defaults there (CPU: fp32, DataLoader;
-CUDA: bf16 autocast, the whole set resident on the GPU) on synthetic observations (random
-coloured voxels, gripper states near the workspace centre: the cost does not depend on their
-content), with the preset's rotation augmentation, and times ``--steps`` optimiser steps after
+CUDA: bf16 autocast, the whole set resident on the GPU) on synthetic observations (``--observations``:
+the twin's table, block and bowl voxelised, or scattered random voxels; gripper states near the
+workspace centre: only how many voxels are occupied, and how spread, changes the cost), with the preset's rotation augmentation, and times ``--steps`` optimiser steps after
 ``--warmup`` untimed ones (``benches.timing.measure_training``). Prints one JSON line: ``preset``,
 ``policy``, ``params``, ``cost`` (parameters and FLOPs per sample: encoder, denoising step, DDIM-16,
 training step; ``benches.cost``), then per device (``cpu``, ``cuda``) ``device`` (the CPU's name and
@@ -21,7 +21,7 @@ the reference (``benches.timing.CPU_VARIANTS``).
 from __future__ import annotations
 
 from equidiff_core.benches.throughput import TrainBenchSettings, run_train_bench
-from equidiff_core.benches.timing import CPU_VARIANTS
+from equidiff_core.benches.timing import CPU_VARIANTS, OBSERVATIONS
 from equidiff_ros.commands import print_result
 
 
@@ -71,6 +71,13 @@ def add_arguments(parser) -> None:
     )
     parser.add_argument("--rounds", type=int, default=3, help="alternating rounds of --variants")
     parser.add_argument("--no-cpu", action="store_true", help="measure CUDA only (as --device cuda)")
+    parser.add_argument(
+        "--observations",
+        choices=OBSERVATIONS,
+        default="twin",
+        help="the synthetic voxels: twin (the twin's table, block and bowl, as training sees them) or noise "
+        "(scattered random voxels, 5 %% of the crop's cylinder: more, and spread wider)",
+    )
 
 
 def run(args) -> int:
@@ -91,5 +98,6 @@ def run(args) -> int:
         variants=None if args.variants is None else tuple(args.variants),
         rounds=args.rounds,
         cpu=not args.no_cpu,
+        observations=args.observations,
     )
     return print_result(run_train_bench(settings), "bench train")
