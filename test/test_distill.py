@@ -12,6 +12,8 @@ import torch
 from helpers_data import SyntheticEpisode, write_synthetic_episode
 
 from equidiff_core.config import Workspace
+from equidiff_core.data.dataset import DemoDataset, load_episodes
+from equidiff_core.data.episode_arrays import DatasetConfig
 from equidiff_core.data.recording import RecordingConfig
 from equidiff_core.models import equivariance
 from equidiff_core.models.sampling import ddim_step_between, make_inference_scheduler, uniform_timesteps
@@ -129,3 +131,25 @@ def test_distill_trains_an_equivariant_student_that_its_file_selects(tiny_teache
     assert plain["train_steps"] == 0 and plain["final_loss"] is None
     assert plain["check_loss_after"] == plain["check_loss_before"]
     assert plain["check_loss_before"] == summary["check_loss_before"]
+
+
+def test_a_roll_out_teaches_at_every_frame_the_policy_or_the_operator_drove(tiny_teacher, tmp_path, capsys):
+    # Training's default leaves the policy's own frames out (HG-DAgger); the teacher answers at every frame,
+    # so distilling from a roll-out (the policy until 2 s, then the operator) uses as many as a demo of its length.
+    teacher, demo = tiny_teacher
+    rollout = write_synthetic_episode(
+        tmp_path / "rollout_0000",
+        SyntheticEpisode(duration_s=4.0, image_size=None),
+        config=RecordingConfig(min_free_gib=0),
+        policy_states=((0.0, "running"), (2.0, "paused teleop")),
+        teleop_active=((0.0, False), (2.0, True)),
+    )
+    frames = {}
+    for name, bag in (("demo", demo), ("rollout", rollout)):
+        capsys.readouterr()
+        argv = ["distill", str(teacher), "--demos", str(bag), "--out", str(tmp_path / f"{name}.pt"), "--steps", "2"]
+        assert cli([*argv, "--train-steps", "0"]) == 0
+        frames[name] = json.loads(capsys.readouterr().out.strip().splitlines()[-1])["frames"]
+    assert frames["rollout"] == frames["demo"] > 0
+    weighted = DemoDataset(load_episodes([rollout], DatasetConfig())[0], DatasetConfig())  # training's default
+    assert 0 < len(weighted) < frames["rollout"]

@@ -26,6 +26,7 @@ from diffusers.optimization import get_cosine_schedule_with_warmup
 from ..config import default_config_dir, load_lab_config
 from ..data.dataset import DemoDataset, load_episodes
 from ..data.episode_arrays import DatasetConfig
+from ..data.segments import SourceWeights
 from ..models.cpu_kernels import FastMish, swap_modules
 from ..models.sampling import ddim_step_between, make_inference_scheduler, uniform_timesteps
 from ..policy.file import CheckpointError, export_policy
@@ -35,6 +36,12 @@ from ..wire.pointcloud import VoxelGridSpec
 from .loop import Ema, load_policy_from_checkpoint
 
 logger = logging.getLogger(__name__)
+
+
+# The teacher answers at every frame, whoever drove the arm: a policy's own roll-outs (its frames, weight 0 in
+# training's HG-DAgger default) teach the student at the states its closed loop reaches, DAgger with the
+# teacher as the expert (docs/denoising_steps.md).
+ROLLOUT_FRAMES_TOO = SourceWeights(intervention=1.0, policy=1.0)
 
 
 class DistillError(JobError):
@@ -178,7 +185,7 @@ def run_distillation(spec: DistillSpec, log=logger.info) -> dict:
     if not episodes:
         reasons = "; ".join(reason for _, reason in skipped[:3]) or "none found"
         raise DistillError(f"no usable demos in {', '.join(map(str, spec.demos))}: {reasons}", 2)
-    dataset = DemoDataset(episodes, data_cfg)
+    dataset = DemoDataset(episodes, data_cfg, ROLLOUT_FRAMES_TOO)
     started = time.perf_counter()  # the cost reported: from encoding the frames to the exported student
     torch.manual_seed(spec.seed)
     frames = _Frames(teacher, dataset, spec.crops, torch.Generator().manual_seed(spec.seed + 1))
