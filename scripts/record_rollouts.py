@@ -1,4 +1,4 @@
-"""A policy's own roll-outs in the twin, every episode recorded, the scripted expert taking over when it judges one lost.
+"""A policy's own roll-outs in the twin, every episode recorded, the scripted expert taking over a lost one.
 
     PYTHONPATH=src python scripts/record_rollouts.py POLICY.pt OUT_DIR --seed 5000 --episodes 24
 

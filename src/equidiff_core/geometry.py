@@ -450,8 +450,8 @@ def _nearest_columns(affine, X: int, Y: int):
 
     grid_sample itself picks them, from an image of column numbers (exact in float32 up to 2^24), so
     the gather that moves the columns makes the choices nearest resampling every slice would make,
-    while touching each voxel once in its own dtype (resampling 64 z slices x 4 channels in float took
-    most of a training step's augmentation, docs/results/model.md)."""
+    while touching each voxel once in its own dtype instead of resampling every z slice of every channel
+    in float (the training step it made cheaper: docs/results/model.md, "What a CPU training step costs")."""
     import torch.nn.functional as F
 
     numbers = torch.arange(1, X * Y + 1, dtype=torch.float32, device=affine.device).reshape(1, 1, X, Y)
@@ -464,8 +464,8 @@ def _gather_columns(t, columns):
     """(..., C, X, Y, Z) with output column q = input column ``columns[q]`` (empty where it is -1)."""
     *lead, C, X, Y, Z = t.shape
     flat = t.contiguous().reshape(*lead, C, X * Y, Z)
-    # A column moves as 8-byte words where its bytes allow: indexing copies 64 uint8 voxels as 8 words
-    # several times faster than as 64 elements.
+    # A column moves as 8-byte words where its bytes allow: indexing copies a 64-voxel uint8 column
+    # faster as 8 words than as 64 elements.
     if (Z * t.element_size()) % 8 == 0 and (flat.storage_offset() * t.element_size()) % 8 == 0:
         flat = flat.view(torch.int64)
     out = flat[..., columns.clamp(min=0), :]

@@ -11,11 +11,12 @@ export with the encoder's old order (each ReLU before its max-pool) beside the c
 alternately. ``gemm_gflop_s``: the device's fp32 1024² matrix product, the yardstick for the
 encoder's FLOP rate.
 
-Training: the real ``training.loop.train`` loop on synthetic observations (``SyntheticTrainingSet``: only the
-count of their occupied voxels changes the cost, through ``models.sparse_stage``), timed over ``steps`` optimiser steps after ``warmup`` untimed ones, with the time the
-loop waited for its next batch (``data_s``, training's per-step metric) as a share of the step
-time. The loss is read back every step (``loss.item()``), so the device's queue is empty while the
-host fetches a batch: that wait is time the GPU idles. On CUDA, NVML's utilisation (the share of
+Training: the real ``training.loop.train`` loop on synthetic observations (``SyntheticTrainingSet``: how many
+voxels they occupy, and how spread, is what changes the cost, through ``models.sparse_stage``), timed over
+``steps`` optimiser steps after ``warmup`` untimed ones, with the time the loop waited for its next
+batch (``data_s``, training's per-step metric) as a share of the step time. The loss is read back
+every step (``loss.item()``), so the device's queue is empty while the host fetches a batch: that wait
+is time the GPU idles. On CUDA, NVML's utilisation (the share of
 time a kernel was running) is sampled over the timed steps when ``pynvml`` is installed. On the CPU
 the process's CPU seconds per step stand beside the wall seconds: on a loaded machine they still
 measure the work, not the waiting. ``measure_training_variants`` times CPU training-step variants

@@ -3,10 +3,11 @@
 Each device runs the real ``training.loop.train`` loop with its defaults there (CPU: fp32, DataLoader;
 CUDA: bf16 autocast, the whole set resident on the GPU) on synthetic observations (``--observations``:
 the twin's table, block and bowl voxelised, or scattered random voxels; gripper states near the
-workspace centre: only how many voxels are occupied, and how spread, changes the cost), with the preset's rotation augmentation, and times ``--steps`` optimiser steps after
-``--warmup`` untimed ones (``benches.timing.measure_training``). Prints one JSON line: ``preset``,
-``policy``, ``params``, ``cost`` (parameters and FLOPs per sample: encoder, denoising step, DDIM-16,
-training step; ``benches.cost``), then per device (``cpu``, ``cuda``) ``device`` (the CPU's name and
+workspace centre: only how many voxels are occupied, and how spread, changes the cost), with the
+preset's rotation augmentation, and times ``--steps`` optimiser steps after ``--warmup`` untimed ones
+(``benches.timing.measure_training``). Prints one JSON line: ``preset``, ``policy``, ``params``,
+``cost`` (parameters and FLOPs per sample: encoder, denoising step, DDIM-16, training step;
+``benches.cost``), then per device (``cpu``, ``cuda``) ``device`` (the CPU's name and
 instruction sets or the GPU's name), ``batch_size``, ``precision``, ``data``, ``steps``,
 ``sec_per_step``, ``samples_per_s`` and ``data_wait_share`` (the loop's wait for its next batch
 over the step time; on the CPU also ``cpu_sec_per_step``, the process's CPU seconds; on CUDA
