@@ -18,6 +18,7 @@ from torch import nn
 from ..policy.presets import PolicyPreset
 from . import action_space
 from .plain import build_plain_encoder
+from .sparse_stage import conv_pool_occupied, is_conv_pool_stage, sparse_first_stage_enabled
 from .unet1d import ConditionalUnet1D
 
 # Plain channels = round(scale * regular fields) gives the equivariant C8 encoder's parameter
@@ -79,10 +80,15 @@ class BaselineNoisePredictor(nn.Module):
 
     def encode_obs(self, voxels: torch.Tensor, ee: torch.Tensor) -> torch.Tensor:
         B = voxels.shape[0]
-        # channels-last 3D: oneDNN's fast layout for these few-channel convolutions (measured with `equidiff bench
-        # train --variants`, docs/results/model.md; EquiDiff's escnn convolutions gained nothing from it)
-        x = voxels.flatten(0, 1).contiguous(memory_format=torch.channels_last_3d)
-        feats = self.encoder(x).reshape(B, -1)
+        x = voxels.flatten(0, 1)
+        conv, pool = self.encoder[:2]
+        if sparse_first_stage_enabled(x) and isinstance(pool, nn.MaxPool3d) and is_conv_pool_stage(conv, pool):
+            feats = self.encoder[2:](conv_pool_occupied(x, conv.weight, conv.bias))  # channels-last from there
+        else:
+            # channels-last 3D: oneDNN's fast layout for these few-channel convolutions (measured with `equidiff
+            # bench train --variants`, docs/results/model.md; EquiDiff's escnn convolutions gained nothing from it)
+            feats = self.encoder(x.contiguous(memory_format=torch.channels_last_3d))
+        feats = feats.reshape(B, -1)
         return torch.cat([feats, ee.reshape(B, -1).to(feats.dtype)], dim=1)
 
     def denoise(self, sample: torch.Tensor, timestep: torch.Tensor, cond: torch.Tensor) -> torch.Tensor:

@@ -22,7 +22,7 @@ from escnn import nn as enn
 from ..policy.presets import PolicyPreset
 from . import action_space
 from .plain import EquiNoiseCore, PlainEquiNoisePredictor, encoder_layer_specs, obs_embedding_relu
-from .sparse_stage import conv_pool_occupied, sparse_first_stage_enabled
+from .sparse_stage import conv_pool_occupied, is_conv_pool_stage, sparse_first_stage_enabled
 
 
 def irreps_type(gspace, freqs: tuple[int, ...], repeat: int = 1) -> list:
@@ -78,7 +78,12 @@ class EquiNoisePredictor(EquiNoiseCore):
 
     def _encode_voxels(self, x):
         layers = list(self.encoder.children())
-        if not (_is_first_stage(layers) and sparse_first_stage_enabled(x)):
+        if not (
+            sparse_first_stage_enabled(x)
+            and isinstance(layers[0], enn.R3Conv)
+            and isinstance(layers[1], enn.PointwiseMaxPool3D)  # the official layout, its pool before the ReLU
+            and is_conv_pool_stage(*layers[:2])
+        ):
             return self.encoder(enn.GeometricTensor(x, self.in_type)).tensor
         conv, pool = layers[:2]
         # escnn's own filter: expanded from the weights while training, the one it cached in eval mode
@@ -110,19 +115,3 @@ class EquiNoisePredictor(EquiNoiseCore):
         plain.unet.load_state_dict(self.unet.state_dict())
         self.train(was_training)
         return plain.eval().to(next(self.parameters()).device)
-
-
-def _is_first_stage(layers) -> bool:
-    """Whether the encoder starts with the stage ``sparse_stage.conv_pool_occupied`` computes: a biased 3³
-    convolution without padding, then a 2³ max-pool (the official layout with the pool before the ReLU)."""
-    if len(layers) < 2 or not isinstance(layers[0], enn.R3Conv) or not isinstance(layers[1], enn.PointwiseMaxPool3D):
-        return False
-    conv, pool = layers[:2]
-    return (
-        (conv.kernel_size, conv.padding, conv.stride, conv.dilation, conv.groups) == (3, 0, 1, 1, 1)
-        and conv.bias is not None
-        and pool.kernel_size == pool.stride == (2, 2, 2)
-        and pool.padding == (0, 0, 0)
-        and pool.dilation == (1, 1, 1)
-        and not pool.ceil_mode
-    )

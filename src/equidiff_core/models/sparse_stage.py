@@ -1,5 +1,6 @@
 """The voxel encoder's first stage (a 3³ convolution without padding, then a 2³ max-pool) computed from the
-occupied voxels only, on the CPU while training: the same function as the dense layers, in a fraction of the work.
+occupied voxels only, on the CPU while training (EquiDiff's escnn encoder and the baseline's plain one): the same
+function as the dense layers, in a fraction of the work.
 
 Why it is exact: an empty voxel (all channels 0) adds nothing to a convolution, so each output is the bias plus
 the sum, over the occupied voxels within its 3³ window, of the filter's tap times that voxel. Each occupied voxel
@@ -39,15 +40,36 @@ def dense_first_stage():
 
 
 def sparse_first_stage_enabled(x: torch.Tensor) -> bool:
-    """Whether ``conv_pool_occupied`` should compute the first stage for input ``x``: an fp32 grid on the CPU
-    (never a gradient for it; bf16 autocast keeps the dense layers it was measured with), unless
-    ``dense_first_stage()`` is in force."""
+    """Whether ``conv_pool_occupied`` should compute the first stage for input ``x``: while training (gradients
+    on, not traced: deployment's exported, traced network and every no-grad pass keep oneDNN's dense layers), an
+    fp32 grid on the CPU (never a gradient for it; bf16 autocast keeps the dense layers it was measured with),
+    unless ``dense_first_stage()`` is in force."""
     return (
-        x.device.type == "cpu"
+        torch.is_grad_enabled()
+        and not torch.jit.is_tracing()
+        and x.device.type == "cpu"
         and x.dtype == torch.float32
         and not x.requires_grad
         and not torch.is_autocast_enabled("cpu")
         and not _DENSE_FIRST_STAGE.get()
+    )
+
+
+def is_conv_pool_stage(conv, pool) -> bool:
+    """Whether ``conv`` then ``pool`` is the stage ``conv_pool_occupied`` computes: a biased 3³ convolution
+    without padding, then a 2³ max-pool (torch's Conv3d / MaxPool3d or escnn's R3Conv / PointwiseMaxPool3D,
+    whose sizes are ints or triples)."""
+    triple = torch.nn.modules.utils._triple
+    return (
+        triple(conv.kernel_size) == (3, 3, 3)
+        and triple(conv.padding) == (0, 0, 0)
+        and triple(conv.stride) == triple(conv.dilation) == (1, 1, 1)
+        and conv.groups == 1
+        and conv.bias is not None
+        and triple(pool.kernel_size) == triple(pool.stride) == (2, 2, 2)
+        and triple(pool.padding) == (0, 0, 0)
+        and triple(pool.dilation) == (1, 1, 1)
+        and not pool.ceil_mode
     )
 
 

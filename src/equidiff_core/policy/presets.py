@@ -170,7 +170,7 @@ def encoder_output_size(crop: int, layout: str) -> int:
 
 # DiffPo-C (Vo)'s width per preset: paper the official voxel config's enc_n_hidden (256); compact 128,
 # whose first layer has EquiDiff compact's 8 channels at 56³ (one C8 regular field) and whose training
-# step costs about EquiDiff's (docs/results/model.md); tiny the smallest with 2 first-layer channels. All start
+# step costs about half EquiDiff's (docs/results/model.md); tiny the smallest with 2 first-layer channels. All start
 # He-initialised, as escnn starts EquiDiff's convolutions (docs/results/model.md: with PyTorch's default the
 # baseline's features did not respond to the block).
 PRESETS: dict[str, PolicyPreset] = {

@@ -53,7 +53,7 @@ class DistillSpec:
     """What ``equidiff distill`` is asked for (its flags, same names)."""
 
     teacher: Path  # the teacher's training checkpoint (last.ckpt): escnn weights, EMA where it kept one
-    demos: tuple[Path, ...]  # the teacher's training demos (bags, packed episodes or folders)
+    demos: tuple[Path, ...]  # the teacher's training demos, and any roll-outs (bags, packed episodes or folders)
     out: Path  # the student's policy file
     steps: int = 4  # the student's DDIM steps
     first_timestep: int | None = None  # None: the teacher's own sampler's first timestep
@@ -192,7 +192,7 @@ def run_distillation(spec: DistillSpec, log=logger.info) -> dict:
     swap_modules(teacher.model, torch.nn.Mish, lambda _: FastMish())  # the teacher only runs: the faster CPU Mish
     encode_s = time.perf_counter() - started
     log(
-        f"[distill] {len(frames)} inputs ({spec.crops} per frame) of {len(episodes)} demos read and encoded in "
+        f"[distill] {len(frames)} inputs ({spec.crops} per frame) of {len(episodes)} episodes read and encoded in "
         f"{encode_s:.0f} s; student timesteps {list(sampler.timesteps)}, teacher paths "
         f"{[list(p) for p in sampler.teacher_paths]}"
     )

@@ -22,7 +22,13 @@ DEFAULT = DistillSpec(teacher=Path(), demos=(), out=Path())
 
 def add_arguments(parser) -> None:
     parser.add_argument("teacher", type=Path, help="the teacher's training checkpoint (its run's last.ckpt)")
-    parser.add_argument("--demos", type=Path, nargs="+", required=True, help="its training demos (bags or folders)")
+    parser.add_argument(
+        "--demos",
+        type=Path,
+        nargs="+",
+        required=True,
+        help="its training demos, and any recorded roll-outs (bags or folders)",
+    )
     parser.add_argument("--out", type=Path, required=True, help="the student's policy file")
     parser.add_argument("--steps", type=int, default=DEFAULT.steps, help="the student's DDIM steps")
     parser.add_argument(
