@@ -293,7 +293,10 @@ def test_composed_process_runs_one_camera_node_per_camera_each_with_its_name_and
     try:
         wanted = {f"camera_node/{front}", f"camera_node/{left}"}
         assert tester.wait_for(lambda: cameras_reported() >= wanted, 60.0), cameras_reported()
-        assert {"camera_a", "camera_b"} <= set(tester.node.get_node_names())
+        # the graph's discovery is asynchronous: the nodes' messages can arrive before their names do
+        assert tester.wait_for(lambda: {"camera_a", "camera_b"} <= set(tester.node.get_node_names()), 30.0), (
+            tester.node.get_node_names()
+        )
         assert cameras_reported() == wanted  # each node its own camera, none all of them
         # the front camera's clouds flow (its diagnostics may come first on a loaded machine)
         assert tester.wait_for(lambda: tester.clouds, 30.0)
