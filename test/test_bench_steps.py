@@ -11,7 +11,7 @@ from equidiff_core.benches import BenchError
 from equidiff_core.benches import denoising_steps as bench
 from equidiff_core.config import Workspace
 from equidiff_core.policy.diffusion import make_policy
-from equidiff_core.policy.file import export_policy
+from equidiff_core.policy.file import CheckpointError, export_policy
 from equidiff_core.policy.normalizer import Normalizer
 from equidiff_core.policy.presets import get_preset
 from equidiff_core.twin.evaluate import EvalEpisode
@@ -156,20 +156,23 @@ def test_a_distilled_policy_is_compared_at_its_own_sampler_on_the_same_scenes(
     roll_outs = _RollOuts()
     monkeypatch.setattr(bench, "evaluate_policy", roll_outs)
     monkeypatch.setattr(bench, "DirectRecorder", _NoRecorder)
-    # the same weights written as a 4-step policy from t = 90, as `equidiff distill` writes its student
+    # the same weights written as a 4-step policy through its own timesteps, as `equidiff distill` writes its student
     torch.manual_seed(0)
     policy = make_policy("equidiff", get_preset("tiny"), Workspace())
     policy.set_normalizer(Normalizer.from_workspace(Workspace()))
-    student = export_policy(policy.eval(), tmp_path / "student.pt", sampler={"steps": 4, "first_timestep": 90})
+    with pytest.raises(CheckpointError, match="steps 3 but 4 timesteps"):  # a file that would not load is not written
+        export_policy(policy.eval(), tmp_path / "student.pt", sampler={"steps": 3, "timesteps": [90, 60, 12, 0]})
+    assert not (tmp_path / "student.pt").exists()
+    student = export_policy(policy.eval(), tmp_path / "student.pt", sampler={"steps": 4, "timesteps": [90, 60, 12, 0]})
     assert main(_argv(tiny_policy_file, tmp_path / "work", "--steps", "--compare", str(student))) == 0
     result = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     base, other = result["rows"]
     assert base["sampler"] == "ddim16_leading" and base["policy"] == str(tiny_policy_file)
-    assert other["sampler"] == "student__ddim4_from90" and other["policy"] == str(student)
-    assert other["timesteps"] == [90, 65, 40, 15] and not other["baseline"]
+    assert other["sampler"] == "student__ddim4_t90-60-12-0" and other["policy"] == str(student)
+    assert other["timesteps"] == [90, 60, 12, 0] and not other["baseline"]
     assert other["paired_vs_baseline"]["n"] == 4 and other["successes"] == 2
     assert roll_outs.calls == [(16, "leading"), (4, "leading")]
-    assert (tmp_path / "work" / "student__ddim4_from90" / "rollouts.json").is_file()
+    assert (tmp_path / "work" / "student__ddim4_t90-60-12-0" / "rollouts.json").is_file()
 
 
 def test_bench_steps_refuses_settings_it_cannot_run_with(tiny_policy_file, tmp_path, capsys):

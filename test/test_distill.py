@@ -3,7 +3,6 @@ trained through, a tiny teacher distilled end to end, and the student selected b
 
 from __future__ import annotations
 
-import itertools
 import json
 import math
 
@@ -16,7 +15,13 @@ from equidiff_core.data.dataset import DemoDataset, load_episodes
 from equidiff_core.data.episode_arrays import DatasetConfig
 from equidiff_core.data.recording import RecordingConfig
 from equidiff_core.models import equivariance
-from equidiff_core.models.sampling import ddim_step_between, make_inference_scheduler, uniform_timesteps
+from equidiff_core.models.sampling import (
+    ListedDDIMScheduler,
+    ddim_step_between,
+    make_inference_scheduler,
+    sampler_timesteps,
+    uniform_timesteps,
+)
 from equidiff_core.policy.file import open_policy_file
 from equidiff_core.policy.inference import load_inference_policy
 from equidiff_core.policy.presets import get_preset
@@ -37,32 +42,65 @@ def test_uniform_timesteps_end_on_the_clean_sample():
         uniform_timesteps(100, 0, 90)
 
 
-def test_the_distilled_sampler_steps_exactly_as_ddim_step_between():
+def test_a_listed_sampler_steps_to_the_next_listed_timestep_as_ddim_step_between():
     preset = get_preset("tiny")
-    sched = make_inference_scheduler(preset, 4, first_timestep=90)
-    assert [int(t) for t in sched.timesteps] == [90, 65, 40, 15]
+    sched = make_inference_scheduler(preset, timesteps=(90, 60, 12, 0))
+    assert isinstance(sched, ListedDDIMScheduler) and [int(t) for t in sched.timesteps] == [90, 60, 12, 0]
     alphas = sched.alphas_cumprod
     generator = torch.Generator().manual_seed(0)
     x = torch.randn(3, 16, 14, generator=generator)
-    for t, after in zip([90, 65, 40, 15], [65, 40, 15, None]):
+    for t, after in zip([90, 60, 12, 0], [60, 12, 0, None]):
         eps = torch.randn(x.shape, generator=generator)
         ours = ddim_step_between(x, eps, alphas[t], alphas[after] if after is not None else torch.tensor(1.0))
         theirs = sched.step(eps, torch.tensor(t), x).prev_sample
-        torch.testing.assert_close(ours, theirs, rtol=1e-5, atol=1e-6)
+        torch.testing.assert_close(ours, theirs, rtol=0, atol=0)
         x = theirs
-    with pytest.raises(ValueError, match="must start in"):
-        make_inference_scheduler(preset, 4, first_timestep=50)
+    for bad in ((90, 90, 12), (90, 100), (), (12, 60)):
+        with pytest.raises(ValueError, match="timesteps must"):
+            make_inference_scheduler(preset, timesteps=bad)
+    with pytest.raises(ValueError, match="4 inference steps but 2 timesteps"):
+        make_inference_scheduler(preset, 4, timesteps=(90, 40))
 
 
-def test_each_student_step_is_covered_by_the_teachers_finer_path():
-    sampler = student_sampler(100, 4, 90, 16)
-    assert sampler.timesteps == (90, 65, 40, 15)
-    ends = [65, 40, 15, -1]  # -1: the clean sample
-    for t, end, path in zip(sampler.timesteps, ends, sampler.teacher_paths):
-        assert path[0] == t and path[-1] == end and len(path) == 5
-        assert all(a > b for a, b in itertools.pairwise(path))
-    one = student_sampler(100, 1, 90, 16)
-    assert one.teacher_paths[0][0] == 90 and one.teacher_paths[0][-1] == -1 and len(one.teacher_paths[0]) == 17
+def test_a_listed_sampler_is_diffusers_own_where_that_applies():
+    # evenly spaced timesteps are the ones diffusers' DDIM step assumes: both samplers then take the same steps
+    preset = get_preset("tiny")
+    listed = make_inference_scheduler(preset, timesteps=(99, 74, 49, 24))
+    own = make_inference_scheduler(preset, 4, "trailing")
+    assert [int(t) for t in own.timesteps] == [99, 74, 49, 24]
+    generator = torch.Generator().manual_seed(1)
+    x = y = torch.randn(2, 16, 14, generator=generator)
+    for t in own.timesteps:
+        eps = torch.randn(x.shape, generator=generator)
+        x, y = listed.step(eps, t, x).prev_sample, own.step(eps, t, y).prev_sample
+        torch.testing.assert_close(x, y, rtol=1e-6, atol=1e-6)
+
+
+def test_an_older_files_first_timestep_reads_as_its_evenly_spaced_timesteps():
+    assert sampler_timesteps({"steps": 4, "first_timestep": 90}, 100) == (90, 65, 40, 15)
+    assert sampler_timesteps({"steps": 2, "timesteps": [90, 12]}, 100) == (90, 12)
+    assert sampler_timesteps({"steps": 16, "timestep_spacing": "leading"}, 100) is None
+    with pytest.raises(ValueError, match="steps 3 but 2 timesteps"):
+        sampler_timesteps({"steps": 3, "timesteps": [90, 12]}, 100)
+
+
+def test_each_student_step_is_a_stretch_of_the_teachers_own_trajectory():
+    teacher = [int(t) for t in make_inference_scheduler(get_preset("compact")).timesteps]  # 90, 84, ..., 0
+    sampler = student_sampler((90, 60, 12, 0), teacher, 100)
+    assert sampler.timesteps == (90, 60, 12, 0)
+    assert sampler.teacher_paths == (
+        (90, 84, 78, 72, 66, 60),
+        (60, 54, 48, 42, 36, 30, 24, 18, 12),
+        (12, 6, 0),
+        (0, -1),  # -1: the clean sample; the teacher's own last step
+    )
+    # every teacher step is in exactly one student step's path
+    assert [t for path in sampler.teacher_paths for t in path[:-1]] == teacher
+    # a student timestep off the teacher's grid is still an end of its paths
+    off = student_sampler((80, 25), teacher, 100)
+    assert off.teacher_paths == ((80, 78, 72, 66, 60, 54, 48, 42, 36, 30, 25), (25, 24, 18, 12, 6, 0, -1))
+    with pytest.raises(ValueError, match="timesteps must"):
+        student_sampler((60, 90), teacher, 100)
 
 
 @pytest.fixture(scope="module")
@@ -83,11 +121,11 @@ def test_distill_trains_an_equivariant_student_that_its_file_selects(tiny_teache
     teacher, demo = tiny_teacher
     capsys.readouterr()
     student = tmp_path / "student.pt"
-    argv = ["distill", str(teacher), "--demos", str(demo), "--out", str(student), "--steps", "2"]
+    argv = ["distill", str(teacher), "--demos", str(demo), "--out", str(student), "--timesteps", "90", "36"]
     assert cli([*argv, "--train-steps", "150", "--batch-size", "16", "--lr", "1e-3", "--crops", "2"]) == 0
     summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert summary["inputs"] == 2 * summary["frames"]  # the centred crop and a random one per frame
-    assert summary["timesteps"] == [90, 40] and summary["sampler"]["first_timestep"] == 90
+    assert summary["timesteps"] == [90, 36] and summary["sampler"] == {"steps": 2, "timesteps": [90, 36]}
     assert summary["teacher_paths"][0][0] == 90 and summary["teacher_paths"][-1][-1] == -1
     assert summary["train_steps"] == 150 and summary["frames"] > 0 and summary["recipe"]["crops"] == 2
     # the student learned the teacher's path: on the same held-out batch its one step lands nearer two of his
@@ -95,20 +133,18 @@ def test_distill_trains_an_equivariant_student_that_its_file_selects(tiny_teache
 
     # the file alone selects the student's sampler; asking for steps overrides it
     policy = load_inference_policy(student)
-    assert policy.inference_steps == 2 and [int(t) for t in policy.scheduler.timesteps] == [90, 40]
-    assert policy.first_timestep == 90
-    assert load_inference_policy(student, inference_steps=8).first_timestep is None
-    assert open_policy_file(student).config["sampler"] == {
-        "steps": 2,
-        "timestep_spacing": "leading",
-        "first_timestep": 90,
-    }
+    assert policy.inference_steps == 2 and [int(t) for t in policy.scheduler.timesteps] == [90, 36]
+    assert policy.explicit_timesteps == (90, 36)
+    assert load_inference_policy(student, inference_steps=8).explicit_timesteps is None
+    other = load_inference_policy(student, timesteps=(90, 60, 12, 0))  # another sampler, asked for by its timesteps
+    assert other.inference_steps == 4 and [int(t) for t in other.scheduler.timesteps] == [90, 60, 12, 0]
+    assert open_policy_file(student).config["sampler"] == {"steps": 2, "timesteps": [90, 36]}
 
     # `bench policy` times what the file selects, and says so
     timing = ["bench", "policy", "--checkpoint", str(student), "--device", "cpu", "--precision", "fp32"]
     assert cli([*timing, "--no-jit", "--iters", "1", "--eager-iters", "0"]) == 0
     timed = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
-    assert timed["inference_steps"] == 2 and timed["timesteps"] == [90, 40] and timed["ddim16_median_ms"] > 0
+    assert timed["inference_steps"] == 2 and timed["timesteps"] == [90, 36] and timed["ddim16_median_ms"] > 0
 
     # the student stays C4-equivariant through its own sampler (its weights are escnn's, re-exported)
     scene = load_twin_config().scene
@@ -125,7 +161,7 @@ def test_distill_trains_an_equivariant_student_that_its_file_selects(tiny_teache
 
     # no training at all: the teacher's weights at the student's sampler, the baseline a distillation must beat
     undistilled = tmp_path / "undistilled.pt"
-    untrained = ["distill", str(teacher), "--demos", str(demo), "--out", str(undistilled), "--steps", "2"]
+    untrained = ["distill", str(teacher), "--demos", str(demo), "--out", str(undistilled), "--timesteps", "90", "36"]
     assert cli([*untrained, "--train-steps", "0", "--crops", "2"]) == 0
     plain = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert plain["train_steps"] == 0 and plain["final_loss"] is None
@@ -147,7 +183,16 @@ def test_a_roll_out_teaches_at_every_frame_the_policy_or_the_operator_drove(tiny
     frames = {}
     for name, bag in (("demo", demo), ("rollout", rollout)):
         capsys.readouterr()
-        argv = ["distill", str(teacher), "--demos", str(bag), "--out", str(tmp_path / f"{name}.pt"), "--steps", "2"]
+        argv = [
+            "distill",
+            str(teacher),
+            "--demos",
+            str(bag),
+            "--out",
+            str(tmp_path / f"{name}.pt"),
+            "--timesteps",
+            "90",
+        ]
         assert cli([*argv, "--train-steps", "0"]) == 0
         frames[name] = json.loads(capsys.readouterr().out.strip().splitlines()[-1])["frames"]
     assert frames["rollout"] == frames["demo"] > 0

@@ -68,8 +68,9 @@ class StepsSettings:
     compare: tuple[Path, ...] = ()  # other policy files (distilled ones), each at its own sampler, after the steps
 
 
-def sampler_name(steps: int, spacing: str, first_timestep: int | None = None) -> str:
-    return f"ddim{steps}_{spacing}" if first_timestep is None else f"ddim{steps}_from{first_timestep}"
+def sampler_name(steps: int, spacing: str, timesteps: tuple[int, ...] | None = None) -> str:
+    """``ddim4_trailing``; with explicit timesteps (a distilled sampler's) ``ddim4_t90-60-12-0``."""
+    return f"ddim{steps}_{spacing}" if timesteps is None else f"ddim{steps}_t{'-'.join(map(str, timesteps))}"
 
 
 COMPARED = "__"  # joins a compared file's name and its sampler in its row's name
@@ -78,7 +79,9 @@ COMPARED = "__"  # joins a compared file's name and its sampler in its row's nam
 def compared_name(path: Path, policy: InferencePolicy) -> str:
     """A compared file's row: its name (its folder's for a run's ``policy.pt``) and its own sampler."""
     label = path.parent.name if path.stem == "policy" else path.stem
-    return f"{label}{COMPARED}{sampler_name(policy.inference_steps, policy.timestep_spacing, policy.first_timestep)}"
+    return (
+        f"{label}{COMPARED}{sampler_name(policy.inference_steps, policy.timestep_spacing, policy.explicit_timesteps)}"
+    )
 
 
 def time_predict(policies: dict[str, InferencePolicy], calls: int, vox: np.ndarray, ee: np.ndarray) -> dict:
@@ -182,7 +185,7 @@ def run_steps_bench(settings: StepsSettings) -> dict:
     cfg = load_twin_config(settings.twin_config)
     max_duration = settings.max_duration or cfg.episode.max_duration_s
     own = _load(settings, checkpoint)
-    base = sampler_name(own.inference_steps, own.timestep_spacing, own.first_timestep)
+    base = sampler_name(own.inference_steps, own.timestep_spacing, own.explicit_timesteps)
     policies = {base: own}
     files = {base: checkpoint}  # each sampler's policy file
     for k in settings.steps:
@@ -215,7 +218,7 @@ def run_steps_bench(settings: StepsSettings) -> dict:
                 "policy_digest": digests[files[name]],
                 "inference_steps": policy.inference_steps,
                 "timestep_spacing": policy.timestep_spacing,
-                **({"first_timestep": policy.first_timestep} if policy.first_timestep is not None else {}),
+                **({"timesteps": list(policy.explicit_timesteps)} if policy.explicit_timesteps is not None else {}),
                 "precision": policy.precision,
                 "threads": ROLLOUT_THREADS,
             }

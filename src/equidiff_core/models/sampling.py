@@ -3,9 +3,12 @@ and the codec between absolute 10-D actions and the model-space vectors the netw
 
 from __future__ import annotations
 
+import itertools
+
 import numpy as np
 import torch
 from diffusers import DDIMScheduler, DDPMScheduler
+from diffusers.schedulers.scheduling_ddim import DDIMSchedulerOutput
 
 from .. import geometry
 from ..policy.normalizer import Normalizer
@@ -30,8 +33,9 @@ TIMESTEP_SPACINGS = ("leading", "trailing")
 
 def uniform_timesteps(num_train_timesteps: int, steps: int, first: int) -> list[int]:
     """``steps`` timesteps from ``first`` down, ``num_train_timesteps // steps`` apart, the last step landing on
-    the clean sample: the stride diffusers' DDIM step assumes, from any start (a distilled sampler's,
-    ``training.distill``). ValueError where the steps do not fit in the schedule or would end before t = 0."""
+    the clean sample: the sampler the first distilled policy files name by their ``first_timestep`` (read as
+    these timesteps, ``sampler_timesteps``). ValueError where the steps do not fit in the schedule or would end
+    before t = 0."""
     stride = num_train_timesteps // steps if steps >= 1 else 0
     if stride < 1:
         raise ValueError(f"steps must be in 1..{num_train_timesteps}, got {steps}")
@@ -43,31 +47,88 @@ def uniform_timesteps(num_train_timesteps: int, steps: int, first: int) -> list[
     return [first - i * stride for i in range(steps)]
 
 
+def check_timesteps(timesteps, num_train_timesteps: int) -> tuple[int, ...]:
+    """``timesteps`` as a tuple of ints, checked: at least one, strictly decreasing, each in
+    0..num_train_timesteps - 1 (ValueError otherwise)."""
+    listed = tuple(int(t) for t in timesteps)
+    if not listed or any(t != u for t, u in zip(listed, timesteps)):
+        raise ValueError(f"timesteps must be a non-empty list of integers, got {list(timesteps)}")
+    if not all(0 <= t < num_train_timesteps for t in listed) or any(a <= b for a, b in itertools.pairwise(listed)):
+        raise ValueError(f"timesteps must decrease strictly within 0..{num_train_timesteps - 1}, got {list(listed)}")
+    return listed
+
+
+def sampler_timesteps(sampler: dict, num_train_timesteps: int) -> tuple[int, ...] | None:
+    """The explicit timesteps a policy file's ``sampler`` entry names (its ``timesteps``, or the evenly spaced
+    ones of an older entry's ``first_timestep``), checked; None where it names only a step count and spacing."""
+    if "timesteps" in sampler:
+        listed = check_timesteps(sampler["timesteps"], num_train_timesteps)
+        if sampler.get("steps", len(listed)) != len(listed):
+            raise ValueError(f"sampler: steps {sampler['steps']} but {len(listed)} timesteps {list(listed)}")
+        return listed
+    if sampler.get("first_timestep") is not None:
+        steps = sampler.get("steps")
+        if steps is None:
+            raise ValueError("sampler: first_timestep without steps")
+        return tuple(uniform_timesteps(num_train_timesteps, int(steps), int(sampler["first_timestep"])))
+    return None
+
+
+class ListedDDIMScheduler(DDIMScheduler):
+    """DDIM through an explicit list of timesteps: each step lands on the next one in the list, the last on the
+    clean sample. Why a subclass: diffusers' own step always lands ``num_train_timesteps // steps`` lower, which
+    fits only evenly spaced lists, while a few-step sampler's best steps are not evenly spaced (their choice:
+    docs/denoising_steps.md). Deterministic (eta 0), as every sampler here."""
+
+    def use_timesteps(self, timesteps: tuple[int, ...]) -> None:
+        self.set_timesteps(len(timesteps))
+        self.timesteps = torch.tensor(timesteps, dtype=self.timesteps.dtype)
+        self._next = dict(zip(timesteps, (*timesteps[1:], -1)))  # -1: the clean sample
+
+    def step(self, model_output, timestep, sample, eta: float = 0.0, return_dict: bool = True, **unused):
+        if eta != 0.0:
+            raise ValueError("ListedDDIMScheduler steps deterministically (eta 0)")
+        t = int(timestep)
+        after = self._next[t]
+        alpha_after = self.alphas_cumprod[after] if after >= 0 else self.final_alpha_cumprod
+        prev = ddim_step_between(sample, model_output, self.alphas_cumprod[t], alpha_after)
+        return DDIMSchedulerOutput(prev_sample=prev) if return_dict else (prev,)
+
+
 def make_inference_scheduler(
-    preset: PolicyPreset, steps: int | None = None, spacing: str = "leading", first_timestep: int | None = None
+    preset: PolicyPreset,
+    steps: int | None = None,
+    spacing: str = "leading",
+    timesteps: tuple[int, ...] | None = None,
 ) -> DDIMScheduler:
     """The DDIM scheduler at ``steps`` denoising steps (None: the preset's ``num_inference_steps``) spaced by
-    ``spacing`` (of TIMESTEP_SPACINGS), or, with ``first_timestep``, ``uniform_timesteps`` from there (a
-    distilled policy's own sampler); ValueError outside 1..num_train_timesteps or for another spacing."""
+    ``spacing`` (of TIMESTEP_SPACINGS), or through the explicit ``timesteps`` (a distilled policy's own sampler,
+    ``ListedDDIMScheduler``; ``steps`` then None or their count); ValueError outside 1..num_train_timesteps or
+    for another spacing."""
+    config = {
+        "num_train_timesteps": preset.num_train_timesteps,
+        "beta_schedule": preset.beta_schedule,
+        "prediction_type": "epsilon",
+        "clip_sample": True,
+        "set_alpha_to_one": True,
+        "steps_offset": 0,
+        "timestep_spacing": spacing,
+    }
+    if spacing not in TIMESTEP_SPACINGS:
+        raise ValueError(f"timestep spacing must be one of {TIMESTEP_SPACINGS}, got {spacing!r}")
+    if timesteps is not None:
+        listed = check_timesteps(timesteps, preset.num_train_timesteps)
+        if steps is not None and int(steps) != len(listed):
+            raise ValueError(f"{steps} inference steps but {len(listed)} timesteps {list(listed)}")
+        sched = ListedDDIMScheduler(**config)
+        sched.use_timesteps(listed)
+        return sched
     steps = preset.num_inference_steps if steps is None else int(steps)
     if not 1 <= steps <= preset.num_train_timesteps:
         raise ValueError(f"inference steps must be in 1..{preset.num_train_timesteps}, got {steps}")
-    if spacing not in TIMESTEP_SPACINGS:
-        raise ValueError(f"timestep spacing must be one of {TIMESTEP_SPACINGS}, got {spacing!r}")
-    explicit = None if first_timestep is None else uniform_timesteps(preset.num_train_timesteps, steps, first_timestep)
     # Same betas as training; eta = 0 (deterministic given the initial noise), as diffusion_policy's DDIM.
-    sched = DDIMScheduler(
-        num_train_timesteps=preset.num_train_timesteps,
-        beta_schedule=preset.beta_schedule,
-        prediction_type="epsilon",
-        clip_sample=True,
-        set_alpha_to_one=True,
-        steps_offset=0,
-        timestep_spacing=spacing,
-    )
+    sched = DDIMScheduler(**config)
     sched.set_timesteps(steps)
-    if explicit is not None:  # diffusers' step goes num_train_timesteps // steps down from any timestep
-        sched.timesteps = torch.tensor(explicit, dtype=sched.timesteps.dtype)
     return sched
 
 

@@ -23,6 +23,7 @@ from typing import Any
 import torch
 
 from ..models import action_space
+from ..models.sampling import make_inference_scheduler, sampler_timesteps
 from ..runtime.output_files import staged_output
 from .presets import PolicyPreset
 
@@ -72,10 +73,21 @@ def weights_sha256(state: dict) -> str:
 
 def export_policy(policy, path: str | Path, sampler: dict | None = None) -> Path:
     """Write ``policy`` (a diffusion.DiffusionPolicy with its normaliser set) as a plain-torch inference file;
-    ``sampler`` ({"steps", "timestep_spacing", "first_timestep"}) becomes the file's own DDIM sampler
-    (``inference.load_inference_policy``), as a distilled policy needs."""
+    ``sampler`` ({"steps", "timestep_spacing"} or {"steps", "timesteps"}) becomes the file's own DDIM sampler
+    (``inference.load_inference_policy``), as a distilled policy needs; checked here, so that no file is written
+    that would not load."""
     if policy.normalizer is None:
         raise CheckpointError("cannot export a policy without a normaliser")
+    if sampler:
+        try:
+            make_inference_scheduler(
+                policy.preset,
+                sampler.get("steps"),
+                sampler.get("timestep_spacing", "leading"),
+                sampler_timesteps(sampler, policy.preset.num_train_timesteps),
+            )
+        except (ValueError, TypeError) as err:
+            raise CheckpointError(f"sampler {sampler}: {err}") from err
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     plain = policy.model.export_plain()

@@ -43,7 +43,7 @@ from ..models.cpu_kernels import (
     swap_modules,
 )
 from ..models.plain import EquiNoiseCore, from_escnn_layout, to_escnn_layout
-from ..models.sampling import ActionCodec, _guided_noise, ddim_sample, make_inference_scheduler
+from ..models.sampling import ActionCodec, _guided_noise, ddim_sample, make_inference_scheduler, sampler_timesteps
 from ..runtime.machine import PRECISIONS
 from .augment import voxel_input
 from .diffusion import PolicyInputError
@@ -70,11 +70,12 @@ def load_inference_policy(
     encoder_kernels: str = "onednn",
     inference_steps: int | None = None,
     timestep_spacing: str | None = None,
+    timesteps: tuple[int, ...] | None = None,
 ) -> InferencePolicy:
-    """``inference_steps`` / ``timestep_spacing``: the DDIM sampler, an inference-time setting (None: the policy
-    file's ``sampler`` entry if it has one, else the preset's ``num_inference_steps``, "leading" spacing;
-    ``models.sampling.make_inference_scheduler``). A distilled policy's entry also names its
-    ``first_timestep`` (``training.distill``), used only when neither argument is given."""
+    """``inference_steps`` / ``timestep_spacing``, or explicit ``timesteps``: the DDIM sampler, an inference-time
+    setting (None: the policy file's ``sampler`` entry if it has one, else the preset's ``num_inference_steps``,
+    "leading" spacing; ``models.sampling.make_inference_scheduler``). A distilled policy's entry names its
+    explicit timesteps (``training.distill``), used only when no argument is given."""
     if precision not in PRECISIONS:
         raise ValueError(f"precision must be one of {PRECISIONS}, got {precision!r}")
     if encoder_kernels not in ENCODER_KERNELS:
@@ -88,15 +89,14 @@ def load_inference_policy(
         name = config["policy"]
         # a policy file may carry its own sampler (a distilled few-step policy); the arguments override it
         sampler = dict(config.get("sampler") or {})
-        make_inference_scheduler(
-            preset, sampler.get("steps"), sampler.get("timestep_spacing", "leading"), sampler.get("first_timestep")
-        )
+        listed = sampler_timesteps(sampler, preset.num_train_timesteps)
+        make_inference_scheduler(preset, sampler.get("steps"), sampler.get("timestep_spacing", "leading"), listed)
     except (KeyError, ValueError, TypeError, NormalizerError) as err:
         raise CheckpointError(f"{path}: incompatible policy config: {err}") from err
-    steps = inference_steps if inference_steps is not None else sampler.get("steps")
+    steps = inference_steps if inference_steps is not None or timesteps is not None else sampler.get("steps")
     spacing = timestep_spacing or sampler.get("timestep_spacing", "leading")
-    own_sampler = inference_steps is None and timestep_spacing is None
-    first_timestep = sampler.get("first_timestep") if own_sampler else None
+    if timesteps is None and inference_steps is None and timestep_spacing is None:
+        timesteps = listed  # the file's own sampler
     net = build_plain_network(name, preset)
     try:
         net.load_state_dict(state, strict=True)
@@ -125,7 +125,7 @@ def load_inference_policy(
         encoder_kernels,
         steps,
         spacing,
-        first_timestep,
+        timesteps,
     )
     # what ``equidiff check ...`` report: the checked sha256 of the weights, or "unhashed" (an old file)
     policy.weights_sha256 = policy_file.weights_sha256 or UNHASHED
@@ -144,7 +144,7 @@ ENCODER_KERNELS = ("onednn", "native")
 class InferencePolicy:
     """Plain-torch DDIM policy: ``predict(voxels (4, R, R, R) uint8, ee (10,)) -> (horizon, 10)``, sampled in
     ``inference_steps`` DDIM steps spaced by ``timestep_spacing`` (None: the preset's steps, "leading"), or
-    evenly from ``first_timestep`` (a distilled policy's sampler)."""
+    through the explicit ``timesteps`` (a distilled policy's sampler)."""
 
     def __init__(
         self,
@@ -162,7 +162,7 @@ class InferencePolicy:
         encoder_kernels: str = "onednn",
         inference_steps: int | None = None,
         timestep_spacing: str | None = None,
-        first_timestep: int | None = None,
+        timesteps: tuple[int, ...] | None = None,
     ):
         if cuda_graph and device.type != "cuda":
             raise ValueError(f"cuda_graph needs a CUDA device, got {device}")
@@ -177,8 +177,8 @@ class InferencePolicy:
         self.dtype = torch.bfloat16 if precision == "bf16" else torch.float32
         self.codec = ActionCodec(preset.control, normalizer)
         self.timestep_spacing = timestep_spacing or "leading"
-        self.first_timestep = first_timestep  # None: the steps spaced by timestep_spacing
-        self.scheduler = make_inference_scheduler(preset, inference_steps, self.timestep_spacing, first_timestep)
+        self.explicit_timesteps = timesteps  # None: the steps spaced by timestep_spacing
+        self.scheduler = make_inference_scheduler(preset, inference_steps, self.timestep_spacing, timesteps)
         self.inference_steps = len(self.scheduler.timesteps)
         self.net = net.eval().to(device=device, dtype=self.dtype)
         self.pad_channels = 0

@@ -1,14 +1,15 @@
 """Few-step distillation: a trained policy's DDIM sampler compressed into fewer steps (``equidiff distill``).
 
-The student starts as a copy of the teacher and learns, for each of its ``steps`` DDIM steps, to land where
-``teacher_substeps`` of the teacher's DDIM steps land from the same noisy sample: multi-step distillation in
-the manner of progressive distillation (Salimans & Ho, ICLR 2022), in one stage. Only the denoiser learns:
+The student starts as a copy of the teacher and learns, for each of its DDIM steps (from one of its
+``timesteps`` to the next), to land where the teacher's own sampler lands in the steps it takes between the two,
+from the same noisy sample: multi-step distillation in the manner of progressive distillation (Salimans & Ho,
+ICLR 2022), in one stage. Only the denoiser learns:
 the observation encoder is the teacher's, frozen, so its features are computed once per training frame (the
 centred crop policy_node feeds it), and each distillation step costs U-Net passes only. EquiDiff's student is
 the escnn model itself, so it stays C8-equivariant by construction (``equidiff check equivariance``).
 
-The student is exported as a policy file of its own, whose ``sampler`` entry (its step count and first
-timestep, ``models.sampling.uniform_timesteps``) makes policy_node and the twin run it with no flag.
+The student is exported as a policy file of its own, whose ``sampler`` entry (its explicit timesteps,
+``models.sampling.ListedDDIMScheduler``) makes policy_node and the twin run it with no flag.
 docs/denoising_steps.md ("A distilled few-step policy") is the guide.
 """
 
@@ -28,7 +29,7 @@ from ..data.dataset import DemoDataset, load_episodes
 from ..data.episode_arrays import DatasetConfig
 from ..data.segments import SourceWeights
 from ..models.cpu_kernels import FastMish, swap_modules
-from ..models.sampling import ddim_step_between, make_inference_scheduler, uniform_timesteps
+from ..models.sampling import check_timesteps, ddim_step_between, make_inference_scheduler
 from ..policy.file import CheckpointError, export_policy
 from ..runtime.jobs import JobError
 from ..runtime.output_files import refuse_existing
@@ -44,6 +45,12 @@ logger = logging.getLogger(__name__)
 ROLLOUT_FRAMES_TOO = SourceWeights(intervention=1.0, policy=1.0)
 
 
+# The student's default sampler: four steps, ending with the teacher's own last step from t = 0. Chosen by how
+# near the teacher's weights land to their own DDIM-16 chunk at each four-step schedule (docs/denoising_steps.md,
+# "Which four timesteps").
+STUDENT_TIMESTEPS = (90, 60, 12, 0)
+
+
 class DistillError(JobError):
     """A teacher, demos or settings distillation cannot run with (exit status 2), or a diverged run (1)."""
 
@@ -55,8 +62,7 @@ class DistillSpec:
     teacher: Path  # the teacher's training checkpoint (last.ckpt): escnn weights, EMA where it kept one
     demos: tuple[Path, ...]  # the teacher's training demos, and any roll-outs (bags, packed episodes or folders)
     out: Path  # the student's policy file
-    steps: int = 4  # the student's DDIM steps
-    first_timestep: int | None = None  # None: the teacher's own sampler's first timestep
+    timesteps: tuple[int, ...] = STUDENT_TIMESTEPS  # the student's sampler, one DDIM step from each
     train_steps: int = 2500  # optimiser steps (0: the teacher's weights at the student's sampler, the baseline)
     batch_size: int = 32
     lr: float = 1e-4  # peak; cosine decay after a 100-step warm-up
@@ -69,25 +75,23 @@ class DistillSpec:
 
 @dataclass(frozen=True)
 class StudentSampler:
-    """The student's timesteps and, for each, the teacher's finer path to the next one (-1: the clean sample)."""
+    """The student's timesteps and, for each, the teacher's path to the next one (-1: the clean sample)."""
 
     timesteps: tuple[int, ...]
     teacher_paths: tuple[tuple[int, ...], ...]  # per student step: the timesteps the teacher steps through
 
 
-def student_sampler(num_train_timesteps: int, steps: int, first: int, teacher_steps: int) -> StudentSampler:
-    """Student timesteps ``uniform_timesteps(num_train_timesteps, steps, first)``; each student step is covered
-    by ``teacher_steps // steps`` (at least 1) teacher steps at timesteps spaced evenly between its two ends."""
-    timesteps = uniform_timesteps(num_train_timesteps, steps, first)
-    per_step = max(1, teacher_steps // steps)
-    paths = []
-    for i, t in enumerate(timesteps):
-        end = timesteps[i + 1] if i + 1 < steps else -1
-        # integer timesteps evenly from t down to end (-1: the clean sample), each once
-        points = [round(t + (end - t) * k / per_step) for k in range(per_step + 1)]
-        path = sorted(set(points), reverse=True)
-        paths.append(tuple(path))
-    return StudentSampler(tuple(timesteps), tuple(paths))
+def student_sampler(timesteps, teacher_timesteps, num_train_timesteps: int) -> StudentSampler:
+    """The student steps from each of ``timesteps`` to the next (the last to the clean sample); the teacher covers
+    each such step through its own sampler's ``teacher_timesteps`` that lie between the two ends, so where the
+    student's timesteps are the teacher's too, every path is a stretch of the teacher's own DDIM trajectory.
+    ValueError for timesteps that are not strictly decreasing within the schedule."""
+    listed = check_timesteps(timesteps, num_train_timesteps)
+    ends = (*listed[1:], -1)
+    paths = tuple(
+        (start, *(int(t) for t in teacher_timesteps if end < t < start), end) for start, end in zip(listed, ends)
+    )
+    return StudentSampler(listed, paths)
 
 
 def _alpha_bar(alphas_cumprod: torch.Tensor, t: int) -> torch.Tensor:
@@ -167,15 +171,16 @@ def run_distillation(spec: DistillSpec, log=logger.info) -> dict:
     except CheckpointError as err:
         raise DistillError(f"the teacher: {err}", 2) from err
     preset = teacher.preset
-    teacher_timesteps = make_inference_scheduler(preset).timesteps  # the teacher's own sampler
-    teacher_steps = len(teacher_timesteps)
-    first = int(teacher_timesteps[0]) if spec.first_timestep is None else spec.first_timestep
+    teacher_timesteps = [int(t) for t in make_inference_scheduler(preset).timesteps]  # the teacher's own sampler
     try:
-        sampler = student_sampler(preset.num_train_timesteps, spec.steps, first, teacher_steps)
+        sampler = student_sampler(spec.timesteps, teacher_timesteps, preset.num_train_timesteps)
     except ValueError as err:
-        raise DistillError(str(err), 2) from err
-    if spec.steps >= teacher_steps:
-        raise DistillError(f"--steps {spec.steps}: the teacher already samples in {teacher_steps}", 2)
+        raise DistillError(f"--timesteps: {err}", 2) from err
+    steps = len(sampler.timesteps)
+    if steps >= len(teacher_timesteps):
+        raise DistillError(
+            f"--timesteps: {steps} steps, and the teacher already samples in {len(teacher_timesteps)}", 2
+        )
 
     lab = load_lab_config(spec.lab_config or default_config_dir() / "lab.yaml")
     data_cfg = DatasetConfig.from_preset(
@@ -216,7 +221,7 @@ def run_distillation(spec: DistillSpec, log=logger.info) -> dict:
     deadline = None if spec.max_minutes is None else started + 60 * spec.max_minutes
     while step < spec.train_steps and (deadline is None or time.perf_counter() < deadline):
         index = torch.randint(0, len(frames), (spec.batch_size,), generator=generator)
-        step_i = int(torch.randint(0, spec.steps, (), generator=generator))
+        step_i = int(torch.randint(0, steps, (), generator=generator))
         noise = torch.randn(frames.clean[index].shape, generator=generator)
         loss = distill_loss(student, teacher, frames, sampler, alphas_cumprod, index, step_i, noise)
         if not torch.isfinite(loss):
@@ -234,7 +239,7 @@ def run_distillation(spec: DistillSpec, log=logger.info) -> dict:
     ema.copy_to_model()
     student.eval()
     loss_after = check_loss(student, teacher, frames, sampler, alphas_cumprod, check_index, check_noise)
-    sampler_entry = {"steps": spec.steps, "timestep_spacing": "leading", "first_timestep": first}
+    sampler_entry = {"steps": steps, "timesteps": list(sampler.timesteps)}
     refuse_existing(spec.out, spec.force)  # again: it may have appeared while the student trained
     export_policy(student, spec.out, sampler=sampler_entry)
     wall = time.perf_counter() - started

@@ -1,10 +1,10 @@
 """`equidiff distill TEACHER --demos DIR --out FILE`: a trained EquiDiff policy distilled into a few-step sampler.
 
-    equidiff distill checkpoints/twin_compact/last.ckpt --demos demos/ --out runs/policy_ddim4.pt --steps 4
+    equidiff distill checkpoints/twin_compact/last.ckpt --demos demos/ --out runs/policy_ddim4.pt
 
 The student learns to take in one DDIM step what the teacher takes in several (``training.distill``), on the
 teacher's own training demos, with the teacher's encoder frozen; it stays equivariant. FILE is a policy file
-of its own whose sampler (its steps and first timestep) policy_node, ``twin run`` and ``twin evaluate`` use
+of its own whose sampler (its timesteps) policy_node, ``twin run`` and ``twin evaluate`` use
 with no flag. Prints one JSON line: the sampler, the frames, the steps trained, the final loss and the wall
 time. An existing FILE is refused unless ``--force``. docs/denoising_steps.md, "A distilled few-step policy".
 """
@@ -30,12 +30,13 @@ def add_arguments(parser) -> None:
         help="its training demos, and any recorded roll-outs (bags or folders)",
     )
     parser.add_argument("--out", type=Path, required=True, help="the student's policy file")
-    parser.add_argument("--steps", type=int, default=DEFAULT.steps, help="the student's DDIM steps")
     parser.add_argument(
-        "--first-timestep",
+        "--timesteps",
         type=int,
-        default=None,
-        help="the student's first timestep (default: the teacher sampler's, 90 for DDIM-16)",
+        nargs="+",
+        default=list(DEFAULT.timesteps),
+        help="the student's sampler: one DDIM step from each timestep to the next, the last to the clean sample "
+        f"(default: {' '.join(map(str, DEFAULT.timesteps))})",
     )
     parser.add_argument("--train-steps", type=int, default=DEFAULT.train_steps, help="optimiser steps")
     parser.add_argument("--batch-size", type=int, default=DEFAULT.batch_size)
@@ -54,8 +55,7 @@ def run(args) -> int:
         teacher=args.teacher,
         demos=tuple(args.demos),
         out=args.out,
-        steps=args.steps,
-        first_timestep=args.first_timestep,
+        timesteps=tuple(args.timesteps),
         train_steps=args.train_steps,
         batch_size=args.batch_size,
         lr=args.lr,
