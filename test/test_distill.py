@@ -27,6 +27,7 @@ from equidiff_core.policy.inference import load_inference_policy
 from equidiff_core.policy.presets import get_preset
 from equidiff_core.training.distill import student_sampler
 from equidiff_core.twin.config import load_twin_config
+from equidiff_core.twin.shipped import SHIPPED_CHECKPOINT
 from equidiff_ros.cli import main as cli
 
 FP32_EXACT = 1e-5  # as test_equivariance: a C4-exact network leaves only float rounding
@@ -101,6 +102,13 @@ def test_each_student_step_is_a_stretch_of_the_teachers_own_trajectory():
     assert off.teacher_paths == ((80, 78, 72, 66, 60, 54, 48, 42, 36, 30, 25), (25, 24, 18, 12, 6, 0, -1))
     with pytest.raises(ValueError, match="timesteps must"):
         student_sampler((60, 90), teacher, 100)
+
+
+def test_the_shipped_four_step_policy_is_the_shipped_weights_through_its_own_timesteps():
+    four = load_inference_policy(SHIPPED_CHECKPOINT.with_name("policy_ddim4.pt"))
+    assert four.explicit_timesteps == (90, 60, 12, 0) and four.inference_steps == 4
+    assert [int(t) for t in four.scheduler.timesteps] == [90, 60, 12, 0]
+    assert four.weights_sha256 == load_inference_policy(SHIPPED_CHECKPOINT).weights_sha256 != "unhashed"
 
 
 @pytest.fixture(scope="module")

@@ -62,6 +62,7 @@ def test_colcon_registers_the_package_and_installs_share_files(colcon_install):
     assert {"twin.launch.py", "robot.launch.py"} <= set(launch_files)
     shipped = prefix / "share/equidiff_ros/checkpoints/twin_compact"
     assert (shipped / "policy.pt").is_file() and (shipped / "README.md").is_file()
+    assert (shipped / "policy_ddim4.pt").is_file()  # the four-step policy, selected by its path
     assert not list(shipped.glob("*.ckpt"))  # the resumable training state is not installed
 
 
