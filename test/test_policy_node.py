@@ -319,6 +319,8 @@ def test_policy_closes_the_loop_and_skips_stale_observations(ros_domain, checkpo
         feeder = threading.Thread(target=publish_voxels, daemon=True)
         feeder.start()
         client.wait_for(lambda: client.data.last_chunk is not None, 90.0, "a chunk from the policy node", policy)
+        # it names the sampler it runs (the file's own: the preset's DDIM-16)
+        assert "sampling in 16 DDIM steps at t = [90, 84, 78," in (tmp_path / "policy.log").read_text()
         # policy_node must not be in /voxels' acknowledgement set: a reliable reader that stopped
         # (SIGSTOP in the twin's hung-policy test) held the grids back from twin_node too
         readers = client.node.get_subscriptions_info_by_topic(TOPIC_VOXELS)
