@@ -206,3 +206,27 @@ def test_a_roll_out_teaches_at_every_frame_the_policy_or_the_operator_drove(tiny
     assert frames["rollout"] == frames["demo"] > 0
     weighted = DemoDataset(load_episodes([rollout], DatasetConfig())[0], DatasetConfig())  # training's default
     assert 0 < len(weighted) < frames["rollout"]
+
+
+def test_sampler_gap_script_finds_no_gap_for_the_policys_own_timesteps_and_one_for_four_steps(tiny_teacher):
+    # scripts/sampler_gap.py is the command behind docs/denoising_steps.md's choice of timesteps
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    teacher, demo = tiny_teacher
+    root = Path(__file__).resolve().parents[1]
+    own = ",".join(str(t) for t in range(90, -1, -6))  # the preset's DDIM-16 "leading": the reference itself
+    result = subprocess.run(
+        [sys.executable, str(root / "scripts/sampler_gap.py"), str(teacher.parent / "policy.pt"), "--demos", str(demo)]
+        + ["--frames", "3", "--noises", "2", "--schedules", own, "90,65,40,15"],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        env=dict(os.environ, PYTHONPATH=str(root / "src")),
+    )
+    assert result.returncode == 0, result.stderr[-2000:]
+    rows = {len(r["timesteps"]): r for r in map(json.loads, result.stdout.strip().splitlines())}
+    assert rows[16]["position_gap_mm"] < 0.01 and rows[16]["width_gap_mm"] < 0.01  # float rounding at most
+    assert rows[4]["position_gap_mm"] > 0.01 and rows[4]["frames"] == 3 and rows[4]["executed_steps"] > 0
