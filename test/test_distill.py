@@ -166,6 +166,9 @@ def test_distill_trains_an_equivariant_student_that_its_file_selects(tiny_teache
     assert "exists" in capsys.readouterr().err and student.read_bytes() == before
     assert cli([*argv, "--train-steps", "-1", "--force"]) == 2
     assert "--train-steps must be >= 0" in capsys.readouterr().err and student.read_bytes() == before
+    bad = tmp_path / "bad.pt"  # timesteps that do not decrease: refused, nothing written
+    assert cli(["distill", str(teacher), "--demos", str(demo), "--out", str(bad), "--timesteps", "60", "90"]) == 2
+    assert "timesteps must decrease strictly" in capsys.readouterr().err and not bad.exists()
 
     # no training at all: the teacher's weights at the student's sampler, the baseline a distillation must beat
     undistilled = tmp_path / "undistilled.pt"
@@ -230,3 +233,30 @@ def test_sampler_gap_script_finds_no_gap_for_the_policys_own_timesteps_and_one_f
     rows = {len(r["timesteps"]): r for r in map(json.loads, result.stdout.strip().splitlines())}
     assert rows[16]["position_gap_mm"] < 0.01 and rows[16]["width_gap_mm"] < 0.01  # float rounding at most
     assert rows[4]["position_gap_mm"] > 0.01 and rows[4]["frames"] == 3 and rows[4]["executed_steps"] > 0
+
+
+@pytest.mark.slow
+@pytest.mark.sim
+def test_record_rollouts_records_a_policys_twin_episodes_and_refuses_an_existing_folder(tmp_path):
+    # scripts/record_rollouts.py: the roll-outs `equidiff distill --demos` takes beside the demos
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    from equidiff_core.data.bags import read_episode
+    from equidiff_core.twin.config import TwinConfig
+    from equidiff_core.twin.standin import make_standin_policy
+
+    root = Path(__file__).resolve().parents[1]
+    policy = make_standin_policy(tmp_path / "standin.pt", Workspace(), preset="tiny", cfg=TwinConfig())
+    out = tmp_path / "round"
+    argv = [sys.executable, str(root / "scripts/record_rollouts.py"), str(policy), str(out), "--seed", "7"]
+    env = dict(os.environ, PYTHONPATH=str(root / "src"), OMP_NUM_THREADS="1")
+    done = subprocess.run([*argv, "--episodes", "1", "--max-duration", "2"], capture_output=True, text=True, env=env)
+    assert done.returncode == 0, done.stderr[-2000:]
+    (episode,) = json.loads((tmp_path / "round.json").read_text())
+    assert episode["seed"] == 7 and episode["duration_s"] <= 2.5
+    assert read_episode(Path(episode["bag"])).meta is not None  # a bag our own reader accepts
+    again = subprocess.run([*argv, "--episodes", "1"], capture_output=True, text=True, env=env)
+    assert again.returncode == 2 and "exists" in again.stderr

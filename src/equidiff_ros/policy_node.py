@@ -332,7 +332,7 @@ class PolicyNode(Node):
         self.get_logger().info(
             f"loaded {self.policy.name} policy '{preset.name}' from {checkpoint} "
             f"(weights sha256 {self.policy.weights_sha256}) on {device} ({precision}), sampling in "
-            f"{self.policy.inference_steps} DDIM steps at t = {[int(t) for t in self.policy.scheduler.timesteps]}, "
+            f"{self.policy.inference_steps} DDIM steps at t = {self.policy.timesteps}, "
             f"and warmed up in {time.perf_counter() - t0:.1f} s; executing {self.sizing.answers.steps} steps of dt "
             f"{preset.dt} s before the next answer"
             f"{' (fewer if the latency needs it)' if self.sizing.adaptive_steps else ''}; "

@@ -263,7 +263,7 @@ def run_steps_bench(settings: StepsSettings) -> dict:
                 "policy": str(files[name]),
                 "steps": policy.inference_steps,
                 "spacing": policy.timestep_spacing,
-                "timesteps": [int(t) for t in policy.scheduler.timesteps],
+                "timesteps": policy.timesteps,
                 "baseline": name == base,
                 **summary,
                 "paired_vs_baseline": None

@@ -74,6 +74,15 @@ def sampler_timesteps(sampler: dict, num_train_timesteps: int) -> tuple[int, ...
     return None
 
 
+def check_sampler_entry(preset: PolicyPreset, sampler: dict) -> tuple[int, ...] | None:
+    """A policy file's ``sampler`` entry checked by making the scheduler it names (ValueError or TypeError where
+    it cannot); returns its explicit timesteps, None where it names a step count and spacing. The one check that
+    export (nothing written that would not load) and loading share."""
+    listed = sampler_timesteps(sampler, preset.num_train_timesteps)
+    make_inference_scheduler(preset, sampler.get("steps"), sampler.get("timestep_spacing", "leading"), listed)
+    return listed
+
+
 class ListedDDIMScheduler(DDIMScheduler):
     """DDIM through an explicit list of timesteps: each step lands on the next one in the list, the last on the
     clean sample. Why a subclass: diffusers' own step always lands ``num_train_timesteps // steps`` lower, which

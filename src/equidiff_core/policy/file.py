@@ -23,7 +23,7 @@ from typing import Any
 import torch
 
 from ..models import action_space
-from ..models.sampling import make_inference_scheduler, sampler_timesteps
+from ..models.sampling import check_sampler_entry
 from ..runtime.output_files import staged_output
 from .presets import PolicyPreset
 
@@ -80,12 +80,7 @@ def export_policy(policy, path: str | Path, sampler: dict | None = None) -> Path
         raise CheckpointError("cannot export a policy without a normaliser")
     if sampler:
         try:
-            make_inference_scheduler(
-                policy.preset,
-                sampler.get("steps"),
-                sampler.get("timestep_spacing", "leading"),
-                sampler_timesteps(sampler, policy.preset.num_train_timesteps),
-            )
+            check_sampler_entry(policy.preset, sampler)
         except (ValueError, TypeError) as err:
             raise CheckpointError(f"sampler {sampler}: {err}") from err
     path = Path(path)

@@ -43,7 +43,13 @@ from ..models.cpu_kernels import (
     swap_modules,
 )
 from ..models.plain import EquiNoiseCore, from_escnn_layout, to_escnn_layout
-from ..models.sampling import ActionCodec, _guided_noise, ddim_sample, make_inference_scheduler, sampler_timesteps
+from ..models.sampling import (
+    ActionCodec,
+    _guided_noise,
+    check_sampler_entry,
+    ddim_sample,
+    make_inference_scheduler,
+)
 from ..runtime.machine import PRECISIONS
 from .augment import voxel_input
 from .diffusion import PolicyInputError
@@ -89,14 +95,14 @@ def load_inference_policy(
         name = config["policy"]
         # a policy file may carry its own sampler (a distilled few-step policy); the arguments override it
         sampler = dict(config.get("sampler") or {})
-        listed = sampler_timesteps(sampler, preset.num_train_timesteps)
-        make_inference_scheduler(preset, sampler.get("steps"), sampler.get("timestep_spacing", "leading"), listed)
+        listed = check_sampler_entry(preset, sampler)
     except (KeyError, ValueError, TypeError, NormalizerError) as err:
         raise CheckpointError(f"{path}: incompatible policy config: {err}") from err
-    steps = inference_steps if inference_steps is not None or timesteps is not None else sampler.get("steps")
     spacing = timestep_spacing or sampler.get("timestep_spacing", "leading")
-    if timesteps is None and inference_steps is None and timestep_spacing is None:
-        timesteps = listed  # the file's own sampler
+    if inference_steps is None and timestep_spacing is None and timesteps is None:  # the file's own sampler
+        steps, timesteps = sampler.get("steps"), listed
+    else:  # the arguments'; a spacing alone keeps the file's step count
+        steps = sampler.get("steps") if inference_steps is None and timesteps is None else inference_steps
     net = build_plain_network(name, preset)
     try:
         net.load_state_dict(state, strict=True)
@@ -179,7 +185,8 @@ class InferencePolicy:
         self.timestep_spacing = timestep_spacing or "leading"
         self.explicit_timesteps = timesteps  # None: the steps spaced by timestep_spacing
         self.scheduler = make_inference_scheduler(preset, inference_steps, self.timestep_spacing, timesteps)
-        self.inference_steps = len(self.scheduler.timesteps)
+        self.timesteps = [int(t) for t in self.scheduler.timesteps]  # what it runs, first to last
+        self.inference_steps = len(self.timesteps)
         self.net = net.eval().to(device=device, dtype=self.dtype)
         self.pad_channels = 0
         self.encoder_kernels = encoder_kernels
@@ -207,7 +214,6 @@ class InferencePolicy:
         self.compiled = False
         if compile:
             self._compile()
-        self._timesteps = [int(t) for t in self.scheduler.timesteps]
         self._static: _StaticSampler | None = None  # set by _use_static_buffers (the CUDA-graph path)
         self.graphed = False
         if cuda_graph:
@@ -407,9 +413,7 @@ class InferencePolicy:
         step = self._batch_steps.get(samples)
         if step is None:
             x = torch.zeros(samples, self.preset.horizon, self.codec.dim, device=self.device)
-            films = self.encode(*self._blank_observation()).repeat(samples, 1) + self._films_for_step(
-                self._timesteps[0]
-            )
+            films = self.encode(*self._blank_observation()).repeat(samples, 1) + self._films_for_step(self.timesteps[0])
             with torch.no_grad(), warnings.catch_warnings():
                 warnings.simplefilter("ignore")
                 traced = torch.jit.trace(Method(self.net, "denoise_films").eval(), (x, films))
@@ -472,7 +476,7 @@ class InferencePolicy:
             target=zeros(1, horizon, dim),
             weights=zeros(1, horizon, 1),
         )
-        for step in self._timesteps:
+        for step in self.timesteps:
             self._films_for_step(step)
         if not capture:
             return
@@ -496,7 +500,7 @@ class InferencePolicy:
         s = self._static
         obs_films = self.net.unet.global_films(self._encode(s.vox, s.ee))
         x = s.noise
-        for step in self._timesteps:
+        for step in self.timesteps:
             eps = self._denoise_films(x, obs_films + self._films_for_step(step)).float()
             if guided:
                 eps = _guided_noise(self.scheduler, step, x, eps, s.target, s.weights)
