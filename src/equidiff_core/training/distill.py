@@ -34,7 +34,7 @@ from ..policy.file import CheckpointError, export_policy
 from ..runtime.jobs import JobError
 from ..runtime.output_files import refuse_existing
 from ..wire.pointcloud import VoxelGridSpec
-from .loop import Ema, load_policy_from_checkpoint
+from .loop import Ema, adamw, load_policy_from_checkpoint
 
 logger = logging.getLogger(__name__)
 
@@ -206,7 +206,7 @@ def run_distillation(spec: DistillSpec, log=logger.info) -> dict:
     student.train()
     # the encoder's features are precomputed: its parameters get no gradient, so AdamW leaves them as they are
     params = list(student.model.parameters())
-    optimizer = torch.optim.AdamW(params, lr=spec.lr, weight_decay=1e-6)
+    optimizer = adamw(params, lr=spec.lr, weight_decay=1e-6)
     schedule = get_cosine_schedule_with_warmup(optimizer, min(100, spec.train_steps // 10), spec.train_steps)
     ema = Ema(student, decay=0.999)
     alphas_cumprod = teacher.noise_scheduler.alphas_cumprod.float()
