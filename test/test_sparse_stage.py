@@ -77,6 +77,19 @@ def test_refuses_what_it_cannot_compute():
         conv_pool_occupied(torch.zeros(1, 4, 8, 8, 8), torch.zeros(8, 4, 5, 5, 5), torch.zeros(8))
     with pytest.raises(ValueError, match="on the CPU"):
         conv_pool_occupied(torch.zeros(1, 4, 8, 8, 8, device="meta"), torch.zeros(8, 4, 3, 3, 3), torch.zeros(8))
+    with pytest.raises(ValueError, match="fp32 grids"):
+        conv_pool_occupied(torch.zeros(1, 4, 8, 8, 8, dtype=torch.float64), torch.zeros(8, 4, 3, 3, 3), torch.zeros(8))
+
+
+def test_a_voxel_is_occupied_when_any_channel_is_non_zero():
+    x = torch.zeros(2, 4, 3, 3, 3)
+    x[0, 3, 0, 0, 0] = 1e-30  # one channel, the smallest values included
+    x[1, 0, 2, 1, 0] = -0.5
+    x[1, 2, 1, 1, 1] = float("nan")  # not zero: the dense convolution would spread it
+    x[0, 1, 2, 2, 2] = -0.0  # zero
+    x = x.transpose(2, 4)  # any layout
+    assert torch.equal(sparse_stage._occupied(x), x.ne(0).any(1))
+    assert sparse_stage._occupied(x).sum() == 3
 
 
 def test_the_dense_layers_stay_where_the_sparse_stage_was_not_measured():

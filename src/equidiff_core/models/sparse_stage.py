@@ -95,6 +95,18 @@ def _tap_rows(pooled: tuple[int, int, int]) -> torch.Tensor:
 DENSE_ABOVE_REACHED = 0.85
 
 
+def _occupied(x: torch.Tensor) -> torch.Tensor:
+    """(B, D, H, W): whether any channel of the fp32 grid ``x`` is non-zero (NaN counts, -0.0 does not), as
+    ``x.ne(0).any(1)``. Its channels' bit patterns OR-ed, the sign bit masked: one pass over the grid, where
+    ``ne(0).any(1)`` writes a boolean grid and reduces it across channels in a second (about twice the CPU time on
+    the first stage's input)."""
+    bits = x.view(torch.int32)
+    merged = bits[:, 0].clone()
+    for channel in range(1, x.shape[1]):
+        merged |= bits[:, channel]
+    return (merged & 0x7FFFFFFF) != 0
+
+
 def _plan(x: torch.Tensor):
     """(feats (M, C) of the M occupied voxels, rows (27, M): the output row each tap adds to, numbered by
     reached cell, 8 rows a cell, a spare last row for taps outside; reached (R,): those cells' flat indices,
@@ -102,7 +114,7 @@ def _plan(x: torch.Tensor):
     B, _, *size = x.shape
     pooled = tuple((n - 2) // 2 for n in size)  # a 3³ convolution without padding, then floor pooling
     cells = B * pooled[0] * pooled[1] * pooled[2]
-    where = x.ne(0).any(1).nonzero()  # (M, 4): sample, then the voxel's three indices
+    where = _occupied(x).nonzero()  # (M, 4): sample, then the voxel's three indices
     sample, voxel = where[:, 0], where[:, 1:]
     feats = x.permute(0, 2, 3, 4, 1)[sample, voxel[:, 0], voxel[:, 1], voxel[:, 2]]
     half, parity = voxel.div(2, rounding_mode="floor"), voxel % 2
@@ -161,8 +173,8 @@ def conv_pool_occupied(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor
     ``x`` (B, C, D, H, W) with any channel non-zero; differentiable in ``weight`` and ``bias``, not in ``x``."""
     if x.requires_grad:
         raise ValueError("conv_pool_occupied does not differentiate its input")
-    if x.device.type != "cpu":
-        raise ValueError(f"conv_pool_occupied runs on the CPU, got a grid on {x.device}")
+    if x.device.type != "cpu" or x.dtype != torch.float32:
+        raise ValueError(f"conv_pool_occupied runs on fp32 grids on the CPU, got {x.dtype} on {x.device}")
     if weight.shape[2:] != (3, 3, 3) or weight.shape[1] != x.shape[1] or bias.shape != weight.shape[:1]:
         raise ValueError(
             f"expected a (Co, {x.shape[1]}, 3, 3, 3) filter and a (Co,) bias, got "
