@@ -28,6 +28,7 @@ from equidiff_core.twin.yaw_range import yaw_breakdown
 
 ROOT = Path(__file__).resolve().parents[1]
 WS = Workspace()
+SAMPLE_BAG = ROOT / "bags" / "sample_pick_0000"
 BLOCK_RGB = (217, 31, 26)
 
 
@@ -332,15 +333,18 @@ def test_bench_train_times_its_variants_in_one_run(capsys):
     assert result["cost"]["ddim16_flops"] == result["cost"]["encoder_flops"] + 16 * result["cost"]["denoise_step_flops"]
 
 
-def test_bench_train_times_the_step_before_the_sparse_first_stage_and_the_column_rotation(capsys, monkeypatch):
+def test_bench_train_times_the_step_before_the_sparse_first_stage_the_column_rotation_and_the_fused_optimiser(
+    capsys, monkeypatch
+):
     # EquiDiff with the continuous rotation, so that both earlier paths are in the step they replace.
+    import torch
     import torch.nn.functional as F
 
     from equidiff_core.models import sparse_stage
     from equidiff_ros.cli import main
 
-    sparse_calls, resampled_channels = [], []
-    sparse_apply, grid_sample = sparse_stage._ConvPoolOccupied.apply, F.grid_sample
+    sparse_calls, resampled_channels, fused = [], [], []
+    sparse_apply, grid_sample, adamw = sparse_stage._ConvPoolOccupied.apply, F.grid_sample, torch.optim.AdamW
 
     def counted_sparse(*args):
         sparse_calls.append(1)
@@ -352,18 +356,39 @@ def test_bench_train_times_the_step_before_the_sparse_first_stage_and_the_column
 
     monkeypatch.setattr(sparse_stage._ConvPoolOccupied, "apply", counted_sparse)
     monkeypatch.setattr(F, "grid_sample", counted_grid_sample)
+    monkeypatch.setattr(torch.optim, "AdamW", lambda *a, **kw: fused.append(kw.get("fused")) or adamw(*a, **kw))
     argv = ["bench", "train", "--preset", "tiny", "--policy", "equidiff", "--device", "cpu", "--steps", "1"]
     argv += ["--warmup", "1", "--batch-size", "2", "--samples", "2", "--rotation-aug", "continuous"]
     # (the bench's cost count runs one step of the current code before the variants)
     assert main([*argv, "--variants", "previous_default", "--rounds", "1"]) == 0
     before = len(sparse_calls)
-    assert max(resampled_channels) > 1
+    assert max(resampled_channels) > 1 and fused == [None]
     resampled_channels.clear()
     assert main([*argv, "--variants", "default", "--rounds", "1"]) == 0
     assert len(sparse_calls) - before == before + 2  # and the warm-up and the timed step, one encoder pass each
-    assert resampled_channels and max(resampled_channels) == 1
+    assert resampled_channels and max(resampled_channels) == 1 and fused == [None, True]
     result = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert list(result["cpu_variants"]["variants"]) == ["default"] and result["observations"] == "twin"
+
+
+def test_bench_train_times_recorded_episodes_and_refuses_a_bag_it_cannot_read(capsys, tmp_path):
+    from equidiff_ros.cli import main
+
+    argv = ["bench", "train", "--preset", "tiny", "--policy", "baseline", "--device", "cpu", "--steps", "1"]
+    argv += ["--warmup", "1", "--batch-size", "2", "--rotation-aug", "none", "--threads", "1"]
+    assert main([*argv, "--demos", str(SAMPLE_BAG)]) == 0
+    result = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert result["observations"] == "demos" and result["demo_episodes"] == 1
+    assert result["samples"] == 32 and result["cpu"]["cpu_sec_per_step"] > 0  # the sample's 40 frames, 32 windows
+    broken = tmp_path / "broken"
+    broken.mkdir()
+    (broken / "metadata.yaml").write_text("rosbag2_bagfile_information: {version: 9\n")
+    assert main([*argv, "--demos", str(SAMPLE_BAG), str(broken)]) == 2
+    captured = capsys.readouterr()
+    assert captured.out == "" and captured.err.startswith("equidiff bench train: --demos: ")
+    (tmp_path / "empty").mkdir()
+    assert main([*argv, "--demos", str(tmp_path / "empty")]) == 2
+    assert capsys.readouterr().err == f"equidiff bench train: --demos: no episodes in {tmp_path / 'empty'}\n"
 
 
 def test_bench_policy_times_the_old_relu_order_in_the_same_run(capsys):

@@ -33,6 +33,8 @@ from equidiff_core.benches.timing import (
     timed_ms,
 )
 from equidiff_core.config import ConfigError, Workspace
+from equidiff_core.data.dataset import DemoDataset, load_episodes
+from equidiff_core.data.episode_arrays import DatasetConfig
 from equidiff_core.models.equivariance import random_observation
 from equidiff_core.models.sampling import make_inference_scheduler
 from equidiff_core.policy.diffusion import count_parameters
@@ -199,6 +201,22 @@ class TrainBenchSettings:
     rounds: int  # alternating rounds of the variants
     cpu: bool  # measure the CPU (``--no-cpu``: False, CUDA only)
     observations: str = "twin"  # the synthetic set's voxels (``timing.SyntheticTrainingSet``): twin | noise
+    demos: tuple[str, ...] = ()  # recorded episodes (bags or folders) to train on instead of the synthetic set
+
+
+def recorded_training_set(paths, preset, workspace, batch_size: int) -> DemoDataset:
+    """The training samples of the recorded episodes at ``paths`` (bags or folders of them): what a lab's own
+    frames cost a step, arm and clutter included. Only the grids' resolution is checked against the preset's; a
+    bag that does not decode stops the bench (BenchError, exit status 2) rather than shrinking the set."""
+    config = DatasetConfig.from_preset(preset, resolution=workspace.resolution)
+    episodes, skipped = load_episodes(paths, config)
+    if skipped or not episodes:
+        reasons = "; ".join(reason for _, reason in skipped[:3]) or f"no episodes in {', '.join(map(str, paths))}"
+        raise BenchError(f"--demos: {reasons}", 2)
+    data = DemoDataset(episodes, config)
+    if len(data) < batch_size:
+        raise BenchError(f"--demos: {len(data)} training samples, fewer than a batch of {batch_size}", 2)
+    return data
 
 
 def run_train_bench(settings: TrainBenchSettings) -> dict:
@@ -226,10 +244,15 @@ def run_train_bench(settings: TrainBenchSettings) -> dict:
     default_runs = {"cpu": [(settings.cpu_precision, "auto")], "cuda": [("auto", "auto")]}
     ws = Workspace()
     batches = [batch_sizes[d] for d, on in devices.items() if on] + ([settings.batch_size] if settings.variants else [])
-    try:
-        data = SyntheticTrainingSet(preset, ws, max([settings.samples, *batches]), observations=settings.observations)
-    except ValueError as err:
-        raise BenchError(str(err), 2) from err
+    if settings.demos:
+        data = recorded_training_set(settings.demos, preset, ws, max(batches))
+    else:
+        try:
+            data = SyntheticTrainingSet(
+                preset, ws, max([settings.samples, *batches]), observations=settings.observations
+            )
+        except ValueError as err:
+            raise BenchError(str(err), 2) from err
     cost = policy_cost(fresh_policy(settings.policy, preset, ws), batch=2, noise_repeats=settings.noise_repeats)
     policy = fresh_policy(settings.policy, preset, ws)  # trained by every run in turn: the timing does not care
     result = {
@@ -241,7 +264,8 @@ def run_train_bench(settings: TrainBenchSettings) -> dict:
         "rotation_aug": preset.rotation_aug,
         "samples": len(data),
         "noise_repeats": settings.noise_repeats,
-        "observations": settings.observations,
+        "observations": "demos" if settings.demos else settings.observations,
+        **({"demo_episodes": len(data.episodes)} if settings.demos else {}),
         "load_avg_1min": round(os.getloadavg()[0], 2),  # a shared machine's load shows in CPU figures
     }
     if settings.variants:  # instead of the CPU's plain measurement

@@ -47,7 +47,7 @@ from ..policy.inference import ENCODER_KERNELS, load_inference_policy
 from ..policy.normalizer import Normalizer
 from ..runtime.machine import PRECISIONS, cpu_description, cpu_model
 from ..training.config import DATA_SOURCES, TrainConfig
-from ..training.loop import train
+from ..training.loop import previous_optimizer_step, train
 from ..twin.config import load_twin_config
 from ..wire.chunk import RealTimeChunking
 
@@ -506,7 +506,10 @@ CPU_VARIANTS = {
     "models.sparse_stage computed them from the occupied voxels",
     "slice_rotation": "the rotation augmentation resampling every x-y slice in float, as before it gathered whole "
     "columns (geometry.slice_resampled_rotation)",
-    "previous_default": "dense_first_stage and slice_rotation together: the CPU step before both",
+    "previous_optimizer_step": "AdamW's loop over every parameter tensor and the gradient clip walking the model each "
+    "step (escnn hashes every basis expansion on a walk), as before training.loop.adamw",
+    "previous_default": "dense_first_stage, slice_rotation and previous_optimizer_step together: the CPU step before "
+    "all three",
 }
 VARIANT_NOISE_REPEATS = {"one_noise_draw": 1, "eight_noise_draws": 8}
 
@@ -548,6 +551,8 @@ def _variant_paths(variant: str):
             paths.enter_context(dense_first_stage())
         if variant in ("slice_rotation", "previous_default"):
             paths.enter_context(slice_resampled_rotation())
+        if variant in ("previous_optimizer_step", "previous_default"):
+            paths.enter_context(previous_optimizer_step())
         yield
 
 

@@ -3,7 +3,8 @@
 Each device runs the real ``training.loop.train`` loop with its defaults there (CPU: fp32, DataLoader;
 CUDA: bf16 autocast, the whole set resident on the GPU) on synthetic observations (``--observations``:
 the twin's table, block and bowl voxelised, or scattered random voxels; gripper states near the
-workspace centre: only how many voxels are occupied, and how spread, changes the cost), with the
+workspace centre: only how many voxels are occupied, and how spread, changes the cost) or on recorded
+episodes (``--demos``: ``"observations": "demos"`` and ``demo_episodes``), with the
 preset's rotation augmentation, and times ``--steps`` optimiser steps after ``--warmup`` untimed ones
 (``benches.timing.measure_training``). Prints one JSON line: ``preset``, ``policy``, ``params``,
 ``cost`` (parameters and FLOPs per sample: encoder, denoising step, DDIM-16, training step;
@@ -79,6 +80,14 @@ def add_arguments(parser) -> None:
         help="the synthetic voxels: twin (the twin's table, block and bowl, as training sees them) or noise "
         "(scattered random voxels, 5 %% of the crop's cylinder: more, and spread wider)",
     )
+    parser.add_argument(
+        "--demos",
+        nargs="+",
+        default=(),
+        metavar="PATH",
+        help="train on these recorded episodes (bags, or folders of them) instead of synthetic observations: "
+        "what your own frames cost a step, the arm included (e.g. `equidiff twin collect`'s)",
+    )
 
 
 def run(args) -> int:
@@ -100,5 +109,6 @@ def run(args) -> int:
         rounds=args.rounds,
         cpu=not args.no_cpu,
         observations=args.observations,
+        demos=tuple(args.demos),
     )
     return print_result(run_train_bench(settings), "bench train")
