@@ -354,10 +354,10 @@ OBSERVATIONS = ("twin", "noise")
 class SyntheticTrainingSet:
     """Synthetic observations with actions around the gripper state (map-style dataset).
 
-    ``observations``: "twin", the twin's table, block and bowl voxelised (``equivariance.twin_scenes``: about 3600
-    occupied voxels, the twin's recorded frames about 3900 in a crop, with the arm); "noise", random coloured voxels
-    filling 5 % of the crop's inscribed cylinder, scattered (about 6200). Only the count and spread of the occupied
-    voxels change a step's cost (the encoder's first stage, ``models.sparse_stage``)."""
+    ``observations``: "twin", the twin's table, block and bowl voxelised (``equivariance.twin_scenes``; no arm, which
+    recorded frames hold); "noise", random coloured voxels filling 5 % of the crop's inscribed cylinder, scattered.
+    Only the count and spread of the occupied voxels change a step's cost (the encoder's first stage,
+    ``models.sparse_stage``; docs/results/model.md counts them)."""
 
     def __init__(self, preset, workspace, n: int, seed: int = 0, observations: str = "twin"):
         if observations not in OBSERVATIONS:

@@ -98,8 +98,7 @@ DENSE_ABOVE_REACHED = 0.85
 def _occupied(x: torch.Tensor) -> torch.Tensor:
     """(B, D, H, W): whether any channel of the fp32 grid ``x`` is non-zero (NaN counts, -0.0 does not), as
     ``x.ne(0).any(1)``. Its channels' bit patterns OR-ed, the sign bit masked: one pass over the grid, where
-    ``ne(0).any(1)`` writes a boolean grid and reduces it across channels in a second (about twice the CPU time on
-    the first stage's input)."""
+    ``ne(0).any(1)`` writes a boolean grid and reduces it across the channels in a second."""
     bits = x.view(torch.int32)
     merged = bits[:, 0].clone()
     for channel in range(1, x.shape[1]):

@@ -140,8 +140,8 @@ def previous_optimizer_step():
 
 def adamw(params: list[torch.nn.Parameter], **hyper) -> torch.optim.AdamW:
     """AdamW over ``params`` through torch's fused kernel where it has one (CPU and CUDA tensors): one pass over
-    all the tensors, where the default loops over EquiDiff's 170 small ones (on compact's, the fused step takes about
-    a quarter of the loop's CPU time: docs/results/model.md). The same update, to fp32 rounding."""
+    all the tensors, where the default loops over EquiDiff's many small ones (docs/results/model.md, "What a CPU
+    training step costs"). The same update, to fp32 rounding."""
     fused = all(p.device.type in ("cpu", "cuda") for p in params) and not _PREVIOUS_OPTIMIZER_STEP.get()
     return torch.optim.AdamW(params, fused=fused or None, **hyper)
 
@@ -195,8 +195,8 @@ def train(
 
     from diffusers.optimization import get_cosine_schedule_with_warmup
 
-    # Listed once: each walk of an escnn model hashes every basis expansion (about 20 ms for compact, as long as
-    # the optimiser's step), and the gradient clip would walk it every step.
+    # Listed once: each walk of an escnn model hashes every basis expansion, and the gradient clip would walk it
+    # every step.
     params = list(policy.model.parameters())
     # A checkpoint's optimiser state brings its own kernel choice: one written before ``adamw`` resumes unfused.
     optimizer = adamw(params, lr=cfg.lr, betas=cfg.betas, weight_decay=cfg.weight_decay)

@@ -77,8 +77,8 @@ def add_arguments(parser) -> None:
         "--observations",
         choices=OBSERVATIONS,
         default="twin",
-        help="the synthetic voxels: twin (the twin's table, block and bowl, as training sees them) or noise "
-        "(scattered random voxels, 5 %% of the crop's cylinder: more, and spread wider)",
+        help="the synthetic voxels: twin (the twin's table, block and bowl, as training sees them, without the "
+        "arm) or noise (scattered random voxels, 5 %% of the crop's cylinder: more, and spread wider)",
     )
     parser.add_argument(
         "--demos",
