@@ -73,20 +73,9 @@ def is_conv_pool_stage(conv, pool) -> bool:
     )
 
 
-# The 3³ window's taps (a, b, c) in the filter's order (a slowest): output o sees input o + (a, b, c).
-_TAPS = torch.stack(torch.meshgrid(*[torch.arange(3)] * 3, indexing="ij"), -1).reshape(27, 3)
-_PARITIES = _TAPS[[0, 1, 3, 4, 9, 10, 12, 13]]  # (q0, q1, q2) in {0, 1}³, numbered 4 q0 + 2 q1 + q2
-
-
-def _tap_rows(pooled: tuple[int, int, int]) -> torch.Tensor:
-    """(8, 27): the row of tap t of a voxel of parity q, relative to 8 x the cell of (voxel // 2).
-
-    A voxel p = 2 h + q reaches output o = p - a, whose cell is h + (q - a) // 2 along each axis and whose
-    place in the cell is (q - a) % 2: both depend on q and a only, so one table serves every voxel."""
-    d = (_PARITIES[:, None, :] - _TAPS[None]).div(2, rounding_mode="floor")  # (8, 27, 3) cell steps
-    child = (_PARITIES[:, None, :] - _TAPS[None]) % 2
-    _, P1, P2 = pooled
-    return ((d[..., 0] * P1 + d[..., 1]) * P2 + d[..., 2]) * 8 + child[..., 0] * 4 + child[..., 1] * 2 + child[..., 2]
+_TAP = torch.arange(3)[:, None]  # a tap's offset along one axis: output o sees input o + a
+# Steps back from a voxel's cell h to the 8 cells whose 4³ input window holds the voxel: h or h - 1 along each axis.
+_CELLS_BACK = torch.tensor([[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)])
 
 
 # Above this share of pooled cells reached (voxels scattered all over the grid, as random noise is) the dense
@@ -108,43 +97,58 @@ def _occupied(x: torch.Tensor) -> torch.Tensor:
 
 def _plan(x: torch.Tensor):
     """(feats (M, C) of the M occupied voxels, rows (27, M): the output row each tap adds to, numbered by
-    reached cell, 8 rows a cell, a spare last row for taps outside; reached (R,): those cells' flat indices,
-    pooled size, cells) for a grid (B, C, D, H, W)."""
+    reached cell, 8 rows a cell, and 8 spare rows last for taps whose output the max-pool drops; reached (R,):
+    those cells' flat indices, pooled size, cells) for a grid (B, C, D, H, W).
+
+    Along each axis a voxel p = 2 h + q (q its parity) reaches, through tap a, output o = p - a, in cell
+    h + (q - a) // 2 (h - 1 when a > q, else h) at place (q - a) % 2 = (q + a) % 2 of that cell's two. Cells are
+    numbered in a grid padded by a ring of spare cells, where the outputs outside the pooled ones fall: no tap
+    needs a bounds check. The (27, M) tensors are the plan's largest, so each is built by one broadcast sum of
+    per-axis (3, M) terms and one gather."""
     B, _, *size = x.shape
     pooled = tuple((n - 2) // 2 for n in size)  # a 3³ convolution without padding, then floor pooling
     cells = B * pooled[0] * pooled[1] * pooled[2]
     where = _occupied(x).nonzero()  # (M, 4): sample, then the voxel's three indices
+    feats = x.permute(0, 2, 3, 4, 1)[where.unbind(1)]
     sample, voxel = where[:, 0], where[:, 1:]
-    feats = x.permute(0, 2, 3, 4, 1)[sample, voxel[:, 0], voxel[:, 1], voxel[:, 2]]
-    half, parity = voxel.div(2, rounding_mode="floor"), voxel % 2
-    cell = ((sample * pooled[0] + half[:, 0]) * pooled[1] + half[:, 1]) * pooled[2] + half[:, 2]
-    # each output's row, grouped by pooled cell so that the max-pool reduces contiguous rows; a tap whose
-    # output lies outside the pooled outputs goes to the spare row
-    rows = 8 * cell[:, None] + _tap_rows(pooled)[parity @ torch.tensor([4, 2, 1])]  # (M, 27)
-    reach = voxel[:, :, None] - torch.arange(3)  # (M, 3 axes, 3 taps): the output index along each axis
-    inside = [(reach[:, i] >= 0) & (reach[:, i] < 2 * n) for i, n in enumerate(pooled)]
-    inside = (inside[0][:, :, None, None] & inside[1][:, None, :, None] & inside[2][:, None, None, :]).view(-1, 27)
-    rows = torch.where(inside, rows, cells * 8).t().contiguous()  # (27, M)
-    # Only the cells some tap reaches get rows (numbered in order); every other cell's outputs are 0 before
-    # the bias, so it pools to the bias alone.
-    reached = torch.zeros(cells + 1, dtype=torch.bool)
-    reached[rows.view(-1) >> 3] = True
-    reached = reached[:-1].nonzero().squeeze(1)
-    numbered = torch.full((cells + 1,), len(reached), dtype=torch.long)
-    numbered[reached] = torch.arange(len(reached))
-    rows = numbered[rows >> 3] * 8 + (rows & 7)  # the spare row is now len(reached) * 8
-    return feats, rows, reached, (B, *pooled), cells
+    padded = tuple((n - 1) // 2 + 2 for n in size)  # cells -1 .. (n - 1) // 2 along each axis, shifted by one
+    strides = (padded[1] * padded[2], padded[2], 1)
+    start = sample * (padded[0] * strides[0])  # each sample's first padded cell
+    own_cell = start.clone()
+    tap_cells, tap_places = [], []
+    for axis in range(3):
+        p = voxel[:, axis]
+        half, parity = (p >> 1) + 1, p & 1  # the voxel's padded cell along the axis, and its place in it
+        own_cell += half * strides[axis]
+        tap_cells.append((half - (_TAP > parity).long()) * strides[axis])  # (3, M): each tap's output cell
+        tap_places.append(((parity + _TAP) & 1) << (2 - axis))
+    # A cell is reached when an occupied voxel lies in its 4³ input window (its 2³ outputs' 3³ windows): the
+    # voxel's own cell and the 7 before it. Only reached cells get rows, numbered in order; every other cell's
+    # outputs are 0 before the bias, so it pools to the bias alone.
+    hit = torch.zeros(B * padded[0] * strides[0], dtype=torch.bool)
+    hit[own_cell[:, None] - _CELLS_BACK @ torch.tensor(strides)] = True
+    interior = (slice(None), *(slice(1, n + 1) for n in pooled))
+    reached_map = hit.view(B, *padded)[interior]
+    reached = reached_map.reshape(-1).nonzero().squeeze(1)
+    numbered = torch.full((B, *padded), len(reached), dtype=torch.long)
+    order = reached_map.reshape(-1).cumsum(0).sub_(1).view(B, *pooled)
+    numbered[interior] = torch.where(reached_map, order, len(reached))
+    c0, c1, c2 = tap_cells
+    rows = numbered.view(-1)[(c0 + start)[:, None, None] + c1[None, :, None] + c2[None, None, :]]  # (3, 3, 3, M)
+    p0, p1, p2 = tap_places
+    rows.mul_(8).add_(p0[:, None, None]).add_(p1[None, :, None]).add_(p2[None, None, :])
+    return feats, rows.view(27, -1), reached, (B, *pooled), cells
 
 
 class _ConvPoolOccupied(torch.autograd.Function):
     @staticmethod
     def forward(ctx, feats, rows, reached, shape, cells, weight: torch.Tensor, bias: torch.Tensor):
         C, Co = feats.shape[1], weight.shape[0]
-        outputs = feats.new_zeros(len(reached) * 8 + 1, Co)
+        outputs = feats.new_zeros(len(reached) * 8 + 8, Co)  # the last 8: the spare rows
         taps = weight.permute(2, 3, 4, 1, 0).reshape(27, C, Co)
         for tap in range(27):  # one tap at a time: its (M, Co) products stay in cache for the scatter
             outputs.index_add_(0, rows[tap], feats @ taps[tap])
-        reached_max, child_max = outputs[:-1].view(len(reached), 8, Co).max(1)
+        reached_max, child_max = outputs[:-8].view(len(reached), 8, Co).max(1)
         # channels-last, as oneDNN's first convolution leaves it: the later convolutions and their backward
         # run several times faster on it than on the contiguous layout (docs/results/model.md)
         out = torch.empty((shape[0], Co, *shape[1:]), dtype=feats.dtype, memory_format=torch.channels_last_3d)
@@ -159,9 +163,9 @@ class _ConvPoolOccupied(torch.autograd.Function):
         feats, rows, reached, child_max = ctx.saved_tensors
         Co = child_max.shape[1]
         per_cell = grad.permute(0, 2, 3, 4, 1).reshape(-1, Co)
-        # the max-pool's gradient: each reached cell's to its largest output (the spare row stays 0)
-        per_output = per_cell.new_zeros(len(reached) * 8 + 1, Co)
-        per_output[:-1].view(-1, 8, Co).scatter_(1, child_max[:, None], per_cell[reached][:, None])
+        # the max-pool's gradient: each reached cell's to its largest output (the spare rows stay 0)
+        per_output = per_cell.new_zeros(len(reached) * 8 + 8, Co)
+        per_output[:-8].view(-1, 8, Co).scatter_(1, child_max[:, None], per_cell[reached][:, None])
         grad_taps = torch.stack([feats.t() @ per_output[rows[tap]] for tap in range(27)])  # (27, C, Co)
         grad_weight = grad_taps.view(3, 3, 3, -1, Co).permute(4, 3, 0, 1, 2)
         return None, None, None, None, None, grad_weight, per_cell.sum(0)
