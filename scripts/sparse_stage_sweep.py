@@ -68,7 +68,7 @@ def main() -> None:
     grids = {"twin": center_crop(voxels[:, 0], preset.crop).float().div(255)}
     if args.demos:
         grids["recorded"] = center_crop(recorded_frames(args.demos, preset), preset.crop).float().div(255)
-    for share in (0.001, 0.003, 0.006, 0.01, 0.02, 0.03, 0.04):
+    for share in (0.001, 0.003, 0.006, 0.01, 0.02, 0.03, 0.04, 0.06, 0.1):
         occupied = torch.rand(8, 1, 58, 58, 58, generator=gen) < share
         grids[f"scattered {share}"] = torch.rand(8, 4, 58, 58, 58, generator=gen) * occupied
     for name, x in grids.items():

@@ -81,7 +81,7 @@ _CELLS_BACK = torch.tensor([[i, j, k] for i in (0, 1) for j in (0, 1) for k in (
 # Above this share of pooled cells reached (voxels scattered all over the grid, as random noise is) the dense
 # layers are the cheaper way to the same function (the break-even swept in docs/results/model.md, "What a CPU
 # training step costs").
-DENSE_ABOVE_REACHED = 0.85
+DENSE_ABOVE_REACHED = 0.95
 
 
 def _occupied(x: torch.Tensor) -> torch.Tensor:
