@@ -23,9 +23,9 @@ import time
 import torch
 import torch.nn.functional as F
 
+from equidiff_core.benches import BenchError
+from equidiff_core.benches.throughput import recorded_training_set
 from equidiff_core.config import Workspace
-from equidiff_core.data.dataset import DemoDataset, load_episodes
-from equidiff_core.data.episode_arrays import DatasetConfig
 from equidiff_core.models import sparse_stage
 from equidiff_core.models.equivariance import twin_scenes
 from equidiff_core.policy.augment import center_crop
@@ -46,11 +46,10 @@ def cpu_ms(run, weight, bias, repeats: int = 3) -> float:
 
 def recorded_frames(paths, preset, count: int = 8) -> torch.Tensor:
     """``count`` frames of the recorded episodes at ``paths``, evenly spaced over their training samples."""
-    config = DatasetConfig.from_preset(preset, resolution=Workspace().resolution)
-    episodes, skipped = load_episodes(paths, config)
-    if skipped or not episodes:
-        raise SystemExit(f"--demos: {skipped[:3] or 'no episodes found'}")
-    data = DemoDataset(episodes, config)
+    try:
+        data = recorded_training_set(paths, preset, Workspace(), count)
+    except BenchError as err:
+        raise SystemExit(str(err)) from err
     picks = torch.linspace(0, len(data) - 1, count).long().tolist()
     return torch.stack([torch.as_tensor(data[i]["voxels"][-1]) for i in picks])
 

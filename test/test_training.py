@@ -112,11 +112,11 @@ def test_every_step_trains_in_train_mode_without_resetting_it_each_step(tmp_path
 
 
 def test_the_fused_optimiser_trains_the_weights_the_per_tensor_loop_trains(tmp_path):
-    """AdamW's fused kernel over the parameter list taken once gives the same weights as the loop over every
-    tensor with the model walked for the gradient clip each step (the step before), to fp32 rounding; and the
-    checkpoint resumes with the fused kernel."""
+    """AdamW's fused kernel, the gradient clip over the parameter list taken once, gives the same weights as the
+    step before (AdamW's loop over every tensor, the clip walking the model each step), to fp32 rounding; the
+    checkpoint records the kernel, which a resumed run keeps."""
     ds = CubeDataset(3, seed=1)
-    cfg = _quick_cfg(steps=3, eval_every=0, checkpoint_every=3, lr=1e-3, warmup_steps=0)
+    cfg = _quick_cfg(steps=3, eval_every=0, checkpoint_every=3, lr=1e-3, warmup_steps=0, grad_clip=0.5)
     weights = {}
     for name in ("fused", "loop"):
         torch.manual_seed(0)
@@ -129,8 +129,10 @@ def test_the_fused_optimiser_trains_the_weights_the_per_tensor_loop_trains(tmp_p
         assert all(bool(g["fused"]) == (name == "fused") for g in groups)
     moved = [k for k, v in weights["fused"].items() if v.is_floating_point() and not torch.equal(v, start[k])]
     assert len(moved) > 10  # the comparison covers weights that trained
+    # within a tenth of one step's size (lr): where a gradient is near AdamW's eps, its division magnifies the
+    # kernels' different rounding to a few % of a step; a wrong update (no bias correction, say) is off by half one
     for key in moved:
-        torch.testing.assert_close(weights["fused"][key], weights["loop"][key], rtol=1e-4, atol=1e-6)
+        torch.testing.assert_close(weights["fused"][key], weights["loop"][key], rtol=0, atol=1e-4)
 
 
 def test_a_checkpoint_loads_with_the_ema_weights_that_training_exported(tmp_path):
