@@ -293,8 +293,8 @@ def test_overfits_tiny_dataset(tmp_path):
     the untrained policy's land as far from both.
 
     The short version of `equidiff bench overfit` (1200 steps: within 1.5 cm, 3x nearer its own
-    demo, the width within 3 cm). 600 steps, ~55 s on a quiet 2-core Xeon; measured there
-    (2026-11-27): the loss 6.0x lower, samples 3.1 and 3.4 cm from their own trajectory and 11.2
+    demo, the width within 3 cm). 600 steps; measured on the 2-core Xeon
+    (2026-11-27, before the fused optimiser): the loss 6.0x lower, samples 3.1 and 3.4 cm from their own trajectory and 11.2
     and 8.3 cm from the other's, the width 96 and 80 mm off; untrained 12.5 / 12.3 cm and 42 cm."""
     from equidiff_core.benches.overfit import OverfitGate, run_overfit
 
