@@ -26,7 +26,6 @@ from contextvars import ContextVar
 from typing import Any
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 
 class _LazyTorch:
@@ -229,12 +228,18 @@ def pose_from_pos_quat(p: Array, q_xyzw: Array) -> np.ndarray:
     norm = np.linalg.norm(q, axis=-1)
     if np.any(np.abs(norm - 1.0) > 1e-3):
         raise GeometryError(f"quaternion is not unit length (|q| = {norm})")
+    # scipy imported where used, here and below: `equidiff lab` commands never convert a quaternion, and it was
+    # the largest of their imports
+    from scipy.spatial.transform import Rotation
+
     R = Rotation.from_quat(q.reshape(-1, 4)).as_matrix().reshape(*q.shape[:-1], 3, 3)
     return make_pose(R, p)
 
 
 def pos_quat_from_pose(T: Array) -> tuple[np.ndarray, np.ndarray]:
     """Pose (..., 4, 4) -> (position (..., 3), scalar-last quaternion (..., 4)) (numpy)."""
+    from scipy.spatial.transform import Rotation
+
     T = validate_pose(np.asarray(T, dtype=np.float64))
     q = Rotation.from_matrix(T[..., :3, :3].reshape(-1, 3, 3)).as_quat().reshape(*T.shape[:-2], 4)
     return T[..., :3, 3].copy(), q
